@@ -1,0 +1,1 @@
+"""Camera calibration wizard (intrinsics, distortion, marker colours). Filled by a later issue."""

@@ -1,0 +1,1 @@
+"""flightstack: distributed-GP cooperative visual pursuit for drone networks."""

@@ -1,0 +1,1 @@
+"""Messages and buses between agents (in-process now; Zenoh behind the same interface later)."""

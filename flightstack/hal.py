@@ -1,0 +1,99 @@
+"""Hardware abstraction: one Protocol per hardware role (DESIGN §5).
+
+Both `drivers/` (real hardware) and `sim_backend/` implement these; the agent and runner only see them.
+Units: SI, radians. Frames: poses are in the world frame Σw (the motion-capture frame); body
+velocities are expressed in the body frame of the robot they command.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from flightstack.geometry import Pose
+
+
+@runtime_checkable
+class Clock(Protocol):
+    """Mission time in seconds. The sim clock is virtual: sleep_until integrates the world."""
+
+    def now(self) -> float: ...
+    def sleep_until(self, t: float) -> None: ...
+
+
+@dataclass(frozen=True)
+class DroneState:
+    """battery in percent, height in metres above ground, link_alive from the drone's own telemetry."""
+
+    battery_pct: float
+    height_m: float
+    link_alive: bool
+    flying: bool
+
+
+@runtime_checkable
+class Drone(Protocol):
+    """One drone that flies body-velocity commands V = [v_x, v_y, v_z, ω_z] (m/s, rad/s, body frame)."""
+
+    def connect(self) -> None: ...
+    def takeoff(self) -> None: ...
+    def land(self) -> None: ...
+    def emergency_stop(self) -> None: ...
+    def send_body_velocity(self, V: np.ndarray) -> None: ...
+    def state(self) -> DroneState: ...
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A camera sample taken at `stamp` (s, mission clock).
+
+    Either `image` (H × W × 3, RGB uint8) from a real or rendered camera, or `features` (2m,) in the
+    paper's image-plane units (the ideal camera of the paper's simulation), or both; `features` is None
+    when the target is not (fully) visible.
+    """
+
+    stamp: float
+    image: np.ndarray | None
+    features: np.ndarray | None
+
+
+@runtime_checkable
+class Camera(Protocol):
+    def latest(self) -> Frame | None: ...
+
+
+@dataclass(frozen=True)
+class StampedPose:
+    stamp: float
+    pose: Pose
+
+
+@runtime_checkable
+class PoseSource(Protocol):
+    """Latest pose of a named rigid body (motion capture; sim: truth + noise); None if never seen."""
+
+    def latest(self, body: str) -> StampedPose | None: ...
+
+
+@runtime_checkable
+class GroundRobot(Protocol):
+    """The pursued ground robot (Scamper), commanded by body velocity [v_x, v_y, 0, ω_z]."""
+
+    def send_body_velocity(self, V: np.ndarray) -> None: ...
+    def stop(self) -> None: ...
+
+
+@runtime_checkable
+class Backend(Protocol):
+    """Builds the hardware (or simulated) devices of a mission and owns the clock."""
+
+    clock: Clock
+
+    def drone(self, drone_id: int) -> Drone: ...
+    def camera(self, drone_id: int) -> Camera: ...
+    def pose_source(self) -> PoseSource: ...
+    def target(self) -> GroundRobot | None: ...
+    def close(self) -> None: ...

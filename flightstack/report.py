@@ -1,0 +1,92 @@
+"""PNG plots like the paper's Figs. 3–5 from an experiment's recordings (matplotlib, Agg backend)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from flightstack.mission import Mission
+from flightstack.runner import Recording
+from flightstack.training import ExpertData, bands
+
+MODE_STYLE = {
+    "none": ("tab:gray", "without GP"),
+    "local": ("tab:orange", "local GP"),
+    "dgp": ("tab:blue", "distributed GP"),
+    "oracle": ("tab:green", "true velocity"),
+}
+DRONE_COLOURS = ("tab:red", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive")
+
+
+def plot_trajectory(path: Path, mission: Mission, rec: Recording, data: list[ExpertData]) -> None:
+    """Fig. 3: target xy trajectory, expert bands, training points (○ start, □ end)."""
+    k = rec.ticks_done
+    xy = rec.g_w0[:k, :2]
+    fig, ax = plt.subplots(figsize=(6, 5))
+    axis = mission.gp.regions.axis
+    lo_all, hi_all = xy.min(axis=0) - 0.3, xy.max(axis=0) + 0.3
+    for j, (lo, hi) in enumerate(bands(mission)):
+        c = DRONE_COLOURS[j % len(DRONE_COLOURS)]
+        a0 = max(lo, lo_all[0 if axis == "x" else 1])
+        a1 = min(hi, hi_all[0 if axis == "x" else 1])
+        label = f"region of drone {rec.drone_ids[j]}"
+        if axis == "x":
+            ax.axvspan(a0, a1, color=c, alpha=0.08, label=label)
+        else:
+            ax.axhspan(a0, a1, color=c, alpha=0.08, label=label)
+    ax.plot(xy[:, 0], xy[:, 1], "k-", lw=1, label="target")
+    ax.plot(*xy[0], "ko", mfc="none", ms=9)
+    ax.plot(*xy[-1], "ks", mfc="none", ms=9)
+    for j, d in enumerate(data):
+        c = DRONE_COLOURS[j % len(DRONE_COLOURS)]
+        ax.plot(d.X[:, 0], d.X[:, 1], "x", color=c, ms=7, label=f"data of drone {d.drone_id}")
+    ax.set_xlim(lo_all[0], hi_all[0])
+    ax.set_ylim(lo_all[1], hi_all[1])
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title("Target trajectory, expert regions and training data")
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_error_norms(path: Path, recs: dict[str, Recording], which: str) -> None:
+    """Figs. 4/5: ‖e_c‖ or ‖e_e‖ (network-wide, R^{4n}) over time, one line per mode, log scale."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for mode, rec in recs.items():
+        k = rec.ticks_done
+        e = rec.e_c[:k] if which == "c" else rec.e_e[:k]
+        norm = np.sqrt((e**2).sum(axis=(1, 2)))
+        colour, label = MODE_STYLE.get(mode, ("k", mode))
+        ax.semilogy(rec.t[:k], np.maximum(norm, 1e-16), color=colour, lw=1, label=label)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(r"$\|e_c\|$" if which == "c" else r"$\|e_e\|$")
+    ax.set_title("Control error" if which == "c" else "Estimation error")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_plots(
+    out: Path, mission: Mission, recs: dict[str, Recording], data: list[ExpertData]
+) -> list[Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    ref = recs.get("none") or next(iter(recs.values()))
+    p = out / "trajectory.png"
+    plot_trajectory(p, mission, ref, data)
+    paths.append(p)
+    shown = {m: r for m, r in recs.items() if m in mission.compare_modes}
+    for which in ("c", "e"):
+        p = out / f"error_e{which}.png"
+        plot_error_norms(p, shown, which)
+        paths.append(p)
+    return paths

@@ -1,0 +1,144 @@
+"""The ideal backend of the paper's simulation: exact poses, an exact camera, drones that fly V exactly.
+
+Implements flightstack.hal (Clock, Drone, Camera, PoseSource). Nothing in flightstack imports this at
+module level; the runner loads it by the mission's `backend: sim_ideal` through the registry.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flightstack.geometry import Pose, relative
+from flightstack.hal import DroneState, Frame, StampedPose
+from flightstack.projection import CameraModel, TargetNotVisibleError, measure
+from sim_backend.world import World
+
+
+class VirtualClock:
+    """Virtual time: sleep_until(t) integrates the world up to t in steps of at most dt."""
+
+    def __init__(self, world: World, dt: float) -> None:
+        self.world = world
+        self.dt = dt
+
+    def now(self) -> float:
+        return self.world.t
+
+    def sleep_until(self, t: float) -> None:
+        while self.world.t < t - 1e-12:
+            self.world.step(min(self.dt, t - self.world.t))
+
+
+class IdealDrone:
+    """A drone that realises its body-velocity command instantly and exactly."""
+
+    def __init__(self, world: World, drone_id: int) -> None:
+        self.world = world
+        self.id = drone_id
+        self.flying = True  # the paper's simulation starts airborne
+        self.commands = 0
+
+    def connect(self) -> None:
+        pass
+
+    def takeoff(self) -> None:
+        self.flying = True
+
+    def land(self) -> None:
+        self.world.command_drone(self.id, np.zeros(4))
+        self.flying = False
+
+    def emergency_stop(self) -> None:
+        self.land()
+
+    def send_body_velocity(self, V: np.ndarray) -> None:
+        V = np.asarray(V, dtype=float)
+        if V.shape != (4,) or not np.all(np.isfinite(V)):
+            raise ValueError(f"body velocity must be 4 finite numbers, got {V!r}")
+        if self.flying:
+            self.world.command_drone(self.id, V)
+            self.commands += 1
+
+    def state(self) -> DroneState:
+        return DroneState(
+            battery_pct=100.0,
+            height_m=float(self.world.drones[self.id].pose.p[2]),
+            link_alive=True,
+            flying=self.flying,
+        )
+
+    def close(self) -> None:
+        self.land()
+
+
+class IdealCamera:
+    """Returns the exact feature vector f(g_i0) of the true relative pose (paper eq. f)."""
+
+    def __init__(
+        self, world: World, drone_id: int, P0: np.ndarray, cam: CameraModel, sees_target: bool = True
+    ):
+        self.world = world
+        self.id = drone_id
+        self.P0 = P0
+        self.cam = cam
+        self.sees_target = sees_target
+
+    def latest(self) -> Frame:
+        if not self.sees_target:
+            return Frame(self.world.t, None, None)
+        g_i0 = relative(self.world.drones[self.id].pose, self.world.target.pose)
+        try:
+            f = measure(g_i0, self.P0, self.cam)
+        except TargetNotVisibleError:
+            f = None
+        return Frame(self.world.t, None, f)
+
+
+class TruthPoseSource:
+    """Motion capture without noise: bodies are 'drone<id>' and 'target'."""
+
+    def __init__(self, world: World) -> None:
+        self.world = world
+
+    def latest(self, body: str) -> StampedPose | None:
+        if body == "target":
+            return StampedPose(self.world.t, self.world.target.pose)
+        if body.startswith("drone"):
+            try:
+                return StampedPose(self.world.t, self.world.drones[int(body[5:])].pose)
+            except (KeyError, ValueError):
+                return None
+        return None
+
+
+class IdealSimBackend:
+    """Backend of the paper's simulation (hal.Backend), plus `truth()` for metrics."""
+
+    def __init__(
+        self, world: World, dt: float, P0: np.ndarray, cam: CameraModel, sees_target: dict[int, bool]
+    ) -> None:
+        self.world = world
+        self.clock = VirtualClock(world, dt)
+        self._drones = {i: IdealDrone(world, i) for i in world.drones}
+        self._cams = {i: IdealCamera(world, i, P0, cam, sees_target.get(i, True)) for i in world.drones}
+        self._poses = TruthPoseSource(world)
+
+    def drone(self, drone_id: int) -> IdealDrone:
+        return self._drones[drone_id]
+
+    def camera(self, drone_id: int) -> IdealCamera:
+        return self._cams[drone_id]
+
+    def pose_source(self) -> TruthPoseSource:
+        return self._poses
+
+    def target(self) -> None:
+        return None  # the target follows its velocity field inside the world
+
+    def truth(self) -> tuple[Pose, dict[int, Pose]]:
+        """(g_w0, {id: g_wi}) now: sim-only access for metrics, never used by agents."""
+        return self.world.target.pose, {i: b.pose for i, b in self.world.drones.items()}
+
+    def close(self) -> None:
+        for d in self._drones.values():
+            d.close()
