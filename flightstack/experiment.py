@@ -156,4 +156,8 @@ def write_run_dir(out: Path, mission: Mission, res: ExperimentResult) -> None:
             out / "datasets.npz",
             **{f"drone{d.drone_id}__{k}": getattr(d, k) for d in res.datasets for k in ("X", "Y", "ticks")},
         )
+    with (out / "events.jsonl").open("w") as fh:
+        for rec in res.recordings.values():
+            for ev in rec.events:
+                fh.write(json.dumps(ev) + "\n")
     (out / "metrics.json").write_text(json.dumps(res.metrics, indent=2, allow_nan=False) + "\n")

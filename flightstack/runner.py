@@ -48,6 +48,7 @@ class Recording:
     bus_dropped: dict[str, int] = field(default_factory=dict)
     wall_seconds: float = 0.0
     interrupted: bool = False
+    events: list[dict[str, object]] = field(default_factory=list)
 
     @staticmethod
     def empty(mode: str, ids: list[int], n_ticks: int) -> Recording:
@@ -75,7 +76,7 @@ class Recording:
         k = self.ticks_done
         out = Recording(self.mode, self.drone_ids, *(getattr(self, f)[:k] for f in ARRAY_FIELDS))
         out.ticks_done, out.bus_dropped = k, self.bus_dropped
-        out.wall_seconds, out.interrupted = self.wall_seconds, self.interrupted
+        out.wall_seconds, out.interrupted, out.events = self.wall_seconds, self.interrupted, self.events
         return out
 
     def save(self, path: str) -> None:
@@ -183,8 +184,19 @@ def run_mode(
             clock.sleep_until(t + dt)
     except KeyboardInterrupt:
         rec.interrupted = True
+        rec.events.append({"t": clock.now(), "event": "interrupted", "mode": mode})
     finally:
-        backend.close()
+        backend.close()  # lands every drone
+        for i in ids:
+            st = backend.drone(i).state()
+            rec.events.append(
+                {
+                    "t": clock.now(),
+                    "event": "landed" if not st.flying else "NOT LANDED",
+                    "drone": i,
+                    "mode": mode,
+                }
+            )
         rec.wall_seconds = time.perf_counter() - wall0
         rec.bus_dropped = dict(bus.dropped)
         fill_true_errors(rec, np.array([g.as_vector() for g in g_d]))

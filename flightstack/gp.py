@@ -1,0 +1,517 @@
+"""One GP expert of the distributed GP (Saito et al., IFAC 2023, section "Distributed GP").
+
+Drone j owns the data set D^{(j)} = {X^{(j)}, Y^{(j)}} of M_j pairs (input x = [x, y, z, θ] ∈ R^4, output
+y = body velocity of the target ∈ R^4 plus noise ε_i ~ N(0, σ_{ni}²)) and regresses each output element i
+with an independent zero-mean GP with its own SE-ARD kernel
+
+    k_i^{(j)}(x, x') = (σ_{fi}^{(j)})² exp(-Σ_{m=1}^{Din} (x_m - x'_m)² / (2 (l_{im}^{(j)})²)).
+
+For a test input x_* the paper's predictive mean and (latent, noise-free) variance are
+
+    μ_i^{(j)}   = (k_{i*}^{(j)})^T (𝒦_i^{(j)} + σ_{ni}² I_{M_j})^{-1} Y_i^{(j)},
+    var_i^{(j)} = k_i^{(j)}(x_*, x_*) - (k_{i*}^{(j)})^T (𝒦_i^{(j)} + σ_{ni}² I_{M_j})^{-1} k_{i*}^{(j)},
+
+with [𝒦_i^{(j)}]_{ll'} = k_i^{(j)}(x^{(jl)}, x^{(jl')}) and [k_{i*}^{(j)}]_l = k_i^{(j)}(x_*, x^{(jl)}).
+
+Naming in this module: the paper's output index i is ``d`` (0..D-1), the expert index (j) is implicit (one
+:class:`GPExpert` object per drone), M = M_j is the number of training points, Din the input dimension.
+The noise variance σ_n² is fixed (given), only σ_f and l are learned by maximising the log marginal
+likelihood (:meth:`GPExpert.fit`). Everything is numpy/scipy only.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+from scipy.spatial.distance import cdist
+
+__all__ = ["VAR_FLOOR_REL", "GPExpert", "GPHyperparameters", "log_marginal_likelihood_and_grad"]
+
+#: Predictive latent variances are clipped from below at ``VAR_FLOOR_REL * σ_f²`` (per output dimension).
+#: Analytically var ≥ 0, but σ_f² − ‖L^{-1} k_*‖² suffers cancellation close to the training inputs when
+#: σ_n² ≪ σ_f²; the floor keeps downstream precisions 1/var (PoE fusion) finite and positive.
+VAR_FLOOR_REL = 1e-12
+
+_LOG_2PI = math.log(2.0 * math.pi)
+#: Random restarts of :meth:`GPExpert.fit` are drawn within ± this (natural-log) distance of the
+#: data-driven start (intersected with the bounds), i.e. within a factor 100 of it; for the length scales
+#: only the lower end is narrowed, the upper end is the bound itself.
+_RESTART_LOG_HALF_WIDTH = math.log(100.0)
+#: Tighter than scipy's defaults (ftol 2.2e-9, gtol 1e-5): the fit is offline and the optimum should not
+#: depend on where the optimiser happened to stop.
+_LBFGSB_OPTIONS: dict[str, float] = {"ftol": 1e-12, "gtol": 1e-8}
+
+
+# --------------------------------------------------------------------------------------------------------
+# validation helpers
+# --------------------------------------------------------------------------------------------------------
+def _as_finite_2d(a: np.ndarray, name: str) -> np.ndarray:
+    arr = np.asarray(a, dtype=float)
+    if arr.ndim != 2:
+        raise ValueError(f"{name} must be a 2-D array, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains non-finite values (NaN or inf)")
+    return arr
+
+
+def _validate_training_data(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    X = _as_finite_2d(X, "X")
+    Y = _as_finite_2d(Y, "Y")
+    if X.shape[0] != Y.shape[0]:
+        raise ValueError(f"X and Y must have the same number of rows (M), got X {X.shape} and Y {Y.shape}")
+    if X.shape[0] < 2:
+        raise ValueError(f"need at least M = 2 training points, got M = {X.shape[0]}")
+    if X.shape[1] < 1 or Y.shape[1] < 1:
+        raise ValueError(f"X and Y need at least one column, got X {X.shape} and Y {Y.shape}")
+    return X, Y
+
+
+def _validate_noise_var(noise_var: float | np.ndarray, n_outputs: int) -> np.ndarray:
+    nv = np.asarray(noise_var, dtype=float)
+    if nv.ndim == 0:
+        nv = np.full(n_outputs, float(nv))
+    if nv.shape != (n_outputs,):
+        raise ValueError(f"noise_var must be a scalar or have shape ({n_outputs},), got shape {nv.shape}")
+    if not np.all(np.isfinite(nv)) or np.any(nv <= 0.0):
+        raise ValueError(f"noise_var (σ_n²) must be finite and > 0, got {nv}")
+    return nv
+
+
+def _validate_log_bounds(bounds: tuple[float, float], name: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(b) for b in bounds)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a pair (lo, hi) of floats, got {bounds!r}") from exc
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise ValueError(f"{name} must be finite with lo < hi, got {(lo, hi)}")
+    return lo, hi
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    out = np.array(a, dtype=float, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+# --------------------------------------------------------------------------------------------------------
+# hyperparameters
+# --------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class GPHyperparameters:
+    """SE-ARD hyperparameters of the D independent output GPs of one expert.
+
+    Attributes:
+        sigma_f: (D,) signal standard deviation σ_{f,d} per output (units of the output, e.g. m/s).
+        length_scales: (D, Din) length scales l_{d,m} (units of input column m).
+        noise_var: (D,) fixed observation-noise variance σ_{n,d}² (output units squared). A scalar is
+            accepted and broadcast to (D,).
+
+    The arrays are copied to read-only float64 arrays. ``eq=False``: comparing instances with ``==`` is
+    identity; compare the arrays explicitly (e.g. ``np.array_equal``).
+    """
+
+    sigma_f: np.ndarray
+    length_scales: np.ndarray
+    noise_var: np.ndarray
+
+    def __post_init__(self) -> None:
+        sigma_f = np.asarray(self.sigma_f, dtype=float)
+        if sigma_f.ndim != 1 or sigma_f.size < 1:
+            raise ValueError(f"sigma_f must have shape (D,), got shape {sigma_f.shape}")
+        if not np.all(np.isfinite(sigma_f)) or np.any(sigma_f <= 0.0):
+            raise ValueError(f"sigma_f (σ_f) must be finite and > 0, got {sigma_f}")
+        n_out = sigma_f.shape[0]
+        lengths = np.asarray(self.length_scales, dtype=float)
+        if lengths.ndim != 2 or lengths.shape[0] != n_out or lengths.shape[1] < 1:
+            raise ValueError(f"length_scales must have shape (D={n_out}, Din), got shape {lengths.shape}")
+        if not np.all(np.isfinite(lengths)) or np.any(lengths <= 0.0):
+            raise ValueError("length_scales (l) must be finite and > 0")
+        noise = _validate_noise_var(self.noise_var, n_out)
+        object.__setattr__(self, "sigma_f", _readonly(sigma_f))
+        object.__setattr__(self, "length_scales", _readonly(lengths))
+        object.__setattr__(self, "noise_var", _readonly(noise))
+
+    @property
+    def n_outputs(self) -> int:
+        """D, the number of outputs."""
+        return int(self.sigma_f.shape[0])
+
+    @property
+    def n_inputs(self) -> int:
+        """Din, the input dimension."""
+        return int(self.length_scales.shape[1])
+
+
+# --------------------------------------------------------------------------------------------------------
+# log marginal likelihood of one output dimension
+# --------------------------------------------------------------------------------------------------------
+def _pairwise_sq_diff(X: np.ndarray) -> np.ndarray:
+    """(M, Din) -> (M, M, Din) with entries (x_{a,m} - x_{b,m})²."""
+    diff = X[:, None, :] - X[None, :, :]
+    return diff * diff
+
+
+def _lml_and_grad(
+    sq_diff: np.ndarray, y: np.ndarray, log_sigma_f: float, log_lengths: np.ndarray, noise_var: float
+) -> tuple[float, np.ndarray]:
+    """Unvalidated core of :func:`log_marginal_likelihood_and_grad` (sq_diff from :func:`_pairwise_sq_diff`).
+
+    Raises ``numpy.linalg.LinAlgError`` if 𝒦 + σ_n² I is numerically not positive definite.
+    """
+    m = y.shape[0]
+    # R_m[a, b] = (x_{a,m} - x_{b,m})² / l_m²
+    R = sq_diff * np.exp(-2.0 * log_lengths)
+    # 𝒦 (noise-free Gram matrix), and 𝒦 + σ_n² I
+    K_f = math.exp(2.0 * log_sigma_f) * np.exp(-0.5 * R.sum(axis=-1))
+    K_y = K_f + noise_var * np.eye(m)
+    L = scipy.linalg.cholesky(K_y, lower=True, check_finite=False)
+    alpha = scipy.linalg.cho_solve((L, True), y, check_finite=False)  # α = (𝒦 + σ_n² I)^{-1} y
+    # log p(y | X, θ) = -½ yᵀα - Σ log L_aa - (M/2) log 2π
+    lml = -0.5 * float(y @ alpha) - float(np.sum(np.log(np.diag(L)))) - 0.5 * m * _LOG_2PI
+    # ∂ log p / ∂θ = ½ tr((α αᵀ - (𝒦 + σ_n² I)^{-1}) ∂𝒦/∂θ), with
+    #   ∂𝒦/∂ log σ_f = 2 𝒦,   ∂𝒦/∂ log l_m = 𝒦 ∘ R_m.
+    K_inv = scipy.linalg.cho_solve((L, True), np.eye(m), check_finite=False)
+    WK = (np.outer(alpha, alpha) - K_inv) * K_f
+    grad = np.empty(1 + log_lengths.shape[0])
+    grad[0] = float(np.sum(WK))
+    grad[1:] = 0.5 * np.einsum("ab,abm->m", WK, R)
+    return lml, grad
+
+
+def log_marginal_likelihood_and_grad(
+    X: np.ndarray, y: np.ndarray, log_sigma_f: float, log_lengths: np.ndarray, noise_var: float
+) -> tuple[float, np.ndarray]:
+    """Log marginal likelihood of one output dimension and its analytic gradient.
+
+    log p(y | X) = -½ yᵀ(𝒦 + σ_n² I)^{-1} y - ½ log|𝒦 + σ_n² I| - (M/2) log 2π, zero prior mean, SE-ARD 𝒦.
+
+    Args:
+        X: (M, Din) training inputs.
+        y: (M,) training targets of this output dimension.
+        log_sigma_f: natural log of σ_f.
+        log_lengths: (Din,) natural logs of the length scales l_1..l_Din.
+        noise_var: fixed σ_n² > 0 (not differentiated).
+
+    Returns:
+        ``(lml, grad)``: the log marginal likelihood (float, nats) and its gradient (1 + Din,) with respect
+        to ``[log σ_f, log l_1, ..., log l_Din]``.
+
+    Raises:
+        ValueError: on bad shapes / non-finite values / noise_var <= 0, or if 𝒦 + σ_n² I is numerically not
+            positive definite.
+    """
+    X = _as_finite_2d(X, "X")
+    y = np.asarray(y, dtype=float)
+    if y.ndim != 1 or y.shape[0] != X.shape[0]:
+        raise ValueError(f"y must have shape (M,) = ({X.shape[0]},), got shape {y.shape}")
+    if not np.all(np.isfinite(y)):
+        raise ValueError("y contains non-finite values (NaN or inf)")
+    log_lengths = np.asarray(log_lengths, dtype=float)
+    if log_lengths.shape != (X.shape[1],):
+        raise ValueError(
+            f"log_lengths must have shape (Din,) = ({X.shape[1]},), got shape {log_lengths.shape}"
+        )
+    if not (math.isfinite(float(log_sigma_f)) and np.all(np.isfinite(log_lengths))):
+        raise ValueError("log_sigma_f and log_lengths must be finite")
+    noise = float(_validate_noise_var(noise_var, 1)[0])
+    try:
+        return _lml_and_grad(_pairwise_sq_diff(X), y, float(log_sigma_f), log_lengths, noise)
+    except np.linalg.LinAlgError as exc:
+        raise ValueError("𝒦 + σ_n² I is not positive definite (increase noise_var?)") from exc
+
+
+# --------------------------------------------------------------------------------------------------------
+# the expert
+# --------------------------------------------------------------------------------------------------------
+class GPExpert:
+    """Multi-output GP expert R^Din -> R^D: D independent SE-ARD GPs sharing the training inputs X.
+
+    Attributes:
+        X: (M, Din) training inputs (read-only copy).
+        Y: (M, D) training outputs (read-only copy).
+        hyper: :class:`GPHyperparameters` (σ_f (D,), l (D, Din), σ_n² (D,)).
+
+    Caches built at construction, per output dimension d:
+        * ``L[d]``: (M, M) lower Cholesky factor of 𝒦_d + σ_{n,d}² I,
+        * ``alpha[d]``: (M,) α_d = (𝒦_d + σ_{n,d}² I)^{-1} Y_d,
+        * ``L_inv[d]``: (M, M) L_d^{-1}, so that v = L_d^{-1} k_* and var = σ_f² − ‖v‖² in
+          :meth:`predict_one` are one batched matmul across the D dimensions (together with the mean).
+    """
+
+    def __init__(self, X: np.ndarray, Y: np.ndarray, hyper: GPHyperparameters) -> None:
+        X, Y = _validate_training_data(X, Y)
+        if not isinstance(hyper, GPHyperparameters):
+            raise ValueError(f"hyper must be a GPHyperparameters, got {type(hyper).__name__}")
+        if hyper.n_outputs != Y.shape[1] or hyper.n_inputs != X.shape[1]:
+            raise ValueError(
+                f"hyperparameters are for D={hyper.n_outputs} outputs, Din={hyper.n_inputs} inputs, but the "
+                f"data has D={Y.shape[1]}, Din={X.shape[1]}"
+            )
+        self.X: np.ndarray = _readonly(X)
+        self.Y: np.ndarray = _readonly(Y)
+        self.hyper: GPHyperparameters = hyper
+
+        m, n_out = Y.shape
+        self._sf2 = hyper.sigma_f**2  # σ_f², (D,)
+        self._var_floor = VAR_FLOOR_REL * self._sf2  # (D,)
+        self._inv_l = 1.0 / hyper.length_scales  # (D, Din)
+        self._Z = X[None, :, :] * self._inv_l[:, None, :]  # scaled inputs x/l_d, (D, M, Din)
+        eye = np.eye(m)
+        L = np.empty((n_out, m, m))
+        alpha = np.empty((n_out, m))
+        L_inv = np.empty((n_out, m, m))
+        for d in range(n_out):
+            # 𝒦_d + σ_{n,d}² I
+            K_y = self._sf2[d] * np.exp(-0.5 * cdist(self._Z[d], self._Z[d], "sqeuclidean"))
+            K_y[np.diag_indices(m)] += hyper.noise_var[d]
+            try:
+                c, _ = scipy.linalg.cho_factor(K_y, lower=True, check_finite=False)
+            except np.linalg.LinAlgError as exc:
+                raise ValueError(
+                    f"𝒦 + σ_n² I of output {d} is not positive definite (increase noise_var?)"
+                ) from exc
+            L[d] = np.tril(c)
+            alpha[d] = scipy.linalg.cho_solve((L[d], True), Y[:, d], check_finite=False)
+            L_inv[d] = scipy.linalg.solve_triangular(L[d], eye, lower=True, check_finite=False)
+        self.L = L
+        self.alpha = alpha
+        self.L_inv = L_inv
+        # rows: [α_dᵀ; L_d^{-1}] so that proj @ k_* = [μ_d; v_d] in one batched matmul, (D, M+1, M)
+        self._proj = np.concatenate([alpha[:, None, :], L_inv], axis=1)
+        self._sf2_col = self._sf2[:, None]
+        self._n_in = X.shape[1]
+
+    # ---------------------------------------------------------------------------------------------------
+    # construction
+    # ---------------------------------------------------------------------------------------------------
+    @classmethod
+    def from_hyperparameters(cls, X: np.ndarray, Y: np.ndarray, hyper: GPHyperparameters) -> GPExpert:
+        """Build an expert from data X (M, Din), Y (M, D) and given hyperparameters (computes the caches)."""
+        return cls(X, Y, hyper)
+
+    @classmethod
+    def fit(
+        cls,
+        X: np.ndarray,
+        Y: np.ndarray,
+        noise_var: float | np.ndarray,
+        *,
+        restarts: int = 5,
+        seed: int = 0,
+        log_sigma_f_bounds: tuple[float, float] = (math.log(1e-3), math.log(1e3)),
+        log_length_bounds: tuple[float, float] = (math.log(1e-2), math.log(1e3)),
+    ) -> GPExpert:
+        """Type-II maximum likelihood of σ_{f,d}, l_{d,·} per output dimension d, with σ_n² fixed.
+
+        For each d, maximises :func:`log_marginal_likelihood_and_grad` over θ = [log σ_f, log l_1..l_Din]
+        with L-BFGS-B (analytic gradient) within the given log-space bounds, from ``restarts`` starting
+        points: the first data-driven (σ_f = std(Y_d), or 1 if that is ~0; l_m = std of input column m, or 1
+        if ~0; clipped into the bounds), the others drawn from ``np.random.default_rng(seed)`` uniformly in
+        log space within the bounds, narrowed to σ_f within a factor 100 of the data-driven value and l_m from
+        std/100 up to the upper bound (very long length scales, i.e. ARD switching an input off, are a common
+        optimum). The best optimum is kept; a restart that fails (e.g. Cholesky breakdown) is skipped. The
+        LML is multimodal in l, so the result depends on ``restarts`` and ``seed`` (deterministically).
+
+        Args:
+            X: (M, Din) training inputs, M >= 2.
+            Y: (M, D) training outputs.
+            noise_var: fixed σ_n², scalar or (D,), > 0.
+            restarts: number of starting points per output dimension (>= 1).
+            seed: seed of the random restarts (the result is deterministic for a fixed seed).
+            log_sigma_f_bounds: (lo, hi) bounds on log σ_f.
+            log_length_bounds: (lo, hi) bounds on every log l_m.
+
+        Raises:
+            ValueError: on bad inputs, or if every restart of some output dimension failed.
+        """
+        X, Y = _validate_training_data(X, Y)
+        noise = _validate_noise_var(noise_var, Y.shape[1])
+        if isinstance(restarts, bool) or not isinstance(restarts, int | np.integer) or restarts < 1:
+            raise ValueError(f"restarts must be an integer >= 1, got {restarts!r}")
+        f_lo, f_hi = _validate_log_bounds(log_sigma_f_bounds, "log_sigma_f_bounds")
+        l_lo, l_hi = _validate_log_bounds(log_length_bounds, "log_length_bounds")
+
+        n_in = X.shape[1]
+        n_out = Y.shape[1]
+        sq_diff = _pairwise_sq_diff(X)
+        lo = np.array([f_lo] + [l_lo] * n_in)
+        hi = np.array([f_hi] + [l_hi] * n_in)
+        bounds = list(zip(lo, hi, strict=True))
+        x_std = X.std(axis=0)
+        log_l0 = np.log(np.where(x_std > 1e-12, x_std, 1.0))
+        rng = np.random.default_rng(seed)
+
+        sigma_f = np.empty(n_out)
+        lengths = np.empty((n_out, n_in))
+        for d in range(n_out):
+            y = Y[:, d]
+            y_std = float(y.std())
+            theta0 = np.clip(np.concatenate([[math.log(y_std if y_std > 1e-12 else 1.0)], log_l0]), lo, hi)
+            # narrowed sampling box for the random restarts (non-empty: theta0 lies inside the bounds)
+            box_lo = np.maximum(lo, theta0 - _RESTART_LOG_HALF_WIDTH)
+            box_hi = np.minimum(hi, theta0 + _RESTART_LOG_HALF_WIDTH)
+            box_hi[1:] = hi[1:]  # long length scales (input switched off by ARD) stay reachable
+            starts = [theta0] + [rng.uniform(box_lo, box_hi) for _ in range(restarts - 1)]
+            nv = float(noise[d])
+
+            def neg_lml(theta: np.ndarray, y: np.ndarray = y, nv: float = nv) -> tuple[float, np.ndarray]:
+                try:
+                    lml, grad = _lml_and_grad(sq_diff, y, float(theta[0]), theta[1:], nv)
+                except np.linalg.LinAlgError:
+                    return math.inf, np.zeros_like(theta)
+                return -lml, -grad
+
+            best_theta: np.ndarray | None = None
+            best_lml = -math.inf
+            for theta_start in starts:
+                try:
+                    res = scipy.optimize.minimize(
+                        neg_lml,
+                        theta_start,
+                        method="L-BFGS-B",
+                        jac=True,
+                        bounds=bounds,
+                        options=_LBFGSB_OPTIONS,
+                    )
+                    theta = np.clip(np.asarray(res.x, dtype=float), lo, hi)
+                    lml, _ = _lml_and_grad(sq_diff, y, float(theta[0]), theta[1:], nv)
+                except (np.linalg.LinAlgError, ValueError, ArithmeticError):  # failed restart: skip it
+                    continue
+                if math.isfinite(lml) and lml > best_lml:
+                    best_lml, best_theta = lml, theta
+            if best_theta is None:
+                raise ValueError(
+                    f"hyperparameter optimisation failed for output {d} from all {restarts} starting points"
+                )
+            sigma_f[d] = math.exp(best_theta[0])
+            lengths[d] = np.exp(best_theta[1:])
+        return cls(X, Y, GPHyperparameters(sigma_f=sigma_f, length_scales=lengths, noise_var=noise))
+
+    # ---------------------------------------------------------------------------------------------------
+    # prediction
+    # ---------------------------------------------------------------------------------------------------
+    @property
+    def n_inputs(self) -> int:
+        """Din."""
+        return self._n_in
+
+    @property
+    def n_outputs(self) -> int:
+        """D."""
+        return int(self.Y.shape[1])
+
+    def _check_query(self, Xs: np.ndarray) -> np.ndarray:
+        Xs = _as_finite_2d(Xs, "Xs")
+        if Xs.shape[1] != self._n_in:
+            raise ValueError(f"Xs must have shape (N, Din={self._n_in}), got shape {Xs.shape}")
+        return Xs
+
+    def _k_star(self, Xs: np.ndarray, d: int) -> np.ndarray:
+        """k_* for output d: (N, M) with [k_*]_{nl} = k_d(x_{*n}, x^{(l)})."""
+        return self._sf2[d] * np.exp(-0.5 * cdist(Xs * self._inv_l[d], self._Z[d], "sqeuclidean"))
+
+    def predict(self, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predictive mean μ_i^{(j)} and latent variance var_i^{(j)} at N test inputs.
+
+        Args:
+            Xs: (N, Din) test inputs.
+
+        Returns:
+            ``(mean, var)``, both (N, D): mean = k_*ᵀ α (output units); var = σ_f² − ‖L^{-1} k_*‖²
+            (output units², latent f, no σ_n² added), clipped from below at ``VAR_FLOOR_REL * σ_f²``.
+        """
+        Xs = self._check_query(Xs)
+        n = Xs.shape[0]
+        mean = np.empty((n, self.n_outputs))
+        var = np.empty((n, self.n_outputs))
+        for d in range(self.n_outputs):
+            Ks = self._k_star(Xs, d)  # (N, M)
+            mean[:, d] = Ks @ self.alpha[d]
+            v = scipy.linalg.solve_triangular(self.L[d], Ks.T, lower=True, check_finite=False)  # (M, N)
+            var[:, d] = self._sf2[d] - np.einsum("mn,mn->n", v, v)
+        return mean, np.maximum(var, self._var_floor)
+
+    def predict_one(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Fast single-point prediction (control-loop path), same result as ``predict(x[None])``.
+
+        Args:
+            x: (Din,) test input. Not checked for finiteness (NaN propagates) to keep the call cheap.
+
+        Returns:
+            ``(mean, var)``, both (D,), as in :meth:`predict`.
+        """
+        x = np.asarray(x, dtype=float)
+        if x.shape != (self._n_in,):
+            raise ValueError(f"x must have shape (Din,) = ({self._n_in},), got shape {x.shape}")
+        diff = (x * self._inv_l)[:, None, :] - self._Z  # (D, M, Din): (x_* − x^{(l)}) / l_d
+        k_star = self._sf2_col * np.exp(-0.5 * np.einsum("dmk,dmk->dm", diff, diff))  # k_*, (D, M)
+        out = np.matmul(self._proj, k_star[:, :, None])[:, :, 0]  # (D, M+1): [μ_d, v_d = L_d^{-1} k_*]
+        v = out[:, 1:]
+        var = self._sf2 - np.einsum("dm,dm->d", v, v)  # var = σ_f² − k_*ᵀ(𝒦+σ_n²I)^{-1}k_*
+        return out[:, 0], np.maximum(var, self._var_floor)
+
+    def mean_gradient(self, Xs: np.ndarray) -> np.ndarray:
+        """Analytic input gradient of the predictive mean.
+
+        ∂μ_d/∂x_{*m} = −Σ_l α_{d,l} k_d(x_*, x^{(l)}) (x_{*m} − x^{(l)}_m) / l_{d,m}².
+
+        Args:
+            Xs: (N, Din) test inputs.
+
+        Returns:
+            (N, D, Din) array of ∂μ_d/∂x_m (output units per input unit).
+        """
+        Xs = self._check_query(Xs)
+        grad = np.empty((Xs.shape[0], self.n_outputs, self._n_in))
+        diff = Xs[:, None, :] - self.X[None, :, :]  # (N, M, Din)
+        for d in range(self.n_outputs):
+            w = self._k_star(Xs, d) * self.alpha[d]  # (N, M)
+            grad[:, d, :] = -np.einsum("nl,nlm->nm", w, diff) * self._inv_l[d] ** 2
+        return grad
+
+    def prior_var(self) -> np.ndarray:
+        """(D,) prior variance σ_f² = k_d(x, x) (what the fusion rules call σ_**²)."""
+        return self._sf2.copy()
+
+    def log_marginal_likelihood(self) -> np.ndarray:
+        """(D,) log marginal likelihood log p(Y_d | X) at the current hyperparameters (nats)."""
+        m = self.X.shape[0]
+        data_fit = -0.5 * np.einsum("md,dm->d", self.Y, self.alpha)
+        log_det = np.sum(np.log(np.diagonal(self.L, axis1=1, axis2=2)), axis=1)
+        return data_fit - log_det - 0.5 * m * _LOG_2PI
+
+    # ---------------------------------------------------------------------------------------------------
+    # (de)serialisation
+    # ---------------------------------------------------------------------------------------------------
+    _DICT_KEYS = ("X", "Y", "sigma_f", "length_scales", "noise_var")
+
+    def to_dict(self) -> dict[str, np.ndarray]:
+        """Arrays sufficient to rebuild the expert (``np.savez(path, **expert.to_dict())``)."""
+        return {
+            "X": np.array(self.X),
+            "Y": np.array(self.Y),
+            "sigma_f": np.array(self.hyper.sigma_f),
+            "length_scales": np.array(self.hyper.length_scales),
+            "noise_var": np.array(self.hyper.noise_var),
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, np.ndarray]) -> GPExpert:
+        """Inverse of :meth:`to_dict`; also accepts the ``NpzFile`` returned by ``np.load``."""
+        missing = [k for k in cls._DICT_KEYS if k not in d]
+        if missing:
+            raise ValueError(f"missing keys {missing} (need {list(cls._DICT_KEYS)})")
+        hyper = GPHyperparameters(
+            sigma_f=np.asarray(d["sigma_f"]),
+            length_scales=np.asarray(d["length_scales"]),
+            noise_var=np.asarray(d["noise_var"]),
+        )
+        return cls(np.asarray(d["X"]), np.asarray(d["Y"]), hyper)
+
+    def __repr__(self) -> str:
+        return f"GPExpert(M={self.X.shape[0]}, Din={self._n_in}, D={self.n_outputs})"
