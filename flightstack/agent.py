@@ -17,14 +17,16 @@ from typing import Protocol
 
 import numpy as np
 
+from flightstack.camera_calibration import CameraCalibration
 from flightstack.comms.bus import Bus
 from flightstack.comms.messages import PredictionMessage
 from flightstack.control import Gains, consensus_term, control_error, drone_velocity_command, pursuit_law
 from flightstack.fusion import fuse
 from flightstack.geometry import Pose, relative
-from flightstack.hal import Camera, Drone, PoseSource
+from flightstack.hal import Camera, Drone, Frame, PoseSource
 from flightstack.observer import estimation_error, observer_step
 from flightstack.projection import CameraModel, TargetNotVisibleError
+from flightstack.vision import extract_markers, features_from_detection
 
 UNINFORMATIVE_VAR = np.ones(4)
 
@@ -49,6 +51,7 @@ class AgentConfig:
     fusion_rule: str
     neighbour_ids: tuple[int, ...]
     stale_after: float
+    calibration: CameraCalibration | None = None  # image cameras: marker colours and intrinsics
 
 
 @dataclass
@@ -65,6 +68,7 @@ class TickRecord:
     u_e: np.ndarray = field(default_factory=lambda: np.zeros(4))
     V_cmd: np.ndarray = field(default_factory=lambda: np.zeros(4))
     n_fused: int = 0
+    rejection: str | None = None  # why the image gave no features (None: seen, or no image)
 
 
 class Agent:
@@ -93,6 +97,13 @@ class Agent:
         self._g_wi: Pose | None = None
         self._g_bar_i0 = g_bar_w0
         self.last = TickRecord(g_bar_w0)
+        self.hold = False  # set by the safety supervisor: hover instead of pursuing
+
+    def reset_estimate(self, g_bar_w: Pose) -> None:
+        """Restart the observer from ḡ_w,i (e.g. at pursuit start on hardware, from the own pose and g_d)."""
+        self.g_bar_w = g_bar_w
+        self._u_e_prev = None
+        self._t_prev = None
 
     # ---- phase 1 -------------------------------------------------------------------------------
     def sense_and_publish(self, t: float) -> None:
@@ -107,9 +118,10 @@ class Agent:
         self._g_bar_i0 = g_bar_i0
         rec = TickRecord(self.g_bar_w)
         frame = self.camera.latest()
-        if frame is not None and frame.features is not None:
+        features = self._features(frame, rec)
+        if features is not None:
             try:
-                xi = estimation_error(frame.features, g_bar_i0, cfg.P0, cfg.camera)  # ≈ [p_e, θ_e]
+                xi = estimation_error(features, g_bar_i0, cfg.P0, cfg.camera)  # ≈ [p_e, θ_e]
                 rec.e_e_meas = np.array([xi[0], xi[1], xi[2], math.sin(xi[3])])
                 rec.visible = True
             except TargetNotVisibleError:
@@ -126,6 +138,17 @@ class Agent:
         self.bus.publish(
             PredictionMessage(cfg.mission, cfg.drone_id, self.seq, t, rec.visible, x, mu, var, prior)
         )
+
+    def _features(self, frame: Frame | None, rec: TickRecord) -> np.ndarray | None:
+        """f (2m,) from the frame: given directly (ideal camera) or extracted from the image."""
+        if frame is None:
+            rec.rejection = "no frame"
+            return None
+        if frame.features is not None or frame.image is None or self.cfg.calibration is None:
+            return frame.features
+        det = extract_markers(frame.image, self.cfg.calibration)
+        rec.rejection = det.reason
+        return features_from_detection(det, self.cfg.camera.focal_length)
 
     # ---- phase 2 -------------------------------------------------------------------------------
     def fuse_control_act(self, t: float) -> np.ndarray:
@@ -153,7 +176,7 @@ class Agent:
         e_c, th_c = control_error(cfg.g_d, self._g_bar_i0)
         th_e = math.asin(max(-1.0, min(1.0, rec.e_e_meas[3])))
         u_c, u_e = pursuit_law(e_c, th_c, rec.e_e_meas, th_e, c_i, mu, cfg.gains, rec.visible)
-        V = drone_velocity_command(u_c, cfg.g_d)
+        V = drone_velocity_command(u_c, cfg.g_d) if not self.hold else np.zeros(4)
         self.drone.send_body_velocity(V)
         rec.mu_used, rec.u_c, rec.u_e, rec.V_cmd = mu, u_c, u_e, V
         self._u_e_prev, self._t_prev = u_e, t

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import signal
 import sys
 from collections.abc import Callable
@@ -43,6 +44,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from flightstack.experiment import run_experiment, write_run_dir
     from flightstack.report import write_plots
 
+    logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")  # safety events, live
     overrides = {"duration_s": args.duration} if args.duration else None
     mission = load_mission(args.mission, overrides)
     out = Path(args.out)
@@ -56,7 +58,13 @@ def cmd_sim(args: argparse.Namespace) -> int:
     m = res.metrics
     print(f"run directory: {out}")
     for mode, mm in m["modes"].items():
-        print(f"  {mode:7s} mean_sq_error = {mm.get('mean_sq_error', float('nan')):.3e}")
+        line = f"  {mode:7s} mean_sq_error = {mm.get('mean_sq_error', float('nan')):.3e}"
+        if "mean_position_error_m" in mm:
+            seen = ", ".join(f"{i}: {100 * f:.0f} %" for i, f in mm["visible_fraction"].items())
+            line += f"   mean position error {mm['mean_position_error_m']:.3f} m   target seen {seen}"
+        if mm.get("max_fence_excursion_m"):
+            line += f"   OUTSIDE FENCE by {mm['max_fence_excursion_m']:.3f} m"
+        print(line)
     if "ratios" in m:
         ours, paper = m["ratios"]["ours"], m["ratios"]["paper"]
         for key in ours:
@@ -67,10 +75,42 @@ def cmd_sim(args: argparse.Namespace) -> int:
         f"  gain condition: kappa = {gc['kappa']:.3f} ({verdict}), L_mu = {gc['L_mu']:.3f}, "
         f"lambda_H = {gc['lambda_H']:.3f}"
     )
+    print(f"  safety events: {len(m['safety_events'])} (events.jsonl)")
     print(f"  sim {m['sim_seconds']:.1f} s in {m['wall_seconds']:.1f} s wall")
     if res.interrupted:
         print("interrupted: every drone landed, partial recording written", file=sys.stderr)
         return 130
+    if res.error:
+        print(f"error: {res.error}; every drone landed, partial recording written", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from flightstack.recording import Recording
+    from flightstack.training import collect_datasets, save_experts, train_experts
+
+    run = Path(args.run_dir)
+    mission = load_mission(args.mission or run / "mission_resolved.yaml")
+    src = run / f"timeseries_{args.from_mode}.npz"
+    if not src.is_file():
+        print(f"error: {src}: no recording of mode {args.from_mode!r} in {run}", file=sys.stderr)
+        return 2
+    rec = Recording.load(str(src))
+    try:
+        data = collect_datasets(mission, rec, mission.seed)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    experts = train_experts(mission, data, mission.seed)
+    save_experts(args.out, experts)
+    for d in data:
+        ex = experts[d.drone_id]
+        print(
+            f"drone {d.drone_id}: {len(d.X)} samples in band {d.band}, "
+            f"log marginal likelihood {ex.log_marginal_likelihood().round(2).tolist()}"
+        )
+    print(f"experts written to {args.out}; reference it as gp.experts_file in a mission")
     return 0
 
 
@@ -83,6 +123,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--duration", type=float, default=None, help="override duration_s (seconds)")
     s.add_argument("--no-progress", action="store_true", help="no progress bars")
     s.set_defaults(func=cmd_sim)
+    t = sub.add_parser("train", help="fit GP experts on a recorded run (data collection without GP)")
+    t.add_argument("run_dir", help="run directory written by `flightstack sim`")
+    t.add_argument("--out", required=True, help="experts file to write (.npz)")
+    t.add_argument("--mission", default=None, help="mission file (default: RUN_DIR/mission_resolved.yaml)")
+    t.add_argument("--from-mode", default="none", help="which recorded mode to learn from (default: none)")
+    t.set_defaults(func=cmd_train)
     v = sub.add_parser("validate", help="check a mission file and print the resolved mission")
     v.add_argument("mission")
     v.set_defaults(func=cmd_validate)

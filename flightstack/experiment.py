@@ -22,9 +22,10 @@ from flightstack.geometry import Pose
 from flightstack.gp import GPExpert
 from flightstack.metrics import mode_metrics
 from flightstack.mission import Mission, mission_to_dict
-from flightstack.runner import Recording, run_mode
+from flightstack.recording import Recording
+from flightstack.runner import run_mode
 from flightstack.target_motion import DuffingParams, duffing_body_velocity
-from flightstack.training import ExpertData, collect_datasets, train_experts
+from flightstack.training import ExpertData, collect_datasets, load_experts, save_experts, train_experts
 
 PAPER_MEAN_SQ_ERROR = {"none": 3.0e-7, "local": 3.6e-8, "dgp": 5.6e-9}
 
@@ -49,6 +50,7 @@ class ExperimentResult:
     experts: dict[int, GPExpert] = field(default_factory=dict)
     metrics: dict[str, object] = field(default_factory=dict)
     interrupted: bool = False
+    error: str | None = None
 
 
 def run_experiment(
@@ -60,6 +62,12 @@ def run_experiment(
     res = ExperimentResult()
     n_ticks = round(mission.duration_s / mission.dt_s)
     needs_gp = any(m in ("local", "dgp") for m in mission.compare_modes)
+    if needs_gp and mission.gp.experts_file is not None:
+        res.experts = load_experts(mission.resolve(mission.gp.experts_file))
+        missing = {d.id for d in mission.drones} - set(res.experts)
+        if missing:
+            raise ValueError(f"gp.experts_file has no expert for drone(s) {sorted(missing)}")
+        needs_gp = False  # trained already: no data run needed
     order = list(mission.compare_modes)
     if needs_gp:
         order = ["none"] + [m for m in order if m != "none"]
@@ -77,8 +85,9 @@ def run_experiment(
             predictors = {d.id: TruthPredictor(prm) for d in mission.drones}
         rec = run_mode(mission, mode, predictors, prog(mode))
         res.recordings[mode] = rec
-        if rec.interrupted:
-            res.interrupted = True
+        if rec.interrupted or rec.error:
+            res.interrupted = rec.interrupted
+            res.error = rec.error
             break
         if mode == "none" and needs_gp:
             t0 = time.perf_counter()
@@ -101,7 +110,7 @@ def run_experiment(
 
 
 def build_metrics(mission: Mission, res: ExperimentResult, gp_info: dict[str, object], wall: float) -> dict:
-    modes = {m: mode_metrics(r) for m, r in res.recordings.items() if m in mission.compare_modes}
+    modes = {m: mode_metrics(r, mission) for m, r in res.recordings.items() if m in mission.compare_modes}
     gains = Gains.make(mission.gains.k_c, mission.gains.k_e, mission.gains.k_s)
     ref = res.recordings.get("none") or next(iter(res.recordings.values()), None)
     if ref is not None and ref.ticks_done > 0:
@@ -130,8 +139,15 @@ def build_metrics(mission: Mission, res: ExperimentResult, gp_info: dict[str, ob
         "wall_seconds": wall,
         "seed": mission.seed,
         "interrupted": res.interrupted,
+        "error": res.error,
+        "safety_events": [
+            {k: v for k, v in e.items() if k != "event"}
+            for r in res.recordings.values()
+            for e in r.events
+            if e.get("event") == "safety"
+        ],
     }
-    if "dgp" in modes and modes["dgp"].get("mean_sq_error"):
+    if "dgp" in modes and modes["dgp"].get("mean_sq_error") and mission.target.motion == "duffing":
         d = modes["dgp"]["mean_sq_error"]
         ratios = {f"{m}/dgp": modes[m]["mean_sq_error"] / d for m in ("none", "local") if m in modes}
         paper = {f"{m}/dgp": PAPER_MEAN_SQ_ERROR[m] / PAPER_MEAN_SQ_ERROR["dgp"] for m in ("none", "local")}
@@ -142,15 +158,17 @@ def build_metrics(mission: Mission, res: ExperimentResult, gp_info: dict[str, ob
 def write_run_dir(out: Path, mission: Mission, res: ExperimentResult) -> None:
     """Resolved mission, metrics.json, one npz per mode, the datasets and experts."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "mission_resolved.yaml").write_text(yaml.safe_dump(mission_to_dict(mission), sort_keys=False))
+    resolved = mission_to_dict(mission)
+    for d in resolved["drones"]:  # absolute paths, so the resolved mission loads from the run directory
+        if d.get("camera"):
+            d["camera"]["calibration"] = str(mission.resolve(d["camera"]["calibration"]))
+    if resolved["gp"].get("experts_file"):
+        resolved["gp"]["experts_file"] = str(mission.resolve(resolved["gp"]["experts_file"]))
+    (out / "mission_resolved.yaml").write_text(yaml.safe_dump(resolved, sort_keys=False))
     for mode, rec in res.recordings.items():
         rec.save(str(out / f"timeseries_{mode}.npz"))
     if res.experts:
-        arrays: dict[str, np.ndarray] = {}
-        for i, ex in res.experts.items():
-            for key, val in ex.to_dict().items():
-                arrays[f"drone{i}__{key}"] = np.asarray(val)
-        np.savez(out / "experts.npz", **arrays)
+        save_experts(out / "experts.npz", res.experts)
     if res.datasets:
         np.savez(
             out / "datasets.npz",

@@ -11,12 +11,27 @@ import math
 from pathlib import Path
 from typing import Annotated, Literal
 
+import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from flightstack.fusion import FUSION_RULES
 
 MODES = ("none", "local", "dgp", "oracle")
+
+# Camera mounts in the drone's FLU body frame (columns: camera x right, y down, z optical axis).
+CAMERA_MOUNTS = {
+    "down": np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]),
+    "forward": np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]),
+}
 
 
 class MissionError(ValueError):
@@ -47,10 +62,33 @@ class DuffingSpec(_Strict):
     omega: Finite = 0.4
 
 
+Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+
+
+class SquareSpec(_Strict):
+    """The paper's experiment law (eq. scamper_vel): a square lap with one rotation per lap."""
+
+    side_m: Positive = 1.0
+    speed_mps: Positive = 0.1
+    gain: NonNegative = 0.05
+
+
+class RobotSpec(_Strict):
+    """Simulated ground robot (sim_lab only)."""
+
+    time_constant_s: Positive = 0.2
+    max_speed_mps: Positive = 0.5
+    max_yaw_rate: Positive = 1.0
+    command_timeout_s: Positive = 3.0
+
+
 class TargetSpec(_Strict):
-    motion: Literal["duffing"] = "duffing"
+    motion: Literal["duffing", "square"] = "duffing"
     initial_pose: PoseSpec = PoseSpec(p=(-0.3, -1.0, 0.0), theta=0.0)
     duffing: DuffingSpec = DuffingSpec()
+    square: SquareSpec = SquareSpec()
+    robot: RobotSpec = RobotSpec()
     feature_points: list[tuple[Finite, Finite, Finite]] = Field(min_length=4)
     substeps: int = Field(default=1, ge=1, le=1000)
 
@@ -59,21 +97,50 @@ class CameraSpec(_Strict):
     focal_length: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 1.0
 
 
+class DroneCameraSpec(_Strict):
+    """A real or rendered camera: calibration file (relative to the mission file), mount, offset (m)."""
+
+    calibration: str
+    mount: Literal["down", "forward"] = "down"
+    offset: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
+
+
+class RcGainsSpec(_Strict):
+    """Velocity per Tello rc unit (m/s, rad/s)."""
+
+    xy: Positive = 0.01
+    z: Positive = 0.01
+    yaw: Positive = 0.0175
+
+
 class DroneSpec(_Strict):
     id: int = Field(ge=0, lt=2**16)
     desired_pose: PoseSpec
     initial_offset: PoseSpec = PoseSpec()
     initial_estimate_error: PoseSpec = PoseSpec()
     sees_target: bool = True
+    camera: DroneCameraSpec | None = None
+    rc_gains: RcGainsSpec = RcGainsSpec()
 
     @field_validator("desired_pose")
     @classmethod
-    def _in_front(cls, v: PoseSpec) -> PoseSpec:
-        if v.p[2] <= 0:
-            raise ValueError("the target must be in front of the camera: desired_pose.p[2] > 0")
+    def _yaw(cls, v: PoseSpec) -> PoseSpec:
         if abs(v.theta) >= math.pi / 2:
             raise ValueError("|theta| must be < pi/2 (Assumption 4 of the paper)")
         return v
+
+    @model_validator(mode="after")
+    def _in_front(self) -> DroneSpec:
+        if not self.sees_target:
+            return self
+        if self.camera is None:
+            depth = self.desired_pose.p[2]
+        else:
+            R = CAMERA_MOUNTS[self.camera.mount]
+            depth = float((np.array(self.desired_pose.p) - np.array(self.camera.offset)) @ R[:, 2])
+        if depth <= 0:
+            raise ValueError("desired_pose: the target must be in front of the drone's camera (depth > 0)")
+        return self
 
 
 class GraphSpec(_Strict):
@@ -106,6 +173,7 @@ class RegionsSpec(_Strict):
 
 
 class GPSpec(_Strict):
+    experts_file: str | None = None  # trained experts (flightstack train); None: train on the `none` run
     noise_var: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 0.01
     samples_per_region: int = Field(default=10, ge=2, le=100000)
     regions: RegionsSpec
@@ -118,6 +186,71 @@ class GPSpec(_Strict):
         if v not in FUSION_RULES:
             raise ValueError(f"unknown fusion rule {v!r}; valid: {', '.join(FUSION_RULES)}")
         return v
+
+
+class TelloSimSpec(_Strict):
+    """Physics of the simulated Tellos (sim_lab).
+
+    The rc gains here are the truth; drones.N.rc_gains are what the driver believes (its calibration)."""
+
+    true_rc_gains: RcGainsSpec = RcGainsSpec()
+    time_constant_s: Positive = 0.25
+    latency_s: NonNegative = 0.05
+    max_speed_xy: Positive = 1.0
+    max_speed_z: Positive = 0.5
+    max_yaw_rate: Positive = 1.75
+    takeoff_height_m: Positive = 1.0
+    battery_pct: Annotated[float, Field(ge=0, le=100)] = 90.0
+    battery_drain_pct_per_s: NonNegative = 0.12
+    auto_land_s: Positive = 15.0
+
+
+class MocapSimSpec(_Strict):
+    rate_hz: Positive = 120.0
+    noise_pos_m: NonNegative = 0.0005
+    noise_yaw_rad: NonNegative = 0.002
+    dropout_prob: Annotated[float, Field(ge=0, lt=1)] = 0.0
+
+
+class RenderSpec(_Strict):
+    marker_radius_m: Positive = 0.03
+    noise_std: NonNegative = 2.0
+    blur_px: NonNegative = 0.0
+
+
+class SimSpec(_Strict):
+    """Settings of the simulated lab (backend sim_lab)."""
+
+    world_dt_s: Annotated[float, Field(gt=0, le=0.1)] = 0.005
+    tello: TelloSimSpec = TelloSimSpec()
+    mocap: MocapSimSpec = MocapSimSpec()
+    render: RenderSpec = RenderSpec()
+
+
+class SafetySpec(_Strict):
+    """flightstack.safety.SafetyLimits; the fence is a box in Σw (m). `enabled: false` only for the
+    paper's ideal simulation, whose unbounded world the supervisor would change."""
+
+    enabled: bool = True
+    max_speed_xy: Positive = 0.5
+    max_speed_z: Positive = 0.3
+    max_yaw_rate: Positive = 1.0
+    fence_lo: tuple[Finite, Finite, Finite] = (-2.0, -2.0, 0.3)
+    fence_hi: tuple[Finite, Finite, Finite] = (2.0, 2.0, 2.0)
+    hard_margin: NonNegative = 0.3
+    command_timeout: Positive = 0.5
+    pose_timeout: Positive = 0.3
+    pose_land_after: Positive = 2.0
+    min_battery_takeoff: Annotated[float, Field(ge=0, le=100)] = 30.0
+    land_battery: Annotated[float, Field(ge=0, le=100)] = 15.0
+    target_lost_hover_after: Positive = 3.0
+    emergency_stop_if_land_fails: bool = False
+
+    @model_validator(mode="after")
+    def _box(self) -> SafetySpec:
+        if any(h <= lo for lo, h in zip(self.fence_lo, self.fence_hi, strict=True)):
+            raise ValueError("fence_hi must exceed fence_lo on every axis")
+        return self
 
 
 class BusSpec(_Strict):
@@ -135,7 +268,7 @@ class GainAnalysisSpec(_Strict):
 class Mission(_Strict):
     name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")
     description: str = ""
-    backend: Literal["sim_ideal"] = "sim_ideal"
+    backend: Literal["sim_ideal", "sim_lab"] = "sim_ideal"
     seed: int = 0
     duration_s: Annotated[float, Field(gt=0, le=86400, allow_inf_nan=False)]
     dt_s: Annotated[float, Field(gt=0, le=1.0, allow_inf_nan=False)]
@@ -148,6 +281,14 @@ class Mission(_Strict):
     gp: GPSpec
     bus: BusSpec = BusSpec()
     gain_analysis: GainAnalysisSpec = GainAnalysisSpec()
+    sim: SimSpec = SimSpec()
+    safety: SafetySpec = SafetySpec()
+    _base_dir: Path = PrivateAttr(default=Path("."))
+
+    def resolve(self, relative: str) -> Path:
+        """A path from the mission file (calibrations, experts) made absolute against its directory."""
+        p = Path(relative)
+        return p if p.is_absolute() else (self._base_dir / p).resolve()
 
     @field_validator("compare_modes")
     @classmethod
@@ -178,6 +319,14 @@ class Mission(_Strict):
             raise ValueError("drones: at least one drone must see the target (Assumption 3)")
         if self.k_c_xy_unequal():
             raise ValueError("gains: k_c and k_e must have equal x and y components")
+        if self.backend == "sim_lab":
+            if self.target.motion != "square":
+                raise ValueError("target.motion: the sim_lab backend drives the robot on the 'square' law")
+            for d in self.drones:
+                if d.camera is None:
+                    raise ValueError(f"drones: drone {d.id} needs a camera (calibration, mount) on sim_lab")
+        if self.backend == "sim_ideal" and self.target.motion != "duffing":
+            raise ValueError("target.motion: the sim_ideal backend implements the 'duffing' field")
         return self
 
     def k_c_xy_unequal(self) -> bool:
@@ -205,7 +354,7 @@ def _format_errors(err: ValidationError) -> list[str]:
     lines = []
     for e in err.errors():
         path = ".".join(str(p) for p in e["loc"]) or "(top level)"
-        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
+        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
         lines.append(f"{path}: {msg}")
     return lines
 
@@ -236,7 +385,17 @@ def load_mission(path: str | Path, overrides: dict[str, object] | None = None) -
         raise MissionError(f"{path}: not valid YAML: {exc}") from None
     if isinstance(data, dict) and overrides:
         data = {**data, **overrides}
-    return parse_mission(data, str(path))
+    m = parse_mission(data, str(path))
+    m._base_dir = path.resolve().parent
+    for d in m.drones:
+        if d.camera is not None and not m.resolve(d.camera.calibration).is_file():
+            raise MissionError(
+                f"{path}: drones.{m.drones.index(d)}.camera.calibration: file not found: "
+                f"{m.resolve(d.camera.calibration)}"
+            )
+    if m.gp.experts_file is not None and not m.resolve(m.gp.experts_file).is_file():
+        raise MissionError(f"{path}: gp.experts_file: file not found: {m.resolve(m.gp.experts_file)}")
+    return m
 
 
 def mission_to_dict(m: Mission) -> dict[str, object]:

@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from flightstack.mission import Mission
-from flightstack.runner import Recording
+from flightstack.recording import Recording
 from flightstack.training import ExpertData, bands
 
 MODE_STYLE = {
@@ -23,13 +23,18 @@ MODE_STYLE = {
 DRONE_COLOURS = ("tab:red", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive")
 
 
-def plot_trajectory(path: Path, mission: Mission, rec: Recording, data: list[ExpertData]) -> None:
+def plot_trajectory(
+    path: Path, mission: Mission, rec: Recording, data: list[ExpertData], show_drones: bool = False
+) -> None:
     """Fig. 3: target xy trajectory, expert bands, training points (○ start, □ end)."""
     k = rec.ticks_done
     xy = rec.g_w0[:k, :2]
     fig, ax = plt.subplots(figsize=(6, 5))
     axis = mission.gp.regions.axis
     lo_all, hi_all = xy.min(axis=0) - 0.3, xy.max(axis=0) + 0.3
+    if show_drones:
+        pts = rec.g_wi[:k, :, :2].reshape(-1, 2)
+        lo_all, hi_all = np.minimum(lo_all, pts.min(axis=0) - 0.2), np.maximum(hi_all, pts.max(axis=0) + 0.2)
     for j, (lo, hi) in enumerate(bands(mission)):
         c = DRONE_COLOURS[j % len(DRONE_COLOURS)]
         a0 = max(lo, lo_all[0 if axis == "x" else 1])
@@ -40,6 +45,12 @@ def plot_trajectory(path: Path, mission: Mission, rec: Recording, data: list[Exp
         else:
             ax.axhspan(a0, a1, color=c, alpha=0.08, label=label)
     ax.plot(xy[:, 0], xy[:, 1], "k-", lw=1, label="target")
+    if show_drones:
+        for j, i in enumerate(rec.drone_ids):
+            c = DRONE_COLOURS[j % len(DRONE_COLOURS)]
+            ax.plot(
+                rec.g_wi[:k, j, 0], rec.g_wi[:k, j, 1], "-", color=c, lw=0.6, alpha=0.7, label=f"drone {i}"
+            )
     ax.plot(*xy[0], "ko", mfc="none", ms=9)
     ax.plot(*xy[-1], "ks", mfc="none", ms=9)
     for j, d in enumerate(data):
@@ -82,7 +93,7 @@ def write_plots(
     paths = []
     ref = recs.get("none") or next(iter(recs.values()))
     p = out / "trajectory.png"
-    plot_trajectory(p, mission, ref, data)
+    plot_trajectory(p, mission, ref, data, show_drones=mission.backend != "sim_ideal")
     paths.append(p)
     shown = {m: r for m, r in recs.items() if m in mission.compare_modes}
     for which in ("c", "e"):

@@ -1,123 +1,65 @@
-"""Builds a backend, agents and a bus from a mission and drives the clock (DESIGN §1–2).
+"""Builds a backend, agents, safety and a bus from a mission and drives the clock (DESIGN §1–2, §7).
 
-`run_mode` flies one mode of a simulated mission in lock-step: every tick all agents run phase 1, then
-all run phase 2, then the backend's clock advances by dt. It records the agents' internal signals and,
-on a simulated backend, the ground truth needed for the paper's error e ∈ R^{8n}.
+`run_mode` flies one mode of a mission in lock-step: each tick the target driver (sim_lab) commands the
+ground robot, the safety supervisor checks every drone, all agents run phase 1, then all run phase 2,
+then the backend's clock advances by dt. Before the loop every drone takes off (bounded wait); after it,
+whatever ended it (end of mission, Ctrl-C/SIGTERM, an exception in any agent), every drone is landed and
+the recording is returned with what was flown.
 """
 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from flightstack.agent import Agent, AgentConfig, Predictor
 from flightstack.backends import build_backend
+from flightstack.camera_calibration import load_calibration
 from flightstack.comms.bus import InProcBus
 from flightstack.control import Gains
-from flightstack.geometry import Pose, compose, compose_arrays, inverse, inverse_arrays, vec_arrays
-from flightstack.mission import Mission
+from flightstack.geometry import Pose, compose, inverse
+from flightstack.hal import Drone
+from flightstack.mission import CAMERA_MOUNTS, Mission
 from flightstack.projection import CameraModel
+from flightstack.recording import Recording
+from flightstack.safety import EventLog, MissionSupervisor, SafeDrone, SafetyLimits
+from flightstack.target_law import SquareLaw
+
+TAKEOFF_TIMEOUT_S = 15.0
+LAND_TIMEOUT_S = 10.0
 
 
-def pose_from_spec(spec) -> Pose:
+def pose_from_spec(spec: Any) -> Pose:
     return Pose.make(spec.p, spec.theta)
 
 
-@dataclass
-class Recording:
-    """Time series of one run; arrays indexed [tick, drone, component]. Poses are [x, y, z, θ]."""
-
-    mode: str
-    drone_ids: list[int]
-    t: np.ndarray
-    g_w0: np.ndarray  # (N, 4) true target pose
-    g_wi: np.ndarray  # (N, n, 4) true drone poses
-    g_bar_w: np.ndarray  # (N, n, 4) estimates ḡ_w,i
-    e_c: np.ndarray  # (N, n, 4) vec(g_d⁻¹ ḡ_i0)
-    e_e: np.ndarray  # (N, n, 4) true vec(ḡ_i0⁻¹ g_i0)
-    e_e_meas: np.ndarray  # (N, n, 4) J⁺(f − f̄)
-    u_e: np.ndarray  # (N, n, 4)
-    mu_used: np.ndarray  # (N, n, 4)
-    var_own: np.ndarray  # (N, n, 4)
-    V_cmd: np.ndarray  # (N, n, 4)
-    visible: np.ndarray  # (N, n) bool
-    ticks_done: int = 0
-    bus_dropped: dict[str, int] = field(default_factory=dict)
-    wall_seconds: float = 0.0
-    interrupted: bool = False
-    events: list[dict[str, object]] = field(default_factory=list)
-
-    @staticmethod
-    def empty(mode: str, ids: list[int], n_ticks: int) -> Recording:
-        n = len(ids)
-        z = lambda: np.zeros((n_ticks, n, 4))  # noqa: E731
-        return Recording(
-            mode,
-            ids,
-            np.zeros(n_ticks),
-            np.zeros((n_ticks, 4)),
-            z(),
-            z(),
-            z(),
-            z(),
-            z(),
-            z(),
-            z(),
-            z(),
-            z(),
-            np.zeros((n_ticks, n), dtype=bool),
-        )
-
-    def truncated(self) -> Recording:
-        """Only the ticks actually flown (after an interrupt)."""
-        k = self.ticks_done
-        out = Recording(self.mode, self.drone_ids, *(getattr(self, f)[:k] for f in ARRAY_FIELDS))
-        out.ticks_done, out.bus_dropped = k, self.bus_dropped
-        out.wall_seconds, out.interrupted, out.events = self.wall_seconds, self.interrupted, self.events
-        return out
-
-    def save(self, path: str) -> None:
-        np.savez_compressed(
-            path,
-            mode=self.mode,
-            drone_ids=np.array(self.drone_ids),
-            **{f: getattr(self, f)[: self.ticks_done] for f in ARRAY_FIELDS},
-        )
-
-
-ARRAY_FIELDS = (
-    "t",
-    "g_w0",
-    "g_wi",
-    "g_bar_w",
-    "e_c",
-    "e_e",
-    "e_e_meas",
-    "u_e",
-    "mu_used",
-    "var_own",
-    "V_cmd",
-    "visible",
-)
+def camera_model(mission: Mission, index: int) -> CameraModel:
+    """The observer's camera model of drone `index`: λ and the mount extrinsic (normalised image for
+    image-based cameras, whose features come from flightstack.vision in normalised coordinates)."""
+    d = mission.drones[index]
+    if d.camera is None:
+        return CameraModel(focal_length=mission.camera.focal_length)
+    return CameraModel(1.0, CAMERA_MOUNTS[d.camera.mount].copy(), np.array(d.camera.offset, dtype=float))
 
 
 def make_agents(
     mission: Mission,
     mode: str,
-    backend,
-    bus,
+    backend: Any,
+    drones: dict[int, Drone],
+    bus: InProcBus,
     predictors: dict[int, Predictor] | None,
 ) -> list[Agent]:
-    """One Agent per drone of the mission, with initial estimates from the mission's initial errors."""
+    """One Agent per drone of the mission; estimates start from the mission's initial errors."""
     P0 = np.array(mission.target.feature_points, dtype=float)
-    cam = CameraModel(focal_length=mission.camera.focal_length)
     gains = Gains.make(mission.gains.k_c, mission.gains.k_e, mission.gains.k_s)
     ids = [d.id for d in mission.drones]
-    agents = []
     g_w0 = pose_from_spec(mission.target.initial_pose)
+    agents = []
     for k, d in enumerate(mission.drones):
         cfg = AgentConfig(
             mission=mission.name,
@@ -125,20 +67,58 @@ def make_agents(
             body_name=f"drone{d.id}",
             g_d=pose_from_spec(d.desired_pose),
             P0=P0,
-            camera=cam,
+            camera=camera_model(mission, k),
             gains=gains,
             mode=mode,
             fusion_rule=mission.gp.fusion,
             neighbour_ids=tuple(ids[j] for j in mission.neighbours(k)),
             stale_after=mission.bus.stale_after_s,
+            calibration=None if d.camera is None else load_calibration(mission.resolve(d.camera.calibration)),
         )
-        # ḡ_w,i(0) = g_w0(0) g_e(0)⁻¹, i.e. g_e(0) = ḡ_w,i⁻¹ g_w0 is the mission's initial estimation error.
+        # ḡ_w,i(0) = g_w0(0) g_e(0)⁻¹; on sim_lab reset at pursuit start from the drone's own pose
         g_bar = compose(g_w0, inverse(pose_from_spec(d.initial_estimate_error)))
         pred = None if predictors is None else predictors.get(d.id)
-        agents.append(
-            Agent(cfg, backend.drone(d.id), backend.camera(d.id), backend.pose_source(), bus, pred, g_bar)
-        )
+        agents.append(Agent(cfg, drones[d.id], backend.camera(d.id), backend.pose_source(), bus, pred, g_bar))
     return agents
+
+
+def safety_limits(mission: Mission) -> SafetyLimits:
+    s = mission.safety
+    return SafetyLimits(**s.model_dump(exclude={"enabled"}))
+
+
+class TargetDriver:
+    """Drives the ground robot on the paper's square law from its motion-capture pose (sim_lab)."""
+
+    def __init__(self, mission: Mission, backend: Any) -> None:
+        sq = mission.target.square
+        self.law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, mission.target.initial_pose.theta)
+        self.robot = backend.target()
+        self.poses = backend.pose_source()
+
+    def tick(self, t_mission: float) -> None:
+        own = self.poses.latest("target")
+        if own is None or self.robot is None:
+            return
+        self.robot.send_body_velocity(self.law.command(t_mission, own.pose))
+
+    def stop(self) -> None:
+        if self.robot is not None:
+            self.robot.stop()
+
+
+def _advance_until(
+    clock: Any, done: Callable[[], bool], timeout: float, step: float, each: Callable[[], None] | None = None
+) -> bool:
+    """Advance the clock in steps until done() or timeout (s); True if done."""
+    t_end = clock.now() + timeout
+    while not done():
+        if clock.now() >= t_end:
+            return False
+        if each is not None:
+            each()
+        clock.sleep_until(clock.now() + step)
+    return True
 
 
 def run_mode(
@@ -147,22 +127,64 @@ def run_mode(
     predictors: dict[int, Predictor] | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> Recording:
-    """Fly `mode` of a simulated mission for mission.duration_s; Ctrl-C stops early and keeps the data."""
+    """Fly `mode` of a simulated mission for mission.duration_s of pursuit; never leaves a drone flying."""
     backend = build_backend(mission)
     ids = [d.id for d in mission.drones]
     bus = InProcBus(mission.name, set(ids))
-    agents = make_agents(mission, mode, backend, bus, predictors)
-    g_d = [a.cfg.g_d for a in agents]
+    clock = backend.clock
+    log = EventLog()
+    limits = safety_limits(mission)
+    safe: dict[int, SafeDrone] = {}
+    supervisor: MissionSupervisor | None = None
+    if mission.safety.enabled:
+        safe = {
+            i: SafeDrone(i, backend.drone(i), backend.pose_source(), f"drone{i}", clock, limits, log)
+            for i in ids
+        }
+        supervisor = MissionSupervisor(safe, clock, limits, log)
+        drones: dict[int, Drone] = dict(safe)
+    else:
+        drones = {i: backend.drone(i) for i in ids}
+    agents = make_agents(mission, mode, backend, drones, bus, predictors)
+    target = TargetDriver(mission, backend) if mission.target.motion == "square" else None
+    g_d = np.array([a.cfg.g_d.as_vector() for a in agents])
     dt = mission.dt_s
     n_ticks = round(mission.duration_s / dt)
     rec = Recording.empty(mode, ids, n_ticks)
-    clock = backend.clock
+    rejections: dict[int, Counter[str]] = {i: Counter() for i in ids}
     wall0 = time.perf_counter()
+    reason = "mission complete"
     try:
+        for d in drones.values():
+            d.connect()
+            d.takeoff()
+        if not _advance_until(
+            clock,
+            lambda: all(d.state().flying for d in drones.values()),
+            TAKEOFF_TIMEOUT_S,
+            dt,
+            lambda: [s.tick() for s in safe.values()],
+        ):
+            raise RuntimeError(f"takeoff: not every drone airborne after {TAKEOFF_TIMEOUT_S} s")
+        t0 = clock.now()
+        if mission.backend != "sim_ideal":
+            for a in agents:  # the target's pose is unknown: assume it sits at the desired relative pose
+                own = a.poses.latest(a.cfg.body_name)
+                if own is None:
+                    raise RuntimeError(f"no motion-capture pose for {a.cfg.body_name} at pursuit start")
+                a.reset_estimate(compose(own.pose, a.cfg.g_d))
         for k in range(n_ticks):
             t = clock.now()
+            if target is not None:
+                target.tick(t - t0)
+            for s in safe.values():
+                s.tick()
             for a in agents:
                 a.sense_and_publish(t)
+            if supervisor is not None:
+                hold = supervisor.update_visibility({a.cfg.drone_id: a.last.visible for a in agents})
+                for a in agents:
+                    a.hold = hold
             for a in agents:
                 a.fuse_control_act(t)
             g_w0, g_wis = backend.truth()
@@ -178,15 +200,21 @@ def run_mode(
                 rec.var_own[k, i] = last.var_own
                 rec.V_cmd[k, i] = last.V_cmd
                 rec.visible[k, i] = last.visible
+                if last.rejection:
+                    rejections[a.cfg.drone_id][last.rejection] += 1
             rec.ticks_done = k + 1
             if progress is not None:
                 progress(1)
             clock.sleep_until(t + dt)
     except KeyboardInterrupt:
         rec.interrupted = True
-        rec.events.append({"t": clock.now(), "event": "interrupted", "mode": mode})
+        reason = "interrupted"
+    except Exception as exc:  # an exception in any agent: land everyone, keep the data, report
+        rec.error = f"{type(exc).__name__}: {exc}"
+        reason = f"exception: {rec.error}"
     finally:
-        backend.close()  # lands every drone
+        rec.events.append({"t": clock.now(), "event": "end", "reason": reason, "mode": mode})
+        _land_everything(backend, clock, drones, supervisor, target, reason, dt)
         for i in ids:
             st = backend.drone(i).state()
             rec.events.append(
@@ -194,20 +222,35 @@ def run_mode(
                     "t": clock.now(),
                     "event": "landed" if not st.flying else "NOT LANDED",
                     "drone": i,
+                    "height_m": st.height_m,
                     "mode": mode,
                 }
             )
+        rec.events.extend({"event": "safety", "mode": mode, **e} for e in log.to_dicts())
         rec.wall_seconds = time.perf_counter() - wall0
         rec.bus_dropped = dict(bus.dropped)
-        fill_true_errors(rec, np.array([g.as_vector() for g in g_d]))
-    return rec if not rec.interrupted else rec.truncated()
+        rec.vision_rejections = {str(i): dict(c) for i, c in rejections.items() if c}
+        rec.fill_true_errors(g_d)
+    return rec if rec.ticks_done == n_ticks and not rec.interrupted else rec.truncated()
 
 
-def fill_true_errors(rec: Recording, g_d: np.ndarray) -> None:
-    """e_c = vec(g_d⁻¹ ḡ_i0) and the true e_e = vec(ḡ_i0⁻¹ g_i0) from the recorded poses (vectorised)."""
-    k = rec.ticks_done
-    inv_wi = inverse_arrays(rec.g_wi[:k])
-    g_bar_i0 = compose_arrays(inv_wi, rec.g_bar_w[:k])
-    g_i0 = compose_arrays(inv_wi, rec.g_w0[:k, None, :])
-    rec.e_c[:k] = vec_arrays(compose_arrays(inverse_arrays(g_d)[None], g_bar_i0))
-    rec.e_e[:k] = vec_arrays(compose_arrays(inverse_arrays(g_bar_i0), g_i0))
+def _land_everything(
+    backend: Any,
+    clock: Any,
+    drones: dict[int, Drone],
+    supervisor: MissionSupervisor | None,
+    target: TargetDriver | None,
+    reason: str,
+    dt: float,
+) -> None:
+    """Land every drone and stop the robot; on a virtual clock also let the landing complete."""
+    if target is not None:
+        target.stop()
+    if supervisor is not None:
+        supervisor.land_all(reason)
+    backend.close()  # lands any drone the supervisor did not reach
+    if hasattr(backend, "truth"):  # simulated: advance virtual time until everyone is on the ground
+        inner = [backend.drone(i) for i in drones]
+        _advance_until(
+            clock, lambda: all(getattr(d, "phase", "ground") == "ground" for d in inner), LAND_TIMEOUT_S, dt
+        )

@@ -9,12 +9,13 @@ N(0, σ_n² I), taken only while ḡ_w,i lies in drone i's expert region: band i
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from flightstack.gp import GPExpert
 from flightstack.mission import Mission
-from flightstack.runner import Recording
+from flightstack.recording import Recording
 
 
 @dataclass(frozen=True)
@@ -60,3 +61,26 @@ def train_experts(mission: Mission, data: list[ExpertData], seed: int) -> dict[i
         d.drone_id: GPExpert.fit(d.X, d.Y, mission.gp.noise_var, restarts=mission.gp.restarts, seed=seed + i)
         for i, d in enumerate(data)
     }
+
+
+def save_experts(path: str | Path, experts: dict[int, GPExpert]) -> None:
+    """One npz with every expert's data and hyperparameters: keys 'drone<id>__<field>'."""
+    arrays: dict[str, np.ndarray] = {}
+    for i, ex in experts.items():
+        for key, val in ex.to_dict().items():
+            arrays[f"drone{i}__{key}"] = np.asarray(val)
+    np.savez(path, **arrays)
+
+
+def load_experts(path: str | Path) -> dict[int, GPExpert]:
+    """Inverse of save_experts; ValueError naming the file when it is not an experts file."""
+    with np.load(path) as z:
+        fields: dict[int, dict[str, np.ndarray]] = {}
+        for key in z.files:
+            head, sep, name = key.partition("__")
+            if not sep or not head.startswith("drone") or not head[5:].isdigit():
+                raise ValueError(f"{path}: not a flightstack experts file (unexpected key {key!r})")
+            fields.setdefault(int(head[5:]), {})[name] = z[key]
+    if not fields:
+        raise ValueError(f"{path}: no experts in file")
+    return {i: GPExpert.from_dict(f) for i, f in fields.items()}

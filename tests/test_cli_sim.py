@@ -102,4 +102,4 @@ def test_sigint_lands_and_writes_partial_recording(tmp_path: Path) -> None:
     events = [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
     assert {e["drone"] for e in events if e["event"] == "landed"} == {1, 2, 3}
     assert not [e for e in events if e["event"] == "NOT LANDED"]
-    assert any(e["event"] == "interrupted" for e in events)
+    assert any(e["event"] == "end" and e["reason"] == "interrupted" for e in events)

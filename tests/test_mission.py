@@ -36,7 +36,10 @@ def test_paper_sim_loads_with_the_papers_values() -> None:
         (lambda d: d["gp"].update(fusion="mean"), "unknown fusion rule 'mean'"),
         (lambda d: d.update(compare_modes=["none", "magic"]), "unknown mode 'magic'"),
         (lambda d: d.pop("gains"), "gains: Field required"),
-        (lambda d: d["drones"][0]["desired_pose"].update(p=[0, 0, -1]), "in front of the camera"),
+        (
+            lambda d: d["drones"][0]["desired_pose"].update(p=[0, 0, -1]),
+            "drones.0: desired_pose: the target must be in front of the drone's camera",
+        ),
         (lambda d: d["gp"]["regions"].update(edges=[0.5]), "gp.regions.edges: 3 drones need 2 band edges"),
         (lambda d: d["gp"]["regions"].update(edges=[0.5, 0.1]), "strictly increasing"),
         (lambda d: d.update(graph={"kind": "edges", "edges": [[1, 9]]}), "names a drone id"),

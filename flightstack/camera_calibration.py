@@ -1,0 +1,164 @@
+"""The camera calibration file: intrinsics, lens distortion and the target's marker colours.
+
+One YAML file per camera (written by `flightstack calibrate`, read by missions and the sim renderer):
+
+    device: tello-1-down         # free text: which camera
+    date: '2026-11-22T18:00:00Z'
+    width: 320                   # image size in pixels
+    height: 240
+    camera_matrix: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]   # pixels
+    dist_coeffs: [k1, k2, p1, p2, k3]                       # OpenCV's model
+    rms_px: 0.31                 # reprojection RMS of the calibration, or null
+    markers:                     # one entry per target feature point, in the order of p0^j
+      - name: red
+        hsv_lo: [170, 120, 80]   # OpenCV HSV: H in 0..179, S and V in 0..255
+        hsv_hi: [8, 255, 255]    # hue wraps around when hsv_lo[0] > hsv_hi[0]
+        rgb: [220, 30, 30]       # the colour the simulator paints (optional)
+
+Pixel coordinates follow OpenCV: u to the right, v down, origin at the centre of the top-left pixel.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+
+class CalibrationError(ValueError):
+    """A calibration file that cannot be used; the message names the key and the reason."""
+
+
+@dataclass(frozen=True)
+class MarkerColour:
+    """HSV thresholds of one marker (OpenCV ranges) and the RGB the simulator paints it with."""
+
+    name: str
+    hsv_lo: tuple[int, int, int]
+    hsv_hi: tuple[int, int, int]
+    rgb: tuple[int, int, int] | None = None
+
+    @property
+    def hue_wraps(self) -> bool:
+        return self.hsv_lo[0] > self.hsv_hi[0]
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    width: int
+    height: int
+    camera_matrix: np.ndarray  # (3, 3), pixels
+    dist_coeffs: np.ndarray  # (n,), OpenCV order k1, k2, p1, p2[, k3, ...]
+    markers: tuple[MarkerColour, ...] = ()
+    rms_px: float | None = None
+    device: str = ""
+    date: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
+
+    @property
+    def fx(self) -> float:
+        return float(self.camera_matrix[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.camera_matrix[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.camera_matrix[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.camera_matrix[1, 2])
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "device": self.device,
+            "date": self.date,
+            "width": int(self.width),
+            "height": int(self.height),
+            "camera_matrix": np.asarray(self.camera_matrix, dtype=float).tolist(),
+            "dist_coeffs": np.asarray(self.dist_coeffs, dtype=float).tolist(),
+            "rms_px": None if self.rms_px is None else float(self.rms_px),
+            "markers": [
+                {
+                    "name": m.name,
+                    "hsv_lo": list(m.hsv_lo),
+                    "hsv_hi": list(m.hsv_hi),
+                    **({"rgb": list(m.rgb)} if m.rgb is not None else {}),
+                }
+                for m in self.markers
+            ],
+        }
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+
+
+def _triple(v: object, key: str, hi: int) -> tuple[int, int, int]:
+    if not (isinstance(v, list | tuple) and len(v) == 3 and all(isinstance(x, int) for x in v)):
+        raise CalibrationError(f"{key}: expected 3 integers, got {v!r}")
+    if any(x < 0 or x > hi for x in v):
+        raise CalibrationError(f"{key}: values must be in 0..{hi}, got {v!r}")
+    return (int(v[0]), int(v[1]), int(v[2]))
+
+
+def calibration_from_dict(d: object, source: str = "<calibration>") -> CameraCalibration:
+    """Validate a parsed calibration document; CalibrationError names the key path and the reason."""
+    if not isinstance(d, dict):
+        raise CalibrationError(f"{source}: a calibration must be a mapping")
+    known = {"device", "date", "width", "height", "camera_matrix", "dist_coeffs", "rms_px", "markers"}
+    for k in d:
+        if k not in known:
+            raise CalibrationError(f"{source}: {k}: unknown key")
+    try:
+        w, h = d["width"], d["height"]
+        K = np.array(d["camera_matrix"], dtype=float)
+        dist = np.array(d.get("dist_coeffs", [0, 0, 0, 0, 0]), dtype=float).reshape(-1)
+    except KeyError as exc:
+        raise CalibrationError(f"{source}: {exc.args[0]}: missing") from None
+    except (TypeError, ValueError) as exc:
+        raise CalibrationError(f"{source}: camera_matrix/dist_coeffs: not numeric ({exc})") from None
+    if not (isinstance(w, int) and isinstance(h, int) and w > 0 and h > 0):
+        raise CalibrationError(f"{source}: width/height: positive integers required")
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1:
+        raise CalibrationError(
+            f"{source}: camera_matrix: must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0"
+        )
+    if dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+        raise CalibrationError(f"{source}: dist_coeffs: 4, 5, 8, 12 or 14 finite numbers required")
+    markers = []
+    for j, m in enumerate(d.get("markers") or []):
+        key = f"markers.{j}"
+        if not isinstance(m, dict) or set(m) - {"name", "hsv_lo", "hsv_hi", "rgb"}:
+            raise CalibrationError(f"{source}: {key}: expected keys name, hsv_lo, hsv_hi[, rgb]")
+        lo = _triple(m.get("hsv_lo"), f"{key}.hsv_lo", 255)
+        hi = _triple(m.get("hsv_hi"), f"{key}.hsv_hi", 255)
+        if lo[0] > 179 or hi[0] > 179:
+            raise CalibrationError(f"{source}: {key}: hue must be in 0..179 (OpenCV HSV)")
+        rgb = _triple(m["rgb"], f"{key}.rgb", 255) if m.get("rgb") is not None else None
+        markers.append(MarkerColour(str(m.get("name", f"marker{j}")), lo, hi, rgb))
+    rms = d.get("rms_px")
+    return CameraCalibration(
+        w,
+        h,
+        K,
+        dist,
+        tuple(markers),
+        None if rms is None else float(rms),
+        str(d.get("device", "")),
+        str(d.get("date", "")),
+    )
+
+
+def load_calibration(path: str | Path) -> CameraCalibration:
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise CalibrationError(f"{path}: cannot read calibration: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise CalibrationError(f"{path}: not valid YAML: {exc}") from None
+    return calibration_from_dict(doc, str(path))

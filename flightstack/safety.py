@@ -1,0 +1,884 @@
+"""Safety supervisor (DESIGN §7): wraps every hal.Drone of a mission, on every backend.
+
+`SafeDrone` is a hal.Drone that wraps another one and enforces, per drone:
+    - saturation of the body velocity V = [v_x, v_y, v_z, ω_z] (m/s, rad/s, body frame): the norm of
+      (v_x, v_y) is scaled down keeping its direction, v_z and ω_z are clipped; NaN/inf -> zero velocity;
+    - a geofence box in the world frame Σw (the motion-capture frame, z up, metres): outside the soft box
+      every world-frame velocity component that points further out is removed (the drone can come back
+      but not leave); outside the hard box (the soft box grown by `hard_margin`) the drone lands;
+    - a command watchdog: no command for `command_timeout` s -> one zero-velocity command (hover);
+    - a stale-pose rule: pose stamp older than `pose_timeout` s -> hover, older than `pose_land_after` s
+      -> land (both ages are measured from the last valid pose stamp, by the mission clock);
+    - battery: takeoff refused below `min_battery_takeoff` %, land in flight below `land_battery` %.
+`MissionSupervisor` adds the mission-wide rules: hover when every drone has lost the target for longer
+than `target_lost_hover_after` s, land every drone (robust to a failing drone), on Ctrl-C / SIGTERM and on
+any exception leaving a guarded block.
+
+Every condition logs exactly one `SafetyEvent` per episode (the interval during which it holds), stamped
+with the mission clock. The event kinds form the closed set `EVENT_KINDS`:
+
+    saturated               a command was saturated (speed, climb rate or yaw rate)
+    invalid_command         a command with NaN/inf, the wrong size or not numeric: replaced by zeros
+    fence_soft              the drone is outside the soft fence (outward velocity removed)
+    fence_hard_land         the drone is outside the hard fence: land
+    command_timeout         no command for command_timeout: one zero-velocity command sent
+    pose_stale_hover        pose older than pose_timeout (or never seen): zero velocity
+    pose_stale_land         pose older than pose_land_after: land
+    pose_error              the PoseSource raised; treated as no pose
+    battery_refuse_takeoff  takeoff refused: battery below min_battery_takeoff (or unreadable as a number)
+    pose_refuse_takeoff     takeoff refused: no fresh pose
+    fence_refuse_takeoff    takeoff refused: the drone stands outside the hard fence in x or y
+    battery_land            battery below land_battery in flight: land
+    drone_error             the wrapped drone raised inside tick() (state() or the watchdog's command)
+    command_after_land      a command arrived after land/emergency stop: dropped
+    land_failed             the wrapped drone's land() raised (retried on every tick)
+    emergency_stop          emergency_stop() was sent to the wrapped drone
+    emergency_stop_failed   the wrapped drone's emergency_stop() raised too (MissionSupervisor.land_all)
+    target_lost_hover       every drone lost the target for longer than target_lost_hover_after
+    land_all                MissionSupervisor.land_all started landing the drones that were not landed
+    signal                  SIGINT or SIGTERM received inside install_signal_handlers()
+    takeoff                 takeoff sent to the wrapped drone
+    land                    land sent to the wrapped drone and accepted (detail = the reason)
+
+Errors from the wrapped drone inside `send_body_velocity`, `takeoff`, `connect`, `state` and `close`
+propagate unchanged (the caller's `MissionSupervisor.guard()` lands everything); the safety rules
+themselves never raise into the control loop.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import enum
+import logging
+import math
+import signal
+import threading
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from types import FrameType, TracebackType
+from typing import Any, TypeVar
+
+import numpy as np
+
+from flightstack.geometry import Pose
+from flightstack.hal import Clock, Drone, DroneState, PoseSource, StampedPose
+
+__all__ = [
+    "EVENT_KINDS",
+    "EventLog",
+    "MissionSupervisor",
+    "SafeDrone",
+    "SafetyError",
+    "SafetyEvent",
+    "SafetyLimits",
+    "fence_clip",
+    "outside_hard_fence",
+    "saturate",
+]
+
+_logger = logging.getLogger(__name__)
+
+EVENT_KINDS: frozenset[str] = frozenset(
+    {
+        "saturated",
+        "invalid_command",
+        "fence_soft",
+        "fence_hard_land",
+        "command_timeout",
+        "pose_stale_hover",
+        "pose_stale_land",
+        "pose_error",
+        "battery_refuse_takeoff",
+        "pose_refuse_takeoff",
+        "fence_refuse_takeoff",
+        "battery_land",
+        "drone_error",
+        "command_after_land",
+        "land_failed",
+        "emergency_stop",
+        "emergency_stop_failed",
+        "target_lost_hover",
+        "land_all",
+        "signal",
+        "takeoff",
+        "land",
+    }
+)
+
+_AXES = ("x", "y", "z")
+_T = TypeVar("_T")
+
+
+class SafetyError(RuntimeError):
+    """A safety rule refused an operator action (e.g. takeoff on a low battery)."""
+
+
+# ---- limits and events -----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SafetyLimits:
+    """Safety limits of one mission (the mission's `safety:` section).
+
+    Speeds are limits on the body-frame command V = [v_x, v_y, v_z, ω_z]: `max_speed_xy` (m/s) bounds the
+    norm of (v_x, v_y), `max_speed_z` (m/s) bounds |v_z|, `max_yaw_rate` (rad/s) bounds |ω_z|. The fence
+    is an axis-aligned box [fence_lo, fence_hi] in the world frame Σw (motion-capture frame, z up, m);
+    the hard fence is that box grown by `hard_margin` (m) on every face. Times are in seconds of mission
+    clock, battery levels in percent.
+    """
+
+    max_speed_xy: float = 0.5
+    max_speed_z: float = 0.3
+    max_yaw_rate: float = 1.0
+    fence_lo: tuple[float, float, float] = (-2.0, -2.0, 0.3)
+    fence_hi: tuple[float, float, float] = (2.0, 2.0, 2.0)
+    hard_margin: float = 0.3
+    command_timeout: float = 0.5
+    pose_timeout: float = 0.3
+    pose_land_after: float = 2.0
+    min_battery_takeoff: float = 30.0
+    land_battery: float = 15.0
+    target_lost_hover_after: float = 3.0
+    emergency_stop_if_land_fails: bool = False
+    """Cut the motors of a drone whose land() raised during land_all. Off by default: a Tello with its
+    motors cut falls from up to 2 m next to people; the failed land is retried on every tick instead."""
+
+    def __post_init__(self) -> None:
+        lo = tuple(float(v) for v in self.fence_lo)
+        hi = tuple(float(v) for v in self.fence_hi)
+        if len(lo) != 3 or len(hi) != 3:
+            raise ValueError(f"fence_lo and fence_hi need 3 values (x, y, z), got {lo} and {hi}")
+        object.__setattr__(self, "fence_lo", lo)
+        object.__setattr__(self, "fence_hi", hi)
+        if not all(math.isfinite(v) for v in lo + hi):
+            raise ValueError(f"fence must be finite, got lo={lo}, hi={hi}")
+        if any(h <= low for low, h in zip(lo, hi, strict=True)):
+            raise ValueError(f"fence_hi must exceed fence_lo on every axis, got lo={lo}, hi={hi}")
+        positive = ("max_speed_xy", "max_speed_z", "max_yaw_rate", "command_timeout", "pose_timeout")
+        positive += ("pose_land_after", "target_lost_hover_after")
+        for name in positive:
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be finite and > 0, got {v}")
+        if not (math.isfinite(self.hard_margin) and self.hard_margin >= 0.0):
+            raise ValueError(f"hard_margin must be finite and >= 0, got {self.hard_margin}")
+        if self.pose_land_after < self.pose_timeout:
+            raise ValueError(
+                f"pose_land_after ({self.pose_land_after} s) must be >= pose_timeout ({self.pose_timeout} s)"
+            )
+        for name in ("min_battery_takeoff", "land_battery"):
+            v = getattr(self, name)
+            if not (0.0 <= v <= 100.0):
+                raise ValueError(f"{name} must be a percentage in [0, 100], got {v}")
+        if self.land_battery > self.min_battery_takeoff:
+            raise ValueError(
+                f"land_battery ({self.land_battery} %) must not exceed min_battery_takeoff "
+                f"({self.min_battery_takeoff} %): the drone would land right after takeoff"
+            )
+
+    @property
+    def hard_lo(self) -> tuple[float, float, float]:
+        """Lower corner of the hard fence in Σw (m)."""
+        m = self.hard_margin
+        return (self.fence_lo[0] - m, self.fence_lo[1] - m, self.fence_lo[2] - m)
+
+    @property
+    def hard_hi(self) -> tuple[float, float, float]:
+        """Upper corner of the hard fence in Σw (m)."""
+        m = self.hard_margin
+        return (self.fence_hi[0] + m, self.fence_hi[1] + m, self.fence_hi[2] + m)
+
+
+@dataclass(frozen=True)
+class SafetyEvent:
+    """One safety event: mission-clock time t (s), drone id (None: mission-wide), kind (in EVENT_KINDS)."""
+
+    t: float
+    drone: int | None
+    kind: str
+    detail: str
+
+    def to_dict(self) -> dict[str, object]:
+        return asdict(self)
+
+
+class EventLog:
+    """Append-only, thread-safe list of SafetyEvent (also echoed to the `flightstack.safety` logger).
+
+    Uses a re-entrant lock so that a signal handler running on the main thread may log while the main
+    thread is itself inside `append`.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.RLock()
+        self._events: list[SafetyEvent] = []
+
+    def append(self, event: SafetyEvent) -> None:
+        """Add one event; its kind must be in EVENT_KINDS (ValueError otherwise: a programming error)."""
+        if event.kind not in EVENT_KINDS:
+            raise ValueError(f"unknown safety event kind {event.kind!r}; valid: {sorted(EVENT_KINDS)}")
+        with self._lock:
+            self._events.append(event)
+        who = "mission" if event.drone is None else f"drone {event.drone}"
+        _logger.warning("t=%.3f %s %s: %s", event.t, who, event.kind, event.detail)
+
+    def record(self, t: float, drone: int | None, kind: str, detail: str) -> SafetyEvent:
+        """Build, append and return an event."""
+        ev = SafetyEvent(float(t), drone, kind, detail)
+        self.append(ev)
+        return ev
+
+    @property
+    def events(self) -> list[SafetyEvent]:
+        """A snapshot copy of the events, oldest first."""
+        with self._lock:
+            return list(self._events)
+
+    def of_kind(self, kind: str) -> list[SafetyEvent]:
+        return [e for e in self.events if e.kind == kind]
+
+    def counts(self) -> dict[str, int]:
+        """Number of events per kind (kinds that never occurred are absent)."""
+        return dict(Counter(e.kind for e in self.events))
+
+    def to_dicts(self) -> list[dict[str, object]]:
+        """The events as dicts {t, drone, kind, detail} (for the run directory's event log)."""
+        return [e.to_dict() for e in self.events]
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._events)
+
+
+# ---- pure rules ------------------------------------------------------------------------------------------
+def sanitize(V: object) -> tuple[np.ndarray, str | None]:
+    """V as a float array (4,), or zeros and the reason when V is not 4 finite numbers."""
+    try:
+        arr = np.asarray(V, dtype=float).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        return np.zeros(4), f"not numeric ({type(exc).__name__}: {exc})"
+    if arr.size != 4:
+        return np.zeros(4), f"expected 4 values [vx, vy, vz, wz], got {arr.size}"
+    if not np.all(np.isfinite(arr)):
+        return np.zeros(4), f"non-finite command {arr.tolist()}"
+    return arr.copy(), None
+
+
+def saturate(V: np.ndarray, limits: SafetyLimits) -> tuple[np.ndarray, bool]:
+    """Saturate a finite body velocity V = [v_x, v_y, v_z, ω_z] (m/s, rad/s, body frame).
+
+    (v_x, v_y) is scaled down to norm `max_speed_xy` keeping its direction (computed without overflow,
+    and never increasing a component's magnitude); v_z and ω_z are clipped. Returns (V_sat, changed).
+    """
+    out = np.array(V, dtype=float).reshape(4)
+    vx, vy = float(out[0]), float(out[1])
+    changed = False
+    m = max(abs(vx), abs(vy))
+    if m > 0.0:
+        ux, uy = vx / m, vy / m  # |u| in [1, √2]: no overflow in hypot
+        norm_u = math.hypot(ux, uy)
+        if m * norm_u > limits.max_speed_xy:
+            # 4 ulp of margin so that rounding never leaves the result above the limit
+            k = limits.max_speed_xy / norm_u * (1.0 - 4.0 * np.finfo(float).eps)
+            out[0] = float(np.clip(ux * k, -abs(vx), abs(vx)))
+            out[1] = float(np.clip(uy * k, -abs(vy), abs(vy)))
+            changed = True
+    for i, lim in ((2, limits.max_speed_z), (3, limits.max_yaw_rate)):
+        if abs(out[i]) > lim:
+            out[i] = math.copysign(lim, out[i])
+            changed = True
+    return out, changed
+
+
+def outside_soft_fence(p: np.ndarray, limits: SafetyLimits) -> list[str]:
+    """Faces of the soft fence that the world position p (m, Σw) is beyond, e.g. ['+x', '-z']."""
+    faces = []
+    for k, ax in enumerate(_AXES):
+        if p[k] > limits.fence_hi[k]:
+            faces.append(f"+{ax}")
+        elif p[k] < limits.fence_lo[k]:
+            faces.append(f"-{ax}")
+    return faces
+
+
+def outside_hard_fence(p: np.ndarray, limits: SafetyLimits, check_floor: bool = True) -> list[str]:
+    """Faces of the hard fence that the world position p (m, Σw) is beyond.
+
+    `check_floor=False` ignores the lower z face (used before the drone has climbed into the fence after
+    takeoff, when it still stands on the floor and motion-capture noise can put z slightly below it).
+    """
+    lo, hi = limits.hard_lo, limits.hard_hi
+    faces = []
+    for k, ax in enumerate(_AXES):
+        if p[k] > hi[k]:
+            faces.append(f"+{ax}")
+        elif p[k] < lo[k] and (k != 2 or check_floor):
+            faces.append(f"-{ax}")
+    return faces
+
+
+def fence_clip(V: np.ndarray, pose: Pose, limits: SafetyLimits) -> tuple[np.ndarray, list[str]]:
+    """Remove from the body velocity V every world-frame component that leaves the soft fence further.
+
+    V = [v_x, v_y, v_z, ω_z] is in the body frame of `pose` (world pose of the drone, yaw θ about z, so
+    v_world = R(θ) v_body and v_z is the same in both frames). For each axis on which the drone is
+    beyond the soft fence, the world velocity component pointing further out is set to zero; the others,
+    and ω_z, are kept. Returns (V_clipped in the body frame, clipped world axes such as ['+x']).
+    """
+    p = pose.p
+    c, s = math.cos(pose.theta), math.sin(pose.theta)
+    vw = [c * V[0] - s * V[1], s * V[0] + c * V[1], float(V[2])]
+    clipped = []
+    for k, ax in enumerate(_AXES):
+        if p[k] > limits.fence_hi[k] and vw[k] > 0.0:
+            vw[k] = 0.0
+            clipped.append(f"+{ax}")
+        elif p[k] < limits.fence_lo[k] and vw[k] < 0.0:
+            vw[k] = 0.0
+            clipped.append(f"-{ax}")
+    out = np.array(V, dtype=float).reshape(4)
+    if not clipped:
+        return out, clipped
+    if any(a[1] in "xy" for a in clipped):  # back to the body frame: v_body = R(θ)ᵀ v_world
+        out[0] = c * vw[0] + s * vw[1]
+        out[1] = -s * vw[0] + c * vw[1]
+    out[2] = vw[2]
+    return out, clipped
+
+
+def _valid_pose(sp: object) -> bool:
+    """A StampedPose-like object with a finite stamp, a finite position (3,) and a finite yaw."""
+    try:
+        pose = sp.pose  # type: ignore[attr-defined]
+        p = np.asarray(pose.p, dtype=float)
+        return (
+            math.isfinite(float(sp.stamp))  # type: ignore[attr-defined]
+            and p.shape == (3,)
+            and bool(np.all(np.isfinite(p)))
+            and math.isfinite(float(pose.theta))
+        )
+    except (TypeError, ValueError, AttributeError):
+        return False
+
+
+# ---- one drone ---------------------------------------------------------------------------------------------
+class _Phase(enum.Enum):
+    IDLE = "idle"  # built; nothing commanded yet (a sim drone may already be airborne)
+    FLYING = "flying"  # after takeoff() or the first command: all rules enforced
+    LAND_PENDING = "land_pending"  # land requested but not (yet) accepted: nothing but land retries sent
+    LANDED = "landed"  # land accepted: nothing else is sent until a new takeoff()
+    STOPPED = "stopped"  # emergency stop accepted: motors off
+
+
+class SafeDrone:
+    """A hal.Drone that enforces the safety rules on the hal.Drone it wraps (see the module docstring).
+
+    Args:
+        drone_id: the mission's id of this drone (used in events).
+        drone: the wrapped drone (hardware driver or simulator).
+        poses: the motion-capture source; `body` names this drone's rigid body in it.
+        clock: the mission clock (s); every age is measured with it.
+        limits: the safety limits.
+        log: the event log shared with the mission.
+
+    `landed` is True once a land() or emergency_stop() of the wrapped drone was accepted and until the next
+    takeoff(); it starts False because the wrapper cannot know (a simulated drone may start airborne).
+    """
+
+    def __init__(
+        self,
+        drone_id: int,
+        drone: Drone,
+        poses: PoseSource,
+        body: str,
+        clock: Clock,
+        limits: SafetyLimits,
+        log: EventLog,
+    ) -> None:
+        self.drone_id = drone_id
+        self.inner = drone
+        self.poses = poses
+        self.body = body
+        self.clock = clock
+        self.limits = limits
+        self.log = log
+        self._lock = threading.RLock()
+        self._phase = _Phase.IDLE
+        self._episodes: set[str] = set()
+        now = clock.now()
+        self._active_since = now
+        self._last_command_t = now
+        self._last_pose: StampedPose | None = None
+        self._floor_armed = False
+        self._abort_reason: str | None = None
+        self._inner_thread: int | None = None
+        self.last_command: np.ndarray = np.zeros(4)
+        """The last command received by send_body_velocity (float (4,), as given; zeros if not numeric)."""
+        self.last_sent: np.ndarray | None = None
+        """The last velocity actually sent to the wrapped drone (body frame), None before the first."""
+
+    # ---- state -----------------------------------------------------------------------------------------
+    @property
+    def landed(self) -> bool:
+        """True once land/emergency stop was accepted by the wrapped drone (until the next takeoff)."""
+        return self._phase in (_Phase.LANDED, _Phase.STOPPED)
+
+    @property
+    def phase(self) -> str:
+        """'idle', 'flying', 'land_pending', 'landed' or 'stopped'."""
+        return self._phase.value
+
+    def in_inner_call(self) -> bool:
+        """True if the calling thread is currently inside a call to the wrapped drone."""
+        return self._inner_thread == threading.get_ident()
+
+    def request_abort(self, reason: str) -> None:
+        """Ask for a landing on the next send_body_velocity/tick (safe to call from a signal handler)."""
+        self._abort_reason = reason
+
+    # ---- hal.Drone -------------------------------------------------------------------------------------
+    def connect(self) -> None:
+        with self._lock:
+            self._call(self.inner.connect)
+
+    def state(self) -> DroneState:
+        with self._lock:
+            return self._call(self.inner.state)
+
+    def takeoff(self) -> None:
+        """Take off after the checks: battery >= min_battery_takeoff, a fresh pose, x/y inside the hard fence.
+
+        Raises SafetyError (and logs) when a check fails; the wrapped drone is then not asked to take off.
+        """
+        with self._lock:
+            now = self.clock.now()
+            battery = float(self._call(self.inner.state).battery_pct)
+            if not battery >= self.limits.min_battery_takeoff:  # also refuses NaN
+                self._event(
+                    now,
+                    "battery_refuse_takeoff",
+                    f"battery {battery:.1f} % < {self.limits.min_battery_takeoff:.1f} %",
+                )
+                raise SafetyError(
+                    f"drone {self.drone_id}: takeoff refused, battery {battery:.1f} % "
+                    f"< {self.limits.min_battery_takeoff:.1f} %"
+                )
+            sp = self._read_pose(now)
+            if sp is None or now - sp.stamp > self.limits.pose_timeout:
+                age = "never seen" if sp is None else f"{now - sp.stamp:.3f} s old"
+                self._event(now, "pose_refuse_takeoff", f"pose of {self.body!r} {age}")
+                raise SafetyError(f"drone {self.drone_id}: takeoff refused, pose of {self.body!r} {age}")
+            faces = [f for f in outside_hard_fence(sp.pose.p, self.limits, check_floor=False) if f[1] in "xy"]
+            if faces:
+                where = np.round(sp.pose.p, 3).tolist()
+                self._event(now, "fence_refuse_takeoff", f"at {where}, beyond hard fence {faces}")
+                raise SafetyError(
+                    f"drone {self.drone_id}: takeoff refused, at {where} outside the hard fence"
+                )
+            self._activate(now)  # before the call: if takeoff raises half-way, land_all still lands it
+            self._call(self.inner.takeoff)
+            self._last_command_t = self.clock.now()  # takeoff may block while climbing
+            self._event(self.clock.now(), "takeoff", f"battery {battery:.1f} %")
+
+    def land(self, reason: str = "land()") -> None:
+        """Land now (no-op if already landed); re-raises the wrapped drone's error after logging it."""
+        with self._lock:
+            if self.landed:
+                return
+            err = self._do_land(self.clock.now(), reason)
+            if err is not None:
+                raise err
+
+    def emergency_stop(self, reason: str = "emergency_stop()") -> None:
+        """Motors off. Nothing is sent afterwards; the wrapped drone's error propagates."""
+        with self._lock:
+            if self._phase is not _Phase.STOPPED:
+                self._phase = _Phase.LAND_PENDING  # whatever happens, no more velocity commands
+            self._call(self.inner.emergency_stop)
+            self._phase = _Phase.STOPPED
+            self._abort_reason = None
+            self._event(self.clock.now(), "emergency_stop", reason)
+
+    def close(self) -> None:
+        """Land if not landed (errors logged, not raised), then close the wrapped drone."""
+        with self._lock:
+            if not self.landed:
+                self._do_land(self.clock.now(), "close()")
+            self._call(self.inner.close)
+
+    def send_body_velocity(self, V: np.ndarray) -> None:
+        """Send V = [v_x, v_y, v_z, ω_z] (m/s, rad/s, body frame of this drone) through the safety rules.
+
+        In order: drop after land; NaN/inf/bad shape -> zeros; saturation; stale pose -> zeros (and land
+        once it is older than pose_land_after); outside the hard fence -> land; outside the soft fence ->
+        outward world components removed. The rules log and never raise; an error of the wrapped drone's
+        own send_body_velocity propagates.
+        """
+        with self._lock:
+            now = self.clock.now()
+            if self._abort_reason is not None and self._phase is _Phase.FLYING:
+                self._do_land(now, self._abort_reason)
+            if self._phase in (_Phase.LANDED, _Phase.STOPPED, _Phase.LAND_PENDING):
+                self._event_once(now, "command_after_land", f"command dropped: drone is {self.phase}")
+                return
+            if self._phase is _Phase.IDLE:
+                self._activate(now)
+            self._last_command_t = now
+            self._end("command_timeout")
+
+            cmd, problem = sanitize(V)
+            self.last_command = self._raw_copy(V)
+            if problem is None:
+                self._end("invalid_command")
+            else:
+                self._event_once(now, "invalid_command", f"{problem}; sending zero velocity")
+            cmd, changed = saturate(cmd, self.limits)
+            if changed:
+                self._event_once(now, "saturated", f"command {self.last_command.tolist()} -> {cmd.tolist()}")
+            else:
+                self._end("saturated")
+
+            pose = self._check_pose(now, hover_now=False)
+            if self._phase is not _Phase.FLYING:  # landed on a stale pose
+                return
+            if pose is None:
+                self._send(np.zeros(4))
+                return
+            if self._check_hard_fence(now, pose):
+                return
+            faces = outside_soft_fence(pose.p, self.limits)
+            if faces:
+                cmd, clipped = fence_clip(cmd, pose, self.limits)
+                where = np.round(pose.p, 3).tolist()
+                self._event_once(
+                    now, "fence_soft", f"at {where}, beyond soft fence {faces}; clipped {clipped}"
+                )
+            else:
+                self._end("fence_soft")
+            self._send(cmd)
+
+    # ---- periodic checks -------------------------------------------------------------------------------
+    def tick(self) -> None:
+        """Once per control period, command or not: stale pose, hard fence, battery, command watchdog.
+
+        Also retries a land that the wrapped drone refused. Never raises an Exception (logs instead).
+        """
+        with self._lock:
+            now = self.clock.now()
+            if self._abort_reason is not None and self._phase is _Phase.FLYING:
+                self._do_land(now, self._abort_reason)
+            if self._phase is _Phase.LAND_PENDING:
+                self._do_land(now, "retry")
+                return
+            if self._phase is not _Phase.FLYING:
+                return
+            pose = self._check_pose(now, hover_now=True)
+            if self._phase is not _Phase.FLYING:
+                return
+            if pose is not None and self._check_hard_fence(now, pose):
+                return
+            try:
+                battery = float(self._call(self.inner.state).battery_pct)
+            except Exception as exc:
+                self._event_once(now, "drone_error", f"state() raised {type(exc).__name__}: {exc}")
+            else:
+                self._end("drone_error")
+                if battery < self.limits.land_battery:
+                    self._safety_land(
+                        now, "battery_land", f"battery {battery:.1f} % < {self.limits.land_battery:.1f} %"
+                    )
+                    return
+            silent = now - self._last_command_t
+            if silent > self.limits.command_timeout and self._event_once(
+                now, "command_timeout", f"no command for {silent:.3f} s: zero velocity"
+            ):
+                self._send_quietly(now, np.zeros(4))
+
+    # ---- internals -------------------------------------------------------------------------------------
+    def _call(self, fn: Callable[..., _T], *args: Any) -> _T:
+        """Call the wrapped drone, remembering which thread is inside it (for signal handlers)."""
+        prev = self._inner_thread
+        self._inner_thread = threading.get_ident()
+        try:
+            return fn(*args)
+        finally:
+            self._inner_thread = prev
+
+    @staticmethod
+    def _raw_copy(V: object) -> np.ndarray:
+        try:
+            return np.array(V, dtype=float).reshape(-1).copy()
+        except (TypeError, ValueError):
+            return np.zeros(4)
+
+    def _event(self, now: float, kind: str, detail: str) -> None:
+        self.log.record(now, self.drone_id, kind, detail)
+
+    def _event_once(self, now: float, kind: str, detail: str) -> bool:
+        """Log `kind` if its episode is not already open; True if this call opened it."""
+        if kind in self._episodes:
+            return False
+        self._episodes.add(kind)
+        self._event(now, kind, detail)
+        return True
+
+    def _end(self, kind: str) -> None:
+        self._episodes.discard(kind)
+
+    def _activate(self, now: float) -> None:
+        self._phase = _Phase.FLYING
+        self._episodes.clear()
+        self._active_since = now
+        self._last_command_t = now
+        self._floor_armed = False
+
+    def _send(self, V: np.ndarray) -> None:
+        out = np.array(V, dtype=float)
+        self._call(self.inner.send_body_velocity, out.copy())
+        self.last_sent = out
+
+    def _send_quietly(self, now: float, V: np.ndarray) -> None:
+        try:
+            self._send(V)
+        except Exception as exc:
+            self._event_once(now, "drone_error", f"send_body_velocity raised {type(exc).__name__}: {exc}")
+
+    def _read_pose(self, now: float) -> StampedPose | None:
+        """Latest valid pose from the source (remembered), or the last valid one; None if never seen."""
+        try:
+            sp = self.poses.latest(self.body)
+        except Exception as exc:
+            self._event_once(now, "pose_error", f"PoseSource.latest raised {type(exc).__name__}: {exc}")
+            return self._last_pose
+        self._end("pose_error")
+        if _valid_pose(sp):
+            self._last_pose = sp
+        return self._last_pose
+
+    def _check_pose(self, now: float, hover_now: bool) -> Pose | None:
+        """The fresh pose, or None when stale (hover: zeros sent once if hover_now; land when too old).
+
+        Never seen counts as stale at once (no fence without a pose), aged from the activation time.
+        """
+        sp = self._read_pose(now)
+        if sp is None:
+            age = now - self._active_since
+            seen, stale = f"never seen ({age:.3f} s since takeoff/first command)", True
+        else:
+            age = now - sp.stamp
+            seen, stale = f"{age:.3f} s old", age > self.limits.pose_timeout
+        if stale:
+            opened = self._event_once(now, "pose_stale_hover", f"pose of {self.body!r} {seen}: zero velocity")
+            if age > self.limits.pose_land_after:
+                self._safety_land(now, "pose_stale_land", f"pose of {self.body!r} {seen}")
+            elif opened and hover_now:
+                self._send_quietly(now, np.zeros(4))
+            return None
+        self._end("pose_stale_hover")
+        if sp.pose.p[2] >= self.limits.fence_lo[2]:
+            self._floor_armed = True
+        return sp.pose
+
+    def _check_hard_fence(self, now: float, pose: Pose) -> bool:
+        """Land if outside the hard fence (its floor only once the drone has been above the soft floor)."""
+        faces = outside_hard_fence(pose.p, self.limits, check_floor=self._floor_armed)
+        if not faces:
+            return False
+        where = np.round(pose.p, 3).tolist()
+        self._safety_land(now, "fence_hard_land", f"at {where}, beyond hard fence {faces}")
+        return True
+
+    def _safety_land(self, now: float, kind: str, detail: str) -> None:
+        """Land because of a rule; a refusal of the wrapped drone is logged and retried by tick()."""
+        self._event_once(now, kind, detail)
+        if self.landed:
+            return
+        if self._do_land(now, kind) is not None:
+            self._send_quietly(now, np.zeros(4))  # best effort: at least hover until land is accepted
+
+    def _do_land(self, now: float, reason: str) -> Exception | None:
+        """Send land to the wrapped drone; returns its Exception (logged once per episode) or None."""
+        self._phase = _Phase.LAND_PENDING  # from here on, no velocity reaches the wrapped drone
+        try:
+            self._call(self.inner.land)
+        except Exception as exc:
+            self._event_once(now, "land_failed", f"{reason}: land() raised {type(exc).__name__}: {exc}")
+            return exc
+        self._phase = _Phase.LANDED
+        self._abort_reason = None
+        self._end("land_failed")
+        self._event(now, "land", reason)
+        return None
+
+
+# ---- the mission -------------------------------------------------------------------------------------------
+class MissionSupervisor:
+    """Mission-wide rules over all SafeDrones: target-lost hover, land all, signals, exception guard."""
+
+    def __init__(
+        self, drones: dict[int, SafeDrone], clock: Clock, limits: SafetyLimits, log: EventLog
+    ) -> None:
+        self.drones = dict(drones)
+        self.clock = clock
+        self.limits = limits
+        self.log = log
+        self._lock = threading.RLock()
+        self._t0: float | None = None
+        self._last_seen: dict[int, float] = {}
+        self._known: set[int] = set(self.drones)
+        self._lost_episode = False
+        self._landing_depth = 0
+        self._deferred_land: str | None = None
+
+    def update_visibility(self, visible: dict[int, bool]) -> bool:
+        """Record which drones see the target now; True if the mission must hover.
+
+        The mission hovers when every drone (supervised or reported here; a drone missing from `visible`
+        counts as not seeing) has not seen the target for longer than target_lost_hover_after seconds.
+        A drone that has never seen it counts from the first call. One event per episode.
+        """
+        with self._lock:
+            now = self.clock.now()
+            if self._t0 is None:
+                self._t0 = now
+            self._known.update(visible)
+            for i, v in visible.items():
+                if v:
+                    self._last_seen[i] = now
+            if not self._known:
+                return False
+            lost_for = min(now - self._last_seen.get(i, self._t0) for i in self._known)
+            hold = lost_for > self.limits.target_lost_hover_after
+            if hold and not self._lost_episode:
+                self.log.record(
+                    now,
+                    None,
+                    "target_lost_hover",
+                    f"every drone lost the target for {lost_for:.2f} s "
+                    f"> {self.limits.target_lost_hover_after:.2f} s: hover",
+                )
+            self._lost_episode = hold
+            return hold
+
+    def land_all(self, reason: str) -> None:
+        """Land every drone that is not landed; idempotent.
+
+        A drone whose land() raises is logged (land_failed) and retried by its tick(); with
+        `limits.emergency_stop_if_land_fails` it gets emergency_stop() instead. The others are landed
+        regardless. An interrupt (KeyboardInterrupt, SystemExit) raised while landing one drone does
+        not stop the others from being landed; it is re-raised afterwards.
+        """
+        with self._lock:
+            interrupt: BaseException | None = None
+            self._landing_depth += 1
+            try:
+                pending = [(i, d) for i, d in self.drones.items() if not d.landed]
+                if pending:
+                    ids = [i for i, _ in pending]
+                    self.log.record(self.clock.now(), None, "land_all", f"{reason}; landing drones {ids}")
+                for i, d in pending:
+                    try:
+                        self._land_one(i, d, reason)
+                    except BaseException as exc:  # keep landing the others first, re-raise after
+                        interrupt = interrupt or exc
+            finally:
+                self._landing_depth -= 1
+            if interrupt is not None:
+                raise interrupt
+
+    def _land_one(self, i: int, d: SafeDrone, reason: str) -> None:
+        try:
+            d.land(reason)
+        except Exception as exc:
+            why = f"{reason}; land() raised {type(exc).__name__}: {exc}"
+            if not self.limits.emergency_stop_if_land_fails:
+                return  # logged as land_failed by the drone; its tick() retries the land every period
+            try:
+                d.emergency_stop(why)
+            except Exception as exc2:
+                self.log.record(
+                    self.clock.now(), i, "emergency_stop_failed", f"{why}; {type(exc2).__name__}: {exc2}"
+                )
+
+    def install_signal_handlers(self) -> contextlib.AbstractContextManager[MissionSupervisor]:
+        """Context manager: inside it SIGINT and SIGTERM land every drone, then raise KeyboardInterrupt.
+
+        Must be entered on the main thread. If the signal interrupts a call into a drone driver, the landing
+        is deferred until that call has unwound (the driver may hold a lock): KeyboardInterrupt is raised at
+        once, every drone's next command or tick lands it, and leaving the block lands them all. A signal
+        received while land_all runs is logged and ignored (the landing it asks for is under way). The
+        previous handlers are restored on exit.
+        """
+        return _SignalHandlers(self)
+
+    def guard(self) -> contextlib.AbstractContextManager[MissionSupervisor]:
+        """Context manager: any exception (also KeyboardInterrupt) leaving the block lands all, re-raised."""
+        return _Guard(self)
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        name = signal.Signals(signum).name
+        now = self.clock.now()
+        if self._landing_depth > 0:
+            self.log.record(now, None, "signal", f"{name} during land_all: ignored, landing continues")
+            return
+        busy = [i for i, d in self.drones.items() if d.in_inner_call()]
+        if busy:
+            self._deferred_land = f"signal {name}"
+            for d in self.drones.values():
+                d.request_abort(f"signal {name}")
+            self.log.record(now, None, "signal", f"{name} inside drone {busy}'s driver: landing deferred")
+            raise KeyboardInterrupt(f"signal {name}")
+        self.log.record(now, None, "signal", f"{name}: landing all")
+        self.land_all(f"signal {name}")
+        raise KeyboardInterrupt(f"signal {name}")
+
+
+class _Guard(contextlib.AbstractContextManager[MissionSupervisor]):
+    def __init__(self, sup: MissionSupervisor) -> None:
+        self._sup = sup
+
+    def __enter__(self) -> MissionSupervisor:
+        return self._sup
+
+    def __exit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> bool:
+        if ev is not None:
+            msg = str(ev)
+            self._sup.land_all(f"{type(ev).__name__}: {msg}" if msg else type(ev).__name__)
+        return False
+
+
+class _SignalHandlers(contextlib.AbstractContextManager[MissionSupervisor]):
+    _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self, sup: MissionSupervisor) -> None:
+        self._sup = sup
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> MissionSupervisor:
+        if threading.current_thread() is not threading.main_thread():
+            raise RuntimeError("install_signal_handlers() must be entered on the main thread")
+        try:
+            for sig in self._SIGNALS:
+                self._previous[sig] = signal.getsignal(sig)
+                signal.signal(sig, self._sup._on_signal)
+        except BaseException:
+            self._restore()
+            raise
+        return self._sup
+
+    def __exit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> bool:
+        try:
+            reason, self._sup._deferred_land = self._sup._deferred_land, None
+            if reason is not None:
+                self._sup.land_all(reason)
+        finally:
+            self._restore()
+        return False
+
+    def _restore(self) -> None:
+        for sig, prev in self._previous.items():
+            signal.signal(sig, prev if prev is not None else signal.SIG_DFL)
+        self._previous.clear()

@@ -1,0 +1,381 @@
+"""The simulated camera image: the target's coloured disc markers seen through a calibrated lens.
+
+Frames and units: marker centres and normals are given in the physical camera frame Σc (metres; z = optical
+axis, x right, y down, as in OpenCV and flightstack.projection). Pixel coordinates follow OpenCV: u to the
+right, v down, the origin at the centre of the top-left pixel, so pixel (row i, column j) covers
+[j − ½, j + ½] × [i − ½, i + ½].
+
+Each disc is the projection of a polygon of its 3-D boundary circle through `cv2.projectPoints` with the
+calibration's K and distortion coefficients (so lens distortion bends the outline exactly as it bends
+the ground-truth centre), rasterised at `supersample`× resolution inside the disc's bounding box only and
+area-averaged back (cv2.INTER_AREA), which gives each edge pixel its covered fraction of the marker
+colour. Then motion blur (a centred line kernel, so it moves no centroid), integer-rounded Gaussian noise and
+rounding/clipping to uint8.
+
+Polygons that leave the field of view are clipped in 3-D against a near plane and in the undistorted
+normalised image plane against a rectangle slightly larger than the image before distortion is
+applied: OpenCV's polynomial distortion folds back far outside the field of view (k1 < 0), and without
+the clip a disc 77° off-axis (x/z = 4.2, k1 = −0.05) would be painted inside the image.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from flightstack.camera_calibration import CameraCalibration
+
+#: Discs closer than this to the camera plane (metres along z) are clipped away.
+NEAR_PLANE_M = 1e-3
+#: A centre nearer than this (metres along z) is not "in view" (see render_markers).
+MIN_IN_VIEW_DEPTH_M = 0.05
+
+_SHIFT = 8  # fixed-point fractional bits for cv2.fillPoly
+# cv2.fillPoly fills every pixel whose centre lies within about half a pixel *outside* the polygon
+# (it rasterises edges inclusively). Insetting the polygon by this much (in supersampled pixels) makes
+# the filled area an unbiased estimate of the polygon area (measured: residual < 0.03 px per unit
+# perimeter for circles and ellipses of radius 10..60 px).
+_FILL_INSET_PX = 0.48
+_MAX_MASK_SAMPLES = 1 << 22  # largest supersampled mask (16 MB of float32)
+_MASK_MARGIN = 8  # supersamples
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """How the simulated camera paints the markers.
+
+    marker_radius_m: physical disc radius (metres).
+    background_rgb: the floor colour; grey (low saturation) so that no marker threshold fires.
+    noise_std: standard deviation of additive Gaussian pixel noise, on the 0..255 scale.
+    blur_px: motion-blur length in pixels along blur_dir_rad (0 = none).
+    blur_dir_rad: blur direction in the image, radians from the +u axis towards +v.
+    supersample: anti-aliasing factor (samples per pixel per axis).
+    """
+
+    marker_radius_m: float = 0.03
+    background_rgb: tuple[int, int, int] = (90, 90, 90)
+    noise_std: float = 0.0
+    blur_px: float = 0.0
+    blur_dir_rad: float = 0.0
+    supersample: int = 4
+
+    def __post_init__(self) -> None:
+        if not (self.marker_radius_m > 0 and math.isfinite(self.marker_radius_m)):
+            raise ValueError(f"marker_radius_m must be > 0, got {self.marker_radius_m}")
+        if not (self.noise_std >= 0 and self.blur_px >= 0):
+            raise ValueError("noise_std and blur_px must be >= 0")
+        if not (isinstance(self.supersample, int) and 1 <= self.supersample <= 16):
+            raise ValueError(f"supersample must be an integer in 1..16, got {self.supersample}")
+
+
+def _clip_polygon(P: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Sutherland–Hodgman step: keep the part of the closed polygon P (n, d) where the signed value s ≥ 0."""
+    inside = s >= 0.0
+    if inside.all():
+        return P
+    if not inside.any():
+        return P[:0]
+    Pn = np.roll(P, -1, axis=0)
+    sn = np.roll(s, -1)
+    cross = inside != (sn >= 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(cross, s / (s - sn), 0.0)
+    n, d = P.shape
+    out = np.empty((2 * n, d))
+    keep = np.empty(2 * n, dtype=bool)
+    out[0::2] = P
+    keep[0::2] = inside
+    out[1::2] = P + t[:, None] * (Pn - P)
+    keep[1::2] = cross
+    return out[keep]
+
+
+def _densify(P: np.ndarray, max_step: float) -> np.ndarray:
+    """Insert points on the edges of the closed polygon P (n, 2) so that no edge is longer than max_step."""
+    Pn = np.roll(P, -1, axis=0)
+    k = np.maximum(1, np.ceil(np.linalg.norm(Pn - P, axis=1) / max_step).astype(int))
+    if (k == 1).all():
+        return P
+    idx = np.repeat(np.arange(len(P)), k)
+    start = np.cumsum(k) - k
+    t = (np.arange(idx.size) - start[idx]) / k[idx]
+    return P[idx] + t[:, None] * (Pn[idx] - P[idx])
+
+
+def _distort(xy: np.ndarray, cal: CameraCalibration) -> np.ndarray:
+    """Pixels (n, 2) of normalised undistorted points xy (n, 2) (x/z, y/z) through K and the distortion."""
+    pts = np.empty((len(xy), 3))
+    pts[:, :2] = xy
+    pts[:, 2] = 1.0
+    px, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), cal.camera_matrix, cal.dist_coeffs)
+    return px.reshape(-1, 2)
+
+
+_CLIP_RECT_CACHE: dict[tuple[object, ...], tuple[float, float, float, float]] = {}
+
+
+def _normalised_clip_rect(cal: CameraCalibration) -> tuple[float, float, float, float]:
+    """(x_min, x_max, y_min, y_max) in the undistorted normalised plane, enclosing the whole image.
+
+    The image outline (pixel area [−½, W − ½] × [−½, H − ½]) is undistorted and its bounding box widened
+    by a margin; the margin shrinks until the distorted rectangle lies entirely outside the image, so
+    anything clipped away is invisible and distortion is only evaluated where it is well behaved.
+    """
+    K = np.asarray(cal.camera_matrix, dtype=float)
+    dist = np.asarray(cal.dist_coeffs, dtype=float).reshape(-1)
+    key = (cal.width, cal.height, K.tobytes(), dist.tobytes())
+    rect = _CLIP_RECT_CACHE.get(key)
+    if rect is not None:
+        return rect
+    W, H = cal.width, cal.height
+    us = np.linspace(-0.5, W - 0.5, 65)
+    vs = np.linspace(-0.5, H - 0.5, 49)
+    border = np.concatenate(
+        [
+            np.c_[us, np.full_like(us, -0.5)],
+            np.c_[us, np.full_like(us, H - 0.5)],
+            np.c_[np.full_like(vs, -0.5), vs],
+            np.c_[np.full_like(vs, W - 0.5), vs],
+        ]
+    )
+    xy = cv2.undistortPoints(border.reshape(-1, 1, 2), K, dist, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    span = hi - lo
+    rect = (lo[0] - span[0], hi[0] + span[0], lo[1] - span[1], hi[1] + span[1])  # last resort, see below
+    for margin in (0.25, 0.15, 0.08, 0.04, 0.02, 0.01):
+        x0, y0 = lo - margin * span
+        x1, y1 = hi + margin * span
+        outline = _densify(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]), 0.005 * span.max())
+        px = _distort(outline, cal)
+        outside = (px[:, 0] < -0.5) | (px[:, 0] > W - 0.5) | (px[:, 1] < -0.5) | (px[:, 1] > H - 0.5)
+        if outside.all():
+            rect = (float(x0), float(x1), float(y0), float(y1))
+            break
+    else:  # pathological distortion: clip at the undistorted image outline itself
+        rect = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
+    _CLIP_RECT_CACHE[key] = rect
+    return rect
+
+
+def _line_kernel(length_px: float, direction_rad: float) -> np.ndarray:
+    """Normalised motion-blur kernel: a segment of the given length (pixels) centred on the kernel centre."""
+    half = math.ceil(length_px / 2.0) + 1
+    k = 2 * half + 1
+    kern = np.zeros((k, k), dtype=np.float64)
+    n = max(32, int(16 * math.ceil(length_px)))
+    t = (np.arange(n) + 0.5) / n * length_px - length_px / 2.0
+    x = half + t * math.cos(direction_rad)
+    y = half + t * math.sin(direction_rad)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    for dx, dy, w in (
+        (0, 0, (1 - fx) * (1 - fy)),
+        (1, 0, fx * (1 - fy)),
+        (0, 1, (1 - fx) * fy),
+        (1, 1, fx * fy),
+    ):
+        np.add.at(kern, (y0 + dy, x0 + dx), w)
+    return (kern / kern.sum()).astype(np.float32)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _disc_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors spanning the plane orthogonal to the unit vector `normal`."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = _cross(normal, helper)
+    e1 /= math.sqrt(float(e1 @ e1))
+    return e1, _cross(normal, e1)
+
+
+def _blur_boxes(image: np.ndarray, kern: np.ndarray, boxes: list[tuple[int, int, int, int]]) -> np.ndarray:
+    """cv2.filter2D of the whole image (BORDER_REPLICATE), in place, only where it can differ from the input.
+
+    Outside the painted boxes the frame is the uniform background, which a normalised kernel leaves
+    unchanged, so each box grown by the kernel radius is filtered from a source grown by another radius.
+    """
+    H, W = image.shape[:2]
+    h = kern.shape[0] // 2
+    patches = []
+    for x0, y0, x1, y1 in boxes:  # all patches from the unblurred image first (boxes may overlap)
+        ox0, oy0, ox1, oy1 = max(0, x0 - h), max(0, y0 - h), min(W, x1 + h), min(H, y1 + h)
+        sx0, sy0, sx1, sy1 = max(0, ox0 - h), max(0, oy0 - h), min(W, ox1 + h), min(H, oy1 + h)
+        blurred = cv2.filter2D(image[sy0:sy1, sx0:sx1], -1, kern, borderType=cv2.BORDER_REPLICATE)
+        patches.append((oy0, oy1, ox0, ox1, blurred[oy0 - sy0 : oy1 - sy0, ox0 - sx0 : ox1 - sx0]))
+    for oy0, oy1, ox0, ox1, patch in patches:
+        image[oy0:oy1, ox0:ox1] = patch
+    return image
+
+
+_GAUSS_QUANTILES: np.ndarray | None = None
+
+
+def _gaussian_noise_int16(rng: np.random.Generator, n: int, std: float) -> np.ndarray:
+    """n samples of round(N(0, std²)) as int16, from 16 random bits each through a table of 65536 quantiles.
+
+    Exact Gaussian quantiles (truncated at ±4.2σ), about 4× faster than rng.standard_normal; the integer
+    rounding is exact for an integer image: round(I + ε) = I + round(ε).
+    """
+    global _GAUSS_QUANTILES
+    if _GAUSS_QUANTILES is None:
+        from scipy.special import ndtri
+
+        _GAUSS_QUANTILES = ndtri((np.arange(65536) + 0.5) / 65536.0)
+    table = np.clip(np.round(std * _GAUSS_QUANTILES), -32768, 32767).astype(np.int16)
+    idx = rng.bit_generator.random_raw((n + 3) // 4).view(np.uint16)[:n]
+    return np.take(table, idx)
+
+
+def render_markers(
+    cal: CameraCalibration,
+    centres_c: np.ndarray,
+    normals_c: np.ndarray | None,
+    opts: RenderOptions,
+    rng: np.random.Generator | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Paint the m disc markers into a simulated camera frame.
+
+    centres_c: (m, 3) marker centres in the camera frame Σc (metres), in the order of cal.markers.
+    normals_c: (m, 3) disc normals in Σc (any length, either sign), or None: each disc faces the camera
+        (normal along the line of sight to its centre).
+    opts: radius, background, blur, noise, supersampling.
+    rng: source of the pixel noise (only used when opts.noise_std > 0; None: a fresh default_rng()).
+
+    Returns
+        image: (H, W, 3) uint8 RGB.
+        true_px: (m, 2) ground truth, cv2.projectPoints of each centre with K and the distortion
+            (pixels, OpenCV convention); NaN for a centre on or behind the camera plane (z ≤ 0).
+        in_view: (m,) bool, the centre is in front of the camera (z > 0.05 m) AND the whole disc is
+            inside the image without reaching its outermost row/column of pixels (every outline point
+            in [½, W − 3/2] × [½, H − 3/2]), so an unblurred in-view marker never touches the border.
+
+    Markers are drawn far to near (painter's order by centre depth); discs behind the camera are not
+    drawn, discs partly outside the image are drawn clipped. Raises ValueError when the shapes do not
+    match the calibration's markers or a marker has no `rgb` paint colour.
+    """
+    markers = cal.markers
+    m = len(markers)
+    centres = np.asarray(centres_c, dtype=float)
+    if centres.shape != (m, 3):
+        raise ValueError(
+            f"centres_c: expected shape ({m}, 3) for {m} calibration markers, got {centres.shape}"
+        )
+    if not np.all(np.isfinite(centres)):
+        raise ValueError("centres_c must be finite")
+    missing = [mk.name for mk in markers if mk.rgb is None]
+    if missing:
+        raise ValueError(f"markers without an rgb paint colour: {', '.join(missing)}")
+    if normals_c is None:
+        normals = -centres
+    else:
+        normals = np.asarray(normals_c, dtype=float)
+        if normals.shape != (m, 3):
+            raise ValueError(f"normals_c: expected shape ({m}, 3), got {normals.shape}")
+    norms = np.linalg.norm(normals, axis=1)
+    if not np.all(np.isfinite(norms)) or np.any(norms < 1e-12):
+        raise ValueError(
+            "normals_c must be finite and non-zero (and centres_c non-zero when normals_c is None)"
+        )
+    normals = normals / norms[:, None]
+
+    W, H = int(cal.width), int(cal.height)
+    K = np.asarray(cal.camera_matrix, dtype=float)
+    dist = np.asarray(cal.dist_coeffs, dtype=float).reshape(-1)
+    row = np.tile(np.asarray(opts.background_rgb, dtype=np.uint8), W)
+    image = np.ascontiguousarray(np.broadcast_to(row, (H, 3 * W))).reshape(H, W, 3)
+
+    true_px = np.full((m, 2), np.nan)
+    front = centres[:, 2] > 0.0
+    if front.any():
+        px, _ = cv2.projectPoints(centres[front], np.zeros(3), np.zeros(3), K, dist)
+        true_px[front] = px.reshape(-1, 2)
+    in_view = np.zeros(m, dtype=bool)
+    boxes: list[tuple[int, int, int, int]] = []
+
+    s = opts.supersample
+    rx0, rx1, ry0, ry1 = _normalised_clip_rect(cal)
+    r = opts.marker_radius_m
+    for j in np.argsort(-centres[:, 2], kind="stable"):  # far first
+        c = centres[j]
+        # boundary polygon of the circle; its vertices sit on a slightly larger circle so that the
+        # polygon has exactly the disc's area (an inscribed polygon would be (2π/N)²/6 too small)
+        z_ref = max(float(c[2]), r)
+        n_pts = int(min(512, max(64, 2.0 * math.pi * math.sqrt(max(cal.fx, cal.fy) * r / z_ref) * 4)))
+        dphi = 2.0 * math.pi / n_pts
+        r_eq = r * math.sqrt(dphi / math.sin(dphi))
+        phi = np.arange(n_pts) * dphi
+        e1, e2 = _disc_basis(normals[j])
+        P = c + r_eq * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+        clipped = False
+        if P[:, 2].min() < NEAR_PLANE_M:
+            P = _clip_polygon(P, P[:, 2] - NEAR_PLANE_M)
+            clipped = True
+            if len(P) < 3:
+                continue
+        xy = P[:, :2] / P[:, 2:3]
+        for axis, bound, sign in ((0, rx0, 1.0), (0, rx1, -1.0), (1, ry0, 1.0), (1, ry1, -1.0)):
+            vals = sign * (xy[:, axis] - bound)
+            if vals.min() < 0.0:
+                xy = _clip_polygon(xy, vals)
+                clipped = True
+                if len(xy) < 3:
+                    break
+        if len(xy) < 3:
+            continue
+        if clipped:  # straight clip edges must stay straight-ish after distortion
+            xy = _densify(xy, 0.01 * max(rx1 - rx0, ry1 - ry0))
+        poly = _distort(xy, cal)
+        if not np.all(np.isfinite(poly)):
+            continue
+        lo = poly.min(axis=0)
+        hi = poly.max(axis=0)
+        if not clipped and c[2] > MIN_IN_VIEW_DEPTH_M:
+            in_view[j] = bool(lo[0] >= 0.5 and lo[1] >= 0.5 and hi[0] <= W - 1.5 and hi[1] <= H - 1.5)
+        # pixel box that can receive any coverage (pixel k covers [k − ½, k + ½])
+        bx0 = max(0, math.floor(lo[0] + 0.5))
+        by0 = max(0, math.floor(lo[1] + 0.5))
+        bx1 = min(W, math.floor(hi[0] + 0.5) + 1)
+        by1 = min(H, math.floor(hi[1] + 0.5) + 1)
+        if bx1 <= bx0 or by1 <= by0:
+            continue
+        # supersampling factor, lowered for a disc so near that its box would need a huge mask (its edge
+        # pixels are then a negligible part of its area)
+        ss = min(s, max(1, math.isqrt(_MAX_MASK_SAMPLES // ((bx1 - bx0) * (by1 - by0)))))
+        # supersampled coordinates: sub-pixel k of the box has its centre at pixel bx0 − ½ + (k + ½)/ss
+        q = (poly - (bx0, by0) + 0.5) * ss - 0.5
+        # inset by the fill rule's half-pixel inflation; (d_y, −d_x) is the outward vertex normal of a
+        # polygon with positive signed area 2A = Σ x_i y_{i+1} − y_i x_{i+1}
+        d = np.roll(q, -1, axis=0) - np.roll(q, 1, axis=0)
+        nrm = np.c_[d[:, 1], -d[:, 0]]
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1), 1e-12)[:, None]
+        area2 = np.dot(q[:, 0], np.roll(q[:, 1], -1)) - np.dot(q[:, 1], np.roll(q[:, 0], -1))
+        q = q - (_FILL_INSET_PX if area2 > 0 else -_FILL_INSET_PX) * nrm
+        bw, bh = bx1 - bx0, by1 - by0
+        qi = np.round(q * (1 << _SHIFT)).astype(np.int32)
+        # fillPoly rasterises the edges it clips slightly differently within ~3 samples of the mask
+        # edge, so the mask gets _MASK_MARGIN extra samples on every side, cropped after the fill (the
+        # offset is in the same fixed-point units as the points)
+        mask = np.zeros((bh * ss + 2 * _MASK_MARGIN, bw * ss + 2 * _MASK_MARGIN), dtype=np.float32)
+        cv2.fillPoly(mask, [qi], 1.0, cv2.LINE_8, _SHIFT, (_MASK_MARGIN << _SHIFT, _MASK_MARGIN << _SHIFT))
+        mask = mask[_MASK_MARGIN:-_MASK_MARGIN, _MASK_MARGIN:-_MASK_MARGIN]
+        alpha = mask if ss == 1 else cv2.resize(mask, (bw, bh), interpolation=cv2.INTER_AREA)
+        box = image[by0:by1, bx0:bx1].astype(np.float32)
+        box += alpha[:, :, None] * (np.asarray(markers[j].rgb, dtype=np.float32) - box)
+        image[by0:by1, bx0:bx1] = np.clip(box + 0.5, 0.0, 255.0).astype(np.uint8)
+        boxes.append((bx0, by0, bx1, by1))
+
+    if opts.blur_px > 0.0 and boxes:
+        image = _blur_boxes(image, _line_kernel(opts.blur_px, opts.blur_dir_rad), boxes)
+    if opts.noise_std > 0.0:
+        gen = rng if rng is not None else np.random.default_rng()
+        noisy = _gaussian_noise_int16(gen, image.size, opts.noise_std).reshape(image.shape)
+        noisy += image
+        np.clip(noisy, 0, 255, out=noisy)
+        image = noisy.astype(np.uint8)
+    return image, true_px, in_view
