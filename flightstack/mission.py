@@ -6,8 +6,10 @@ reason. `load_mission(path)` raises MissionError with all problems listed, nothi
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
+import typing
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -19,11 +21,13 @@ from pydantic import (
     Field,
     PrivateAttr,
     ValidationError,
+    create_model,
     field_validator,
     model_validator,
 )
 
 from flightstack.fusion import FUSION_RULES
+from flightstack.safety import SafetyLimits
 
 MODES = ("none", "local", "dgp", "oracle")
 
@@ -227,30 +231,28 @@ class SimSpec(_Strict):
     render: RenderSpec = RenderSpec()
 
 
-class SafetySpec(_Strict):
-    """flightstack.safety.SafetyLimits; the fence is a box in Σw (m). `enabled: false` only for the
-    paper's ideal simulation, whose unbounded world the supervisor would change."""
+def _safety_spec() -> type[BaseModel]:
+    """The `safety:` section: exactly the fields and defaults of flightstack.safety.SafetyLimits (one
+    source of truth), plus `enabled`; SafetyLimits' own checks run as the section's validator."""
+    hints = typing.get_type_hints(SafetyLimits)
+    fields: dict[str, object] = {"enabled": (bool, True)}
+    for f in dataclasses.fields(SafetyLimits):
+        fields[f.name] = (hints[f.name], f.default)
 
-    enabled: bool = True
-    max_speed_xy: Positive = 0.5
-    max_speed_z: Positive = 0.3
-    max_yaw_rate: Positive = 1.0
-    fence_lo: tuple[Finite, Finite, Finite] = (-2.0, -2.0, 0.3)
-    fence_hi: tuple[Finite, Finite, Finite] = (2.0, 2.0, 2.0)
-    hard_margin: NonNegative = 0.3
-    command_timeout: Positive = 0.5
-    pose_timeout: Positive = 0.3
-    pose_land_after: Positive = 2.0
-    min_battery_takeoff: Annotated[float, Field(ge=0, le=100)] = 30.0
-    land_battery: Annotated[float, Field(ge=0, le=100)] = 15.0
-    target_lost_hover_after: Positive = 3.0
-    emergency_stop_if_land_fails: bool = False
-
-    @model_validator(mode="after")
-    def _box(self) -> SafetySpec:
-        if any(h <= lo for lo, h in zip(self.fence_lo, self.fence_hi, strict=True)):
-            raise ValueError("fence_hi must exceed fence_lo on every axis")
+    def _limits_valid(self: BaseModel) -> BaseModel:
+        SafetyLimits(**self.model_dump(exclude={"enabled"}))  # raises ValueError with the reason
         return self
+
+    return create_model(
+        "SafetySpec",
+        __base__=_Strict,
+        __doc__="flightstack.safety.SafetyLimits; `enabled: false` only for the paper's ideal simulation.",
+        __validators__={"_limits_valid": model_validator(mode="after")(_limits_valid)},
+        **fields,
+    )
+
+
+SafetySpec = _safety_spec()
 
 
 class BusSpec(_Strict):
@@ -282,7 +284,7 @@ class Mission(_Strict):
     bus: BusSpec = BusSpec()
     gain_analysis: GainAnalysisSpec = GainAnalysisSpec()
     sim: SimSpec = SimSpec()
-    safety: SafetySpec = SafetySpec()
+    safety: SafetySpec = SafetySpec()  # type: ignore[valid-type]
     _base_dir: Path = PrivateAttr(default=Path("."))
 
     def resolve(self, relative: str) -> Path:

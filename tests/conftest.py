@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -24,3 +28,36 @@ def poses(draw: st.DrawFn) -> Pose:
 @st.composite
 def twists(draw: st.DrawFn) -> np.ndarray:
     return np.array([draw(finite), draw(finite), draw(finite), draw(st.floats(-3.0, 3.0))])
+
+
+def interrupt_cli_sim(mission: Path, out: Path, run_seconds: float = 1.0) -> tuple[int, str]:
+    """Start `flightstack sim MISSION --duration 600`, wait for its first progress bar, let it fly
+    `run_seconds`, send SIGINT; returns (exit code, stderr). Bounded: kills the process after 60 s."""
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "flightstack.cli",
+            "sim",
+            str(mission),
+            "--out",
+            str(out),
+            "--duration",
+            "600",
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        buf, deadline = "", time.monotonic() + 60
+        while "mode none" not in buf and time.monotonic() < deadline and proc.poll() is None:
+            buf += proc.stderr.read(1) if proc.stderr else ""
+        time.sleep(run_seconds)
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, buf + stderr

@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.conftest import MISSIONS, REPO
+from tests.conftest import MISSIONS, REPO, interrupt_cli_sim
 
 
 def run_cli(*args: str, timeout: float = 400) -> subprocess.CompletedProcess:
@@ -62,36 +60,8 @@ def test_paper_sim_writes_recordings_plots_and_experts(paper_run: Path) -> None:
 
 def test_sigint_lands_and_writes_partial_recording(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "flightstack.cli",
-            "sim",
-            str(MISSIONS / "paper_sim.yaml"),
-            "--out",
-            str(out),
-            "--duration",
-            "600",
-        ],
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        deadline = time.monotonic() + 60
-        # wait until the first progress bar appears on stderr (the loop is running)
-        buf = ""
-        while "mode none" not in buf and time.monotonic() < deadline:
-            buf += proc.stderr.read(1) if proc.stderr else ""
-        time.sleep(1.0)
-        proc.send_signal(signal.SIGINT)
-        _, stderr = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 130, stderr[-2000:]
+    code, stderr = interrupt_cli_sim(MISSIONS / "paper_sim.yaml", out, run_seconds=1.0)
+    assert code == 130, stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
     assert m["interrupted"] is True
     ts = np.load(out / "timeseries_none.npz")

@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +13,7 @@ import yaml
 
 from flightstack.mission import load_mission
 from flightstack.runner import run_mode
-from tests.conftest import MISSIONS, REPO
+from tests.conftest import MISSIONS, REPO, interrupt_cli_sim
 
 LAB = MISSIONS / "paper_experiment_sim.yaml"
 
@@ -148,24 +146,8 @@ def test_exception_in_an_agent_lands_everyone_and_keeps_the_data() -> None:
 
 def test_sigint_mid_flight_lands_and_leaves_a_readable_recording(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "flightstack.cli", "sim", str(LAB), "--out", str(out), "--duration", "600"],
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        buf, deadline = "", time.monotonic() + 60
-        while "mode none" not in buf and time.monotonic() < deadline:
-            buf += proc.stderr.read(1) if proc.stderr else ""
-        time.sleep(2.0)
-        proc.send_signal(signal.SIGINT)
-        _, stderr = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 130, stderr[-2000:]
+    code, stderr = interrupt_cli_sim(LAB, out, run_seconds=2.0)
+    assert code == 130, stderr[-2000:]
     events = [json.loads(x) for x in (out / "events.jsonl").read_text().splitlines()]
     landed = [e for e in events if e["event"] == "landed"]
     assert {e["drone"] for e in landed} == {1, 2} and all(e["height_m"] == 0.0 for e in landed)
