@@ -1,0 +1,1 @@
+"""Protocol-level device emulators used by the test-suite (loopback-only network traffic)."""

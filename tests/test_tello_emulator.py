@@ -1,0 +1,473 @@
+"""Drive the loopback Tello emulator with the real djitellopy client (and with raw UDP).
+
+djitellopy binds process-global UDP sockets on ("", 8889) and ("", 8890) the first time a ``Tello`` is
+constructed; if those ports are taken on this machine the djitellopy tests are skipped.  The emulated drone
+lives on 127.0.0.2; a second one (swarm routing) on 127.0.1.3 and raw-socket emulators on 127.0.1.4/5, so that
+other test modules may use 127.0.0.3+ in the same process.  Every datagram stays on 127.0.0.0/8.
+
+djitellopy quirks these tests rely on (verified against djitellopy 2.5.0):
+
+* ``timeout`` arguments are type-checked as ``int`` (``@enforce_types``): sub-second timeouts are impossible;
+* the default ``timeout=RESPONSE_TIMEOUT`` (7 s) of ``send_command_with_return``/``send_control_command`` is
+  bound at definition time - patching ``Tello.RESPONSE_TIMEOUT`` does not change it, so the fixture patches
+  the functions' ``__defaults__``; ``takeoff`` reads ``Tello.TAKEOFF_TIMEOUT`` at call time;
+* a reply arriving after its command timed out stays queued and is returned as the answer to the next command.
+"""
+
+from __future__ import annotations
+
+import faulthandler
+import logging
+import re
+import socket
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, fields
+
+import numpy as np
+import pytest
+from emulators.tello import (
+    TelloEmulator,
+    TelloFaults,
+    default_square,
+    free_udp_port,
+    read_frame_index,
+    wait_until,
+)
+
+djitellopy = pytest.importorskip("djitellopy")
+from djitellopy import tello as tello_module  # noqa: E402
+from djitellopy.tello import Tello, TelloException  # noqa: E402
+
+RESPONSE_TIMEOUT_S = 2  # must be an int for djitellopy
+STATE_RE = re.compile(
+    r"^mid:-1;x:-?\d+;y:-?\d+;z:-?\d+;mpry:0,0,0;pitch:-?\d+;roll:-?\d+;yaw:-?\d+;vgx:-?\d+;vgy:-?\d+;"
+    r"vgz:-?\d+;templ:\d+;temph:\d+;tof:\d+;h:\d+;bat:\d+;baro:-?\d+\.\d+;time:\d+;agx:-?\d+\.\d+;"
+    r"agy:-?\d+\.\d+;agz:-?\d+\.\d+;\r\n$"
+)
+
+
+@dataclass
+class Rig:
+    """A connected djitellopy client and the emulator it talks to."""
+
+    tello: Tello
+    emu: TelloEmulator
+    vs_port: int
+
+    @property
+    def responses(self) -> list[bytes]:
+        """djitellopy's queue of not-yet-consumed replies for this drone."""
+        return tello_module.drones[self.tello.address[0]]["responses"]
+
+
+def _udp_port_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        try:
+            sock.bind(("", port))
+        except OSError:
+            return False
+    return True
+
+
+def _inner(func: object) -> object:
+    """The undecorated function behind djitellopy's ``@enforce_types`` wrapper."""
+    return getattr(func, "__wrapped__", func)
+
+
+@pytest.fixture(scope="module")
+def rig() -> Iterator[Rig]:
+    """Module-wide emulator on 127.0.0.2 and a connected djitellopy ``Tello`` with short timeouts."""
+    if not tello_module.threads_initialized:
+        busy = [p for p in (Tello.CONTROL_UDP_PORT, Tello.STATE_UDP_PORT) if not _udp_port_free(p)]
+        if busy:
+            pytest.skip(f"djitellopy needs UDP ports 8889 and 8890 on this machine; busy: {busy}")
+    faulthandler.dump_traceback_later(150, exit=True)  # last-resort guard against a hang
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Tello, "RESPONSE_TIMEOUT", RESPONSE_TIMEOUT_S)
+        mp.setattr(Tello, "TAKEOFF_TIMEOUT", 3)
+        mp.setattr(Tello, "FRAME_GRAB_TIMEOUT", 5)
+        mp.setattr(_inner(Tello.send_command_with_return), "__defaults__", (RESPONSE_TIMEOUT_S,))
+        mp.setattr(_inner(Tello.send_control_command), "__defaults__", (RESPONSE_TIMEOUT_S,))
+        level = Tello.LOGGER.level
+        Tello.LOGGER.setLevel(logging.ERROR)
+        vs_port = free_udp_port("127.0.0.1")
+        emu = TelloEmulator("127.0.0.2", video_port=vs_port, takeoff_s=0.3, land_s=0.2).start()
+        tello = None
+        try:
+            tello = Tello("127.0.0.2", retry_count=1, vs_udp=vs_port)
+            tello.address = emu.address
+            tello.connect()
+            yield Rig(tello, emu, vs_port)
+        finally:
+            if tello is not None:
+                tello.is_flying = tello.stream_on = False  # end() must not wait for replies
+                tello.end()
+            emu.close()
+            Tello.LOGGER.setLevel(level)
+            faulthandler.cancel_dump_traceback_later()
+
+
+@pytest.fixture(autouse=True)
+def _reset_faults(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Restore the default fault switches after every test that uses the shared rig."""
+    yield
+    if "rig" in request.fixturenames:
+        emu: TelloEmulator = request.getfixturevalue("rig").emu
+        for field in fields(TelloFaults):
+            setattr(emu.faults, field.name, field.default)
+
+
+# ---------------------------------------------------------------------------------------- raw protocol
+def test_raw_protocol_sdk_mode_state_and_replies() -> None:
+    """Without djitellopy: no reply before ``command``; replies come from emu.address; state at 10 Hz."""
+    with (
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as cli,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as state_rx,
+    ):
+        cli.bind(("127.0.0.1", 0))
+        cli.settimeout(0.3)
+        state_rx.bind(("127.0.0.1", 0))
+        state_rx.settimeout(0.3)
+        with TelloEmulator("127.0.1.4", state_port=state_rx.getsockname()[1]) as emu:
+            cli.sendto(b"battery?", emu.address)
+            with pytest.raises(TimeoutError):
+                cli.recvfrom(1024)
+            with pytest.raises(TimeoutError):
+                state_rx.recvfrom(1024)
+            assert emu.command_texts() == ["battery?"] and not emu.sdk_mode
+
+            cli.sendto(b"command", emu.address)
+            data, src = cli.recvfrom(1024)
+            assert (data, src) == (b"ok", emu.address) and emu.sdk_mode
+
+            state_rx.settimeout(1.0)
+            arrivals = []
+            for _ in range(6):
+                packet, src = state_rx.recvfrom(1024)
+                arrivals.append(time.monotonic())
+                assert src[0] == "127.0.1.4"
+                assert STATE_RE.match(packet.decode("ascii")), packet
+            period = (arrivals[-1] - arrivals[0]) / 5
+            assert 0.07 < period < 0.14, period
+
+            for command, expected in [
+                (b"battery?", b"87"),
+                (b"height?", b"0dm"),
+                (b"temp?", b"60~63"),
+                (b"sdk?", b"20"),
+                (b"forward 50", b"error Motor stop"),
+            ]:
+                cli.sendto(command, emu.address)
+                assert cli.recvfrom(1024)[0] == expected, command
+            for silent in (b"rc 1 2 3 4", b"emergency"):
+                cli.sendto(silent, emu.address)
+                with pytest.raises(TimeoutError):
+                    cli.recvfrom(1024)
+            assert emu.rc_history[-1][1] == (1, 2, 3, 4)
+
+
+def _drain(sock: socket.socket) -> list[bytes]:
+    """Read every datagram currently queued on a non-blocking socket."""
+    out = []
+    while True:
+        try:
+            out.append(sock.recv(65536))
+        except BlockingIOError:
+            return out
+
+
+def test_raw_video_datagrams_no_video_fault_and_close() -> None:
+    """Video datagrams are ≤1460 B H.264 with SPS; no_video pauses them; close() joins threads in ~1 s."""
+    with pytest.raises(ValueError):
+        TelloEmulator("192.168.10.1")
+    with pytest.raises(ValueError):
+        TelloEmulator("127.0.1.5", client_ip="10.0.0.7")
+    with (
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as cli,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as video_rx,
+    ):
+        cli.bind(("127.0.0.1", 0))
+        cli.settimeout(1.0)
+        video_rx.bind(("127.0.0.1", 0))
+        video_rx.setblocking(False)
+        emu = TelloEmulator(
+            "127.0.1.5",
+            video_port=video_rx.getsockname()[1],
+            state_port=free_udp_port(),
+            video_size=(320, 240),
+        ).start()
+        try:
+            for command in (b"command", b"streamon"):
+                cli.sendto(command, emu.address)
+                assert cli.recvfrom(64)[0] == b"ok"
+            assert wait_until(lambda: emu.video_frames_sent >= 20, 5.0), emu.errors
+            assert len(emu.threads_alive) == 4
+            stream = _drain(video_rx)
+            assert stream and max(len(d) for d in stream) <= 1460
+            assert b"\x00\x00\x00\x01\x67" in b"".join(stream)  # Annex-B SPS (repeat-headers)
+
+            emu.faults.no_video = True
+            time.sleep(0.1)
+            _drain(video_rx)
+            time.sleep(0.3)
+            assert _drain(video_rx) == []
+            emu.faults.no_video = False
+            assert wait_until(lambda: bool(_drain(video_rx)), 1.0)
+        finally:
+            t0 = time.monotonic()
+            emu.close()
+            elapsed = time.monotonic() - t0
+    assert emu.threads_alive == []
+    assert elapsed < 1.2, elapsed
+    assert emu.errors == []
+
+
+# -------------------------------------------------------------------------------------------- djitellopy
+def test_connect_enters_sdk_mode_and_reads_state(rig: Rig) -> None:
+    """connect() sent ``command`` and got the first state packet; get_battery() comes from the state."""
+    assert rig.emu.command_texts()[0] == "command"
+    assert rig.emu.sdk_mode
+    state = rig.tello.get_current_state()
+    assert {"bat", "h", "vgx", "yaw", "tof", "baro", "agz"} <= set(state)
+    assert rig.tello.get_battery() == 87
+    assert rig.tello.get_distance_tof() == 10
+    assert rig.tello.get_acceleration_z() == pytest.approx(-1000.0)
+
+
+def test_read_commands(rig: Rig) -> None:
+    """Read commands get a value; djitellopy's int parsers choke on the unit-suffixed formats."""
+    assert rig.tello.send_read_command("battery?") == "87"
+    assert rig.tello.query_battery() == 87
+    assert rig.tello.query_sdk_version() == "20"
+    assert rig.tello.send_read_command("height?") == "0dm"
+    with pytest.raises(ValueError):
+        rig.tello.query_height()  # int("0dm"): djitellopy limitation with the real format
+    assert rig.tello.query_distance_tof() == pytest.approx(10.0)
+
+
+def test_takeoff_rc_motion_and_land(rig: Rig) -> None:
+    """rc values arrive as ints, velocities/height integrate, state reflects them, land brings h to 0."""
+    tello, emu = rig.tello, rig.emu
+    t0 = time.monotonic()
+    tello.takeoff()
+    assert time.monotonic() - t0 >= emu.takeoff_s
+    assert emu.phase == "flying"
+    assert wait_until(lambda: tello.get_height() == 80, 1.0)
+
+    with pytest.raises(TypeError):
+        tello.send_rc_control(0, 50.0, 0, 0)  # type: ignore[arg-type]  # djitellopy enforces int
+
+    n0 = len(emu.rc_history)
+    t_start = time.monotonic()
+    while time.monotonic() - t_start < 0.8:
+        tello.send_rc_control(0, 50, 20, 0)
+        time.sleep(0.05)
+    assert wait_until(lambda: len(emu.rc_history) - n0 >= 10, 1.0)
+    received = [values for _, values in emu.rc_history[n0:]]
+    assert all(values == (0, 50, 20, 0) for values in received)
+    assert all(type(v) is int for values in received for v in values)
+    assert wait_until(lambda: tello.get_speed_x() == 5 and tello.get_speed_z() == 2, 1.0)
+    assert tello.get_speed_y() == 0
+    x, _, z = emu.position_cm
+    assert x > 25 and z > 90
+    assert abs(tello.get_height() - z) <= 4
+    assert abs(tello.get_mission_pad_distance_x() - x) <= 7  # x carries the ground truth (cm)
+
+    t_start = time.monotonic()
+    while time.monotonic() - t_start < 0.6:
+        tello.send_rc_control(0, 0, 0, 60)
+        time.sleep(0.05)
+    tello.send_rc_control(0, 0, 0, 0)
+    assert wait_until(lambda: tello.get_speed_x() == 0 and tello.get_speed_z() == 0, 1.5)
+    time.sleep(0.3)
+    assert 20 <= emu.yaw_deg <= 50
+    assert abs(tello.get_yaw() - emu.yaw_deg) <= 1.5
+
+    x_before = emu.position_cm[0]
+    tello.move_forward(50)  # discrete move: applied at once in the yaw direction
+    dx = emu.position_cm[0] - x_before
+    assert dx == pytest.approx(50 * np.cos(np.radians(emu.yaw_deg)), abs=1.0)
+
+    tello.land()
+    assert not emu.flying
+    assert wait_until(lambda: tello.get_height() == 0, 1.0)
+    assert not emu.landed_by_timeout
+
+
+def _centroid(mask: np.ndarray) -> tuple[float, float] | None:
+    ys, xs = np.nonzero(mask)
+    if len(xs) < 50:
+        return None
+    return float(xs.mean()), float(ys.mean())
+
+
+def _expected_centroid(index: int, emu: TelloEmulator) -> tuple[float, float]:
+    x0, y0, x1, y1 = default_square(index / emu.fps, emu.video_size)
+    return (x0 + x1 - 1) / 2, (y0 + y1 - 1) / 2
+
+
+def test_video_stream_decodes_rendered_frames(rig: Rig) -> None:
+    """≥30 decoded frames; each frame's square sits within 2 px of where the source drew that frame."""
+    tello, emu = rig.tello, rig.emu
+    tello.streamon()
+    assert emu.streaming
+    t0 = time.monotonic()
+    reader = tello.get_frame_read(with_queue=True, max_queue_len=128)
+    open_s = time.monotonic() - t0
+    try:
+        indices: list[int] = []
+        downward_seen = False
+        deadline = time.monotonic() + 8.0
+        while time.monotonic() < deadline and not downward_seen:
+            frame = reader.get_queued_frame()
+            if frame is None:
+                time.sleep(0.005)
+                continue
+            assert frame.shape == (720, 960, 3)
+            index = read_frame_index(frame)
+            red = (frame[..., 0] > 150) & (frame[..., 1] < 100) & (frame[..., 2] < 100)
+            green = (frame[..., 1] > 150) & (frame[..., 0] < 100) & (frame[..., 2] < 100)
+            for mask, downward in ((red, False), (green, True)):
+                found = _centroid(mask)
+                if found is None:
+                    continue
+                ex, ey = _expected_centroid(index, emu)
+                assert abs(found[0] - ex) <= 2 and abs(found[1] - ey) <= 2, (index, found, (ex, ey))
+                downward_seen |= downward
+            assert not indices or index > indices[-1], "frames must arrive in order"
+            indices.append(index)
+            if len(indices) == 30:
+                tello.set_video_direction(Tello.CAMERA_DOWNWARD)
+                assert emu.downvision
+        assert len(indices) >= 30, (len(indices), emu.errors)
+        assert downward_seen, "no downward-camera frame decoded after downvision 1"
+        sent = {index for index, _ in emu.video_log}
+        assert set(indices) <= sent
+    finally:
+        tello.set_video_direction(Tello.CAMERA_FORWARD)
+        reader.stop()  # the worker exits on the next decoded frame, so stop it while the stream still runs
+        reader.worker.join(timeout=3.0)
+        tello.streamoff()
+    assert not reader.worker.is_alive()
+    assert not emu.streaming
+    assert open_s < 5.0
+    assert emu.errors == []
+
+
+def test_fault_silent(rig: Rig) -> None:
+    """No reply: djitellopy gives up after its (int) timeout; the command was still received."""
+    tello, emu = rig.tello, rig.emu
+    emu.faults.silent = True
+    n0 = len(emu.commands)
+    t0 = time.monotonic()
+    with pytest.raises(TelloException, match="Did not receive a response"):
+        tello.send_control_command("keepalive", timeout=1)
+    assert 1.0 <= time.monotonic() - t0 < 2.0
+    answer = tello.send_command_with_return("battery?", timeout=1)
+    assert answer.startswith("Aborting command 'battery?'")  # read commands see this text, not an exception
+    assert emu.command_texts()[n0:] == ["keepalive", "battery?"]
+    emu.faults.silent = False
+    assert tello.send_control_command("keepalive", timeout=1)
+    assert rig.responses == []
+
+
+def test_fault_error_replies(rig: Rig) -> None:
+    """``error`` replies raise TelloException and the command is not executed."""
+    tello, emu = rig.tello, rig.emu
+    emu.faults.error_replies = True
+    with pytest.raises(TelloException, match="error"):
+        tello.takeoff()
+    assert not emu.flying
+    with pytest.raises(TelloException, match="error"):
+        tello.send_read_command("battery?")
+    emu.faults.error_replies = False
+    assert tello.query_battery() == emu.battery
+
+
+def test_fault_drop_state(rig: Rig) -> None:
+    """With drop_state the emulator stops sending and the client's state dict stops changing."""
+    tello, emu = rig.tello, rig.emu
+    first = tello.get_current_state()
+    assert wait_until(lambda: tello.get_current_state() is not first, 0.5)
+    emu.faults.drop_state = True
+    time.sleep(0.25)  # let a packet that was already in flight land
+    sent, state = emu.state_packets_sent, tello.get_current_state()
+    time.sleep(0.6)
+    assert emu.state_packets_sent == sent
+    assert tello.get_current_state() is state
+    emu.faults.drop_state = False
+    assert wait_until(lambda: tello.get_current_state() is not state, 0.5)
+    assert emu.state_packets_sent > sent
+
+
+def test_fault_low_battery(rig: Rig) -> None:
+    """A low battery shows up in state and ``battery?``; the emulator refuses to take off."""
+    tello, emu = rig.tello, rig.emu
+    emu.faults.battery_pct = 5
+    assert wait_until(lambda: tello.get_battery() == 5, 1.0)
+    assert tello.query_battery() == 5
+    with pytest.raises(TelloException, match="battery low"):
+        tello.takeoff()
+    assert not emu.flying and not tello.is_flying
+    emu.faults.battery_pct = 87
+    assert wait_until(lambda: tello.get_battery() == 87, 1.0)
+
+
+def test_fault_reply_delay_and_stray_late_reply(rig: Rig) -> None:
+    """A late reply within the timeout works; one after the timeout becomes the answer to the next command."""
+    tello, emu = rig.tello, rig.emu
+    emu.faults.reply_delay_s = 0.6
+    t0 = time.monotonic()
+    assert tello.send_control_command("keepalive", timeout=2)
+    assert 0.6 <= time.monotonic() - t0 < 1.5
+
+    emu.faults.reply_delay_s = 1.4
+    assert tello.send_command_with_return("keepalive", timeout=1).startswith("Aborting")
+    emu.faults.reply_delay_s = 0.0
+    assert wait_until(lambda: rig.responses == [b"ok"], 1.5)  # the stray reply is queued
+    assert tello.send_command_with_return("battery?", timeout=1) == "ok"  # shifted by one
+    assert wait_until(lambda: len(rig.responses) == 1, 1.0)
+    assert rig.responses.pop(0).decode().isdigit()  # drain the battery value that is now stale
+    assert tello.query_battery() == emu.battery
+
+
+def test_auto_land_and_two_drone_routing(rig: Rig) -> None:
+    """A second drone on 127.0.1.3: state is routed by source IP; it lands alone after auto_land_s."""
+    emu2 = TelloEmulator(
+        "127.0.1.3",
+        video_port=free_udp_port(),
+        takeoff_s=0.2,
+        land_s=0.2,
+        auto_land_s=1.0,
+        faults=TelloFaults(battery_pct=42),
+    ).start()
+    tello2 = None
+    try:
+        tello2 = Tello("127.0.1.3", retry_count=1, vs_udp=emu2.video_port)
+        tello2.address = emu2.address
+        tello2.connect()
+        assert tello2.get_battery() == 42
+        assert rig.tello.get_battery() == rig.emu.battery
+        tello2.takeoff()
+        t_takeoff = time.monotonic()
+        assert emu2.flying and not rig.emu.flying
+        assert wait_until(lambda: emu2.landed_by_timeout and not emu2.flying, 3.0)
+        assert 1.0 <= time.monotonic() - t_takeoff <= 2.0
+        assert wait_until(lambda: tello2.get_height() == 0, 1.0)
+
+        tello2.takeoff()  # keepalive (any command) postpones the auto-land
+        assert not emu2.landed_by_timeout
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 1.8:
+            tello2.send_keepalive()
+            time.sleep(0.3)
+        assert emu2.phase == "flying" and not emu2.landed_by_timeout
+        tello2.land()
+        assert not emu2.flying
+        assert "command" not in rig.emu.command_texts()[1:]  # nothing leaked to the first drone
+    finally:
+        if tello2 is not None:
+            tello2.is_flying = tello2.stream_on = False
+            tello2.end()
+        emu2.close()
