@@ -114,6 +114,48 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calibrate_drone(args: argparse.Namespace) -> int:
+    """Fly rc steps on one Tello and fit rc-unit → m/s gains and time constants (drivers/identify.py)."""
+    from drivers.identify import fits_to_rc_gains, identify, save_identification
+    from drivers.tello import TelloConfig, TelloDriver
+
+    if not args.yes:
+        if not sys.stdin.isatty():
+            print("error: this takes off and flies the drone; pass --yes to confirm", file=sys.stderr)
+            return 2
+        answer = input(f"Drone {args.ip} will take off and fly short steps (~1 m). Clear area? [y/N] ")
+        if answer.strip().lower() not in ("y", "yes"):
+            print("aborted", file=sys.stderr)
+            return 1
+    print(
+        "note: velocities are differenced from the state stream's x/y/z, which a real Tello reports only "
+        "over mission pads (enable them, or use motion capture once that backend exists)",
+        file=sys.stderr,
+    )
+    driver = TelloDriver(TelloConfig(host=args.ip, control_port=args.port, connect_timeout_s=args.timeout))
+    try:
+        driver.connect()
+        failed = [c for c in driver.preflight() if not c.ok]
+        if failed:
+            for c in failed:
+                print(f"preflight failed: {c.name}: {c.detail}", file=sys.stderr)
+            return 1
+        driver.takeoff()
+        try:
+            fits = identify(driver, rc_amplitude=args.amplitude, duration_s=args.duration)
+        finally:
+            driver.land()
+        save_identification(args.out, fits, args.ip)
+        gains = fits_to_rc_gains(fits)
+        for axis, f in fits.items():
+            print(f"{axis:4s} gain {f.gain:.5f} per rc unit   tau {f.tau_s:.3f} s   delay {f.delay_s:.3f} s")
+        print(f"rc_gains for the mission: xy {gains.xy:.5f}, z {gains.z:.5f}, yaw {gains.yaw:.5f}")
+        print(f"written to {args.out}")
+        return 0
+    finally:
+        driver.close()
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="flightstack", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -129,6 +171,17 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--mission", default=None, help="mission file (default: RUN_DIR/mission_resolved.yaml)")
     t.add_argument("--from-mode", default="none", help="which recorded mode to learn from (default: none)")
     t.set_defaults(func=cmd_train)
+    cal = sub.add_parser("calibrate", help="calibration tools")
+    cal_sub = cal.add_subparsers(dest="what", required=True)
+    cd = cal_sub.add_parser("drone", help="identify a Tello's rc-unit -> velocity gains and time constants")
+    cd.add_argument("--ip", required=True, help="the drone's IP address (station mode)")
+    cd.add_argument("--port", type=int, default=8889, help="its command port (8889 on a real Tello)")
+    cd.add_argument("--amplitude", type=int, default=40, help="rc step amplitude (units of -100..100)")
+    cd.add_argument("--duration", type=float, default=2.0, help="seconds per step")
+    cd.add_argument("--timeout", type=float, default=5.0, help="connect timeout (s)")
+    cd.add_argument("--out", required=True, help="YAML file to write")
+    cd.add_argument("--yes", action="store_true", help="confirm that the drone may take off")
+    cd.set_defaults(func=cmd_calibrate_drone)
     v = sub.add_parser("validate", help="check a mission file and print the resolved mission")
     v.add_argument("mission")
     v.set_defaults(func=cmd_validate)
