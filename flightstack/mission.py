@@ -27,6 +27,7 @@ from pydantic import (
 )
 
 from flightstack.fusion import FUSION_RULES
+from flightstack.geometry import Pose
 from flightstack.safety import SafetyLimits
 
 MODES = ("none", "local", "dgp", "oracle")
@@ -54,6 +55,9 @@ class PoseSpec(_Strict):
 
     p: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
     theta: Finite = 0.0
+
+    def pose(self) -> Pose:
+        return Pose.make(self.p, self.theta)
 
 
 class DuffingSpec(_Strict):

@@ -21,7 +21,7 @@ from flightstack.backends import build_backend
 from flightstack.camera_calibration import load_calibration
 from flightstack.comms.bus import InProcBus
 from flightstack.control import Gains
-from flightstack.geometry import Pose, compose, inverse
+from flightstack.geometry import compose, inverse
 from flightstack.hal import Drone
 from flightstack.mission import CAMERA_MOUNTS, Mission
 from flightstack.projection import CameraModel
@@ -31,10 +31,6 @@ from flightstack.target_law import SquareLaw
 
 TAKEOFF_TIMEOUT_S = 15.0
 LAND_TIMEOUT_S = 10.0
-
-
-def pose_from_spec(spec: Any) -> Pose:
-    return Pose.make(spec.p, spec.theta)
 
 
 def camera_model(mission: Mission, index: int) -> CameraModel:
@@ -58,14 +54,14 @@ def make_agents(
     P0 = np.array(mission.target.feature_points, dtype=float)
     gains = Gains.make(mission.gains.k_c, mission.gains.k_e, mission.gains.k_s)
     ids = [d.id for d in mission.drones]
-    g_w0 = pose_from_spec(mission.target.initial_pose)
+    g_w0 = mission.target.initial_pose.pose()
     agents = []
     for k, d in enumerate(mission.drones):
         cfg = AgentConfig(
             mission=mission.name,
             drone_id=d.id,
             body_name=f"drone{d.id}",
-            g_d=pose_from_spec(d.desired_pose),
+            g_d=d.desired_pose.pose(),
             P0=P0,
             camera=camera_model(mission, k),
             gains=gains,
@@ -76,7 +72,7 @@ def make_agents(
             calibration=None if d.camera is None else load_calibration(mission.resolve(d.camera.calibration)),
         )
         # ḡ_w,i(0) = g_w0(0) g_e(0)⁻¹; on sim_lab reset at pursuit start from the drone's own pose
-        g_bar = compose(g_w0, inverse(pose_from_spec(d.initial_estimate_error)))
+        g_bar = compose(g_w0, inverse(d.initial_estimate_error.pose()))
         pred = None if predictors is None else predictors.get(d.id)
         agents.append(Agent(cfg, drones[d.id], backend.camera(d.id), backend.pose_source(), bus, pred, g_bar))
     return agents

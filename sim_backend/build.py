@@ -12,21 +12,17 @@ from sim_backend.ideal import IdealSimBackend
 from sim_backend.world import World
 
 
-def pose_of(spec) -> Pose:
-    return Pose.make(spec.p, spec.theta)
-
-
 def initial_drone_pose(mission: Mission, index: int) -> Pose:
     """g_wi(0) = g_w0(0) g_d⁻¹ · offset: at the desired relative pose, then displaced by the offset."""
     d = mission.drones[index]
-    g_w0 = pose_of(mission.target.initial_pose)
-    return compose(compose(g_w0, inverse(pose_of(d.desired_pose))), pose_of(d.initial_offset))
+    g_w0 = mission.target.initial_pose.pose()
+    return compose(compose(g_w0, inverse(d.desired_pose.pose())), d.initial_offset.pose())
 
 
 def build_ideal(mission: Mission) -> IdealSimBackend:
     prm = DuffingParams(**mission.target.duffing.model_dump())
     world = World(
-        target_pose=pose_of(mission.target.initial_pose),
+        target_pose=mission.target.initial_pose.pose(),
         target_field=lambda g: duffing_body_velocity(g, prm),
         drone_poses={d.id: initial_drone_pose(mission, k) for k, d in enumerate(mission.drones)},
         target_substeps=mission.target.substeps,

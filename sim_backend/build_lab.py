@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from flightstack.camera_calibration import load_calibration
-from flightstack.geometry import Pose, compose, inverse
+from flightstack.geometry import Pose
 from flightstack.mission import Mission
 from flightstack.tello_rc import RcGains
+from sim_backend.build import initial_drone_pose
 from sim_backend.ideal import VirtualClock
 from sim_backend.lab import (
     LabWorld,
@@ -23,17 +24,13 @@ from sim_backend.lab import (
 from sim_backend.render import RenderOptions
 
 
-def _pose(spec) -> Pose:
-    return Pose.make(spec.p, spec.theta)
-
-
 class LabSimBackend:
     """hal.Backend of the simulated lab, plus `truth()` (sim-only) for metrics."""
 
     def __init__(self, mission: Mission) -> None:
         rng = np.random.default_rng(mission.seed)
         sim = mission.sim
-        g_w0 = _pose(mission.target.initial_pose)
+        g_w0 = mission.target.initial_pose.pose()
         r = mission.target.robot
         clock_now = lambda: self.world.t  # noqa: E731 - the models read the world's virtual time
         robot = ScamperSim(
@@ -43,7 +40,7 @@ class LabSimBackend:
         )
         t = sim.tello
         drones = {}
-        for d in mission.drones:
+        for k, d in enumerate(mission.drones):
             params = TelloParams(
                 true_gains=RcGains(**t.true_rc_gains.model_dump()),
                 cmd_gains=RcGains(**d.rc_gains.model_dump()),
@@ -58,7 +55,7 @@ class LabSimBackend:
                 auto_land_s=t.auto_land_s,
             )
             # on the ground below the desired pose relative to the target's start, plus the offset
-            above = compose(compose(g_w0, inverse(_pose(d.desired_pose))), _pose(d.initial_offset))
+            above = initial_drone_pose(mission, k)
             start = Pose(np.array([above.p[0], above.p[1], 0.0]), above.theta)
             drones[d.id] = TelloSim(d.id, start, params, clock_now)
         m = sim.mocap
