@@ -70,12 +70,18 @@ def plot_trajectory(
 def plot_error_norms(path: Path, recs: dict[str, Recording], which: str) -> None:
     """Figs. 4/5: ‖e_c‖ or ‖e_e‖ (network-wide, R^{4n}) over time, one line per mode, log scale."""
     fig, ax = plt.subplots(figsize=(7, 4))
+    floor = np.inf
     for mode, rec in recs.items():
         k = rec.ticks_done
         e = rec.e_c[:k] if which == "c" else rec.e_e[:k]
         norm = np.sqrt((e**2).sum(axis=(1, 2)))
         colour, label = MODE_STYLE.get(mode, ("k", mode))
         ax.semilogy(rec.t[:k], np.maximum(norm, 1e-16), color=colour, lw=1, label=label)
+        positive = norm[norm > 0]
+        if positive.size:
+            floor = min(floor, float(np.percentile(positive, 1)))
+    if np.isfinite(floor):  # an exact e(0) = 0 would otherwise stretch the axis down to 1e-16
+        ax.set_ylim(bottom=floor / 3)
     ax.set_xlabel("time [s]")
     ax.set_ylabel(r"$\|e_c\|$" if which == "c" else r"$\|e_e\|$")
     ax.set_title("Control error" if which == "c" else "Estimation error")
