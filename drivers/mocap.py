@@ -1,0 +1,287 @@
+"""Motion-capture pose source (implements `flightstack.hal.PoseSource`) on top of `motioncapture`.
+
+The PyPI package `motioncapture` (libmotioncapture bindings) supports the backends mock, vicon, optitrack,
+qualisys and vrpn. It gives no timestamps, so every pose is stamped with `clock()` at the moment its frame
+was received by the reader thread (receive time, seconds in the clock passed to `MocapPoseSource`; pass the
+mission clock's `now` to get stamps comparable with the rest of the stack).
+
+Frames: positions are in the motion-capture world frame Σw (metres, z up); the body rotation is reduced to a
+yaw θ about world z (radians, wrapped to (-π, π]) plus a tilt angle (radians, the angle between the body
+z axis and world z). Bodies tilted more than `MocapConfig.max_tilt_rad` are refused: a planar pose would
+misrepresent them.
+
+The `mock` backend publishes fixed rigid bodies given in its settings, e.g.
+    MocapConfig("mock", {"rigid_bodies": "cf1(x,y,z,qw,qx,qy,qz);cf2(...)", "frequency": "100"})
+(`frequency` in Hz, integer, default 100).
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from flightstack.geometry import Pose
+from flightstack.hal import StampedPose
+
+RATE_WINDOW_S = 2.0  # window of the receive-rate estimate (s)
+MAX_EVENTS = 10_000  # oldest events are dropped beyond this many
+
+
+class MocapError(RuntimeError):
+    """The motion-capture system could not be reached or failed."""
+
+
+@dataclass(frozen=True)
+class MocapConfig:
+    """Connection and validity settings of a motion-capture pose source.
+
+    system:            motioncapture backend type ("mock", "vicon", "optitrack", "qualisys", "vrpn").
+    settings:          passed verbatim to `motioncapture.connect` (e.g. {"hostname": "10.0.0.2"}).
+    connect_timeout_s: how long `start()` waits for `connect()` (s).
+    stale_after_s:     a body not received for this long is reported as None (s).
+    max_tilt_rad:      a body tilted more than this from level is reported as None (rad).
+    """
+
+    system: str = "mock"
+    settings: dict[str, str] = field(default_factory=dict)
+    connect_timeout_s: float = 5.0
+    stale_after_s: float = 0.1
+    max_tilt_rad: float = 0.35
+
+
+def quaternion_to_planar(position: Any, w: float, x: float, y: float, z: float) -> tuple[Pose, float]:
+    """Reduce a mocap pose to (yaw-only Pose in Σw, tilt in rad).
+
+    position: (3,) metres in Σw (any float dtype). (w, x, y, z): unit quaternion of the body in Σw (it is
+    normalised here; q and -q give the same result). The yaw θ = atan2(R[1,0], R[0,0]) is the Z angle of
+    the intrinsic Z-Y-X (yaw-pitch-roll) decomposition, i.e. the heading of the body x axis projected on the
+    horizontal plane. The tilt = arccos(R[2,2]) ∈ [0, π] is the angle between the body z axis and world z.
+    Raises ValueError for a zero or non-finite quaternion or a non-finite position.
+    """
+    q = np.array([w, x, y, z], dtype=float)
+    n = float(np.linalg.norm(q))
+    if not (math.isfinite(n) and n > 1e-9):
+        raise ValueError(f"invalid quaternion (w, x, y, z) = {tuple(q)}")
+    w, x, y, z = (q / n).tolist()
+    r00 = 1.0 - 2.0 * (y * y + z * z)
+    r10 = 2.0 * (x * y + w * z)
+    r22 = 1.0 - 2.0 * (x * x + y * y)
+    tilt = math.acos(min(1.0, max(-1.0, r22)))
+    yaw = math.atan2(r10, r00)
+    return Pose.make(np.asarray(position, dtype=float), yaw), tilt
+
+
+@dataclass
+class _Body:
+    """Reader-side state of one rigid body (all times in the source's clock, s)."""
+
+    pose: Pose
+    tilt: float
+    stamp: float
+    present: bool = True
+    refused: bool = False
+    receipts: deque[float] = field(default_factory=deque)
+
+
+class MocapPoseSource:
+    """`hal.PoseSource` backed by a motion-capture system, read in a background thread.
+
+    Call `start()` (connects, bounded by `connect_timeout_s`), then `latest(body)` from any thread; `close()`
+    stops the reader. `events` records (time s, kind, body name) transitions: "body_found", "body_lost",
+    "body_regained", "tilt_refused", "tilt_ok", "bad_sample", "reader_error", "reader_join_timeout".
+    """
+
+    def __init__(
+        self,
+        cfg: MocapConfig,
+        connect: Callable[[str, dict[str, str]], Any] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        """connect defaults to `motioncapture.connect` (imported lazily in `start`); clock returns seconds."""
+        self.cfg = cfg
+        self._connect = connect
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._bodies: dict[str, _Body] = {}
+        self._stop = threading.Event()
+        self._connected = threading.Event()
+        self._connect_error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+        self._mc: Any = None
+        self._frames = 0
+        self._last_frame: float | None = None
+        self._reader_error: str | None = None
+        self.events: list[tuple[float, str, str]] = []
+
+    # ---- lifecycle --------------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Connect in a daemon thread, then read frames; MocapError if connect fails or times out.
+
+        On timeout the thread blocked in `connect()` is left behind as a daemon (the motioncapture backends
+        cannot be interrupted); if it ever returns it exits without reading.
+        """
+        if self._thread is not None:
+            raise MocapError("MocapPoseSource.start() called twice")
+        connect = self._connect
+        if connect is None:
+            try:
+                connect = importlib.import_module("motioncapture").connect
+            except ImportError as exc:
+                raise MocapError(f"cannot import motioncapture: {exc}") from exc
+        self._thread = threading.Thread(
+            target=self._run, args=(connect,), name=f"mocap-{self.cfg.system}", daemon=True
+        )
+        self._thread.start()
+        if not self._connected.wait(self.cfg.connect_timeout_s):
+            self._stop.set()
+            raise MocapError(
+                f"no {self.cfg.system} server answered within {self.cfg.connect_timeout_s:g} s "
+                f"(settings {self.cfg.settings})"
+            )
+        if self._connect_error is not None:
+            raise MocapError(
+                f"connecting to {self.cfg.system} failed (settings {self.cfg.settings}): "
+                f"{self._connect_error}"
+            ) from self._connect_error
+
+    def close(self, join_timeout_s: float = 1.0) -> None:
+        """Stop the reader thread, waiting at most join_timeout_s (s) for it to leave `waitForNextFrame`."""
+        self._stop.set()
+        th = self._thread
+        if th is not None and th.is_alive() and th is not threading.current_thread():
+            th.join(join_timeout_s)
+            if th.is_alive():
+                self._event("reader_join_timeout", "")
+
+    def __enter__(self) -> MocapPoseSource:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- PoseSource -------------------------------------------------------------------------------------
+    def latest(self, body: str) -> StampedPose | None:
+        """Newest pose of `body` stamped with its receive time; None if never seen, stale or too tilted."""
+        now = self._clock()
+        with self._lock:
+            b = self._bodies.get(body)
+            if b is None or b.refused or now - b.stamp > self.cfg.stale_after_s:
+                return None
+            return StampedPose(b.stamp, b.pose)
+
+    def tilt(self, body: str) -> float | None:
+        """Tilt (rad, body z vs world z) of the newest sample of `body`, even if stale; None if never seen."""
+        with self._lock:
+            b = self._bodies.get(body)
+            return None if b is None else b.tilt
+
+    def rate_hz(self, body: str) -> float:
+        """Receive rate of `body` (Hz) over the last ~2 s; 0 if fewer than 2 samples or stale."""
+        now = self._clock()
+        with self._lock:
+            b = self._bodies.get(body)
+            if b is None:
+                return 0.0
+            return self._rate_locked(b, now)
+
+    def stats(self) -> dict[str, Any]:
+        """Diagnostics: connection, reader state, frames/age (s), per body rate (Hz), age (s), tilt (rad)."""
+        now = self._clock()
+        th = self._thread
+        with self._lock:
+            bodies = {
+                name: {
+                    "rate_hz": self._rate_locked(b, now),
+                    "age_s": now - b.stamp,
+                    "tilt_rad": b.tilt,
+                    "present": b.present,
+                    "refused": b.refused,
+                }
+                for name, b in self._bodies.items()
+            }
+            return {
+                "system": self.cfg.system,
+                "connected": self._connected.is_set() and self._connect_error is None,
+                "reader_alive": th is not None and th.is_alive(),
+                "reader_error": self._reader_error,
+                "frames": self._frames,
+                "last_frame_age_s": None if self._last_frame is None else now - self._last_frame,
+                "bodies": bodies,
+                "events": len(self.events),
+            }
+
+    # ---- internals --------------------------------------------------------------------------------------
+    def _rate_locked(self, b: _Body, now: float) -> float:
+        r = b.receipts
+        while r and r[0] < now - RATE_WINDOW_S:
+            r.popleft()
+        if len(r) < 2 or now - r[-1] > self.cfg.stale_after_s or r[-1] <= r[0]:
+            return 0.0
+        return (len(r) - 1) / (r[-1] - r[0])
+
+    def _event(self, kind: str, name: str) -> None:
+        self.events.append((self._clock(), kind, name))
+        if len(self.events) > MAX_EVENTS:
+            del self.events[: len(self.events) - MAX_EVENTS]
+
+    def _run(self, connect: Callable[[str, dict[str, str]], Any]) -> None:
+        try:
+            mc = connect(self.cfg.system, dict(self.cfg.settings))
+        except Exception as exc:
+            self._connect_error = exc
+            self._connected.set()
+            return
+        if self._stop.is_set():  # start() already gave up on us
+            return
+        self._mc = mc
+        self._connected.set()
+        while not self._stop.is_set():
+            try:
+                mc.waitForNextFrame()
+                if self._stop.is_set():
+                    break
+                t = self._clock()
+                self._ingest(t, mc.rigidBodies)
+            except Exception as exc:
+                self._reader_error = f"{type(exc).__name__}: {exc}"
+                self._event("reader_error", self._reader_error)
+                break
+
+    def _ingest(self, t: float, rigid_bodies: Any) -> None:
+        """Store one frame received at t (s): update seen bodies, mark vanished ones lost."""
+        seen: set[str] = set()
+        with self._lock:
+            self._frames += 1
+            self._last_frame = t
+            for name, rb in rigid_bodies.items():
+                rot = rb.rotation
+                try:
+                    pose, tilt = quaternion_to_planar(rb.position, rot.w, rot.x, rot.y, rot.z)
+                except ValueError:
+                    self._event("bad_sample", name)
+                    continue
+                seen.add(name)
+                refused = tilt > self.cfg.max_tilt_rad
+                b = self._bodies.get(name)
+                if b is None:
+                    b = self._bodies[name] = _Body(pose, tilt, t, refused=False)
+                    self._event("body_found", name)
+                elif not b.present:
+                    self._event("body_regained", name)
+                if refused != b.refused:
+                    self._event("tilt_refused" if refused else "tilt_ok", name)
+                b.pose, b.tilt, b.stamp, b.present, b.refused = pose, tilt, t, True, refused
+                b.receipts.append(t)
+            for name, b in self._bodies.items():
+                if b.present and name not in seen:
+                    b.present = False
+                    self._event("body_lost", name)
