@@ -275,7 +275,7 @@ def test_connect_timeout_names_system() -> None:
         return FakeMocap()
 
     src = MocapPoseSource(
-        MocapConfig(system="optitrack", settings={"hostname": "10.0.0.9"}, connect_timeout_s=0.3),
+        MocapConfig(system="optitrack", settings={"hostname": "127.0.0.9"}, connect_timeout_s=0.3),
         blocking_connect,
     )
     t0 = time.monotonic()
