@@ -30,6 +30,17 @@ def twists(draw: st.DrawFn) -> np.ndarray:
     return np.array([draw(finite), draw(finite), draw(finite), draw(st.floats(-3.0, 3.0))])
 
 
+def run_cli(*args: str, timeout: float = 400) -> subprocess.CompletedProcess:
+    """Run `flightstack ARGS` in a subprocess from the repository root (bounded by `timeout` s)."""
+    return subprocess.run(
+        [sys.executable, "-m", "flightstack.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=REPO,
+    )
+
+
 def interrupt_cli_sim(mission: Path, out: Path, run_seconds: float = 1.0) -> tuple[int, str]:
     """Start `flightstack sim MISSION --duration 600`, wait for its first progress bar, let it fly
     `run_seconds`, send SIGINT; returns (exit code, stderr). Bounded: kills the process after 60 s."""

@@ -3,24 +3,12 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.conftest import MISSIONS, REPO, interrupt_cli_sim
-
-
-def run_cli(*args: str, timeout: float = 400) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "flightstack.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=REPO,
-    )
+from tests.conftest import MISSIONS, interrupt_cli_sim, run_cli
 
 
 @pytest.fixture(scope="module")

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,19 +11,9 @@ import yaml
 
 from flightstack.mission import load_mission
 from flightstack.runner import run_mode
-from tests.conftest import MISSIONS, REPO, interrupt_cli_sim
+from tests.conftest import MISSIONS, interrupt_cli_sim, run_cli
 
 LAB = MISSIONS / "paper_experiment_sim.yaml"
-
-
-def run_cli(*args: str, timeout: float = 400) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "flightstack.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=REPO,
-    )
 
 
 def mission_copy(tmp_path: Path, **changes: object) -> Path:

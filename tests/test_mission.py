@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
 
 from flightstack.mission import MissionError, load_mission, parse_mission
-from tests.conftest import MISSIONS
+from tests.conftest import MISSIONS, run_cli
 
 
 def paper() -> dict:
@@ -76,12 +74,7 @@ def test_cli_reports_invalid_mission_and_writes_nothing(tmp_path: Path) -> None:
     f = tmp_path / "m.yaml"
     f.write_text(yaml.safe_dump(d))
     out = tmp_path / "run"
-    r = subprocess.run(
-        [sys.executable, "-m", "flightstack.cli", "sim", str(f), "--out", str(out)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    r = run_cli("sim", str(f), "--out", str(out), timeout=60)
     assert r.returncode == 2
     assert "drones.0.speed: unknown key" in r.stderr
     assert not out.exists()
