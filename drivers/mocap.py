@@ -39,6 +39,48 @@ class MocapError(RuntimeError):
     """The motion-capture system could not be reached or failed."""
 
 
+# Default server ports of the backends whose connect() blocks without a timeout.
+NATNET_COMMAND_PORT = 1510  # OptiTrack NatNet command port (UDP)
+TCP_PORTS = {"vicon": 801, "qualisys": 22222, "vrpn": 3883}
+
+
+def probe_server(system: str, settings: dict[str, str], timeout_s: float) -> None:
+    """Check that the server answers before `motioncapture.connect` is called; MocapError otherwise.
+
+    Why: libmotioncapture's optitrack connect() waits for the server's reply with no timeout and without
+    releasing Python's GIL, so a silent server would freeze the whole process (every driver thread, the
+    control loop) rather than just the reader thread. OptiTrack: one NatNet NAT_CONNECT datagram to
+    `hostname:port_command`, any reply counts. Vicon, Qualisys, VRPN: a TCP connect to the default port
+    (or `hostname:port`). `mock` needs no server. A server that dies between the probe and connect() is
+    not covered (a window of milliseconds)."""
+    import socket
+    import struct
+
+    if system == "mock":
+        return
+    host = settings.get("hostname", "")
+    if not host:
+        raise MocapError(f"{system}: settings.hostname is required")
+    if system == "optitrack":
+        port = int(settings.get("port_command", NATNET_COMMAND_PORT))
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            sock.settimeout(timeout_s)
+            try:
+                sock.sendto(struct.pack("<HH", 0, 0), (host, port))  # NAT_CONNECT, empty payload
+                sock.recvfrom(65535)
+            except OSError as exc:
+                raise MocapError(
+                    f"no OptiTrack NatNet server answered at {host}:{port} within {timeout_s:g} s ({exc})"
+                ) from None
+        return
+    if system in TCP_PORTS:
+        h, _, p = host.rpartition(":") if ":" in host else (host, "", str(TCP_PORTS[system]))
+        try:
+            socket.create_connection((h, int(p)), timeout=timeout_s).close()
+        except OSError as exc:
+            raise MocapError(f"no {system} server at {h}:{p} within {timeout_s:g} s ({exc})") from None
+
+
 @dataclass(frozen=True)
 class MocapConfig:
     """Connection and validity settings of a motion-capture pose source.
@@ -132,6 +174,7 @@ class MocapPoseSource:
             raise MocapError("MocapPoseSource.start() called twice")
         connect = self._connect
         if connect is None:
+            probe_server(self.cfg.system, self.cfg.settings, self.cfg.connect_timeout_s)
             try:
                 connect = importlib.import_module("motioncapture").connect
             except ImportError as exc:

@@ -324,3 +324,48 @@ class ScamperDriver:
         elif mtype == "COMMAND_ACK":
             self._acks[int(msg.command)] = int(msg.result)
             self._ack_cv.notify_all()
+
+
+@dataclass(frozen=True)
+class HeartbeatProbe:
+    """What one HEARTBEAT of the robot said (for `flightstack preflight`); mode is Rover's custom mode."""
+
+    mav_type: int
+    custom_mode: int
+    armed: bool
+
+
+def probe_heartbeat(config: ScamperConfig) -> HeartbeatProbe:
+    """Wait up to heartbeat_timeout_s for the robot's HEARTBEAT without changing its mode or arming it.
+
+    Sends GCS heartbeats meanwhile (a `udpin` vehicle only learns our address from what we send).
+    Raises ScamperLinkError when nothing arrives in time.
+    """
+    conn = mavutil.mavlink_connection(
+        config.url, source_system=config.source_system, source_component=config.source_component
+    )
+    try:
+        deadline = time.monotonic() + config.heartbeat_timeout_s
+        next_hb = 0.0
+        while True:
+            now = time.monotonic()
+            if now >= deadline:
+                raise ScamperLinkError(
+                    f"no HEARTBEAT from Scamper at {config.url!r} within {config.heartbeat_timeout_s:g} s"
+                )
+            if now >= next_hb:
+                next_hb = now + 0.25
+                with contextlib.suppress(OSError):
+                    conn.mav.heartbeat_send(
+                        mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
+                    )
+            try:
+                msg = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=min(0.05, deadline - now))
+            except (OSError, ValueError):
+                msg = None
+            if msg is not None and msg.type != mavlink.MAV_TYPE_GCS:
+                armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                return HeartbeatProbe(int(msg.type), int(msg.custom_mode), armed)
+    finally:
+        with contextlib.suppress(OSError):
+            conn.close()

@@ -170,7 +170,12 @@ class TelloDriver:
 
     # ---- hal.Drone --------------------------------------------------------------------------------
     def connect(self) -> None:
-        """SDK mode and the first state packet within connect_timeout_s; TelloLinkError otherwise."""
+        """SDK mode and the first state packet within connect_timeout_s; TelloLinkError otherwise.
+
+        Idempotent: a driver that is already connected (its monitor running) returns at once, so the
+        hardware backend can connect at build time and the runner's connect() costs nothing."""
+        if self._monitor is not None and self._monitor.is_alive():
+            return
         self.tello = self._factory(self.cfg.host)
         self.tello.address = (self.cfg.host, self.cfg.control_port)
         self.tello.vs_udp_port = self.cfg.video_port
@@ -310,6 +315,7 @@ class TelloCamera:
         self.frame_timeout_s = frame_timeout_s
         self._reader: Any = None
         self._last: object = None
+        self._placeholder: object = None
         self._stamp = -math.inf
         self.frames_seen = 0
 
@@ -321,12 +327,14 @@ class TelloCamera:
             d._control("downvision 1", d.cfg.command_timeout_s)
         d._control("streamon", d.cfg.command_timeout_s)
         self._reader = d._run(d.tello.get_frame_read, self.frame_timeout_s, "open video stream")
+        # djitellopy starts with a black 400x300 placeholder until the first frame is decoded: not a frame
+        self._placeholder = self._reader.frame
 
     def latest(self) -> Frame | None:
         if self._reader is None:
             return None
         img = self._reader.frame
-        if img is None:
+        if img is None or img is self._placeholder:
             return None
         if img is not self._last:
             self._last = img
@@ -338,3 +346,7 @@ class TelloCamera:
         if self._reader is not None:
             self._reader.stop()
             self._reader = None
+            # djitellopy caches its reader per Tello object (one per host, for the whole process):
+            # forget it, or the next start() gets this stopped reader bound to the old video port
+            if self.driver.tello is not None:
+                self.driver.tello.background_frame_read = None

@@ -52,6 +52,7 @@ class AgentConfig:
     neighbour_ids: tuple[int, ...]
     stale_after: float
     calibration: CameraCalibration | None = None  # image cameras: marker colours and intrinsics
+    max_frame_age_s: float = math.inf  # a frame older than this (s, vs the tick time) counts as none
 
 
 @dataclass
@@ -69,6 +70,7 @@ class TickRecord:
     V_cmd: np.ndarray = field(default_factory=lambda: np.zeros(4))
     n_fused: int = 0
     rejection: str | None = None  # why the image gave no features (None: seen, or no image)
+    own_pose_fresh: bool = True  # False: motion capture lost the drone; it hovers (V = 0) this tick
 
 
 class Agent:
@@ -111,14 +113,17 @@ class Agent:
         if self._u_e_prev is not None and self._t_prev is not None and t > self._t_prev:
             self.g_bar_w = observer_step(self.g_bar_w, self._u_e_prev, t - self._t_prev)
         own = self.poses.latest(cfg.body_name)
-        if own is None:
-            raise RuntimeError(f"no pose for {cfg.body_name}")
-        self._g_wi = own.pose
-        g_bar_i0 = relative(own.pose, self.g_bar_w)  # ḡ_i0 = g_wi⁻¹ ḡ_w,i
-        self._g_bar_i0 = g_bar_i0
         rec = TickRecord(self.g_bar_w)
+        if own is not None:
+            self._g_wi = own.pose
+        elif self._g_wi is None:
+            raise RuntimeError(f"no pose for {cfg.body_name}")
+        else:  # a motion-capture dropout: keep the last pose, hover; the safety layer decides beyond that
+            rec.own_pose_fresh = False
+        g_bar_i0 = relative(self._g_wi, self.g_bar_w)  # ḡ_i0 = g_wi⁻¹ ḡ_w,i
+        self._g_bar_i0 = g_bar_i0
         frame = self.camera.latest()
-        features = self._features(frame, rec)
+        features = self._features(frame, rec, t)
         if features is not None:
             try:
                 xi = estimation_error(features, g_bar_i0, cfg.P0, cfg.camera)  # ≈ [p_e, θ_e]
@@ -139,10 +144,13 @@ class Agent:
             PredictionMessage(cfg.mission, cfg.drone_id, self.seq, t, rec.visible, x, mu, var, prior)
         )
 
-    def _features(self, frame: Frame | None, rec: TickRecord) -> np.ndarray | None:
+    def _features(self, frame: Frame | None, rec: TickRecord, t: float) -> np.ndarray | None:
         """f (2m,) from the frame: given directly (ideal camera) or extracted from the image."""
         if frame is None:
             rec.rejection = "no frame"
+            return None
+        if t - frame.stamp > self.cfg.max_frame_age_s:
+            rec.rejection = "stale frame"
             return None
         if frame.features is not None or frame.image is None or self.cfg.calibration is None:
             return frame.features
@@ -176,7 +184,8 @@ class Agent:
         e_c, th_c = control_error(cfg.g_d, self._g_bar_i0)
         th_e = math.asin(max(-1.0, min(1.0, rec.e_e_meas[3])))
         u_c, u_e = pursuit_law(e_c, th_c, rec.e_e_meas, th_e, c_i, mu, cfg.gains, rec.visible)
-        V = drone_velocity_command(u_c, cfg.g_d) if not self.hold else np.zeros(4)
+        hover = self.hold or not rec.own_pose_fresh
+        V = drone_velocity_command(u_c, cfg.g_d) if not hover else np.zeros(4)
         self.drone.send_body_velocity(V)
         rec.mu_used, rec.u_c, rec.u_e, rec.V_cmd = mu, u_c, u_e, V
         self._u_e_prev, self._t_prev = u_e, t

@@ -12,6 +12,7 @@ from typing import Any
 REGISTRY: dict[str, str] = {
     "sim_ideal": "sim_backend.build:build_ideal",
     "sim_lab": "sim_backend.build_lab:build_lab",
+    "tello": "drivers.hardware:build_tello",  # real Tellos + motion capture + Scamper
 }
 
 

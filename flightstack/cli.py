@@ -1,4 +1,4 @@
-"""Operator command line: `flightstack sim MISSION --out RUN_DIR` (more subcommands in later issues)."""
+"""Operator command line: sim, fly, preflight, target, train, calibrate, validate (`flightstack -h`)."""
 
 from __future__ import annotations
 
@@ -7,12 +7,13 @@ import json
 import logging
 import signal
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 from tqdm import tqdm
 
-from flightstack.mission import MissionError, load_mission
+from flightstack.mission import Mission, MissionError, load_mission
 
 
 def _progress_factory(bars: list[tqdm]) -> Callable[[str, int], Callable[[int], None]]:
@@ -47,6 +48,17 @@ def cmd_sim(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")  # safety events, live
     overrides = {"duration_s": args.duration} if args.duration else None
     mission = load_mission(args.mission, overrides)
+    if args.command == "sim" and not mission.simulated:
+        print(
+            f"error: {args.mission}: backend {mission.backend!r} flies real drones; "
+            "use `flightstack preflight` then `flightstack fly`",
+            file=sys.stderr,
+        )
+        return 2
+    if args.command == "fly" and not mission.simulated:
+        code = _confirm_and_preflight(args, mission)
+        if code:
+            return code
     out = Path(args.out)
     bars: list[tqdm] = []
     res = run_experiment(mission, None if args.no_progress else _progress_factory(bars))
@@ -84,6 +96,98 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print(f"error: {res.error}; every drone landed, partial recording written", file=sys.stderr)
         return 1
     return 0
+
+
+def _confirm(question: str, yes: bool) -> bool:
+    """True when the operator confirmed (--yes, or 'y' at an interactive prompt)."""
+    if yes:
+        return True
+    if not sys.stdin.isatty():
+        print("error: this moves real hardware; pass --yes to confirm", file=sys.stderr)
+        return False
+    return input(f"{question} [y/N] ").strip().lower() in ("y", "yes")
+
+
+def _confirm_and_preflight(args: argparse.Namespace, mission: Mission) -> int:
+    """Preflight every device, then ask; 0 to go on, else the exit code."""
+    from drivers.preflight import format_table, run_preflight
+
+    rows = run_preflight(mission)
+    print(format_table(rows))
+    if any(r.status == "FAIL" for r in rows):
+        print("error: preflight failed; nothing took off", file=sys.stderr)
+        return 1
+    ids = ", ".join(str(d.id) for d in mission.drones)
+    if not _confirm(
+        f"Drones {ids} will take off and fly {mission.duration_s:g} s per mode. Area clear?", args.yes
+    ):
+        print("aborted", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_preflight(args: argparse.Namespace) -> int:
+    """Check every device and file of a hardware mission; exit 1 on any FAIL (drivers/preflight.py)."""
+    from drivers.preflight import format_table, run_preflight
+
+    mission = load_mission(args.mission, check_files=False)
+    if mission.simulated:
+        print(f"error: {args.mission}: backend {mission.backend!r} has no hardware to check", file=sys.stderr)
+        return 2
+    rows = run_preflight(mission, deadline_s=args.deadline, with_camera=not args.no_camera)
+    print(format_table(rows))
+    return 1 if any(r.status == "FAIL" for r in rows) else 0
+
+
+def cmd_target(args: argparse.Namespace) -> int:
+    """Drive the real robot on the mission's square law from its motion-capture pose (drivers/target_run)."""
+    from drivers.hardware import body_names, mocap_config, scamper_config
+    from drivers.mocap import MocapPoseSource
+    from drivers.scamper import ScamperDriver
+    from drivers.target_run import drive_square, lap_summary
+    from flightstack.target_law import SquareLaw
+
+    mission = load_mission(args.mission, check_files=False)
+    if mission.hardware is None or mission.hardware.target is None:
+        print(f"error: {args.mission}: hardware.target: no robot to drive (set its url)", file=sys.stderr)
+        return 2
+    sq = mission.target.square
+    law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, mission.target.initial_pose.theta)
+    duration = args.duration if args.duration is not None else args.laps * law.lap_time
+    if not _confirm(
+        f"The robot will drive {duration:.0f} s on the {sq.side_m:g} m square. Area clear?", args.yes
+    ):
+        print("aborted", file=sys.stderr)
+        return 1
+    sc = scamper_config(mission)
+    assert sc is not None
+    mocap = MocapPoseSource(mocap_config(mission))
+    robot = ScamperDriver(sc)
+    body = body_names(mission)["target"]
+    try:
+        mocap.start()
+        if mocap_wait(mocap, body, 2.0) is None:
+            print(f"error: motion capture does not see the robot (body {body!r})", file=sys.stderr)
+            return 1
+        robot.connect()
+        print(f"driving {duration:.1f} s ({duration / law.lap_time:.2f} laps); Ctrl-C stops the robot")
+        res = drive_square(robot, mocap, law, duration, body=body, link_alive=robot.link_alive)
+        print(lap_summary(res, law))
+        return 0 if res.ended_by == "duration" else 1
+    finally:
+        robot.close()
+        mocap.close()
+
+
+def mocap_wait(mocap: object, body: str, timeout_s: float) -> object | None:
+    """The body's first pose within timeout_s (s), or None."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        sp = mocap.latest(body)  # type: ignore[attr-defined]
+        if sp is not None:
+            return sp
+        time.sleep(0.02)
+    return None
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -165,6 +269,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--duration", type=float, default=None, help="override duration_s (seconds)")
     s.add_argument("--no-progress", action="store_true", help="no progress bars")
     s.set_defaults(func=cmd_sim)
+    f = sub.add_parser("fly", help="fly a mission on real hardware (backend tello): preflight, confirm, fly")
+    f.add_argument("mission", help="mission YAML file with a hardware section")
+    f.add_argument("--out", required=True, help="run directory to write (created if missing)")
+    f.add_argument("--duration", type=float, default=None, help="override duration_s (seconds)")
+    f.add_argument("--no-progress", action="store_true", help="no progress bars")
+    f.add_argument("--yes", action="store_true", help="confirm that the drones may take off")
+    f.set_defaults(func=cmd_sim)
+    pf = sub.add_parser("preflight", help="check every device of a hardware mission (pass/fail table)")
+    pf.add_argument("mission")
+    pf.add_argument("--deadline", type=float, default=9.0, help="bound on the whole check (s)")
+    pf.add_argument("--no-camera", action="store_true", help="skip the video check")
+    pf.set_defaults(func=cmd_preflight)
+    tg = sub.add_parser("target", help="drive the real ground robot on the square law (motion capture)")
+    tg.add_argument("mission", help="mission YAML file with hardware.mocap and hardware.target")
+    tg.add_argument("--laps", type=float, default=1.0, help="laps of the square (default 1)")
+    tg.add_argument("--duration", type=float, default=None, help="seconds instead of laps")
+    tg.add_argument("--yes", action="store_true", help="confirm that the robot may move")
+    tg.set_defaults(func=cmd_target)
     t = sub.add_parser("train", help="fit GP experts on a recorded run (data collection without GP)")
     t.add_argument("run_dir", help="run directory written by `flightstack sim`")
     t.add_argument("--out", required=True, help="experts file to write (.npz)")
@@ -182,6 +304,9 @@ def build_parser() -> argparse.ArgumentParser:
     cd.add_argument("--out", required=True, help="YAML file to write")
     cd.add_argument("--yes", action="store_true", help="confirm that the drone may take off")
     cd.set_defaults(func=cmd_calibrate_drone)
+    from calibration.cli import register as register_calibration
+
+    register_calibration(cal_sub)
     v = sub.add_parser("validate", help="check a mission file and print the resolved mission")
     v.add_argument("mission")
     v.set_defaults(func=cmd_validate)

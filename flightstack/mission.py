@@ -259,6 +259,80 @@ def _safety_spec() -> type[BaseModel]:
 SafetySpec = _safety_spec()
 
 
+MOCAP_SYSTEMS = ("mock", "vicon", "optitrack", "qualisys", "vrpn")
+
+
+class TelloHardwareSpec(_Strict):
+    """One real Tello (backend `tello`), by IP in station mode. Ports: 8889 (commands) on a real drone;
+    each drone of a swarm streams video to its own `video_port` on this computer."""
+
+    id: int = Field(ge=0, lt=2**16)
+    ip: str = Field(pattern=r"^\d{1,3}\.\d{1,3}\.\d{1,3}\.\d{1,3}$")
+    control_port: int = Field(default=8889, ge=1, le=65535)
+    video_port: int = Field(default=11111, ge=1, le=65535)
+    connect_timeout_s: Positive = 5.0
+    command_timeout_s: Positive = 3.0
+    link_timeout_s: Positive = 1.0
+    keepalive_s: Annotated[float, Field(gt=0, lt=15)] = 5.0
+    max_temperature_c: Positive = 85.0
+    frame_timeout_s: Positive = 5.0
+
+
+class MocapHardwareSpec(_Strict):
+    """Motion capture through libmotioncapture (`drivers/mocap.py`). `system: mock` with
+    settings.rigid_bodies is the bench option (fixed bodies, no server). `bodies` maps flightstack's
+    body names (`drone<ID>`, `target`) to the names of the rigid bodies in the mocap software; a name
+    not listed is looked up as is."""
+
+    system: Literal["mock", "vicon", "optitrack", "qualisys", "vrpn"]
+    settings: dict[str, str] = {}
+    bodies: dict[str, str] = {}
+    connect_timeout_s: Positive = 5.0
+    stale_after_s: Positive = 0.1
+    max_tilt_rad: Annotated[float, Field(gt=0, le=math.pi / 2)] = 0.35
+
+
+class TargetHardwareSpec(_Strict):
+    """The ground robot over MAVLink (`drivers/scamper.py`); `url` is a pymavlink connection string."""
+
+    url: str = Field(min_length=1)
+    heartbeat_timeout_s: Positive = 5.0
+    ack_timeout_s: Positive = 2.0
+    stream_hz: Annotated[float, Field(ge=1, le=100)] = 10.0
+    link_timeout_s: Positive = 3.0
+
+
+class HardwareSpec(_Strict):
+    """The lab (backend `tello`). `target: null` when the robot is driven elsewhere (`flightstack target`
+    on another computer, or by hand): the mission then only reads its motion-capture pose.
+    `max_frame_age_s`: a camera frame older than this is treated as no frame (stalled video)."""
+
+    drones: list[TelloHardwareSpec] = Field(min_length=1)
+    mocap: MocapHardwareSpec
+    target: TargetHardwareSpec | None = None
+    max_frame_age_s: Positive = 0.5
+
+    @model_validator(mode="after")
+    def _unique(self) -> HardwareSpec:
+        ids = [d.id for d in self.drones]
+        if len(set(ids)) != len(ids):
+            raise ValueError("drones: ids must be unique")
+        ips = [(d.ip, d.control_port) for d in self.drones]
+        if len(set(ips)) != len(ips):
+            raise ValueError("drones: two drones share an ip and port")
+        ports = [d.video_port for d in self.drones]
+        if len(set(ports)) != len(ports):
+            raise ValueError("drones: each drone needs its own video_port")
+        return self
+
+    def drone(self, drone_id: int) -> TelloHardwareSpec:
+        return next(d for d in self.drones if d.id == drone_id)
+
+    def body(self, name: str) -> str:
+        """The motion-capture name of flightstack body `name` (`drone<ID>` or `target`)."""
+        return self.mocap.bodies.get(name, name)
+
+
 class BusSpec(_Strict):
     kind: Literal["inproc"] = "inproc"
     stale_after_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 0.5
@@ -274,7 +348,7 @@ class GainAnalysisSpec(_Strict):
 class Mission(_Strict):
     name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")
     description: str = ""
-    backend: Literal["sim_ideal", "sim_lab"] = "sim_ideal"
+    backend: Literal["sim_ideal", "sim_lab", "tello"] = "sim_ideal"
     seed: int = 0
     duration_s: Annotated[float, Field(gt=0, le=86400, allow_inf_nan=False)]
     dt_s: Annotated[float, Field(gt=0, le=1.0, allow_inf_nan=False)]
@@ -289,6 +363,7 @@ class Mission(_Strict):
     gain_analysis: GainAnalysisSpec = GainAnalysisSpec()
     sim: SimSpec = SimSpec()
     safety: SafetySpec = SafetySpec()  # type: ignore[valid-type]
+    hardware: HardwareSpec | None = None
     _base_dir: Path = PrivateAttr(default=Path("."))
 
     def resolve(self, relative: str) -> Path:
@@ -331,9 +406,31 @@ class Mission(_Strict):
             for d in self.drones:
                 if d.camera is None:
                     raise ValueError(f"drones: drone {d.id} needs a camera (calibration, mount) on sim_lab")
+        if self.backend == "tello":
+            self._check_hardware(ids)
+        elif self.hardware is not None:
+            raise ValueError(f"hardware: only used by backend 'tello' (this mission: {self.backend!r})")
         if self.backend == "sim_ideal" and self.target.motion != "duffing":
             raise ValueError("target.motion: the sim_ideal backend implements the 'duffing' field")
         return self
+
+    def _check_hardware(self, ids: list[int]) -> None:
+        if self.hardware is None:
+            raise ValueError("hardware: backend 'tello' needs a hardware section (drone IPs, mocap, robot)")
+        hw_ids = sorted(d.id for d in self.hardware.drones)
+        if hw_ids != sorted(ids):
+            raise ValueError(f"hardware.drones: ids {hw_ids} must be exactly the drones' ids {sorted(ids)}")
+        if self.target.motion != "square":
+            raise ValueError("target.motion: real robots are driven on the 'square' law")
+        for d in self.drones:
+            if d.camera is None:
+                raise ValueError(f"drones: drone {d.id} needs a camera (calibration, mount) on real hardware")
+        if not self.safety.enabled:
+            raise ValueError("safety.enabled: must be true on real hardware")
+
+    @property
+    def simulated(self) -> bool:
+        return self.backend != "tello"
 
     def k_c_xy_unequal(self) -> bool:
         return self.gains.k_c[0] != self.gains.k_c[1] or self.gains.k_e[0] != self.gains.k_e[1]
@@ -378,8 +475,13 @@ def parse_mission(data: object, source: str = "<mission>") -> Mission:
         ) from None
 
 
-def load_mission(path: str | Path, overrides: dict[str, object] | None = None) -> Mission:
-    """Read and validate a mission file; `overrides` replace top-level keys (e.g. duration_s) first."""
+def load_mission(
+    path: str | Path, overrides: dict[str, object] | None = None, check_files: bool = True
+) -> Mission:
+    """Read and validate a mission file; `overrides` replace top-level keys (e.g. duration_s) first.
+
+    check_files=False skips the existence checks of referenced files (calibrations, experts) so that
+    `flightstack preflight` can report them as rows of its table instead of stopping at the first one."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -393,6 +495,8 @@ def load_mission(path: str | Path, overrides: dict[str, object] | None = None) -
         data = {**data, **overrides}
     m = parse_mission(data, str(path))
     m._base_dir = path.resolve().parent
+    if not check_files:
+        return m
     for d in m.drones:
         if d.camera is not None and not m.resolve(d.camera.calibration).is_file():
             raise MissionError(

@@ -9,6 +9,7 @@ the recording is returned with what was flown.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -70,6 +71,7 @@ def make_agents(
             neighbour_ids=tuple(ids[j] for j in mission.neighbours(k)),
             stale_after=mission.bus.stale_after_s,
             calibration=None if d.camera is None else load_calibration(mission.resolve(d.camera.calibration)),
+            max_frame_age_s=math.inf if mission.hardware is None else mission.hardware.max_frame_age_s,
         )
         # ḡ_w,i(0) = g_w0(0) g_e(0)⁻¹; on sim_lab reset at pursuit start from the drone's own pose
         g_bar = compose(g_w0, inverse(d.initial_estimate_error.pose()))
@@ -198,6 +200,8 @@ def run_mode(
                 rec.visible[k, i] = last.visible
                 if last.rejection:
                     rejections[a.cfg.drone_id][last.rejection] += 1
+                if not last.own_pose_fresh:
+                    rejections[a.cfg.drone_id]["own pose lost (hovered)"] += 1
             rec.ticks_done = k + 1
             if progress is not None:
                 progress(1)

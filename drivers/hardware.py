@@ -1,0 +1,197 @@
+"""The hardware backend (`backend: tello`): real Tellos, motion capture and the Scamper, from a mission.
+
+It implements `flightstack.hal.Backend` like the simulated backends, so the runner, agents and safety
+layer do not know they fly real drones. Building it connects every device, each with a bounded wait
+(`hardware.*.connect_timeout_s`, `heartbeat_timeout_s`); if any device fails, whatever was already
+connected is closed again and the error names the device.
+
+Clock: the wall clock `time.monotonic()` (seconds), which is also the time base of every driver's stamps
+(Tello state and video, motion-capture receive times), so pose and frame ages are comparable with `now()`.
+
+Bodies: flightstack names the motion-capture bodies `drone<ID>` and `target`; `hardware.mocap.bodies`
+maps them to the names used in the motion-capture software.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from drivers.mocap import MocapConfig, MocapPoseSource
+from drivers.scamper import ScamperConfig, ScamperDriver
+from drivers.tello import TelloCamera, TelloConfig, TelloDriver
+from flightstack.geometry import Pose
+from flightstack.hal import StampedPose
+from flightstack.mission import Mission
+from flightstack.tello_rc import RcGains
+
+LOG = logging.getLogger("flightstack.hardware")
+
+
+class WallClock:
+    """hal.Clock on time.monotonic() (s); sleep_until sleeps (returns at once when t is past)."""
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def sleep_until(self, t: float) -> None:
+        delay = t - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+
+
+class NamedPoseSource:
+    """hal.PoseSource that maps flightstack body names to motion-capture names (`hardware.mocap.bodies`)."""
+
+    def __init__(self, inner: MocapPoseSource, names: dict[str, str]) -> None:
+        self.inner = inner
+        self.names = dict(names)
+
+    def latest(self, body: str) -> StampedPose | None:
+        return self.inner.latest(self.names.get(body, body))
+
+
+def tello_config(mission: Mission, drone_id: int) -> TelloConfig:
+    """The driver settings of drone `drone_id` from `hardware.drones` and the drone's rc gains and camera."""
+    assert mission.hardware is not None
+    hw = mission.hardware.drone(drone_id)
+    spec = next(d for d in mission.drones if d.id == drone_id)
+    return TelloConfig(
+        host=hw.ip,
+        control_port=hw.control_port,
+        video_port=hw.video_port,
+        rc_gains=RcGains(**spec.rc_gains.model_dump()),
+        connect_timeout_s=hw.connect_timeout_s,
+        command_timeout_s=hw.command_timeout_s,
+        link_timeout_s=hw.link_timeout_s,
+        keepalive_s=hw.keepalive_s,
+        min_battery_pct=mission.safety.min_battery_takeoff,
+        max_temperature_c=hw.max_temperature_c,
+        downward_camera=spec.camera is not None and spec.camera.mount == "down",
+    )
+
+
+def mocap_config(mission: Mission) -> MocapConfig:
+    assert mission.hardware is not None
+    m = mission.hardware.mocap
+    return MocapConfig(m.system, dict(m.settings), m.connect_timeout_s, m.stale_after_s, m.max_tilt_rad)
+
+
+def scamper_config(mission: Mission) -> ScamperConfig | None:
+    assert mission.hardware is not None
+    t = mission.hardware.target
+    if t is None:
+        return None
+    return ScamperConfig(
+        url=t.url,
+        heartbeat_timeout_s=t.heartbeat_timeout_s,
+        ack_timeout_s=t.ack_timeout_s,
+        stream_hz=t.stream_hz,
+        link_timeout_s=t.link_timeout_s,
+    )
+
+
+def body_names(mission: Mission) -> dict[str, str]:
+    """flightstack body name → motion-capture body name, for every drone and the target."""
+    assert mission.hardware is not None
+    names = [f"drone{d.id}" for d in mission.drones] + ["target"]
+    return {n: mission.hardware.body(n) for n in names}
+
+
+class _UnknownPose:
+    """Recorded for a body motion capture has never seen: NaN in the recording, never used for control."""
+
+    def as_vector(self) -> np.ndarray:
+        return np.full(4, np.nan)
+
+
+UNKNOWN_POSE: Any = _UnknownPose()
+
+
+class HardwareBackend:
+    """hal.Backend of the lab. `truth()` returns the motion-capture poses (the lab's reference)."""
+
+    simulated = False
+
+    def __init__(self, mission: Mission) -> None:
+        if mission.hardware is None:
+            raise ValueError("backend 'tello' needs the mission's hardware section")
+        self.mission = mission
+        self.clock = WallClock()
+        self.mocap = MocapPoseSource(mocap_config(mission), clock=self.clock.now)
+        self.names = body_names(mission)
+        self.poses = NamedPoseSource(self.mocap, self.names)
+        self.drones: dict[int, TelloDriver] = {}
+        self.cameras: dict[int, TelloCamera] = {}
+        sc = scamper_config(mission)
+        self.robot: ScamperDriver | None = None if sc is None else ScamperDriver(sc)
+        self._last_truth: dict[str, Pose] = {}
+        try:
+            self._connect_all()
+        except BaseException:
+            self.close()
+            raise
+
+    def _connect_all(self) -> None:
+        assert self.mission.hardware is not None
+        self.mocap.start()
+        for d in self.mission.drones:
+            drv = TelloDriver(tello_config(self.mission, d.id))
+            self.drones[d.id] = drv
+            drv.connect()
+            cam = TelloCamera(drv, self.mission.hardware.drone(d.id).frame_timeout_s)
+            self.cameras[d.id] = cam
+            cam.start()
+        if self.robot is not None:
+            self.robot.connect()
+
+    # ---- hal.Backend ------------------------------------------------------------------------------
+    def drone(self, drone_id: int) -> TelloDriver:
+        return self.drones[drone_id]
+
+    def camera(self, drone_id: int) -> TelloCamera:
+        return self.cameras[drone_id]
+
+    def pose_source(self) -> NamedPoseSource:
+        return self.poses
+
+    def target(self) -> ScamperDriver | None:
+        return self.robot
+
+    def truth(self) -> tuple[Any, dict[int, Any]]:
+        """Motion-capture poses of the target and the drones (the last one seen while a body is lost)."""
+        for name in self.names:
+            sp = self.poses.latest(name)
+            if sp is not None:
+                self._last_truth[name] = sp.pose
+        target = self._last_truth.get("target", UNKNOWN_POSE)
+        return target, {d: self._last_truth.get(f"drone{d}", UNKNOWN_POSE) for d in self.drones}
+
+    def close(self) -> None:
+        """Land every drone still flying, stop video, stop and disarm the robot, close motion capture.
+
+        Never raises: every failure is logged and the remaining devices are still closed."""
+        for i, drv in self.drones.items():
+            if drv.state().flying:
+                try:
+                    drv.land()
+                except Exception as exc:
+                    LOG.error("drone %s: land failed while closing: %s", i, exc)
+        for cam in self.cameras.values():
+            with contextlib.suppress(Exception):
+                cam.stop()
+        for drv in self.drones.values():
+            with contextlib.suppress(Exception):
+                drv.close()
+        if self.robot is not None:
+            with contextlib.suppress(Exception):
+                self.robot.close()
+        self.mocap.close()
+
+
+def build_tello(mission: Mission) -> HardwareBackend:
+    return HardwareBackend(mission)

@@ -1,0 +1,298 @@
+"""`flightstack preflight MISSION`: check every device and file of a hardware mission before anyone flies.
+
+Each device is checked in its own thread, all at once, with the mission's own bounded timeouts; the
+whole run is bounded by `deadline_s`, and a device that has not answered by then is a FAIL naming it.
+Nothing takes off, nothing moves: the robot is only listened to (HEARTBEAT), never armed; a Tello gets
+`command`, `streamon`/`streamoff` and read-only queries.
+
+Rows: (device, check, status, detail) with status PASS, WARN (flyable, but look) or FAIL (do not fly).
+The checks (README "Preflight"):
+- files: every camera calibration exists, is valid, was measured (rms_px set; the nominal templates
+  are not) and matches the drone's video size; the experts file, if the mission names one.
+- gains: κ of Theorem 1. WARN (never FAIL) when not positive: the paper flies its experiment with
+  gains that violate it. Without trained experts, L_μ = 0 gives an upper bound of κ.
+- drone N: reachable (SDK mode, state stream), battery ≥ safety.min_battery_takeoff, temperature,
+  on the ground; its camera streams and the frame size matches the calibration.
+- mocap: the server answers; every body (drones, target) is tracked, level (tilt limit) and, for the
+  drones, inside the fence's x/y box (the target too: the drones follow it).
+- robot: a HEARTBEAT within heartbeat_timeout_s (mode and armed state reported).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from flightstack.mission import Mission
+
+Status = Literal["PASS", "WARN", "FAIL"]
+BODY_WAIT_S = 1.0  # after connecting, how long motion capture gets to report every body (s)
+
+
+@dataclass(frozen=True)
+class CheckRow:
+    device: str
+    check: str
+    status: Status
+    detail: str
+
+
+def _row(device: str, check: str, ok: bool, detail: str, warn: bool = False) -> CheckRow:
+    return CheckRow(device, check, "PASS" if ok else ("WARN" if warn else "FAIL"), detail)
+
+
+# ---- files and gains (no device) ---------------------------------------------------------------------
+def check_files(mission: Mission) -> list[CheckRow]:
+    from flightstack.camera_calibration import CalibrationError, load_calibration
+
+    rows = []
+    for d in mission.drones:
+        if d.camera is None:
+            continue
+        path = mission.resolve(d.camera.calibration)
+        dev = f"drone {d.id}"
+        if not path.is_file():
+            rows.append(_row(dev, "camera calibration", False, f"file not found: {path}"))
+            continue
+        try:
+            cal = load_calibration(path)
+        except CalibrationError as exc:
+            rows.append(_row(dev, "camera calibration", False, str(exc)))
+            continue
+        if cal.rms_px is None:
+            why = f"{path.name}: never measured (rms_px unset); run `flightstack calibrate camera`"
+            rows.append(_row(dev, "camera calibration", False, why))
+        else:
+            rows.append(_row(dev, "camera calibration", True, f"{path.name}: RMS {cal.rms_px:.2f} px"))
+        if not cal.markers:
+            rows.append(
+                _row(dev, "marker colours", False, f"{path.name}: no markers; run `calibrate markers`")
+            )
+        elif len(cal.markers) != len(mission.target.feature_points):
+            why = f"{len(cal.markers)} colours for {len(mission.target.feature_points)} feature points"
+            rows.append(_row(dev, "marker colours", False, why))
+        else:
+            rows.append(_row(dev, "marker colours", True, ", ".join(m.name for m in cal.markers)))
+    if mission.gp.experts_file is not None:
+        p = mission.resolve(mission.gp.experts_file)
+        rows.append(
+            _row("mission", "GP experts file", p.is_file(), str(p) if p.is_file() else f"not found: {p}")
+        )
+    return rows
+
+
+def check_gains(mission: Mission) -> CheckRow:
+    from flightstack.control import Gains
+    from flightstack.gain_analysis import gain_condition, region_samples
+
+    experts: list = []
+    if mission.gp.experts_file is not None and mission.resolve(mission.gp.experts_file).is_file():
+        from flightstack.training import load_experts
+
+        experts = list(load_experts(mission.resolve(mission.gp.experts_file)).values())
+    s = mission.safety
+    lo = np.array([s.fence_lo[0], s.fence_lo[1], 0.0])
+    hi = np.array([s.fence_hi[0], s.fence_hi[1], 0.0])
+    ga = mission.gain_analysis
+    cond = gain_condition(
+        Gains.make(mission.gains.k_c, mission.gains.k_e, mission.gains.k_s),
+        len(mission.drones),
+        mission.edge_index_pairs(),
+        [d.sees_target for d in mission.drones],
+        experts,
+        region_samples(lo, hi, min(ga.samples, 500), mission.seed),
+        ga.gamma_sq,
+        ga.beta,
+        ga.eta,
+    )
+    if experts:
+        detail = f"kappa = {cond.kappa:.2f}, lambda_H = {cond.lambda_H:.2f}, L_mu = {cond.L_mu:.2f}"
+    else:  # κ = λ_H − (π/2) L_μ λ_P − 1/(2γ²) ≤ its value at L_μ = 0: a necessary condition only
+        detail = (
+            f"necessary part lambda_H - 1/(2 gamma^2) = {cond.kappa:.2f} (lambda_H = {cond.lambda_H:.2f}); "
+            "the full kappa needs trained experts (metrics.json after the run)"
+        )
+    if cond.kappa <= 0:
+        detail += "; Theorem 1 does not apply (the paper's own experiment gains violate it too)"
+    return _row("mission", "gain condition", cond.kappa > 0, detail, warn=True)
+
+
+# ---- devices -------------------------------------------------------------------------------------------
+def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> list[CheckRow]:
+    from drivers.hardware import tello_config
+    from drivers.tello import TelloCamera, TelloDriver
+
+    assert mission.hardware is not None
+    cfg = tello_config(mission, drone_id)
+    dev = f"drone {drone_id} ({cfg.host})"
+    drv = TelloDriver(cfg)
+    rows: list[CheckRow] = []
+    try:
+        try:
+            drv.connect()
+        except Exception as exc:
+            return [_row(dev, "reachable", False, str(exc))]
+        rows.append(_row(dev, "reachable", True, f"SDK mode, state stream at {cfg.host}:{cfg.control_port}"))
+        rows += [_row(dev, c.name, c.ok, c.detail) for c in drv.preflight()]
+        if with_camera:
+            rows.append(_check_camera(mission, drone_id, dev, TelloCamera(drv, cfg.command_timeout_s + 2.0)))
+    finally:
+        drv.close()
+    return rows
+
+
+def _check_camera(mission: Mission, drone_id: int, dev: str, cam: object) -> CheckRow:
+    from flightstack.camera_calibration import load_calibration
+
+    spec = next(d for d in mission.drones if d.id == drone_id)
+    assert mission.hardware is not None and spec.camera is not None
+    timeout = mission.hardware.drone(drone_id).frame_timeout_s
+    try:
+        cam.start()  # type: ignore[attr-defined]
+        deadline = time.monotonic() + timeout
+        frame = None
+        while frame is None or frame.image is None:
+            if time.monotonic() > deadline:
+                return _row(dev, "camera", False, f"no video frame within {timeout:g} s")
+            frame = cam.latest()  # type: ignore[attr-defined]
+            time.sleep(0.02)
+        h, w = frame.image.shape[:2]
+        detail = f"{spec.camera.mount} camera streaming {w}x{h}"
+        path = mission.resolve(spec.camera.calibration)
+        if path.is_file():
+            with contextlib.suppress(Exception):
+                cal = load_calibration(path)
+                if (cal.width, cal.height) != (w, h):
+                    return _row(
+                        dev, "camera", False, f"{detail}, but the calibration is {cal.width}x{cal.height}"
+                    )
+        return _row(dev, "camera", True, detail)
+    except Exception as exc:
+        return _row(dev, "camera", False, f"video: {exc}")
+    finally:
+        with contextlib.suppress(Exception):
+            cam.stop()  # type: ignore[attr-defined]
+        with contextlib.suppress(Exception):
+            cam.driver._control("streamoff", 1.0)  # type: ignore[attr-defined]
+
+
+def check_mocap(mission: Mission) -> list[CheckRow]:
+    from drivers.hardware import body_names, mocap_config
+    from drivers.mocap import MocapPoseSource
+
+    cfg = mocap_config(mission)
+    dev = f"mocap ({cfg.system})"
+    src = MocapPoseSource(cfg)
+    try:
+        try:
+            src.start()
+        except Exception as exc:
+            return [_row(dev, "server", False, str(exc))]
+        rows = [_row(dev, "server", True, f"connected ({cfg.settings or 'no settings'})")]
+        names = body_names(mission)
+        deadline = time.monotonic() + BODY_WAIT_S
+        while time.monotonic() < deadline and not all(src.latest(n) for n in names.values()):
+            time.sleep(0.02)
+        s = mission.safety
+        for ours, theirs in names.items():
+            sp = src.latest(theirs)
+            label = ours if ours == theirs else f"{ours} = {theirs}"
+            if sp is None:
+                tilt = src.tilt(theirs)
+                if tilt is None:
+                    why = "never seen"
+                elif tilt > cfg.max_tilt_rad:
+                    why = f"tilted {math.degrees(tilt):.0f}° (limit {math.degrees(cfg.max_tilt_rad):.0f}°)"
+                else:
+                    why = "lost (no recent frame)"
+                rows.append(_row(dev, f"body {label}", False, why))
+                continue
+            x, y, z = (float(v) for v in sp.pose.p)
+            inside = s.fence_lo[0] <= x <= s.fence_hi[0] and s.fence_lo[1] <= y <= s.fence_hi[1]
+            where = f"at ({x:.2f}, {y:.2f}, {z:.2f}) m, {src.rate_hz(theirs):.0f} Hz"
+            if not inside:
+                box = f"[{s.fence_lo[0]}, {s.fence_hi[0]}]×[{s.fence_lo[1]}, {s.fence_hi[1]}]"
+                where += f", OUTSIDE the fence x/y {box}"
+            rows.append(_row(dev, f"body {label}", inside, where))
+        return rows
+    finally:
+        src.close()
+
+
+def check_robot(mission: Mission) -> list[CheckRow]:
+    from drivers.hardware import scamper_config
+    from drivers.scamper import probe_heartbeat
+
+    cfg = scamper_config(mission)
+    if cfg is None:
+        return [_row("robot", "link", True, "not driven by this mission (hardware.target is null)")]
+    dev = f"robot ({cfg.url})"
+    try:
+        hb = probe_heartbeat(cfg)
+    except Exception as exc:
+        return [_row(dev, "heartbeat", False, str(exc))]
+    return [_row(dev, "heartbeat", True, f"mode {hb.custom_mode}, {'ARMED' if hb.armed else 'disarmed'}")]
+
+
+# ---- all of it ---------------------------------------------------------------------------------------
+def run_preflight(mission: Mission, deadline_s: float = 9.0, with_camera: bool = True) -> list[CheckRow]:
+    """Every check of the module docstring; devices in parallel; returns within ~deadline_s (s)."""
+    if mission.hardware is None:
+        raise ValueError(
+            f"preflight checks hardware; mission {mission.name!r} uses backend {mission.backend!r}"
+        )
+    jobs: dict[str, Callable[[], list[CheckRow]]] = {}
+    for d in mission.drones:
+        jobs[f"drone {d.id} ({mission.hardware.drone(d.id).ip})"] = (
+            lambda i=d.id: check_drone(mission, i, with_camera)  # type: ignore[misc]
+        )
+    jobs[f"mocap ({mission.hardware.mocap.system})"] = lambda: check_mocap(mission)
+    jobs["robot"] = lambda: check_robot(mission)
+    results: dict[str, list[CheckRow]] = {}
+
+    def run(name: str, fn: Callable[[], list[CheckRow]]) -> None:
+        try:
+            results[name] = fn()
+        except Exception as exc:  # a bug in a check must not hide the other devices
+            results[name] = [_row(name, "check", False, f"{type(exc).__name__}: {exc}")]
+
+    threads = [
+        threading.Thread(target=run, args=(n, f), name=f"preflight-{n}", daemon=True) for n, f in jobs.items()
+    ]
+    t_end = time.monotonic() + deadline_s
+    for th in threads:
+        th.start()
+    rows = check_files(mission)
+    try:
+        rows.append(check_gains(mission))
+    except Exception as exc:
+        rows.append(_row("mission", "gain condition", False, f"could not evaluate: {exc}", warn=True))
+    for th in threads:
+        th.join(max(0.0, t_end - time.monotonic()))
+    for name, th in zip(jobs, threads, strict=True):
+        if th.is_alive() or name not in results:
+            rows.append(
+                _row(name, "answer", False, f"no answer within the {deadline_s:g} s preflight deadline")
+            )
+        else:
+            rows.extend(results[name])
+    return rows
+
+
+def format_table(rows: list[CheckRow]) -> str:
+    w_dev = max(len("device"), *(len(r.device) for r in rows))
+    w_chk = max(len("check"), *(len(r.check) for r in rows))
+    lines = [f"{'device':{w_dev}s}  {'check':{w_chk}s}  status  detail", "-" * (w_dev + w_chk + 30)]
+    lines += [f"{r.device:{w_dev}s}  {r.check:{w_chk}s}  {r.status:6s}  {r.detail}" for r in rows]
+    n_fail = sum(r.status == "FAIL" for r in rows)
+    n_warn = sum(r.status == "WARN" for r in rows)
+    verdict = "ALL PASS" if not n_fail and not n_warn else f"{n_fail} FAIL, {n_warn} WARN"
+    lines.append(f"preflight: {verdict}" + (" — do not fly" if n_fail else ""))
+    return "\n".join(lines)
