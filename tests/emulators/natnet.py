@@ -1,0 +1,413 @@
+"""Loopback emulator of an OptiTrack Motive NatNet 3.0 server (unicast) for motioncapture's optitrack backend.
+
+Subset of NatNet implemented (little-endian, every packet starts with ``uint16 message id, uint16 payload
+bytes``), exactly what libmotioncapture's ``MotionCaptureOptitrack`` (PyPI ``motioncapture`` 1.1) reads:
+
+* Command port (UDP, ``127.0.0.1:<command_port>``, OS-assigned by default), request → reply to the sender:
+
+  - ``NAT_CONNECT`` (0) → ``NAT_SERVERINFO`` (1): ``char szName[256]`` ("Motive"), ``uint8 Version[4]``,
+    ``uint8 NatNetVersion[4]`` = 3.0.0.0, ``uint64 HighResClockFrequency`` (ticks/s), ``uint16 DataPort``,
+    ``bool IsMulticast`` = false (unicast), ``uint8 MulticastGroupAddress[4]`` = 0.0.0.0.
+  - ``NAT_REQUEST_MODELDEF`` (4) → ``NAT_MODELDEF`` (5): ``int32 nDatasets``, then per rigid body
+    ``int32 type`` = 1, ``char name[]`` (NUL-terminated), ``int32 ID``, ``int32 parentID`` = -1,
+    ``float32 x/y/z offset`` = 0 (libmotioncapture ADDS these to every position), ``int32 nMarkers`` = 0.
+  - anything else (keep-alives, NatNet 4 "client connect" 2, ...) is ignored.
+
+* Data: ``NAT_FRAMEOFDATA`` (7) sent by unicast to ``<host>:<data_port>`` at ``rate_hz``: ``int32 frame``,
+  ``int32 nMarkerSets`` = 0, ``int32 nOtherMarkers`` = 0, ``int32 nRigidBodies`` and per body ``int32 ID``,
+  ``float32 x, y, z`` (m), ``float32 qx, qy, qz, qw``, ``float32 meanError`` = 0, ``int16 params`` (bit 0:
+  tracking valid); then ``int32 nSkeletons, nLabeledMarkers, nForcePlates, nDevices`` = 0, ``uint32
+  timecode, timecodeSub``, ``float64 timestamp`` (s since start), ``uint64`` camera mid-exposure / data
+  received / transmit timestamps (ticks), ``int16 params`` = 0, ``int32 eod`` = 0.
+
+libmotioncapture sends ``NAT_CONNECT`` and ``NAT_REQUEST_MODELDEF`` once from an ephemeral port of
+``hostname`` (setting; an IPv4 literal, it is not resolved) to ``port_command`` (setting, default
+1510), reads the data port from the server info, binds ``interface_ip`` (setting, default 0.0.0.0)
+``:DataPort`` and parses the newest frame of each ``waitForNextFrame()``. ``rigidBodies`` then holds only
+bodies with the tracking-valid bit set, named by the model definition read at connect time (a body first
+defined after the client connected is unknown to it). Both "omitted from the frame" and "tracked = 0" make a
+body vanish from ``rigidBodies``; ``faults.lost_bodies`` flags them untracked (what Motive does) unless
+``faults.lost_omit`` is set.
+
+Why a child process: ``motioncapture.connect`` does NOT release the GIL while it waits (blocking, no
+timeout) for the server's replies, so a command responder running as a thread of the client's interpreter
+could never answer. The command port is therefore served by a small child process (this file run as a
+script with ``--responder``; it only imports the standard library and exits when its stdin closes, on
+``close()``, or after ``RESPONDER_MAX_LIFETIME_S``). Frames are streamed by a thread of this process.
+
+Frames: positions in the emulated motion-capture world frame (m, z up); quaternions (w, x, y, z) of the body
+in that frame (sent as they are given, not normalised).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ipaddress
+import math
+import os
+import select
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+NAT_CONNECT = 0
+NAT_SERVERINFO = 1
+NAT_REQUEST_MODELDEF = 4
+NAT_MODELDEF = 5
+NAT_FRAMEOFDATA = 7
+NATNET_VERSION = (3, 0, 0, 0)  # the frame layout below is NatNet 3.0's
+SERVER_VERSION = (2, 3, 0, 0)  # the emulated Motive version (informational)
+CLOCK_TICKS_PER_S = 10_000_000  # HighResClockFrequency advertised in the server info (ticks/s)
+RESPONDER_START_TIMEOUT_S = 5.0  # max wait for the child process to report its port
+RESPONDER_MAX_LIFETIME_S = 600.0  # the child exits by itself after this long (s)
+
+Vec3 = Sequence[float]
+QuatWXYZ = Sequence[float]
+PoseProvider = Callable[[], tuple[Vec3, QuatWXYZ]]
+
+
+@dataclass
+class NatNetFaults:
+    """Fault switches; a test may flip them at any time (read by the streaming thread every frame).
+
+    silent:      answer no command (connect blocks) and send no frame, as if no server were there.
+    drop_frames: keep answering commands but stop streaming frames.
+    lost_bodies: names of bodies reported as lost: flagged "tracking valid = 0" in every frame (default),
+                 or left out of the frames when `lost_omit` is True. libmotioncapture hides both.
+    lost_omit:   see `lost_bodies`.
+    """
+
+    silent: bool = False
+    drop_frames: bool = False
+    lost_bodies: set[str] = field(default_factory=set)
+    lost_omit: bool = False
+
+
+def _pack_packet(message_id: int, payload: bytes) -> bytes:
+    return struct.pack("<HH", message_id, len(payload) & 0xFFFF) + payload
+
+
+def server_info_packet(data_port: int, name: str = "Motive") -> bytes:
+    """NAT_SERVERINFO reply (NatNet 3.0 sender_server layout, unicast) advertising `data_port`."""
+    payload = (
+        name.encode("ascii")[:255].ljust(256, b"\0")
+        + bytes(SERVER_VERSION)
+        + bytes(NATNET_VERSION)
+        + struct.pack("<QH?4B", CLOCK_TICKS_PER_S, data_port, False, 0, 0, 0, 0)
+    )
+    return _pack_packet(NAT_SERVERINFO, payload)
+
+
+def model_def_packet(bodies: Sequence[tuple[str, int]]) -> bytes:
+    """NAT_MODELDEF reply (NatNet 3.0) describing rigid bodies given as (name, id); offsets are zero."""
+    out = [struct.pack("<i", len(bodies))]
+    for name, body_id in bodies:
+        out.append(struct.pack("<i", 1) + name.encode("utf-8") + b"\0")
+        out.append(struct.pack("<iifffi", body_id, -1, 0.0, 0.0, 0.0, 0))
+    return _pack_packet(NAT_MODELDEF, b"".join(out))
+
+
+def frame_packet(frame: int, t_s: float, bodies: Sequence[tuple[int, Vec3, QuatWXYZ, bool]]) -> bytes:
+    """NAT_FRAMEOFDATA (NatNet 3.0) at time t_s (s) with rigid bodies (id, position m, (w,x,y,z), tracked)."""
+    out = [struct.pack("<iiii", frame, 0, 0, len(bodies))]
+    for body_id, p, q, tracked in bodies:
+        w, x, y, z = (float(v) for v in q)
+        out.append(
+            struct.pack("<i3f4ffh", body_id, *(float(v) for v in p), x, y, z, w, 0.0, 1 if tracked else 0)
+        )
+    ticks = int(t_s * CLOCK_TICKS_PER_S)
+    out.append(struct.pack("<iiiiIIdQQQhi", 0, 0, 0, 0, 0, 0, t_s, ticks, ticks, ticks, 0, 0))
+    return _pack_packet(NAT_FRAMEOFDATA, b"".join(out))
+
+
+def _free_udp_port(host: str) -> int:
+    """An OS-assigned free UDP port on host (released again, so a client may bind it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class _Body:
+    body_id: int
+    position: tuple[float, float, float]
+    quaternion_wxyz: tuple[float, float, float, float]
+    provider: PoseProvider | None = None
+
+
+class NatNetEmulator:
+    """A NatNet 3.0 unicast server on loopback: command port in a child process, frames from a thread.
+
+    bodies:       initial rigid bodies, name -> (position (3,) m, quaternion (w, x, y, z)); ids 1, 2, ...
+    rate_hz:      frame rate (Hz), deadline-paced.
+    host:         loopback address the server binds and streams to (must be in 127.0.0.0/8).
+    command_port: 0 = OS-assigned (see `command_port` after `start()`).
+    data_port:    0 = a free port picked at `start()`; the client binds it, the emulator sends to it.
+    faults:       see `NatNetFaults`.
+    """
+
+    def __init__(
+        self,
+        bodies: dict[str, tuple[Vec3, QuatWXYZ]] | None = None,
+        rate_hz: float = 100.0,
+        host: str = "127.0.0.1",
+        command_port: int = 0,
+        data_port: int = 0,
+        faults: NatNetFaults | None = None,
+    ) -> None:
+        if not ipaddress.ip_address(host).is_loopback:
+            raise ValueError(f"NatNetEmulator only serves loopback addresses, got {host!r}")
+        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
+            raise ValueError(f"rate_hz must be finite and > 0, got {rate_hz}")
+        self.host = host
+        self.rate_hz = rate_hz
+        self.command_port = command_port
+        self.data_port = data_port
+        self.faults = faults or NatNetFaults()
+        self.frames_sent = 0  # NAT_FRAMEOFDATA packets sent so far
+        self.provider_errors: list[str] = []  # "name: exception" of pose providers that raised
+        self._bodies: dict[str, _Body] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._sock: socket.socket | None = None
+        self._sent_modeldef: bytes | None = None
+        self._sent_silent: bool | None = None
+        self._t0 = time.monotonic()
+        for name, (p, q) in (bodies or {}).items():
+            self.set_body(name, p, q)
+
+    # ---- bodies ---------------------------------------------------------------------------------------
+    def set_body(self, name: str, position: Vec3, quaternion_wxyz: QuatWXYZ) -> None:
+        """Set (or add) body `name` at position (3,) m with orientation (w, x, y, z); clears its provider.
+
+        A body added after a client connected is unknown to that client (model definitions are read once).
+        """
+        p = tuple(float(v) for v in position)
+        q = tuple(float(v) for v in quaternion_wxyz)
+        if len(p) != 3 or len(q) != 4:
+            raise ValueError(f"position must have 3 and quaternion 4 components, got {len(p)} and {len(q)}")
+        with self._lock:
+            b = self._bodies.get(name)
+            if b is None:
+                self._bodies[name] = _Body(len(self._bodies) + 1, p, q)  # type: ignore[arg-type]
+            else:
+                b.position, b.quaternion_wxyz, b.provider = p, q, None  # type: ignore[assignment]
+
+    def set_pose_provider(self, name: str, fn: PoseProvider | None) -> None:
+        """Stream body `name` from fn() -> (position (3,) m, quaternion (w, x, y, z)), called at each frame.
+
+        The body must exist (`set_body` first, which also gives the pose used if fn raises). None removes it.
+        """
+        with self._lock:
+            if name not in self._bodies:
+                raise KeyError(f"unknown body {name!r}; call set_body() first")
+            self._bodies[name].provider = fn
+
+    def body_names(self) -> list[str]:
+        with self._lock:
+            return list(self._bodies)
+
+    # ---- lifecycle ------------------------------------------------------------------------------------
+    def settings(self) -> dict[str, str]:
+        """Settings for `motioncapture.connect("optitrack", settings)` (valid after `start()`)."""
+        if self._proc is None:
+            raise RuntimeError("NatNetEmulator.settings() before start()")
+        return {"hostname": self.host, "port_command": str(self.command_port), "interface_ip": self.host}
+
+    def start(self) -> NatNetEmulator:
+        """Start the command responder (child process) and the frame thread; returns self."""
+        if self._proc is not None:
+            raise RuntimeError("NatNetEmulator.start() called twice")
+        if self.data_port == 0:
+            self.data_port = _free_udp_port(self.host)
+        self._proc = subprocess.Popen(
+            [sys.executable, os.path.abspath(__file__), "--responder", self.host, str(self.command_port),
+             server_info_packet(self.data_port).hex()],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+        )  # fmt: skip
+        try:
+            self._sync_responder()
+            self.command_port = self._read_port(self._proc)
+        except BaseException:
+            self._stop_responder()
+            raise
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.bind((self.host, 0))
+        self._t0 = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="natnet-emu", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        """Stop the frame thread (joined within 1 s) and the responder (1 s, then killed). Idempotent."""
+        self._stop.set()
+        if self._thread is not None and self._thread.is_alive():
+            self._thread.join(timeout=1.0)
+        if self._sock is not None:
+            self._sock.close()
+        self._stop_responder()
+
+    def __enter__(self) -> NatNetEmulator:
+        if self._proc is None:
+            self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- internals ------------------------------------------------------------------------------------
+    @staticmethod
+    def _read_port(proc: subprocess.Popen[bytes]) -> int:
+        assert proc.stdout is not None
+        fd = proc.stdout.fileno()
+        deadline = time.monotonic() + RESPONDER_START_TIMEOUT_S
+        buf = b""
+        while b"\n" not in buf:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0.0 or proc.poll() is not None:
+                raise RuntimeError(f"NatNet responder did not start (exit code {proc.poll()})")
+            ready, _, _ = select.select([fd], [], [], min(remaining, 0.1))
+            if ready:
+                chunk = os.read(fd, 256)
+                if not chunk:
+                    raise RuntimeError("NatNet responder closed its output before reporting its port")
+                buf += chunk
+        word, port = buf.split(b"\n", 1)[0].split()
+        if word != b"PORT":
+            raise RuntimeError(f"unexpected NatNet responder output {buf!r}")
+        return int(port)
+
+    def _sync_responder(self) -> None:
+        """Tell the responder the current model definition and silence (only what changed)."""
+        with self._lock:
+            defs = [(name, b.body_id) for name, b in self._bodies.items()]
+        modeldef = model_def_packet(defs)
+        silent = bool(self.faults.silent)
+        lines = []
+        if modeldef != self._sent_modeldef:
+            lines.append(b"M " + modeldef.hex().encode() + b"\n")
+        if silent != self._sent_silent:
+            lines.append(b"S 1\n" if silent else b"S 0\n")
+        if not lines or self._proc is None or self._proc.stdin is None:
+            return
+        with contextlib.suppress(OSError, ValueError):
+            self._proc.stdin.write(b"".join(lines))
+            self._proc.stdin.flush()
+            self._sent_modeldef, self._sent_silent = modeldef, silent
+
+    def _stop_responder(self) -> None:
+        proc = self._proc
+        if proc is None:
+            return
+        with contextlib.suppress(OSError, ValueError):
+            if proc.stdin is not None:
+                proc.stdin.write(b"Q\n")
+                proc.stdin.close()
+        try:
+            proc.wait(timeout=1.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=1.0)
+        if proc.stdout is not None:
+            proc.stdout.close()
+
+    def _frame_bodies(self) -> list[tuple[int, Vec3, QuatWXYZ, bool]]:
+        lost, omit = set(self.faults.lost_bodies), self.faults.lost_omit
+        with self._lock:
+            items = [
+                (n, b.body_id, b.position, b.quaternion_wxyz, b.provider) for n, b in self._bodies.items()
+            ]
+        out: list[tuple[int, Vec3, QuatWXYZ, bool]] = []
+        for name, body_id, p, q, provider in items:
+            if name in lost and omit:
+                continue
+            if provider is not None:
+                try:
+                    p, q = provider()
+                except Exception as exc:  # a broken provider must not kill the stream
+                    self.provider_errors.append(f"{name}: {type(exc).__name__}: {exc}")
+            out.append((body_id, p, q, name not in lost))
+        return out
+
+    def _run(self) -> None:
+        period = 1.0 / self.rate_hz
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            self._sync_responder()
+            if not (self.faults.silent or self.faults.drop_frames) and self._sock is not None:
+                now = time.monotonic()
+                pkt = frame_packet(self.frames_sent + 1, now - self._t0, self._frame_bodies())
+                with contextlib.suppress(OSError):
+                    self._sock.sendto(pkt, (self.host, self.data_port))
+                    self.frames_sent += 1
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay < -period:  # fell behind (e.g. GIL held by a blocking connect): do not burst
+                next_t = time.monotonic()
+                delay = 0.0
+            self._stop.wait(max(0.0, delay))
+
+
+# ---- command responder (child process) -------------------------------------------------------------------
+def _responder_main(host: str, port: int, server_info_hex: str) -> int:
+    """Answer NAT_CONNECT / NAT_REQUEST_MODELDEF on host:port; controlled by lines on stdin.
+
+    stdin lines: "M <hex>" new model-definition packet, "S 1"/"S 0" silent on/off, "Q" quit; EOF quits.
+    Prints "PORT <n>" once bound. Exits after RESPONDER_MAX_LIFETIME_S in any case.
+    """
+    server_info = bytes.fromhex(server_info_hex)
+    modeldef = model_def_packet([])
+    silent = False
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind((host, port))
+    sys.stdout.write(f"PORT {sock.getsockname()[1]}\n")
+    sys.stdout.flush()
+    stdin_fd = sys.stdin.fileno()
+    buf = b""
+    deadline = time.monotonic() + RESPONDER_MAX_LIFETIME_S
+    try:
+        while time.monotonic() < deadline:
+            ready, _, _ = select.select([sock, stdin_fd], [], [], 0.5)
+            if stdin_fd in ready:
+                chunk = os.read(stdin_fd, 1 << 16)
+                if not chunk:
+                    return 0
+                buf += chunk
+                while b"\n" in buf:
+                    line, buf = buf.split(b"\n", 1)
+                    if line.startswith(b"M "):
+                        modeldef = bytes.fromhex(line[2:].decode())
+                    elif line.startswith(b"S "):
+                        silent = line[2:] == b"1"
+                    elif line == b"Q":
+                        return 0
+            if sock in ready:
+                try:
+                    data, addr = sock.recvfrom(65535)
+                except OSError:
+                    continue
+                if silent or len(data) < 2:
+                    continue
+                (msg,) = struct.unpack_from("<H", data)
+                with contextlib.suppress(OSError):
+                    if msg == NAT_CONNECT:
+                        sock.sendto(server_info, addr)
+                    elif msg == NAT_REQUEST_MODELDEF:
+                        sock.sendto(modeldef, addr)
+        return 0
+    finally:
+        sock.close()
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 5 and sys.argv[1] == "--responder":
+        sys.exit(_responder_main(sys.argv[2], int(sys.argv[3]), sys.argv[4]))
+    sys.exit("usage: natnet.py --responder HOST PORT SERVER_INFO_HEX")

@@ -1,0 +1,103 @@
+"""The mission's hardware section (backend `tello`): schema errors name the key; the shipped real-lab
+mission validates; hardware missions are refused by `flightstack sim`. No traffic is sent anywhere."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import pytest
+import yaml
+
+from flightstack.mission import MissionError, load_mission
+from tests.conftest import MISSIONS, run_cli
+
+REAL = MISSIONS / "paper_experiment.yaml"
+
+
+def real() -> dict:
+    return yaml.safe_load(REAL.read_text())
+
+
+def write(tmp_path: Path, doc: dict) -> Path:
+    for name in ("tello_down_template.yaml", "tello_front_template.yaml"):
+        (tmp_path / "cameras").mkdir(exist_ok=True)
+        (tmp_path / "cameras" / name).write_text((MISSIONS / "cameras" / name).read_text())
+    p = tmp_path / "m.yaml"
+    p.write_text(yaml.safe_dump(doc))
+    return p
+
+
+def test_real_lab_mission_validates() -> None:
+    m = load_mission(REAL)
+    assert m.backend == "tello" and not m.simulated
+    assert m.hardware is not None
+    assert m.hardware.body("drone1") == "tello1" and m.hardware.body("target") == "scamper"
+    assert m.hardware.body("unlisted") == "unlisted"
+    assert [d.ip for d in m.hardware.drones] == ["192.168.10.101", "192.168.10.102"]
+
+
+def _drop_hardware(d: dict) -> None:
+    del d["hardware"]
+
+
+def _wrong_ids(d: dict) -> None:
+    d["hardware"]["drones"][1]["id"] = 7
+
+
+def _same_video_port(d: dict) -> None:
+    d["hardware"]["drones"][1]["video_port"] = 11111
+
+
+def _bad_ip(d: dict) -> None:
+    d["hardware"]["drones"][0]["ip"] = "tello-one"
+
+
+def _unknown_system(d: dict) -> None:
+    d["hardware"]["mocap"]["system"] = "kinect"
+
+
+def _safety_off(d: dict) -> None:
+    d["safety"]["enabled"] = False
+
+
+def _hardware_on_sim(d: dict) -> None:
+    d["backend"] = "sim_lab"
+
+
+def _keepalive_too_long(d: dict) -> None:
+    d["hardware"]["drones"][0]["keepalive_s"] = 20
+
+
+@pytest.mark.parametrize(
+    ("mutate", "expected"),
+    [
+        (_drop_hardware, "needs a hardware section"),
+        (_wrong_ids, "hardware.drones: ids [1, 7] must be exactly"),
+        (_same_video_port, "hardware: drones: each drone needs its own video_port"),
+        (_bad_ip, "hardware.drones.0.ip"),
+        (_unknown_system, "hardware.mocap.system"),
+        (_safety_off, "safety.enabled: must be true on real hardware"),
+        (_hardware_on_sim, "hardware: only used by backend 'tello'"),
+        (_keepalive_too_long, "hardware.drones.0.keepalive_s"),
+    ],
+)
+def test_bad_hardware_sections_name_the_key(tmp_path: Path, mutate, expected: str) -> None:
+    doc = copy.deepcopy(real())
+    mutate(doc)
+    with pytest.raises(MissionError) as err:
+        load_mission(write(tmp_path, doc))
+    assert expected in str(err.value)
+
+
+def test_sim_refuses_a_hardware_mission_and_preflight_refuses_a_sim_mission(tmp_path: Path) -> None:
+    r = run_cli("sim", str(REAL), "--out", str(tmp_path / "run"), timeout=60)
+    assert r.returncode == 2 and "flies real drones" in r.stderr
+    assert not (tmp_path / "run").exists()
+    r = run_cli("preflight", str(MISSIONS / "paper_sim.yaml"), timeout=60)
+    assert r.returncode == 2 and "no hardware to check" in r.stderr
+
+
+def test_target_needs_a_robot_in_the_mission() -> None:
+    r = run_cli("target", str(MISSIONS / "paper_sim.yaml"), timeout=60)
+    assert r.returncode == 2 and "hardware.target" in r.stderr

@@ -1,0 +1,210 @@
+"""`flightstack preflight` against the loopback emulators: two Tellos, a NatNet server, a MAVLink rover.
+
+All traffic stays on 127.0.0.0/8: the Tello emulators own 127.0.0.6 and 127.0.0.7 (other test modules
+use .2–.5), NatNet and the rover use 127.0.0.1 with OS-assigned ports. The CLI runs in this process
+(djitellopy binds UDP 8889/8890 once per process).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import yaml
+
+pytest.importorskip("djitellopy")
+pytest.importorskip("av")
+pytest.importorskip("motioncapture")
+pytest.importorskip("pymavlink")
+
+from flightstack.camera_calibration import load_calibration
+from flightstack.cli import main
+from flightstack.geometry import Pose, compose
+from tests.conftest import MISSIONS
+from tests.emulators.mavlink_rover import MavlinkRoverEmulator
+from tests.emulators.natnet import NatNetEmulator
+from tests.emulators.tello import TelloEmulator, free_udp_port
+from tests.test_tello_driver import _ports_free, marker_frame
+
+pytestmark = pytest.mark.skipif(not _ports_free(), reason="UDP 8889/8890 are taken: djitellopy cannot bind")
+
+CAL_SRC = MISSIONS / "cameras" / "tello_down_sim.yaml"
+LEVEL = (1.0, 0.0, 0.0, 0.0)  # quaternion (w, x, y, z) of a level body facing world x
+
+
+def q_yaw(theta: float) -> tuple[float, float, float, float]:
+    return (math.cos(theta / 2), 0.0, 0.0, math.sin(theta / 2))
+
+
+def rover_mocap_pose(rover: MavlinkRoverEmulator) -> tuple[object, tuple[float, float, float, float]]:
+    """The rover's pose in the mocap world: its start is the square's corner (-0.5, -0.5), θ = 0."""
+    g = compose(Pose.make([-0.5, -0.5, 0.0], 0.0), rover.pose_flu())
+    return g.p, q_yaw(g.theta)
+
+
+@dataclass
+class Lab:
+    tellos: dict[int, TelloEmulator]
+    natnet: NatNetEmulator
+    rover: MavlinkRoverEmulator
+    mission: Path
+
+
+def write_mission(
+    tmp: Path, lab_tellos: dict[int, TelloEmulator], natnet: NatNetEmulator, rover_url: str
+) -> Path:
+    """The paper experiment's mission, re-pointed at the emulators (backend tello)."""
+    cal = load_calibration(CAL_SRC).to_dict()
+    cal["rms_px"] = 0.3  # a measured calibration (preflight fails on the never-measured templates)
+    cal["device"] = "emulated tello"
+    (tmp / "cal.yaml").write_text(yaml.safe_dump(cal, sort_keys=False))
+    m = yaml.safe_load((MISSIONS / "paper_experiment_sim.yaml").read_text())
+    m["name"] = "emulated_lab"
+    m["backend"] = "tello"
+    del m["sim"]
+    for d in m["drones"]:
+        d["camera"] = {"calibration": "cal.yaml", "mount": "down"}
+    m["drones"][1]["desired_pose"] = {"p": [0.0, 0.7, -1.0], "theta": 0.0}
+    m["hardware"] = {
+        "drones": [
+            {
+                "id": i,
+                "ip": emu.ip,
+                "control_port": emu.address[1],
+                "video_port": emu.video_port,
+                "connect_timeout_s": 2.0,
+                "command_timeout_s": 1.0,
+                "frame_timeout_s": 5.0,
+            }
+            for i, emu in lab_tellos.items()
+        ],
+        "mocap": {
+            "system": "optitrack",
+            "settings": natnet.settings(),
+            "bodies": {"drone1": "tello_a", "drone2": "tello_b", "target": "scamper"},
+            "connect_timeout_s": 1.0,
+        },
+        "target": {"url": rover_url, "heartbeat_timeout_s": 3.0},
+    }
+    path = tmp / "mission.yaml"
+    path.write_text(yaml.safe_dump(m, sort_keys=False))
+    return path
+
+
+@pytest.fixture
+def lab(tmp_path: Path) -> Iterator[Lab]:
+    tellos = {
+        i: TelloEmulator(ip, video_port=free_udp_port(), frame_source=marker_frame, video_size=(320, 240))
+        for i, ip in ((1, "127.0.0.6"), (2, "127.0.0.7"))
+    }
+    natnet = NatNetEmulator(
+        {
+            "tello_a": ((-0.5, -0.5, 0.05), LEVEL),
+            "tello_b": ((-0.5, 0.2, 0.05), q_yaw(0.3)),
+            "scamper": ((-0.5, -0.5, 0.0), LEVEL),
+        },
+        rate_hz=100.0,
+    )
+    rover = MavlinkRoverEmulator(heartbeat_hz=5.0)
+    natnet.set_pose_provider("scamper", lambda: rover_mocap_pose(rover))  # the robot is where the rover is
+    try:
+        for e in tellos.values():
+            e.start()
+        natnet.start()
+        yield Lab(tellos, natnet, rover, write_mission(tmp_path, tellos, natnet, rover.url))
+    finally:
+        for e in tellos.values():
+            e.close()
+        natnet.close()
+        rover.close()
+
+
+def run_preflight(mission: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str, float]:
+    t0 = time.monotonic()
+    code = main(["preflight", str(mission)])
+    return code, capsys.readouterr().out, time.monotonic() - t0
+
+
+def test_all_devices_pass(lab: Lab, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = run_preflight(lab.mission, capsys)
+    assert code == 0, out
+    assert "preflight: ALL PASS" in out, out
+    for expected in (
+        "drone 1 (127.0.0.6)",
+        "drone 2 (127.0.0.7)",
+        "body drone1 = tello_a",
+        "body target = scamper",
+    ):
+        assert expected in out
+    assert "320x240" in out  # the camera check decoded a frame of the calibrated size
+    assert not lab.rover.armed  # preflight only listens to the robot
+    assert not any(e.flying for e in lab.tellos.values())
+
+
+@pytest.mark.parametrize("device", ["tello 2", "natnet", "rover"])
+def test_stopped_device_is_named_and_fails_fast(
+    lab: Lab, device: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    if device == "tello 2":
+        lab.tellos[2].close()
+        name = "drone 2 (127.0.0.7)"
+    elif device == "natnet":
+        lab.natnet.close()
+        name = "mocap (optitrack)"
+    else:
+        lab.rover.close()
+        name = "robot (udpout:127.0.0.1"
+    code, out, elapsed = run_preflight(lab.mission, capsys)
+    assert code == 1, out
+    assert elapsed < 10.0
+    failing = [line for line in out.splitlines() if "  FAIL  " in line]
+    assert failing and all(line.startswith(name) for line in failing), out
+    assert "do not fly" in out
+
+
+def test_body_outside_fence_and_uncalibrated_camera_fail(
+    lab: Lab, capsys: pytest.CaptureFixture[str]
+) -> None:
+    lab.natnet.set_body("tello_b", (3.5, 0.0, 0.05), LEVEL)  # the fence is x, y in [-2, 2]
+    cal = yaml.safe_load((lab.mission.parent / "cal.yaml").read_text())
+    cal["rms_px"] = None
+    (lab.mission.parent / "cal.yaml").write_text(yaml.safe_dump(cal))
+    code, out, _ = run_preflight(lab.mission, capsys)
+    assert code == 1
+    assert any(
+        "body drone2 = tello_b" in ln and "FAIL" in ln and "OUTSIDE" in ln for ln in out.splitlines()
+    ), out
+    assert "never measured" in out
+
+
+def test_fly_runs_preflight_then_refuses_without_confirmation(
+    lab: Lab, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Non-interactive `fly` without --yes: preflight passes, nothing takes off, nothing is armed."""
+    code = main(["fly", str(lab.mission), "--out", str(lab.mission.parent / "run")])
+    out, err = capsys.readouterr()
+    assert code == 1
+    assert "preflight: ALL PASS" in out and "pass --yes" in err
+    assert not any(e.flying for e in lab.tellos.values()) and not lab.rover.armed
+    assert not (lab.mission.parent / "run").exists()
+
+
+def test_target_command_drives_a_quarter_lap(lab: Lab, capsys: pytest.CaptureFixture[str]) -> None:
+    """`flightstack target` closes the loop rover → NatNet → square law → MAVLink, then disarms."""
+    m = yaml.safe_load(lab.mission.read_text())
+    m["target"]["square"] = {"side_m": 1.0, "speed_mps": 0.5, "gain": 0.25}  # the paper's law, 5x faster
+    lab.mission.write_text(yaml.safe_dump(m))
+    code = main(["target", str(lab.mission), "--laps", "0.25", "--yes"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "ended by duration" in out
+    x, y = (float(v) for v in rover_mocap_pose(lab.rover)[0][:2])
+    assert abs(x - 0.5) < 0.06 and abs(y + 0.5) < 0.06, (
+        x,
+        y,
+    )  # one side of the square: (-0.5,-0.5) → (0.5,-0.5)
+    assert not lab.rover.armed  # stopped and disarmed on exit
