@@ -1,4 +1,5 @@
-"""`flightstack preflight` against the loopback emulators: two Tellos, a NatNet server, a MAVLink rover.
+"""The emulated lab: `flightstack preflight`, `target` and `fly` against loopback emulators of two Tellos, a
+NatNet (OptiTrack) server and a MAVLink rover, through the real client libraries.
 
 All traffic stays on 127.0.0.0/8: the Tello emulators own 127.0.0.6 and 127.0.0.7 (other test modules
 use .2–.5), NatNet and the rover use 127.0.0.1 with OS-assigned ports. The CLI runs in this process
@@ -43,6 +44,17 @@ def q_yaw(theta: float) -> tuple[float, float, float, float]:
 def rover_mocap_pose(rover: MavlinkRoverEmulator) -> tuple[object, tuple[float, float, float, float]]:
     """The rover's pose in the mocap world: its start is the square's corner (-0.5, -0.5), θ = 0."""
     g = compose(Pose.make([-0.5, -0.5, 0.0], 0.0), rover.pose_flu())
+    return g.p, q_yaw(g.theta)
+
+
+DRONE_STARTS = {1: Pose.make([-0.5, -0.5, 0.05], 0.0), 2: Pose.make([-0.5, 0.2, 0.05], 0.3)}
+
+
+def tello_mocap_pose(emu: TelloEmulator, start: Pose) -> tuple[object, tuple[float, float, float, float]]:
+    """The emulated Tello's pose in the mocap world. The emulator integrates from its takeoff point in
+    (x forward, y right, z up) cm with yaw clockwise in degrees; the world is FLU (y left, yaw ccw)."""
+    x, y, z = emu.position_cm
+    g = compose(start, Pose.make([x / 100.0, -y / 100.0, z / 100.0], -math.radians(emu.yaw_deg)))
     return g.p, q_yaw(g.theta)
 
 
@@ -103,14 +115,16 @@ def lab(tmp_path: Path) -> Iterator[Lab]:
     }
     natnet = NatNetEmulator(
         {
-            "tello_a": ((-0.5, -0.5, 0.05), LEVEL),
-            "tello_b": ((-0.5, 0.2, 0.05), q_yaw(0.3)),
+            "tello_a": (DRONE_STARTS[1].p, q_yaw(DRONE_STARTS[1].theta)),
+            "tello_b": (DRONE_STARTS[2].p, q_yaw(DRONE_STARTS[2].theta)),
             "scamper": ((-0.5, -0.5, 0.0), LEVEL),
         },
         rate_hz=100.0,
     )
     rover = MavlinkRoverEmulator(heartbeat_hz=5.0)
     natnet.set_pose_provider("scamper", lambda: rover_mocap_pose(rover))  # the robot is where the rover is
+    for i, body in ((1, "tello_a"), (2, "tello_b")):  # each drone is where its emulator flies it
+        natnet.set_pose_provider(body, lambda e=tellos[i], s=DRONE_STARTS[i]: tello_mocap_pose(e, s))
     try:
         for e in tellos.values():
             e.start()
@@ -208,3 +222,27 @@ def test_target_command_drives_a_quarter_lap(lab: Lab, capsys: pytest.CaptureFix
         y,
     )  # one side of the square: (-0.5,-0.5) → (0.5,-0.5)
     assert not lab.rover.armed  # stopped and disarmed on exit
+
+
+def test_fly_a_short_mission_on_the_emulated_lab(lab: Lab, capsys: pytest.CaptureFixture[str]) -> None:
+    """`flightstack fly --yes`: preflight, takeoff, pursuit with rc commands, landing, a recording."""
+    import numpy as np
+
+    m = yaml.safe_load(lab.mission.read_text())
+    m["compare_modes"] = ["none"]
+    m["target"]["square"]["speed_mps"] = 0.1
+    lab.mission.write_text(yaml.safe_dump(m))
+    out_dir = lab.mission.parent / "run"
+    code = main(["fly", str(lab.mission), "--out", str(out_dir), "--duration", "3", "--yes", "--no-progress"])
+    out, err = capsys.readouterr()
+    assert code == 0, out + err
+    assert "preflight: ALL PASS" in out
+    assert all(len(e.rc_history) > 20 for e in lab.tellos.values())  # 20 Hz control for 3 s
+    assert not any(e.flying for e in lab.tellos.values())  # every drone landed
+    assert not lab.rover.armed  # the robot was driven, then stopped and disarmed
+    assert lab.rover.setpoint_records
+    rec = np.load(out_dir / "timeseries_none.npz")
+    assert np.all(np.isfinite(rec["g_wi"])) and rec["g_wi"].shape[0] == 60
+    assert np.all(rec["g_wi"][:, :, 2] > 0.3)  # airborne (mocap z) for the whole pursuit
+    events = (out_dir / "events.jsonl").read_text()
+    assert events.count('"event": "landed"') == 2 and "NOT LANDED" not in events
