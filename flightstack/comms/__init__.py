@@ -1,1 +1,1 @@
-"""Messages and buses between agents (in-process now; Zenoh behind the same interface later)."""
+"""Messages and buses between agents: the in-process lock-step bus and the Zenoh bus (same interface)."""

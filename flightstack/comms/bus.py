@@ -15,7 +15,8 @@ from flightstack.comms.messages import PredictionMessage, decode, encode
 class Bus(Protocol):
     """Publish own predictions; read the newest valid message of each neighbour."""
 
-    dropped: Counter[str]
+    @property
+    def dropped(self) -> Counter[str]: ...
 
     def publish(self, msg: PredictionMessage) -> None: ...
     def publish_raw(self, data: bytes) -> None: ...
