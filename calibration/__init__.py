@@ -1,1 +1,1 @@
-"""Camera calibration wizard (intrinsics, distortion, marker colours). Filled by a later issue."""
+"""Camera calibration wizard: intrinsics and distortion (`camera`), marker colours (`markers`), checks."""

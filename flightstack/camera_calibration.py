@@ -9,6 +9,13 @@ One YAML file per camera (written by `flightstack calibrate`, read by missions a
     camera_matrix: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]   # pixels
     dist_coeffs: [k1, k2, p1, p2, k3]                       # OpenCV's model
     rms_px: 0.31                 # reprojection RMS of the calibration, or null
+    pattern:                     # optional: the calibration target (written by `calibrate camera`)
+      kind: chessboard           # chessboard | charuco | acircles
+      cols: 7                    # inner corners (chessboard), squares (charuco) or circles per row
+      rows: 7
+      square_m: 0.0195           # square side, or circle spacing (metres)
+    views:                       # optional: the views used, with their reprojection RMS (pixels)
+      - {name: left01.jpg, error_px: 0.41}
     markers:                     # one entry per target feature point, in the order of p0^j
       - name: red
         hsv_lo: [170, 120, 80]   # OpenCV HSV: H in 0..179, S and V in 0..255
@@ -16,11 +23,17 @@ One YAML file per camera (written by `flightstack calibrate`, read by missions a
         rgb: [220, 30, 30]       # the colour the simulator paints (optional)
 
 Pixel coordinates follow OpenCV: u to the right, v down, origin at the centre of the top-left pixel.
+`save` writes JSON instead of YAML when the file name ends in `.json` (the same mapping); `load_calibration`
+reads both (JSON is parsed as YAML).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import json
+import math
+import os
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -56,6 +69,10 @@ class CameraCalibration:
     rms_px: float | None = None
     device: str = ""
     date: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
+    #: optional: the calibration target {kind, cols, rows, square_m[, marker_m, dictionary]} (metres)
+    pattern: dict[str, object] | None = None
+    #: optional: (view name, reprojection RMS in px) of every view the intrinsics were fitted to
+    views: tuple[tuple[str, float], ...] = ()
 
     @property
     def fx(self) -> float:
@@ -91,10 +108,32 @@ class CameraCalibration:
                 }
                 for m in self.markers
             ],
+            **({"pattern": dict(self.pattern)} if self.pattern is not None else {}),
+            **(
+                {"views": [{"name": n, "error_px": round(float(e), 6)} for n, e in self.views]}
+                if self.views
+                else {}
+            ),
         }
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+        """Write the calibration (JSON if the name ends in .json, else YAML) atomically: a temporary file
+        in the same directory is renamed over `path` only once it is completely written."""
+        path = Path(path)
+        d = self.to_dict()
+        text = (
+            json.dumps(d, indent=2) + "\n"
+            if path.suffix.lower() == ".json"
+            else yaml.safe_dump(d, sort_keys=False)
+        )
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                f.write(text)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
 
 
 def _triple(v: object, key: str, hi: int) -> tuple[int, int, int]:
@@ -109,7 +148,18 @@ def calibration_from_dict(d: object, source: str = "<calibration>") -> CameraCal
     """Validate a parsed calibration document; CalibrationError names the key path and the reason."""
     if not isinstance(d, dict):
         raise CalibrationError(f"{source}: a calibration must be a mapping")
-    known = {"device", "date", "width", "height", "camera_matrix", "dist_coeffs", "rms_px", "markers"}
+    known = {
+        "device",
+        "date",
+        "width",
+        "height",
+        "camera_matrix",
+        "dist_coeffs",
+        "rms_px",
+        "markers",
+        "pattern",
+        "views",
+    }
     for k in d:
         if k not in known:
             raise CalibrationError(f"{source}: {k}: unknown key")
@@ -150,7 +200,57 @@ def calibration_from_dict(d: object, source: str = "<calibration>") -> CameraCal
         None if rms is None else float(rms),
         str(d.get("device", "")),
         str(d.get("date", "")),
+        _pattern(d.get("pattern"), source),
+        _views(d.get("views"), source),
     )
+
+
+PATTERN_KINDS = ("chessboard", "charuco", "acircles")
+
+
+def _positive(v: object) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+
+
+def _pattern(p: object, source: str) -> dict[str, object] | None:
+    """Validate the optional `pattern` mapping (see the module docstring)."""
+    if p is None:
+        return None
+    allowed = {"kind", "cols", "rows", "square_m", "marker_m", "dictionary"}
+    if not isinstance(p, dict) or set(p) - allowed:
+        raise CalibrationError(
+            f"{source}: pattern: expected keys kind, cols, rows, square_m[, marker_m, dictionary]"
+        )
+    if p.get("kind") not in PATTERN_KINDS:
+        raise CalibrationError(f"{source}: pattern.kind: one of {', '.join(PATTERN_KINDS)} required")
+    for k in ("cols", "rows"):
+        if not (isinstance(p.get(k), int) and not isinstance(p.get(k), bool) and p[k] > 0):
+            raise CalibrationError(f"{source}: pattern.{k}: positive integer required")
+    for k in ("square_m", "marker_m"):
+        if (k == "square_m" or k in p) and not _positive(p.get(k)):
+            raise CalibrationError(f"{source}: pattern.{k}: positive number (metres) required")
+    if "dictionary" in p and not isinstance(p["dictionary"], str):
+        raise CalibrationError(f"{source}: pattern.dictionary: a name such as DICT_4X4_50 required")
+    return dict(p)
+
+
+def _views(v: object, source: str) -> tuple[tuple[str, float], ...]:
+    """Validate the optional `views` list of {name, error_px}."""
+    if v is None:
+        return ()
+    if not isinstance(v, list):
+        raise CalibrationError(f"{source}: views: a list of {{name, error_px}} required")
+    out = []
+    for j, e in enumerate(v):
+        if not (isinstance(e, dict) and set(e) == {"name", "error_px"}):
+            raise CalibrationError(f"{source}: views.{j}: expected keys name, error_px")
+        err = e["error_px"]
+        if not (
+            isinstance(err, int | float) and not isinstance(err, bool) and math.isfinite(err) and err >= 0
+        ):
+            raise CalibrationError(f"{source}: views.{j}.error_px: a finite number >= 0 required")
+        out.append((str(e["name"]), float(err)))
+    return tuple(out)
 
 
 def load_calibration(path: str | Path) -> CameraCalibration:

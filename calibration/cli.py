@@ -1,0 +1,364 @@
+"""`flightstack calibrate camera | markers | check`: the calibration wizard's command line.
+
+Exit codes: 0 done, 1 verdict failed (degenerate views, RMS too high, markers not found in every
+sample), 2 bad input (missing/invalid options, unreadable source, pattern not found, too few views).
+No calibration file is written unless the exit code is 0. Results go to stdout, errors and progress
+to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import cv2
+
+from calibration.camera import EXIT_BAD_INPUT, EXIT_OK, EXIT_VERDICT, CaptureOptions, WizardResult
+from calibration.patterns import PatternSpec
+from calibration.prompts import MissingAnswerError, answer, choice, interactive, positive_float, positive_int
+from calibration.solve import SolveOptions
+from calibration.sources import ImageFolderSource, SourceError, TelloSource, VideoFileSource
+from flightstack.camera_calibration import PATTERN_KINDS, CalibrationError, load_calibration
+
+
+def _error(msg: str, code: int = EXIT_BAD_INPUT) -> int:
+    print(f"error: {msg}", file=sys.stderr)
+    if code != EXIT_OK:
+        print("no calibration file written", file=sys.stderr)
+    return code
+
+
+def _add_source_options(p: argparse.ArgumentParser, tello: bool) -> None:
+    g = p.add_argument_group("source (exactly one)")
+    g.add_argument("--images", default=None, help="folder of images (jpg, png, ...)")
+    g.add_argument("--video", default=None, help="video file (every --every-th frame)")
+    if tello:
+        g.add_argument(
+            "--tello", default=None, metavar="IP", help="live video of the Tello at IP (no takeoff)"
+        )
+        g.add_argument("--port", type=int, default=8889, help="Tello command port (default 8889)")
+        g.add_argument("--duration", type=float, default=90.0, help="seconds of live capture (default 90)")
+        g.add_argument("--rate", type=float, default=5.0, help="live frames analysed per second (default 5)")
+        g.add_argument("--downward", action="store_true", help="the Tello EDU's downward camera")
+    g.add_argument("--every", type=int, default=1, help="video: use every N-th frame (default 1)")
+
+
+def _open_source(args: argparse.Namespace) -> ImageFolderSource | VideoFileSource | TelloSource:
+    given = [k for k in ("images", "video", "tello") if getattr(args, k, None)]
+    if len(given) > 1:
+        raise SourceError(f"give one source, not {' and '.join('--' + k for k in given)}")
+    if not given:
+
+        def convert(text: str) -> str:
+            if not text:
+                raise ValueError("a folder, a video file or tello:IP is required")
+            return text
+
+        text = answer(
+            None,
+            "--images DIR, --video FILE or --tello IP",
+            "Source: image folder, video file or tello:IP",
+            convert,
+        )
+        if text.startswith("tello:"):
+            args.tello = text.split(":", 1)[1]
+        elif Path(text).is_dir():
+            args.images = text
+        else:
+            args.video = text
+    if getattr(args, "tello", None):
+        return TelloSource(args.tello, args.port, args.duration, args.rate, args.downward)
+    if args.images:
+        return ImageFolderSource(args.images)
+    return VideoFileSource(args.video, args.every)
+
+
+def _check_out(out: str) -> Path:
+    path = Path(out)
+    if path.suffix.lower() not in (".yaml", ".yml", ".json"):
+        raise ValueError(f"--out {out}: the file name must end in .yaml, .yml or .json")
+    if not path.parent.is_dir():
+        raise ValueError(f"--out {out}: folder {path.parent} does not exist")
+    return path
+
+
+def _pattern(args: argparse.Namespace) -> PatternSpec:
+    kind = answer(args.pattern, "--pattern", f"Pattern ({'/'.join(PATTERN_KINDS)})", choice(PATTERN_KINDS))
+    unit = {"chessboard": "inner corners", "charuco": "squares", "acircles": "circles"}[kind]
+    cols = answer(args.cols, "--cols", f"Columns ({unit} per row)", positive_int)
+    rows = answer(args.rows, "--rows", f"Rows ({unit} per column)", positive_int)
+    what = "circle spacing s (m; centres 2 s apart along a row)" if kind == "acircles" else "square side (m)"
+    square = answer(args.square, "--square", what.capitalize(), positive_float)
+    marker = None
+    if kind == "charuco":
+        marker = answer(args.marker, "--marker", "ArUco marker side (m)", positive_float)
+    return PatternSpec(kind, cols, rows, square, marker, args.dictionary)
+
+
+def _print_result(res: WizardResult) -> None:
+    print(f"frames analysed: {res.frames_seen}, views used: {len(res.used)}")
+    print(f"rejected views: {len(res.rejected)}")
+    for name, reason in res.rejected:
+        print(f"  rejected {name}: {reason}")
+    if res.used:
+        print("per-view reprojection RMS (px):")
+        for name, err in res.used:
+            print(f"  {name}: {err:.3f}")
+    if res.coverage is not None and res.coverage.counts.any():
+        grid = res.coverage.grid
+        print(
+            f"coverage of the image ({grid[0]}x{grid[1]} cells, views per cell): {res.coverage.fraction:.0%}"
+        )
+        print(res.coverage.render())
+        if res.coverage.fraction < 0.5:
+            print("  note: less than half of the image is covered; show the board near the edges and corners")
+
+
+def cmd_camera(args: argparse.Namespace) -> int:
+    """The camera wizard: source → views → intrinsics → calibration file."""
+    from calibration.camera import run_camera_wizard, write_calibration
+
+    try:
+        source = _open_source(args)
+        spec = _pattern(args)
+        out = _check_out(answer(args.out, "--out", "Calibration file to write (.yaml or .json)", str))
+        solve = SolveOptions(
+            min_views=args.min_views,
+            warn_rms_px=args.warn_rms,
+            max_rms_px=args.max_rms,
+            fix_k3=args.fix_k3,
+            outlier_factor=args.outlier_factor,
+            min_spread_deg=args.min_spread,
+        )
+        capture = CaptureOptions(
+            max_blur_px=args.max_blur, min_change=args.min_change, max_views=args.max_views
+        )
+        if solve.min_views < 3:
+            raise ValueError("--min-views: at least 3 views are needed")
+    except (SourceError, MissingAnswerError, ValueError) as exc:
+        return _error(str(exc))
+    device = args.device or source.label
+    print(f"calibrate camera: {spec.describe()}; source {source.label}; device {device}")
+    ignored = getattr(source, "ignored", [])
+    if ignored:
+        print(f"ignored {len(ignored)} non-image file(s): {', '.join(ignored)}")
+    from tqdm import tqdm
+
+    bar = tqdm(
+        total=source.total,
+        desc="views",
+        unit="frame",
+        file=sys.stderr,
+        disable=True if args.no_progress else None,
+        leave=False,
+    )
+
+    def on_frame(cap: object) -> None:
+        cov = cap.coverage.fraction if cap.coverage is not None else 0.0  # type: ignore[attr-defined]
+        bar.set_postfix_str(f"kept {len(cap.views)}, coverage {cov:.0%}")  # type: ignore[attr-defined]
+        bar.update(1)
+
+    try:
+        res = run_camera_wizard(source, spec, capture, solve, device, on_frame)
+    except SourceError as exc:
+        return _error(str(exc))
+    finally:
+        bar.close()
+    _print_result(res)
+    if res.calibration is None:
+        return _error(res.message, res.exit_code)
+    cal = res.calibration
+    print(
+        f"camera matrix: fx {cal.fx:.2f} px, fy {cal.fy:.2f} px, cx {cal.cx:.2f} px, cy {cal.cy:.2f} px "
+        f"({cal.width}x{cal.height})"
+    )
+    print("distortion (k1 k2 p1 p2 k3): " + " ".join(f"{v:.5f}" for v in cal.dist_coeffs))
+    print(f"RMS reprojection error: {cal.rms_px:.3f} px")
+    print(f"verdict: {res.verdict.upper()}: {res.message}")
+    if res.verdict == "warning":
+        print(f"warning: {res.message}", file=sys.stderr)
+    try:
+        notes = write_calibration(cal, out)
+    except OSError as exc:
+        return _error(f"--out {out}: cannot write: {exc.strerror or exc}")
+    for note in notes:
+        print(note)
+    print(f"written: {out}")
+    return EXIT_OK
+
+
+def _sample_frames(args: argparse.Namespace, limit: int) -> list[tuple[str, object]]:
+    source = _open_source(args)
+    frames = []
+    for f in source.frames():
+        if f.image is None:
+            raise SourceError(f"sample {f.name}: {f.error}")
+        frames.append((f.name, f.image))
+        if len(frames) >= limit:
+            break
+    return frames
+
+
+def cmd_markers(args: argparse.Namespace) -> int:
+    """Pick the markers' HSV thresholds from regions of sample frames and save them to a calibration."""
+    from calibration.markers import MarkerPickError, Region, pick_markers
+
+    try:
+        cal_path = answer(args.calibration, "--calibration", "Calibration file to add the markers to", str)
+        base = load_calibration(cal_path)
+        frames = _sample_frames(args, args.max_samples)
+        if not frames:
+            raise SourceError("the source delivered no frames")
+        texts = list(args.marker or [])
+        if not texts and interactive():
+            print(
+                f"sample frames: {', '.join(n for n, _ in frames[:10])}{' ...' if len(frames) > 10 else ''}"
+            )
+            while True:
+                t = input("Marker as NAME=X,Y,W,H[@FRAME] (pixels; empty when done): ").strip()
+                if not t:
+                    break
+                texts.append(t)
+        if not texts:
+            raise MissingAnswerError(
+                "--marker NAME=X,Y,W,H[@FRAME] is required, once per marker (in feature order)"
+            )
+        regions = [Region.parse(t) for t in texts]
+        out = _check_out(args.out or cal_path)
+        for name, img in frames:
+            if img.shape[:2] != (base.height, base.width):  # type: ignore[attr-defined]
+                raise ValueError(
+                    f"sample {name} is {img.shape[1]}x{img.shape[0]} but {cal_path} is for "  # type: ignore[attr-defined]
+                    f"{base.width}x{base.height}"
+                )
+        res = pick_markers(base, frames, regions)  # type: ignore[arg-type]
+    except (SourceError, MissingAnswerError, CalibrationError, MarkerPickError, ValueError) as exc:
+        return _error(str(exc))
+    print(f"calibrate markers: {len(regions)} marker(s) on {len(frames)} sample frame(s)")
+    failed = [(n, r) for n, r in res.per_frame if r is not None]
+    if res.markers is None:
+        for n, r in failed:
+            print(f"  {n}: {r}")
+        return _error(res.message, EXIT_VERDICT)
+    for mk in res.markers:
+        print(f"  {mk.name}: hsv_lo {list(mk.hsv_lo)}, hsv_hi {list(mk.hsv_hi)}, rgb {list(mk.rgb or ())}")
+    print(f"verified: {res.message}")
+    from flightstack.camera_calibration import CameraCalibration
+
+    new = CameraCalibration(**{**base.__dict__, "markers": res.markers})
+    try:
+        new.save(out)
+    except OSError as exc:
+        return _error(f"--out {out}: cannot write: {exc.strerror or exc}")
+    print(f"written: {out}")
+    return EXIT_OK
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    """Load a calibration and report the undistortion of a sample image."""
+    from calibration.check import check_calibration
+
+    try:
+        cal = load_calibration(args.calibration)
+        bgr = cv2.imread(args.image, cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise ValueError(f"--image {args.image}: cannot read it as an image")
+        spec = None
+        if args.pattern:
+            if args.cols is None or args.rows is None or args.square is None:
+                raise ValueError("--pattern needs --cols, --rows and --square")
+            spec = PatternSpec(args.pattern, args.cols, args.rows, args.square, args.marker, args.dictionary)
+        rep = check_calibration(cal, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), spec)
+    except (CalibrationError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    rms = "n/a" if cal.rms_px is None else f"{cal.rms_px:.3f} px"
+    print(f"calibration {args.calibration}: device {cal.device or '?'}, {cal.width}x{cal.height}, RMS {rms}")
+    print(f"fx {cal.fx:.2f} px, fy {cal.fy:.2f} px, cx {cal.cx:.2f} px, cy {cal.cy:.2f} px")
+    for line in rep.lines():
+        print(line)
+    if args.out:
+        if not cv2.imwrite(args.out, cv2.cvtColor(rep.undistorted, cv2.COLOR_RGB2BGR)):
+            print(f"error: --out {args.out}: cannot write the undistorted image", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        print(f"undistorted sample written: {args.out}")
+    if spec is not None and rep.pattern_rms_px is None:
+        return EXIT_VERDICT
+    if rep.pattern_rms_px is not None and rep.pattern_rms_px > args.max_rms:
+        print(f"verdict: FAILED: the sample's reprojection RMS exceeds {args.max_rms:g} px", file=sys.stderr)
+        return EXIT_VERDICT
+    return EXIT_OK
+
+
+def _add_pattern_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--pattern", choices=PATTERN_KINDS, default=None, help="calibration target")
+    p.add_argument(
+        "--cols", type=int, default=None, help="inner corners (chessboard) / squares / circles per row"
+    )
+    p.add_argument("--rows", type=int, default=None, help="the same per column")
+    p.add_argument("--square", type=float, default=None, help="square side, or circle spacing s (metres)")
+    p.add_argument("--marker", type=float, default=None, help="ChArUco marker side (metres)")
+    p.add_argument(
+        "--dictionary", default="DICT_4X4_50", help="ChArUco ArUco dictionary (default DICT_4X4_50)"
+    )
+
+
+def register(cal_sub: argparse._SubParsersAction) -> None:
+    """Add `camera`, `markers` and `check` to the `flightstack calibrate` subcommands."""
+    c = cal_sub.add_parser(
+        "camera",
+        help="camera intrinsics and distortion from pattern views (chessboard, ChArUco, circle grid)",
+        description="Calibrate a camera. Missing options are asked for at a terminal; in scripts pass all.",
+    )
+    _add_source_options(c, tello=True)
+    _add_pattern_options(c)
+    c.add_argument("--out", default=None, help="calibration file to write (.yaml, or .json)")
+    c.add_argument("--device", default=None, help="device id stored in the file (default: the source's name)")
+    c.add_argument("--max-views", type=int, default=40, help="stop after this many kept views (default 40)")
+    c.add_argument("--min-views", type=int, default=6, help="refuse to calibrate from fewer (default 6)")
+    c.add_argument("--max-blur", type=float, default=5.0, help="largest edge width accepted, px (default 5)")
+    c.add_argument(
+        "--min-change",
+        type=float,
+        default=0.015,
+        help="a view must move the board by this fraction of the image diagonal (default 0.015)",
+    )
+    c.add_argument("--outlier-factor", type=float, default=3.0, help="drop views above this x median error")
+    c.add_argument(
+        "--min-spread",
+        type=float,
+        default=10.0,
+        help="refuse if all board normals lie within this angle (deg)",
+    )
+    c.add_argument("--warn-rms", type=float, default=1.0, help="warn above this RMS, px (default 1)")
+    c.add_argument("--max-rms", type=float, default=3.0, help="refuse above this RMS, px (default 3)")
+    c.add_argument("--fix-k3", action="store_true", help="fit k1, k2, p1, p2 only (k3 = 0)")
+    c.add_argument("--no-progress", action="store_true", help="no progress bar")
+    c.set_defaults(func=cmd_camera)
+
+    m = cal_sub.add_parser(
+        "markers",
+        help="HSV thresholds of the target's colour markers from regions of sample frames",
+        description="Pick marker thresholds from pixel boxes X,Y,W,H in sample frame FRAME (default 0).",
+    )
+    m.add_argument("--calibration", default=None, help="camera calibration file to add the markers to")
+    _add_source_options(m, tello=False)
+    m.add_argument(
+        "--marker",
+        action="append",
+        default=None,
+        metavar="NAME=X,Y,W,H[@FRAME]",
+        help="one per marker, in the order of the target's feature points",
+    )
+    m.add_argument("--max-samples", type=int, default=50, help="use at most this many sample frames")
+    m.add_argument("--out", default=None, help="file to write (default: overwrite --calibration)")
+    m.set_defaults(func=cmd_markers)
+
+    k = cal_sub.add_parser("check", help="load a calibration and report the undistortion of a sample image")
+    k.add_argument("calibration", help="calibration file (.yaml or .json)")
+    k.add_argument("--image", required=True, help="sample image of the calibrated size")
+    k.add_argument("--out", default=None, help="write the undistorted sample here (png, jpg)")
+    _add_pattern_options(k)
+    k.add_argument("--max-rms", type=float, default=1.0, help="fail if the sample's pattern RMS exceeds this")
+    k.set_defaults(func=cmd_check)
