@@ -21,6 +21,8 @@ ARRAY_FIELDS = (
     "var_own",
     "V_cmd",
     "visible",
+    "n_fused",
+    "wall_t",
 )
 
 
@@ -42,6 +44,8 @@ class Recording:
     var_own: np.ndarray  # (N, n, 4)
     V_cmd: np.ndarray  # (N, n, 4) body-velocity command sent (m/s, rad/s)
     visible: np.ndarray  # (N, n) bool
+    n_fused: np.ndarray  # (N, n) int: predictions fused (own + fresh neighbours) by each agent
+    wall_t: np.ndarray  # (N,) wall-clock time.time() of each tick (s since the epoch; across processes)
     ticks_done: int = 0
     bus_dropped: dict[str, int] = field(default_factory=dict)
     wall_seconds: float = 0.0
@@ -72,6 +76,8 @@ class Recording:
             z(),
             z(),
             np.zeros((n_ticks, n), dtype=bool),
+            np.zeros((n_ticks, n), dtype=int),
+            np.zeros(n_ticks),
         )
 
     def truncated(self) -> Recording:
@@ -102,7 +108,10 @@ class Recording:
     def load(path: str) -> Recording:
         """Read a recording written by `save` (arrays only; events and counters live in the run dir)."""
         with np.load(path) as z:
-            arrays = {f: z[f] for f in ARRAY_FIELDS}
+            N = z["t"].shape[0]
+            n = len(z["drone_ids"])
+            defaults = {"n_fused": np.zeros((N, n), dtype=int), "wall_t": np.zeros(N)}  # older files
+            arrays = {f: z[f] if f in z else defaults[f] for f in ARRAY_FIELDS}
             rec = Recording(str(z["mode"]), [int(i) for i in z["drone_ids"]], **arrays)
         rec.ticks_done = rec.t.shape[0]
         return rec

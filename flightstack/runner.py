@@ -20,7 +20,8 @@ import numpy as np
 from flightstack.agent import Agent, AgentConfig, Predictor
 from flightstack.backends import build_backend
 from flightstack.camera_calibration import load_calibration
-from flightstack.comms.bus import InProcBus
+from flightstack.comms.bus import Bus
+from flightstack.comms.factory import make_bus
 from flightstack.control import Gains
 from flightstack.geometry import compose, inverse
 from flightstack.hal import Drone
@@ -48,16 +49,19 @@ def make_agents(
     mode: str,
     backend: Any,
     drones: dict[int, Drone],
-    bus: InProcBus,
+    bus: Bus,
     predictors: dict[int, Predictor] | None,
+    agent_ids: list[int] | None = None,
 ) -> list[Agent]:
-    """One Agent per drone of the mission; estimates start from the mission's initial errors."""
+    """One Agent per drone of the mission (or of `agent_ids`); estimates start from the initial errors."""
     P0 = np.array(mission.target.feature_points, dtype=float)
     gains = Gains.make(mission.gains.k_c, mission.gains.k_e, mission.gains.k_s)
     ids = [d.id for d in mission.drones]
     g_w0 = mission.target.initial_pose.pose()
     agents = []
     for k, d in enumerate(mission.drones):
+        if agent_ids is not None and d.id not in agent_ids:
+            continue
         cfg = AgentConfig(
             mission=mission.name,
             drone_id=d.id,
@@ -119,16 +123,36 @@ def _advance_until(
     return True
 
 
+class OperatorAbortError(Exception):
+    """`flightstack abort` was received: land every drone now."""
+
+
 def run_mode(
     mission: Mission,
     mode: str,
     predictors: dict[int, Predictor] | None = None,
     progress: Callable[[int], None] | None = None,
+    *,
+    backend: Any = None,
+    bus: Any = None,
+    agent_ids: list[int] | None = None,
 ) -> Recording:
-    """Fly `mode` of a simulated mission for mission.duration_s of pursuit; never leaves a drone flying."""
-    backend = build_backend(mission)
-    ids = [d.id for d in mission.drones]
-    bus = InProcBus(mission.name, set(ids))
+    """Fly `mode` of a mission for mission.duration_s of pursuit; never leaves a drone flying.
+
+    backend: built from the mission when None (the served world's client for an agent process).
+    bus: built from `mission.bus` when None (closed here if built here).
+    agent_ids: the drones this process flies (default all); the others are neighbours on the bus.
+    On a simulated clock with a network bus, phase 2 waits for the neighbours' messages of the same tick
+    (`bus.zenoh.lockstep_timeout_s`), so the result equals the in-process bus's."""
+    backend = backend if backend is not None else build_backend(mission)
+    ids = [d.id for d in mission.drones] if agent_ids is None else list(agent_ids)
+    own_bus = bus is None
+    if bus is None:
+        participant = "agents" if agent_ids is None else str(ids[0])
+        bus = make_bus(mission, participant, set(ids))
+    lockstep = hasattr(bus, "wait_for") and mission.simulated
+    zspec = mission.bus.zenoh
+    everyone = sorted(d.id for d in mission.drones)  # own messages too: Zenoh loops them back asynchronously
     clock = backend.clock
     log = EventLog()
     limits = safety_limits(mission)
@@ -143,7 +167,7 @@ def run_mode(
         drones: dict[int, Drone] = dict(safe)
     else:
         drones = {i: backend.drone(i) for i in ids}
-    agents = make_agents(mission, mode, backend, drones, bus, predictors)
+    agents = make_agents(mission, mode, backend, drones, bus, predictors, ids)
     target = TargetDriver(mission, backend) if mission.target.motion == "square" else None
     g_d = np.array([a.cfg.g_d.as_vector() for a in agents])
     dt = mission.dt_s
@@ -152,7 +176,14 @@ def run_mode(
     rejections: dict[int, Counter[str]] = {i: Counter() for i in ids}
     wall0 = time.perf_counter()
     reason = "mission complete"
+    status = StatusPublisher(bus, mode)
     try:
+        if hasattr(bus, "wait_alive") and zspec is not None:
+            missing = bus.wait_alive({d.id for d in mission.drones}, zspec.start_timeout_s)
+            if missing:
+                raise RuntimeError(
+                    f"agents {sorted(missing)} not on the bus after {zspec.start_timeout_s:g} s"
+                )
         for d in drones.values():
             d.connect()
             d.takeoff()
@@ -177,8 +208,11 @@ def run_mode(
                 target.tick(t - t0)
             for s in safe.values():
                 s.tick()
+            _check_operator(bus)
             for a in agents:
                 a.sense_and_publish(t)
+            if lockstep and zspec is not None:  # phase 2 needs every neighbour's message of this tick
+                bus.wait_for({j: agents[0].seq for j in everyone}, zspec.lockstep_timeout_s)
             if supervisor is not None:
                 hold = supervisor.update_visibility({a.cfg.drone_id: a.last.visible for a in agents})
                 for a in agents:
@@ -202,13 +236,19 @@ def run_mode(
                     rejections[a.cfg.drone_id][last.rejection] += 1
                 if not last.own_pose_fresh:
                     rejections[a.cfg.drone_id]["own pose lost (hovered)"] += 1
+                rec.n_fused[k, i] = last.n_fused
+            rec.wall_t[k] = time.time()
             rec.ticks_done = k + 1
+            status.maybe_publish(t, k, agents)
             if progress is not None:
                 progress(1)
             clock.sleep_until(t + dt)
     except KeyboardInterrupt:
         rec.interrupted = True
         reason = "interrupted"
+    except OperatorAbortError as exc:
+        rec.error = f"operator abort: {exc}"
+        reason = "operator abort"
     except Exception as exc:  # an exception in any agent: land everyone, keep the data, report
         rec.error = f"{type(exc).__name__}: {exc}"
         reason = f"exception: {rec.error}"
@@ -229,9 +269,63 @@ def run_mode(
         rec.events.extend({"event": "safety", "mode": mode, **e} for e in log.to_dicts())
         rec.wall_seconds = time.perf_counter() - wall0
         rec.bus_dropped = dict(bus.dropped)
+        if hasattr(bus, "presence_events"):
+            rec.events.extend(
+                {"event": "bus presence", "mode": mode, "sender": j, "what": what, "monotonic": tm}
+                for tm, j, what in bus.presence_events
+            )
+        if own_bus:
+            bus.close()
         rec.vision_rejections = {str(i): dict(c) for i, c in rejections.items() if c}
         rec.fill_true_errors(g_d)
     return rec if rec.ticks_done == n_ticks and not rec.interrupted else rec.truncated()
+
+
+def _check_operator(bus: Any) -> None:
+    """Raise OperatorAbortError when the operator channel carried an abort for this mission."""
+    if not hasattr(bus, "control_events"):
+        return
+    for ev in bus.control_events():
+        if ev.kind == "abort":
+            raise OperatorAbortError(str(ev.payload.get("reason", "abort")))
+
+
+class StatusPublisher:
+    """Publishes each hosted agent's status on the operator channel about twice a second (wall clock),
+    for `flightstack status`. A bus without an operator channel (in-process) makes this a no-op."""
+
+    PERIOD_S = 0.5
+
+    def __init__(self, bus: Any, mode: str) -> None:
+        self.bus = bus if hasattr(bus, "publish_control") else None
+        self.mode = mode
+        self._next = 0.0
+
+    def maybe_publish(self, t: float, tick: int, agents: list[Agent]) -> None:
+        now = time.monotonic()
+        if self.bus is None or now < self._next:
+            return
+        self._next = now + self.PERIOD_S
+        for a in agents:
+            st = a.drone.state()
+            last = a.last
+            self.bus.publish_control(
+                "status",
+                {
+                    "drone": a.cfg.drone_id,
+                    "mode": self.mode,
+                    "t": t,
+                    "tick": tick,
+                    "battery_pct": st.battery_pct,
+                    "flying": st.flying,
+                    "link_alive": st.link_alive,
+                    "visible": bool(last.visible),
+                    "n_fused": int(last.n_fused),
+                    "pose_fresh": bool(last.own_pose_fresh),
+                    "rejection": last.rejection,
+                    "dropped": dict(self.bus.dropped),
+                },
+            )
 
 
 def _land_everything(

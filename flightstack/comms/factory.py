@@ -1,0 +1,46 @@
+"""The bus a process uses, from the mission's `bus:` section (DESIGN §6).
+
+`participant` names this process in `bus.zenoh.endpoints`: a drone id (one agent per process), `agents`
+(every agent in one process), `world` (the served simulated world), or anything else for operator
+tools, which only connect. Each participant listens on its own endpoint and connects to all others.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from flightstack.comms.bus import Bus, InProcBus
+from flightstack.mission import Mission
+
+if TYPE_CHECKING:
+    from flightstack.comms.zenoh_bus import ZenohBusConfig
+
+
+def zenoh_bus_config(mission: Mission, participant: str, self_ids: set[int]) -> ZenohBusConfig:
+    from flightstack.comms.zenoh_bus import ZenohBusConfig
+
+    z = mission.bus.zenoh
+    if z is None:
+        raise ValueError("bus.zenoh: the mission has no zenoh section")
+    listen = [z.endpoints[participant]] if participant in z.endpoints else []
+    connect = [ep for name, ep in z.endpoints.items() if name != participant]
+    return ZenohBusConfig(
+        mission=mission.name,
+        self_ids=set(self_ids),
+        known_senders={d.id for d in mission.drones},
+        listen=listen,
+        connect=connect,
+        lease_ms=z.lease_ms,
+        key_prefix=z.key_prefix,
+        tls=dict(z.tls) if z.tls else None,
+    )
+
+
+def make_bus(mission: Mission, participant: str, self_ids: set[int], kind: str | None = None) -> Bus:
+    """InProcBus or ZenohBus for the agents `self_ids` of this process; `kind` overrides the mission's."""
+    kind = kind or mission.bus.kind
+    if kind == "inproc":
+        return InProcBus(mission.name, {d.id for d in mission.drones})
+    from flightstack.comms.zenoh_bus import ZenohBus
+
+    return ZenohBus(zenoh_bus_config(mission, participant, self_ids))

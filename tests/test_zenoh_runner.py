@@ -1,0 +1,60 @@
+"""The runner over the Zenoh bus: the paper simulation with all agents in one process, lock-step,
+gives the same result as over the in-process bus (issue 6 acceptance). Loopback only."""
+
+from __future__ import annotations
+
+import socket
+
+import numpy as np
+import pytest
+
+from flightstack.gp import GPExpert, GPHyperparameters
+from flightstack.metrics import mode_metrics
+from flightstack.mission import load_mission
+from flightstack.runner import run_mode
+from flightstack.target_motion import DuffingParams, duffing_body_velocity_batch
+from tests.conftest import MISSIONS
+
+pytest.importorskip("zenoh")
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def experts(ids: list[int]) -> dict[int, GPExpert]:
+    """One GP expert per drone on its own samples of the paper's target field (different per drone, so
+    the fused prediction depends on every neighbour's message)."""
+    out = {}
+    for k, i in enumerate(ids):
+        rng = np.random.default_rng(k)
+        X = np.column_stack([rng.uniform(-1.5, 1.5, (40, 2)), np.zeros(40), rng.uniform(-np.pi, np.pi, 40)])
+        Y = duffing_body_velocity_batch(X, DuffingParams()) + 0.05 * rng.normal(size=(40, 4))
+        hyper = GPHyperparameters(np.full(4, 0.5), np.full((4, 4), 1.0), np.full(4, 0.01))
+        out[i] = GPExpert.from_hyperparameters(X, Y, hyper)
+    return out
+
+
+def test_paper_sim_over_zenoh_equals_inproc() -> None:
+    inproc = load_mission(MISSIONS / "paper_sim.yaml", {"duration_s": 2.0})
+    bus = {
+        "kind": "zenoh",
+        "stale_after_s": inproc.bus.stale_after_s,
+        "zenoh": {"endpoints": {"agents": f"tcp/127.0.0.1:{free_tcp_port()}"}},
+    }
+    zen = load_mission(MISSIONS / "paper_sim.yaml", {"duration_s": 2.0, "bus": bus})
+    preds = experts([d.id for d in inproc.drones])
+    for mode in ("none", "dgp"):
+        a = run_mode(inproc, mode, preds)
+        b = run_mode(zen, mode, preds)
+        assert a.ticks_done == b.ticks_done == 1000 and not b.error, b.error
+        ea, eb = mode_metrics(a, inproc)["mean_sq_error"], mode_metrics(b, zen)["mean_sq_error"]
+        assert eb == pytest.approx(ea, rel=1e-9), (mode, ea, eb)
+        np.testing.assert_allclose(b.mu_used, a.mu_used, rtol=1e-12, atol=0)
+        if mode == "dgp":
+            assert np.all(b.n_fused == 3)  # every tick fused all three experts: no message was missed
+            own = np.array([preds[inproc.drones[0].id].predict_one(x)[0] for x in b.g_bar_w[::100, 0]])
+            assert not np.allclose(own, b.mu_used[::100, 0], atol=1e-3)  # neighbours changed the fused μ
+        assert b.bus_dropped == {}
