@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flightstack.geometry import Pose, ad_g, compose, inverse, rotate_twist, vec
+from flightstack.geometry import Pose, ad_g, compose, inverse, vec, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -51,11 +51,18 @@ def control_error(g_d: Pose, g_bar_i0: Pose) -> tuple[np.ndarray, float]:
 
 def consensus_term(g_bar_w_i: Pose, g_bar_w_neighbours: Sequence[Pose]) -> np.ndarray:
     """c_i = Σ_{j∈N_i} vec(ḡ_w,i⁻¹ ḡ_w,j) (4,); zero for no neighbours."""
-    c = np.zeros(4)
     inv_i = inverse(g_bar_w_i)
+    # vec(ḡ_w,i⁻¹ ḡ_w,j) with compose() and vec() inlined on floats (same arithmetic, no temporaries)
+    ca, sa = math.cos(inv_i.theta), math.sin(inv_i.theta)
+    ax, ay, az = inv_i.p.tolist()
+    c0 = c1 = c2 = c3 = 0.0
     for g_j in g_bar_w_neighbours:
-        c += vec(compose(inv_i, g_j))
-    return c
+        bx, by, bz = g_j.p.tolist()
+        c0 += ax + ca * bx - sa * by
+        c1 += ay + sa * bx + ca * by
+        c2 += az + bz
+        c3 += math.sin(wrap_angle(inv_i.theta + g_j.theta))
+    return np.array([c0, c1, c2, c3])
 
 
 def pursuit_law(
@@ -73,11 +80,28 @@ def pursuit_law(
     visible is v_i: when the target is not seen, the innovation term v_i k_e (…) is dropped.
     """
     v_i = 1.0 if visible else 0.0
-    # Ad_{R(θe)} μ_i and Ad_{R(θc)} Ad_{R(θe)} μ_i
-    mu_e = rotate_twist(theta_e, mu)
-    u_e = -v_i * gains.k_e * (e_e - rotate_twist(-theta_c, e_c)) - gains.k_s * c_i - mu_e
-    u_c = -gains.k_c * e_c - gains.k_s * rotate_twist(theta_c, c_i) - rotate_twist(theta_c, mu_e)
-    return u_c, u_e
+    # the same element-wise arithmetic as the numpy expressions
+    #   u_e = −v_i k_e (e_e − Ad_{Rᵀ(θc)} e_c) − k_s c_i − Ad_{R(θe)} μ_i
+    #   u_c = −k_c e_c − k_s Ad_{R(θc)} c_i − Ad_{R(θc)} Ad_{R(θe)} μ_i
+    # on Python floats (4-vectors are cheaper in scalar code than in numpy calls; results are identical)
+    ee = e_e.tolist() if isinstance(e_e, np.ndarray) else [float(v) for v in e_e]
+    ec = e_c.tolist() if isinstance(e_c, np.ndarray) else [float(v) for v in e_c]
+    ci = c_i.tolist() if isinstance(c_i, np.ndarray) else [float(v) for v in c_i]
+    m = mu.tolist() if isinstance(mu, np.ndarray) else [float(v) for v in mu]
+    ke, kc, ks = gains.k_e.tolist(), gains.k_c.tolist(), gains.k_s
+    # Ad_{R(θe)} μ_i
+    c, s = math.cos(theta_e), math.sin(theta_e)
+    mu_e = (c * m[0] - s * m[1], s * m[0] + c * m[1], m[2], m[3])
+    # Ad_{Rᵀ(θc)} e_c = Ad_{R(−θc)} e_c
+    c, s = math.cos(-theta_c), math.sin(-theta_c)
+    ec_r = (c * ec[0] - s * ec[1], s * ec[0] + c * ec[1], ec[2], ec[3])
+    u_e = [-v_i * ke[k] * (ee[k] - ec_r[k]) - ks * ci[k] - mu_e[k] for k in range(4)]
+    # Ad_{R(θc)} c_i and Ad_{R(θc)} Ad_{R(θe)} μ_i
+    c, s = math.cos(theta_c), math.sin(theta_c)
+    ci_r = (c * ci[0] - s * ci[1], s * ci[0] + c * ci[1], ci[2], ci[3])
+    mu_r = (c * mu_e[0] - s * mu_e[1], s * mu_e[0] + c * mu_e[1], mu_e[2], mu_e[3])
+    u_c = [-kc[k] * ec[k] - ks * ci_r[k] - mu_r[k] for k in range(4)]
+    return np.array(u_c), np.array(u_e)
 
 
 def drone_velocity_command(u_c: np.ndarray, g_d: Pose) -> np.ndarray:

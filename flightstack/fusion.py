@@ -27,6 +27,8 @@ column d is the output dimension (the paper's j).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = ["FUSION_RULES", "fuse", "fusion_weights"]
@@ -38,7 +40,8 @@ def _check_var(var: np.ndarray) -> np.ndarray:
     var = np.asarray(var, dtype=float)
     if var.ndim != 2 or var.shape[0] < 1 or var.shape[1] < 1:
         raise ValueError(f"var must have shape (K, D) with K, D >= 1, got shape {var.shape}")
-    if not np.all(np.isfinite(var)) or np.any(var <= 0.0):
+    # finite and > 0 ⇔ min > 0 (False for NaN) and max finite; two reductions (this runs every tick)
+    if not (var.min() > 0.0 and math.isfinite(var.max())):
         raise ValueError("var must be finite and > 0 (expert predictive variances)")
     return var
 
@@ -69,9 +72,9 @@ def _fused_var_and_weights(
     _check_rule(rule)
     n_experts = var.shape[0]
     prec = 1.0 / var  # var_k^{-1}, (K, D)
-    if rule == "poe":
-        beta = np.ones_like(var)
-        fused_prec = prec.sum(axis=0)
+    if rule == "poe":  # β_k = 1: w_k = var^{fused} var_k^{-1}
+        fused_var = 1.0 / prec.sum(axis=0)
+        return fused_var, fused_var[None, :] * prec
     elif rule == "gpoe":
         beta = np.full_like(var, 1.0 / n_experts)
         fused_prec = (beta * prec).sum(axis=0)
@@ -159,7 +162,7 @@ def fuse(
     mu = np.asarray(mu, dtype=float)
     if mu.shape != var.shape:
         raise ValueError(f"mu and var must have the same shape (K, D), got {mu.shape} and {var.shape}")
-    if not np.all(np.isfinite(mu)):
+    if not np.isfinite(mu).all():
         raise ValueError("mu must be finite")
     fused_var, weights = _fused_var_and_weights(var, rule, prior_var)
     return (weights * mu).sum(axis=0), fused_var

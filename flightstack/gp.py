@@ -305,6 +305,7 @@ class GPExpert:
         seed: int = 0,
         log_sigma_f_bounds: tuple[float, float] = (math.log(1e-3), math.log(1e3)),
         log_length_bounds: tuple[float, float] = (math.log(1e-2), math.log(1e3)),
+        maxiter: int | None = None,
     ) -> GPExpert:
         """Type-II maximum likelihood of σ_{f,d}, l_{d,·} per output dimension d, with σ_n² fixed.
 
@@ -325,6 +326,8 @@ class GPExpert:
             seed: seed of the random restarts (the result is deterministic for a fixed seed).
             log_sigma_f_bounds: (lo, hi) bounds on log σ_f.
             log_length_bounds: (lo, hi) bounds on every log l_m.
+            maxiter: cap on L-BFGS-B iterations per starting point (None: run to the tolerances; a cap
+                bounds the cost of large M, e.g. in benchmarks/run.py).
 
         Raises:
             ValueError: on bad inputs, or if every restart of some output dimension failed.
@@ -335,6 +338,9 @@ class GPExpert:
             raise ValueError(f"restarts must be an integer >= 1, got {restarts!r}")
         f_lo, f_hi = _validate_log_bounds(log_sigma_f_bounds, "log_sigma_f_bounds")
         l_lo, l_hi = _validate_log_bounds(log_length_bounds, "log_length_bounds")
+        if maxiter is not None and (isinstance(maxiter, bool) or not isinstance(maxiter, int) or maxiter < 1):
+            raise ValueError(f"maxiter must be None or an integer >= 1, got {maxiter!r}")
+        options = _LBFGSB_OPTIONS if maxiter is None else {**_LBFGSB_OPTIONS, "maxiter": maxiter}
 
         n_in = X.shape[1]
         n_out = Y.shape[1]
@@ -376,7 +382,7 @@ class GPExpert:
                         method="L-BFGS-B",
                         jac=True,
                         bounds=bounds,
-                        options=_LBFGSB_OPTIONS,
+                        options=options,
                     )
                     theta = np.clip(np.asarray(res.x, dtype=float), lo, hi)
                     lml, _ = _lml_and_grad(sq_diff, y, float(theta[0]), theta[1:], nv)
