@@ -117,17 +117,20 @@ class HardwareBackend:
 
     simulated = False
 
-    def __init__(self, mission: Mission) -> None:
+    def __init__(self, mission: Mission, drone_ids: list[int] | None = None) -> None:
+        """drone_ids: the drones this process flies (`flightstack agent --id N`); the robot is then left
+        to `flightstack target` (None: every drone, and the robot when hardware.target is set)."""
         if mission.hardware is None:
             raise ValueError("backend 'tello' needs the mission's hardware section")
         self.mission = mission
+        self.drone_ids = [d.id for d in mission.drones] if drone_ids is None else list(drone_ids)
         self.clock = WallClock()
         self.mocap = MocapPoseSource(mocap_config(mission), clock=self.clock.now)
         self.names = body_names(mission)
         self.poses = NamedPoseSource(self.mocap, self.names)
         self.drones: dict[int, TelloDriver] = {}
         self.cameras: dict[int, TelloCamera] = {}
-        sc = scamper_config(mission)
+        sc = scamper_config(mission) if drone_ids is None else None
         self.robot: ScamperDriver | None = None if sc is None else ScamperDriver(sc)
         self._last_truth: dict[str, Pose] = {}
         try:
@@ -140,6 +143,8 @@ class HardwareBackend:
         assert self.mission.hardware is not None
         self.mocap.start()
         for d in self.mission.drones:
+            if d.id not in self.drone_ids:
+                continue
             drv = TelloDriver(tello_config(self.mission, d.id))
             self.drones[d.id] = drv
             drv.connect()

@@ -1,4 +1,4 @@
-"""Operator command line: sim, fly, preflight, target, train, calibrate, validate (`flightstack -h`)."""
+"""Operator command line (`flightstack -h`): sim, fly, preflight, target, world, agent, abort, status, ..."""
 
 from __future__ import annotations
 
@@ -307,6 +307,9 @@ def build_parser() -> argparse.ArgumentParser:
     from calibration.cli import register as register_calibration
 
     register_calibration(cal_sub)
+    from flightstack.cli_network import register as register_network
+
+    register_network(sub)
     v = sub.add_parser("validate", help="check a mission file and print the resolved mission")
     v.add_argument("mission")
     v.set_defaults(func=cmd_validate)

@@ -150,7 +150,7 @@ def run_mode(
     if bus is None:
         participant = "agents" if agent_ids is None else str(ids[0])
         bus = make_bus(mission, participant, set(ids))
-    lockstep = hasattr(bus, "wait_for") and mission.simulated
+    lockstep = hasattr(bus, "wait_for_stamp") and mission.simulated
     zspec = mission.bus.zenoh
     everyone = sorted(d.id for d in mission.drones)  # own messages too: Zenoh loops them back asynchronously
     clock = backend.clock
@@ -212,7 +212,9 @@ def run_mode(
             for a in agents:
                 a.sense_and_publish(t)
             if lockstep and zspec is not None:  # phase 2 needs every neighbour's message of this tick
-                bus.wait_for({j: agents[0].seq for j in everyone}, zspec.lockstep_timeout_s)
+                late = bus.wait_for_stamp(set(everyone), t, zspec.lockstep_timeout_s)
+                if late:
+                    rec.events.append({"t": t, "event": "lock-step wait timed out", "late": sorted(late)})
             if supervisor is not None:
                 hold = supervisor.update_visibility({a.cfg.drone_id: a.last.visible for a in agents})
                 for a in agents:

@@ -10,6 +10,8 @@
     - a stale-pose rule: pose stamp older than `pose_timeout` s -> hover, older than `pose_land_after` s
       -> land (both ages are measured from the last valid pose stamp, by the mission clock);
     - battery: takeoff refused below `min_battery_takeoff` %, land in flight below `land_battery` %.
+    - link: the drone reports `link_alive=False` in flight (its telemetry stopped) -> land, retried on
+      every tick until the drone accepts it (a Tello that hears nothing also auto-lands after 15 s).
 `MissionSupervisor` adds the mission-wide rules: hover when every drone has lost the target for longer
 than `target_lost_hover_after` s, land every drone (robust to a failing drone), on Ctrl-C / SIGTERM and on
 any exception leaving a guarded block.
@@ -29,6 +31,7 @@ with the mission clock. The event kinds form the closed set `EVENT_KINDS`:
     pose_refuse_takeoff     takeoff refused: no fresh pose
     fence_refuse_takeoff    takeoff refused: the drone stands outside the hard fence in x or y
     battery_land            battery below land_battery in flight: land
+    link_lost               the drone reports its link lost (state().link_alive False) in flight: land
     drone_error             the wrapped drone raised inside tick() (state() or the watchdog's command)
     command_after_land      a command arrived after land/emergency stop: dropped
     land_failed             the wrapped drone's land() raised (retried on every tick)
@@ -93,6 +96,7 @@ EVENT_KINDS: frozenset[str] = frozenset(
         "pose_refuse_takeoff",
         "fence_refuse_takeoff",
         "battery_land",
+        "link_lost",
         "drone_error",
         "command_after_land",
         "land_failed",
@@ -410,6 +414,7 @@ class SafeDrone:
         self._last_pose: StampedPose | None = None
         self._floor_armed = False
         self._abort_reason: str | None = None
+        self._land_reason = ""  # why the pending land was asked for (shown by its retries)
         self._inner_thread: int | None = None
         self.last_command: np.ndarray = np.zeros(4)
         """The last command received by send_body_velocity (float (4,), as given; zeros if not numeric)."""
@@ -558,7 +563,7 @@ class SafeDrone:
 
     # ---- periodic checks -------------------------------------------------------------------------------
     def tick(self) -> None:
-        """Once per control period, command or not: stale pose, hard fence, battery, command watchdog.
+        """Once per control period, command or not: stale pose, hard fence, link, battery, command watchdog.
 
         Also retries a land that the wrapped drone refused. Never raises an Exception (logs instead).
         """
@@ -567,7 +572,7 @@ class SafeDrone:
             if self._abort_reason is not None and self._phase is _Phase.FLYING:
                 self._do_land(now, self._abort_reason)
             if self._phase is _Phase.LAND_PENDING:
-                self._do_land(now, "retry")
+                self._do_land(now, f"retry ({self._land_reason})", retry=True)
                 return
             if self._phase is not _Phase.FLYING:
                 return
@@ -577,11 +582,15 @@ class SafeDrone:
             if pose is not None and self._check_hard_fence(now, pose):
                 return
             try:
-                battery = float(self._call(self.inner.state).battery_pct)
+                st = self._call(self.inner.state)
+                battery, link_alive = float(st.battery_pct), bool(st.link_alive)
             except Exception as exc:
                 self._event_once(now, "drone_error", f"state() raised {type(exc).__name__}: {exc}")
             else:
                 self._end("drone_error")
+                if not link_alive:
+                    self._safety_land(now, "link_lost", "the drone reports its link lost: land")
+                    return
                 if battery < self.limits.land_battery:
                     self._safety_land(
                         now, "battery_land", f"battery {battery:.1f} % < {self.limits.land_battery:.1f} %"
@@ -695,9 +704,11 @@ class SafeDrone:
         if self._do_land(now, kind) is not None:
             self._send_quietly(now, np.zeros(4))  # best effort: at least hover until land is accepted
 
-    def _do_land(self, now: float, reason: str) -> Exception | None:
+    def _do_land(self, now: float, reason: str, retry: bool = False) -> Exception | None:
         """Send land to the wrapped drone; returns its Exception (logged once per episode) or None."""
         self._phase = _Phase.LAND_PENDING  # from here on, no velocity reaches the wrapped drone
+        if not retry:
+            self._land_reason = reason
         try:
             self._call(self.inner.land)
         except Exception as exc:

@@ -254,6 +254,11 @@ class ZenohBus:
     def delivered(self) -> int:
         return self._delivered
 
+    @property
+    def session(self) -> Any:
+        """The process's zenoh session, for other channels of the same mission (the served sim world)."""
+        return self._session
+
     def publish(self, msg: PredictionMessage) -> None:
         """Encode (ValueError for an invalid message, as InProcBus) and put on pred/{msg.sender}."""
         self._put(str(msg.sender), encode(msg))
@@ -310,6 +315,23 @@ class ZenohBus:
         with self._cond:
             while True:
                 missing = {s for s, q in expected.items() if (m := self._latest.get(s)) is None or m.seq < q}
+                if not missing or missing <= self._left or self._closed:
+                    return missing
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return missing
+                self._cond.wait(remaining)
+
+    def wait_for_stamp(self, senders: set[int], stamp: float, timeout_s: float) -> set[int]:
+        """Block until every sender's newest message has a stamp >= `stamp` (mission clock, s): the
+        lock-step barrier of agents whose tick counts may differ (they joined at different ticks).
+        Returns the senders still missing; returns early when all of them have left."""
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        with self._cond:
+            while True:
+                missing = {
+                    s for s in senders if (m := self._latest.get(s)) is None or m.stamp < stamp - 1e-12
+                }
                 if not missing or missing <= self._left or self._closed:
                     return missing
                 remaining = deadline - time.monotonic()

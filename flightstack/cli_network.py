@@ -1,0 +1,215 @@
+"""Commands for agents in separate processes over Zenoh: `agent`, `world`, `abort`, `status` (issue 6).
+
+    flightstack world MISSION                       # simulated missions: serve the world (clock master)
+    flightstack agent MISSION --id N --out DIR      # one agent: its drone, camera, pose (sim or hardware)
+    flightstack abort MISSION                       # every agent lands at once
+    flightstack status MISSION [--once]             # live table of every agent
+
+The mission's `bus: {kind: zenoh, zenoh: {endpoints: ...}}` says where each participant listens.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from flightstack.mission import Mission, MissionError, load_mission
+
+
+def _zenoh_mission(path: str) -> Mission:
+    mission = load_mission(path)
+    if mission.bus.kind != "zenoh" or mission.bus.zenoh is None:
+        raise MissionError(f"{path}: bus.kind: this command needs the zenoh bus (bus.zenoh.endpoints)")
+    return mission
+
+
+def cmd_world(args: argparse.Namespace) -> int:
+    from sim_backend.served import WorldServer
+
+    mission = _zenoh_mission(args.mission)
+    server = WorldServer(mission, log=lambda s: print(s, flush=True))
+    summary = server.run()
+    for e in summary.events:
+        print(e)
+    landed = ", ".join(f"{i}: {'landed' if ok else 'NOT LANDED'}" for i, ok in summary.landed.items())
+    print(
+        f"world: {summary.ticks} ticks, {summary.sim_seconds:.2f} s simulated in "
+        f"{summary.wall_seconds:.1f} s wall; drones {landed}; dropped {summary.dropped or 'none'}",
+        flush=True,
+    )
+    return 0 if all(summary.landed.values()) else 1
+
+
+def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
+    if mode in ("none",):
+        return None
+    if mission.gp.experts_file is None:
+        raise MissionError(f"gp.experts_file: mode {mode!r} in an agent process needs trained experts")
+    from flightstack.training import load_experts
+
+    return load_experts(mission.resolve(mission.gp.experts_file))  # type: ignore[return-value]
+
+
+def cmd_agent(args: argparse.Namespace) -> int:
+    from flightstack.comms.factory import make_bus
+    from flightstack.recording import Recording
+    from flightstack.runner import run_mode
+
+    mission = _zenoh_mission(args.mission)
+    ids = [d.id for d in mission.drones]
+    if args.id not in ids:
+        print(f"error: --id {args.id}: the mission's drones are {ids}", file=sys.stderr)
+        return 2
+    mode = args.mode or mission.compare_modes[-1]
+    predictors = _predictors(mission, mode)
+    assert mission.bus.zenoh is not None
+    bus = make_bus(mission, str(args.id), {args.id})
+    backend: Any = None
+    rec: Recording | None = None
+    try:
+        if mission.simulated:
+            from flightstack.comms.world_client import RemoteBackend
+
+            backend = RemoteBackend(
+                bus.session,  # type: ignore[attr-defined]
+                mission.bus.zenoh.key_prefix,
+                mission.name,
+                args.id,
+                timeout_s=mission.bus.zenoh.start_timeout_s,
+            )
+        else:
+            from drivers.hardware import HardwareBackend
+
+            backend = HardwareBackend(mission, drone_ids=[args.id])
+        rec = run_mode(mission, mode, predictors, backend=backend, bus=bus, agent_ids=[args.id])
+    finally:
+        if backend is not None and hasattr(backend, "disconnect"):
+            backend.disconnect()
+        bus.close()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rec.save(str(out / f"timeseries_{mode}.npz"))
+    with open(out / "events.jsonl", "w", encoding="utf-8") as f:
+        for e in rec.events:
+            f.write(json.dumps(e, default=str) + "\n")
+    (out / "summary.json").write_text(
+        json.dumps(
+            {
+                "drone": args.id,
+                "mode": mode,
+                "ticks": rec.ticks_done,
+                "interrupted": rec.interrupted,
+                "error": rec.error,
+                "bus_dropped": rec.bus_dropped,
+            },
+            indent=2,
+        )
+    )
+    print(f"agent {args.id}: {rec.ticks_done} ticks of mode {mode}; recording in {out}", flush=True)
+    if rec.interrupted:
+        return 130
+    if rec.error:
+        print(f"agent {args.id}: {rec.error}; its drone landed", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_abort(args: argparse.Namespace) -> int:
+    from flightstack.comms.factory import make_bus
+
+    mission = _zenoh_mission(args.mission)
+    bus = make_bus(mission, "operator", set())
+    try:
+        ids = {d.id for d in mission.drones}
+        missing = bus.wait_alive(ids, args.wait)  # type: ignore[attr-defined]
+        present = sorted(ids - missing)
+        bus.publish_control("abort", {"reason": args.reason})  # type: ignore[attr-defined]
+        time.sleep(0.3)  # let the express message leave before the session closes
+    finally:
+        bus.close()
+    print(f"abort sent to mission {mission.name}: agents present {present}, absent {sorted(missing)}")
+    return 0 if present else 1
+
+
+def status_table(statuses: dict[int, dict[str, Any]], alive: set[int], ids: list[int], now: float) -> str:
+    head = f"{'drone':>5}  {'alive':5}  {'age s':>6}  {'mode':6}  {'t s':>8}  {'batt %':>6}  {'flying':6}  "
+    head += f"{'seen':5}  {'fused':>5}  {'pose':5}  problems"
+    lines = [head]
+    for i in ids:
+        s = statuses.get(i)
+        if s is None:
+            lines.append(f"{i:>5}  {'yes' if i in alive else 'no':5}  {'-':>6}  (no status yet)")
+            continue
+        age = now - s["_received"]
+        problems = [p for p in (s.get("rejection"),) if p]
+        if not s.get("link_alive", True):
+            problems.append("link lost")
+        if s.get("dropped"):
+            problems.append("dropped " + ", ".join(f"{k}: {v}" for k, v in s["dropped"].items()))
+        lines.append(
+            f"{i:>5}  {'yes' if i in alive else 'no':5}  {age:6.1f}  {s.get('mode', '?'):6}  "
+            f"{s.get('t', math.nan):8.2f}  {s.get('battery_pct', math.nan):6.0f}  "
+            f"{'yes' if s.get('flying') else 'no':6}  {'yes' if s.get('visible') else 'no':5}  "
+            f"{s.get('n_fused', 0):5d}  {'ok' if s.get('pose_fresh', True) else 'LOST':5}  "
+            f"{'; '.join(problems)}"
+        )
+    return "\n".join(lines)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from flightstack.comms.factory import make_bus
+
+    mission = _zenoh_mission(args.mission)
+    ids = [d.id for d in mission.drones]
+    bus = make_bus(mission, "operator", set())
+    statuses: dict[int, dict[str, Any]] = {}
+    live = sys.stdout.isatty() and not args.once
+    t_end = time.monotonic() + (args.wait if args.once else args.duration)
+    try:
+        while True:
+            for ev in bus.control_events():  # type: ignore[attr-defined]
+                if ev.kind == "status" and isinstance(ev.payload.get("drone"), int):
+                    statuses[ev.payload["drone"]] = {**ev.payload, "_received": ev.time}
+            now = time.monotonic()
+            done = now >= t_end or (args.once and all(i in statuses for i in ids))
+            if done or not args.once:
+                table = status_table(statuses, bus.alive(), ids, now)  # type: ignore[attr-defined]
+                print(("\x1b[2J\x1b[H" if live else "") + table, flush=True)
+            if done:
+                break
+            time.sleep(0.2 if args.once else 1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        bus.close()
+    return 0 if statuses else 1
+
+
+def register(sub: Any) -> None:
+    w = sub.add_parser("world", help="serve a simulated mission's world to agent processes over Zenoh")
+    w.add_argument("mission")
+    w.set_defaults(func=cmd_world)
+    a = sub.add_parser(
+        "agent", help="run one agent (its drone, camera, pose) talking to the others over Zenoh"
+    )
+    a.add_argument("mission")
+    a.add_argument("--id", type=int, required=True, help="the drone id this process flies")
+    a.add_argument("--mode", default=None, help="none | local | dgp (default: the last of compare_modes)")
+    a.add_argument("--out", required=True, help="directory for this agent's recording")
+    a.set_defaults(func=cmd_agent)
+    ab = sub.add_parser("abort", help="make every agent of a mission land at once")
+    ab.add_argument("mission")
+    ab.add_argument("--reason", default="operator abort")
+    ab.add_argument("--wait", type=float, default=2.0, help="how long to look for agents first (s)")
+    ab.set_defaults(func=cmd_abort)
+    st = sub.add_parser("status", help="live table of every agent: liveliness, message age, battery, ...")
+    st.add_argument("mission")
+    st.add_argument("--once", action="store_true", help="print one table when every agent reported, exit")
+    st.add_argument("--wait", type=float, default=3.0, help="with --once: longest wait for reports (s)")
+    st.add_argument("--duration", type=float, default=math.inf, help="stop after this long (s)")
+    st.set_defaults(func=cmd_status)

@@ -1,0 +1,227 @@
+"""`flightstack world MISSION`: the simulated world served over Zenoh to agent processes (issue 6).
+
+One process owns the simulated backend (sim_ideal or sim_lab) and is the clock master; each agent
+process (`flightstack agent MISSION --id N`) sees its own drone, camera and motion-capture pose through
+`flightstack.comms.world_client.RemoteBackend`. Tick k (flightstack/comms/world_messages.py):
+  1. the world sends every present agent its tick (state, poses, frame, truth) at mission time t_k;
+  2. it waits (at most `bus.zenoh.lockstep_timeout_s`) until every present agent has sent its cmd of
+     tick k — agents that left the bus (liveliness) are not waited for;
+  3. it applies the received hal.Drone calls in order, drives the target (square law on sim_lab, as
+     `runner.TargetDriver`), and advances the world to t_k + dt.
+An agent that leaves (killed, or finished) has its drone landed by the world: the stand-in for a
+ground-station safety net. (On hardware a Tello whose agent was killed holds its last rc command until
+its own 15 s auto-land: README, "Agents in separate processes".) The world ends when every agent has
+left, or after the mission's duration plus takeoff and landing allowances, and lands every drone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from flightstack.backends import build_backend
+from flightstack.comms import world_messages as wm
+from flightstack.comms.factory import make_bus
+from flightstack.mission import Mission
+from flightstack.runner import LAND_TIMEOUT_S, TAKEOFF_TIMEOUT_S, TargetDriver
+
+
+@dataclass
+class WorldSummary:
+    ticks: int = 0
+    sim_seconds: float = 0.0
+    wall_seconds: float = 0.0
+    events: list[str] = field(default_factory=list)
+    dropped: dict[str, int] = field(default_factory=dict)
+    landed: dict[int, bool] = field(default_factory=dict)
+
+
+def _pose_row(sp: Any) -> list[float] | None:
+    if sp is None:
+        return None
+    return [float(sp.stamp), *(float(v) for v in sp.pose.as_vector())]
+
+
+def _frame(frame: Any) -> tuple[dict[str, Any] | None, Any]:
+    if frame is None:
+        return None, None
+    image = frame.image
+    head = {
+        "stamp": float(frame.stamp),
+        "features": None if frame.features is None else [float(x) for x in frame.features],
+        "image": None if image is None else [int(image.shape[0]), int(image.shape[1])],
+    }
+    return head, image
+
+
+class WorldServer:
+    def __init__(self, mission: Mission, log: Callable[[str], None] = print) -> None:
+        if not mission.simulated:
+            raise ValueError(f"backend {mission.backend!r} is real hardware: there is no world to serve")
+        if mission.bus.kind != "zenoh" or mission.bus.zenoh is None:
+            raise ValueError("bus.kind: serving the world needs the zenoh bus (bus.zenoh.endpoints)")
+        self.mission = mission
+        self.log = log
+        self.z = mission.bus.zenoh
+        self.ids = [d.id for d in mission.drones]
+        self.backend = build_backend(mission)
+        self.bus = make_bus(mission, "world", set())
+        session = self.bus.session  # type: ignore[attr-defined]
+        prefix, name = self.z.key_prefix, mission.name
+        self._pubs = {i: session.declare_publisher(wm.tick_key(prefix, name, i)) for i in self.ids}
+        self._cond = threading.Condition()
+        self._queued: dict[int, list[dict[str, Any]]] = defaultdict(list)
+        self._done_k: dict[int, int] = {i: -2 for i in self.ids}  # -1: hello (subscribed); k: cmd of tick k
+        self.summary = WorldSummary()
+        self._dropped = self.summary.dropped
+        self._sub = session.declare_subscriber(wm.cmd_key(prefix, name, "*"), self._on_cmd)
+        self._gone: set[int] = set()
+
+    def _on_cmd(self, sample: Any) -> None:
+        key = str(sample.key_expr)
+        header, reason = wm.decode_cmd(bytes(sample.payload.to_bytes()))
+        try:
+            sender = int(key.rsplit("/", 1)[1])
+        except ValueError:
+            sender = -1
+        with self._cond:
+            if header is None or sender not in self._done_k:
+                r = reason or "unknown sender"
+                self._dropped[r] = self._dropped.get(r, 0) + 1
+                return
+            self._queued[sender].append(header)
+            self._done_k[sender] = max(self._done_k[sender], header["k"])
+            self._cond.notify_all()
+
+    def _publish_ticks(self, k: int, t: float) -> None:
+        g_w0, g_wis = self.backend.truth()
+        poses = self.backend.pose_source()
+        for i in self.ids:
+            if i in self._gone:
+                continue
+            d = self.backend.drone(i)
+            st = d.state()
+            frame, image = _frame(self.backend.camera(i).latest())
+            header = {
+                "v": wm.VERSION,
+                "k": k,
+                "t": t,
+                "state": {
+                    "battery_pct": st.battery_pct,
+                    "height_m": st.height_m,
+                    "link_alive": st.link_alive,
+                    "flying": st.flying,
+                    "phase": getattr(d, "phase", "flying" if st.flying else "ground"),
+                },
+                "poses": {
+                    b: row for b in (f"drone{i}", "target") if (row := _pose_row(poses.latest(b))) is not None
+                },
+                "truth": {"target": g_w0.as_vector().tolist(), "drone": g_wis[i].as_vector().tolist()},
+                "frame": frame,
+            }
+            self._pubs[i].put(wm.pack(header, image))
+
+    def _wait_cmds(self, k: int, timeout_s: float | None = None) -> None:
+        timeout_s = self.z.lockstep_timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                alive = self.bus.alive()  # type: ignore[attr-defined]
+                waiting = [i for i in self.ids if i in alive and i not in self._gone and self._done_k[i] < k]
+                if not waiting:
+                    return
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    self.summary.events.append(f"tick {k}: no cmd from agents {waiting} (went on)")
+                    self.log(f"tick {k}: no cmd from agents {waiting} within {timeout_s:g} s")
+                    return
+                self._cond.wait(min(remaining, 0.01))  # also re-checks liveliness
+
+    def _apply(self) -> None:
+        with self._cond:
+            queued = {i: q for i, q in self._queued.items() if q}
+            self._queued = defaultdict(list)
+        for i in self.ids:
+            d = self.backend.drone(i)
+            for header in queued.get(i, []):
+                for call in header["calls"]:
+                    name = call[0]
+                    if name == "send_body_velocity":
+                        d.send_body_velocity(np.array(call[1], dtype=float))
+                    elif name != "close":
+                        getattr(d, name)()
+
+    def _handle_departures(self, t: float) -> None:
+        alive = self.bus.alive()  # type: ignore[attr-defined]
+        for i in self.ids:
+            if i not in alive and i not in self._gone:
+                self._gone.add(i)
+                d = self.backend.drone(i)
+                self.summary.events.append(f"t = {t:.3f} s: agent {i} left the bus; its drone lands")
+                self.log(f"agent {i} left at t = {t:.3f} s: landing drone {i}")
+                d.send_body_velocity(np.zeros(4))
+                if d.state().flying or getattr(d, "phase", "ground") != "ground":
+                    d.land()
+
+    def run(self) -> WorldSummary:
+        m = self.mission
+        wall0 = time.perf_counter()
+        clock = self.backend.clock
+        missing = self.bus.wait_alive(set(self.ids), self.z.start_timeout_s)  # type: ignore[attr-defined]
+        if missing:
+            raise RuntimeError(f"agents {sorted(missing)} did not join within {self.z.start_timeout_s:g} s")
+        self._wait_cmds(-1, self.z.start_timeout_s)  # every agent subscribed to its ticks
+        self.log(f"serving {m.name}: agents {self.ids} present")
+        target = TargetDriver(m, self.backend) if m.target.motion == "square" else None
+        t_target0: float | None = None
+        dt = m.dt_s
+        max_ticks = round((m.duration_s + TAKEOFF_TIMEOUT_S + 2 * LAND_TIMEOUT_S) / dt)
+        k = 0
+        try:
+            while k < max_ticks:
+                t = clock.now()
+                self._publish_ticks(k, t)
+                self._wait_cmds(k)
+                self._apply()
+                self._handle_departures(t)
+                if len(self._gone) == len(self.ids):
+                    break
+                if target is not None:
+                    if t_target0 is None and all(self.backend.drone(i).state().flying for i in self.ids):
+                        t_target0 = t
+                    if t_target0 is not None:
+                        target.tick(t - t_target0)
+                clock.sleep_until(t + dt)
+                k += 1
+                if k % max(1, round(1.0 / dt)) == 0:  # once per simulated second
+                    self.log(f"tick {k} t = {clock.now():.2f} s")
+        finally:
+            self._land_all(dt)
+            self.summary.ticks = k
+            self.summary.sim_seconds = clock.now()
+            self.summary.wall_seconds = time.perf_counter() - wall0
+            self._close()
+        return self.summary
+
+    def _land_all(self, dt: float) -> None:
+        clock = self.backend.clock
+        self.backend.close()  # lands every drone, stops the robot
+        t_end = clock.now() + LAND_TIMEOUT_S
+        drones = [self.backend.drone(i) for i in self.ids]
+        while clock.now() < t_end and any(getattr(d, "phase", "ground") != "ground" for d in drones):
+            clock.sleep_until(clock.now() + dt)
+        for i, d in zip(self.ids, drones, strict=True):
+            self.summary.landed[i] = getattr(d, "phase", "ground") == "ground"
+
+    def _close(self) -> None:
+        for obj in (self._sub, *self._pubs.values()):
+            with contextlib.suppress(Exception):
+                obj.undeclare()
+        self.bus.close()
