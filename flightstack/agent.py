@@ -69,6 +69,7 @@ class TickRecord:
     u_e: np.ndarray = field(default_factory=lambda: np.zeros(4))
     V_cmd: np.ndarray = field(default_factory=lambda: np.zeros(4))
     n_fused: int = 0
+    neighbours_used: tuple[int, ...] = ()  # neighbours whose fresh message entered consensus (and fusion)
     rejection: str | None = None  # why the image gave no features (None: seen, or no image)
     own_pose_fresh: bool = True  # False: motion capture lost the drone; it hovers (V = 0) this tick
 
@@ -169,6 +170,7 @@ class Agent:
             m = self.bus.latest(j, t, cfg.stale_after)
             if m is not None:
                 msgs.append(m)
+        rec.neighbours_used = tuple(m.sender for m in msgs)
         c_i = consensus_term(self.g_bar_w, [Pose.from_vector(m.g_bar_w) for m in msgs])
         if cfg.mode == "dgp":
             mus = np.vstack([rec.mu_own, *[m.mu for m in msgs]])

@@ -81,6 +81,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
                 mission.name,
                 args.id,
                 timeout_s=mission.bus.zenoh.start_timeout_s,
+                tick_timeout_s=max(5.0, 2.0 * mission.bus.zenoh.lockstep_timeout_s),
             )
         else:
             from drivers.hardware import HardwareBackend
@@ -114,7 +115,9 @@ def cmd_agent(args: argparse.Namespace) -> int:
     if rec.interrupted:
         return 130
     if rec.error:
-        print(f"agent {args.id}: {rec.error}; its drone landed", file=sys.stderr)
+        landed = any(e.get("event") == "landed" and e.get("drone") == args.id for e in rec.events)
+        what = "its drone landed" if landed else "landing requested, not confirmed (no telemetry)"
+        print(f"agent {args.id}: {rec.error}; {what}", file=sys.stderr)
         return 1
     return 0
 

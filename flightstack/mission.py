@@ -343,7 +343,9 @@ class ZenohSpec(_Strict):
     to agent processes). Operator tools (`abort`, `status`) only connect.
     `lease_ms`: a hung peer is declared gone after this (a killed one at once, its TCP links close).
     `lockstep_timeout_s`: on a simulated clock, how long phase 2 waits for a neighbour's message of the
-    same tick. `start_timeout_s`: how long every participant waits for the others to appear."""
+    same tick. `start_timeout_s`: how long every participant waits for the others to appear.
+    `tls`: zenoh's transport/link/tls keys (certificate paths, enable_mtls); `access_control`: zenoh's
+    ACL section (rules, subjects, policies), both checked by zenoh when the session opens."""
 
     endpoints: dict[str, str] = Field(min_length=1)
     lease_ms: int = Field(default=500, ge=100, le=60000)
@@ -351,6 +353,7 @@ class ZenohSpec(_Strict):
     start_timeout_s: Positive = 15.0
     key_prefix: str = Field(default="flightstack", pattern=r"^[A-Za-z0-9_\-]+$")
     tls: dict[str, str | bool] | None = None
+    access_control: dict[str, object] | None = None  # zenoh's `access_control` section, passed as is
 
     @field_validator("endpoints")
     @classmethod

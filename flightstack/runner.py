@@ -174,6 +174,7 @@ def run_mode(
     n_ticks = round(mission.duration_s / dt)
     rec = Recording.empty(mode, ids, n_ticks)
     rejections: dict[int, Counter[str]] = {i: Counter() for i in ids}
+    neighbours_used: dict[int, set[int]] = {i: set() for i in ids}
     wall0 = time.perf_counter()
     reason = "mission complete"
     status = StatusPublisher(bus, mode)
@@ -236,6 +237,20 @@ def run_mode(
                 rec.visible[k, i] = last.visible
                 if last.rejection:
                     rejections[a.cfg.drone_id][last.rejection] += 1
+                used = set(last.neighbours_used)
+                if used != neighbours_used[a.cfg.drone_id]:  # a neighbour left or rejoined fusion/consensus
+                    prev = neighbours_used[a.cfg.drone_id]
+                    rec.events.append(
+                        {
+                            "t": t,
+                            "event": "neighbours",
+                            "drone": a.cfg.drone_id,
+                            "dropped": sorted(prev - used),
+                            "added": sorted(used - prev),
+                            "mode": mode,
+                        }
+                    )
+                    neighbours_used[a.cfg.drone_id] = used
                 if not last.own_pose_fresh:
                     rejections[a.cfg.drone_id]["own pose lost (hovered)"] += 1
                 rec.n_fused[k, i] = last.n_fused

@@ -7,6 +7,7 @@ tools, which only connect. Each participant listens on its own endpoint and conn
 
 from __future__ import annotations
 
+import json
 from typing import TYPE_CHECKING
 
 from flightstack.comms.bus import Bus, InProcBus
@@ -33,6 +34,7 @@ def zenoh_bus_config(mission: Mission, participant: str, self_ids: set[int]) -> 
         lease_ms=z.lease_ms,
         key_prefix=z.key_prefix,
         tls=dict(z.tls) if z.tls else None,
+        extra_json5={} if z.access_control is None else {"access_control": json.dumps(z.access_control)},
     )
 
 

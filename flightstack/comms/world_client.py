@@ -126,18 +126,30 @@ class _Link:
 
 
 class RemoteClock:
+    """Mission time of the newest tick. Once the world is lost (WorldLostError raised once), time runs on
+    locally: `sleep_until(t)` returns at once with now() = t, so the runner's bounded landing loops end
+    (the world, if it still runs, lands a drone whose agent left)."""
+
     def __init__(self, link: _Link) -> None:
         self.link = link
+        self.lost_at: float | None = None
 
     def now(self) -> float:
-        return float(self.link.tick()["t"])
+        return float(self.link.tick()["t"]) if self.lost_at is None else self.lost_at
 
     def sleep_until(self, t: float) -> None:
         """Send this tick's cmd (always, even when the world is already past t), then follow the ticks
         until their time reaches t."""
+        if self.lost_at is not None:
+            self.lost_at = max(self.lost_at, t)
+            return
         self.link.send()
-        while self.now() < t - 1e-12:
-            self.link.step()
+        try:
+            while self.now() < t - 1e-12:
+                self.link.step()
+        except WorldLostError:
+            self.lost_at = self.now()
+            raise
 
 
 class RemoteDrone:
@@ -209,11 +221,19 @@ class RemoteBackend:
     simulated = True
 
     def __init__(
-        self, session: Any, prefix: str, mission: str, drone_id: int, timeout_s: float = 10.0
+        self,
+        session: Any,
+        prefix: str,
+        mission: str,
+        drone_id: int,
+        timeout_s: float = 10.0,
+        tick_timeout_s: float = 5.0,
     ) -> None:
+        """timeout_s: wait for the world's first tick (s); tick_timeout_s: for every later tick (s)."""
         self.drone_id = drone_id
         self.link = _Link(session, prefix, mission, drone_id, timeout_s)
         self.link.wait_first()
+        self.link.timeout_s = tick_timeout_s  # after the first tick: how long a missing tick may take
         self.clock = RemoteClock(self.link)
         self._drone = RemoteDrone(self.link)
         self._camera = RemoteCamera(self.link)
