@@ -308,8 +308,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     register_calibration(cal_sub)
     from flightstack.cli_network import register as register_network
+    from flightstack.faults.cli import register as register_faults
 
     register_network(sub)
+    register_faults(sub)
     v = sub.add_parser("validate", help="check a mission file and print the resolved mission")
     v.add_argument("mission")
     v.set_defaults(func=cmd_validate)

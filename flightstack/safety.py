@@ -10,8 +10,9 @@
     - a stale-pose rule: pose stamp older than `pose_timeout` s -> hover, older than `pose_land_after` s
       -> land (both ages are measured from the last valid pose stamp, by the mission clock);
     - battery: takeoff refused below `min_battery_takeoff` %, land in flight below `land_battery` %.
-    - link: the drone reports `link_alive=False` in flight (its telemetry stopped) -> land, retried on
-      every tick until the drone accepts it (a Tello that hears nothing also auto-lands after 15 s).
+    - link: the drone reported `link_alive` in flight and now reports it False (its telemetry stopped)
+      -> land, retried on every tick until the drone accepts it (a Tello that hears nothing for 15 s also
+      lands by itself).
 `MissionSupervisor` adds the mission-wide rules: hover when every drone has lost the target for longer
 than `target_lost_hover_after` s, land every drone (robust to a failing drone), on Ctrl-C / SIGTERM and on
 any exception leaving a guarded block.
@@ -413,6 +414,7 @@ class SafeDrone:
         self._last_command_t = now
         self._last_pose: StampedPose | None = None
         self._floor_armed = False
+        self._link_seen = False  # the drone reported link_alive since its activation
         self._abort_reason: str | None = None
         self._land_reason = ""  # why the pending land was asked for (shown by its retries)
         self._inner_thread: int | None = None
@@ -572,6 +574,8 @@ class SafeDrone:
             if self._abort_reason is not None and self._phase is _Phase.FLYING:
                 self._do_land(now, self._abort_reason)
             if self._phase is _Phase.LAND_PENDING:
+                if self._land_reason == "link_lost" and not self._link_up():
+                    return  # nothing can answer a land now; retried when the link is back
                 self._do_land(now, f"retry ({self._land_reason})", retry=True)
                 return
             if self._phase is not _Phase.FLYING:
@@ -588,8 +592,12 @@ class SafeDrone:
                 self._event_once(now, "drone_error", f"state() raised {type(exc).__name__}: {exc}")
             else:
                 self._end("drone_error")
-                if not link_alive:
-                    self._safety_land(now, "link_lost", "the drone reports its link lost: land")
+                if link_alive:
+                    self._link_seen = True
+                elif self._link_seen:  # up since takeoff, now down (a link never up is not "lost")
+                    # land is sent once the link is back: unanswered, it would block a driver for seconds
+                    self._event_once(now, "link_lost", "drone reports its link lost: land when it answers")
+                    self._phase, self._land_reason = _Phase.LAND_PENDING, "link_lost"
                     return
                 if battery < self.limits.land_battery:
                     self._safety_land(
@@ -611,6 +619,12 @@ class SafeDrone:
             return fn(*args)
         finally:
             self._inner_thread = prev
+
+    def _link_up(self) -> bool:
+        try:
+            return bool(self._call(self.inner.state).link_alive)
+        except Exception:
+            return False
 
     @staticmethod
     def _raw_copy(V: object) -> np.ndarray:
@@ -639,6 +653,7 @@ class SafeDrone:
         self._active_since = now
         self._last_command_t = now
         self._floor_armed = False
+        self._link_seen = False
 
     def _send(self, V: np.ndarray) -> None:
         out = np.array(V, dtype=float)
@@ -783,6 +798,7 @@ class MissionSupervisor:
             self._landing_depth += 1
             try:
                 pending = [(i, d) for i, d in self.drones.items() if not d.landed]
+                pending.sort(key=lambda p: p[1]._land_reason == "link_lost")  # unreachable ones last
                 if pending:
                     ids = [i for i, _ in pending]
                     self.log.record(self.clock.now(), None, "land_all", f"{reason}; landing drones {ids}")

@@ -1,0 +1,240 @@
+"""Fly one simulated mission mode under injected faults and judge safety and the recording.
+
+`fly_with_faults` loads the mission (shortened, mode `none` only, always on an in-process bus so that no
+traffic leaves the process), wraps its backend (and bus) with flightstack.faults.inject, runs
+`runner.run_mode`, writes the recording, events and metrics to the row's directory, and returns a `SimRun`.
+`judge_safety` and `judge_recording` turn a SimRun into the FaultResult's flags and problem lists.
+Times are mission-clock seconds; positions are in the world frame Σw (m).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from flightstack.backends import build_backend
+from flightstack.comms.bus import InProcBus
+from flightstack.faults.inject import FaultSpec, FaultyBackend, FaultyBus
+from flightstack.faults.result import Checks
+from flightstack.metrics import mode_metrics
+from flightstack.mission import Mission, load_mission
+from flightstack.recording import Recording
+from flightstack.runner import run_mode, safety_limits
+from flightstack.safety import outside_hard_fence, outside_soft_fence
+
+FINITE_FIELDS = (
+    "t",
+    "g_w0",
+    "g_wi",
+    "g_bar_w",
+    "e_c",
+    "e_e",
+    "e_e_meas",
+    "u_e",
+    "mu_used",
+    "var_own",
+    "V_cmd",
+)
+"""Recording arrays that must be finite on every recorded tick."""
+
+
+@dataclass
+class SimRun:
+    """One faulty flight: the mission flown, the wrapped backend and bus, the recording (None if run_mode
+    raised: then `crashed` holds the traceback's last line), wall seconds and the row's directory."""
+
+    mission: Mission
+    backend: FaultyBackend
+    bus: Any
+    rec: Recording | None
+    crashed: str | None
+    seconds: float
+    run_dir: Path
+    n_ticks: int
+    write_problems: list[str] = field(default_factory=list)
+
+    def events(self, kind: str | None = None, drone: int | None = None) -> list[dict[str, Any]]:
+        """Safety events of the run (of one kind / one drone), oldest first."""
+        evs = [] if self.rec is None else [e for e in self.rec.events if e.get("event") == "safety"]
+        evs = [e for e in evs if kind is None or e["kind"] == kind]
+        return [e for e in evs if drone is None or e.get("drone") == drone]
+
+    def first(self, kind: str, drone: int | None = None) -> dict[str, Any] | None:
+        evs = self.events(kind, drone)
+        return evs[0] if evs else None
+
+    @property
+    def pursuit_start(self) -> float:
+        """Mission-clock time of the first recorded tick (s), NaN without ticks."""
+        return float(self.rec.t[0]) if self.rec is not None and self.rec.ticks_done else float("nan")
+
+    @property
+    def pursuit_end(self) -> float:
+        """Mission-clock time at which the run ended (the `end` event), NaN if absent."""
+        for e in [] if self.rec is None else self.rec.events:
+            if e.get("event") == "end":
+                return float(e["t"])
+        return float("nan")
+
+
+def load_fault_mission(
+    mission_path: Path, duration_s: float, safety: dict[str, Any] | None = None
+) -> Mission:
+    """The mission with `duration_s` of pursuit, mode `none` only, and `safety` keys replaced."""
+    overrides: dict[str, Any] = {"duration_s": duration_s, "compare_modes": ["none"]}
+    if safety:
+        data = yaml.safe_load(Path(mission_path).read_text(encoding="utf-8"))
+        overrides["safety"] = {**(data.get("safety") or {}), **safety}
+    return load_mission(mission_path, overrides)
+
+
+def fly_with_faults(
+    mission_path: Path,
+    run_dir: Path,
+    spec: FaultSpec,
+    *,
+    duration_s: float,
+    safety: dict[str, Any] | None = None,
+    bus_faults: dict[str, Any] | None = None,
+) -> SimRun:
+    """Fly mode `none` of the mission for duration_s (s) of pursuit with the faults of `spec` and
+    `bus_faults` (keyword arguments of FaultyBus); write the run to run_dir. Never raises for a failure
+    of the run itself (that is `SimRun.crashed`)."""
+    wall0 = time.perf_counter()
+    mission = load_fault_mission(mission_path, duration_s, safety)
+    ids = [d.id for d in mission.drones]
+    backend = FaultyBackend(build_backend(mission), spec, ids)
+    inner_bus = InProcBus(mission.name, set(ids))
+    bus = FaultyBus(inner_bus, **bus_faults) if bus_faults else inner_bus
+    rec: Recording | None = None
+    crashed: str | None = None
+    try:
+        rec = run_mode(mission, "none", backend=backend, bus=bus)
+    except Exception as exc:  # the runner must not let anything escape: this is the finding
+        crashed = f"{type(exc).__name__}: {exc} ({traceback.format_exc(limit=-1).strip().splitlines()[-2]})"
+    run = SimRun(
+        mission,
+        backend,
+        bus,
+        rec,
+        crashed,
+        0.0,
+        run_dir,
+        round(mission.duration_s / mission.dt_s),
+    )
+    if rec is not None:
+        run.write_problems = write_run(run_dir, mission, rec)
+    run.seconds = time.perf_counter() - wall0
+    return run
+
+
+def write_run(run_dir: Path, mission: Mission, rec: Recording) -> list[str]:
+    """timeseries_none.npz, events.jsonl and metrics.json (strict JSON); the problems met doing so."""
+    problems = []
+    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        rec.save(str(run_dir / f"timeseries_{rec.mode}.npz"))
+        with (run_dir / "events.jsonl").open("w") as fh:
+            for ev in rec.events:
+                fh.write(json.dumps(ev, allow_nan=False) + "\n")
+        metrics = mode_metrics(rec, mission)
+        (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
+    except Exception as exc:
+        problems.append(f"writing the run failed: {type(exc).__name__}: {exc}")
+    return problems
+
+
+def judge_safety(run: SimRun) -> list[str]:
+    """Problems with the drones' safety (empty: safe): every drone landed or hovering inside the soft
+    fence at the end (backend truth and simulator phase), none `NOT LANDED`, none ever beyond the hard fence
+    (true poses of every recorded tick; the floor is not checked: landing is below it)."""
+    c = Checks()
+    limits = safety_limits(run.mission)
+    _, poses = run.backend.truth()
+    for i in run.backend.ids:
+        inner = run.backend.drone(i).inner
+        phase = str(getattr(inner, "phase", "ground" if not inner.state().flying else "flying"))
+        p = np.round(poses[i].p, 3).tolist()
+        landed = phase == "ground" and poses[i].p[2] <= 0.05
+        hovering = phase == "flying" and not outside_soft_fence(poses[i].p, limits)
+        c.check(landed or hovering, f"drone {i} ended {phase} at {p}")
+    if run.rec is not None:
+        bad = [e for e in run.rec.events if e.get("event") == "NOT LANDED"]
+        c.check(not bad, f"NOT LANDED events: {bad}")
+        k = run.rec.ticks_done
+        for j, i in enumerate(run.rec.drone_ids):
+            out = [outside_hard_fence(p, limits, check_floor=False) for p in run.rec.g_wi[:k, j, :3]]
+            n_out = sum(1 for f in out if f)
+            c.check(n_out == 0, f"drone {i} beyond the hard fence on {n_out} ticks")
+    return c.failed
+
+
+def judge_recording(run: SimRun, expect_ticks: int | None = None, expect_error: bool = False) -> list[str]:
+    """Problems with the recording (empty: complete). expect_ticks: ticks that must have been flown
+    (default: the whole mission); expect_error: the run is meant to end with `rec.error` set."""
+    c = Checks()
+    rec = run.rec
+    if not c.check(rec is not None, "no recording returned"):
+        return c.failed
+    assert rec is not None
+    c.failed.extend(run.write_problems)
+    want = run.n_ticks if expect_ticks is None else expect_ticks
+    k = rec.ticks_done
+    c.check(k == want, f"{k} ticks recorded, {want} expected")
+    c.check(not rec.interrupted, "recording marked interrupted")
+    c.check(bool(rec.error) == expect_error, f"run error: {rec.error!r}")
+    for name in FINITE_FIELDS:
+        arr = getattr(rec, name)
+        c.check(arr.shape[0] == k, f"{name} has {arr.shape[0]} rows for {k} ticks")
+        c.check(bool(np.all(np.isfinite(arr[:k]))), f"{name} not finite")
+    if k > 1:
+        steps = np.diff(rec.t[:k])
+        c.check(bool(np.allclose(steps, run.mission.dt_s, rtol=1e-6)), "tick times are not every dt")
+    ends = [e for e in rec.events if e.get("event") == "end"]
+    c.check(len(ends) == 1, f"{len(ends)} end events")
+    for i in rec.drone_ids:
+        fates = [e for e in rec.events if e.get("drone") == i and e.get("event") in ("landed", "NOT LANDED")]
+        c.check(len(fates) == 1, f"drone {i}: {len(fates)} landed/NOT LANDED events")
+    path = run.run_dir / f"timeseries_{rec.mode}.npz"
+    if c.check(path.is_file(), f"{path.name} not written"):
+        back = Recording.load(str(path))
+        c.check(back.ticks_done == k, f"saved recording has {back.ticks_done} ticks, flown {k}")
+        same = all(np.array_equal(getattr(back, f), getattr(rec, f)[:k]) for f in FINITE_FIELDS)
+        c.check(same, "saved recording differs from the flown one")
+    n_lines = len((run.run_dir / "events.jsonl").read_text().splitlines()) if run.run_dir.is_dir() else 0
+    c.check(n_lines == len(rec.events), f"events.jsonl has {n_lines} lines for {len(rec.events)} events")
+    return c.failed
+
+
+ROUTINE = frozenset({"takeoff", "command_after_land"})
+
+
+def event_story(run: SimRun, skip: frozenset[str] = ROUTINE) -> str:
+    """The safety events after pursuit start as 'kind d1 @t' in time order (the mission-complete landing
+    and the command watchdog during takeoff left out), then how the run ended."""
+    t0, t_end = run.pursuit_start, run.pursuit_end
+    parts = []
+    for e in run.events():
+        if e["kind"] in skip or e["t"] < t0 - 1e-9:
+            continue
+        if e["t"] >= t_end - 1e-9 and "mission complete" in str(e.get("detail", "")):
+            continue
+        who = "" if e.get("drone") is None else f"d{e['drone']} "
+        why = f"({e['detail']})" if e["kind"] == "land" and str(e.get("detail")).startswith("retry") else ""
+        parts.append(f"{who}{e['kind']}{why} @{e['t']:.2f}")
+    ends = [e for e in (run.rec.events if run.rec else []) if e.get("event") == "end"]
+    reason = str(ends[0]["reason"]) if ends else "?"
+    story = " → ".join(parts) if parts else "no safety event"
+    return f"{story}; end @{t_end:.2f}: {reason}"
+
+
+def landed_before_end(run: SimRun, drone: int) -> bool:
+    """True if the drone's land was accepted before the end of the mission (s)."""
+    return any(e["t"] < run.pursuit_end - 1e-9 for e in run.events("land", drone))

@@ -1,0 +1,258 @@
+"""The rows of `flightstack faults` with agents in separate processes over Zenoh (loopback): one agent
+process killed, and a bus partition (an agent unreachable without closing its links).
+
+Both fly the paper simulation (3 agents, `mission_configs/paper_sim.yaml` at dt = 10 ms, mode dgp with
+fixed GP experts) served by `flightstack world`, one `flightstack agent` process per drone. The lab
+mission is not used here: serving it would stream 960×720 camera frames through Zenoh every tick.
+Wall-clock times (time.time(), shared by the processes) measure how fast the survivors react.
+"""
+
+from __future__ import annotations
+
+import queue
+import signal
+import socket
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from flightstack.faults.result import Checks, FaultResult, FaultRow
+from flightstack.faults.rows_cli import REPO, cli_command, cli_env
+
+PAPER_SIM = REPO / "mission_configs" / "paper_sim.yaml"
+IDS = (1, 2, 3)
+PROCESS_TIMEOUT_S = 90.0
+DROP_WITHIN_S = 1.0  # issue 6: the others drop a dead agent from fusion within 1 s
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def served_mission(workdir: Path, duration_s: float, name: str = "dry_run") -> Path:
+    """paper_sim over Zenoh on loopback (world + one endpoint per agent, free ports), dt = 10 ms, with
+    one fixed GP expert per drone fitted to its own samples of the paper's target field."""
+    from flightstack.gp import GPExpert, GPHyperparameters
+    from flightstack.target_motion import DuffingParams, duffing_body_velocity_batch
+    from flightstack.training import save_experts
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    m = yaml.safe_load(PAPER_SIM.read_text())
+    m["name"] = name
+    m["duration_s"] = duration_s
+    m["dt_s"] = 0.01
+    endpoints = {"world": f"tcp/127.0.0.1:{free_tcp_port()}"}
+    endpoints.update({str(d["id"]): f"tcp/127.0.0.1:{free_tcp_port()}" for d in m["drones"]})
+    m["bus"] = {"kind": "zenoh", "stale_after_s": 0.5, "zenoh": {"endpoints": endpoints, "lease_ms": 500}}
+    experts = {}
+    for k, d in enumerate(m["drones"]):
+        rng = np.random.default_rng(k)
+        X = np.column_stack([rng.uniform(-1.5, 1.5, (40, 2)), np.zeros(40), rng.uniform(-np.pi, np.pi, 40)])
+        Y = duffing_body_velocity_batch(X, DuffingParams()) + 0.05 * rng.normal(size=(40, 4))
+        hyper = GPHyperparameters(np.full(4, 0.5), np.full((4, 4), 1.0), np.full(4, 0.01))
+        experts[d["id"]] = GPExpert.from_hyperparameters(X, Y, hyper)
+    save_experts(workdir / "experts.npz", experts)
+    m["gp"]["experts_file"] = str(workdir / "experts.npz")
+    path = workdir / "mission.yaml"
+    path.write_text(yaml.safe_dump(m))
+    return path
+
+
+class Lines:
+    """A process's output lines, read on a thread, so a caller can wait for one with a timeout."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        self.q: queue.Queue[str] = queue.Queue()
+        self.seen: list[str] = []
+        threading.Thread(target=self._read, args=(proc,), daemon=True).start()
+
+    def _read(self, proc: subprocess.Popen[str]) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            self.q.put(line)
+
+    def wait_for(self, text: str, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                line = self.q.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            self.seen.append(line)
+            if text in line:
+                return True
+        return False
+
+    def rest(self, timeout: float = 2.0) -> str:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                self.seen.append(self.q.get(timeout=0.05))
+            except queue.Empty:
+                break
+        return "".join(self.seen)
+
+
+def popen(*args: str) -> subprocess.Popen[str]:
+    out, err = subprocess.PIPE, subprocess.STDOUT
+    return subprocess.Popen(cli_command(*args), cwd=REPO, env=cli_env(), stdout=out, stderr=err, text=True)
+
+
+class ServedRun:
+    """`flightstack world` + one `flightstack agent` per drone; everything killed on exit."""
+
+    def __init__(self, mission: Path, out: Path) -> None:
+        self.out = out
+        self.world = popen("world", str(mission))
+        self.world_lines = Lines(self.world)
+        self.agents = {
+            i: popen("agent", str(mission), "--id", str(i), "--mode", "dgp", "--out", str(out / f"agent{i}"))
+            for i in IDS
+        }
+        self.agent_lines = {i: Lines(p) for i, p in self.agents.items()}
+
+    def __enter__(self) -> ServedRun:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for p in [self.world, *self.agents.values()]:
+            if p.poll() is None:
+                if p.pid and _stopped(p.pid):
+                    p.send_signal(signal.SIGCONT)
+                p.kill()
+            p.wait(timeout=10)
+
+    def wait(self) -> tuple[dict[int, int | None], int | None]:
+        """Exit codes of the agents and the world (None: still running after the timeout)."""
+        deadline = time.monotonic() + PROCESS_TIMEOUT_S
+        codes: dict[int, int | None] = {}
+        for i, p in self.agents.items():
+            try:
+                codes[i] = p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                codes[i] = None
+        try:
+            world = self.world.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            world = None
+        return codes, world
+
+
+def _stopped(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] == "T"
+    except OSError:
+        return False
+
+
+def _survivor_checks(run: ServedRun, victim: int, t_fault: float, c: Checks) -> list[str]:
+    """Each surviving agent: full recording, finite, fused 3 before the fault and 2 from ≤ 1 s after."""
+    notes = []
+    for i in IDS:
+        if i == victim:
+            continue
+        path = run.out / f"agent{i}" / "timeseries_dgp.npz"
+        if not c.check(path.is_file(), f"agent {i} wrote no recording"):
+            continue
+        with np.load(path) as z:
+            n_fused, wall, t = z["n_fused"][:, 0], z["wall_t"], z["t"]
+            finite = all(np.all(np.isfinite(z[f])) for f in ("g_wi", "g_bar_w", "V_cmd", "mu_used"))
+        c.check(finite, f"agent {i}: non-finite values in its recording")
+        before = wall < t_fault
+        c.check(bool(np.all(n_fused[before] == 3)) and before.any(), f"agent {i} did not fuse 3 before")
+        dropped = np.flatnonzero(n_fused == 2)
+        if c.check(dropped.size > 0, f"agent {i} never dropped agent {victim}"):
+            delay = float(wall[dropped[0]] - t_fault)
+            c.check(delay < DROP_WITHIN_S, f"agent {i} dropped agent {victim} only {delay:.3f} s after")
+            notes.append(f"agent {i} dropped {victim} after {delay:.3f} s, flew {t.shape[0]} ticks")
+    return notes
+
+
+def _world_landed(out: str, c: Checks) -> bool:
+    ok = "1: landed, 2: landed, 3: landed" in out
+    c.check(ok, "the world did not report every drone landed")
+    return ok
+
+
+def agent_killed(mission_path: Path, workdir: Path) -> FaultResult:
+    """SIGKILL to agent 3 during pursuit."""
+    wall0 = time.perf_counter()
+    expected = (
+        "agent 3's liveliness token vanishes (TCP closed); agents 1, 2 drop it from fusion and consensus "
+        f"within {DROP_WITHIN_S:g} s and fly to the end; the world lands drone 3 at once"
+    )
+    c, crash = Checks(), Checks()
+    mission = served_mission(workdir, duration_s=8.0, name="fault_killed")
+    with ServedRun(mission, workdir) as run:
+        crash.check(run.world_lines.wait_for("tick 300", 60), "the served run never reached t = 3 s")
+        run.agents[3].send_signal(signal.SIGKILL)
+        t_fault = time.time()
+        codes, world = run.wait()
+        wout = run.world_lines.rest()
+    crash.check(codes[1] == 0 and codes[2] == 0, f"surviving agents exited {codes}")
+    crash.check(world == 0, f"world exited {world}")
+    c.check("agent 3 left" in wout, "the world never saw agent 3 leave")
+    notes = _survivor_checks(run, 3, t_fault, c)
+    safe = _world_landed(wout, c)
+    return FaultResult(
+        "agent_killed",
+        expected,
+        "; ".join([*notes, "world: agent 3 left → drone 3 landed" if "agent 3 left" in wout else "?"]),
+        all_safe=safe,
+        recording_complete=all((workdir / f"agent{i}" / "timeseries_dgp.npz").is_file() for i in (1, 2)),
+        crashed=not crash.ok,
+        seconds=time.perf_counter() - wall0,
+        reaction_ok=c.ok,
+        problems=[*c.failed, *crash.failed],
+    )
+
+
+def bus_partition(mission_path: Path, workdir: Path) -> FaultResult:
+    """Agent 3 unreachable for 3 s without closing its links (SIGSTOP, then SIGCONT): a partition."""
+    wall0 = time.perf_counter()
+    expected = (
+        "after the 0.5 s lease agents 1, 2 and the world see agent 3 gone: they drop it from fusion within "
+        f"{DROP_WITHIN_S:g} s and fly on; the world lands drone 3; agent 3, back, finds no world: it "
+        "lands (requested) and exits 1 with its partial recording"
+    )
+    c, crash = Checks(), Checks()
+    mission = served_mission(workdir, duration_s=8.0, name="fault_partition")
+    with ServedRun(mission, workdir) as run:
+        crash.check(run.world_lines.wait_for("tick 300", 60), "the served run never reached t = 3 s")
+        run.agents[3].send_signal(signal.SIGSTOP)
+        t_fault = time.time()
+        time.sleep(3.0)
+        run.agents[3].send_signal(signal.SIGCONT)
+        codes, world = run.wait()
+        wout = run.world_lines.rest()
+        aout = run.agent_lines[3].rest()
+    crash.check(codes[1] == 0 and codes[2] == 0, f"surviving agents exited {codes}")
+    crash.check(codes[3] == 1 and "Traceback" not in aout, f"agent 3 exited {codes[3]}: {aout[-300:]}")
+    crash.check(world == 0, f"world exited {world}")
+    c.check("agent 3 left" in wout, "the world never saw agent 3 leave")
+    c.check("WorldLostError" in aout, "agent 3 did not report the lost world")
+    notes = _survivor_checks(run, 3, t_fault, c)
+    safe = _world_landed(wout, c)
+    partial = run.out / "agent3" / "timeseries_dgp.npz"
+    c.check(partial.is_file(), "agent 3 wrote no partial recording")
+    return FaultResult(
+        "bus_partition",
+        expected,
+        "; ".join([*notes, "world: agent 3 left → drone 3 landed; agent 3: world lost, exit 1"]),
+        all_safe=safe,
+        recording_complete=partial.is_file()
+        and all((workdir / f"agent{i}" / "timeseries_dgp.npz").is_file() for i in (1, 2)),
+        crashed=not crash.ok,
+        seconds=time.perf_counter() - wall0,
+        reaction_ok=c.ok,
+        problems=[*c.failed, *crash.failed],
+    )
+
+
+ROWS: dict[str, FaultRow] = {"agent_killed": agent_killed, "bus_partition": bus_partition}
