@@ -32,7 +32,7 @@ from flightstack.safety import EventLog, MissionSupervisor, SafeDrone, SafetyLim
 from flightstack.target_law import SquareLaw
 
 TAKEOFF_TIMEOUT_S = 15.0
-LAND_TIMEOUT_S = 10.0
+LAND_TIMEOUT_S = 20.0  # > the Tello's own 15 s auto-land, so a drone that lost its link is seen down
 
 
 def camera_model(mission: Mission, index: int) -> CameraModel:
@@ -209,6 +209,9 @@ def run_mode(
                 target.tick(t - t0)
             for s in safe.values():
                 s.tick()
+            if safe and all(s.landed for s in safe.values()):  # the safety layer landed everyone
+                reason = "every drone landed"
+                break
             _check_operator(bus)
             for a in agents:
                 a.sense_and_publish(t)

@@ -185,8 +185,10 @@ def judge_recording(run: SimRun, expect_ticks: int | None = None, expect_error: 
         return c.failed
     assert rec is not None
     c.failed.extend(run.write_problems)
-    want = run.n_ticks if expect_ticks is None else expect_ticks
     k = rec.ticks_done
+    ends = {str(e.get("reason")) for e in rec.events if e.get("event") == "end"}
+    landed_early = "every drone landed" in ends
+    want = (k if landed_early else run.n_ticks) if expect_ticks is None else expect_ticks
     c.check(k == want, f"{k} ticks recorded, {want} expected")
     c.check(not rec.interrupted, "recording marked interrupted")
     c.check(bool(rec.error) == expect_error, f"run error: {rec.error!r}")
@@ -236,5 +238,9 @@ def event_story(run: SimRun, skip: frozenset[str] = ROUTINE) -> str:
 
 
 def landed_before_end(run: SimRun, drone: int) -> bool:
-    """True if the drone's land was accepted before the end of the mission (s)."""
-    return any(e["t"] < run.pursuit_end - 1e-9 for e in run.events("land", drone))
+    """True if the drone was landed by a reaction (not by the end-of-mission land_all): a land accepted
+    before the end, or at the end when the run ended because every drone had landed."""
+    return any(
+        e["t"] < run.pursuit_end - 1e-9 or "mission complete" not in str(e.get("detail", ""))
+        for e in run.events("land", drone)
+    )

@@ -135,7 +135,7 @@ def mocap_dropout_long(mission_path: Path, workdir: Path) -> FaultResult:
     """Motion capture loses every body for 3 s (> pose_land_after)."""
     expected = (
         "pose_stale_hover after pose_timeout (0.3 s), pose_stale_land after pose_land_after (2 s): "
-        "every drone lands; the run continues to its end on the ground"
+        "every drone lands; the run ends when the last one is down"
     )
     run = _dropout(mission_path, workdir, "mocap_dropout_long", 3.0)
     c = Checks()
