@@ -55,6 +55,7 @@ import json
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -311,27 +312,27 @@ class ZenohBus:
     def wait_for(self, expected: dict[int, int], timeout_s: float) -> set[int]:
         """Block until every sender s has a message with seq >= expected[s]; returns the senders still
         missing (empty on success). Returns early, with them, when all missing senders have left."""
-        deadline = time.monotonic() + max(0.0, timeout_s)
-        with self._cond:
-            while True:
-                missing = {s for s, q in expected.items() if (m := self._latest.get(s)) is None or m.seq < q}
-                if not missing or missing <= self._left or self._closed:
-                    return missing
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return missing
-                self._cond.wait(remaining)
+        return self._wait_messages(
+            lambda: {s for s, q in expected.items() if (m := self._latest.get(s)) is None or m.seq < q},
+            timeout_s,
+        )
 
     def wait_for_stamp(self, senders: set[int], stamp: float, timeout_s: float) -> set[int]:
         """Block until every sender's newest message has a stamp >= `stamp` (mission clock, s): the
         lock-step barrier of agents whose tick counts may differ (they joined at different ticks).
         Returns the senders still missing; returns early when all of them have left."""
+        return self._wait_messages(
+            lambda: {s for s in senders if (m := self._latest.get(s)) is None or m.stamp < stamp - 1e-12},
+            timeout_s,
+        )
+
+    def _wait_messages(self, missing_now: Callable[[], set[int]], timeout_s: float) -> set[int]:
+        """Wait on the condition until missing_now() (called with the lock held) is empty, only holds
+        senders that have left, the bus closes, or timeout_s passes; returns the last missing set."""
         deadline = time.monotonic() + max(0.0, timeout_s)
         with self._cond:
             while True:
-                missing = {
-                    s for s in senders if (m := self._latest.get(s)) is None or m.stamp < stamp - 1e-12
-                }
+                missing = missing_now()
                 if not missing or missing <= self._left or self._closed:
                     return missing
                 remaining = deadline - time.monotonic()

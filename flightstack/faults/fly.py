@@ -25,23 +25,11 @@ from flightstack.faults.inject import FaultSpec, FaultyBackend, FaultyBus
 from flightstack.faults.result import Checks
 from flightstack.metrics import mode_metrics
 from flightstack.mission import Mission, load_mission
-from flightstack.recording import Recording
+from flightstack.recording import ARRAY_FIELDS, Recording
 from flightstack.runner import run_mode, safety_limits
 from flightstack.safety import outside_hard_fence, outside_soft_fence
 
-FINITE_FIELDS = (
-    "t",
-    "g_w0",
-    "g_wi",
-    "g_bar_w",
-    "e_c",
-    "e_e",
-    "e_e_meas",
-    "u_e",
-    "mu_used",
-    "var_own",
-    "V_cmd",
-)
+FINITE_FIELDS = tuple(f for f in ARRAY_FIELDS if f not in ("visible", "n_fused", "wall_t"))
 """Recording arrays that must be finite on every recorded tick."""
 
 
