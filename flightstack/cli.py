@@ -48,6 +48,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")  # safety events, live
     overrides = {"duration_s": args.duration} if args.duration else None
     mission = load_mission(args.mission, overrides)
+    if args.bus is not None and args.bus != mission.bus.kind:
+        mission = load_mission(args.mission, {**(overrides or {}), "bus": _bus_override(mission, args.bus)})
     if args.command == "sim" and not mission.simulated:
         print(
             f"error: {args.mission}: backend {mission.backend!r} flies real drones; "
@@ -96,6 +98,21 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print(f"error: {res.error}; every drone landed, partial recording written", file=sys.stderr)
         return 1
     return 0
+
+
+def _bus_override(mission: Mission, kind: str) -> dict[str, object]:
+    """The mission's bus section switched to `kind`; for zenoh without endpoints, all agents of this
+    process listen on a free loopback port (nothing leaves the machine)."""
+    bus = mission.bus.model_dump(mode="json")
+    bus["kind"] = kind
+    if kind == "zenoh" and bus.get("zenoh") is None:
+        import socket
+
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            port = sock.getsockname()[1]
+        bus["zenoh"] = {"endpoints": {"agents": f"tcp/127.0.0.1:{port}"}}
+    return bus
 
 
 def _confirm(question: str, yes: bool) -> bool:
@@ -268,12 +285,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="run directory to write (created if missing)")
     s.add_argument("--duration", type=float, default=None, help="override duration_s (seconds)")
     s.add_argument("--no-progress", action="store_true", help="no progress bars")
+    s.add_argument(
+        "--bus", choices=["inproc", "zenoh"], default=None, help="override bus.kind (zenoh: loopback)"
+    )
     s.set_defaults(func=cmd_sim)
     f = sub.add_parser("fly", help="fly a mission on real hardware (backend tello): preflight, confirm, fly")
     f.add_argument("mission", help="mission YAML file with a hardware section")
     f.add_argument("--out", required=True, help="run directory to write (created if missing)")
     f.add_argument("--duration", type=float, default=None, help="override duration_s (seconds)")
     f.add_argument("--no-progress", action="store_true", help="no progress bars")
+    f.add_argument(
+        "--bus", choices=["inproc", "zenoh"], default=None, help="override bus.kind (zenoh: loopback)"
+    )
     f.add_argument("--yes", action="store_true", help="confirm that the drones may take off")
     f.set_defaults(func=cmd_sim)
     pf = sub.add_parser("preflight", help="check every device of a hardware mission (pass/fail table)")

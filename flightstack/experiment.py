@@ -91,7 +91,11 @@ def run_experiment(
             break
         if mode == "none" and needs_gp:
             t0 = time.perf_counter()
-            res.datasets = collect_datasets(mission, rec, mission.seed)
+            try:
+                res.datasets = collect_datasets(mission, rec, mission.seed)
+            except ValueError as exc:  # too little data in a region: say so, keep the `none` run
+                res.error = f"GP training data: {exc} (fly longer, or lower gp.samples_per_region)"
+                break
             res.experts = train_experts(mission, res.datasets, mission.seed)
             gp_info = {
                 "train_seconds": time.perf_counter() - t0,

@@ -58,3 +58,18 @@ def test_paper_sim_over_zenoh_equals_inproc() -> None:
             own = np.array([preds[inproc.drones[0].id].predict_one(x)[0] for x in b.g_bar_w[::100, 0]])
             assert not np.allclose(own, b.mu_used[::100, 0], atol=1e-3)  # neighbours changed the fused μ
         assert b.bus_dropped == {}
+
+
+def test_cli_bus_override_and_too_little_training_data(tmp_path) -> None:
+    """`--bus zenoh` runs a mission without a zenoh section on a loopback endpoint; a run too short to
+    fill every expert region ends with a clear message and keeps the `none` recording."""
+    from tests.conftest import run_cli
+
+    out = tmp_path / "run"
+    args = ["sim", str(MISSIONS / "paper_sim.yaml"), "--out", str(out), "--duration", "1", "--bus", "zenoh"]
+    r = run_cli(*args, "--no-progress", timeout=120)
+    assert r.returncode == 1, r.stderr
+    assert "GP training data: drone 3: only 0 ticks inside its expert band" in r.stderr
+    assert "Traceback" not in r.stderr
+    assert (out / "timeseries_none.npz").is_file()
+    assert "kind: zenoh" in (out / "mission_resolved.yaml").read_text()
