@@ -5,15 +5,18 @@ tests/test_faults.py.) Every process is bounded (timeouts, killed on exit)."""
 
 from __future__ import annotations
 
+import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
+import yaml
 
 from flightstack.faults.rows_processes import IDS, ServedRun, served_mission
-from tests.conftest import REPO
+from tests.conftest import MISSIONS, REPO
 
 pytest.importorskip("zenoh")
 
@@ -52,3 +55,32 @@ def test_status_then_abort_lands_everyone(tmp_path: Path) -> None:
         summary = (tmp_path / f"agent{i}" / "summary.json").read_text()
         assert "operator abort" in summary
     assert "1: landed, 2: landed, 3: landed" in wout
+
+
+def test_served_lab_streams_camera_images(tmp_path: Path) -> None:
+    """The simulated lab served to two agent processes: rendered camera images go through Zenoh, the
+    observing drone extracts the markers from them and pursues; both drones land."""
+    m = yaml.safe_load((MISSIONS / "paper_experiment_sim.yaml").read_text())
+    m["duration_s"] = 3.0
+    ports = []
+    for _ in range(3):
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            ports.append(sock.getsockname()[1])
+    names = ("world", "1", "2")
+    endpoints = {n: f"tcp/127.0.0.1:{p}" for n, p in zip(names, ports, strict=True)}
+    m["bus"] = {"kind": "zenoh", "stale_after_s": 0.5, "zenoh": {"endpoints": endpoints}}
+    for d in m["drones"]:
+        d["camera"]["calibration"] = str(MISSIONS / d["camera"]["calibration"])
+    mission = tmp_path / "lab.yaml"
+    mission.write_text(yaml.safe_dump(m))
+    with ServedRun(mission, tmp_path, ids=(1, 2), mode="none") as run:
+        codes = {i: a.wait(timeout=90) for i, a in run.agents.items()}
+        run.world.wait(timeout=30)
+        wout = run.world_lines.rest()
+    assert codes == {1: 0, 2: 0}, wout
+    assert "drones 1: landed, 2: landed" in wout
+    rec = np.load(tmp_path / "agent1" / "timeseries_none.npz")
+    assert rec["t"].shape[0] == 60 and rec["visible"][:, 0].mean() > 0.9  # drone 1 saw the markers
+    height = rec["g_wi"][:, 0, 2] - rec["g_w0"][:, 2]
+    assert np.all(np.abs(height - 1.0) < 0.1)  # and held 1 m above the target

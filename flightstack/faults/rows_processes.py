@@ -107,13 +107,13 @@ def popen(*args: str) -> subprocess.Popen[str]:
 class ServedRun:
     """`flightstack world` + one `flightstack agent` per drone; everything killed on exit."""
 
-    def __init__(self, mission: Path, out: Path) -> None:
+    def __init__(self, mission: Path, out: Path, ids: tuple[int, ...] = IDS, mode: str = "dgp") -> None:
         self.out = out
         self.world = popen("world", str(mission))
         self.world_lines = Lines(self.world)
         self.agents = {
-            i: popen("agent", str(mission), "--id", str(i), "--mode", "dgp", "--out", str(out / f"agent{i}"))
-            for i in IDS
+            i: popen("agent", str(mission), "--id", str(i), "--mode", mode, "--out", str(out / f"agent{i}"))
+            for i in ids
         }
         self.agent_lines = {i: Lines(p) for i, p in self.agents.items()}
 
