@@ -163,7 +163,7 @@ def run_mode(
             i: SafeDrone(i, backend.drone(i), backend.pose_source(), f"drone{i}", clock, limits, log)
             for i in ids
         }
-        supervisor = MissionSupervisor(safe, clock, limits, log)
+        supervisor = MissionSupervisor(safe, clock, limits, log, concurrent_land=not mission.simulated)
         drones: dict[int, Drone] = dict(safe)
     else:
         drones = {i: backend.drone(i) for i in ids}

@@ -741,8 +741,18 @@ class MissionSupervisor:
     """Mission-wide rules over all SafeDrones: target-lost hover, land all, signals, exception guard."""
 
     def __init__(
-        self, drones: dict[int, SafeDrone], clock: Clock, limits: SafetyLimits, log: EventLog
+        self,
+        drones: dict[int, SafeDrone],
+        clock: Clock,
+        limits: SafetyLimits,
+        log: EventLog,
+        concurrent_land: bool = False,
     ) -> None:
+        """concurrent_land: land_all lands every drone at once, one thread each. For real drones, whose
+        land() waits for the touchdown reply (a Tello: seconds): landing them one after the other would
+        leave the last one flying for the sum of the others' landings. Simulated drones land instantly;
+        they keep the sequential, deterministic order (event logs identical run to run)."""
+        self.concurrent_land = concurrent_land
         self.drones = dict(drones)
         self.clock = clock
         self.limits = limits
@@ -802,15 +812,41 @@ class MissionSupervisor:
                 if pending:
                     ids = [i for i, _ in pending]
                     self.log.record(self.clock.now(), None, "land_all", f"{reason}; landing drones {ids}")
-                for i, d in pending:
-                    try:
-                        self._land_one(i, d, reason)
-                    except BaseException as exc:  # keep landing the others first, re-raise after
-                        interrupt = interrupt or exc
+                if self.concurrent_land and len(pending) > 1:
+                    interrupt = self._land_concurrently(pending, reason)
+                else:
+                    for i, d in pending:
+                        try:
+                            self._land_one(i, d, reason)
+                        except BaseException as exc:  # keep landing the others first, re-raise after
+                            interrupt = interrupt or exc
             finally:
                 self._landing_depth -= 1
             if interrupt is not None:
                 raise interrupt
+
+    def _land_concurrently(self, pending: list[tuple[int, SafeDrone]], reason: str) -> BaseException | None:
+        """_land_one for every drone at once; waits for all of them, even through a Ctrl-C (returned, to be
+        re-raised when every landing has been sent and answered or has failed)."""
+        errors: list[BaseException] = []
+
+        def one(i: int, d: SafeDrone) -> None:
+            try:
+                self._land_one(i, d, reason)
+            except BaseException as exc:
+                errors.append(exc)
+
+        threads = [threading.Thread(target=one, args=p, name=f"land-{p[0]}", daemon=True) for p in pending]
+        for th in threads:
+            th.start()
+        interrupt: BaseException | None = None
+        for th in threads:
+            while th.is_alive():
+                try:
+                    th.join()
+                except BaseException as exc:  # Ctrl-C while waiting: the landings go on, re-raise after
+                    interrupt = interrupt or exc
+        return interrupt or (errors[0] if errors else None)
 
     def _land_one(self, i: int, d: SafeDrone, reason: str) -> None:
         try:

@@ -869,3 +869,34 @@ def test_every_logged_kind_is_documented() -> None:
     assert set(log.counts()) <= EVENT_KINDS
     times = [e.t for e in log.events]
     assert times == sorted(times) and times[-1] == clock.t
+
+
+def test_concurrent_land_all_lands_slow_drones_at_once() -> None:
+    """Real drones' land() blocks until touchdown: with concurrent_land every drone starts landing at
+    once, so three 0.4 s landings take ~0.4 s, not 1.2 s; all end landed, one event each."""
+    clock = FakeClock()
+    log = EventLog()
+    rigs = {i: Rig(drone_id=i, clock=clock, log=log) for i in (1, 2, 3)}
+    started: dict[int, float] = {}
+    for i, r in rigs.items():
+        r.inner.on_land = lambda i=i: (started.setdefault(i, time.perf_counter()), time.sleep(0.4))
+    sup = MissionSupervisor({i: r.sd for i, r in rigs.items()}, clock, LIM, log, concurrent_land=True)
+    t0 = time.perf_counter()
+    sup.land_all("test")
+    elapsed = time.perf_counter() - t0
+    assert all(r.sd.landed for r in rigs.values())
+    assert max(started.values()) - min(started.values()) < 0.2  # no drone waited for another's landing
+    assert elapsed < 1.0
+    assert sorted(e.drone for e in log.events if e.kind == "land") == [1, 2, 3]
+
+
+def test_concurrent_land_all_reraises_after_every_landing() -> None:
+    """A land() that raises does not stop the others; the error is logged and the drone retried by tick()."""
+    clock = FakeClock()
+    log = EventLog()
+    rigs = {i: Rig(drone_id=i, clock=clock, log=log) for i in (1, 2)}
+    rigs[1].inner.land_error = RuntimeError("no reply")
+    sup = MissionSupervisor({i: r.sd for i, r in rigs.items()}, clock, LIM, log, concurrent_land=True)
+    sup.land_all("test")
+    assert rigs[2].sd.landed and not rigs[1].sd.landed
+    assert any(e.kind == "land_failed" and e.drone == 1 for e in log.events)
