@@ -166,6 +166,8 @@ def _survivor_checks(run: ServedRun, victim: int, t_fault: float, c: Checks) -> 
         c.check(finite, f"agent {i}: non-finite values in its recording")
         before = wall < t_fault
         c.check(bool(np.all(n_fused[before] == 3)) and before.any(), f"agent {i} did not fuse 3 before")
+        events = (run.out / f"agent{i}" / "events.jsonl").read_text()
+        c.check(f'"dropped": [{victim}]' in events, f"agent {i} logged no neighbours event dropping {victim}")
         dropped = np.flatnonzero(n_fused == 2)
         if c.check(dropped.size > 0, f"agent {i} never dropped agent {victim}"):
             delay = float(wall[dropped[0]] - t_fault)
