@@ -39,6 +39,7 @@ with the mission clock. The event kinds form the closed set `EVENT_KINDS`:
     emergency_stop          emergency_stop() was sent to the wrapped drone
     emergency_stop_failed   the wrapped drone's emergency_stop() raised too (MissionSupervisor.land_all)
     target_lost_hover       every drone lost the target for longer than target_lost_hover_after
+    target_lost_land        ... and for longer than target_lost_land_after: land every drone
     land_all                MissionSupervisor.land_all started landing the drones that were not landed
     signal                  SIGINT or SIGTERM received inside install_signal_handlers()
     takeoff                 takeoff sent to the wrapped drone
@@ -97,6 +98,7 @@ EVENT_KINDS: frozenset[str] = frozenset(
         "pose_refuse_takeoff",
         "fence_refuse_takeoff",
         "battery_land",
+        "target_lost_land",
         "link_lost",
         "drone_error",
         "command_after_land",
@@ -143,6 +145,9 @@ class SafetyLimits:
     min_battery_takeoff: float = 30.0
     land_battery: float = 15.0
     target_lost_hover_after: float = 3.0
+    target_lost_land_after: float = 15.0
+    """Every drone has lost the target for this long (s): land them all rather than hover on (the target
+    has left every camera's view; a hovering Tello would only drain its battery near people)."""
     emergency_stop_if_land_fails: bool = False
     """Cut the motors of a drone whose land() raised during land_all. Off by default: a Tello with its
     motors cut falls from up to 2 m next to people; the failed land is retried on every tick instead."""
@@ -159,13 +164,18 @@ class SafetyLimits:
         if any(h <= low for low, h in zip(lo, hi, strict=True)):
             raise ValueError(f"fence_hi must exceed fence_lo on every axis, got lo={lo}, hi={hi}")
         positive = ("max_speed_xy", "max_speed_z", "max_yaw_rate", "command_timeout", "pose_timeout")
-        positive += ("pose_land_after", "target_lost_hover_after")
+        positive += ("pose_land_after", "target_lost_hover_after", "target_lost_land_after")
         for name in positive:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v}")
         if not (math.isfinite(self.hard_margin) and self.hard_margin >= 0.0):
             raise ValueError(f"hard_margin must be finite and >= 0, got {self.hard_margin}")
+        if self.target_lost_land_after <= self.target_lost_hover_after:
+            raise ValueError(
+                f"target_lost_land_after ({self.target_lost_land_after} s) must exceed "
+                f"target_lost_hover_after ({self.target_lost_hover_after} s)"
+            )
         if self.pose_land_after < self.pose_timeout:
             raise ValueError(
                 f"pose_land_after ({self.pose_land_after} s) must be >= pose_timeout ({self.pose_timeout} s)"
@@ -762,6 +772,7 @@ class MissionSupervisor:
         self._last_seen: dict[int, float] = {}
         self._known: set[int] = set(self.drones)
         self._lost_episode = False
+        self._lost_landing = False
         self._landing_depth = 0
         self._deferred_land: str | None = None
 
@@ -793,6 +804,12 @@ class MissionSupervisor:
                     f"> {self.limits.target_lost_hover_after:.2f} s: hover",
                 )
             self._lost_episode = hold
+            if lost_for > self.limits.target_lost_land_after and not self._lost_landing:
+                self._lost_landing = True
+                limit = self.limits.target_lost_land_after
+                why = f"every drone lost the target for {lost_for:.2f} s > {limit:.2f} s: land"
+                self.log.record(now, None, "target_lost_land", why)
+                self.land_all("target lost")
             return hold
 
     def land_all(self, reason: str) -> None:

@@ -711,6 +711,25 @@ def test_target_lost_by_everyone_hovers_with_one_event() -> None:
     assert len(log.of_kind("target_lost_hover")) == 2
 
 
+def test_target_lost_too_long_lands_everyone_once() -> None:
+    """Hover after target_lost_hover_after (3 s), land all after target_lost_land_after (15 s), once."""
+    sup, rigs, clock, log = fleet(2)
+    for k in range(1, 160):
+        clock.t = 0.1 * k
+        sup.update_visibility({1: False, 2: False})
+        if clock.t < 15.0:
+            assert not any(r.sd.landed for r in rigs.values()), clock.t
+    assert all(r.sd.landed for r in rigs.values())
+    ev = log.of_kind("target_lost_land")
+    assert len(ev) == 1 and 15.0 < ev[0].t <= 15.1 + 1e-9
+    assert len(log.of_kind("land_all")) == 1
+
+
+def test_target_lost_land_must_come_after_hover() -> None:
+    with pytest.raises(ValueError, match="target_lost_land_after"):
+        SafetyLimits(target_lost_hover_after=5.0, target_lost_land_after=4.0)
+
+
 def test_target_not_lost_while_one_drone_sees_it() -> None:
     sup, _, clock, log = fleet(3)
     for k in range(100):

@@ -198,23 +198,32 @@ def occlusion_short(mission_path: Path, workdir: Path) -> FaultResult:
 
 
 def occlusion_long(mission_path: Path, workdir: Path) -> FaultResult:
-    """Every camera sees nothing for 5 s (mission defaults: target_lost_hover_after = 3 s)."""
+    """Every camera sees nothing for 5 s, with target_lost_land_after = 4.5 s (default 15 s)."""
     occ = Window(T_FAULT, T_FAULT + 5.0)
+    land_after = 4.5
     expected = (
-        "hold after target_lost_hover_after (3 s); the target has left every camera's view by then, "
-        "so the drones hover (V = 0) until the mission ends, then land"
+        "hold after target_lost_hover_after (3 s); the target has left every camera's view by then, so "
+        f"after target_lost_land_after ({land_after:g} s here) every drone lands (target_lost_land) and "
+        "the run ends when they are down"
     )
     run = fly_with_faults(
-        mission_path, workdir / "occlusion_long", FaultSpec(occlusion=occ), duration_s=DURATION_S
+        mission_path,
+        workdir / "occlusion_long",
+        FaultSpec(occlusion=occ),
+        duration_s=DURATION_S,
+        safety={"target_lost_land_after": land_after},
     )
     c = Checks()
     hold_after = run.mission.safety.target_lost_hover_after
     t_hold = _t(run.first("target_lost_hover"))
     c.check(_near(t_hold, occ.start + hold_after), f"target_lost_hover at {t_hold}")
+    t_land = _t(run.first("target_lost_land"))
+    c.check(_near(t_land, occ.start + land_after), f"target_lost_land at {t_land}")
     t_seen = _visible_again(run, occ.start + 0.1)
     if run.rec is not None and t_hold is not None:
         c.check(_held_still(run, t_hold, t_seen or run.pursuit_end + 1.0), "drones not held still")
-    _flew_to_end(run, [1, 2], c)
+    for i in (1, 2):
+        c.check(landed_before_end(run, i), f"drone {i} did not land on target_lost_land")
     seen = "never seen again (out of view)" if t_seen is None else f"seen again @{t_seen:.2f}"
     return sim_result("occlusion_long", expected, run, c, f"{event_story(run)}; target {seen}")
 
