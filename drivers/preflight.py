@@ -179,8 +179,6 @@ def _check_camera(mission: Mission, drone_id: int, dev: str, cam: object) -> Che
     finally:
         with contextlib.suppress(Exception):
             cam.stop()  # type: ignore[attr-defined]
-        with contextlib.suppress(Exception):
-            cam.driver._control("streamoff", 1.0)  # type: ignore[attr-defined]
 
 
 def check_mocap(mission: Mission) -> list[CheckRow]:

@@ -24,6 +24,7 @@ seconds (time.monotonic), the hardware clock of flightstack.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import threading
@@ -342,7 +343,9 @@ class TelloCamera:
             self.frames_seen += 1
         return Frame(self._stamp, img, None)
 
-    def stop(self) -> None:
+    def stop(self, streamoff_timeout_s: float = 1.0) -> None:
+        """Stop decoding and ask the drone to stop streaming (`streamoff`, bounded, failure ignored: the
+        stream is only a load on the link, and a drone that cannot answer is handled elsewhere)."""
         if self._reader is not None:
             self._reader.stop()
             self._reader = None
@@ -350,3 +353,5 @@ class TelloCamera:
             # forget it, or the next start() gets this stopped reader bound to the old video port
             if self.driver.tello is not None:
                 self.driver.tello.background_frame_read = None
+            with contextlib.suppress(TelloCommandError):
+                self.driver._control("streamoff", streamoff_timeout_s)
