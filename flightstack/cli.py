@@ -277,26 +277,23 @@ def cmd_calibrate_drone(args: argparse.Namespace) -> int:
         driver.close()
 
 
+def _add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
+    """The arguments `sim` and `fly` share."""
+    p.add_argument("mission", help=mission_help)
+    p.add_argument("--out", required=True, help="run directory to write (created if missing)")
+    p.add_argument("--duration", type=float, default=None, help="override duration_s (seconds)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--bus", choices=["inproc", "zenoh"], help="override bus.kind (zenoh: on loopback)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="flightstack", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
     s = sub.add_parser("sim", help="run a mission on the simulated backend")
-    s.add_argument("mission", help="mission YAML file (see mission_configs/)")
-    s.add_argument("--out", required=True, help="run directory to write (created if missing)")
-    s.add_argument("--duration", type=float, default=None, help="override duration_s (seconds)")
-    s.add_argument("--no-progress", action="store_true", help="no progress bars")
-    s.add_argument(
-        "--bus", choices=["inproc", "zenoh"], default=None, help="override bus.kind (zenoh: loopback)"
-    )
+    _add_run_arguments(s, "mission YAML file (see mission_configs/)")
     s.set_defaults(func=cmd_sim)
     f = sub.add_parser("fly", help="fly a mission on real hardware (backend tello): preflight, confirm, fly")
-    f.add_argument("mission", help="mission YAML file with a hardware section")
-    f.add_argument("--out", required=True, help="run directory to write (created if missing)")
-    f.add_argument("--duration", type=float, default=None, help="override duration_s (seconds)")
-    f.add_argument("--no-progress", action="store_true", help="no progress bars")
-    f.add_argument(
-        "--bus", choices=["inproc", "zenoh"], default=None, help="override bus.kind (zenoh: loopback)"
-    )
+    _add_run_arguments(f, "mission YAML file with a hardware section")
     f.add_argument("--yes", action="store_true", help="confirm that the drones may take off")
     f.set_defaults(func=cmd_sim)
     pf = sub.add_parser("preflight", help="check every device of a hardware mission (pass/fail table)")
