@@ -54,12 +54,16 @@ def unpack(data: bytes) -> tuple[dict[str, Any] | None, bytes, str | None]:
     if n > MAX_HEADER or len(data) < _LEN.size + n:
         return None, b"", "bad length"
     try:
-        header = json.loads(data[_LEN.size : _LEN.size + n])
-    except (UnicodeDecodeError, json.JSONDecodeError):
+        header = json.loads(data[_LEN.size : _LEN.size + n], parse_constant=_refuse_constant)
+    except ValueError:  # bad UTF-8, bad JSON, or NaN/Infinity literals
         return None, b"", "not JSON"
     if not isinstance(header, dict) or header.get("v") != VERSION or not isinstance(header.get("k"), int):
         return None, b"", "bad header"
     return header, data[_LEN.size + n :], None
+
+
+def _refuse_constant(name: str) -> float:
+    raise ValueError(f"non-finite number {name} in a world message")
 
 
 def _finite(xs: object, n: int) -> bool:
@@ -93,7 +97,16 @@ def decode_tick(data: bytes) -> tuple[dict[str, Any] | None, np.ndarray | None, 
         return None, None, reason
     if not (isinstance(header.get("t"), float | int) and isinstance(header.get("state"), dict)):
         return None, None, "bad tick"
+    poses, truth = header.get("poses", {}), header.get("truth")
+    if not (isinstance(poses, dict) and all(_finite(row, 5) for row in poses.values())):
+        return None, None, "bad poses"
+    if not (isinstance(truth, dict) and _finite(truth.get("target"), 4) and _finite(truth.get("drone"), 4)):
+        return None, None, "bad truth"
     frame = header.get("frame")
+    if isinstance(frame, dict):
+        feats = frame.get("features")
+        if feats is not None and not _finite(feats, len(feats) if isinstance(feats, list) else -1):
+            return None, None, "bad features"
     image = None
     if isinstance(frame, dict) and frame.get("image") is not None:
         shape = frame["image"]
