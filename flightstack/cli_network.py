@@ -139,23 +139,38 @@ def cmd_abort(args: argparse.Namespace) -> int:
     return 0 if present else 1
 
 
-def status_table(statuses: dict[int, dict[str, Any]], alive: set[int], ids: list[int], now: float) -> str:
-    head = f"{'drone':>5}  {'alive':5}  {'age s':>6}  {'mode':6}  {'t s':>8}  {'batt %':>6}  {'flying':6}  "
-    head += f"{'seen':5}  {'fused':>5}  {'pose':5}  problems"
+def status_table(
+    statuses: dict[int, dict[str, Any]],
+    alive: set[int],
+    ids: list[int],
+    now: float,
+    msg_age: dict[int, float | None] | None = None,
+) -> str:
+    """One row per agent. `age s`: since its last status report; `msg s`: since its last prediction
+    message (wall seconds, as received here)."""
+    msg_age = msg_age or {}
+
+    def age(i: int) -> str:
+        a = msg_age.get(i)
+        return f"{a:6.2f}" if a is not None else f"{'-':>6}"
+
+    head = f"{'drone':>5}  {'alive':5}  {'age s':>6}  {'msg s':>6}  {'mode':6}  {'t s':>8}  "
+    head += f"{'batt %':>6}  {'flying':6}  {'seen':5}  {'fused':>5}  {'pose':5}  problems"
     lines = [head]
     for i in ids:
         s = statuses.get(i)
         if s is None:
-            lines.append(f"{i:>5}  {'yes' if i in alive else 'no':5}  {'-':>6}  (no status yet)")
+            lines.append(f"{i:>5}  {'yes' if i in alive else 'no':5}  {'-':>6}  {age(i)}  (no status yet)")
             continue
-        age = now - s["_received"]
+        report_age = now - s["_received"]
         problems = [p for p in (s.get("rejection"),) if p]
         if not s.get("link_alive", True):
             problems.append("link lost")
         if s.get("dropped"):
             problems.append("dropped " + ", ".join(f"{k}: {v}" for k, v in s["dropped"].items()))
         lines.append(
-            f"{i:>5}  {'yes' if i in alive else 'no':5}  {age:6.1f}  {s.get('mode', '?'):6}  "
+            f"{i:>5}  {'yes' if i in alive else 'no':5}  {report_age:6.1f}  {age(i)}  "
+            f"{s.get('mode', '?'):6}  "
             f"{s.get('t', math.nan):8.2f}  {s.get('battery_pct', math.nan):6.0f}  "
             f"{'yes' if s.get('flying') else 'no':6}  {'yes' if s.get('visible') else 'no':5}  "
             f"{s.get('n_fused', 0):5d}  {'ok' if s.get('pose_fresh', True) else 'LOST':5}  "
@@ -181,7 +196,8 @@ def cmd_status(args: argparse.Namespace) -> int:
             now = time.monotonic()
             done = now >= t_end or (args.once and all(i in statuses for i in ids))
             if done or not args.once:
-                table = status_table(statuses, bus.alive(), ids, now)  # type: ignore[attr-defined]
+                ages = {i: bus.message_age(i) for i in ids}  # type: ignore[attr-defined]
+                table = status_table(statuses, bus.alive(), ids, now, ages)  # type: ignore[attr-defined]
                 print(("\x1b[2J\x1b[H" if live else "") + table, flush=True)
             if done:
                 break

@@ -48,6 +48,8 @@ def test_status_then_abort_lands_everyone(tmp_path: Path) -> None:
     assert status.returncode == 0, status.stdout + status.stderr
     rows = [ln.split() for ln in status.stdout.splitlines()[1:]]
     assert [(int(r[0]), r[1]) for r in rows] == [(1, "yes"), (2, "yes"), (3, "yes")], status.stdout
+    assert all(float(r[3]) < 2.0 for r in rows), status.stdout  # predictions arrive (wall s since the last)
+    assert all(r[4] == "dgp" for r in rows), status.stdout
     assert abort.returncode == 0 and "agents present [1, 2, 3]" in abort.stdout, abort.stdout + abort.stderr
     assert codes == {1: 1, 2: 1, 3: 1}  # ended by the operator, not by the mission's end
     assert elapsed < 10.0

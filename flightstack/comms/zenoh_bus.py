@@ -204,6 +204,7 @@ class ZenohBus:
         self.known = frozenset(cfg.known_senders)
         self._cond = threading.Condition(threading.Lock())
         self._latest: dict[int, PredictionMessage] = {}
+        self._received: dict[int, float] = {}  # time.monotonic() of each sender's newest valid message
         self._dropped: Counter[str] = Counter()
         self._delivered = 0
         self._alive: set[int] = set()
@@ -351,6 +352,12 @@ class ZenohBus:
                     return missing
                 self._cond.wait(remaining)
 
+    def message_age(self, sender: int) -> float | None:
+        """Wall seconds since `sender`'s newest valid prediction arrived (None: none yet)."""
+        with self._cond:
+            t = self._received.get(sender)
+        return None if t is None else time.monotonic() - t
+
     def alive(self) -> set[int]:
         with self._cond:
             return set(self._alive)
@@ -434,6 +441,7 @@ class ZenohBus:
                 self._dropped["old or duplicate seq"] += 1
                 return
             self._latest[msg.sender] = msg
+            self._received[msg.sender] = time.monotonic()
             self._delivered += 1
             self._cond.notify_all()
 
