@@ -246,3 +246,45 @@ def test_fly_a_short_mission_on_the_emulated_lab(lab: Lab, capsys: pytest.Captur
     assert np.all(rec["g_wi"][:, :, 2] > 0.3)  # airborne (mocap z) for the whole pursuit
     events = (out_dir / "events.jsonl").read_text()
     assert events.count('"event": "landed"') == 2 and "NOT LANDED" not in events
+
+
+def test_fly_with_a_drone_losing_its_link(lab: Lab, capsys: pytest.CaptureFixture[str]) -> None:
+    """Drone 2's state stream stops for 1.6 s in pursuit: its driver reports the link lost after 1 s,
+    the safety layer lands it once the link is back; drone 1 flies the mission to its end."""
+    import json
+    import threading
+
+    m = yaml.safe_load(lab.mission.read_text())
+    m["compare_modes"] = ["none"]
+    lab.mission.write_text(yaml.safe_dump(m))
+    emu2 = lab.tellos[2]
+
+    def drop_state() -> None:
+        deadline = time.monotonic() + 30
+        while len(emu2.rc_history) < 20 and time.monotonic() < deadline:  # ~1 s into pursuit
+            time.sleep(0.02)
+        emu2.faults.drop_state = True
+        time.sleep(1.6)
+        emu2.faults.drop_state = False
+
+    fault = threading.Thread(target=drop_state, daemon=True)
+    fault.start()
+    out_dir = lab.mission.parent / "run"
+    code = main(["fly", str(lab.mission), "--out", str(out_dir), "--duration", "5", "--yes", "--no-progress"])
+    fault.join(timeout=5)
+    out, err = capsys.readouterr()
+    assert code == 0, out + err
+    events = [json.loads(x) for x in (out_dir / "events.jsonl").read_text().splitlines()]
+    safety = [e for e in events if e.get("event") == "safety"]
+    lost = [e for e in safety if e["kind"] == "link_lost" and e["drone"] == 2]
+    land2 = [e for e in safety if e["kind"] == "land" and e["drone"] == 2]
+    assert lost and land2 and land2[0]["t"] > lost[0]["t"], safety
+    assert "link_lost" in land2[0]["detail"]  # landed because of the link loss, not at the mission's end
+    assert not [
+        e for e in safety if e["kind"] in ("link_lost", "land") and e["drone"] == 1 and e["t"] < land2[0]["t"]
+    ]
+    assert not any(e.flying for e in lab.tellos.values())
+    assert [e["event"] for e in events if e.get("drone") in (1, 2) and "LANDED" in e["event"].upper()] == [
+        "landed",
+        "landed",
+    ]
