@@ -288,3 +288,36 @@ def test_fly_with_a_drone_losing_its_link(lab: Lab, capsys: pytest.CaptureFixtur
         "landed",
         "landed",
     ]
+
+
+def test_fly_with_motion_capture_frames_stopping(lab: Lab, capsys: pytest.CaptureFixture[str]) -> None:
+    """The NatNet server stops sending frames in pursuit: every drone hovers after pose_timeout, lands after
+    pose_land_after (both from its last pose), and the run ends when they are down."""
+    import json
+    import threading
+
+    m = yaml.safe_load(lab.mission.read_text())
+    m["compare_modes"] = ["none"]
+    lab.mission.write_text(yaml.safe_dump(m))
+
+    def stop_frames() -> None:
+        deadline = time.monotonic() + 30
+        while len(lab.tellos[1].rc_history) < 20 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        lab.natnet.faults.drop_frames = True
+
+    threading.Thread(target=stop_frames, daemon=True).start()
+    out_dir = lab.mission.parent / "run"
+    code = main(
+        ["fly", str(lab.mission), "--out", str(out_dir), "--duration", "20", "--yes", "--no-progress"]
+    )
+    lab.natnet.faults.drop_frames = False
+    out, err = capsys.readouterr()
+    assert code == 0, out + err
+    events = [json.loads(x) for x in (out_dir / "events.jsonl").read_text().splitlines()]
+    kinds = [(e["kind"], e["drone"]) for e in events if e.get("event") == "safety"]
+    for i in (1, 2):
+        assert ("pose_stale_hover", i) in kinds and ("pose_stale_land", i) in kinds, kinds
+    end = next(e for e in events if e.get("event") == "end")
+    assert end["reason"] == "every drone landed"  # well before the 20 s mission would have ended
+    assert not any(e.flying for e in lab.tellos.values())
