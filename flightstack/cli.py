@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
 import sys
 import time
@@ -362,6 +363,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a device that cannot be reached, a file that cannot be written, ...
+        if os.environ.get("FLIGHTSTACK_DEBUG"):
+            raise
+        hint = "FLIGHTSTACK_DEBUG=1 shows the traceback"
+        print(f"error: {type(exc).__name__}: {exc} ({hint})", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

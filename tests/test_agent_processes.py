@@ -86,3 +86,33 @@ def test_served_lab_streams_camera_images(tmp_path: Path) -> None:
     assert rec["t"].shape[0] == 60 and rec["visible"][:, 0].mean() > 0.9  # drone 1 saw the markers
     height = rec["g_wi"][:, 0, 2] - rec["g_w0"][:, 2]
     assert np.all(np.abs(height - 1.0) < 0.1)  # and held 1 m above the target
+
+
+def test_agent_without_a_world_fails_clearly(tmp_path: Path) -> None:
+    """No `flightstack world` running: the agent gives up after start_timeout_s with a one-line error."""
+    mission = served_mission(tmp_path, duration_s=5.0)
+    m = yaml.safe_load(mission.read_text())
+    m["bus"]["zenoh"]["start_timeout_s"] = 2.0
+    mission.write_text(yaml.safe_dump(m))
+    t0 = time.monotonic()
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flightstack.cli",
+            "agent",
+            str(mission),
+            "--id",
+            "1",
+            "--out",
+            str(tmp_path / "a"),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 1, r.stderr
+    assert "WorldLostError: no tick from the served world within 2 s" in r.stderr
+    assert "Traceback" not in r.stderr
+    assert time.monotonic() - t0 < 20
