@@ -35,10 +35,17 @@ WARMUP = 50
 TIMEOUT_S = 10.0  # per round trip; the echo peer also gives up after this long without a ping
 
 
+_HANDED_OUT: set[int] = set()
+
+
 def _free_endpoint() -> str:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    while True:  # never hand out the same port twice (the OS may, once a probe socket is closed)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        if port not in _HANDED_OUT:
+            _HANDED_OUT.add(port)
+            return f"tcp/127.0.0.1:{port}"
 
 
 def _msg(sender: int, seq: int) -> PredictionMessage:

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import zenoh
 
 from flightstack.backends import build_backend
 from flightstack.comms import world_messages as wm
@@ -75,7 +76,15 @@ class WorldServer:
         self.bus = make_bus(mission, "world", set())
         session = self.bus.session  # type: ignore[attr-defined]
         prefix, name = self.z.key_prefix, mission.name
-        self._pubs = {i: session.declare_publisher(wm.tick_key(prefix, name, i)) for i in self.ids}
+        # agents wait for every tick: never drop one under congestion (a lost tick stalls the agent)
+        self._pubs = {
+            i: session.declare_publisher(
+                wm.tick_key(prefix, name, i),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                priority=zenoh.Priority.INTERACTIVE_HIGH,
+            )
+            for i in self.ids
+        }
         self._cond = threading.Condition()
         self._queued: dict[int, list[dict[str, Any]]] = defaultdict(list)
         self._done_k: dict[int, int] = {i: -2 for i in self.ids}  # -1: hello (subscribed); k: cmd of tick k

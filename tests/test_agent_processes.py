@@ -5,7 +5,6 @@ tests/test_faults.py.) Every process is bounded (timeouts, killed on exit)."""
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
 import time
@@ -15,7 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
-from flightstack.faults.rows_processes import IDS, ServedRun, served_mission
+from flightstack.faults.rows_processes import IDS, ServedRun, free_tcp_ports, served_mission
 from tests.conftest import MISSIONS, REPO
 
 pytest.importorskip("zenoh")
@@ -64,13 +63,8 @@ def test_served_lab_streams_camera_images(tmp_path: Path) -> None:
     observing drone extracts the markers from them and pursues; both drones land."""
     m = yaml.safe_load((MISSIONS / "paper_experiment_sim.yaml").read_text())
     m["duration_s"] = 3.0
-    ports = []
-    for _ in range(3):
-        with socket.socket() as sock:
-            sock.bind(("127.0.0.1", 0))
-            ports.append(sock.getsockname()[1])
     names = ("world", "1", "2")
-    endpoints = {n: f"tcp/127.0.0.1:{p}" for n, p in zip(names, ports, strict=True)}
+    endpoints = {n: f"tcp/127.0.0.1:{p}" for n, p in zip(names, free_tcp_ports(3), strict=True)}
     m["bus"] = {"kind": "zenoh", "stale_after_s": 0.5, "zenoh": {"endpoints": endpoints}}
     for d in m["drones"]:
         d["camera"]["calibration"] = str(MISSIONS / d["camera"]["calibration"])

@@ -33,10 +33,17 @@ LEASE_MS = 500  # presence tests: a hung peer is dropped after ~0.5 s; a killed 
 DETECT_BOUND_S = 1.0  # issue requirement: a killed agent leaves fusion within 1 s
 
 
+_HANDED_OUT: set[int] = set()
+
+
 def free_endpoint() -> str:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    while True:  # never hand out the same port twice (the OS may, once a probe socket is closed)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        if port not in _HANDED_OUT:
+            _HANDED_OUT.add(port)
+            return f"tcp/127.0.0.1:{port}"
 
 
 def make_msg(sender: int, seq: int, stamp: float = 1.0, mission: str = MISSION, seed: int = 0):

@@ -35,6 +35,7 @@ def zenoh_bus_config(mission: Mission, participant: str, self_ids: set[int]) -> 
         key_prefix=z.key_prefix,
         tls=dict(z.tls) if z.tls else None,
         extra_json5={} if z.access_control is None else {"access_control": json.dumps(z.access_control)},
+        reliable=mission.simulated,  # lock-step waits for every message: a dropped one would stall a tick
     )
 
 

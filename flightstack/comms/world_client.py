@@ -19,6 +19,7 @@ from collections import Counter
 from typing import Any
 
 import numpy as np
+import zenoh
 
 from flightstack.comms import world_messages as wm
 from flightstack.geometry import Pose
@@ -41,7 +42,12 @@ class _Link:
         self._calls: list[list[Any]] = []
         self._sent_k = -1
         self.dropped: Counter[str] = Counter()
-        self._pub = session.declare_publisher(wm.cmd_key(prefix, mission, drone_id))
+        # the world waits for every cmd: never drop one under congestion (a lost cmd stalls a whole tick)
+        self._pub = session.declare_publisher(
+            wm.cmd_key(prefix, mission, drone_id),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=zenoh.Priority.INTERACTIVE_HIGH,
+        )
         self._sub = session.declare_subscriber(wm.tick_key(prefix, mission, drone_id), self._on_tick)
 
     def _on_tick(self, sample: Any) -> None:

@@ -101,6 +101,7 @@ class ZenohBusConfig:
     tls: dict[str, Any] | None = None
     usrpwd: tuple[str, str] | None = None
     extra_json5: dict[str, str] = field(default_factory=dict)
+    reliable: bool = False  # predictions never dropped under congestion (lock-step sims wait for each)
 
     def pred_key(self, sender: int | str) -> str:
         return f"{self.key_prefix}/{self.mission}/pred/{sender}"
@@ -402,7 +403,11 @@ class ZenohBus:
         if pub is None:
             pub = self._session.declare_publisher(
                 self.cfg.pred_key(key_sender),
-                congestion_control=zenoh.CongestionControl.DROP,
+                # lock-step (simulated clock): every message is awaited, so none may be dropped (BLOCK);
+                # real time: the newest wins and a late one is worthless (DROP)
+                congestion_control=zenoh.CongestionControl.BLOCK
+                if self.cfg.reliable
+                else zenoh.CongestionControl.DROP,
                 express=False,  # batched: see the module docstring
             )
             self._publishers[key_sender] = pub

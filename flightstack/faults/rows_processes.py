@@ -29,10 +29,17 @@ PROCESS_TIMEOUT_S = 90.0
 DROP_WITHIN_S = 1.0  # issue 6: the others drop a dead agent from fusion within 1 s
 
 
-def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def free_tcp_ports(n: int) -> list[int]:
+    """n distinct free loopback TCP ports (all held open while choosing: the OS may otherwise hand the
+    same port out twice)."""
+    socks = [socket.socket() for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
 
 
 def served_mission(workdir: Path, duration_s: float, name: str = "dry_run") -> Path:
@@ -47,8 +54,8 @@ def served_mission(workdir: Path, duration_s: float, name: str = "dry_run") -> P
     m["name"] = name
     m["duration_s"] = duration_s
     m["dt_s"] = 0.01
-    endpoints = {"world": f"tcp/127.0.0.1:{free_tcp_port()}"}
-    endpoints.update({str(d["id"]): f"tcp/127.0.0.1:{free_tcp_port()}" for d in m["drones"]})
+    names = ["world"] + [str(d["id"]) for d in m["drones"]]
+    endpoints = {n: f"tcp/127.0.0.1:{p}" for n, p in zip(names, free_tcp_ports(len(names)), strict=True)}
     m["bus"] = {"kind": "zenoh", "stale_after_s": 0.5, "zenoh": {"endpoints": endpoints, "lease_ms": 500}}
     experts = {}
     for k, d in enumerate(m["drones"]):
@@ -70,19 +77,24 @@ class Lines:
     def __init__(self, proc: subprocess.Popen[str]) -> None:
         self.q: queue.Queue[str] = queue.Queue()
         self.seen: list[str] = []
+        self.eof = False
         threading.Thread(target=self._read, args=(proc,), daemon=True).start()
 
     def _read(self, proc: subprocess.Popen[str]) -> None:
         assert proc.stdout is not None
         for line in proc.stdout:
             self.q.put(line)
+        self.eof = True
 
     def wait_for(self, text: str, timeout: float) -> bool:
+        """True when a line containing `text` arrives; False after timeout s or when the output ended."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             try:
                 line = self.q.get(timeout=0.1)
             except queue.Empty:
+                if self.eof:
+                    return False
                 continue
             self.seen.append(line)
             if text in line:
@@ -190,6 +202,7 @@ def agent_killed(mission_path: Path, workdir: Path) -> FaultResult:
         f"within {DROP_WITHIN_S:g} s and fly to the end; the world lands drone 3 at once"
     )
     c, crash = Checks(), Checks()
+    workdir = workdir / "agent_killed"
     mission = served_mission(workdir, duration_s=8.0, name="fault_killed")
     with ServedRun(mission, workdir) as run:
         crash.check(run.world_lines.wait_for("tick 300", 60), "the served run never reached t = 3 s")
@@ -224,6 +237,7 @@ def bus_partition(mission_path: Path, workdir: Path) -> FaultResult:
         "lands (requested) and exits 1 with its partial recording"
     )
     c, crash = Checks(), Checks()
+    workdir = workdir / "bus_partition"
     mission = served_mission(workdir, duration_s=8.0, name="fault_partition")
     with ServedRun(mission, workdir) as run:
         crash.check(run.world_lines.wait_for("tick 300", 60), "the served run never reached t = 3 s")
