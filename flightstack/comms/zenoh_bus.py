@@ -15,7 +15,9 @@ sender and silently loses the others; one RingChannel per sender would not see u
 senders (which must be counted) and would force `wait_for` to poll. The default FIFO handler blocks the
 session when Python is slow. Bad messages are dropped and counted in `dropped` by reason (the reasons of
 `decode`, plus "key sender mismatch", "old or duplicate seq", "stale", "left", "control: ..."), exactly
-like `InProcBus`. Predictions are reliable, congestion control DROP (a newer one follows next tick) and
+like `InProcBus`. Predictions are reliable; congestion control is DROP in real time (a newer one follows
+next tick) and BLOCK when `reliable` is set (lock-step simulations wait for every message, so a dropped one
+would stall a tick for the whole lock-step timeout). They are
 *not* express: zenoh's tx queue holds only 2 batches per priority and a DROP message that finds both taken
 for 1 ms is discarded; express puts every message in its own batch, so a burst from a CPU-starved process
 lost messages in testing, while batched messages share one batch (the batch is flushed as soon as the link
