@@ -144,40 +144,53 @@ def run_mode(
     agent_ids: the drones this process flies (default all); the others are neighbours on the bus.
     On a simulated clock with a network bus, phase 2 waits for the neighbours' messages of the same tick
     (`bus.zenoh.lockstep_timeout_s`), so the result equals the in-process bus's."""
-    backend = backend if backend is not None else build_backend(mission)
     ids = [d.id for d in mission.drones] if agent_ids is None else list(agent_ids)
     own_bus = bus is None
-    if bus is None:
+    if bus is None:  # first: a bus that cannot open must not leave a connected (armed) backend behind
         participant = "agents" if agent_ids is None else str(ids[0])
         bus = make_bus(mission, participant, set(ids))
-    lockstep = hasattr(bus, "wait_for_stamp") and mission.simulated
-    zspec = mission.bus.zenoh
-    everyone = sorted(d.id for d in mission.drones)  # own messages too: Zenoh loops them back asynchronously
-    clock = backend.clock
-    log = EventLog()
-    limits = safety_limits(mission)
-    safe: dict[int, SafeDrone] = {}
-    supervisor: MissionSupervisor | None = None
-    if mission.safety.enabled:
-        safe = {
-            i: SafeDrone(i, backend.drone(i), backend.pose_source(), f"drone{i}", clock, limits, log)
-            for i in ids
-        }
-        supervisor = MissionSupervisor(safe, clock, limits, log, concurrent_land=not mission.simulated)
-        drones: dict[int, Drone] = dict(safe)
-    else:
-        drones = {i: backend.drone(i) for i in ids}
-    agents = make_agents(mission, mode, backend, drones, bus, predictors, ids)
-    target = TargetDriver(mission, backend) if mission.target.motion == "square" else None
-    g_d = np.array([a.cfg.g_d.as_vector() for a in agents])
-    dt = mission.dt_s
-    n_ticks = round(mission.duration_s / dt)
-    rec = Recording.empty(mode, ids, n_ticks)
-    rejections: dict[int, Counter[str]] = {i: Counter() for i in ids}
-    neighbours_used: dict[int, set[int]] = {i: set() for i in ids}
-    wall0 = time.perf_counter()
-    reason = "mission complete"
-    status = StatusPublisher(bus, mode)
+    if backend is None:
+        try:
+            backend = build_backend(mission)
+        except BaseException:
+            if own_bus:
+                bus.close()
+            raise
+    try:  # setup; on failure nothing took off: close what is connected (an armed robot, video, mocap)
+        lockstep = hasattr(bus, "wait_for_stamp") and mission.simulated
+        zspec = mission.bus.zenoh
+        # every agent's message, own ones too: Zenoh loops them back asynchronously
+        everyone = sorted(d.id for d in mission.drones)
+        clock = backend.clock
+        log = EventLog()
+        limits = safety_limits(mission)
+        safe: dict[int, SafeDrone] = {}
+        supervisor: MissionSupervisor | None = None
+        if mission.safety.enabled:
+            safe = {
+                i: SafeDrone(i, backend.drone(i), backend.pose_source(), f"drone{i}", clock, limits, log)
+                for i in ids
+            }
+            supervisor = MissionSupervisor(safe, clock, limits, log, concurrent_land=not mission.simulated)
+            drones: dict[int, Drone] = dict(safe)
+        else:
+            drones = {i: backend.drone(i) for i in ids}
+        agents = make_agents(mission, mode, backend, drones, bus, predictors, ids)
+        target = TargetDriver(mission, backend) if mission.target.motion == "square" else None
+        g_d = np.array([a.cfg.g_d.as_vector() for a in agents])
+        dt = mission.dt_s
+        n_ticks = round(mission.duration_s / dt)
+        rec = Recording.empty(mode, ids, n_ticks)
+        rejections: dict[int, Counter[str]] = {i: Counter() for i in ids}
+        neighbours_used: dict[int, set[int]] = {i: set() for i in ids}
+        wall0 = time.perf_counter()
+        reason = "mission complete"
+        status = StatusPublisher(bus, mode)
+    except BaseException:
+        backend.close()
+        if own_bus:
+            bus.close()
+        raise
     try:
         if hasattr(bus, "wait_alive") and zspec is not None:
             missing = bus.wait_alive({d.id for d in mission.drones}, zspec.start_timeout_s)
