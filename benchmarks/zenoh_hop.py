@@ -14,7 +14,6 @@ publish (encode + decode) + one latest() on InProcBus. 50 warm-up rounds are not
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -27,25 +26,13 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from flightstack.comms.bus import InProcBus  # noqa: E402
+from flightstack.comms.factory import free_loopback_endpoints  # noqa: E402
 from flightstack.comms.messages import PredictionMessage  # noqa: E402
 from flightstack.comms.zenoh_bus import ZenohBus, ZenohBusConfig  # noqa: E402
 
 MISSION = "hop_bench"
 WARMUP = 50
 TIMEOUT_S = 10.0  # per round trip; the echo peer also gives up after this long without a ping
-
-
-_HANDED_OUT: set[int] = set()
-
-
-def _free_endpoint() -> str:
-    while True:  # never hand out the same port twice (the OS may, once a probe socket is closed)
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        if port not in _HANDED_OUT:
-            _HANDED_OUT.add(port)
-            return f"tcp/127.0.0.1:{port}"
 
 
 def _msg(sender: int, seq: int) -> PredictionMessage:
@@ -88,7 +75,7 @@ def _echo(listen: str, connect: str, rounds: int) -> int:
 
 def measure_zenoh_hop(n: int = 2000) -> dict[str, float]:
     """p50/p99 one-hop latency (µs) of ZenohBus between two processes on loopback (round trip / 2)."""
-    ep_here, ep_echo = _free_endpoint(), _free_endpoint()
+    ep_here, ep_echo = free_loopback_endpoints(2)
     rounds = n + WARMUP
     pings = [_msg(0, seq) for seq in range(1, rounds + 1)]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}

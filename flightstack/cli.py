@@ -107,12 +107,9 @@ def _bus_override(mission: Mission, kind: str) -> dict[str, object]:
     bus = mission.bus.model_dump(mode="json")
     bus["kind"] = kind
     if kind == "zenoh" and bus.get("zenoh") is None:
-        import socket
+        from flightstack.comms.factory import free_loopback_endpoints
 
-        with socket.socket() as sock:
-            sock.bind(("127.0.0.1", 0))
-            port = sock.getsockname()[1]
-        bus["zenoh"] = {"endpoints": {"agents": f"tcp/127.0.0.1:{port}"}}
+        bus["zenoh"] = {"endpoints": {"agents": free_loopback_endpoints()[0]}}
     return bus
 
 

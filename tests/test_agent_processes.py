@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import yaml
 
-from flightstack.faults.rows_processes import IDS, ServedRun, free_tcp_ports, served_mission
+from flightstack.comms.factory import free_loopback_endpoints
+from flightstack.faults.rows_processes import IDS, ServedRun, served_mission
 from tests.conftest import MISSIONS, REPO
 
 pytest.importorskip("zenoh")
@@ -64,7 +65,7 @@ def test_served_lab_streams_camera_images(tmp_path: Path) -> None:
     m = yaml.safe_load((MISSIONS / "paper_experiment_sim.yaml").read_text())
     m["duration_s"] = 3.0
     names = ("world", "1", "2")
-    endpoints = {n: f"tcp/127.0.0.1:{p}" for n, p in zip(names, free_tcp_ports(3), strict=True)}
+    endpoints = dict(zip(names, free_loopback_endpoints(3), strict=True))
     m["bus"] = {"kind": "zenoh", "stale_after_s": 0.5, "zenoh": {"endpoints": endpoints}}
     for d in m["drones"]:
         d["camera"]["calibration"] = str(MISSIONS / d["camera"]["calibration"])

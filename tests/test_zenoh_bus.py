@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import struct
 import subprocess
 import sys
@@ -23,6 +22,7 @@ import numpy as np
 import pytest
 
 from flightstack.comms.bus import InProcBus
+from flightstack.comms.factory import free_loopback_endpoints
 from flightstack.comms.messages import PredictionMessage, encode
 from flightstack.comms.zenoh_bus import ZenohBus, ZenohBusConfig, zenoh_config
 
@@ -31,19 +31,6 @@ MISSION = "zb_test"
 KNOWN = {0, 1, 2}
 LEASE_MS = 500  # presence tests: a hung peer is dropped after ~0.5 s; a killed one on TCP close (~0.1 s)
 DETECT_BOUND_S = 1.0  # issue requirement: a killed agent leaves fusion within 1 s
-
-
-_HANDED_OUT: set[int] = set()
-
-
-def free_endpoint() -> str:
-    while True:  # never hand out the same port twice (the OS may, once a probe socket is closed)
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        if port not in _HANDED_OUT:
-            _HANDED_OUT.add(port)
-            return f"tcp/127.0.0.1:{port}"
 
 
 def make_msg(sender: int, seq: int, stamp: float = 1.0, mission: str = MISSION, seed: int = 0):
@@ -84,7 +71,7 @@ def eventually(pred: Callable[[], bool], timeout_s: float = 10.0) -> bool:
 @contextmanager
 def mesh(*self_ids: set[int], lease_ms: int = 1000) -> Iterator[list[ZenohBus]]:
     """One bus per entry, full mesh (each listens on its own port and connects to all others)."""
-    eps = [free_endpoint() for _ in self_ids]
+    eps = free_loopback_endpoints(len(self_ids))
     buses: list[ZenohBus] = []
     try:
         for k, ids in enumerate(self_ids):
@@ -110,7 +97,7 @@ def no_leftover_threads() -> Iterator[None]:
 
 # ---------------------------------------------------------------------------------------------- config
 def test_config_builds_and_rejects_bad_keys(tmp_path: Path) -> None:
-    ok = ZenohBusConfig(MISSION, {0}, KNOWN, [free_endpoint()], [], usrpwd=("u", "p"))
+    ok = ZenohBusConfig(MISSION, {0}, KNOWN, [free_loopback_endpoints()[0]], [], usrpwd=("u", "p"))
     zenoh_config(ok)
     for f in ("ca.pem", "cert.pem", "key.pem"):
         (tmp_path / f).write_text("dummy")
@@ -166,7 +153,7 @@ def test_two_buses_exchange_identical_to_inproc() -> None:
 
 
 def test_own_publications_loop_back_without_peers() -> None:
-    bus = ZenohBus(ZenohBusConfig(MISSION, {0, 1}, KNOWN, [free_endpoint()], []))
+    bus = ZenohBus(ZenohBusConfig(MISSION, {0, 1}, KNOWN, [free_loopback_endpoints()[0]], []))
     try:
         msg = make_msg(1, 7)
         bus.publish(msg)
@@ -277,11 +264,12 @@ def test_closed_bus_is_seen_left_within_one_second() -> None:
 
 
 def test_restarted_agent_is_accepted_with_fresh_seq() -> None:
-    ep_a = free_endpoint()
+    ep_a = free_loopback_endpoints()[0]
     a = ZenohBus(ZenohBusConfig(MISSION, {0}, KNOWN, [ep_a], [], lease_ms=LEASE_MS))
     try:
         for run, seq in ((1, 40), (2, 1)):  # the second run of agent 1 counts from 1 again
-            b = ZenohBus(ZenohBusConfig(MISSION, {1}, KNOWN, [free_endpoint()], [ep_a], lease_ms=LEASE_MS))
+            ep_b = free_loopback_endpoints()
+            b = ZenohBus(ZenohBusConfig(MISSION, {1}, KNOWN, ep_b, [ep_a], lease_ms=LEASE_MS))
             try:
                 assert a.wait_alive({1}, 20.0) == set()
                 msg = make_msg(1, seq, seed=run)
@@ -350,7 +338,7 @@ def _peer_is_up(a: ZenohBus, proc: subprocess.Popen) -> None:
 def test_killed_or_hung_peer_process_is_dropped(how: str) -> None:
     """SIGKILL: the kernel closes the peer's sockets, detection ≈ 0.1-0.2 s. SIGSTOP (hung peer): only the
     lease expires, detection ≈ LEASE_MS. Both must drop the peer from fusion within 1 s."""
-    ep_a, ep_peer = free_endpoint(), free_endpoint()
+    ep_a, ep_peer = free_loopback_endpoints(2)
     a = ZenohBus(ZenohBusConfig(MISSION, {0}, KNOWN, [ep_a], [ep_peer], lease_ms=LEASE_MS))
     try:
         with peer_process(ep_peer, ep_a) as proc:
@@ -408,9 +396,14 @@ def test_control_channel() -> None:
 
 
 def test_closed_bus_refuses_to_publish() -> None:
-    bus = ZenohBus(ZenohBusConfig(MISSION, {0}, KNOWN, [free_endpoint()], []))
+    bus = ZenohBus(ZenohBusConfig(MISSION, {0}, KNOWN, [free_loopback_endpoints()[0]], []))
     bus.close()
     bus.close()  # idempotent
     with pytest.raises(RuntimeError):
         bus.publish(make_msg(0, 1))
     assert bus.wait_for({0: 1}, 5.0) == {0}  # does not block on a closed bus
+
+
+def test_free_loopback_endpoints_never_repeat() -> None:
+    eps = free_loopback_endpoints(20) + [free_loopback_endpoints()[0] for _ in range(20)]
+    assert len(set(eps)) == 40 and all(e.startswith("tcp/127.0.0.1:") for e in eps)

@@ -3,11 +3,10 @@ gives the same result as over the in-process bus (issue 6 acceptance). Loopback 
 
 from __future__ import annotations
 
-import socket
-
 import numpy as np
 import pytest
 
+from flightstack.comms.factory import free_loopback_endpoints
 from flightstack.gp import GPExpert, GPHyperparameters
 from flightstack.metrics import mode_metrics
 from flightstack.mission import load_mission
@@ -16,12 +15,6 @@ from flightstack.target_motion import DuffingParams, duffing_body_velocity_batch
 from tests.conftest import MISSIONS
 
 pytest.importorskip("zenoh")
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def experts(ids: list[int]) -> dict[int, GPExpert]:
@@ -42,7 +35,7 @@ def test_paper_sim_over_zenoh_equals_inproc() -> None:
     bus = {
         "kind": "zenoh",
         "stale_after_s": inproc.bus.stale_after_s,
-        "zenoh": {"endpoints": {"agents": f"tcp/127.0.0.1:{free_tcp_port()}"}},
+        "zenoh": {"endpoints": {"agents": free_loopback_endpoints()[0]}},
     }
     zen = load_mission(MISSIONS / "paper_sim.yaml", {"duration_s": 2.0, "bus": bus})
     preds = experts([d.id for d in inproc.drones])

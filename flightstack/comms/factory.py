@@ -8,6 +8,7 @@ tools, which only connect. Each participant listens on its own endpoint and conn
 from __future__ import annotations
 
 import json
+import socket
 from typing import TYPE_CHECKING
 
 from flightstack.comms.bus import Bus, InProcBus
@@ -47,3 +48,27 @@ def make_bus(mission: Mission, participant: str, self_ids: set[int], kind: str |
     from flightstack.comms.zenoh_bus import ZenohBus
 
     return ZenohBus(zenoh_bus_config(mission, participant, self_ids))
+
+
+_HANDED_OUT: set[int] = set()
+
+
+def free_loopback_endpoints(n: int = 1) -> list[str]:
+    """n endpoints `tcp/127.0.0.1:PORT` whose ports are free now and were not handed out before by this
+    process. The probe sockets stay open together while choosing: once one is closed, the OS may hand
+    out the same port again, and two participants would then try to listen on it."""
+    socks: list[socket.socket] = []
+    ports: list[int] = []
+    try:
+        while len(ports) < n:
+            s = socket.socket()
+            socks.append(s)
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+            if port not in _HANDED_OUT:
+                _HANDED_OUT.add(port)
+                ports.append(port)
+    finally:
+        for s in socks:
+            s.close()
+    return [f"tcp/127.0.0.1:{p}" for p in ports]

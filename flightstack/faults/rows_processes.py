@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import queue
 import signal
-import socket
 import subprocess
 import threading
 import time
@@ -20,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from flightstack.comms.factory import free_loopback_endpoints
 from flightstack.faults.result import Checks, FaultResult, FaultRow
 from flightstack.faults.rows_cli import REPO, cli_command, cli_env
 
@@ -27,19 +27,6 @@ PAPER_SIM = REPO / "mission_configs" / "paper_sim.yaml"
 IDS = (1, 2, 3)
 PROCESS_TIMEOUT_S = 90.0
 DROP_WITHIN_S = 1.0  # issue 6: the others drop a dead agent from fusion within 1 s
-
-
-def free_tcp_ports(n: int) -> list[int]:
-    """n distinct free loopback TCP ports (all held open while choosing: the OS may otherwise hand the
-    same port out twice)."""
-    socks = [socket.socket() for _ in range(n)]
-    try:
-        for s in socks:
-            s.bind(("127.0.0.1", 0))
-        return [s.getsockname()[1] for s in socks]
-    finally:
-        for s in socks:
-            s.close()
 
 
 def served_mission(workdir: Path, duration_s: float, name: str = "dry_run") -> Path:
@@ -55,7 +42,7 @@ def served_mission(workdir: Path, duration_s: float, name: str = "dry_run") -> P
     m["duration_s"] = duration_s
     m["dt_s"] = 0.01
     names = ["world"] + [str(d["id"]) for d in m["drones"]]
-    endpoints = {n: f"tcp/127.0.0.1:{p}" for n, p in zip(names, free_tcp_ports(len(names)), strict=True)}
+    endpoints = dict(zip(names, free_loopback_endpoints(len(names)), strict=True))
     m["bus"] = {"kind": "zenoh", "stale_after_s": 0.5, "zenoh": {"endpoints": endpoints, "lease_ms": 500}}
     experts = {}
     for k, d in enumerate(m["drones"]):
