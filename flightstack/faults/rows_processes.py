@@ -14,6 +14,8 @@ import signal
 import subprocess
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -181,6 +183,55 @@ def _world_landed(out: str, c: Checks) -> bool:
     return ok
 
 
+@dataclass
+class _Served:
+    """What a served fault row saw: the run, the world's and the victim's output, the checks so far."""
+
+    run: ServedRun
+    world_out: str
+    victim_out: str
+    c: Checks
+    crash: Checks
+    notes: list[str]
+    safe: bool
+
+
+def _served_fault(workdir: Path, name: str, inject: Callable[[ServedRun], float], victim: int = 3) -> _Served:
+    """Fly the served mission, call inject(run) 3 s into it (it returns the fault's `time.time()`), wait
+    for every process, and make the checks every such row makes."""
+    c, crash = Checks(), Checks()
+    mission = served_mission(workdir, duration_s=8.0, name=f"fault_{name}")
+    with ServedRun(mission, workdir) as run:
+        crash.check(run.world_lines.wait_for("tick 300", 60), "the served run never reached t = 3 s")
+        t_fault = inject(run)
+        codes, world = run.wait()
+        wout = run.world_lines.rest()
+        vout = run.agent_lines[victim].rest()
+    survivors = [i for i in IDS if i != victim]
+    crash.check(all(codes[i] == 0 for i in survivors), f"surviving agents exited {codes}")
+    crash.check(world == 0, f"world exited {world}")
+    c.check(f"agent {victim} left" in wout, f"the world never saw agent {victim} leave")
+    notes = _survivor_checks(run, victim, t_fault, c)
+    return _Served(run, wout, vout, c, crash, notes, _world_landed(wout, c))
+
+
+def _result(
+    name: str, expected: str, sv: _Served, recorded: tuple[int, ...], observed: str, wall0: float
+) -> FaultResult:
+    """The row's result; `recorded`: the agents that must have written their recording."""
+    return FaultResult(
+        name,
+        expected,
+        "; ".join([*sv.notes, observed]),
+        all_safe=sv.safe,
+        recording_complete=all((sv.run.out / f"agent{i}" / "timeseries_dgp.npz").is_file() for i in recorded),
+        crashed=not sv.crash.ok,
+        seconds=time.perf_counter() - wall0,
+        reaction_ok=sv.c.ok,
+        problems=[*sv.c.failed, *sv.crash.failed],
+    )
+
+
 def agent_killed(mission_path: Path, workdir: Path) -> FaultResult:
     """SIGKILL to agent 3 during pursuit."""
     wall0 = time.perf_counter()
@@ -188,31 +239,14 @@ def agent_killed(mission_path: Path, workdir: Path) -> FaultResult:
         "agent 3's liveliness token vanishes (TCP closed); agents 1, 2 drop it from fusion and consensus "
         f"within {DROP_WITHIN_S:g} s and fly to the end; the world lands drone 3 at once"
     )
-    c, crash = Checks(), Checks()
-    workdir = workdir / "agent_killed"
-    mission = served_mission(workdir, duration_s=8.0, name="fault_killed")
-    with ServedRun(mission, workdir) as run:
-        crash.check(run.world_lines.wait_for("tick 300", 60), "the served run never reached t = 3 s")
+
+    def kill(run: ServedRun) -> float:
         run.agents[3].send_signal(signal.SIGKILL)
-        t_fault = time.time()
-        codes, world = run.wait()
-        wout = run.world_lines.rest()
-    crash.check(codes[1] == 0 and codes[2] == 0, f"surviving agents exited {codes}")
-    crash.check(world == 0, f"world exited {world}")
-    c.check("agent 3 left" in wout, "the world never saw agent 3 leave")
-    notes = _survivor_checks(run, 3, t_fault, c)
-    safe = _world_landed(wout, c)
-    return FaultResult(
-        "agent_killed",
-        expected,
-        "; ".join([*notes, "world: agent 3 left → drone 3 landed" if "agent 3 left" in wout else "?"]),
-        all_safe=safe,
-        recording_complete=all((workdir / f"agent{i}" / "timeseries_dgp.npz").is_file() for i in (1, 2)),
-        crashed=not crash.ok,
-        seconds=time.perf_counter() - wall0,
-        reaction_ok=c.ok,
-        problems=[*c.failed, *crash.failed],
-    )
+        return time.time()
+
+    sv = _served_fault(workdir / "agent_killed", "killed", kill)
+    left = "world: agent 3 left → drone 3 landed" if "agent 3 left" in sv.world_out else "?"
+    return _result("agent_killed", expected, sv, (1, 2), left, wall0)  # the killed agent writes nothing
 
 
 def bus_partition(mission_path: Path, workdir: Path) -> FaultResult:
@@ -223,39 +257,21 @@ def bus_partition(mission_path: Path, workdir: Path) -> FaultResult:
         f"{DROP_WITHIN_S:g} s and fly on; the world lands drone 3; agent 3, back, finds no world: it "
         "lands (requested) and exits 1 with its partial recording"
     )
-    c, crash = Checks(), Checks()
-    workdir = workdir / "bus_partition"
-    mission = served_mission(workdir, duration_s=8.0, name="fault_partition")
-    with ServedRun(mission, workdir) as run:
-        crash.check(run.world_lines.wait_for("tick 300", 60), "the served run never reached t = 3 s")
+
+    def freeze(run: ServedRun) -> float:
         run.agents[3].send_signal(signal.SIGSTOP)
         t_fault = time.time()
         time.sleep(3.0)
         run.agents[3].send_signal(signal.SIGCONT)
-        codes, world = run.wait()
-        wout = run.world_lines.rest()
-        aout = run.agent_lines[3].rest()
-    crash.check(codes[1] == 0 and codes[2] == 0, f"surviving agents exited {codes}")
-    crash.check(codes[3] == 1 and "Traceback" not in aout, f"agent 3 exited {codes[3]}: {aout[-300:]}")
-    crash.check(world == 0, f"world exited {world}")
-    c.check("agent 3 left" in wout, "the world never saw agent 3 leave")
-    c.check("WorldLostError" in aout, "agent 3 did not report the lost world")
-    notes = _survivor_checks(run, 3, t_fault, c)
-    safe = _world_landed(wout, c)
-    partial = run.out / "agent3" / "timeseries_dgp.npz"
-    c.check(partial.is_file(), "agent 3 wrote no partial recording")
-    return FaultResult(
-        "bus_partition",
-        expected,
-        "; ".join([*notes, "world: agent 3 left → drone 3 landed; agent 3: world lost, exit 1"]),
-        all_safe=safe,
-        recording_complete=partial.is_file()
-        and all((workdir / f"agent{i}" / "timeseries_dgp.npz").is_file() for i in (1, 2)),
-        crashed=not crash.ok,
-        seconds=time.perf_counter() - wall0,
-        reaction_ok=c.ok,
-        problems=[*c.failed, *crash.failed],
-    )
+        return t_fault
+
+    sv = _served_fault(workdir / "bus_partition", "partition", freeze)
+    code3, aout = sv.run.agents[3].returncode, sv.victim_out
+    sv.crash.check(code3 == 1 and "Traceback" not in aout, f"agent 3 exited {code3}: {aout[-300:]}")
+    sv.c.check("WorldLostError" in aout, "agent 3 did not report the lost world")
+    sv.c.check((sv.run.out / "agent3" / "timeseries_dgp.npz").is_file(), "agent 3 wrote no partial recording")
+    observed = "world: agent 3 left → drone 3 landed; agent 3: world lost, exit 1"
+    return _result("bus_partition", expected, sv, (1, 2, 3), observed, wall0)
 
 
 ROWS: dict[str, FaultRow] = {"agent_killed": agent_killed, "bus_partition": bus_partition}
