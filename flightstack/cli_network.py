@@ -46,7 +46,7 @@ def cmd_world(args: argparse.Namespace) -> int:
 
 
 def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
-    if mode in ("none",):
+    if mode == "none":
         return None
     if mission.gp.experts_file is None:
         raise MissionError(f"gp.experts_file: mode {mode!r} in an agent process needs trained experts")
@@ -66,6 +66,9 @@ def cmd_agent(args: argparse.Namespace) -> int:
         print(f"error: --id {args.id}: the mission's drones are {ids}", file=sys.stderr)
         return 2
     mode = args.mode or mission.compare_modes[-1]
+    if mode == "oracle":  # sim-only truth predictor: it needs the world's truth, which agents do not get
+        print("error: mode 'oracle' runs in one process only (flightstack sim)", file=sys.stderr)
+        return 2
     predictors = _predictors(mission, mode)
     assert mission.bus.zenoh is not None
     bus = make_bus(mission, str(args.id), {args.id})
@@ -218,7 +221,7 @@ def register(sub: Any) -> None:
     )
     a.add_argument("mission")
     a.add_argument("--id", type=int, required=True, help="the drone id this process flies")
-    a.add_argument("--mode", default=None, help="none | local | dgp (default: the last of compare_modes)")
+    a.add_argument("--mode", choices=["none", "local", "dgp"], help="default: the last of compare_modes")
     a.add_argument("--out", required=True, help="directory for this agent's recording")
     a.set_defaults(func=cmd_agent)
     ab = sub.add_parser("abort", help="make every agent of a mission land at once")
