@@ -1,14 +1,46 @@
 """Scamper ground-robot driver over MAVLink (ArduPilot Rover conventions), implementing `hal.GroundRobot`.
 
-Scamper's own interface is not public, so the robot is driven like an ArduPilot Rover:
+Scamper's own interface is not public, so the robot is driven like an ArduPilot Rover.  Its state is read
+from ITS OWN HEARTBEAT, never from a reply alone: ``custom_mode`` is the Rover mode (GUIDED = 15),
+``base_mode & MAV_MODE_FLAG_SAFETY_ARMED`` (128) says armed.  A COMMAND_ACK can be lost, duplicated, late,
+or ACCEPTED for a change that never happens (github.com/ArduPilot/ardupilot/issues/1385), so ACKs only
+steer re-sends and fast failure; success is a HEARTBEAT received after the command was sent that shows the
+requested state.  Only the autopilot's heartbeats count: the first vehicle heartbeat (as pymavlink's
+``probably_vehicle_heartbeat``: not a GCS, gimbal, ADS-B or onboard-controller type, not
+``MAV_AUTOPILOT_INVALID``) fixes the (system, component) listened to; a companion computer's heartbeats
+(mode 0, disarmed) are ignored.
 
 * ``connect()`` opens the pymavlink connection (``ScamperConfig.url``), starts one I/O thread that sends a
-  GCS HEARTBEAT at 1 Hz and receives everything, waits for the robot's HEARTBEAT, switches to GUIDED
-  (custom mode 15, ``COMMAND_LONG MAV_CMD_DO_SET_MODE``) and arms (``MAV_CMD_COMPONENT_ARM_DISARM``); both
-  commands must be answered by ``COMMAND_ACK`` with ``MAV_RESULT_ACCEPTED``.
+  GCS HEARTBEAT at 1 Hz and receives everything, waits for the robot's HEARTBEAT (``ScamperLinkError``
+  naming the URL after ``heartbeat_timeout_s``), then sets GUIDED (``COMMAND_LONG MAV_CMD_DO_SET_MODE``,
+  param2 = 15) and arms (``MAV_CMD_COMPONENT_ARM_DISARM``, param1 = 1).  Each change (`_ensure`):
+
+  - a heartbeat at most ``link_timeout_s`` old already shows it: nothing sent (event ``no_command_needed``);
+  - a heartbeat after the send shows it: success whatever the ACK said; no ACK at all logs
+    ``ack_lost_confirmed_by_heartbeat``, a rejecting ACK ``ack_contradicted_by_heartbeat`` (not errors);
+  - explicit rejection (``DENIED``, ``FAILED``, ``TEMPORARILY_REJECTED``, ``UNSUPPORTED``, ...) with no
+    change shown: ``ScamperCommandError`` at once, naming the command, the result and the heartbeat;
+  - neither ACK nor change within ``ack_timeout_s``: re-sent (``confirmation`` incremented, event
+    ``command_resent``, counted in ``resends``), up to ``command_sends`` sends in all;
+  - ACK ``ACCEPTED``/``IN_PROGRESS`` (then no re-send), or the last send made, and still no change shown
+    ``ack_timeout_s`` + 2 heartbeat periods (measured; 1 s until known) after that send:
+    ``ScamperCommandError`` (an ACCEPTED is "not trusted").
+
+  A change takes at most ``command_sends · ack_timeout_s`` + 2 heartbeat periods, ``connect()`` at most
+  ``heartbeat_timeout_s`` + twice that (defaults: 5 + 2 · 8 = 21 s).  On failure after an arm was sent,
+  a best-effort disarm (same rules, never raises) runs, then everything is closed.
 * ``send_body_velocity(V)`` only stores the set-point; the I/O thread re-sends it at ``stream_hz``
   (ArduPilot Rover stops after ~3 s without one) as ``SET_POSITION_TARGET_LOCAL_NED`` in
   ``MAV_FRAME_BODY_NED`` with ``type_mask`` 1511 (only vx, vy and yaw_rate used).
+* While running, a heartbeat showing another mode (RC mode switch, failsafe, another GCS) logs
+  ``mode_changed`` once per change; armed -> disarmed logs ``disarmed_by_robot`` (back: ``armed_by_robot``).
+  The driver does not fight it (no automatic re-GUIDED / re-arm: a pilot's switch must win) and keeps
+  streaming, which the robot ignores outside GUIDED.  ``robot_state()`` gives mode, armed, heartbeat age,
+  link alive and ``ready`` (GUIDED and armed) from the last heartbeat, for callers to stop on.
+* ``close()`` zeroes the set-point (sent at once), stops streaming, then disarms by the same rules, best
+  effort: any failure (refused, ACCEPTED but still armed, no answer) is the event ``disarm_failed``, never
+  an exception; nothing is sent when a fresh heartbeat already shows disarmed.
+* No HEARTBEAT for ``link_timeout_s``: event ``link_lost`` (``link_alive()`` False); back: ``link_restored``.
 
 Frames and units: ``V = [v_x, v_y, v_z, ω]`` is a body velocity in the flightstack body frame FLU
 (x forward, y left, z up; m/s, and ω in rad/s counter-clockwise seen from above).  MAVLink's body NED/FRD
@@ -25,6 +57,7 @@ import contextlib
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,6 +70,12 @@ ROVER_GUIDED_MODE = 15
 # Ignore x, y, z (1, 2, 4), vz (32), afx/afy/afz (64, 128, 256), yaw (1024); use vx, vy, yaw_rate.
 TYPE_MASK_VEL_YAWRATE = 1511
 GCS_HEARTBEAT_PERIOD_S = 1.0
+DEFAULT_HEARTBEAT_PERIOD_S = 1.0  # ArduPilot's HEARTBEAT rate, assumed until measured
+_PENDING_RESULTS = (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
+_NOT_VEHICLE_TYPES = (
+    mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_GIMBAL, mavlink.MAV_TYPE_ADSB, mavlink.MAV_TYPE_ONBOARD_CONTROLLER
+)  # fmt: skip
+_GCS_HEARTBEAT = (mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE)
 
 
 class ScamperError(RuntimeError):
@@ -48,7 +87,7 @@ class ScamperLinkError(ScamperError):
 
 
 class ScamperCommandError(ScamperError):
-    """A COMMAND_LONG was not acknowledged with MAV_RESULT_ACCEPTED (or not at all)."""
+    """A mode change or (dis)arm was rejected, or the robot's HEARTBEAT never showed it."""
 
 
 @dataclass(frozen=True)
@@ -57,11 +96,12 @@ class ScamperConfig:
 
     url: str = "udpout:127.0.0.1:14550"  # pymavlink connection string of the robot
     heartbeat_timeout_s: float = 5.0  # connect(): max wait for the robot's first HEARTBEAT
-    ack_timeout_s: float = 2.0  # max wait for each COMMAND_ACK
+    ack_timeout_s: float = 2.0  # wait for a COMMAND_ACK (or heartbeat change) before re-sending
     stream_hz: float = 10.0  # set-point re-send rate (>= 1 Hz needed; Rover stops after 3 s)
     link_timeout_s: float = 3.0  # no HEARTBEAT for this long -> link lost
     source_system: int = 255  # our MAVLink system id (GCS convention)
     source_component: int = 190  # MAV_COMP_ID_MISSIONPLANNER
+    command_sends: int = 3  # max sends of one COMMAND_LONG that gets neither ACK nor heartbeat change
 
     def __post_init__(self) -> None:
         for name in ("heartbeat_timeout_s", "ack_timeout_s", "stream_hz", "link_timeout_s"):
@@ -70,38 +110,87 @@ class ScamperConfig:
                 raise ValueError(f"ScamperConfig.{name} must be finite and > 0, got {value}")
         if self.stream_hz < 1.0:
             raise ValueError(f"ScamperConfig.stream_hz must be >= 1 Hz, got {self.stream_hz}")
+        if self.command_sends < 1:
+            raise ValueError(f"ScamperConfig.command_sends must be >= 1, got {self.command_sends}")
+
+
+@dataclass(frozen=True)
+class RobotState:
+    """What the robot's last HEARTBEAT said; ``custom_mode``/``armed`` are None before the first one."""
+
+    custom_mode: int | None
+    armed: bool | None
+    age_s: float  # since that heartbeat (s); inf before the first one
+    link_alive: bool
+
+    @property
+    def mode_name(self) -> str:
+        return mode_name(self.custom_mode)
+
+    @property
+    def ready(self) -> bool:
+        """Heartbeat is live and shows GUIDED and armed: set-points are being obeyed."""
+        return self.link_alive and self.custom_mode == ROVER_GUIDED_MODE and bool(self.armed)
+
+
+def mode_name(custom_mode: int | None) -> str:
+    if custom_mode is None:
+        return "unknown"
+    return mavutil.mode_mapping_rover.get(custom_mode, f"mode {custom_mode}")
+
+
+def _result_name(result: int) -> str:
+    enum = mavlink.enums["MAV_RESULT"]
+    return enum[result].name.removeprefix("MAV_RESULT_") if result in enum else str(result)
+
+
+def _is_vehicle_heartbeat(msg: Any) -> bool:
+    """As pymavlink's ``mavfile.probably_vehicle_heartbeat``: not a GCS, gimbal, ADS-B or companion."""
+    return (
+        msg.get_srcComponent() != mavlink.MAV_COMP_ID_GIMBAL
+        and msg.type not in _NOT_VEHICLE_TYPES
+        and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID
+    )
 
 
 class ScamperDriver:
     """MAVLink driver of the Scamper ground robot; implements `flightstack.hal.GroundRobot`.
 
     ``events`` is a list of ``(t, kind, detail)`` with ``t`` from ``time.monotonic()`` (s) and ``kind`` one
-    of ``connected``, ``link_lost``, ``link_restored``, ``disarm_failed``.
+    of ``connected``, ``link_lost``, ``link_restored``, ``no_command_needed``, ``command_resent``,
+    ``ack_lost_confirmed_by_heartbeat``, ``ack_contradicted_by_heartbeat``, ``mode_changed``,
+    ``disarmed_by_robot``, ``armed_by_robot``, ``disarm_failed``.  ``resends`` counts COMMAND_LONG re-sends.
     """
 
     def __init__(self, config: ScamperConfig | None = None) -> None:
         self.config = config or ScamperConfig()
         self.events: list[tuple[float, str, str]] = []
+        self.resends = 0  # COMMAND_LONG re-sends (no ACK and no heartbeat change in time)
         self._conn: Any = None
-        self._lock = threading.Lock()  # guards set-point, acks, link state, events
+        self._lock = threading.Lock()  # guards set-point, acks, heartbeat state, events
         self._send_lock = threading.Lock()  # serialises writes on the pymavlink connection
-        self._ack_cv = threading.Condition(self._lock)
-        self._acks: dict[int, int] = {}  # command id -> latest MAV_RESULT
+        self._cv = threading.Condition(self._lock)
+        self._ack_log: list[tuple[int, int]] = []  # every COMMAND_ACK received: (command, result)
         self._setpoint = np.zeros(3)  # NED body: vx (m/s), vy right (m/s), yaw_rate clockwise (rad/s)
         self._streaming = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._t0 = time.monotonic()
         self._last_hb: float | None = None
+        self._hb_seq = 0  # robot heartbeats received so far
+        self._hb_mode: int | None = None
+        self._hb_armed: bool | None = None
+        self._hb_period: float | None = None  # measured robot HEARTBEAT period (s)
         self._link_alive = False
         self._target = (1, 1)
-        self._armed = False
+        self._arm_sent = False
 
     # ------------------------------------------------------------------ public API
     def connect(self) -> None:
         """Connect, wait for HEARTBEAT, set GUIDED and arm; raises ScamperLinkError / ScamperCommandError.
 
-        Blocks at most ``heartbeat_timeout_s + 2 * ack_timeout_s``; on failure everything is closed again.
+        Blocks at most ``heartbeat_timeout_s + 2 (command_sends · ack_timeout_s + 2 heartbeat periods)``;
+        on failure the robot is disarmed if an arm was sent (best effort) and everything is closed again.
         """
         cfg = self.config
         if self._thread is not None:
@@ -109,6 +198,9 @@ class ScamperDriver:
         self._conn = mavutil.mavlink_connection(
             cfg.url, source_system=cfg.source_system, source_component=cfg.source_component
         )
+        with self._lock:  # a reconnect learns the robot's state afresh
+            self._last_hb = self._hb_mode = self._hb_armed = self._hb_period = None
+            self._arm_sent = False
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="scamper-io", daemon=True)
         self._thread.start()
@@ -121,16 +213,22 @@ class ScamperDriver:
                         raise ScamperLinkError(
                             f"no HEARTBEAT from Scamper at {cfg.url!r} within {cfg.heartbeat_timeout_s:g} s"
                         )
-                    self._ack_cv.wait(timeout=min(remaining, 0.05))
-            self._command(
-                mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ROVER_GUIDED_MODE
+                    self._cv.wait(timeout=min(remaining, 0.05))
+            self._ensure(
+                "set GUIDED",
+                mavlink.MAV_CMD_DO_SET_MODE,
+                mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                ROVER_GUIDED_MODE,
+                lambda mode, armed: mode == ROVER_GUIDED_MODE,
             )
-            self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+            self._ensure(
+                "arm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0, lambda m, armed: armed is True
+            )
         except BaseException:
+            self._disarm_best_effort()
             self._shutdown()
             raise
         with self._lock:
-            self._armed = True
             self._setpoint = np.zeros(3)
             self._streaming = True
             self._event("connected", f"{cfg.url} sys={self._target[0]} comp={self._target[1]}")
@@ -159,6 +257,12 @@ class ScamperDriver:
         with self._lock:
             return self._link_alive
 
+    def robot_state(self) -> RobotState:
+        """The robot's mode, armed flag and heartbeat age, as its last HEARTBEAT reported them."""
+        with self._lock:
+            age = math.inf if self._last_hb is None else time.monotonic() - self._last_hb
+            return RobotState(self._hb_mode, self._hb_armed, age, self._link_alive)
+
     @property
     def setpoint_ned(self) -> np.ndarray:
         """The set-point being streamed: [vx fwd m/s, vy right m/s, yaw rate clockwise rad/s] (body NED)."""
@@ -166,20 +270,14 @@ class ScamperDriver:
             return self._setpoint.copy()
 
     def close(self) -> None:
-        """Zero the set-point, disarm (bounded by ack_timeout_s), stop the I/O thread, close. Idempotent."""
+        """Zero the set-point, disarm (best effort, bounded, never raises), stop the I/O; idempotent."""
         if self._thread is None:
             return
         self.stop()
-        if self._armed:
-            with self._lock:
-                self._streaming = False
-            self._send_setpoint(np.zeros(3))
-            try:
-                self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
-                self._armed = False
-            except ScamperError as exc:
-                with self._lock:
-                    self._event("disarm_failed", str(exc))
+        with self._lock:
+            self._streaming = False
+        self._send_setpoint(np.zeros(3))
+        self._disarm_best_effort()
         self._shutdown()
 
     def __enter__(self) -> ScamperDriver:
@@ -193,6 +291,16 @@ class ScamperDriver:
     def _event(self, kind: str, detail: str) -> None:
         """Append an event; caller holds the lock."""
         self.events.append((time.monotonic(), kind, detail))
+
+    def _state_text(self, now: float) -> str:
+        """What the last heartbeat said, for messages; caller holds the lock."""
+        if self._last_hb is None:
+            return "no heartbeat yet"
+        arm, age = "armed" if self._hb_armed else "disarmed", now - self._last_hb
+        return f"heartbeat shows {mode_name(self._hb_mode)} ({self._hb_mode}), {arm} ({age:.2f} s old)"
+
+    def _fresh(self, now: float) -> bool:
+        return self._last_hb is not None and now - self._last_hb <= self.config.link_timeout_s
 
     def _wake(self) -> None:
         """Send the current set-point now (from the caller's thread, non-blocking UDP write)."""
@@ -231,40 +339,89 @@ class ScamperDriver:
             0.0, 0.0, 0.0, vx, vy, 0.0, 0.0, 0.0, 0.0, 0.0, r,
         )  # fmt: skip
 
-    def _command(self, command: int, p1: float = 0.0, p2: float = 0.0) -> None:
-        """COMMAND_LONG and wait up to ack_timeout_s for an ACCEPTED COMMAND_ACK (re-sent once halfway)."""
-        timeout = self.config.ack_timeout_s
+    def _disarm_best_effort(self) -> None:
+        """Disarm unless a fresh heartbeat shows disarmed (or we never armed and it never showed armed)."""
+        if self._thread is None:
+            return
         with self._lock:
-            self._acks.pop(command, None)
-        sysid, compid = self._target
-        deadline = time.monotonic() + timeout
-        resend_at = time.monotonic() + timeout / 2.0
-        confirmation = 0
-        self._send("command_long_send", sysid, compid, command, confirmation, p1, p2, 0.0, 0.0, 0.0, 0.0, 0.0)
+            now = time.monotonic()
+            if self._fresh(now) and self._hb_armed is False:
+                return
+            if not (self._arm_sent or self._hb_armed):
+                return
+        try:
+            self._ensure("disarm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0, 0.0, lambda m, a: a is False)
+        except ScamperError as exc:
+            with self._lock:
+                self._event("disarm_failed", str(exc))
+
+    def _ensure(
+        self, what: str, command: int, p1: float, p2: float, want: Callable[[int | None, bool | None], bool]
+    ) -> None:
+        """Make the robot's HEARTBEAT show want(mode, armed) by COMMAND_LONG (module docstring's rules).
+
+        Raises ScamperCommandError naming the command, the reason and what the heartbeat shows.
+        """
+        cfg = self.config
+        label = f"{what} ({mavlink.enums['MAV_CMD'][command].name})"
         with self._lock:
-            while command not in self._acks:
+            now = time.monotonic()
+            if self._fresh(now) and want(self._hb_mode, self._hb_armed):
+                self._event("no_command_needed", f"{label}: {self._state_text(now)}")
+                return
+            hb_seq0, ack_i0 = self._hb_seq, len(self._ack_log)  # both re-taken at the first send
+        sends, t_send = 0, now
+        while True:
+            with self._lock:
                 now = time.monotonic()
-                if now >= deadline:
-                    raise ScamperCommandError(
-                        f"no COMMAND_ACK for command {command} from {self.config.url!r} within {timeout:g} s"
-                    )
-                if confirmation == 0 and now >= resend_at:
-                    confirmation = 1
-                    self._lock.release()
-                    try:
-                        self._send(
-                            "command_long_send", sysid, compid, command, confirmation, p1, p2, 0, 0, 0, 0, 0
+                acks = [r for c, r in self._ack_log[ack_i0:] if c == command]  # since the first send
+                state = self._state_text(now)
+                if sends > 0 and self._hb_seq > hb_seq0 and want(self._hb_mode, self._hb_armed):
+                    if not acks:
+                        self._event(
+                            "ack_lost_confirmed_by_heartbeat", f"{label}: no ACK to {sends} send(s), {state}"
                         )
-                    finally:
-                        self._lock.acquire()
+                    elif any(r not in _PENDING_RESULTS for r in acks):
+                        self._event(
+                            "ack_contradicted_by_heartbeat",
+                            f"{label}: ACK {_result_name(acks[0])} yet {state}",
+                        )
+                    return
+                final = bool(acks) or sends >= cfg.command_sends
+                hb_period = max(0.02, self._hb_period or DEFAULT_HEARTBEAT_PERIOD_S)
+                decide_at = t_send + cfg.ack_timeout_s + (2.0 * hb_period if final else 0.0)
+                rejected = [r for r in acks if r not in _PENDING_RESULTS]
+                if rejected:
+                    error = f"rejected by Scamper: {_result_name(rejected[0])}"
+                elif sends > 0 and now < decide_at:
+                    self._cv.wait(timeout=min(0.05, decide_at - now))
                     continue
-                self._ack_cv.wait(timeout=min(deadline, resend_at if confirmation == 0 else deadline) - now)
-            result = self._acks.pop(command)
-        if result != mavlink.MAV_RESULT_ACCEPTED:
-            name = (
-                mavlink.enums["MAV_RESULT"][result].name if result in mavlink.enums["MAV_RESULT"] else result
-            )
-            raise ScamperCommandError(f"command {command} (p1={p1:g}, p2={p2:g}) rejected by Scamper: {name}")
+                elif acks:
+                    error = (
+                        f"answered {_result_name(acks[0])} but its heartbeats still show no change "
+                        f"{now - t_send:.1f} s later: the ACK is not trusted"
+                    )
+                elif sends >= cfg.command_sends:
+                    error = f"got no COMMAND_ACK and no heartbeat change after {sends} send(s)"
+                else:
+                    error = ""
+                    sends += 1
+                    if sends == 1:
+                        hb_seq0, ack_i0 = self._hb_seq, len(self._ack_log)
+                    else:
+                        self.resends += 1
+                        self._event(
+                            "command_resent",
+                            f"{label}: no COMMAND_ACK and no heartbeat change within {cfg.ack_timeout_s:g} s,"
+                            f" send {sends}/{cfg.command_sends}",
+                        )
+                    sysid, compid = self._target
+                if error:
+                    raise ScamperCommandError(f"{label} to Scamper at {cfg.url!r} {error}; {state}")
+            if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM and p1 > 0.5:
+                self._arm_sent = True
+            t_send = time.monotonic()
+            self._send("command_long_send", sysid, compid, command, sends - 1, p1, p2, 0, 0, 0, 0, 0)
 
     def _run(self) -> None:
         """I/O thread: GCS heartbeat at 1 Hz, set-point at stream_hz, receive, link supervision."""
@@ -275,14 +432,7 @@ class ScamperDriver:
             now = time.monotonic()
             if now >= next_hb:
                 next_hb = now + GCS_HEARTBEAT_PERIOD_S
-                self._send(
-                    "heartbeat_send",
-                    mavlink.MAV_TYPE_GCS,
-                    mavlink.MAV_AUTOPILOT_INVALID,
-                    0,
-                    0,
-                    mavlink.MAV_STATE_ACTIVE,
-                )
+                self._send("heartbeat_send", *_GCS_HEARTBEAT)
             if now >= next_sp:
                 next_sp = now + period
                 with self._lock:
@@ -311,19 +461,43 @@ class ScamperDriver:
         """Process one received message; caller holds the lock."""
         mtype = msg.get_type()
         if mtype == "HEARTBEAT":
-            if msg.type == mavlink.MAV_TYPE_GCS:
+            if not _is_vehicle_heartbeat(msg):
                 return
+            src = (msg.get_srcSystem(), msg.get_srcComponent())
             if self._last_hb is None:
-                self._target = (msg.get_srcSystem(), msg.get_srcComponent())
+                self._target = src
+            elif src != self._target:
+                return
+            else:
+                dt = now - self._last_hb
+                if 0.0 < dt <= self.config.link_timeout_s:
+                    self._hb_period = dt if self._hb_period is None else 0.7 * self._hb_period + 0.3 * dt
+            self._observe(int(msg.custom_mode), bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED))
+            self._hb_seq += 1
             self._last_hb = now
             if not self._link_alive:
                 self._link_alive = True
                 if self._streaming:
                     self._event("link_restored", f"HEARTBEAT from {self.config.url} again")
-            self._ack_cv.notify_all()
+            self._cv.notify_all()
         elif mtype == "COMMAND_ACK":
-            self._acks[int(msg.command)] = int(msg.result)
-            self._ack_cv.notify_all()
+            self._ack_log.append((int(msg.command), int(msg.result)))
+            self._cv.notify_all()
+
+    def _observe(self, mode: int, armed: bool) -> None:
+        """Record the robot's reported state; while streaming, a change not made by us is an event."""
+        if self._streaming and self._hb_mode is not None:
+            if mode != self._hb_mode:
+                self._event(
+                    "mode_changed",
+                    f"robot reports {mode_name(self._hb_mode)} -> {mode_name(mode)} ({mode}), not commanded "
+                    "by this driver (RC mode switch, failsafe or another GCS); set-points need GUIDED",
+                )
+            if self._hb_armed and not armed:
+                self._event("disarmed_by_robot", f"robot reports disarmed while in {mode_name(mode)}")
+            elif self._hb_armed is False and armed:
+                self._event("armed_by_robot", f"robot reports armed again in {mode_name(mode)}")
+        self._hb_mode, self._hb_armed = mode, armed
 
 
 @dataclass(frozen=True)
@@ -338,8 +512,9 @@ class HeartbeatProbe:
 def probe_heartbeat(config: ScamperConfig) -> HeartbeatProbe:
     """Wait up to heartbeat_timeout_s for the robot's HEARTBEAT without changing its mode or arming it.
 
-    Sends GCS heartbeats meanwhile (a `udpin` vehicle only learns our address from what we send).
-    Raises ScamperLinkError when nothing arrives in time.
+    Sends GCS heartbeats meanwhile (a `udpin` vehicle only learns our address from what we send); only a
+    vehicle's heartbeat counts (not a companion computer's, gimbal's, GCS's).  Raises ScamperLinkError
+    when nothing arrives in time.
     """
     conn = mavutil.mavlink_connection(
         config.url, source_system=config.source_system, source_component=config.source_component
@@ -356,14 +531,12 @@ def probe_heartbeat(config: ScamperConfig) -> HeartbeatProbe:
             if now >= next_hb:
                 next_hb = now + 0.25
                 with contextlib.suppress(OSError):
-                    conn.mav.heartbeat_send(
-                        mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
-                    )
+                    conn.mav.heartbeat_send(*_GCS_HEARTBEAT)
             try:
                 msg = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=min(0.05, deadline - now))
             except (OSError, ValueError):
                 msg = None
-            if msg is not None and msg.type != mavlink.MAV_TYPE_GCS:
+            if msg is not None and _is_vehicle_heartbeat(msg):
                 armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
                 return HeartbeatProbe(int(msg.type), int(msg.custom_mode), armed)
     finally:

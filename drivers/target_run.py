@@ -48,12 +48,14 @@ def drive_square(
     sleep: Callable[[float], None] = time.sleep,
     link_alive: Callable[[], bool] | None = None,
     on_tick: Callable[[float, TargetRunResult], None] | None = None,
+    robot_ready: Callable[[], bool] | None = None,
 ) -> TargetRunResult:
     """Run the square law for duration_s (s) of law time; always leaves the robot stopped.
 
     The law's clock starts at the first fresh pose. Raises nothing on pose or link loss: `ended_by`
-    says why the run ended ("duration", "pose lost", "link lost"); KeyboardInterrupt propagates after
-    the robot is stopped."""
+    says why the run ended ("duration", "pose lost", "link lost", "robot not ready": its heartbeat shows
+    it left GUIDED or disarmed, e.g. an RC switch or a failsafe); KeyboardInterrupt propagates after the
+    robot is stopped."""
     res = TargetRunResult()
     period = 1.0 / rate_hz
     t0: float | None = None
@@ -64,6 +66,9 @@ def drive_square(
             now = clock()
             if link_alive is not None and not link_alive():
                 res.ended_by = "link lost"
+                break
+            if robot_ready is not None and not robot_ready():
+                res.ended_by = "robot not ready (left GUIDED or disarmed)"
                 break
             sp = poses.latest(body)
             if sp is None or now - sp.stamp > stale_stop_s:

@@ -1,4 +1,9 @@
-"""Scamper MAVLink driver against the loopback rover emulator (tests/emulators/mavlink_rover.py)."""
+"""Scamper MAVLink driver against the loopback rover emulator (tests/emulators/mavlink_rover.py).
+
+Each fault test flips one `RoverFaults` switch (or `pilot_override`) and checks the outcome at the emulator
+(its mode / armed state, the commands it received, the ACKs it sent) and in the driver's events.  The
+emulator heartbeats at 10 Hz to keep the tests short, except where ArduPilot's real 1 Hz matters.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +17,8 @@ import pytest
 
 pytest.importorskip("pymavlink")
 
+from pymavlink import mavutil
+
 from drivers.scamper import (
     ROVER_GUIDED_MODE,
     TYPE_MASK_VEL_YAWRATE,
@@ -19,9 +26,15 @@ from drivers.scamper import (
     ScamperConfig,
     ScamperDriver,
     ScamperLinkError,
+    probe_heartbeat,
 )
 from flightstack.hal import GroundRobot
-from tests.emulators.mavlink_rover import MavlinkRoverEmulator
+from tests.emulators.mavlink_rover import HOLD, MavlinkRoverEmulator
+
+mavlink = mavutil.mavlink
+SET_MODE = mavlink.MAV_CMD_DO_SET_MODE  # 176
+ARM_DISARM = mavlink.MAV_CMD_COMPONENT_ARM_DISARM  # 400
+ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
 
 
 def wait_for(pred: Callable[[], bool], timeout: float, step: float = 0.01) -> bool:
@@ -35,7 +48,7 @@ def wait_for(pred: Callable[[], bool], timeout: float, step: float = 0.01) -> bo
 
 @pytest.fixture
 def emu() -> Iterator[MavlinkRoverEmulator]:
-    e = MavlinkRoverEmulator()
+    e = MavlinkRoverEmulator(heartbeat_hz=10.0)
     yield e
     e.close()
 
@@ -45,19 +58,39 @@ def make_driver(emu: MavlinkRoverEmulator, **kw: float) -> ScamperDriver:
     return ScamperDriver(cfg)
 
 
-def test_connect_sets_guided_and_arms(emu: MavlinkRoverEmulator) -> None:
-    drv = make_driver(emu)
-    assert isinstance(drv, GroundRobot)
-    drv.connect()
-    try:
-        assert emu.mode == ROVER_GUIDED_MODE
-        assert emu.armed
-        assert drv.link_alive()
-        assert [k for _, k, _ in drv.events] == ["connected"]
-    finally:
-        drv.close()
-    assert not emu.armed  # close() disarms
-    drv.close()  # idempotent
+def kinds(drv: ScamperDriver) -> list[str]:
+    return [k for _, k, _ in drv.events]
+
+
+def details(drv: ScamperDriver, kind: str) -> list[str]:
+    return [d for _, k, d in drv.events if k == kind]
+
+
+def sent(emu: MavlinkRoverEmulator, command: int, param: float | None = None) -> int:
+    """How many times the emulator received `command` (with that param, if given)."""
+    return sum(c == command and (param is None or p == param) for c, p, _ in emu.commands)
+
+
+def test_connect_sets_guided_and_arms_at_ardupilots_1hz_heartbeat() -> None:
+    with MavlinkRoverEmulator() as emu:  # 1 Hz HEARTBEAT, as ArduPilot: each change waits for the next one
+        drv = make_driver(emu)
+        assert isinstance(drv, GroundRobot)
+        t0 = time.monotonic()
+        drv.connect()
+        t_connect = time.monotonic() - t0
+        try:
+            assert emu.mode == ROVER_GUIDED_MODE and emu.armed
+            assert emu.commands == [(SET_MODE, 15.0, ACCEPTED), (ARM_DISARM, 1.0, ACCEPTED)]
+            assert drv.link_alive()
+            st = drv.robot_state()
+            assert st.custom_mode == ROVER_GUIDED_MODE and st.armed and st.ready and st.age_s < 1.5
+            assert kinds(drv) == ["connected"]
+            assert t_connect < 3.0  # two changes, each confirmed by a heartbeat <= 1 s after its ACK
+        finally:
+            drv.close()
+        assert not emu.armed and emu.commands[-1] == (ARM_DISARM, 0.0, ACCEPTED)  # close() disarms
+        assert kinds(drv) == ["connected"]
+        drv.close()  # idempotent
 
 
 def test_body_velocity_signs_and_motion(emu: MavlinkRoverEmulator) -> None:
@@ -108,7 +141,7 @@ def test_close_zeroes_even_if_disarm_rejected(emu: MavlinkRoverEmulator) -> None
     drv.send_body_velocity(np.array([0.2, 0.0, 0.0, 0.0]))
     time.sleep(0.3)
     drv.close()
-    assert any(k == "disarm_failed" for _, k, _ in drv.events)
+    assert any("DENIED" in d for d in details(drv, "disarm_failed"))
     assert emu.armed and emu.velocity == (0.0, 0.0, 0.0)
 
 
@@ -138,12 +171,15 @@ def test_no_heartbeat_raises_link_error_naming_url(emu: MavlinkRoverEmulator) ->
     drv.close()
 
 
-def test_reject_arm_raises_command_error(emu: MavlinkRoverEmulator) -> None:
+def test_reject_arm_raises_command_error_fast(emu: MavlinkRoverEmulator) -> None:
     emu.faults.reject_arm = True
-    drv = make_driver(emu)
-    with pytest.raises(ScamperCommandError, match="DENIED"):
+    drv = make_driver(emu)  # ack_timeout_s 2 s: an explicit DENIED must not wait for it
+    t0 = time.monotonic()
+    with pytest.raises(ScamperCommandError, match=r"arm \(MAV_CMD_COMPONENT_ARM_DISARM\).*DENIED.*disarmed"):
         drv.connect()
-    assert not emu.armed
+    assert time.monotonic() - t0 < 1.0
+    assert not emu.armed and emu.mode == ROVER_GUIDED_MODE
+    assert sent(emu, ARM_DISARM) == 1  # not re-sent, and no disarm: the heartbeat shows disarmed
     drv.close()
 
 
@@ -168,3 +204,182 @@ def test_no_threads_left_after_close(emu: MavlinkRoverEmulator) -> None:
     emu.close()
     names = [t.name for t in threading.enumerate()]
     assert "scamper-io" not in names and "mavlink-rover-emu" not in names
+
+
+# ---------------------------------------------------------------------------------------- ACK faults
+@pytest.mark.parametrize(
+    "lost", [{SET_MODE}, {ARM_DISARM}, {SET_MODE, ARM_DISARM}], ids=["set_mode", "arm", "both"]
+)
+def test_lost_ack_is_confirmed_by_heartbeat(emu: MavlinkRoverEmulator, lost: set[int]) -> None:
+    emu.faults.lost_acks = set(lost)
+    drv = make_driver(emu, ack_timeout_s=0.5)
+    drv.connect()  # no exception: the heartbeat shows GUIDED / armed
+    try:
+        assert emu.mode == ROVER_GUIDED_MODE and emu.armed
+        assert sent(emu, SET_MODE) == 1 and sent(emu, ARM_DISARM, 1.0) == 1 and drv.resends == 0
+        assert not any(c in lost for c, _ in emu.acks_sent)  # the ACKs really were never sent
+        confirmed = details(drv, "ack_lost_confirmed_by_heartbeat")
+        assert len(confirmed) == len(lost)
+        assert ("set GUIDED" in confirmed[0]) == (SET_MODE in lost)
+        assert drv.robot_state().ready
+    finally:
+        drv.close()
+    assert not emu.armed
+
+
+def test_lost_ack_to_disarm_at_close_still_disarms(emu: MavlinkRoverEmulator) -> None:
+    drv = make_driver(emu, ack_timeout_s=0.5)
+    drv.connect()
+    emu.faults.lost_acks = {ARM_DISARM}
+    drv.close()
+    assert not emu.armed
+    assert sent(emu, ARM_DISARM, 0.0) == 1
+    assert (ARM_DISARM, ACCEPTED) in emu.acks_sent  # the arm's ACK; the disarm's was lost
+    assert len(emu.acks_sent) == 2
+    assert any(d.startswith("disarm") for d in details(drv, "ack_lost_confirmed_by_heartbeat"))
+    assert "disarm_failed" not in kinds(drv)
+
+
+@pytest.mark.parametrize(
+    ("command", "label"),
+    [
+        (SET_MODE, r"set GUIDED \(MAV_CMD_DO_SET_MODE\)"),
+        (ARM_DISARM, r"arm \(MAV_CMD_COMPONENT_ARM_DISARM\)"),
+    ],
+    ids=["set_mode", "arm"],
+)
+def test_accepted_but_ignored_is_not_trusted(emu: MavlinkRoverEmulator, command: int, label: str) -> None:
+    emu.faults.ack_accepted_but_ignored = {command}
+    drv = make_driver(emu, ack_timeout_s=0.3)
+    t0 = time.monotonic()
+    with pytest.raises(
+        ScamperCommandError, match=label + r".*ACCEPTED.*not trusted.*heartbeat shows (HOLD|GUIDED)"
+    ):
+        drv.connect()
+    dt = time.monotonic() - t0
+    assert 0.3 < dt < 1.5  # ack_timeout_s + 2 heartbeat periods (0.1 s) after the send, plus the first change
+    assert sent(emu, command) == 1  # an ACCEPTED is not re-sent
+    assert not emu.armed
+    if command == SET_MODE:
+        assert emu.mode == HOLD and sent(emu, ARM_DISARM) == 0  # never armed outside GUIDED
+    else:
+        assert emu.mode == ROVER_GUIDED_MODE
+    assert not drv.link_alive()  # closed again
+    drv.close()
+
+
+def test_duplicate_acks_are_harmless(emu: MavlinkRoverEmulator) -> None:
+    emu.faults.duplicate_acks = True
+    drv = make_driver(emu, ack_timeout_s=0.5)
+    drv.connect()
+    drv.send_body_velocity(np.array([0.2, 0.0, 0.0, 0.0]))
+    assert wait_for(lambda: emu.velocity[0] == pytest.approx(0.2), 1.0)
+    drv.close()
+    assert emu.acks_sent == [(SET_MODE, ACCEPTED)] * 2 + [(ARM_DISARM, ACCEPTED)] * 4
+    assert [c for c, _, _ in emu.commands] == [SET_MODE, ARM_DISARM, ARM_DISARM]  # each sent once
+    assert not emu.armed and emu.velocity == (0.0, 0.0, 0.0)
+    assert kinds(drv) == ["connected"]
+
+
+def test_late_acks_are_harmless(emu: MavlinkRoverEmulator) -> None:
+    emu.faults.ack_delay_s = 0.8  # later than ack_timeout_s: the heartbeat decides before any ACK
+    drv = make_driver(emu, ack_timeout_s=0.5)
+    drv.connect()
+    assert emu.mode == ROVER_GUIDED_MODE and emu.armed and drv.resends == 0
+    assert len(details(drv, "ack_lost_confirmed_by_heartbeat")) == 2
+    drv.close()  # the arm's late ACCEPTED (same command id as the disarm) may land meanwhile
+    assert not emu.armed and "disarm_failed" not in kinds(drv)
+    assert sent(emu, ARM_DISARM, 0.0) == 1
+
+
+def test_unanswered_command_is_resent(emu: MavlinkRoverEmulator) -> None:
+    emu.faults.drop_commands = 1  # the first DO_SET_MODE never arrives
+    drv = make_driver(emu, ack_timeout_s=0.3)
+    drv.connect()
+    try:
+        assert emu.dropped_commands == [SET_MODE]
+        assert drv.resends == 1 and any("send 2/3" in d for d in details(drv, "command_resent"))
+        assert emu.mode == ROVER_GUIDED_MODE and emu.armed
+    finally:
+        drv.close()
+
+
+def test_unanswered_command_fails_after_bounded_resends(emu: MavlinkRoverEmulator) -> None:
+    emu.faults.drop_commands = 1000
+    drv = make_driver(emu, ack_timeout_s=0.2)
+    t0 = time.monotonic()
+    with pytest.raises(
+        ScamperCommandError, match=r"set GUIDED.*no COMMAND_ACK and no heartbeat change after 3"
+    ):
+        drv.connect()
+    dt = time.monotonic() - t0
+    assert 0.6 < dt < 1.6  # 3 sends 0.2 s apart, then 0.2 s + 2 heartbeat periods
+    assert emu.dropped_commands == [SET_MODE] * 3 and drv.resends == 2
+    assert emu.mode == HOLD and not emu.armed
+    drv.close()
+
+
+# ---------------------------------------------------------------------------------------- robot state
+def test_already_guided_and_armed_sends_nothing(emu: MavlinkRoverEmulator) -> None:
+    emu.pilot_override(mode=ROVER_GUIDED_MODE, armed=True)
+    drv = make_driver(emu)
+    drv.connect()
+    assert emu.commands == []
+    assert kinds(drv) == ["no_command_needed", "no_command_needed", "connected"]
+    drv.close()
+    assert emu.commands == [(ARM_DISARM, 0.0, ACCEPTED)] and not emu.armed
+
+
+def test_robot_leaving_guided_mid_run_is_reported(emu: MavlinkRoverEmulator) -> None:
+    drv = make_driver(emu)
+    drv.connect()
+    try:
+        drv.send_body_velocity(np.array([0.2, 0.0, 0.0, 0.3]))
+        assert wait_for(lambda: emu.velocity != (0.0, 0.0, 0.0), 1.0)
+        emu.pilot_override(mode=HOLD)  # an RC mode switch / failsafe
+        assert wait_for(lambda: "mode_changed" in kinds(drv), 1.0)
+        st = drv.robot_state()
+        assert st.custom_mode == HOLD and st.mode_name == "HOLD" and st.armed and not st.ready
+        assert "GUIDED -> HOLD" in details(drv, "mode_changed")[0]
+        n0 = len(emu.setpoint_records())
+        time.sleep(0.5)
+        recs = emu.setpoint_records()[n0:]
+        assert len(recs) >= 3 and not any(r.applied for r in recs)  # still streamed, ignored by the robot
+        assert emu.mode == HOLD and emu.velocity == (0.0, 0.0, 0.0)  # the driver did not fight the switch
+        assert kinds(drv).count("mode_changed") == 1  # once, not once per heartbeat
+        emu.pilot_override(armed=False)
+        assert wait_for(lambda: "disarmed_by_robot" in kinds(drv), 1.0)
+        assert drv.robot_state().armed is False
+        time.sleep(0.3)
+        assert kinds(drv).count("disarmed_by_robot") == 1
+    finally:
+        drv.close()
+    assert sent(emu, ARM_DISARM, 0.0) == 0  # already disarmed per the heartbeat: nothing to send
+
+
+def test_companion_heartbeats_are_not_the_robot(emu: MavlinkRoverEmulator) -> None:
+    emu.faults.companion_heartbeat = True  # mode 0, disarmed, from component 191
+    drv = make_driver(emu, link_timeout_s=0.5, ack_timeout_s=0.3)
+    drv.connect()
+    try:
+        time.sleep(0.5)
+        assert drv.robot_state().ready and "mode_changed" not in kinds(drv)
+        emu.faults.no_heartbeat = True  # the autopilot falls silent, the companion does not
+        assert wait_for(lambda: not drv.link_alive(), 1.5)
+    finally:
+        drv.close()
+    # the disarm was ACCEPTED (and applied) but no heartbeat confirmed it: reported, not trusted
+    assert not emu.armed and any("not trusted" in d for d in details(drv, "disarm_failed"))
+
+
+def test_companion_alone_is_no_robot(emu: MavlinkRoverEmulator) -> None:
+    emu.faults.companion_heartbeat = True
+    emu.faults.no_heartbeat = True
+    cfg = ScamperConfig(url=emu.url, heartbeat_timeout_s=0.6)
+    with pytest.raises(ScamperLinkError):
+        probe_heartbeat(cfg)
+    drv = ScamperDriver(cfg)
+    with pytest.raises(ScamperLinkError):
+        drv.connect()
+    assert emu.commands == []
+    drv.close()
