@@ -128,7 +128,8 @@ class TelloSource:
         self.is_stream = True
 
     def frames(self) -> Iterator[SourceFrame]:
-        from drivers.tello import TelloCamera, TelloConfig, TelloDriver
+        from drivers.tello import TelloConfig, TelloDriver
+        from drivers.tello_camera import TelloCamera
 
         try:
             driver = TelloDriver(

@@ -23,9 +23,10 @@ import numpy as np
 
 from drivers.mocap import MocapConfig, MocapPoseSource
 from drivers.scamper import ScamperConfig, ScamperDriver
-from drivers.tello import TelloCamera, TelloConfig, TelloDriver
+from drivers.tello import TelloConfig, TelloDriver
+from drivers.tello_camera import TelloCamera
 from flightstack.geometry import Pose
-from flightstack.hal import StampedPose
+from flightstack.hal import FlightPhase, StampedPose
 from flightstack.mission import Mission
 from flightstack.tello_rc import RcGains
 
@@ -64,6 +65,7 @@ def tello_config(mission: Mission, drone_id: int) -> TelloConfig:
         host=hw.ip,
         control_port=hw.control_port,
         video_port=hw.video_port,
+        state_port=mission.hardware.state_port,
         rc_gains=RcGains(**spec.rc_gains.model_dump()),
         connect_timeout_s=hw.connect_timeout_s,
         command_timeout_s=hw.command_timeout_s,
@@ -124,6 +126,9 @@ class HardwareBackend:
             raise ValueError("backend 'tello' needs the mission's hardware section")
         self.mission = mission
         self.drone_ids = [d.id for d in mission.drones] if drone_ids is None else list(drone_ids)
+        why = mission.hardware.shared_by(self.drone_ids)
+        if why is not None:
+            raise ValueError(why)
         self.clock = WallClock()
         self.mocap = MocapPoseSource(mocap_config(mission), clock=self.clock.now)
         self.names = body_names(mission)
@@ -181,7 +186,7 @@ class HardwareBackend:
 
         Never raises: every failure is logged and the remaining devices are still closed."""
         for i, drv in self.drones.items():
-            if drv.state().flying:
+            if drv.state().phase != FlightPhase.GROUND:  # taking off, airborne, landing or unknown
                 try:
                     drv.land()
                 except Exception as exc:

@@ -225,8 +225,8 @@ class _StateVelocity:
         self._sample: tuple[float, float] = (math.nan, math.nan)
 
     def __call__(self) -> tuple[float, float]:
-        st = self.driver.tello.get_current_state()
-        if st is self._last_obj or not st:  # djitellopy stores a new dict per state packet
+        st = self.driver.current_state()
+        if st is self._last_obj or not st:  # the driver stores a new dict per state packet
             return self._sample
         now = time.monotonic()
         self._last_obj = st
@@ -320,7 +320,7 @@ def measure_step(
     propagates. Takes baseline_s + duration_s + settle_s seconds.
 
     Args:
-        driver: a connected, flying drivers.tello.TelloDriver (uses `_send_rc` and `tello`).
+        driver: a connected, flying drivers.tello.TelloDriver (uses `_send_rc` and `current_state`).
         axis: "x" (forward), "y" (left), "z" (up) or "yaw" (counter-clockwise).
         rc_amplitude: the step in rc units along the axis, 1..100 in magnitude (sign = direction).
         duration_s: length of the step, s.

@@ -11,8 +11,13 @@ The checks (README "Preflight"):
   are not) and matches the drone's video size; the experts file, if the mission names one.
 - gains: κ of Theorem 1. WARN (never FAIL) when not positive: the paper flies its experiment with
   gains that violate it. Without trained experts, L_μ = 0 gives an upper bound of κ.
-- drone N: reachable (SDK mode, state stream), battery ≥ safety.min_battery_takeoff, temperature,
-  on the ground; its camera streams and the frame size matches the calibration.
+- drone N: reachable (SDK mode, confirmed by its state stream), battery ≥ safety.min_battery_takeoff,
+  temperature, on the ground (flight phase from telemetry), firmware (SDK version and serial; FAIL when
+  the mission needs SDK 3.0 — a per-drone video port or the downward camera — and the drone has less),
+  Wi-Fi signal (`wifi?`, WARN when weak or unanswered); its camera streams and the frame size matches
+  the calibration.
+- topology: the drones checked from this computer must not share an address or video port
+  (access-point mode: `--id N` on each drone's computer).
 - mocap: the server answers; every body (drones, target) is tracked, level (tilt limit) and, for the
   drones, inside the fence's x/y box (the target too: the drones follow it).
 - robot: a HEARTBEAT within heartbeat_timeout_s (mode and armed state reported).
@@ -127,7 +132,8 @@ def check_gains(mission: Mission) -> CheckRow:
 # ---- devices -------------------------------------------------------------------------------------------
 def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> list[CheckRow]:
     from drivers.hardware import tello_config
-    from drivers.tello import TelloCamera, TelloDriver
+    from drivers.tello import TelloDriver
+    from drivers.tello_camera import TelloCamera
 
     assert mission.hardware is not None
     cfg = tello_config(mission, drone_id)
@@ -140,7 +146,7 @@ def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> li
         except Exception as exc:
             return [_row(dev, "reachable", False, str(exc))]
         rows.append(_row(dev, "reachable", True, f"SDK mode, state stream at {cfg.host}:{cfg.control_port}"))
-        rows += [_row(dev, c.name, c.ok, c.detail) for c in drv.preflight()]
+        rows += [_row(dev, c.name, c.ok, c.detail, warn=c.warn) for c in drv.preflight()]
         if with_camera:
             rows.append(_check_camera(mission, drone_id, dev, TelloCamera(drv, cfg.command_timeout_s + 2.0)))
     finally:
@@ -240,14 +246,27 @@ def check_robot(mission: Mission) -> list[CheckRow]:
 
 
 # ---- all of it ---------------------------------------------------------------------------------------
-def run_preflight(mission: Mission, deadline_s: float = 9.0, with_camera: bool = True) -> list[CheckRow]:
-    """Every check of the module docstring; devices in parallel; returns within ~deadline_s (s)."""
+def run_preflight(
+    mission: Mission, deadline_s: float = 9.0, with_camera: bool = True, drone_ids: list[int] | None = None
+) -> list[CheckRow]:
+    """Every check of the module docstring; devices in parallel; returns within ~deadline_s (s).
+
+    `drone_ids`: the drones of this computer (access-point mode: one each); None = every drone."""
     if mission.hardware is None:
         raise ValueError(
             f"preflight checks hardware; mission {mission.name!r} uses backend {mission.backend!r}"
         )
+    ids = [d.id for d in mission.drones] if drone_ids is None else list(drone_ids)
+    unknown = sorted(set(ids) - {d.id for d in mission.drones})
+    if unknown:
+        raise ValueError(f"preflight --id: no drone {unknown} in mission {mission.name!r}")
+    shared = mission.hardware.shared_by(ids)
+    if shared is not None:
+        return [_row("mission", "topology", False, shared)]
     jobs: dict[str, Callable[[], list[CheckRow]]] = {}
     for d in mission.drones:
+        if d.id not in ids:
+            continue
         jobs[f"drone {d.id} ({mission.hardware.drone(d.id).ip})"] = (
             lambda i=d.id: check_drone(mission, i, with_camera)  # type: ignore[misc]
         )

@@ -1,22 +1,31 @@
-"""DJI/Ryze Tello driver over djitellopy: implements flightstack.hal.Drone and hal.Camera.
+"""DJI/Ryze Tello driver: implements flightstack.hal.Drone; the drone's own telemetry decides its phase.
 
-What it does, and its reaction to each failure (also in README.md, "Tello driver"):
-- connect(): enters SDK mode and waits for the first state packet, both within `connect_timeout_s`;
-  raises TelloLinkError naming the drone's IP when the drone does not answer.
-- preflight(): battery ≥ min_battery_pct, highest temperature ≤ max_temperature_c, state stream alive,
-  on the ground (height ≤ 0.3 m); returns every check with its value; never raises for a failed check.
-- takeoff() / land(): run on the driver's own worker thread with a bounded wait (takeoff_timeout_s,
-  land_timeout_s); a failure raises TelloCommandError (land is retried once before that).
-- send_body_velocity(V): maps m/s and rad/s to `rc a b c d` integers with the calibrated gains
-  (flightstack.tello_rc), clipped to ±100, sent fire-and-forget: the control loop never waits for the
-  drone. Non-finite values become 0.
-- keep-alive: while flying, if the loop sent nothing for `keepalive_s` (< the Tello's 15 s auto-land),
-  the driver sends `rc 0 0 0 0` (hover) and logs `keepalive`.
-- link loss: no state packet for `link_timeout_s` → state().link_alive is False and `link_lost` is
-  logged (the safety supervisor sees it through state()); `link_restored` when packets return.
-- emergency_stop(): `emergency` without waiting for a reply.
-Several drones in one process (swarm in station mode): one driver per IP; djitellopy shares its UDP
-sockets and tells drones apart by source IP. Each drone streams video to its own `video_port`.
+Written against the Tello SDK 2.0 and 3.0 user guides (Tello EDU firmware 02.05.01.x with SDK 3.0;
+SDK 2.0 firmware lacks `port`, `downvision` and the other SDK-3.0-only commands). Transport:
+drivers/tello_link.py (own command socket per drone, shared state-port receiver); phase: drivers/
+tello_phase.py; video decoding: djitellopy's BackgroundFrameRead (PyAV).
+
+Principles (README "Tello driver", docs/architecture.md decision 26):
+- **Telemetry decides.** The state stream gives the phase (ground, taking off, airborne, landing).
+  `takeoff()` returns only when telemetry shows the drone airborne at a stable height (within
+  `takeoff_timeout_s` ≥ 20 s, what djitellopy allows); `land()` returns only when telemetry shows it on
+  the ground with the motors off. A lost reply whose effect telemetry confirms is a success (event
+  `reply_lost_confirmed`); an `error` reply while telemetry shows the command took effect likewise
+  (`error_reply_but_effect`); an `ok` that telemetry does not confirm is not trusted.
+- **Replies are advisory.** They carry no identifier. Before every blocking command the driver stops
+  sending `rc`, waits for a quiet window (`quiet_s`, 150 ms, since the last rc sent and the last datagram
+  received) and discards what is pending; replies arriving while no command waits are discarded and
+  counted (`counts["reply_discarded"]`); `error Not joystick` (the answer some firmwares give to `rc`) is
+  never taken as another command's answer.
+- **Nothing the drone would reject in its phase**: no `rc` unless airborne (and no land pending), no
+  keep-alive after `land` was sent or once down, no `land` while taking off (land waits until airborne,
+  bounded), `emergency` only when asked for. Suppressed commands are counted (`counts["rc_suppressed"]`).
+- **Never blocks the control loop**: send_body_velocity is a non-blocking datagram; takeoff/land block
+  only their caller (the runner's takeoff, the safety layer's land thread).
+- keep-alive: while airborne, if the loop sent nothing for `keepalive_s` (< the Tello's 15 s auto-land),
+  `rc 0 0 0 0` (hover) is sent; event `keepalive`.
+- link loss: no state packet for `link_timeout_s` → state().link_alive is False (`link_lost`,
+  `link_restored` events). The monitor thread survives any error (counted, logged).
 
 Frames: body velocity V = [v_x, v_y, v_z, ω] in the drone's FLU frame (m/s, rad/s). Time: monotonic
 seconds (time.monotonic), the hardware clock of flightstack.
@@ -24,28 +33,25 @@ seconds (time.monotonic), the hardware clock of flightstack.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
-from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
-from flightstack.hal import DroneState, Frame
+from drivers.tello_link import CommandChannel, StateReceiver
+from drivers.tello_phase import PhaseThresholds, PhaseTracker
+from drivers.tello_state import TelloTelemetry
+from flightstack.hal import DroneState, FlightPhase
 from flightstack.tello_rc import RcGains, velocity_to_rc
 
 LOG = logging.getLogger("flightstack.tello")
-
-# One djitellopy.Tello per host for the whole process: a second instance for the same IP would, when the
-# first is garbage-collected, delete the shared per-host queues the new one reads (djitellopy __del__).
-_TELLOS: dict[str, Any] = {}
-_TELLOS_LOCK = threading.Lock()
+DEFAULT_VIDEO_PORT = 11111
+RC_REPLIES = ("error not joystick",)  # firmware answers to rc, never another command's answer
 
 
 class TelloLinkError(ConnectionError):
@@ -53,305 +59,517 @@ class TelloLinkError(ConnectionError):
 
 
 class TelloCommandError(RuntimeError):
-    """A blocking command (takeoff, land, streamon, …) failed or timed out."""
+    """A blocking command (takeoff, land, streamon, …) failed or was not confirmed in time."""
 
 
 @dataclass(frozen=True)
 class TelloConfig:
-    """One Tello. `host` is its IP (station mode); `control_port` 8889 on a real drone."""
+    """One Tello. `host` is its IP; `control_port` 8889 and `state_port` 8890 on a real drone.
+
+    `bind_ip`: local address for the command and state sockets ("" = all; access-point mode with one
+    Wi-Fi interface per drone may name the interface's address). Times in s, temperature in °C.
+    """
 
     host: str
     control_port: int = 8889
-    video_port: int = 11111
+    video_port: int = DEFAULT_VIDEO_PORT
+    state_port: int = 8890
+    bind_ip: str = ""
     rc_gains: RcGains = field(default_factory=RcGains)
     connect_timeout_s: float = 5.0
     command_timeout_s: float = 3.0
-    takeoff_timeout_s: float = 10.0
-    land_timeout_s: float = 8.0
+    takeoff_timeout_s: float = 20.0
+    land_timeout_s: float = 15.0
     link_timeout_s: float = 1.0
     keepalive_s: float = 5.0
+    quiet_s: float = 0.15
     min_battery_pct: float = 30.0
     max_temperature_c: float = 85.0
+    min_wifi_snr: float = 20.0
     downward_camera: bool = False
+    phase: PhaseThresholds = field(default_factory=PhaseThresholds)
 
     def __post_init__(self) -> None:
         if not self.keepalive_s < 15.0:
             raise ValueError("keepalive_s must be below the Tello's 15 s auto-land")
+        if not self.quiet_s >= 0.15:
+            raise ValueError("quiet_s must be at least 0.15 s")
+
+    @property
+    def sdk3_features(self) -> list[str]:
+        """The SDK-3.0-only features this configuration needs (empty: SDK 2.0 will do)."""
+        need = []
+        if self.video_port != DEFAULT_VIDEO_PORT:
+            need.append(f"per-drone video port {self.video_port} (`port`)")
+        if self.downward_camera:
+            need.append("downward camera (`downvision`)")
+        return need
 
 
 @dataclass(frozen=True)
 class PreflightCheck:
+    """One check; `warn`: a failed check is a warning (flyable, but look), not a blocker."""
+
     name: str
     ok: bool
     detail: str
+    warn: bool = False
 
 
-def _tello_for(host: str) -> Any:
-    from djitellopy import Tello  # lazy: the simulator and CI's math tests do not need it
+def parse_sdk(reply: str) -> str | None:
+    """`sdk?` reply ("20", "30") → "2.0", "3.0"; None for anything else."""
+    r = reply.strip()
+    return f"{r[0]}.{r[1:]}" if r.isdigit() and 2 <= len(r) <= 3 else None
 
-    with _TELLOS_LOCK:
-        t = _TELLOS.get(host)
-        if t is None:
-            t = Tello(host, retry_count=1)
-            _TELLOS[host] = t
-        return t
+
+def parse_serial(reply: str) -> str | None:
+    r = reply.strip()
+    return r if r.isalnum() and 6 <= len(r) <= 24 and not r.isdigit() else None
+
+
+def parse_int_reply(reply: str) -> str | None:
+    r = reply.strip()
+    return r if r.isdigit() and len(r) <= 3 else None
 
 
 class TelloDriver:
-    """hal.Drone for one Tello (see the module docstring for behaviour on failure)."""
+    """hal.Drone for one Tello (see the module docstring for the behaviour on every failure)."""
 
-    def __init__(self, cfg: TelloConfig, tello_factory: Callable[[str], Any] = _tello_for) -> None:
+    def __init__(self, cfg: TelloConfig) -> None:
         self.cfg = cfg
-        self._factory = tello_factory
-        self.tello: Any = None
-        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"tello-{cfg.host}")
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._monitor: threading.Thread | None = None
-        self._last_state_obj: object = None
+        self._lock = threading.RLock()  # tracker, flags, last rc
+        self._cmd_lock = threading.Lock()  # one blocking exchange at a time
+        self._tracker = PhaseTracker(cfg.phase)
+        self._chan: CommandChannel | None = None
+        self._rx: StateReceiver | None = None
+        self._state_fields: dict[str, float] = {}
         self._last_state_t = -math.inf
         self._link_alive = False
+        self._busy = False  # a blocking exchange is running: no rc
+        self._land_requested = False  # land sent (until the next takeoff): no rc, no keep-alive
         self._last_rc_t = -math.inf
-        self._flying = False
+        self._stop = threading.Event()
+        self._monitor: threading.Thread | None = None
+        self._once: set[str] = set()
         self.last_rc: tuple[int, int, int, int] = (0, 0, 0, 0)
         self.events: list[tuple[float, str, str]] = []
+        self.counts: Counter[str] = Counter()
         self.rc_sent = 0
+        self.sdk_version: str | None = None
+        self.serial: str | None = None
 
-    # ---- helpers ---------------------------------------------------------------------------------
+    # ---- events, state ---------------------------------------------------------------------------
     def _event(self, kind: str, detail: str = "") -> None:
         self.events.append((time.monotonic(), kind, detail))
+        del self.events[:-1000]
         LOG.warning("tello %s %s %s", self.cfg.host, kind, detail)
 
-    def _run(self, fn: Callable[[], Any], timeout: float, what: str) -> Any:
-        """Run a blocking djitellopy call on the worker thread; TelloCommandError after `timeout` s."""
-        fut: Future = self._worker.submit(fn)
-        try:
-            return fut.result(timeout=timeout)
-        except FutureTimeout:
-            self._event("command_timeout", what)
-            msg = f"Tello {self.cfg.host}: '{what}' got no answer within {timeout:.1f} s"
-            raise TelloCommandError(msg) from None
-        except Exception as exc:
-            self._event("command_failed", f"{what}: {exc}")
-            raise TelloCommandError(f"Tello {self.cfg.host}: '{what}' failed: {exc}") from exc
-
-    def _ask(self, command: str, timeout: float) -> str:
-        """Send `command` and wait up to `timeout` s (float) for its reply; runs on the worker thread.
-
-        Uses djitellopy's sockets and receiver thread but not its send_command_with_return, whose
-        timeout must be an int and which polls at 10 Hz. Stale replies are dropped first: djitellopy
-        matches replies by order only, so a late reply would be taken as the answer to this command.
-        """
-        t = self.tello
-        responses = t.get_own_udp_object()["responses"]
-        responses.clear()
-        t.send_command_without_return(command)
-        deadline = time.monotonic() + timeout
-        while not responses:
-            if time.monotonic() > deadline:
-                raise TelloCommandError(f"no reply within {timeout:.1f} s")
-            time.sleep(0.005)
-        return responses.pop(0).decode("utf-8", errors="replace").strip()
-
-    def _control(self, command: str, timeout: float) -> None:
-        """A command that must answer 'ok' (TelloCommandError otherwise)."""
-
-        def call() -> None:
-            reply = self._ask(command, timeout)
-            if reply.lower() != "ok":
-                raise TelloCommandError(f"reply {reply!r}")
-
-        self._run(call, timeout + 0.5, command)
-
-    def _read(self, command: str) -> str:
-        """A read command (`battery?`, …): its reply text."""
-        return self._run(
-            lambda: self._ask(command, self.cfg.command_timeout_s), self.cfg.command_timeout_s + 0.5, command
-        )
-
-    # ---- hal.Drone --------------------------------------------------------------------------------
-    def connect(self) -> None:
-        """SDK mode and the first state packet within connect_timeout_s; TelloLinkError otherwise.
-
-        Idempotent: a driver that is already connected (its monitor running) returns at once, so the
-        hardware backend can connect at build time and the runner's connect() costs nothing."""
-        if self._monitor is not None and self._monitor.is_alive():
-            return
-        self.tello = self._factory(self.cfg.host)
-        self.tello.address = (self.cfg.host, self.cfg.control_port)
-        self.tello.vs_udp_port = self.cfg.video_port
-        try:
-            self._control("command", self.cfg.connect_timeout_s)
-        except TelloCommandError as exc:
-            raise TelloLinkError(
-                f"Tello at {self.cfg.host}:{self.cfg.control_port} did not answer 'command' within "
-                f"{self.cfg.connect_timeout_s:.1f} s (is it on, in station mode, on this network?)"
-            ) from exc
-        deadline = time.monotonic() + self.cfg.connect_timeout_s
-        while not self.tello.get_current_state():
-            if time.monotonic() > deadline:
-                raise TelloLinkError(
-                    f"Tello at {self.cfg.host} answered but sent no state packet within "
-                    f"{self.cfg.connect_timeout_s:.1f} s (UDP port 8890 blocked?)"
-                )
-            time.sleep(0.02)
-        self._last_state_obj = self.tello.get_current_state()
-        self._last_state_t = time.monotonic()
-        self._link_alive = True
-        self._stop.clear()
-        self._monitor = threading.Thread(
-            target=self._monitor_loop, name=f"tello-mon-{self.cfg.host}", daemon=True
-        )
-        self._monitor.start()
-
-    def preflight(self) -> list[PreflightCheck]:
-        """Battery, temperature, state stream and height checks (values from the state stream)."""
-        st = self.tello.get_current_state() if self.tello else {}
-        checks = []
-        bat = st.get("bat")
-        checks.append(
-            PreflightCheck(
-                "battery",
-                bat is not None and bat >= self.cfg.min_battery_pct,
-                f"{bat} % (min {self.cfg.min_battery_pct:.0f} %)",
-            )
-        )
-        temp = st.get("temph")
-        checks.append(
-            PreflightCheck(
-                "temperature",
-                temp is not None and temp <= self.cfg.max_temperature_c,
-                f"{temp} °C (max {self.cfg.max_temperature_c:.0f} °C)",
-            )
-        )
-        alive = self.link_alive()
-        checks.append(PreflightCheck("state stream", alive, "alive" if alive else "silent"))
-        h = st.get("h")
-        checks.append(PreflightCheck("on the ground", h is not None and h <= 30, f"height {h} cm"))
-        return checks
-
-    def takeoff(self) -> None:
-        self._control("takeoff", self.cfg.takeoff_timeout_s)
-        self._flying = True
-        self._last_rc_t = time.monotonic()
-
-    def land(self) -> None:
-        """Land, retried once; TelloCommandError if both attempts fail (the caller may retry)."""
-        try:
-            self._control("land", self.cfg.land_timeout_s)
-        except TelloCommandError:
-            self._control("land", self.cfg.land_timeout_s)
-        self._flying = False
-
-    def emergency_stop(self) -> None:
-        """Motors off at once (`emergency`, no reply awaited)."""
-        if self.tello is not None:
-            self.tello.send_command_without_return("emergency")
-        self._flying = False
-        self._event("emergency", "motors off")
-
-    def send_body_velocity(self, V: np.ndarray) -> None:
-        rc = velocity_to_rc(V, self.cfg.rc_gains)  # Python ints, clipped, NaN → 0
-        self._send_rc(rc)
-
-    def _send_rc(self, rc: tuple[int, int, int, int]) -> None:
-        if self.tello is None:
-            return
-        # djitellopy drops an rc sent within 1 ms of the previous one; send directly instead
-        self.tello.send_command_without_return("rc {} {} {} {}".format(*rc))
+    def _on_state(self, s: TelloTelemetry) -> None:
+        """State receiver thread: one validated packet."""
         with self._lock:
-            self.last_rc, self._last_rc_t = rc, time.monotonic()
-            self.rc_sent += 1
+            self._state_fields = dict(s.fields)  # a new dict per packet (drivers/identify.py relies on it)
+            self._last_state_t = s.t
+            for change in self._tracker.observe(s):
+                self._event("phase", change)
+            if self._tracker.phase is FlightPhase.GROUND:
+                self._land_requested = False
 
-    def state(self) -> DroneState:
-        st = self.tello.get_current_state() if self.tello else {}
-        return DroneState(
-            battery_pct=float(st.get("bat", 0.0)),
-            height_m=float(st.get("h", 0.0)) / 100.0,
-            link_alive=self.link_alive(),
-            flying=self._flying,
-        )
+    @property
+    def phase(self) -> FlightPhase:
+        with self._lock:
+            return self._tracker.phase
+
+    def current_state(self) -> dict[str, float]:
+        """The fields of the latest valid state packet (a new dict per packet)."""
+        return self._state_fields
 
     def link_alive(self) -> bool:
         return self._link_alive and time.monotonic() - self._last_state_t <= self.cfg.link_timeout_s
 
+    def state(self) -> DroneState:
+        st, ph = self._state_fields, self.phase
+        return DroneState(
+            battery_pct=float(st.get("bat", 0.0)),
+            height_m=float(st.get("h", 0.0)) / 100.0,
+            link_alive=self.link_alive(),
+            flying=ph is FlightPhase.AIRBORNE,
+            phase=ph.value,
+        )
+
+    # ---- the command exchange ----------------------------------------------------------------------
+    def _begin_exchange(self) -> None:
+        """Stop rc, wait for the quiet window, discard what is pending. Caller holds _cmd_lock."""
+        assert self._chan is not None
+        with self._lock:
+            self._busy = True
+        deadline = time.monotonic() + 4 * self.cfg.quiet_s
+        while time.monotonic() < deadline:
+            last = max(self._last_rc_t, self._chan.last_rx_t)
+            if time.monotonic() - last >= self.cfg.quiet_s:
+                break
+            time.sleep(0.01)
+        n = self._chan.open_exchange()
+        if n:
+            self._event("replies_discarded", f"{n} pending before a command")
+
+    def _end_exchange(self) -> None:
+        if self._chan is not None:
+            self._chan.close_exchange()
+        with self._lock:
+            self._busy = False
+
+    def _next_reply(self) -> str | None:
+        """The next reply of the open exchange that is not a firmware's answer to rc."""
+        assert self._chan is not None
+        while (item := self._chan.pop_reply()) is not None:
+            if item[1].lower() in RC_REPLIES:
+                self.counts["rc_reply_ignored"] += 1
+                continue
+            return item[1]
+        return None
+
+    def _request(self, command: str, timeout: float, accept: Callable[[str], bool]) -> str | None:
+        """Send `command`; the first reply `accept`s within `timeout` s (others are counted), or None."""
+        with self._cmd_lock:
+            self._begin_exchange()
+            try:
+                assert self._chan is not None
+                self._chan.send(command)
+                deadline = time.monotonic() + timeout
+                while time.monotonic() < deadline:
+                    r = self._next_reply()
+                    if r is None:
+                        time.sleep(0.005)
+                    elif accept(r):
+                        return r
+                    else:
+                        self.counts["reply_rejected"] += 1
+                        self._event("reply_rejected", f"{command!r} got {r!r}")
+                return None
+            finally:
+                self._end_exchange()
+
+    def _control(self, command: str, timeout: float, attempts: int = 2) -> None:
+        """A command with no telemetry effect (`streamon`, `port`, …): an `ok` within `timeout` s, retried
+        once when no answer came; TelloCommandError on an error answer or silence."""
+        for _ in range(attempts):
+            reply = self._request(command, timeout, accept=lambda r: True)
+            if reply is None:
+                continue
+            if reply.lower() == "ok":
+                return
+            raise TelloCommandError(f"Tello {self.cfg.host}: {command!r} answered {reply!r}")
+        raise TelloCommandError(f"Tello {self.cfg.host}: {command!r} got no answer ({attempts} tries)")
+
+    def query(self, command: str, parse: Callable[[str], str | None], attempts: int = 2) -> str | None:
+        """A read command (`sdk?`, `sn?`, `wifi?`): the first reply `parse` accepts, or None."""
+        for _ in range(attempts):
+            r = self._request(command, self.cfg.command_timeout_s, lambda x: parse(x) is not None)
+            if r is not None:
+                return parse(r)
+        return None
+
+    # ---- hal.Drone ----------------------------------------------------------------------------------
+    def connect(self) -> None:
+        """SDK mode, confirmed by the state stream, within connect_timeout_s; then `sdk?` and `sn?`.
+
+        Idempotent (a connected driver returns at once). TelloLinkError names the drone's address."""
+        if self._monitor is not None and self._monitor.is_alive():
+            return
+        cfg = self.cfg
+        try:
+            self._rx = StateReceiver.acquire(cfg.host, self._on_state, cfg.state_port, cfg.bind_ip)
+            self._chan = CommandChannel(cfg.host, cfg.control_port, cfg.bind_ip)
+        except OSError as exc:
+            self.close()
+            raise TelloLinkError(f"Tello at {cfg.host}: {exc}") from exc
+        deadline = time.monotonic() + cfg.connect_timeout_s
+        answered = False
+        while time.monotonic() < deadline and self._last_state_t == -math.inf:
+            wait = max(0.05, min(1.0, deadline - time.monotonic()))
+            answered |= self._request("command", wait, lambda r: r.lower() == "ok") is not None
+            t_state = time.monotonic() + (0.5 if answered else 0.0)
+            while self._last_state_t == -math.inf and time.monotonic() < min(t_state, deadline):
+                time.sleep(0.01)
+        if self._last_state_t == -math.inf:
+            self.close()
+            if answered:
+                raise TelloLinkError(
+                    f"Tello at {cfg.host} answered but sent no state packet within "
+                    f"{cfg.connect_timeout_s:.1f} s (UDP port {cfg.state_port} blocked?)"
+                )
+            raise TelloLinkError(
+                f"Tello at {cfg.host}:{cfg.control_port} did not answer 'command' within "
+                f"{cfg.connect_timeout_s:.1f} s (is it on, and is this computer on its network?)"
+            )
+        if not answered:
+            self._event("reply_lost_confirmed", "'command': SDK mode confirmed by the state stream")
+        self._link_alive = True
+        self.sdk_version = self.query("sdk?", parse_sdk)
+        self.serial = self.query("sn?", parse_serial)
+        self._stop.clear()
+        self._monitor = threading.Thread(target=self._monitor_loop, name=f"tello-mon-{cfg.host}", daemon=True)
+        self._monitor.start()
+
+    def takeoff(self) -> None:
+        """Take off; return once the drone is airborne and done with its takeoff.
+
+        Done = telemetry shows it airborne at a stable height AND it answered `ok` while at that height
+        (an `ok` at the ground is someone else's: not trusted). A Tello stabilises at height for seconds
+        before its `ok` and ignores rc until then, and telemetry cannot tell that from a finished takeoff;
+        so if the `ok` is lost, telemetry alone decides at takeoff_timeout_s (20 s), while `battery?`
+        probes (answered in every phase) keep the drone from its 15 s auto-land.
+
+        TelloCommandError when the drone refuses (an error answer and no motor start), when two sends
+        show no effect, or when it is not airborne and stable within takeoff_timeout_s (it may still be
+        climbing: land() then waits for the climb to end)."""
+        cfg = self.cfg
+        if self.phase is FlightPhase.AIRBORNE:
+            return
+        if self.phase is not FlightPhase.GROUND:
+            raise TelloCommandError(f"Tello {cfg.host}: takeoff while {self.phase.value}")
+        t0 = time.monotonic()
+        deadline = t0 + cfg.takeoff_timeout_s
+        with self._cmd_lock:
+            self._begin_exchange()
+            self._tracker.hold_takeoff = True
+            try:
+                self._land_requested = False
+                self._send_takeoff()
+                sends, replies, ok_at_height, t_probe = 1, [], False, t0
+                while True:
+                    now = time.monotonic()
+                    if (r := self._next_reply()) is not None:
+                        replies.append(r)
+                        ok_at_height |= self._ok_at_height(r)
+                    with self._lock:
+                        ph = self._tracker.phase
+                        stable = self.link_alive() and self._tracker.airborne_stable(now)
+                        if ph is FlightPhase.TAKING_OFF and stable and (ok_at_height or now >= deadline):
+                            self._tracker.confirm_airborne(now)
+                            ph = FlightPhase.AIRBORNE
+                    if ph is FlightPhase.AIRBORNE:
+                        self._report_outcome("takeoff", [r for r in replies if not r.isdigit()], now - t0)
+                        self._last_rc_t = now  # the keep-alive counts from here
+                        return
+                    if ph is FlightPhase.GROUND:  # no motor start within no_effect_s
+                        refused = [r for r in replies if r.lower().startswith(("error", "unknown", "out"))]
+                        if refused or sends >= 2:
+                            why = f"answered {refused[-1]!r}" if refused else "no effect after 2 sends"
+                            raise TelloCommandError(f"Tello {cfg.host}: takeoff refused ({why})")
+                        self._event("resend", "takeoff: no reply and no motor start")
+                        self._send_takeoff()
+                        sends += 1
+                    if now > deadline:
+                        raise TelloCommandError(
+                            f"Tello {cfg.host}: not airborne within {cfg.takeoff_timeout_s:.0f} s "
+                            f"(phase {ph.value}, replies {replies})"
+                        )
+                    if stable and now - t_probe > cfg.keepalive_s:  # waiting for the ok: no auto-land
+                        assert self._chan is not None
+                        self._chan.send("battery?")
+                        t_probe = now
+                    time.sleep(0.01)
+            finally:
+                self._tracker.hold_takeoff = False
+                self._end_exchange()
+
+    def _ok_at_height(self, reply: str) -> bool:
+        """An `ok` counts as the takeoff's answer only when the drone is at height when it arrives."""
+        if reply.lower() != "ok":
+            return False
+        s = self._tracker.latest
+        if s is not None and s.h_cm >= self.cfg.phase.airborne_h_cm:
+            return True
+        self.counts["reply_not_trusted"] += 1
+        self._event("reply_not_trusted", f"'ok' during takeoff at h {s.h_cm if s else '?'} cm")
+        return False
+
+    def _send_takeoff(self) -> None:
+        assert self._chan is not None
+        with self._lock:
+            self._tracker.takeoff_sent(time.monotonic())
+        self._chan.send("takeoff")
+
+    def _report_outcome(self, what: str, replies: list[str], elapsed: float) -> None:
+        self._event(f"{what}_confirmed", f"by telemetry after {elapsed:.2f} s; replies {replies}")
+        if not replies:
+            self._event("reply_lost_confirmed", f"{what!r}: no reply; telemetry shows it done")
+        elif all(r.lower() != "ok" for r in replies):
+            self._event("error_reply_but_effect", f"{what!r} answered {replies}; telemetry shows it done")
+
+    def land(self) -> None:
+        """Land; return once telemetry shows the drone down with the motors off (no-op on the ground).
+
+        A drone still taking off is landed as soon as it is airborne. `land` is re-sent when telemetry
+        shows no descent; TelloCommandError after land_timeout_s (takeoff_timeout_s more if climbing)."""
+        cfg = self.cfg
+        if self.phase is FlightPhase.GROUND:
+            return
+        if self.phase is FlightPhase.UNKNOWN:
+            raise TelloLinkError(f"Tello {cfg.host}: no telemetry yet; land not sent")
+        t0 = time.monotonic()
+        with self._cmd_lock:
+            self._begin_exchange()
+            try:
+                self._land_requested = True
+                climb_end = t0 + cfg.takeoff_timeout_s
+                while self.phase is FlightPhase.TAKING_OFF:
+                    if time.monotonic() > climb_end:
+                        raise TelloCommandError(f"Tello {cfg.host}: still taking off; land not sent")
+                    time.sleep(0.01)
+                if self.phase is FlightPhase.GROUND:
+                    return
+                t1 = time.monotonic()
+                deadline, replies = t1 + cfg.land_timeout_s, []
+                if self.phase is FlightPhase.AIRBORNE:
+                    self._send_land()
+                while True:
+                    now = time.monotonic()
+                    if (r := self._next_reply()) is not None:
+                        replies.append(r)
+                    ph = self.phase
+                    if ph is FlightPhase.GROUND:
+                        self._report_outcome("land", replies, now - t1)
+                        return
+                    if ph is FlightPhase.AIRBORNE:  # no descent within no_effect_s: lost or refused
+                        self._event("resend", f"land: no descent (replies {replies})")
+                        self._send_land()
+                    if now > deadline:
+                        raise TelloCommandError(
+                            f"Tello {cfg.host}: not down within {cfg.land_timeout_s:.0f} s "
+                            f"(phase {ph.value}, replies {replies})"
+                        )
+                    time.sleep(0.01)
+            finally:
+                self._end_exchange()
+
+    def _send_land(self) -> None:
+        assert self._chan is not None
+        with self._lock:
+            self._tracker.land_sent(time.monotonic())
+        self._chan.send("land")
+
+    def emergency_stop(self) -> None:
+        """Motors off at once (`emergency`, no reply awaited, no quiet window)."""
+        with self._lock:
+            self._land_requested = True
+            self._tracker.emergency_sent(time.monotonic())
+        if self._chan is not None:
+            self._chan.send("emergency")
+        self._event("emergency", "motors off")
+
+    def send_body_velocity(self, V: np.ndarray) -> None:
+        """Map V (m/s, rad/s, FLU body) to `rc a b c d` and send it; never blocks, never raises for phase."""
+        self._send_rc(velocity_to_rc(V, self.cfg.rc_gains))  # Python ints, clipped, NaN → 0
+
+    def _send_rc(self, rc: tuple[int, int, int, int], why: str = "") -> None:
+        with self._lock:
+            reason = ""
+            if self._chan is None:
+                reason = "not connected"
+            elif self._busy:
+                reason = "a command is in progress"
+            elif self._land_requested:
+                reason = "land sent"
+            elif self._tracker.phase is not FlightPhase.AIRBORNE:
+                reason = f"drone is {self._tracker.phase.value}"
+            if reason:
+                self.counts["rc_suppressed"] += 1
+                if reason not in self._once:
+                    self._once.add(reason)
+                    self._event("rc_suppressed", reason)
+                return
+            self._once.clear()
+            assert self._chan is not None
+            self._last_rc_t = time.monotonic()
+            if self._chan.send("rc {} {} {} {}".format(*rc)):
+                self.last_rc = rc
+                self.rc_sent += 1
+        if why:
+            self._event(why, f"rc {rc} sent")
+
     def close(self) -> None:
-        """Stop the monitor and worker; does NOT land (the supervisor lands before closing)."""
+        """Stop the monitor and the sockets; does NOT land (the supervisor lands before closing)."""
         self._stop.set()
         if self._monitor is not None:
             self._monitor.join(timeout=1.0)
-        self._worker.shutdown(wait=False, cancel_futures=True)
-        if self.tello is not None:
-            self.tello.is_flying = False  # djitellopy's end()/__del__ would otherwise send a blocking land
-            self.tello.stream_on = False
+        if self._rx is not None:
+            self._rx.release(self.cfg.host)
+            self._rx = None
+        if self._chan is not None:
+            self._chan.close()
 
-    # ---- background: state freshness and keep-alive ----------------------------------------------
+    # ---- preflight --------------------------------------------------------------------------------
+    def preflight(self) -> list[PreflightCheck]:
+        """Battery, temperature, state stream, on the ground, SDK version and serial, Wi-Fi signal."""
+        st, cfg = self._state_fields, self.cfg
+        bat, temp = st.get("bat"), st.get("temph")
+        checks = [
+            PreflightCheck(
+                "battery",
+                bat is not None and bat >= cfg.min_battery_pct,
+                f"{bat:.0f} % (min {cfg.min_battery_pct:.0f} %)" if bat is not None else "not reported",
+            ),
+            PreflightCheck(
+                "temperature",
+                temp is not None and temp <= cfg.max_temperature_c,
+                f"{temp:.0f} °C (max {cfg.max_temperature_c:.0f} °C)" if temp is not None else "not reported",
+            ),
+        ]
+        alive = self.link_alive()
+        checks.append(PreflightCheck("state stream", alive, "alive" if alive else "silent"))
+        ph = self.phase
+        checks.append(
+            PreflightCheck("on the ground", ph is FlightPhase.GROUND, f"phase {ph.value}, h {st.get('h')} cm")
+        )
+        checks.append(self._sdk_check())
+        snr = self.query("wifi?", parse_int_reply)
+        checks.append(
+            PreflightCheck(
+                "wifi signal",
+                snr is not None and float(snr) >= cfg.min_wifi_snr,
+                f"SNR {snr} (min {cfg.min_wifi_snr:.0f})" if snr is not None else "`wifi?` not answered",
+                warn=True,
+            )
+        )
+        return checks
+
+    def _sdk_check(self) -> PreflightCheck:
+        sdk, sn, need = self.sdk_version, self.serial or "serial unknown", self.cfg.sdk3_features
+        if sdk is None:
+            ok = not need
+            detail = f"`sdk?` not answered (SDK 1.3/2.0 firmware?), {sn}"
+        else:
+            ok = not need or float(sdk) >= 3.0
+            detail = f"SDK {sdk}, serial {sn}"
+        if not ok:
+            detail += f"; this mission needs SDK 3.0 for {', '.join(need)}: use access-point mode"
+        return PreflightCheck("firmware", ok, detail)
+
+    # ---- background: state freshness and keep-alive ------------------------------------------------
     def _monitor_loop(self) -> None:
         while not self._stop.wait(0.02):
-            now = time.monotonic()
-            st = self.tello.get_current_state()
-            if st is not self._last_state_obj:  # djitellopy stores a new dict per packet
-                self._last_state_obj = st
-                self._last_state_t = now
-                if not self._link_alive:
-                    self._link_alive = True
-                    self._event("link_restored")
-            elif self._link_alive and now - self._last_state_t > self.cfg.link_timeout_s:
-                self._link_alive = False
-                self._event("link_lost", f"no state packet for {now - self._last_state_t:.2f} s")
-            if self._flying and now - self._last_rc_t > self.cfg.keepalive_s:
-                self._send_rc((0, 0, 0, 0))
-                self._event("keepalive", "hover rc sent: the control loop was silent")
+            try:
+                self._monitor_step(time.monotonic())
+            except Exception as exc:  # the monitor must outlive any error
+                self.counts["monitor_error"] += 1
+                LOG.exception("tello %s monitor: %s", self.cfg.host, exc)
 
-
-class TelloCamera:
-    """hal.Camera over the Tello's video stream (forward, or downward on the EDU with `downvision 1`).
-
-    Frames are RGB uint8 (djitellopy decodes with PyAV); each distinct decoded frame is stamped with the
-    monotonic time at which this driver first saw it.
-    """
-
-    def __init__(self, driver: TelloDriver, frame_timeout_s: float = 10.0) -> None:
-        self.driver = driver
-        self.frame_timeout_s = frame_timeout_s
-        self._reader: Any = None
-        self._last: object = None
-        self._placeholder: object = None
-        self._stamp = -math.inf
-        self.frames_seen = 0
-
-    def start(self) -> None:
-        d = self.driver
-        if d.cfg.video_port != 11111:  # swarm: each drone streams to its own port
-            d._control(f"port 8890 {d.cfg.video_port}", d.cfg.command_timeout_s)
-        if d.cfg.downward_camera:
-            d._control("downvision 1", d.cfg.command_timeout_s)
-        d._control("streamon", d.cfg.command_timeout_s)
-        self._reader = d._run(d.tello.get_frame_read, self.frame_timeout_s, "open video stream")
-        # djitellopy starts with a black 400x300 placeholder until the first frame is decoded: not a frame
-        self._placeholder = self._reader.frame
-
-    def latest(self) -> Frame | None:
-        if self._reader is None:
-            return None
-        img = self._reader.frame
-        if img is None or img is self._placeholder:
-            return None
-        if img is not self._last:
-            self._last = img
-            self._stamp = time.monotonic()
-            self.frames_seen += 1
-        return Frame(self._stamp, img, None)
-
-    def stop(self, streamoff_timeout_s: float = 1.0) -> None:
-        """Stop decoding and ask the drone to stop streaming (`streamoff`, bounded, failure ignored: the
-        stream is only a load on the link, and a drone that cannot answer is handled elsewhere)."""
-        if self._reader is not None:
-            self._reader.stop()
-            self._reader = None
-            # djitellopy caches its reader per Tello object (one per host, for the whole process):
-            # forget it, or the next start() gets this stopped reader bound to the old video port
-            if self.driver.tello is not None:
-                self.driver.tello.background_frame_read = None
-            with contextlib.suppress(TelloCommandError):
-                self.driver._control("streamoff", streamoff_timeout_s)
+    def _monitor_step(self, now: float) -> None:
+        age = now - self._last_state_t
+        if self._link_alive and age > self.cfg.link_timeout_s:
+            self._link_alive = False
+            self._event("link_lost", f"no state packet for {age:.2f} s")
+        elif not self._link_alive and age <= self.cfg.link_timeout_s:
+            self._link_alive = True
+            self._event("link_restored")
+        with self._lock:
+            due = (
+                self._tracker.phase is FlightPhase.AIRBORNE
+                and not self._busy
+                and not self._land_requested
+                and now - self._last_rc_t > self.cfg.keepalive_s
+            )
+        if due:
+            self._send_rc((0, 0, 0, 0), why="keepalive")

@@ -149,7 +149,11 @@ def cmd_preflight(args: argparse.Namespace) -> int:
     if mission.simulated:
         print(f"error: {args.mission}: backend {mission.backend!r} has no hardware to check", file=sys.stderr)
         return 2
-    rows = run_preflight(mission, deadline_s=args.deadline, with_camera=not args.no_camera)
+    try:
+        rows = run_preflight(mission, args.deadline, not args.no_camera, drone_ids=args.id or None)
+    except ValueError as exc:
+        print(f"error: {args.mission}: {exc}", file=sys.stderr)
+        return 2
     print(format_table(rows))
     return 1 if any(r.status == "FAIL" for r in rows) else 0
 
@@ -186,7 +190,15 @@ def cmd_target(args: argparse.Namespace) -> int:
             return 1
         robot.connect()
         print(f"driving {duration:.1f} s ({duration / law.lap_time:.2f} laps); Ctrl-C stops the robot")
-        res = drive_square(robot, mocap, law, duration, body=body, link_alive=robot.link_alive)
+        res = drive_square(
+            robot,
+            mocap,
+            law,
+            duration,
+            body=body,
+            link_alive=robot.link_alive,
+            robot_ready=lambda: robot.robot_state().ready,
+        )
         print(lap_summary(res, law))
         return 0 if res.ended_by == "duration" else 1
     finally:
@@ -298,6 +310,9 @@ def build_parser() -> argparse.ArgumentParser:
     pf.add_argument("mission")
     pf.add_argument("--deadline", type=float, default=9.0, help="bound on the whole check (s)")
     pf.add_argument("--no-camera", action="store_true", help="skip the video check")
+    pf.add_argument(
+        "--id", type=int, action="append", help="check only this drone (repeatable; access-point mode)"
+    )
     pf.set_defaults(func=cmd_preflight)
     tg = sub.add_parser("target", help="drive the real ground robot on the square law (motion capture)")
     tg.add_argument("mission", help="mission YAML file with hardware.mocap and hardware.target")

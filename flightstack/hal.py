@@ -7,6 +7,7 @@ velocities are expressed in the body frame of the robot they command.
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -23,14 +24,38 @@ class Clock(Protocol):
     def sleep_until(self, t: float) -> None: ...
 
 
+class FlightPhase(enum.StrEnum):
+    """What a drone is doing, decided from its own telemetry (never from a command reply alone).
+
+    The values are the strings the simulated lab and the served world already use.
+    """
+
+    GROUND = "ground"  # on the ground, motors off (never flown, or landed)
+    TAKING_OFF = "taking_off"  # takeoff sent or seen, not yet confirmed airborne: no rc, no land
+    AIRBORNE = "flying"  # airborne at a stable height: velocity commands are obeyed
+    LANDING = "landing"  # land sent and descent seen (or awaited): nothing else is sent
+    UNKNOWN = "unknown"  # no telemetry yet
+
+
 @dataclass(frozen=True)
 class DroneState:
-    """battery in percent, height in metres above ground, link_alive from the drone's own telemetry."""
+    """battery in percent, height in metres above ground, link_alive from the drone's own telemetry.
+
+    `flying` is True when the drone is airborne and obeys velocity commands (phase AIRBORNE). `phase`
+    (a FlightPhase value) says more; when a backend does not give it, it is derived from `flying`:
+    AIRBORNE, or UNKNOWN (not flying could be on the ground, taking off or landing).
+    """
 
     battery_pct: float
     height_m: float
     link_alive: bool
     flying: bool
+    phase: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.phase:
+            derived = FlightPhase.AIRBORNE if self.flying else FlightPhase.UNKNOWN
+            object.__setattr__(self, "phase", str(derived))
 
 
 @runtime_checkable

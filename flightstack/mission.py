@@ -264,8 +264,9 @@ MOCAP_SYSTEMS = ("mock", "vicon", "optitrack", "qualisys", "vrpn")
 
 
 class TelloHardwareSpec(_Strict):
-    """One real Tello (backend `tello`), by IP in station mode. Ports: 8889 (commands) on a real drone;
-    each drone of a swarm streams video to its own `video_port` on this computer."""
+    """One real Tello (backend `tello`). `ip`: its address (192.168.10.1 in access-point mode; the
+    router's lease in station mode). Ports: 8889 (commands) on a real drone; `video_port` is where it
+    streams on this computer (station mode with several drones: one port each, needs SDK 3.0)."""
 
     id: int = Field(ge=0, lt=2**16)
     ip: str = Field(pattern=r"^\d{1,3}\.\d{1,3}\.\d{1,3}\.\d{1,3}$")
@@ -306,8 +307,17 @@ class TargetHardwareSpec(_Strict):
 class HardwareSpec(_Strict):
     """The lab (backend `tello`). `target: null` when the robot is driven elsewhere (`flightstack target`
     on another computer, or by hand): the mission then only reads its motion-capture pose.
-    `max_frame_age_s`: a camera frame older than this is treated as no frame (stalled video)."""
+    `max_frame_age_s`: a camera frame older than this is treated as no frame (stalled video).
 
+    `topology` (README "Flying the real lab"): `access_point` (default) — each Tello is its own Wi-Fi
+    access point at 192.168.10.1, one computer per drone runs `flightstack agent --id N`, the agents talk
+    over Zenoh on another interface; works with SDK 2.0 and the default video port. `station` — every
+    Tello joins the lab Wi-Fi, one process may fly them all; several drones' video needs per-drone ports,
+    which need SDK 3.0 (preflight checks). `state_port`: the local UDP port the drones' state streams
+    arrive at (8890 on real Tellos; the tests use a free one)."""
+
+    topology: Literal["access_point", "station"] = "access_point"
+    state_port: int = Field(default=8890, ge=1, le=65535)
     drones: list[TelloHardwareSpec] = Field(min_length=1)
     mocap: MocapHardwareSpec
     target: TargetHardwareSpec | None = None
@@ -318,13 +328,25 @@ class HardwareSpec(_Strict):
         ids = [d.id for d in self.drones]
         if len(set(ids)) != len(ids):
             raise ValueError("drones: ids must be unique")
-        ips = [(d.ip, d.control_port) for d in self.drones]
-        if len(set(ips)) != len(ips):
-            raise ValueError("drones: two drones share an ip and port")
-        ports = [d.video_port for d in self.drones]
-        if len(set(ports)) != len(ports):
-            raise ValueError("drones: each drone needs its own video_port")
+        if self.topology == "station":
+            ips = [(d.ip, d.control_port) for d in self.drones]
+            if len(set(ips)) != len(ips):
+                raise ValueError("drones: two drones share an ip and port (station mode: one address each)")
+            ports = [d.video_port for d in self.drones]
+            if len(set(ports)) != len(ports):
+                raise ValueError("drones: each drone needs its own video_port in station mode")
         return self
+
+    def shared_by(self, drone_ids: list[int]) -> str | None:
+        """Why these drones cannot be flown from one process (same address or video port), or None."""
+        ds = [self.drone(i) for i in drone_ids]
+        if len({(d.ip, d.control_port) for d in ds}) < len(ds) or len({d.video_port for d in ds}) < len(ds):
+            return (
+                f"drones {drone_ids} share an address or video port ({self.topology} mode): in "
+                "access-point mode each drone needs its own computer; run `flightstack agent MISSION "
+                "--id N` (and `preflight --id N`) on each"
+            )
+        return None
 
     def drone(self, drone_id: int) -> TelloHardwareSpec:
         return next(d for d in self.drones if d.id == drone_id)

@@ -36,6 +36,8 @@ with the mission clock. The event kinds form the closed set `EVENT_KINDS`:
     drone_error             the wrapped drone raised inside tick() (state() or the watchdog's command)
     command_after_land      a command arrived after land/emergency stop: dropped
     land_failed             the wrapped drone's land() raised (retried on every tick)
+    landed_by_drone         the drone's own telemetry shows it on the ground in flight (an auto-land, a land
+                            by someone else): it is treated as landed and not commanded again
     emergency_stop          emergency_stop() was sent to the wrapped drone
     emergency_stop_failed   the wrapped drone's emergency_stop() raised too (MissionSupervisor.land_all)
     target_lost_hover       every drone lost the target for longer than target_lost_hover_after
@@ -67,7 +69,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from flightstack.geometry import Pose
-from flightstack.hal import Clock, Drone, DroneState, PoseSource, StampedPose
+from flightstack.hal import Clock, Drone, DroneState, FlightPhase, PoseSource, StampedPose
 
 __all__ = [
     "EVENT_KINDS",
@@ -103,6 +105,7 @@ EVENT_KINDS: frozenset[str] = frozenset(
         "drone_error",
         "command_after_land",
         "land_failed",
+        "landed_by_drone",
         "emergency_stop",
         "emergency_stop_failed",
         "target_lost_hover",
@@ -602,6 +605,11 @@ class SafeDrone:
                 self._event_once(now, "drone_error", f"state() raised {type(exc).__name__}: {exc}")
             else:
                 self._end("drone_error")
+                if link_alive and st.phase == FlightPhase.GROUND and self._link_seen:
+                    # its own telemetry shows it down (auto-land, a land by someone else): stop commanding
+                    self._event(now, "landed_by_drone", "telemetry shows the drone on the ground")
+                    self._phase = _Phase.LANDED
+                    return
                 if link_alive:
                     self._link_seen = True
                 elif self._link_seen:  # up since takeoff, now down (a link never up is not "lost")

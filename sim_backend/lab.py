@@ -88,7 +88,9 @@ class TelloSim:
         self.last_command_t = t
 
     def state(self) -> DroneState:
-        return DroneState(self.battery, float(self.pose.p[2]), self.connected, self.phase == self.FLYING)
+        return DroneState(
+            self.battery, float(self.pose.p[2]), self.connected, self.phase == self.FLYING, self.phase
+        )
 
     def close(self) -> None:
         self.land()

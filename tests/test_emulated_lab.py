@@ -2,8 +2,8 @@
 NatNet (OptiTrack) server and a MAVLink rover, through the real client libraries.
 
 All traffic stays on 127.0.0.0/8: the Tello emulators own 127.0.0.6 and 127.0.0.7 (other test modules
-use .2–.5), NatNet and the rover use 127.0.0.1 with OS-assigned ports. The CLI runs in this process
-(djitellopy binds UDP 8889/8890 once per process).
+use .2–.5), NatNet and the rover use 127.0.0.1 with OS-assigned ports. The lab is in station mode: both
+Tello emulators send their state streams to one free port of 127.0.0.1 (`hardware.state_port`).
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ from pathlib import Path
 import pytest
 import yaml
 
-pytest.importorskip("djitellopy")
 pytest.importorskip("av")
 pytest.importorskip("motioncapture")
 pytest.importorskip("pymavlink")
@@ -29,9 +28,7 @@ from tests.conftest import MISSIONS
 from tests.emulators.mavlink_rover import MavlinkRoverEmulator
 from tests.emulators.natnet import NatNetEmulator
 from tests.emulators.tello import TelloEmulator, free_udp_port
-from tests.test_tello_driver import _ports_free, marker_frame
-
-pytestmark = pytest.mark.skipif(not _ports_free(), reason="UDP 8889/8890 are taken: djitellopy cannot bind")
+from tests.test_tello_driver import marker_frame
 
 CAL_SRC = MISSIONS / "cameras" / "tello_down_sim.yaml"
 LEVEL = (1.0, 0.0, 0.0, 0.0)  # quaternion (w, x, y, z) of a level body facing world x
@@ -82,6 +79,8 @@ def write_mission(
         d["camera"] = {"calibration": "cal.yaml", "mount": "down"}
     m["drones"][1]["desired_pose"] = {"p": [0.0, 0.7, -1.0], "theta": 0.0}
     m["hardware"] = {
+        "topology": "station",
+        "state_port": next(iter(lab_tellos.values())).state_port,
         "drones": [
             {
                 "id": i,
@@ -109,8 +108,15 @@ def write_mission(
 
 @pytest.fixture
 def lab(tmp_path: Path) -> Iterator[Lab]:
+    state_port = free_udp_port()
     tellos = {
-        i: TelloEmulator(ip, video_port=free_udp_port(), frame_source=marker_frame, video_size=(320, 240))
+        i: TelloEmulator(
+            ip,
+            state_port=state_port,
+            video_port=free_udp_port(),
+            frame_source=marker_frame,
+            video_size=(320, 240),
+        )
         for i, ip in ((1, "127.0.0.6"), (2, "127.0.0.7"))
     }
     natnet = NatNetEmulator(

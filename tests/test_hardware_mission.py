@@ -34,7 +34,32 @@ def test_real_lab_mission_validates() -> None:
     assert m.hardware is not None
     assert m.hardware.body("drone1") == "tello1" and m.hardware.body("target") == "scamper"
     assert m.hardware.body("unlisted") == "unlisted"
-    assert [d.ip for d in m.hardware.drones] == ["192.168.10.101", "192.168.10.102"]
+    # the documented default: access-point mode, each Tello its own Wi-Fi at 192.168.10.1, default video
+    assert m.hardware.topology == "access_point"
+    assert [(d.ip, d.video_port) for d in m.hardware.drones] == [("192.168.10.1", 11111)] * 2
+    assert m.hardware.shared_by([1]) is None and "--id N" in str(m.hardware.shared_by([1, 2]))
+
+
+def test_station_mode_needs_distinct_addresses_and_video_ports(tmp_path: Path) -> None:
+    doc = copy.deepcopy(real())
+    doc["hardware"]["topology"] = "station"
+    with pytest.raises(MissionError, match="share an ip and port"):
+        load_mission(write(tmp_path, doc))
+    doc["hardware"]["drones"][1]["ip"] = "192.168.10.102"
+    with pytest.raises(MissionError, match="each drone needs its own video_port"):
+        load_mission(write(tmp_path, doc))
+    doc["hardware"]["drones"][1]["video_port"] = 11112
+    m = load_mission(write(tmp_path, doc))
+    assert m.hardware is not None and m.hardware.shared_by([1, 2]) is None
+
+
+def test_access_point_mission_flown_from_one_process_is_refused_before_any_traffic(tmp_path: Path) -> None:
+    """Two drones at 192.168.10.1 cannot be told apart from one computer: preflight FAILs naming the fix."""
+    r = run_cli("preflight", str(REAL), "--no-camera", "--deadline", "3", timeout=60)
+    assert r.returncode == 1
+    assert "share an address or video port" in r.stdout and "--id N" in r.stdout
+    r = run_cli("preflight", str(REAL), "--id", "9", timeout=60)
+    assert r.returncode == 2 and "no drone [9]" in r.stderr
 
 
 def _drop_hardware(d: dict) -> None:
@@ -46,7 +71,8 @@ def _wrong_ids(d: dict) -> None:
 
 
 def _same_video_port(d: dict) -> None:
-    d["hardware"]["drones"][1]["video_port"] = 11111
+    d["hardware"]["topology"] = "station"
+    d["hardware"]["drones"][1]["ip"] = "192.168.10.102"
 
 
 def _bad_ip(d: dict) -> None:
@@ -74,7 +100,7 @@ def _keepalive_too_long(d: dict) -> None:
     [
         (_drop_hardware, "needs a hardware section"),
         (_wrong_ids, "hardware.drones: ids [1, 7] must be exactly"),
-        (_same_video_port, "hardware: drones: each drone needs its own video_port"),
+        (_same_video_port, "hardware: drones: each drone needs its own video_port in station mode"),
         (_bad_ip, "hardware.drones.0.ip"),
         (_unknown_system, "hardware.mocap.system"),
         (_safety_off, "safety.enabled: must be true on real hardware"),

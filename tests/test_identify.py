@@ -1,5 +1,5 @@
 """drivers/identify.py: the step fit on synthetic data, the state-stream velocity source, and a full
-identification against the loopback Tello emulator through TelloDriver and djitellopy.
+identification against the loopback Tello emulator through TelloDriver.
 
 The emulator owns 127.0.0.5 (the driver tests use 127.0.0.3/.4, the emulator's own tests 127.0.0.2).
 """
@@ -113,7 +113,7 @@ def test_state_source_differences_rotates_and_unwraps(monkeypatch: pytest.Monkey
     clock = [0.0]
     monkeypatch.setattr(ident, "time", SimpleNamespace(monotonic=lambda: clock[0], sleep=time.sleep))
     tello = _FakeTello()
-    driver = SimpleNamespace(tello=tello)
+    driver = SimpleNamespace(current_state=tello.get_current_state)
     # heading 90° clockwise (facing the state's +y = right): +y motion is body forward (x)
     sx, sy = state_velocity_source(driver, "x"), state_velocity_source(driver, "y")
     _packet(tello, clock, 10.0, yaw=90)
@@ -170,15 +170,11 @@ TRUE_TAU_S = 0.1
 
 
 def test_identify_against_the_emulator() -> None:
-    pytest.importorskip("djitellopy")
     pytest.importorskip("av")
     from drivers.tello import TelloDriver
-    from tests.emulators.tello import TelloEmulator, free_udp_port
-    from tests.test_tello_driver import _ports_free, config
+    from tests.test_tello_driver import config, make_emulator
 
-    if not _ports_free():
-        pytest.skip("UDP 8889/8890 are taken: djitellopy cannot bind")
-    with TelloEmulator("127.0.0.5", video_port=free_udp_port(), tau_s=TRUE_TAU_S) as emu:
+    with make_emulator("127.0.0.5", tau_s=TRUE_TAU_S) as emu:
         d = TelloDriver(config(emu))
         try:
             d.connect()

@@ -85,6 +85,7 @@ class FakeDrone:
         self.state_error: Exception | None = None
         self.on_send: Callable[[], None] | None = None
         self.on_land: Callable[[], None] | None = None
+        self.phase = ""  # "" = derived from flying (True); "ground" = its telemetry shows it down
 
     def connect(self) -> None:
         self.calls.append("connect")
@@ -113,7 +114,7 @@ class FakeDrone:
     def state(self) -> DroneState:
         if self.state_error is not None:
             raise self.state_error
-        return DroneState(self.battery, 1.0, True, True)
+        return DroneState(self.battery, 1.0, True, self.phase != "ground", self.phase)
 
     def close(self) -> None:
         self.calls.append("close")
@@ -919,3 +920,18 @@ def test_concurrent_land_all_reraises_after_every_landing() -> None:
     sup.land_all("test")
     assert rigs[2].sd.landed and not rigs[1].sd.landed
     assert any(e.kind == "land_failed" and e.drone == 1 for e in log.events)
+
+
+def test_a_drone_whose_telemetry_shows_it_down_is_not_commanded_again() -> None:
+    """An auto-land or someone else's land: the supervisor reads the drone's phase and stops commanding."""
+    r = Rig()
+    r.sd.send_body_velocity(np.array([0.1, 0.0, 0.0, 0.0]))
+    r.sd.tick()  # link seen, airborne
+    r.inner.phase = "ground"
+    r.clock.t += 0.05
+    r.sd.tick()
+    assert "landed_by_drone" in r.kinds() and r.sd.landed
+    n = len(r.inner.sent)
+    r.sd.send_body_velocity(np.array([0.1, 0.0, 0.0, 0.0]))
+    r.sd.tick()
+    assert len(r.inner.sent) == n and "land" not in r.inner.calls

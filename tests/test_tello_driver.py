@@ -1,22 +1,27 @@
-"""drivers/tello.py against the loopback Tello emulator, through the real djitellopy client.
+"""drivers/tello.py against the loopback Tello emulator (tests/emulators/tello.py), on 127.0.0.x only.
 
-Everything runs on 127.0.0.0/8; emulators own 127.0.0.3 and 127.0.0.4 (the emulator's own tests use
-127.0.0.2). djitellopy binds ("", 8889) and ("", 8890) once per process: if another program holds
-them, the module is skipped with the reason.
+Every scenario of issue 14 is flown through the emulator with one of its real-firmware fault switches,
+and judged at the emulator: nothing sent that the drone rejected or ignored in its phase
+(`emu.refused == []`), the driver's phase equal to the drone's after every driver call, takeoff()
+returning only when the drone is airborne, no auto-land while the mission flies.
+
+Each emulator sends its state stream to its own free port (the driver's `state_port`), so these tests
+do not need UDP 8889/8890 (djitellopy, used by other tests for its own client, binds them).
 """
 
 from __future__ import annotations
 
 import socket
+import threading
 import time
 
 import numpy as np
 import pytest
 
-pytest.importorskip("djitellopy")
 pytest.importorskip("av")
 
-from drivers.tello import TelloCamera, TelloCommandError, TelloConfig, TelloDriver, TelloLinkError
+from drivers.tello import TelloCommandError, TelloConfig, TelloDriver, TelloLinkError
+from drivers.tello_camera import TelloCamera
 from flightstack.camera_calibration import load_calibration
 from flightstack.geometry import Pose, rot_z
 from flightstack.mission import CAMERA_MOUNTS
@@ -30,25 +35,8 @@ CAL = load_calibration(MISSIONS / "cameras" / "tello_down_sim.yaml")
 P0 = np.array([[0.1, 0.1, 0.15], [-0.1, 0.1, 0.15], [-0.1, -0.1, 0.15], [0.1, -0.1, 0.15]])
 # the target 0.9 m below the drone (downward camera, as the observing drone flies), slightly yawed
 G_I0 = Pose.make([0.05, -0.03, -0.9], 0.3)
-
-
-def _ports_free() -> bool:
-    from djitellopy import tello as djt
-
-    if djt.threads_initialized:
-        return True
-    for port in (8889, 8890):
-        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            s.bind(("", port))
-        except OSError:
-            return False
-        finally:
-            s.close()
-    return True
-
-
-pytestmark = pytest.mark.skipif(not _ports_free(), reason="UDP 8889/8890 are taken: djitellopy cannot bind")
+# the emulator's phase names -> hal.FlightPhase values
+AS_DRIVER = {"landed": "ground", "takeoff": "taking_off", "flying": "flying", "landing": "landing"}
 
 
 def marker_truth() -> tuple[np.ndarray, np.ndarray]:
@@ -65,45 +53,81 @@ def marker_frame(t: float, emu: TelloEmulator) -> np.ndarray:
     return img
 
 
+def make_emulator(ip: str = "127.0.0.3", **kw: object) -> TelloEmulator:
+    """An emulator whose state goes to a free port of 127.0.0.1 (see the module docstring)."""
+    kw.setdefault("video_port", free_udp_port())
+    return TelloEmulator(ip, state_port=free_udp_port(), **kw)  # type: ignore[arg-type]
+
+
 def config(emu: TelloEmulator, **kw: object) -> TelloConfig:
-    base = dict(
+    base: dict[str, object] = dict(
         host=emu.ip,
         control_port=emu.address[1],
         video_port=emu.video_port,
+        state_port=emu.state_port,
         connect_timeout_s=2.0,
         command_timeout_s=1.0,
-        takeoff_timeout_s=3.0,
-        land_timeout_s=3.0,
         link_timeout_s=0.5,
         keepalive_s=1.0,
         rc_gains=RcGains(0.01, 0.01, 0.0175),
     )
     base.update(kw)
-    return TelloConfig(**base)
+    return TelloConfig(**base)  # type: ignore[arg-type]
 
 
 @pytest.fixture
 def emu():
-    e = TelloEmulator(
-        "127.0.0.3",
-        video_port=free_udp_port(),
-        frame_source=marker_frame,
-        fps=30.0,
-        video_size=(CAL.width, CAL.height),
-    )
+    e = make_emulator(frame_source=marker_frame, fps=30.0, video_size=(CAL.width, CAL.height))
     e.start()
     yield e
     e.close()
 
 
+def agree(d: TelloDriver, emu: TelloEmulator) -> None:
+    assert d.phase.value == AS_DRIVER[emu.phase], (d.phase, emu.phase, d.events[-5:])
+
+
+def fly(d: TelloDriver, emu: TelloEmulator, seconds: float = 1.0) -> dict[str, float]:
+    """connect, takeoff, rc at 20 Hz for `seconds`, land; phase agreement after every call.
+
+    Returns the times (s) to confirm takeoff and land from telemetry."""
+    d.connect()
+    agree(d, emu)
+    t0 = time.monotonic()
+    d.takeoff()
+    t_takeoff = time.monotonic() - t0
+    assert emu.phase == "flying", "takeoff() returned before the drone was airborne"
+    agree(d, emu)
+    n = len(emu.rc_history)
+    for k in range(round(20 * seconds)):
+        d.send_body_velocity(np.array([0.2 * np.sin(k / 5), 0.0, 0.0, 0.0]))
+        time.sleep(0.05)
+    assert wait_until(lambda: len(emu.rc_history) - n >= round(20 * seconds) - 1, 1.0)
+    t0 = time.monotonic()
+    d.land()
+    t_land = time.monotonic() - t0
+    agree(d, emu)
+    assert emu.phase == "landed"
+    return {"takeoff_s": t_takeoff, "land_s": t_land}
+
+
+def assert_clean(d: TelloDriver, emu: TelloEmulator) -> None:
+    assert emu.refused == [], emu.refused  # nothing the drone rejected or ignored in its phase
+    assert not emu.landed_by_timeout
+    assert emu.errors == []
+
+
+# ---- the happy path, video, link ---------------------------------------------------------------------
 def test_short_flight_rc_values_and_video(emu: TelloEmulator) -> None:
     d = TelloDriver(config(emu, downward_camera=True))
     try:
         d.connect()
+        assert d.sdk_version == "3.0" and d.serial
         checks = {c.name: c for c in d.preflight()}
         assert all(c.ok for c in checks.values()), checks
+        assert "SDK 3.0" in checks["firmware"].detail and d.serial in checks["firmware"].detail
         d.takeoff()
-        assert emu.flying and d.state().flying and d.state().link_alive
+        assert emu.phase == "flying" and d.state().flying and d.state().link_alive
         sent = []
         for V in ([0.3, 0.0, 0.0, 0.0], [0.0, -0.25, 0.1, 0.0], [0.1, 0.1, 0.0, 0.5], [0.0, 0.0, 0.0, -0.35]):
             t0 = time.monotonic()
@@ -115,7 +139,7 @@ def test_short_flight_rc_values_and_video(emu: TelloEmulator) -> None:
         got = [rc for _, rc in list(emu.rc_history)[-4:]]
         assert got == sent  # forward → b > 0, right (−v_y) → a > 0, ccw yaw → d < 0
         assert got[0] == (0, 30, 0, 0) and got[1] == (25, 0, 10, 0) and got[3][3] == 20
-        # video: ≥ 30 decoded frames through djitellopy/PyAV, markers within 2 px of the render truth
+        # video: ≥ 30 decoded frames through PyAV, markers within 2 px of the render truth
         cam = TelloCamera(d, frame_timeout_s=10.0)
         cam.start()
         _, true_px, _ = render_markers(CAL, *marker_truth(), RenderOptions(marker_radius_m=0.03))
@@ -133,38 +157,22 @@ def test_short_flight_rc_values_and_video(emu: TelloEmulator) -> None:
         assert cam.frames_seen >= 30
         assert len(errors) >= 20 and max(errors) < 2.0, (len(errors), max(errors, default=None))
         d.land()
-        assert not emu.flying and not d.state().flying
+        agree(d, emu)
+        assert not d.state().flying
+        assert_clean(d, emu)
     finally:
         d.close()
 
 
 def test_connect_to_a_silent_drone_fails_fast_naming_the_ip(emu: TelloEmulator) -> None:
     emu.faults.silent = True
+    emu.faults.drop_state = True
     d = TelloDriver(config(emu, connect_timeout_s=1.0))
     t0 = time.monotonic()
     with pytest.raises(TelloLinkError, match=r"127\.0\.0\.3"):
         d.connect()
-    assert time.monotonic() - t0 < 4.0
+    assert time.monotonic() - t0 < 3.0
     d.close()
-
-
-def test_error_replies_and_late_replies(emu: TelloEmulator) -> None:
-    d = TelloDriver(config(emu))
-    try:
-        d.connect()
-        emu.faults.error_replies = True
-        with pytest.raises(TelloCommandError, match="takeoff"):
-            d.takeoff()
-        assert not emu.flying
-        emu.faults.error_replies = False
-        emu.faults.reply_delay_s = 1.5  # longer than the 1 s command timeout: the reply arrives late
-        with pytest.raises(TelloCommandError):
-            d._control("streamon", 1.0)
-        emu.faults.reply_delay_s = 0.0
-        time.sleep(1.0)  # the late 'ok' lands in djitellopy's queue now
-        assert d._read("battery?").strip() == str(emu.battery)  # not the stale 'ok': the queue was cleared
-    finally:
-        d.close()
 
 
 def test_state_stream_loss_is_detected_and_reported(emu: TelloEmulator) -> None:
@@ -182,6 +190,30 @@ def test_state_stream_loss_is_detected_and_reported(emu: TelloEmulator) -> None:
         d.close()
 
 
+def test_bad_and_foreign_state_datagrams_are_dropped_and_counted(emu: TelloEmulator) -> None:
+    d = TelloDriver(config(emu))
+    try:
+        d.connect()
+        rx = d._rx
+        assert rx is not None
+        dest = ("127.0.0.1", emu.state_port)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as same_ip:
+            same_ip.bind((emu.ip, 0))  # spoofing the drone's address from another port: still parsed
+            for junk in (b"\xff\xfe\x00", b"h:nan;tof:10;vgz:0;time:0;bat:50;", b"h:1e9;", b"x" * 4000):
+                same_ip.sendto(junk, dest)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as stranger:
+            stranger.bind(("127.0.0.9", 0))
+            stranger.sendto(b"h:500;tof:510;vgz:0;time:99;bat:5;temph:60;", dest)
+        assert wait_until(lambda: sum(rx.dropped.values()) >= 5, 2.0), rx.dropped
+        assert rx.dropped["unknown_sender"] == 1
+        assert rx.dropped["not_ascii"] == 1 and rx.dropped["too_long"] == 1
+        time.sleep(0.3)
+        assert d.state().link_alive and d.phase.value == "ground"  # the stranger's 5 m did not count
+        assert d.state().battery_pct == emu.battery
+    finally:
+        d.close()
+
+
 def test_low_battery_fails_preflight(emu: TelloEmulator) -> None:
     emu.faults.battery_pct = 12
     d = TelloDriver(config(emu))
@@ -195,7 +227,7 @@ def test_low_battery_fails_preflight(emu: TelloEmulator) -> None:
         d.close()
 
 
-def test_keepalive_holds_a_silent_loop_in_hover(emu: TelloEmulator) -> None:
+def test_keepalive_holds_a_silent_loop_in_hover_and_stops_after_land(emu: TelloEmulator) -> None:
     d = TelloDriver(config(emu, keepalive_s=0.5))
     try:
         d.connect()
@@ -206,26 +238,170 @@ def test_keepalive_holds_a_silent_loop_in_hover(emu: TelloEmulator) -> None:
         assert any(kind == "keepalive" for _, kind, _ in d.events)
         assert emu.flying and not emu.landed_by_timeout
         d.land()
+        n = len(emu.rc_history)
+        time.sleep(1.5)  # three keep-alive periods on the ground
+        assert len(emu.rc_history) == n
+        assert_clean(d, emu)
     finally:
         d.close()
 
 
 def test_two_drones_in_one_process() -> None:
-    with (
-        TelloEmulator("127.0.0.3", video_port=free_udp_port()) as a,
-        TelloEmulator("127.0.0.4", video_port=free_udp_port()) as b,
-    ):
+    with make_emulator("127.0.0.3") as a, make_emulator("127.0.0.4") as b:
+        b.state_port = a.state_port  # station mode: both stream state to one port of this computer
         da, db = TelloDriver(config(a)), TelloDriver(config(b))
         try:
             da.connect()
             db.connect()
             da.takeoff()
             da.send_body_velocity(np.array([0.5, 0, 0, 0]))
-            db.send_body_velocity(np.array([0, 0.5, 0, 0]))
-            assert wait_until(lambda: a.rc_history and b.rc_history, 2.0)
-            assert a.rc_history[-1][1] == (0, 50, 0, 0) and b.rc_history[-1][1] == (-50, 0, 0, 0)
+            db.send_body_velocity(np.array([0, 0.5, 0, 0]))  # on the ground: suppressed, not sent
+            assert wait_until(lambda: bool(a.rc_history), 2.0)
+            assert a.rc_history[-1][1] == (0, 50, 0, 0) and not b.rc_history
+            assert db.counts["rc_suppressed"] == 1
             assert a.flying and not b.flying
+            agree(da, a)
+            agree(db, b)
             da.land()
+            assert_clean(da, a)
+            assert_clean(db, b)
         finally:
             da.close()
             db.close()
+
+
+# ---- the real-firmware scenarios of issue 14 -------------------------------------------------------------
+def test_duplicated_late_ok_is_not_taken_as_the_takeoff_answer(emu: TelloEmulator) -> None:
+    emu.faults.duplicate_reply_after_s = 0.4  # every reply arrives a second time 0.4 s later
+    d = TelloDriver(config(emu))
+    try:
+        times = fly(d, emu)
+        assert_clean(d, emu)
+        assert d.counts["rc_suppressed"] == 0
+        assert times["takeoff_s"] > emu.takeoff_s
+    finally:
+        d.close()
+
+
+@pytest.mark.parametrize("lost", [{"takeoff"}, {"land"}, {"takeoff", "land"}, {"command"}])
+def test_lost_replies_are_confirmed_by_telemetry(emu: TelloEmulator, lost: set[str]) -> None:
+    """A lost takeoff `ok` is decided by telemetry at takeoff_timeout_s (5 s here, 20 s by default)."""
+    emu.faults.lost_replies = set(lost)
+    emu.takeoff_s = 1.5  # climbs, then stabilises at height until its `ok` (like a real Tello)
+    d = TelloDriver(config(emu, takeoff_timeout_s=5.0))
+    try:
+        times = fly(d, emu)
+        if "takeoff" in lost:
+            assert 5.0 <= times["takeoff_s"] < 6.0
+        else:
+            assert times["takeoff_s"] < 3.5
+        assert_clean(d, emu)
+        confirmed = [detail for _, kind, detail in d.events if kind == "reply_lost_confirmed"]
+        assert len(confirmed) == len(lost), d.events
+        for verb in lost:
+            assert any(verb in c for c in confirmed)
+        assert sum(t == "land" for t in emu.command_texts()) == 1  # no retry of a land that worked
+    finally:
+        d.close()
+
+
+def test_slow_climb_takeoff_returns_only_when_airborne(emu: TelloEmulator) -> None:
+    emu.faults.takeoff_s = 11.5  # djitellopy allows 20 s for takeoff
+    d = TelloDriver(config(emu))
+    try:
+        d.connect()
+        t0 = time.monotonic()
+        d.takeoff()  # the default 20 s bound, not the old 10 s
+        assert time.monotonic() - t0 >= 11.5
+        assert emu.phase == "flying"
+        agree(d, emu)
+        d.land()
+        agree(d, emu)
+        assert_clean(d, emu)
+    finally:
+        d.close()
+
+
+def test_land_requested_during_takeoff_waits_for_airborne(emu: TelloEmulator) -> None:
+    emu.faults.takeoff_s = 2.0
+    d = TelloDriver(config(emu))
+    try:
+        d.connect()
+        th = threading.Thread(target=d.takeoff, daemon=True)
+        th.start()
+        assert wait_until(lambda: emu.phase == "takeoff", 1.0)
+        d.send_body_velocity(np.array([0.3, 0, 0, 0]))  # suppressed: the drone ignores rc while climbing
+        d.land()  # waits until airborne, then lands
+        th.join(5.0)
+        agree(d, emu)
+        assert emu.phase == "landed" and not emu.rc_history
+        assert_clean(d, emu)
+    finally:
+        d.close()
+
+
+def test_firmware_that_answers_rc(emu: TelloEmulator) -> None:
+    emu.faults.rc_replies = True
+    d = TelloDriver(config(emu))
+    try:
+        fly(d, emu, seconds=1.5)
+        assert_clean(d, emu)
+        assert d._chan is not None and d._chan.counts["reply_discarded"] >= 25  # the rc answers
+        assert sum(t == "land" for t in emu.command_texts()) == 1
+    finally:
+        d.close()
+
+
+def test_error_reply_to_takeoff_is_a_refusal_when_nothing_moves(emu: TelloEmulator) -> None:
+    d = TelloDriver(config(emu))
+    try:
+        d.connect()
+        emu.faults.error_replies = True
+        with pytest.raises(TelloCommandError, match="takeoff refused"):
+            d.takeoff()
+        assert emu.phase == "landed"
+        agree(d, emu)
+        emu.faults.error_replies = False
+        d.takeoff()  # the next takeoff works
+        agree(d, emu)
+        d.land()
+        agree(d, emu)
+    finally:
+        d.close()
+
+
+def test_land_on_the_ground_sends_nothing(emu: TelloEmulator) -> None:
+    d = TelloDriver(config(emu))
+    try:
+        d.connect()
+        d.land()
+        assert "land" not in emu.command_texts()
+        assert_clean(d, emu)
+    finally:
+        d.close()
+
+
+def test_sdk20_firmware_fails_preflight_and_camera_for_sdk30_features(emu: TelloEmulator) -> None:
+    emu.faults.sdk_version = "20"
+    d = TelloDriver(config(emu, video_port=free_udp_port(), downward_camera=True))
+    try:
+        d.connect()
+        assert d.sdk_version == "2.0"
+        fw = {c.name: c for c in d.preflight()}["firmware"]
+        assert not fw.ok and "SDK 2.0" in fw.detail and "SDK 3.0" in fw.detail and "downward" in fw.detail
+        with pytest.raises(TelloCommandError, match=r"SDK 3\.0"):
+            TelloCamera(d).start()
+        assert not any(t.startswith(("port", "downvision")) for t in emu.command_texts())
+        assert_clean(d, emu)
+    finally:
+        d.close()
+
+
+def test_sdk20_with_default_video_port_passes(emu: TelloEmulator) -> None:
+    emu.faults.sdk_version = "20"
+    d = TelloDriver(config(emu, video_port=11111, downward_camera=False))
+    try:
+        d.connect()
+        assert {c.name: c for c in d.preflight()}["firmware"].ok
+    finally:
+        d.close()

@@ -3,7 +3,8 @@
 djitellopy binds process-global UDP sockets on ("", 8889) and ("", 8890) the first time a ``Tello`` is
 constructed; if those ports are taken on this machine the djitellopy tests are skipped.  The emulated drone
 lives on 127.0.0.2; a second one (swarm routing) on 127.0.1.3 and raw-socket emulators on 127.0.1.4/5, so that
-other test modules may use 127.0.0.3+ in the same process.  Every datagram stays on 127.0.0.0/8.
+other test modules may use 127.0.0.3+ in the same process; the fault-switch tests use 127.0.1.6-14.  Every
+datagram stays on 127.0.0.0/8.
 
 djitellopy quirks these tests rely on (verified against djitellopy 2.5.0):
 
@@ -16,13 +17,14 @@ djitellopy quirks these tests rely on (verified against djitellopy 2.5.0):
 
 from __future__ import annotations
 
+import contextlib
 import faulthandler
 import logging
 import re
 import socket
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, fields
+from dataclasses import MISSING, dataclass, fields
 
 import numpy as np
 import pytest
@@ -114,8 +116,9 @@ def _reset_faults(request: pytest.FixtureRequest) -> Iterator[None]:
     yield
     if "rig" in request.fixturenames:
         emu: TelloEmulator = request.getfixturevalue("rig").emu
+        defaults = TelloFaults()  # lost_replies has a default_factory: its Field.default is MISSING
         for field in fields(TelloFaults):
-            setattr(emu.faults, field.name, field.default)
+            setattr(emu.faults, field.name, getattr(defaults, field.name))
 
 
 # ---------------------------------------------------------------------------------------- raw protocol
@@ -155,7 +158,7 @@ def test_raw_protocol_sdk_mode_state_and_replies() -> None:
                 (b"battery?", b"87"),
                 (b"height?", b"0dm"),
                 (b"temp?", b"60~63"),
-                (b"sdk?", b"20"),
+                (b"sdk?", b"30"),
                 (b"forward 50", b"error Motor stop"),
             ]:
                 cli.sendto(command, emu.address)
@@ -223,6 +226,268 @@ def test_raw_video_datagrams_no_video_fault_and_close() -> None:
     assert emu.errors == []
 
 
+# ------------------------------------------------------------------------- fault switches, raw UDP
+@contextlib.contextmanager
+def _raw_emu(ip: str, **kw: object) -> Iterator[tuple[TelloEmulator, socket.socket, socket.socket]]:
+    """An emulator on ``ip`` with a raw command socket and a non-blocking state socket on 127.0.0.1."""
+    kw.setdefault("takeoff_s", 0.2)
+    kw.setdefault("land_s", 0.2)
+    with (
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as cli,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as state_rx,
+    ):
+        cli.bind(("127.0.0.1", 0))
+        cli.settimeout(1.0)
+        state_rx.bind(("127.0.0.1", 0))
+        state_rx.setblocking(False)
+        emu = TelloEmulator(ip, state_port=state_rx.getsockname()[1], video_port=free_udp_port(), **kw)
+        with emu:
+            yield emu, cli, state_rx
+        assert emu.errors == []
+
+
+def _recv(cli: socket.socket, emu: TelloEmulator, timeout: float = 1.0) -> str:
+    """The next reply, which must come from the emulator's command address."""
+    cli.settimeout(timeout)
+    data, src = cli.recvfrom(1024)
+    assert src == emu.address
+    return data.decode()
+
+
+def _ask(cli: socket.socket, emu: TelloEmulator, text: str, timeout: float = 1.0) -> str:
+    cli.sendto(text.encode(), emu.address)
+    return _recv(cli, emu, timeout)
+
+
+def _no_reply(cli: socket.socket, seconds: float) -> None:
+    cli.settimeout(seconds)
+    with pytest.raises(TimeoutError):
+        cli.recvfrom(1024)
+
+
+def _state(state_rx: socket.socket, timeout: float = 1.0) -> dict[str, str]:
+    """Fields of the newest state packet (waits for one if none is queued)."""
+    packets = _drain(state_rx)
+    deadline = time.monotonic() + timeout
+    while not packets and time.monotonic() < deadline:
+        time.sleep(0.01)
+        packets = _drain(state_rx)
+    assert packets, "no state packet"
+    fields_ = packets[-1].decode("ascii").strip().rstrip(";").split(";")
+    return dict(f.split(":", 1) for f in fields_)
+
+
+def _refusals(emu: TelloEmulator) -> list[tuple[str, str, str]]:
+    return [(phase, text, reply) for _, phase, text, reply in emu.refused]
+
+
+def _phases(emu: TelloEmulator) -> list[str]:
+    return [phase for _, phase in emu.phase_log]
+
+
+def test_fault_switch_interface_and_defaults() -> None:
+    """The switches the driver tests use, with realistic defaults (SDK 3.0 EDU, rc unanswered)."""
+    f = TelloFaults()
+    assert (f.duplicate_reply_after_s, f.lost_replies, f.takeoff_s, f.rc_replies, f.sdk_version) == (
+        None,
+        set(),
+        None,
+        False,
+        "30",
+    )
+    assert TelloFaults().lost_replies is not f.lost_replies
+    by_name = {field.name: field for field in fields(TelloFaults)}
+    assert by_name["lost_replies"].default is MISSING  # reset with TelloFaults(), not Field.default
+    old_switches = {"silent", "error_replies", "reply_delay_s", "drop_state", "battery_pct", "no_video"}
+    assert old_switches <= set(by_name)
+    emu = TelloEmulator("127.0.1.14")
+    assert _phases(emu) == ["landed"] and emu.refused == [] and emu.replies_sent == []
+
+
+def test_duplicate_reply_arrives_twice_without_delaying_the_next() -> None:
+    """Each reply comes again 0.5 s later; the pending duplicate does not hold back the next normal reply."""
+    with _raw_emu("127.0.1.6") as (emu, cli, _):
+        assert _ask(cli, emu, "command") == "ok"
+        emu.faults.duplicate_reply_after_s = 0.5
+        t0 = time.monotonic()
+        cli.sendto(b"battery?", emu.address)
+        got = [(_recv(cli, emu), time.monotonic() - t0)]
+        cli.sendto(b"speed?", emu.address)
+        got += [(_recv(cli, emu), time.monotonic() - t0) for _ in range(3)]
+        assert [text for text, _ in got] == ["87", "100.0", "87", "100.0"]
+        assert got[1][1] < 0.2, got  # the normal reply did not wait for the earlier reply's duplicate
+        assert 0.45 <= got[2][1] <= 0.75, got
+        sent = [(text, kind) for _, text, kind in emu.replies_sent]
+        assert sent == [
+            ("ok", "normal"),
+            ("87", "normal"),
+            ("100.0", "normal"),
+            ("87", "duplicate"),
+            ("100.0", "duplicate"),
+        ]
+        t_normal, t_dup = emu.replies_sent[1][0], emu.replies_sent[3][0]
+        assert t_dup - t_normal == pytest.approx(0.5, abs=0.08)
+
+        assert _ask(cli, emu, "takeoff") == "ok"  # the deferred ok of a takeoff is duplicated too
+        assert _recv(cli, emu) == "ok"
+        emu.faults.duplicate_reply_after_s = None
+        assert _ask(cli, emu, "land") == "ok"
+        _no_reply(cli, 0.4)
+        assert emu.refused == []
+
+
+def test_lost_replies_to_command_and_takeoff_still_take_off() -> None:
+    """The replies to ``command`` and ``takeoff`` are lost, yet SDK mode is entered and the drone flies."""
+    with _raw_emu("127.0.1.7") as (emu, cli, state_rx):
+        emu.faults.lost_replies = {"command", "takeoff"}
+        cli.sendto(b"command", emu.address)
+        _no_reply(cli, 0.3)
+        assert emu.sdk_mode
+        cli.sendto(b"takeoff", emu.address)
+        _no_reply(cli, 0.6)
+        assert emu.phase == "flying"
+        assert _phases(emu) == ["landed", "takeoff", "flying"]
+        assert wait_until(lambda: _state(state_rx)["h"] == "80", 1.0)
+        assert emu.replies_sent == [] and emu.refused == []
+
+        emu.faults.lost_replies = set()
+        assert _ask(cli, emu, "takeoff") == "error"  # a client retrying the takeoff is told it already flies
+        assert _refusals(emu) == [("flying", "takeoff", "error")]
+        assert _ask(cli, emu, "land") == "ok"
+        assert _phases(emu) == ["landed", "takeoff", "flying", "landing", "landed"]
+        assert [text for _, text, _ in emu.replies_sent] == ["error", "ok"]
+
+
+def test_slow_takeoff_climbs_then_hovers_until_its_ok() -> None:
+    """``faults.takeoff_s``: motors on, climb to 80 cm, hover; reads answered, land refused; ok at the end."""
+    with _raw_emu("127.0.1.8") as (emu, cli, state_rx):
+        emu.TAKEOFF_CLIMB_S = 0.4  # a short climb so that the test sees the hover before the ok
+        assert _ask(cli, emu, "command") == "ok"
+        emu.faults.takeoff_s = 1.6
+        t0 = time.monotonic()
+        cli.sendto(b"takeoff", emu.address)
+        assert wait_until(lambda: _state(state_rx)["h"] == "80", 1.0)
+        assert time.monotonic() - t0 < 1.0 and emu.phase == "takeoff"
+        assert _ask(cli, emu, "battery?") == "87"  # read commands are answered during the takeoff
+        assert _ask(cli, emu, "land") == "error Not joystick"  # busy
+        assert _recv(cli, emu, timeout=2.0) == "ok"
+        elapsed = time.monotonic() - t0
+        assert 1.6 <= elapsed < 2.0, elapsed
+        assert emu.phase == "flying"
+        assert wait_until(lambda: _state(state_rx)["time"] == "1", 1.0)  # motor seconds rose since the start
+        (t_takeoff, _), (t_flying, _) = emu.phase_log[1:3]
+        assert t_flying - t_takeoff == pytest.approx(1.6, abs=0.1)
+        assert _refusals(emu) == [("takeoff", "land", "error Not joystick")]
+        assert _ask(cli, emu, "land") == "ok"
+
+
+def test_busy_and_phase_refusals_are_recorded() -> None:
+    """Everything refused or ignored because of the phase lands in ``refused``, and nothing else does."""
+    with _raw_emu("127.0.1.9", takeoff_s=0.6, land_s=0.6) as (emu, cli, _):
+        cli.sendto(b"rc 0 0 0 0", emu.address)  # before SDK mode: ignored, no reply
+        _no_reply(cli, 0.2)
+        assert _ask(cli, emu, "command") == "ok"
+        cli.sendto(b"rc 0 10 0 0", emu.address)  # landed: ignored, no reply
+        assert _ask(cli, emu, "forward 50") == "error Motor stop"
+        cli.sendto(b"takeoff", emu.address)
+        assert _ask(cli, emu, "takeoff") == "error Not joystick"
+        assert _ask(cli, emu, "land") == "error Not joystick"
+        cli.sendto(b"rc 0 10 0 0", emu.address)  # during the takeoff: ignored
+        assert _recv(cli, emu) == "ok"  # the takeoff
+        assert _ask(cli, emu, "forward 50") == "ok"
+        cli.sendto(b"land", emu.address)
+        assert _ask(cli, emu, "takeoff") == "error Not joystick"
+        assert _recv(cli, emu) == "ok"  # the landing
+        assert _refusals(emu) == [
+            ("landed", "rc 0 0 0 0", "ignored"),
+            ("landed", "rc 0 10 0 0", "ignored"),
+            ("landed", "forward 50", "error Motor stop"),
+            ("takeoff", "takeoff", "error Not joystick"),
+            ("takeoff", "land", "error Not joystick"),
+            ("takeoff", "rc 0 10 0 0", "ignored"),
+            ("landing", "takeoff", "error Not joystick"),
+        ]
+        times = [t for t, *_ in emu.refused]
+        assert times == sorted(times)
+        assert [values for _, values in emu.rc_history] == [(0, 10, 0, 0)] * 2  # recorded, without effect
+        assert emu.position_cm[0] == pytest.approx(50.0)
+
+
+def test_land_when_landed_answers_motor_stop_and_emergency_stops_the_motors() -> None:
+    """``land`` on the ground is refused; ``emergency`` gets no reply and the motor clock stops at once."""
+    with _raw_emu("127.0.1.10") as (emu, cli, state_rx):
+        assert _ask(cli, emu, "command") == "ok"
+        assert _ask(cli, emu, "land") == "error Motor stop"
+        assert _refusals(emu) == [("landed", "land", "error Motor stop")]
+        assert _ask(cli, emu, "takeoff") == "ok"
+        assert wait_until(lambda: _state(state_rx)["time"] == "1", 1.5)
+        cli.sendto(b"emergency", emu.address)
+        _no_reply(cli, 0.3)
+        assert emu.phase == "landed" and emu.position_cm[2] == 0.0
+        assert emu.phase_log[-1] == (emu.commands[-1][0], "landed")  # at the moment it was received
+        assert wait_until(lambda: _state(state_rx)["h"] == "0", 0.5)
+        motor_s = _state(state_rx)["time"]
+        time.sleep(1.1)
+        assert _state(state_rx)["time"] == motor_s == "1"
+        assert _refusals(emu) == [("landed", "land", "error Motor stop")]  # emergency is not a refusal
+        assert _ask(cli, emu, "land") == "error Motor stop"
+
+
+def test_rc_replies_firmware_answers_rc() -> None:
+    """``rc_replies``: ``ok`` flying, ``error Not joystick`` otherwise; without it rc stays unanswered."""
+    with _raw_emu("127.0.1.11") as (emu, cli, _):
+        assert _ask(cli, emu, "command") == "ok"
+        emu.faults.rc_replies = True
+        assert _ask(cli, emu, "rc 0 0 0 0") == "error Not joystick"
+        assert _ask(cli, emu, "takeoff") == "ok"
+        assert _ask(cli, emu, "rc 0 20 0 0") == "ok"
+        assert wait_until(lambda: emu.velocity_cm_s[0] > 15, 1.0)
+        emu.faults.rc_replies = False
+        cli.sendto(b"rc 0 0 0 0", emu.address)
+        _no_reply(cli, 0.3)
+        assert [values for _, values in emu.rc_history] == [(0, 0, 0, 0), (0, 20, 0, 0), (0, 0, 0, 0)]
+        assert _refusals(emu) == [("landed", "rc 0 0 0 0", "error Not joystick")]
+        assert _ask(cli, emu, "land") == "ok"
+
+
+def test_sdk20_firmware_answers_unknown_command_to_sdk30_verbs() -> None:
+    """``sdk_version="20"``: ``port``, ``downvision`` & co answer ``unknown command: <verb>``, do nothing."""
+    with _raw_emu("127.0.1.12") as (emu, cli, _):
+        assert _ask(cli, emu, "command") == "ok"
+        assert _ask(cli, emu, "sdk?") == "30"
+        emu.faults.sdk_version = "20"
+        assert _ask(cli, emu, "sdk?") == "20"
+        ports = (emu.state_port, emu.video_port)
+        sdk30 = ["port 8890 11111", "downvision 1", "setfps high", "setbitrate 3", "motoron", "keepalive"]
+        for command in [*sdk30, "reboot"]:
+            assert _ask(cli, emu, command) == f"unknown command: {command.split()[0]}"
+        assert (emu.state_port, emu.video_port) == ports and not emu.downvision and emu.sdk_mode
+        assert _refusals(emu) == [
+            ("landed", command, f"unknown command: {command.split()[0]}") for command in [*sdk30, "reboot"]
+        ]
+        emu.faults.sdk_version = "30"
+        assert _ask(cli, emu, "downvision 1") == "ok" and emu.downvision
+        assert len(emu.refused) == len(sdk30) + 1
+
+
+def test_phase_log_and_auto_land() -> None:
+    """``phase_log`` follows takeoff, flight and the 15 s (here 0.5 s) auto-land; ``land`` then is refused."""
+    with _raw_emu("127.0.1.13", auto_land_s=0.5, land_s=0.6) as (emu, cli, _):
+        assert _ask(cli, emu, "command") == "ok"
+        assert _ask(cli, emu, "takeoff") == "ok"
+        assert wait_until(lambda: emu.phase == "landing", 1.5)
+        assert emu.landed_by_timeout
+        assert _ask(cli, emu, "land") == "error Auto land"
+        assert wait_until(lambda: emu.phase == "landed", 1.5)
+        assert _phases(emu) == ["landed", "takeoff", "flying", "landing", "landed"]
+        times = [t for t, _ in emu.phase_log]
+        assert times == sorted(times)
+        assert times[2] - times[1] == pytest.approx(0.2, abs=0.1)  # takeoff_s
+        assert times[3] - times[2] == pytest.approx(0.5, abs=0.1)  # auto_land_s without a command
+        assert times[4] - times[3] == pytest.approx(0.6, abs=0.1)  # land_s
+        assert _refusals(emu) == [("landing", "land", "error Auto land")]
+
+
 # -------------------------------------------------------------------------------------------- djitellopy
 def test_connect_enters_sdk_mode_and_reads_state(rig: Rig) -> None:
     """connect() sent ``command`` and got the first state packet; get_battery() comes from the state."""
@@ -239,7 +504,7 @@ def test_read_commands(rig: Rig) -> None:
     """Read commands get a value; djitellopy's int parsers choke on the unit-suffixed formats."""
     assert rig.tello.send_read_command("battery?") == "87"
     assert rig.tello.query_battery() == 87
-    assert rig.tello.query_sdk_version() == "20"
+    assert rig.tello.query_sdk_version() == "30"  # Tello EDU with SDK 3.0 firmware
     assert rig.tello.send_read_command("height?") == "0dm"
     with pytest.raises(ValueError):
         rig.tello.query_height()  # int("0dm"): djitellopy limitation with the real format

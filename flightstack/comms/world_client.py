@@ -23,7 +23,7 @@ import zenoh
 
 from flightstack.comms import world_messages as wm
 from flightstack.geometry import Pose
-from flightstack.hal import DroneState, Frame, StampedPose
+from flightstack.hal import DroneState, FlightPhase, Frame, StampedPose
 
 
 class WorldLostError(RuntimeError):
@@ -182,8 +182,10 @@ class RemoteDrone:
 
     def state(self) -> DroneState:
         s = self.link.tick()["state"]
+        phase = s.get("phase")
+        known = phase if isinstance(phase, str) and phase in FlightPhase._value2member_map_ else ""
         return DroneState(
-            float(s["battery_pct"]), float(s["height_m"]), bool(s["link_alive"]), bool(s["flying"])
+            float(s["battery_pct"]), float(s["height_m"]), bool(s["link_alive"]), bool(s["flying"]), known
         )
 
     @property

@@ -1,11 +1,12 @@
-"""Protocol-level emulator of a DJI/Ryze Tello (SDK 1.3/2.0 text protocol) for tests.
+"""Protocol-level emulator of a DJI/Ryze Tello (SDK 2.0/3.0 text protocol) for tests.
 
 The emulator speaks the real wire protocol, so an unmodified client (e.g. ``djitellopy``) can drive it:
 
 * **Commands** arrive as UTF-8 text datagrams on ``emu.address`` (``(ip, port)``, default ip ``127.0.0.2``,
   port picked by the OS).  Replies (``ok`` / ``error ...`` / a value for read commands) are sent back to the
-  sender's address from that same socket, i.e. from the emulator's own IP.  ``rc``, ``emergency`` and
-  ``reboot`` get no reply, like on the real drone.
+  sender's address *and port* from that same socket, i.e. from the emulator's own ip:port (the real drone
+  answers from 192.168.10.1:8889 to the sender's port: DJITelloPy #143, a client on an OS-assigned port got
+  its replies).  ``rc``, ``emergency`` and ``reboot`` get no reply, like on the real drone.
 * **State** strings (``mid:-1;x:..;...;agz:..;\\r\\n``) are sent at ``state_hz`` (10 Hz) from a socket bound
   to the emulator's IP to ``(client_ip, state_port)`` (default ``127.0.0.1:8890``) once SDK mode is entered.
   ``djitellopy`` routes replies *and* state to a drone object by the datagram's **source IP only**, hence one
@@ -18,32 +19,75 @@ All traffic is restricted to 127.0.0.0/8: every configured address is validated 
 non-loopback sender are dropped.  All threads are daemons with bounded waits (<= 0.1 s) and ``close()``
 joins them.
 
-Behavioural choices (the real drone's behaviour is partly undocumented, so these are the emulator's rules):
+Fault switches live in :class:`TelloFaults` (module ``tello_faults``, re-exported here, each switch names the
+user reports it is based on).  Sources cited below: *DJITelloPy #N* =
+https://github.com/damiafuentes/DJITelloPy/issues/N, *Tello-Python #N* =
+https://github.com/dji-sdk/Tello-Python/issues/N, the SDK 2.0 and SDK 3.0 user guides (URLs in
+``tello_faults``).
+
+Behavioural choices (the real drone's behaviour is partly undocumented; where no report was found the choice
+is marked *unverified*; clients must only rely on ``ok`` versus not ``ok``, error texts differ between
+firmwares):
 
 * **Before ``command``** (not in SDK mode) the real drone's text parser is not active - the SDK docs only
   say ``command`` must be sent first and that state packets start after it.  The emulator records such
-  datagrams but does not act on them and does not reply (configurable with ``pre_sdk_reply``, e.g.
-  ``"error"``).  State packets are only sent in SDK mode.
+  datagrams in ``commands`` and ``refused`` (as ``"ignored"``) but does not act on them and does not reply
+  (configurable with ``pre_sdk_reply``, e.g. ``"error"``).  State packets are only sent in SDK mode.
+* **Firmware**: by default a Tello EDU with SDK 3.0 (``sdk?`` -> ``30``).  With ``faults.sdk_version = "20"``
+  the SDK-3.0-only verbs (``port``, ``downvision``, ``setfps``, ``setbitrate``, ``setresolution``,
+  ``motoron``/``motoroff``, ``multiwifi``, ``reboot``, ``keepalive``, ``hardware?``, ... see
+  ``SDK3_ONLY_COMMANDS``) answer ``unknown command: <verb>`` and have no effect (DJITelloPy #92, #107, #111,
+  #138).
+* **Phases** ``landed`` -> ``takeoff`` -> ``flying`` -> ``landing`` -> ``landed``; every transition is
+  appended to ``phase_log``.  The motors run (state field ``time``, integer motor-on seconds, rises) in every
+  phase but ``landed``.
+* **Takeoff**: the motors start, the drone climbs linearly to ``takeoff_height_cm`` (80 cm) within the
+  takeoff's duration but in at most ``TAKEOFF_CLIMB_S`` (2 s, *unverified*), hovers (stabilising) until the
+  duration has passed, then replies ``ok``.  The duration is ``takeoff_s`` (default 0.3 s to keep tests fast;
+  a real takeoff answers after ~3.9 s, Tello-Python #88) or ``faults.takeoff_s`` when set (slow takeoff:
+  DJITelloPy #31, djitellopy waits 20 s).  Refused with ``error battery low`` below ``MIN_TAKEOFF_BATTERY``
+  percent (real drones answer ``error`` or ``error Motor stop`` on a low battery: DJITelloPy #15, #60), with
+  ``error`` while flying (*unverified* text).
+* **Land** descends linearly over ``land_s`` (real: ~1.7 s, Tello-Python #88), the motors stop, then ``ok``.
+  ``land`` while landed answers ``error Motor stop`` (DJITelloPy #126: ``end()`` "will hang retrying land()
+  and eventually throw an exception" when the drone had already landed; ``error Motor stop`` is among the
+  Tello's flight replies in dji-sdk/RoboMaster-SDK's ``TelloStatus`` and what DJITelloPy #15 got from a drone
+  that would not spin up).
+* **Busy**: ``takeoff``, ``land`` and moves received during a takeoff or landing answer ``error Not joystick``
+  (``error Auto land`` during an auto-landing) and are not executed.  *Unverified*: no report gives the
+  exact reply to ``land`` during ``takeoff``; the MATLAB support package for Ryze Tello ignores ``error Not
+  joystick`` and ``error Auto land`` as replies that arrive while a "previous non-blocking command was not
+  run to completion", and the RoboMaster SDK lists both among the Tello's flight replies.  Read commands are
+  answered at once in every phase (*unverified*; djitellopy users read state while flying).  Flight commands
+  while landed answer ``error Motor stop``.
+* **``rc``** sets the joystick targets only in phase ``flying``; received in any other phase it is recorded in
+  ``rc_history`` and ``refused`` but has no effect.  No reply, unless ``faults.rc_replies`` (``ok`` while
+  flying, ``error Not joystick`` otherwise).  A malformed ``rc`` goes to ``rejected`` and ``refused``.
+* **``emergency``**: no reply (Tello-Python #85, confirmed by Ryze support: "some commands do not return";
+  DJITelloPy #125), the motors stop at once and the drone drops to h = 0; an interrupted takeoff/landing never
+  answers.  ``reboot`` (SDK 3.0) does the same and leaves SDK mode.
 * **Auto-land**: while flying, if no datagram (any command, including ``rc``) has been received for
-  ``auto_land_s`` seconds the drone lands by itself and ``landed_by_timeout`` is set.
-* **Takeoff** climbs linearly to ``takeoff_height_cm`` over ``takeoff_s`` and replies ``ok`` on completion;
-  ``land`` descends over ``land_s`` and then replies.  Takeoff is refused with ``error battery low`` below
-  ``MIN_TAKEOFF_BATTERY`` percent.  Control commands that need a flying drone reply ``error Motor stop``
-  when landed and ``error busy`` during takeoff/landing.  Exact error strings differ between firmwares;
-  clients should only rely on ``ok`` versus not ``ok``.
+  ``auto_land_s`` seconds (15 s, SDK 2.0/3.0 guides "Safety Function"; DJITelloPy #141) the drone lands by
+  itself and ``landed_by_timeout`` is set.
+* **Refused commands**: ``refused`` holds ``(time, phase at receipt, text, reply or "ignored")`` for every
+  command the drone did not carry out: ignored ones (before ``command``, ``rc`` outside ``flying``, malformed
+  ``rc``), and every reply that is not ``ok`` to a control/set command or is ``error ...``/``unknown command:
+  ...`` to a read command (phase errors, ``out of range``, ``error_replies``, SDK 2.0 unknown verbs).  A
+  refusal whose reply was lost or silenced is still recorded.  Successful commands never appear there.
+* **Replies** are sent FIFO (a reply delayed by ``reply_delay_s`` holds back later ones); every datagram sent
+  is logged in ``replies_sent``.  ``faults.lost_replies`` drops the reply of given verbs (the command runs);
+  ``faults.duplicate_reply_after_s`` sends each reply again later, outside the FIFO order.
 * **Motion model** (ground truth, world frame ``x`` forward at takeoff heading, ``y`` right, ``z`` up, yaw
   clockwise in degrees): ``rc a b c d`` sets body-frame velocity targets of 1 cm/s per unit (a = right,
   b = forward, c = up) and 1 deg/s per unit of yaw rate (d = clockwise); the actual velocity follows with a
   first-order lag (``tau_s`` = 0.1 s).  The last ``rc`` stays in effect until the next one.  Discrete moves
   (``forward 50``, ``cw 90``, ``go ...``) are applied instantaneously.  ``vgx/vgy/vgz`` are the world
-  velocities in dm/s (rounded), ``h`` the height in cm, ``tof = h + 10`` cm, ``x/y/z`` the integrated
-  position in cm (a test convenience - the real drone reports mission-pad coordinates there),
-  pitch/roll are 0.
+  velocities in dm/s (rounded), ``h`` the height in cm (1 cm resolution) above the takeoff point,
+  ``tof = h + 10`` cm, ``x/y/z`` the integrated position in cm (a test convenience - the real drone reports
+  mission-pad coordinates there), pitch/roll are 0.
 * **Battery**: ``faults.battery_pct`` is the *set-point*; the reported value drains from it slowly
   (``DRAIN_FLYING_PCT_S`` / ``DRAIN_IDLE_PCT_S``) and re-bases whenever the test writes a new value.
-* ``port <state> <video>`` re-targets state and video (djitellopy's ``change_vs_udp``); ``rc`` received while
-  landed or during takeoff/landing is recorded in ``rc_history`` but has no effect; ``emergency`` stops the
-  motors at once (no reply, the drone drops to h = 0).
+* ``port <state> <video>`` re-targets state and video (djitellopy's ``change_vs_udp``).
 * **Video size** is fixed per emulator (``video_size``).  ``downvision 1`` only flips ``emu.downvision``; the
   frame source is expected to render the downward view at the same size (the real EDU downward camera is
   320x240 grey - not emulated, to keep a single encoder per stream).
@@ -51,14 +95,18 @@ Behavioural choices (the real drone's behaviour is partly undocumented, so these
   ``time?`` -> ``"0s"``, ``speed?`` -> ``"100.0"``, ``tof?`` -> ``"900mm"``); note that djitellopy's
   ``query_height``/``query_temperature``/``query_flight_time``/``query_speed`` ``int()``-parse these and
   therefore raise ``ValueError`` against the emulator (and, by report, against real drones).
+
+Not modelled: the Tello EDU apparently answering only the client port it first talked to, so a restarted
+client on a new port hangs (DJITelloPy PR #163/#168 re-bind the client to port 8889), binary (non-text)
+datagrams some firmwares send on the command port (carlospzlz/ctello#7), ``error No valid imu`` and
+``error, high temp`` refusals, ``motoron`` motor-on mode, battery auto-land, and the gradual reply-queue
+backlog users see when sending commands back to back.
 """
 
 from __future__ import annotations
 
 import contextlib
-import heapq
 import ipaddress
-import itertools
 import logging
 import math
 import socket
@@ -73,8 +121,12 @@ from typing import Any
 
 import numpy as np
 
+from .tello_faults import SDK3_ONLY_COMMANDS, ReplyScheduler, TelloFaults, has_sdk3
+
 __all__ = [
+    "SDK3_ONLY_COMMANDS",
     "FrameSource",
+    "ReplyScheduler",
     "TelloEmulator",
     "TelloFaults",
     "default_frame_source",
@@ -190,25 +242,7 @@ def default_frame_source(t: float, emu: TelloEmulator) -> np.ndarray:
     return img
 
 
-# ------------------------------------------------------------------------------------------------- faults
-@dataclass
-class TelloFaults:
-    """Fault switches; plain attributes the test thread may change at any time."""
-
-    silent: bool = False
-    """No replies at all (commands are still recorded and executed, like lost reply datagrams)."""
-    error_replies: bool = False
-    """Reply ``error`` to every command that expects a reply (and do not execute it)."""
-    reply_delay_s: float = 0.0
-    """Extra latency added to every reply (evaluated when the command is received)."""
-    drop_state: bool = False
-    """Stop sending state packets."""
-    battery_pct: int = 87
-    """Battery set-point in percent; the reported value drains slowly from it."""
-    no_video: bool = False
-    """Stop sending video datagrams (the stream clock keeps running, so frame indices jump)."""
-
-
+# ------------------------------------------------------------------------------------------- internals
 @dataclass
 class _Deferred:
     """A reply that is sent when a takeoff/landing completes."""
@@ -236,12 +270,17 @@ class TelloEmulator:
             tello.connect()
 
     Public, thread-safe read access: ``commands`` (``(time.monotonic(), text)`` of every datagram),
-    ``rc_history`` (``(time, (a, b, c, d))`` of every valid ``rc``), ``flying``, ``downvision``,
-    ``streaming``, ``sdk_mode``, ``landed_by_timeout``, ``state_packets_sent``, ``video_frames_sent``,
-    ``errors``, ``rejected``.
-    Lists are only appended to; take ``list(emu.commands)`` for a snapshot.
+    ``rc_history`` (``(time, (a, b, c, d))`` of every valid ``rc``), ``phase_log`` (``(time, phase)`` of every
+    phase transition), ``refused`` (``(time, phase at receipt, text, reply or "ignored")`` of every command
+    the drone did not carry out), ``replies_sent`` (``(time, text, "normal" | "duplicate")`` of every reply
+    sent), ``flying``, ``phase``, ``downvision``, ``streaming``, ``sdk_mode``, ``landed_by_timeout``,
+    ``state_packets_sent``, ``video_frames_sent``, ``errors``, ``rejected``.  Lists are only appended to;
+    take ``list(emu.commands)`` for a snapshot.
     """
 
+    TAKEOFF_CLIMB_S = 2.0
+    """Time of the climb to ``takeoff_height_cm`` when the takeoff lasts longer (it then hovers until
+    ``ok``)."""
     MIN_TAKEOFF_BATTERY = 10
     DRAIN_FLYING_PCT_S = 0.12
     DRAIN_IDLE_PCT_S = 0.01
@@ -321,6 +360,17 @@ class TelloEmulator:
         """Problems inside the emulator (frame source, encoder, sockets); empty in a healthy run."""
         self.rejected: list[str] = []
         """Datagrams that were received but ignored (malformed ``rc``, non-loopback sender)."""
+        self.phase_log: list[tuple[float, str]] = [(time.monotonic(), "landed")]
+        """``(time.monotonic(), new phase)`` of every phase transition, starting with the initial
+        ``landed``."""
+        self.refused: list[tuple[float, str, str, str]] = []
+        """``(time.monotonic(), phase at receipt, command text, reply or "ignored")`` of every command the
+        drone did not carry out (see the module docstring, "Refused commands"); never a command that
+        succeeded."""
+        self._replies = ReplyScheduler(self._lock, self.errors)
+        self.replies_sent: list[tuple[float, str, str]] = self._replies.sent
+        """``(time.monotonic(), reply text, "normal" | "duplicate")`` of every reply datagram sent
+        (recorded just before it leaves the socket)."""
         self.state_packets_sent = 0
         self.last_state = ""
         self.video_frames_sent = 0
@@ -337,6 +387,7 @@ class TelloEmulator:
         self._phase = "landed"  # landed | takeoff | flying | landing
         self._phase_t0 = 0.0
         self._phase_z0 = 0.0
+        self._phase_s = 0.0  # duration of the current takeoff/landing
         self._deferred: _Deferred | None = None
         self._pos = np.zeros(3)  # x fwd, y right, z up [cm]
         self._yaw = 0.0  # deg, clockwise
@@ -350,9 +401,6 @@ class TelloEmulator:
         self._last_cmd_t = time.monotonic()
         self._stream_epoch = 0
 
-        self._heap: list[tuple[float, int, bytes, tuple[str, int]]] = []
-        self._seq = itertools.count()
-        self._cond = threading.Condition(self._lock)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._cmd_sock: socket.socket | None = None
@@ -407,8 +455,7 @@ class TelloEmulator:
             return
         self._closed = True
         self._stop.set()
-        with self._cond:
-            self._cond.notify_all()
+        self._replies.wake()
         deadline = time.monotonic() + 1.5
         for thread in self._threads:
             thread.join(timeout=max(0.0, deadline - time.monotonic()))
@@ -506,49 +553,75 @@ class TelloEmulator:
             if not is_loopback(addr[0]):
                 self.rejected.append(f"{text} (non-loopback sender {addr[0]})")
                 return
-            if not self.sdk_mode and text != "command":
-                if self.pre_sdk_reply is not None and not self.faults.silent:
-                    self._reply(self.pre_sdk_reply, addr, now, self.faults.reply_delay_s)
+            faults, phase = self.faults, self._phase
+            words = text.split()
+            verb, args = (words[0], words[1:]) if words else ("", [])
+            delay = float(faults.reply_delay_s)
+            reply_addr = None if faults.silent or verb in faults.lost_replies else addr
+            if not self.sdk_mode and verb != "command":
+                reply = self.pre_sdk_reply
+                self._refuse(now, phase, text, "ignored" if reply is None else reply)
+                if reply is not None:
+                    self._reply(reply, reply_addr, now, delay)
                 return
             self._last_cmd_t = now
-            faults = self.faults
-            words = text.split()
-            verb = words[0] if words else ""
-            if verb in ("rc", "emergency", "reboot"):
-                self._execute_no_reply(verb, words[1:], now)
+            if verb in SDK3_ONLY_COMMANDS and not has_sdk3(faults.sdk_version):
+                answer: str | None = f"unknown command: {verb}"
+            elif verb == "rc":
+                answer = self._rc_command(args, now, phase)
+            elif verb in ("emergency", "reboot"):
+                self._execute_no_reply(verb, now)
                 return
-            delay = float(faults.reply_delay_s)
-            reply_addr = None if faults.silent else addr
-            if faults.error_replies:
-                self._reply("error", reply_addr, now, delay)
-                return
-            answer = self._execute(verb, words[1:], now)
-            if answer is None:  # takeoff/land: replied on completion by the sim thread
-                self._deferred = _Deferred(reply_addr, delay)
+            elif faults.error_replies:
+                answer = "error"
             else:
-                self._reply(answer, reply_addr, now, delay)
+                answer = self._execute(verb, args, now)
+                if answer is None:  # takeoff/land: replied on completion by the sim thread
+                    self._deferred = _Deferred(reply_addr, delay)
+                    return
+            if answer is None:  # rc without a reply
+                return
+            if _is_refusal(verb, answer):
+                self._refuse(now, phase, text, answer)
+            self._reply(answer, reply_addr, now, delay)
 
-    def _execute_no_reply(self, verb: str, args: list[str], now: float) -> None:
-        if verb == "rc":
-            try:
-                values = tuple(int(a) for a in args)
-            except ValueError:
-                self.rejected.append(text_of("rc", args))
-                return
-            if len(values) != 4:
-                self.rejected.append(text_of("rc", args))
-                return
-            a, b, c, d = (max(-100, min(100, v)) for v in values)
-            self.rc_history.append((now, (a, b, c, d)))
-            if self._phase == "flying":
-                self._rc[:] = (a, b, c, d)
-        else:  # emergency (motors stop, the drone drops) or reboot
-            self._set_landed()
-            self._deferred = None  # an interrupted takeoff/landing never answers
-            self._pos[2] = 0.0
+    def _refuse(self, now: float, phase: str, text: str, reply: str) -> None:
+        self.refused.append((now, phase, text, reply))
+
+    def _rc_command(self, args: list[str], now: float, phase: str) -> str | None:
+        """Apply one ``rc``; return its reply (only with ``faults.rc_replies``) or None."""
+        text = text_of("rc", args)
+        try:
+            values = tuple(int(a) for a in args)
+        except ValueError:
+            values = ()
+        if len(values) != 4:
+            self.rejected.append(text)
+            self._refuse(now, phase, text, "ignored")
+            return None
+        a, b, c, d = (max(-100, min(100, v)) for v in values)
+        self.rc_history.append((now, (a, b, c, d)))
+        if phase == "flying":
+            self._rc[:] = (a, b, c, d)
+            return "ok" if self.faults.rc_replies else None
+        if self.faults.rc_replies:
+            return "error Not joystick"
+        self._refuse(now, phase, text, "ignored")
+        return None
+
+    def _execute_no_reply(self, verb: str, now: float) -> None:
+        """``emergency`` (motors stop at once, the drone drops) or ``reboot``."""
+        self._set_landed(now)
+        self._deferred = None  # an interrupted takeoff/landing never answers
+        self._pos[2] = 0.0
         if verb == "reboot":
             self.sdk_mode = False
             self.streaming = False
+
+    def _busy_reply(self) -> str:
+        """Reply to a command that needs a settled drone while it takes off or lands."""
+        auto = self.landed_by_timeout and self._phase == "landing"
+        return "error Auto land" if auto else "error Not joystick"
 
     def _execute(self, verb: str, args: list[str], now: float) -> str | None:
         """Run one reply-expecting command; return the reply, or None when it is deferred."""
@@ -558,20 +631,23 @@ class TelloEmulator:
             self.sdk_mode = True
             return "ok"
         if verb == "takeoff":
-            if self._phase != "landed":
-                return "error already flying"
+            if self._phase in ("takeoff", "landing"):
+                return self._busy_reply()
+            if self._phase == "flying":
+                return "error"
             if self._battery_locked() < self.MIN_TAKEOFF_BATTERY:
                 return "error battery low"
             self._rc[:] = 0.0
-            self._start_phase("takeoff", now)
+            duration = self.faults.takeoff_s
+            self._start_phase("takeoff", now, self.takeoff_s if duration is None else float(duration))
             self.landed_by_timeout = False
             return None
         if verb == "land":
             if self._phase == "landed":
-                return "ok"
+                return "error Motor stop"
             if self._phase != "flying":
-                return "error busy"
-            self._start_phase("landing", now)
+                return self._busy_reply()
+            self._start_phase("landing", now, self.land_s)
             return None
         if verb == "streamon":
             if not self.streaming:
@@ -614,7 +690,7 @@ class TelloEmulator:
 
     def _move(self, verb: str, args: list[str]) -> str:
         if self._phase in ("takeoff", "landing"):
-            return "error busy"
+            return self._busy_reply()
         if self._phase != "flying":
             return "error Motor stop"
         if verb == "stop":
@@ -663,7 +739,7 @@ class TelloEmulator:
             "tof?": f"{(h + 10) * 10}mm",
             "acceleration?": "agx:0.00;agy:0.00;agz:-1000.00;",
             "wifi?": "90",
-            "sdk?": "20",
+            "sdk?": str(self.faults.sdk_version),
             "sn?": "0TQEMU" + "".join(f"{int(o):03d}" for o in self.ip.split(".")[1:]),
             "hardware?": "TELLO",
             "active?": "ok",
@@ -672,47 +748,28 @@ class TelloEmulator:
 
     # ---------------------------------------------------------------------------------------------- replies
     def _reply(self, text: str, addr: tuple[str, int] | None, now: float, delay: float) -> None:
-        """Queue ``text`` for ``addr`` (None = drop it) at ``now + delay``, keeping FIFO order."""
-        if addr is None:
-            return
-        due = now + max(0.0, delay)
-        with self._cond:
-            if self._heap:
-                due = max(due, max(item[0] for item in self._heap))
-            heapq.heappush(self._heap, (due, next(self._seq), text.encode("utf-8"), addr))
-            self._cond.notify_all()
+        """Queue ``text`` for ``addr`` (None = lost) at ``now + delay``, FIFO; plus any duplicate."""
+        self._replies.schedule(text, addr, now, delay, self.faults.duplicate_reply_after_s)
 
     def _reply_loop(self) -> None:
-        sock = self._tx_sock_for_replies()
-        while not self._stop.is_set():
-            with self._cond:
-                if not self._heap:
-                    self._cond.wait(0.1)
-                    continue
-                due, _, data, addr = self._heap[0]
-                wait = due - time.monotonic()
-                if wait > 0:
-                    self._cond.wait(min(wait, 0.1))
-                    continue
-                heapq.heappop(self._heap)
-            try:
-                sock.sendto(data, addr)
-            except OSError as exc:
-                self.errors.append(f"reply to {addr} failed: {exc!r}")
-
-    def _tx_sock_for_replies(self) -> socket.socket:
         # Replies leave from the command socket, like the real drone (source ip:port = address).
         assert self._cmd_sock is not None
-        return self._cmd_sock
+        self._replies.run(self._cmd_sock, self._stop)
 
     # ------------------------------------------------------------------------------------------- simulation
-    def _start_phase(self, phase: str, now: float) -> None:
-        self._phase = phase
+    def _set_phase(self, phase: str, now: float) -> None:
+        if phase != self._phase:
+            self._phase = phase
+            self.phase_log.append((now, phase))
+
+    def _start_phase(self, phase: str, now: float, duration_s: float) -> None:
+        self._set_phase(phase, now)
         self._phase_t0 = now
         self._phase_z0 = float(self._pos[2])
+        self._phase_s = max(0.0, duration_s)
 
-    def _set_landed(self) -> None:
-        self._phase = "landed"
+    def _set_landed(self, now: float) -> None:
+        self._set_phase("landed", now)
         self._rc[:] = 0.0
         self._vel_body[:] = 0.0
         self._vel_world[:] = 0.0
@@ -736,30 +793,32 @@ class TelloEmulator:
             if self.flying:
                 self._motor_s += dt
             z_before = float(self._pos[2])
-            if self._phase == "takeoff":
-                frac = min(1.0, (now - self._phase_t0) / max(self.takeoff_s, 1e-3))
+            if self._phase == "takeoff":  # climb at the normal rate, then hover (stabilise) until the ok
+                elapsed = now - self._phase_t0
+                climb_s = max(min(self._phase_s, self.TAKEOFF_CLIMB_S), 1e-3)
+                frac = min(1.0, elapsed / climb_s)
                 target = max(self._phase_z0, self.takeoff_height_cm)
                 self._pos[2] = self._phase_z0 + frac * (target - self._phase_z0)
                 self._vel_world[:2] = 0.0
                 self._vel_world[2] = (self._pos[2] - z_before) / dt
-                if frac >= 1.0:
-                    self._phase = "flying"
+                if elapsed >= self._phase_s:
+                    self._set_phase("flying", now)
                     self._last_cmd_t = now
                     self._vel_world[:] = 0.0
                     self._finish_phase(now)
             elif self._phase == "landing":
-                frac = min(1.0, (now - self._phase_t0) / max(self.land_s, 1e-3))
+                frac = min(1.0, (now - self._phase_t0) / max(self._phase_s, 1e-3))
                 self._pos[2] = self._phase_z0 * (1.0 - frac)
                 self._vel_world[:2] = 0.0
                 self._vel_world[2] = (self._pos[2] - z_before) / dt
                 if frac >= 1.0:
-                    self._set_landed()
+                    self._set_landed(now)
                     self._finish_phase(now)
             elif self._phase == "flying":
                 if now - self._last_cmd_t > self.auto_land_s:
                     self.landed_by_timeout = True
                     self._rc[:] = 0.0
-                    self._start_phase("landing", now)
+                    self._start_phase("landing", now, self.land_s)
                     return
                 alpha = 1.0 - math.exp(-dt / max(self.tau_s, 1e-6))
                 previous = self._vel_body[:3].copy()
@@ -890,6 +949,13 @@ class TelloEmulator:
                 except Exception as exc:
                     self.errors.append(f"video frame {index}: {exc!r}")
             index += 1
+
+
+def _is_refusal(verb: str, reply: str) -> bool:
+    """True when ``reply`` means the drone did not carry out ``verb`` (a read command answers a value)."""
+    if reply.startswith(("error", "unknown command")):
+        return True
+    return not verb.endswith("?") and reply != "ok"
 
 
 def text_of(verb: str, args: list[str]) -> str:

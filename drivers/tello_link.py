@@ -1,0 +1,209 @@
+"""UDP transport to Tellos: one command socket per drone, one shared state-stream receiver per local port.
+
+Why not djitellopy's sockets (docs/architecture.md, decision 26): djitellopy keeps one reply list per drone
+IP filled by a receiver thread, and matches replies to commands by order only; any stray, duplicated,
+late or extra reply (a firmware that answers `rc`) shifts every later answer. Its receiver threads also
+end for good on the first exception (e.g. one non-ASCII state datagram), silencing every drone of the
+process. Here:
+
+- `CommandChannel`: a UDP socket `connect()`ed to the drone's (ip, port), so the kernel delivers only that
+  drone's datagrams; a reader thread stamps every reply with its receive time. Replies are kept only while
+  the driver has an exchange open (`open_exchange`); any other reply is discarded and counted. Sending
+  never blocks (a full socket buffer or a network error is counted and reported, not raised into a loop).
+- `StateReceiver`: binds the state port (8890 on real drones) once per process, parses each datagram
+  strictly (drivers/tello_state.py) and hands it to the driver registered for its source IP. Datagrams
+  from any other address, and malformed ones, are dropped and counted by reason. The thread survives
+  every error.
+
+Every thread is a daemon with bounded waits (≤ 0.1 s) and is joined on close.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from typing import ClassVar
+
+from drivers.tello_state import StateRejectedError, TelloTelemetry, parse_state
+
+LOG = logging.getLogger("flightstack.tello")
+MAX_REPLY_BYTES = 256
+
+
+class CommandChannel:
+    """Commands to one drone and its replies, each reply stamped with time.monotonic() (s)."""
+
+    def __init__(self, host: str, port: int, bind_ip: str = "") -> None:
+        self.host, self.port = host, port
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.bind((bind_ip, 0))
+        self._sock.connect((host, port))
+        self._sock.settimeout(0.1)
+        self._lock = threading.Lock()
+        self._open = False
+        self._replies: deque[tuple[float, str]] = deque(maxlen=32)
+        self.last_rx_t = -float("inf")
+        self.counts: Counter[str] = Counter()
+        self.discarded: list[tuple[float, str]] = []  # (t, text) of replies nobody waited for (last 200)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read_loop, name=f"tello-cmd-{host}", daemon=True)
+        self._thread.start()
+
+    def send(self, text: str) -> bool:
+        """Send one command datagram; False (counted) if the network refused it. Never blocks."""
+        try:
+            self._sock.send(text.encode("ascii"), socket.MSG_DONTWAIT)
+        except OSError as exc:
+            self.counts["send_error"] += 1
+            LOG.warning("tello %s: sending %r failed: %s", self.host, text.split(" ")[0], exc)
+            return False
+        self.counts["sent"] += 1
+        return True
+
+    def open_exchange(self) -> int:
+        """Start keeping replies; discard (and count) what is pending. Returns the number discarded."""
+        with self._lock:
+            n = len(self._replies)
+            for item in self._replies:
+                self._discard(item)
+            self._replies.clear()
+            self._open = True
+            return n
+
+    def close_exchange(self) -> None:
+        with self._lock:
+            for item in self._replies:
+                self._discard(item)
+            self._replies.clear()
+            self._open = False
+
+    def pop_reply(self) -> tuple[float, str] | None:
+        """The oldest reply kept since open_exchange (or None)."""
+        with self._lock:
+            return self._replies.popleft() if self._replies else None
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+        self._sock.close()
+
+    def _discard(self, item: tuple[float, str]) -> None:
+        self.counts["reply_discarded"] += 1
+        self.discarded.append(item)
+        del self.discarded[:-200]
+
+    def _read_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self._sock.recv(2048)
+            except TimeoutError:
+                continue
+            except OSError as exc:  # e.g. ICMP port unreachable surfaced as ECONNREFUSED: keep reading
+                self.counts["recv_error"] += 1
+                if self._stop.wait(0.05):
+                    break
+                LOG.debug("tello %s: recv: %s", self.host, exc)
+                continue
+            t = time.monotonic()
+            if len(data) > MAX_REPLY_BYTES:
+                self.counts["reply_too_long"] += 1
+                continue
+            text = data.decode("ascii", errors="replace").strip()
+            with self._lock:
+                self.last_rx_t = t
+                self.counts["received"] += 1
+                if self._open:
+                    self._replies.append((t, text))
+                else:
+                    self._discard((t, text))
+
+
+StateCallback = Callable[[TelloTelemetry], None]
+
+
+class StateReceiver:
+    """The state stream of every drone of this process on one local UDP port (shared, reference-counted)."""
+
+    _instances: ClassVar[dict[tuple[str, int], StateReceiver]] = {}
+    _instances_lock: ClassVar[threading.Lock] = threading.Lock()
+
+    @classmethod
+    def acquire(
+        cls, host: str, callback: StateCallback, port: int = 8890, bind_ip: str = ""
+    ) -> StateReceiver:
+        """Register `callback` for state datagrams from `host`; binds (bind_ip, port) on first use.
+
+        Raises OSError naming the port when it cannot be bound (another program holds it)."""
+        key = (bind_ip, port)
+        with cls._instances_lock:
+            rx = cls._instances.get(key)
+            if rx is None:
+                rx = cls(bind_ip, port)
+                cls._instances[key] = rx
+            rx._register(host, callback)
+            return rx
+
+    def release(self, host: str) -> None:
+        with self._instances_lock:
+            with self._lock:
+                self._callbacks.pop(host, None)
+                empty = not self._callbacks
+            if empty:
+                self._instances.pop((self.bind_ip, self.port), None)
+                self._stop.set()
+        if empty:
+            self._thread.join(timeout=1.0)
+            self._sock.close()
+
+    def __init__(self, bind_ip: str, port: int) -> None:
+        self.bind_ip, self.port = bind_ip, port
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            self._sock.bind((bind_ip, port))
+        except OSError as exc:
+            self._sock.close()
+            raise OSError(
+                exc.errno, f"cannot bind the Tello state port {bind_ip or '*'}:{port}: {exc.strerror}"
+            ) from exc
+        self._sock.settimeout(0.1)
+        self._lock = threading.Lock()
+        self._callbacks: dict[str, StateCallback] = {}
+        self.dropped: Counter[str] = Counter()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name=f"tello-state-{port}", daemon=True)
+        self._thread.start()
+
+    def _register(self, host: str, callback: StateCallback) -> None:
+        with self._lock:
+            self._callbacks[host] = callback
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data, addr = self._sock.recvfrom(2048)
+            except TimeoutError:
+                continue
+            except OSError:
+                if self._stop.wait(0.05):
+                    break
+                continue
+            t = time.monotonic()
+            with self._lock:
+                cb = self._callbacks.get(addr[0])
+            if cb is None:
+                self.dropped["unknown_sender"] += 1
+                continue
+            try:
+                sample = parse_state(data, t)
+            except StateRejectedError as exc:
+                self.dropped[exc.reason] += 1
+                continue
+            try:
+                cb(sample)
+            except Exception:  # a driver bug must not silence the other drones
+                self.dropped["callback_error"] += 1
+                LOG.exception("tello state callback for %s failed", addr[0])

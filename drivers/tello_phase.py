@@ -1,0 +1,173 @@
+"""What a Tello is doing, decided from its own state stream (pure: no sockets, threads or clocks).
+
+Tello replies carry no identifier and get lost, duplicated and delayed, so a reply never decides the flight
+phase; telemetry does. The driver tells the tracker what it sent (`takeoff_sent`, `land_sent`,
+`emergency_sent`) and feeds it every state packet (`observe`); the tracker moves between the phases of
+`flightstack.hal.FlightPhase` only when the telemetry shows it.
+
+Signals (units as the drone sends them, see drivers/tello_state.py):
+- **motors running**: the motor-on time `time` (whole seconds) changed less than `motor_quiet_s` ago. It
+  rises by one every second while the motors turn, so 1.5 s without a change means the motors are off.
+- **near the ground**: `h` ≤ `ground_h_cm` (h is relative to the takeoff point).
+- **airborne and stable**: over the last `stable_window_s` (1 s, ≥ 3 samples), every sample has
+  h ≥ `airborne_h_cm` (50 cm) and |vgz| ≤ `stable_vgz_dm_s` (1 dm/s), h varied by at most
+  `stable_range_cm` (10 cm: one step, should a firmware report h in 10 cm steps) and the least-squares
+  slope of h is at most `stable_slope_cm_s` (3 cm/s). A takeoff climbs to ~80 cm and the Tello answers
+  `ok` once it hovers; a drone still climbing, even slowly (7 cm/s), is not stable.
+
+Transitions (every one is returned as an event text by `observe`):
+- UNKNOWN → GROUND (first sample near the ground) or AIRBORNE (first sample in the air).
+- GROUND → TAKING_OFF when takeoff was sent, or when the motors run and h rises (not commanded by us).
+- TAKING_OFF → AIRBORNE when airborne and stable (while the driver holds a takeoff, only when it confirms:
+  see `hold_takeoff`); → GROUND when, `no_effect_s` after the takeoff was sent,
+  the motors do not run and the drone is near the ground (the takeoff was refused or never arrived).
+- AIRBORNE → LANDING when land was sent; → GROUND when near the ground with the motors off (an auto-land,
+  a low-battery landing or someone else's land).
+- LANDING → GROUND when near the ground with the motors off; → AIRBORNE when, `no_effect_s` after the land
+  was sent, the motors run and h has not dropped by `descent_cm` (the land was lost or refused).
+- any → GROUND at once after `emergency` (motors stop; the drone drops).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+from drivers.tello_state import TelloTelemetry
+from flightstack.hal import FlightPhase
+
+
+@dataclass(frozen=True)
+class PhaseThresholds:
+    """Thresholds of the phase decisions (cm, dm/s, s); README "Tello driver" explains the choices."""
+
+    ground_h_cm: float = 20.0
+    airborne_h_cm: float = 50.0
+    stable_window_s: float = 1.0
+    stable_range_cm: float = 10.0
+    stable_slope_cm_s: float = 3.0
+    stable_vgz_dm_s: float = 1.0
+    motor_quiet_s: float = 1.5
+    no_effect_s: float = 3.0
+    descent_cm: float = 10.0
+
+
+class PhaseTracker:
+    """The flight phase of one Tello from its telemetry; not thread-safe (the driver holds a lock)."""
+
+    def __init__(self, thresholds: PhaseThresholds | None = None) -> None:
+        self.th = thresholds or PhaseThresholds()
+        self.phase = FlightPhase.UNKNOWN
+        self.latest: TelloTelemetry | None = None
+        self._window: deque[TelloTelemetry] = deque()
+        self._motor_value: float | None = None
+        self._motor_changed_t = -float("inf")
+        self._takeoff_sent_t: float | None = None
+        self._land_sent_t: float | None = None
+        self._land_h0 = 0.0
+        self._min_h_since_land = float("inf")
+        self.phase_since = -float("inf")
+        self.hold_takeoff = False
+        """Set by the driver while takeoff() waits for the drone's own `ok`: telemetry cannot tell a Tello
+        still stabilising in its takeoff (it ignores rc) from one done, so TAKING_OFF → AIRBORNE then
+        waits for `confirm_airborne`."""
+
+    # ---- what the driver sent ------------------------------------------------------------------------
+    def takeoff_sent(self, t: float) -> None:
+        self._takeoff_sent_t = t
+        if self.phase is FlightPhase.GROUND:
+            self._set(FlightPhase.TAKING_OFF, t)
+
+    def land_sent(self, t: float) -> None:
+        self._land_sent_t = t
+        self._land_h0 = self.latest.h_cm if self.latest is not None else 0.0
+        self._min_h_since_land = self._land_h0
+        if self.phase is FlightPhase.AIRBORNE:
+            self._set(FlightPhase.LANDING, t)
+
+    def emergency_sent(self, t: float) -> None:
+        self._set(FlightPhase.GROUND, t)
+
+    def confirm_airborne(self, t: float) -> None:
+        """The driver's decision that a held takeoff is over (see `hold_takeoff`)."""
+        if self.phase is FlightPhase.TAKING_OFF:
+            self._set(FlightPhase.AIRBORNE, t)
+
+    # ---- signals -------------------------------------------------------------------------------------
+    def motors_running(self, t: float) -> bool:
+        return t - self._motor_changed_t < self.th.motor_quiet_s
+
+    def down(self, t: float) -> bool:
+        """Near the ground with the motors off."""
+        s = self.latest
+        return s is not None and s.h_cm <= self.th.ground_h_cm and not self.motors_running(t)
+
+    def airborne_stable(self, t: float) -> bool:
+        th = self.th
+        w = [s for s in self._window if s.t >= t - th.stable_window_s]
+        if len(w) < 3 or w[-1].t - w[0].t < 0.8 * th.stable_window_s:
+            return False
+        hs = [s.h_cm for s in w]
+        ts = [s.t for s in w]
+        tm, hm = sum(ts) / len(ts), sum(hs) / len(hs)
+        slope = sum((a - tm) * (b - hm) for a, b in zip(ts, hs, strict=True)) / sum((a - tm) ** 2 for a in ts)
+        return (
+            min(hs) >= th.airborne_h_cm
+            and max(hs) - min(hs) <= th.stable_range_cm
+            and abs(slope) <= th.stable_slope_cm_s
+            and all(abs(s.vgz_dm_s) <= th.stable_vgz_dm_s for s in w)
+        )
+
+    # ---- telemetry -----------------------------------------------------------------------------------
+    def observe(self, s: TelloTelemetry) -> list[str]:
+        """Take one state sample; return the transitions it caused, as event texts."""
+        t = s.t
+        if self._motor_value is not None and s.motor_s != self._motor_value:
+            self._motor_changed_t = t
+        self._motor_value = s.motor_s
+        self.latest = s
+        self._window.append(s)
+        while self._window and self._window[0].t < t - 2.0 * self.th.stable_window_s:
+            self._window.popleft()
+        self._min_h_since_land = min(self._min_h_since_land, s.h_cm)
+        before = self.phase
+        self._step(t, s)
+        if self.phase is before:
+            return []
+        return [f"{before.value} -> {self.phase.value} (h {s.h_cm:.0f} cm, motor time {s.motor_s:.0f} s)"]
+
+    def _step(self, t: float, s: TelloTelemetry) -> None:
+        th, P = self.th, FlightPhase
+        if self.phase is P.UNKNOWN:
+            self._set(P.GROUND if s.h_cm <= th.ground_h_cm else P.AIRBORNE, t)
+        elif self.phase is P.GROUND:
+            if s.h_cm > th.ground_h_cm and self.motors_running(t):
+                self._set(P.TAKING_OFF, t)
+        elif self.phase is P.TAKING_OFF:
+            if self.airborne_stable(t) and not self.hold_takeoff:
+                self._set(P.AIRBORNE, t)
+            elif (
+                self._takeoff_sent_t is not None
+                and t - self._takeoff_sent_t > th.no_effect_s
+                and s.h_cm <= th.ground_h_cm
+                and not self.motors_running(t)
+            ):
+                self._set(P.GROUND, t)
+        elif self.phase is P.AIRBORNE:
+            if self.down(t):
+                self._set(P.GROUND, t)
+        elif self.phase is P.LANDING:
+            if self.down(t):
+                self._set(P.GROUND, t)
+            elif (
+                self._land_sent_t is not None
+                and t - self._land_sent_t > th.no_effect_s
+                and self.motors_running(t)
+                and self._min_h_since_land > self._land_h0 - th.descent_cm
+            ):
+                self._set(P.AIRBORNE, t)
+
+    def _set(self, phase: FlightPhase, t: float) -> None:
+        if phase is not self.phase:
+            self.phase = phase
+            self.phase_since = t
