@@ -408,6 +408,7 @@ class TelloDriver:
             return
         if self.phase is FlightPhase.UNKNOWN:
             raise TelloLinkError(f"Tello {cfg.host}: no telemetry yet; land not sent")
+        self._hover_now()  # a Tello keeps its last rc: stop it before the quiet window and the land
         t0 = time.monotonic()
         with self._cmd_lock:
             self._begin_exchange()
@@ -443,6 +444,16 @@ class TelloDriver:
                     time.sleep(0.01)
             finally:
                 self._end_exchange()
+
+    def _hover_now(self) -> None:
+        """`rc 0 0 0 0` if airborne, even with a land pending (a lost land must not leave it moving)."""
+        with self._lock:
+            if self._chan is None or self._tracker.phase is not FlightPhase.AIRBORNE:
+                return
+            self._last_rc_t = time.monotonic()
+            if self._chan.send("rc 0 0 0 0"):
+                self.last_rc = (0, 0, 0, 0)
+                self.rc_sent += 1
 
     def _send_land(self) -> None:
         assert self._chan is not None

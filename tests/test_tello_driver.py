@@ -301,6 +301,8 @@ def test_lost_replies_are_confirmed_by_telemetry(emu: TelloEmulator, lost: set[s
         for verb in lost:
             assert any(verb in c for c in confirmed)
         assert sum(t == "land" for t in emu.command_texts()) == 1  # no retry of a land that worked
+        texts = emu.command_texts()
+        assert texts[texts.index("land") - 1] == "rc 0 0 0 0"  # hover first: the last rc is not kept
     finally:
         d.close()
 
