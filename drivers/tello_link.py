@@ -148,15 +148,15 @@ class StateReceiver:
             return rx
 
     def release(self, host: str) -> None:
+        """Unregister `host`; the last one closes the port before another acquire can try to bind it."""
         with self._instances_lock:
             with self._lock:
                 self._callbacks.pop(host, None)
-                empty = not self._callbacks
-            if empty:
-                self._instances.pop((self.bind_ip, self.port), None)
-                self._stop.set()
-        if empty:
-            self._thread.join(timeout=1.0)
+                if self._callbacks:
+                    return
+            self._instances.pop((self.bind_ip, self.port), None)
+            self._stop.set()
+            self._thread.join(timeout=1.0)  # its recv times out within 0.1 s; it takes no registry lock
             self._sock.close()
 
     def __init__(self, bind_ip: str, port: int) -> None:
