@@ -71,6 +71,8 @@ def tello_config(mission: Mission, drone_id: int) -> TelloConfig:
         command_timeout_s=hw.command_timeout_s,
         link_timeout_s=hw.link_timeout_s,
         keepalive_s=hw.keepalive_s,
+        loop_hover_s=hw.loop_hover_s,
+        loop_land_s=hw.loop_land_s,
         min_battery_pct=mission.safety.min_battery_takeoff,
         max_temperature_c=hw.max_temperature_c,
         downward_camera=spec.camera is not None and spec.camera.mount == "down",

@@ -313,14 +313,14 @@ def measure_step(
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Fly one rc step on `axis` and record the velocity along it.
 
-    Sequence (rc re-sent at rate_hz throughout, so neither the driver's keep-alive nor the Tello's
+    Sequence (rc re-sent at rate_hz throughout, so neither the driver's loop watchdog nor the Tello's
     auto-land interferes): `rc 0 0 0 0` for baseline_s (recorded: the zero level before the step), the
     step of rc_amplitude units along the axis for duration_s (recorded), then `rc 0 0 0 0` for settle_s
     (not recorded: the fit models a step, not a pulse). Any exception sends `rc 0 0 0 0` before it
     propagates. Takes baseline_s + duration_s + settle_s seconds.
 
     Args:
-        driver: a connected, flying drivers.tello.TelloDriver (uses `_send_rc` and `current_state`).
+        driver: a connected, flying drivers.tello.TelloDriver (uses `send_rc` and `current_state`).
         axis: "x" (forward), "y" (left), "z" (up) or "yaw" (counter-clockwise).
         rc_amplitude: the step in rc units along the axis, 1..100 in magnitude (sign = direction).
         duration_s: length of the step, s.
@@ -354,7 +354,7 @@ def measure_step(
             if now >= end:
                 return start
             if now >= next_send:
-                driver._send_rc(rc)
+                driver.send_rc(rc)
                 next_send = max(next_send + period, now)
             if record:
                 stamp, value = source()
@@ -368,7 +368,7 @@ def measure_step(
         t_step = phase(_rc_for(axis, rc_amplitude), duration_s, record=True)
         phase((0, 0, 0, 0), settle_s, record=False)
     finally:
-        driver._send_rc((0, 0, 0, 0))
+        driver.send_rc((0, 0, 0, 0))
     arr = np.asarray(samples, dtype=float).reshape(-1, 2)
     return arr[:, 0].copy(), arr[:, 1].copy(), t_step
 

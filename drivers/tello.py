@@ -21,9 +21,14 @@ Principles (README "Tello driver", docs/architecture.md decision 26):
   keep-alive after `land` was sent or once down, no `land` while taking off (land waits until airborne,
   bounded), `emergency` only when asked for. Suppressed commands are counted (`counts["rc_suppressed"]`).
 - **Never blocks the control loop**: send_body_velocity is a non-blocking datagram; takeoff/land block
-  only their caller (the runner's takeoff, the safety layer's land thread).
-- keep-alive: while airborne, if the loop sent nothing for `keepalive_s` (< the Tello's 15 s auto-land),
-  `rc 0 0 0 0` (hover) is sent; event `keepalive`.
+  only their caller (flightstack.safety runs them on worker threads).
+- **Loop watchdog** (the keep-alive is tied to the control loop): while airborne, a loop that sent no
+  velocity for `loop_hover_s` (0.5 s) gets `rc 0 0 0 0` once (hover; event `loop_silent_hover`) and after
+  `loop_land_s` (2 s) the driver lands by itself on its own thread (event `loop_lost_land`). A loop must
+  therefore command every tick (flightstack.safety's command watchdog sends zeros on a silent tick);
+  nothing keeps a drone hovering with no loop behind it.
+- **Silent telemetry during a land**: `rc 0 0 0 0` and `land` are re-sent every `land_resend_s` (1 s)
+  until the drone is seen down (the uplink may work while the state stream does not).
 - link loss: no state packet for `link_timeout_s` → state().link_alive is False (`link_lost`,
   `link_restored` events). The monitor thread survives any error (counted, logged).
 
@@ -82,6 +87,10 @@ class TelloConfig:
     land_timeout_s: float = 15.0
     link_timeout_s: float = 1.0
     keepalive_s: float = 5.0
+    """While takeoff() waits for its `ok`, a `battery?` probe every keepalive_s holds off the auto-land."""
+    loop_hover_s: float = 0.5
+    loop_land_s: float = 2.0
+    land_resend_s: float = 1.0
     quiet_s: float = 0.15
     min_battery_pct: float = 30.0
     max_temperature_c: float = 85.0
@@ -92,6 +101,10 @@ class TelloConfig:
     def __post_init__(self) -> None:
         if not self.keepalive_s < 15.0:
             raise ValueError("keepalive_s must be below the Tello's 15 s auto-land")
+        if not 0.0 < self.loop_hover_s < self.loop_land_s < 15.0:
+            raise ValueError("need 0 < loop_hover_s < loop_land_s < 15 s (the Tello's own auto-land)")
+        if not self.land_resend_s > 0.0:
+            raise ValueError("land_resend_s must be > 0")
         if not self.quiet_s >= 0.15:
             raise ValueError("quiet_s must be at least 0.15 s")
 
@@ -148,6 +161,8 @@ class TelloDriver:
         self._busy = False  # a blocking exchange is running: no rc
         self._land_requested = False  # land sent (until the next takeoff): no rc, no keep-alive
         self._last_rc_t = -math.inf
+        self._last_loop_t = -math.inf  # the loop's last send_body_velocity (monotonic s)
+        self._self_landing: threading.Thread | None = None
         self._stop = threading.Event()
         self._monitor: threading.Thread | None = None
         self._once: set[str] = set()
@@ -350,7 +365,7 @@ class TelloDriver:
                             ph = FlightPhase.AIRBORNE
                     if ph is FlightPhase.AIRBORNE:
                         self._report_outcome("takeoff", [r for r in replies if not r.isdigit()], now - t0)
-                        self._last_rc_t = now  # the keep-alive counts from here
+                        self._last_rc_t = self._last_loop_t = now  # the loop watchdog counts from here
                         return
                     if ph is FlightPhase.GROUND:  # no motor start within no_effect_s
                         refused = [r for r in replies if r.lower().startswith(("error", "unknown", "out"))]
@@ -423,6 +438,7 @@ class TelloDriver:
                     return
                 t1 = time.monotonic()
                 deadline, replies = t1 + cfg.land_timeout_s, []
+                t_sent = t1
                 if self.phase is FlightPhase.AIRBORNE:
                     self._send_land()
                 while True:
@@ -436,6 +452,11 @@ class TelloDriver:
                     if ph is FlightPhase.AIRBORNE:  # no descent within no_effect_s: lost or refused
                         self._event("resend", f"land: no descent (replies {replies})")
                         self._send_land()
+                        t_sent = now
+                    elif not self.link_alive() and now - t_sent > cfg.land_resend_s:
+                        self._event("resend", "land: telemetry silent; rc 0 0 0 0 and land again")
+                        self._send_land(hover_first=True)
+                        t_sent = now
                     if now > deadline:
                         raise TelloCommandError(
                             f"Tello {cfg.host}: not down within {cfg.land_timeout_s:.0f} s "
@@ -455,10 +476,14 @@ class TelloDriver:
                 self.last_rc = (0, 0, 0, 0)
                 self.rc_sent += 1
 
-    def _send_land(self) -> None:
+    def _send_land(self, hover_first: bool = False) -> None:
+        """`land` (after `rc 0 0 0 0` when asked: with telemetry silent, the hover may not have arrived)."""
         assert self._chan is not None
         with self._lock:
             self._tracker.land_sent(time.monotonic())
+        if hover_first and self._chan.send("rc 0 0 0 0"):
+            self.last_rc = (0, 0, 0, 0)
+            self.rc_sent += 1
         self._chan.send("land")
 
     def emergency_stop(self) -> None:
@@ -471,8 +496,17 @@ class TelloDriver:
         self._event("emergency", "motors off")
 
     def send_body_velocity(self, V: np.ndarray) -> None:
-        """Map V (m/s, rad/s, FLU body) to `rc a b c d` and send it; never blocks, never raises for phase."""
+        """Map V (m/s, rad/s, FLU body) to `rc a b c d` and send it; never blocks, never raises for phase.
+
+        Every call, sent or suppressed, tells the loop watchdog that the control loop is alive."""
+        self._last_loop_t = time.monotonic()
         self._send_rc(velocity_to_rc(V, self.cfg.rc_gains))  # Python ints, clipped, NaN → 0
+
+    def send_rc(self, rc: tuple[int, int, int, int]) -> None:
+        """Send raw stick values (-100..100 each: roll, pitch, throttle, yaw) as the control loop (the loop
+        watchdog counts it); same phase rules as send_body_velocity. For system identification."""
+        self._last_loop_t = time.monotonic()
+        self._send_rc(tuple(max(-100, min(100, int(v))) for v in rc))  # type: ignore[arg-type]
 
     def _send_rc(self, rc: tuple[int, int, int, int], why: str = "") -> None:
         with self._lock:
@@ -558,7 +592,7 @@ class TelloDriver:
             detail += f"; this mission needs SDK 3.0 for {', '.join(need)}: use access-point mode"
         return PreflightCheck("firmware", ok, detail)
 
-    # ---- background: state freshness and keep-alive ------------------------------------------------
+    # ---- background: state freshness and the loop watchdog ------------------------------------------
     def _monitor_loop(self) -> None:
         while not self._stop.wait(0.02):
             try:
@@ -576,11 +610,26 @@ class TelloDriver:
             self._link_alive = True
             self._event("link_restored")
         with self._lock:
-            due = (
-                self._tracker.phase is FlightPhase.AIRBORNE
-                and not self._busy
-                and not self._land_requested
-                and now - self._last_rc_t > self.cfg.keepalive_s
+            watched = (
+                self._tracker.phase is FlightPhase.AIRBORNE and not self._busy and not self._land_requested
             )
-        if due:
-            self._send_rc((0, 0, 0, 0), why="keepalive")
+            silent = now - self._last_loop_t
+        if not watched:
+            return
+        if silent > self.cfg.loop_land_s:
+            if self._self_landing is None or not self._self_landing.is_alive():
+                self._event("loop_lost_land", f"no velocity from the control loop for {silent:.2f} s: land")
+                self._self_landing = threading.Thread(
+                    target=self._land_by_itself, name=f"tello-autoland-{self.cfg.host}", daemon=True
+                )
+                self._self_landing.start()
+        elif silent > self.cfg.loop_hover_s and self.last_rc != (0, 0, 0, 0):
+            self._send_rc((0, 0, 0, 0), why="loop_silent_hover")
+
+    def _land_by_itself(self) -> None:
+        """The loop watchdog's land (own thread); errors counted and logged, never raised."""
+        try:
+            self.land()
+        except Exception as exc:
+            self.counts["loop_land_error"] += 1
+            LOG.error("tello %s: land after the loop stopped failed: %s", self.cfg.host, exc)

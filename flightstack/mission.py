@@ -266,7 +266,9 @@ MOCAP_SYSTEMS = ("mock", "vicon", "optitrack", "qualisys", "vrpn")
 class TelloHardwareSpec(_Strict):
     """One real Tello (backend `tello`). `ip`: its address (192.168.10.1 in access-point mode; the
     router's lease in station mode). Ports: 8889 (commands) on a real drone; `video_port` is where it
-    streams on this computer (station mode with several drones: one port each, needs SDK 3.0)."""
+    streams on this computer (station mode with several drones: one port each, needs SDK 3.0).
+    `loop_hover_s`/`loop_land_s`: the driver's loop watchdog: a control loop silent this long (s) makes
+    the drone hover, then land by itself (README "Failsafe")."""
 
     id: int = Field(ge=0, lt=2**16)
     ip: str = Field(pattern=r"^\d{1,3}\.\d{1,3}\.\d{1,3}\.\d{1,3}$")
@@ -276,8 +278,18 @@ class TelloHardwareSpec(_Strict):
     command_timeout_s: Positive = 3.0
     link_timeout_s: Positive = 1.0
     keepalive_s: Annotated[float, Field(gt=0, lt=15)] = 5.0
+    loop_hover_s: Annotated[float, Field(gt=0, lt=15)] = 0.5
+    loop_land_s: Annotated[float, Field(gt=0, lt=15)] = 2.0
     max_temperature_c: Positive = 85.0
     frame_timeout_s: Positive = 5.0
+
+    @model_validator(mode="after")
+    def _loop_watchdog_order(self) -> TelloHardwareSpec:
+        if not self.loop_hover_s < self.loop_land_s:
+            raise ValueError(
+                f"loop_hover_s ({self.loop_hover_s} s) must be below loop_land_s ({self.loop_land_s} s)"
+            )
+        return self
 
 
 class MocapHardwareSpec(_Strict):

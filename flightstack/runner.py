@@ -3,13 +3,21 @@
 `run_mode` flies one mode of a mission in lock-step: each tick the target driver (sim_lab) commands the
 ground robot, the safety supervisor checks every drone, all agents run phase 1, then all run phase 2,
 then the backend's clock advances by dt. Before the loop every drone takes off (bounded wait); after it,
-whatever ended it (end of mission, Ctrl-C/SIGTERM, an exception in any agent), every drone is landed and
-the recording is returned with what was flown.
+whatever ended it (end of mission, a signal, an operator abort, an exception in any agent), every drone is
+landed and the recording is returned with what was flown.
+
+On real drones nothing waits for a drone on the control thread (issue 15): takeoffs and landings run on
+worker threads (flightstack.safety, `background`), and the safety tick, the operator's abort and the
+backend's heartbeat (the guardian process) keep running while they do, also during takeoff and landing.
+Signals (SIGINT, SIGTERM, SIGHUP, SIGQUIT, SIGTSTP) land every drone; a repeated one is ignored.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -31,7 +39,8 @@ from flightstack.recording import Recording
 from flightstack.safety import EventLog, MissionSupervisor, SafeDrone, SafetyLimits
 from flightstack.target_law import SquareLaw
 
-TAKEOFF_TIMEOUT_S = 15.0
+_log = logging.getLogger(__name__)
+TAKEOFF_TIMEOUT_S = 25.0  # > the Tello driver's own 20 s bound, so its outcome is collected first
 LAND_TIMEOUT_S = 20.0  # > the Tello's own 15 s auto-land, so a drone that lost its link is seen down
 
 
@@ -89,6 +98,40 @@ def safety_limits(mission: Mission) -> SafetyLimits:
     return SafetyLimits(**s.model_dump(exclude={"enabled"}))
 
 
+class SafetyTickTimer:
+    """Ticks every SafeDrone once per control period, then beats the backend's heartbeat (the guardian
+    process watches it), and measures how long that took (wall clock): a safety tick must never take
+    longer than one control period."""
+
+    MAX_SAMPLES = 1_000_000
+
+    def __init__(self, safe: dict[int, SafeDrone], heartbeat: Callable[[], None] | None) -> None:
+        self.safe = safe
+        self.heartbeat = heartbeat
+        self.durations: list[float] = []
+
+    def tick(self) -> None:
+        t0 = time.perf_counter()
+        for s in self.safe.values():
+            s.tick()
+        if self.heartbeat is not None:
+            self.heartbeat()
+        if len(self.durations) < self.MAX_SAMPLES:
+            self.durations.append(time.perf_counter() - t0)
+
+    def summary(self) -> dict[str, float | int]:
+        """ticks, and p50/p99/max of the safety tick's wall time in ms."""
+        if not self.durations:
+            return {"ticks": 0}
+        d = np.array(self.durations) * 1e3
+        return {
+            "ticks": int(d.size),
+            "p50_ms": float(np.percentile(d, 50)),
+            "p99_ms": float(np.percentile(d, 99)),
+            "max_ms": float(d.max()),
+        }
+
+
 class TargetDriver:
     """Drives the ground robot on the paper's square law from its motion-capture pose (sim_lab)."""
 
@@ -136,12 +179,14 @@ def run_mode(
     backend: Any = None,
     bus: Any = None,
     agent_ids: list[int] | None = None,
+    writer: Any = None,
 ) -> Recording:
     """Fly `mode` of a mission for mission.duration_s of pursuit; never leaves a drone flying.
 
     backend: built from the mission when None (the served world's client for an agent process).
     bus: built from `mission.bus` when None (closed here if built here).
     agent_ids: the drones this process flies (default all); the others are neighbours on the bus.
+    writer: a flightstack.recorder mode writer that appends the recording to disk as the run goes.
     On a simulated clock with a network bus, phase 2 waits for the neighbours' messages of the same tick
     (`bus.zenoh.lockstep_timeout_s`), so the result equals the in-process bus's."""
     ids = [d.id for d in mission.drones] if agent_ids is None else list(agent_ids)
@@ -166,12 +211,15 @@ def run_mode(
         limits = safety_limits(mission)
         safe: dict[int, SafeDrone] = {}
         supervisor: MissionSupervisor | None = None
+        background = not mission.simulated  # real drones: takeoff and land never block the loop
         if mission.safety.enabled:
             safe = {
-                i: SafeDrone(i, backend.drone(i), backend.pose_source(), f"drone{i}", clock, limits, log)
+                i: SafeDrone(
+                    i, backend.drone(i), backend.pose_source(), f"drone{i}", clock, limits, log, background
+                )
                 for i in ids
             }
-            supervisor = MissionSupervisor(safe, clock, limits, log, concurrent_land=not mission.simulated)
+            supervisor = MissionSupervisor(safe, clock, limits, log)
             drones: dict[int, Drone] = dict(safe)
         else:
             drones = {i: backend.drone(i) for i in ids}
@@ -186,11 +234,14 @@ def run_mode(
         wall0 = time.perf_counter()
         reason = "mission complete"
         status = StatusPublisher(bus, mode)
+        ticker = SafetyTickTimer(safe, getattr(backend, "heartbeat", None))
+        signals = _signal_guard(supervisor)
     except BaseException:
         backend.close()
         if own_bus:
             bus.close()
         raise
+    signals.__enter__()
     try:
         if hasattr(bus, "wait_alive") and zspec is not None:
             missing = bus.wait_alive({d.id for d in mission.drones}, zspec.start_timeout_s)
@@ -200,14 +251,18 @@ def run_mode(
                 )
         for d in drones.values():
             d.connect()
+        for d in drones.values():  # on real drones each returns at once: they climb together
             d.takeoff()
-        if not _advance_until(
-            clock,
-            lambda: all(d.state().flying for d in drones.values()),
-            TAKEOFF_TIMEOUT_S,
-            dt,
-            lambda: [s.tick() for s in safe.values()],
-        ):
+
+        def during_takeoff() -> None:
+            ticker.tick()
+            _check_operator(bus)  # an abort is obeyed during the takeoff too
+            failed = {i: s.takeoff_error for i, s in safe.items() if s.takeoff_error}
+            if failed:
+                raise RuntimeError(f"takeoff failed: {failed}")
+
+        airborne = lambda: all(d.state().flying for d in drones.values())  # noqa: E731
+        if not _advance_until(clock, airborne, TAKEOFF_TIMEOUT_S, dt, during_takeoff):
             raise RuntimeError(f"takeoff: not every drone airborne after {TAKEOFF_TIMEOUT_S} s")
         t0 = clock.now()
         if mission.backend != "sim_ideal":
@@ -220,8 +275,7 @@ def run_mode(
             t = clock.now()
             if target is not None:
                 target.tick(t - t0)
-            for s in safe.values():
-                s.tick()
+            ticker.tick()
             if safe and all(s.landed for s in safe.values()):  # the safety layer landed everyone
                 reason = "every drone landed"
                 break
@@ -272,6 +326,8 @@ def run_mode(
                 rec.n_fused[k, i] = last.n_fused
             rec.wall_t[k] = time.time()
             rec.ticks_done = k + 1
+            if writer is not None:
+                writer.append(rec, k + 1)
             status.maybe_publish(t, k, agents)
             if progress is not None:
                 progress(1)
@@ -287,7 +343,11 @@ def run_mode(
         reason = f"exception: {rec.error}"
     finally:
         rec.events.append({"t": clock.now(), "event": "end", "reason": reason, "mode": mode})
-        _land_everything(backend, clock, drones, supervisor, target, reason, dt)
+        if writer is not None:
+            writer.event(rec.events[-1])
+        _land_everything(backend, clock, drones, supervisor, target, reason, dt, ticker, bus)
+        signals.__exit__(None, None, None)
+        rec.events.append({"t": clock.now(), "event": "safety tick", "mode": mode, **ticker.summary()})
         for i in ids:
             st = backend.drone(i).state()
             rec.events.append(
@@ -311,6 +371,8 @@ def run_mode(
             bus.close()
         rec.vision_rejections = {str(i): dict(c) for i, c in rejections.items() if c}
         rec.fill_true_errors(g_d)
+        if writer is not None:
+            writer.close(rec)
     return rec if rec.ticks_done == n_ticks and not rec.interrupted else rec.truncated()
 
 
@@ -361,6 +423,13 @@ class StatusPublisher:
             )
 
 
+def _signal_guard(supervisor: MissionSupervisor | None) -> Any:
+    """The supervisor's signal handlers, on the main thread (signals are only delivered there)."""
+    if supervisor is None or threading.current_thread() is not threading.main_thread():
+        return contextlib.nullcontext()
+    return supervisor.install_signal_handlers()
+
+
 def _land_everything(
     backend: Any,
     clock: Any,
@@ -369,15 +438,39 @@ def _land_everything(
     target: TargetDriver | None,
     reason: str,
     dt: float,
+    ticker: SafetyTickTimer,
+    bus: Any,
 ) -> None:
-    """Land every drone and stop the robot; on a virtual clock also let the landing complete."""
-    if target is not None:
-        target.stop()
+    """Land every drone and stop the robot; on a virtual clock also let the landing complete.
+
+    Real drones land in parallel on worker threads while this keeps ticking the safety layer (it confirms
+    each landing, hovers and re-sends land on a silent link) and the guardian's heartbeat, bounded by
+    LAND_TIMEOUT_S; only then are the drivers closed (closing lands whatever is still up)."""
+    try:
+        if target is not None:
+            target.stop()
+    except Exception as exc:  # the drones land regardless
+        _log.error("stopping the robot failed: %s", exc)
     if supervisor is not None:
         supervisor.land_all(reason)
+        if any(s.background for s in supervisor.drones.values()):
+            _advance_until(
+                clock,
+                lambda: all(s.landed for s in supervisor.drones.values()),
+                LAND_TIMEOUT_S,
+                dt,
+                lambda: _quietly(ticker.tick, bus),
+            )
     backend.close()  # lands any drone the supervisor did not reach
-    if hasattr(backend, "truth"):  # simulated: advance virtual time until everyone is on the ground
+    if hasattr(backend, "truth") and getattr(backend, "simulated", True):  # let the virtual landing finish
         inner = [backend.drone(i) for i in drones]
         _advance_until(
             clock, lambda: all(getattr(d, "phase", "ground") == "ground" for d in inner), LAND_TIMEOUT_S, dt
         )
+
+
+def _quietly(tick: Callable[[], None], bus: Any) -> None:
+    """One tick while landing; an abort arriving now is already being obeyed (drained; the bus acks it)."""
+    tick()
+    with contextlib.suppress(OperatorAbortError):
+        _check_operator(bus)

@@ -6,16 +6,23 @@
     - a geofence box in the world frame Σw (the motion-capture frame, z up, metres): outside the soft box
       every world-frame velocity component that points further out is removed (the drone can come back
       but not leave); outside the hard box (the soft box grown by `hard_margin`) the drone lands;
-    - a command watchdog: no command for `command_timeout` s -> one zero-velocity command (hover);
+    - a command watchdog: no command for `command_timeout` s -> zero velocity on every tick until one
+      arrives (the drivers read a silent loop as a dead one: see drivers/tello.py, "loop watchdog");
     - a stale-pose rule: pose stamp older than `pose_timeout` s -> hover, older than `pose_land_after` s
       -> land (both ages are measured from the last valid pose stamp, by the mission clock);
     - battery: takeoff refused below `min_battery_takeoff` %, land in flight below `land_battery` %.
-    - link: the drone reported `link_alive` in flight and now reports it False (its telemetry stopped)
-      -> land, retried on every tick until the drone accepts it (a Tello that hears nothing for 15 s also
-      lands by itself).
+    - link: the drone reported `link_alive` in flight and now reports it False (its telemetry stopped,
+      the uplink may still work) -> zero velocity on every tick (hover) and land at once.
+A land is never waited for on the control thread when the SafeDrone runs `background` jobs (hardware):
+takeoff() and land() of the wrapped drone run on a worker thread each; tick() collects their outcome. A
+land is re-sent every `land_retry_s` until it is confirmed, by the wrapped drone's land() returning, by
+its telemetry (phase ground) or by motion capture (z ≤ `landed_height`); meanwhile the pose, fence and
+watchdog rules keep running on the last known pose. Simulated drones (background off) land inline, so a
+simulated run stays deterministic.
 `MissionSupervisor` adds the mission-wide rules: hover when every drone has lost the target for longer
-than `target_lost_hover_after` s, land every drone (robust to a failing drone), on Ctrl-C / SIGTERM and on
-any exception leaving a guarded block.
+than `target_lost_hover_after` s, land every drone (robust to a failing drone), on SIGINT, SIGTERM,
+SIGHUP, SIGQUIT and SIGTSTP (a repeated signal never interrupts the landing) and on any exception leaving a
+guarded block.
 
 Every condition logs exactly one `SafetyEvent` per episode (the interval during which it holds), stamped
 with the mission clock. The event kinds form the closed set `EVENT_KINDS`:
@@ -24,7 +31,7 @@ with the mission clock. The event kinds form the closed set `EVENT_KINDS`:
     invalid_command         a command with NaN/inf, the wrong size or not numeric: replaced by zeros
     fence_soft              the drone is outside the soft fence (outward velocity removed)
     fence_hard_land         the drone is outside the hard fence: land
-    command_timeout         no command for command_timeout: one zero-velocity command sent
+    command_timeout         no command for command_timeout: zero velocity sent on every tick
     pose_stale_hover        pose older than pose_timeout (or never seen): zero velocity
     pose_stale_land         pose older than pose_land_after: land
     pose_error              the PoseSource raised; treated as no pose
@@ -32,10 +39,10 @@ with the mission clock. The event kinds form the closed set `EVENT_KINDS`:
     pose_refuse_takeoff     takeoff refused: no fresh pose
     fence_refuse_takeoff    takeoff refused: the drone stands outside the hard fence in x or y
     battery_land            battery below land_battery in flight: land
-    link_lost               the drone reports its link lost (state().link_alive False) in flight: land
+    link_lost               the drone reports its link lost (state().link_alive False) in flight: hover, land
     drone_error             the wrapped drone raised inside tick() (state() or the watchdog's command)
     command_after_land      a command arrived after land/emergency stop: dropped
-    land_failed             the wrapped drone's land() raised (retried on every tick)
+    land_failed             the wrapped drone's land() raised (retried every land_retry_s)
     landed_by_drone         the drone's own telemetry shows it on the ground in flight (an auto-land, a land
                             by someone else): it is treated as landed and not commanded again
     emergency_stop          emergency_stop() was sent to the wrapped drone
@@ -43,9 +50,10 @@ with the mission clock. The event kinds form the closed set `EVENT_KINDS`:
     target_lost_hover       every drone lost the target for longer than target_lost_hover_after
     target_lost_land        ... and for longer than target_lost_land_after: land every drone
     land_all                MissionSupervisor.land_all started landing the drones that were not landed
-    signal                  SIGINT or SIGTERM received inside install_signal_handlers()
+    signal                  a signal received inside install_signal_handlers() (SIGINT, SIGTERM, SIGHUP, ...)
     takeoff                 takeoff sent to the wrapped drone
-    land                    land sent to the wrapped drone and accepted (detail = the reason)
+    takeoff_failed          the wrapped drone's takeoff() raised (background): land
+    land                    the landing is confirmed (detail = the reason, and by what when not by land())
 
 Errors from the wrapped drone inside `send_body_velocity`, `takeoff`, `connect`, `state` and `close`
 propagate unchanged (the caller's `MissionSupervisor.guard()` lands everything); the safety rules
@@ -112,6 +120,7 @@ EVENT_KINDS: frozenset[str] = frozenset(
         "land_all",
         "signal",
         "takeoff",
+        "takeoff_failed",
         "land",
     }
 )
@@ -151,6 +160,12 @@ class SafetyLimits:
     target_lost_land_after: float = 15.0
     """Every drone has lost the target for this long (s): land them all rather than hover on (the target
     has left every camera's view; a hovering Tello would only drain its battery near people)."""
+    land_retry_s: float = 1.0
+    """A land the wrapped drone refused or did not confirm is retried after this long (s, mission clock):
+    a bounded rate, while every tick keeps the other rules (and a hover, when the link is silent) going."""
+    landed_height: float = 0.15
+    """z (m, Σw) of a drone's motion-capture body at or below which a landing drone counts as down (the
+    lab's floor is z = 0): motion capture confirms a landing that the drone's own telemetry cannot."""
     emergency_stop_if_land_fails: bool = False
     """Cut the motors of a drone whose land() raised during land_all. Off by default: a Tello with its
     motors cut falls from up to 2 m next to people; the failed land is retried on every tick instead."""
@@ -167,11 +182,16 @@ class SafetyLimits:
         if any(h <= low for low, h in zip(lo, hi, strict=True)):
             raise ValueError(f"fence_hi must exceed fence_lo on every axis, got lo={lo}, hi={hi}")
         positive = ("max_speed_xy", "max_speed_z", "max_yaw_rate", "command_timeout", "pose_timeout")
-        positive += ("pose_land_after", "target_lost_hover_after", "target_lost_land_after")
+        positive += ("pose_land_after", "target_lost_hover_after", "target_lost_land_after", "land_retry_s")
         for name in positive:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v}")
+        if not (math.isfinite(self.landed_height) and self.landed_height < self.fence_lo[2]):
+            raise ValueError(
+                f"landed_height ({self.landed_height} m) must be finite and below the fence floor "
+                f"fence_lo z ({self.fence_lo[2]} m)"
+            )
         if not (math.isfinite(self.hard_margin) and self.hard_margin >= 0.0):
             raise ValueError(f"hard_margin must be finite and >= 0, got {self.hard_margin}")
         if self.target_lost_land_after <= self.target_lost_hover_after:
@@ -387,6 +407,19 @@ class _Phase(enum.Enum):
     STOPPED = "stopped"  # emergency stop accepted: motors off
 
 
+@dataclass
+class _Job:
+    """A takeoff or land of the wrapped drone running on a worker thread (a Tello's take seconds)."""
+
+    kind: str  # "takeoff" or "land"
+    reason: str
+    started: float  # mission clock (s)
+    error: BaseException | None = None
+    finished: bool = False
+    collected: bool = False
+    thread: threading.Thread | None = None
+
+
 class SafeDrone:
     """A hal.Drone that enforces the safety rules on the hal.Drone it wraps (see the module docstring).
 
@@ -397,6 +430,8 @@ class SafeDrone:
         clock: the mission clock (s); every age is measured with it.
         limits: the safety limits.
         log: the event log shared with the mission.
+        background: run the wrapped drone's takeoff() and land() on worker threads (real drones, whose
+            takeoff and land block for seconds); tick() collects the outcome. Off: inline (simulated).
 
     `landed` is True once a land() or emergency_stop() of the wrapped drone was accepted and until the next
     takeoff(); it starts False because the wrapper cannot know (a simulated drone may start airborne).
@@ -411,8 +446,15 @@ class SafeDrone:
         clock: Clock,
         limits: SafetyLimits,
         log: EventLog,
+        background: bool = False,
     ) -> None:
         self.drone_id = drone_id
+        self.background = background
+        self._jobs: dict[str, _Job] = {}
+        self._next_land_try = -math.inf
+        self._link_down_while_landing = False
+        self.takeoff_error: str | None = None
+        """Why the wrapped drone's takeoff() failed (background jobs), None otherwise."""
         self.inner = drone
         self.poses = poses
         self.body = body
@@ -495,12 +537,19 @@ class SafeDrone:
                     f"drone {self.drone_id}: takeoff refused, at {where} outside the hard fence"
                 )
             self._activate(now)  # before the call: if takeoff raises half-way, land_all still lands it
+            self.takeoff_error = None
+            if self.background:  # tick() collects the outcome; state().flying says when it is up
+                self._event(now, "takeoff", f"battery {battery:.1f} % (on a worker thread)")
+                self._start_job("takeoff", self.inner.takeoff, "takeoff")
+                return
             self._call(self.inner.takeoff)
             self._last_command_t = self.clock.now()  # takeoff may block while climbing
             self._event(self.clock.now(), "takeoff", f"battery {battery:.1f} %")
 
     def land(self, reason: str = "land()") -> None:
-        """Land now (no-op if already landed); re-raises the wrapped drone's error after logging it."""
+        """Land now (no-op if already landed); re-raises the wrapped drone's error after logging it.
+
+        With background jobs this starts the land and returns at once; tick() confirms it (`landed`)."""
         with self._lock:
             if self.landed:
                 return
@@ -518,11 +567,19 @@ class SafeDrone:
             self._abort_reason = None
             self._event(self.clock.now(), "emergency_stop", reason)
 
-    def close(self) -> None:
-        """Land if not landed (errors logged, not raised), then close the wrapped drone."""
+    def close(self, land_wait_s: float = 40.0) -> None:
+        """Land if not landed (errors logged, not raised), then close the wrapped drone.
+
+        With background jobs, waits for a land under way (at most `land_wait_s`, wall clock) first: closing
+        the driver would end it. This is the end of a run, never the control loop."""
         with self._lock:
             if not self.landed:
                 self._do_land(self.clock.now(), "close()")
+        for job in list(self._jobs.values()):
+            if job.thread is not None:
+                job.thread.join(land_wait_s)
+        with self._lock:
+            self._poll_jobs(self.clock.now())
             self._call(self.inner.close)
 
     def send_body_velocity(self, V: np.ndarray) -> None:
@@ -584,12 +641,11 @@ class SafeDrone:
         """
         with self._lock:
             now = self.clock.now()
+            self._poll_jobs(now)
             if self._abort_reason is not None and self._phase is _Phase.FLYING:
                 self._do_land(now, self._abort_reason)
             if self._phase is _Phase.LAND_PENDING:
-                if self._land_reason == "link_lost" and not self._link_up():
-                    return  # nothing can answer a land now; retried when the link is back
-                self._do_land(now, f"retry ({self._land_reason})", retry=True)
+                self._tick_landing(now)
                 return
             if self._phase is not _Phase.FLYING:
                 return
@@ -613,9 +669,10 @@ class SafeDrone:
                 if link_alive:
                     self._link_seen = True
                 elif self._link_seen:  # up since takeoff, now down (a link never up is not "lost")
-                    # land is sent once the link is back: unanswered, it would block a driver for seconds
-                    self._event_once(now, "link_lost", "drone reports its link lost: land when it answers")
-                    self._phase, self._land_reason = _Phase.LAND_PENDING, "link_lost"
+                    # the uplink may still work: hover now, land now, keep hovering and re-sending land
+                    self._event_once(now, "link_lost", "drone reports its link lost: hover and land")
+                    self._send_quietly(now, np.zeros(4))
+                    self._do_land(now, "link_lost")
                     return
                 if battery < self.limits.land_battery:
                     self._safety_land(
@@ -623,9 +680,8 @@ class SafeDrone:
                     )
                     return
             silent = now - self._last_command_t
-            if silent > self.limits.command_timeout and self._event_once(
-                now, "command_timeout", f"no command for {silent:.3f} s: zero velocity"
-            ):
+            if silent > self.limits.command_timeout:  # every tick: a driver reads silence as a dead loop
+                self._event_once(now, "command_timeout", f"no command for {silent:.3f} s: zero velocity")
                 self._send_quietly(now, np.zeros(4))
 
     # ---- internals -------------------------------------------------------------------------------------
@@ -738,20 +794,114 @@ class SafeDrone:
             self._send_quietly(now, np.zeros(4))  # best effort: at least hover until land is accepted
 
     def _do_land(self, now: float, reason: str, retry: bool = False) -> Exception | None:
-        """Send land to the wrapped drone; returns its Exception (logged once per episode) or None."""
+        """Send land to the wrapped drone; returns its Exception (logged once per episode) or None.
+
+        Background jobs: starts the land on a worker thread unless one is under way, returns None."""
         self._phase = _Phase.LAND_PENDING  # from here on, no velocity reaches the wrapped drone
         if not retry:
             self._land_reason = reason
+        if self.background:
+            self._poll_jobs(now)
+            job = self._jobs.get("land")
+            if not self.landed and (job is None or job.finished):
+                self._next_land_try = now + self.limits.land_retry_s
+                self._start_job("land", self.inner.land, reason)
+            return None
         try:
             self._call(self.inner.land)
         except Exception as exc:
             self._event_once(now, "land_failed", f"{reason}: land() raised {type(exc).__name__}: {exc}")
+            self._next_land_try = now + self.limits.land_retry_s
             return exc
+        self._confirm_landed(now, "", reason)
+        return None
+
+    def _confirm_landed(self, now: float, how: str, reason: str | None = None) -> None:
+        """LANDED; the event names the land that worked (`reason`, default the first) and, if not
+        land() itself, what confirmed it (`how`)."""
         self._phase = _Phase.LANDED
         self._abort_reason = None
         self._end("land_failed")
-        self._event(now, "land", reason)
-        return None
+        why = self._land_reason if reason is None else reason
+        self._event(now, "land", f"{why}: {how}" if how else why)
+
+    def _tick_landing(self, now: float) -> None:
+        """A land is pending: confirm it (telemetry, motion capture), hover while the link is silent (the
+        uplink may still work), re-send land every land_retry_s. Never waits for the drone."""
+        takeoff = self._jobs.get("takeoff")
+        climbing = takeoff is not None and not takeoff.finished  # still on the floor: nothing to confirm
+        link = False
+        try:
+            st = self._call(self.inner.state)
+            link = bool(st.link_alive)
+            if link and st.phase == FlightPhase.GROUND and not climbing:
+                self._confirm_landed(now, "telemetry shows it on the ground")
+                return
+        except Exception as exc:
+            self._event_once(now, "drone_error", f"state() raised {type(exc).__name__}: {exc}")
+        sp = self._read_pose(now)
+        if (
+            sp is not None
+            and not climbing
+            and now - sp.stamp <= self.limits.pose_timeout
+            and sp.pose.p[2] <= self.limits.landed_height
+        ):
+            self._confirm_landed(now, f"motion capture shows it down (z {sp.pose.p[2]:.3f} m)")
+            return
+        if sp is not None:  # the rules keep running on the last known pose (events only: it is landing)
+            faces = outside_hard_fence(sp.pose.p, self.limits, check_floor=self._floor_armed)
+            if faces:
+                where = np.round(sp.pose.p, 3).tolist()
+                self._event_once(now, "fence_hard_land", f"at {where}, beyond hard fence {faces} (landing)")
+        if not link:
+            self._send_quietly(now, np.zeros(4))
+        elif self._link_down_while_landing:  # the link is back: a land sent now gets an answer
+            self._next_land_try = now
+        self._link_down_while_landing = not link
+        job = self._jobs.get("land")
+        if (job is None or job.finished) and not climbing and now >= self._next_land_try:
+            self._do_land(now, f"retry ({self._land_reason})", retry=True)
+
+    def _start_job(self, kind: str, fn: Callable[[], None], reason: str) -> None:
+        """Run fn (the wrapped drone's takeoff or land) on a worker thread; _poll_jobs collects it."""
+        job = _Job(kind, reason, self.clock.now())
+
+        def run() -> None:
+            try:
+                fn()
+            except BaseException as exc:  # collected by _poll_jobs on the control thread
+                job.error = exc
+            finally:
+                job.finished = True
+
+        job.thread = threading.Thread(target=run, name=f"{kind}-drone{self.drone_id}", daemon=True)
+        self._jobs[kind] = job
+        job.thread.start()
+
+    def _poll_jobs(self, now: float) -> None:
+        """Collect finished takeoff/land jobs: confirm a landing, log a failure (retried by tick)."""
+        for kind, job in list(self._jobs.items()):
+            if not job.finished or job.collected:
+                continue
+            job.collected = True
+            err = job.error
+            why = "" if err is None else f"{type(err).__name__}: {err}"
+            if kind == "takeoff":
+                self._last_command_t = max(self._last_command_t, now)
+                if err is not None:
+                    self.takeoff_error = why
+                    self._event(now, "takeoff_failed", why)
+                    if self._phase is _Phase.FLYING:
+                        self._do_land(now, "takeoff_failed")
+            elif self._phase is _Phase.LAND_PENDING:
+                takeoff = self._jobs.get("takeoff")
+                if takeoff is not None and not takeoff.finished:  # returned before the drone was up:
+                    self._next_land_try = now  # no proof of anything; sent again once the takeoff ends
+                elif err is None:
+                    self._confirm_landed(now, "", job.reason)
+                else:
+                    self._event_once(now, "land_failed", f"{job.reason}: land() raised {why}")
+                    self._next_land_try = now + self.limits.land_retry_s
 
 
 # ---- the mission -------------------------------------------------------------------------------------------
@@ -783,6 +933,8 @@ class MissionSupervisor:
         self._lost_landing = False
         self._landing_depth = 0
         self._deferred_land: str | None = None
+        self.signalled: str | None = None
+        """The first signal received inside install_signal_handlers() (later ones are only logged)."""
 
     def update_visibility(self, visible: dict[int, bool]) -> bool:
         """Record which drones see the target now; True if the mission must hover.
@@ -888,7 +1040,11 @@ class MissionSupervisor:
                 )
 
     def install_signal_handlers(self) -> contextlib.AbstractContextManager[MissionSupervisor]:
-        """Context manager: inside it SIGINT and SIGTERM land every drone, then raise KeyboardInterrupt.
+        """Context manager: inside it SIGINT, SIGTERM, SIGHUP (the operator's ssh session dropped), SIGQUIT
+        (Ctrl-\\) and SIGTSTP (Ctrl-Z: the process must not freeze with drones in the air) land every
+        drone, then raise KeyboardInterrupt once. Every later signal is logged and ignored: a second Ctrl-C
+        never interrupts the landing, the closing of the drivers or the disarming of the robot (SIGKILL
+        still ends the process; the guardian process then lands the drones).
 
         Must be entered on the main thread. If the signal interrupts a call into a drone driver, the landing
         is deferred until that call has unwound (the driver may hold a lock): KeyboardInterrupt is raised at
@@ -905,6 +1061,10 @@ class MissionSupervisor:
     def _on_signal(self, signum: int, frame: FrameType | None) -> None:
         name = signal.Signals(signum).name
         now = self.clock.now()
+        if self.signalled is not None:
+            self.log.record(now, None, "signal", f"{name} after {self.signalled}: ignored, landing continues")
+            return
+        self.signalled = name
         if self._landing_depth > 0:
             self.log.record(now, None, "signal", f"{name} during land_all: ignored, landing continues")
             return
@@ -936,8 +1096,13 @@ class _Guard(contextlib.AbstractContextManager[MissionSupervisor]):
         return False
 
 
+_HANDLED_SIGNALS = tuple(
+    getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGTSTP") if hasattr(signal, n)
+)
+
+
 class _SignalHandlers(contextlib.AbstractContextManager[MissionSupervisor]):
-    _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    _SIGNALS = _HANDLED_SIGNALS
 
     def __init__(self, sup: MissionSupervisor) -> None:
         self._sup = sup

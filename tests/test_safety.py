@@ -136,6 +136,7 @@ class Rig:
         drone_id: int = 1,
         clock: FakeClock | None = None,
         log: EventLog | None = None,
+        background: bool = False,
     ) -> None:
         self.clock = FakeClock() if clock is None else clock
         self.poses = FakePoses(self.clock)
@@ -143,7 +144,7 @@ class Rig:
         self.inner = FakeDrone(battery)
         self.log = EventLog() if log is None else log
         self.sd = SafeDrone(
-            drone_id, self.inner, self.poses, f"drone{drone_id}", self.clock, limits, self.log
+            drone_id, self.inner, self.poses, f"drone{drone_id}", self.clock, limits, self.log, background
         )
         if takeoff:
             self.sd.takeoff()
@@ -432,7 +433,8 @@ def test_hard_floor_ignored_on_the_ground_until_the_drone_has_climbed() -> None:
 
 
 # ---- watchdog ----------------------------------------------------------------------------------------------
-def test_command_watchdog_fires_once_per_episode() -> None:
+def test_command_watchdog_hovers_every_tick_and_logs_once_per_episode() -> None:
+    """A silent loop gets zero velocity on every tick (the drivers read silence as a dead loop and land)."""
     r = Rig()
     r.clock.t = 0.4
     r.sd.tick()
@@ -443,7 +445,7 @@ def test_command_watchdog_fires_once_per_episode() -> None:
     for t in (0.7, 1.0, 1.5):
         r.clock.t = t
         r.sd.tick()
-    assert len(r.inner.sent) == 1
+    assert len(r.inner.sent) == 4 and all(not v.any() for v in r.inner.sent)
     ev = r.log.of_kind("command_timeout")
     assert len(ev) == 1 and ev[0].t == 0.6
     r.clock.t = 2.0
@@ -610,10 +612,16 @@ def test_land_failure_is_logged_reraised_and_retried_by_tick() -> None:
     r.sd.send_body_velocity(np.array([0.1, 0.0, 0.0, 0.0]))
     assert r.inner.calls[-1] == "land"  # dropped: nothing sent after land was requested
     r.clock.t = 0.05
+    r.sd.tick()  # the retry waits land_retry_s (a bounded rate)
+    assert r.inner.calls.count("land") == 1
+    r.clock.t = LIM.land_retry_s
     r.sd.tick()  # retries, still failing: no second event
     assert r.inner.calls.count("land") == 2 and r.log.counts()["land_failed"] == 1
     r.inner.land_error = None
-    r.clock.t = 0.1
+    r.clock.t = 1.5 * LIM.land_retry_s
+    r.sd.tick()
+    assert r.inner.calls.count("land") == 2
+    r.clock.t = 2 * LIM.land_retry_s
     r.sd.tick()
     assert r.sd.landed and r.inner.calls.count("land") == 3
     assert "send" not in r.inner.calls_after("land")
@@ -756,7 +764,8 @@ def test_land_all_does_not_cut_motors_by_default_and_retries() -> None:
     assert "emergency_stop" not in rigs[2].inner.calls and not rigs[2].sd.landed
     assert log.counts()["land_failed"] == 1
     rigs[2].inner.land_error = None
-    rigs[2].sd.tick()  # the next control period retries the land
+    rigs[2].clock.t += SafetyLimits().land_retry_s
+    rigs[2].sd.tick()  # the next control period after land_retry_s retries the land
     assert rigs[2].sd.landed and rigs[2].inner.calls[-1] == "land"
 
 

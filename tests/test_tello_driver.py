@@ -24,6 +24,7 @@ from drivers.tello import TelloCommandError, TelloConfig, TelloDriver, TelloLink
 from drivers.tello_camera import TelloCamera
 from flightstack.camera_calibration import load_calibration
 from flightstack.geometry import Pose, rot_z
+from flightstack.hal import FlightPhase
 from flightstack.mission import CAMERA_MOUNTS
 from flightstack.tello_rc import RcGains, velocity_to_rc
 from flightstack.vision import extract_markers
@@ -227,20 +228,44 @@ def test_low_battery_fails_preflight(emu: TelloEmulator) -> None:
         d.close()
 
 
-def test_keepalive_holds_a_silent_loop_in_hover_and_stops_after_land(emu: TelloEmulator) -> None:
-    d = TelloDriver(config(emu, keepalive_s=0.5))
+def test_a_silent_loop_makes_the_drone_hover_then_land_by_itself(emu: TelloEmulator) -> None:
+    """The keep-alive is tied to the loop: no velocity for loop_hover_s -> rc 0 0 0 0; for loop_land_s ->
+    the driver lands on its own thread; nothing is sent after the drone is down (no hover forever)."""
+    d = TelloDriver(config(emu, loop_hover_s=0.3, loop_land_s=1.0))
     try:
         d.connect()
         d.takeoff()
         d.send_body_velocity(np.array([0.2, 0.0, 0.0, 0.0]))
+        t_last = time.monotonic()
         n = len(emu.rc_history)
         assert wait_until(lambda: len(emu.rc_history) > n and emu.rc_history[-1][1] == (0, 0, 0, 0), 2.0)
-        assert any(kind == "keepalive" for _, kind, _ in d.events)
-        assert emu.flying and not emu.landed_by_timeout
-        d.land()
+        t_hover = time.monotonic() - t_last
+        assert any(kind == "loop_silent_hover" for _, kind, _ in d.events)
+        assert wait_until(lambda: "land" in emu.command_texts(), 3.0)
+        t_land = time.monotonic() - t_last
+        assert 0.3 <= t_hover < 0.6 and 1.0 <= t_land < 1.5, (t_hover, t_land)
+        assert any(kind == "loop_lost_land" for _, kind, _ in d.events)
+        assert wait_until(lambda: d.phase is FlightPhase.GROUND, 10.0)
+        assert not emu.landed_by_timeout
         n = len(emu.rc_history)
-        time.sleep(1.5)  # three keep-alive periods on the ground
-        assert len(emu.rc_history) == n
+        time.sleep(1.0)
+        assert len(emu.rc_history) == n  # nothing sent on the ground
+        assert_clean(d, emu)
+    finally:
+        d.close()
+
+
+def test_a_loop_that_keeps_commanding_is_never_landed(emu: TelloEmulator) -> None:
+    d = TelloDriver(config(emu, loop_hover_s=0.3, loop_land_s=1.0))
+    try:
+        d.connect()
+        d.takeoff()
+        t_end = time.monotonic() + 2.0
+        while time.monotonic() < t_end:
+            d.send_body_velocity(np.zeros(4))
+            time.sleep(0.05)
+        assert "land" not in emu.command_texts() and d.phase is FlightPhase.AIRBORNE
+        d.land()
         assert_clean(d, emu)
     finally:
         d.close()

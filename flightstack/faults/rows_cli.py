@@ -163,7 +163,8 @@ def sigint_mid_flight(mission_path: Path, workdir: Path) -> FaultResult:
     """SIGINT to `flightstack sim` while the drones pursue the target."""
     wall0 = time.perf_counter()
     expected = (
-        "every drone lands (land_all: interrupted), the partial recording and metrics are written, exit 130"
+        "every drone lands (land_all from the signal handler: signal SIGINT), the partial recording and "
+        "metrics are written, exit 130"
     )
     out = workdir / "sigint" / "run"
     code, stderr = interrupt_sim(mission_path, out)
@@ -178,7 +179,7 @@ def sigint_mid_flight(mission_path: Path, workdir: Path) -> FaultResult:
     ends = [e for e in events if e.get("event") == "end"]
     react.check(len(ends) == 1 and ends[0].get("reason") == "interrupted", f"end events {ends}")
     land_all = [e for e in events if e.get("kind") == "land_all"]
-    react.check(bool(land_all) and "interrupted" in str(land_all[0]["detail"]), f"land_all {land_all}")
+    react.check(bool(land_all) and "signal SIGINT" in str(land_all[0]["detail"]), f"land_all {land_all}")
     for i in ids:
         fate = [e for e in events if e.get("drone") == i and e.get("event") in ("landed", "NOT LANDED")]
         ok = len(fate) == 1 and fate[0]["event"] == "landed" and float(fate[0]["height_m"]) <= 0.01

@@ -87,8 +87,8 @@ def link_loss(mission_path: Path, workdir: Path) -> FaultResult:
     """Drone 1's link is down for 3 s (no telemetry, commands and land unanswered)."""
     lost = Window(T_FAULT, T_FAULT + 3.0)
     expected = (
-        "that drone: link_lost at once, land pending (not sent while nothing can answer), sent and "
-        "accepted when the link returns; the other drone flies on"
+        "that drone: link_lost at once, zero velocity on every tick, land sent at once and re-sent every "
+        "land_retry_s, accepted when the link returns; the other drone flies on"
     )
     run = fly_with_faults(
         mission_path, workdir / "link_loss", FaultSpec(link_loss={1: lost}), duration_s=DURATION_S
