@@ -44,105 +44,39 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 
+from drivers.tello_config import (
+    DEFAULT_VIDEO_PORT,
+    PreflightCheck,
+    TelloCommandError,
+    TelloConfig,
+    TelloLinkError,
+    parse_int_reply,
+    parse_sdk,
+    parse_serial,
+)
 from drivers.tello_link import CommandChannel, StateReceiver
-from drivers.tello_phase import PhaseThresholds, PhaseTracker
+from drivers.tello_phase import PhaseTracker
 from drivers.tello_state import TelloTelemetry
 from flightstack.hal import DroneState, FlightPhase
-from flightstack.tello_rc import RcGains, velocity_to_rc
+from flightstack.tello_rc import velocity_to_rc
+
+__all__ = [
+    "DEFAULT_VIDEO_PORT",
+    "PreflightCheck",
+    "TelloCommandError",
+    "TelloConfig",
+    "TelloDriver",
+    "TelloLinkError",
+    "parse_int_reply",
+    "parse_sdk",
+    "parse_serial",
+]
 
 LOG = logging.getLogger("flightstack.tello")
-DEFAULT_VIDEO_PORT = 11111
 RC_REPLIES = ("error not joystick",)  # firmware answers to rc, never another command's answer
-
-
-class TelloLinkError(ConnectionError):
-    """The drone does not answer (connect) or its state stream stopped."""
-
-
-class TelloCommandError(RuntimeError):
-    """A blocking command (takeoff, land, streamon, …) failed or was not confirmed in time."""
-
-
-@dataclass(frozen=True)
-class TelloConfig:
-    """One Tello. `host` is its IP; `control_port` 8889 and `state_port` 8890 on a real drone.
-
-    `bind_ip`: local address for the command and state sockets ("" = all; access-point mode with one
-    Wi-Fi interface per drone may name the interface's address). Times in s, temperature in °C.
-    """
-
-    host: str
-    control_port: int = 8889
-    video_port: int = DEFAULT_VIDEO_PORT
-    state_port: int = 8890
-    bind_ip: str = ""
-    rc_gains: RcGains = field(default_factory=RcGains)
-    connect_timeout_s: float = 5.0
-    command_timeout_s: float = 3.0
-    takeoff_timeout_s: float = 20.0
-    land_timeout_s: float = 15.0
-    link_timeout_s: float = 1.0
-    keepalive_s: float = 5.0
-    """While takeoff() waits for its `ok`, a `battery?` probe every keepalive_s holds off the auto-land."""
-    loop_hover_s: float = 0.5
-    loop_land_s: float = 2.0
-    land_resend_s: float = 1.0
-    quiet_s: float = 0.15
-    min_battery_pct: float = 30.0
-    max_temperature_c: float = 85.0
-    min_wifi_snr: float = 20.0
-    downward_camera: bool = False
-    phase: PhaseThresholds = field(default_factory=PhaseThresholds)
-
-    def __post_init__(self) -> None:
-        if not self.keepalive_s < 15.0:
-            raise ValueError("keepalive_s must be below the Tello's 15 s auto-land")
-        if not 0.0 < self.loop_hover_s < self.loop_land_s < 15.0:
-            raise ValueError("need 0 < loop_hover_s < loop_land_s < 15 s (the Tello's own auto-land)")
-        if not self.land_resend_s > 0.0:
-            raise ValueError("land_resend_s must be > 0")
-        if not self.quiet_s >= 0.15:
-            raise ValueError("quiet_s must be at least 0.15 s")
-
-    @property
-    def sdk3_features(self) -> list[str]:
-        """The SDK-3.0-only features this configuration needs (empty: SDK 2.0 will do)."""
-        need = []
-        if self.video_port != DEFAULT_VIDEO_PORT:
-            need.append(f"per-drone video port {self.video_port} (`port`)")
-        if self.downward_camera:
-            need.append("downward camera (`downvision`)")
-        return need
-
-
-@dataclass(frozen=True)
-class PreflightCheck:
-    """One check; `warn`: a failed check is a warning (flyable, but look), not a blocker."""
-
-    name: str
-    ok: bool
-    detail: str
-    warn: bool = False
-
-
-def parse_sdk(reply: str) -> str | None:
-    """`sdk?` reply ("20", "30") → "2.0", "3.0"; None for anything else."""
-    r = reply.strip()
-    return f"{r[0]}.{r[1:]}" if r.isdigit() and 2 <= len(r) <= 3 else None
-
-
-def parse_serial(reply: str) -> str | None:
-    r = reply.strip()
-    return r if r.isalnum() and 6 <= len(r) <= 24 and not r.isdigit() else None
-
-
-def parse_int_reply(reply: str) -> str | None:
-    r = reply.strip()
-    return r if r.isdigit() and len(r) <= 3 else None
 
 
 class TelloDriver:
@@ -548,49 +482,9 @@ class TelloDriver:
     # ---- preflight --------------------------------------------------------------------------------
     def preflight(self) -> list[PreflightCheck]:
         """Battery, temperature, state stream, on the ground, SDK version and serial, Wi-Fi signal."""
-        st, cfg = self._state_fields, self.cfg
-        bat, temp = st.get("bat"), st.get("temph")
-        checks = [
-            PreflightCheck(
-                "battery",
-                bat is not None and bat >= cfg.min_battery_pct,
-                f"{bat:.0f} % (min {cfg.min_battery_pct:.0f} %)" if bat is not None else "not reported",
-            ),
-            PreflightCheck(
-                "temperature",
-                temp is not None and temp <= cfg.max_temperature_c,
-                f"{temp:.0f} °C (max {cfg.max_temperature_c:.0f} °C)" if temp is not None else "not reported",
-            ),
-        ]
-        alive = self.link_alive()
-        checks.append(PreflightCheck("state stream", alive, "alive" if alive else "silent"))
-        ph = self.phase
-        checks.append(
-            PreflightCheck("on the ground", ph is FlightPhase.GROUND, f"phase {ph.value}, h {st.get('h')} cm")
-        )
-        checks.append(self._sdk_check())
-        snr = self.query("wifi?", parse_int_reply)
-        checks.append(
-            PreflightCheck(
-                "wifi signal",
-                snr is not None and float(snr) >= cfg.min_wifi_snr,
-                f"SNR {snr} (min {cfg.min_wifi_snr:.0f})" if snr is not None else "`wifi?` not answered",
-                warn=True,
-            )
-        )
-        return checks
+        from drivers.tello_preflight import tello_preflight
 
-    def _sdk_check(self) -> PreflightCheck:
-        sdk, sn, need = self.sdk_version, self.serial or "serial unknown", self.cfg.sdk3_features
-        if sdk is None:
-            ok = not need
-            detail = f"`sdk?` not answered (SDK 1.3/2.0 firmware?), {sn}"
-        else:
-            ok = not need or float(sdk) >= 3.0
-            detail = f"SDK {sdk}, serial {sn}"
-        if not ok:
-            detail += f"; this mission needs SDK 3.0 for {', '.join(need)}: use access-point mode"
-        return PreflightCheck("firmware", ok, detail)
+        return tello_preflight(self)
 
     # ---- background: state freshness and the loop watchdog ------------------------------------------
     def _monitor_loop(self) -> None:

@@ -1,0 +1,99 @@
+"""The Tello driver's settings, errors and reply parsers (drivers/tello.py uses them; SDK 2.0/3.0 guides).
+
+Times in seconds, temperature in °C, ports UDP.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from drivers.tello_phase import PhaseThresholds
+from flightstack.tello_rc import RcGains
+
+DEFAULT_VIDEO_PORT = 11111
+
+
+class TelloLinkError(ConnectionError):
+    """The drone does not answer (connect) or its state stream stopped."""
+
+
+class TelloCommandError(RuntimeError):
+    """A blocking command (takeoff, land, streamon, …) failed or was not confirmed in time."""
+
+
+@dataclass(frozen=True)
+class TelloConfig:
+    """One Tello. `host` is its IP; `control_port` 8889 and `state_port` 8890 on a real drone.
+
+    `bind_ip`: local address for the command and state sockets ("" = all; access-point mode with one
+    Wi-Fi interface per drone may name the interface's address). Times in s, temperature in °C.
+    """
+
+    host: str
+    control_port: int = 8889
+    video_port: int = DEFAULT_VIDEO_PORT
+    state_port: int = 8890
+    bind_ip: str = ""
+    rc_gains: RcGains = field(default_factory=RcGains)
+    connect_timeout_s: float = 5.0
+    command_timeout_s: float = 3.0
+    takeoff_timeout_s: float = 20.0
+    land_timeout_s: float = 15.0
+    link_timeout_s: float = 1.0
+    keepalive_s: float = 5.0
+    """While takeoff() waits for its `ok`, a `battery?` probe every keepalive_s holds off the auto-land."""
+    loop_hover_s: float = 0.5
+    loop_land_s: float = 2.0
+    land_resend_s: float = 1.0
+    quiet_s: float = 0.15
+    min_battery_pct: float = 30.0
+    max_temperature_c: float = 85.0
+    min_wifi_snr: float = 20.0
+    downward_camera: bool = False
+    phase: PhaseThresholds = field(default_factory=PhaseThresholds)
+
+    def __post_init__(self) -> None:
+        if not self.keepalive_s < 15.0:
+            raise ValueError("keepalive_s must be below the Tello's 15 s auto-land")
+        if not 0.0 < self.loop_hover_s < self.loop_land_s < 15.0:
+            raise ValueError("need 0 < loop_hover_s < loop_land_s < 15 s (the Tello's own auto-land)")
+        if not self.land_resend_s > 0.0:
+            raise ValueError("land_resend_s must be > 0")
+        if not self.quiet_s >= 0.15:
+            raise ValueError("quiet_s must be at least 0.15 s")
+
+    @property
+    def sdk3_features(self) -> list[str]:
+        """The SDK-3.0-only features this configuration needs (empty: SDK 2.0 will do)."""
+        need = []
+        if self.video_port != DEFAULT_VIDEO_PORT:
+            need.append(f"per-drone video port {self.video_port} (`port`)")
+        if self.downward_camera:
+            need.append("downward camera (`downvision`)")
+        return need
+
+
+@dataclass(frozen=True)
+class PreflightCheck:
+    """One check; `warn`: a failed check is a warning (flyable, but look), not a blocker."""
+
+    name: str
+    ok: bool
+    detail: str
+    warn: bool = False
+
+
+def parse_sdk(reply: str) -> str | None:
+    """`sdk?` reply ("20", "30") → "2.0", "3.0"; None for anything else."""
+    r = reply.strip()
+    return f"{r[0]}.{r[1:]}" if r.isdigit() and 2 <= len(r) <= 3 else None
+
+
+def parse_serial(reply: str) -> str | None:
+    r = reply.strip()
+    return r if r.isalnum() and 6 <= len(r) <= 24 and not r.isdigit() else None
+
+
+def parse_int_reply(reply: str) -> str | None:
+    r = reply.strip()
+    return r if r.isdigit() and len(r) <= 3 else None

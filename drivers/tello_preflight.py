@@ -1,0 +1,63 @@
+"""Preflight checks of one connected Tello (`TelloDriver.preflight()`, `flightstack preflight`).
+
+The functions take the driver and read its latest telemetry and ask it `wifi?`).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from drivers.tello_config import PreflightCheck, parse_int_reply
+from flightstack.hal import FlightPhase
+
+if TYPE_CHECKING:
+    from drivers.tello import TelloDriver
+
+
+def tello_preflight(driver: TelloDriver) -> list[PreflightCheck]:
+    """Battery, temperature, state stream, on the ground, SDK version and serial, Wi-Fi signal."""
+    st, cfg = driver.current_state(), driver.cfg
+    bat, temp = st.get("bat"), st.get("temph")
+    checks = [
+        PreflightCheck(
+            "battery",
+            bat is not None and bat >= cfg.min_battery_pct,
+            f"{bat:.0f} % (min {cfg.min_battery_pct:.0f} %)" if bat is not None else "not reported",
+        ),
+        PreflightCheck(
+            "temperature",
+            temp is not None and temp <= cfg.max_temperature_c,
+            f"{temp:.0f} °C (max {cfg.max_temperature_c:.0f} °C)" if temp is not None else "not reported",
+        ),
+    ]
+    alive = driver.link_alive()
+    checks.append(PreflightCheck("state stream", alive, "alive" if alive else "silent"))
+    ph = driver.phase
+    checks.append(
+        PreflightCheck("on the ground", ph is FlightPhase.GROUND, f"phase {ph.value}, h {st.get('h')} cm")
+    )
+    checks.append(sdk_check(driver))
+    snr = driver.query("wifi?", parse_int_reply)
+    checks.append(
+        PreflightCheck(
+            "wifi signal",
+            snr is not None and float(snr) >= cfg.min_wifi_snr,
+            f"SNR {snr} (min {cfg.min_wifi_snr:.0f})" if snr is not None else "`wifi?` not answered",
+            warn=True,
+        )
+    )
+    return checks
+
+
+def sdk_check(driver: TelloDriver) -> PreflightCheck:
+    """FAIL when the mission needs SDK 3.0 features that the firmware lacks."""
+    sdk, sn, need = driver.sdk_version, driver.serial or "serial unknown", driver.cfg.sdk3_features
+    if sdk is None:
+        ok = not need
+        detail = f"`sdk?` not answered (SDK 1.3/2.0 firmware?), {sn}"
+    else:
+        ok = not need or float(sdk) >= 3.0
+        detail = f"SDK {sdk}, serial {sn}"
+    if not ok:
+        detail += f"; this mission needs SDK 3.0 for {', '.join(need)}: use access-point mode"
+    return PreflightCheck("firmware", ok, detail)
