@@ -1,6 +1,6 @@
 """Preflight checks of one connected Tello (`TelloDriver.preflight()`, `flightstack preflight`).
 
-The functions take the driver and read its latest telemetry and ask it `wifi?`).
+The functions take the driver, read its latest telemetry and ask it `wifi?`.
 """
 
 from __future__ import annotations
