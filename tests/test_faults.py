@@ -16,7 +16,7 @@ import pytest
 
 from flightstack import faults
 from flightstack.faults import cli as faults_cli
-from flightstack.faults.inject import FaultyDrone, LinkLostError, Window
+from flightstack.faults.inject import FaultyDrone, Window
 from flightstack.faults.result import FaultResult
 from flightstack.hal import DroneState, StampedPose
 from flightstack.safety import EventLog, SafeDrone, SafetyLimits

@@ -54,7 +54,7 @@ def fleet2() -> tuple[MissionSupervisor, Rig, Rig, FakeClock]:
 
 
 def test_a_blocking_land_never_blocks_the_tick_and_the_other_drone_stays_supervised() -> None:
-    sup, r1, r2, clock = fleet2()
+    _sup, r1, r2, clock = fleet2()
     block = BlockingLand(r1)
     r1.move((2.5, 0.0, 1.0))  # beyond the hard fence (2.0 + 0.3): land
     worst = 0.0
@@ -77,7 +77,7 @@ def test_a_blocking_land_never_blocks_the_tick_and_the_other_drone_stays_supervi
 
 
 def test_land_all_starts_every_landing_at_once_and_returns() -> None:
-    sup, r1, r2, clock = fleet2()
+    sup, r1, r2, _clock = fleet2()
     blocks = [BlockingLand(r1), BlockingLand(r2)]
     t0 = time.perf_counter()
     sup.land_all("target lost")
@@ -92,7 +92,7 @@ def test_land_all_starts_every_landing_at_once_and_returns() -> None:
 
 
 def test_a_failed_land_is_retried_at_a_bounded_rate() -> None:
-    sup, r1, _, clock = fleet2()
+    _sup, r1, _, clock = fleet2()
     r1.inner.land_error = TimeoutError("land not confirmed")
     r1.sd.land("test")
     assert wait_until(lambda: r1.inner.calls.count("land") == 1)
