@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.guardian import Guardian, GuardianConfig
 from drivers.mocap import MocapConfig, MocapPoseSource
 from drivers.scamper import ScamperConfig, ScamperDriver
 from drivers.tello import TelloConfig, TelloDriver
@@ -116,14 +117,25 @@ class _UnknownPose:
 UNKNOWN_POSE: Any = _UnknownPose()
 
 
+class GuardianTakeoverError(RuntimeError):
+    """The guardian process took over this process's devices (it had stalled): end the run."""
+
+
 class HardwareBackend:
     """hal.Backend of the lab. `truth()` returns the motion-capture poses (the lab's reference)."""
 
     simulated = False
 
-    def __init__(self, mission: Mission, drone_ids: list[int] | None = None) -> None:
+    def __init__(
+        self, mission: Mission, drone_ids: list[int] | None = None, guardian_log: str | None = None
+    ) -> None:
         """drone_ids: the drones this process flies (`flightstack agent --id N`); the robot is then left
-        to `flightstack target` (None: every drone, and the robot when hardware.target is set)."""
+        to `flightstack target` (None: every drone, and the robot when hardware.target is set).
+
+        A guardian process (drivers/guardian.py) is started before any device is connected: if this
+        process dies or its control loop stops beating (`heartbeat()`, every tick, armed at the first
+        one) it hovers and lands these drones and stops and disarms the robot from its own sockets, and
+        mutes this process's drivers for good. guardian_log: a file for its log (default: none)."""
         if mission.hardware is None:
             raise ValueError("backend 'tello' needs the mission's hardware section")
         self.mission = mission
@@ -140,7 +152,17 @@ class HardwareBackend:
         sc = scamper_config(mission) if drone_ids is None else None
         self.robot: ScamperDriver | None = None if sc is None else ScamperDriver(sc)
         self._last_truth: dict[str, Pose] = {}
+        self.guardian: Guardian | None = None
+        self._armed = False
+        self._takeover_reported = False
         try:
+            self.guardian = Guardian.start(
+                GuardianConfig.for_devices(
+                    [tello_config(mission, i) for i in self.drone_ids],
+                    None if sc is None else sc.url,
+                    log_path=guardian_log or "",
+                )
+            )
             self._connect_all()
         except BaseException:
             self.close()
@@ -154,11 +176,15 @@ class HardwareBackend:
                 continue
             drv = TelloDriver(tello_config(self.mission, d.id))
             self.drones[d.id] = drv
+            if self.guardian is not None:
+                drv.set_muted(self.guardian.taken_over)
             drv.connect()
             cam = TelloCamera(drv, self.mission.hardware.drone(d.id).frame_timeout_s)
             self.cameras[d.id] = cam
             cam.start()
         if self.robot is not None:
+            if self.guardian is not None:
+                self.robot.set_muted(self.guardian.taken_over)
             self.robot.connect()
 
     # ---- hal.Backend ------------------------------------------------------------------------------
@@ -183,10 +209,32 @@ class HardwareBackend:
         target = self._last_truth.get("target", UNKNOWN_POSE)
         return target, {d: self._last_truth.get(f"drone{d}", UNKNOWN_POSE) for d in self.drones}
 
+    def heartbeat(self) -> None:
+        """One control tick, for the guardian (the runner calls it every tick, also in takeoff and landing).
+
+        Raises GuardianTakeoverError once when the guardian has taken over (this process is then muted:
+        the run must end); never otherwise."""
+        g = self.guardian
+        if g is None:
+            return
+        if not self._armed:
+            g.arm()
+            self._armed = True
+        g.heartbeat()
+        if g.taken_over() and not self._takeover_reported:
+            self._takeover_reported = True
+            raise GuardianTakeoverError(
+                "the guardian process took over (this process stalled): it lands the drones; nothing more "
+                "is sent from here"
+            )
+
     def close(self) -> None:
-        """Land every drone still flying, stop video, stop and disarm the robot, close motion capture.
+        """Land every drone still flying, stop video, stop and disarm the robot, close motion capture,
+        then tell the guardian the run ended normally.
 
         Never raises: every failure is logged and the remaining devices are still closed."""
+        if self.guardian is not None:
+            self.guardian.arm(False)  # the blocking lands below must not read as a stalled loop
         for i, drv in self.drones.items():
             if drv.state().phase != FlightPhase.GROUND:  # taking off, airborne, landing or unknown
                 try:
@@ -203,6 +251,11 @@ class HardwareBackend:
             with contextlib.suppress(Exception):
                 self.robot.close()
         self.mocap.close()
+        if self.guardian is not None:
+            code = self.guardian.finish()
+            if code is None:
+                LOG.error("the guardian is still landing after a takeover; it exits when the drones are down")
+            self.guardian = None
 
 
 def build_tello(mission: Mission) -> HardwareBackend:

@@ -13,24 +13,34 @@ misrepresent them.
 The `mock` backend publishes fixed rigid bodies given in its settings, e.g.
     MocapConfig("mock", {"rigid_bodies": "cf1(x,y,z,qw,qx,qy,qz);cf2(...)", "frequency": "100"})
 (`frequency` in Hz, integer, default 100).
+
+The reader thread never ends on an error: an exception from `waitForNextFrame` or from reading a frame
+(a socket error such as ENETUNREACH, a bad frame, a backend bug) is counted (`counts["reader_error"]` and
+`counts["thread_error"]`), logged at the first and every 100th occurrence, recorded as one
+"reader_error" event per run of failures (and "reader_recovered" when frames come again), and the thread
+reads on after a pause of `ERROR_PAUSE_S` (so a backend that fails at once cannot spin a core). Poses
+simply go stale (`latest()` None) while it fails.
 """
 
 from __future__ import annotations
 
 import importlib
+import logging
 import math
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from drivers.tello_link import ERROR_PAUSE_S, ErrorLog
 from flightstack.geometry import Pose
 from flightstack.hal import StampedPose
 
+LOG = logging.getLogger("flightstack.mocap")
 RATE_WINDOW_S = 2.0  # window of the receive-rate estimate (s)
 MAX_EVENTS = 10_000  # oldest events are dropped beyond this many
 
@@ -138,7 +148,8 @@ class MocapPoseSource:
 
     Call `start()` (connects, bounded by `connect_timeout_s`), then `latest(body)` from any thread; `close()`
     stops the reader. `events` records (time s, kind, body name) transitions: "body_found", "body_lost",
-    "body_regained", "tilt_refused", "tilt_ok", "bad_sample", "reader_error", "reader_join_timeout".
+    "body_regained", "tilt_refused", "tilt_ok", "bad_sample", "reader_error" (detail: the error),
+    "reader_recovered", "reader_join_timeout". `counts`: "reader_error", "thread_error" (errors so far).
     """
 
     def __init__(
@@ -160,8 +171,11 @@ class MocapPoseSource:
         self._mc: Any = None
         self._frames = 0
         self._last_frame: float | None = None
-        self._reader_error: str | None = None
+        self._reader_error: str | None = None  # the last error of the reader thread (kept after recovery)
+        self._failing = False  # the reader's last attempt failed
         self.events: list[tuple[float, str, str]] = []
+        self.counts: Counter[str] = Counter()
+        self.errors = ErrorLog(self.counts, f"mocap {cfg.system} reader", LOG)
 
     # ---- lifecycle --------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -256,6 +270,8 @@ class MocapPoseSource:
                 "connected": self._connected.is_set() and self._connect_error is None,
                 "reader_alive": th is not None and th.is_alive(),
                 "reader_error": self._reader_error,
+                "reader_failing": self._failing,
+                "reader_errors": self.counts["reader_error"],
                 "frames": self._frames,
                 "last_frame_age_s": None if self._last_frame is None else now - self._last_frame,
                 "bodies": bodies,
@@ -294,10 +310,19 @@ class MocapPoseSource:
                     break
                 t = self._clock()
                 self._ingest(t, mc.rigidBodies)
-            except Exception as exc:
-                self._reader_error = f"{type(exc).__name__}: {exc}"
-                self._event("reader_error", self._reader_error)
-                break
+            except Exception as exc:  # the reader must outlive any error: count, log, read on
+                self._reader_failed(exc)
+                self._stop.wait(ERROR_PAUSE_S)
+
+    def _reader_failed(self, exc: Exception) -> None:
+        """Count and log one reader error; the first of a run of failures is an event."""
+        why = f"{type(exc).__name__}: {exc}"
+        self.errors.record("reader_error", why)
+        with self._lock:
+            self._reader_error = why
+            if not self._failing:
+                self._failing = True
+                self._event("reader_error", why)
 
     def _ingest(self, t: float, rigid_bodies: Any) -> None:
         """Store one frame received at t (s): update seen bodies, mark vanished ones lost."""
@@ -305,6 +330,9 @@ class MocapPoseSource:
         with self._lock:
             self._frames += 1
             self._last_frame = t
+            if self._failing:
+                self._failing = False
+                self._event("reader_recovered", f"after {self.counts['reader_error']} errors in all")
             for name, rb in rigid_bodies.items():
                 rot = rb.rotation
                 try:

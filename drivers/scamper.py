@@ -10,8 +10,10 @@ requested state.  Only the autopilot's heartbeats count: the first vehicle heart
 ``MAV_AUTOPILOT_INVALID``) fixes the (system, component) listened to; a companion computer's heartbeats
 (mode 0, disarmed) are ignored.
 
-* ``connect()`` opens the pymavlink connection (``ScamperConfig.url``), starts one I/O thread that sends a
-  GCS HEARTBEAT at 1 Hz and receives everything, waits for the robot's HEARTBEAT (``ScamperLinkError``
+* ``connect()`` opens the pymavlink connection (``ScamperConfig.url``) and starts its two threads
+  (drivers/scamper_link.py: ``scamper-rx`` receives everything, ``scamper-tx`` sends a GCS HEARTBEAT at
+  1 Hz and streams the set-point; neither ends on an error, each error is counted in ``counts`` and
+  logged without flooding), waits for the robot's HEARTBEAT (``ScamperLinkError``
   naming the URL after ``heartbeat_timeout_s``), then sets GUIDED (``COMMAND_LONG MAV_CMD_DO_SET_MODE``,
   param2 = 15) and arms (``MAV_CMD_COMPONENT_ARM_DISARM``, param1 = 1).  Each change (`_ensure`):
 
@@ -29,8 +31,8 @@ requested state.  Only the autopilot's heartbeats count: the first vehicle heart
   A change takes at most ``command_sends · ack_timeout_s`` + 2 heartbeat periods, ``connect()`` at most
   ``heartbeat_timeout_s`` + twice that (defaults: 5 + 2 · 8 = 21 s).  On failure after an arm was sent,
   a best-effort disarm (same rules, never raises) runs, then everything is closed.
-* ``send_body_velocity(V)`` only stores the set-point; the I/O thread re-sends it at ``stream_hz``
-  (ArduPilot Rover stops after ~3 s without one) as ``SET_POSITION_TARGET_LOCAL_NED`` in
+* ``send_body_velocity(V)`` stores the set-point and sends it at once; ``scamper-tx`` re-sends it at
+  ``stream_hz`` (ArduPilot Rover stops after ~3 s without one) as ``SET_POSITION_TARGET_LOCAL_NED`` in
   ``MAV_FRAME_BODY_NED`` with ``type_mask`` 1511 (only vx, vy and yaw_rate used).
 * While running, a heartbeat showing another mode (RC mode switch, failsafe, another GCS) logs
   ``mode_changed`` once per change; armed -> disarmed logs ``disarmed_by_robot`` (back: ``armed_by_robot``).
@@ -41,6 +43,11 @@ requested state.  Only the autopilot's heartbeats count: the first vehicle heart
   effort: any failure (refused, ACCEPTED but still armed, no answer) is the event ``disarm_failed``, never
   an exception; nothing is sent when a fresh heartbeat already shows disarmed.
 * No HEARTBEAT for ``link_timeout_s``: event ``link_lost`` (``link_alive()`` False); back: ``link_restored``.
+* Mute (guardian takeover): ``ScamperDriver(config, muted=fn)`` or ``driver.set_muted(fn)`` at any time;
+  ``fn()`` is called right before every MAVLink write (set-points, GCS heartbeats, mode/arm/disarm
+  commands, from any thread); while it returns True nothing is written (``counts["muted"]``), a mode or
+  arm change fails at once (``ScamperCommandError``) and ``close()`` skips the disarm (event
+  ``disarm_skipped_muted``: the process that took over is in charge).
 
 Frames and units: ``V = [v_x, v_y, v_z, ω]`` is a body velocity in the flightstack body frame FLU
 (x forward, y left, z up; m/s, and ω in rad/s counter-clockwise seen from above).  MAVLink's body NED/FRD
@@ -53,10 +60,10 @@ it derives speed/heading from (vx, vy), so ``v_y`` is only meaningful for an omn
 
 from __future__ import annotations
 
-import contextlib
 import math
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -64,54 +71,40 @@ from typing import Any
 import numpy as np
 from pymavlink import mavutil
 
+from drivers.scamper_link import (
+    GCS_HEARTBEAT_PERIOD_S,
+    ROVER_GUIDED_MODE,
+    TYPE_MASK_VEL_YAWRATE,
+    HeartbeatProbe,
+    ScamperCommandError,
+    ScamperConfig,
+    ScamperError,
+    ScamperLink,
+    ScamperLinkError,
+    is_vehicle_heartbeat,
+    probe_heartbeat,
+)
+from drivers.tello_link import MutedCheck
+
+__all__ = [
+    "GCS_HEARTBEAT_PERIOD_S",
+    "ROVER_GUIDED_MODE",
+    "TYPE_MASK_VEL_YAWRATE",
+    "HeartbeatProbe",
+    "RobotState",
+    "ScamperCommandError",
+    "ScamperConfig",
+    "ScamperDriver",
+    "ScamperError",
+    "ScamperLinkError",
+    "mode_name",
+    "probe_heartbeat",
+]
+
 mavlink = mavutil.mavlink
 
-ROVER_GUIDED_MODE = 15
-# Ignore x, y, z (1, 2, 4), vz (32), afx/afy/afz (64, 128, 256), yaw (1024); use vx, vy, yaw_rate.
-TYPE_MASK_VEL_YAWRATE = 1511
-GCS_HEARTBEAT_PERIOD_S = 1.0
 DEFAULT_HEARTBEAT_PERIOD_S = 1.0  # ArduPilot's HEARTBEAT rate, assumed until measured
 _PENDING_RESULTS = (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
-_NOT_VEHICLE_TYPES = (
-    mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_GIMBAL, mavlink.MAV_TYPE_ADSB, mavlink.MAV_TYPE_ONBOARD_CONTROLLER
-)  # fmt: skip
-_GCS_HEARTBEAT = (mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE)
-
-
-class ScamperError(RuntimeError):
-    """Base class of Scamper driver errors."""
-
-
-class ScamperLinkError(ScamperError):
-    """No (or no more) HEARTBEAT from the robot."""
-
-
-class ScamperCommandError(ScamperError):
-    """A mode change or (dis)arm was rejected, or the robot's HEARTBEAT never showed it."""
-
-
-@dataclass(frozen=True)
-class ScamperConfig:
-    """Connection and timing parameters (all times in seconds, rates in Hz)."""
-
-    url: str = "udpout:127.0.0.1:14550"  # pymavlink connection string of the robot
-    heartbeat_timeout_s: float = 5.0  # connect(): max wait for the robot's first HEARTBEAT
-    ack_timeout_s: float = 2.0  # wait for a COMMAND_ACK (or heartbeat change) before re-sending
-    stream_hz: float = 10.0  # set-point re-send rate (>= 1 Hz needed; Rover stops after 3 s)
-    link_timeout_s: float = 3.0  # no HEARTBEAT for this long -> link lost
-    source_system: int = 255  # our MAVLink system id (GCS convention)
-    source_component: int = 190  # MAV_COMP_ID_MISSIONPLANNER
-    command_sends: int = 3  # max sends of one COMMAND_LONG that gets neither ACK nor heartbeat change
-
-    def __post_init__(self) -> None:
-        for name in ("heartbeat_timeout_s", "ack_timeout_s", "stream_hz", "link_timeout_s"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"ScamperConfig.{name} must be finite and > 0, got {value}")
-        if self.stream_hz < 1.0:
-            raise ValueError(f"ScamperConfig.stream_hz must be >= 1 Hz, got {self.stream_hz}")
-        if self.command_sends < 1:
-            raise ValueError(f"ScamperConfig.command_sends must be >= 1, got {self.command_sends}")
 
 
 @dataclass(frozen=True)
@@ -144,38 +137,30 @@ def _result_name(result: int) -> str:
     return enum[result].name.removeprefix("MAV_RESULT_") if result in enum else str(result)
 
 
-def _is_vehicle_heartbeat(msg: Any) -> bool:
-    """As pymavlink's ``mavfile.probably_vehicle_heartbeat``: not a GCS, gimbal, ADS-B or companion."""
-    return (
-        msg.get_srcComponent() != mavlink.MAV_COMP_ID_GIMBAL
-        and msg.type not in _NOT_VEHICLE_TYPES
-        and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID
-    )
-
-
 class ScamperDriver:
     """MAVLink driver of the Scamper ground robot; implements `flightstack.hal.GroundRobot`.
 
     ``events`` is a list of ``(t, kind, detail)`` with ``t`` from ``time.monotonic()`` (s) and ``kind`` one
     of ``connected``, ``link_lost``, ``link_restored``, ``no_command_needed``, ``command_resent``,
     ``ack_lost_confirmed_by_heartbeat``, ``ack_contradicted_by_heartbeat``, ``mode_changed``,
-    ``disarmed_by_robot``, ``armed_by_robot``, ``disarm_failed``.  ``resends`` counts COMMAND_LONG re-sends.
+    ``disarmed_by_robot``, ``armed_by_robot``, ``disarm_failed``, ``disarm_skipped_muted``.  ``resends``
+    counts COMMAND_LONG re-sends; ``counts`` the link's sends and errors (drivers/scamper_link.py: "sent",
+    "muted", "send_error", "recv_error", "rx_error", "tx_error", "thread_error", "muted_check_error").
     """
 
-    def __init__(self, config: ScamperConfig | None = None) -> None:
+    def __init__(self, config: ScamperConfig | None = None, muted: MutedCheck | None = None) -> None:
+        """muted: the guardian's takeover check (module docstring); also settable by `set_muted`."""
         self.config = config or ScamperConfig()
         self.events: list[tuple[float, str, str]] = []
         self.resends = 0  # COMMAND_LONG re-sends (no ACK and no heartbeat change in time)
-        self._conn: Any = None
+        self.counts: Counter[str] = Counter()
+        self._muted = muted
+        self._link: ScamperLink | None = None
         self._lock = threading.Lock()  # guards set-point, acks, heartbeat state, events
-        self._send_lock = threading.Lock()  # serialises writes on the pymavlink connection
         self._cv = threading.Condition(self._lock)
         self._ack_log: list[tuple[int, int]] = []  # every COMMAND_ACK received: (command, result)
         self._setpoint = np.zeros(3)  # NED body: vx (m/s), vy right (m/s), yaw_rate clockwise (rad/s)
         self._streaming = False
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._t0 = time.monotonic()
         self._last_hb: float | None = None
         self._hb_seq = 0  # robot heartbeats received so far
         self._hb_mode: int | None = None
@@ -193,17 +178,13 @@ class ScamperDriver:
         on failure the robot is disarmed if an arm was sent (best effort) and everything is closed again.
         """
         cfg = self.config
-        if self._thread is not None:
+        if self._link is not None:
             raise ScamperError("ScamperDriver.connect() called twice")
-        self._conn = mavutil.mavlink_connection(
-            cfg.url, source_system=cfg.source_system, source_component=cfg.source_component
-        )
         with self._lock:  # a reconnect learns the robot's state afresh
             self._last_hb = self._hb_mode = self._hb_armed = self._hb_period = None
             self._arm_sent = False
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="scamper-io", daemon=True)
-        self._thread.start()
+        self._link = ScamperLink(cfg, self.counts, self._muted)
+        self._link.start(self._on_message, self._stream_tick)
         try:
             deadline = time.monotonic() + cfg.heartbeat_timeout_s
             with self._lock:
@@ -246,6 +227,29 @@ class ScamperDriver:
             self._setpoint = ned
         self._wake()
 
+    def set_muted(self, muted: MutedCheck | None) -> None:
+        """Install (or with None remove) the guardian's takeover check, effective for the very next send."""
+        self._muted = muted
+        link = self._link
+        if link is not None:
+            link.muted = muted
+
+    def is_muted(self) -> bool:
+        """What the takeover check says now (False without one; a check that raises does not mute)."""
+        link = self._link
+        if link is not None:
+            return link.is_muted()
+        check = self._muted
+        try:
+            return check is not None and bool(check())
+        except Exception:
+            return False
+
+    def threads_alive(self) -> dict[str, bool]:
+        """Name → alive of the link's background threads (empty before connect and after close)."""
+        link = self._link
+        return {} if link is None else link.threads_alive()
+
     def stop(self) -> None:
         """Zero the set-point; the zero is sent immediately (if connected) and then streamed."""
         with self._lock:
@@ -271,7 +275,7 @@ class ScamperDriver:
 
     def close(self) -> None:
         """Zero the set-point, disarm (best effort, bounded, never raises), stop the I/O; idempotent."""
-        if self._thread is None:
+        if self._link is None:
             return
         self.stop()
         with self._lock:
@@ -310,38 +314,32 @@ class ScamperDriver:
             self._send_setpoint(sp)
 
     def _shutdown(self) -> None:
-        self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=1.0)
-        self._thread = None
+        link, self._link = self._link, None
         with self._lock:
             self._streaming = False
             self._link_alive = False
-        if self._conn is not None:
-            with contextlib.suppress(OSError):
-                self._conn.close()
-            self._conn = None
-
-    def _send(self, fn: str, *args: Any) -> None:
-        conn = self._conn
-        if conn is None:
-            return
-        with self._send_lock, contextlib.suppress(OSError):
-            getattr(conn.mav, fn)(*args)
+        if link is not None:
+            link.close()
 
     def _send_setpoint(self, sp: np.ndarray) -> None:
-        t_ms = int((time.monotonic() - self._t0) * 1000.0) & 0xFFFFFFFF
-        sysid, compid = self._target
-        vx, vy, r = (float(x) for x in sp)
-        self._send(
-            "set_position_target_local_ned_send",
-            t_ms, sysid, compid, mavlink.MAV_FRAME_BODY_NED, TYPE_MASK_VEL_YAWRATE,
-            0.0, 0.0, 0.0, vx, vy, 0.0, 0.0, 0.0, 0.0, 0.0, r,
-        )  # fmt: skip
+        """Send the set-point sp (body NED) now, from the caller's thread (never raises)."""
+        link = self._link
+        if link is not None:
+            with self._lock:
+                target = self._target
+            link.send_setpoint(target, sp)
+
+    def _stream_tick(self) -> None:
+        """scamper-tx, at stream_hz: re-send the current set-point while streaming."""
+        with self._lock:
+            streaming, sp = self._streaming, self._setpoint.copy()
+        if streaming:
+            self._send_setpoint(sp)
 
     def _disarm_best_effort(self) -> None:
-        """Disarm unless a fresh heartbeat shows disarmed (or we never armed and it never showed armed)."""
-        if self._thread is None:
+        """Disarm unless a fresh heartbeat shows disarmed (or we never armed and it never showed armed),
+        or the driver is muted (the process that took over is in charge of the robot)."""
+        if self._link is None:
             return
         with self._lock:
             now = time.monotonic()
@@ -349,6 +347,10 @@ class ScamperDriver:
                 return
             if not (self._arm_sent or self._hb_armed):
                 return
+        if self.is_muted():
+            with self._lock:
+                self._event("disarm_skipped_muted", "muted: another process has taken over the robot")
+            return
         try:
             self._ensure("disarm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0, 0.0, lambda m, a: a is False)
         except ScamperError as exc:
@@ -421,47 +423,30 @@ class ScamperDriver:
             if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM and p1 > 0.5:
                 self._arm_sent = True
             t_send = time.monotonic()
-            self._send("command_long_send", sysid, compid, command, sends - 1, p1, p2, 0, 0, 0, 0, 0)
+            link = self._link
+            result = (
+                "closed" if link is None else link.send_command((sysid, compid), command, sends - 1, p1, p2)
+            )
+            if result == "muted":
+                raise ScamperCommandError(
+                    f"{label} to Scamper at {cfg.url!r} not sent: muted (another process has taken over)"
+                )
 
-    def _run(self) -> None:
-        """I/O thread: GCS heartbeat at 1 Hz, set-point at stream_hz, receive, link supervision."""
+    def _on_message(self, msg: Any, now: float) -> None:
+        """scamper-rx: one received message (or None after a quiet wait), then link supervision."""
         cfg = self.config
-        period = 1.0 / cfg.stream_hz
-        next_hb = next_sp = time.monotonic()
-        while not self._stop.is_set():
-            now = time.monotonic()
-            if now >= next_hb:
-                next_hb = now + GCS_HEARTBEAT_PERIOD_S
-                self._send("heartbeat_send", *_GCS_HEARTBEAT)
-            if now >= next_sp:
-                next_sp = now + period
-                with self._lock:
-                    streaming, sp = self._streaming, self._setpoint.copy()
-                if streaming:
-                    self._send_setpoint(sp)
-            try:
-                msg = self._conn.recv_match(blocking=True, timeout=min(0.02, max(0.0, next_sp - now)))
-            except (OSError, ValueError):
-                msg = None
-                if self._stop.wait(0.02):
-                    break
-            now = time.monotonic()
-            with self._lock:
-                if msg is not None:
-                    self._handle(msg, now)
-                if (
-                    self._link_alive
-                    and self._last_hb is not None
-                    and now - self._last_hb > cfg.link_timeout_s
-                ):
-                    self._link_alive = False
-                    self._event("link_lost", f"no HEARTBEAT from {cfg.url} for {now - self._last_hb:.1f} s")
+        with self._lock:
+            if msg is not None:
+                self._handle(msg, now)
+            if self._link_alive and self._last_hb is not None and now - self._last_hb > cfg.link_timeout_s:
+                self._link_alive = False
+                self._event("link_lost", f"no HEARTBEAT from {cfg.url} for {now - self._last_hb:.1f} s")
 
     def _handle(self, msg: Any, now: float) -> None:
         """Process one received message; caller holds the lock."""
         mtype = msg.get_type()
         if mtype == "HEARTBEAT":
-            if not _is_vehicle_heartbeat(msg):
+            if not is_vehicle_heartbeat(msg):
                 return
             src = (msg.get_srcSystem(), msg.get_srcComponent())
             if self._last_hb is None:
@@ -498,47 +483,3 @@ class ScamperDriver:
             elif self._hb_armed is False and armed:
                 self._event("armed_by_robot", f"robot reports armed again in {mode_name(mode)}")
         self._hb_mode, self._hb_armed = mode, armed
-
-
-@dataclass(frozen=True)
-class HeartbeatProbe:
-    """What one HEARTBEAT of the robot said (for `flightstack preflight`); mode is Rover's custom mode."""
-
-    mav_type: int
-    custom_mode: int
-    armed: bool
-
-
-def probe_heartbeat(config: ScamperConfig) -> HeartbeatProbe:
-    """Wait up to heartbeat_timeout_s for the robot's HEARTBEAT without changing its mode or arming it.
-
-    Sends GCS heartbeats meanwhile (a `udpin` vehicle only learns our address from what we send); only a
-    vehicle's heartbeat counts (not a companion computer's, gimbal's, GCS's).  Raises ScamperLinkError
-    when nothing arrives in time.
-    """
-    conn = mavutil.mavlink_connection(
-        config.url, source_system=config.source_system, source_component=config.source_component
-    )
-    try:
-        deadline = time.monotonic() + config.heartbeat_timeout_s
-        next_hb = 0.0
-        while True:
-            now = time.monotonic()
-            if now >= deadline:
-                raise ScamperLinkError(
-                    f"no HEARTBEAT from Scamper at {config.url!r} within {config.heartbeat_timeout_s:g} s"
-                )
-            if now >= next_hb:
-                next_hb = now + 0.25
-                with contextlib.suppress(OSError):
-                    conn.mav.heartbeat_send(*_GCS_HEARTBEAT)
-            try:
-                msg = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=min(0.05, deadline - now))
-            except (OSError, ValueError):
-                msg = None
-            if msg is not None and _is_vehicle_heartbeat(msg):
-                armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-                return HeartbeatProbe(int(msg.type), int(msg.custom_mode), armed)
-    finally:
-        with contextlib.suppress(OSError):
-            conn.close()

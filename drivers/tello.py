@@ -3,7 +3,7 @@
 Written against the Tello SDK 2.0 and 3.0 user guides (Tello EDU firmware 02.05.01.x with SDK 3.0;
 SDK 2.0 firmware lacks `port`, `downvision` and the other SDK-3.0-only commands). Transport:
 drivers/tello_link.py (own command socket per drone, shared state-port receiver); phase: drivers/
-tello_phase.py; video decoding: djitellopy's BackgroundFrameRead (PyAV).
+tello_phase.py; video: drivers/tello_camera.py (own UDP receiver and PyAV decoder).
 
 Principles (README "Tello driver", docs/architecture.md decision 26):
 - **Telemetry decides.** The state stream gives the phase (ground, taking off, airborne, landing).
@@ -57,7 +57,7 @@ from drivers.tello_config import (
     parse_sdk,
     parse_serial,
 )
-from drivers.tello_link import CommandChannel, StateReceiver
+from drivers.tello_link import CommandChannel, ErrorLog, StateReceiver
 from drivers.tello_phase import PhaseTracker
 from drivers.tello_state import TelloTelemetry
 from flightstack.hal import DroneState, FlightPhase
@@ -104,6 +104,8 @@ class TelloDriver:
         self.events: list[tuple[float, str, str]] = []
         self.counts: Counter[str] = Counter()
         self.rc_sent = 0
+        self._muted: Callable[[], bool] | None = None
+        self._errors = ErrorLog(self.counts, f"tello {cfg.host} monitor", LOG)
         self.sdk_version: str | None = None
         self.serial: str | None = None
 
@@ -228,7 +230,7 @@ class TelloDriver:
         cfg = self.cfg
         try:
             self._rx = StateReceiver.acquire(cfg.host, self._on_state, cfg.state_port, cfg.bind_ip)
-            self._chan = CommandChannel(cfg.host, cfg.control_port, cfg.bind_ip)
+            self._chan = CommandChannel(cfg.host, cfg.control_port, cfg.bind_ip, muted=self.is_muted)
         except OSError as exc:
             self.close()
             raise TelloLinkError(f"Tello at {cfg.host}: {exc}") from exc
@@ -487,13 +489,21 @@ class TelloDriver:
         return tello_preflight(self)
 
     # ---- background: state freshness and the loop watchdog ------------------------------------------
+    def set_muted(self, muted: Callable[[], bool] | None) -> None:
+        """After `muted()` returns True nothing more is sent to the drone (a guardian process took it over:
+        drivers/guardian.py); checked right before every datagram, from every thread."""
+        self._muted = muted
+
+    def is_muted(self) -> bool:
+        m = self._muted
+        return m is not None and m()
+
     def _monitor_loop(self) -> None:
         while not self._stop.wait(0.02):
             try:
                 self._monitor_step(time.monotonic())
-            except Exception as exc:  # the monitor must outlive any error
-                self.counts["monitor_error"] += 1
-                LOG.exception("tello %s monitor: %s", self.cfg.host, exc)
+            except Exception as exc:  # the monitor must outlive any error (counted, logged sparsely)
+                self._errors.record("monitor_error", exc)
 
     def _monitor_step(self, now: float) -> None:
         age = now - self._last_state_t

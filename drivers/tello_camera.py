@@ -1,44 +1,156 @@
 """The Tello's video as a hal.Camera (forward camera, or the EDU's downward one with `downvision 1`).
 
-The drone streams H.264 over UDP to `video_port` of this computer after `streamon`; djitellopy's
-BackgroundFrameRead decodes it with PyAV. A per-drone `video_port` (`port` command) and the downward
-camera need SDK 3.0: `start()` refuses them on older firmware before sending anything.
+The drone streams H.264 (Annex B) over UDP to `video_port` of this computer after `streamon`.
+`VideoReceiver` reads that port with its own socket and decodes with PyAV (`av.CodecContext` parser +
+decoder) in one daemon thread. Why not djitellopy's BackgroundFrameRead (used before): its thread ends for
+good on the first decode error or end of stream, its stop() is only seen after the next frame (a drone
+that stopped streaming leaves the thread blocked forever), and its socket lives inside FFmpeg, out of reach
+of any error accounting. Here the thread survives every error: a socket error (`recv_error`), a frame the
+decoder rejects (`decode_error`, routine on a lossy stream: the next keyframe resynchronises), or anything
+else (`reader_error`, after which the decoder is rebuilt); each is counted in `TelloCamera.counts`
+(plus `thread_error` for the thread's own failures) and logged at the first and every 100th occurrence.
+
+A per-drone `video_port` (`port` command) and the downward camera need SDK 3.0: `start()` refuses them on
+older firmware before sending anything.
 """
 
 from __future__ import annotations
 
 import logging
-import math
+import socket
 import threading
 import time
+from collections import Counter
 from typing import Any
 
+import numpy as np
+
 from drivers.tello import DEFAULT_VIDEO_PORT, TelloCommandError, TelloDriver
+from drivers.tello_link import ERROR_PAUSE_S, ErrorLog
 from flightstack.hal import Frame
 
 LOG = logging.getLogger("flightstack.tello")
+RECV_BUFFER_BYTES = 4 << 20  # socket receive buffer asked for (the OS may grant less): a keyframe burst
+MAX_DATAGRAM_BYTES = 65536
+
+
+class VideoReceiver:
+    """H.264 over UDP on (bind_ip, port) → the latest decoded RGB frame, in one daemon thread.
+
+    `latest()` gives (sequence number, decode time in time.monotonic() s, H × W × 3 RGB uint8 image).
+    `counts`: "datagrams", "frames", "decode_error", "recv_error", "reader_error", "thread_error".
+    Raises OSError when the port cannot be bound, ImportError without PyAV.
+    """
+
+    def __init__(self, port: int, bind_ip: str = "", counts: Counter[str] | None = None) -> None:
+        import av  # lazy: only hardware and its tests need PyAV
+
+        self._av: Any = av
+        self.port = port
+        self.counts: Counter[str] = Counter() if counts is None else counts
+        self.errors = ErrorLog(self.counts, f"tello video receiver UDP {port}", LOG)
+        self._sock: Any = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECV_BUFFER_BYTES)
+            self._sock.bind((bind_ip, port))
+        except OSError:
+            self._sock.close()
+            raise
+        self._sock.settimeout(0.1)
+        self._codec: Any = None
+        self._lock = threading.Lock()
+        self._latest: tuple[int, float, np.ndarray] | None = None
+        self._first = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name=f"tello-video-{port}", daemon=True)
+        self._thread.start()
+
+    def latest(self) -> tuple[int, float, np.ndarray] | None:
+        """(sequence number, decode time s, RGB image) of the newest decoded frame, or None before one."""
+        with self._lock:
+            return self._latest
+
+    def wait_first_frame(self, timeout_s: float) -> bool:
+        """Wait up to timeout_s (s) for the first decoded frame; True once there is one."""
+        return self._first.wait(timeout_s)
+
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def close(self) -> None:
+        """Stop the thread (its recv times out within 0.1 s; joined ≤ 1 s) and close the socket."""
+        self._stop.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=1.0)
+        self._sock.close()
+
+    def _loop(self) -> None:
+        """Reader thread: survives every error (counted, logged without flooding)."""
+        while not self._stop.is_set():
+            try:
+                self._receive_one()
+            except Exception as exc:
+                self.errors.record("reader_error", exc)
+                self._codec = None  # rebuilt on the next datagram: resynchronises at the next keyframe
+                self._stop.wait(ERROR_PAUSE_S)
+
+    def _receive_one(self) -> None:
+        """Receive one datagram (waits ≤ 0.1 s) and decode what it completes."""
+        try:
+            data, _ = self._sock.recvfrom(MAX_DATAGRAM_BYTES)
+        except TimeoutError:
+            return
+        except OSError as exc:  # ENETUNREACH, ENOBUFS, a vanished interface...: go on reading
+            if not self._stop.is_set():
+                self.errors.record("recv_error", exc)
+                self._stop.wait(ERROR_PAUSE_S)
+            return
+        self.counts["datagrams"] += 1
+        self._decode(data)
+
+    def _decode(self, data: bytes) -> None:
+        """Feed one datagram to the H.264 parser; publish every frame it completes."""
+        av = self._av
+        if self._codec is None:
+            self._codec = av.CodecContext.create("h264", "r")
+        for packet in self._codec.parse(data):
+            try:
+                frames = self._codec.decode(packet)
+            except av.error.FFmpegError as exc:  # lost datagrams, no keyframe yet: wait for the next one
+                self.errors.record("decode_error", exc, thread=False)
+                continue
+            for frame in frames:
+                img = frame.to_ndarray(format="rgb24")
+                t = time.monotonic()
+                with self._lock:
+                    seq = 1 if self._latest is None else self._latest[0] + 1
+                    self._latest = (seq, t, img)
+                self.counts["frames"] += 1
+                self._first.set()
 
 
 class TelloCamera:
     """hal.Camera over the Tello's video stream (forward, or downward on the EDU with `downvision 1`).
 
-    Frames are RGB uint8 (djitellopy's BackgroundFrameRead decodes with PyAV); each distinct decoded
-    frame is stamped with the monotonic time at which this driver first saw it.
+    Frames are RGB uint8, each stamped with the time.monotonic() (s) at which it was decoded; `frames_seen`
+    counts the distinct frames returned by `latest()`; `counts` holds the receiver's counters (module
+    docstring), kept across restarts.
     """
 
     def __init__(self, driver: TelloDriver, frame_timeout_s: float = 10.0) -> None:
+        """frame_timeout_s: how long `start()` waits for the first decoded frame (s)."""
         self.driver = driver
         self.frame_timeout_s = frame_timeout_s
-        self._reader: Any = None
-        self._last: object = None
-        self._placeholder: object = None
-        self._stamp = -math.inf
+        self.counts: Counter[str] = Counter()
+        self._rx: VideoReceiver | None = None
+        self._last_seq = 0
         self.frames_seen = 0
 
     def start(self) -> None:
-        """Select port and camera, `streamon`, open the decoder; TelloCommandError names what failed.
+        """Open the video port, select port and camera, `streamon`, wait for the first decoded frame.
 
-        Needs SDK 3.0 for a per-drone video port or the downward camera: refused before sending."""
+        TelloCommandError names what failed. Needs SDK 3.0 for a per-drone video port or the downward
+        camera: refused before sending."""
         d = self.driver
         need = d.cfg.sdk3_features
         if need and (d.sdk_version is None or float(d.sdk_version) < 3.0):
@@ -46,56 +158,45 @@ class TelloCamera:
                 f"Tello {d.cfg.host} reports SDK {d.sdk_version or 'unknown'}; {', '.join(need)} needs "
                 "SDK 3.0 (fly in access-point mode with the default video port instead)"
             )
-        if d.cfg.video_port != DEFAULT_VIDEO_PORT:  # station mode: each drone streams to its own port
-            d._control(f"port {d.cfg.state_port} {d.cfg.video_port}", d.cfg.command_timeout_s)
-        if d.cfg.downward_camera:
-            d._control("downvision 1", d.cfg.command_timeout_s)
-        d._control("streamon", d.cfg.command_timeout_s)
-        self._reader = _open_reader(d.cfg.video_port, self.frame_timeout_s)
-        # djitellopy starts with a black 400x300 placeholder until the first frame is decoded: not a frame
-        self._placeholder = self._reader.frame
+        port = d.cfg.video_port
+        try:  # bound before streamon, so that the first keyframe is not lost
+            rx = VideoReceiver(port, "", self.counts)
+        except (OSError, ImportError) as exc:
+            raise TelloCommandError(f"video on UDP {port}: {exc}") from exc
+        try:
+            if port != DEFAULT_VIDEO_PORT:  # station mode: each drone streams to its own port
+                d._control(f"port {d.cfg.state_port} {port}", d.cfg.command_timeout_s)
+            if d.cfg.downward_camera:
+                d._control("downvision 1", d.cfg.command_timeout_s)
+            d._control("streamon", d.cfg.command_timeout_s)
+            if not rx.wait_first_frame(self.frame_timeout_s):
+                raise TelloCommandError(
+                    f"video on UDP {port}: no decodable video within {self.frame_timeout_s:.1f} s "
+                    f"({self.counts['datagrams']} datagrams, {self.counts['decode_error']} decode errors)"
+                )
+        except BaseException:
+            rx.close()
+            raise
+        self._rx, self._last_seq = rx, 0
 
     def latest(self) -> Frame | None:
-        if self._reader is None:
+        rx = self._rx
+        item = None if rx is None else rx.latest()
+        if item is None:
             return None
-        img = self._reader.frame
-        if img is None or img is self._placeholder:
-            return None
-        if img is not self._last:
-            self._last = img
-            self._stamp = time.monotonic()
+        seq, stamp, img = item
+        if seq != self._last_seq:
+            self._last_seq = seq
             self.frames_seen += 1
-        return Frame(self._stamp, img, None)
+        return Frame(stamp, img, None)
 
     def stop(self, streamoff_timeout_s: float = 1.0) -> None:
         """Stop decoding and ask the drone to stop streaming (`streamoff`, bounded, failure ignored: the
         stream is only a load on the link, and a drone that cannot answer is handled elsewhere)."""
-        if self._reader is not None:
-            self._reader.stop()
-            self._reader = None
+        if self._rx is not None:
+            self._rx.close()
+            self._rx = None
             try:
                 self.driver._control("streamoff", streamoff_timeout_s, attempts=1)
             except TelloCommandError as exc:
                 LOG.info("tello %s: %s", self.driver.cfg.host, exc)
-
-
-def _open_reader(video_port: int, timeout_s: float) -> Any:
-    """djitellopy's BackgroundFrameRead on UDP `video_port`, opened within `timeout_s` (it blocks)."""
-    from djitellopy.tello import BackgroundFrameRead  # lazy: only hardware and its tests need PyAV
-
-    box: dict[str, Any] = {}
-
-    def open_() -> None:
-        try:
-            box["reader"] = BackgroundFrameRead(None, f"udp://@0.0.0.0:{video_port}")
-            box["reader"].start()
-        except Exception as exc:
-            box["error"] = exc
-
-    th = threading.Thread(target=open_, name=f"tello-video-{video_port}", daemon=True)
-    th.start()
-    th.join(timeout_s)
-    if "reader" in box:
-        return box["reader"]
-    why = box.get("error", f"no decodable video within {timeout_s:.1f} s")
-    raise TelloCommandError(f"video on UDP {video_port}: {why}")

@@ -15,7 +15,14 @@ process. Here:
   from any other address, and malformed ones, are dropped and counted by reason. The thread survives
   every error.
 
-Every thread is a daemon with bounded waits (≤ 0.1 s) and is joined on close.
+Every thread is a daemon with bounded waits (≤ 0.1 s) and is joined on close. No exception ends a thread:
+each is counted in the owner's `counts` (its own key, e.g. `recv_error`, plus `thread_error`) and logged
+with its reason at the first and then every `ErrorLog.log_every`-th occurrence (no log flood), and the
+thread goes on after a short pause (≤ 0.05 s, so that a persistent error cannot spin a core).
+
+Mute (guardian takeover): `CommandChannel(muted=fn)` or `chan.muted = fn`; while `fn()` returns True,
+`send()` sends nothing, returns False and counts `counts["muted"]`. `fn` is called synchronously right
+before every send; a `fn` that raises is counted (`muted_check_error`) and does not mute.
 """
 
 from __future__ import annotations
@@ -32,13 +39,56 @@ from drivers.tello_state import StateRejectedError, TelloTelemetry, parse_state
 
 LOG = logging.getLogger("flightstack.tello")
 MAX_REPLY_BYTES = 256
+ERROR_PAUSE_S = 0.05  # a thread pauses this long (s) after an error before it goes on
+MutedCheck = Callable[[], bool]
+
+
+class ErrorLog:
+    """Counts and logs the errors of driver threads without flooding the log (thread-safe).
+
+    `record(kind, exc)` adds 1 to `counts[kind]` (and to `counts["thread_error"]` unless thread=False)
+    and logs a warning naming the source, the kind, the running count and the reason at the first and
+    then every `log_every`-th error of that kind. Returns the new count of `kind`.
+    """
+
+    def __init__(
+        self, counts: Counter[str], source: str, log: logging.Logger = LOG, log_every: int = 100
+    ) -> None:
+        self.counts = counts
+        self.source = source
+        self.log = log
+        self.log_every = max(1, int(log_every))
+        self._lock = threading.Lock()
+
+    def record(self, kind: str, exc: BaseException | str, thread: bool = True) -> int:
+        """Count one error of `kind` (reason: an exception or a text); thread=False for a caller's error."""
+        with self._lock:
+            self.counts[kind] += 1
+            if thread:
+                self.counts["thread_error"] += 1
+            n = self.counts[kind]
+        if n == 1 or n % self.log_every == 0:
+            why = exc if isinstance(exc, str) else f"{type(exc).__name__}: {exc}"
+            self.log.warning(
+                "%s: %s #%d: %s (logged at the first and every %d-th)",
+                self.source,
+                kind,
+                n,
+                why,
+                self.log_every,
+            )
+        return n
 
 
 class CommandChannel:
     """Commands to one drone and its replies, each reply stamped with time.monotonic() (s)."""
 
-    def __init__(self, host: str, port: int, bind_ip: str = "") -> None:
+    def __init__(self, host: str, port: int, bind_ip: str = "", muted: MutedCheck | None = None) -> None:
+        """Connect a UDP socket to (host, port) from (bind_ip, any port) and start the reply reader.
+
+        muted: the guardian's takeover check (module docstring); settable later as `self.muted`."""
         self.host, self.port = host, port
+        self.muted = muted
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind((bind_ip, 0))
         self._sock.connect((host, port))
@@ -48,21 +98,36 @@ class CommandChannel:
         self._replies: deque[tuple[float, str]] = deque(maxlen=32)
         self.last_rx_t = -float("inf")
         self.counts: Counter[str] = Counter()
+        self.errors = ErrorLog(self.counts, f"tello {host} command channel")
         self.discarded: list[tuple[float, str]] = []  # (t, text) of replies nobody waited for (last 200)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._read_loop, name=f"tello-cmd-{host}", daemon=True)
         self._thread.start()
 
     def send(self, text: str) -> bool:
-        """Send one command datagram; False (counted) if the network refused it. Never blocks."""
+        """Send one command datagram; False (counted) if muted or the network refused it. Never blocks."""
+        if self._is_muted():
+            verb = text.split(" ")[0]
+            self.errors.record("muted", f"{verb!r} not sent: another process took over", thread=False)
+            return False
         try:
             self._sock.send(text.encode("ascii"), socket.MSG_DONTWAIT)
-        except OSError as exc:
-            self.counts["send_error"] += 1
-            LOG.warning("tello %s: sending %r failed: %s", self.host, text.split(" ")[0], exc)
+        except (OSError, ValueError) as exc:  # ValueError: non-ASCII text or a closed socket
+            self.errors.record("send_error", f"sending {text.split(' ')[0]!r}: {exc}", thread=False)
             return False
         self.counts["sent"] += 1
         return True
+
+    def _is_muted(self) -> bool:
+        """The mute check, evaluated now; one that raises is counted and does not mute."""
+        check = self.muted
+        if check is None:
+            return False
+        try:
+            return bool(check())
+        except Exception as exc:
+            self.errors.record("muted_check_error", exc, thread=False)
+            return False
 
     def open_exchange(self) -> int:
         """Start keeping replies; discard (and count) what is pending. Returns the number discarded."""
@@ -97,29 +162,37 @@ class CommandChannel:
         del self.discarded[:-200]
 
     def _read_loop(self) -> None:
+        """Reply reader thread: survives every error (counted, logged without flooding)."""
         while not self._stop.is_set():
             try:
-                data = self._sock.recv(2048)
-            except TimeoutError:
-                continue
-            except OSError as exc:  # e.g. ICMP port unreachable surfaced as ECONNREFUSED: keep reading
-                self.counts["recv_error"] += 1
-                if self._stop.wait(0.05):
-                    break
-                LOG.debug("tello %s: recv: %s", self.host, exc)
-                continue
-            t = time.monotonic()
-            if len(data) > MAX_REPLY_BYTES:
-                self.counts["reply_too_long"] += 1
-                continue
-            text = data.decode("ascii", errors="replace").strip()
-            with self._lock:
-                self.last_rx_t = t
-                self.counts["received"] += 1
-                if self._open:
-                    self._replies.append((t, text))
-                else:
-                    self._discard((t, text))
+                self._read_one()
+            except Exception as exc:
+                self.errors.record("reader_error", exc)
+                self._stop.wait(ERROR_PAUSE_S)
+
+    def _read_one(self) -> None:
+        """Receive and file one reply (waits ≤ 0.1 s)."""
+        try:
+            data = self._sock.recv(2048)
+        except TimeoutError:
+            return
+        except OSError as exc:  # e.g. ICMP port unreachable surfaced as ECONNREFUSED, ENETUNREACH: go on
+            if not self._stop.is_set():
+                self.errors.record("recv_error", exc)
+                self._stop.wait(ERROR_PAUSE_S)
+            return
+        t = time.monotonic()
+        if len(data) > MAX_REPLY_BYTES:
+            self.counts["reply_too_long"] += 1
+            return
+        text = data.decode("ascii", errors="replace").strip()
+        with self._lock:
+            self.last_rx_t = t
+            self.counts["received"] += 1
+            if self._open:
+                self._replies.append((t, text))
+            else:
+                self._discard((t, text))
 
 
 StateCallback = Callable[[TelloTelemetry], None]
@@ -172,7 +245,9 @@ class StateReceiver:
         self._sock.settimeout(0.1)
         self._lock = threading.Lock()
         self._callbacks: dict[str, StateCallback] = {}
-        self.dropped: Counter[str] = Counter()
+        self.dropped: Counter[str] = Counter()  # datagrams dropped, by reason
+        self.counts: Counter[str] = Counter()  # "delivered" datagrams; thread errors (ErrorLog)
+        self.errors = ErrorLog(self.counts, f"tello state receiver {bind_ip or '*'}:{port}")
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name=f"tello-state-{port}", daemon=True)
         self._thread.start()
@@ -182,28 +257,40 @@ class StateReceiver:
             self._callbacks[host] = callback
 
     def _loop(self) -> None:
+        """State thread: survives every error (counted in `counts`, logged without flooding)."""
         while not self._stop.is_set():
             try:
-                data, addr = self._sock.recvfrom(2048)
-            except TimeoutError:
-                continue
-            except OSError:
-                if self._stop.wait(0.05):
-                    break
-                continue
-            t = time.monotonic()
-            with self._lock:
-                cb = self._callbacks.get(addr[0])
-            if cb is None:
-                self.dropped["unknown_sender"] += 1
-                continue
-            try:
-                sample = parse_state(data, t)
-            except StateRejectedError as exc:
-                self.dropped[exc.reason] += 1
-                continue
-            try:
-                cb(sample)
-            except Exception:  # a driver bug must not silence the other drones
-                self.dropped["callback_error"] += 1
-                LOG.exception("tello state callback for %s failed", addr[0])
+                self._receive_one()
+            except Exception as exc:
+                self.errors.record("receiver_error", exc)
+                self._stop.wait(ERROR_PAUSE_S)
+
+    def _receive_one(self) -> None:
+        """Receive, parse and dispatch one state datagram (waits ≤ 0.1 s)."""
+        try:
+            data, addr = self._sock.recvfrom(2048)
+        except TimeoutError:
+            return
+        except OSError as exc:  # ENETUNREACH, ENOBUFS, a vanished interface...: go on reading
+            if not self._stop.is_set():
+                self.errors.record("recv_error", exc)
+                self._stop.wait(ERROR_PAUSE_S)
+            return
+        t = time.monotonic()
+        with self._lock:
+            cb = self._callbacks.get(addr[0])
+        if cb is None:
+            self.dropped["unknown_sender"] += 1
+            return
+        try:
+            sample = parse_state(data, t)
+        except StateRejectedError as exc:
+            self.dropped[exc.reason] += 1
+            return
+        try:
+            cb(sample)
+        except Exception as exc:  # a driver bug must not silence the other drones
+            self.dropped["callback_error"] += 1
+            self.errors.record("callback_error", f"state callback for {addr[0]}: {type(exc).__name__}: {exc}")
+        else:
+            self.counts["delivered"] += 1

@@ -1,4 +1,4 @@
-"""Operator command line (`flightstack -h`): sim, fly, preflight, target, world, agent, abort, status, ..."""
+"""Operator command line (`flightstack -h`): sim, fly, report, preflight, target, world, agent, abort, ..."""
 
 from __future__ import annotations
 
@@ -11,10 +11,14 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from tqdm import tqdm
 
 from flightstack.mission import Mission, MissionError, load_mission
+
+if TYPE_CHECKING:
+    from flightstack.recorder import RunWriter
 
 
 def _progress_factory(bars: list[tqdm]) -> Callable[[str, int], Callable[[int], None]]:
@@ -42,9 +46,23 @@ def _progress_factory(bars: list[tqdm]) -> Callable[[str, int], Callable[[int], 
     return make
 
 
+def open_run_dir(out: Path) -> RunWriter | None:
+    """The run directory's writer, after checking (before anything takes off) that `out` is writable
+    and has flightstack.recorder.MIN_FREE_BYTES (50 MB) free; None after printing why not."""
+    from flightstack.recorder import RunWriter, check_out_dir
+
+    problem = check_out_dir(out)
+    if problem is None:
+        try:
+            return RunWriter(out)
+        except OSError as exc:
+            problem = f"cannot start the recording: {exc.strerror or exc}"
+    print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
+    return None
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
-    from flightstack.experiment import run_experiment, write_run_dir
-    from flightstack.report import write_plots
+    from flightstack.experiment import resolved_mission_yaml, run_experiment, write_run_dir
 
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")  # safety events, live
     overrides = {"duration_s": args.duration} if args.duration else None
@@ -58,19 +76,31 @@ def cmd_sim(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
+    out = Path(args.out)
+    from flightstack.recorder import check_out_dir
+
+    problem = check_out_dir(out)  # before the preflight and the operator's confirmation
+    if problem is not None:
+        print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
+        return 2
     if args.command == "fly" and not mission.simulated:
         code = _confirm_and_preflight(args, mission)
         if code:
             return code
-    out = Path(args.out)
+    run_writer = open_run_dir(out)  # checked again: the preflight took time
+    if run_writer is None:
+        return 2
     bars: list[tqdm] = []
-    res = run_experiment(mission, None if args.no_progress else _progress_factory(bars))
-    for b in bars:
-        b.close()
-    write_run_dir(out, mission, res)
+    try:
+        run_writer.write_file("mission_resolved.yaml", resolved_mission_yaml(mission))  # for `report`
+        res = run_experiment(mission, None if args.no_progress else _progress_factory(bars), run_writer)
+        for b in bars:
+            b.close()
+        m = write_run_dir(out, mission, res, run_writer)
+    finally:
+        run_writer.close()
     if res.recordings:
-        write_plots(out, mission, res.recordings, res.datasets)
-    m = res.metrics
+        _write_plots_or_warn(out, mission, res)
     print(f"run directory: {out}")
     for mode, mm in m["modes"].items():
         line = f"  {mode:7s} mean_sq_error = {mm.get('mean_sq_error', float('nan')):.3e}"
@@ -92,12 +122,48 @@ def cmd_sim(args: argparse.Namespace) -> int:
     )
     print(f"  safety events: {len(m['safety_events'])} (events.jsonl)")
     print(f"  sim {m['sim_seconds']:.1f} s in {m['wall_seconds']:.1f} s wall")
+    rec_status = m["recording"]
+    if not rec_status["complete"]:
+        print(f"error: recording incomplete: {rec_status['reason']}", file=sys.stderr)
     if res.interrupted:
         print("interrupted: every drone landed, partial recording written", file=sys.stderr)
         return 130
     if res.error:
         print(f"error: {res.error}; every drone landed, partial recording written", file=sys.stderr)
         return 1
+    return 0 if rec_status["complete"] else 1
+
+
+def _write_plots_or_warn(out: Path, mission: Mission, res: Any) -> None:
+    """The plots of a run; a write error (a full disk) is reported, not raised: `report` redraws them."""
+    from flightstack.report import write_plots
+
+    try:
+        write_plots(out, mission, res.recordings, res.datasets)
+    except OSError as exc:
+        print(f"warning: plots not written ({exc}); `flightstack report {out}` redraws them", file=sys.stderr)
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """Rebuild metrics.json and the plots of a run directory from its recording (also one cut short by
+    a kill, a crash or a full disk: then from the row streams); exit 2 if there is no recording."""
+    from flightstack.report import rebuild_run
+
+    run = Path(args.run_dir)
+    mission = load_mission(args.mission) if args.mission else None
+    try:
+        m, plots = rebuild_run(run, mission, plots=not args.no_plots)
+    except FileNotFoundError as exc:
+        print(f"error: {run}: {exc}", file=sys.stderr)
+        return 2
+    print(f"run directory: {run}")
+    for mode, mm in m["modes"].items():
+        err = f"   ({mm['error']})" if mm.get("error") else ""
+        mse = mm.get("mean_sq_error", float("nan"))
+        print(f"  {mode:7s} {mm.get('ticks', 0):7d} ticks   mean_sq_error = {mse:.3e}{err}")
+    rs = m["recording"]
+    print(f"  recording {'complete' if rs['complete'] else 'INCOMPLETE: ' + str(rs['reason'])}")
+    print(f"  rebuilt metrics.json{''.join(f', {p.name}' for p in plots)}")
     return 0
 
 
@@ -160,6 +226,7 @@ def cmd_preflight(args: argparse.Namespace) -> int:
 
 def cmd_target(args: argparse.Namespace) -> int:
     """Drive the real robot on the mission's square law from its motion-capture pose (drivers/target_run)."""
+    from drivers.guardian import Guardian, GuardianConfig
     from drivers.hardware import body_names, mocap_config, scamper_config
     from drivers.mocap import MocapPoseSource
     from drivers.scamper import ScamperDriver
@@ -183,6 +250,17 @@ def cmd_target(args: argparse.Namespace) -> int:
     mocap = MocapPoseSource(mocap_config(mission))
     robot = ScamperDriver(sc)
     body = body_names(mission)["target"]
+    # if this process dies or stalls, the guardian stops and disarms the robot (drivers/guardian.py)
+    guardian = Guardian.start(GuardianConfig.for_devices([], sc.url))
+    robot.set_muted(guardian.taken_over)
+    armed = [False]
+
+    def beat(now: float, res: object) -> None:
+        if not armed[0]:
+            guardian.arm()
+            armed[0] = True
+        guardian.heartbeat()
+
     try:
         mocap.start()
         if mocap_wait(mocap, body, 2.0) is None:
@@ -197,13 +275,16 @@ def cmd_target(args: argparse.Namespace) -> int:
             duration,
             body=body,
             link_alive=robot.link_alive,
-            robot_ready=lambda: robot.robot_state().ready,
+            robot_ready=lambda: robot.robot_state().ready and not guardian.taken_over(),
+            on_tick=beat,
         )
         print(lap_summary(res, law))
         return 0 if res.ended_by == "duration" else 1
     finally:
+        guardian.arm(False)
         robot.close()
         mocap.close()
+        guardian.finish()
 
 
 def mocap_wait(mocap: object, body: str, timeout_s: float) -> object | None:
@@ -345,6 +426,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     register_network(sub)
     register_faults(sub)
+    rp = sub.add_parser(
+        "report", help="rebuild metrics.json and the plots of a run directory (also one cut short by a kill)"
+    )
+    rp.add_argument("run_dir", help="run directory written by `flightstack sim`/`fly`/`agent`")
+    rp.add_argument("--mission", default=None, help="mission file (default: RUN_DIR/mission_resolved.yaml)")
+    rp.add_argument("--no-plots", action="store_true", help="metrics.json only")
+    rp.set_defaults(func=cmd_report)
     v = sub.add_parser("validate", help="check a mission file and print the resolved mission")
     v.add_argument("mission")
     v.set_defaults(func=cmd_validate)

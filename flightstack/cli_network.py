@@ -2,7 +2,7 @@
 
     flightstack world MISSION                       # simulated missions: serve the world (clock master)
     flightstack agent MISSION --id N --out DIR      # one agent: its drone, camera, pose (sim or hardware)
-    flightstack abort MISSION                       # every agent lands at once
+    flightstack abort MISSION [--timeout S]         # every agent lands at once; exit 1 if one did not ack
     flightstack status MISSION [--once]             # live table of every agent
 
 The mission's `bus: {kind: zenoh, zenoh: {endpoints: ...}}` says where each participant listens.
@@ -11,7 +11,6 @@ The mission's `bus: {kind: zenoh, zenoh: {endpoints: ...}}` says where each part
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -57,6 +56,8 @@ def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
 
 def cmd_agent(args: argparse.Namespace) -> int:
     from flightstack.comms.factory import make_bus
+    from flightstack.experiment import ExperimentResult, build_metrics, resolved_mission_yaml
+    from flightstack.recorder import RunWriter, check_out_dir
     from flightstack.recording import Recording
     from flightstack.runner import run_mode
 
@@ -71,7 +72,24 @@ def cmd_agent(args: argparse.Namespace) -> int:
         return 2
     predictors = _predictors(mission, mode)
     assert mission.bus.zenoh is not None
-    bus = make_bus(mission, str(args.id), {args.id})
+    out = Path(args.out)
+    problem = check_out_dir(out)  # before anything takes off (flightstack.recorder.MIN_FREE_BYTES)
+    if problem is not None:
+        print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
+        return 2
+    try:
+        run_writer = RunWriter(out)
+        run_writer.write_file("mission_resolved.yaml", resolved_mission_yaml(mission))  # for `report`
+    except OSError as exc:
+        print(f"error: --out {out}: cannot start the recording: {exc}; nothing took off", file=sys.stderr)
+        return 2
+    wall0 = time.perf_counter()
+    writer = run_writer.mode(mode, [args.id], round(mission.duration_s / mission.dt_s))
+    try:
+        bus = make_bus(mission, str(args.id), {args.id})
+    except BaseException:
+        run_writer.close()
+        raise
     backend: Any = None
     rec: Recording | None = None
     try:
@@ -90,31 +108,36 @@ def cmd_agent(args: argparse.Namespace) -> int:
             from drivers.hardware import HardwareBackend
 
             backend = HardwareBackend(mission, drone_ids=[args.id])
-        rec = run_mode(mission, mode, predictors, backend=backend, bus=bus, agent_ids=[args.id])
+        rec = run_mode(
+            mission, mode, predictors, backend=backend, bus=bus, agent_ids=[args.id], writer=writer
+        )
     finally:
         if backend is not None and hasattr(backend, "disconnect"):
             backend.disconnect()
         bus.close()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    rec.save(str(out / f"timeseries_{mode}.npz"))
-    with open(out / "events.jsonl", "w", encoding="utf-8") as f:
-        for e in rec.events:
-            f.write(json.dumps(e, default=str) + "\n")
-    (out / "summary.json").write_text(
-        json.dumps(
-            {
-                "drone": args.id,
-                "mode": mode,
-                "ticks": rec.ticks_done,
-                "interrupted": rec.interrupted,
-                "error": rec.error,
-                "bus_dropped": rec.bus_dropped,
-            },
-            indent=2,
-        )
-    )
+        if rec is None:  # run_mode raised: what was recorded stays (row stream, events)
+            run_writer.close()
+    try:  # the recording (npz, events) is on disk already: metrics and summary, atomically
+        run_writer.record(rec)
+        res = ExperimentResult(recordings={mode: rec}, interrupted=rec.interrupted, error=rec.error)
+        metrics = run_writer.write_metrics(build_metrics(mission, res, {}, time.perf_counter() - wall0))
+        summary = {
+            "drone": args.id,
+            "mode": mode,
+            "ticks": rec.ticks_done,
+            "interrupted": rec.interrupted,
+            "error": rec.error,
+            "bus_dropped": rec.bus_dropped,
+        }
+        run_writer.write_metrics(summary, "summary.json")
+    except OSError as exc:  # the drone has landed; the row stream and events.jsonl stay readable
+        print(f"agent {args.id}: metrics not written: {exc}", file=sys.stderr)
+        metrics = {"recording": {"complete": False, "reason": str(exc)}}
+    finally:
+        run_writer.close()
     print(f"agent {args.id}: {rec.ticks_done} ticks of mode {mode}; recording in {out}", flush=True)
+    if not metrics["recording"]["complete"]:
+        print(f"agent {args.id}: recording incomplete: {metrics['recording']['reason']}", file=sys.stderr)
     if rec.interrupted:
         return 130
     if rec.error:
@@ -122,24 +145,38 @@ def cmd_agent(args: argparse.Namespace) -> int:
         what = "its drone landed" if landed else "landing requested, not confirmed (no telemetry)"
         print(f"agent {args.id}: {rec.error}; {what}", file=sys.stderr)
         return 1
-    return 0
+    return 0 if metrics["recording"]["complete"] else 1
 
 
 def cmd_abort(args: argparse.Namespace) -> int:
-    from flightstack.comms.factory import make_bus
+    """Publish the abort at once (Zenoh and/or the loopback listener of an in-process `fly`), then wait
+    `--timeout` s for every agent's acknowledgement (flightstack/comms/abort.py). Prints each
+    acknowledging process with its drones and time to ack (ms); exit 0 only if every drone of the
+    mission acknowledged, else 1 naming the others."""
+    from flightstack.comms.abort import send_abort
 
-    mission = _zenoh_mission(args.mission)
-    bus = make_bus(mission, "operator", set())
-    try:
-        ids = {d.id for d in mission.drones}
-        missing = bus.wait_alive(ids, args.wait)  # type: ignore[attr-defined]
-        present = sorted(ids - missing)
-        bus.publish_control("abort", {"reason": args.reason})  # type: ignore[attr-defined]
-        time.sleep(0.3)  # let the express message leave before the session closes
-    finally:
-        bus.close()
-    print(f"abort sent to mission {mission.name}: agents present {present}, absent {sorted(missing)}")
-    return 0 if present else 1
+    mission = load_mission(args.mission)
+    if not (args.timeout >= 0 and math.isfinite(args.timeout)):
+        print(f"error: --timeout {args.timeout}: must be a finite number of seconds >= 0", file=sys.stderr)
+        return 2
+    rep = send_abort(mission, args.reason, args.timeout)
+    print(f"abort {rep.abort_id[:8]} sent to mission {mission.name} via {' and '.join(rep.channels)}")
+    for ack, ms in rep.processes():
+        who = f"pid {ack.pid} on {ack.host}, {ack.via}"
+        print(f"  acknowledged by drones {list(ack.drones)} in {ms:.1f} ms ({who})")
+    if rep.present is not None:
+        absent = sorted(set(rep.expected) - set(rep.present))
+        print(f"abort sent to mission {mission.name}: agents present {rep.present}, absent {absent}")
+    if rep.missing:
+        print(
+            f"error: agents {rep.missing} did not acknowledge the abort within {args.timeout:g} s "
+            "(not running, not reachable, or not listening): land them by other means",
+            file=sys.stderr,
+        )
+        return 1
+    slowest = max(rep.latency_ms(i) for i in rep.expected)
+    print(f"every agent acknowledged: drones {rep.expected}, slowest {slowest:.1f} ms")
+    return 0
 
 
 def status_table(
@@ -224,10 +261,19 @@ def register(sub: Any) -> None:
     a.add_argument("--mode", choices=["none", "local", "dgp"], help="default: the last of compare_modes")
     a.add_argument("--out", required=True, help="directory for this agent's recording")
     a.set_defaults(func=cmd_agent)
-    ab = sub.add_parser("abort", help="make every agent of a mission land at once")
+    ab = sub.add_parser(
+        "abort", help="make every agent of a mission land at once; exit 1 naming any that did not ack"
+    )
     ab.add_argument("mission")
     ab.add_argument("--reason", default="operator abort")
-    ab.add_argument("--wait", type=float, default=2.0, help="how long to look for agents first (s)")
+    ab.add_argument(
+        "--timeout",
+        "--wait",
+        dest="timeout",
+        type=float,
+        default=2.0,
+        help="how long to wait for every agent's acknowledgement after sending (s)",
+    )
     ab.set_defaults(func=cmd_abort)
     st = sub.add_parser("status", help="live table of every agent: liveliness, message age, battery, ...")
     st.add_argument("mission")

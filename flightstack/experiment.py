@@ -7,11 +7,11 @@ Everything derives from the mission's seed, so a run is reproducible.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -22,6 +22,7 @@ from flightstack.geometry import Pose
 from flightstack.gp import GPExpert
 from flightstack.metrics import mode_metrics
 from flightstack.mission import Mission, mission_to_dict
+from flightstack.recorder import RunWriter
 from flightstack.recording import Recording
 from flightstack.runner import run_mode
 from flightstack.target_motion import DuffingParams, duffing_body_velocity
@@ -56,8 +57,12 @@ class ExperimentResult:
 def run_experiment(
     mission: Mission,
     progress_factory: Callable[[str, int], Callable[[int], None]] | None = None,
+    run_writer: RunWriter | None = None,
 ) -> ExperimentResult:
-    """Run every mode of `mission.compare_modes` (plus the data run if needed) and compute metrics."""
+    """Run every mode of `mission.compare_modes` (plus the data run if needed) and compute metrics.
+
+    run_writer: records each mode to its run directory as it flies (flightstack.recorder); the caller
+    closes it after `write_run_dir`."""
     wall0 = time.perf_counter()
     res = ExperimentResult()
     n_ticks = round(mission.duration_s / mission.dt_s)
@@ -83,7 +88,10 @@ def run_experiment(
         elif mode == "oracle":
             prm = DuffingParams(**mission.target.duffing.model_dump())
             predictors = {d.id: TruthPredictor(prm) for d in mission.drones}
-        rec = run_mode(mission, mode, predictors, prog(mode))
+        writer = (
+            None if run_writer is None else run_writer.mode(mode, [d.id for d in mission.drones], n_ticks)
+        )
+        rec = run_mode(mission, mode, predictors, prog(mode), writer=writer)
         res.recordings[mode] = rec
         if rec.interrupted or rec.error:
             res.interrupted = rec.interrupted
@@ -97,6 +105,8 @@ def run_experiment(
                 res.error = f"GP training data: {exc} (fly longer, or lower gp.samples_per_region)"
                 break
             res.experts = train_experts(mission, res.datasets, mission.seed)
+            if run_writer is not None:  # on disk now: a run killed later still has them for `report`
+                _write_training(run_writer, res)
             gp_info = {
                 "train_seconds": time.perf_counter() - t0,
                 "experts": {
@@ -114,7 +124,17 @@ def run_experiment(
 
 
 def build_metrics(mission: Mission, res: ExperimentResult, gp_info: dict[str, object], wall: float) -> dict:
-    modes = {m: mode_metrics(r, mission) for m, r in res.recordings.items() if m in mission.compare_modes}
+    """metrics.json of a run: per mode (those of compare_modes; every recorded one if none of them was
+    recorded, e.g. an agent's run or a failed data run), the gain condition, GP facts, safety events.
+
+    wall: wall time of the whole run (s). A recording of only some of the mission's drones (an agent's)
+    gets the metrics that need no mission."""
+    ids = [d.id for d in mission.drones]
+    shown = [m for m in res.recordings if m in mission.compare_modes] or list(res.recordings)
+    modes = {
+        m: mode_metrics(res.recordings[m], mission if res.recordings[m].drone_ids == ids else None)
+        for m in shown
+    }
     gains = Gains.make(mission.gains.k_c, mission.gains.k_e, mission.gains.k_s)
     ref = res.recordings.get("none") or next(iter(res.recordings.values()), None)
     if ref is not None and ref.ticks_done > 0:
@@ -159,27 +179,51 @@ def build_metrics(mission: Mission, res: ExperimentResult, gp_info: dict[str, ob
     return out
 
 
-def write_run_dir(out: Path, mission: Mission, res: ExperimentResult) -> None:
-    """Resolved mission, metrics.json, one npz per mode, the datasets and experts."""
-    out.mkdir(parents=True, exist_ok=True)
+def resolved_mission_yaml(mission: Mission) -> str:
+    """The mission as YAML with absolute file paths, so that it loads from the run directory."""
     resolved = mission_to_dict(mission)
-    for d in resolved["drones"]:  # absolute paths, so the resolved mission loads from the run directory
+    for d in resolved["drones"]:
         if d.get("camera"):
             d["camera"]["calibration"] = str(mission.resolve(d["camera"]["calibration"]))
     if resolved["gp"].get("experts_file"):
         resolved["gp"]["experts_file"] = str(mission.resolve(resolved["gp"]["experts_file"]))
-    (out / "mission_resolved.yaml").write_text(yaml.safe_dump(resolved, sort_keys=False))
-    for mode, rec in res.recordings.items():
-        rec.save(str(out / f"timeseries_{mode}.npz"))
-    if res.experts:
-        save_experts(out / "experts.npz", res.experts)
-    if res.datasets:
-        np.savez(
-            out / "datasets.npz",
-            **{f"drone{d.drone_id}__{k}": getattr(d, k) for d in res.datasets for k in ("X", "Y", "ticks")},
-        )
-    with (out / "events.jsonl").open("w") as fh:
+    return yaml.safe_dump(resolved, sort_keys=False)
+
+
+def write_run_dir(
+    out: Path, mission: Mission, res: ExperimentResult, run_writer: RunWriter | None = None
+) -> dict[str, Any]:
+    """Resolved mission, one npz per mode, events.jsonl, the datasets and experts, then metrics.json
+    (res.metrics + "recording": {"complete", "reason"}, written atomically); returns what metrics.json
+    holds.
+
+    run_writer: the writer that recorded the run as it flew (its modes' npz and events are on disk
+    already; the caller closes it). Without one, everything is written here through a new RunWriter.
+    A write error of the datasets or experts marks the recording incomplete; one of metrics.json raises
+    OSError."""
+    own = run_writer is None
+    writer = RunWriter(out) if run_writer is None else run_writer
+    try:
+        writer.write_file("mission_resolved.yaml", resolved_mission_yaml(mission))
         for rec in res.recordings.values():
-            for ev in rec.events:
-                fh.write(json.dumps(ev) + "\n")
-    (out / "metrics.json").write_text(json.dumps(res.metrics, indent=2, allow_nan=False) + "\n")
+            writer.record(rec)
+        _write_training(writer, res)
+        return writer.write_metrics(res.metrics)
+    finally:
+        if own:
+            writer.close()
+
+
+def _write_training(writer: RunWriter, res: ExperimentResult) -> None:
+    """experts.npz and datasets.npz (when there are any); a write error stops the recording."""
+    out = writer.out
+    try:
+        if res.experts:
+            save_experts(out / "experts.npz", res.experts)
+        if res.datasets:
+            arrays = {
+                f"drone{d.drone_id}__{k}": getattr(d, k) for d in res.datasets for k in ("X", "Y", "ticks")
+            }
+            np.savez(out / "datasets.npz", **arrays)
+    except OSError as exc:
+        writer.fail(f"experts/datasets not written: {exc.strerror or exc}")

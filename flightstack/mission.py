@@ -403,9 +403,14 @@ class ZenohSpec(_Strict):
 
 
 class BusSpec(_Strict):
+    """`operator_port`: the loopback UDP port (127.0.0.1) on which an in-process mission listens for
+    `flightstack abort` (flightstack/comms/operator_link.py); default: derived from the mission name,
+    listening on hardware only. Setting it also makes a simulated in-process run listen."""
+
     kind: Literal["inproc", "zenoh"] = "inproc"
     stale_after_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 0.5
     zenoh: ZenohSpec | None = None
+    operator_port: int | None = Field(default=None, ge=1024, le=65535)
 
     @model_validator(mode="after")
     def _zenoh(self) -> BusSpec:

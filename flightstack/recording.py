@@ -1,8 +1,15 @@
-"""The time series of one run (every tick, every drone) and its on-disk form (npz)."""
+"""The time series of one run (every tick, every drone) and its on-disk form (npz).
+
+While a run flies, flightstack.recorder appends the same arrays to the run directory block by block and
+writes this npz at the end; `flightstack.recorder.load_run` reads either back as Recordings.
+"""
 
 from __future__ import annotations
 
+import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import IO, Any
 
 import numpy as np
 
@@ -24,6 +31,9 @@ ARRAY_FIELDS = (
     "n_fused",
     "wall_t",
 )
+
+META_FIELDS = ("ticks_done", "bus_dropped", "wall_seconds", "interrupted", "error", "vision_rejections")
+"""The scalar facts of a Recording besides its arrays and events (JSON-able; see `Recording.meta`)."""
 
 
 @dataclass
@@ -84,19 +94,45 @@ class Recording:
         """Only the ticks actually flown (after an interrupt or an error)."""
         k = self.ticks_done
         out = Recording(self.mode, self.drone_ids, *(getattr(self, f)[:k] for f in ARRAY_FIELDS))
-        for name in (
-            "ticks_done",
-            "bus_dropped",
-            "wall_seconds",
-            "interrupted",
-            "error",
-            "events",
-            "vision_rejections",
-        ):
+        for name in (*META_FIELDS, "events"):
             setattr(out, name, getattr(self, name))
         return out
 
-    def save(self, path: str) -> None:
+    @staticmethod
+    def from_columns(mode: str, ids: list[int], columns: Mapping[str, np.ndarray]) -> Recording:
+        """A recording of the N rows in `columns` (ARRAY_FIELDS, each with N rows); a missing field is
+        zeros of its usual shape (e_c and e_e before `fill_true_errors`, or files written before it)."""
+        N = int(np.asarray(columns["t"]).shape[0])
+        rec = Recording.empty(mode, ids, N)
+        for f in ARRAY_FIELDS:
+            if f in columns:
+                setattr(rec, f, np.asarray(columns[f]))
+        rec.ticks_done = N
+        return rec
+
+    def meta(self) -> dict[str, Any]:
+        """META_FIELDS as a JSON-able dict (the run directory's recording.json keeps it per mode)."""
+        return {
+            "ticks_done": int(self.ticks_done),
+            "bus_dropped": {str(k): int(v) for k, v in self.bus_dropped.items()},
+            "wall_seconds": float(self.wall_seconds),
+            "interrupted": bool(self.interrupted),
+            "error": self.error,
+            "vision_rejections": {
+                str(i): {str(k): int(v) for k, v in c.items()} for i, c in self.vision_rejections.items()
+            },
+        }
+
+    def apply_meta(self, meta: Mapping[str, Any]) -> None:
+        """Restore the META_FIELDS present in `meta` (as written by `meta`), except ticks_done, which
+        stays the number of rows actually read."""
+        for name in META_FIELDS:
+            if name in meta and name != "ticks_done":
+                setattr(self, name, meta[name])
+
+    def save(self, path: str | os.PathLike[str] | IO[bytes]) -> None:
+        """The arrays of the ticks done as a compressed npz (a path, or a binary file opened for writing;
+        numpy appends `.npz` to a path without it)."""
         np.savez_compressed(
             path,
             mode=self.mode,
@@ -105,16 +141,12 @@ class Recording:
         )
 
     @staticmethod
-    def load(path: str) -> Recording:
+    def load(path: str | os.PathLike[str]) -> Recording:
         """Read a recording written by `save` (arrays only; events and counters live in the run dir)."""
         with np.load(path) as z:
-            N = z["t"].shape[0]
-            n = len(z["drone_ids"])
-            defaults = {"n_fused": np.zeros((N, n), dtype=int), "wall_t": np.zeros(N)}  # older files
-            arrays = {f: z[f] if f in z else defaults[f] for f in ARRAY_FIELDS}
-            rec = Recording(str(z["mode"]), [int(i) for i in z["drone_ids"]], **arrays)
-        rec.ticks_done = rec.t.shape[0]
-        return rec
+            ids = [int(i) for i in z["drone_ids"]]
+            # fields missing in older files (n_fused, wall_t) are zeros
+            return Recording.from_columns(str(z["mode"]), ids, {f: z[f] for f in ARRAY_FIELDS if f in z})
 
     def fill_true_errors(self, g_d: np.ndarray) -> None:
         """e_c = vec(g_d⁻¹ ḡ_i0) and the true e_e = vec(ḡ_i0⁻¹ g_i0) from the recorded poses (vectorised).

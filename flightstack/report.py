@@ -1,8 +1,12 @@
-"""PNG plots like the paper's Figs. 3–5 from an experiment's recordings (matplotlib, Agg backend)."""
+"""PNG plots like the paper's Figs. 3–5 from an experiment's recordings (matplotlib, Agg backend), and
+`rebuild_run`: metrics.json and the plots of any run directory again (`flightstack report RUN_DIR`)."""
 
 from __future__ import annotations
 
+import contextlib
+import json
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -10,9 +14,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from flightstack.mission import Mission
+from flightstack.mission import Mission, load_mission
+from flightstack.recorder import atomic_write_json, load_run, recording_status
 from flightstack.recording import Recording
-from flightstack.training import ExpertData, bands
+from flightstack.training import ExpertData, bands, load_experts
 
 MODE_STYLE = {
     "none": ("tab:gray", "without GP"),
@@ -95,8 +100,13 @@ def plot_error_norms(path: Path, recs: dict[str, Recording], which: str) -> None
 def write_plots(
     out: Path, mission: Mission, recs: dict[str, Recording], data: list[ExpertData]
 ) -> list[Path]:
+    """trajectory.png, error_ec.png, error_ee.png in `out` (recordings without ticks are left out; no
+    plot without any tick); returns the paths written."""
     out.mkdir(parents=True, exist_ok=True)
-    paths = []
+    paths: list[Path] = []
+    recs = {m: r for m, r in recs.items() if r.ticks_done > 0}
+    if not recs:
+        return paths
     ref = recs.get("none") or next(iter(recs.values()))
     p = out / "trajectory.png"
     plot_trajectory(p, mission, ref, data, show_drones=mission.backend != "sim_ideal")
@@ -107,3 +117,52 @@ def write_plots(
         plot_error_norms(p, shown, which)
         paths.append(p)
     return paths
+
+
+def _load_datasets(path: Path) -> list[ExpertData]:
+    """The training data of datasets.npz (keys drone<id>__X/Y/ticks; the band is not stored: NaN)."""
+    if not path.is_file():
+        return []
+    with np.load(path) as z:
+        ids = sorted({int(k.split("__")[0][5:]) for k in z.files})
+        nan = (float("nan"), float("nan"))
+        return [ExpertData(i, nan, z[f"drone{i}__X"], z[f"drone{i}__Y"], z[f"drone{i}__ticks"]) for i in ids]
+
+
+def rebuild_run(
+    run_dir: Path, mission: Mission | None = None, plots: bool = True
+) -> tuple[dict[str, Any], list[Path]]:
+    """Rebuild metrics.json (atomically) and, if `plots`, the plots of a run directory from its
+    recording: the final npz files, or the row streams of a run cut short by a kill, a crash or a full
+    disk (flightstack.recorder.load_run). mission: default RUN_DIR/mission_resolved.yaml. The GP facts
+    and the run's wall time are kept from an earlier metrics.json when there is one (the sum of the
+    modes' wall time otherwise). Returns (metrics, plot paths); FileNotFoundError without a recording
+    or a mission."""
+    from flightstack.experiment import ExperimentResult, build_metrics  # experiment imports the runner
+
+    run_dir = Path(run_dir)
+    if mission is None:
+        path = run_dir / "mission_resolved.yaml"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path.name} not found (pass --mission)")
+        mission = load_mission(path, check_files=False)
+    recs = load_run(run_dir, mission)
+    if not recs:
+        raise FileNotFoundError("no recording (timeseries_<mode>.npz or .rows) in it")
+    old: dict[str, Any] = {}
+    with contextlib.suppress(OSError, ValueError):
+        old = json.loads((run_dir / "metrics.json").read_text(encoding="utf-8"))
+    res = ExperimentResult(recordings=recs)
+    res.datasets = _load_datasets(run_dir / "datasets.npz")
+    if (run_dir / "experts.npz").is_file():
+        res.experts = load_experts(run_dir / "experts.npz")
+    res.interrupted = any(r.interrupted for r in recs.values()) or old.get("interrupted") is True
+    res.error = next((r.error for r in recs.values() if r.error), None) or old.get("error")  # e.g. GP data
+    wall = old.get("wall_seconds")
+    if not isinstance(wall, int | float):
+        wall = float(sum(r.wall_seconds for r in recs.values()))
+    metrics = build_metrics(mission, res, old.get("gp") or {}, float(wall))
+    metrics["recording"] = recording_status(run_dir, recs)
+    atomic_write_json(run_dir / "metrics.json", metrics)
+    paths = write_plots(run_dir, mission, recs, res.datasets) if plots else []
+    return metrics, paths

@@ -110,12 +110,19 @@ class SafetyTickTimer:
         self.heartbeat = heartbeat
         self.durations: list[float] = []
 
-    def tick(self) -> None:
+    def tick(self, raise_heartbeat: bool = True) -> None:
+        """Tick every SafeDrone, then the heartbeat; its error (a guardian takeover) is raised after the
+        safety rules ran, unless raise_heartbeat is False (landing: nothing may interrupt it)."""
         t0 = time.perf_counter()
         for s in self.safe.values():
             s.tick()
         if self.heartbeat is not None:
-            self.heartbeat()
+            try:
+                self.heartbeat()
+            except Exception:
+                if raise_heartbeat:
+                    raise
+                _log.exception("heartbeat while landing")
         if len(self.durations) < self.MAX_SAMPLES:
             self.durations.append(time.perf_counter() - t0)
 
@@ -208,6 +215,8 @@ def run_mode(
         everyone = sorted(d.id for d in mission.drones)
         clock = backend.clock
         log = EventLog()
+        if writer is not None:  # safety events reach the disk as they happen, also in takeoff and landing
+            writer.add_event_source(lambda: [{"event": "safety", "mode": mode, **e} for e in log.to_dicts()])
         limits = safety_limits(mission)
         safe: dict[int, SafeDrone] = {}
         supervisor: MissionSupervisor | None = None
@@ -469,8 +478,8 @@ def _land_everything(
         )
 
 
-def _quietly(tick: Callable[[], None], bus: Any) -> None:
+def _quietly(tick: Callable[[bool], None], bus: Any) -> None:
     """One tick while landing; an abort arriving now is already being obeyed (drained; the bus acks it)."""
-    tick()
+    tick(False)
     with contextlib.suppress(OperatorAbortError):
         _check_operator(bus)

@@ -306,7 +306,7 @@ def test_reader_error_is_recorded(fake: FakeMocap) -> None:
             raise RuntimeError("link down")
 
         fake.waitForNextFrame = boom  # type: ignore[method-assign]
-        assert _wait_for(lambda: not src.stats()["reader_alive"])
+        assert _wait_for(lambda: src.stats()["reader_failing"]) and src.stats()["reader_alive"]
         assert "link down" in (src.stats()["reader_error"] or "")
         assert _wait_for(lambda: src.latest("cf1") is None, timeout=1.0)
     finally:

@@ -378,17 +378,20 @@ def test_control_channel() -> None:
         b.publish_control_raw(b'{"mission": "other", "kind": "abort", "payload": {}}')
         b.publish_control_raw(b'{"mission": "zb_test", "kind": "status", "payload": [1]}')
         b.publish_control("status", {"request": "all"})
-        got = collect_control(a, 2)
+        got = collect_control(a, 4)  # the abort, the status, and the abort's two acknowledgements
         assert eventually(lambda: a.dropped.total() >= 4)
-        assert [(e.kind, e.payload, e.origin) for e in got] == [
+        assert [(e.kind, e.payload, e.origin) for e in got if e.kind != "abort_ack"] == [
             ("abort", {"reason": "operator", "t": 1.5}, (1,)),
             ("status", {"request": "all"}, (1,)),
         ]
+        # issue 15: every process hosting agents acknowledges an abort as soon as its bus has it
+        acks = sorted((e.origin, e.payload["drones"]) for e in got if e.kind == "abort_ack")
+        assert acks == [((0,), [0]), ((1,), [1])]
         assert a.dropped == Counter(
             {"control: malformed": 2, "control: unknown kind": 1, "control: other mission": 1}
         )
         assert a.control_events() == []  # drained
-        assert len(collect_control(b, 2)) == 2  # own process sees its commands too
+        assert len(collect_control(b, 4)) == 4  # own process sees its commands (and acks) too
         with pytest.raises(ValueError):
             a.publish_control("dance", {})
         with pytest.raises(ValueError):

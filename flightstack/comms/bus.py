@@ -1,15 +1,23 @@
 """The bus agents use to exchange prediction messages (DESIGN §6), and the in-process lock-step bus.
 
 Every bus carries encoded bytes and decodes them on receipt, so the in-process bus exercises exactly the
-validation path of the network bus: malformed, foreign or stale messages are dropped and counted.
+validation path of the network bus: malformed, foreign or stale messages are dropped and counted. The
+receive side (decode → sequence → staleness) is `flightstack.comms.freshness.Freshness`, shared with the
+Zenoh bus.
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from typing import Protocol
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Protocol
 
-from flightstack.comms.messages import PredictionMessage, decode, encode
+from flightstack.comms.control import ControlEvent
+from flightstack.comms.freshness import Freshness, OffsetPolicy, TimeBase
+from flightstack.comms.messages import PredictionMessage, encode
+
+if TYPE_CHECKING:
+    from flightstack.comms.operator_link import LoopbackOperatorListener
 
 
 class Bus(Protocol):
@@ -29,38 +37,58 @@ class InProcBus:
 
     `latest` returns the newest message of `sender` whose stamp is within `stale_after` seconds of `now`
     (None otherwise, counted as 'stale'). Out-of-order or duplicate sequence numbers are dropped.
+    All agents share one clock, so the time base is "stamps" by default (freshness.py).
+
+    operator: the loopback operator listener of an in-process mission (operator_link.py, built by
+    `factory.make_bus` on hardware): `control_events()` yields its aborts (already acknowledged to the
+    sender by the listener) and `close()` closes it. Without one, `control_events()` is always empty.
     """
 
-    def __init__(self, mission: str, known_senders: set[int]) -> None:
+    def __init__(
+        self,
+        mission: str,
+        known_senders: set[int],
+        *,
+        time_base: TimeBase = "stamps",
+        clock: Callable[[], float] | None = None,
+        policy: OffsetPolicy | None = None,
+        operator: LoopbackOperatorListener | None = None,
+    ) -> None:
         self.mission = mission
         self.known = frozenset(known_senders)
-        self._latest: dict[int, PredictionMessage] = {}
-        self.dropped: Counter[str] = Counter()
-        self.delivered = 0
+        self._book = Freshness(mission, self.known, time_base, clock, policy)
+        self.operator = operator
+
+    @property
+    def dropped(self) -> Counter[str]:
+        """Drop counts by reason: the live counter, plus the operator listener's when there is one."""
+        if self.operator is None:
+            return self._book.dropped
+        return self._book.dropped + self.operator.dropped
+
+    @property
+    def delivered(self) -> int:
+        return self._book.delivered
+
+    @property
+    def freshness(self) -> Freshness:
+        """The receive-side book (newest messages, sender clock offsets)."""
+        return self._book
 
     def publish(self, msg: PredictionMessage) -> None:
-        self.publish_raw(encode(msg))
+        self._book.accept(encode(msg))
 
     def publish_raw(self, data: bytes) -> None:
-        msg, reason = decode(data, self.mission, self.known)
-        if msg is None:
-            self.dropped[reason or "unknown"] += 1
-            return
-        prev = self._latest.get(msg.sender)
-        if prev is not None and msg.seq <= prev.seq:
-            self.dropped["old or duplicate seq"] += 1
-            return
-        self._latest[msg.sender] = msg
-        self.delivered += 1
+        self._book.accept(data)
 
     def latest(self, sender: int, now: float, stale_after: float) -> PredictionMessage | None:
-        msg = self._latest.get(sender)
-        if msg is None:
-            return None
-        if now - msg.stamp > stale_after:
-            self.dropped["stale"] += 1
-            return None
-        return msg
+        return self._book.latest(sender, now, stale_after)
+
+    def control_events(self) -> list[ControlEvent]:
+        """Operator commands (aborts) received since the last call, oldest first (drained)."""
+        return [] if self.operator is None else self.operator.control_events()
 
     def close(self) -> None:
-        self._latest.clear()
+        self._book.newest.clear()
+        if self.operator is not None:
+            self.operator.close()

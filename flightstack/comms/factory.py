@@ -3,6 +3,15 @@
 `participant` names this process in `bus.zenoh.endpoints`: a drone id (one agent per process), `agents`
 (every agent in one process), `world` (the served simulated world), or anything else for operator
 tools, which only connect. Each participant listens on its own endpoint and connects to all others.
+
+Time base (issue 15, freshness.py): simulated missions keep comparing stamps on the one mission clock
+(lock-step, bit-identical); real-time (hardware) missions on Zenoh measure each neighbour's message age on
+the receiver's own clock through a per-sender offset learned when the sender joins. The in-process bus
+has one clock for every agent and always compares stamps.
+
+Operator channel (issue 15, operator_link.py): an in-process bus on hardware (or with `bus.operator_port`
+set) wraps a loopback UDP listener, so `flightstack abort` reaches a `flightstack fly` from another
+terminal; `bus.control_events()` yields its aborts.
 """
 
 from __future__ import annotations
@@ -15,6 +24,7 @@ from flightstack.comms.bus import Bus, InProcBus
 from flightstack.mission import Mission
 
 if TYPE_CHECKING:
+    from flightstack.comms.operator_link import LoopbackOperatorListener
     from flightstack.comms.zenoh_bus import ZenohBusConfig
 
 
@@ -37,17 +47,33 @@ def zenoh_bus_config(mission: Mission, participant: str, self_ids: set[int]) -> 
         tls=dict(z.tls) if z.tls else None,
         extra_json5={} if z.access_control is None else {"access_control": json.dumps(z.access_control)},
         reliable=mission.simulated,  # lock-step waits for every message: a dropped one would stall a tick
+        time_base="stamps" if mission.simulated else "receiver",
     )
 
 
 def make_bus(mission: Mission, participant: str, self_ids: set[int], kind: str | None = None) -> Bus:
-    """InProcBus or ZenohBus for the agents `self_ids` of this process; `kind` overrides the mission's."""
+    """InProcBus or ZenohBus for the agents `self_ids` of this process; `kind` overrides the mission's.
+
+    An in-process bus listens for the operator on loopback (`operator_listener`) on hardware, or when the
+    mission sets `bus.operator_port`; RuntimeError when that port cannot be bound."""
     kind = kind or mission.bus.kind
     if kind == "inproc":
-        return InProcBus(mission.name, {d.id for d in mission.drones})
+        return InProcBus(
+            mission.name, {d.id for d in mission.drones}, operator=operator_listener(mission, self_ids)
+        )
     from flightstack.comms.zenoh_bus import ZenohBus
 
     return ZenohBus(zenoh_bus_config(mission, participant, self_ids))
+
+
+def operator_listener(mission: Mission, self_ids: set[int]) -> LoopbackOperatorListener | None:
+    """The loopback operator listener of an in-process run of `mission` hosting `self_ids`, or None when
+    it needs none (simulated, no `bus.operator_port`)."""
+    if mission.simulated and mission.bus.operator_port is None:
+        return None
+    from flightstack.comms.operator_link import LoopbackOperatorListener, operator_port
+
+    return LoopbackOperatorListener(mission.name, operator_port(mission), set(self_ids))
 
 
 _HANDED_OUT: set[int] = set()

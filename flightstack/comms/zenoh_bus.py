@@ -3,22 +3,23 @@
 Key layout (one mission = one key space; `prefix` defaults to "flightstack"):
     {prefix}/{mission}/pred/{sender}     PredictionMessage bytes (messages.encode), one key per sender
     {prefix}/{mission}/alive/{sender}    liveliness token, one per agent hosted by a process
-    {prefix}/{mission}/control           operator channel, UTF-8 JSON
-                                         {"mission": str, "kind": "abort"|"status", "payload": {...},
-                                          "origin": [ids of the publishing process]}
+    {prefix}/{mission}/control           operator channel, UTF-8 JSON (flightstack/comms/control.py)
+                                         {"mission": str, "kind": "abort"|"status"|"abort_ack",
+                                          "payload": {...}, "origin": [ids of the publishing process]}
 
 Delivery and QoS. One callback subscriber on `{prefix}/{mission}/pred/*` receives every sender. The
-callback decodes with `messages.decode` (pure Python, no zenoh call, never blocks on anything but a short
-lock) and keeps the newest valid message per sender in a dict: a ring buffer of depth 1 *per sender*.
+callback hands the bytes to `freshness.Freshness.accept` (decode, sequence and sender-clock checks; pure
+Python, no zenoh call, never blocks on anything but a short lock), which keeps the newest valid message
+per sender in a dict: a ring buffer of depth 1 *per sender*.
 A `RingChannel(1)` handler would not do: on a wildcard subscription it keeps the newest sample of *any*
 sender and silently loses the others; one RingChannel per sender would not see unknown or mismatched
 senders (which must be counted) and would force `wait_for` to poll. The default FIFO handler blocks the
 session when Python is slow. Bad messages are dropped and counted in `dropped` by reason (the reasons of
-`decode`, plus "key sender mismatch", "old or duplicate seq", "stale", "left", "control: ..."), exactly
-like `InProcBus`. Predictions are reliable; congestion control is DROP in real time (a newer one follows
-next tick) and BLOCK when `reliable` is set (lock-step simulations wait for every message, so a dropped one
-would stall a tick for the whole lock-step timeout). They are
-*not* express: zenoh's tx queue holds only 2 batches per priority and a DROP message that finds both taken
+`decode`, plus "key sender mismatch", "old or duplicate seq", "stale", "stamp ahead", "left",
+"control: ..."), exactly like `InProcBus`. Predictions are reliable; congestion control is DROP in real
+time (a newer one follows next tick) and BLOCK when `reliable` is set (lock-step simulations wait for
+every message, so a dropped one would stall a tick for the whole lock-step timeout). They are *not*
+express: zenoh's tx queue holds only 2 batches per priority and a DROP message that finds both taken
 for 1 ms is discarded; express puts every message in its own batch, so a burst from a CPU-starved process
 lost messages in testing, while batched messages share one batch (the batch is flushed as soon as the link
 is free: hop latency p50 unchanged, ~0.3 ms between two processes on loopback). Control messages are
@@ -42,9 +43,23 @@ links and is seen as left in ~0.1-0.2 s; a hung one (stopped, partitioned) only 
 transport lease; keep-alives every lease/4). A sender that has left reads as None (counted "left") and
 its newest message and sequence number are forgotten, so a restarted agent (seq from 0) is accepted.
 
+Time base (issue 15, freshness.py). `cfg.time_base` "stamps" (the default; lock-step runs on a simulated
+clock): a message's age is `now − stamp` on the mission clock, as the in-process bus. "receiver" (real
+time, set by `factory.make_bus` for hardware missions): each sender's stamps are on its own computer's
+monotonic clock; the receiver learns a bounded offset per sender when it joins (first messages, or
+after `rejoin_after_s` of silence, or after it left the bus) and measures ages on its own
+time.monotonic() through it. `now` passed to `latest` is then unused.
+
+Abort acknowledgement (issue 15). A process hosting agents (`self_ids` not empty) answers every valid
+"abort" it receives with an "abort_ack" control message (control.ack_payload: abort id, its drone ids,
+pid, host) as soon as the subscriber callback has it: the callback queues it and the bus's ack thread
+publishes it (the callback itself never calls zenoh). The abort is also queued for `control_events()`:
+the runner lands at its next check. Operator tools and the served world (no agents) do not acknowledge.
+
 Threading. Zenoh-python runs callbacks on its own (non-daemon) threads; all shared state is guarded by
-one lock/condition; the callbacks never call zenoh. `close()` undeclares everything and closes the
-session, which ends those threads: always close (the class is a context manager).
+one lock/condition; the callbacks never call zenoh. The ack thread (daemon, started at the first abort)
+only publishes. `close()` ends the ack thread, undeclares everything and closes the session, which ends
+zenoh's threads: always close (the class is a context manager).
 
 Units: message stamps and `latest(now, stale_after)` are mission-clock seconds; `presence_events` and
 `ControlEvent.time` are `time.monotonic()` seconds; `lease_ms` is milliseconds; `timeout_s` seconds.
@@ -64,10 +79,19 @@ from typing import Any
 
 import zenoh
 
-from flightstack.comms.messages import MAGIC, MAX_MISSION_NAME, PredictionMessage, decode, encode
+from flightstack.comms.control import (
+    ABORT,
+    ABORT_ACK,
+    CONTROL_KINDS,
+    MAX_CONTROL_BYTES,
+    ControlEvent,
+    ack_payload,
+    encode_control,
+    parse_control,
+)
+from flightstack.comms.freshness import TIME_BASES, Freshness, OffsetPolicy, TimeBase
+from flightstack.comms.messages import MAGIC, MAX_MISSION_NAME, PredictionMessage, encode
 
-CONTROL_KINDS = frozenset({"abort", "status"})
-MAX_CONTROL_BYTES = 65536
 TLS_PATH_KEYS = frozenset(
     {
         "root_ca_certificate",
@@ -104,6 +128,7 @@ class ZenohBusConfig:
     usrpwd: tuple[str, str] | None = None
     extra_json5: dict[str, str] = field(default_factory=dict)
     reliable: bool = False  # predictions never dropped under congestion (lock-step sims wait for each)
+    time_base: TimeBase = "stamps"  # "receiver": real time across computers (module docstring)
 
     def pred_key(self, sender: int | str) -> str:
         return f"{self.key_prefix}/{self.mission}/pred/{sender}"
@@ -113,14 +138,6 @@ class ZenohBusConfig:
 
     def control_key(self) -> str:
         return f"{self.key_prefix}/{self.mission}/control"
-
-
-@dataclass(frozen=True)
-class ControlEvent:
-    time: float  # time.monotonic() at receipt (s)
-    kind: str  # "abort" | "status"
-    payload: dict[str, Any]
-    origin: tuple[int, ...]  # self_ids of the publishing process
 
 
 def _insert(conf: zenoh.Config, key: str, json5: str, name: str | None = None) -> None:
@@ -149,6 +166,8 @@ def _validate(cfg: ZenohBusConfig) -> None:
             raise ValueError(f"invalid {name!r}: ids must be integers in [0, 65535]")
     if not set(cfg.self_ids) <= set(cfg.known_senders):
         raise ValueError("invalid 'self_ids': every hosted agent must also be in known_senders")
+    if cfg.time_base not in TIME_BASES:
+        raise ValueError(f"invalid 'time_base': {cfg.time_base!r} (expected one of {TIME_BASES})")
     if not isinstance(cfg.lease_ms, int) or cfg.lease_ms <= 0:
         raise ValueError("invalid 'lease_ms': must be a positive integer (milliseconds)")
     for name, eps in (("listen", cfg.listen), ("connect", cfg.connect)):
@@ -197,19 +216,31 @@ def _header_sender(data: bytes) -> str:
 
 
 class ZenohBus:
-    """`Bus` over Zenoh for the agents `cfg.self_ids` of this process; see the module docstring."""
+    """`Bus` over Zenoh for the agents `cfg.self_ids` of this process; see the module docstring.
 
-    def __init__(self, cfg: ZenohBusConfig) -> None:
+    clock: this receiver's clock (s, default time.monotonic), for receipt times and, in time base
+    "receiver", message ages; policy: how sender clock offsets are learned (freshness.OffsetPolicy)."""
+
+    def __init__(
+        self,
+        cfg: ZenohBusConfig,
+        *,
+        clock: Callable[[], float] | None = None,
+        policy: OffsetPolicy | None = None,
+    ) -> None:
         conf = zenoh_config(cfg)
         self.cfg = cfg
         self.mission = cfg.mission
         self.self_ids = frozenset(cfg.self_ids)
         self.known = frozenset(cfg.known_senders)
+        self._clock = clock or time.monotonic
         self._cond = threading.Condition(threading.Lock())
-        self._latest: dict[int, PredictionMessage] = {}
-        self._received: dict[int, float] = {}  # time.monotonic() of each sender's newest valid message
-        self._dropped: Counter[str] = Counter()
-        self._delivered = 0
+        self._book = Freshness(cfg.mission, self.known, cfg.time_base, self._clock, policy)
+        self._latest = self._book.newest  # the same dict: newest valid message per sender
+        self._dropped: Counter[str] = self._book.dropped  # the same counter: every drop reason
+        self._acks: list[ControlEvent] = []  # aborts to acknowledge (the ack thread publishes)
+        self._ack_thread: threading.Thread | None = None
+        self.acks_sent = 0
         self._alive: set[int] = set()
         self._left: set[int] = set()
         self._events: list[tuple[float, int, str]] = []
@@ -257,7 +288,12 @@ class ZenohBus:
 
     @property
     def delivered(self) -> int:
-        return self._delivered
+        return self._book.delivered
+
+    @property
+    def freshness(self) -> Freshness:
+        """The receive-side book (newest messages, sender clock offsets); read it with the bus idle."""
+        return self._book
 
     @property
     def session(self) -> Any:
@@ -274,19 +310,14 @@ class ZenohBus:
         self._put(_header_sender(data) if key_sender is None else str(key_sender), data)
 
     def latest(self, sender: int, now: float, stale_after: float) -> PredictionMessage | None:
-        """Newest valid message of `sender`, or None if none, if the sender has left ("left") or if its
-        stamp is more than `stale_after` s older than `now` ("stale"), both on the mission clock."""
+        """Newest valid message of `sender`, or None if none, if the sender has left ("left") or if it
+        is more than `stale_after` s old ("stale"): `now − stamp` on the mission clock (time base
+        "stamps"), or measured on this receiver's clock through the sender's offset ("receiver")."""
         with self._cond:
             if sender in self._left:
                 self._dropped["left"] += 1
                 return None
-            msg = self._latest.get(sender)
-            if msg is None:
-                return None
-            if now - msg.stamp > stale_after:
-                self._dropped["stale"] += 1
-                return None
-            return msg
+            return self._book.latest(sender, now, stale_after)
 
     def close(self) -> None:
         """Undeclare tokens, subscribers and publishers, close the session (idempotent)."""
@@ -295,6 +326,9 @@ class ZenohBus:
                 return
             self._closed = True
             self._cond.notify_all()
+            ack_thread = self._ack_thread
+        if ack_thread is not None and ack_thread is not threading.current_thread():
+            ack_thread.join(5.0)
         for obj in [*self._tokens, *self._subs, *self._publishers.values()]:
             with contextlib.suppress(Exception):
                 obj.undeclare()
@@ -356,10 +390,11 @@ class ZenohBus:
                 self._cond.wait(remaining)
 
     def message_age(self, sender: int) -> float | None:
-        """Wall seconds since `sender`'s newest valid prediction arrived (None: none yet)."""
+        """Seconds since `sender`'s newest valid prediction arrived, on this receiver's clock (None: none
+        yet)."""
         with self._cond:
-            t = self._received.get(sender)
-        return None if t is None else time.monotonic() - t
+            t = self._book.received.get(sender)
+        return None if t is None else self._clock() - t
 
     def alive(self) -> set[int]:
         with self._cond:
@@ -373,17 +408,9 @@ class ZenohBus:
 
     # ------------------------------------------------------------------ operator channel
     def publish_control(self, kind: str, payload: dict[str, Any]) -> None:
-        """Send an operator command ("abort" | "status") with a JSON-serialisable dict payload."""
-        if kind not in CONTROL_KINDS:
-            raise ValueError(f"unknown control kind {kind!r} (expected one of {sorted(CONTROL_KINDS)})")
-        if not isinstance(payload, dict):
-            raise ValueError("control payload must be a dict")
-        body = {"mission": self.mission, "kind": kind, "payload": payload, "origin": sorted(self.self_ids)}
-        try:
-            data = json.dumps(body, allow_nan=False).encode("utf-8")
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"control payload not JSON-serialisable: {exc}") from exc
-        self.publish_control_raw(data)
+        """Send an operator message ("abort" | "status" | "abort_ack") with a JSON-serialisable dict
+        payload (ValueError otherwise, see control.encode_control)."""
+        self.publish_control_raw(encode_control(self.mission, kind, payload, sorted(self.self_ids)))
 
     def publish_control_raw(self, data: bytes) -> None:
         self._check_open()
@@ -435,22 +462,10 @@ class ZenohBus:
         except Exception:
             self._drop("bad sample")
             return
-        msg, reason = decode(data, self.mission, self.known)
+        t_recv = self._clock()
         with self._cond:
-            if msg is None:
-                self._dropped[reason or "unknown"] += 1
-                return
-            if key_sender != str(msg.sender):
-                self._dropped["key sender mismatch"] += 1
-                return
-            prev = self._latest.get(msg.sender)
-            if prev is not None and msg.seq <= prev.seq:
-                self._dropped["old or duplicate seq"] += 1
-                return
-            self._latest[msg.sender] = msg
-            self._received[msg.sender] = time.monotonic()
-            self._delivered += 1
-            self._cond.notify_all()
+            if self._book.accept(data, key_sender, t_recv) is not None:
+                self._cond.notify_all()
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         try:
@@ -471,47 +486,54 @@ class ZenohBus:
             elif not joined and sender in self._alive:
                 self._alive.discard(sender)
                 self._left.add(sender)
-                self._latest.pop(sender, None)  # a restarted agent counts seq from 0 again
+                self._book.forget(sender)  # a restarted agent counts seq from 0, re-learns its offset
                 self._events.append((now, sender, "left"))
             self._cond.notify_all()
 
     def _on_control(self, sample: zenoh.Sample) -> None:
+        """Zenoh callback thread: validate, queue; an abort is also queued for acknowledgement."""
         try:
             data = sample.payload.to_bytes()
         except Exception:
             self._drop("control: bad sample")
             return
-        if len(data) > MAX_CONTROL_BYTES:
-            self._drop("control: too large")
+        ev, reason = parse_control(data, self.mission, time.monotonic())
+        if ev is None:
+            self._drop(reason or "control: malformed")
             return
-        try:
-            body = json.loads(data.decode("utf-8"), parse_constant=_reject_constant)
-            kind, payload, origin = body["kind"], body["payload"], body.get("origin", [])
-            ok = (
-                isinstance(kind, str)
-                and isinstance(payload, dict)
-                and isinstance(origin, list)
-                and all(isinstance(i, int) for i in origin)
-            )
-        except Exception:
-            ok = False
-        if not ok:
-            self._drop("control: malformed")
-            return
-        if body.get("mission") != self.mission:
-            self._drop("control: other mission")
-            return
-        if kind not in CONTROL_KINDS:
-            self._drop("control: unknown kind")
-            return
-        ev = ControlEvent(time.monotonic(), kind, payload, tuple(origin))
         with self._cond:
             self._control.append(ev)
+            if ev.kind == ABORT and self.self_ids and not self._closed:
+                self._acks.append(ev)
+                if self._ack_thread is None:
+                    self._ack_thread = threading.Thread(
+                        target=self._ack_loop, name=f"abort-ack:{self.mission}", daemon=True
+                    )
+                    self._ack_thread.start()
             self._cond.notify_all()
 
+    def _ack_loop(self) -> None:
+        """Publish an abort_ack for every queued abort until the bus closes; never raises."""
+        while True:
+            with self._cond:
+                while not self._acks and not self._closed:
+                    self._cond.wait()
+                if self._closed:
+                    return
+                pending, self._acks = self._acks, []
+            for ev in pending:
+                try:
+                    self.publish_control(ABORT_ACK, ack_payload(ev, self.self_ids))
+                    self.acks_sent += 1
+                except Exception:  # closed meanwhile, or zenoh refused: count, keep going
+                    self._drop("control: ack not sent")
 
-def _reject_constant(name: str) -> float:
-    raise ValueError(f"non-finite JSON constant {name}")
 
-
-__all__ = ["CONTROL_KINDS", "ControlEvent", "ZenohBus", "ZenohBusConfig", "zenoh_config"]
+__all__ = [
+    "CONTROL_KINDS",
+    "MAX_CONTROL_BYTES",
+    "ControlEvent",
+    "ZenohBus",
+    "ZenohBusConfig",
+    "zenoh_config",
+]

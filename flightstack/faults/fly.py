@@ -9,7 +9,6 @@ Times are mission-clock seconds; positions are in the world frame Σw (m).
 
 from __future__ import annotations
 
-import json
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -25,6 +24,7 @@ from flightstack.faults.inject import FaultSpec, FaultyBackend, FaultyBus
 from flightstack.faults.result import Checks
 from flightstack.metrics import mode_metrics
 from flightstack.mission import Mission, load_mission
+from flightstack.recorder import RunWriter
 from flightstack.recording import ARRAY_FIELDS, Recording
 from flightstack.runner import run_mode, safety_limits
 from flightstack.safety import outside_hard_fence, outside_soft_fence
@@ -124,16 +124,16 @@ def fly_with_faults(
 
 
 def write_run(run_dir: Path, mission: Mission, rec: Recording) -> list[str]:
-    """timeseries_none.npz, events.jsonl and metrics.json (strict JSON); the problems met doing so."""
+    """timeseries_<mode>.npz, events.jsonl and metrics.json (strict JSON, with "recording": {"complete",
+    "reason"}) through flightstack.recorder (atomic files); the problems met doing so, among them an
+    incomplete recording (e.g. a full disk)."""
     problems = []
-    run_dir.mkdir(parents=True, exist_ok=True)
     try:
-        rec.save(str(run_dir / f"timeseries_{rec.mode}.npz"))
-        with (run_dir / "events.jsonl").open("w") as fh:
-            for ev in rec.events:
-                fh.write(json.dumps(ev, allow_nan=False) + "\n")
-        metrics = mode_metrics(rec, mission)
-        (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
+        with RunWriter(run_dir) as writer:
+            writer.record(rec)
+            status = writer.write_metrics(mode_metrics(rec, mission))["recording"]
+        if not status["complete"]:
+            problems.append(f"recording incomplete: {status['reason']}")
     except Exception as exc:
         problems.append(f"writing the run failed: {type(exc).__name__}: {exc}")
     return problems

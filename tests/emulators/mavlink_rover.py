@@ -150,6 +150,7 @@ class MavlinkRoverEmulator:
         self.setpoint_timeout_s = setpoint_timeout_s
         self.heartbeat_period_s = 1.0 / heartbeat_hz
         self.setpoints: list[SetpointRecord] = []
+        self.gcs_heartbeats: list[float] = []  # emulator monotonic times (s) of the client's HEARTBEATs
         self.stopped_by_timeout = False
         self._s = _State()
         self._pending_acks: list[tuple[float, int, int]] = []  # (due time, command, result)
@@ -221,6 +222,11 @@ class MavlinkRoverEmulator:
     def setpoint_records(self) -> list[SetpointRecord]:
         with self._lock:
             return list(self.setpoints)
+
+    def gcs_heartbeat_count(self) -> int:
+        """How many HEARTBEATs the client (ground station) has sent so far."""
+        with self._lock:
+            return len(self.gcs_heartbeats)
 
     # ------------------------------------------------------------------ lifecycle
     def close(self) -> None:
@@ -354,7 +360,9 @@ class MavlinkRoverEmulator:
                 mavlink.MAVLINK_MSG_ID_SET_MODE if mtype == "SET_MODE" else int(msg.command)
             )
             return
-        if mtype == "SET_MODE":
+        if mtype == "HEARTBEAT":
+            self.gcs_heartbeats.append(now)
+        elif mtype == "SET_MODE":
             sm = mavlink.MAVLINK_MSG_ID_SET_MODE
             self._ack(sm, self._set_mode(int(msg.custom_mode), sm), msg.custom_mode, now)
         elif mtype == "COMMAND_LONG":

@@ -96,8 +96,16 @@ firmwares):
   ``query_height``/``query_temperature``/``query_flight_time``/``query_speed`` ``int()``-parse these and
   therefore raise ``ValueError`` against the emulator (and, by report, against real drones).
 
-Not modelled: the Tello EDU apparently answering only the client port it first talked to, so a restarted
-client on a new port hangs (DJITelloPy PR #163/#168 re-bind the client to port 8889), binary (non-text)
+* **Several controllers** (another socket or process of the same computer, e.g. the guardian process of
+  drivers/guardian.py): once in SDK mode, commands from any source port are executed, and every datagram's
+  sender is logged in ``senders``.  Replies go to the sender (Tello, DJITelloPy #143: a client on an
+  OS-assigned port got its replies), or, with ``reply_port_latch=True`` (Tello EDU), always to the address
+  that sent the first ``command`` (DJITelloPy PR #163, on EDU drones: a second run of a script on a new
+  port "hangs on client_socket.recv" while "sending commands to the drone work[s] perfectly"; PR #168
+  re-binds the client to port 8889 for the EDU).  *Unverified*: whether a second ``command`` moves the
+  latch; here it does not.
+
+Not modelled: binary (non-text)
 datagrams some firmwares send on the command port (carlospzlz/ctello#7), ``error No valid imu`` and
 ``error, high temp`` refusals, ``motoron`` motor-on mode, battery auto-land, and the gradual reply-queue
 backlog users see when sending commands back to back.
@@ -270,6 +278,7 @@ class TelloEmulator:
             tello.connect()
 
     Public, thread-safe read access: ``commands`` (``(time.monotonic(), text)`` of every datagram),
+    ``senders`` (the same with the sender's ``(ip, port)``),
     ``rc_history`` (``(time, (a, b, c, d))`` of every valid ``rc``), ``phase_log`` (``(time, phase)`` of every
     phase transition), ``refused`` (``(time, phase at receipt, text, reply or "ignored")`` of every command
     the drone did not carry out), ``replies_sent`` (``(time, text, "normal" | "duplicate")`` of every reply
@@ -306,6 +315,7 @@ class TelloEmulator:
         state_hz: float = 10.0,
         gop_size: int = 15,
         pre_sdk_reply: str | None = None,
+        reply_port_latch: bool = False,
     ) -> None:
         """Configure the emulator; nothing is bound or started before :meth:`start`.
 
@@ -327,6 +337,7 @@ class TelloEmulator:
             state_hz: state packet rate.
             gop_size: H.264 keyframe interval in frames.
             pre_sdk_reply: reply to commands sent before ``command`` (None = ignore them, the default).
+            reply_port_latch: Tello EDU: every reply goes to the sender of the first ``command``.
         """
         _require_loopback(ip, "ip")
         _require_loopback(client_ip, "client_ip")
@@ -351,10 +362,14 @@ class TelloEmulator:
         self.state_hz = float(state_hz)
         self.gop_size = int(gop_size)
         self.pre_sdk_reply = pre_sdk_reply
+        self.reply_port_latch = reply_port_latch
+        self._first_client: tuple[str, int] | None = None  # sender of the first ``command``
         self.faults = faults if faults is not None else TelloFaults()
 
         self._lock = threading.RLock()
         self.commands: list[tuple[float, str]] = []
+        self.senders: list[tuple[float, str, tuple[str, int]]] = []
+        """``(time.monotonic(), text, sender (ip, port))`` of every datagram, as ``commands``."""
         self.rc_history: list[tuple[float, tuple[int, int, int, int]]] = []
         self.errors: list[str] = []
         """Problems inside the emulator (frame source, encoder, sockets); empty in a healthy run."""
@@ -550,6 +565,7 @@ class TelloEmulator:
         now = time.monotonic()
         with self._lock:
             self.commands.append((now, text))
+            self.senders.append((now, text, addr))
             if not is_loopback(addr[0]):
                 self.rejected.append(f"{text} (non-loopback sender {addr[0]})")
                 return
@@ -557,7 +573,10 @@ class TelloEmulator:
             words = text.split()
             verb, args = (words[0], words[1:]) if words else ("", [])
             delay = float(faults.reply_delay_s)
-            reply_addr = None if faults.silent or verb in faults.lost_replies else addr
+            if verb == "command" and self._first_client is None:
+                self._first_client = addr
+            to = self._first_client if self.reply_port_latch and self._first_client else addr
+            reply_addr = None if faults.silent or verb in faults.lost_replies else to
             if not self.sdk_mode and verb != "command":
                 reply = self.pre_sdk_reply
                 self._refuse(now, phase, text, "ignored" if reply is None else reply)
@@ -616,6 +635,7 @@ class TelloEmulator:
         self._pos[2] = 0.0
         if verb == "reboot":
             self.sdk_mode = False
+            self._first_client = None
             self.streaming = False
 
     def _busy_reply(self) -> str:

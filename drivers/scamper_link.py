@@ -1,0 +1,277 @@
+"""The Scamper's MAVLink link: one pymavlink connection, its one send path and its two background threads.
+
+drivers/scamper.py (the robot's semantics: heartbeat state, mode/arm confirmation) runs on top of
+`ScamperLink`:
+
+* ``scamper-rx`` receives everything (``recv_match``, ≤ 20 ms waits) and hands each message, or None
+  when nothing came, to the driver's handler (which also supervises the link);
+* ``scamper-tx`` sends the GCS HEARTBEAT at 1 Hz and calls the driver's stream tick at ``stream_hz``
+  (the set-point re-send ArduPilot Rover needs: it stops after ~3 s without one).
+
+Neither thread ends on an error: an exception from receiving (``recv_error``: a socket error such as
+ENETUNREACH, a pymavlink parse failure), from the handler (``rx_error``) or from a tick (``tx_error``) is
+counted in the driver's ``counts`` (plus ``thread_error``), logged at the first and every 100th
+occurrence, and the thread goes on after a pause of ``ERROR_PAUSE_S``. Every send, from any thread, goes
+through `ScamperLink.send`: an exception from the pymavlink write is counted (``send_error``), never
+raised; note that pymavlink's UDP transport swallows socket errors of ``sendto`` itself (serial and TCP
+ones reach this code).
+
+Mute (guardian takeover): `ScamperLink.muted`, a callable checked synchronously under the send lock right
+before each write, from whichever thread sends; while it returns True nothing is written (``counts["muted"]``,
+`send` returns "muted"). A check that raises is counted (``muted_check_error``) and does not mute.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from pymavlink import mavutil
+
+from drivers.tello_link import ERROR_PAUSE_S, ErrorLog, MutedCheck
+
+mavlink = mavutil.mavlink
+LOG = logging.getLogger("flightstack.scamper")
+
+ROVER_GUIDED_MODE = 15
+# Ignore x, y, z (1, 2, 4), vz (32), afx/afy/afz (64, 128, 256), yaw (1024); use vx, vy, yaw_rate.
+TYPE_MASK_VEL_YAWRATE = 1511
+GCS_HEARTBEAT_PERIOD_S = 1.0
+RX_WAIT_S = 0.02  # longest wait of the receiver thread in recv_match (s)
+_NOT_VEHICLE_TYPES = (
+    mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_GIMBAL, mavlink.MAV_TYPE_ADSB, mavlink.MAV_TYPE_ONBOARD_CONTROLLER
+)  # fmt: skip
+_GCS_HEARTBEAT = (mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE)
+
+SendResult = Literal["sent", "muted", "failed", "closed"]
+MessageHandler = Callable[[Any, float], None]  # (message or None, time.monotonic() s)
+
+
+class ScamperError(RuntimeError):
+    """Base class of Scamper driver errors."""
+
+
+class ScamperLinkError(ScamperError):
+    """No (or no more) HEARTBEAT from the robot."""
+
+
+class ScamperCommandError(ScamperError):
+    """A mode change or (dis)arm was rejected, not sent (muted), or the robot's HEARTBEAT never showed it."""
+
+
+@dataclass(frozen=True)
+class ScamperConfig:
+    """Connection and timing parameters (all times in seconds, rates in Hz)."""
+
+    url: str = "udpout:127.0.0.1:14550"  # pymavlink connection string of the robot
+    heartbeat_timeout_s: float = 5.0  # connect(): max wait for the robot's first HEARTBEAT
+    ack_timeout_s: float = 2.0  # wait for a COMMAND_ACK (or heartbeat change) before re-sending
+    stream_hz: float = 10.0  # set-point re-send rate (>= 1 Hz needed; Rover stops after 3 s)
+    link_timeout_s: float = 3.0  # no HEARTBEAT for this long -> link lost
+    source_system: int = 255  # our MAVLink system id (GCS convention)
+    source_component: int = 190  # MAV_COMP_ID_MISSIONPLANNER
+    command_sends: int = 3  # max sends of one COMMAND_LONG that gets neither ACK nor heartbeat change
+
+    def __post_init__(self) -> None:
+        for name in ("heartbeat_timeout_s", "ack_timeout_s", "stream_hz", "link_timeout_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"ScamperConfig.{name} must be finite and > 0, got {value}")
+        if self.stream_hz < 1.0:
+            raise ValueError(f"ScamperConfig.stream_hz must be >= 1 Hz, got {self.stream_hz}")
+        if self.command_sends < 1:
+            raise ValueError(f"ScamperConfig.command_sends must be >= 1, got {self.command_sends}")
+
+
+def is_vehicle_heartbeat(msg: Any) -> bool:
+    """As pymavlink's ``mavfile.probably_vehicle_heartbeat``: not a GCS, gimbal, ADS-B or companion."""
+    return (
+        msg.get_srcComponent() != mavlink.MAV_COMP_ID_GIMBAL
+        and msg.type not in _NOT_VEHICLE_TYPES
+        and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID
+    )
+
+
+class ScamperLink:
+    """The pymavlink connection of one driver, its send path (mute, error accounting) and its threads."""
+
+    def __init__(self, config: ScamperConfig, counts: Counter[str], muted: MutedCheck | None = None) -> None:
+        """Open ``config.url`` (pymavlink); counts: the driver's counters; muted: see the module docstring."""
+        self.config = config
+        self.muted = muted
+        self.counts = counts
+        self.errors = ErrorLog(counts, f"scamper {config.url}", LOG)
+        self.conn: Any = mavutil.mavlink_connection(
+            config.url, source_system=config.source_system, source_component=config.source_component
+        )
+        self._send_lock = threading.Lock()  # serialises writes on the pymavlink connection
+        self._closed = False
+        self._t0 = time.monotonic()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    # ------------------------------------------------------------------ threads
+    def start(self, on_message: MessageHandler, on_stream_tick: Callable[[], None]) -> None:
+        """Start ``scamper-rx`` (every message, or None after ≤ 20 ms of silence, to on_message) and
+        ``scamper-tx`` (GCS HEARTBEAT at 1 Hz, on_stream_tick at ``stream_hz``)."""
+        self._threads = [
+            threading.Thread(target=self._rx_loop, args=(on_message,), name="scamper-rx", daemon=True),
+            threading.Thread(target=self._tx_loop, args=(on_stream_tick,), name="scamper-tx", daemon=True),
+        ]
+        for th in self._threads:
+            th.start()
+
+    def threads_alive(self) -> dict[str, bool]:
+        """Name → alive, of this link's threads."""
+        return {th.name: th.is_alive() for th in self._threads}
+
+    def close(self) -> None:
+        """Stop and join the threads (≤ 1 s each), then close the connection; idempotent."""
+        self._stop.set()
+        for th in self._threads:
+            if th is not threading.current_thread():
+                th.join(timeout=1.0)
+        with self._send_lock:
+            self._closed = True
+            with contextlib.suppress(OSError):
+                self.conn.close()
+
+    def _rx_loop(self, on_message: MessageHandler) -> None:
+        """Receiver thread: survives every error (counted, logged without flooding)."""
+        while not self._stop.is_set():
+            try:
+                msg = self.conn.recv_match(blocking=True, timeout=RX_WAIT_S)
+            except Exception as exc:  # ENETUNREACH from recvfrom, a closed socket, a pymavlink parse bug
+                msg = None
+                if self._stop.is_set():
+                    break
+                self.errors.record("recv_error", exc)
+                self._stop.wait(ERROR_PAUSE_S)
+            try:
+                on_message(msg, time.monotonic())
+            except Exception as exc:
+                self.errors.record("rx_error", exc)
+                self._stop.wait(ERROR_PAUSE_S)
+
+    def _tx_loop(self, on_stream_tick: Callable[[], None]) -> None:
+        """Sender thread: GCS heartbeat and set-point stream; survives every error."""
+        period = 1.0 / self.config.stream_hz
+        next_hb = next_sp = time.monotonic()
+        while True:
+            now = time.monotonic()
+            if self._stop.wait(max(0.0, min(next_hb, next_sp) - now)):
+                break
+            now = time.monotonic()
+            try:
+                if now >= next_hb:
+                    next_hb = now + GCS_HEARTBEAT_PERIOD_S
+                    self.send_heartbeat()
+                if now >= next_sp:
+                    next_sp = now + period
+                    on_stream_tick()
+            except Exception as exc:
+                self.errors.record("tx_error", exc)
+                self._stop.wait(ERROR_PAUSE_S)
+
+    # ------------------------------------------------------------------ sending (any thread)
+    def is_muted(self) -> bool:
+        """The mute check, evaluated now; one that raises is counted and does not mute."""
+        check = self.muted
+        if check is None:
+            return False
+        try:
+            return bool(check())
+        except Exception as exc:
+            self.errors.record("muted_check_error", exc, thread=False)
+            return False
+
+    def send(self, fn: str, *args: Any) -> SendResult:
+        """Call ``conn.mav.<fn>(*args)`` unless muted or closed; never raises, never waits on the network."""
+        with self._send_lock:
+            if self._closed:
+                return "closed"
+            if self.is_muted():  # right before the write, under the lock: no send slips past a takeover
+                what = fn.removesuffix("_send")
+                self.errors.record("muted", f"{what} not sent: another process took over", thread=False)
+                return "muted"
+            try:
+                getattr(self.conn.mav, fn)(*args)
+            except Exception as exc:  # OSError of a serial/TCP write, a packing error: counted, not raised
+                self.errors.record("send_error", f"{fn}: {type(exc).__name__}: {exc}", thread=False)
+                return "failed"
+        self.counts["sent"] += 1
+        return "sent"
+
+    def send_heartbeat(self) -> SendResult:
+        """The GCS HEARTBEAT (ArduPilot's GCS failsafe watches it)."""
+        return self.send("heartbeat_send", *_GCS_HEARTBEAT)
+
+    def send_setpoint(self, target: tuple[int, int], sp: np.ndarray) -> SendResult:
+        """SET_POSITION_TARGET_LOCAL_NED, body NED velocity sp = [vx m/s, vy right m/s, yaw rate cw rad/s]."""
+        t_ms = int((time.monotonic() - self._t0) * 1000.0) & 0xFFFFFFFF
+        vx, vy, r = (float(x) for x in sp)
+        return self.send(
+            "set_position_target_local_ned_send",
+            t_ms, target[0], target[1], mavlink.MAV_FRAME_BODY_NED, TYPE_MASK_VEL_YAWRATE,
+            0.0, 0.0, 0.0, vx, vy, 0.0, 0.0, 0.0, 0.0, 0.0, r,
+        )  # fmt: skip
+
+    def send_command(
+        self, target: tuple[int, int], command: int, confirmation: int, p1: float, p2: float
+    ) -> SendResult:
+        """COMMAND_LONG `command` with param1, param2 (the others 0)."""
+        return self.send(
+            "command_long_send", target[0], target[1], command, confirmation, p1, p2, 0, 0, 0, 0, 0
+        )
+
+
+@dataclass(frozen=True)
+class HeartbeatProbe:
+    """What one HEARTBEAT of the robot said (for `flightstack preflight`); mode is Rover's custom mode."""
+
+    mav_type: int
+    custom_mode: int
+    armed: bool
+
+
+def probe_heartbeat(config: ScamperConfig) -> HeartbeatProbe:
+    """Wait up to heartbeat_timeout_s for the robot's HEARTBEAT without changing its mode or arming it.
+
+    Sends GCS heartbeats meanwhile (a `udpin` vehicle only learns our address from what we send); only a
+    vehicle's heartbeat counts (not a companion computer's, gimbal's, GCS's).  Raises ScamperLinkError
+    when nothing arrives in time.
+    """
+    conn = mavutil.mavlink_connection(
+        config.url, source_system=config.source_system, source_component=config.source_component
+    )
+    try:
+        deadline = time.monotonic() + config.heartbeat_timeout_s
+        next_hb = 0.0
+        while True:
+            now = time.monotonic()
+            if now >= deadline:
+                raise ScamperLinkError(
+                    f"no HEARTBEAT from Scamper at {config.url!r} within {config.heartbeat_timeout_s:g} s"
+                )
+            if now >= next_hb:
+                next_hb = now + 0.25
+                with contextlib.suppress(OSError):
+                    conn.mav.heartbeat_send(*_GCS_HEARTBEAT)
+            try:
+                msg = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=min(0.05, deadline - now))
+            except (OSError, ValueError):
+                msg = None
+            if msg is not None and is_vehicle_heartbeat(msg):
+                armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                return HeartbeatProbe(int(msg.type), int(msg.custom_mode), armed)
+    finally:
+        with contextlib.suppress(OSError):
+            conn.close()

@@ -1,0 +1,220 @@
+"""Receive side of every bus, in one place: decode → sequence → sender clock → staleness (issue 15).
+
+`Freshness` holds what a receiver knows about each sender: its newest valid prediction message, the
+receipt time of that message and, in real time, the offset between the sender's clock and the
+receiver's. `InProcBus` and `ZenohBus` feed it the bytes they receive (`accept`) and read through it
+(`latest`); drop reasons are counted in `dropped` exactly as before ("old or duplicate seq", "stale",
+"key sender mismatch", the reasons of `messages.decode`, plus "stamp ahead" in real time).
+
+Time bases
+----------
+"stamps" (lock-step runs, simulated clock; the in-process bus): a message's age is `now − stamp`, both
+    on the one mission clock. No clock is read; results are bit-identical to the buses before issue 15.
+
+"receiver" (real-time runs, agents on different computers): the stamps of sender j are on j's
+    monotonic clock, unrelated to the receiver's. The receiver learns, per sender,
+
+        offset_j = min over the join window of (t_recv − stamp_j)          (receiver clock − sender clock)
+
+    where t_recv is the receiver's `clock()` (time.monotonic(), s) at receipt. The minimum is the least
+    delayed message, so offset_j = true clock offset + the smallest one-way delay seen (ms on a LAN):
+    ages are measured *excluding* that floor delay. The join window is the first `join_messages`
+    messages or `join_window_s` seconds after the first one, whichever ends first; then the offset is
+    frozen. A message's age is then, on the receiver's own clock,
+
+        age = clock() − (stamp_j + offset_j)          (`now` passed to `latest` is not used)
+
+    which is never less than the time since the message arrived here (offset_j ≤ t_recv − stamp_j).
+    A sender whose clock is minutes ahead or behind is fused, and goes stale, like one on the same
+    clock (tests/test_clock_offset.py: ±10 min).
+
+    Bounds after the window. A message whose implied age at receipt, t_recv − (stamp_j + offset_j), is
+    below −(`ahead_tolerance_s` + `drift_ppm`·1e-6 · seconds since the offset was frozen) is dropped and
+    counted "stamp ahead"; one within that bound lowers offset_j to its own t_recv − stamp_j (a less
+    delayed message, or the sender's clock running slightly fast). So offset_j never moves from its
+    frozen value by more than that bound, and never upwards. Consequences for a sender that jumps its
+    clock mid-run (monotonic clocks do not, unless a machine is suspended or a VM migrated):
+      - jump forward (stamps ahead) beyond the bound: every message dropped as "stamp ahead";
+      - jump backward (stamps behind): its messages read as older by the jump, so "stale" once the jump
+        exceeds `stale_after`;
+    both fail closed (the neighbour leaves fusion) until the sender rejoins: it is silent for more than
+    `rejoin_after_s` (no decodable message at all), or leaves the Zenoh bus (`forget`); its next message
+    then opens a new join window. A sender clock running slower than the receiver's (drift) makes its
+    ages grow by the drift (20 ppm: 72 ms per hour), i.e. towards stale, never towards fresh.
+
+Units: stamps, `now`, `stale_after`, clock readings: seconds; `drift_ppm`: parts per million.
+Thread safety: none here; `ZenohBus` calls every method with its lock held.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+from flightstack.comms.messages import PredictionMessage, decode
+
+TimeBase = Literal["stamps", "receiver"]
+TIME_BASES: tuple[str, ...] = ("stamps", "receiver")
+
+
+@dataclass(frozen=True)
+class OffsetPolicy:
+    """How a receiver learns and bounds each sender's clock offset (time base "receiver")."""
+
+    join_messages: int = 20  # the join window ends after this many messages ...
+    join_window_s: float = 1.0  # ... or this long (s) after its first message, whichever comes first
+    rejoin_after_s: float = 2.0  # a sender silent this long (s) re-learns its offset at its next message
+    ahead_tolerance_s: float = 0.1  # a message may imply an age down to −this (s) before "stamp ahead"
+    drift_ppm: float = 100.0  # plus this clock drift (ppm) times the time since the offset was frozen
+
+    def __post_init__(self) -> None:
+        if self.join_messages < 1:
+            raise ValueError("join_messages must be >= 1")
+        for name in ("join_window_s", "rejoin_after_s", "ahead_tolerance_s", "drift_ppm"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0")
+
+
+@dataclass
+class SenderClock:
+    """What a receiver knows of one sender's clock (receiver-clock seconds)."""
+
+    offset: float  # receiver clock − sender clock, incl. the smallest one-way delay seen (s)
+    n: int  # messages seen in the current join window
+    t_first: float  # receipt time of the window's first message (s)
+    last_heard: float  # receipt time of the newest decodable message, accepted or not (s)
+    frozen_at: float | None = None  # receipt time at which the window ended (s); None while learning
+    frozen_offset: float = 0.0  # offset when the window ended (s)
+
+
+class Freshness:
+    """Newest valid message per sender, sequence and staleness checks; see the module docstring.
+
+    `clock`: the receiver's clock (s), read at receipt and in `latest` in time base "receiver" (default
+    time.monotonic); never read in time base "stamps" unless a receipt time is passed to `accept`."""
+
+    def __init__(
+        self,
+        mission: str,
+        known_senders: set[int] | frozenset[int],
+        time_base: TimeBase = "stamps",
+        clock: Callable[[], float] | None = None,
+        policy: OffsetPolicy | None = None,
+    ) -> None:
+        if time_base not in TIME_BASES:
+            raise ValueError(f"time_base must be one of {TIME_BASES}, not {time_base!r}")
+        if clock is None:
+            clock = time.monotonic
+        self.mission = mission
+        self.known = frozenset(known_senders)
+        self.time_base: TimeBase = time_base
+        self.clock = clock
+        self.policy = policy or OffsetPolicy()
+        self.newest: dict[int, PredictionMessage] = {}
+        self.received: dict[int, float] = {}  # receipt time of each sender's newest accepted message (s)
+        self.clocks: dict[int, SenderClock] = {}
+        self.offset_events: list[tuple[float, int, str, float]] = []  # (t_recv s, sender, what, offset s)
+        self.dropped: Counter[str] = Counter()
+        self.delivered = 0
+
+    def accept(
+        self, data: bytes, key_sender: str | None = None, t_recv: float | None = None
+    ) -> PredictionMessage | None:
+        """Decode and check one received message; keep it as the sender's newest, or count the drop.
+
+        key_sender: the sender named by the transport (Zenoh key), checked against the payload's.
+        t_recv: receipt time on the receiver's clock (s); read from `clock` when None in time base
+        "receiver" (and left unread in "stamps")."""
+        msg, reason = decode(data, self.mission, self.known)
+        if msg is None:
+            self.dropped[reason or "unknown"] += 1
+            return None
+        if key_sender is not None and key_sender != str(msg.sender):
+            self.dropped["key sender mismatch"] += 1
+            return None
+        prev = self.newest.get(msg.sender)
+        if prev is not None and msg.seq <= prev.seq:
+            self.dropped["old or duplicate seq"] += 1
+            return None
+        if self.time_base == "receiver":
+            if t_recv is None:
+                t_recv = self.clock()
+            if not self._learn(msg, t_recv):
+                self.dropped["stamp ahead"] += 1
+                return None
+        self.newest[msg.sender] = msg
+        if t_recv is not None:
+            self.received[msg.sender] = t_recv
+        self.delivered += 1
+        return msg
+
+    def age(self, sender: int, now: float) -> float | None:
+        """Age (s) of `sender`'s newest message: `now − stamp` ("stamps"), or clock() − (stamp + offset)
+        ("receiver"); None when there is none."""
+        msg = self.newest.get(sender)
+        if msg is None:
+            return None
+        if self.time_base == "stamps":
+            return now - msg.stamp
+        return self.clock() - (msg.stamp + self.clocks[sender].offset)
+
+    def latest(self, sender: int, now: float, stale_after: float) -> PredictionMessage | None:
+        """Newest message of `sender` if its age is at most `stale_after` (s); None if none, or stale
+        (counted "stale"). `now`: the mission clock (s), used in time base "stamps" only."""
+        msg = self.newest.get(sender)
+        if msg is None:
+            return None
+        if self.time_base == "stamps":
+            stale = now - msg.stamp > stale_after
+        else:
+            stale = self.clock() - (msg.stamp + self.clocks[sender].offset) > stale_after
+        if stale:
+            self.dropped["stale"] += 1
+            return None
+        return msg
+
+    def forget(self, sender: int) -> None:
+        """The sender left: drop its newest message, sequence number and clock offset (a restarted
+        agent counts seq from 0 again and re-learns its offset)."""
+        self.newest.pop(sender, None)
+        self.clocks.pop(sender, None)
+
+    def offset(self, sender: int) -> float | None:
+        """The learned offset (receiver clock − sender clock, s) of `sender`, None if none yet."""
+        c = self.clocks.get(sender)
+        return None if c is None else c.offset
+
+    def _learn(self, msg: PredictionMessage, t_recv: float) -> bool:
+        """Update the sender's clock offset with one message received at t_recv; False: "stamp ahead"."""
+        p = self.policy
+        raw = t_recv - msg.stamp
+        c = self.clocks.get(msg.sender)
+        if c is None or t_recv - c.last_heard > p.rejoin_after_s:  # joins, or rejoins after silence
+            what = "offset learning" if c is None else "offset re-learning after silence"
+            self.clocks[msg.sender] = SenderClock(offset=raw, n=1, t_first=t_recv, last_heard=t_recv)
+            self.offset_events.append((t_recv, msg.sender, what, raw))
+            self._maybe_freeze(self.clocks[msg.sender], msg.sender, t_recv)
+            return True
+        c.last_heard = t_recv
+        if c.frozen_at is None:
+            c.offset = min(c.offset, raw)
+            c.n += 1
+            self._maybe_freeze(c, msg.sender, t_recv)
+            return True
+        floor = c.frozen_offset - p.ahead_tolerance_s - p.drift_ppm * 1e-6 * (t_recv - c.frozen_at)
+        if raw < floor:
+            return False
+        c.offset = min(c.offset, raw)
+        return True
+
+    def _maybe_freeze(self, c: SenderClock, sender: int, t_recv: float) -> None:
+        if c.n >= self.policy.join_messages or t_recv - c.t_first >= self.policy.join_window_s:
+            c.frozen_at = t_recv
+            c.frozen_offset = c.offset
+            self.offset_events.append((t_recv, sender, "offset frozen", c.offset))
+
+
+__all__ = ["TIME_BASES", "Freshness", "OffsetPolicy", "SenderClock", "TimeBase"]

@@ -1,0 +1,322 @@
+"""The guardian process (drivers/guardian.py, issue 15) against the loopback Tello and rover emulators.
+
+A child process (CHILD below) flies emulated Tellos with drivers.tello.TelloDriver (and the emulated
+robot with drivers.scamper.ScamperDriver) like `fly` does: it starts its guardian, connects, arms the
+guardian, takes off on worker threads and ticks every 20 ms (`rc 0 30 0 0`, robot 0.3 m/s, heartbeat).
+The test then SIGKILLs or SIGSTOPs it, or lets it finish, and judges at the emulators: what arrived, from
+which source port, when. The Tellos are EDU-like (`reply_port_latch`: replies go to the first client only),
+so the guardian gets no reply. Times are time.monotonic() (one clock for every process of this machine).
+Every process and thread here ends by itself (bounded loops, timeouts); all traffic is on 127.0.0.x.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from drivers.guardian import EXIT_GAVE_UP, GuardedTello, Guardian, GuardianConfig, TakeoverFlag
+from tests.emulators.mavlink_rover import MavlinkRoverEmulator
+from tests.emulators.tello import TelloEmulator, free_udp_port, wait_until
+
+REPO = Path(__file__).resolve().parents[1]
+ARM_DISARM = 400  # MAV_CMD_COMPONENT_ARM_DISARM
+
+CHILD = r"""
+import json, sys, threading, time
+import numpy as np
+from drivers.guardian import Guardian, GuardianConfig
+from drivers.scamper import ScamperConfig, ScamperDriver
+from drivers.tello import TelloConfig, TelloDriver
+
+a = json.loads(sys.argv[1])
+say = lambda *x: print(*x, flush=True)
+cfgs = [TelloConfig(host=h, control_port=p, state_port=s, bind_ip="127.0.0.1", connect_timeout_s=3.0,
+                    command_timeout_s=1.0, link_timeout_s=0.5, keepalive_s=1.0) for h, p, s in a["tellos"]]
+g = Guardian.start(GuardianConfig.for_devices(cfgs, a["robot"], **a["guardian"]))
+say("guardian", g.pid)
+drones = [TelloDriver(c) for c in cfgs]
+for d in drones:
+    d.set_muted(g.taken_over)
+    d.connect()
+robot = None
+if a["robot"]:
+    robot = ScamperDriver(ScamperConfig(url=a["robot"], heartbeat_timeout_s=3.0, ack_timeout_s=0.5),
+                          muted=g.taken_over)
+    robot.connect()
+g.arm()
+ups = [threading.Thread(target=d.takeoff, daemon=True) for d in drones]
+for th in ups:
+    th.start()
+t_fly = t_taken = None
+deadline = time.monotonic() + 25.0
+while time.monotonic() < deadline:
+    now = time.monotonic()
+    for d in drones:
+        d.send_rc((0, 30, 0, 0))
+    if robot is not None:
+        robot.send_body_velocity(np.array([0.3, 0.0, 0.0, 0.0]))
+    g.heartbeat()
+    if t_fly is None and not any(th.is_alive() for th in ups):
+        t_fly = now
+        say("flying", now)
+    if t_taken is None and g.taken_over():
+        t_taken = now
+        say("taken_over", now)
+    if t_taken is not None and now - t_taken > 1.0:
+        break
+    if a["mode"] == "finish" and t_fly is not None and now - t_fly > 1.0:
+        break
+    time.sleep(0.02)
+if a["mode"] == "finish":
+    downs = [threading.Thread(target=d.land, daemon=True) for d in drones]
+    for th in downs:
+        th.start()
+    while any(th.is_alive() for th in downs):
+        g.heartbeat()
+        time.sleep(0.02)
+    if robot is not None:
+        robot.close()
+    say("finished", g.finish())
+say("muted", sum(d._chan.counts["muted"] for d in drones))
+for d in drones:
+    d.close()
+"""
+
+
+def start_emulator(ip: str, state_port: int) -> TelloEmulator:
+    """An EDU-like emulated Tello whose state goes to 127.0.0.1:state_port."""
+    return TelloEmulator(ip, state_port=state_port, video_port=free_udp_port(), reply_port_latch=True).start()
+
+
+class Child:
+    """The flying child process; its stdout lines are read with bounded waits."""
+
+    def __init__(self, tmp: Path, emus: list[TelloEmulator], robot: str | None, mode: str, **kw: Any) -> None:
+        self.log_path = tmp / "guardian.log"
+        self.flag_path = tmp / "takeover.flag"
+        guardian = {"flag_path": str(self.flag_path), "log_path": str(self.log_path), **kw}
+        args = {
+            "tellos": [(e.ip, e.address[1], e.state_port) for e in emus],
+            "robot": robot,
+            "guardian": guardian,
+            "mode": mode,
+        }
+        self.err = open(tmp / "child.err", "wb")  # noqa: SIM115 - closed in stop()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", CHILD, json.dumps(args)],
+            cwd=REPO,
+            stdout=subprocess.PIPE,
+            stderr=self.err,
+            text=True,
+        )
+        self.lines: dict[str, list[str]] = {}
+
+    def wait_line(self, key: str, timeout: float = 10.0) -> list[str]:
+        """The fields of the child's first stdout line starting with `key` (reads ≤ timeout s)."""
+        assert self.proc.stdout is not None
+        deadline = time.monotonic() + timeout
+        os.set_blocking(self.proc.stdout.fileno(), False)
+        while key not in self.lines and time.monotonic() < deadline:
+            line = self.proc.stdout.readline()
+            if not line:
+                if self.proc.poll() is not None:
+                    break
+                time.sleep(0.01)
+                continue
+            words = line.split()
+            self.lines.setdefault(words[0], words[1:])
+        if key not in self.lines:
+            pytest.fail(f"child never said {key!r}; stderr: {self.stderr()[-3000:]}")
+        return self.lines[key]
+
+    def stderr(self) -> str:
+        self.err.flush()
+        return Path(self.err.name).read_text(errors="replace")
+
+    def guardian_log(self) -> str:
+        return self.log_path.read_text() if self.log_path.exists() else ""
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGCONT)
+            self.proc.kill()
+        self.proc.wait(timeout=5)
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+        self.err.close()
+
+
+@pytest.fixture
+def state_port() -> int:
+    return free_udp_port()
+
+
+@pytest.fixture
+def two_tellos(state_port: int) -> Iterator[list[TelloEmulator]]:
+    emus = [start_emulator("127.0.0.41", state_port), start_emulator("127.0.0.42", state_port)]
+    yield emus
+    for e in emus:
+        e.close()
+
+
+def child_port(emu: TelloEmulator) -> int:
+    """The source port of the child's driver: the sender of the first `command`."""
+    return next(addr[1] for _, text, addr in emu.senders if text == "command")
+
+
+def first_after(emu: TelloEmulator, text: str, t0: float, port: int | None = None) -> float | None:
+    """Time of the first datagram `text` received after t0 (from source `port`, when given)."""
+    hits = [t for t, x, a in list(emu.senders) if x == text and t > t0 and (port is None or a[1] == port)]
+    return min(hits) if hits else None
+
+
+def wait_guardian_exit(child: Child, timeout: float = 10.0) -> str:
+    assert wait_until(lambda: " exit " in child.guardian_log(), timeout), child.guardian_log()
+    return child.guardian_log()
+
+
+def test_parent_killed_guardian_stops_and_lands_both(tmp_path: Path, two_tellos: list[TelloEmulator]) -> None:
+    child = Child(tmp_path, two_tellos, None, "fly")
+    try:
+        child.wait_line("flying", timeout=15.0)
+        assert all(e.phase == "flying" for e in two_tellos)
+        time.sleep(0.3)
+        t_kill = time.monotonic()
+        child.proc.kill()
+        for emu in two_tellos:
+            ports = {child_port(emu)}
+            t_rc, t_land = first_after(emu, "rc 0 0 0 0", t_kill), None
+            assert wait_until(lambda e=emu: first_after(e, "land", t_kill) is not None, 3.0)
+            t_rc, t_land = first_after(emu, "rc 0 0 0 0", t_kill), first_after(emu, "land", t_kill)
+            assert t_rc is not None and t_land is not None
+            print(f"{emu.ip}: kill -> rc 0 0 0 0 {t_rc - t_kill:.3f} s, kill -> land {t_land - t_kill:.3f} s")
+            assert t_rc - t_kill <= 0.5
+            assert t_land - t_kill <= 2.0
+            guardian_ports = {a[1] for t, _, a in emu.senders if t > t_kill}
+            assert guardian_ports and not guardian_ports & ports  # from the guardian's own socket
+        assert all(wait_until(lambda e=e: e.phase == "landed", 3.0) for e in two_tellos)
+        log = wait_guardian_exit(child)
+        assert "exit 10" in log and "TAKEOVER" in log
+        assert TakeoverFlag(child.flag_path).is_set()
+    finally:
+        child.stop()
+
+
+def test_parent_stopped_takeover_then_resumed_parent_sends_nothing(
+    tmp_path: Path, two_tellos: list[TelloEmulator]
+) -> None:
+    emu = two_tellos[0]
+    child = Child(tmp_path, [emu], None, "fly")
+    try:
+        child.wait_line("flying", timeout=15.0)
+        time.sleep(0.3)
+        t_stop = time.monotonic()
+        child.proc.send_signal(signal.SIGSTOP)
+        port = child_port(emu)
+        assert wait_until(lambda: first_after(emu, "land", t_stop) is not None, 2.0)
+        t_takeover = first_after(emu, "rc 0 0 0 0", t_stop)
+        assert t_takeover is not None
+        print(f"SIGSTOP -> rc 0 0 0 0 from the guardian {t_takeover - t_stop:.3f} s (stall_s 0.5)")
+        assert 0.4 <= t_takeover - t_stop <= 0.5 + 0.15  # stall_s after the last beat
+        assert wait_until(lambda: emu.phase == "landed", 3.0)
+        time.sleep(1.2)  # the stopped child holds the state port: the guardian re-sends blind
+        assert "held" in child.guardian_log()
+        child.proc.send_signal(signal.SIGCONT)
+        assert child.wait_line("taken_over")
+        assert int(child.wait_line("muted")[0]) > 0  # it tried, and the flag held every send back
+        late = [x for t, x, a in emu.senders if t > t_takeover and a[1] == port]
+        assert late == [], late
+        assert child.proc.wait(timeout=5) == 0
+        log = wait_guardian_exit(child)
+        assert "exit 10" in log  # once the child is gone it binds the state port and sees the drone down
+    finally:
+        child.stop()
+
+
+def test_normal_finish_guardian_exits_and_sends_nothing(
+    tmp_path: Path, two_tellos: list[TelloEmulator]
+) -> None:
+    child = Child(tmp_path, two_tellos, None, "finish")
+    try:
+        assert child.wait_line("finished", timeout=18.0) == ["0"]
+        assert child.proc.wait(timeout=5) == 0
+        for emu in two_tellos:
+            assert emu.phase == "landed"
+            assert {a[1] for _, _, a in emu.senders} == {child_port(emu)}  # nothing from the guardian
+        log = wait_guardian_exit(child, 2.0)
+        assert "bye" in log and "exit 0" in log and "TAKEOVER" not in log
+        assert not TakeoverFlag(child.flag_path).is_set()
+    finally:
+        child.stop()
+
+
+def test_parent_killed_guardian_stops_and_disarms_robot(
+    tmp_path: Path, two_tellos: list[TelloEmulator]
+) -> None:
+    with MavlinkRoverEmulator(heartbeat_hz=5.0) as rover:
+        child = Child(tmp_path, two_tellos[:1], rover.url, "fly")
+        try:
+            child.wait_line("flying", timeout=15.0)
+            assert wait_until(lambda: rover.velocity[0] > 0.25, 2.0) and rover.armed
+            n_commands = len(rover.commands)
+            t_kill = time.monotonic()
+            child.proc.kill()
+            assert wait_until(lambda: not rover.armed, 3.0, 0.002)
+            t_disarmed = time.monotonic()
+            zeros = [
+                s.t
+                for s in rover.setpoint_records()
+                if s.t > t_kill and (s.vx, s.vy, s.yaw_rate) == (0, 0, 0)
+            ]
+            assert zeros, rover.setpoint_records()[-3:]
+            disarms = [c for c in rover.commands[n_commands:] if c[0] == ARM_DISARM and c[1] == 0.0]
+            assert disarms and disarms[0][2] == 0  # MAV_RESULT_ACCEPTED
+            print(
+                f"kill -> robot zero set-point {zeros[0] - t_kill:.3f} s, disarm {t_disarmed - t_kill:.3f} s"
+            )
+            assert zeros[0] - t_kill <= 0.5
+            assert rover.velocity == (0.0, 0.0, 0.0) and not rover.stopped_by_timeout
+            log = wait_guardian_exit(child)
+            assert "disarmed" in log and "exit 10" in log
+        finally:
+            child.stop()
+
+
+def test_stall_only_when_armed_and_heartbeat_never_raises(tmp_path: Path, state_port: int) -> None:
+    """In-process parent: no takeover while unarmed, takeover stall_s after arming; no telemetry (the
+    drone is not in SDK mode) → blind re-sends until give_up_s; a dead guardian's pipe is only counted."""
+    emu = start_emulator("127.0.0.43", state_port)
+    cfg = GuardianConfig(
+        tellos=(GuardedTello(emu.ip, emu.address[1], state_port, "127.0.0.1"),),
+        give_up_s=1.5,
+        flag_path=str(tmp_path / "flag"),
+        log_path=str(tmp_path / "log"),
+    )
+    g = Guardian.start(cfg)
+    try:
+        time.sleep(1.0)
+        assert not g.taken_over() and g.alive() and emu.commands == []
+        g.heartbeat()
+        g.arm()
+        t_arm = time.monotonic()
+        assert wait_until(g.taken_over, 2.0, 0.002)
+        assert 0.5 <= time.monotonic() - t_arm <= 0.65
+        assert wait_until(lambda: "land" in emu.command_texts(), 1.0)
+        assert g.proc.wait(timeout=5) == EXIT_GAVE_UP
+        assert emu.command_texts().count("land") >= 2  # re-sent every land_resend_s without telemetry
+        g.heartbeat()
+        assert g.counts["pipe_broken"] >= 1
+        assert g.finish() == EXIT_GAVE_UP and g.taken_over()
+    finally:
+        if g.alive():
+            g.proc.kill()
+        emu.close()
