@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
 import signal
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -93,7 +94,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     bars: list[tqdm] = []
     try:
         run_writer.write_file("mission_resolved.yaml", resolved_mission_yaml(mission))  # for `report`
-        res = run_experiment(mission, None if args.no_progress else _progress_factory(bars), run_writer)
+        with _awake_if_flying(mission):
+            res = run_experiment(mission, None if args.no_progress else _progress_factory(bars), run_writer)
         for b in bars:
             b.close()
         m = write_run_dir(out, mission, res, run_writer)
@@ -165,6 +167,21 @@ def cmd_report(args: argparse.Namespace) -> int:
     print(f"  recording {'complete' if rs['complete'] else 'INCOMPLETE: ' + str(rs['reason'])}")
     print(f"  rebuilt metrics.json{''.join(f', {p.name}' for p in plots)}")
     return 0
+
+
+def _awake_if_flying(mission: Mission) -> contextlib.AbstractContextManager[object]:
+    """On real hardware: keep the computer from sleeping while the drones fly (drivers/keep_awake.py)."""
+    if mission.simulated:
+        return contextlib.nullcontext()
+    from drivers.keep_awake import keep_awake
+
+    @contextlib.contextmanager
+    def awake() -> Iterator[None]:
+        with keep_awake(f"flightstack: mission {mission.name} in flight") as how:
+            print(how, file=sys.stderr)
+            yield
+
+    return awake()
 
 
 def _bus_override(mission: Mission, kind: str) -> dict[str, object]:

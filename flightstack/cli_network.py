@@ -55,6 +55,7 @@ def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
 
 
 def cmd_agent(args: argparse.Namespace) -> int:
+    from flightstack.cli import _awake_if_flying
     from flightstack.comms.factory import make_bus
     from flightstack.experiment import ExperimentResult, build_metrics, resolved_mission_yaml
     from flightstack.recorder import RunWriter, check_out_dir
@@ -107,10 +108,11 @@ def cmd_agent(args: argparse.Namespace) -> int:
         else:
             from drivers.hardware import HardwareBackend
 
-            backend = HardwareBackend(mission, drone_ids=[args.id])
-        rec = run_mode(
-            mission, mode, predictors, backend=backend, bus=bus, agent_ids=[args.id], writer=writer
-        )
+            backend = HardwareBackend(mission, drone_ids=[args.id], guardian_log=str(out / "guardian.log"))
+        with _awake_if_flying(mission):
+            rec = run_mode(
+                mission, mode, predictors, backend=backend, bus=bus, agent_ids=[args.id], writer=writer
+            )
     finally:
         if backend is not None and hasattr(backend, "disconnect"):
             backend.disconnect()
