@@ -209,6 +209,12 @@ class HardwareBackend:
         target = self._last_truth.get("target", UNKNOWN_POSE)
         return target, {d: self._last_truth.get(f"drone{d}", UNKNOWN_POSE) for d in self.drones}
 
+    def _seen_down(self, drone_id: int) -> bool:
+        """Motion capture shows the drone's body on the floor now (fresh pose, z ≤ safety.landed_height)."""
+        sp = self.poses.latest(f"drone{drone_id}")
+        limit = self.mission.safety.landed_height
+        return sp is not None and self.clock.now() - sp.stamp <= 0.3 and float(sp.pose.p[2]) <= limit
+
     def heartbeat(self) -> None:
         """One control tick, for the guardian (the runner calls it every tick, also in takeoff and landing).
 
@@ -237,6 +243,9 @@ class HardwareBackend:
             self.guardian.arm(False)  # the blocking lands below must not read as a stalled loop
         for i, drv in self.drones.items():
             if drv.state().phase != FlightPhase.GROUND:  # taking off, airborne, landing or unknown
+                if self._seen_down(i):  # its telemetry is silent, but motion capture shows it down
+                    LOG.warning("drone %s: on the floor by motion capture; no land sent while closing", i)
+                    continue
                 try:
                     drv.land()
                 except Exception as exc:

@@ -27,7 +27,7 @@ Principles (README "Tello driver", docs/architecture.md decision 26):
   `loop_land_s` (2 s) the driver lands by itself on its own thread (event `loop_lost_land`). A loop must
   therefore command every tick (flightstack.safety's command watchdog sends zeros on a silent tick);
   nothing keeps a drone hovering with no loop behind it.
-- **Silent telemetry during a land**: `rc 0 0 0 0` and `land` are re-sent every `land_resend_s` (1 s)
+- **Silent telemetry during a land**: `rc 0 0 0 0` and `land` are re-sent every `land_resend_s` (0.5 s)
   until the drone is seen down (the uplink may work while the state stream does not).
 - link loss: no state packet for `link_timeout_s` → state().link_alive is False (`link_lost`,
   `link_restored` events). The monitor thread survives any error (counted, logged).

@@ -44,7 +44,10 @@ class TelloConfig:
     """While takeoff() waits for its `ok`, a `battery?` probe every keepalive_s holds off the auto-land."""
     loop_hover_s: float = 0.5
     loop_land_s: float = 2.0
-    land_resend_s: float = 1.0
+    land_resend_s: float = 0.5
+    """While telemetry is silent during a land: `rc 0 0 0 0` + `land` this often (s). The driver sends no
+    rc on every tick during a land: whether a stick command cancels a Tello's landing is not documented,
+    so a hover goes out only right before each land."""
     quiet_s: float = 0.15
     min_battery_pct: float = 30.0
     max_temperature_c: float = 85.0

@@ -365,6 +365,7 @@ def run_mode(
                     "event": "landed" if not st.flying else "NOT LANDED",
                     "drone": i,
                     "height_m": st.height_m,
+                    "telemetry_alive": st.link_alive,  # False: height_m is the last one received
                     "mode": mode,
                 }
             )

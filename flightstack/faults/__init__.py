@@ -41,6 +41,7 @@ ROW_MODULES: list[str] = [
     "flightstack.faults.rows_sim",
     "flightstack.faults.rows_cli",
     "flightstack.faults.rows_processes",
+    "flightstack.faults.rows_lab",
 ]
 """Modules whose `ROWS` make up the table, in this order."""
 

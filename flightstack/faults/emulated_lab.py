@@ -1,0 +1,430 @@
+"""The emulated lab of `flightstack faults` (issue 15): two Tello emulators, a NatNet (OptiTrack) server and a
+MAVLink rover on loopback, and a short mission pointing at them (`EmulatedLab`, a context manager). How
+to fly it (in this process, or `flightstack fly` in a child process) and judge the flight:
+flightstack/faults/lab_flight.py; the rows: rows_lab*.py.
+
+What the drones did is judged at the emulators: every Tello emulator keeps `commands`, `rc_history`,
+`phase_log` and `replies_sent` with their receive/send times; `lab.write_log(path)` saves them, and the
+helpers below (`command_times`, `rc_times`, `phase_times`, `max_gap`) measure reaction times on them.
+
+The emulators live in the source checkout (tests/emulators/), not in the installed package: they are
+imported lazily when a lab starts, after putting the checkout root (the parent of `flightstack/`) on
+sys.path. Outside a checkout, or without the optional packages av, motioncapture and pymavlink, starting a
+lab raises `LabUnavailableError` saying what is missing (the row then reports a crash).
+
+Addresses (all 127.0.0.0/8): the Tellos own 127.0.0.6 and 127.0.0.7 (station mode: both send their state
+to one free port of 127.0.0.1); NatNet and the rover use 127.0.0.1 with OS-assigned ports; the operator
+channel of the in-process bus is a free UDP port of 127.0.0.1 (`bus.operator_port`).
+
+Units: every recorded time is time.monotonic() seconds (Linux CLOCK_MONOTONIC, shared by every process of
+the machine, so the event times of a child `fly` process compare with the emulators' records directly);
+durations in seconds; positions in metres in the motion-capture world (z up) unless marked cm.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import socket
+import sys
+import time
+from collections.abc import Callable, Iterable
+from contextlib import suppress
+from pathlib import Path
+from types import SimpleNamespace, TracebackType
+from typing import Any
+
+import numpy as np
+import yaml
+
+from flightstack.faults.rows_cli import REPO
+
+LAB_IPS: dict[int, str] = {1: "127.0.0.6", 2: "127.0.0.7"}
+"""Loopback address of each drone's Tello emulator."""
+DRONE_STARTS: dict[int, tuple[tuple[float, float, float], float]] = {
+    1: ((-0.5, -0.5, 0.05), 0.0),
+    2: ((-0.5, 0.2, 0.05), 0.3),
+}
+"""Where each drone stands before takeoff: position (m, mocap world) and yaw (rad, counter-clockwise)."""
+ROVER_START = (-0.5, -0.5)
+"""The rover's start in the mocap world (m): the square's corner."""
+LEVEL = (1.0, 0.0, 0.0, 0.0)
+"""Quaternion (w, x, y, z) of a level body facing world x."""
+MISSIONS = REPO / "mission_configs"
+BASE_MISSION = MISSIONS / "paper_experiment_sim.yaml"
+CALIBRATION = MISSIONS / "cameras" / "tello_down_sim.yaml"
+VIDEO_SIZE = (320, 240)
+"""Frame size (px) of the emulated downward cameras (that of CALIBRATION)."""
+VIDEO_FPS = 15.0
+"""Emulated video rate (frames/s): enough for the agents (max_frame_age_s 0.5 s), light on 2 cores."""
+TRUTH_PERIOD_S = 0.05
+"""How often the lab samples each drone's true position for the fence judgement (s)."""
+
+
+class LabUnavailableError(RuntimeError):
+    """The emulated lab cannot start here: not a source checkout, or an optional package is missing."""
+
+
+# ---- lazy imports of the emulators -------------------------------------------------------------------------
+def load_emulators() -> SimpleNamespace:
+    """The emulator classes from the checkout's tests/emulators (TelloEmulator, NatNetEmulator,
+    MavlinkRoverEmulator, free_udp_port); LabUnavailableError naming what is missing."""
+    if not (REPO / "tests" / "emulators" / "tello.py").is_file():
+        raise LabUnavailableError(
+            f"the emulated lab needs a source checkout: {REPO / 'tests' / 'emulators'} not found (the "
+            "emulators are test code, not part of the installed package)"
+        )
+    if str(REPO) not in sys.path:
+        sys.path.insert(0, str(REPO))
+    try:
+        import av  # noqa: F401  # the emulators encode H.264 video
+        import motioncapture  # noqa: F401  # the driver's NatNet client
+        import pymavlink  # noqa: F401  # the rover's MAVLink
+    except ImportError as exc:
+        raise LabUnavailableError(
+            "the emulated lab needs the optional packages av, motioncapture and pymavlink (pip install -e "
+            f"'.[tello,mocap,scamper]'): {exc}"
+        ) from exc
+    from tests.emulators.mavlink_rover import MavlinkRoverEmulator
+    from tests.emulators.natnet import NatNetEmulator
+    from tests.emulators.tello import TelloEmulator, free_udp_port
+
+    return SimpleNamespace(
+        TelloEmulator=TelloEmulator,
+        NatNetEmulator=NatNetEmulator,
+        MavlinkRoverEmulator=MavlinkRoverEmulator,
+        free_udp_port=free_udp_port,
+    )
+
+
+def free_udp_port(ip: str = "127.0.0.1") -> int:
+    """A UDP port of `ip` free right now (bound to port 0, then closed)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((ip, 0))
+        return int(s.getsockname()[1])
+
+
+def _yaw_quaternion(theta: float) -> tuple[float, float, float, float]:
+    """(w, x, y, z) of a yaw of theta rad about z."""
+    return (math.cos(theta / 2), 0.0, 0.0, math.sin(theta / 2))
+
+
+def marker_image() -> np.ndarray:
+    """What the downward camera of a drone hovering 0.9 m above the target sees: the four markers of the
+    mission (rendered once with the calibration's lens; the emulators send it as every frame)."""
+    from flightstack.camera_calibration import load_calibration
+    from flightstack.geometry import Pose, rot_z
+    from flightstack.mission import CAMERA_MOUNTS
+    from sim_backend.render import RenderOptions, render_markers
+
+    cal = load_calibration(CALIBRATION)
+    p0 = np.array([[0.1, 0.1, 0.15], [-0.1, 0.1, 0.15], [-0.1, -0.1, 0.15], [0.1, -0.1, 0.15]])
+    g_i0 = Pose.make([0.05, -0.03, -0.9], 0.3)
+    r_ic = CAMERA_MOUNTS["down"]
+    centres = (p0 @ rot_z(g_i0.theta).T + g_i0.p) @ r_ic
+    normals = np.tile(r_ic.T @ np.array([0.0, 0.0, 1.0]), (4, 1))
+    img, _, _ = render_markers(cal, centres, normals, RenderOptions(marker_radius_m=0.03))
+    return np.ascontiguousarray(img)
+
+
+# ---- the lab -----------------------------------------------------------------------------------------------
+class EmulatedLab:
+    """Two Tello emulators, NatNet and a rover on loopback, and `mission_path` flying them (a context
+    manager: `with EmulatedLab(dir) as lab:`; every thread and child process is stopped on exit).
+
+    workdir: where the mission and its calibration are written. duration_s: pursuit (s). tello: extra
+    TelloEmulator keyword arguments per drone id (e.g. {2: {"land_s": 2.0}}). mission_edit: called with
+    the mission dict (YAML) before it is written. `mocap_offset[i]` (m, world x/y/z) is added to drone i's
+    motion-capture position from the moment it is set (a drone displaced as motion capture sees it).
+    """
+
+    def __init__(
+        self,
+        workdir: Path,
+        *,
+        duration_s: float = 5.0,
+        tello: dict[int, dict[str, Any]] | None = None,
+        mission_edit: Callable[[dict[str, Any]], None] | None = None,
+    ) -> None:
+        self.workdir = Path(workdir)
+        self.duration_s = float(duration_s)
+        self._tello_kw = tello or {}
+        self._mission_edit = mission_edit
+        self.mocap_offset: dict[int, np.ndarray] = {i: np.zeros(3) for i in LAB_IPS}
+        self.tellos: dict[int, Any] = {}
+        self.natnet: Any = None
+        self.rover: Any = None
+        self.mission_path: Path = self.workdir / "mission.yaml"
+        self.operator_port = 0
+        self.t_start = math.nan
+        self.truth: list[tuple[float, int, tuple[float, float, float]]] = []
+        """(time.monotonic(), drone id, true position (m, world)) about every TRUTH_PERIOD_S per drone:
+        where the emulator flies the drone, without `mocap_offset`."""
+        self._truth_t: dict[int, float] = {}
+
+    # ---- lifecycle -------------------------------------------------------------------------------------
+    def __enter__(self) -> EmulatedLab:
+        try:
+            self.start()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def start(self) -> None:
+        """Start every emulator and write the mission (LabUnavailableError outside a checkout)."""
+        emu = load_emulators()
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        image = marker_image()
+        state_port = emu.free_udp_port()
+        for i, ip in LAB_IPS.items():
+            kw: dict[str, Any] = {
+                "state_port": state_port,
+                "video_port": emu.free_udp_port(),
+                "frame_source": lambda t, e, img=image: img,
+                "video_size": VIDEO_SIZE,
+                "fps": VIDEO_FPS,
+            }
+            kw.update(self._tello_kw.get(i, {}))
+            self.tellos[i] = emu.TelloEmulator(ip, **kw)
+        bodies = {f"tello_{'ab'[i - 1]}": i for i in LAB_IPS}
+        self.natnet = emu.NatNetEmulator(
+            {
+                **{
+                    name: (DRONE_STARTS[i][0], _yaw_quaternion(DRONE_STARTS[i][1]))
+                    for name, i in bodies.items()
+                },
+                "scamper": ((*ROVER_START, 0.0), LEVEL),
+            },
+            rate_hz=100.0,
+        )
+        self.rover = emu.MavlinkRoverEmulator(heartbeat_hz=5.0)
+        self.natnet.set_pose_provider("scamper", self._rover_pose)
+        for name, i in bodies.items():
+            self.natnet.set_pose_provider(name, lambda i=i: self._drone_pose(i))
+        for e in self.tellos.values():
+            e.start()
+        self.natnet.start()
+        self.operator_port = free_udp_port()
+        self.mission_path = self.write_mission()
+        self.t_start = time.monotonic()
+
+    def close(self) -> None:
+        """Stop every emulator (bounded joins); idempotent."""
+        for e in self.tellos.values():
+            e.close()
+        if self.natnet is not None:
+            self.natnet.close()
+        if self.rover is not None:
+            self.rover.close()
+
+    # ---- motion capture --------------------------------------------------------------------------------
+    def _rover_pose(self) -> tuple[Any, tuple[float, float, float, float]]:
+        """The rover's mocap pose: its start is ROVER_START, θ = 0 (the rover integrates FLU from there)."""
+        from flightstack.geometry import Pose, compose
+
+        g = compose(Pose.make([*ROVER_START, 0.0], 0.0), self.rover.pose_flu())
+        return g.p, _yaw_quaternion(g.theta)
+
+    def _drone_pose(self, i: int) -> tuple[Any, tuple[float, float, float, float]]:
+        """Drone i's mocap pose: the emulator flies (x forward, y right, z up) cm, yaw clockwise deg, from
+        its start; the world is FLU (y left, yaw counter-clockwise); plus `mocap_offset[i]`."""
+        from flightstack.geometry import Pose, compose
+
+        emu = self.tellos[i]
+        x, y, z = emu.position_cm
+        start = Pose.make(list(DRONE_STARTS[i][0]), DRONE_STARTS[i][1])
+        g = compose(start, Pose.make([x / 100.0, -y / 100.0, z / 100.0], -math.radians(emu.yaw_deg)))
+        now = time.monotonic()
+        if now - self._truth_t.get(i, -math.inf) >= TRUTH_PERIOD_S:
+            self._truth_t[i] = now
+            self.truth.append((now, i, (float(g.p[0]), float(g.p[1]), float(g.p[2]))))
+        return np.asarray(g.p) + self.mocap_offset[i], _yaw_quaternion(g.theta)
+
+    # ---- the mission -----------------------------------------------------------------------------------
+    def write_mission(self) -> Path:
+        """The paper experiment re-pointed at the emulators (backend tello, mode `none`, `duration_s` of
+        pursuit, operator channel on a free port); returns the file written."""
+        from flightstack.camera_calibration import load_calibration
+
+        cal = load_calibration(CALIBRATION).to_dict()
+        cal["rms_px"] = 0.3  # a measured calibration (preflight fails on the never-measured templates)
+        cal["device"] = "emulated tello"
+        (self.workdir / "cal.yaml").write_text(yaml.safe_dump(cal, sort_keys=False))
+        m = yaml.safe_load(BASE_MISSION.read_text())
+        m["name"] = f"emulated_lab_{self.workdir.name}"[:60]
+        m["backend"] = "tello"
+        m.pop("sim", None)
+        m["duration_s"] = self.duration_s
+        m["compare_modes"] = ["none"]
+        m["bus"] = {"kind": "inproc", "operator_port": self.operator_port}
+        for d in m["drones"]:
+            d["camera"] = {"calibration": "cal.yaml", "mount": "down"}
+        m["drones"][1]["desired_pose"] = {"p": [0.0, 0.7, -1.0], "theta": 0.0}
+        first = next(iter(self.tellos.values()))
+        m["hardware"] = {
+            "topology": "station",
+            "state_port": first.state_port,
+            "drones": [
+                {
+                    "id": i,
+                    "ip": emu.ip,
+                    "control_port": emu.address[1],
+                    "video_port": emu.video_port,
+                    "connect_timeout_s": 2.0,
+                    "command_timeout_s": 1.0,
+                    "frame_timeout_s": 5.0,
+                }
+                for i, emu in self.tellos.items()
+            ],
+            "mocap": {
+                "system": "optitrack",
+                "settings": self.natnet.settings(),
+                "bodies": {"drone1": "tello_a", "drone2": "tello_b", "target": "scamper"},
+                "connect_timeout_s": 1.0,
+            },
+            "target": {"url": self.rover.url, "heartbeat_timeout_s": 3.0},
+        }
+        if self._mission_edit is not None:
+            self._mission_edit(m)
+        path = self.workdir / "mission.yaml"
+        path.write_text(yaml.safe_dump(m, sort_keys=False))
+        return path
+
+    def mission(self) -> Any:
+        """The mission as flightstack loads it."""
+        from flightstack.mission import load_mission
+
+        return load_mission(self.mission_path)
+
+    # ---- observing the emulators -----------------------------------------------------------------------
+    def wait_for_pursuit(self, timeout_s: float = 40.0, n_rc: int = 10) -> float | None:
+        """Wait until every Tello emulator is flying and has received `n_rc` rc commands while flying (the
+        control loop runs); the time.monotonic() when it did, or None after timeout_s (s)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if all(
+                e.phase == "flying" and len(rc_times(e, after=_phase_start(e, "flying"))) >= n_rc
+                for e in self.tellos.values()
+            ):
+                return time.monotonic()
+            time.sleep(0.01)
+        return None
+
+    def wait_all_landed(self, timeout_s: float) -> bool:
+        """Wait until every emulated Tello is on the ground (s); True if they are."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if not any(e.flying for e in self.tellos.values()):
+                return True
+            time.sleep(0.02)
+        return not any(e.flying for e in self.tellos.values())
+
+    def log(self) -> dict[str, Any]:
+        """Every emulator's records, times in s since the lab started (JSON-ready)."""
+        t0 = self.t_start
+
+        def rel(t: float) -> float:
+            return round(t - t0, 4)
+
+        out: dict[str, Any] = {"t0_monotonic": t0}
+        for i, e in self.tellos.items():
+            out[f"tello{i}"] = {
+                "ip": e.ip,
+                "commands": [(rel(t), c) for t, c in list(e.commands)],
+                "phase_log": [(rel(t), p) for t, p in list(e.phase_log)],
+                "replies_sent": [(rel(t), r, k) for t, r, k in list(e.replies_sent)],
+                "refused": [(rel(t), ph, c, r) for t, ph, c, r in list(e.refused)],
+                "errors": list(e.errors),
+                "landed_by_timeout": e.landed_by_timeout,
+                "state_packets_sent": e.state_packets_sent,
+            }
+        if self.rover is not None:
+            out["rover"] = {"armed": bool(self.rover.armed), "setpoints": len(self.rover.setpoint_records())}
+        return out
+
+    def write_log(self, path: Path) -> None:
+        """Save `log()` as JSON (best effort: a failure to write is not the row's finding)."""
+        with suppress(OSError):
+            Path(path).write_text(json.dumps(self.log(), indent=1, default=str) + "\n")
+
+
+# ---- measurements on emulator records ----------------------------------------------------------------------
+def _phase_start(emu: Any, phase: str) -> float:
+    """The latest time the emulator entered `phase` (s), -inf if never."""
+    times = [t for t, p in list(emu.phase_log) if p == phase]
+    return times[-1] if times else -math.inf
+
+
+def command_times(emu: Any, text: str, after: float = -math.inf, before: float = math.inf) -> list[float]:
+    """Receive times (s) of every datagram equal to `text` at the emulator within (after, before]."""
+    return [t for t, c in list(emu.commands) if c == text and after < t <= before]
+
+
+def rc_times(
+    emu: Any,
+    after: float = -math.inf,
+    before: float = math.inf,
+    value: tuple[int, int, int, int] | None = None,
+    nonzero: bool = False,
+) -> list[float]:
+    """Receive times (s) of the rc commands within (after, before]: all, those equal to `value`, or (nonzero)
+    those with any stick off centre."""
+    out = []
+    for t, rc in list(emu.rc_history):
+        if not after < t <= before:
+            continue
+        if value is not None and tuple(rc) != tuple(value):
+            continue
+        if nonzero and not any(rc):
+            continue
+        out.append(t)
+    return out
+
+
+def phase_times(emu: Any, phase: str, after: float = -math.inf) -> list[float]:
+    """Times (s) at which the emulator entered `phase` ("landed", "takeoff", "flying", "landing") after
+    `after`."""
+    return [t for t, p in list(emu.phase_log) if p == phase and t > after]
+
+
+def first(times: Iterable[float]) -> float | None:
+    """The earliest of `times`, None if empty."""
+    ts = sorted(times)
+    return ts[0] if ts else None
+
+
+def max_gap(times: Iterable[float], t0: float, t1: float) -> float:
+    """The longest interval (s) within [t0, t1] without any of `times` (t1 - t0 when there is none)."""
+    ts = sorted(t for t in times if t0 <= t <= t1)
+    edges = [t0, *ts, t1]
+    return max(b - a for a, b in itertools.pairwise(edges))
+
+
+def ms(seconds: float | None) -> float | None:
+    """Seconds as milliseconds rounded to 0.1 ms (None stays None, for faults.json)."""
+    return None if seconds is None or not math.isfinite(seconds) else round(1e3 * seconds, 1)
+
+
+__all__ = [
+    "DRONE_STARTS",
+    "LAB_IPS",
+    "TRUTH_PERIOD_S",
+    "EmulatedLab",
+    "LabUnavailableError",
+    "command_times",
+    "first",
+    "free_udp_port",
+    "load_emulators",
+    "marker_image",
+    "max_gap",
+    "ms",
+    "phase_times",
+    "rc_times",
+]

@@ -1,0 +1,304 @@
+"""The rows of `flightstack faults` (issue 15) that break the devices' I/O under a flight of the emulated
+lab in this process: socket errors in every driver thread (`driver_thread_error`) and a full disk under
+the recorder (`disk_full`). FaultRows (mission file, work directory) -> FaultResult, listed in
+rows_lab.ROWS; reaction times in `details` (ms), times time.monotonic() s.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from flightstack import recorder
+from flightstack.faults.emulated_lab import EmulatedLab, max_gap, ms, rc_times
+from flightstack.faults.lab_flight import (
+    emulator_errors,
+    event_t,
+    fly_inprocess,
+    judge_lab_recording,
+    judge_lab_safety,
+    patched,
+    run_result,
+    sub,
+    wait_then,
+)
+from flightstack.faults.result import Checks, FaultResult
+
+
+# ---- driver_thread_error -----------------------------------------------------------------------------------
+class FaultySocket:
+    """A socket proxy: the first `n` calls of each named method raise OSError(ENETUNREACH), then the real
+    socket's method runs (tests/test_driver_threads.py injects errors the same way)."""
+
+    def __init__(self, sock: Any, **fail: int) -> None:
+        self._sock = sock
+        self._fail = dict(fail)
+        self.raised: dict[str, int] = dict.fromkeys(fail, 0)
+        self._lock = threading.Lock()
+
+    def __getattr__(self, name: str) -> Any:
+        real = getattr(self._sock, name)
+        if name not in self._fail:
+            return real
+
+        def call(*args: Any, **kw: Any) -> Any:
+            with self._lock:
+                fail = self.raised[name] < self._fail[name]
+                if fail:
+                    self.raised[name] += 1
+            if fail:
+                raise OSError(errno.ENETUNREACH, "Network is unreachable (injected)")
+            return real(*args, **kw)
+
+        return call
+
+
+INJECTED = {
+    "state receiver recv_error": 8,
+    "command channel recv_error": 6,
+    "command channel send_error": 4,
+    "monitor_error": 3,
+    "video recv_error": 10,
+    "robot send_error": 12,
+}
+"""Errors injected per thread (per drone for the command channel, the monitor and the video receiver)."""
+
+
+def _inject_thread_errors(backend: Any) -> dict[str, Any]:
+    """Socket errors into every driver thread of `backend` (HardwareBackend); returns the counters to
+    watch: name -> (Counter, key, expected count)."""
+    watch: dict[str, Any] = {}
+    drones = backend.drones
+    rx = next(iter(drones.values()))._rx  # one state receiver per state port (station mode: shared)
+    rx._sock = FaultySocket(rx._sock, recvfrom=INJECTED["state receiver recv_error"])
+    watch["state receiver"] = (rx.counts, "recv_error", INJECTED["state receiver recv_error"])
+    for i, d in drones.items():
+        chan = d._chan
+        n_recv, n_send = INJECTED["command channel recv_error"], INJECTED["command channel send_error"]
+        chan._sock = FaultySocket(chan._sock, recv=n_recv, send=n_send)
+        watch[f"drone {i} command channel (recv)"] = (chan.counts, "recv_error", n_recv)
+        watch[f"drone {i} command channel (send)"] = (chan.counts, "send_error", n_send)
+        real_step, boom = d._monitor_step, [0]
+
+        def step(now: float, real: Callable[[float], None] = real_step, n: list[int] = boom) -> None:
+            if n[0] < INJECTED["monitor_error"]:
+                n[0] += 1
+                raise OSError(errno.ENETUNREACH, "Network is unreachable (injected)")
+            real(now)
+
+        d._monitor_step = step
+        watch[f"drone {i} monitor"] = (d.counts, "monitor_error", INJECTED["monitor_error"])
+        cam = backend.cameras[i]
+        if cam._rx is not None:
+            cam._rx._sock = FaultySocket(cam._rx._sock, recvfrom=INJECTED["video recv_error"])
+            watch[f"drone {i} video"] = (cam.counts, "recv_error", INJECTED["video recv_error"])
+    robot = backend.robot
+    if robot is not None and robot._link is not None:
+        link = robot._link
+        real_write, wboom = link.conn.write, [0]
+
+        def write(buf: bytes) -> None:
+            if wboom[0] < INJECTED["robot send_error"]:
+                wboom[0] += 1
+                raise OSError(errno.ENETUNREACH, "Network is unreachable (injected)")
+            real_write(buf)
+
+        link.conn.write = write
+        watch["robot link"] = (robot.counts, "send_error", INJECTED["robot send_error"])
+    return watch
+
+
+def _threads_alive(backend: Any) -> dict[str, bool]:
+    """Thread name -> alive, for every background thread of the backend's drivers."""
+    out: dict[str, bool] = {}
+    for i, d in backend.drones.items():
+        out[f"drone {i} state receiver"] = d._rx is not None and d._rx._thread.is_alive()
+        out[f"drone {i} command channel"] = d._chan is not None and d._chan._thread.is_alive()
+        out[f"drone {i} monitor"] = d._monitor is not None and d._monitor.is_alive()
+        cam = backend.cameras[i]
+        out[f"drone {i} video"] = cam._rx is not None and cam._rx.alive()
+    if backend.robot is not None:
+        out.update({f"robot {k}": v for k, v in backend.robot.threads_alive().items()})
+    return out
+
+
+def driver_thread_error(mission_path: Path, workdir: Path) -> FaultResult:
+    """Socket errors injected into every driver thread (state, commands, monitor, video, robot) in flight."""
+    wall0 = time.perf_counter()
+    name = "driver_thread_error"
+    root = workdir / name
+    marks: dict[str, float] = {}
+    found: dict[str, Any] = {}
+    with EmulatedLab(root, duration_s=6.0) as lab:
+
+        def inject(backend: Any) -> None:
+            def act() -> None:
+                found["watch"] = _inject_thread_errors(backend)
+
+            if not wait_then(lab, marks, act):
+                return
+            watch = found["watch"]
+            deadline = time.monotonic() + 4.0
+            while time.monotonic() < deadline:
+                if all(cnt[key] >= n for cnt, key, n in watch.values()):
+                    break
+                time.sleep(0.01)
+            marks["counted"] = time.monotonic()
+            found["counts"] = {k: int(cnt[key]) for k, (cnt, key, _) in watch.items()}
+            found["alive"] = _threads_alive(backend)
+            found["setpoints"] = len(lab.rover.setpoint_records())
+
+        run = fly_inprocess(lab, root / "run", injector=inject)
+        lab.write_log(root / "emulators.json")
+        c = Checks()
+        t_fault = marks.get("fault")
+        c.check(t_fault is not None, "the pursuit never started: nothing injected")
+        t0 = t_fault if t_fault is not None else run.t_start
+        watch = found.get("watch", {})
+        counts = found.get("counts", {})
+        want = {k: n for k, (_, _, n) in watch.items()}
+        c.check(bool(want) and counts == want, f"errors counted {counts}, injected {want}")
+        alive = found.get("alive", {})
+        dead = [k for k, v in alive.items() if not v]
+        c.check(bool(alive) and not dead, f"threads dead after the errors: {dead or 'not checked'}")
+        t_all = event_t(next(iter(run.safety("land_all")), None))
+        c.check(t_all is not None, "no land_all at the end of the mission")
+        t_end = t_all if t_all is not None else run.t_end
+        gaps = {i: max_gap(rc_times(e), t0, t_end) for i, e in lab.tellos.items()}
+        c.check(all(g <= 0.35 for g in gaps.values()), f"rc streams paused {gaps} s (limit 0.35 s)")
+        after = {
+            i: len(rc_times(e, after=marks.get("counted", t0), before=t_end)) for i, e in lab.tellos.items()
+        }
+        c.check(all(n >= 10 for n in after.values()), f"rc after the errors: {after}")
+        n_sp = found.get("setpoints", 0)
+        sp_after = len(lab.rover.setpoint_records()) - n_sp
+        c.check(sp_after > 0, "no robot set-point after the errors")
+        early = [
+            e for e in run.safety() if e["kind"] in ("link_lost", "land", "drone_error") and e["t"] < t_end
+        ]
+        c.check(not early, f"safety reactions to the errors: {[(e['kind'], e['drone']) for e in early]}")
+        c.check(run.end_reason() == "mission complete", f"run ended: {run.end_reason()}")
+        emulator_errors(lab, c)
+        details = {
+            "errors_counted": counts,
+            "threads_alive": alive,
+            "max_rc_gap_ms": {str(i): ms(g) for i, g in gaps.items()},
+            "counted_after_ms": ms(sub(marks.get("counted"), t_fault)),
+            "rc_after_errors": {str(i): n for i, n in after.items()},
+            "robot_setpoints_after_errors": sp_after,
+        }
+        observed = (
+            f"{sum(counts.values())} socket errors injected in {len(counts)} threads, all counted within "
+            f"{details['counted_after_ms']} ms; threads alive {sum(alive.values())}/{len(alive)}; rc streams "
+            f"paused at most {details['max_rc_gap_ms']} ms; {after} rc and {sp_after} robot set-points "
+            f"after; end: {run.end_reason()}"
+        )
+        expected = (
+            "every error counted (state receiver, command channel send/recv, monitor, video, robot link), "
+            "every thread alive; the flight goes on: rc to each Tello never paused > 0.35 s, no link loss "
+            "or landing before the mission's end"
+        )
+        return run_result(
+            name,
+            expected,
+            observed,
+            wall0,
+            run,
+            c,
+            judge_lab_safety(lab, run),
+            judge_lab_recording(run),
+            details,
+        )
+
+
+# ---- disk_full ---------------------------------------------------------------------------------------------
+def disk_full(mission_path: Path, workdir: Path) -> FaultResult:
+    """Every write of the recording stream fails with ENOSPC from 1 s into pursuit (recorder._write_bytes)."""
+    wall0 = time.perf_counter()
+    name = "disk_full"
+    root = workdir / name
+    marks: dict[str, float] = {}
+    armed = threading.Event()
+    real = recorder._write_bytes
+
+    def full(fd: int, data: bytes) -> None:
+        if armed.is_set():
+            marks.setdefault("first_enospc", time.monotonic())
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real(fd, data)
+
+    with EmulatedLab(root, duration_s=5.0) as lab, patched(recorder, "_write_bytes", full):
+        mission = lab.mission()
+        n_ticks = round(mission.duration_s / mission.dt_s)
+        run = fly_inprocess(
+            lab, root / "run", injector=lambda backend: wait_then(lab, marks, armed.set) and None
+        )
+        lab.write_log(root / "emulators.json")
+        c = Checks()
+        t_fault = marks.get("fault")
+        c.check(t_fault is not None, "the pursuit never started: nothing injected")
+        t0 = t_fault if t_fault is not None else run.t_start
+        rec = run.rec
+        flown = rec.ticks_done if rec is not None else 0
+        c.check(flown == n_ticks, f"{flown} of {n_ticks} ticks flown")
+        c.check(rec is not None and rec.error is None, f"run error {None if rec is None else rec.error!r}")
+        stops = [e for e in (rec.events if rec is not None else []) if e.get("event") == "recording_stopped"]
+        c.check(
+            len(stops) == 1 and "ENOSPC" in str(stops[0].get("reason")), f"recording_stopped events {stops}"
+        )
+        written = int(stops[0].get("ticks_written", -1)) if stops else -1
+        c.check(0 <= written < n_ticks, f"{written} ticks written to the stream of {n_ticks}")
+        status = (run.metrics or {}).get("recording", {})
+        c.check(
+            status.get("complete") is False and "No space left" in str(status.get("reason")),
+            f"metrics recording {status}",
+        )
+        moving = {i: len(rc_times(e, after=t0 + 0.5, nonzero=True)) for i, e in lab.tellos.items()}
+        c.check(all(n > 10 for n in moving.values()), f"non-zero rc after the disk filled: {moving}")
+        c.check(
+            run.end_reason() == "mission complete"
+            or (rec is not None and _rec_end(rec) == "mission complete"),
+            f"run ended: {run.end_reason() or (rec and _rec_end(rec))}",
+        )
+        emulator_errors(lab, c)
+        t_stop_wall = float(stops[0]["wall_t"]) if stops else None
+        details = {
+            "first_enospc_after_fault_ms": ms(sub(marks.get("first_enospc"), t_fault)),
+            "ticks_flown": flown,
+            "ticks_written": written,
+            "recording": status,
+            "stop_event_wall_t": t_stop_wall,
+        }
+        observed = (
+            f"ENOSPC from 1 s into pursuit (first write refused +{details['first_enospc_after_fault_ms']} "
+            f"ms): recording_stopped after {written} ticks written; flew {flown}/{n_ticks} ticks; metrics "
+            f"recording {status}; non-zero rc after the disk filled {moving}; end: "
+            f"{None if rec is None else _rec_end(rec)}"
+        )
+        expected = (
+            "the flight goes on to the end (every tick flown, rc on every tick), one `recording_stopped` "
+            "event naming ENOSPC, metrics.json says recording complete: false (No space left on device), "
+            "drones land"
+        )
+        return run_result(
+            name,
+            expected,
+            observed,
+            wall0,
+            run,
+            c,
+            judge_lab_safety(lab, run),
+            judge_lab_recording(run, complete=False),
+            details,
+        )
+
+
+def _rec_end(rec: Any) -> str | None:
+    """The reason of the Recording's `end` event (None without one)."""
+    ends = [e for e in rec.events if e.get("event") == "end"]
+    return str(ends[0]["reason"]) if ends else None
