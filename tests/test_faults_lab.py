@@ -33,6 +33,8 @@ LAB_ROWS = [
     "clock_skew",
     "abort_during_takeoff",
     "abort_agent_missing",
+    "process_killed",
+    "agent_stopped",
 ]
 
 
@@ -202,3 +204,20 @@ def test_outside_a_checkout_the_lab_says_why(tmp_path: Path, monkeypatch: pytest
     monkeypatch.setattr(emulated_lab, "REPO", tmp_path)
     with pytest.raises(LabUnavailableError, match="source checkout"):
         emulated_lab.load_emulators()
+
+
+def test_a_killed_process_is_landed_by_its_guardian(results: dict[str, FaultResult]) -> None:
+    """Issue 15: parent killed -> rc 0 0 0 0 <= 0.5 s and land <= 2 s at the emulators, robot disarmed."""
+    d = results["process_killed"].details
+    for i in (1, 2):
+        assert d[f"drone{i}"]["rc0_ms"] <= 500 and d[f"drone{i}"]["land_ms"] <= 2000, d
+        assert d[f"drone{i}"]["down_ms"] is not None
+    assert d["robot_armed"] is False and d["robot_speed"] < 1e-6
+
+
+def test_a_stopped_process_is_taken_over_and_muted_after_it_resumes(results: dict[str, FaultResult]) -> None:
+    d = results["agent_stopped"].details
+    for i in (1, 2):
+        assert 400 <= d[f"drone{i}"]["rc0_ms"] <= 800, d  # the guardian's 0.5 s stall bound, not earlier
+        assert d[f"drone{i}"]["land_ms"] <= 2500, d
+    assert d["exit_code"] not in (0, None)

@@ -5,8 +5,8 @@ measured at the Tello emulators (flightstack/faults/emulated_lab.py, lab_flight.
 
 `ROWS` lists every emulated-lab row of issue 15 in table order, also those of rows_lab_drivers.py (driver
 threads, full disk), rows_lab_cli.py (signals, abort during takeoff: `flightstack fly` in a child process)
-and rows_lab_bus.py (clock skew, abort with an agent missing: Zenoh). `process_killed` and
-`agent_stopped` belong to the guardian process and are not here.
+and rows_lab_bus.py (clock skew, abort with an agent missing: Zenoh) and rows_lab_process.py
+(`process_killed`, `agent_stopped`: the guardian process).
 
 The lab rows fly their own mission (the paper experiment re-pointed at the emulators, mode `none`, a few
 seconds of pursuit): `--mission` does not apply to them. Faults start about 1 s into pursuit. Every
@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from flightstack.faults import rows_lab_bus, rows_lab_cli, rows_lab_drivers
+from flightstack.faults import rows_lab_bus, rows_lab_cli, rows_lab_drivers, rows_lab_process
 from flightstack.faults.emulated_lab import (
     EmulatedLab,
     command_times,
@@ -409,5 +409,6 @@ ROWS: dict[str, FaultRow] = {
     "clock_skew": rows_lab_bus.clock_skew,
     "abort_during_takeoff": rows_lab_cli.abort_during_takeoff,
     "abort_agent_missing": rows_lab_bus.abort_agent_missing,
+    **rows_lab_process.ROWS,
 }
-"""The emulated-lab rows of issue 15, in table order (process_killed and agent_stopped: the guardian's)."""
+"""The emulated-lab rows of issue 15, in table order (the last two: the guardian's, rows_lab_process.py)."""
