@@ -36,7 +36,8 @@ from flightstack.hal import Drone
 from flightstack.mission import CAMERA_MOUNTS, Mission
 from flightstack.projection import CameraModel
 from flightstack.recording import Recording
-from flightstack.safety import EventLog, MissionSupervisor, SafeDrone, SafetyLimits
+from flightstack.safety import EventLog, SafeDrone, SafetyLimits
+from flightstack.supervisor import MissionSupervisor
 from flightstack.target_law import SquareLaw
 
 _log = logging.getLogger(__name__)

@@ -19,10 +19,11 @@ land is re-sent every `land_retry_s` until it is confirmed, by the wrapped drone
 its telemetry (phase ground) or by motion capture (z ≤ `landed_height`); meanwhile the pose, fence and
 watchdog rules keep running on the last known pose. Simulated drones (background off) land inline, so a
 simulated run stays deterministic.
-`MissionSupervisor` adds the mission-wide rules: hover when every drone has lost the target for longer
-than `target_lost_hover_after` s, land every drone (robust to a failing drone), on SIGINT, SIGTERM,
-SIGHUP, SIGQUIT and SIGTSTP (a repeated signal never interrupts the landing) and on any exception leaving a
-guarded block.
+`MissionSupervisor` (flightstack/supervisor.py) adds the mission-wide rules: hover when every drone has
+lost the target for longer than `target_lost_hover_after` s, land every drone (robust to a failing
+drone), on SIGINT, SIGTERM, SIGHUP, SIGQUIT and SIGTSTP (a repeated signal never interrupts the landing)
+and on any exception leaving a guarded block. Limits, events and the pure rules are in
+flightstack/safety_rules.py.
 
 Every condition logs exactly one `SafetyEvent` per episode (the interval during which it holds), stamped
 with the mission clock. The event kinds form the closed set `EVENT_KINDS`:
@@ -62,22 +63,33 @@ themselves never raise into the control loop.
 
 from __future__ import annotations
 
-import contextlib
 import enum
-import logging
 import math
-import signal
 import threading
-from collections import Counter
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
-from types import FrameType, TracebackType
-from typing import Any, TypeVar
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
 from flightstack.geometry import Pose
 from flightstack.hal import Clock, Drone, DroneState, FlightPhase, PoseSource, StampedPose
+from flightstack.safety_rules import (
+    EVENT_KINDS,
+    EventLog,
+    SafetyError,
+    SafetyEvent,
+    SafetyLimits,
+    _valid_pose,
+    fence_clip,
+    outside_hard_fence,
+    outside_soft_fence,
+    sanitize,
+    saturate,
+)
+
+if TYPE_CHECKING:
+    from flightstack.supervisor import MissionSupervisor
 
 __all__ = [
     "EVENT_KINDS",
@@ -89,313 +101,21 @@ __all__ = [
     "SafetyLimits",
     "fence_clip",
     "outside_hard_fence",
+    "outside_soft_fence",
+    "sanitize",
     "saturate",
 ]
 
-_logger = logging.getLogger(__name__)
-
-EVENT_KINDS: frozenset[str] = frozenset(
-    {
-        "saturated",
-        "invalid_command",
-        "fence_soft",
-        "fence_hard_land",
-        "command_timeout",
-        "pose_stale_hover",
-        "pose_stale_land",
-        "pose_error",
-        "battery_refuse_takeoff",
-        "pose_refuse_takeoff",
-        "fence_refuse_takeoff",
-        "battery_land",
-        "target_lost_land",
-        "link_lost",
-        "drone_error",
-        "command_after_land",
-        "land_failed",
-        "landed_by_drone",
-        "emergency_stop",
-        "emergency_stop_failed",
-        "target_lost_hover",
-        "land_all",
-        "signal",
-        "takeoff",
-        "takeoff_failed",
-        "land",
-    }
-)
-
-_AXES = ("x", "y", "z")
 _T = TypeVar("_T")
 
 
-class SafetyError(RuntimeError):
-    """A safety rule refused an operator action (e.g. takeoff on a low battery)."""
+def __getattr__(name: str) -> Any:
+    """`MissionSupervisor` lives in flightstack/supervisor.py (it imports this module)."""
+    if name == "MissionSupervisor":
+        from flightstack.supervisor import MissionSupervisor
 
-
-# ---- limits and events -----------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class SafetyLimits:
-    """Safety limits of one mission (the mission's `safety:` section).
-
-    Speeds are limits on the body-frame command V = [v_x, v_y, v_z, ω_z]: `max_speed_xy` (m/s) bounds the
-    norm of (v_x, v_y), `max_speed_z` (m/s) bounds |v_z|, `max_yaw_rate` (rad/s) bounds |ω_z|. The fence
-    is an axis-aligned box [fence_lo, fence_hi] in the world frame Σw (motion-capture frame, z up, m);
-    the hard fence is that box grown by `hard_margin` (m) on every face. Times are in seconds of mission
-    clock, battery levels in percent.
-    """
-
-    max_speed_xy: float = 0.5
-    max_speed_z: float = 0.3
-    max_yaw_rate: float = 1.0
-    fence_lo: tuple[float, float, float] = (-2.0, -2.0, 0.3)
-    fence_hi: tuple[float, float, float] = (2.0, 2.0, 2.0)
-    hard_margin: float = 0.3
-    command_timeout: float = 0.5
-    pose_timeout: float = 0.3
-    pose_land_after: float = 2.0
-    min_battery_takeoff: float = 30.0
-    land_battery: float = 15.0
-    target_lost_hover_after: float = 3.0
-    target_lost_land_after: float = 15.0
-    """Every drone has lost the target for this long (s): land them all rather than hover on (the target
-    has left every camera's view; a hovering Tello would only drain its battery near people)."""
-    land_retry_s: float = 1.0
-    """A land the wrapped drone refused or did not confirm is retried after this long (s, mission clock):
-    a bounded rate, while every tick keeps the other rules (and a hover, when the link is silent) going."""
-    landed_height: float = 0.15
-    """z (m, Σw) of a drone's motion-capture body at or below which a landing drone counts as down (the
-    lab's floor is z = 0): motion capture confirms a landing that the drone's own telemetry cannot."""
-    emergency_stop_if_land_fails: bool = False
-    """Cut the motors of a drone whose land() raised during land_all. Off by default: a Tello with its
-    motors cut falls from up to 2 m next to people; the failed land is retried on every tick instead."""
-
-    def __post_init__(self) -> None:
-        lo = tuple(float(v) for v in self.fence_lo)
-        hi = tuple(float(v) for v in self.fence_hi)
-        if len(lo) != 3 or len(hi) != 3:
-            raise ValueError(f"fence_lo and fence_hi need 3 values (x, y, z), got {lo} and {hi}")
-        object.__setattr__(self, "fence_lo", lo)
-        object.__setattr__(self, "fence_hi", hi)
-        if not all(math.isfinite(v) for v in lo + hi):
-            raise ValueError(f"fence must be finite, got lo={lo}, hi={hi}")
-        if any(h <= low for low, h in zip(lo, hi, strict=True)):
-            raise ValueError(f"fence_hi must exceed fence_lo on every axis, got lo={lo}, hi={hi}")
-        positive = ("max_speed_xy", "max_speed_z", "max_yaw_rate", "command_timeout", "pose_timeout")
-        positive += ("pose_land_after", "target_lost_hover_after", "target_lost_land_after", "land_retry_s")
-        for name in positive:
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0.0):
-                raise ValueError(f"{name} must be finite and > 0, got {v}")
-        if not (math.isfinite(self.landed_height) and self.landed_height < self.fence_lo[2]):
-            raise ValueError(
-                f"landed_height ({self.landed_height} m) must be finite and below the fence floor "
-                f"fence_lo z ({self.fence_lo[2]} m)"
-            )
-        if not (math.isfinite(self.hard_margin) and self.hard_margin >= 0.0):
-            raise ValueError(f"hard_margin must be finite and >= 0, got {self.hard_margin}")
-        if self.target_lost_land_after <= self.target_lost_hover_after:
-            raise ValueError(
-                f"target_lost_land_after ({self.target_lost_land_after} s) must exceed "
-                f"target_lost_hover_after ({self.target_lost_hover_after} s)"
-            )
-        if self.pose_land_after < self.pose_timeout:
-            raise ValueError(
-                f"pose_land_after ({self.pose_land_after} s) must be >= pose_timeout ({self.pose_timeout} s)"
-            )
-        for name in ("min_battery_takeoff", "land_battery"):
-            v = getattr(self, name)
-            if not (0.0 <= v <= 100.0):
-                raise ValueError(f"{name} must be a percentage in [0, 100], got {v}")
-        if self.land_battery > self.min_battery_takeoff:
-            raise ValueError(
-                f"land_battery ({self.land_battery} %) must not exceed min_battery_takeoff "
-                f"({self.min_battery_takeoff} %): the drone would land right after takeoff"
-            )
-
-    @property
-    def hard_lo(self) -> tuple[float, float, float]:
-        """Lower corner of the hard fence in Σw (m)."""
-        m = self.hard_margin
-        return (self.fence_lo[0] - m, self.fence_lo[1] - m, self.fence_lo[2] - m)
-
-    @property
-    def hard_hi(self) -> tuple[float, float, float]:
-        """Upper corner of the hard fence in Σw (m)."""
-        m = self.hard_margin
-        return (self.fence_hi[0] + m, self.fence_hi[1] + m, self.fence_hi[2] + m)
-
-
-@dataclass(frozen=True)
-class SafetyEvent:
-    """One safety event: mission-clock time t (s), drone id (None: mission-wide), kind (in EVENT_KINDS)."""
-
-    t: float
-    drone: int | None
-    kind: str
-    detail: str
-
-    def to_dict(self) -> dict[str, object]:
-        return asdict(self)
-
-
-class EventLog:
-    """Append-only, thread-safe list of SafetyEvent (also echoed to the `flightstack.safety` logger).
-
-    Uses a re-entrant lock so that a signal handler running on the main thread may log while the main
-    thread is itself inside `append`.
-    """
-
-    def __init__(self) -> None:
-        self._lock = threading.RLock()
-        self._events: list[SafetyEvent] = []
-
-    def append(self, event: SafetyEvent) -> None:
-        """Add one event; its kind must be in EVENT_KINDS (ValueError otherwise: a programming error)."""
-        if event.kind not in EVENT_KINDS:
-            raise ValueError(f"unknown safety event kind {event.kind!r}; valid: {sorted(EVENT_KINDS)}")
-        with self._lock:
-            self._events.append(event)
-        who = "mission" if event.drone is None else f"drone {event.drone}"
-        _logger.warning("t=%.3f %s %s: %s", event.t, who, event.kind, event.detail)
-
-    def record(self, t: float, drone: int | None, kind: str, detail: str) -> SafetyEvent:
-        """Build, append and return an event."""
-        ev = SafetyEvent(float(t), drone, kind, detail)
-        self.append(ev)
-        return ev
-
-    @property
-    def events(self) -> list[SafetyEvent]:
-        """A snapshot copy of the events, oldest first."""
-        with self._lock:
-            return list(self._events)
-
-    def of_kind(self, kind: str) -> list[SafetyEvent]:
-        return [e for e in self.events if e.kind == kind]
-
-    def counts(self) -> dict[str, int]:
-        """Number of events per kind (kinds that never occurred are absent)."""
-        return dict(Counter(e.kind for e in self.events))
-
-    def to_dicts(self) -> list[dict[str, object]]:
-        """The events as dicts {t, drone, kind, detail} (for the run directory's event log)."""
-        return [e.to_dict() for e in self.events]
-
-    def __len__(self) -> int:
-        with self._lock:
-            return len(self._events)
-
-
-# ---- pure rules ------------------------------------------------------------------------------------------
-def sanitize(V: object) -> tuple[np.ndarray, str | None]:
-    """V as a float array (4,), or zeros and the reason when V is not 4 finite numbers."""
-    try:
-        arr = np.asarray(V, dtype=float).reshape(-1)
-    except (TypeError, ValueError) as exc:
-        return np.zeros(4), f"not numeric ({type(exc).__name__}: {exc})"
-    if arr.size != 4:
-        return np.zeros(4), f"expected 4 values [vx, vy, vz, wz], got {arr.size}"
-    if not np.all(np.isfinite(arr)):
-        return np.zeros(4), f"non-finite command {arr.tolist()}"
-    return arr.copy(), None
-
-
-def saturate(V: np.ndarray, limits: SafetyLimits) -> tuple[np.ndarray, bool]:
-    """Saturate a finite body velocity V = [v_x, v_y, v_z, ω_z] (m/s, rad/s, body frame).
-
-    (v_x, v_y) is scaled down to norm `max_speed_xy` keeping its direction (computed without overflow,
-    and never increasing a component's magnitude); v_z and ω_z are clipped. Returns (V_sat, changed).
-    """
-    out = np.array(V, dtype=float).reshape(4)
-    vx, vy = float(out[0]), float(out[1])
-    changed = False
-    m = max(abs(vx), abs(vy))
-    if m > 0.0:
-        ux, uy = vx / m, vy / m  # |u| in [1, √2]: no overflow in hypot
-        norm_u = math.hypot(ux, uy)
-        if m * norm_u > limits.max_speed_xy:
-            # 4 ulp of margin so that rounding never leaves the result above the limit
-            k = limits.max_speed_xy / norm_u * (1.0 - 4.0 * np.finfo(float).eps)
-            out[0] = float(np.clip(ux * k, -abs(vx), abs(vx)))
-            out[1] = float(np.clip(uy * k, -abs(vy), abs(vy)))
-            changed = True
-    for i, lim in ((2, limits.max_speed_z), (3, limits.max_yaw_rate)):
-        if abs(out[i]) > lim:
-            out[i] = math.copysign(lim, out[i])
-            changed = True
-    return out, changed
-
-
-def outside_soft_fence(p: np.ndarray, limits: SafetyLimits) -> list[str]:
-    """Faces of the soft fence that the world position p (m, Σw) is beyond, e.g. ['+x', '-z']."""
-    faces = []
-    for k, ax in enumerate(_AXES):
-        if p[k] > limits.fence_hi[k]:
-            faces.append(f"+{ax}")
-        elif p[k] < limits.fence_lo[k]:
-            faces.append(f"-{ax}")
-    return faces
-
-
-def outside_hard_fence(p: np.ndarray, limits: SafetyLimits, check_floor: bool = True) -> list[str]:
-    """Faces of the hard fence that the world position p (m, Σw) is beyond.
-
-    `check_floor=False` ignores the lower z face (used before the drone has climbed into the fence after
-    takeoff, when it still stands on the floor and motion-capture noise can put z slightly below it).
-    """
-    lo, hi = limits.hard_lo, limits.hard_hi
-    faces = []
-    for k, ax in enumerate(_AXES):
-        if p[k] > hi[k]:
-            faces.append(f"+{ax}")
-        elif p[k] < lo[k] and (k != 2 or check_floor):
-            faces.append(f"-{ax}")
-    return faces
-
-
-def fence_clip(V: np.ndarray, pose: Pose, limits: SafetyLimits) -> tuple[np.ndarray, list[str]]:
-    """Remove from the body velocity V every world-frame component that leaves the soft fence further.
-
-    V = [v_x, v_y, v_z, ω_z] is in the body frame of `pose` (world pose of the drone, yaw θ about z, so
-    v_world = R(θ) v_body and v_z is the same in both frames). For each axis on which the drone is
-    beyond the soft fence, the world velocity component pointing further out is set to zero; the others,
-    and ω_z, are kept. Returns (V_clipped in the body frame, clipped world axes such as ['+x']).
-    """
-    p = pose.p
-    c, s = math.cos(pose.theta), math.sin(pose.theta)
-    vw = [c * V[0] - s * V[1], s * V[0] + c * V[1], float(V[2])]
-    clipped = []
-    for k, ax in enumerate(_AXES):
-        if p[k] > limits.fence_hi[k] and vw[k] > 0.0:
-            vw[k] = 0.0
-            clipped.append(f"+{ax}")
-        elif p[k] < limits.fence_lo[k] and vw[k] < 0.0:
-            vw[k] = 0.0
-            clipped.append(f"-{ax}")
-    out = np.array(V, dtype=float).reshape(4)
-    if not clipped:
-        return out, clipped
-    if any(a[1] in "xy" for a in clipped):  # back to the body frame: v_body = R(θ)ᵀ v_world
-        out[0] = c * vw[0] + s * vw[1]
-        out[1] = -s * vw[0] + c * vw[1]
-    out[2] = vw[2]
-    return out, clipped
-
-
-def _valid_pose(sp: object) -> bool:
-    """A StampedPose-like object with a finite stamp, a finite position (3,) and a finite yaw."""
-    try:
-        pose = sp.pose  # type: ignore[attr-defined]
-        p = np.asarray(pose.p, dtype=float)
-        return (
-            math.isfinite(float(sp.stamp))  # type: ignore[attr-defined]
-            and p.shape == (3,)
-            and bool(np.all(np.isfinite(p)))
-            and math.isfinite(float(pose.theta))
-        )
-    except (TypeError, ValueError, AttributeError):
-        return False
+        return MissionSupervisor
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # ---- one drone ---------------------------------------------------------------------------------------------
@@ -902,236 +622,3 @@ class SafeDrone:
                 else:
                     self._event_once(now, "land_failed", f"{job.reason}: land() raised {why}")
                     self._next_land_try = now + self.limits.land_retry_s
-
-
-# ---- the mission -------------------------------------------------------------------------------------------
-class MissionSupervisor:
-    """Mission-wide rules over all SafeDrones: target-lost hover, land all, signals, exception guard."""
-
-    def __init__(
-        self,
-        drones: dict[int, SafeDrone],
-        clock: Clock,
-        limits: SafetyLimits,
-        log: EventLog,
-        concurrent_land: bool = False,
-    ) -> None:
-        """concurrent_land: land_all lands every drone at once, one thread each. For real drones, whose
-        land() waits for the touchdown reply (a Tello: seconds): landing them one after the other would
-        leave the last one flying for the sum of the others' landings. Simulated drones land instantly;
-        they keep the sequential, deterministic order (event logs identical run to run)."""
-        self.concurrent_land = concurrent_land
-        self.drones = dict(drones)
-        self.clock = clock
-        self.limits = limits
-        self.log = log
-        self._lock = threading.RLock()
-        self._t0: float | None = None
-        self._last_seen: dict[int, float] = {}
-        self._known: set[int] = set(self.drones)
-        self._lost_episode = False
-        self._lost_landing = False
-        self._landing_depth = 0
-        self._deferred_land: str | None = None
-        self.signalled: str | None = None
-        """The first signal received inside install_signal_handlers() (later ones are only logged)."""
-
-    def update_visibility(self, visible: dict[int, bool]) -> bool:
-        """Record which drones see the target now; True if the mission must hover.
-
-        The mission hovers when every drone (supervised or reported here; a drone missing from `visible`
-        counts as not seeing) has not seen the target for longer than target_lost_hover_after seconds.
-        A drone that has never seen it counts from the first call. One event per episode.
-        """
-        with self._lock:
-            now = self.clock.now()
-            if self._t0 is None:
-                self._t0 = now
-            self._known.update(visible)
-            for i, v in visible.items():
-                if v:
-                    self._last_seen[i] = now
-            if not self._known:
-                return False
-            lost_for = min(now - self._last_seen.get(i, self._t0) for i in self._known)
-            hold = lost_for > self.limits.target_lost_hover_after
-            if hold and not self._lost_episode:
-                self.log.record(
-                    now,
-                    None,
-                    "target_lost_hover",
-                    f"every drone lost the target for {lost_for:.2f} s "
-                    f"> {self.limits.target_lost_hover_after:.2f} s: hover",
-                )
-            self._lost_episode = hold
-            if lost_for > self.limits.target_lost_land_after and not self._lost_landing:
-                self._lost_landing = True
-                limit = self.limits.target_lost_land_after
-                why = f"every drone lost the target for {lost_for:.2f} s > {limit:.2f} s: land"
-                self.log.record(now, None, "target_lost_land", why)
-                self.land_all("target lost")
-            return hold
-
-    def land_all(self, reason: str) -> None:
-        """Land every drone that is not landed; idempotent.
-
-        A drone whose land() raises is logged (land_failed) and retried by its tick(); with
-        `limits.emergency_stop_if_land_fails` it gets emergency_stop() instead. The others are landed
-        regardless. An interrupt (KeyboardInterrupt, SystemExit) raised while landing one drone does
-        not stop the others from being landed; it is re-raised afterwards.
-        """
-        with self._lock:
-            interrupt: BaseException | None = None
-            self._landing_depth += 1
-            try:
-                pending = [(i, d) for i, d in self.drones.items() if not d.landed]
-                pending.sort(key=lambda p: p[1]._land_reason == "link_lost")  # unreachable ones last
-                if pending:
-                    ids = [i for i, _ in pending]
-                    self.log.record(self.clock.now(), None, "land_all", f"{reason}; landing drones {ids}")
-                if self.concurrent_land and len(pending) > 1:
-                    interrupt = self._land_concurrently(pending, reason)
-                else:
-                    for i, d in pending:
-                        try:
-                            self._land_one(i, d, reason)
-                        except BaseException as exc:  # keep landing the others first, re-raise after
-                            interrupt = interrupt or exc
-            finally:
-                self._landing_depth -= 1
-            if interrupt is not None:
-                raise interrupt
-
-    def _land_concurrently(self, pending: list[tuple[int, SafeDrone]], reason: str) -> BaseException | None:
-        """_land_one for every drone at once; waits for all of them, even through a Ctrl-C (returned, to be
-        re-raised when every landing has been sent and answered or has failed)."""
-        errors: list[BaseException] = []
-
-        def one(i: int, d: SafeDrone) -> None:
-            try:
-                self._land_one(i, d, reason)
-            except BaseException as exc:
-                errors.append(exc)
-
-        threads = [threading.Thread(target=one, args=p, name=f"land-{p[0]}", daemon=True) for p in pending]
-        for th in threads:
-            th.start()
-        interrupt: BaseException | None = None
-        for th in threads:
-            while th.is_alive():
-                try:
-                    th.join()
-                except BaseException as exc:  # Ctrl-C while waiting: the landings go on, re-raise after
-                    interrupt = interrupt or exc
-        return interrupt or (errors[0] if errors else None)
-
-    def _land_one(self, i: int, d: SafeDrone, reason: str) -> None:
-        try:
-            d.land(reason)
-        except Exception as exc:
-            why = f"{reason}; land() raised {type(exc).__name__}: {exc}"
-            if not self.limits.emergency_stop_if_land_fails:
-                return  # logged as land_failed by the drone; its tick() retries the land every period
-            try:
-                d.emergency_stop(why)
-            except Exception as exc2:
-                self.log.record(
-                    self.clock.now(), i, "emergency_stop_failed", f"{why}; {type(exc2).__name__}: {exc2}"
-                )
-
-    def install_signal_handlers(self) -> contextlib.AbstractContextManager[MissionSupervisor]:
-        """Context manager: inside it SIGINT, SIGTERM, SIGHUP (the operator's ssh session dropped), SIGQUIT
-        (Ctrl-\\) and SIGTSTP (Ctrl-Z: the process must not freeze with drones in the air) land every
-        drone, then raise KeyboardInterrupt once. Every later signal is logged and ignored: a second Ctrl-C
-        never interrupts the landing, the closing of the drivers or the disarming of the robot (SIGKILL
-        still ends the process; the guardian process then lands the drones).
-
-        Must be entered on the main thread. If the signal interrupts a call into a drone driver, the landing
-        is deferred until that call has unwound (the driver may hold a lock): KeyboardInterrupt is raised at
-        once, every drone's next command or tick lands it, and leaving the block lands them all. A signal
-        received while land_all runs is logged and ignored (the landing it asks for is under way). The
-        previous handlers are restored on exit.
-        """
-        return _SignalHandlers(self)
-
-    def guard(self) -> contextlib.AbstractContextManager[MissionSupervisor]:
-        """Context manager: any exception (also KeyboardInterrupt) leaving the block lands all, re-raised."""
-        return _Guard(self)
-
-    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
-        name = signal.Signals(signum).name
-        now = self.clock.now()
-        if self.signalled is not None:
-            self.log.record(now, None, "signal", f"{name} after {self.signalled}: ignored, landing continues")
-            return
-        self.signalled = name
-        if self._landing_depth > 0:
-            self.log.record(now, None, "signal", f"{name} during land_all: ignored, landing continues")
-            return
-        busy = [i for i, d in self.drones.items() if d.in_inner_call()]
-        if busy:
-            self._deferred_land = f"signal {name}"
-            for d in self.drones.values():
-                d.request_abort(f"signal {name}")
-            self.log.record(now, None, "signal", f"{name} inside drone {busy}'s driver: landing deferred")
-            raise KeyboardInterrupt(f"signal {name}")
-        self.log.record(now, None, "signal", f"{name}: landing all")
-        self.land_all(f"signal {name}")
-        raise KeyboardInterrupt(f"signal {name}")
-
-
-class _Guard(contextlib.AbstractContextManager[MissionSupervisor]):
-    def __init__(self, sup: MissionSupervisor) -> None:
-        self._sup = sup
-
-    def __enter__(self) -> MissionSupervisor:
-        return self._sup
-
-    def __exit__(
-        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
-    ) -> bool:
-        if ev is not None:
-            msg = str(ev)
-            self._sup.land_all(f"{type(ev).__name__}: {msg}" if msg else type(ev).__name__)
-        return False
-
-
-_HANDLED_SIGNALS = tuple(
-    getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGTSTP") if hasattr(signal, n)
-)
-
-
-class _SignalHandlers(contextlib.AbstractContextManager[MissionSupervisor]):
-    _SIGNALS = _HANDLED_SIGNALS
-
-    def __init__(self, sup: MissionSupervisor) -> None:
-        self._sup = sup
-        self._previous: dict[int, Any] = {}
-
-    def __enter__(self) -> MissionSupervisor:
-        if threading.current_thread() is not threading.main_thread():
-            raise RuntimeError("install_signal_handlers() must be entered on the main thread")
-        try:
-            for sig in self._SIGNALS:
-                self._previous[sig] = signal.getsignal(sig)
-                signal.signal(sig, self._sup._on_signal)
-        except BaseException:
-            self._restore()
-            raise
-        return self._sup
-
-    def __exit__(
-        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
-    ) -> bool:
-        try:
-            reason, self._sup._deferred_land = self._sup._deferred_land, None
-            if reason is not None:
-                self._sup.land_all(reason)
-        finally:
-            self._restore()
-        return False
-
-    def _restore(self) -> None:
-        for sig, prev in self._previous.items():
-            signal.signal(sig, prev if prev is not None else signal.SIG_DFL)
-        self._previous.clear()
