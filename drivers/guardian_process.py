@@ -21,7 +21,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TextIO
 
 from drivers.guardian import (
     ARM,
@@ -46,11 +46,14 @@ FORCE_DISARM = 21196.0  # MAV_CMD_COMPONENT_ARM_DISARM param2: disarm regardless
 
 
 class Log:
-    """Lines `guardian <pid> t=<monotonic s> <text>` to stderr and an optional file, from a writer thread."""
+    """Lines `<name> <pid> t=<monotonic s> <text>` to `stream` (None: stderr) and an optional file, from a
+    writer thread (`flightstack guard` uses it with name "guard" and stdout)."""
 
-    def __init__(self, path: str | None) -> None:
+    def __init__(self, path: str | None, name: str = "guardian", stream: TextIO | None = None) -> None:
         self._q: queue.Queue[str | None] = queue.Queue()
         self._file = None
+        self._name = name
+        self._stream = stream
         if path:
             try:
                 self._file = open(path, "a", encoding="utf-8")  # noqa: SIM115 - closed by close()
@@ -60,11 +63,11 @@ class Log:
         self._thread.start()
 
     def __call__(self, text: str) -> None:
-        self._q.put(f"guardian {os.getpid()} t={time.monotonic():.3f} {text}\n")
+        self._q.put(f"{self._name} {os.getpid()} t={time.monotonic():.3f} {text}\n")
 
     def _run(self) -> None:
         while (line := self._q.get()) is not None:
-            for out in (sys.stderr, self._file):
+            for out in (self._stream or sys.stderr, self._file):
                 if out is None:
                     continue
                 try:
@@ -200,9 +203,14 @@ class Robot:
 
 
 class GuardianProcess:
-    """The watch and the takeover (module docstring of drivers/guardian.py)."""
+    """The watch and the takeover (module docstring of drivers/guardian.py).
 
-    def __init__(self, cfg: GuardianConfig, flag: TakeoverFlag, log: Log) -> None:
+    `flightstack guard` (drivers/guard.py) reuses the takeover alone: watch_stdin=False (no parent pipe),
+    flag None (no parent to mute), then `take_over`, and `poll` + `step_takeover` until it returns."""
+
+    def __init__(
+        self, cfg: GuardianConfig, flag: TakeoverFlag | None, log: Log, watch_stdin: bool = True
+    ) -> None:
         self.cfg, self.flag, self.log = cfg, flag, log
         th = PhaseThresholds(ground_h_cm=cfg.ground_h_cm, motor_quiet_s=cfg.motor_quiet_s)
         self.drones = [Drone(t, PhaseTracker(th)) for t in cfg.tellos]
@@ -225,8 +233,9 @@ class GuardianProcess:
         self.bye = False
         self.takeover_t: float | None = None
         self.watch_ppid = os.getppid() == cfg.parent_pid
-        os.set_blocking(0, False)
-        self.sel.register(0, selectors.EVENT_READ, ("stdin", ""))
+        if watch_stdin:
+            os.set_blocking(0, False)
+            self.sel.register(0, selectors.EVENT_READ, ("stdin", ""))
 
     # ---- watching the parent -------------------------------------------------------------------------
     def parent_gone(self) -> bool:
@@ -271,11 +280,13 @@ class GuardianProcess:
     def take_over(self, now: float, why: str) -> None:
         self.takeover_t = now
         try:
-            self.flag.set()
+            if self.flag is not None:
+                self.flag.set()
         except Exception as exc:  # the drones come first
             self.log(f"cannot set the takeover flag: {exc}")
         self.send_all(now, first=True)
-        self.log(f"TAKEOVER: {why}; flag set, rc 0 0 0 0 and land sent to {len(self.drones)} Tello(s)")
+        flag = "flag set, " if self.flag is not None else ""
+        self.log(f"TAKEOVER: {why}; {flag}rc 0 0 0 0 and land sent to {len(self.drones)} Tello(s)")
         if self.robot is not None:
             self.robot.step(now)
 
@@ -390,9 +401,9 @@ class GuardianProcess:
             if code is not None:
                 return code
 
-    def tick(self) -> int | None:
-        """One pass of the loop (≤ TICK_S of waiting); the exit code once the guardian is done."""
-        for key, _ in self.sel.select(TICK_S):
+    def poll(self, timeout_s: float = TICK_S) -> None:
+        """Wait ≤ timeout_s (s) for the pipe, the Tellos' replies and telemetry; read what arrived."""
+        for key, _ in self.sel.select(timeout_s):
             kind, arg = key.data
             now = time.monotonic()
             if kind == "stdin":
@@ -401,6 +412,10 @@ class GuardianProcess:
                 self.read_state(arg, now)
             else:
                 self.drain_replies(arg)
+
+    def tick(self) -> int | None:
+        """One pass of the loop (≤ TICK_S of waiting); the exit code once the guardian is done."""
+        self.poll(TICK_S)
         now = time.monotonic()
         if self.bye and self.takeover_t is None:
             return EXIT_BYE

@@ -251,6 +251,54 @@ def cmd_status(args: argparse.Namespace) -> int:
     return 0 if statuses else 1
 
 
+def cmd_guard(args: argparse.Namespace) -> int:
+    """Watch every agent's presence; land the Tello of an agent that vanishes in flight from this
+    computer (drivers/guard.py). Station topology only: exit 2 naming the topology otherwise. One line
+    per event on stdout; ends after `--duration` s (a landing in progress is completed first) or at
+    Ctrl-C; exit 0."""
+    from drivers.guard import Guard, guard_refusal
+    from drivers.guardian_process import Log
+    from flightstack.comms.factory import make_bus
+
+    mission = load_mission(args.mission)
+    why = guard_refusal(mission)
+    if why is not None:
+        print(f"error: {why}", file=sys.stderr)
+        return 2
+    for name in ("duration", "land_resend", "give_up", "status_fresh"):
+        v = getattr(args, name)
+        if v is not None and not (v > 0 and (math.isfinite(v) or name == "duration")):
+            print(f"error: --{name.replace('_', '-')} {v}: must be a number of seconds > 0", file=sys.stderr)
+            return 2
+    log = Log(None, name="guard", stream=sys.stdout)
+    bus = make_bus(mission, "guard", set())
+    guard: Any = None
+    try:
+        guard = Guard(
+            mission,
+            bus,  # type: ignore[arg-type]
+            log,
+            status_fresh_s=args.status_fresh,
+            land_resend_s=args.land_resend,
+            give_up_s=args.give_up,
+        )
+        guard.start_line()
+        summary = guard.run(args.duration)
+    except KeyboardInterrupt:
+        if guard is not None:
+            guard.interrupted()
+            summary = guard.summary
+    finally:
+        if guard is not None:
+            guard.close()
+        bus.close()
+    if guard is not None:
+        done = ", ".join(f"drone {t.drone}: {t.result}" for t in summary.takeovers) or "none"
+        log(f"guard ends: takeovers {done}; departures not in flight {len(summary.ignored)}")
+    log.close()
+    return 0
+
+
 def register(sub: Any) -> None:
     w = sub.add_parser("world", help="serve a simulated mission's world to agent processes over Zenoh")
     w.add_argument("mission")
@@ -283,3 +331,24 @@ def register(sub: Any) -> None:
     st.add_argument("--wait", type=float, default=3.0, help="with --once: longest wait for reports (s)")
     st.add_argument("--duration", type=float, default=math.inf, help="stop after this long (s)")
     st.set_defaults(func=cmd_status)
+    gd = sub.add_parser(
+        "guard",
+        help="land the Tello of any agent that vanishes from the bus in flight (station topology only)",
+    )
+    gd.add_argument("mission")
+    gd.add_argument("--duration", type=float, default=math.inf, help="stop watching after this long (s)")
+    gd.add_argument(
+        "--status-fresh",
+        type=float,
+        default=None,
+        help="in flight = last status flying and at most this old when the token vanishes "
+        "(s; default max(2, lease + 1))",
+    )
+    gd.add_argument("--land-resend", type=float, default=1.0, help="re-send rc 0 0 0 0 + land this often (s)")
+    gd.add_argument(
+        "--give-up",
+        type=float,
+        default=20.0,
+        help="stop re-sending after this long without seeing it down (s)",
+    )
+    gd.set_defaults(func=cmd_guard)

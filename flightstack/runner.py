@@ -356,6 +356,8 @@ def run_mode(
         if writer is not None:
             writer.event(rec.events[-1])
         _land_everything(backend, clock, drones, supervisor, target, reason, dt, ticker, bus)
+        with contextlib.suppress(Exception):  # `status` and `guard` see the drones down before we leave
+            status.maybe_publish(clock.now(), rec.ticks_done, agents, force=True)
         signals.__exit__(None, None, None)
         rec.events.append({"t": clock.now(), "event": "safety tick", "mode": mode, **ticker.summary()})
         for i in ids:
@@ -407,9 +409,10 @@ class StatusPublisher:
         self.mode = mode
         self._next = 0.0
 
-    def maybe_publish(self, t: float, tick: int, agents: list[Agent]) -> None:
+    def maybe_publish(self, t: float, tick: int, agents: list[Agent], force: bool = False) -> None:
+        """Publish if PERIOD_S has passed since the last one (or `force`: the final status after landing)."""
         now = time.monotonic()
-        if self.bus is None or now < self._next:
+        if self.bus is None or (now < self._next and not force):
             return
         self._next = now + self.PERIOD_S
         for a in agents:
