@@ -352,6 +352,8 @@ def run_mode(
         rec.error = f"{type(exc).__name__}: {exc}"
         reason = f"exception: {rec.error}"
     finally:
+        if supervisor is not None:  # a signal from here on must not interrupt the landing or the closing
+            supervisor.ignore_signals(f"the run's end ({reason})")
         rec.events.append({"t": clock.now(), "event": "end", "reason": reason, "mode": mode})
         if writer is not None:
             writer.event(rec.events[-1])

@@ -153,6 +153,12 @@ class MissionSupervisor:
                     self.clock.now(), i, "emergency_stop_failed", f"{why}; {type(exc2).__name__}: {exc2}"
                 )
 
+    def ignore_signals(self, why: str) -> None:
+        """From now on a signal is logged and ignored (the run is landing and closing: `why`); call it where
+        the landing code starts, so that not even a first Ctrl-C can interrupt it."""
+        if self.signalled is None:
+            self.signalled = why
+
     def install_signal_handlers(self) -> contextlib.AbstractContextManager[MissionSupervisor]:
         """Context manager: inside it SIGINT, SIGTERM, SIGHUP (the operator's ssh session dropped), SIGQUIT
         (Ctrl-\\) and SIGTSTP (Ctrl-Z: the process must not freeze with drones in the air) land every

@@ -196,3 +196,15 @@ def test_a_second_ctrl_c_never_interrupts_the_landing() -> None:
     assert not interrupted_landing
     assert [e.detail.split(":")[0] for e in r1.log.of_kind("signal")][1] == "SIGINT after SIGINT"
     assert r1.sd.landed and r2.sd.landed
+
+
+def test_a_first_signal_during_the_runs_landing_is_ignored() -> None:
+    """The runner calls ignore_signals() where its landing code starts: even a first Ctrl-C there must not
+    escape it (it would skip closing the drivers and disarming the robot)."""
+    sup, r1, _r2, _ = fleet2()
+    with sup.install_signal_handlers():
+        sup.ignore_signals("the run's end (mission complete)")
+        sup.land_all("mission complete")
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)  # the handler runs here and must return
+    assert "ignored" in r1.log.of_kind("signal")[-1].detail
