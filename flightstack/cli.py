@@ -345,6 +345,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_calibrate_drone(args: argparse.Namespace) -> int:
     """Fly rc steps on one Tello and fit rc-unit → m/s gains and time constants (drivers/identify.py)."""
+    from drivers.guardian import Guardian, GuardianConfig
     from drivers.identify import fits_to_rc_gains, identify, save_identification
     from drivers.tello import TelloConfig, TelloDriver
 
@@ -361,7 +362,12 @@ def cmd_calibrate_drone(args: argparse.Namespace) -> int:
         "over mission pads (enable them, or use motion capture once that backend exists)",
         file=sys.stderr,
     )
-    driver = TelloDriver(TelloConfig(host=args.ip, control_port=args.port, connect_timeout_s=args.timeout))
+    cfg = TelloConfig(host=args.ip, control_port=args.port, connect_timeout_s=args.timeout)
+    driver = TelloDriver(cfg)
+    # if this process dies, its guardian hovers and lands the drone (the stall check stays unarmed: the
+    # identification loop does not beat it; the driver's loop watchdog covers a stalled loop)
+    guardian = Guardian.start(GuardianConfig.for_devices([cfg]))
+    driver.set_muted(guardian.taken_over)
     try:
         driver.connect()
         failed = [c for c in driver.preflight() if not c.ok]
@@ -383,6 +389,7 @@ def cmd_calibrate_drone(args: argparse.Namespace) -> int:
         return 0
     finally:
         driver.close()
+        guardian.finish()
 
 
 def _add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
