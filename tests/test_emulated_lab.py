@@ -73,6 +73,9 @@ def write_mission(
     (tmp / "cal.yaml").write_text(yaml.safe_dump(cal, sort_keys=False))
     m = yaml.safe_load((MISSIONS / "paper_experiment_sim.yaml").read_text())
     m["name"] = "emulated_lab"
+    # a free port for the abort listener of this in-process hardware mission: the name-derived default
+    # (21183) was once found taken on a CI machine, failing every flight of this file
+    m.setdefault("bus", {})["operator_port"] = free_udp_port()
     m["backend"] = "tello"
     del m["sim"]
     for d in m["drones"]:
