@@ -188,7 +188,8 @@ class MissionSupervisor:
         if self._landing_depth > 0:
             self.log.record(now, None, "signal", f"{name} during land_all: ignored, landing continues")
             return
-        busy = [i for i, d in self.drones.items() if d.in_inner_call()]
+        # inline (simulated) drones would be re-entered by land_all: defer; background ones only start a job
+        busy = [i for i, d in self.drones.items() if d.in_inner_call() and not d.background]
         if busy:
             self._deferred_land = f"signal {name}"
             for d in self.drones.values():
