@@ -36,7 +36,7 @@ from typing import Any, Literal
 import numpy as np
 from pymavlink import mavutil
 
-from drivers.tello_link import ERROR_PAUSE_S, ErrorLog, MutedCheck
+from drivers.tello_link import ERROR_PAUSE_S, ErrorLog, MutedCheck, evaluate_mute
 
 mavlink = mavutil.mavlink
 LOG = logging.getLogger("flightstack.scamper")
@@ -183,15 +183,8 @@ class ScamperLink:
 
     # ------------------------------------------------------------------ sending (any thread)
     def is_muted(self) -> bool:
-        """The mute check, evaluated now; one that raises is counted and does not mute."""
-        check = self.muted
-        if check is None:
-            return False
-        try:
-            return bool(check())
-        except Exception as exc:
-            self.errors.record("muted_check_error", exc, thread=False)
-            return False
+        """The mute check, evaluated now (drivers.tello_link.evaluate_mute)."""
+        return evaluate_mute(self.muted, self.errors)
 
     def send(self, fn: str, *args: Any) -> SendResult:
         """Call ``conn.mav.<fn>(*args)`` unless muted or closed; never raises, never waits on the network."""

@@ -80,6 +80,18 @@ class ErrorLog:
         return n
 
 
+def evaluate_mute(check: MutedCheck | None, errors: ErrorLog) -> bool:
+    """A driver's mute check (the guardian's takeover flag), evaluated now; one that raises is counted in
+    `errors` and does not mute (a wrongly muted drone would keep its last command)."""
+    if check is None:
+        return False
+    try:
+        return bool(check())
+    except Exception as exc:
+        errors.record("muted_check_error", exc, thread=False)
+        return False
+
+
 class CommandChannel:
     """Commands to one drone and its replies, each reply stamped with time.monotonic() (s)."""
 
@@ -119,15 +131,7 @@ class CommandChannel:
         return True
 
     def _is_muted(self) -> bool:
-        """The mute check, evaluated now; one that raises is counted and does not mute."""
-        check = self.muted
-        if check is None:
-            return False
-        try:
-            return bool(check())
-        except Exception as exc:
-            self.errors.record("muted_check_error", exc, thread=False)
-            return False
+        return evaluate_mute(self.muted, self.errors)
 
     def open_exchange(self) -> int:
         """Start keeping replies; discard (and count) what is pending. Returns the number discarded."""

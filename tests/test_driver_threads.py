@@ -23,6 +23,7 @@ import pytest
 
 from drivers.mocap import MocapConfig, MocapPoseSource
 from drivers.tello_link import CommandChannel
+from flightstack.faults.rows_lab_drivers import FaultySocket
 
 
 def wait_for(pred: Callable[[], bool], timeout: float = 3.0, step: float = 0.005) -> bool:
@@ -32,32 +33,6 @@ def wait_for(pred: Callable[[], bool], timeout: float = 3.0, step: float = 0.005
             return True
         time.sleep(step)
     return pred()
-
-
-class FaultySocket:
-    """A socket proxy: the first `n` calls of each named method raise ENETUNREACH, then the real one runs."""
-
-    def __init__(self, sock: Any, **fail: int) -> None:
-        self._sock = sock
-        self._fail = dict(fail)
-        self.raised: dict[str, int] = dict.fromkeys(fail, 0)
-        self._lock = threading.Lock()
-
-    def __getattr__(self, name: str) -> Any:
-        real = getattr(self._sock, name)
-        if name not in self._fail:
-            return real
-
-        def call(*args: Any, **kw: Any) -> Any:
-            with self._lock:
-                fail = self.raised[name] < self._fail[name]
-                if fail:
-                    self.raised[name] += 1
-            if fail:
-                raise OSError(errno.ENETUNREACH, "Network is unreachable (injected)")
-            return real(*args, **kw)
-
-        return call
 
 
 def warnings_about(caplog: pytest.LogCaptureFixture, kind: str) -> list[str]:

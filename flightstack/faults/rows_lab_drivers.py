@@ -33,7 +33,7 @@ from flightstack.faults.result import Checks, FaultResult
 # ---- driver_thread_error -----------------------------------------------------------------------------------
 class FaultySocket:
     """A socket proxy: the first `n` calls of each named method raise OSError(ENETUNREACH), then the real
-    socket's method runs (tests/test_driver_threads.py injects errors the same way)."""
+    socket's method runs (tests/test_driver_threads.py uses it too)."""
 
     def __init__(self, sock: Any, **fail: int) -> None:
         self._sock = sock
