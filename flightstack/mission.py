@@ -9,7 +9,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-import re
 import typing
 from pathlib import Path
 from typing import Annotated, Literal
@@ -18,7 +17,6 @@ import numpy as np
 import yaml
 from pydantic import (
     BaseModel,
-    ConfigDict,
     Field,
     PrivateAttr,
     ValidationError,
@@ -29,7 +27,10 @@ from pydantic import (
 
 from flightstack.fusion import FUSION_RULES
 from flightstack.geometry import Pose
+from flightstack.mission_bus import BusSpec
 from flightstack.safety import SafetyLimits
+from flightstack.schema_types import Finite, NonNegative, Positive
+from flightstack.schema_types import Strict as _Strict
 
 MODES = ("none", "local", "dgp", "oracle")
 
@@ -42,13 +43,6 @@ CAMERA_MOUNTS = {
 
 class MissionError(ValueError):
     """A mission file that cannot be used; the message lists each bad key path and why."""
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-Finite = Annotated[float, Field(allow_inf_nan=False)]
 
 
 class PoseSpec(_Strict):
@@ -69,10 +63,6 @@ class DuffingSpec(_Strict):
     gamma: Finite = 0.39
     delta: Finite = 0.1
     omega: Finite = 0.4
-
-
-Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 
 
 class SquareSpec(_Strict):
@@ -154,7 +144,7 @@ class DroneSpec(_Strict):
 
 class GraphSpec(_Strict):
     kind: Literal["complete", "edges"] = "complete"
-    edges: list[tuple[int, int]] = []
+    edges: list[tuple[int, int]] = Field(default_factory=list)
 
 
 class GainsSpec(_Strict):
@@ -299,8 +289,8 @@ class MocapHardwareSpec(_Strict):
     not listed is looked up as is."""
 
     system: Literal["mock", "vicon", "optitrack", "qualisys", "vrpn"]
-    settings: dict[str, str] = {}
-    bodies: dict[str, str] = {}
+    settings: dict[str, str] = Field(default_factory=dict)
+    bodies: dict[str, str] = Field(default_factory=dict)
     connect_timeout_s: Positive = 5.0
     stale_after_s: Positive = 0.1
     max_tilt_rad: Annotated[float, Field(gt=0, le=math.pi / 2)] = 0.35
@@ -366,57 +356,6 @@ class HardwareSpec(_Strict):
     def body(self, name: str) -> str:
         """The motion-capture name of flightstack body `name` (`drone<ID>` or `target`)."""
         return self.mocap.bodies.get(name, name)
-
-
-class ZenohSpec(_Strict):
-    """The mission's Zenoh network (flightstack/comms/zenoh_bus.py), peer mode, full mesh.
-
-    `endpoints`: participant → the endpoint it listens on; every participant connects to all the others.
-    Participants: a drone id (`flightstack agent --id N`), `agents` (all agents in one process:
-    `flightstack sim`/`fly` with bus kind zenoh), `world` (`flightstack world`, the simulated world served
-    to agent processes). Operator tools (`abort`, `status`) only connect.
-    `lease_ms`: a hung peer is declared gone after this (a killed one at once, its TCP links close).
-    `lockstep_timeout_s`: on a simulated clock, how long phase 2 waits for a neighbour's message of the
-    same tick. `start_timeout_s`: how long every participant waits for the others to appear.
-    `tls`: zenoh's transport/link/tls keys (certificate paths, enable_mtls); `access_control`: zenoh's
-    ACL section (rules, subjects, policies), both checked by zenoh when the session opens."""
-
-    endpoints: dict[str, str] = Field(min_length=1)
-    lease_ms: int = Field(default=500, ge=100, le=60000)
-    lockstep_timeout_s: Positive = 2.0
-    start_timeout_s: Positive = 15.0
-    key_prefix: str = Field(default="flightstack", pattern=r"^[A-Za-z0-9_\-]+$")
-    tls: dict[str, str | bool] | None = None
-    access_control: dict[str, object] | None = None  # zenoh's `access_control` section, passed as is
-
-    @field_validator("endpoints")
-    @classmethod
-    def _endpoints(cls, v: dict[str, str]) -> dict[str, str]:
-        for name, ep in v.items():
-            if not (name in ("agents", "world") or name.isdigit()):
-                raise ValueError(f"{name}: participant must be a drone id, 'agents' or 'world'")
-            if not re.fullmatch(r"(tcp|udp|tls|quic)/[^\s]+:\d+", ep):
-                raise ValueError(f"{name}: {ep!r} is not an endpoint like tcp/127.0.0.1:7447")
-        if len(set(v.values())) != len(v):
-            raise ValueError("two participants listen on the same endpoint")
-        return v
-
-
-class BusSpec(_Strict):
-    """`operator_port`: the loopback UDP port (127.0.0.1) on which an in-process mission listens for
-    `flightstack abort` (flightstack/comms/operator_link.py); default: derived from the mission name,
-    listening on hardware only. Setting it also makes a simulated in-process run listen."""
-
-    kind: Literal["inproc", "zenoh"] = "inproc"
-    stale_after_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 0.5
-    zenoh: ZenohSpec | None = None
-    operator_port: int | None = Field(default=None, ge=1024, le=65535)
-
-    @model_validator(mode="after")
-    def _zenoh(self) -> BusSpec:
-        if self.kind == "zenoh" and self.zenoh is None:
-            raise ValueError("zenoh: bus kind 'zenoh' needs the zenoh section (endpoints)")
-        return self
 
 
 class GainAnalysisSpec(_Strict):

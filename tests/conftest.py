@@ -9,9 +9,17 @@ import time
 from pathlib import Path
 
 import numpy as np
+from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
 from flightstack.geometry import Pose
+
+# Property tests are deterministic in CI and locally: the same examples every run (derandomize), no
+# wall-clock deadline (a 2-core CI machine under load must not turn a slow example into a failure).
+settings.register_profile(
+    "flightstack", derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
+settings.load_profile("flightstack")
 
 REPO = Path(__file__).resolve().parents[1]
 MISSIONS = REPO / "mission_configs"
