@@ -192,7 +192,10 @@ def _bus_override(mission: Mission, kind: str) -> dict[str, object]:
     if kind == "zenoh" and bus.get("zenoh") is None:
         from flightstack.comms.factory import free_loopback_endpoints
 
-        bus["zenoh"] = {"endpoints": {"agents": free_loopback_endpoints()[0]}}
+        # plaintext on loopback is allowed for simulations only; real drones need the mission's certificates
+        security = "plaintext" if mission.simulated else "mtls"
+        endpoint = free_loopback_endpoints()[0].replace("tcp/", "tls/" if security == "mtls" else "tcp/")
+        bus["zenoh"] = {"endpoints": {"agents": endpoint}, "security": security}
     return bus
 
 
@@ -445,11 +448,13 @@ def build_parser() -> argparse.ArgumentParser:
     from calibration.cli import register as register_calibration
 
     register_calibration(cal_sub)
+    from flightstack.cli_certs import register as register_certs
     from flightstack.cli_network import register as register_network
     from flightstack.faults.cli import register as register_faults
 
     register_network(sub)
     register_faults(sub)
+    register_certs(sub)
     rp = sub.add_parser(
         "report", help="rebuild metrics.json and the plots of a run directory (also one cut short by a kill)"
     )

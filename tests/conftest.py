@@ -80,3 +80,16 @@ def interrupt_cli_sim(mission: Path, out: Path, run_seconds: float = 1.0) -> tup
         if proc.poll() is None:
             proc.kill()
     return proc.returncode, buf + stderr
+
+
+def secured_zenoh(
+    certs_dir: Path, mission: str, drone_ids: list[int], names: tuple[str, ...], **extra: object
+) -> dict:
+    """A `bus.zenoh` section with mutual TLS on free loopback ports: `flightstack certs`' files for
+    `mission` (drones `drone_ids`) written to `certs_dir`, one `tls/127.0.0.1:PORT` endpoint per name."""
+    from flightstack.comms.certs import create_mission_certs
+    from flightstack.comms.factory import free_loopback_endpoints
+
+    create_mission_certs(mission, drone_ids, certs_dir)
+    eps = [e.replace("tcp/", "tls/", 1) for e in free_loopback_endpoints(len(names))]
+    return {"endpoints": dict(zip(names, eps, strict=True)), "certs": str(certs_dir), **extra}

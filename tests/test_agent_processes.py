@@ -66,7 +66,11 @@ def test_served_lab_streams_camera_images(tmp_path: Path) -> None:
     m["duration_s"] = 3.0
     names = ("world", "1", "2")
     endpoints = dict(zip(names, free_loopback_endpoints(3), strict=True))
-    m["bus"] = {"kind": "zenoh", "stale_after_s": 0.5, "zenoh": {"endpoints": endpoints}}
+    m["bus"] = {
+        "kind": "zenoh",
+        "stale_after_s": 0.5,
+        "zenoh": {"endpoints": endpoints, "security": "plaintext"},
+    }
     for d in m["drones"]:
         d["camera"]["calibration"] = str(MISSIONS / d["camera"]["calibration"])
     mission = tmp_path / "lab.yaml"

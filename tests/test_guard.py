@@ -31,8 +31,8 @@ import yaml
 from drivers.guard import Guard
 from drivers.guardian_process import Log
 from flightstack.comms.control import ControlEvent
-from flightstack.comms.factory import free_loopback_endpoints
 from flightstack.mission import load_mission
+from tests.conftest import secured_zenoh
 from tests.emulators.tello import TelloEmulator, free_udp_port, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
@@ -144,8 +144,9 @@ def write_mission(tmp: Path, emus: dict[int, TelloEmulator], state_port: int) ->
     cal = REPO / "mission_configs" / "cameras" / "tello_down_template.yaml"
     for d in m["drones"]:
         d["camera"]["calibration"] = str(cal)
-    endpoints = dict(zip(["1", "2"], free_loopback_endpoints(2), strict=True))
-    m["bus"] = {"kind": "zenoh", "stale_after_s": 0.5, "zenoh": {"endpoints": endpoints, "lease_ms": 500}}
+    # issue 16: a hardware mission on Zenoh is mutual TLS with the mission's certificates
+    zenoh = secured_zenoh(tmp / "certs", m["name"], [d["id"] for d in m["drones"]], ("1", "2"), lease_ms=500)
+    m["bus"] = {"kind": "zenoh", "stale_after_s": 0.5, "zenoh": zenoh}
     m["hardware"]["topology"] = "station"
     m["hardware"]["state_port"] = state_port
     m["hardware"]["drones"] = [

@@ -316,7 +316,8 @@ def test_out_is_checked_before_anything_takes_off(
     assert cli.main(["sim", str(mission), "--out", str(blocker / "run")]) == 2
     assert "cannot create the directory" in capsys.readouterr().err
     m = yaml.safe_load(mission.read_text())
-    m["bus"] = {"kind": "zenoh", "zenoh": {"endpoints": {p: f"tcp/127.0.0.1:{7400 + int(p)}" for p in "123"}}}
+    eps = {p: f"tcp/127.0.0.1:{7400 + int(p)}" for p in "123"}
+    m["bus"] = {"kind": "zenoh", "zenoh": {"endpoints": eps, "security": "plaintext"}}
     zmission = tmp_path / "zenoh.yaml"
     zmission.write_text(yaml.safe_dump(m))
     assert cli.main(["agent", str(zmission), "--id", "1", "--mode", "none", "--out", str(blocker / "a")]) == 2

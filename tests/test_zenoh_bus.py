@@ -21,7 +21,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from flightstack.comms.acl import ack_key, status_key
 from flightstack.comms.bus import InProcBus
+from flightstack.comms.control import encode_control
 from flightstack.comms.factory import free_loopback_endpoints
 from flightstack.comms.messages import PredictionMessage, encode
 from flightstack.comms.zenoh_bus import ZenohBus, ZenohBusConfig, zenoh_config
@@ -29,6 +31,7 @@ from flightstack.comms.zenoh_bus import ZenohBus, ZenohBusConfig, zenoh_config
 REPO = Path(__file__).resolve().parents[1]
 MISSION = "zb_test"
 KNOWN = {0, 1, 2}
+PREFIX = "flightstack"
 LEASE_MS = 500  # presence tests: a hung peer is dropped after ~0.5 s; a killed one on TCP close (~0.1 s)
 DETECT_BOUND_S = 1.0  # issue requirement: a killed agent leaves fusion within 1 s
 
@@ -105,9 +108,13 @@ def test_config_builds_and_rejects_bad_keys(tmp_path: Path) -> None:
         "root_ca_certificate": str(tmp_path / "ca.pem"),
         "listen_certificate": str(tmp_path / "cert.pem"),
         "listen_private_key": str(tmp_path / "key.pem"),
+        "connect_certificate": str(tmp_path / "cert.pem"),
+        "connect_private_key": str(tmp_path / "key.pem"),
         "enable_mtls": True,
     }
     zenoh_config(ZenohBusConfig(MISSION, {0}, KNOWN, ["tls/127.0.0.1:0"], [], tls=tls))
+    wide = ZenohBusConfig(MISSION, {0}, KNOWN, ["tcp/0.0.0.0:0"], [], allow_all_interfaces=True)
+    zenoh_config(wide)
     zenoh_config(ZenohBusConfig(MISSION, {0}, KNOWN, [], [], extra_json5={"access_control/enabled": "false"}))
     bad = [
         ({"listen": ["nonsense"]}, "listen"),
@@ -117,8 +124,16 @@ def test_config_builds_and_rejects_bad_keys(tmp_path: Path) -> None:
         ({"mission": "a/b"}, "mission"),
         ({"mission": "a*"}, "mission"),
         ({"key_prefix": "fs/**"}, "key_prefix"),
-        ({"tls": {"root_ca_certificate": str(tmp_path / "missing.pem")}}, "tls.root_ca_certificate"),
-        ({"tls": {"bogus": "x"}}, "tls.bogus"),
+        ({"tls": {**tls, "root_ca_certificate": str(tmp_path / "missing.pem")}}, "tls.root_ca_certificate"),
+        ({"tls": {**tls, "bogus": "x"}}, "tls.bogus"),
+        # issue 16: nothing runs less secured than it says
+        ({"tls": tls, "listen": ["tcp/127.0.0.1:1"]}, "plaintext beside TLS"),
+        ({"tls": tls, "connect": ["tls/127.0.0.1:1", "tcp/127.0.0.1:2"]}, "plaintext beside TLS"),
+        ({"tls": {**tls, "enable_mtls": False}}, "without client authentication"),
+        ({"tls": {k: v for k, v in tls.items() if k != "connect_private_key"}}, "tls.connect_private_key"),
+        ({"connect": ["tls/127.0.0.1:1"]}, "needs certificates"),
+        ({"listen": ["tcp/0.0.0.0:7447"]}, "every interface"),
+        ({"listen": ["tcp/[::]:7447"]}, "every interface"),
         ({"usrpwd": ("u",)}, "usrpwd"),
         ({"extra_json5": {"no/such/key": "1"}}, "no/such/key"),
         ({"extra_json5": {"transport/link/tx/lease": "not json"}}, "transport/link/tx/lease"),
@@ -370,32 +385,67 @@ def collect_control(bus: ZenohBus, n: int, timeout_s: float = 10.0) -> list:
     return got
 
 
+STATUS = {
+    "drone": 1,
+    "mode": "dgp",
+    "t": 1.0,
+    "tick": 20,
+    "battery_pct": 80.0,
+    "flying": True,
+    "link_alive": True,
+    "visible": True,
+    "n_fused": 1,
+    "pose_fresh": True,
+    "rejection": None,
+    "dropped": {},
+}
+
+
 def test_control_channel() -> None:
     with mesh({0}, {1}) as (a, b):
-        b.publish_control("abort", {"reason": "operator", "t": 1.5})
+        b.publish_control("abort", {"reason": "operator", "id": "x1"})
         b.publish_control_raw(b"{not json")
         b.publish_control_raw(b'{"mission": "zb_test", "kind": "dance", "payload": {}}')
         b.publish_control_raw(b'{"mission": "other", "kind": "abort", "payload": {}}')
         b.publish_control_raw(b'{"mission": "zb_test", "kind": "status", "payload": [1]}')
-        b.publish_control("status", {"request": "all"})
+        b.publish_control("status", STATUS)
+        # issue 16: the key says what a control message may be (the ACL authenticates keys): a status on
+        # the abort key, an acknowledgement naming a drone its participant does not host, a status of
+        # drone 0 on drone 1's key are all dropped
+        b.publish_control_raw(encode_control(MISSION, "status", STATUS, [1]))
+        fake_ack = {"abort_id": "x1", "drones": [0], "pid": 1, "host": "h"}
+        b.publish_control_raw(
+            encode_control(MISSION, "abort_ack", fake_ack, [1]), ack_key(PREFIX, MISSION, "agent-1")
+        )
+        b.publish_control_raw(
+            encode_control(MISSION, "status", {**STATUS, "drone": 0}, [1]), status_key(PREFIX, MISSION, 1)
+        )
         got = collect_control(a, 4)  # the abort, the status, and the abort's two acknowledgements
-        assert eventually(lambda: a.dropped.total() >= 4)
+        assert eventually(lambda: a.dropped.total() >= 7)
         assert [(e.kind, e.payload, e.origin) for e in got if e.kind != "abort_ack"] == [
-            ("abort", {"reason": "operator", "t": 1.5}, (1,)),
-            ("status", {"request": "all"}, (1,)),
+            ("abort", {"reason": "operator", "id": "x1"}, (1,)),
+            ("status", STATUS, (1,)),
         ]
         # issue 15: every process hosting agents acknowledges an abort as soon as its bus has it
         acks = sorted((e.origin, e.payload["drones"]) for e in got if e.kind == "abort_ack")
         assert acks == [((0,), [0]), ((1,), [1])]
         assert a.dropped == Counter(
-            {"control: malformed": 2, "control: unknown kind": 1, "control: other mission": 1}
+            {
+                "control: malformed": 2,
+                "control: unknown kind": 1,
+                "control: other mission": 1,
+                "control: status on the wrong key": 2,
+                "control: abort_ack on the wrong key": 1,
+            }
         )
         assert a.control_events() == []  # drained
         assert len(collect_control(b, 4)) == 4  # own process sees its commands (and acks) too
         with pytest.raises(ValueError):
             a.publish_control("dance", {})
         with pytest.raises(ValueError):
-            a.publish_control("status", {"x": float("nan")})
+            a.publish_control("status", {"drone": 0, "x": float("nan")})
+        with pytest.raises(ValueError, match="must name a drone this process hosts"):
+            a.publish_control("status", STATUS)  # a hosts drone 0, not 1
 
 
 def test_closed_bus_refuses_to_publish() -> None:

@@ -35,7 +35,7 @@ def test_paper_sim_over_zenoh_equals_inproc() -> None:
     bus = {
         "kind": "zenoh",
         "stale_after_s": inproc.bus.stale_after_s,
-        "zenoh": {"endpoints": {"agents": free_loopback_endpoints()[0]}},
+        "zenoh": {"endpoints": {"agents": free_loopback_endpoints()[0]}, "security": "plaintext"},
     }
     zen = load_mission(MISSIONS / "paper_sim.yaml", {"duration_s": 2.0, "bus": bus})
     preds = experts([d.id for d in inproc.drones])

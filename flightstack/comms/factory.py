@@ -16,39 +16,79 @@ terminal; `bus.control_events()` yields its aborts.
 
 from __future__ import annotations
 
-import json
 import socket
 from typing import TYPE_CHECKING
 
+from flightstack.comms.acl import access_control
 from flightstack.comms.bus import Bus, InProcBus
-from flightstack.mission import Mission
+from flightstack.comms.certs import CertError, check_participant, files_of, participant_name
+from flightstack.mission import Mission, MissionError
 
 if TYPE_CHECKING:
     from flightstack.comms.operator_link import LoopbackOperatorListener
-    from flightstack.comms.zenoh_bus import ZenohBusConfig
+    from flightstack.comms.zenoh_config import ZenohBusConfig
 
 
 def zenoh_bus_config(mission: Mission, participant: str, self_ids: set[int]) -> ZenohBusConfig:
-    from flightstack.comms.zenoh_bus import ZenohBusConfig
+    """The ZenohBusConfig of `participant` (a drone id, "agents", "world", "operator", "guard").
+
+    `security: mtls`: the participant's certificate files (certs.check_participant: present, key mode
+    0600, signed by the mission CA, issued to this participant and mission, not expired) and the
+    generated access control; MissionError naming `bus.zenoh.certs` and the reason otherwise."""
+    from flightstack.comms.zenoh_config import ZenohBusConfig
 
     z = mission.bus.zenoh
     if z is None:
         raise ValueError("bus.zenoh: the mission has no zenoh section")
     listen = [z.endpoints[participant]] if participant in z.endpoints else []
     connect = [ep for name, ep in z.endpoints.items() if name != participant]
+    ids = {d.id for d in mission.drones}
+    name = participant_name(participant)
+    tls = acl = None
+    if z.security == "mtls":
+        tls = mtls_settings(mission, name)
+        acl = access_control(z.key_prefix, mission.name, ids)
     return ZenohBusConfig(
         mission=mission.name,
         self_ids=set(self_ids),
-        known_senders={d.id for d in mission.drones},
+        known_senders=ids,
         listen=listen,
         connect=connect,
         lease_ms=z.lease_ms,
         key_prefix=z.key_prefix,
-        tls=dict(z.tls) if z.tls else None,
-        extra_json5={} if z.access_control is None else {"access_control": json.dumps(z.access_control)},
+        tls=tls,
+        acl=acl,
+        participant=name,
+        allow_all_interfaces=z.allow_all_interfaces,
         reliable=mission.simulated,  # lock-step waits for every message: a dropped one would stall a tick
         time_base="stamps" if mission.simulated else "receiver",
     )
+
+
+def mtls_settings(mission: Mission, name: str) -> dict[str, str | bool]:
+    """Zenoh's transport/link/tls keys for participant `name` (a certificate CN) of a `security: mtls`
+    mission: mutual TLS against the mission CA; host names are not verified (certs.py: the common name
+    and the ACL decide who is who)."""
+    z = mission.bus.zenoh
+    assert z is not None
+    directory = mission.resolve(z.certs)
+    try:
+        check_participant(directory, name, mission.name)
+    except CertError as exc:
+        raise MissionError(
+            f"bus.zenoh.certs: {exc} (create them with `flightstack certs MISSION --out DIR`; README "
+            '"Securing the bus")'
+        ) from None
+    f = files_of(directory, name)
+    return {
+        "root_ca_certificate": str(f.ca),
+        "listen_certificate": str(f.cert),
+        "listen_private_key": str(f.key),
+        "connect_certificate": str(f.cert),
+        "connect_private_key": str(f.key),
+        "enable_mtls": True,
+        "verify_name_on_connect": False,
+    }
 
 
 def make_bus(mission: Mission, participant: str, self_ids: set[int], kind: str | None = None) -> Bus:

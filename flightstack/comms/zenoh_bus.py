@@ -68,17 +68,15 @@ Units: message stamps and `latest(now, stale_after)` are mission-clock seconds; 
 from __future__ import annotations
 
 import contextlib
-import json
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import zenoh
 
+from flightstack.comms import acl as keys
 from flightstack.comms.control import (
     ABORT,
     ABORT_ACK,
@@ -89,123 +87,9 @@ from flightstack.comms.control import (
     encode_control,
     parse_control,
 )
-from flightstack.comms.freshness import TIME_BASES, Freshness, OffsetPolicy, TimeBase
-from flightstack.comms.messages import MAGIC, MAX_MISSION_NAME, PredictionMessage, encode
-
-TLS_PATH_KEYS = frozenset(
-    {
-        "root_ca_certificate",
-        "listen_certificate",
-        "listen_private_key",
-        "connect_certificate",
-        "connect_private_key",
-    }
-)
-_KEY_FORBIDDEN = frozenset("*$?#/")
-
-
-@dataclass(frozen=True)
-class ZenohBusConfig:
-    """Where and how one process joins the mission's Zenoh network (peer mode, no multicast scouting).
-
-    Peers do not relay for each other: give each process a `listen` endpoint and `connect` it to the
-    endpoints of all the others (full mesh), e.g. "tcp/127.0.0.1:17447" or "tls/host:port" with `tls`.
-    `tls`: keys of zenoh's transport/link/tls (root_ca_certificate, listen_certificate,
-    listen_private_key, connect_certificate, connect_private_key: file paths; enable_mtls,
-    verify_name_on_connect: bool). `usrpwd`: (user, password) sent to peers; a peer checks it only if it
-    sets "transport/auth/usrpwd/dictionary_file" (through `extra_json5`). `extra_json5`: raw zenoh config
-    keys -> JSON5 text, applied last (can override anything set here, e.g. access_control).
-    """
-
-    mission: str
-    self_ids: set[int]
-    known_senders: set[int]
-    listen: list[str] = field(default_factory=list)
-    connect: list[str] = field(default_factory=list)
-    lease_ms: int = 1000
-    key_prefix: str = "flightstack"
-    tls: dict[str, Any] | None = None
-    usrpwd: tuple[str, str] | None = None
-    extra_json5: dict[str, str] = field(default_factory=dict)
-    reliable: bool = False  # predictions never dropped under congestion (lock-step sims wait for each)
-    time_base: TimeBase = "stamps"  # "receiver": real time across computers (module docstring)
-
-    def pred_key(self, sender: int | str) -> str:
-        return f"{self.key_prefix}/{self.mission}/pred/{sender}"
-
-    def alive_key(self, sender: int | str) -> str:
-        return f"{self.key_prefix}/{self.mission}/alive/{sender}"
-
-    def control_key(self) -> str:
-        return f"{self.key_prefix}/{self.mission}/control"
-
-
-def _insert(conf: zenoh.Config, key: str, json5: str, name: str | None = None) -> None:
-    try:
-        conf.insert_json5(key, json5)
-    except Exception as exc:  # zenoh.ZError: unknown key, bad JSON5, bad endpoint, ...
-        raise ValueError(f"invalid zenoh config {name or key!r}: {exc}") from exc
-
-
-def _validate(cfg: ZenohBusConfig) -> None:
-    if not isinstance(cfg.mission, str) or not cfg.mission:
-        raise ValueError("invalid 'mission': must be a non-empty string")
-    if len(cfg.mission.encode("utf-8")) > MAX_MISSION_NAME:
-        raise ValueError(f"invalid 'mission': longer than {MAX_MISSION_NAME} bytes")
-    if "/" in cfg.mission or set(cfg.mission) & _KEY_FORBIDDEN:
-        raise ValueError(f"invalid 'mission': {cfg.mission!r} is not a plain key-expression chunk")
-    prefix = cfg.key_prefix
-    if not isinstance(prefix, str) or any(not c or set(c) & _KEY_FORBIDDEN for c in prefix.split("/")):
-        raise ValueError(f"invalid 'key_prefix': {prefix!r} is not a plain key expression")
-    try:
-        zenoh.KeyExpr(cfg.pred_key(0))
-    except Exception as exc:
-        raise ValueError(f"invalid 'mission'/'key_prefix': {exc}") from exc
-    for name, ids in (("self_ids", cfg.self_ids), ("known_senders", cfg.known_senders)):
-        if not all(isinstance(i, int) and 0 <= i < 2**16 for i in ids):
-            raise ValueError(f"invalid {name!r}: ids must be integers in [0, 65535]")
-    if not set(cfg.self_ids) <= set(cfg.known_senders):
-        raise ValueError("invalid 'self_ids': every hosted agent must also be in known_senders")
-    if cfg.time_base not in TIME_BASES:
-        raise ValueError(f"invalid 'time_base': {cfg.time_base!r} (expected one of {TIME_BASES})")
-    if not isinstance(cfg.lease_ms, int) or cfg.lease_ms <= 0:
-        raise ValueError("invalid 'lease_ms': must be a positive integer (milliseconds)")
-    for name, eps in (("listen", cfg.listen), ("connect", cfg.connect)):
-        if isinstance(eps, str) or not all(isinstance(e, str) and "/" in e for e in eps):
-            raise ValueError(f"invalid {name!r}: expected a list of '<protocol>/<address>' endpoints")
-
-
-def zenoh_config(cfg: ZenohBusConfig) -> zenoh.Config:
-    """The zenoh.Config of `cfg`: peer mode, multicast scouting off, explicit endpoints, lease.
-
-    Raises ValueError naming the offending key for anything zenoh (or this check) rejects."""
-    _validate(cfg)
-    conf = zenoh.Config()
-    _insert(conf, "mode", '"peer"')
-    _insert(conf, "scouting/multicast/enabled", "false")
-    # Do not wait 500 ms in zenoh.open for scouting: connections are explicit, and declarations made
-    # before a link comes up are propagated when it does (retries: connect/retry, default ~1 s).
-    _insert(conf, "scouting/delay", "0")
-    _insert(conf, "listen/endpoints", json.dumps(list(cfg.listen)), "listen")
-    _insert(conf, "connect/endpoints", json.dumps(list(cfg.connect)), "connect")
-    _insert(conf, "transport/link/tx/lease", str(cfg.lease_ms), "lease_ms")
-    if cfg.tls is not None:
-        if not isinstance(cfg.tls, dict):
-            raise ValueError("invalid 'tls': expected a dict")
-        for k, v in cfg.tls.items():
-            if k in TLS_PATH_KEYS and not Path(str(v)).is_file():
-                raise ValueError(f"invalid 'tls.{k}': no such file {v!r}")
-            _insert(conf, f"transport/link/tls/{k}", json.dumps(v), f"tls.{k}")
-    if cfg.usrpwd is not None:
-        if len(cfg.usrpwd) != 2 or not all(isinstance(s, str) and s for s in cfg.usrpwd):
-            raise ValueError("invalid 'usrpwd': expected (user, password), non-empty strings")
-        _insert(conf, "transport/auth/usrpwd/user", json.dumps(cfg.usrpwd[0]), "usrpwd")
-        _insert(conf, "transport/auth/usrpwd/password", json.dumps(cfg.usrpwd[1]), "usrpwd")
-    for k, v in cfg.extra_json5.items():
-        if not isinstance(v, str):
-            raise ValueError(f"invalid zenoh config {k!r}: value must be JSON5 text (str)")
-        _insert(conf, k, v)
-    return conf
+from flightstack.comms.freshness import Freshness, OffsetPolicy
+from flightstack.comms.messages import MAGIC, PredictionMessage, encode
+from flightstack.comms.zenoh_config import ZenohBusConfig, zenoh_config
 
 
 def _header_sender(data: bytes) -> str:
@@ -251,6 +135,8 @@ class ZenohBus:
             self._alive.add(i)
             self._events.append((t_start, i, "joined"))
         self._publishers: dict[str, Any] = {}
+        self._control_pubs: dict[str, Any] = {}
+        self.name = cfg.name()  # participant name: the CN of this process's certificate
         self._tokens: list[Any] = []
         self._subs: list[Any] = []
         try:
@@ -261,18 +147,14 @@ class ZenohBus:
             s = self._session
             # Subscribers before tokens: seeing our token implies our subscribers are declared there.
             self._subs.append(s.declare_subscriber(cfg.pred_key("*"), self._on_pred))
-            self._subs.append(s.declare_subscriber(cfg.control_key(), self._on_control))
+            self._subs.append(
+                s.declare_subscriber(keys.control_space(cfg.key_prefix, cfg.mission), self._on_control)
+            )
             self._subs.append(
                 s.liveliness().declare_subscriber(cfg.alive_key("*"), self._on_alive, history=True)
             )
             for i in sorted(self.self_ids):
                 self._publisher(str(i))
-            self._control_pub = s.declare_publisher(
-                cfg.control_key(),
-                congestion_control=zenoh.CongestionControl.BLOCK,
-                priority=zenoh.Priority.INTERACTIVE_HIGH,
-                express=True,
-            )
             for i in sorted(self.self_ids):
                 self._tokens.append(s.liveliness().declare_token(cfg.alive_key(i)))
         except BaseException:
@@ -329,12 +211,13 @@ class ZenohBus:
             ack_thread = self._ack_thread
         if ack_thread is not None and ack_thread is not threading.current_thread():
             ack_thread.join(5.0)
-        for obj in [*self._tokens, *self._subs, *self._publishers.values()]:
+        for obj in [*self._tokens, *self._subs, *self._publishers.values(), *self._control_pubs.values()]:
             with contextlib.suppress(Exception):
                 obj.undeclare()
         self._tokens.clear()
         self._subs.clear()
         self._publishers.clear()
+        self._control_pubs.clear()
         session = getattr(self, "_session", None)
         if session is not None:
             with contextlib.suppress(Exception):
@@ -409,12 +292,38 @@ class ZenohBus:
     # ------------------------------------------------------------------ operator channel
     def publish_control(self, kind: str, payload: dict[str, Any]) -> None:
         """Send an operator message ("abort" | "status" | "abort_ack") with a JSON-serialisable dict
-        payload (ValueError otherwise, see control.encode_control)."""
-        self.publish_control_raw(encode_control(self.mission, kind, payload, sorted(self.self_ids)))
+        payload (ValueError otherwise, see control.encode_control) on its key (acl.py): abort on
+        control/abort, a status of drone i on control/status/i, an acknowledgement on control/ack/NAME."""
+        data = encode_control(self.mission, kind, payload, sorted(self.self_ids))
+        self.publish_control_raw(data, self._control_key(kind, payload))
 
-    def publish_control_raw(self, data: bytes) -> None:
+    def publish_control_raw(self, data: bytes, key: str | None = None) -> None:
+        """Put raw bytes on a control key (default: the abort key)."""
         self._check_open()
-        self._control_pub.put(bytes(data))
+        key = key or keys.abort_key(self.cfg.key_prefix, self.mission)
+        pub = self._control_pubs.get(key)
+        if pub is None:
+            pub = self._session.declare_publisher(
+                key,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                priority=zenoh.Priority.INTERACTIVE_HIGH,
+                express=True,
+            )
+            self._control_pubs[key] = pub
+        pub.put(bytes(data))
+
+    def _control_key(self, kind: str, payload: dict[str, Any]) -> str:
+        p, m = self.cfg.key_prefix, self.mission
+        if kind == ABORT:
+            return keys.abort_key(p, m)
+        if kind == ABORT_ACK:
+            return keys.ack_key(p, m, self.name)
+        drone = payload.get("drone")
+        if not isinstance(drone, int) or isinstance(drone, bool) or drone not in self.self_ids:
+            raise ValueError(
+                f"a status must name a drone this process hosts ({sorted(self.self_ids)}), not {drone!r}"
+            )
+        return keys.status_key(p, m, drone)
 
     def control_events(self) -> list[ControlEvent]:
         """Control messages received since the last call (drained), oldest first."""
@@ -494,12 +403,17 @@ class ZenohBus:
         """Zenoh callback thread: validate, queue; an abort is also queued for acknowledgement."""
         try:
             data = sample.payload.to_bytes()
+            key = str(sample.key_expr)
         except Exception:
             self._drop("control: bad sample")
             return
         ev, reason = parse_control(data, self.mission, time.monotonic())
         if ev is None:
             self._drop(reason or "control: malformed")
+            return
+        reason = self._key_mismatch(key, ev)
+        if reason:
+            self._drop(reason)
             return
         with self._cond:
             self._control.append(ev)
@@ -511,6 +425,27 @@ class ZenohBus:
                     )
                     self._ack_thread.start()
             self._cond.notify_all()
+
+    def _key_mismatch(self, key: str, ev: ControlEvent) -> str | None:
+        """Why a valid control message does not belong on the key it came on (the key is what the ACL
+        authenticates), or None: an abort only on control/abort, a status of drone i only on
+        control/status/i, an acknowledgement only on control/ack/NAME naming drones NAME hosts."""
+        p, m = self.cfg.key_prefix, self.mission
+        if ev.kind == ABORT:
+            ok = key == keys.abort_key(p, m)
+        elif ev.kind == ABORT_ACK:
+            name = key.rsplit("/", 1)[-1]
+            drones = ev.payload.get("drones")
+            hosted = keys.hosted_by(name, self.known)
+            ok = (
+                key == keys.ack_key(p, m, name)
+                and isinstance(drones, list)
+                and bool(drones)
+                and all(isinstance(d, int) and d in hosted for d in drones)
+            )
+        else:
+            ok = key == keys.status_key(p, m, ev.payload.get("drone"))
+        return None if ok else f"control: {ev.kind} on the wrong key"
 
     def _ack_loop(self) -> None:
         """Publish an abort_ack for every queued abort until the bus closes; never raises."""

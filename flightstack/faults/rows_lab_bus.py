@@ -45,7 +45,7 @@ def abort_agent_missing(mission_path: Path, workdir: Path) -> FaultResult:
     m = yaml.safe_load((MISSIONS / "paper_sim.yaml").read_text())
     endpoints = dict(zip(("1", "2", "3"), free_loopback_endpoints(3), strict=True))
     m["name"] = "abort_agent_missing"
-    m["bus"] = {"kind": "zenoh", "zenoh": {"endpoints": endpoints, "lease_ms": 500}}
+    m["bus"] = {"kind": "zenoh", "zenoh": {"endpoints": endpoints, "lease_ms": 500, "security": "plaintext"}}
     path = root / "mission.yaml"
     path.write_text(yaml.safe_dump(m))
     mission = load_mission(path)

@@ -45,7 +45,11 @@ def served_mission(workdir: Path, duration_s: float, name: str = "dry_run") -> P
     m["dt_s"] = 0.01
     names = ["world"] + [str(d["id"]) for d in m["drones"]]
     endpoints = dict(zip(names, free_loopback_endpoints(len(names)), strict=True))
-    m["bus"] = {"kind": "zenoh", "stale_after_s": 0.5, "zenoh": {"endpoints": endpoints, "lease_ms": 500}}
+    m["bus"] = {
+        "kind": "zenoh",
+        "stale_after_s": 0.5,
+        "zenoh": {"endpoints": endpoints, "lease_ms": 500, "security": "plaintext"},
+    }
     experts = {}
     for k, d in enumerate(m["drones"]):
         rng = np.random.default_rng(k)

@@ -1,0 +1,163 @@
+"""The mission's key space and who may publish on each key (issue 16): Zenoh access control, generated.
+
+Keys (one mission = one key space `{prefix}/{mission}`):
+
+    pred/{i}                 agent i's prediction                      publisher: agent-i (or agents)
+    alive/{i}                agent i's liveliness token                 declarer:  agent-i (or agents)
+    control/abort            an operator abort                          publisher: operator
+    control/status/{i}       agent i's status report                    publisher: agent-i (or agents)
+    control/ack/{name}       abort acknowledgement of participant name publisher: that participant
+    world/tick/{i}           what drone i's sensors see (served sim)    publisher: world
+    world/cmd/{i}            what agent i did to drone i (served sim)   publisher: agent-i
+
+`access_control(...)` turns that table into Zenoh's `access_control` section, with `default_permission:
+deny`. Every node enforces it on *ingress*: a message that arrives on a link is accepted only if the
+certificate common name of that link (flightstack/comms/certs.py) may publish its key. Every
+participant may declare subscribers and liveliness subscribers on the mission's keys (to read is not
+to act: only mutual-TLS participants of this mission have links at all); egress is allowed on the
+mission's keys, since links exist only to authenticated participants. Nothing outside
+`{prefix}/{mission}/**` passes in either direction.
+
+What the key alone cannot say is checked on receipt: the sender field of a prediction equals its key
+(freshness.py), a status names the drone of its key, an acknowledgement names only drones its
+participant hosts (zenoh_bus.py). Messages a participant's own session publishes reach its own
+subscribers without passing a link (Zenoh's local delivery), i.e. without the ACL; a process only
+publishes its own keys, so this admits nothing foreign.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from flightstack.comms.certs import AGENTS, OPERATOR, WORLD, agent_name, participants
+
+PUBLISH = ["put", "delete"]
+READ = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
+EVERY_MESSAGE = [
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "reply",
+    "declare_queryable",
+    "liveliness_token",
+    "liveliness_query",
+    "declare_liveliness_subscriber",
+]
+
+
+def space(prefix: str, mission: str) -> str:
+    return f"{prefix}/{mission}"
+
+
+def pred_key(prefix: str, mission: str, sender: int | str) -> str:
+    return f"{space(prefix, mission)}/pred/{sender}"
+
+
+def alive_key(prefix: str, mission: str, sender: int | str) -> str:
+    return f"{space(prefix, mission)}/alive/{sender}"
+
+
+def abort_key(prefix: str, mission: str) -> str:
+    return f"{space(prefix, mission)}/control/abort"
+
+
+def status_key(prefix: str, mission: str, drone: int | str) -> str:
+    return f"{space(prefix, mission)}/control/status/{drone}"
+
+
+def ack_key(prefix: str, mission: str, participant: str) -> str:
+    return f"{space(prefix, mission)}/control/ack/{participant}"
+
+
+def control_space(prefix: str, mission: str) -> str:
+    """Every control key (the wildcard a control subscriber declares)."""
+    return f"{space(prefix, mission)}/control/**"
+
+
+def tick_key(prefix: str, mission: str, drone: int | str) -> str:
+    return f"{space(prefix, mission)}/world/tick/{drone}"
+
+
+def cmd_key(prefix: str, mission: str, drone: int | str) -> str:
+    return f"{space(prefix, mission)}/world/cmd/{drone}"
+
+
+def hosted_by(participant: str, drone_ids: set[int] | frozenset[int]) -> frozenset[int]:
+    """The drones whose agents participant `participant` (a certificate CN) may host."""
+    if participant == AGENTS:
+        return frozenset(drone_ids)
+    if participant.startswith("agent-") and participant[6:].isdigit():
+        i = int(participant[6:])
+        return frozenset({i}) if i in drone_ids else frozenset()
+    return frozenset()
+
+
+def _agent_keys(prefix: str, mission: str, ids: list[int], name: str) -> list[str]:
+    keys = [ack_key(prefix, mission, name)]
+    for i in ids:
+        keys += [pred_key(prefix, mission, i), status_key(prefix, mission, i)]
+    return keys
+
+
+def access_control(prefix: str, mission: str, drone_ids: set[int] | list[int]) -> dict[str, Any]:
+    """Zenoh's `access_control` section for a mission with these drones (see the module docstring)."""
+    ids = sorted(drone_ids)
+    everything = f"{space(prefix, mission)}/**"
+    rules: list[dict[str, Any]] = [
+        {"id": "egress", "messages": EVERY_MESSAGE, "flows": ["egress"], "permission": "allow",
+         "key_exprs": [everything]},
+        {"id": "read", "messages": READ, "flows": ["ingress"], "permission": "allow",
+         "key_exprs": [everything]},
+    ]  # fmt: skip
+    subjects: list[dict[str, Any]] = [
+        {"id": "any-link"},
+        {"id": "participants", "cert_common_names": participants(ids)},
+    ]
+    policies: list[dict[str, Any]] = [
+        {"id": "egress", "rules": ["egress"], "subjects": ["any-link"]},
+        {"id": "read", "rules": ["read"], "subjects": ["participants"]},
+    ]
+
+    def grant(name: str, puts: list[str], tokens: list[str]) -> None:
+        rid = f"publish:{name}"
+        rule: dict[str, Any] = {"id": rid, "messages": PUBLISH, "flows": ["ingress"], "permission": "allow"}
+        rules.append({**rule, "key_exprs": puts})
+        if tokens:
+            rules.append(
+                {**rule, "id": f"tokens:{name}", "messages": ["liveliness_token"], "key_exprs": tokens}
+            )
+        subjects.append({"id": f"cn:{name}", "cert_common_names": [name]})
+        policies.append(
+            {
+                "id": f"cn:{name}",
+                "rules": [rid, *([f"tokens:{name}"] if tokens else [])],
+                "subjects": [f"cn:{name}"],
+            }
+        )
+
+    for i in ids:
+        grant(
+            agent_name(i),
+            [*_agent_keys(prefix, mission, [i], agent_name(i)), cmd_key(prefix, mission, i)],
+            [alive_key(prefix, mission, i)],
+        )
+    grant(AGENTS, _agent_keys(prefix, mission, ids, AGENTS), [alive_key(prefix, mission, i) for i in ids])
+    grant(WORLD, [tick_key(prefix, mission, i) for i in ids], [])
+    grant(OPERATOR, [abort_key(prefix, mission)], [])
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}  # fmt: skip
+
+
+__all__ = [
+    "abort_key",
+    "access_control",
+    "ack_key",
+    "alive_key",
+    "cmd_key",
+    "control_space",
+    "hosted_by",
+    "pred_key",
+    "status_key",
+    "tick_key",
+]
