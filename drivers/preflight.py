@@ -7,6 +7,7 @@ Nothing takes off, nothing moves: the robot is only listened to (HEARTBEAT), nev
 
 Rows: (device, check, status, detail) with status PASS, WARN (flyable, but look) or FAIL (do not fly).
 The checks (README "Preflight"):
+- certificates (issue 16): the pair this computer's participant needs (check_certs), not expired;
 - files: every camera calibration exists, is valid, was measured (rms_px set; the nominal templates
   are not) and matches the drone's video size; the experts file, if the mission names one.
 - gains: κ of Theorem 1. WARN (never FAIL) when not positive: the paper flies its experiment with
@@ -90,6 +91,33 @@ def check_files(mission: Mission) -> list[CheckRow]:
         rows.append(
             _row("mission", "GP experts file", p.is_file(), str(p) if p.is_file() else f"not found: {p}")
         )
+    return rows
+
+
+def check_certs(mission: Mission, drone_ids: list[int]) -> list[CheckRow]:
+    """The mission's certificates (issue 16) for what this computer runs: on Zenoh, the pair of its
+    participant (`agent-N` for one drone, `agents` for several) with the mission CA; on the in-process
+    bus, the operator's (the fly process verifies loopback aborts with it, `abort` signs with it).
+    FAIL when missing, unreadable, of another mission or CA, key readable by others, or expired; WARN
+    within WARN_DAYS of expiry."""
+    from flightstack.comms.certs import OPERATOR, WARN_DAYS, CertError, agent_name, check_participant
+
+    z = mission.bus.zenoh if mission.bus.kind == "zenoh" else None
+    if z is not None and z.security != "mtls":
+        return [_row("bus", "security", False, "plaintext Zenoh on real drones (set security: mtls)")]
+    names = [OPERATOR]  # in-process: the fly process verifies the operator's signed aborts
+    if z is not None:  # Zenoh: this computer's participant
+        names = [agent_name(drone_ids[0]) if len(drone_ids) == 1 else "agents"]
+    directory = mission.resolve(mission.bus.certs)
+    rows = []
+    for name in names:
+        try:
+            st = check_participant(directory, name, mission.name)
+        except CertError as exc:
+            rows.append(_row("bus", f"certificate {name}", False, f"{exc} (flightstack certs)"))
+            continue
+        detail = f"{directory}: valid until {st.not_after:%Y-%m-%d} ({st.days_left:.0f} days)"
+        rows.append(_row("bus", f"certificate {name}", True, detail, warn=st.days_left < WARN_DAYS))
     return rows
 
 
@@ -286,7 +314,7 @@ def run_preflight(
     t_end = time.monotonic() + deadline_s
     for th in threads:
         th.start()
-    rows = check_files(mission)
+    rows = check_files(mission) + check_certs(mission, ids)
     try:
         rows.append(check_gains(mission))
     except Exception as exc:

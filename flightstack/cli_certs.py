@@ -34,10 +34,10 @@ def cmd_certs(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise MissionError(f"certs: cannot write {out}: {exc.strerror or exc}") from None
     z = mission.bus.zenoh
-    where = z.certs if z is not None else "certs"
+    where = mission.bus.certs
     n = len(ids) + 4
     print(f"mission {mission.name!r}: CA and {n} participant certificates in {out} ({args.days} days)")
-    print(f"copy to each computer, into the mission's bus.zenoh.certs directory ({where!r}):")
+    print(f"copy to each computer, into the mission's bus.certs directory ({where!r}):")
     rows = [(agent_name(i), f"flightstack agent MISSION --id {i}") for i in ids]
     rows += [
         (AGENTS, "flightstack fly/sim with every agent in one process"),
@@ -48,8 +48,8 @@ def cmd_certs(args: argparse.Namespace) -> int:
     for name, what in rows:
         print(f"  ca.pem {name}.pem {name}.key   -> the computer running {what}")
     print("keep ca.key on this computer only (it signs; no participant needs it)")
-    if z is None or z.security != "mtls":
-        print("note: this mission's bus is not `kind: zenoh` with `security: mtls`; it does not use them yet")
+    if mission.simulated and (z is None or z.security != "mtls"):
+        print("note: this simulated mission runs plaintext on loopback; it does not need them")
     return 0
 
 

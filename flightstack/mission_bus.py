@@ -33,16 +33,15 @@ class ZenohSpec(_Strict):
 
     Security (issue 16; README "Securing the bus"). `security: mtls` (the default): every endpoint is
     `tls/host:port`, every link is mutual TLS with the certificates `flightstack certs` made for this
-    mission (directory `certs`, relative to the mission file; each computer needs `ca.pem` and its own
-    participant's pair), and Zenoh's access control, generated from the mission's participants
-    (flightstack/comms/acl.py), lets each participant publish only its own keys. `security: plaintext`:
+    mission (directory `bus.certs`; each computer needs `ca.pem` and its own participant's pair), and
+    Zenoh's access control, generated from the mission's participants (flightstack/comms/acl.py), lets
+    each participant publish only its own keys. `security: plaintext`:
     `tcp/` endpoints on loopback (127.0.0.0/8, localhost, [::1]) only, for simulations on one computer;
     refused on real hardware. Listening on every interface (0.0.0.0, [::]) is refused unless
     `allow_all_interfaces: true`. There is no raw `tls` or `access_control` section: both are generated."""
 
     endpoints: dict[str, str] = Field(min_length=1, max_length=1024)
     security: Literal["mtls", "plaintext"] = "mtls"
-    certs: str = Field(default="certs", min_length=1, max_length=4096)
     allow_all_interfaces: bool = False
     lease_ms: int = Field(default=500, ge=100, le=60000)
     lockstep_timeout_s: Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)] = 2.0
@@ -100,9 +99,16 @@ class ZenohSpec(_Strict):
 class BusSpec(_Strict):
     """`operator_port`: the loopback UDP port (127.0.0.1) on which an in-process mission listens for
     `flightstack abort` (flightstack/comms/operator_link.py); default: derived from the mission name,
-    listening on hardware only. Setting it also makes a simulated in-process run listen."""
+    listening on hardware only. Setting it also makes a simulated in-process run listen.
+
+    `certs` (issue 16): the directory (relative to the mission file) of this mission's certificates,
+    made by `flightstack certs`. On real hardware the bus is authenticated: Zenoh runs mutual TLS with
+    them (ZenohSpec), and the loopback listener of an in-process flight accepts only aborts signed with
+    the operator's key (`ca.pem` + `operator.pem` checked at start; `flightstack abort` signs with
+    `operator.key`). Simulated missions need them only with `security: mtls`."""
 
     kind: Literal["inproc", "zenoh"] = "inproc"
+    certs: str = Field(default="certs", min_length=1, max_length=4096)
     stale_after_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 0.5
     zenoh: ZenohSpec | None = None
     operator_port: int | None = Field(default=None, ge=1024, le=65535)

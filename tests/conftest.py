@@ -82,14 +82,15 @@ def interrupt_cli_sim(mission: Path, out: Path, run_seconds: float = 1.0) -> tup
     return proc.returncode, buf + stderr
 
 
-def secured_zenoh(
-    certs_dir: Path, mission: str, drone_ids: list[int], names: tuple[str, ...], **extra: object
+def secured_bus(
+    certs_dir: Path, mission: str, drone_ids: list[int], names: tuple[str, ...], **zenoh: object
 ) -> dict:
-    """A `bus.zenoh` section with mutual TLS on free loopback ports: `flightstack certs`' files for
-    `mission` (drones `drone_ids`) written to `certs_dir`, one `tls/127.0.0.1:PORT` endpoint per name."""
+    """A `bus:` section of kind zenoh with mutual TLS on free loopback ports: `flightstack certs`' files
+    for `mission` (drones `drone_ids`) written to `certs_dir`, one `tls/127.0.0.1:PORT` per name."""
     from flightstack.comms.certs import create_mission_certs
     from flightstack.comms.factory import free_loopback_endpoints
 
     create_mission_certs(mission, drone_ids, certs_dir)
     eps = [e.replace("tcp/", "tls/", 1) for e in free_loopback_endpoints(len(names))]
-    return {"endpoints": dict(zip(names, eps, strict=True)), "certs": str(certs_dir), **extra}
+    endpoints = dict(zip(names, eps, strict=True))
+    return {"kind": "zenoh", "certs": str(certs_dir), "zenoh": {"endpoints": endpoints, **zenoh}}

@@ -20,6 +20,7 @@ import yaml
 
 from flightstack.cli import main
 from flightstack.comms.abort import send_abort
+from flightstack.comms.certs import create_mission_certs, operator_private_key, operator_public_key
 from flightstack.comms.control import encode_control
 from flightstack.comms.factory import free_loopback_endpoints, make_bus
 from flightstack.comms.operator_link import (
@@ -28,6 +29,7 @@ from flightstack.comms.operator_link import (
     LoopbackOperatorListener,
     default_operator_port,
     operator_port,
+    signed_datagram,
 )
 from flightstack.mission import MissionError, load_mission
 from flightstack.runner import OperatorAbortError, _check_operator
@@ -112,17 +114,56 @@ def test_loopback_listener_acks_and_drops_malformed_messages() -> None:
             deadline = time.monotonic() + 5.0
             while lis.acks_sent < 2 and time.monotonic() < deadline:  # counted just after sending
                 time.sleep(0.01)
-            assert lis.acks_sent == 2 and len(lis.control_events()) == 1
+            # the same abort id again (the operator resends until acknowledged): acknowledged, queued once
+            assert lis.acks_sent == 2 and lis.control_events() == [] and lis.repeats == 1
         finally:
             client.close()
 
 
-def test_inproc_bus_on_hardware_yields_the_abort_to_the_runner() -> None:
+def test_hardware_listener_accepts_only_aborts_signed_by_the_operator(tmp_path: Path) -> None:
+    """Issue 16: on real drones any local process can reach the loopback port; only the holder of the
+    mission's operator key can land them this way."""
+    create_mission_certs("lb_test", [1, 2], tmp_path)
+    other = tmp_path / "other"
+    create_mission_certs("lb_test", [1, 2], other)  # same names, another CA
+    pub = operator_public_key(tmp_path, "lb_test")
+    key = operator_private_key(tmp_path, "lb_test")
+    forged_key = operator_private_key(other, "lb_test")
+    with LoopbackOperatorListener("lb_test", 0, {1, 2}, verifier=pub) as lis:
+        client = LoopbackOperatorClient("lb_test", lis.port)
+        try:
+            abort = encode_control("lb_test", "abort", {"reason": "test", "id": "s1"}, [])
+            client.send(abort)  # unsigned
+            client.send(signed_datagram(abort, forged_key))  # signed by another mission's operator
+            client.send(signed_datagram(abort, key)[:-3] + b"xyz")  # signature damaged
+            tampered = encode_control("lb_test", "abort", {"reason": "forged", "id": "s1"}, [])
+            client.send(tampered + signed_datagram(abort, key)[len(abort) :])  # body changed after signing
+            expected = Counter({"operator: unsigned": 1, "operator: bad signature": 3})
+            deadline = time.monotonic() + 5.0
+            while lis.dropped != expected and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert lis.dropped == expected
+            assert client.receive(0.1) == [] and lis.control_events() == []
+            client.send(signed_datagram(abort, key))
+            acks = client.receive(5.0)
+            assert len(acks) == 1 and acks[0].payload["abort_id"] == "s1"
+            assert [(e.kind, e.payload["reason"]) for e in lis.control_events()] == [("abort", "test")]
+        finally:
+            client.close()
+
+
+def test_inproc_bus_on_hardware_yields_the_abort_to_the_runner(tmp_path: Path) -> None:
     """`flightstack fly` with the in-process bus: make_bus wraps a loopback listener on the mission's
-    operator port; `flightstack abort` (send_abort) gets every drone's ack; the runner's
-    `_check_operator(bus)` raises on its next call. A second process of the mission cannot bind it."""
+    operator port; `flightstack abort` (send_abort, signed with the operator's key) gets every drone's
+    ack; the runner's `_check_operator(bus)` raises on its next call. A second process of the mission
+    cannot bind it. Without the mission's certificates the bus refuses to start (issue 16)."""
     port = free_udp_port()
-    mission = load_mission(MISSIONS / "paper_experiment.yaml", {"bus": {"operator_port": port}})
+    nocerts = {"bus": {"operator_port": port, "certs": str(tmp_path / "none")}}
+    with pytest.raises(MissionError, match=r"bus\.certs: .*none/ca\.pem: cannot read"):
+        make_bus(load_mission(MISSIONS / "paper_experiment.yaml", nocerts), "agents", {1, 2})
+    bus_spec = {"operator_port": port, "certs": str(tmp_path / "certs")}
+    mission = load_mission(MISSIONS / "paper_experiment.yaml", {"bus": bus_spec})
+    create_mission_certs(mission.name, [1, 2], tmp_path / "certs")
     assert not mission.simulated and mission.bus.kind == "inproc"
     bus = make_bus(mission, "agents", {1, 2})
     try:
@@ -231,7 +272,7 @@ def test_abort_names_the_agent_that_did_not_acknowledge(
     """Agents 1 and 2 on the bus, agent 3 absent: exit 1 naming 3; with 3 there: exit 0."""
     m = yaml.safe_load((MISSIONS / "paper_sim.yaml").read_text())
     endpoints = dict(zip(("1", "2", "3"), free_loopback_endpoints(3), strict=True))
-    m["bus"] = {"kind": "zenoh", "zenoh": {"endpoints": endpoints, "lease_ms": 500}}
+    m["bus"] = {"kind": "zenoh", "zenoh": {"endpoints": endpoints, "lease_ms": 500, "security": "plaintext"}}
     path = tmp_path / "mission.yaml"
     path.write_text(yaml.safe_dump(m))
     mission = load_mission(path)

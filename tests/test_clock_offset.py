@@ -22,7 +22,7 @@ from flightstack.comms.factory import free_loopback_endpoints, make_bus, zenoh_b
 from flightstack.comms.freshness import Freshness, OffsetPolicy
 from flightstack.comms.messages import PredictionMessage, encode
 from flightstack.mission import load_mission
-from tests.conftest import MISSIONS, secured_zenoh
+from tests.conftest import MISSIONS, secured_bus
 
 MISSION = "clock_test"
 SKEWS = {0: 0.0, 1: +600.0, 2: -600.0}  # sender clock − receiver clock (s): same, 10 min ahead, behind
@@ -183,8 +183,8 @@ def test_clock_drift_within_the_bound_is_tracked(ppm: float, dropped: bool) -> N
 
 def test_hardware_missions_use_the_receiver_time_base(tmp_path: Path) -> None:
     hw_name = load_mission(MISSIONS / "paper_experiment.yaml").name
-    zenoh = secured_zenoh(tmp_path / "certs", hw_name, [1, 2], ("agents",))
-    hw = load_mission(MISSIONS / "paper_experiment.yaml", {"bus": {"kind": "zenoh", "zenoh": zenoh}})
+    bus = secured_bus(tmp_path / "certs", hw_name, [1, 2], ("agents",))
+    hw = load_mission(MISSIONS / "paper_experiment.yaml", {"bus": bus})
     plain = {"endpoints": {"agents": free_loopback_endpoints()[0]}, "security": "plaintext"}
     sim = load_mission(MISSIONS / "paper_sim.yaml", {"bus": {"kind": "zenoh", "zenoh": plain}})
     assert zenoh_bus_config(hw, "agents", {1, 2}).time_base == "receiver"

@@ -23,6 +23,7 @@ pytest.importorskip("pymavlink")
 
 from flightstack.camera_calibration import load_calibration
 from flightstack.cli import main
+from flightstack.comms.certs import create_mission_certs
 from flightstack.geometry import Pose, compose
 from tests.conftest import MISSIONS
 from tests.emulators.mavlink_rover import MavlinkRoverEmulator
@@ -106,6 +107,7 @@ def write_mission(
     }
     path = tmp / "mission.yaml"
     path.write_text(yaml.safe_dump(m, sort_keys=False))
+    create_mission_certs(m["name"], [d["id"] for d in m["drones"]], tmp / "certs")  # bus.certs (issue 16)
     return path
 
 

@@ -32,7 +32,7 @@ from drivers.guard import Guard
 from drivers.guardian_process import Log
 from flightstack.comms.control import ControlEvent
 from flightstack.mission import load_mission
-from tests.conftest import secured_zenoh
+from tests.conftest import secured_bus
 from tests.emulators.tello import TelloEmulator, free_udp_port, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
@@ -145,8 +145,8 @@ def write_mission(tmp: Path, emus: dict[int, TelloEmulator], state_port: int) ->
     for d in m["drones"]:
         d["camera"]["calibration"] = str(cal)
     # issue 16: a hardware mission on Zenoh is mutual TLS with the mission's certificates
-    zenoh = secured_zenoh(tmp / "certs", m["name"], [d["id"] for d in m["drones"]], ("1", "2"), lease_ms=500)
-    m["bus"] = {"kind": "zenoh", "stale_after_s": 0.5, "zenoh": zenoh}
+    bus = secured_bus(tmp / "certs", m["name"], [d["id"] for d in m["drones"]], ("1", "2"), lease_ms=500)
+    m["bus"] = {**bus, "stale_after_s": 0.5}
     m["hardware"]["topology"] = "station"
     m["hardware"]["state_port"] = state_port
     m["hardware"]["drones"] = [

@@ -4,7 +4,8 @@
 agents can hear, *before* waiting for anyone:
   - Zenoh (`bus.zenoh` section present): the mission's control key, as participant "operator";
   - loopback UDP to 127.0.0.1:`operator_port(mission)` (bus kind "inproc": `flightstack fly` with the
-    in-process bus listens there, operator_link.py).
+    in-process bus listens there, operator_link.py); on real hardware signed with the operator's key
+    from `bus.certs` (issue 16).
 An operator session that has just opened is not yet connected to the agents, so the abort is sent again
 as soon as a new agent's presence token is seen (its subscriber is declared by then) and every
 `resend_s` until every drone of the mission acknowledged or `timeout_s` passed. Agents acknowledge every
@@ -91,6 +92,11 @@ def send_abort(
             zbus = make_bus(mission, "operator", set(), kind="zenoh")
             channels.append("zenoh")
         datagram = encode_control(mission.name, ABORT, payload, [])
+        if udp is not None and not mission.simulated:  # real drones hear only aborts the operator signed
+            from flightstack.comms.factory import operator_key
+            from flightstack.comms.operator_link import signed_datagram
+
+            datagram = signed_datagram(datagram, operator_key(mission, private=True))
 
         def send() -> None:
             if udp is not None:

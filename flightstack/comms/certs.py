@@ -274,25 +274,74 @@ def check_participant(
     own = key.public_key().public_numbers()
     if not isinstance(pub, ec.EllipticCurvePublicKey) or pub.public_numbers() != own:
         raise CertError(f"{f.cert}: does not match the private key {f.key.name}")
+    _check_issued(ca, f.ca, cert, f.cert, participant, mission, now)
+    not_after = min(ca.not_valid_after_utc, cert.not_valid_after_utc)
+    return CertStatus(participant, mission, not_after, (not_after - now).total_seconds() / 86400.0)
+
+
+def _check_issued(
+    ca: x509.Certificate,
+    ca_path: Path,
+    cert: x509.Certificate,
+    cert_path: Path,
+    participant: str,
+    mission: str,
+    now: dt.datetime,
+) -> None:
+    """CertError unless `cert` is signed by `ca`, issued to `participant` of `mission`, and both are
+    valid at `now`."""
     ca_pub = ca.public_key()
     try:
-        if not isinstance(ca_pub, ec.EllipticCurvePublicKey):
+        if not isinstance(ca_pub, ec.EllipticCurvePublicKey) or cert.signature_hash_algorithm is None:
             raise InvalidSignature
         ca_pub.verify(cert.signature, cert.tbs_certificate_bytes, ec.ECDSA(cert.signature_hash_algorithm))
     except InvalidSignature:
-        raise CertError(f"{f.cert}: not signed by the mission CA {f.ca}") from None
+        raise CertError(f"{cert_path}: not signed by the mission CA {ca_path}") from None
     cn, ou = _attr(cert, NameOID.COMMON_NAME), _attr(cert, NameOID.ORGANIZATIONAL_UNIT_NAME)
     if cn != participant:
-        raise CertError(f"{f.cert}: issued to {cn!r}, not to {participant!r}")
+        raise CertError(f"{cert_path}: issued to {cn!r}, not to {participant!r}")
     if ou != mission:
-        raise CertError(f"{f.cert}: issued for mission {ou!r}, not {mission!r}")
-    for c, path in ((ca, f.ca), (cert, f.cert)):
+        raise CertError(f"{cert_path}: issued for mission {ou!r}, not {mission!r}")
+    for c, path in ((ca, ca_path), (cert, cert_path)):
         if now < c.not_valid_before_utc:
             raise CertError(f"{path}: not valid before {c.not_valid_before_utc:%Y-%m-%d %H:%M} UTC")
         if now >= c.not_valid_after_utc:
             raise CertError(f"{path}: expired on {c.not_valid_after_utc:%Y-%m-%d %H:%M} UTC")
-    not_after = min(ca.not_valid_after_utc, cert.not_valid_after_utc)
-    return CertStatus(participant, mission, not_after, (not_after - now).total_seconds() / 86400.0)
+
+
+def operator_public_key(directory: Path, mission: str) -> ec.EllipticCurvePublicKey:
+    """The operator's public key from `operator.pem`, checked against the mission CA (`ca.pem`): what
+    the loopback abort listener verifies signed aborts with (the private key is not needed)."""
+    f = files_of(directory, OPERATOR)
+    ca = _read_cert(f.ca, "mission CA certificate")
+    cert = _read_cert(f.cert, "operator certificate")
+    _check_issued(ca, f.ca, cert, f.cert, OPERATOR, mission, dt.datetime.now(dt.UTC))
+    pub = cert.public_key()
+    if not isinstance(pub, ec.EllipticCurvePublicKey):
+        raise CertError(f"{f.cert}: not an EC key")
+    return pub
+
+
+def operator_private_key(directory: Path, mission: str) -> ec.EllipticCurvePrivateKey:
+    """The operator's private key (checked like `check_participant`), to sign loopback aborts."""
+    check_participant(directory, OPERATOR, mission)
+    key = serialization.load_pem_private_key(files_of(directory, OPERATOR).key.read_bytes(), password=None)
+    assert isinstance(key, ec.EllipticCurvePrivateKey)
+    return key
+
+
+def sign(key: ec.EllipticCurvePrivateKey, data: bytes) -> bytes:
+    """ECDSA P-256 / SHA-256 signature (DER) of `data`."""
+    return key.sign(data, ec.ECDSA(hashes.SHA256()))
+
+
+def verify(pub: ec.EllipticCurvePublicKey, data: bytes, signature: bytes) -> bool:
+    """True when `signature` is `pub`'s signature of `data`; never raises."""
+    try:
+        pub.verify(signature, data, ec.ECDSA(hashes.SHA256()))
+    except (InvalidSignature, ValueError, TypeError):
+        return False
+    return True
 
 
 __all__ = [
@@ -308,6 +357,10 @@ __all__ = [
     "check_participant",
     "create_mission_certs",
     "files_of",
+    "operator_private_key",
+    "operator_public_key",
     "participant_name",
     "participants",
+    "sign",
+    "verify",
 ]

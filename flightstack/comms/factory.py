@@ -17,7 +17,7 @@ terminal; `bus.control_events()` yields its aborts.
 from __future__ import annotations
 
 import socket
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from flightstack.comms.acl import access_control
 from flightstack.comms.bus import Bus, InProcBus
@@ -44,6 +44,11 @@ def zenoh_bus_config(mission: Mission, participant: str, self_ids: set[int]) -> 
     connect = [ep for name, ep in z.endpoints.items() if name != participant]
     ids = {d.id for d in mission.drones}
     name = participant_name(participant)
+    if not mission.simulated and z.security != "mtls":
+        raise MissionError(
+            "bus.zenoh.security: real drones fly only on an authenticated bus (security: mtls with the "
+            "certificates of `flightstack certs`); plaintext is for simulations on one computer"
+        )
     tls = acl = None
     if z.security == "mtls":
         tls = mtls_settings(mission, name)
@@ -71,12 +76,12 @@ def mtls_settings(mission: Mission, name: str) -> dict[str, str | bool]:
     and the ACL decide who is who)."""
     z = mission.bus.zenoh
     assert z is not None
-    directory = mission.resolve(z.certs)
+    directory = mission.resolve(mission.bus.certs)
     try:
         check_participant(directory, name, mission.name)
     except CertError as exc:
         raise MissionError(
-            f"bus.zenoh.certs: {exc} (create them with `flightstack certs MISSION --out DIR`; README "
+            f"bus.certs: {exc} (create them with `flightstack certs MISSION --out DIR`; README "
             '"Securing the bus")'
         ) from None
     f = files_of(directory, name)
@@ -113,7 +118,25 @@ def operator_listener(mission: Mission, self_ids: set[int]) -> LoopbackOperatorL
         return None
     from flightstack.comms.operator_link import LoopbackOperatorListener, operator_port
 
-    return LoopbackOperatorListener(mission.name, operator_port(mission), set(self_ids))
+    verifier = None if mission.simulated else operator_key(mission, private=False)
+    return LoopbackOperatorListener(mission.name, operator_port(mission), set(self_ids), verifier)
+
+
+def operator_key(mission: Mission, private: bool) -> Any:
+    """The operator's public key (to verify loopback aborts) or private key (to sign them) from the
+    mission's `bus.certs`; MissionError naming `bus.certs` and the reason when it cannot be used."""
+    from flightstack.comms.certs import operator_private_key, operator_public_key
+
+    directory = mission.resolve(mission.bus.certs)
+    try:
+        if private:
+            return operator_private_key(directory, mission.name)
+        return operator_public_key(directory, mission.name)
+    except CertError as exc:
+        raise MissionError(
+            f"bus.certs: {exc} (real drones accept only aborts signed by the operator's key; create the "
+            'certificates with `flightstack certs MISSION --out DIR`, README "Securing the bus")'
+        ) from None
 
 
 _HANDED_OUT: set[int] = set()

@@ -17,6 +17,17 @@ every error and keeps running. A valid abort is queued for `control_events()` (t
 it to the runner, which lands at its next check) and acknowledged at once, from the listener thread,
 to the sending address, whatever the runner is doing.
 
+Signed aborts (issue 16). On real hardware the listener is given the operator's public key (from the
+mission's `bus.certs`: `operator.pem`, checked against `ca.pem`) and accepts only datagrams of the form
+
+    <control JSON> NUL <DER ECDSA P-256/SHA-256 signature of the JSON by operator.key>
+
+(`signed_datagram`): any other local process can reach a loopback port, only the holder of the
+operator's key can land the mission this way. Drops: "operator: unsigned", "operator: bad signature".
+Simulated missions listen without a key (unsigned aborts accepted). In both, a copy of an abort id
+already queued (the operator resends until acknowledged; or a replay) is acknowledged again but not
+queued again (`repeats`; the last MAX_SEEN ids are kept).
+
 Units: times are time.monotonic() seconds; POLL_S is how long `close()` may wait for the thread (s).
 """
 
@@ -29,6 +40,7 @@ import zlib
 from collections import Counter
 from typing import TYPE_CHECKING
 
+from flightstack.comms.certs import sign, verify
 from flightstack.comms.control import (
     ABORT,
     ABORT_ACK,
@@ -39,6 +51,8 @@ from flightstack.comms.control import (
 )
 
 if TYPE_CHECKING:
+    from cryptography.hazmat.primitives.asymmetric import ec
+
     from flightstack.mission import Mission
 
 OPERATOR_HOST = "127.0.0.1"
@@ -46,6 +60,19 @@ MAX_DATAGRAM_BYTES = 4096  # one operator datagram (bytes); an abort is ~150
 PORT_BASE = 20000
 PORT_SPAN = 10000
 POLL_S = 0.1  # the listener thread checks for close() this often (s)
+MAX_SEEN = 1024  # abort ids remembered against replays
+SEPARATOR = b"\x00"  # between the JSON and its signature (JSON text never contains NUL)
+
+
+def signed_datagram(body: bytes, key: ec.EllipticCurvePrivateKey) -> bytes:
+    """`body` (a control message) followed by NUL and the operator's signature of it."""
+    return body + SEPARATOR + sign(key, body)
+
+
+def split_signed(data: bytes) -> tuple[bytes, bytes | None]:
+    """(body, signature) of a datagram; signature None when there is no separator."""
+    body, sep, sig = data.partition(SEPARATOR)
+    return (body, sig) if sep else (body, None)
 
 
 def default_operator_port(mission_name: str) -> int:
@@ -63,9 +90,19 @@ class LoopbackOperatorListener:
     """Receives operator aborts on 127.0.0.1:`port`/UDP for the agents `hosted` by this process and
     acknowledges each at once; see the module docstring. Always close (a context manager)."""
 
-    def __init__(self, mission: str, port: int, hosted: set[int] | frozenset[int]) -> None:
+    def __init__(
+        self,
+        mission: str,
+        port: int,
+        hosted: set[int] | frozenset[int],
+        verifier: ec.EllipticCurvePublicKey | None = None,
+    ) -> None:
+        """verifier: the operator's public key; when set, only aborts it signed are accepted."""
         self.mission = mission
         self.hosted = frozenset(hosted)
+        self.verifier = verifier
+        self._seen: list[str] = []
+        self.repeats = 0  # copies of an abort id already queued (acknowledged, not queued again)
         self._lock = threading.Lock()
         self._events: list[ControlEvent] = []
         self._dropped: Counter[str] = Counter()
@@ -136,14 +173,28 @@ class LoopbackOperatorListener:
         if addr[0] != OPERATOR_HOST:
             self._drop("operator: foreign sender")
             return
+        if self.verifier is not None:
+            data, sig = split_signed(data)
+            if sig is None:
+                self._drop("operator: unsigned")
+                return
+            if not verify(self.verifier, data, sig):
+                self._drop("operator: bad signature")
+                return
         ev, reason = parse_control(
             data, self.mission, t_recv, frozenset({ABORT}), MAX_DATAGRAM_BYTES, prefix="operator"
         )
         if ev is None:
             self._drop(reason or "operator: malformed")
             return
+        abort_id = ev.payload.get("id")
         with self._lock:
-            self._events.append(ev)
+            if isinstance(abort_id, str) and abort_id in self._seen:
+                self.repeats += 1  # a resent copy (or a replay): acknowledged again, acted on once
+            else:
+                if isinstance(abort_id, str):
+                    self._seen = [*self._seen[-(MAX_SEEN - 1) :], abort_id]
+                self._events.append(ev)
         ack = encode_control(self.mission, ABORT_ACK, ack_payload(ev, self.hosted), sorted(self.hosted))
         try:
             self._sock.sendto(ack, addr)
@@ -203,4 +254,6 @@ __all__ = [
     "LoopbackOperatorListener",
     "default_operator_port",
     "operator_port",
+    "signed_datagram",
+    "split_signed",
 ]

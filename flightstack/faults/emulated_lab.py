@@ -295,6 +295,11 @@ class EmulatedLab:
             self._mission_edit(m)
         path = self.workdir / "mission.yaml"
         path.write_text(yaml.safe_dump(m, sort_keys=False))
+        certs = path.parent / "certs"  # the mission's default bus.certs: real drones need them (issue 16)
+        if not (certs / "ca.pem").exists():
+            from flightstack.comms.certs import create_mission_certs
+
+            create_mission_certs(str(m["name"]), [int(d["id"]) for d in m["drones"]], certs)
         return path
 
     def mission(self) -> Any:

@@ -31,9 +31,12 @@ PROCESS_TIMEOUT_S = 90.0
 DROP_WITHIN_S = 1.0  # issue 6: the others drop a dead agent from fusion within 1 s
 
 
-def served_mission(workdir: Path, duration_s: float, name: str = "dry_run") -> Path:
-    """paper_sim over Zenoh on loopback (world + one endpoint per agent, free ports), dt = 10 ms, with
-    one fixed GP expert per drone fitted to its own samples of the paper's target field."""
+def served_mission(
+    workdir: Path, duration_s: float, name: str = "dry_run", security: str = "plaintext"
+) -> Path:
+    """paper_sim over Zenoh on loopback (world + one endpoint per agent, free ports), dt = 10 ms with the
+    gains scaled to it, one fixed GP expert per drone fitted to its own samples of the paper's target field. `security`
+    "mtls": tls/ endpoints and the mission's certificates in workdir/certs (flightstack certs)."""
     from flightstack.gp import GPExpert, GPHyperparameters
     from flightstack.target_motion import DuffingParams, duffing_body_velocity_batch
     from flightstack.training import save_experts
@@ -43,13 +46,23 @@ def served_mission(workdir: Path, duration_s: float, name: str = "dry_run") -> P
     m["name"] = name
     m["duration_s"] = duration_s
     m["dt_s"] = 0.01
+    # paper_sim's gains (100) are stable for its dt of 2 ms (k·dt ≤ 0.62 for the fastest error mode);
+    # at 10 ms they are not: the served drones reached 1e37 m within 0.25 s (found in issue 16, when a
+    # test first bounded positions, not only their finiteness). Scaled by dt: 20 keeps k·dt at 0.62.
+    m["gains"] = {"k_c": [20.0] * 4, "k_e": [20.0] * 4, "k_s": 14.0}
     names = ["world"] + [str(d["id"]) for d in m["drones"]]
-    endpoints = dict(zip(names, free_loopback_endpoints(len(names)), strict=True))
+    proto = "tls/" if security == "mtls" else "tcp/"
+    eps = [e.replace("tcp/", proto, 1) for e in free_loopback_endpoints(len(names))]
+    endpoints = dict(zip(names, eps, strict=True))
     m["bus"] = {
         "kind": "zenoh",
         "stale_after_s": 0.5,
-        "zenoh": {"endpoints": endpoints, "lease_ms": 500, "security": "plaintext"},
+        "zenoh": {"endpoints": endpoints, "lease_ms": 500, "security": security},
     }
+    if security == "mtls":
+        from flightstack.comms.certs import create_mission_certs
+
+        create_mission_certs(name, [int(d["id"]) for d in m["drones"]], workdir / "certs")
     experts = {}
     for k, d in enumerate(m["drones"]):
         rng = np.random.default_rng(k)
