@@ -12,6 +12,12 @@ has one clock for every agent and always compares stamps.
 Operator channel (issue 15, operator_link.py): an in-process bus on hardware (or with `bus.operator_port`
 set) wraps a loopback UDP listener, so `flightstack abort` reaches a `flightstack fly` from another
 terminal; `bus.control_events()` yields its aborts.
+
+Security (issue 16): a `security: mtls` Zenoh bus gets this participant's certificate files from
+`bus.certs` (checked first: certs.check_participant) and the access control generated from the
+mission's participants (acl.py); a hardware mission refuses plaintext Zenoh, and its loopback listener
+verifies the operator's signature (`operator_key`). Participant names map to certificate common names:
+a drone id N → "agent-N"; "agents", "world", "operator", "guard" as they are.
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 from flightstack.comms.acl import access_control
 from flightstack.comms.bus import Bus, InProcBus
-from flightstack.comms.certs import CertError, check_participant, files_of, participant_name
+from flightstack.comms.certs import CertError, ParticipantFiles, check_participant, files_of, participant_name
 from flightstack.mission import Mission, MissionError
 
 if TYPE_CHECKING:
@@ -84,7 +90,11 @@ def mtls_settings(mission: Mission, name: str) -> dict[str, str | bool]:
             f"bus.certs: {exc} (create them with `flightstack certs MISSION --out DIR`; README "
             '"Securing the bus")'
         ) from None
-    f = files_of(directory, name)
+    return tls_settings(files_of(directory, name))
+
+
+def tls_settings(f: ParticipantFiles) -> dict[str, str | bool]:
+    """Zenoh's transport/link/tls keys for these files: mutual TLS, names not verified (certs.py)."""
     return {
         "root_ca_certificate": str(f.ca),
         "listen_certificate": str(f.cert),
