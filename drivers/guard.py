@@ -3,11 +3,13 @@
 Optional, on the operator's computer, next to `flightstack status`. It joins the mission's Zenoh bus as
 the operator tool "guard" (it connects, hosts no agent, publishes nothing), follows every agent's
 liveliness token `<prefix>/<mission>/alive/<id>` and its status reports (`flying`, about every 0.5 s,
-flightstack/runner.py StatusPublisher), and when an agent vanishes in flight it lands that agent's Tello
-itself: `rc 0 0 0 0` then `land` from its own UDP socket, re-sent every `land_resend_s` (1 s) until the
-drone's telemetry shows it down or `give_up_s` (20 s, beyond the Tello's own 15 s auto-land). The
-sending, telemetry and "down" rule are those of the guardian process (drivers/guardian_process.py
-`GuardianProcess`, reused: one per drone, its sockets opened at start so a takeover sends at once).
+flightstack/runner.py StatusPublisher; read as validated control.StatusReport: a malformed status, or one
+about a drone its sender does not host, counts as no status), and when an agent vanishes in flight it
+lands that agent's Tello itself: `rc 0 0 0 0` then `land` from its own UDP socket, re-sent every
+`land_resend_s` (1 s) until the drone's telemetry shows it down or `give_up_s` (20 s, beyond the Tello's
+own 15 s auto-land). The sending, telemetry and "down" rule are those of the guardian process
+(drivers/guardian_process.py `GuardianProcess`, reused: one per drone, its sockets opened at start so a
+takeover sends at once).
 
 Decisions:
 - **In flight** = the agent's last status said `flying: true` and arrived at most `status_fresh_s` before
@@ -50,7 +52,7 @@ from typing import Any, Protocol
 from drivers.guardian import EXIT_DONE, GuardianConfig
 from drivers.guardian_process import GuardianProcess, Log
 from drivers.hardware import tello_config
-from flightstack.comms.control import STATUS, ControlEvent
+from flightstack.comms.control import ControlEvent, StatusReport, status_report
 from flightstack.mission import Mission
 
 POLL_S = 0.01  # longest wait between two looks at the bus and the landers (s)
@@ -237,18 +239,18 @@ class Guard:
 
     def step(self, now: float) -> None:
         """One look: statuses and presence changes in order of receipt, silences, running takeovers."""
-        events: list[tuple[float, int, str, ControlEvent | None]] = []
+        events: list[tuple[float, int, str, StatusReport | None]] = []
         presence = self.bus.presence_events
         for t, i, what in presence[self._n_presence :]:
             events.append((t, i, what, None))
         self._n_presence = len(presence)
         for ev in self.bus.control_events():
-            i = ev.payload.get("drone")
-            if ev.kind == STATUS and isinstance(i, int) and i in self.agents and i in ev.origin:
-                events.append((ev.time, i, "status", ev))
-        for t, i, what, ev in sorted(events, key=lambda e: e[0]):
-            if ev is not None:
-                self._on_status(i, ev)
+            report = status_report(ev)  # None: not a status, or a malformed one (the bus counted it)
+            if report is not None and report.drone in self.agents and report.drone in ev.origin:
+                events.append((ev.time, report.drone, "status", report))
+        for t, i, what, report in sorted(events, key=lambda e: e[0]):
+            if report is not None:
+                self._on_status(i, report, t)
             elif what == "joined":
                 self._on_joined(i)
             elif what == "left":
@@ -261,12 +263,13 @@ class Guard:
             if code is not None:
                 self._end(i, "down" if code == EXIT_DONE else "gave up", time.monotonic())
 
-    def _on_status(self, i: int, ev: ControlEvent) -> None:
+    def _on_status(self, i: int, report: StatusReport, t: float) -> None:
+        """Agent i's validated status, received at t (time.monotonic() s)."""
         a = self.agents[i]
-        flying = ev.payload.get("flying") is True
+        flying = report.flying
         if flying != a.flying:
             self.log(f"agent {i}: status {'flying' if flying else 'not flying'}")
-        a.flying, a.status_t, a.silent_reported = flying, ev.time, False
+        a.flying, a.status_t, a.silent_reported = flying, t, False
 
     def _on_joined(self, i: int) -> None:
         a = self.agents[i]

@@ -15,9 +15,12 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from flightstack.mission import Mission, MissionError, load_mission
+
+if TYPE_CHECKING:
+    from flightstack.comms.control import StatusReport
 
 
 def _zenoh_mission(path: str) -> Mission:
@@ -182,14 +185,16 @@ def cmd_abort(args: argparse.Namespace) -> int:
 
 
 def status_table(
-    statuses: dict[int, dict[str, Any]],
+    statuses: dict[int, tuple[StatusReport, float]],
     alive: set[int],
     ids: list[int],
     now: float,
     msg_age: dict[int, float | None] | None = None,
 ) -> str:
-    """One row per agent. `age s`: since its last status report; `msg s`: since its last prediction
-    message (wall seconds, as received here)."""
+    """One row per agent. `statuses`: drone → (its last validated status, time.monotonic() at receipt, s);
+    `age s`: since its last status report; `msg s`: since its last prediction message (wall seconds, as
+    received here). Every value of a StatusReport is typed and bounded (flightstack/comms/control.py), so
+    no status can break the table."""
     msg_age = msg_age or {}
 
     def age(i: int) -> str:
@@ -200,41 +205,42 @@ def status_table(
     head += f"{'batt %':>6}  {'flying':6}  {'seen':5}  {'fused':>5}  {'pose':5}  problems"
     lines = [head]
     for i in ids:
-        s = statuses.get(i)
-        if s is None:
+        if i not in statuses:
             lines.append(f"{i:>5}  {'yes' if i in alive else 'no':5}  {'-':>6}  {age(i)}  (no status yet)")
             continue
-        report_age = now - s["_received"]
-        problems = [p for p in (s.get("rejection"),) if p]
-        if not s.get("link_alive", True):
+        s, received = statuses[i]
+        problems = [s.rejection] if s.rejection else []
+        if not s.link_alive:
             problems.append("link lost")
-        if s.get("dropped"):
-            problems.append("dropped " + ", ".join(f"{k}: {v}" for k, v in s["dropped"].items()))
+        if s.dropped:
+            problems.append("dropped " + ", ".join(f"{k}: {v}" for k, v in s.dropped))
         lines.append(
-            f"{i:>5}  {'yes' if i in alive else 'no':5}  {report_age:6.1f}  {age(i)}  "
-            f"{s.get('mode', '?'):6}  "
-            f"{s.get('t', math.nan):8.2f}  {s.get('battery_pct', math.nan):6.0f}  "
-            f"{'yes' if s.get('flying') else 'no':6}  {'yes' if s.get('visible') else 'no':5}  "
-            f"{s.get('n_fused', 0):5d}  {'ok' if s.get('pose_fresh', True) else 'LOST':5}  "
+            f"{i:>5}  {'yes' if i in alive else 'no':5}  {now - received:6.1f}  {age(i)}  {s.mode:6}  "
+            f"{s.t:8.2f}  {s.battery_pct:6.0f}  {'yes' if s.flying else 'no':6}  "
+            f"{'yes' if s.visible else 'no':5}  {s.n_fused:5d}  {'ok' if s.pose_fresh else 'LOST':5}  "
             f"{'; '.join(problems)}"
         )
     return "\n".join(lines)
 
 
 def cmd_status(args: argparse.Namespace) -> int:
+    """Print the table of every agent's last status (live, or `--once`). Statuses come validated from the
+    bus (malformed ones are dropped and counted there); only drones of the mission are shown."""
+    from flightstack.comms.control import status_report
     from flightstack.comms.factory import make_bus
 
     mission = _zenoh_mission(args.mission)
     ids = [d.id for d in mission.drones]
     bus = make_bus(mission, "operator", set())
-    statuses: dict[int, dict[str, Any]] = {}
+    statuses: dict[int, tuple[StatusReport, float]] = {}
     live = sys.stdout.isatty() and not args.once
     t_end = time.monotonic() + (args.wait if args.once else args.duration)
     try:
         while True:
             for ev in bus.control_events():  # type: ignore[attr-defined]
-                if ev.kind == "status" and isinstance(ev.payload.get("drone"), int):
-                    statuses[ev.payload["drone"]] = {**ev.payload, "_received": ev.time}
+                report = status_report(ev)
+                if report is not None and report.drone in ids:
+                    statuses[report.drone] = (report, ev.time)
             now = time.monotonic()
             done = now >= t_end or (args.once and all(i in statuses for i in ids))
             if done or not args.once:

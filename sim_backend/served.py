@@ -8,6 +8,10 @@ process (`flightstack agent MISSION --id N`) sees its own drone, camera and moti
      tick k — agents that left the bus (liveliness) are not waited for;
   3. it applies the received hal.Drone calls in order, drives the target (square law on sim_lab, as
      `runner.TargetDriver`), and advances the world to t_k + dt.
+Cmds are decoded into validated `WorldCmd`s (world_messages.py: known calls with their exact arguments, a
+body velocity within what a Tello can fly); a malformed cmd, one from an unknown sender or one of a tick
+not yet published is dropped and counted by reason in `WorldSummary.dropped` (printed by `flightstack
+world`), and `apply_cmd` cannot fail on an accepted one.
 An agent that leaves (killed, or finished) has its drone landed by the world: the stand-in for a
 ground-station safety net. (On hardware a Tello whose agent was killed holds its last rc command until
 its own 15 s auto-land: README, "Agents in separate processes".) The world ends when every agent has
@@ -44,22 +48,34 @@ class WorldSummary:
     landed: dict[int, bool] = field(default_factory=dict)
 
 
-def _pose_row(sp: Any) -> list[float] | None:
+def _pose_row(sp: Any) -> wm.PoseRow | None:
     if sp is None:
         return None
-    return [float(sp.stamp), *(float(v) for v in sp.pose.as_vector())]
+    return (float(sp.stamp), *(float(v) for v in sp.pose.as_vector()))  # type: ignore[return-value]
 
 
-def _frame(frame: Any) -> tuple[dict[str, Any] | None, Any]:
+def _frame(frame: Any) -> tuple[wm.FrameHead | None, Any]:
     if frame is None:
         return None, None
     image = frame.image
-    head = {
-        "stamp": float(frame.stamp),
-        "features": None if frame.features is None else [float(x) for x in frame.features],
-        "image": None if image is None else [int(image.shape[0]), int(image.shape[1])],
-    }
+    head = wm.FrameHead(
+        float(frame.stamp),
+        None if frame.features is None else tuple(float(x) for x in frame.features),
+        None if image is None else (int(image.shape[0]), int(image.shape[1])),
+    )
     return head, image
+
+
+def apply_cmd(drone: Any, cmd: wm.WorldCmd) -> None:
+    """Apply a decoded cmd's calls to the world's hal.Drone in order (`close` is the agent's own: the
+    world keeps its drone). Every call of an accepted cmd is valid for a hal.Drone: a known name, and for
+    send_body_velocity 4 finite numbers in range."""
+    for call in cmd.calls:
+        if call.name == wm.VELOCITY_CALL:
+            assert call.velocity is not None
+            drone.send_body_velocity(np.array(call.velocity, dtype=float))
+        elif call.name != "close":
+            getattr(drone, call.name)()
 
 
 class WorldServer:
@@ -86,7 +102,8 @@ class WorldServer:
             for i in self.ids
         }
         self._cond = threading.Condition()
-        self._queued: dict[int, list[dict[str, Any]]] = defaultdict(list)
+        self._queued: dict[int, list[wm.WorldCmd]] = defaultdict(list)
+        self._tick_k = -1  # the newest tick published: a cmd of a later tick is refused
         self._done_k: dict[int, int] = {i: -2 for i in self.ids}  # -1: hello (subscribed); k: cmd of tick k
         self.summary = WorldSummary()
         self._dropped = self.summary.dropped
@@ -94,48 +111,62 @@ class WorldServer:
         self._gone: set[int] = set()
 
     def _on_cmd(self, sample: Any) -> None:
-        key = str(sample.key_expr)
-        header, reason = wm.decode_cmd(bytes(sample.payload.to_bytes()))
         try:
-            sender = int(key.rsplit("/", 1)[1])
-        except ValueError:
-            sender = -1
+            key, data = str(sample.key_expr), bytes(sample.payload.to_bytes())
+        except Exception:
+            with self._cond:
+                self._dropped["bad sample"] = self._dropped.get("bad sample", 0) + 1
+            return
+        self.receive_cmd(key, data)
+
+    def receive_cmd(self, key: str, data: bytes) -> str | None:
+        """Decode one cmd that came on `key` (…/world/cmd/<id>, the id exactly as the agent's key writes
+        it); queue it, or count why not (returned). Never raises."""
+        cmd, reason = wm.decode_cmd(data)
+        last = key.rsplit("/", 1)[-1]
+        ok = len(last) <= 9 and last.isascii() and last.isdigit() and str(int(last)) == last
+        sender = int(last) if ok else -1
         with self._cond:
-            if header is None or sender not in self._done_k:
-                r = reason or "unknown sender"
+            if cmd is not None and sender not in self._done_k:
+                reason = "unknown sender"
+            elif cmd is not None and cmd.k > self._tick_k:
+                reason = "cmd of a future tick"
+            if cmd is None or reason is not None:
+                r = reason or "bad cmd"
                 self._dropped[r] = self._dropped.get(r, 0) + 1
-                return
-            self._queued[sender].append(header)
-            self._done_k[sender] = max(self._done_k[sender], header["k"])
+                return r
+            self._queued[sender].append(cmd)
+            self._done_k[sender] = max(self._done_k[sender], cmd.k)
             self._cond.notify_all()
+            return None
 
     def _publish_ticks(self, k: int, t: float) -> None:
         g_w0, g_wis = self.backend.truth()
         poses = self.backend.pose_source()
+        with self._cond:
+            self._tick_k = k
         for i in self.ids:
             if i in self._gone:
                 continue
             d = self.backend.drone(i)
             st = d.state()
             frame, image = _frame(self.backend.camera(i).latest())
-            header = {
-                "v": wm.VERSION,
-                "k": k,
-                "t": t,
-                "state": {
-                    "battery_pct": st.battery_pct,
-                    "height_m": st.height_m,
-                    "link_alive": st.link_alive,
-                    "flying": st.flying,
-                    "phase": getattr(d, "phase", "flying" if st.flying else "ground"),
-                },
-                "poses": {
-                    b: row for b in (f"drone{i}", "target") if (row := _pose_row(poses.latest(b))) is not None
-                },
-                "truth": {"target": g_w0.as_vector().tolist(), "drone": g_wis[i].as_vector().tolist()},
-                "frame": frame,
+            state = wm.TickState(
+                float(st.battery_pct),
+                float(st.height_m),
+                bool(st.link_alive),
+                bool(st.flying),
+                str(getattr(d, "phase", "flying" if st.flying else "ground")),
+            )
+            rows = {
+                b: row for b in (f"drone{i}", "target") if (row := _pose_row(poses.latest(b))) is not None
             }
-            self._pubs[i].put(wm.pack(header, image))
+            truth = wm.Truth(
+                tuple(g_w0.as_vector().tolist()),  # type: ignore[arg-type]
+                tuple(g_wis[i].as_vector().tolist()),  # type: ignore[arg-type]
+            )
+            tick = wm.make_tick(k, float(t), state, rows, truth, frame)
+            self._pubs[i].put(wm.encode_tick(tick, image))
 
     def _wait_cmds(self, k: int, timeout_s: float | None = None) -> None:
         timeout_s = self.z.lockstep_timeout_s if timeout_s is None else timeout_s
@@ -159,13 +190,8 @@ class WorldServer:
             self._queued = defaultdict(list)
         for i in self.ids:
             d = self.backend.drone(i)
-            for header in queued.get(i, []):
-                for call in header["calls"]:
-                    name = call[0]
-                    if name == "send_body_velocity":
-                        d.send_body_velocity(np.array(call[1], dtype=float))
-                    elif name != "close":
-                        getattr(d, name)()
+            for cmd in queued.get(i, []):
+                apply_cmd(d, cmd)
 
     def _handle_departures(self, t: float) -> None:
         alive = self.bus.alive()  # type: ignore[attr-defined]

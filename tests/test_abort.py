@@ -89,6 +89,8 @@ def test_loopback_listener_acks_and_drops_malformed_messages() -> None:
                 encode_control("other", "abort", {"reason": "x"}, []),
                 encode_control("lb_test", "status", {}, []),  # only aborts on this channel
                 encode_control("lb_test", "abort_ack", {}, []),
+                encode_control("lb_test", "abort", {"reason": "no id"}, []),  # control.AbortRequest
+                encode_control("lb_test", "abort", {"reason": "x", "id": 2}, []),  # id not a str
             ]
             for data in bad:
                 client.send(data)
@@ -101,6 +103,7 @@ def test_loopback_listener_acks_and_drops_malformed_messages() -> None:
                     "operator: malformed": 7,
                     "operator: other mission": 1,
                     "operator: unknown kind": 2,
+                    "operator: bad abort": 2,
                     "operator: foreign sender": 1,
                 }
             )

@@ -58,7 +58,11 @@ up.start()
 
 def status():
     st = drv.state()
-    bus.publish_control("status", {"drone": i, "flying": st.flying, "link_alive": st.link_alive})
+    bus.publish_control("status", {  # every field of runner.StatusPublisher's (control.StatusReport)
+        "drone": i, "mode": "none", "t": time.monotonic(), "tick": 0, "battery_pct": st.battery_pct,
+        "flying": st.flying, "link_alive": st.link_alive, "visible": False, "n_fused": 0,
+        "pose_fresh": True, "rejection": None, "dropped": {},
+    })
 
 t_fly, t_next = None, 0.0
 deadline = time.monotonic() + a["max_s"]
@@ -290,6 +294,24 @@ def test_guard_lands_a_stopped_agents_drone_after_the_lease(lab: dict[str, Any])
             stop(p)
 
 
+def status(drone: int, flying: bool) -> dict[str, Any]:
+    """A full status payload (runner.StatusPublisher's fields, control.StatusReport)."""
+    return {
+        "drone": drone,
+        "mode": "dgp",
+        "t": 1.0,
+        "tick": 1,
+        "battery_pct": 80.0,
+        "flying": flying,
+        "link_alive": True,
+        "visible": True,
+        "n_fused": 1,
+        "pose_fresh": True,
+        "rejection": None,
+        "dropped": {},
+    }
+
+
 class FakeBus:
     """The two things guard reads of a ZenohBus, filled by the test."""
 
@@ -320,8 +342,10 @@ def test_guard_stops_sending_when_the_agent_is_back(lab: dict[str, Any]) -> None
                 time.sleep(0.01)
 
         bus.presence.append((time.monotonic(), 1, "joined"))
-        bus.controls.append(ControlEvent(time.monotonic(), "status", {"drone": 1, "flying": True}, (1,)))
-        bus.controls.append(ControlEvent(time.monotonic(), "status", {"drone": 2, "flying": True}, (1,)))
+        bus.controls.append(ControlEvent(time.monotonic(), "status", status(1, flying=True), (1,)))
+        bus.controls.append(ControlEvent(time.monotonic(), "status", status(2, flying=True), (1,)))
+        malformed = {"drone": 1, "flying": False}  # not a full status: ignored, 1 is still flying
+        bus.controls.append(ControlEvent(time.monotonic(), "status", malformed, (1,)))
         steps(0.1)
         assert from_port(emu, port) == []
         bus.presence.append((time.monotonic(), 1, "left"))

@@ -32,16 +32,19 @@ def tick_header(k: int = 3, image: list[int] | None = None) -> dict:
 
 def test_tick_round_trip_is_exact_with_image() -> None:
     img = np.random.default_rng(0).integers(0, 256, size=(6, 8, 3), dtype=np.uint8)
-    header, image, reason = wm.decode_tick(wm.pack(tick_header(image=[6, 8]), img))
-    assert reason is None and header is not None
-    assert header["t"] == 0.1 + 0.2 and header["poses"]["drone1"][1] == 1.0 / 3.0
+    tick, image, reason = wm.decode_tick(wm.pack(tick_header(image=[6, 8]), img))
+    assert reason is None and tick is not None
+    assert tick.t == 0.1 + 0.2 and tick.poses["drone1"][1] == 1.0 / 3.0
+    assert tick.header() == tick_header(image=[6, 8])  # the same values under the same keys
+    assert tick.frame is not None and tick.frame.image_shape == (6, 8)
     assert np.array_equal(image, img)
 
 
 def test_cmd_round_trip_and_refusals() -> None:
     good = {"v": wm.VERSION, "k": 7, "calls": [["takeoff"], ["send_body_velocity", [0.1, -0.2, 0.0, 0.3]]]}
-    header, reason = wm.decode_cmd(wm.pack(good))
-    assert reason is None and header == good
+    cmd, reason = wm.decode_cmd(wm.pack(good))
+    assert reason is None and cmd is not None and cmd.header() == good
+    assert cmd.calls == (wm.DroneCall("takeoff"), wm.DroneCall("send_body_velocity", (0.1, -0.2, 0.0, 0.3)))
     cases = {
         "bad velocity": {**good, "calls": [["send_body_velocity", [0.1, 0.2, 0.3]]]},
         "unknown call": {**good, "calls": [["self_destruct"]]},
@@ -75,7 +78,7 @@ def test_truncated_and_mis_sized_input() -> None:
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=256))
 def test_decoders_never_raise(data: bytes) -> None:
-    header, _, reason = wm.decode_tick(data)
-    assert (header is None) == (reason is not None)
-    header2, reason2 = wm.decode_cmd(data)
-    assert (header2 is None) == (reason2 is not None)
+    tick, _, reason = wm.decode_tick(data)
+    assert (tick is None) == (reason is not None)
+    cmd, reason2 = wm.decode_cmd(data)
+    assert (cmd is None) == (reason2 is not None)

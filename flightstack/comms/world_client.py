@@ -8,6 +8,13 @@ world_messages.py) and waits for the agent's `cmd` of tick k. On this side:
 - `RemoteCamera` and `RemotePoseSource` return what the newest tick carried.
 A tick that does not come within `timeout_s` raises `WorldLostError` (the world died): the runner then
 lands (queues `land`) and ends with the error recorded.
+
+Ticks are decoded into validated `WorldTick`s (world_messages.py: a malformed tick is dropped and counted
+in `_Link.dropped` by reason, as are ticks older than the newest and ticks whose time goes back), so the
+accessors below cannot fail on any accepted tick. Velocities are saturated to what the world accepts
+(`world_messages.saturate_velocity`: beyond what a Tello can fly; never reached by the agents' control).
+A forged tick that is well formed and newer cannot be told from the world's here: who may publish on
+the world keys is the transport's to authenticate (Zenoh mutual TLS and ACL).
 """
 
 from __future__ import annotations
@@ -23,11 +30,51 @@ import zenoh
 
 from flightstack.comms import world_messages as wm
 from flightstack.geometry import Pose
-from flightstack.hal import DroneState, FlightPhase, Frame, StampedPose
+from flightstack.hal import DroneState, Frame, StampedPose
 
 
 class WorldLostError(RuntimeError):
     """No tick from the served world within the timeout."""
+
+
+def tick_refusal(current: wm.WorldTick | None, new: wm.WorldTick) -> str | None:
+    """Why `new` must not replace the newest tick `current` (a reason to count), or None."""
+    if current is None:
+        return None
+    if new.k <= current.k:
+        return "old tick"
+    if new.t < current.t:
+        return "tick time went back"
+    return None
+
+
+def drone_state(tick: wm.WorldTick) -> DroneState:
+    s = tick.state
+    return DroneState(s.battery_pct, s.height_m, s.link_alive, s.flying, s.phase)
+
+
+def camera_frame(tick: wm.WorldTick, image: np.ndarray | None) -> Frame | None:
+    """The tick's camera sample; `image` is the one decoded with it (shape tick.frame.image_shape)."""
+    f = tick.frame
+    if f is None:
+        return None
+    return Frame(
+        f.stamp,
+        image if f.image_shape is not None else None,
+        None if f.features is None else np.array(f.features, dtype=float),
+    )
+
+
+def body_pose(tick: wm.WorldTick, body: str) -> StampedPose | None:
+    p = tick.poses.get(body)
+    if p is None:
+        return None
+    return StampedPose(p[0], Pose.make(p[1:4], p[4]))
+
+
+def truth_poses(tick: wm.WorldTick, drone_id: int) -> tuple[Pose, dict[int, Pose]]:
+    tr = tick.truth
+    return Pose.from_vector(np.array(tr.target)), {drone_id: Pose.from_vector(np.array(tr.drone))}
 
 
 class _Link:
@@ -37,9 +84,9 @@ class _Link:
         self.drone_id = drone_id
         self.timeout_s = timeout_s
         self._cond = threading.Condition()
-        self._tick: dict[str, Any] | None = None
+        self._tick: wm.WorldTick | None = None
         self._image: np.ndarray | None = None
-        self._calls: list[list[Any]] = []
+        self._calls: list[wm.DroneCall] = []
         self._sent_k = -1
         self.dropped: Counter[str] = Counter()
         # the world waits for every cmd: never drop one under congestion (a lost cmd stalls a whole tick)
@@ -51,18 +98,28 @@ class _Link:
         self._sub = session.declare_subscriber(wm.tick_key(prefix, mission, drone_id), self._on_tick)
 
     def _on_tick(self, sample: Any) -> None:
-        header, image, reason = wm.decode_tick(bytes(sample.payload.to_bytes()))
-        with self._cond:
-            if header is None:
-                self.dropped[reason or "bad tick"] += 1
-                return
-            if self._tick is not None and header["k"] <= self._tick["k"]:
-                self.dropped["old tick"] += 1
-                return
-            self._tick, self._image = header, image
-            self._cond.notify_all()
+        try:
+            data = bytes(sample.payload.to_bytes())
+        except Exception:
+            with self._cond:
+                self.dropped["bad sample"] += 1
+            return
+        self.receive(data)
 
-    def wait_first(self) -> dict[str, Any]:
+    def receive(self, data: bytes) -> str | None:
+        """Decode one tick message; keep it as the newest, or count why not (returned). Never raises."""
+        tick, image, reason = wm.decode_tick(data)
+        with self._cond:
+            if tick is not None:
+                reason = tick_refusal(self._tick, tick)
+            if tick is None or reason is not None:
+                self.dropped[reason or "bad tick"] += 1
+                return reason or "bad tick"
+            self._tick, self._image = tick, image
+            self._cond.notify_all()
+            return None
+
+    def wait_first(self) -> wm.WorldTick:
         deadline = time.monotonic() + self.timeout_s
         while time.monotonic() < deadline:  # hello until the world answers with a tick
             self.hello()
@@ -75,7 +132,7 @@ class _Link:
             assert self._tick is not None
             return self._tick
 
-    def tick(self) -> dict[str, Any]:
+    def tick(self) -> wm.WorldTick:
         with self._cond:
             if self._tick is None:
                 raise WorldLostError("not connected to the served world yet")
@@ -85,24 +142,30 @@ class _Link:
         with self._cond:
             return self._image
 
-    def call(self, name: str, *args: Any) -> None:
+    def call(self, call: wm.DroneCall) -> None:
         with self._cond:
-            self._calls.append([name, *args])
+            self._calls.append(call)
 
     def hello(self) -> None:
         """Tell the world we are subscribed (cmd of tick -1): it starts ticking when every agent has."""
-        self._pub.put(wm.pack({"v": wm.VERSION, "k": -1, "calls": []}))
+        self._pub.put(wm.encode_cmd(wm.WorldCmd(-1, ())))
+
+    def _put(self, k: int, calls: list[wm.DroneCall]) -> None:
+        """Send `calls` as cmd(s) of tick k: one cmd, or several of wm.MAX_CALLS calls in order (a backlog
+        after the world was lost); the world applies every cmd it receives, in order."""
+        for i in range(0, max(len(calls), 1), wm.MAX_CALLS):
+            self._pub.put(wm.encode_cmd(wm.WorldCmd(k, tuple(calls[i : i + wm.MAX_CALLS]))))
 
     def send(self) -> None:
         """Send the calls made during the current tick as its cmd (once per tick)."""
         with self._cond:
             assert self._tick is not None
-            k = self._tick["k"]
+            k = self._tick.k
             if self._sent_k >= k:
                 return
             calls, self._calls = self._calls, []
             self._sent_k = k
-        self._pub.put(wm.pack({"v": wm.VERSION, "k": k, "calls": calls}))
+        self._put(k, calls)
 
     def step(self) -> None:
         """Send this tick's calls (if not yet sent), then wait for a newer tick."""
@@ -111,7 +174,7 @@ class _Link:
             k = self._sent_k
 
             def newer() -> bool:
-                return self._tick is not None and self._tick["k"] > k
+                return self._tick is not None and self._tick.k > k
 
             if not self._cond.wait_for(newer, self.timeout_s):
                 raise WorldLostError(f"no tick after {k} from the served world within {self.timeout_s:g} s")
@@ -121,9 +184,9 @@ class _Link:
         with self._cond:
             if self._tick is None or not self._calls:
                 return
-            k = self._tick["k"]
+            k = self._tick.k
             calls, self._calls = self._calls, []
-        self._pub.put(wm.pack({"v": wm.VERSION, "k": k, "calls": calls}))
+        self._put(k, calls)
 
     def close(self) -> None:
         for obj in (self._sub, self._pub):
@@ -141,7 +204,7 @@ class RemoteClock:
         self.lost_at: float | None = None
 
     def now(self) -> float:
-        return float(self.link.tick()["t"]) if self.lost_at is None else self.lost_at
+        return self.link.tick().t if self.lost_at is None else self.lost_at
 
     def sleep_until(self, t: float) -> None:
         """Send this tick's cmd (always, even when the world is already past t), then follow the ticks
@@ -165,35 +228,30 @@ class RemoteDrone:
         self.link = link
 
     def connect(self) -> None:
-        self.link.call("connect")
+        self.link.call(wm.DroneCall("connect"))
 
     def takeoff(self) -> None:
-        self.link.call("takeoff")
+        self.link.call(wm.DroneCall("takeoff"))
 
     def land(self) -> None:
-        self.link.call("land")
+        self.link.call(wm.DroneCall("land"))
 
     def emergency_stop(self) -> None:
-        self.link.call("emergency_stop")
+        self.link.call(wm.DroneCall("emergency_stop"))
 
     def send_body_velocity(self, V: np.ndarray) -> None:
-        v = [float(x) if np.isfinite(x) else 0.0 for x in np.asarray(V, dtype=float).reshape(4)]
-        self.link.call("send_body_velocity", v)
+        """V = [v_x, v_y, v_z, ω] (m/s, rad/s); non-finite parts sent as 0, saturated to a Tello's range."""
+        self.link.call(wm.DroneCall(wm.VELOCITY_CALL, wm.saturate_velocity(V)))
 
     def state(self) -> DroneState:
-        s = self.link.tick()["state"]
-        phase = s.get("phase")
-        known = phase if isinstance(phase, str) and phase in FlightPhase._value2member_map_ else ""
-        return DroneState(
-            float(s["battery_pct"]), float(s["height_m"]), bool(s["link_alive"]), bool(s["flying"]), known
-        )
+        return drone_state(self.link.tick())
 
     @property
     def phase(self) -> str:
-        return str(self.link.tick()["state"].get("phase", "ground"))
+        return self.link.tick().state.phase
 
     def close(self) -> None:
-        self.link.call("close")
+        self.link.call(wm.DroneCall("close"))
 
 
 class RemoteCamera:
@@ -201,15 +259,8 @@ class RemoteCamera:
         self.link = link
 
     def latest(self) -> Frame | None:
-        f = self.link.tick().get("frame")
-        if not isinstance(f, dict):
-            return None
-        feats = f.get("features")
-        return Frame(
-            float(f["stamp"]),
-            self.link.image() if f.get("image") is not None else None,
-            None if feats is None else np.array(feats, dtype=float),
-        )
+        with self.link._cond:  # the tick and its image together
+            return camera_frame(self.link.tick(), self.link.image())
 
 
 class RemotePoseSource:
@@ -217,10 +268,7 @@ class RemotePoseSource:
         self.link = link
 
     def latest(self, body: str) -> StampedPose | None:
-        p = self.link.tick().get("poses", {}).get(body)
-        if p is None:
-            return None
-        return StampedPose(float(p[0]), Pose.make(p[1:4], p[4]))
+        return body_pose(self.link.tick(), body)
 
 
 class RemoteBackend:
@@ -262,10 +310,7 @@ class RemoteBackend:
         return None  # the world drives the target
 
     def truth(self) -> tuple[Pose, dict[int, Pose]]:
-        tr = self.link.tick()["truth"]
-        return Pose.from_vector(np.array(tr["target"])), {
-            self.drone_id: Pose.from_vector(np.array(tr["drone"]))
-        }
+        return truth_poses(self.link.tick(), self.drone_id)
 
     def close(self) -> None:
         """Land (queued for the world); the link stays open so the landing can be followed."""

@@ -35,8 +35,8 @@ def served_mission(
     workdir: Path, duration_s: float, name: str = "dry_run", security: str = "plaintext"
 ) -> Path:
     """paper_sim over Zenoh on loopback (world + one endpoint per agent, free ports), dt = 10 ms with the
-    gains scaled to it, one fixed GP expert per drone fitted to its own samples of the paper's target field. `security`
-    "mtls": tls/ endpoints and the mission's certificates in workdir/certs (flightstack certs)."""
+    gains scaled to it, one fixed GP expert per drone fitted to its own samples of the paper's target
+    field. `security` "mtls": tls/ endpoints and the mission's certificates in workdir/certs."""
     from flightstack.gp import GPExpert, GPHyperparameters
     from flightstack.target_motion import DuffingParams, duffing_body_velocity_batch
     from flightstack.training import save_experts
