@@ -153,8 +153,14 @@ class Agent:
         if t - frame.stamp > self.cfg.max_frame_age_s:
             rec.rejection = "stale frame"
             return None
-        if frame.features is not None or frame.image is None or self.cfg.calibration is None:
-            return frame.features
+        if frame.features is not None:
+            f = np.asarray(frame.features, dtype=float).reshape(-1)
+            if f.shape != (2 * len(self.cfg.P0),) or not np.all(np.isfinite(f)):
+                rec.rejection = "bad features"  # e.g. a served frame with another marker count (issue 16)
+                return None
+            return f
+        if frame.image is None or self.cfg.calibration is None:
+            return None
         det = extract_markers(frame.image, self.cfg.calibration)
         rec.rejection = det.reason
         return features_from_detection(det, self.cfg.camera.focal_length)

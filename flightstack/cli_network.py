@@ -133,6 +133,8 @@ def cmd_agent(args: argparse.Namespace) -> int:
             "interrupted": rec.interrupted,
             "error": rec.error,
             "bus_dropped": rec.bus_dropped,
+            # served world only: world ticks this agent refused, by reason (world_messages.py)
+            "world_dropped": dict(backend.link.dropped) if hasattr(backend, "link") else {},
         }
         run_writer.write_metrics(summary, "summary.json")
     except OSError as exc:  # the drone has landed; the row stream and events.jsonl stay readable

@@ -427,7 +427,9 @@ class StatusPublisher:
                     "mode": self.mode,
                     "t": t,
                     "tick": tick,
-                    "battery_pct": st.battery_pct,
+                    # bounded as the receivers require (control.StatusReport): a NaN or out-of-range
+                    # reading must neither raise here nor make the status unreadable to `guard`
+                    "battery_pct": float(np.clip(np.nan_to_num(st.battery_pct, nan=0.0), 0.0, 100.0)),
                     "flying": st.flying,
                     "link_alive": st.link_alive,
                     "visible": bool(last.visible),

@@ -22,7 +22,14 @@ import uuid
 from dataclasses import dataclass, field
 from typing import Any
 
-from flightstack.comms.control import ABORT, AbortAck, ControlEvent, encode_control, read_ack
+from flightstack.comms.control import (
+    ABORT,
+    MAX_REASON_CHARS,
+    AbortAck,
+    ControlEvent,
+    encode_control,
+    read_ack,
+)
 from flightstack.mission import Mission
 
 POLL_S = 0.002  # how often the Zenoh operator session is checked for acknowledgements (s)
@@ -74,7 +81,7 @@ def send_abort(
 
     expected = sorted(d.id for d in mission.drones)
     abort_id = uuid.uuid4().hex
-    payload: dict[str, Any] = {"reason": reason, "id": abort_id}
+    payload: dict[str, Any] = {"reason": reason[:MAX_REASON_CHARS], "id": abort_id}  # longer: refused
     zbus: Any = None
     udp: LoopbackOperatorClient | None = None
     channels: list[str] = []

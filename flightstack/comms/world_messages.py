@@ -53,6 +53,8 @@ from typing import Any
 
 import numpy as np
 
+from flightstack.comms.acl import cmd_key as cmd_key  # the key layout lives with its access control
+from flightstack.comms.acl import tick_key as tick_key
 from flightstack.comms.control import too_deep
 from flightstack.hal import FlightPhase
 
@@ -79,14 +81,6 @@ _ARITY = {name: 1 if name == VELOCITY_CALL else 0 for name in DRONE_CALLS}
 
 PoseRow = tuple[float, float, float, float, float]  # [stamp (s), x, y, z (m), θ (rad)]
 Vec4 = tuple[float, float, float, float]
-
-
-def tick_key(prefix: str, mission: str, drone_id: int | str) -> str:
-    return f"{prefix}/{mission}/world/tick/{drone_id}"
-
-
-def cmd_key(prefix: str, mission: str, drone_id: int | str) -> str:
-    return f"{prefix}/{mission}/world/cmd/{drone_id}"
 
 
 # ---- typed values -------------------------------------------------------------------------------------
