@@ -109,6 +109,10 @@ class BusSpec(_Strict):
 
     kind: Literal["inproc", "zenoh"] = "inproc"
     certs: str = Field(default="certs", min_length=1, max_length=4096)
+    # what a neighbour's prediction may claim (flightstack/comms/acceptance.py): the target's body
+    # velocity μ per component (m/s, rad/s); a message beyond is dropped ("mu out of bounds")
+    max_target_speed_mps: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)] = 10.0
+    max_target_yaw_rate: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)] = 10.0
     stale_after_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 0.5
     zenoh: ZenohSpec | None = None
     operator_port: int | None = Field(default=None, ge=1024, le=65535)

@@ -12,6 +12,7 @@ from collections import Counter
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
+from flightstack.comms.acceptance import AcceptanceBounds
 from flightstack.comms.control import ControlEvent
 from flightstack.comms.freshness import Freshness, OffsetPolicy, TimeBase
 from flightstack.comms.messages import PredictionMessage, encode
@@ -53,10 +54,12 @@ class InProcBus:
         clock: Callable[[], float] | None = None,
         policy: OffsetPolicy | None = None,
         operator: LoopbackOperatorListener | None = None,
+        bounds: AcceptanceBounds | None = None,
     ) -> None:
+        """bounds: what a received prediction may claim (acceptance.py; default AcceptanceBounds())."""
         self.mission = mission
         self.known = frozenset(known_senders)
-        self._book = Freshness(mission, self.known, time_base, clock, policy)
+        self._book = Freshness(mission, self.known, time_base, clock, policy, bounds)
         self.operator = operator
 
     @property

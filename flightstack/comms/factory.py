@@ -25,6 +25,7 @@ from __future__ import annotations
 import socket
 from typing import TYPE_CHECKING, Any
 
+from flightstack.comms.acceptance import AcceptanceBounds
 from flightstack.comms.acl import access_control
 from flightstack.comms.bus import Bus, InProcBus
 from flightstack.comms.certs import CertError, ParticipantFiles, check_participant, files_of, participant_name
@@ -71,6 +72,7 @@ def zenoh_bus_config(mission: Mission, participant: str, self_ids: set[int]) -> 
         acl=acl,
         participant=name,
         allow_all_interfaces=z.allow_all_interfaces,
+        bounds=acceptance_bounds(mission),
         reliable=mission.simulated,  # lock-step waits for every message: a dropped one would stall a tick
         time_base="stamps" if mission.simulated else "receiver",
     )
@@ -106,6 +108,14 @@ def tls_settings(f: ParticipantFiles) -> dict[str, str | bool]:
     }
 
 
+def acceptance_bounds(mission: Mission) -> AcceptanceBounds:
+    """What a received prediction of `mission` may claim (acceptance.py), with the mission's bounds on
+    the target's velocity."""
+    return AcceptanceBounds(
+        max_speed_mps=mission.bus.max_target_speed_mps, max_yaw_rate_rps=mission.bus.max_target_yaw_rate
+    )
+
+
 def make_bus(mission: Mission, participant: str, self_ids: set[int], kind: str | None = None) -> Bus:
     """InProcBus or ZenohBus for the agents `self_ids` of this process; `kind` overrides the mission's.
 
@@ -114,7 +124,10 @@ def make_bus(mission: Mission, participant: str, self_ids: set[int], kind: str |
     kind = kind or mission.bus.kind
     if kind == "inproc":
         return InProcBus(
-            mission.name, {d.id for d in mission.drones}, operator=operator_listener(mission, self_ids)
+            mission.name,
+            {d.id for d in mission.drones},
+            operator=operator_listener(mission, self_ids),
+            bounds=acceptance_bounds(mission),
         )
     from flightstack.comms.zenoh_bus import ZenohBus
 

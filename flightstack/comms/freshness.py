@@ -48,12 +48,14 @@ Thread safety: none here; `ZenohBus` calls every method with its lock held.
 
 from __future__ import annotations
 
+import statistics
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
+from flightstack.comms.acceptance import AcceptanceBounds, SeqState, restart_run, seq_verdict
 from flightstack.comms.messages import PredictionMessage, decode
 
 TimeBase = Literal["stamps", "receiver"]
@@ -69,11 +71,12 @@ class OffsetPolicy:
     rejoin_after_s: float = 2.0  # a sender silent this long (s) re-learns its offset at its next message
     ahead_tolerance_s: float = 0.1  # a message may imply an age down to −this (s) before "stamp ahead"
     drift_ppm: float = 100.0  # plus this clock drift (ppm) times the time since the offset was frozen
+    outlier_s: float = 5.0  # a stamp this far (s) from the sender's others is refused ("stamp outlier")
 
     def __post_init__(self) -> None:
         if self.join_messages < 1:
             raise ValueError("join_messages must be >= 1")
-        for name in ("join_window_s", "rejoin_after_s", "ahead_tolerance_s", "drift_ppm"):
+        for name in ("join_window_s", "rejoin_after_s", "ahead_tolerance_s", "drift_ppm", "outlier_s"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0")
 
@@ -88,6 +91,7 @@ class SenderClock:
     last_heard: float  # receipt time of the newest decodable message, accepted or not (s)
     frozen_at: float | None = None  # receipt time at which the window ended (s); None while learning
     frozen_offset: float = 0.0  # offset when the window ended (s)
+    raws: list[float] = field(default_factory=list)  # t_recv − stamp of the window's messages (s)
 
 
 class Freshness:
@@ -103,6 +107,7 @@ class Freshness:
         time_base: TimeBase = "stamps",
         clock: Callable[[], float] | None = None,
         policy: OffsetPolicy | None = None,
+        bounds: AcceptanceBounds | None = None,
     ) -> None:
         if time_base not in TIME_BASES:
             raise ValueError(f"time_base must be one of {TIME_BASES}, not {time_base!r}")
@@ -119,6 +124,9 @@ class Freshness:
         self.offset_events: list[tuple[float, int, str, float]] = []  # (t_recv s, sender, what, offset s)
         self.dropped: Counter[str] = Counter()
         self.delivered = 0
+        self.bounds = bounds or AcceptanceBounds()
+        self.runs: dict[int, SeqState] = {}  # per sender: the current run of rejected seqs
+        self.restarts: Counter[int] = Counter()  # per sender: sequence restarts accepted
 
     def accept(
         self, data: bytes, key_sender: str | None = None, t_recv: float | None = None
@@ -135,16 +143,25 @@ class Freshness:
         if key_sender is not None and key_sender != str(msg.sender):
             self.dropped["key sender mismatch"] += 1
             return None
-        prev = self.newest.get(msg.sender)
-        if prev is not None and msg.seq <= prev.seq:
-            self.dropped["old or duplicate seq"] += 1
+        bad = self.bounds.violation(msg.g_bar_w, msg.mu, msg.var, msg.prior_var)
+        if bad:
+            self.dropped[bad] += 1
             return None
         if self.time_base == "receiver":
             if t_recv is None:
                 t_recv = self.clock()
-            if not self._learn(msg, t_recv):
-                self.dropped["stamp ahead"] += 1
+            why = self._learn(msg, t_recv)
+            if why:
+                self.dropped[why] += 1
                 return None
+        prev = self.newest.get(msg.sender)
+        why = None if prev is None else seq_verdict(prev.seq, msg.seq, self.bounds)
+        if why:
+            if not restart_run(self.runs.setdefault(msg.sender, SeqState()), msg.seq, self.bounds):
+                self.dropped[why] += 1
+                return None
+            self.restarts[msg.sender] += 1  # a restarted sender (or a slot taken before it): resync
+        self.runs.pop(msg.sender, None)
         self.newest[msg.sender] = msg
         if t_recv is not None:
             self.received[msg.sender] = t_recv
@@ -168,9 +185,16 @@ class Freshness:
         if msg is None:
             return None
         if self.time_base == "stamps":
+            if msg.stamp - now > self.bounds.stamp_ahead_s:  # from the future of the mission clock
+                self.dropped["stamp ahead"] += 1
+                return None
             stale = now - msg.stamp > stale_after
         else:
-            stale = self.clock() - (msg.stamp + self.clocks[sender].offset) > stale_after
+            age = self.clock() - (msg.stamp + self.clocks[sender].offset)
+            if age < -self.policy.ahead_tolerance_s:  # kept before the offset moved past it
+                self.dropped["stamp ahead"] += 1
+                return None
+            stale = age > stale_after
         if stale:
             self.dropped["stale"] += 1
             return None
@@ -181,34 +205,44 @@ class Freshness:
         agent counts seq from 0 again and re-learns its offset)."""
         self.newest.pop(sender, None)
         self.clocks.pop(sender, None)
+        self.runs.pop(sender, None)
 
     def offset(self, sender: int) -> float | None:
         """The learned offset (receiver clock − sender clock, s) of `sender`, None if none yet."""
         c = self.clocks.get(sender)
         return None if c is None else c.offset
 
-    def _learn(self, msg: PredictionMessage, t_recv: float) -> bool:
-        """Update the sender's clock offset with one message received at t_recv; False: "stamp ahead"."""
+    def _learn(self, msg: PredictionMessage, t_recv: float) -> str | None:
+        """Update the sender's clock offset with one message received at t_recv; the drop reason
+        ("stamp ahead" | "stamp outlier") or None."""
         p = self.policy
         raw = t_recv - msg.stamp
         c = self.clocks.get(msg.sender)
         if c is None or t_recv - c.last_heard > p.rejoin_after_s:  # joins, or rejoins after silence
             what = "offset learning" if c is None else "offset re-learning after silence"
-            self.clocks[msg.sender] = SenderClock(offset=raw, n=1, t_first=t_recv, last_heard=t_recv)
+            c = SenderClock(offset=raw, n=1, t_first=t_recv, last_heard=t_recv, raws=[raw])
+            self.clocks[msg.sender] = c
             self.offset_events.append((t_recv, msg.sender, what, raw))
-            self._maybe_freeze(self.clocks[msg.sender], msg.sender, t_recv)
-            return True
+            self._maybe_freeze(c, msg.sender, t_recv)
+            return None
         c.last_heard = t_recv
         if c.frozen_at is None:
-            c.offset = min(c.offset, raw)
+            if len(c.raws) >= 2 and abs(raw - statistics.median([*c.raws, raw])) > p.outlier_s:
+                return "stamp outlier"  # one forged stamp (1e300) must not become the offset
+            c.raws.append(raw)
+            med = statistics.median(c.raws)
+            near = [r for r in c.raws if abs(r - med) <= p.outlier_s]
+            c.offset = min(near) if near else raw  # two far apart: trust the newer until a third decides
             c.n += 1
             self._maybe_freeze(c, msg.sender, t_recv)
-            return True
+            return None
         floor = c.frozen_offset - p.ahead_tolerance_s - p.drift_ppm * 1e-6 * (t_recv - c.frozen_at)
         if raw < floor:
-            return False
+            return "stamp ahead"
+        if raw - c.frozen_offset > p.outlier_s + p.drift_ppm * 1e-6 * (t_recv - c.frozen_at):
+            return "stamp outlier"  # seconds older than any message of the window on arrival
         c.offset = min(c.offset, raw)
-        return True
+        return None
 
     def _maybe_freeze(self, c: SenderClock, sender: int, t_recv: float) -> None:
         if c.n >= self.policy.join_messages or t_recv - c.t_first >= self.policy.join_window_s:

@@ -119,7 +119,7 @@ class ZenohBus:
         self.known = frozenset(cfg.known_senders)
         self._clock = clock or time.monotonic
         self._cond = threading.Condition(threading.Lock())
-        self._book = Freshness(cfg.mission, self.known, cfg.time_base, self._clock, policy)
+        self._book = Freshness(cfg.mission, self.known, cfg.time_base, self._clock, policy, cfg.bounds)
         self._latest = self._book.newest  # the same dict: newest valid message per sender
         self._dropped: Counter[str] = self._book.dropped  # the same counter: every drop reason
         self._acks: list[ControlEvent] = []  # aborts to acknowledge (the ack thread publishes)

@@ -24,6 +24,7 @@ from typing import Any
 import zenoh
 
 from flightstack.comms import acl as keys
+from flightstack.comms.acceptance import AcceptanceBounds
 from flightstack.comms.certs import agent_name
 from flightstack.comms.freshness import TIME_BASES, TimeBase
 from flightstack.comms.messages import MAX_MISSION_NAME
@@ -66,6 +67,7 @@ class ZenohBusConfig:
     acl: dict[str, Any] | None = None  # zenoh's access_control section (flightstack/comms/acl.py)
     participant: str = ""  # certificate CN of this process ("" → agent-<id>, agents or operator)
     allow_all_interfaces: bool = False  # permit listening on 0.0.0.0 / [::]
+    bounds: AcceptanceBounds | None = None  # what a received prediction may claim (acceptance.py)
     reliable: bool = False  # predictions never dropped under congestion (lock-step sims wait for each)
     time_base: TimeBase = "stamps"  # "receiver": real time across computers (module docstring)
 

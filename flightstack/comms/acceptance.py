@@ -1,0 +1,100 @@
+"""Bounded acceptance of received predictions (issue 16): what a neighbour's message may claim.
+
+Decoding (messages.py) proves a message is well formed. These bounds say whether it is *physically and
+logically possible*; a message outside them is dropped and counted by reason (freshness.py), never
+raised, and never changes what the receiver kept of that sender. They hold for authenticated senders
+too: mutual TLS says who sent a message, not that its content is sane.
+
+Values (frames as in messages.py; μ is the target's body velocity, ḡ_w the sender's estimate of the
+target's pose in Σw):
+    var, prior_var       every element in [var_floor, var_ceiling]: a variance of 5e-324 once
+                         overflowed the product-of-experts precision (1/var = inf) and made the fused μ NaN
+    μ                    |v_x|, |v_y|, |v_z| ≤ max_speed_mps (m/s), |ω| ≤ max_yaw_rate_rps (rad/s)
+    ḡ_w                  |x|, |y|, |z| ≤ max_position_m (m), |θ| ≤ max_angle_rad (rad)
+Sequence numbers. The first message of a sender (or after it left) is accepted whatever its seq.
+Afterwards seq must be in (prev, prev + max_seq_jump]: older ones are "old or duplicate seq", larger
+jumps "seq jump". One forged message with seq 2³²−1 can therefore no longer take a sender's slot; if
+one ever is accepted first (before the real sender's first message), the restart rule gets the real
+sender back: `restart_after` consecutive rejected messages whose own seqs increase by at most
+max_seq_jump each are a restarted sender, and the newest of them is accepted (`restarts` counts it).
+Stamps: see freshness.py (time base "stamps": a stamp ahead of the receiver's mission clock is not
+used; "receiver": outliers cannot become the learned offset, and a stamp must be within bounds of it).
+
+Residual risk, plainly. On a plaintext bus anybody who can reach it can still send *plausible* lies
+(a velocity within bounds, a fresh stamp, the next seq): the bounds limit the damage, they do not
+authenticate. Somebody who keeps injecting a consistent forged sequence for a sender can alternate
+restarts with the real sender; mutual TLS with the access control (acl.py) is what stops that.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class AcceptanceBounds:
+    """Bounds on a received prediction (units in the names; module docstring)."""
+
+    var_floor: float = 1e-12  # the GP's latent variance is ≥ ~1e-8 here; 1/1e-12 is far from overflow
+    var_ceiling: float = 1e12
+    max_speed_mps: float = 10.0  # per component of the target's body velocity (the Scamper: ≤ 1 m/s)
+    max_yaw_rate_rps: float = 10.0
+    max_position_m: float = 1000.0
+    max_angle_rad: float = 1000.0  # θ is not wrapped by the observer; only absurd values are refused
+    max_seq_jump: int = 1000  # ≥ the messages a live sender can skip (50 s at 20 Hz)
+    restart_after: int = 3  # consecutive consistent rejects that mean the sender restarted
+    stamp_ahead_s: float = 0.5  # time base "stamps": a stamp this far past the mission clock is not used
+
+    def __post_init__(self) -> None:
+        if not 0 < self.var_floor < self.var_ceiling < math.inf:
+            raise ValueError("need 0 < var_floor < var_ceiling < inf")
+        for name in ("max_speed_mps", "max_yaw_rate_rps", "max_position_m", "max_angle_rad", "stamp_ahead_s"):
+            if not 0 < getattr(self, name) < math.inf:
+                raise ValueError(f"{name} must be positive and finite")
+        if self.max_seq_jump < 1 or self.restart_after < 1:
+            raise ValueError("max_seq_jump and restart_after must be >= 1")
+
+    def violation(
+        self, g: Sequence[float], mu: Sequence[float], var: Sequence[float], prior_var: Sequence[float]
+    ) -> str | None:
+        """The reason these (finite, 4-element) fields are out of bounds, or None."""
+        lo, hi = self.var_floor, self.var_ceiling
+        if not all(lo <= v <= hi for v in (*var, *prior_var)):
+            return "variance out of bounds"
+        if max(abs(mu[0]), abs(mu[1]), abs(mu[2])) > self.max_speed_mps or abs(mu[3]) > self.max_yaw_rate_rps:
+            return "mu out of bounds"
+        if max(abs(g[0]), abs(g[1]), abs(g[2])) > self.max_position_m or abs(g[3]) > self.max_angle_rad:
+            return "pose out of bounds"
+        return None
+
+
+@dataclass
+class SeqState:
+    """A sender's rejected-sequence run, for the restart rule."""
+
+    last: int = -1  # seq of the newest rejected message of the run
+    count: int = 0  # its length
+
+
+def seq_verdict(prev: int, seq: int, bounds: AcceptanceBounds) -> str | None:
+    """Why `seq` does not follow `prev` ("old or duplicate seq" | "seq jump"), or None."""
+    if seq <= prev:
+        return "old or duplicate seq"
+    if seq > prev + bounds.max_seq_jump:
+        return "seq jump"
+    return None
+
+
+def restart_run(run: SeqState, seq: int, bounds: AcceptanceBounds) -> bool:
+    """Extend the rejected run with `seq`; True when it is long enough to be a restarted sender."""
+    if run.count and run.last < seq <= run.last + bounds.max_seq_jump:
+        run.count += 1
+    else:
+        run.count = 1
+    run.last = seq
+    return run.count >= bounds.restart_after
+
+
+__all__ = ["AcceptanceBounds", "SeqState", "restart_run", "seq_verdict"]

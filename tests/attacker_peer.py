@@ -1,0 +1,104 @@
+"""A peer that is not (or must not act as) a participant of a mission, for tests/test_attacker.py.
+
+    python -m tests.attacker_peer SPEC.json
+
+SPEC: {"mission", "prefix", "connect": [endpoints], "tls": null | {zenoh tls keys}, "duration_s",
+"period_s", "forgeries": [names of FORGERIES]}. It opens one Zenoh session (peer mode, connecting to
+every endpoint; plaintext, or TLS with whatever certificate it was given) and puts every forgery every
+`period_s` until `duration_s` has passed; then prints one JSON line: {"sent": {forgery: count},
+"max_peers": the most peers its session ever saw}. Every message is built by hand (struct, json), not
+with the project's encoders, which refuse to produce most of them. Loopback only; stops by itself.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import sys
+import time
+from collections import Counter
+from typing import Any
+
+import zenoh
+
+_HEAD = struct.Struct("<4sBBHIdB")
+_BODY = struct.Struct("<16d")
+
+
+def prediction(mission: str, sender: int, seq: int, stamp: float, var: float, mu: float = 0.0) -> bytes:
+    name = mission.encode()
+    head = _HEAD.pack(b"FSPM", 1, 1, sender, seq, stamp, len(name))
+    body = _BODY.pack(0.0, 0.0, 0.0, 0.0, mu, mu, 0.0, 0.0, *([var] * 4), *([1.0] * 4))
+    return head + name + body
+
+
+def world(header: dict[str, Any]) -> bytes:
+    head = json.dumps(header).encode()
+    return struct.pack("<I", len(head)) + head
+
+
+def control(mission: str, kind: str, payload: dict[str, Any], origin: list[int]) -> bytes:
+    return json.dumps({"mission": mission, "kind": kind, "payload": payload, "origin": origin}).encode()
+
+
+def forgeries(mission: str, prefix: str, k: int) -> dict[str, tuple[str, bytes]]:
+    """name → (key, payload) of every forgery the issue reports, for tick/sequence counter k."""
+    base = f"{prefix}/{mission}"
+    return {
+        # one message that took over sender 2's slot (all real ones after it dropped as old)
+        "pred slot takeover": (f"{base}/pred/2", prediction(mission, 2, 2**32 - 1, 1e300, 0.01)),
+        # a variance that made the fused mean NaN
+        "pred tiny variance": (f"{base}/pred/1", prediction(mission, 1, 10**6 + k, 0.0, 5e-324)),
+        "pred huge mean": (f"{base}/pred/3", prediction(mission, 3, 10**6 + k, 0.0, 0.01, mu=1e6)),
+        "abort": (
+            f"{base}/control/abort",
+            control(mission, "abort", {"reason": "forged", "id": f"f{k}"}, []),
+        ),
+        "status": (
+            f"{base}/control/status/1",
+            control(mission, "status", {"drone": 1, "t": [], "mode": "dgp"}, [1]),
+        ),
+        "world cmd stop": (
+            f"{base}/world/cmd/1",
+            world({"v": 1, "k": k, "calls": [["emergency_stop"]]}),
+        ),
+        "world cmd 50 m/s": (
+            f"{base}/world/cmd/2",
+            world({"v": 1, "k": k, "calls": [["send_body_velocity", [50.0, 0.0, 0.0, 0.0]]]}),
+        ),
+        "world tick": (f"{base}/world/tick/3", world({"v": 1, "k": 10**6 + k, "t": 1.0, "state": {}})),
+        "world cmd crash": (f"{base}/world/cmd/3", world({"v": 1, "k": k, "calls": [[{}]]})),
+    }
+
+
+def main(spec_path: str) -> int:
+    with open(spec_path, encoding="utf-8") as f:
+        spec = json.load(f)
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps(spec["connect"]))
+    for key, value in (spec.get("tls") or {}).items():
+        conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
+    sent: Counter[str] = Counter()
+    max_peers = 0
+    session = zenoh.open(conf)
+    try:
+        t_end = time.monotonic() + float(spec["duration_s"])
+        k = 0
+        while time.monotonic() < t_end:
+            max_peers = max(max_peers, len(list(session.info.peers_zid())))
+            for name, (key, data) in forgeries(spec["mission"], spec["prefix"], k).items():
+                if name in spec["forgeries"]:
+                    session.put(key, data)
+                    sent[name] += 1
+            k += 1
+            time.sleep(float(spec["period_s"]))
+    finally:
+        session.close()
+    print(json.dumps({"sent": dict(sent), "max_peers": max_peers}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1]))
