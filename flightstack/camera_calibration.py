@@ -40,6 +40,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from flightstack.safe_load import LoadError, load_yaml
+
 
 class CalibrationError(ValueError):
     """A calibration file that cannot be used; the message names the key and the reason."""
@@ -179,8 +181,11 @@ def calibration_from_dict(d: object, source: str = "<calibration>") -> CameraCal
         )
     if dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
         raise CalibrationError(f"{source}: dist_coeffs: 4, 5, 8, 12 or 14 finite numbers required")
+    raw_markers = d.get("markers") or []
+    if not isinstance(raw_markers, list):
+        raise CalibrationError(f"{source}: markers: expected a list of marker colours, got {raw_markers!r}")
     markers = []
-    for j, m in enumerate(d.get("markers") or []):
+    for j, m in enumerate(raw_markers):
         key = f"markers.{j}"
         if not isinstance(m, dict) or set(m) - {"name", "hsv_lo", "hsv_hi", "rgb"}:
             raise CalibrationError(f"{source}: {key}: expected keys name, hsv_lo, hsv_hi[, rgb]")
@@ -191,6 +196,10 @@ def calibration_from_dict(d: object, source: str = "<calibration>") -> CameraCal
         rgb = _triple(m["rgb"], f"{key}.rgb", 255) if m.get("rgb") is not None else None
         markers.append(MarkerColour(str(m.get("name", f"marker{j}")), lo, hi, rgb))
     rms = d.get("rms_px")
+    if rms is not None and not (
+        isinstance(rms, int | float) and not isinstance(rms, bool) and math.isfinite(rms) and rms >= 0
+    ):
+        raise CalibrationError(f"{source}: rms_px: a finite number >= 0 (pixels) or null, got {rms!r}")
     return CameraCalibration(
         w,
         h,
@@ -255,10 +264,8 @@ def _views(v: object, source: str) -> tuple[tuple[str, float], ...]:
 
 def load_calibration(path: str | Path) -> CameraCalibration:
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise CalibrationError(f"{path}: cannot read calibration: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        raise CalibrationError(f"{path}: not valid YAML: {exc}") from None
+    try:  # the hardened loader of missions (flightstack/safe_load.py)
+        doc, _ = load_yaml(path, "calibration file")
+    except LoadError as exc:
+        raise CalibrationError(str(exc)) from None
     return calibration_from_dict(doc, str(path))

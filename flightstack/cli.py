@@ -6,6 +6,7 @@ import argparse
 import contextlib
 import json
 import logging
+import math
 import os
 import signal
 import sys
@@ -66,7 +67,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from flightstack.experiment import resolved_mission_yaml, run_experiment, write_run_dir
 
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")  # safety events, live
-    overrides = {"duration_s": args.duration} if args.duration else None
+    overrides = {"duration_s": args.duration} if args.duration is not None else None
     mission = load_mission(args.mission, overrides)
     if args.bus is not None and args.bus != mission.bus.kind:
         mission = load_mission(args.mission, {**(overrides or {}), "bus": _bus_override(mission, args.bus)})
@@ -399,7 +400,7 @@ def _add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
     """The arguments `sim` and `fly` share."""
     p.add_argument("mission", help=mission_help)
     p.add_argument("--out", required=True, help="run directory to write (created if missing)")
-    p.add_argument("--duration", type=float, default=None, help="override duration_s (seconds)")
+    p.add_argument("--duration", type=seconds, default=None, help="override duration_s (seconds, > 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--bus", choices=["inproc", "zenoh"], help="override bus.kind (zenoh: on loopback)")
 
@@ -425,7 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
     tg = sub.add_parser("target", help="drive the real ground robot on the square law (motion capture)")
     tg.add_argument("mission", help="mission YAML file with hardware.mocap and hardware.target")
     tg.add_argument("--laps", type=float, default=1.0, help="laps of the square (default 1)")
-    tg.add_argument("--duration", type=float, default=None, help="seconds instead of laps")
+    tg.add_argument("--duration", type=seconds, default=None, help="seconds instead of laps")
     tg.add_argument("--yes", action="store_true", help="confirm that the robot may move")
     tg.set_defaults(func=cmd_target)
     t = sub.add_parser("train", help="fit GP experts on a recorded run (data collection without GP)")
@@ -440,7 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
     cd.add_argument("--ip", required=True, help="the drone's IP address (station mode)")
     cd.add_argument("--port", type=int, default=8889, help="its command port (8889 on a real Tello)")
     cd.add_argument("--amplitude", type=int, default=40, help="rc step amplitude (units of -100..100)")
-    cd.add_argument("--duration", type=float, default=2.0, help="seconds per step")
+    cd.add_argument("--duration", type=seconds, default=2.0, help="seconds per step")
     cd.add_argument("--timeout", type=float, default=5.0, help="connect timeout (s)")
     cd.add_argument("--out", required=True, help="YAML file to write")
     cd.add_argument("--yes", action="store_true", help="confirm that the drone may take off")
@@ -474,6 +475,17 @@ def cmd_validate(args: argparse.Namespace) -> int:
     m = load_mission(args.mission)
     print(json.dumps(mission_to_dict(m), indent=2))
     return 0
+
+
+def seconds(text: str) -> float:
+    """argparse type of a duration: a finite number of seconds > 0 (else exit 2 naming the value)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of seconds > 0")
+    return value
 
 
 def _sigterm_as_interrupt(signum: int, frame: object) -> None:

@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-import yaml
 from pydantic import (
     BaseModel,
     Field,
@@ -28,11 +27,13 @@ from pydantic import (
 from flightstack.fusion import FUSION_RULES
 from flightstack.geometry import Pose
 from flightstack.mission_bus import BusSpec
+from flightstack.safe_load import Lines, LoadError, line_of, load_yaml
 from flightstack.safety import SafetyLimits
 from flightstack.schema_types import Finite, NonNegative, Positive
 from flightstack.schema_types import Strict as _Strict
 
 MODES = ("none", "local", "dgp", "oracle")
+MAX_TICKS = 10**7  # ticks of one mode (duration_s / dt_s)
 
 # Camera mounts in the drone's FLU body frame (columns: camera x right, y down, z optical axis).
 CAMERA_MOUNTS = {
@@ -369,9 +370,9 @@ class Mission(_Strict):
     name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")
     description: str = ""
     backend: Literal["sim_ideal", "sim_lab", "tello"] = "sim_ideal"
-    seed: int = 0
+    seed: int = Field(default=0, ge=0, le=2**32 - 1)  # numpy's generators take 0 .. 2³²−1
     duration_s: Annotated[float, Field(gt=0, le=86400, allow_inf_nan=False)]
-    dt_s: Annotated[float, Field(gt=0, le=1.0, allow_inf_nan=False)]
+    dt_s: Annotated[float, Field(ge=1e-4, le=1.0, allow_inf_nan=False)]  # 0.1 ms .. 1 s
     compare_modes: list[str] = Field(default=["dgp"], min_length=1)
     target: TargetSpec
     camera: CameraSpec = CameraSpec()
@@ -403,6 +404,11 @@ class Mission(_Strict):
 
     @model_validator(mode="after")
     def _consistent(self) -> Mission:
+        if self.duration_s / self.dt_s > MAX_TICKS:
+            raise ValueError(
+                f"duration_s / dt_s: {self.duration_s / self.dt_s:.3g} ticks per mode; at most {MAX_TICKS:g} "
+                "(the recording holds every tick in memory)"
+            )
         ids = [d.id for d in self.drones]
         if len(set(ids)) != len(ids):
             raise ValueError("drones: ids must be unique")
@@ -447,6 +453,12 @@ class Mission(_Strict):
                 raise ValueError(f"drones: drone {d.id} needs a camera (calibration, mount) on real hardware")
         if not self.safety.enabled:
             raise ValueError("safety.enabled: must be true on real hardware")
+        z = self.bus.zenoh
+        if self.bus.kind == "zenoh" and z is not None and z.security != "mtls":
+            raise ValueError(
+                "bus.zenoh.security: real drones fly only on an authenticated bus (mtls with the "
+                "certificates of `flightstack certs`); plaintext is for simulations on one computer"
+            )
 
     @property
     def simulated(self) -> bool:
@@ -473,23 +485,24 @@ class Mission(_Strict):
         return sorted(out)
 
 
-def _format_errors(err: ValidationError) -> list[str]:
+def _format_errors(err: ValidationError, where: Lines | None = None) -> list[str]:
     lines = []
     for e in err.errors():
         path = ".".join(str(p) for p in e["loc"]) or "(top level)"
         msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
-        lines.append(f"{path}: {msg}")
+        line = line_of(where, e["loc"]) if where else None
+        lines.append(f"{path}: {msg}" + (f" (line {line})" if line else ""))
     return lines
 
 
-def parse_mission(data: object, source: str = "<mission>") -> Mission:
-    """Validate an already-parsed YAML/JSON document."""
+def parse_mission(data: object, source: str = "<mission>", where: Lines | None = None) -> Mission:
+    """Validate an already-parsed YAML/JSON document; `where`: key path → line, for the messages."""
     if not isinstance(data, dict):
         raise MissionError(f"{source}: (top level): a mission must be a mapping of keys")
     try:
         return Mission.model_validate(data)
     except ValidationError as err:
-        lines = _format_errors(err)
+        lines = _format_errors(err, where)
         raise MissionError(
             f"{source}: invalid mission ({len(lines)} problem(s)):\n  " + "\n  ".join(lines)
         ) from None
@@ -503,17 +516,13 @@ def load_mission(
     check_files=False skips the existence checks of referenced files (calibrations, experts) so that
     `flightstack preflight` can report them as rows of its table instead of stopping at the first one."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise MissionError(f"{path}: cannot read mission file: {exc.strerror or exc}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise MissionError(f"{path}: not valid YAML: {exc}") from None
+    try:  # one hardened loader (safe_load.py): regular files only, bounded, UTF-8, no aliases, ...
+        data, where = load_yaml(path, "mission file")
+    except LoadError as exc:
+        raise MissionError(str(exc)) from None
     if isinstance(data, dict) and overrides:
         data = {**data, **overrides}
-    m = parse_mission(data, str(path))
+    m = parse_mission(data, str(path), where)
     m._base_dir = path.resolve().parent
     if not check_files:
         return m
