@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -94,3 +95,32 @@ def secured_bus(
     eps = [e.replace("tcp/", "tls/", 1) for e in free_loopback_endpoints(len(names))]
     endpoints = dict(zip(names, eps, strict=True))
     return {"kind": "zenoh", "certs": str(certs_dir), "zenoh": {"endpoints": endpoints, **zenoh}}
+
+
+def status_payload(drone: int, flying: bool = True, **changes: object) -> dict:
+    """A full status payload (runner.StatusPublisher's fields, exactly what control.StatusReport takes)."""
+    return {
+        "drone": drone,
+        "mode": "dgp",
+        "t": 1.0,
+        "tick": 1,
+        "battery_pct": 80.0,
+        "flying": flying,
+        "link_alive": True,
+        "visible": True,
+        "n_fused": 1,
+        "pose_fresh": True,
+        "rejection": None,
+        "dropped": {},
+        **changes,
+    }
+
+
+def eventually(pred: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    """True as soon as pred() is (polled every 5 ms), else pred() after timeout_s seconds."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.005)
+    return pred()

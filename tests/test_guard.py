@@ -33,6 +33,7 @@ from drivers.guardian_process import Log
 from flightstack.comms.control import ControlEvent
 from flightstack.mission import load_mission
 from tests.conftest import secured_bus
+from tests.conftest import status_payload as status
 from tests.emulators.tello import TelloEmulator, free_udp_port, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
@@ -292,24 +293,6 @@ def test_guard_lands_a_stopped_agents_drone_after_the_lease(lab: dict[str, Any])
     finally:
         for p in (a1, g):
             stop(p)
-
-
-def status(drone: int, flying: bool) -> dict[str, Any]:
-    """A full status payload (runner.StatusPublisher's fields, control.StatusReport)."""
-    return {
-        "drone": drone,
-        "mode": "dgp",
-        "t": 1.0,
-        "tick": 1,
-        "battery_pct": 80.0,
-        "flying": flying,
-        "link_alive": True,
-        "visible": True,
-        "n_fused": 1,
-        "pose_fresh": True,
-        "rejection": None,
-        "dropped": {},
-    }
 
 
 class FakeBus:

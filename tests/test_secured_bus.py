@@ -11,7 +11,6 @@ from __future__ import annotations
 import os
 import stat
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,7 @@ from flightstack.comms.control import ControlEvent
 from flightstack.comms.factory import make_bus, zenoh_bus_config
 from flightstack.comms.messages import PredictionMessage, encode
 from flightstack.mission import MissionError, load_mission
-from tests.conftest import MISSIONS, secured_bus
+from tests.conftest import MISSIONS, eventually, secured_bus
 
 pytest.importorskip("zenoh")
 
@@ -34,15 +33,6 @@ def _msg(mission: str, sender: int, seq: int) -> PredictionMessage:
     return PredictionMessage(mission, sender, seq, 0.01 * seq, True, z, z, np.ones(4), np.ones(4))
 
 
-def _until(cond: Callable[[], bool], timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return False
-
-
 def test_secured_participants_hear_each_other_and_only_on_their_keys(tmp_path: Path) -> None:
     name = load_mission(SIM).name
     bus = secured_bus(tmp_path / "certs", name, [1, 2, 3], ("1", "2"))
@@ -52,7 +42,7 @@ def test_secured_participants_hear_each_other_and_only_on_their_keys(tmp_path: P
     op = make_bus(mission, "operator", set())
     guard = make_bus(mission, "guard", set())
     try:
-        assert _until(lambda: a1.alive() >= {1, 2} and op.alive() >= {1, 2}), (a1.alive(), op.alive())
+        assert eventually(lambda: a1.alive() >= {1, 2} and op.alive() >= {1, 2}), (a1.alive(), op.alive())
         time.sleep(0.5)  # subscriber declarations propagated
         a2.publish(_msg(name, 2, 1))
         assert a1.wait_for({2: 1}, 5.0) == set()

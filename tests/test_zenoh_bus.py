@@ -14,7 +14,7 @@ import sys
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -27,6 +27,7 @@ from flightstack.comms.control import encode_control
 from flightstack.comms.factory import free_loopback_endpoints
 from flightstack.comms.messages import PredictionMessage, encode
 from flightstack.comms.zenoh_bus import ZenohBus, ZenohBusConfig, zenoh_config
+from tests.conftest import eventually, status_payload
 
 REPO = Path(__file__).resolve().parents[1]
 MISSION = "zb_test"
@@ -60,15 +61,6 @@ def same(a: PredictionMessage | None, b: PredictionMessage | None) -> bool:
         b.stamp,
         b.visible,
     ) and all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("g_bar_w", "mu", "var", "prior_var"))
-
-
-def eventually(pred: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.005)
-    return pred()
 
 
 @contextmanager
@@ -385,20 +377,7 @@ def collect_control(bus: ZenohBus, n: int, timeout_s: float = 10.0) -> list:
     return got
 
 
-STATUS = {
-    "drone": 1,
-    "mode": "dgp",
-    "t": 1.0,
-    "tick": 20,
-    "battery_pct": 80.0,
-    "flying": True,
-    "link_alive": True,
-    "visible": True,
-    "n_fused": 1,
-    "pose_fresh": True,
-    "rejection": None,
-    "dropped": {},
-}
+STATUS = status_payload(1, t=1.0, tick=20)
 
 
 def test_control_channel() -> None:
