@@ -94,12 +94,12 @@ def check_files(mission: Mission) -> list[CheckRow]:
     return rows
 
 
-def check_certs(mission: Mission, drone_ids: list[int]) -> list[CheckRow]:
-    """The mission's certificates (issue 16) for what this computer runs: on Zenoh, the pair of its
-    participant (`agent-N` for one drone, `agents` for several) with the mission CA; on the in-process
-    bus, the operator's (the fly process verifies loopback aborts with it, `abort` signs with it).
-    FAIL when missing, unreadable, of another mission or CA, key readable by others, or expired; WARN
-    within WARN_DAYS of expiry."""
+def check_certs(mission: Mission, drone_ids: list[int], all_in_one: bool = False) -> list[CheckRow]:
+    """The mission's certificates (issue 16) for what this computer runs. On Zenoh: its participant's
+    pair (`agent-N` for `--id N`, `agents` for a process flying all, `all_in_one`) with the mission CA.
+    On the in-process bus: the operator's (`fly` verifies loopback aborts with it, `abort` signs).
+    FAIL when missing, unreadable, of another mission or CA, key readable by others, or expired;
+    WARN within WARN_DAYS of expiry."""
     from flightstack.comms.certs import OPERATOR, WARN_DAYS, CertError, agent_name, check_participant
 
     z = mission.bus.zenoh if mission.bus.kind == "zenoh" else None
@@ -107,7 +107,7 @@ def check_certs(mission: Mission, drone_ids: list[int]) -> list[CheckRow]:
         return [_row("bus", "security", False, "plaintext Zenoh on real drones (set security: mtls)")]
     names = [OPERATOR]  # in-process: the fly process verifies the operator's signed aborts
     if z is not None:  # Zenoh: this computer's participant
-        names = [agent_name(drone_ids[0]) if len(drone_ids) == 1 else "agents"]
+        names = ["agents" if all_in_one or len(drone_ids) != 1 else agent_name(drone_ids[0])]
     directory = mission.resolve(mission.bus.certs)
     rows = []
     for name in names:
@@ -117,7 +117,7 @@ def check_certs(mission: Mission, drone_ids: list[int]) -> list[CheckRow]:
             rows.append(_row("bus", f"certificate {name}", False, f"{exc} (flightstack certs)"))
             continue
         detail = f"{directory}: valid until {st.not_after:%Y-%m-%d} ({st.days_left:.0f} days)"
-        rows.append(_row("bus", f"certificate {name}", True, detail, warn=st.days_left < WARN_DAYS))
+        rows.append(_row("bus", f"certificate {name}", st.days_left >= WARN_DAYS, detail, warn=True))
     return rows
 
 
@@ -314,7 +314,7 @@ def run_preflight(
     t_end = time.monotonic() + deadline_s
     for th in threads:
         th.start()
-    rows = check_files(mission) + check_certs(mission, ids)
+    rows = check_files(mission) + check_certs(mission, ids, all_in_one=drone_ids is None)
     try:
         rows.append(check_gains(mission))
     except Exception as exc:
