@@ -26,10 +26,10 @@ from flightstack.camera_calibration import (
 from flightstack.cli import main
 from tests.conftest import MISSIONS, REPO, run_cli
 
-DATA = REPO.parent / "shared" / "data" / "calibration"
+DATA = REPO / "tests" / "data" / "calibration"  # real photos, carried by the repository
 CHESS = DATA / "chessboard_7x7_640x480"
 CIRCLES = DATA / "acircles_4x11_640x512"
-needs_data = pytest.mark.skipif(not CHESS.is_dir() or not CIRCLES.is_dir(), reason="../shared data missing")
+needs_data = pytest.mark.skipif(not CHESS.is_dir() or not CIRCLES.is_dir(), reason="photos missing")
 
 SIM = load_calibration(MISSIONS / "cameras" / "tello_front_sim.yaml")  # 960x720, fx = fy = 700 px, k1 = -0.08
 SIZE = (SIM.width, SIM.height)
