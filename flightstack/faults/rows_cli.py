@@ -81,7 +81,7 @@ def malformed_variants(mission_path: Path) -> dict[str, tuple[str, str]]:
     return {
         "yaml_syntax": (text + "\nextra: [unclosed\n", "not valid YAML"),
         "unknown_key": (variant(unknown_key), "drones.0.speed: unknown key"),
-        "bad_value": (variant(bad_value), "dt_s: Input should be greater than 0"),
+        "bad_value": (variant(bad_value), "dt_s: Input should be greater than or equal to 0.0001"),
         "missing_file": (variant(missing_file), f"drones.{last}.camera.calibration: file not found"),
     }
 

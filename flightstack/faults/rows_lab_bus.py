@@ -177,7 +177,10 @@ def clock_skew(mission_path: Path, workdir: Path) -> FaultResult:
                 if i not in stale_at and rx.latest(i, now, STALE_AFTER_S) is None:
                     stale_at[i] = now - t_stop
             time.sleep(0.001)
-        ahead_never_stale = rx_stamps.latest(1, time.monotonic(), STALE_AFTER_S) is not None
+        # issue 16: a stamp from the future of the receiver's clock is refused ("stamp ahead"); before, the
+        # sender 10 min ahead was fused forever
+        ahead_refused = rx_stamps.latest(1, time.monotonic(), STALE_AFTER_S) is None
+        ahead_refused = ahead_refused and rx_stamps.dropped.get("stamp ahead", 0) > 0
         c.check(checks > 50 and not any(unfused.values()), f"not fused on {unfused} of {checks} checks")
         c.check(set(stale_at) == set(SKEWS), f"stale: {sorted(stale_at)} of {sorted(SKEWS)}")
         if set(stale_at) == set(SKEWS):
@@ -188,8 +191,9 @@ def clock_skew(mission_path: Path, workdir: Path) -> FaultResult:
                 f"stale after {stale_at} s (stale_after {STALE_AFTER_S} s)",
             )
         c.check(rx.dropped.get("stamp ahead", 0) == 0, f"dropped {dict(rx.dropped)}")
-        # the control: comparing stamps (the old time base) fails exactly as issue 15 found
-        c.check(stamps_fused_behind == 0 and ahead_never_stale, "the stamp-comparing control did not fail")
+        # the control: comparing stamps (the old time base) never fuses the sender behind (issue 15), and
+        # refuses the one ahead (issue 16): both fail closed
+        c.check(stamps_fused_behind == 0 and ahead_refused, "the stamp-comparing control did not fail closed")
         offsets = {SKEWS[i]: rx.freshness.offset(i) for i in SKEWS}
         details = {
             "stale_after_last_send_ms": {f"{SKEWS[i]:+g} s": ms(v) for i, v in stale_at.items()},
@@ -197,13 +201,13 @@ def clock_skew(mission_path: Path, workdir: Path) -> FaultResult:
             "unfused": {f"{SKEWS[i]:+g} s": n for i, n in unfused.items()},
             "learned_offset_s": {f"{k:+g} s": None if v is None else round(v, 4) for k, v in offsets.items()},
             "control_behind_fused": stamps_fused_behind,
-            "control_ahead_never_stale": ahead_never_stale,
+            "control_ahead_refused": ahead_refused,
         }
         observed = (
             f"fused on {checks - max(unfused.values())}/{checks} checks for every skew; stale after the last "
             f"send (ms) {details['stale_after_last_send_ms']}; offsets {details['learned_offset_s']}; stamp "
-            f"comparison (control): behind fused {stamps_fused_behind}x, ahead never stale "
-            f"{ahead_never_stale}"
+            f"comparison (control): behind fused {stamps_fused_behind}x, ahead refused "
+            f"{ahead_refused}"
         )
     except Exception as exc:
         crashed = f"{type(exc).__name__}: {exc}"
