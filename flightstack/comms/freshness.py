@@ -147,6 +147,14 @@ class Freshness:
         if bad:
             self.dropped[bad] += 1
             return None
+        prev = self.newest.get(msg.sender)
+        why = None if prev is None else seq_verdict(prev.seq, msg.seq, self.bounds)
+        restart = False
+        if why:  # before the clock: a message refused here must not move the sender's offset
+            if not restart_run(self.runs.setdefault(msg.sender, SeqState()), msg.seq, self.bounds):
+                self.dropped[why] += 1
+                return None
+            restart = True
         if self.time_base == "receiver":
             if t_recv is None:
                 t_recv = self.clock()
@@ -154,12 +162,7 @@ class Freshness:
             if why:
                 self.dropped[why] += 1
                 return None
-        prev = self.newest.get(msg.sender)
-        why = None if prev is None else seq_verdict(prev.seq, msg.seq, self.bounds)
-        if why:
-            if not restart_run(self.runs.setdefault(msg.sender, SeqState()), msg.seq, self.bounds):
-                self.dropped[why] += 1
-                return None
+        if restart:
             self.restarts[msg.sender] += 1  # a restarted sender (or a slot taken before it): resync
         self.runs.pop(msg.sender, None)
         self.newest[msg.sender] = msg
