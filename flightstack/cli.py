@@ -496,6 +496,9 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point. SIGTERM is handled like Ctrl-C: drones land, the recording is written, exit 130."""
     args = build_parser().parse_args(argv)
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
+    # Ctrl-C must stop a run even when whoever started us ignored SIGINT (a background job of a script,
+    # some launchers): Python then keeps SIG_IGN and `kill -INT` would do nothing
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         return int(args.func(args))
     except MissionError as exc:

@@ -50,9 +50,12 @@ def run_cli(*args: str, timeout: float = 400) -> subprocess.CompletedProcess:
     )
 
 
-def interrupt_cli_sim(mission: Path, out: Path, run_seconds: float = 1.0) -> tuple[int, str]:
+def interrupt_cli_sim(
+    mission: Path, out: Path, run_seconds: float = 1.0, sigint_ignored: bool = False
+) -> tuple[int, str]:
     """Start `flightstack sim MISSION --duration 600`, wait for its first progress bar, let it fly
-    `run_seconds`, send SIGINT; returns (exit code, stderr). Bounded: kills the process after 60 s."""
+    `run_seconds`, send SIGINT; returns (exit code, stderr). Bounded: kills the process after 60 s.
+    sigint_ignored: start it with SIGINT ignored, as a background job of a script inherits it."""
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -69,6 +72,7 @@ def interrupt_cli_sim(mission: Path, out: Path, run_seconds: float = 1.0) -> tup
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=(lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if sigint_ignored else None,
     )
     try:
         buf, deadline = "", time.monotonic() + 60

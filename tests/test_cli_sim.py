@@ -61,3 +61,11 @@ def test_sigint_lands_and_writes_partial_recording(tmp_path: Path) -> None:
     assert {e["drone"] for e in events if e["event"] == "landed"} == {1, 2, 3}
     assert not [e for e in events if e["event"] == "NOT LANDED"]
     assert any(e["event"] == "end" and e["reason"] == "interrupted" for e in events)
+
+
+def test_sigint_stops_a_run_started_with_sigint_ignored(tmp_path: Path) -> None:
+    """A background job of a script starts with SIGINT ignored; `kill -INT` must still land and record
+    (the first clean-clone CI of issue 16 ran that way and found `sim` deaf to it)."""
+    code, stderr = interrupt_cli_sim(MISSIONS / "paper_sim.yaml", tmp_path / "run", 0.5, sigint_ignored=True)
+    assert code == 130, stderr[-2000:]
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["interrupted"] is True
