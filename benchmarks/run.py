@@ -17,8 +17,8 @@ M = 1000 vs M = 10, measured vs target), so machine speed cancels in the ratio. 
   the paper simulation with experts of M = 10 and M = 1000 points.
 * Paper simulation speed (sim-seconds per wall-second, 3 drones, mode dgp, shortened run), and the
   lock-step tick of every mode.
-* Marker extraction (flightstack.vision.extract_markers) on 960×720 frames rendered by
-  sim_backend.render with the tello_front_sim calibration, all four markers in view.
+* Marker extraction (flightstack.vision.markers.extract_markers) on 960×720 frames rendered by
+  flightstack.sim_backend.render with the tello_front_sim calibration, all four markers in view.
 * Bus hop latency: encode → InProcBus.publish (decode, validation) → latest; Zenoh through
   benchmarks/zenoh_hop.py when that file exists.
 """
@@ -42,18 +42,18 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from flightstack.backends import build_backend  # noqa: E402
-from flightstack.camera_calibration import load_calibration  # noqa: E402
 from flightstack.comms.bus import InProcBus  # noqa: E402
 from flightstack.comms.messages import PredictionMessage  # noqa: E402
-from flightstack.experiment import TruthPredictor  # noqa: E402
-from flightstack.geometry import Pose  # noqa: E402
-from flightstack.gp import GPExpert, GPHyperparameters, _lml_and_grad, _pairwise_sq_diff  # noqa: E402
-from flightstack.mission import load_mission  # noqa: E402
-from flightstack.projection import CameraModel, points_in_camera  # noqa: E402
-from flightstack.runner import make_agents, run_mode  # noqa: E402
-from flightstack.target_motion import DuffingParams, duffing_body_velocity_batch  # noqa: E402
-from flightstack.vision import extract_markers  # noqa: E402
+from flightstack.config.mission import load_mission  # noqa: E402
+from flightstack.paper.geometry import Pose  # noqa: E402
+from flightstack.paper.gp import GPExpert, GPHyperparameters, _lml_and_grad, _pairwise_sq_diff  # noqa: E402
+from flightstack.paper.projection import CameraModel, points_in_camera  # noqa: E402
+from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch  # noqa: E402
+from flightstack.runtime.backends import build_backend  # noqa: E402
+from flightstack.runtime.experiment import TruthPredictor  # noqa: E402
+from flightstack.runtime.runner import make_agents, run_mode  # noqa: E402
+from flightstack.vision.camera_file import load_calibration  # noqa: E402
+from flightstack.vision.markers import extract_markers  # noqa: E402
 
 PAPER_SIM = REPO / "mission_configs" / "paper_sim.yaml"
 FRONT_CAMERA = REPO / "mission_configs" / "cameras" / "tello_front_sim.yaml"
@@ -154,7 +154,7 @@ def _sklearn_fit(X: np.ndarray, y: np.ndarray, maxiter: int | None):
     from sklearn.gaussian_process import GaussianProcessRegressor
     from sklearn.gaussian_process.kernels import RBF, ConstantKernel
 
-    from flightstack.gp import _LBFGSB_OPTIONS
+    from flightstack.paper.gp import _LBFGSB_OPTIONS
 
     options = dict(_LBFGSB_OPTIONS)
     if maxiter is not None:
@@ -284,7 +284,7 @@ def bench_sim() -> dict[str, dict[str, float]]:
 
 # ---- vision -------------------------------------------------------------------------------------------
 def bench_vision(n_frames: int = 8, number: int = 40) -> dict[str, float]:
-    from sim_backend.render import RenderOptions, render_markers
+    from flightstack.sim_backend.render import RenderOptions, render_markers
 
     cal = load_calibration(FRONT_CAMERA)
     P0 = np.array(load_mission(PAPER_SIM).target.feature_points, dtype=float)

@@ -18,9 +18,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers.tello import TelloConfig, TelloDriver
-from flightstack.tello_rc import RcGains
-from tests.emulators.tello import TelloEmulator, free_udp_port
+from flightstack.drivers.tello import TelloConfig, TelloDriver
+from flightstack.drivers.tello_rc import RcGains
+from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port
 
 AS_DRIVER = {"landed": "ground", "takeoff": "taking_off", "flying": "flying", "landing": "landing"}
 SCENARIOS: dict[str, dict[str, object]] = {

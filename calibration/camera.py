@@ -1,10 +1,11 @@
 """The camera calibration wizard: frames → diverse sharp pattern views → intrinsics → calibration file.
 
-`run_camera_wizard` reads frames from a source (calibration.sources), finds the pattern in each
-(calibration.patterns), keeps a view only if it is sharp enough and not a near-duplicate of a kept one
-(calibration.views), stops after `max_views` kept views, then fits the intrinsics with outlier
-rejection (calibration.solve). Every frame that was not used is reported with its reason. The
-calibration (flightstack.camera_calibration format, with the pattern and each view's error) is returned
+`run_camera_wizard` reads frames from a source (flightstack.calibration.sources), finds the pattern in each
+(flightstack.calibration.patterns), keeps a view only if it is sharp enough and not a near-duplicate of a
+kept one
+(flightstack.calibration.views), stops after `max_views` kept views, then fits the intrinsics with outlier
+rejection (flightstack.calibration.solve). Every frame that was not used is reported with its reason. The
+calibration (flightstack.vision.camera_file format, with the pattern and each view's error) is returned
 only when the fit is trustworthy; `write_calibration` then writes it atomically.
 """
 
@@ -18,10 +19,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calibration.patterns import PatternDetector, PatternSpec
-from calibration.solve import SolveError, SolveOptions, View, calibrate_views
-from calibration.views import Coverage, edge_width_px, outline_distance, outline_in_image
-from flightstack.camera_calibration import CalibrationError, CameraCalibration, load_calibration
+from flightstack.calibration.patterns import PatternDetector, PatternSpec
+from flightstack.calibration.solve import SolveError, SolveOptions, View, calibrate_views
+from flightstack.calibration.views import Coverage, edge_width_px, outline_distance, outline_in_image
+from flightstack.vision.camera_file import CalibrationError, CameraCalibration, load_calibration
 
 #: Exit codes of the calibrate commands.
 EXIT_OK, EXIT_VERDICT, EXIT_BAD_INPUT = 0, 1, 2
@@ -29,7 +30,7 @@ EXIT_OK, EXIT_VERDICT, EXIT_BAD_INPUT = 0, 1, 2
 
 @dataclass(frozen=True)
 class CaptureOptions:
-    """View selection. max_blur_px: largest accepted edge width (px, see calibration.views);
+    """View selection. max_blur_px: largest accepted edge width (px, see flightstack.calibration.views);
     min_change: smallest outline change to every kept view, as a fraction of the image diagonal;
     max_views: stop capturing after this many kept views."""
 
@@ -134,7 +135,8 @@ def run_camera_wizard(
     device: str = "",
     on_frame: Callable[[_Capture], None] | None = None,
 ) -> WizardResult:
-    """Calibrate from `source` (calibration.sources); never raises on image content (see WizardResult)."""
+    """Calibrate from `source` (flightstack.calibration.sources); never raises on image content (see
+    WizardResult)."""
     capture = capture or CaptureOptions()
     solve = solve or SolveOptions()
     cap = _capture(source, PatternDetector(spec), capture, on_frame)

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calibration.patterns import PatternDetector, PatternSpec
-from flightstack.camera_calibration import CameraCalibration
+from flightstack.calibration.patterns import PatternDetector, PatternSpec
+from flightstack.vision.camera_file import CameraCalibration
 
 _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
 

@@ -14,12 +14,19 @@ from pathlib import Path
 
 import cv2
 
-from calibration.camera import EXIT_BAD_INPUT, EXIT_OK, EXIT_VERDICT, CaptureOptions, WizardResult
-from calibration.patterns import PatternSpec
-from calibration.prompts import MissingAnswerError, answer, choice, interactive, positive_float, positive_int
-from calibration.solve import SolveOptions
-from calibration.sources import ImageFolderSource, SourceError, TelloSource, VideoFileSource
-from flightstack.camera_calibration import PATTERN_KINDS, CalibrationError, load_calibration
+from flightstack.calibration.camera import EXIT_BAD_INPUT, EXIT_OK, EXIT_VERDICT, CaptureOptions, WizardResult
+from flightstack.calibration.patterns import PatternSpec
+from flightstack.calibration.prompts import (
+    MissingAnswerError,
+    answer,
+    choice,
+    interactive,
+    positive_float,
+    positive_int,
+)
+from flightstack.calibration.solve import SolveOptions
+from flightstack.calibration.sources import ImageFolderSource, SourceError, TelloSource, VideoFileSource
+from flightstack.vision.camera_file import PATTERN_KINDS, CalibrationError, load_calibration
 
 
 def _error(msg: str, code: int = EXIT_BAD_INPUT) -> int:
@@ -117,7 +124,7 @@ def _print_result(res: WizardResult) -> None:
 
 def cmd_camera(args: argparse.Namespace) -> int:
     """The camera wizard: source → views → intrinsics → calibration file."""
-    from calibration.camera import run_camera_wizard, write_calibration
+    from flightstack.calibration.camera import run_camera_wizard, write_calibration
 
     try:
         source = _open_source(args)
@@ -202,7 +209,7 @@ def _sample_frames(args: argparse.Namespace, limit: int) -> list[tuple[str, obje
 
 def cmd_markers(args: argparse.Namespace) -> int:
     """Pick the markers' HSV thresholds from regions of sample frames and save them to a calibration."""
-    from calibration.markers import MarkerPickError, Region, pick_markers
+    from flightstack.calibration.markers import MarkerPickError, Region, pick_markers
 
     try:
         cal_path = answer(args.calibration, "--calibration", "Calibration file to add the markers to", str)
@@ -244,7 +251,7 @@ def cmd_markers(args: argparse.Namespace) -> int:
     for mk in res.markers:
         print(f"  {mk.name}: hsv_lo {list(mk.hsv_lo)}, hsv_hi {list(mk.hsv_hi)}, rgb {list(mk.rgb or ())}")
     print(f"verified: {res.message}")
-    from flightstack.camera_calibration import CameraCalibration
+    from flightstack.vision.camera_file import CameraCalibration
 
     new = CameraCalibration(**{**base.__dict__, "markers": res.markers})
     try:
@@ -257,7 +264,7 @@ def cmd_markers(args: argparse.Namespace) -> int:
 
 def cmd_check(args: argparse.Namespace) -> int:
     """Load a calibration and report the undistortion of a sample image."""
-    from calibration.check import check_calibration
+    from flightstack.calibration.check import check_calibration
 
     try:
         cal = load_calibration(args.calibration)

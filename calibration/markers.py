@@ -8,7 +8,8 @@ H 0..179, S and V 0..255) are their 1st..99th hue percentiles widened by a margi
 bound at a fraction of their 5th percentiles; S and V upper bounds are 255. The `rgb` paint colour is
 the marker pixels' mean colour.
 
-The thresholds are then verified with the mission's own extractor (flightstack.vision.extract_markers):
+The thresholds are then verified with the mission's own extractor
+(flightstack.vision.markers.extract_markers):
 every sample must show exactly one blob per marker, i.e. exactly m blobs. If a sample fails, a few
 wider and narrower variants are tried (VARIANTS); the first one that passes on every sample is kept.
 """
@@ -20,8 +21,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from flightstack.camera_calibration import CameraCalibration, MarkerColour
-from flightstack.vision import extract_markers
+from flightstack.vision.camera_file import CameraCalibration, MarkerColour
+from flightstack.vision.markers import extract_markers
 
 _MIN_SAT = 50
 _MIN_VAL = 40

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from flightstack.camera_calibration import PATTERN_KINDS
+from flightstack.vision.camera_file import PATTERN_KINDS
 
 #: A ChArUco view with fewer interpolated corners than this is not used.
 MIN_CHARUCO_CORNERS = 8

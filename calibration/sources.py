@@ -100,7 +100,8 @@ class VideoFileSource:
 
 
 class TelloSource:
-    """Live frames from a Tello (drivers.tello), at most `rate_hz` per second for `duration_s` seconds.
+    """Live frames from a Tello (flightstack.drivers.tello), at most `rate_hz` per second for `duration_s`
+    seconds.
 
     The drone does not take off; only the video stream is used (`downward` selects the EDU's downward
     camera). Not covered by tests (needs hardware).
@@ -128,8 +129,8 @@ class TelloSource:
         self.is_stream = True
 
     def frames(self) -> Iterator[SourceFrame]:
-        from drivers.tello import TelloConfig, TelloDriver
-        from drivers.tello_camera import TelloCamera
+        from flightstack.drivers.tello import TelloConfig, TelloDriver
+        from flightstack.drivers.tello_camera import TelloCamera
 
         try:
             driver = TelloDriver(

@@ -1,7 +1,8 @@
 """Synthetic calibration images: a planar pattern seen through a known pinhole camera with OpenCV distortion.
 
 Used to test the wizard against known intrinsics. Frames: the board frame Σb (metres, pattern plane
-z = 0, as in calibration.patterns) is mapped into the camera frame Σc (metres, z = optical axis, x right,
+z = 0, as in flightstack.calibration.patterns) is mapped into the camera frame Σc (metres, z = optical axis,
+x right,
 y down) by P_c = R(rvec)·P_b + tvec. Pixels follow OpenCV (u right, v down, origin at the centre of the
 top-left pixel).
 
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calibration.patterns import PatternSpec
+from flightstack.calibration.patterns import PatternSpec
 
 _RAY_CACHE: dict[tuple[object, ...], np.ndarray] = {}
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)

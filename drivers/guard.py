@@ -3,7 +3,8 @@
 Optional, on the operator's computer, next to `flightstack status`. It joins the mission's Zenoh bus as
 the operator tool "guard" (it connects, hosts no agent, publishes nothing), follows every agent's
 liveliness token `<prefix>/<mission>/alive/<id>` and its status reports (`flying`, about every 0.5 s,
-flightstack/runner.py StatusPublisher; read as validated control.StatusReport: a malformed status, or one
+flightstack/runtime/runner.py StatusPublisher; read as validated control.StatusReport: a malformed status, or
+one
 about a drone its sender does not host, counts as no status), and when an agent vanishes in flight it
 lands that agent's Tello itself: `rc 0 0 0 0` then `land` from its own UDP socket, re-sent every
 `land_resend_s` (1 s) until the drone's telemetry shows it down or `give_up_s` (20 s, beyond the Tello's
@@ -49,11 +50,11 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from drivers.guardian import EXIT_DONE, GuardianConfig
-from drivers.guardian_process import GuardianProcess, Log
-from drivers.hardware import tello_config
 from flightstack.comms.control import ControlEvent, StatusReport, status_report
-from flightstack.mission import Mission
+from flightstack.config.mission import Mission
+from flightstack.drivers.guardian import EXIT_DONE, GuardianConfig
+from flightstack.drivers.guardian_process import GuardianProcess, Log
+from flightstack.drivers.hardware import tello_config
 
 POLL_S = 0.01  # longest wait between two looks at the bus and the landers (s)
 STATUS_FRESH_MIN_S = 2.0  # lower bound of status_fresh_s (s)

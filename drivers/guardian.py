@@ -5,7 +5,8 @@ ticking (SIGSTOP, Ctrl-Z on a process that ignores it, a hang), nothing in it ca
 its last `rc` for up to 15 s (its own auto-land). The guardian is a second, small OS process that does it.
 
 Design (decided):
-- **Launch**: `Guardian.start(cfg)` runs `python -m drivers.guardian` with `start_new_session=True`, so that
+- **Launch**: `Guardian.start(cfg)` runs `python -m flightstack.drivers.guardian` with
+`start_new_session=True`, so that
   Ctrl-C / SIGHUP / SIGTSTP sent to the terminal's process group never reach it, BEFORE takeoff. The parent
   writes one JSON line of `GuardianConfig` on the guardian's stdin and waits (≤ `ready_timeout_s`) for its
   `ready` line on stdout (the guardian has then mapped the flag and opened its own sockets).
@@ -24,7 +25,8 @@ Design (decided):
   drivers/tello_phase), or until `give_up_s` (20 s, beyond the Tello's 15 s auto-land). It does not send
   `command`: the drone is in SDK mode already and executes commands from any source port (DJITelloPy
   PR #163: EDU drones answer only the first client's port, yet execute a second client's commands;
-  tests/emulators/tello.py `reply_port_latch`); no reply is awaited. Telemetry: it binds each Tello state
+  sim_backend/emulators/tello.py `reply_port_latch`); no reply is awaited. Telemetry: it binds each Tello
+  state
   port (SO_REUSEADDR) as soon as it is free; a stopped parent still holds it, a dead one does not. The
   robot: from its own pymavlink connection (`robot_url`, by default the parent's), a GCS heartbeat, a zero
   velocity set-point, a forced disarm (MAV_CMD_COMPONENT_ARM_DISARM, param2 21196) and HOLD mode, every
@@ -75,7 +77,7 @@ class GuardianError(RuntimeError):
 
 
 class TelloLike(Protocol):
-    """What the guardian needs of a drivers.tello_config.TelloConfig (read-only)."""
+    """What the guardian needs of a flightstack.drivers.tello_config.TelloConfig (read-only)."""
 
     @property
     def host(self) -> str: ...
@@ -215,7 +217,7 @@ class Guardian:
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO_ROOT), env.get("PYTHONPATH", "")) if p)
         proc = subprocess.Popen(
-            [sys.executable, "-m", "drivers.guardian"],
+            [sys.executable, "-m", "flightstack.drivers.guardian"],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             start_new_session=True,
@@ -317,6 +319,6 @@ class Guardian:
 
 
 if __name__ == "__main__":
-    from drivers.guardian_process import main
+    from flightstack.drivers.guardian_process import main
 
     sys.exit(main())

@@ -1,4 +1,5 @@
-"""The guardian process itself (`python -m drivers.guardian`); the design is in drivers/guardian.py.
+"""The guardian process itself (`python -m flightstack.drivers.guardian`); the design is in
+drivers/guardian.py.
 
 One thread runs everything (plus a log writer, so that a blocked stderr never delays a takeover): a
 select() loop of ≤ 20 ms over the parent's pipe (stdin), the guardian's own Tello command sockets and the
@@ -23,7 +24,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, TextIO
 
-from drivers.guardian import (
+from flightstack.drivers.guardian import (
     ARM,
     BYE,
     EXIT_BYE,
@@ -36,8 +37,8 @@ from drivers.guardian import (
     GuardianConfig,
     TakeoverFlag,
 )
-from drivers.tello_phase import PhaseThresholds, PhaseTracker
-from drivers.tello_state import StateRejectedError, parse_state
+from flightstack.drivers.tello_phase import PhaseThresholds, PhaseTracker
+from flightstack.drivers.tello_state import StateRejectedError, parse_state
 
 TICK_S = 0.02  # longest select() wait (s)
 BIND_RETRY_S = 0.2  # retry binding a held state port this often (s)
@@ -174,7 +175,7 @@ class Robot:
     def _receive(self, now: float) -> None:
         if self.conn is None:
             return
-        from drivers.scamper_link import is_vehicle_heartbeat
+        from flightstack.drivers.scamper_link import is_vehicle_heartbeat
 
         for _ in range(100):
             try:
@@ -451,7 +452,7 @@ def read_config(timeout_s: float = 10.0) -> str:
 
 
 def main() -> int:
-    """Entry point of `python -m drivers.guardian`."""
+    """Entry point of `python -m flightstack.drivers.guardian`."""
     for sig in (signal.SIGINT, signal.SIGHUP, signal.SIGTSTP, signal.SIGTTOU, signal.SIGTTIN):
         signal.signal(sig, signal.SIG_IGN)
     try:

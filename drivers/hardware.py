@@ -21,15 +21,15 @@ from typing import Any
 
 import numpy as np
 
-from drivers.guardian import Guardian, GuardianConfig
-from drivers.mocap import MocapConfig, MocapPoseSource
-from drivers.scamper import ScamperConfig, ScamperDriver
-from drivers.tello import TelloConfig, TelloDriver
-from drivers.tello_camera import TelloCamera
-from flightstack.geometry import Pose
+from flightstack.config.mission import Mission
+from flightstack.drivers.guardian import Guardian, GuardianConfig
+from flightstack.drivers.mocap import MocapConfig, MocapPoseSource
+from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
+from flightstack.drivers.tello import TelloConfig, TelloDriver
+from flightstack.drivers.tello_camera import TelloCamera
+from flightstack.drivers.tello_rc import RcGains
 from flightstack.hal import FlightPhase, StampedPose
-from flightstack.mission import Mission
-from flightstack.tello_rc import RcGains
+from flightstack.paper.geometry import Pose
 
 LOG = logging.getLogger("flightstack.hardware")
 

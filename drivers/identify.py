@@ -6,9 +6,10 @@ first-order step response with dead time (`fit_first_order_step`)
     v(t) = gain · u · (1 − exp(−(t − t_step − delay) / τ))   for t > t_step + delay,   0 before,
 
 and `identify` repeats this forward and back on every axis and averages the two fits. `fits_to_rc_gains`
-turns the result into the `RcGains` of flightstack.tello_rc and `save_identification` writes it as YAML.
+turns the result into the `RcGains` of flightstack.drivers.tello_rc and `save_identification` writes it as
+YAML.
 
-Axes and signs (body FLU frame, as in flightstack.tello_rc): "x" forward (rc b), "y" left (−rc a),
+Axes and signs (body FLU frame, as in flightstack.drivers.tello_rc): "x" forward (rc b), "y" left (−rc a),
 "z" up (rc c), "yaw" counter-clockwise seen from above (−rc d). A command u > 0 on an axis moves the drone
 in that axis's positive direction, so the identified gains are positive: m/s (x, y, z) or rad/s (yaw) per
 rc unit. Time: monotonic seconds (time.monotonic), the hardware clock of flightstack.
@@ -46,7 +47,8 @@ state, τ = 0.1 s, one 2 s step forward and one back per axis and amplitude; tru
 
 Frames of the state stream (assumption): x forward and y right in the horizontal frame of the takeoff
 heading, z up, yaw clockwise in degrees from that heading — the emulator's convention
-(tests/emulators/tello.py: x/y/z are its true position). Both sources rotate the horizontal velocity into
+(sim_backend/emulators/tello.py: x/y/z are its true position). Both sources rotate the horizontal velocity
+into
 the body frame with the reported yaw; during x/y/z steps the drone does not yaw (only one rc slot is
 non-zero), and `identify` flies the yaw steps last and back and forth, so for x/y the rotation is the
 identity up to a degree of rounding. On a real Tello the x/y/z fields are mission-pad coordinates (constant
@@ -68,7 +70,7 @@ import numpy as np
 import yaml
 from scipy.optimize import least_squares
 
-from flightstack.tello_rc import RC_LIMIT, RcGains
+from flightstack.drivers.tello_rc import RC_LIMIT, RcGains
 
 AXES: tuple[str, ...] = ("x", "y", "z", "yaw")
 """The identifiable axes: x forward, y left, z up (m/s), yaw counter-clockwise (rad/s); body FLU frame."""
@@ -320,7 +322,8 @@ def measure_step(
     propagates. Takes baseline_s + duration_s + settle_s seconds.
 
     Args:
-        driver: a connected, flying drivers.tello.TelloDriver (uses `send_rc` and `current_state`).
+        driver: a connected, flying flightstack.drivers.tello.TelloDriver (uses `send_rc` and
+        `current_state`).
         axis: "x" (forward), "y" (left), "z" (up) or "yaw" (counter-clockwise).
         rc_amplitude: the step in rc units along the axis, 1..100 in magnitude (sign = direction).
         duration_s: length of the step, s.

@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from drivers.tello_link import ERROR_PAUSE_S, ErrorLog
-from flightstack.geometry import Pose
+from flightstack.drivers.tello_link import ERROR_PAUSE_S, ErrorLog
 from flightstack.hal import StampedPose
+from flightstack.paper.geometry import Pose
 
 LOG = logging.getLogger("flightstack.mocap")
 RATE_WINDOW_S = 2.0  # window of the receive-rate estimate (s)

@@ -36,7 +36,7 @@ from typing import Literal
 
 import numpy as np
 
-from flightstack.mission import Mission
+from flightstack.config.mission import Mission
 
 Status = Literal["PASS", "WARN", "FAIL"]
 BODY_WAIT_S = 1.0  # after connecting, how long motion capture gets to report every body (s)
@@ -56,7 +56,7 @@ def _row(device: str, check: str, ok: bool, detail: str, warn: bool = False) -> 
 
 # ---- files and gains (no device) ---------------------------------------------------------------------
 def check_files(mission: Mission) -> list[CheckRow]:
-    from flightstack.camera_calibration import CalibrationError, load_calibration
+    from flightstack.vision.camera_file import CalibrationError, load_calibration
 
     rows = []
     for d in mission.drones:
@@ -122,12 +122,12 @@ def check_certs(mission: Mission, drone_ids: list[int], all_in_one: bool = False
 
 
 def check_gains(mission: Mission) -> CheckRow:
-    from flightstack.control import Gains
-    from flightstack.gain_analysis import gain_condition, region_samples
+    from flightstack.paper.control import Gains
+    from flightstack.paper.gain_analysis import gain_condition, region_samples
 
     experts: list = []
     if mission.gp.experts_file is not None and mission.resolve(mission.gp.experts_file).is_file():
-        from flightstack.training import load_experts
+        from flightstack.runtime.training import load_experts
 
         experts = list(load_experts(mission.resolve(mission.gp.experts_file)).values())
     s = mission.safety
@@ -159,9 +159,9 @@ def check_gains(mission: Mission) -> CheckRow:
 
 # ---- devices -------------------------------------------------------------------------------------------
 def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> list[CheckRow]:
-    from drivers.hardware import tello_config
-    from drivers.tello import TelloDriver
-    from drivers.tello_camera import TelloCamera
+    from flightstack.drivers.hardware import tello_config
+    from flightstack.drivers.tello import TelloDriver
+    from flightstack.drivers.tello_camera import TelloCamera
 
     assert mission.hardware is not None
     cfg = tello_config(mission, drone_id)
@@ -183,7 +183,7 @@ def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> li
 
 
 def _check_camera(mission: Mission, drone_id: int, dev: str, cam: object) -> CheckRow:
-    from flightstack.camera_calibration import load_calibration
+    from flightstack.vision.camera_file import load_calibration
 
     spec = next(d for d in mission.drones if d.id == drone_id)
     assert mission.hardware is not None and spec.camera is not None
@@ -216,8 +216,8 @@ def _check_camera(mission: Mission, drone_id: int, dev: str, cam: object) -> Che
 
 
 def check_mocap(mission: Mission) -> list[CheckRow]:
-    from drivers.hardware import body_names, mocap_config
-    from drivers.mocap import MocapPoseSource
+    from flightstack.drivers.hardware import body_names, mocap_config
+    from flightstack.drivers.mocap import MocapPoseSource
 
     cfg = mocap_config(mission)
     dev = f"mocap ({cfg.system})"
@@ -259,8 +259,8 @@ def check_mocap(mission: Mission) -> list[CheckRow]:
 
 
 def check_robot(mission: Mission) -> list[CheckRow]:
-    from drivers.hardware import scamper_config
-    from drivers.scamper import probe_heartbeat
+    from flightstack.drivers.hardware import scamper_config
+    from flightstack.drivers.scamper import probe_heartbeat
 
     cfg = scamper_config(mission)
     if cfg is None:

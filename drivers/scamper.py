@@ -71,7 +71,7 @@ from typing import Any
 import numpy as np
 from pymavlink import mavutil
 
-from drivers.scamper_link import (
+from flightstack.drivers.scamper_link import (
     GCS_HEARTBEAT_PERIOD_S,
     ROVER_GUIDED_MODE,
     TYPE_MASK_VEL_YAWRATE,
@@ -84,7 +84,7 @@ from drivers.scamper_link import (
     is_vehicle_heartbeat,
     probe_heartbeat,
 )
-from drivers.tello_link import MutedCheck
+from flightstack.drivers.tello_link import MutedCheck
 
 __all__ = [
     "GCS_HEARTBEAT_PERIOD_S",

@@ -1,7 +1,7 @@
 """`flightstack target MISSION`: drive the real ground robot on the paper's square law from motion capture.
 
 This is the paper's own set-up (Sec. 6): the robot's body velocity is computed on a computer from its
-motion-capture pose by eq. (scamper_vel) (`flightstack.target_law.SquareLaw`) and sent over MAVLink.
+motion-capture pose by eq. (scamper_vel) (`flightstack.paper.target_law.SquareLaw`) and sent over MAVLink.
 It runs on its own (a separate terminal or computer) while the drones fly their mission, or from a
 mission whose `hardware.target` is set.
 
@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flightstack.hal import GroundRobot, PoseSource
-from flightstack.target_law import SquareLaw
+from flightstack.paper.target_law import SquareLaw
 
 
 @dataclass

@@ -47,7 +47,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.tello_config import (
+from flightstack.drivers.tello_config import (
     DEFAULT_VIDEO_PORT,
     PreflightCheck,
     TelloCommandError,
@@ -57,11 +57,11 @@ from drivers.tello_config import (
     parse_sdk,
     parse_serial,
 )
-from drivers.tello_link import CommandChannel, ErrorLog, StateReceiver
-from drivers.tello_phase import PhaseTracker
-from drivers.tello_state import TelloTelemetry
+from flightstack.drivers.tello_link import CommandChannel, ErrorLog, StateReceiver
+from flightstack.drivers.tello_phase import PhaseTracker
+from flightstack.drivers.tello_rc import velocity_to_rc
+from flightstack.drivers.tello_state import TelloTelemetry
 from flightstack.hal import DroneState, FlightPhase
-from flightstack.tello_rc import velocity_to_rc
 
 __all__ = [
     "DEFAULT_VIDEO_PORT",
@@ -484,7 +484,7 @@ class TelloDriver:
     # ---- preflight --------------------------------------------------------------------------------
     def preflight(self) -> list[PreflightCheck]:
         """Battery, temperature, state stream, on the ground, SDK version and serial, Wi-Fi signal."""
-        from drivers.tello_preflight import tello_preflight
+        from flightstack.drivers.tello_preflight import tello_preflight
 
         return tello_preflight(self)
 

@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.tello import DEFAULT_VIDEO_PORT, TelloCommandError, TelloDriver
-from drivers.tello_link import ERROR_PAUSE_S, ErrorLog
+from flightstack.drivers.tello import DEFAULT_VIDEO_PORT, TelloCommandError, TelloDriver
+from flightstack.drivers.tello_link import ERROR_PAUSE_S, ErrorLog
 from flightstack.hal import Frame
 
 LOG = logging.getLogger("flightstack.tello")

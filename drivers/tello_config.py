@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from drivers.tello_phase import PhaseThresholds
-from flightstack.tello_rc import RcGains
+from flightstack.drivers.tello_phase import PhaseThresholds
+from flightstack.drivers.tello_rc import RcGains
 
 DEFAULT_VIDEO_PORT = 11111
 

@@ -35,7 +35,7 @@ from collections import Counter, deque
 from collections.abc import Callable
 from typing import ClassVar
 
-from drivers.tello_state import StateRejectedError, TelloTelemetry, parse_state
+from flightstack.drivers.tello_state import StateRejectedError, TelloTelemetry, parse_state
 
 LOG = logging.getLogger("flightstack.tello")
 MAX_REPLY_BYTES = 256

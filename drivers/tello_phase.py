@@ -33,7 +33,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-from drivers.tello_state import TelloTelemetry
+from flightstack.drivers.tello_state import TelloTelemetry
 from flightstack.hal import FlightPhase
 
 

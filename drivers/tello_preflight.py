@@ -7,11 +7,11 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from drivers.tello_config import PreflightCheck, parse_int_reply
+from flightstack.drivers.tello_config import PreflightCheck, parse_int_reply
 from flightstack.hal import FlightPhase
 
 if TYPE_CHECKING:
-    from drivers.tello import TelloDriver
+    from flightstack.drivers.tello import TelloDriver
 
 
 def tello_preflight(driver: TelloDriver) -> list[PreflightCheck]:

@@ -13,7 +13,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from flightstack.geometry import Pose
+from flightstack.paper.geometry import Pose
 
 
 @runtime_checkable

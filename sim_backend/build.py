@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from flightstack.geometry import Pose, compose, inverse
-from flightstack.mission import Mission
-from flightstack.projection import CameraModel
-from flightstack.target_motion import DuffingParams, duffing_body_velocity
-from sim_backend.ideal import IdealSimBackend
-from sim_backend.world import World
+from flightstack.config.mission import Mission
+from flightstack.paper.geometry import Pose, compose, inverse
+from flightstack.paper.projection import CameraModel
+from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity
+from flightstack.sim_backend.ideal import IdealSimBackend
+from flightstack.sim_backend.world import World
 
 
 def initial_drone_pose(mission: Mission, index: int) -> Pose:

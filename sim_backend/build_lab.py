@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from flightstack.camera_calibration import load_calibration
-from flightstack.geometry import Pose
-from flightstack.mission import Mission
-from flightstack.tello_rc import RcGains
-from sim_backend.build import initial_drone_pose
-from sim_backend.ideal import VirtualClock
-from sim_backend.lab import (
+from flightstack.config.mission import Mission
+from flightstack.drivers.tello_rc import RcGains
+from flightstack.paper.geometry import Pose
+from flightstack.sim_backend.build import initial_drone_pose
+from flightstack.sim_backend.ideal import VirtualClock
+from flightstack.sim_backend.lab import (
     LabWorld,
     MocapParams,
     MocapSim,
@@ -21,7 +20,8 @@ from sim_backend.lab import (
     TelloSim,
     camera_extrinsic,
 )
-from sim_backend.render import RenderOptions
+from flightstack.sim_backend.render import RenderOptions
+from flightstack.vision.camera_file import load_calibration
 
 
 class LabSimBackend:

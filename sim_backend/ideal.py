@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from flightstack.geometry import Pose, relative
 from flightstack.hal import DroneState, Frame, StampedPose
-from flightstack.projection import CameraModel, TargetNotVisibleError, measure
-from sim_backend.world import World
+from flightstack.paper.geometry import Pose, relative
+from flightstack.paper.projection import CameraModel, TargetNotVisibleError, measure
+from flightstack.sim_backend.world import World
 
 
 class VirtualClock:

@@ -14,11 +14,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flightstack.camera_calibration import CameraCalibration
-from flightstack.geometry import Pose, integrate_body_velocity, relative, rot_z
+from flightstack.config.mission import CAMERA_MOUNTS
+from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
 from flightstack.hal import DroneState, Frame, StampedPose
-from flightstack.mission import CAMERA_MOUNTS
-from flightstack.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
+from flightstack.paper.geometry import Pose, integrate_body_velocity, relative, rot_z
+from flightstack.vision.camera_file import CameraCalibration
 
 
 @dataclass(frozen=True)
@@ -237,7 +237,7 @@ class RenderedCamera:
         self.frames = 0
 
     def latest(self) -> Frame:
-        from sim_backend.render import render_markers
+        from flightstack.sim_backend.render import render_markers
 
         g_i0 = relative(self.world.drones[self.id].pose, self.world.robot.pose)
         R = rot_z(g_i0.theta)

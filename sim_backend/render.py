@@ -1,7 +1,8 @@
 """The simulated camera image: the target's coloured disc markers seen through a calibrated lens.
 
 Frames and units: marker centres and normals are given in the physical camera frame Σc (metres; z = optical
-axis, x right, y down, as in OpenCV and flightstack.projection). Pixel coordinates follow OpenCV: u to the
+axis, x right, y down, as in OpenCV and flightstack.paper.projection). Pixel coordinates follow OpenCV: u to
+the
 right, v down, the origin at the centre of the top-left pixel, so pixel (row i, column j) covers
 [j − ½, j + ½] × [i − ½, i + ½].
 
@@ -26,7 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from flightstack.camera_calibration import CameraCalibration
+from flightstack.vision.camera_file import CameraCalibration
 
 #: Discs closer than this to the camera plane (metres along z) are clipped away.
 NEAR_PLANE_M = 1e-3

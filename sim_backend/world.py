@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flightstack.geometry import Pose, integrate_body_velocity
+from flightstack.paper.geometry import Pose, integrate_body_velocity
 
 
 @dataclass

@@ -13,7 +13,7 @@ import numpy as np
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
-from flightstack.geometry import Pose
+from flightstack.paper.geometry import Pose
 
 # Property tests are deterministic in CI and locally: the same examples every run (derandomize), no
 # wall-clock deadline (a 2-core CI machine under load must not turn a slow example into a failure).
@@ -42,7 +42,7 @@ def twists(draw: st.DrawFn) -> np.ndarray:
 def run_cli(*args: str, timeout: float = 400) -> subprocess.CompletedProcess:
     """Run `flightstack ARGS` in a subprocess from the repository root (bounded by `timeout` s)."""
     return subprocess.run(
-        [sys.executable, "-m", "flightstack.cli", *args],
+        [sys.executable, "-m", "flightstack.cli.app", *args],
         capture_output=True,
         text=True,
         timeout=timeout,
@@ -60,7 +60,7 @@ def interrupt_cli_sim(
         [
             sys.executable,
             "-m",
-            "flightstack.cli",
+            "flightstack.cli.app",
             "sim",
             str(mission),
             "--out",

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from flightstack.cli import main
+from flightstack.cli.app import main
 from flightstack.comms.abort import send_abort
 from flightstack.comms.certs import create_mission_certs, operator_private_key, operator_public_key
 from flightstack.comms.control import encode_control
@@ -31,11 +31,11 @@ from flightstack.comms.operator_link import (
     operator_port,
     signed_datagram,
 )
-from flightstack.mission import MissionError, load_mission
-from flightstack.runner import OperatorAbortError, _check_operator
+from flightstack.config.mission import MissionError, load_mission
+from flightstack.runtime.runner import OperatorAbortError, _check_operator
 from tests.conftest import MISSIONS, REPO
 
-CLI = (sys.executable, "-m", "flightstack.cli")
+CLI = (sys.executable, "-m", "flightstack.cli.app")
 ACK_LINE = re.compile(r"acknowledged by drones \[([\d, ]+)\] in ([\d.]+) ms \(pid \d+ on .+, (\w+)\)")
 
 
@@ -238,7 +238,7 @@ def test_abort_a_running_inproc_sim_from_another_terminal(tmp_path: Path) -> Non
         time.sleep(0.5)  # in the control loop
         t0 = time.monotonic()
         abort = subprocess.run(
-            [sys.executable, "-m", "flightstack.cli", "abort", str(mission), "--timeout", "5"],
+            [sys.executable, "-m", "flightstack.cli.app", "abort", str(mission), "--timeout", "5"],
             cwd=REPO,
             capture_output=True,
             text=True,
@@ -332,7 +332,7 @@ def test_cli_abort_of_agent_processes(tmp_path: Path) -> None:
     with ServedRun(mission_path, tmp_path) as run:
         assert run.world_lines.wait_for("tick 200", 60), run.world_lines.rest()
         abort = subprocess.run(
-            [sys.executable, "-m", "flightstack.cli", "abort", str(mission_path), "--timeout", "5"],
+            [sys.executable, "-m", "flightstack.cli.app", "abort", str(mission_path), "--timeout", "5"],
             cwd=REPO,
             capture_output=True,
             text=True,

@@ -27,7 +27,7 @@ def test_status_then_abort_lands_everyone(tmp_path: Path) -> None:
         world, wlines, agents = run.world, run.world_lines, run.agents
         assert wlines.wait_for("tick 200", 60), wlines.rest()
         status = subprocess.run(
-            [sys.executable, "-m", "flightstack.cli", "status", str(mission), "--once"],
+            [sys.executable, "-m", "flightstack.cli.app", "status", str(mission), "--once"],
             cwd=REPO,
             capture_output=True,
             text=True,
@@ -35,7 +35,7 @@ def test_status_then_abort_lands_everyone(tmp_path: Path) -> None:
         )
         t0 = time.monotonic()
         abort = subprocess.run(
-            [sys.executable, "-m", "flightstack.cli", "abort", str(mission)],
+            [sys.executable, "-m", "flightstack.cli.app", "abort", str(mission)],
             cwd=REPO,
             capture_output=True,
             text=True,
@@ -98,7 +98,7 @@ def test_agent_without_a_world_fails_clearly(tmp_path: Path) -> None:
         [
             sys.executable,
             "-m",
-            "flightstack.cli",
+            "flightstack.cli.app",
             "agent",
             str(mission),
             "--id",

@@ -18,7 +18,7 @@ from flightstack.comms.acceptance import AcceptanceBounds
 from flightstack.comms.bus import InProcBus
 from flightstack.comms.freshness import Freshness
 from flightstack.comms.messages import PredictionMessage
-from flightstack.fusion import FUSION_RULES, fuse
+from flightstack.paper.fusion import FUSION_RULES, fuse
 from tests.attacker_peer import prediction
 
 MISSION = "acc"

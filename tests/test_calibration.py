@@ -12,18 +12,18 @@ import numpy as np
 import pytest
 import yaml
 
-from calibration import prompts
-from calibration.camera import CaptureOptions, run_camera_wizard
-from calibration.patterns import PatternSpec
-from calibration.solve import SolveError, SolveOptions, View, calibrate_views
-from calibration.sources import SourceFrame
-from calibration.synthetic import board_texture, random_poses, render_view
-from flightstack.camera_calibration import (
+from flightstack.calibration import prompts
+from flightstack.calibration.camera import CaptureOptions, run_camera_wizard
+from flightstack.calibration.patterns import PatternSpec
+from flightstack.calibration.solve import SolveError, SolveOptions, View, calibrate_views
+from flightstack.calibration.sources import SourceFrame
+from flightstack.calibration.synthetic import board_texture, random_poses, render_view
+from flightstack.cli.app import main
+from flightstack.vision.camera_file import (
     CalibrationError,
     calibration_from_dict,
     load_calibration,
 )
-from flightstack.cli import main
 from tests.conftest import MISSIONS, REPO, run_cli
 
 DATA = REPO / "tests" / "data" / "calibration"  # real photos, carried by the repository

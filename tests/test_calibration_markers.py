@@ -1,4 +1,4 @@
-"""`flightstack calibrate markers`: HSV thresholds from regions, verified with flightstack.vision."""
+"""`flightstack calibrate markers`: HSV thresholds from regions, verified with flightstack.vision.markers."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from flightstack.camera_calibration import CameraCalibration, load_calibration
-from flightstack.cli import main
-from flightstack.vision import extract_markers
-from sim_backend.render import RenderOptions, render_markers
+from flightstack.cli.app import main
+from flightstack.sim_backend.render import RenderOptions, render_markers
+from flightstack.vision.camera_file import CameraCalibration, load_calibration
+from flightstack.vision.markers import extract_markers
 from tests.conftest import MISSIONS
 
 PAINTED = load_calibration(MISSIONS / "cameras" / "tello_down_sim.yaml")  # 320x240, 4 painted markers

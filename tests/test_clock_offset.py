@@ -21,7 +21,7 @@ import pytest
 from flightstack.comms.factory import free_loopback_endpoints, make_bus, zenoh_bus_config
 from flightstack.comms.freshness import Freshness, OffsetPolicy
 from flightstack.comms.messages import PredictionMessage, encode
-from flightstack.mission import load_mission
+from flightstack.config.mission import load_mission
 from tests.conftest import MISSIONS, secured_bus
 
 MISSION = "clock_test"

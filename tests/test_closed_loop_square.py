@@ -1,6 +1,6 @@
 """Closed loop on loopback: rover emulator → NatNet emulator → motioncapture → MocapPoseSource → SquareLaw →
 ScamperDriver → MAVLink → rover emulator. One lap of the paper's square, time-scaled to keep CI fast, run
-by `drivers.target_run.drive_square` (what `flightstack target` runs).
+by `flightstack.drivers.target_run.drive_square` (what `flightstack target` runs).
 
 Time scaling: the paper's law (1 m side at 0.1 m/s, gain 0.05 s⁻¹, one rotation per 40 s lap) is run 5×
 faster: speed 0.5 m/s (lap 8 s), gain 0.25 s⁻¹; SquareLaw ties the yaw rate to the lap time (2π / 8 s), so
@@ -23,13 +23,13 @@ import pytest
 pytest.importorskip("motioncapture")
 pytest.importorskip("pymavlink")
 
-from drivers.mocap import MocapConfig, MocapPoseSource
-from drivers.scamper import ScamperConfig, ScamperDriver
-from drivers.target_run import drive_square
-from flightstack.geometry import Pose, compose
-from flightstack.target_law import SquareLaw
-from tests.emulators.mavlink_rover import MavlinkRoverEmulator
-from tests.emulators.natnet import NatNetEmulator
+from flightstack.drivers.mocap import MocapConfig, MocapPoseSource
+from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
+from flightstack.drivers.target_run import drive_square
+from flightstack.paper.geometry import Pose, compose
+from flightstack.paper.target_law import SquareLaw
+from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
+from flightstack.sim_backend.emulators.natnet import NatNetEmulator
 
 TIME_SCALE = 5.0  # the paper's experiment, 5x faster
 LAW = SquareLaw(side=1.0, speed=0.1 * TIME_SCALE, gain=0.05 * TIME_SCALE, theta0=0.0)

@@ -1,6 +1,7 @@
 """The pursuit law against the paper's storage-function identity (Lemma S), by finite differences.
 
-The error dynamics are integrated with scipy's expm on 4×4 matrices, independent of flightstack.geometry:
+The error dynamics are integrated with scipy's expm on 4×4 matrices, independent of
+flightstack.paper.geometry:
     ġ_e = û_e g_e + g_e V̂_w0,    ġ_c = û_c g_c − g_c û_e            (paper eq. e)
 """
 
@@ -14,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.linalg import expm
 
-from flightstack.control import (
+from flightstack.paper.control import (
     Gains,
     consensus_term,
     control_error,
@@ -22,7 +23,7 @@ from flightstack.control import (
     pursuit_law,
     storage_function,
 )
-from flightstack.geometry import Pose, ad_g, ad_R, compose, hat, inverse, vec
+from flightstack.paper.geometry import Pose, ad_g, ad_R, compose, hat, inverse, vec
 
 small = st.floats(-0.5, 0.5)
 ang = st.floats(-1.2, 1.2)

@@ -25,10 +25,7 @@ import numpy as np
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from drivers.guard import AgentWatch, Guard, GuardSummary
-from flightstack.backends import build_backend
-from flightstack.cli_network import status_table
-from flightstack.comms import world_messages as wm
+from flightstack.cli.network import status_table
 from flightstack.comms.control import (
     ABORT,
     ABORT_ACK,
@@ -45,7 +42,12 @@ from flightstack.comms.control import (
     read_ack,
     status_report,
 )
-from flightstack.comms.world_client import (
+from flightstack.config.mission import load_mission
+from flightstack.drivers.guard import AgentWatch, Guard, GuardSummary
+from flightstack.hal import DroneState, Frame, StampedPose
+from flightstack.runtime.backends import build_backend
+from flightstack.sim_backend.served import messages as wm
+from flightstack.sim_backend.served.client import (
     RemoteBackend,
     RemoteCamera,
     RemoteClock,
@@ -53,9 +55,7 @@ from flightstack.comms.world_client import (
     RemotePoseSource,
     _Link,
 )
-from flightstack.hal import DroneState, Frame, StampedPose
-from flightstack.mission import load_mission
-from sim_backend.served import WorldServer
+from flightstack.sim_backend.served.server import WorldServer
 from tests.conftest import MISSIONS
 
 MISSION = "prop_test"

@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.mocap import MocapConfig, MocapPoseSource
-from drivers.tello_link import CommandChannel
+from flightstack.drivers.mocap import MocapConfig, MocapPoseSource
+from flightstack.drivers.tello_link import CommandChannel
 from flightstack.faults.rows_lab_drivers import FaultySocket
 
 
@@ -47,7 +47,7 @@ def thread_names() -> set[str]:
 @pytest.fixture
 def tello() -> Iterator[Any]:
     pytest.importorskip("av")
-    from tests.emulators.tello import TelloEmulator, free_udp_port
+    from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port
 
     emu = TelloEmulator(
         "127.0.0.31", state_port=free_udp_port(), video_port=free_udp_port(), fps=30.0, video_size=(320, 240)
@@ -60,7 +60,7 @@ def tello() -> Iterator[Any]:
 
 
 def tello_driver(emu: Any) -> Any:
-    from drivers.tello import TelloConfig, TelloDriver
+    from flightstack.drivers.tello import TelloConfig, TelloDriver
 
     cfg = TelloConfig(
         host=emu.ip,
@@ -78,7 +78,7 @@ def tello_driver(emu: Any) -> Any:
 def test_tello_state_receiver_survives_socket_and_parse_errors(
     tello: Any, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import drivers.tello_link as tello_link
+    import flightstack.drivers.tello_link as tello_link
 
     caplog.set_level(logging.WARNING, "flightstack.tello")
     d = tello_driver(tello)
@@ -115,7 +115,7 @@ def test_tello_state_receiver_survives_socket_and_parse_errors(
 def test_tello_command_channel_and_monitor_survive_errors(
     tello: Any, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from drivers.tello import parse_int_reply
+    from flightstack.drivers.tello import parse_int_reply
 
     caplog.set_level(logging.WARNING, "flightstack.tello")
     d = tello_driver(tello)
@@ -158,7 +158,7 @@ def test_tello_command_channel_and_monitor_survive_errors(
 def test_tello_video_reader_survives_socket_and_decoder_errors(
     tello: Any, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from drivers.tello_camera import TelloCamera
+    from flightstack.drivers.tello_camera import TelloCamera
 
     caplog.set_level(logging.WARNING, "flightstack.tello")
     d = tello_driver(tello)
@@ -294,7 +294,7 @@ def test_mocap_reader_survives_errors_fake_backend(caplog: pytest.LogCaptureFixt
 
 def test_mocap_reader_survives_errors_natnet_emulator() -> None:
     motioncapture = pytest.importorskip("motioncapture")
-    from tests.emulators.natnet import NatNetEmulator
+    from flightstack.sim_backend.emulators.natnet import NatNetEmulator
 
     flaky: list[FlakyMocap] = []
 
@@ -317,7 +317,7 @@ def test_mocap_reader_survives_errors_natnet_emulator() -> None:
 @pytest.fixture
 def rover() -> Iterator[Any]:
     pytest.importorskip("pymavlink")
-    from tests.emulators.mavlink_rover import MavlinkRoverEmulator
+    from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
 
     emu = MavlinkRoverEmulator(heartbeat_hz=10.0)
     try:
@@ -327,7 +327,7 @@ def rover() -> Iterator[Any]:
 
 
 def scamper(emu: Any) -> Any:
-    from drivers.scamper import ScamperConfig, ScamperDriver
+    from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
 
     return ScamperDriver(ScamperConfig(url=emu.url, heartbeat_timeout_s=3.0, ack_timeout_s=0.5))
 
@@ -400,7 +400,7 @@ def test_scamper_threads_survive_send_receive_and_handler_errors(
 def test_scamper_mute_stops_every_send(rover: Any) -> None:
     from pymavlink import mavutil
 
-    from drivers.scamper import ScamperCommandError
+    from flightstack.drivers.scamper import ScamperCommandError
 
     arm_disarm = mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM
 
@@ -429,7 +429,7 @@ def test_scamper_mute_stops_every_send(rover: Any) -> None:
 
 
 def test_scamper_mute_set_before_connect_and_lifted(rover: Any) -> None:
-    from drivers.scamper import ScamperConfig, ScamperDriver
+    from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
 
     flag = [False]
     drv = ScamperDriver(ScamperConfig(url=rover.url, heartbeat_timeout_s=3.0), muted=lambda: flag[0])

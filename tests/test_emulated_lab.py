@@ -21,14 +21,14 @@ pytest.importorskip("av")
 pytest.importorskip("motioncapture")
 pytest.importorskip("pymavlink")
 
-from flightstack.camera_calibration import load_calibration
-from flightstack.cli import main
+from flightstack.cli.app import main
 from flightstack.comms.certs import create_mission_certs
-from flightstack.geometry import Pose, compose
+from flightstack.paper.geometry import Pose, compose
+from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
+from flightstack.sim_backend.emulators.natnet import NatNetEmulator
+from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port
+from flightstack.vision.camera_file import load_calibration
 from tests.conftest import MISSIONS
-from tests.emulators.mavlink_rover import MavlinkRoverEmulator
-from tests.emulators.natnet import NatNetEmulator
-from tests.emulators.tello import TelloEmulator, free_udp_port
 from tests.test_tello_driver import marker_frame
 
 CAL_SRC = MISSIONS / "cameras" / "tello_down_sim.yaml"

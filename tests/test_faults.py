@@ -186,7 +186,7 @@ class _Poses:
         self.clock = clock
 
     def latest(self, body: str) -> StampedPose:
-        from flightstack.geometry import Pose
+        from flightstack.paper.geometry import Pose
 
         return StampedPose(self.clock.t, Pose.make([0.0, 0.0, 1.0], 0.0))
 

@@ -1,4 +1,5 @@
-"""Tests of flightstack.fusion: PoE vs numerical density product, BCM vs exact Bayes, rule properties."""
+"""Tests of flightstack.paper.fusion: PoE vs numerical density product, BCM vs exact Bayes, rule
+properties."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from hypothesis.extra.numpy import arrays
 from scipy.integrate import simpson
 from scipy.stats import norm
 
-from flightstack.fusion import FUSION_RULES, fuse, fusion_weights
+from flightstack.paper.fusion import FUSION_RULES, fuse, fusion_weights
 
 
 @st.composite

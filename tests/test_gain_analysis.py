@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from flightstack.control import Gains
-from flightstack.gain_analysis import gain_condition, lambda_K, laplacian, lipschitz_and_delta, p_matrix
+from flightstack.paper.control import Gains
+from flightstack.paper.gain_analysis import gain_condition, lambda_K, laplacian, lipschitz_and_delta, p_matrix
 
 
 class LinearExpert:

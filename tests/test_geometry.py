@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.linalg import expm
 
-from flightstack.geometry import (
+from flightstack.paper.geometry import (
     Pose,
     ad_g,
     ad_R,

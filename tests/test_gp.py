@@ -1,4 +1,4 @@
-"""Tests of flightstack.gp against independent references (scikit-learn, finite differences)."""
+"""Tests of flightstack.paper.gp against independent references (scikit-learn, finite differences)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel
 
-from flightstack.gp import (
+from flightstack.paper.gp import (
     VAR_FLOOR_REL,
     GPExpert,
     GPHyperparameters,
@@ -305,7 +305,7 @@ def test_bad_inputs_raise_clear_errors() -> None:
 
 
 def test_fit_raises_when_every_restart_fails(monkeypatch) -> None:
-    import flightstack.gp as gp_module
+    import flightstack.paper.gp as gp_module
 
     def broken(*args, **kwargs):
         raise np.linalg.LinAlgError("boom")

@@ -2,8 +2,9 @@
 
 A station-topology mission on 127.0.0.8/.9 (Tello emulators in this process) with one Zenoh endpoint per
 agent on free loopback ports. Each agent is a fake agent process (AGENT below): it joins the bus as agent
-N (liveliness token), flies its emulated Tello with drivers.tello.TelloDriver (connect, takeoff, rc every
-20 ms) and publishes a status (`flying`) every 0.5 s, like flightstack/runner.py. `flightstack guard`
+N (liveliness token), flies its emulated Tello with flightstack.drivers.tello.TelloDriver (connect, takeoff,
+rc every
+20 ms) and publishes a status (`flying`) every 0.5 s, like flightstack/runtime/runner.py. `flightstack guard`
 runs as its own process; the test kills, stops or lets the agents finish, and judges at the emulators:
 which datagrams came from guard's socket (its ports are in its first line), and when. Times are
 time.monotonic() s (one clock for every process of this machine). Every process and thread here ends by
@@ -28,23 +29,23 @@ from typing import Any
 import pytest
 import yaml
 
-from drivers.guard import Guard
-from drivers.guardian_process import Log
 from flightstack.comms.control import ControlEvent
-from flightstack.mission import load_mission
+from flightstack.config.mission import load_mission
+from flightstack.drivers.guard import Guard
+from flightstack.drivers.guardian_process import Log
+from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port, wait_until
 from tests.conftest import secured_bus
 from tests.conftest import status_payload as status
-from tests.emulators.tello import TelloEmulator, free_udp_port, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 IPS = {1: "127.0.0.8", 2: "127.0.0.9"}
 
 AGENT = r"""
 import dataclasses, json, sys, threading, time
-from drivers.hardware import tello_config
-from drivers.tello import TelloDriver
+from flightstack.drivers.hardware import tello_config
+from flightstack.drivers.tello import TelloDriver
 from flightstack.comms.factory import make_bus
-from flightstack.mission import load_mission
+from flightstack.config.mission import load_mission
 
 a = json.loads(sys.argv[1])
 i = a["id"]
@@ -189,7 +190,7 @@ def agent(lab: dict[str, Any], i: int, **kw: Any) -> tuple[subprocess.Popen[str]
 
 
 def guard(lab: dict[str, Any], *args: str) -> tuple[subprocess.Popen[str], Lines]:
-    return start("-m", "flightstack.cli", "guard", str(lab["mission"]), *args)
+    return start("-m", "flightstack.cli.app", "guard", str(lab["mission"]), *args)
 
 
 def guard_ports(lines: Lines) -> dict[int, int]:
@@ -348,7 +349,7 @@ def test_guard_stops_sending_when_the_agent_is_back(lab: dict[str, Any]) -> None
 
 
 def test_guard_refuses_access_point_topology(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from flightstack.cli import main
+    from flightstack.cli.app import main
 
     assert main(["guard", str(REPO / "mission_configs" / "paper_experiment.yaml")]) == 2
     err = capsys.readouterr().err

@@ -1,7 +1,9 @@
 """The guardian process (drivers/guardian.py, issue 15) against the loopback Tello and rover emulators.
 
-A child process (CHILD below) flies emulated Tellos with drivers.tello.TelloDriver (and the emulated
-robot with drivers.scamper.ScamperDriver) like `fly` does: it starts its guardian, connects, arms the
+A child process (CHILD below) flies emulated Tellos with flightstack.drivers.tello.TelloDriver (and the
+emulated
+robot with flightstack.drivers.scamper.ScamperDriver) like `fly` does: it starts its guardian, connects, arms
+the
 guardian, takes off on worker threads and ticks every 20 ms (`rc 0 30 0 0`, robot 0.3 m/s, heartbeat).
 The test then SIGKILLs or SIGSTOPs it, or lets it finish, and judges at the emulators: what arrived, from
 which source port, when. The Tellos are EDU-like (`reply_port_latch`: replies go to the first client only),
@@ -23,9 +25,9 @@ from typing import Any
 
 import pytest
 
-from drivers.guardian import EXIT_GAVE_UP, GuardedTello, Guardian, GuardianConfig, TakeoverFlag
-from tests.emulators.mavlink_rover import MavlinkRoverEmulator
-from tests.emulators.tello import TelloEmulator, free_udp_port, wait_until
+from flightstack.drivers.guardian import EXIT_GAVE_UP, GuardedTello, Guardian, GuardianConfig, TakeoverFlag
+from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
+from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 ARM_DISARM = 400  # MAV_CMD_COMPONENT_ARM_DISARM
@@ -33,9 +35,9 @@ ARM_DISARM = 400  # MAV_CMD_COMPONENT_ARM_DISARM
 CHILD = r"""
 import json, sys, threading, time
 import numpy as np
-from drivers.guardian import Guardian, GuardianConfig
-from drivers.scamper import ScamperConfig, ScamperDriver
-from drivers.tello import TelloConfig, TelloDriver
+from flightstack.drivers.guardian import Guardian, GuardianConfig
+from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
+from flightstack.drivers.tello import TelloConfig, TelloDriver
 
 a = json.loads(sys.argv[1])
 say = lambda *x: print(*x, flush=True)

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 import yaml
 
-import drivers.identify as ident
-from drivers.identify import (
+import flightstack.drivers.identify as ident
+from flightstack.config.mission import RcGainsSpec
+from flightstack.drivers.identify import (
     StepFit,
     first_order_step,
     fit_first_order_step,
@@ -25,8 +26,7 @@ from drivers.identify import (
     save_identification,
     state_velocity_source,
 )
-from flightstack.mission import RcGainsSpec
-from flightstack.tello_rc import RcGains
+from flightstack.drivers.tello_rc import RcGains
 
 
 # ------------------------------------------------------------------------------------- synthetic fits
@@ -171,7 +171,7 @@ TRUE_TAU_S = 0.1
 
 def test_identify_against_the_emulator() -> None:
     pytest.importorskip("av")
-    from drivers.tello import TelloDriver
+    from flightstack.drivers.tello import TelloDriver
     from tests.test_tello_driver import config, make_emulator
 
     with make_emulator("127.0.0.5", tau_s=TRUE_TAU_S) as emu:
@@ -226,7 +226,7 @@ def test_cli_refuses_to_fly_without_confirmation(tmp_path) -> None:
         [
             sys.executable,
             "-m",
-            "flightstack.cli",
+            "flightstack.cli.app",
             "calibrate",
             "drone",
             "--ip",

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from drivers import keep_awake as ka
+from flightstack.drivers import keep_awake as ka
 
 FAKE = """#!/bin/sh
 echo "$@" > "{log}"

@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from flightstack.geometry import Pose
-from flightstack.target_law import SquareLaw
-from flightstack.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
-from sim_backend.lab import MocapParams, MocapSim, RobotParams, ScamperSim, TelloParams, TelloSim
+from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
+from flightstack.paper.geometry import Pose
+from flightstack.paper.target_law import SquareLaw
+from flightstack.sim_backend.lab import MocapParams, MocapSim, RobotParams, ScamperSim, TelloParams, TelloSim
 
 
 class Clock:

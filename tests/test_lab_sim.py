@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
-from flightstack.mission import load_mission
-from flightstack.runner import run_mode
+from flightstack.config.mission import load_mission
+from flightstack.runtime.runner import run_mode
 from tests.conftest import MISSIONS, interrupt_cli_sim, run_cli
 
 LAB = MISSIONS / "paper_experiment_sim.yaml"

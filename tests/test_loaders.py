@@ -1,4 +1,4 @@
-"""Issue 16: one hardened loader (flightstack/safe_load.py) for missions and calibration files.
+"""Issue 16: one hardened loader (flightstack/config/safe_load.py) for missions and calibration files.
 
 Every input the fuzzer once crashed or hung the loaders with exits 2 (`flightstack validate`) with one
 line naming the file and, where there is one, the line and key path. Property tests: arbitrary bytes
@@ -16,10 +16,10 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from flightstack.camera_calibration import CalibrationError, load_calibration
-from flightstack.cli import main
-from flightstack.mission import MissionError, load_mission
-from flightstack.safe_load import LoadError, load_yaml
+from flightstack.cli.app import main
+from flightstack.config.mission import MissionError, load_mission
+from flightstack.config.safe_load import LoadError, load_yaml
+from flightstack.vision.camera_file import CalibrationError, load_calibration
 from tests.conftest import MISSIONS
 
 SIM = MISSIONS / "paper_sim.yaml"

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from flightstack.mission import MissionError, load_mission, parse_mission
+from flightstack.config.mission import MissionError, load_mission, parse_mission
 from tests.conftest import MISSIONS, run_cli
 
 

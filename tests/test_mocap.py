@@ -1,4 +1,4 @@
-"""Tests of drivers.mocap: quaternion reduction against scipy, and the threaded pose source.
+"""Tests of flightstack.drivers.mocap: quaternion reduction against scipy, and the threaded pose source.
 
 The pose source is exercised with an injected fake `motioncapture` object (deterministic, 200 Hz) and, when
 the `motioncapture` package is installed, with its real `mock` backend.
@@ -19,7 +19,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from drivers.mocap import MocapConfig, MocapError, MocapPoseSource, quaternion_to_planar
+from flightstack.drivers.mocap import MocapConfig, MocapError, MocapPoseSource, quaternion_to_planar
 from flightstack.hal import PoseSource
 
 

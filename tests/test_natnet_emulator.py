@@ -1,6 +1,8 @@
-"""drivers.mocap with the real `motioncapture` optitrack backend against the loopback NatNet emulator.
+"""flightstack.drivers.mocap with the real `motioncapture` optitrack backend against the loopback NatNet
+emulator.
 
-Everything runs on 127.0.0.1 with OS-assigned ports (tests/emulators/natnet.py). Sources are closed while
+Everything runs on 127.0.0.1 with OS-assigned ports (sim_backend/emulators/natnet.py). Sources are closed
+while
 the emulator still streams, so the reader thread leaves `waitForNextFrame` (which has no timeout) at once.
 """
 
@@ -22,8 +24,8 @@ import pytest
 
 pytest.importorskip("motioncapture")
 
-from drivers.mocap import MocapConfig, MocapPoseSource, quaternion_to_planar
-from tests.emulators.natnet import NAT_CONNECT, NAT_SERVERINFO, NatNetEmulator, NatNetFaults
+from flightstack.drivers.mocap import MocapConfig, MocapPoseSource, quaternion_to_planar
+from flightstack.sim_backend.emulators.natnet import NAT_CONNECT, NAT_SERVERINFO, NatNetEmulator, NatNetFaults
 
 REPO = Path(__file__).resolve().parents[1]
 RATE_HZ = 100.0
@@ -175,7 +177,7 @@ def test_silent_emulator_answers_nothing() -> None:
 _SILENT_CHILD = textwrap.dedent(
     """
     import sys, time
-    from drivers.mocap import MocapConfig, MocapError, MocapPoseSource
+    from flightstack.drivers.mocap import MocapConfig, MocapError, MocapPoseSource
     cfg = MocapConfig("optitrack", {"hostname": "127.0.0.1", "port_command": sys.argv[1]},
                       connect_timeout_s=float(sys.argv[2]))
     t0 = time.monotonic()
@@ -193,7 +195,8 @@ def test_silent_server_times_out_stock_driver() -> None:
     """Silent server: MocapError naming the host within connect_timeout_s, no hang.
 
     Run in a subprocess killed after timeout + margin: `motioncapture.connect` keeps the GIL while it waits
-    for the server, so if the driver ever called it without its bounded probe (drivers.mocap.probe_server)
+    for the server, so if the driver ever called it without its bounded probe
+    (flightstack.drivers.mocap.probe_server)
     this process would freeze; the subprocess keeps pytest itself safe.
     """
     timeout, margin = 0.5, 1.5

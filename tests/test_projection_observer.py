@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
-from flightstack.geometry import Pose, compose, exp_twist, hat, inverse, vec
-from flightstack.observer import estimation_error, observer_step
-from flightstack.projection import (
+from flightstack.paper.geometry import Pose, compose, exp_twist, hat, inverse, vec
+from flightstack.paper.observer import estimation_error, observer_step
+from flightstack.paper.projection import (
     CameraModel,
     TargetNotVisibleError,
     features_and_jacobian,

@@ -1,4 +1,5 @@
-"""The recording is written as the run goes (issue 15, flightstack.recorder): row streams readable after a
+"""The recording is written as the run goes (issue 15, flightstack.recording.run_dir): row streams readable
+after a
 kill, events once each, an injected ENOSPC stops the recording and not the flight, `--out` is checked
 before takeoff, and `flightstack report` rebuilds metrics.json from any recording."""
 
@@ -19,12 +20,12 @@ import numpy as np
 import pytest
 import yaml
 
-from flightstack import cli, recorder
-from flightstack.experiment import resolved_mission_yaml
+from flightstack.cli import app as cli
+from flightstack.config.mission import Mission, load_mission
 from flightstack.faults.fly import write_run
-from flightstack.metrics import mode_metrics
-from flightstack.mission import Mission, load_mission
-from flightstack.recorder import (
+from flightstack.paper.metrics import mode_metrics
+from flightstack.recording import run_dir as recorder
+from flightstack.recording.run_dir import (
     ROWS_SUFFIX,
     STREAM_FIELDS,
     ModeWriter,
@@ -34,8 +35,9 @@ from flightstack.recorder import (
     load_run,
     read_rows,
 )
-from flightstack.recording import ARRAY_FIELDS, Recording
-from flightstack.runner import run_mode
+from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
+from flightstack.runtime.experiment import resolved_mission_yaml
+from flightstack.runtime.runner import run_mode
 from tests.conftest import MISSIONS, REPO
 
 LAB = MISSIONS / "paper_experiment_sim.yaml"
@@ -248,7 +250,16 @@ def test_sigkill_of_flightstack_sim_loses_at_most_1s(tmp_path: Path) -> None:
     out = tmp_path / "run"
     mission = _small_sim_mission(tmp_path, 600.0)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "flightstack.cli", "sim", str(mission), "--out", str(out), "--no-progress"],
+        [
+            sys.executable,
+            "-m",
+            "flightstack.cli.app",
+            "sim",
+            str(mission),
+            "--out",
+            str(out),
+            "--no-progress",
+        ],
         cwd=REPO,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -308,7 +319,7 @@ def test_out_is_checked_before_anything_takes_off(
     def no_flight(*args: object, **kwargs: object) -> None:
         raise AssertionError("took off")
 
-    monkeypatch.setattr("flightstack.experiment.run_experiment", no_flight)
+    monkeypatch.setattr("flightstack.runtime.experiment.run_experiment", no_flight)
     monkeypatch.setattr("flightstack.comms.factory.make_bus", no_flight)
     mission = _small_sim_mission(tmp_path)
     blocker = tmp_path / "a_file"

@@ -1,6 +1,6 @@
 """flightstack.safety against fakes: a recording Drone, a hand-driven Clock and a settable PoseSource.
 
-World-frame checks use an independent rotation (complex multiplication), not flightstack.geometry.
+World-frame checks use an independent rotation (complex multiplication), not flightstack.paper.geometry.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from flightstack.geometry import Pose
 from flightstack.hal import Drone, DroneState, StampedPose
+from flightstack.paper.geometry import Pose
 from flightstack.safety import (
     EVENT_KINDS,
     EventLog,

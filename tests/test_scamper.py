@@ -1,4 +1,4 @@
-"""Scamper MAVLink driver against the loopback rover emulator (tests/emulators/mavlink_rover.py).
+"""Scamper MAVLink driver against the loopback rover emulator (sim_backend/emulators/mavlink_rover.py).
 
 Each fault test flips one `RoverFaults` switch (or `pilot_override`) and checks the outcome at the emulator
 (its mode / armed state, the commands it received, the ACKs it sent) and in the driver's events.  The
@@ -19,7 +19,7 @@ pytest.importorskip("pymavlink")
 
 from pymavlink import mavutil
 
-from drivers.scamper import (
+from flightstack.drivers.scamper import (
     ROVER_GUIDED_MODE,
     TYPE_MASK_VEL_YAWRATE,
     ScamperCommandError,
@@ -29,7 +29,7 @@ from drivers.scamper import (
     probe_heartbeat,
 )
 from flightstack.hal import GroundRobot
-from tests.emulators.mavlink_rover import HOLD, MavlinkRoverEmulator
+from flightstack.sim_backend.emulators.mavlink_rover import HOLD, MavlinkRoverEmulator
 
 mavlink = mavutil.mavlink
 SET_MODE = mavlink.MAV_CMD_DO_SET_MODE  # 176

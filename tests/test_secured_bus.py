@@ -20,7 +20,7 @@ from flightstack.comms.certs import CertError, check_participant, create_mission
 from flightstack.comms.control import ControlEvent
 from flightstack.comms.factory import make_bus, zenoh_bus_config
 from flightstack.comms.messages import PredictionMessage, encode
-from flightstack.mission import MissionError, load_mission
+from flightstack.config.mission import MissionError, load_mission
 from tests.conftest import MISSIONS, eventually, secured_bus
 
 pytest.importorskip("zenoh")
@@ -69,7 +69,7 @@ def test_secured_participants_hear_each_other_and_only_on_their_keys(tmp_path: P
 
 
 def test_certs_command_writes_private_keys_0600_and_never_overwrites(tmp_path: Path) -> None:
-    from flightstack.cli import main
+    from flightstack.cli.app import main
 
     out = tmp_path / "c"
     assert main(["certs", str(SIM), "--out", str(out), "--days", "30"]) == 0
@@ -128,7 +128,7 @@ def test_insecure_zenoh_sections_are_refused() -> None:
 
 
 def test_preflight_checks_the_certificate_this_computer_needs(tmp_path: Path) -> None:
-    from drivers.preflight import check_certs
+    from flightstack.drivers.preflight import check_certs
 
     hw = MISSIONS / "paper_experiment.yaml"
     name = load_mission(hw).name

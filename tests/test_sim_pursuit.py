@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flightstack.experiment import TruthPredictor
-from flightstack.metrics import error_vector_sq_norm
-from flightstack.mission import load_mission
-from flightstack.runner import run_mode
-from flightstack.target_motion import DuffingParams
+from flightstack.config.mission import load_mission
+from flightstack.paper.metrics import error_vector_sq_norm
+from flightstack.paper.target_motion import DuffingParams
+from flightstack.runtime.experiment import TruthPredictor
+from flightstack.runtime.runner import run_mode
 from tests.conftest import MISSIONS
 
 
@@ -37,7 +37,7 @@ def test_initial_estimate_error_converges(short_mission) -> None:
     for d in data["drones"]:
         d["initial_estimate_error"] = {"p": [0.05, -0.03, 0.02], "theta": 0.1}
         d["initial_offset"] = {"p": [0.1, 0.0, -0.05], "theta": -0.05}
-    from flightstack.mission import parse_mission
+    from flightstack.config.mission import parse_mission
 
     m = parse_mission(data)
     rec = run_mode(m, "oracle", {d.id: TruthPredictor(DuffingParams()) for d in m.drones})

@@ -27,8 +27,8 @@ def child() -> None:
     """Inside one namespace: an emulated Tello on the default ports and a driver flying it; prints JSON."""
     import numpy as np
 
-    from drivers.tello import TelloConfig, TelloDriver
-    from tests.emulators.tello import TelloEmulator
+    from flightstack.drivers.tello import TelloConfig, TelloDriver
+    from flightstack.sim_backend.emulators.tello import TelloEmulator
 
     emu = TelloEmulator("127.0.0.2", port=8889, state_port=8890, video_port=11111).start()
     d = TelloDriver(TelloConfig(host="127.0.0.2", connect_timeout_s=3.0))

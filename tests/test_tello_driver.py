@@ -1,4 +1,4 @@
-"""drivers/tello.py against the loopback Tello emulator (tests/emulators/tello.py), on 127.0.0.x only.
+"""drivers/tello.py against the loopback Tello emulator (sim_backend/emulators/tello.py), on 127.0.0.x only.
 
 Every scenario of issue 14 is flown through the emulator with one of its real-firmware fault switches,
 and judged at the emulator: nothing sent that the drone rejected or ignored in its phase
@@ -20,17 +20,17 @@ import pytest
 
 pytest.importorskip("av")
 
-from drivers.tello import TelloCommandError, TelloConfig, TelloDriver, TelloLinkError
-from drivers.tello_camera import TelloCamera
-from flightstack.camera_calibration import load_calibration
-from flightstack.geometry import Pose, rot_z
+from flightstack.config.mission import CAMERA_MOUNTS
+from flightstack.drivers.tello import TelloCommandError, TelloConfig, TelloDriver, TelloLinkError
+from flightstack.drivers.tello_camera import TelloCamera
+from flightstack.drivers.tello_rc import RcGains, velocity_to_rc
 from flightstack.hal import FlightPhase
-from flightstack.mission import CAMERA_MOUNTS
-from flightstack.tello_rc import RcGains, velocity_to_rc
-from flightstack.vision import extract_markers
-from sim_backend.render import RenderOptions, render_markers
+from flightstack.paper.geometry import Pose, rot_z
+from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port, wait_until
+from flightstack.sim_backend.render import RenderOptions, render_markers
+from flightstack.vision.camera_file import load_calibration
+from flightstack.vision.markers import extract_markers
 from tests.conftest import MISSIONS
-from tests.emulators.tello import TelloEmulator, free_udp_port, wait_until
 
 CAL = load_calibration(MISSIONS / "cameras" / "tello_down_sim.yaml")
 P0 = np.array([[0.1, 0.1, 0.15], [-0.1, 0.1, 0.15], [-0.1, -0.1, 0.15], [0.1, -0.1, 0.15]])

@@ -28,7 +28,8 @@ from dataclasses import MISSING, dataclass, fields
 
 import numpy as np
 import pytest
-from emulators.tello import (
+
+from flightstack.sim_backend.emulators.tello import (
     TelloEmulator,
     TelloFaults,
     default_square,

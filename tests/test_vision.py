@@ -1,7 +1,8 @@
-"""Colour-marker extraction (flightstack.vision) on frames of the simulated camera (sim_backend.render).
+"""Colour-marker extraction (flightstack.vision.markers) on frames of the simulated camera
+(flightstack.sim_backend.render).
 
 References that do not share code with the module under test: the pinhole/Brown–Conrady formula written
-out here, the disc area π r² (f/z)², flightstack.projection for the target's feature points, and the
+out here, the disc area π r² (f/z)², flightstack.paper.projection for the target's feature points, and the
 coverage map recovered from the image by linear unmixing against the known paint and floor colours.
 """
 
@@ -19,11 +20,11 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
-from flightstack.camera_calibration import CameraCalibration, MarkerColour, load_calibration
-from flightstack.geometry import Pose
-from flightstack.projection import CameraModel, points_in_camera, project
-from flightstack.vision import MarkerDetection, extract_markers, features_from_detection
-from sim_backend.render import RenderOptions, render_markers
+from flightstack.paper.geometry import Pose
+from flightstack.paper.projection import CameraModel, points_in_camera, project
+from flightstack.sim_backend.render import RenderOptions, render_markers
+from flightstack.vision.camera_file import CameraCalibration, MarkerColour, load_calibration
+from flightstack.vision.markers import MarkerDetection, extract_markers, features_from_detection
 from tests.conftest import MISSIONS
 
 CAL_TELLO = load_calibration(MISSIONS / "cameras" / "tello_down_sim.yaml")
@@ -113,7 +114,7 @@ def test_centroid_accuracy_and_features(cal_name, noisy, spec_mean_limit):
         # marker order: every detected centre is nearest to its own true projection
         d_all = np.linalg.norm(det.pixels[:, None, :] - true_px[None, :, :], axis=2)
         assert np.array_equal(d_all.argmin(axis=1), np.arange(4))
-        # features: λ·(undistorted normalised true points), i.e. flightstack.projection of the centres;
+        # features: λ·(undistorted normalised true points), i.e. flightstack.paper.projection of the centres;
         # a pixel error δ maps to ≤ 1.5 δ / f in normalised units for these lenses
         f_true = project(centres, CameraModel(focal_length=lam))
         f = features_from_detection(det, focal_length=lam)

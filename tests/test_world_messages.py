@@ -1,4 +1,4 @@
-"""Messages of the served world (flightstack/comms/world_messages.py): exact round trips, and malformed
+"""Messages of the served world (sim_backend/served/messages.py): exact round trips, and malformed
 input refused with a reason, never an exception (fuzzed with hypothesis)."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from flightstack.comms import world_messages as wm
+from flightstack.sim_backend.served import messages as wm
 
 
 def tick_header(k: int = 3, image: list[int] | None = None) -> dict:

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from flightstack.comms.factory import free_loopback_endpoints
-from flightstack.gp import GPExpert, GPHyperparameters
-from flightstack.metrics import mode_metrics
-from flightstack.mission import load_mission
-from flightstack.runner import run_mode
-from flightstack.target_motion import DuffingParams, duffing_body_velocity_batch
+from flightstack.config.mission import load_mission
+from flightstack.paper.gp import GPExpert, GPHyperparameters
+from flightstack.paper.metrics import mode_metrics
+from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch
+from flightstack.runtime.runner import run_mode
 from tests.conftest import MISSIONS
 
 pytest.importorskip("zenoh")

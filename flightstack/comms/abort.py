@@ -30,7 +30,7 @@ from flightstack.comms.control import (
     encode_control,
     read_ack,
 )
-from flightstack.mission import Mission
+from flightstack.config.mission import Mission
 
 POLL_S = 0.002  # how often the Zenoh operator session is checked for acknowledgements (s)
 

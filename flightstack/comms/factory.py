@@ -29,7 +29,7 @@ from flightstack.comms.acceptance import AcceptanceBounds
 from flightstack.comms.acl import access_control
 from flightstack.comms.bus import Bus, InProcBus
 from flightstack.comms.certs import CertError, ParticipantFiles, check_participant, files_of, participant_name
-from flightstack.mission import Mission, MissionError
+from flightstack.config.mission import Mission, MissionError
 
 if TYPE_CHECKING:
     from flightstack.comms.operator_link import LoopbackOperatorListener

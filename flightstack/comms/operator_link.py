@@ -53,7 +53,7 @@ from flightstack.comms.control import (
 if TYPE_CHECKING:
     from cryptography.hazmat.primitives.asymmetric import ec
 
-    from flightstack.mission import Mission
+    from flightstack.config.mission import Mission
 
 OPERATOR_HOST = "127.0.0.1"
 MAX_DATAGRAM_BYTES = 4096  # one operator datagram (bytes); an abort is ~150

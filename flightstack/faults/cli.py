@@ -1,7 +1,7 @@
 """The `faults` subcommand: `flightstack faults [--only NAME ...] [--out DIR] [--mission FILE]`.
 
 Runs the rows of flightstack.faults, prints the table, writes DIR/faults.json (and each row's run files
-under DIR), and exits 0 iff every row was handled (1 otherwise). `flightstack.cli` adds it with
+under DIR), and exits 0 iff every row was handled (1 otherwise). `flightstack.cli.app` adds it with
 `faults_cli.register(sub)`; `python -m flightstack.faults.cli ...` runs it alone.
 """
 

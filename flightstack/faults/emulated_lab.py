@@ -7,10 +7,9 @@ What the drones did is judged at the emulators: every Tello emulator keeps `comm
 `phase_log` and `replies_sent` with their receive/send times; `lab.write_log(path)` saves them, and the
 helpers below (`command_times`, `rc_times`, `phase_times`, `max_gap`) measure reaction times on them.
 
-The emulators live in the source checkout (tests/emulators/), not in the installed package: they are
-imported lazily when a lab starts, after putting the checkout root (the parent of `flightstack/`) on
-sys.path. Outside a checkout, or without the optional packages av, motioncapture and pymavlink, starting a
-lab raises `LabUnavailableError` saying what is missing (the row then reports a crash).
+The emulators ship in the package (flightstack.sim_backend.emulators, issue 17) and are imported lazily
+when a lab starts. Without the optional packages av, motioncapture and pymavlink, starting a lab raises
+`LabUnavailableError` saying what is missing (the row then reports a crash).
 
 Addresses (all 127.0.0.0/8): the Tellos own 127.0.0.6 and 127.0.0.7 (station mode: both send their state
 to one free port of 127.0.0.1); NatNet and the rover use 127.0.0.1 with OS-assigned ports; the operator
@@ -27,7 +26,6 @@ import itertools
 import json
 import math
 import socket
-import sys
 import time
 from collections.abc import Callable, Iterable
 from contextlib import suppress
@@ -68,15 +66,8 @@ class LabUnavailableError(RuntimeError):
 
 # ---- lazy imports of the emulators -------------------------------------------------------------------------
 def load_emulators() -> SimpleNamespace:
-    """The emulator classes from the checkout's tests/emulators (TelloEmulator, NatNetEmulator,
-    MavlinkRoverEmulator, free_udp_port); LabUnavailableError naming what is missing."""
-    if not (REPO / "tests" / "emulators" / "tello.py").is_file():
-        raise LabUnavailableError(
-            f"the emulated lab needs a source checkout: {REPO / 'tests' / 'emulators'} not found (the "
-            "emulators are test code, not part of the installed package)"
-        )
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
+    """The emulator classes (TelloEmulator, NatNetEmulator, MavlinkRoverEmulator, free_udp_port);
+    LabUnavailableError naming the optional package that is missing."""
     try:
         import av  # noqa: F401  # the emulators encode H.264 video
         import motioncapture  # noqa: F401  # the driver's NatNet client
@@ -86,9 +77,9 @@ def load_emulators() -> SimpleNamespace:
             "the emulated lab needs the optional packages av, motioncapture and pymavlink (pip install -e "
             f"'.[tello,mocap,scamper]'): {exc}"
         ) from exc
-    from tests.emulators.mavlink_rover import MavlinkRoverEmulator
-    from tests.emulators.natnet import NatNetEmulator
-    from tests.emulators.tello import TelloEmulator, free_udp_port
+    from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
+    from flightstack.sim_backend.emulators.natnet import NatNetEmulator
+    from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port
 
     return SimpleNamespace(
         TelloEmulator=TelloEmulator,
@@ -113,10 +104,10 @@ def _yaw_quaternion(theta: float) -> tuple[float, float, float, float]:
 def marker_image() -> np.ndarray:
     """What the downward camera of a drone hovering 0.9 m above the target sees: the four markers of the
     mission (rendered once with the calibration's lens; the emulators send it as every frame)."""
-    from flightstack.camera_calibration import load_calibration
-    from flightstack.geometry import Pose, rot_z
-    from flightstack.mission import CAMERA_MOUNTS
-    from sim_backend.render import RenderOptions, render_markers
+    from flightstack.config.mission import CAMERA_MOUNTS
+    from flightstack.paper.geometry import Pose, rot_z
+    from flightstack.sim_backend.render import RenderOptions, render_markers
+    from flightstack.vision.camera_file import load_calibration
 
     cal = load_calibration(CALIBRATION)
     p0 = np.array([[0.1, 0.1, 0.15], [-0.1, 0.1, 0.15], [-0.1, -0.1, 0.15], [0.1, -0.1, 0.15]])
@@ -227,7 +218,7 @@ class EmulatedLab:
     # ---- motion capture --------------------------------------------------------------------------------
     def _rover_pose(self) -> tuple[Any, tuple[float, float, float, float]]:
         """The rover's mocap pose: its start is ROVER_START, θ = 0 (the rover integrates FLU from there)."""
-        from flightstack.geometry import Pose, compose
+        from flightstack.paper.geometry import Pose, compose
 
         g = compose(Pose.make([*ROVER_START, 0.0], 0.0), self.rover.pose_flu())
         return g.p, _yaw_quaternion(g.theta)
@@ -235,7 +226,7 @@ class EmulatedLab:
     def _drone_pose(self, i: int) -> tuple[Any, tuple[float, float, float, float]]:
         """Drone i's mocap pose: the emulator flies (x forward, y right, z up) cm, yaw clockwise deg, from
         its start; the world is FLU (y left, yaw counter-clockwise); plus `mocap_offset[i]`."""
-        from flightstack.geometry import Pose, compose
+        from flightstack.paper.geometry import Pose, compose
 
         emu = self.tellos[i]
         x, y, z = emu.position_cm
@@ -251,7 +242,7 @@ class EmulatedLab:
     def write_mission(self) -> Path:
         """The paper experiment re-pointed at the emulators (backend tello, mode `none`, `duration_s` of
         pursuit, operator channel on a free port); returns the file written."""
-        from flightstack.camera_calibration import load_calibration
+        from flightstack.vision.camera_file import load_calibration
 
         cal = load_calibration(CALIBRATION).to_dict()
         cal["rms_px"] = 0.3  # a measured calibration (preflight fails on the never-measured templates)
@@ -304,7 +295,7 @@ class EmulatedLab:
 
     def mission(self) -> Any:
         """The mission as flightstack loads it."""
-        from flightstack.mission import load_mission
+        from flightstack.config.mission import load_mission
 
         return load_mission(self.mission_path)
 

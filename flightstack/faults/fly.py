@@ -18,15 +18,15 @@ from typing import Any
 import numpy as np
 import yaml
 
-from flightstack.backends import build_backend
 from flightstack.comms.bus import InProcBus
+from flightstack.config.mission import Mission, load_mission
 from flightstack.faults.inject import FaultSpec, FaultyBackend, FaultyBus
 from flightstack.faults.result import Checks
-from flightstack.metrics import mode_metrics
-from flightstack.mission import Mission, load_mission
-from flightstack.recorder import RunWriter
-from flightstack.recording import ARRAY_FIELDS, Recording
-from flightstack.runner import run_mode, safety_limits
+from flightstack.paper.metrics import mode_metrics
+from flightstack.recording.run_dir import RunWriter
+from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
+from flightstack.runtime.backends import build_backend
+from flightstack.runtime.runner import run_mode, safety_limits
 from flightstack.safety import outside_hard_fence, outside_soft_fence
 
 FINITE_FIELDS = tuple(f for f in ARRAY_FIELDS if f not in ("visible", "n_fused", "wall_t"))
@@ -125,7 +125,7 @@ def fly_with_faults(
 
 def write_run(run_dir: Path, mission: Mission, rec: Recording) -> list[str]:
     """timeseries_<mode>.npz, events.jsonl and metrics.json (strict JSON, with "recording": {"complete",
-    "reason"}) through flightstack.recorder (atomic files); the problems met doing so, among them an
+    "reason"}) through flightstack.recording.run_dir (atomic files); the problems met doing so, among them an
     incomplete recording (e.g. a full disk)."""
     problems = []
     try:

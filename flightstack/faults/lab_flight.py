@@ -114,12 +114,12 @@ def fly_inprocess(
     preflight. bus_wrapper(bus) may wrap the bus; injector(backend) runs on a daemon thread from the
     moment the backend is connected (it must bound its own waits; joined for injector_timeout_s s).
     Never raises for the flight itself: an exception is `LabRun.crashed`."""
-    from flightstack.backends import build_backend
     from flightstack.comms.factory import make_bus
-    from flightstack.experiment import resolved_mission_yaml
-    from flightstack.metrics import mode_metrics
-    from flightstack.recorder import RunWriter
-    from flightstack.runner import run_mode
+    from flightstack.paper.metrics import mode_metrics
+    from flightstack.recording.run_dir import RunWriter
+    from flightstack.runtime.backends import build_backend
+    from flightstack.runtime.experiment import resolved_mission_yaml
+    from flightstack.runtime.runner import run_mode
 
     run = LabRun(Path(run_dir), t_start=time.monotonic())
     mission = lab.mission()
@@ -277,7 +277,7 @@ def judge_lab_safety(lab: EmulatedLab, run: LabRun) -> list[str]:
     emulator's, without `mocap_offset`) beyond the hard fence (the floor is not checked: landing is below
     it), a `landed` and no `NOT LANDED` event per drone."""
     from flightstack.faults.result import Checks
-    from flightstack.runner import safety_limits
+    from flightstack.runtime.runner import safety_limits
     from flightstack.safety import outside_hard_fence
 
     c = Checks()
@@ -306,7 +306,7 @@ def judge_lab_recording(run: LabRun, complete: bool = True, min_ticks: int = 1) 
     events (events.jsonl, or for an incomplete recording the flown Recording's) with one `end`, one
     `landed`/`NOT LANDED` per drone and the `safety tick` summary."""
     from flightstack.faults.result import Checks
-    from flightstack.recording import Recording
+    from flightstack.recording.timeseries import Recording
 
     c = Checks()
     m = run.metrics

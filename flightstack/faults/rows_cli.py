@@ -1,7 +1,7 @@
 """The rows of `flightstack faults` that exercise the command line in a subprocess: a malformed mission
 file and SIGINT mid-flight. Each is a FaultRow: (mission file, work directory) -> FaultResult.
 
-The subprocess is `python -m flightstack.cli` run from the repository root with it on PYTHONPATH, so the
+The subprocess is `python -m flightstack.cli.app` run from the repository root with it on PYTHONPATH, so the
 rows test the code of this checkout even when another copy is installed.
 """
 
@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 import yaml
 
+from flightstack.config.mission import load_mission
 from flightstack.faults.result import Checks, FaultResult, FaultRow
-from flightstack.mission import load_mission
-from flightstack.recording import Recording
-from flightstack.runner import safety_limits
+from flightstack.recording.timeseries import Recording
+from flightstack.runtime.runner import safety_limits
 from flightstack.safety import outside_hard_fence
 
 REPO = Path(__file__).resolve().parents[2]
@@ -33,7 +33,7 @@ pursuit: takeoff takes 2 s of simulated time, about 0.3 s of wall time)."""
 
 
 def cli_command(*args: str) -> list[str]:
-    return [sys.executable, "-m", "flightstack.cli", *args]
+    return [sys.executable, "-m", "flightstack.cli.app", *args]
 
 
 def cli_env() -> dict[str, str]:

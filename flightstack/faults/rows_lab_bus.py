@@ -40,7 +40,7 @@ def abort_agent_missing(mission_path: Path, workdir: Path) -> FaultResult:
     root.mkdir(parents=True, exist_ok=True)
     zb = _zenoh_modules()
     from flightstack.comms.factory import free_loopback_endpoints, zenoh_bus_config
-    from flightstack.mission import load_mission
+    from flightstack.config.mission import load_mission
 
     m = yaml.safe_load((MISSIONS / "paper_sim.yaml").read_text())
     endpoints = dict(zip(("1", "2", "3"), free_loopback_endpoints(3), strict=True))

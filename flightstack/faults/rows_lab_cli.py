@@ -127,7 +127,7 @@ SLOW_TAKEOFF_S = 5.0
 def abort_args(mission: Path, timeout_s: float) -> Any:
     """The parsed arguments of `flightstack abort MISSION --timeout T` (parsed ahead, so that timing the
     abort does not include the command line's imports)."""
-    from flightstack.cli import build_parser
+    from flightstack.cli.app import build_parser
 
     return build_parser().parse_args(["abort", str(mission), "--timeout", f"{timeout_s:g}"])
 

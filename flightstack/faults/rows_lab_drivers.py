@@ -14,7 +14,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from flightstack import recorder
 from flightstack.faults.emulated_lab import EmulatedLab, max_gap, ms, rc_times
 from flightstack.faults.lab_flight import (
     emulator_errors,
@@ -28,6 +27,7 @@ from flightstack.faults.lab_flight import (
     wait_then,
 )
 from flightstack.faults.result import Checks, FaultResult
+from flightstack.recording import run_dir as recorder
 
 
 # ---- driver_thread_error -----------------------------------------------------------------------------------

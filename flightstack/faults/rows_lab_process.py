@@ -105,7 +105,7 @@ def process_killed(mission_path: Path, workdir: Path) -> FaultResult:
 
 def _killed_recording(run_dir: Path, t_kill: float) -> list[str]:
     """The row stream of a killed run is readable and ends less than 1 s before the kill."""
-    from flightstack.recorder import load_run
+    from flightstack.recording.run_dir import load_run
 
     c = Checks()
     try:

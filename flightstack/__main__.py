@@ -1,0 +1,5 @@
+"""`python -m flightstack ...` runs the operator CLI."""
+
+from flightstack.cli.app import main
+
+raise SystemExit(main())

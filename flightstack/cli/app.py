@@ -1,0 +1,519 @@
+"""Operator command line (`flightstack -h`): sim, fly, report, preflight, target, world, agent, abort, ..."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import math
+import os
+import signal
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from tqdm import tqdm
+
+from flightstack.config.mission import Mission, MissionError, load_mission
+
+if TYPE_CHECKING:
+    from flightstack.recording.run_dir import RunWriter
+
+
+def _progress_factory(bars: list[tqdm]) -> Callable[[str, int], Callable[[int], None]]:
+    def make(mode: str, total: int) -> Callable[[int], None]:
+        bar = tqdm(
+            total=total,
+            desc=f"mode {mode:6s}",
+            unit="tick",
+            unit_scale=True,
+            file=sys.stderr,
+            mininterval=0.5,
+            leave=True,
+        )
+        bars.append(bar)
+        pending = [0]
+
+        def update(n: int) -> None:
+            pending[0] += n  # tqdm per tick would cost more than a control tick: batch 500
+            if pending[0] >= 500 or bar.n + pending[0] >= total:
+                bar.update(pending[0])
+                pending[0] = 0
+
+        return update
+
+    return make
+
+
+def open_run_dir(out: Path) -> RunWriter | None:
+    """The run directory's writer, after checking (before anything takes off) that `out` is writable
+    and has flightstack.recording.run_dir.MIN_FREE_BYTES (50 MB) free; None after printing why not."""
+    from flightstack.recording.run_dir import RunWriter, check_out_dir
+
+    problem = check_out_dir(out)
+    if problem is None:
+        try:
+            return RunWriter(out)
+        except OSError as exc:
+            problem = f"cannot start the recording: {exc.strerror or exc}"
+    print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
+    return None
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    from flightstack.runtime.experiment import resolved_mission_yaml, run_experiment, write_run_dir
+
+    logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")  # safety events, live
+    overrides = {"duration_s": args.duration} if args.duration is not None else None
+    mission = load_mission(args.mission, overrides)
+    if args.bus is not None and args.bus != mission.bus.kind:
+        mission = load_mission(args.mission, {**(overrides or {}), "bus": _bus_override(mission, args.bus)})
+    if args.command == "sim" and not mission.simulated:
+        print(
+            f"error: {args.mission}: backend {mission.backend!r} flies real drones; "
+            "use `flightstack preflight` then `flightstack fly`",
+            file=sys.stderr,
+        )
+        return 2
+    out = Path(args.out)
+    from flightstack.recording.run_dir import check_out_dir
+
+    problem = check_out_dir(out)  # before the preflight and the operator's confirmation
+    if problem is not None:
+        print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
+        return 2
+    if args.command == "fly" and not mission.simulated:
+        code = _confirm_and_preflight(args, mission)
+        if code:
+            return code
+    run_writer = open_run_dir(out)  # checked again: the preflight took time
+    if run_writer is None:
+        return 2
+    bars: list[tqdm] = []
+    try:
+        run_writer.write_file("mission_resolved.yaml", resolved_mission_yaml(mission))  # for `report`
+        with _awake_if_flying(mission):
+            res = run_experiment(mission, None if args.no_progress else _progress_factory(bars), run_writer)
+        for b in bars:
+            b.close()
+        m = write_run_dir(out, mission, res, run_writer)
+    finally:
+        run_writer.close()
+    if res.recordings:
+        _write_plots_or_warn(out, mission, res)
+    print(f"run directory: {out}")
+    for mode, mm in m["modes"].items():
+        line = f"  {mode:7s} mean_sq_error = {mm.get('mean_sq_error', float('nan')):.3e}"
+        if "mean_position_error_m" in mm:
+            seen = ", ".join(f"{i}: {100 * f:.0f} %" for i, f in mm["visible_fraction"].items())
+            line += f"   mean position error {mm['mean_position_error_m']:.3f} m   target seen {seen}"
+        if mm.get("max_fence_excursion_m"):
+            line += f"   OUTSIDE FENCE by {mm['max_fence_excursion_m']:.3f} m"
+        print(line)
+    if "ratios" in m:
+        ours, paper = m["ratios"]["ours"], m["ratios"]["paper"]
+        for key in ours:
+            print(f"  {key:10s} ours {ours[key]:8.2f}   paper {paper[key]:8.2f}")
+    gc = m["gain_condition"]
+    verdict = "satisfied" if gc["satisfied"] else "NOT satisfied"
+    print(
+        f"  gain condition: kappa = {gc['kappa']:.3f} ({verdict}), L_mu = {gc['L_mu']:.3f}, "
+        f"lambda_H = {gc['lambda_H']:.3f}"
+    )
+    print(f"  safety events: {len(m['safety_events'])} (events.jsonl)")
+    print(f"  sim {m['sim_seconds']:.1f} s in {m['wall_seconds']:.1f} s wall")
+    rec_status = m["recording"]
+    if not rec_status["complete"]:
+        print(f"error: recording incomplete: {rec_status['reason']}", file=sys.stderr)
+    if res.interrupted:
+        print("interrupted: every drone landed, partial recording written", file=sys.stderr)
+        return 130
+    if res.error:
+        print(f"error: {res.error}; every drone landed, partial recording written", file=sys.stderr)
+        return 1
+    return 0 if rec_status["complete"] else 1
+
+
+def _write_plots_or_warn(out: Path, mission: Mission, res: Any) -> None:
+    """The plots of a run; a write error (a full disk) is reported, not raised: `report` redraws them."""
+    from flightstack.recording.report import write_plots
+
+    try:
+        write_plots(out, mission, res.recordings, res.datasets)
+    except OSError as exc:
+        print(f"warning: plots not written ({exc}); `flightstack report {out}` redraws them", file=sys.stderr)
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """Rebuild metrics.json and the plots of a run directory from its recording (also one cut short by
+    a kill, a crash or a full disk: then from the row streams); exit 2 if there is no recording."""
+    from flightstack.recording.report import rebuild_run
+
+    run = Path(args.run_dir)
+    mission = load_mission(args.mission) if args.mission else None
+    try:
+        m, plots = rebuild_run(run, mission, plots=not args.no_plots)
+    except FileNotFoundError as exc:
+        print(f"error: {run}: {exc}", file=sys.stderr)
+        return 2
+    print(f"run directory: {run}")
+    for mode, mm in m["modes"].items():
+        err = f"   ({mm['error']})" if mm.get("error") else ""
+        mse = mm.get("mean_sq_error", float("nan"))
+        print(f"  {mode:7s} {mm.get('ticks', 0):7d} ticks   mean_sq_error = {mse:.3e}{err}")
+    rs = m["recording"]
+    print(f"  recording {'complete' if rs['complete'] else 'INCOMPLETE: ' + str(rs['reason'])}")
+    print(f"  rebuilt metrics.json{''.join(f', {p.name}' for p in plots)}")
+    return 0
+
+
+def _awake_if_flying(mission: Mission) -> contextlib.AbstractContextManager[object]:
+    """On real hardware: keep the computer from sleeping while the drones fly (drivers/keep_awake.py)."""
+    if mission.simulated:
+        return contextlib.nullcontext()
+    from flightstack.drivers.keep_awake import keep_awake
+
+    @contextlib.contextmanager
+    def awake() -> Iterator[None]:
+        with keep_awake(f"flightstack: mission {mission.name} in flight") as how:
+            print(how, file=sys.stderr)
+            yield
+
+    return awake()
+
+
+def _bus_override(mission: Mission, kind: str) -> dict[str, object]:
+    """The mission's bus section switched to `kind`; for zenoh without endpoints, all agents of this
+    process listen on a free loopback port (nothing leaves the machine)."""
+    bus = mission.bus.model_dump(mode="json")
+    bus["kind"] = kind
+    if kind == "zenoh" and bus.get("zenoh") is None:
+        from flightstack.comms.factory import free_loopback_endpoints
+
+        # plaintext on loopback is allowed for simulations only; real drones need the mission's certificates
+        security = "plaintext" if mission.simulated else "mtls"
+        endpoint = free_loopback_endpoints()[0].replace("tcp/", "tls/" if security == "mtls" else "tcp/")
+        bus["zenoh"] = {"endpoints": {"agents": endpoint}, "security": security}
+    return bus
+
+
+def _confirm(question: str, yes: bool) -> bool:
+    """True when the operator confirmed (--yes, or 'y' at an interactive prompt)."""
+    if yes:
+        return True
+    if not sys.stdin.isatty():
+        print("error: this moves real hardware; pass --yes to confirm", file=sys.stderr)
+        return False
+    return input(f"{question} [y/N] ").strip().lower() in ("y", "yes")
+
+
+def _confirm_and_preflight(args: argparse.Namespace, mission: Mission) -> int:
+    """Preflight every device, then ask; 0 to go on, else the exit code."""
+    from flightstack.drivers.preflight import format_table, run_preflight
+
+    rows = run_preflight(mission)
+    print(format_table(rows))
+    if any(r.status == "FAIL" for r in rows):
+        print("error: preflight failed; nothing took off", file=sys.stderr)
+        return 1
+    ids = ", ".join(str(d.id) for d in mission.drones)
+    if not _confirm(
+        f"Drones {ids} will take off and fly {mission.duration_s:g} s per mode. Area clear?", args.yes
+    ):
+        print("aborted", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_preflight(args: argparse.Namespace) -> int:
+    """Check every device and file of a hardware mission; exit 1 on any FAIL (drivers/preflight.py)."""
+    from flightstack.drivers.preflight import format_table, run_preflight
+
+    mission = load_mission(args.mission, check_files=False)
+    if mission.simulated:
+        print(f"error: {args.mission}: backend {mission.backend!r} has no hardware to check", file=sys.stderr)
+        return 2
+    try:
+        rows = run_preflight(mission, args.deadline, not args.no_camera, drone_ids=args.id or None)
+    except ValueError as exc:
+        print(f"error: {args.mission}: {exc}", file=sys.stderr)
+        return 2
+    print(format_table(rows))
+    return 1 if any(r.status == "FAIL" for r in rows) else 0
+
+
+def cmd_target(args: argparse.Namespace) -> int:
+    """Drive the real robot on the mission's square law from its motion-capture pose (drivers/target_run)."""
+    from flightstack.drivers.guardian import Guardian, GuardianConfig
+    from flightstack.drivers.hardware import body_names, mocap_config, scamper_config
+    from flightstack.drivers.mocap import MocapPoseSource
+    from flightstack.drivers.scamper import ScamperDriver
+    from flightstack.drivers.target_run import drive_square, lap_summary
+    from flightstack.paper.target_law import SquareLaw
+
+    mission = load_mission(args.mission, check_files=False)
+    if mission.hardware is None or mission.hardware.target is None:
+        print(f"error: {args.mission}: hardware.target: no robot to drive (set its url)", file=sys.stderr)
+        return 2
+    sq = mission.target.square
+    law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, mission.target.initial_pose.theta)
+    duration = args.duration if args.duration is not None else args.laps * law.lap_time
+    if not _confirm(
+        f"The robot will drive {duration:.0f} s on the {sq.side_m:g} m square. Area clear?", args.yes
+    ):
+        print("aborted", file=sys.stderr)
+        return 1
+    sc = scamper_config(mission)
+    assert sc is not None
+    mocap = MocapPoseSource(mocap_config(mission))
+    robot = ScamperDriver(sc)
+    body = body_names(mission)["target"]
+    # if this process dies or stalls, the guardian stops and disarms the robot (drivers/guardian.py)
+    guardian = Guardian.start(GuardianConfig.for_devices([], sc.url))
+    robot.set_muted(guardian.taken_over)
+    armed = [False]
+
+    def beat(now: float, res: object) -> None:
+        if not armed[0]:
+            guardian.arm()
+            armed[0] = True
+        guardian.heartbeat()
+
+    try:
+        mocap.start()
+        if mocap_wait(mocap, body, 2.0) is None:
+            print(f"error: motion capture does not see the robot (body {body!r})", file=sys.stderr)
+            return 1
+        robot.connect()
+        print(f"driving {duration:.1f} s ({duration / law.lap_time:.2f} laps); Ctrl-C stops the robot")
+        res = drive_square(
+            robot,
+            mocap,
+            law,
+            duration,
+            body=body,
+            link_alive=robot.link_alive,
+            robot_ready=lambda: robot.robot_state().ready and not guardian.taken_over(),
+            on_tick=beat,
+        )
+        print(lap_summary(res, law))
+        return 0 if res.ended_by == "duration" else 1
+    finally:
+        guardian.arm(False)
+        robot.close()
+        mocap.close()
+        guardian.finish()
+
+
+def mocap_wait(mocap: object, body: str, timeout_s: float) -> object | None:
+    """The body's first pose within timeout_s (s), or None."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        sp = mocap.latest(body)  # type: ignore[attr-defined]
+        if sp is not None:
+            return sp
+        time.sleep(0.02)
+    return None
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from flightstack.recording.timeseries import Recording
+    from flightstack.runtime.training import collect_datasets, save_experts, train_experts
+
+    run = Path(args.run_dir)
+    mission = load_mission(args.mission or run / "mission_resolved.yaml")
+    src = run / f"timeseries_{args.from_mode}.npz"
+    if not src.is_file():
+        print(f"error: {src}: no recording of mode {args.from_mode!r} in {run}", file=sys.stderr)
+        return 2
+    rec = Recording.load(str(src))
+    try:
+        data = collect_datasets(mission, rec, mission.seed)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    experts = train_experts(mission, data, mission.seed)
+    save_experts(args.out, experts)
+    for d in data:
+        ex = experts[d.drone_id]
+        print(
+            f"drone {d.drone_id}: {len(d.X)} samples in band {d.band}, "
+            f"log marginal likelihood {ex.log_marginal_likelihood().round(2).tolist()}"
+        )
+    print(f"experts written to {args.out}; reference it as gp.experts_file in a mission")
+    return 0
+
+
+def cmd_calibrate_drone(args: argparse.Namespace) -> int:
+    """Fly rc steps on one Tello and fit rc-unit → m/s gains and time constants (drivers/identify.py)."""
+    from flightstack.drivers.guardian import Guardian, GuardianConfig
+    from flightstack.drivers.identify import fits_to_rc_gains, identify, save_identification
+    from flightstack.drivers.tello import TelloConfig, TelloDriver
+
+    if not args.yes:
+        if not sys.stdin.isatty():
+            print("error: this takes off and flies the drone; pass --yes to confirm", file=sys.stderr)
+            return 2
+        answer = input(f"Drone {args.ip} will take off and fly short steps (~1 m). Clear area? [y/N] ")
+        if answer.strip().lower() not in ("y", "yes"):
+            print("aborted", file=sys.stderr)
+            return 1
+    print(
+        "note: velocities are differenced from the state stream's x/y/z, which a real Tello reports only "
+        "over mission pads (enable them, or use motion capture once that backend exists)",
+        file=sys.stderr,
+    )
+    cfg = TelloConfig(host=args.ip, control_port=args.port, connect_timeout_s=args.timeout)
+    driver = TelloDriver(cfg)
+    # if this process dies, its guardian hovers and lands the drone (the stall check stays unarmed: the
+    # identification loop does not beat it; the driver's loop watchdog covers a stalled loop)
+    guardian = Guardian.start(GuardianConfig.for_devices([cfg]))
+    driver.set_muted(guardian.taken_over)
+    try:
+        driver.connect()
+        failed = [c for c in driver.preflight() if not c.ok]
+        if failed:
+            for c in failed:
+                print(f"preflight failed: {c.name}: {c.detail}", file=sys.stderr)
+            return 1
+        driver.takeoff()
+        try:
+            fits = identify(driver, rc_amplitude=args.amplitude, duration_s=args.duration)
+        finally:
+            driver.land()
+        save_identification(args.out, fits, args.ip)
+        gains = fits_to_rc_gains(fits)
+        for axis, f in fits.items():
+            print(f"{axis:4s} gain {f.gain:.5f} per rc unit   tau {f.tau_s:.3f} s   delay {f.delay_s:.3f} s")
+        print(f"rc_gains for the mission: xy {gains.xy:.5f}, z {gains.z:.5f}, yaw {gains.yaw:.5f}")
+        print(f"written to {args.out}")
+        return 0
+    finally:
+        driver.close()
+        guardian.finish()
+
+
+def _add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
+    """The arguments `sim` and `fly` share."""
+    p.add_argument("mission", help=mission_help)
+    p.add_argument("--out", required=True, help="run directory to write (created if missing)")
+    p.add_argument("--duration", type=seconds, default=None, help="override duration_s (seconds, > 0)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--bus", choices=["inproc", "zenoh"], help="override bus.kind (zenoh: on loopback)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="flightstack", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+    s = sub.add_parser("sim", help="run a mission on the simulated backend")
+    _add_run_arguments(s, "mission YAML file (see mission_configs/)")
+    s.set_defaults(func=cmd_sim)
+    f = sub.add_parser("fly", help="fly a mission on real hardware (backend tello): preflight, confirm, fly")
+    _add_run_arguments(f, "mission YAML file with a hardware section")
+    f.add_argument("--yes", action="store_true", help="confirm that the drones may take off")
+    f.set_defaults(func=cmd_sim)
+    pf = sub.add_parser("preflight", help="check every device of a hardware mission (pass/fail table)")
+    pf.add_argument("mission")
+    pf.add_argument("--deadline", type=float, default=9.0, help="bound on the whole check (s)")
+    pf.add_argument("--no-camera", action="store_true", help="skip the video check")
+    pf.add_argument(
+        "--id", type=int, action="append", help="check only this drone (repeatable; access-point mode)"
+    )
+    pf.set_defaults(func=cmd_preflight)
+    tg = sub.add_parser("target", help="drive the real ground robot on the square law (motion capture)")
+    tg.add_argument("mission", help="mission YAML file with hardware.mocap and hardware.target")
+    tg.add_argument("--laps", type=float, default=1.0, help="laps of the square (default 1)")
+    tg.add_argument("--duration", type=seconds, default=None, help="seconds instead of laps")
+    tg.add_argument("--yes", action="store_true", help="confirm that the robot may move")
+    tg.set_defaults(func=cmd_target)
+    t = sub.add_parser("train", help="fit GP experts on a recorded run (data collection without GP)")
+    t.add_argument("run_dir", help="run directory written by `flightstack sim`")
+    t.add_argument("--out", required=True, help="experts file to write (.npz)")
+    t.add_argument("--mission", default=None, help="mission file (default: RUN_DIR/mission_resolved.yaml)")
+    t.add_argument("--from-mode", default="none", help="which recorded mode to learn from (default: none)")
+    t.set_defaults(func=cmd_train)
+    cal = sub.add_parser("calibrate", help="calibration tools")
+    cal_sub = cal.add_subparsers(dest="what", required=True)
+    cd = cal_sub.add_parser("drone", help="identify a Tello's rc-unit -> velocity gains and time constants")
+    cd.add_argument("--ip", required=True, help="the drone's IP address (station mode)")
+    cd.add_argument("--port", type=int, default=8889, help="its command port (8889 on a real Tello)")
+    cd.add_argument("--amplitude", type=int, default=40, help="rc step amplitude (units of -100..100)")
+    cd.add_argument("--duration", type=seconds, default=2.0, help="seconds per step")
+    cd.add_argument("--timeout", type=float, default=5.0, help="connect timeout (s)")
+    cd.add_argument("--out", required=True, help="YAML file to write")
+    cd.add_argument("--yes", action="store_true", help="confirm that the drone may take off")
+    cd.set_defaults(func=cmd_calibrate_drone)
+    from flightstack.calibration.cli import register as register_calibration
+
+    register_calibration(cal_sub)
+    from flightstack.cli.certs import register as register_certs
+    from flightstack.cli.network import register as register_network
+    from flightstack.faults.cli import register as register_faults
+
+    register_network(sub)
+    register_faults(sub)
+    register_certs(sub)
+    rp = sub.add_parser(
+        "report", help="rebuild metrics.json and the plots of a run directory (also one cut short by a kill)"
+    )
+    rp.add_argument("run_dir", help="run directory written by `flightstack sim`/`fly`/`agent`")
+    rp.add_argument("--mission", default=None, help="mission file (default: RUN_DIR/mission_resolved.yaml)")
+    rp.add_argument("--no-plots", action="store_true", help="metrics.json only")
+    rp.set_defaults(func=cmd_report)
+    v = sub.add_parser("validate", help="check a mission file and print the resolved mission")
+    v.add_argument("mission")
+    v.set_defaults(func=cmd_validate)
+    return p
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    from flightstack.config.mission import mission_to_dict
+
+    m = load_mission(args.mission)
+    print(json.dumps(mission_to_dict(m), indent=2))
+    return 0
+
+
+def seconds(text: str) -> float:
+    """argparse type of a duration: a finite number of seconds > 0 (else exit 2 naming the value)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of seconds > 0")
+    return value
+
+
+def _sigterm_as_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point. SIGTERM is handled like Ctrl-C: drones land, the recording is written, exit 130."""
+    args = build_parser().parse_args(argv)
+    signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
+    # Ctrl-C must stop a run even when whoever started us ignored SIGINT (a background job of a script,
+    # some launchers): Python then keeps SIG_IGN and `kill -INT` would do nothing
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return int(args.func(args))
+    except MissionError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # a device that cannot be reached, a file that cannot be written, ...
+        if os.environ.get("FLIGHTSTACK_DEBUG"):
+            raise
+        hint = "FLIGHTSTACK_DEBUG=1 shows the traceback"
+        print(f"error: {type(exc).__name__}: {exc} ({hint})", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

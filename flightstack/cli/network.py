@@ -1,0 +1,362 @@
+"""Commands for agents in separate processes over Zenoh: `agent`, `world`, `abort`, `status` (issue 6).
+
+    flightstack world MISSION                       # simulated missions: serve the world (clock master)
+    flightstack agent MISSION --id N --out DIR      # one agent: its drone, camera, pose (sim or hardware)
+    flightstack abort MISSION [--timeout S]         # every agent lands at once; exit 1 if one did not ack
+    flightstack status MISSION [--once]             # live table of every agent
+
+The mission's `bus: {kind: zenoh, zenoh: {endpoints: ...}}` says where each participant listens.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from flightstack.config.mission import Mission, MissionError, load_mission
+
+if TYPE_CHECKING:
+    from flightstack.comms.control import StatusReport
+
+
+def _zenoh_mission(path: str) -> Mission:
+    mission = load_mission(path)
+    if mission.bus.kind != "zenoh" or mission.bus.zenoh is None:
+        raise MissionError(f"{path}: bus.kind: this command needs the zenoh bus (bus.zenoh.endpoints)")
+    return mission
+
+
+def cmd_world(args: argparse.Namespace) -> int:
+    from flightstack.sim_backend.served.server import WorldServer
+
+    mission = _zenoh_mission(args.mission)
+    server = WorldServer(mission, log=lambda s: print(s, flush=True))
+    summary = server.run()
+    for e in summary.events:
+        print(e)
+    landed = ", ".join(f"{i}: {'landed' if ok else 'NOT LANDED'}" for i, ok in summary.landed.items())
+    print(
+        f"world: {summary.ticks} ticks, {summary.sim_seconds:.2f} s simulated in "
+        f"{summary.wall_seconds:.1f} s wall; drones {landed}; dropped {summary.dropped or 'none'}",
+        flush=True,
+    )
+    return 0 if all(summary.landed.values()) else 1
+
+
+def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
+    if mode == "none":
+        return None
+    if mission.gp.experts_file is None:
+        raise MissionError(f"gp.experts_file: mode {mode!r} in an agent process needs trained experts")
+    from flightstack.runtime.training import load_experts
+
+    return load_experts(mission.resolve(mission.gp.experts_file))  # type: ignore[return-value]
+
+
+def cmd_agent(args: argparse.Namespace) -> int:
+    from flightstack.cli.app import _awake_if_flying
+    from flightstack.comms.factory import make_bus
+    from flightstack.recording.run_dir import RunWriter, check_out_dir
+    from flightstack.recording.timeseries import Recording
+    from flightstack.runtime.experiment import ExperimentResult, build_metrics, resolved_mission_yaml
+    from flightstack.runtime.runner import run_mode
+
+    mission = _zenoh_mission(args.mission)
+    ids = [d.id for d in mission.drones]
+    if args.id not in ids:
+        print(f"error: --id {args.id}: the mission's drones are {ids}", file=sys.stderr)
+        return 2
+    mode = args.mode or mission.compare_modes[-1]
+    if mode == "oracle":  # sim-only truth predictor: it needs the world's truth, which agents do not get
+        print("error: mode 'oracle' runs in one process only (flightstack sim)", file=sys.stderr)
+        return 2
+    predictors = _predictors(mission, mode)
+    assert mission.bus.zenoh is not None
+    out = Path(args.out)
+    problem = check_out_dir(out)  # before anything takes off (flightstack.recording.run_dir.MIN_FREE_BYTES)
+    if problem is not None:
+        print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
+        return 2
+    try:
+        run_writer = RunWriter(out)
+        run_writer.write_file("mission_resolved.yaml", resolved_mission_yaml(mission))  # for `report`
+    except OSError as exc:
+        print(f"error: --out {out}: cannot start the recording: {exc}; nothing took off", file=sys.stderr)
+        return 2
+    wall0 = time.perf_counter()
+    writer = run_writer.mode(mode, [args.id], round(mission.duration_s / mission.dt_s))
+    try:
+        bus = make_bus(mission, str(args.id), {args.id})
+    except BaseException:
+        run_writer.close()
+        raise
+    backend: Any = None
+    rec: Recording | None = None
+    try:
+        if mission.simulated:
+            from flightstack.sim_backend.served.client import RemoteBackend
+
+            backend = RemoteBackend(
+                bus.session,  # type: ignore[attr-defined]
+                mission.bus.zenoh.key_prefix,
+                mission.name,
+                args.id,
+                timeout_s=mission.bus.zenoh.start_timeout_s,
+                tick_timeout_s=max(5.0, 2.0 * mission.bus.zenoh.lockstep_timeout_s),
+            )
+        else:
+            from flightstack.drivers.hardware import HardwareBackend
+
+            backend = HardwareBackend(mission, drone_ids=[args.id], guardian_log=str(out / "guardian.log"))
+        with _awake_if_flying(mission):
+            rec = run_mode(
+                mission, mode, predictors, backend=backend, bus=bus, agent_ids=[args.id], writer=writer
+            )
+    finally:
+        if backend is not None and hasattr(backend, "disconnect"):
+            backend.disconnect()
+        bus.close()
+        if rec is None:  # run_mode raised: what was recorded stays (row stream, events)
+            run_writer.close()
+    try:  # the recording (npz, events) is on disk already: metrics and summary, atomically
+        run_writer.record(rec)
+        res = ExperimentResult(recordings={mode: rec}, interrupted=rec.interrupted, error=rec.error)
+        metrics = run_writer.write_metrics(build_metrics(mission, res, {}, time.perf_counter() - wall0))
+        summary = {
+            "drone": args.id,
+            "mode": mode,
+            "ticks": rec.ticks_done,
+            "interrupted": rec.interrupted,
+            "error": rec.error,
+            "bus_dropped": rec.bus_dropped,
+            # served world only: world ticks this agent refused, by reason (world_messages.py)
+            "world_dropped": dict(backend.link.dropped) if hasattr(backend, "link") else {},
+        }
+        run_writer.write_metrics(summary, "summary.json")
+    except OSError as exc:  # the drone has landed; the row stream and events.jsonl stay readable
+        print(f"agent {args.id}: metrics not written: {exc}", file=sys.stderr)
+        metrics = {"recording": {"complete": False, "reason": str(exc)}}
+    finally:
+        run_writer.close()
+    print(f"agent {args.id}: {rec.ticks_done} ticks of mode {mode}; recording in {out}", flush=True)
+    if not metrics["recording"]["complete"]:
+        print(f"agent {args.id}: recording incomplete: {metrics['recording']['reason']}", file=sys.stderr)
+    if rec.interrupted:
+        return 130
+    if rec.error:
+        landed = any(e.get("event") == "landed" and e.get("drone") == args.id for e in rec.events)
+        what = "its drone landed" if landed else "landing requested, not confirmed (no telemetry)"
+        print(f"agent {args.id}: {rec.error}; {what}", file=sys.stderr)
+        return 1
+    return 0 if metrics["recording"]["complete"] else 1
+
+
+def cmd_abort(args: argparse.Namespace) -> int:
+    """Publish the abort at once (Zenoh and/or the loopback listener of an in-process `fly`), then wait
+    `--timeout` s for every agent's acknowledgement (flightstack/comms/abort.py). Prints each
+    acknowledging process with its drones and time to ack (ms); exit 0 only if every drone of the
+    mission acknowledged, else 1 naming the others."""
+    from flightstack.comms.abort import send_abort
+
+    mission = load_mission(args.mission)
+    if not (args.timeout >= 0 and math.isfinite(args.timeout)):
+        print(f"error: --timeout {args.timeout}: must be a finite number of seconds >= 0", file=sys.stderr)
+        return 2
+    rep = send_abort(mission, args.reason, args.timeout)
+    print(f"abort {rep.abort_id[:8]} sent to mission {mission.name} via {' and '.join(rep.channels)}")
+    for ack, ms in rep.processes():
+        who = f"pid {ack.pid} on {ack.host}, {ack.via}"
+        print(f"  acknowledged by drones {list(ack.drones)} in {ms:.1f} ms ({who})")
+    if rep.present is not None:
+        absent = sorted(set(rep.expected) - set(rep.present))
+        print(f"abort sent to mission {mission.name}: agents present {rep.present}, absent {absent}")
+    if rep.missing:
+        print(
+            f"error: agents {rep.missing} did not acknowledge the abort within {args.timeout:g} s "
+            "(not running, not reachable, or not listening): land them by other means",
+            file=sys.stderr,
+        )
+        return 1
+    slowest = max(rep.latency_ms(i) for i in rep.expected)
+    print(f"every agent acknowledged: drones {rep.expected}, slowest {slowest:.1f} ms")
+    return 0
+
+
+def status_table(
+    statuses: dict[int, tuple[StatusReport, float]],
+    alive: set[int],
+    ids: list[int],
+    now: float,
+    msg_age: dict[int, float | None] | None = None,
+) -> str:
+    """One row per agent. `statuses`: drone → (its last validated status, time.monotonic() at receipt, s);
+    `age s`: since its last status report; `msg s`: since its last prediction message (wall seconds, as
+    received here). Every value of a StatusReport is typed and bounded (flightstack/comms/control.py), so
+    no status can break the table."""
+    msg_age = msg_age or {}
+
+    def age(i: int) -> str:
+        a = msg_age.get(i)
+        return f"{a:6.2f}" if a is not None else f"{'-':>6}"
+
+    head = f"{'drone':>5}  {'alive':5}  {'age s':>6}  {'msg s':>6}  {'mode':6}  {'t s':>8}  "
+    head += f"{'batt %':>6}  {'flying':6}  {'seen':5}  {'fused':>5}  {'pose':5}  problems"
+    lines = [head]
+    for i in ids:
+        if i not in statuses:
+            lines.append(f"{i:>5}  {'yes' if i in alive else 'no':5}  {'-':>6}  {age(i)}  (no status yet)")
+            continue
+        s, received = statuses[i]
+        problems = [s.rejection] if s.rejection else []
+        if not s.link_alive:
+            problems.append("link lost")
+        if s.dropped:
+            problems.append("dropped " + ", ".join(f"{k}: {v}" for k, v in s.dropped))
+        lines.append(
+            f"{i:>5}  {'yes' if i in alive else 'no':5}  {now - received:6.1f}  {age(i)}  {s.mode:6}  "
+            f"{s.t:8.2f}  {s.battery_pct:6.0f}  {'yes' if s.flying else 'no':6}  "
+            f"{'yes' if s.visible else 'no':5}  {s.n_fused:5d}  {'ok' if s.pose_fresh else 'LOST':5}  "
+            f"{'; '.join(problems)}"
+        )
+    return "\n".join(lines)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """Print the table of every agent's last status (live, or `--once`). Statuses come validated from the
+    bus (malformed ones are dropped and counted there); only drones of the mission are shown."""
+    from flightstack.comms.control import status_report
+    from flightstack.comms.factory import make_bus
+
+    mission = _zenoh_mission(args.mission)
+    ids = [d.id for d in mission.drones]
+    bus = make_bus(mission, "operator", set())
+    statuses: dict[int, tuple[StatusReport, float]] = {}
+    live = sys.stdout.isatty() and not args.once
+    t_end = time.monotonic() + (args.wait if args.once else args.duration)
+    try:
+        while True:
+            for ev in bus.control_events():  # type: ignore[attr-defined]
+                report = status_report(ev)
+                if report is not None and report.drone in ids:
+                    statuses[report.drone] = (report, ev.time)
+            now = time.monotonic()
+            done = now >= t_end or (args.once and all(i in statuses for i in ids))
+            if done or not args.once:
+                ages = {i: bus.message_age(i) for i in ids}  # type: ignore[attr-defined]
+                table = status_table(statuses, bus.alive(), ids, now, ages)  # type: ignore[attr-defined]
+                print(("\x1b[2J\x1b[H" if live else "") + table, flush=True)
+            if done:
+                break
+            time.sleep(0.2 if args.once else 1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        bus.close()
+    return 0 if statuses else 1
+
+
+def cmd_guard(args: argparse.Namespace) -> int:
+    """Watch every agent's presence; land the Tello of an agent that vanishes in flight from this
+    computer (drivers/guard.py). Station topology only: exit 2 naming the topology otherwise. One line
+    per event on stdout; ends after `--duration` s (a landing in progress is completed first) or at
+    Ctrl-C; exit 0."""
+    from flightstack.comms.factory import make_bus
+    from flightstack.drivers.guard import Guard, guard_refusal
+    from flightstack.drivers.guardian_process import Log
+
+    mission = load_mission(args.mission)
+    why = guard_refusal(mission)
+    if why is not None:
+        print(f"error: {why}", file=sys.stderr)
+        return 2
+    for name in ("duration", "land_resend", "give_up", "status_fresh"):
+        v = getattr(args, name)
+        if v is not None and not (v > 0 and (math.isfinite(v) or name == "duration")):
+            print(f"error: --{name.replace('_', '-')} {v}: must be a number of seconds > 0", file=sys.stderr)
+            return 2
+    log = Log(None, name="guard", stream=sys.stdout)
+    bus = make_bus(mission, "guard", set())
+    guard: Any = None
+    try:
+        guard = Guard(
+            mission,
+            bus,  # type: ignore[arg-type]
+            log,
+            status_fresh_s=args.status_fresh,
+            land_resend_s=args.land_resend,
+            give_up_s=args.give_up,
+        )
+        guard.start_line()
+        summary = guard.run(args.duration)
+    except KeyboardInterrupt:
+        if guard is not None:
+            guard.interrupted()
+            summary = guard.summary
+    finally:
+        if guard is not None:
+            guard.close()
+        bus.close()
+    if guard is not None:
+        done = ", ".join(f"drone {t.drone}: {t.result}" for t in summary.takeovers) or "none"
+        log(f"guard ends: takeovers {done}; departures not in flight {len(summary.ignored)}")
+    log.close()
+    return 0
+
+
+def register(sub: Any) -> None:
+    w = sub.add_parser("world", help="serve a simulated mission's world to agent processes over Zenoh")
+    w.add_argument("mission")
+    w.set_defaults(func=cmd_world)
+    a = sub.add_parser(
+        "agent", help="run one agent (its drone, camera, pose) talking to the others over Zenoh"
+    )
+    a.add_argument("mission")
+    a.add_argument("--id", type=int, required=True, help="the drone id this process flies")
+    a.add_argument("--mode", choices=["none", "local", "dgp"], help="default: the last of compare_modes")
+    a.add_argument("--out", required=True, help="directory for this agent's recording")
+    a.set_defaults(func=cmd_agent)
+    ab = sub.add_parser(
+        "abort", help="make every agent of a mission land at once; exit 1 naming any that did not ack"
+    )
+    ab.add_argument("mission")
+    ab.add_argument("--reason", default="operator abort")
+    ab.add_argument(
+        "--timeout",
+        "--wait",
+        dest="timeout",
+        type=float,
+        default=2.0,
+        help="how long to wait for every agent's acknowledgement after sending (s)",
+    )
+    ab.set_defaults(func=cmd_abort)
+    st = sub.add_parser("status", help="live table of every agent: liveliness, message age, battery, ...")
+    st.add_argument("mission")
+    st.add_argument("--once", action="store_true", help="print one table when every agent reported, exit")
+    st.add_argument("--wait", type=float, default=3.0, help="with --once: longest wait for reports (s)")
+    st.add_argument("--duration", type=float, default=math.inf, help="stop after this long (s)")
+    st.set_defaults(func=cmd_status)
+    gd = sub.add_parser(
+        "guard",
+        help="land the Tello of any agent that vanishes from the bus in flight (station topology only)",
+    )
+    gd.add_argument("mission")
+    gd.add_argument("--duration", type=float, default=math.inf, help="stop watching after this long (s)")
+    gd.add_argument(
+        "--status-fresh",
+        type=float,
+        default=None,
+        help="in flight = last status flying and at most this old when the token vanishes "
+        "(s; default max(2, lease + 1))",
+    )
+    gd.add_argument("--land-resend", type=float, default=1.0, help="re-send rc 0 0 0 0 + land this often (s)")
+    gd.add_argument(
+        "--give-up",
+        type=float,
+        default=20.0,
+        help="stop re-sending after this long without seeing it down (s)",
+    )
+    gd.set_defaults(func=cmd_guard)

@@ -1,0 +1,172 @@
+"""PNG plots like the paper's Figs. 3–5 from an experiment's recordings (matplotlib, Agg backend), and
+`rebuild_run`: metrics.json and the plots of any run directory again (`flightstack report RUN_DIR`)."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from flightstack.config.mission import Mission, load_mission
+from flightstack.recording.run_dir import atomic_write_json, load_run, recording_status
+from flightstack.recording.timeseries import Recording
+from flightstack.runtime.training import ExpertData, bands, load_experts
+
+MODE_STYLE = {
+    "none": ("tab:gray", "without GP"),
+    "local": ("tab:orange", "local GP"),
+    "dgp": ("tab:blue", "distributed GP"),
+    "oracle": ("tab:green", "true velocity"),
+}
+DRONE_COLOURS = ("tab:red", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive")
+
+
+def plot_trajectory(
+    path: Path, mission: Mission, rec: Recording, data: list[ExpertData], show_drones: bool = False
+) -> None:
+    """Fig. 3: target xy trajectory, expert bands, training points (○ start, □ end)."""
+    k = rec.ticks_done
+    xy = rec.g_w0[:k, :2]
+    fig, ax = plt.subplots(figsize=(6, 5))
+    axis = mission.gp.regions.axis
+    lo_all, hi_all = xy.min(axis=0) - 0.3, xy.max(axis=0) + 0.3
+    if show_drones:
+        pts = rec.g_wi[:k, :, :2].reshape(-1, 2)
+        lo_all, hi_all = np.minimum(lo_all, pts.min(axis=0) - 0.2), np.maximum(hi_all, pts.max(axis=0) + 0.2)
+    for j, (lo, hi) in enumerate(bands(mission)):
+        c = DRONE_COLOURS[j % len(DRONE_COLOURS)]
+        a0 = max(lo, lo_all[0 if axis == "x" else 1])
+        a1 = min(hi, hi_all[0 if axis == "x" else 1])
+        label = f"region of drone {rec.drone_ids[j]}"
+        if axis == "x":
+            ax.axvspan(a0, a1, color=c, alpha=0.08, label=label)
+        else:
+            ax.axhspan(a0, a1, color=c, alpha=0.08, label=label)
+    ax.plot(xy[:, 0], xy[:, 1], "k-", lw=1, label="target")
+    if show_drones:
+        for j, i in enumerate(rec.drone_ids):
+            c = DRONE_COLOURS[j % len(DRONE_COLOURS)]
+            ax.plot(
+                rec.g_wi[:k, j, 0], rec.g_wi[:k, j, 1], "-", color=c, lw=0.6, alpha=0.7, label=f"drone {i}"
+            )
+    ax.plot(*xy[0], "ko", mfc="none", ms=9)
+    ax.plot(*xy[-1], "ks", mfc="none", ms=9)
+    for j, d in enumerate(data):
+        c = DRONE_COLOURS[j % len(DRONE_COLOURS)]
+        ax.plot(d.X[:, 0], d.X[:, 1], "x", color=c, ms=7, label=f"data of drone {d.drone_id}")
+    ax.set_xlim(lo_all[0], hi_all[0])
+    ax.set_ylim(lo_all[1], hi_all[1])
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title("Target trajectory, expert regions and training data")
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_error_norms(path: Path, recs: dict[str, Recording], which: str) -> None:
+    """Figs. 4/5: ‖e_c‖ or ‖e_e‖ (network-wide, R^{4n}) over time, one line per mode, log scale."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    floor = np.inf
+    for mode, rec in recs.items():
+        k = rec.ticks_done
+        e = rec.e_c[:k] if which == "c" else rec.e_e[:k]
+        norm = np.sqrt((e**2).sum(axis=(1, 2)))
+        colour, label = MODE_STYLE.get(mode, ("k", mode))
+        ax.semilogy(rec.t[:k], np.maximum(norm, 1e-16), color=colour, lw=1, label=label)
+        positive = norm[norm > 0]
+        if positive.size:
+            floor = min(floor, float(np.percentile(positive, 1)))
+    if np.isfinite(floor):  # an exact e(0) = 0 would otherwise stretch the axis down to 1e-16
+        ax.set_ylim(bottom=floor / 3)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(r"$\|e_c\|$" if which == "c" else r"$\|e_e\|$")
+    ax.set_title("Control error" if which == "c" else "Estimation error")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_plots(
+    out: Path, mission: Mission, recs: dict[str, Recording], data: list[ExpertData]
+) -> list[Path]:
+    """trajectory.png, error_ec.png, error_ee.png in `out` (recordings without ticks are left out; no
+    plot without any tick); returns the paths written."""
+    out.mkdir(parents=True, exist_ok=True)
+    paths: list[Path] = []
+    recs = {m: r for m, r in recs.items() if r.ticks_done > 0}
+    if not recs:
+        return paths
+    ref = recs.get("none") or next(iter(recs.values()))
+    p = out / "trajectory.png"
+    plot_trajectory(p, mission, ref, data, show_drones=mission.backend != "sim_ideal")
+    paths.append(p)
+    shown = {m: r for m, r in recs.items() if m in mission.compare_modes}
+    for which in ("c", "e"):
+        p = out / f"error_e{which}.png"
+        plot_error_norms(p, shown, which)
+        paths.append(p)
+    return paths
+
+
+def _load_datasets(path: Path) -> list[ExpertData]:
+    """The training data of datasets.npz (keys drone<id>__X/Y/ticks; the band is not stored: NaN)."""
+    if not path.is_file():
+        return []
+    with np.load(path) as z:
+        ids = sorted({int(k.split("__")[0][5:]) for k in z.files})
+        nan = (float("nan"), float("nan"))
+        return [ExpertData(i, nan, z[f"drone{i}__X"], z[f"drone{i}__Y"], z[f"drone{i}__ticks"]) for i in ids]
+
+
+def rebuild_run(
+    run_dir: Path, mission: Mission | None = None, plots: bool = True
+) -> tuple[dict[str, Any], list[Path]]:
+    """Rebuild metrics.json (atomically) and, if `plots`, the plots of a run directory from its
+    recording: the final npz files, or the row streams of a run cut short by a kill, a crash or a full
+    disk (flightstack.recording.run_dir.load_run). mission: default RUN_DIR/mission_resolved.yaml. The GP
+    facts
+    and the run's wall time are kept from an earlier metrics.json when there is one (the sum of the
+    modes' wall time otherwise). Returns (metrics, plot paths); FileNotFoundError without a recording
+    or a mission."""
+    from flightstack.runtime.experiment import (  # experiment imports the runner
+        ExperimentResult,
+        build_metrics,
+    )
+
+    run_dir = Path(run_dir)
+    if mission is None:
+        path = run_dir / "mission_resolved.yaml"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path.name} not found (pass --mission)")
+        mission = load_mission(path, check_files=False)
+    recs = load_run(run_dir, mission)
+    if not recs:
+        raise FileNotFoundError("no recording (timeseries_<mode>.npz or .rows) in it")
+    old: dict[str, Any] = {}
+    with contextlib.suppress(OSError, ValueError):
+        old = json.loads((run_dir / "metrics.json").read_text(encoding="utf-8"))
+    res = ExperimentResult(recordings=recs)
+    res.datasets = _load_datasets(run_dir / "datasets.npz")
+    if (run_dir / "experts.npz").is_file():
+        res.experts = load_experts(run_dir / "experts.npz")
+    res.interrupted = any(r.interrupted for r in recs.values()) or old.get("interrupted") is True
+    res.error = next((r.error for r in recs.values() if r.error), None) or old.get("error")  # e.g. GP data
+    wall = old.get("wall_seconds")
+    if not isinstance(wall, int | float):
+        wall = float(sum(r.wall_seconds for r in recs.values()))
+    metrics = build_metrics(mission, res, old.get("gp") or {}, float(wall))
+    metrics["recording"] = recording_status(run_dir, recs)
+    atomic_write_json(run_dir / "metrics.json", metrics)
+    paths = write_plots(run_dir, mission, recs, res.datasets) if plots else []
+    return metrics, paths

@@ -1,0 +1,823 @@
+"""Writes a run directory as the run goes, so that a kill, a crash or a full disk loses at most ~1 s.
+
+One `RunWriter` per run directory, one `ModeWriter` per flown mode:
+
+    run = RunWriter(out)                         # before takeoff: opens events.jsonl, recording.json
+    w = run.mode("dgp", ids, n_ticks)            # handed to runner.run_mode(..., writer=w)
+    w.append(rec, k + 1)                         # every tick; cheap, writes a block about every 0.5 s
+    w.event({...})                               # an event that must reach the disk now
+    w.close(rec)                                 # after landing: final timeseries_dgp.npz
+    run.write_metrics(metrics); run.close()      # metrics.json (with "recording": complete, reason)
+
+Files of a run directory (all written by a background thread, so a slow or hung disk never blocks the
+control loop; the loop only copies the new rows, about every BLOCK_PERIOD_S):
+
+- `timeseries_<mode>.rows` (while the mode flies): an append-only file of fixed-size rows, readable after
+  a kill (`read_rows`). Layout: the 8 bytes MAGIC, a little-endian uint32 header length L, L bytes of
+  UTF-8 JSON {"format", "version", "columns": [{"name", "dtype", "shape"}...], "meta"} padded with
+  spaces to a multiple of 64 bytes, then rows of the numpy structured dtype the columns describe (C
+  order, no padding). Column `_seq` holds the row number + 1: a torn or zero-filled tail (kill, power
+  loss) is recognised and dropped. The ModeWriter writes every Recording array except e_c and e_e (zeros
+  while flying; `load_run` recomputes them from the poses and the mission). At about 1 kB per tick for
+  3 drones (10⁵ ticks ≈ 100 MB) this file is removed once the final npz is safely on disk.
+- `timeseries_<mode>.npz`: written at the end of the mode exactly as before (tmp + fsync + os.replace, so
+  a full disk never leaves a half-written file); every existing reader keeps working.
+- `events.jsonl`: one JSON object per line, appended when the event happens; each line is written with
+  one write(2) at once (it survives a kill of the process as soon as it is written: typically < 1 ms
+  after the call) and fsync'ed at most every FSYNC_PERIOD_S and at close (a power loss loses at most the
+  last ~1 s). Non-finite floats are written as null (strict JSON).
+- `recording.json`: the recording's state, rewritten atomically (tmp + fsync + os.replace) when a mode
+  starts or ends and when the recording stops: {"state": "running"|"closed", "complete", "reason",
+  "modes": {mode: {"state", "drone_ids", "n_ticks", "rows_written", Recording.meta()...}}}.
+- `metrics.json` (by the caller through `RunWriter.write_metrics`): atomic, with
+  "recording": {"complete": bool, "reason": str | None}.
+
+Data lost to a SIGKILL: the rows not yet handed over (at most BLOCK_PERIOD_S = 0.5 s of wall time, or
+BLOCK_MAX_ROWS ticks on a fast simulated clock) plus the write in flight (well under 0.5 s), so ≤ 1 s.
+
+On any write error (a full disk: ENOSPC, a removed USB stick: EIO, ...) the recording stops: nothing more
+is written to the stream, nothing raises into the control loop (safety first: the flight goes on), the
+run's recording gets a `recording_stopped` event with the reason, and metrics.json says
+"recording": {"complete": false, "reason": ...}. All stream writes go through `_write_bytes`, the point
+where tests inject ENOSPC. A run directory must have MIN_FREE_BYTES free before anything takes off
+(`check_out_dir`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import logging
+import math
+import os
+import queue
+import shutil
+import struct
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
+
+if TYPE_CHECKING:
+    from flightstack.config.mission import Mission
+
+_log = logging.getLogger(__name__)
+
+MIN_FREE_BYTES = 50_000_000
+"""Free space (bytes, 50 MB) `--out` must have before takeoff: ~1 min of a 3-drone mission at 500 Hz in
+the row stream, or hours at a hardware rate of 20 Hz, plus the final npz files and the plots."""
+BLOCK_PERIOD_S = 0.5
+"""Wall time (s) after which the rows gathered are handed to the writer thread."""
+BLOCK_MAX_ROWS = 2000
+"""Ticks after which the rows gathered are handed over anyway (simulated clocks run faster than real)."""
+FSYNC_PERIOD_S = 1.0
+"""The writer thread fsyncs a file written to at most this often (s), and at close."""
+MAX_PENDING_BYTES = 64_000_000
+"""Bytes handed to the writer thread and not yet written beyond which the recording stops (a disk that
+does not keep up) rather than letting memory grow."""
+CLOSE_TIMEOUT_S = 60.0
+"""How long (s) closing waits for the writer thread (final npz included) before giving up."""
+MAGIC = b"FSROWS1\n"
+EVENTS_FILE = "events.jsonl"
+STATE_FILE = "recording.json"
+ROWS_SUFFIX = ".rows"
+STREAM_FIELDS = tuple(f for f in ARRAY_FIELDS if f not in ("e_c", "e_e"))
+"""The Recording arrays a ModeWriter streams (e_c and e_e are derived at the end from the poses)."""
+
+
+def _write_bytes(fd: int, data: bytes) -> None:
+    """Write all of `data` to the file descriptor (loops over partial writes). Every write of the row
+    stream and of events.jsonl goes through here (tests inject OSError(ENOSPC) at this point)."""
+    view = memoryview(data)
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write `path` atomically: a temporary file in the same directory, fsync, os.replace, then fsync of
+    the directory (best effort). Raises OSError; never leaves a partial `path` behind."""
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    _fsync_dir(path.parent)
+
+
+def atomic_write_json(path: Path, obj: Any, strict: bool = True) -> None:
+    """`obj` as indented strict JSON, written atomically. strict: a non-finite float raises ValueError
+    (a metric that is NaN is a finding); else it is written as null."""
+    text = json.dumps(obj if strict else _finite(obj), indent=2, allow_nan=False)
+    atomic_write_bytes(path, (text + "\n").encode())
+
+
+def _fsync_dir(d: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(d, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _finite(x: Any) -> Any:
+    """`x` with numpy values as Python ones and non-finite floats as None (strict JSON)."""
+    if isinstance(x, Mapping):
+        return {str(k): _finite(v) for k, v in x.items()}
+    if isinstance(x, list | tuple | set | frozenset):
+        return [_finite(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _finite(x.tolist())
+    if isinstance(x, np.generic):
+        return _finite(x.item())
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if x is None or isinstance(x, bool | int | str):
+        return x
+    return str(x)
+
+
+def event_line(ev: Mapping[str, Any]) -> bytes:
+    """One events.jsonl line (strict JSON, newline-terminated)."""
+    try:
+        text = json.dumps(ev, allow_nan=False)
+    except (TypeError, ValueError):
+        text = json.dumps(_finite(ev), allow_nan=False)
+    return (text + "\n").encode()
+
+
+def check_out_dir(out: Path, min_free_bytes: int = MIN_FREE_BYTES) -> str | None:
+    """None when `out` can hold a run: it is (or is created as) a directory in which a file can be
+    created, written, fsync'ed and removed, on a file system with at least min_free_bytes (B) free;
+    else a sentence saying why not. Call it before anything takes off. Directories it had to create are
+    removed again (a check leaves nothing behind: a refused `fly` writes nothing)."""
+    out = Path(out)
+    created = [p for p in (out, *out.parents) if not p.exists()]
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"cannot create the directory: {exc.strerror or exc}"
+    try:
+        return _probe_out_dir(out, min_free_bytes)
+    finally:
+        for p in created:  # deepest first
+            with contextlib.suppress(OSError):
+                p.rmdir()
+
+
+def _probe_out_dir(out: Path, min_free_bytes: int) -> str | None:
+    probe = out / f".flightstack-write-probe-{os.getpid()}"
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            os.write(fd, b"\0" * 4096)  # not through _write_bytes: that is the recording stream's
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        return f"not writable: {exc.strerror or exc}"
+    finally:
+        with contextlib.suppress(OSError):
+            probe.unlink()
+    free = shutil.disk_usage(out).free
+    if free < min_free_bytes:
+        return (
+            f"only {free / 1e6:.1f} MB free on its file system; a run needs at least "
+            f"{min_free_bytes / 1e6:.0f} MB (flightstack.recording.run_dir.MIN_FREE_BYTES)"
+        )
+    return None
+
+
+class RowLayout:
+    """The fixed-size rows of a row stream: named columns (dtype, per-row shape) plus `_seq`."""
+
+    def __init__(self, columns: Mapping[str, tuple[Any, tuple[int, ...]]], meta: Mapping[str, Any]):
+        """columns: name → (numpy dtype, shape of one row's value); meta: JSON-able facts for readers."""
+        self.columns = {
+            k: (np.dtype(dt).newbyteorder("<"), tuple(shape)) for k, (dt, shape) in columns.items()
+        }
+        self.meta = dict(meta)
+        self.dtype = np.dtype(
+            [("_seq", "<i8")] + [(name, dt, shape) for name, (dt, shape) in self.columns.items()]
+        )
+
+    @staticmethod
+    def of_recording(rec: Recording, fields: Iterable[str] = STREAM_FIELDS) -> RowLayout:
+        """The layout of a Recording's arrays (one row per tick), meta {mode, drone_ids}."""
+        cols = {f: (getattr(rec, f).dtype, getattr(rec, f).shape[1:]) for f in fields}
+        return RowLayout(cols, {"mode": rec.mode, "drone_ids": [int(i) for i in rec.drone_ids]})
+
+    def header(self) -> bytes:
+        """MAGIC, uint32 length, JSON padded to a multiple of 64 bytes."""
+        doc = {
+            "format": "flightstack rows",
+            "version": 1,
+            "columns": [
+                {"name": n, "dtype": dt.str, "shape": list(shape)} for n, (dt, shape) in self.columns.items()
+            ],
+            "meta": _finite(self.meta),
+        }
+        body = json.dumps(doc).encode()
+        total = len(MAGIC) + 4 + len(body) + 1
+        body += b" " * (-total % 64) + b"\n"
+        return MAGIC + struct.pack("<I", len(body)) + body
+
+    def pack(self, arrays: Mapping[str, np.ndarray], first_row: int) -> bytes:
+        """Rows first_row, first_row+1, ... of every column (each array has the same number of rows)."""
+        m = len(next(iter(arrays.values())))
+        block = np.zeros(m, dtype=self.dtype)
+        block["_seq"] = np.arange(first_row + 1, first_row + m + 1)
+        for name in self.columns:
+            block[name] = arrays[name]
+        return block.tobytes()
+
+
+def read_rows(path: Path) -> tuple[dict[str, Any], np.ndarray]:
+    """(meta, rows) of a row stream, also one cut short by a kill: only the leading rows whose `_seq`
+    is their row number + 1 are returned (a torn or zero-filled tail is dropped). `rows` is a numpy
+    structured array; rows[name] is one column, shape (N, *shape). ValueError if not a row stream."""
+    with open(path, "rb") as fh:
+        head = fh.read(len(MAGIC) + 4)
+        if len(head) < len(MAGIC) + 4 or head[: len(MAGIC)] != MAGIC:
+            raise ValueError(f"{path}: not a flightstack row stream")
+        (n,) = struct.unpack("<I", head[len(MAGIC) :])
+        body = fh.read(n)
+        if len(body) < n:
+            raise ValueError(f"{path}: header cut short")
+        doc = json.loads(body)
+        cols = {c["name"]: (c["dtype"], tuple(c["shape"])) for c in doc["columns"]}
+        layout = RowLayout(cols, doc.get("meta", {}))
+        size = os.fstat(fh.fileno()).st_size - len(MAGIC) - 4 - n
+        count = max(size, 0) // layout.dtype.itemsize
+        rows = np.fromfile(fh, dtype=layout.dtype, count=count)
+    ok = rows["_seq"] == np.arange(1, len(rows) + 1)
+    good = len(rows) if ok.all() else int(np.argmin(ok))
+    return layout.meta, rows[:good]
+
+
+def _errno_text(exc: OSError) -> str:
+    name = errno.errorcode.get(exc.errno or 0, "")
+    return f"{exc.strerror or exc}{f' ({name})' if name else ''}"
+
+
+class RunWriter:
+    """The run directory `out_dir`, written as the run goes by one background thread (see the module).
+
+    Created before takeoff (raises OSError if the directory cannot be written: nothing flew yet); from
+    then on no method raises for a write error of the recording: it stops the recording instead
+    (`status()`). Thread-safe. Starting a run truncates events.jsonl, rewrites recording.json and
+    removes metrics.json and the row streams of an earlier run in this directory; a mode's npz is
+    removed when that mode starts (and written again when it ends)."""
+
+    def __init__(
+        self,
+        out_dir: Path | str,
+        *,
+        block_period_s: float = BLOCK_PERIOD_S,
+        block_max_rows: int = BLOCK_MAX_ROWS,
+    ) -> None:
+        self.out = Path(out_dir)
+        self.block_period_s = block_period_s
+        self.block_max_rows = block_max_rows
+        self.out.mkdir(parents=True, exist_ok=True)
+        for stale in [*self.out.glob(f"timeseries_*{ROWS_SUFFIX}"), self.out / "metrics.json"]:
+            stale.unlink(missing_ok=True)
+        self._lock = threading.RLock()
+        self._failure: str | None = None
+        self._failure_reported = False
+        self._modes: dict[str, ModeWriter] = {}
+        self._state: dict[str, Any] = {"state": "running", "complete": False, "reason": "in progress"}
+        self._state_modes: dict[str, dict[str, Any]] = {}
+        self._unsynced: set[int] = set()  # fds written to since the last fsync (writer thread only)
+        self._last_fsync = time.monotonic()
+        self._events_fd = os.open(
+            self.out / EVENTS_FILE, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_APPEND, 0o644
+        )
+        self._write_state()
+        self._queue: queue.Queue[tuple[int, bool, Callable[[], None]] | None] = queue.Queue()
+        self._pending_bytes = 0  # handed to the thread, not yet written (approximate: for back-pressure)
+        self._closed = False
+        self._thread = threading.Thread(target=self._work, name="flightstack-recorder", daemon=True)
+        self._thread.start()
+
+    # ---- the API ---------------------------------------------------------------------------------
+    def mode(self, mode: str, ids: list[int], n_ticks: int) -> ModeWriter:
+        """A writer for one mode's recording (drone ids in recording order, n_ticks planned); an earlier
+        timeseries_<mode>.npz of this directory is removed now. Never raises."""
+        with self._lock:
+            old = self._modes.get(mode)
+        if old is not None and not old.closed:
+            old.close()
+        w = ModeWriter(self, mode, list(ids), int(n_ticks))
+        with self._lock:
+            self._modes[mode] = w
+            self._state_modes[mode] = {
+                "state": "recording",
+                "drone_ids": [int(i) for i in ids],
+                "n_ticks": int(n_ticks),
+                "rows_written": 0,
+            }
+        self._submit(0, w._start)
+        return w
+
+    def record(self, rec: Recording) -> None:
+        """Write a whole recording at once (final npz and its events) unless this writer already wrote
+        its mode (a ModeWriter handed to run_mode and closed with it). Never raises."""
+        with self._lock:
+            done = rec.mode in self._modes and self._modes[rec.mode].closed
+        if not done:
+            self.mode(rec.mode, rec.drone_ids, rec.ticks_done).close(rec, stream=False)
+
+    def write_file(self, name: str, data: bytes | str) -> None:
+        """Write a file of the run directory atomically now (raises OSError; the recording is not
+        stopped by it: the caller decides)."""
+        atomic_write_bytes(self.out / name, data.encode() if isinstance(data, str) else data)
+
+    def write_metrics(self, metrics: Mapping[str, Any], name: str = "metrics.json") -> dict[str, Any]:
+        """metrics + {"recording": status()} written atomically as strict JSON after everything handed
+        to the writer thread is written (bounded by CLOSE_TIMEOUT_S); returns what was written. Raises
+        OSError if it cannot be written, ValueError if a metric is not finite (nothing written)."""
+        self.drain()
+        out = {**metrics, "recording": self.status()}
+        atomic_write_json(self.out / name, out)
+        return out
+
+    def status(self) -> dict[str, Any]:
+        """{"complete": bool, "reason": str | None}: complete when nothing failed and every mode started
+        was closed with its final npz on disk (the recording has every tick that was flown)."""
+        with self._lock:
+            if self._failure is not None:
+                return {"complete": False, "reason": self._failure}
+            open_modes = [m for m, w in self._modes.items() if not w.closed]
+            if open_modes:
+                return {"complete": False, "reason": f"in progress (modes {open_modes} not closed)"}
+            partial = [m for m, s in self._state_modes.items() if not s.get("final")]
+            if partial:
+                return {"complete": False, "reason": f"no final recording of modes {partial}"}
+            return {"complete": True, "reason": None}
+
+    @property
+    def failure(self) -> str | None:
+        """Why the recording stopped (None while it works)."""
+        return self._failure
+
+    def fail(self, reason: str) -> None:
+        """Stop the recording (first reason kept); logged once. Never raises."""
+        with self._lock:
+            if self._failure is not None:
+                return
+            self._failure = reason
+        _log.error("recording stopped: %s (the flight goes on)", reason)
+        self._submit(0, self._write_state_quietly, always=True)
+
+    def drain(self, timeout_s: float = CLOSE_TIMEOUT_S) -> bool:
+        """Wait until the writer thread has done everything handed to it; False on timeout (s)."""
+        if threading.current_thread() is self._thread or self._closed:
+            return True
+        if not self._thread.is_alive():
+            return False
+        done = threading.Event()
+        self._queue.put((0, True, done.set))  # one thread, FIFO: every earlier job is done when it runs
+        return done.wait(timeout_s)
+
+    def close(self) -> None:
+        """Close every mode still open (without a final npz: its row stream stays), write everything,
+        fsync, rewrite recording.json as closed and stop the thread. Idempotent; never raises."""
+        with self._lock:
+            if self._closed:
+                return
+            modes = list(self._modes.values())
+        for w in modes:
+            if not w.closed:
+                w.close()
+        self._submit(0, self._close_files, always=True)
+        if not self.drain():
+            self.fail(f"the writer thread did not finish within {CLOSE_TIMEOUT_S:g} s (disk hung?)")
+        with self._lock:
+            self._closed = True
+        self._queue.put(None)
+        self._thread.join(timeout=1.0)
+
+    def __enter__(self) -> RunWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- inside ----------------------------------------------------------------------------------
+    def _submit(self, nbytes: int, job: Callable[[], None], always: bool = False) -> None:
+        """Hand a job to the writer thread (never blocks). always: run it even after a failure (then its
+        own errors are ignored)."""
+        with self._lock:
+            if self._closed or (self._failure is not None and not always):
+                return
+            over = self._pending_bytes + nbytes > MAX_PENDING_BYTES
+            if not over:
+                self._pending_bytes += nbytes
+        if over:
+            self.fail(f"the disk does not keep up: {MAX_PENDING_BYTES / 1e6:.0f} MB waiting to be written")
+            return
+        self._queue.put((nbytes, always, job))
+
+    def _work(self) -> None:
+        last_poll = time.monotonic()
+        while True:
+            try:
+                item = self._queue.get(timeout=min(FSYNC_PERIOD_S, self.block_period_s))
+            except queue.Empty:
+                item = (0, False, self._maybe_fsync)
+            if item is None:
+                return
+            if time.monotonic() - last_poll >= self.block_period_s:  # event sources, also during
+                last_poll = time.monotonic()  # takeoff and landing (no append then)
+                with self._lock:
+                    open_modes = [w for w in self._modes.values() if not w.closed]
+                for w in open_modes:
+                    w._poll_sources()
+            nbytes, always, job = item
+            try:
+                if always or self._failure is None:
+                    job()
+                    self._maybe_fsync()
+            except OSError as exc:
+                if not always:
+                    self.fail(f"{_errno_text(exc)} writing {getattr(exc, 'filename', None) or self.out}")
+            except Exception as exc:  # a bug must not kill the thread (drain would wait for ever)
+                _log.exception("recorder job failed")
+                if not always:
+                    self.fail(f"recorder error: {type(exc).__name__}: {exc}")
+            finally:
+                with self._lock:
+                    self._pending_bytes -= nbytes
+
+    def _maybe_fsync(self, force: bool = False) -> None:
+        """fsync every file written since the last fsync, if FSYNC_PERIOD_S has passed (or force)."""
+        now = time.monotonic()
+        if not force and now - self._last_fsync < FSYNC_PERIOD_S:
+            return
+        self._last_fsync = now
+        while self._unsynced:
+            os.fsync(self._unsynced.pop())
+
+    def _write_stream(self, fd: int, data: bytes, what: str) -> None:
+        try:
+            _write_bytes(fd, data)
+        except OSError as exc:
+            exc.filename = exc.filename or what
+            raise
+        self._unsynced.add(fd)
+
+    def _write_event_line(self, line: bytes) -> None:
+        self._write_stream(self._events_fd, line, EVENTS_FILE)
+
+    def _write_state(self) -> None:
+        with self._lock:
+            doc = {
+                **self._state,
+                **({"complete": False, "reason": self._failure} if self._failure else {}),
+                "modes": {m: dict(s) for m, s in self._state_modes.items()},
+            }
+        atomic_write_json(self.out / STATE_FILE, doc, strict=False)
+
+    def _write_state_quietly(self) -> None:
+        try:
+            self._write_state()
+        except OSError as exc:
+            _log.error("recording.json not updated: %s", _errno_text(exc))
+
+    def _close_files(self) -> None:
+        with contextlib.suppress(OSError):
+            self._maybe_fsync(force=True)
+        self._unsynced.clear()
+        with contextlib.suppress(OSError):
+            os.close(self._events_fd)
+        with self._lock:
+            self._state.update(state="closed", **{k: v for k, v in self.status().items()})
+        self._write_state_quietly()
+
+    def _mode_state(self, mode: str, **changes: Any) -> None:
+        with self._lock:
+            self._state_modes.setdefault(mode, {}).update(changes)
+
+
+class ModeWriter:
+    """Writes one mode's Recording as it is filled (see the module): `append` every tick, `event` for an
+    event that must reach the disk now, `close` at the end. No method raises into the control loop."""
+
+    def __init__(self, run: RunWriter, mode: str, ids: list[int], n_ticks: int) -> None:
+        self.run = run
+        self.mode = mode
+        self.ids = ids
+        self.n_ticks = n_ticks
+        self.closed = False
+        self.rows_written = 0  # rows on disk (updated by the writer thread)
+        self._layout: RowLayout | None = None
+        self._fd: int | None = None
+        self._sent = 0  # rows handed to the writer thread
+        self._last_send = time.monotonic()
+        self._event_cursor = 0  # rec.events[:cursor] were handled
+        self._direct: Counter[bytes] = Counter()  # lines written by event() not yet seen in rec.events
+        self._sources: list[tuple[Callable[[], Iterable[Mapping[str, Any]]], list[int]]] = []
+        self._lock = threading.Lock()
+        self._source_lock = threading.Lock()
+        self.rows_path = run.out / f"timeseries_{mode}{ROWS_SUFFIX}"
+        self.npz_path = run.out / f"timeseries_{mode}.npz"
+
+    # ---- the API ---------------------------------------------------------------------------------
+    def append(self, rec: Recording, upto_tick: int) -> None:
+        """Rows [0, upto_tick) of `rec` are final: hand the new ones to the writer when BLOCK_PERIOD_S of
+        wall time or BLOCK_MAX_ROWS ticks have gathered, and flush the events added to rec.events since
+        the last call (each at once). Call it every tick; it costs ~1 µs when it writes nothing."""
+        try:
+            if len(rec.events) > self._event_cursor:
+                self._sync_events(rec)
+            if self.run._failure is not None:
+                self._report_failure(rec)
+                return
+            few = upto_tick - self._sent < self.run.block_max_rows
+            if few and time.monotonic() - self._last_send < self.run.block_period_s:
+                return
+            self._send_rows(rec, upto_tick)
+        except Exception as exc:  # never into the control loop
+            self.run.fail(f"recorder error: {type(exc).__name__}: {exc}")
+
+    def event(self, ev: Mapping[str, Any]) -> None:
+        """Write one event now (events.jsonl). If the same event is (or later is) in the recording's
+        events, it is written once. Thread-safe; never raises."""
+        try:
+            line = event_line(ev)
+            with self._lock:
+                self._direct[line] += 1
+            self.run._submit(len(line), lambda: self.run._write_event_line(line))
+        except Exception as exc:
+            self.run.fail(f"recorder error: {type(exc).__name__}: {exc}")
+
+    def add_event_source(self, source: Callable[[], Iterable[Mapping[str, Any]]]) -> None:
+        """A thread-safe function returning every event of some log so far (oldest first, append-only,
+        e.g. the safety EventLog as dicts): the writer thread polls it every BLOCK_PERIOD_S (also during
+        takeoff and landing) and at close, and writes each new event once, even if it is added to
+        rec.events later."""
+        self._sources.append((source, [0]))
+
+    def flush(self, rec: Recording | None = None, timeout_s: float = CLOSE_TIMEOUT_S) -> bool:
+        """Hand everything of `rec` gathered so far (rows up to rec.ticks_done, events) to the writer
+        and wait until it is written; False on timeout (s). For tests and checkpoints."""
+        self._poll_sources()
+        if rec is not None:
+            self.append(rec, rec.ticks_done)
+            if self.run._failure is None:
+                self._send_rows(rec, rec.ticks_done)
+        return self.run.drain(timeout_s)
+
+    def close(self, rec: Recording | None = None, *, stream: bool = True) -> None:
+        """End the mode. With `rec` (after landing): its remaining rows and events, then the final
+        timeseries_<mode>.npz (atomic) and its meta in recording.json, then the row stream is removed.
+        Without: the row stream stays as the mode's data (`load_run` reads it). Waits for the writer
+        thread (≤ CLOSE_TIMEOUT_S). stream=False: write no row stream (a whole recording at once).
+        Idempotent; never raises."""
+        if self.closed:
+            return
+        try:
+            self._poll_sources()  # first: an event of a source that is also in rec.events is written once
+            if rec is not None:
+                self._sync_events(rec)
+                if stream and self.run._failure is None:
+                    self._send_rows(rec, rec.ticks_done)
+                self.run.drain()  # a write error of the above is reported in the recording too
+                self._report_failure(rec)
+            final = rec.truncated() if rec is not None else None
+            self.run._submit(0, lambda: self._finish(final), always=True)
+        except Exception as exc:
+            self.run.fail(f"recorder error: {type(exc).__name__}: {exc}")
+        finally:
+            self.closed = True
+        self.run.drain()
+
+    # ---- inside ----------------------------------------------------------------------------------
+    def _send_rows(self, rec: Recording, upto: int) -> None:
+        start = self._sent
+        self._last_send = time.monotonic()
+        if upto <= start:
+            return
+        if self._layout is None:
+            self._layout = RowLayout.of_recording(rec)
+            self._layout.meta["n_ticks"] = self.n_ticks
+            self.run._submit(0, self._open_stream)
+        data = self._layout.pack({f: getattr(rec, f)[start:upto] for f in self._layout.columns}, start)
+        self._sent = upto
+        self.run._submit(len(data), lambda: self._write_rows(data, upto))
+
+    def _start(self) -> None:
+        """In the writer thread: a stale final file or row stream of an earlier run in this directory
+        must not pass for this run's; recording.json names the mode."""
+        self.npz_path.unlink(missing_ok=True)
+        self.rows_path.unlink(missing_ok=True)
+        self.run._write_state()
+
+    def _open_stream(self) -> None:
+        assert self._layout is not None
+        self._fd = os.open(self.rows_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_APPEND, 0o644)
+        self.run._write_stream(self._fd, self._layout.header(), self.rows_path.name)
+
+    def _write_rows(self, data: bytes, upto: int) -> None:
+        if self._fd is None:
+            raise OSError(errno.EBADF, "row stream not open", self.rows_path.name)
+        self.run._write_stream(self._fd, data, self.rows_path.name)
+        self.rows_written = upto
+        self.run._mode_state(self.mode, rows_written=upto)
+
+    def _sync_events(self, rec: Recording) -> None:
+        new = rec.events[self._event_cursor :]
+        self._event_cursor += len(new)
+        for ev in new:
+            line = event_line(ev)
+            with self._lock:
+                if self._direct[line] > 0:
+                    self._direct[line] -= 1
+                    continue
+            self.run._submit(len(line), lambda line=line: self.run._write_event_line(line))
+
+    def _poll_sources(self) -> None:
+        with self._source_lock:
+            self._poll_sources_locked()
+
+    def _poll_sources_locked(self) -> None:
+        for source, cursor in self._sources:
+            try:
+                evs = list(source())
+            except Exception as exc:
+                _log.error("event source failed: %s", exc)
+                continue
+            for ev in evs[cursor[0] :]:
+                self.event(ev)
+            cursor[0] = max(cursor[0], len(evs))
+
+    def _report_failure(self, rec: Recording | None) -> None:
+        """Once per run: a `recording_stopped` event in the recording (and, if the disk still takes it,
+        in events.jsonl)."""
+        run = self.run
+        with run._lock:
+            if run._failure_reported or run._failure is None:
+                return
+            run._failure_reported = True
+        ev: dict[str, Any] = {
+            "t": float(rec.t[rec.ticks_done - 1]) if rec is not None and rec.ticks_done else None,
+            "event": "recording_stopped",
+            "mode": self.mode,
+            "reason": run._failure,
+            "ticks_written": int(self.rows_written),
+            "wall_t": time.time(),
+        }
+        if rec is not None:
+            rec.events.append(ev)
+            self._event_cursor = len(rec.events)
+        line = event_line(ev)
+
+        def best_effort() -> None:
+            with contextlib.suppress(OSError):
+                run._write_event_line(line)
+
+        run._submit(len(line), best_effort, always=True)
+
+    def _finish(self, final: Recording | None) -> None:
+        """In the writer thread: the final npz (also after a failure of the stream: the data in memory
+        is complete, so it is tried), then recording.json."""
+        run = self.run
+        state: dict[str, Any] = {"state": "closed", "rows_written": self.rows_written}
+        if final is not None:
+            state.update(final.meta())
+            try:
+                tmp = self.npz_path.with_name(f".{self.npz_path.name}.tmp{os.getpid()}")
+                try:
+                    with open(tmp, "wb") as fh:
+                        final.save(fh)
+                        fh.flush()
+                        os.fsync(fh.fileno())
+                    os.replace(tmp, self.npz_path)
+                finally:
+                    tmp.unlink(missing_ok=True)
+                _fsync_dir(run.out)
+                state["final"] = self.npz_path.name
+            except OSError as exc:
+                run.fail(f"{_errno_text(exc)} writing {self.npz_path.name}")
+        if self._fd is not None:
+            if self._fd in run._unsynced:
+                run._unsynced.discard(self._fd)
+                if not state.get("final"):  # the row stream stays the mode's data
+                    with contextlib.suppress(OSError):
+                        os.fsync(self._fd)
+            with contextlib.suppress(OSError):
+                os.close(self._fd)
+            self._fd = None
+            if state.get("final"):
+                self.rows_path.unlink(missing_ok=True)
+        run._mode_state(self.mode, **state)
+        run._write_state_quietly()
+
+
+def read_state(run_dir: Path) -> dict[str, Any]:
+    """recording.json of a run directory ({} if absent or unreadable)."""
+    try:
+        doc = json.loads((Path(run_dir) / STATE_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return doc if isinstance(doc, dict) else {}
+
+
+def read_events(run_dir: Path) -> list[dict[str, Any]]:
+    """The events of events.jsonl, oldest first; a line cut short by a kill is skipped."""
+    path = Path(run_dir) / EVENTS_FILE
+    out: list[dict[str, Any]] = []
+    if not path.is_file():
+        return out
+    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+        try:
+            ev = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(ev, dict):
+            out.append(ev)
+    return out
+
+
+def recording_status(run_dir: Path, recs: Mapping[str, Recording] | None = None) -> dict[str, Any]:
+    """{"complete", "reason"} of a run directory's recording, as `RunWriter.status` said when it closed;
+    a run directory whose writer never closed (killed) is incomplete; one written before the recorder
+    existed (no recording.json) is complete if it has a final npz per mode."""
+    doc = read_state(run_dir)
+    if not doc:
+        return {"complete": bool(recs), "reason": None if recs else "no recording found"}
+    if doc.get("state") != "closed":
+        reason = "cut short: the process ended without closing the recording (killed?)"
+        if doc.get("reason") not in (None, "in progress"):
+            reason += f"; before that: {doc['reason']}"
+        return {"complete": False, "reason": reason}
+    return {"complete": bool(doc.get("complete")), "reason": doc.get("reason")}
+
+
+def load_run(run_dir: Path | str, mission: Mission | None = None) -> dict[str, Recording]:
+    """Every mode's Recording of a run directory, in the order flown: from the final
+    timeseries_<mode>.npz when there is one, else from its row stream (a run cut short by a kill, a
+    crash or a full disk), with the facts of recording.json and the events of events.jsonl (an event
+    without a `mode` belongs to the mode of the event before it). For a row stream e_c and e_e are
+    recomputed from the poses when `mission` is given (else zeros), and `error` says the recording was
+    cut short unless its writer closed it."""
+    run_dir = Path(run_dir)
+    state = read_state(run_dir)
+    modes_state: dict[str, dict[str, Any]] = state.get("modes", {}) if isinstance(state, dict) else {}
+    found = {p.name[len("timeseries_") : -len(".npz")] for p in run_dir.glob("timeseries_*.npz")}
+    found |= {
+        p.name[len("timeseries_") : -len(ROWS_SUFFIX)] for p in run_dir.glob(f"timeseries_*{ROWS_SUFFIX}")
+    }
+    order = [m for m in modes_state if m in found] + sorted(found - set(modes_state))
+    recs: dict[str, Recording] = {}
+    for mode in order:
+        st = modes_state.get(mode, {})
+        npz = run_dir / f"timeseries_{mode}.npz"
+        rows_path = run_dir / f"timeseries_{mode}{ROWS_SUFFIX}"
+        if npz.is_file():
+            rec = Recording.load(npz)
+            rec.apply_meta(st)
+        else:
+            try:
+                meta, rows = read_rows(rows_path)
+            except (OSError, ValueError) as exc:
+                _log.error("%s: %s", rows_path, exc)
+                continue
+            ids = [int(i) for i in meta.get("drone_ids", st.get("drone_ids", []))]
+            names = rows.dtype.names or ()
+            rec = Recording.from_columns(mode, ids, {f: rows[f] for f in ARRAY_FIELDS if f in names})
+            rec.apply_meta(st)
+            k = rec.ticks_done
+            if not st.get("wall_seconds") and k > 1:
+                rec.wall_seconds = float(rec.wall_t[k - 1] - rec.wall_t[0])
+            if st.get("state") != "closed" and not rec.error:
+                rec.error = f"recording cut short after {k} ticks (the process ended without closing it)"
+            if mission is not None:
+                desired = {d.id: d.desired_pose.pose().as_vector() for d in mission.drones}
+                if all(i in desired for i in ids):
+                    rec.fill_true_errors(np.array([desired[i] for i in ids]).reshape(len(ids), 4))
+        recs[mode] = rec
+    current = order[0] if order else None
+    for ev in read_events(run_dir):
+        m = ev.get("mode")
+        if isinstance(m, str):
+            current = m
+        target = m if isinstance(m, str) else current
+        if target in recs:
+            recs[target].events.append(ev)
+    return recs

@@ -1,0 +1,169 @@
+"""The time series of one run (every tick, every drone) and its on-disk form (npz).
+
+While a run flies, flightstack.recording.run_dir appends the same arrays to the run directory block by block
+and
+writes this npz at the end; `flightstack.recording.run_dir.load_run` reads either back as Recordings.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import IO, Any
+
+import numpy as np
+
+from flightstack.paper.geometry import compose_arrays, inverse_arrays, vec_arrays
+
+ARRAY_FIELDS = (
+    "t",
+    "g_w0",
+    "g_wi",
+    "g_bar_w",
+    "e_c",
+    "e_e",
+    "e_e_meas",
+    "u_e",
+    "mu_used",
+    "var_own",
+    "V_cmd",
+    "visible",
+    "n_fused",
+    "wall_t",
+)
+
+META_FIELDS = ("ticks_done", "bus_dropped", "wall_seconds", "interrupted", "error", "vision_rejections")
+"""The scalar facts of a Recording besides its arrays and events (JSON-able; see `Recording.meta`)."""
+
+
+@dataclass
+class Recording:
+    """Arrays indexed [tick, drone, component]; poses are [x, y, z, θ] in Σw (m, rad); t in s."""
+
+    mode: str
+    drone_ids: list[int]
+    t: np.ndarray
+    g_w0: np.ndarray  # (N, 4) true target pose
+    g_wi: np.ndarray  # (N, n, 4) true drone poses
+    g_bar_w: np.ndarray  # (N, n, 4) estimates ḡ_w,i
+    e_c: np.ndarray  # (N, n, 4) vec(g_d⁻¹ ḡ_i0)
+    e_e: np.ndarray  # (N, n, 4) true vec(ḡ_i0⁻¹ g_i0)
+    e_e_meas: np.ndarray  # (N, n, 4) J⁺(f − f̄)
+    u_e: np.ndarray  # (N, n, 4)
+    mu_used: np.ndarray  # (N, n, 4)
+    var_own: np.ndarray  # (N, n, 4)
+    V_cmd: np.ndarray  # (N, n, 4) body-velocity command sent (m/s, rad/s)
+    visible: np.ndarray  # (N, n) bool
+    n_fused: np.ndarray  # (N, n) int: predictions fused (own + fresh neighbours) by each agent
+    wall_t: np.ndarray  # (N,) wall-clock time.time() of each tick (s since the epoch; across processes)
+    ticks_done: int = 0
+    bus_dropped: dict[str, int] = field(default_factory=dict)
+    wall_seconds: float = 0.0
+    interrupted: bool = False
+    error: str | None = None
+    events: list[dict[str, object]] = field(default_factory=list)
+    vision_rejections: dict[str, dict[str, int]] = field(default_factory=dict)
+
+    @staticmethod
+    def empty(mode: str, ids: list[int], n_ticks: int) -> Recording:
+        n = len(ids)
+
+        def z() -> np.ndarray:
+            return np.zeros((n_ticks, n, 4))
+
+        return Recording(
+            mode,
+            list(ids),
+            np.zeros(n_ticks),
+            np.zeros((n_ticks, 4)),
+            z(),
+            z(),
+            z(),
+            z(),
+            z(),
+            z(),
+            z(),
+            z(),
+            z(),
+            np.zeros((n_ticks, n), dtype=bool),
+            np.zeros((n_ticks, n), dtype=int),
+            np.zeros(n_ticks),
+        )
+
+    def truncated(self) -> Recording:
+        """Only the ticks actually flown (after an interrupt or an error)."""
+        k = self.ticks_done
+        out = Recording(self.mode, self.drone_ids, *(getattr(self, f)[:k] for f in ARRAY_FIELDS))
+        for name in (*META_FIELDS, "events"):
+            setattr(out, name, getattr(self, name))
+        return out
+
+    @staticmethod
+    def from_columns(mode: str, ids: list[int], columns: Mapping[str, np.ndarray]) -> Recording:
+        """A recording of the N rows in `columns` (ARRAY_FIELDS, each with N rows); a missing field is
+        zeros of its usual shape (e_c and e_e before `fill_true_errors`, or files written before it)."""
+        N = int(np.asarray(columns["t"]).shape[0])
+        rec = Recording.empty(mode, ids, N)
+        for f in ARRAY_FIELDS:
+            if f in columns:
+                setattr(rec, f, np.asarray(columns[f]))
+        rec.ticks_done = N
+        return rec
+
+    def meta(self) -> dict[str, Any]:
+        """META_FIELDS as a JSON-able dict (the run directory's recording.json keeps it per mode)."""
+        return {
+            "ticks_done": int(self.ticks_done),
+            "bus_dropped": {str(k): int(v) for k, v in self.bus_dropped.items()},
+            "wall_seconds": float(self.wall_seconds),
+            "interrupted": bool(self.interrupted),
+            "error": self.error,
+            "vision_rejections": {
+                str(i): {str(k): int(v) for k, v in c.items()} for i, c in self.vision_rejections.items()
+            },
+        }
+
+    def apply_meta(self, meta: Mapping[str, Any]) -> None:
+        """Restore the META_FIELDS present in `meta` (as written by `meta`), except ticks_done, which
+        stays the number of rows actually read."""
+        for name in META_FIELDS:
+            if name in meta and name != "ticks_done":
+                setattr(self, name, meta[name])
+
+    def save(self, path: str | os.PathLike[str] | IO[bytes]) -> None:
+        """The arrays of the ticks done as a compressed npz (a path, or a binary file opened for writing;
+        numpy appends `.npz` to a path without it)."""
+        np.savez_compressed(
+            path,
+            mode=self.mode,
+            drone_ids=np.array(self.drone_ids),
+            **{f: getattr(self, f)[: self.ticks_done] for f in ARRAY_FIELDS},
+        )
+
+    @staticmethod
+    def load(path: str | os.PathLike[str]) -> Recording:
+        """Read a recording written by `save` (arrays only; events and counters live in the run dir)."""
+        with np.load(path) as z:
+            ids = [int(i) for i in z["drone_ids"]]
+            # fields missing in older files (n_fused, wall_t) are zeros
+            return Recording.from_columns(str(z["mode"]), ids, {f: z[f] for f in ARRAY_FIELDS if f in z})
+
+    def fill_true_errors(self, g_d: np.ndarray) -> None:
+        """e_c = vec(g_d⁻¹ ḡ_i0) and the true e_e = vec(ḡ_i0⁻¹ g_i0) from the recorded poses (vectorised).
+
+        g_d: (n, 4) desired poses [x, y, z, θ] of the drones in recording order.
+        """
+        k = self.ticks_done
+        inv_wi = inverse_arrays(self.g_wi[:k])
+        g_bar_i0 = compose_arrays(inv_wi, self.g_bar_w[:k])
+        g_i0 = compose_arrays(inv_wi, self.g_w0[:k, None, :])
+        self.e_c[:k] = vec_arrays(compose_arrays(inverse_arrays(g_d)[None], g_bar_i0))
+        self.e_e[:k] = vec_arrays(compose_arrays(inverse_arrays(g_bar_i0), g_i0))
+
+    def true_relative_error(self, g_d: np.ndarray) -> np.ndarray:
+        """vec(g_d⁻¹ g_i0) per tick and drone from the true poses: how far each drone is from its
+        desired pose relative to the target, (N, n, 4)."""
+        k = self.ticks_done
+        g_i0 = compose_arrays(inverse_arrays(self.g_wi[:k]), self.g_w0[:k, None, :])
+        return vec_arrays(compose_arrays(inverse_arrays(g_d)[None], g_i0))

@@ -1,0 +1,595 @@
+"""Safety supervisor (DESIGN §7): wraps every hal.Drone of a mission, on every backend.
+
+`SafeDrone` is a hal.Drone that wraps another one and enforces, per drone:
+    - saturation of the body velocity V = [v_x, v_y, v_z, ω_z] (m/s, rad/s, body frame): the norm of
+      (v_x, v_y) is scaled down keeping its direction, v_z and ω_z are clipped; NaN/inf -> zero velocity;
+    - a geofence box in the world frame Σw (the motion-capture frame, z up, metres): outside the soft box
+      every world-frame velocity component that points further out is removed (the drone can come back
+      but not leave); outside the hard box (the soft box grown by `hard_margin`) the drone lands;
+    - a command watchdog: no command for `command_timeout` s -> zero velocity on every tick until one
+      arrives (the drivers read a silent loop as a dead one: see drivers/tello.py, "loop watchdog");
+    - a stale-pose rule: pose stamp older than `pose_timeout` s -> hover, older than `pose_land_after` s
+      -> land (both ages are measured from the last valid pose stamp, by the mission clock);
+    - battery: takeoff refused below `min_battery_takeoff` %, land in flight below `land_battery` %.
+    - link: the drone reported `link_alive` in flight and now reports it False (its telemetry stopped,
+      the uplink may still work) -> zero velocity on every tick (hover) and land at once.
+A land is never waited for on the control thread when the SafeDrone runs `background` jobs (hardware):
+takeoff() and land() of the wrapped drone run on a worker thread each; tick() collects their outcome. A
+land is re-sent every `land_retry_s` until it is confirmed, by the wrapped drone's land() returning, by
+its telemetry (phase ground) or by motion capture (z ≤ `landed_height`); meanwhile the pose, fence and
+watchdog rules keep running on the last known pose. Simulated drones (background off) land inline, so a
+simulated run stays deterministic.
+`MissionSupervisor` (flightstack/safety/supervisor.py) adds the mission-wide rules: hover when every drone has
+lost the target for longer than `target_lost_hover_after` s, land every drone (robust to a failing
+drone), on SIGINT, SIGTERM, SIGHUP, SIGQUIT and SIGTSTP (a repeated signal never interrupts the landing)
+and on any exception leaving a guarded block. Limits, events and the pure rules are in
+flightstack/safety/rules.py.
+
+Every condition logs exactly one `SafetyEvent` per episode (the interval during which it holds), stamped
+with the mission clock. The event kinds form the closed set `EVENT_KINDS`:
+
+    saturated               a command was saturated (speed, climb rate or yaw rate)
+    invalid_command         a command with NaN/inf, the wrong size or not numeric: replaced by zeros
+    fence_soft              the drone is outside the soft fence (outward velocity removed)
+    fence_hard_land         the drone is outside the hard fence: land
+    command_timeout         no command for command_timeout: zero velocity sent on every tick
+    pose_stale_hover        pose older than pose_timeout (or never seen): zero velocity
+    pose_stale_land         pose older than pose_land_after: land
+    pose_error              the PoseSource raised; treated as no pose
+    battery_refuse_takeoff  takeoff refused: battery below min_battery_takeoff (or unreadable as a number)
+    pose_refuse_takeoff     takeoff refused: no fresh pose
+    fence_refuse_takeoff    takeoff refused: the drone stands outside the hard fence in x or y
+    battery_land            battery below land_battery in flight: land
+    link_lost               the drone reports its link lost (state().link_alive False) in flight: hover, land
+    drone_error             the wrapped drone raised inside tick() (state() or the watchdog's command)
+    command_after_land      a command arrived after land/emergency stop: dropped
+    land_failed             the wrapped drone's land() raised (retried every land_retry_s)
+    landed_by_drone         the drone's own telemetry shows it on the ground in flight (an auto-land, a land
+                            by someone else): it is treated as landed and not commanded again
+    emergency_stop          emergency_stop() was sent to the wrapped drone
+    emergency_stop_failed   the wrapped drone's emergency_stop() raised too (MissionSupervisor.land_all)
+    target_lost_hover       every drone lost the target for longer than target_lost_hover_after
+    target_lost_land        ... and for longer than target_lost_land_after: land every drone
+    land_all                MissionSupervisor.land_all started landing the drones that were not landed
+    signal                  a signal received inside install_signal_handlers() (SIGINT, SIGTERM, SIGHUP, ...)
+    takeoff                 takeoff sent to the wrapped drone
+    takeoff_failed          the wrapped drone's takeoff() raised (background): land
+    land                    the landing is confirmed (detail = the reason, and by what when not by land())
+
+Errors from the wrapped drone inside `send_body_velocity`, `takeoff`, `connect`, `state` and `close`
+propagate unchanged (the caller's `MissionSupervisor.guard()` lands everything); the safety rules
+themselves never raise into the control loop.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+
+from flightstack.hal import Clock, Drone, DroneState, FlightPhase, PoseSource, StampedPose
+from flightstack.paper.geometry import Pose
+from flightstack.safety.rules import (
+    EventLog,
+    SafetyError,
+    SafetyLimits,
+    _valid_pose,
+    fence_clip,
+    outside_hard_fence,
+    outside_soft_fence,
+    sanitize,
+    saturate,
+)
+
+_T = TypeVar("_T")
+
+
+# ---- one drone ---------------------------------------------------------------------------------------------
+class _Phase(enum.Enum):
+    IDLE = "idle"  # built; nothing commanded yet (a sim drone may already be airborne)
+    FLYING = "flying"  # after takeoff() or the first command: all rules enforced
+    LAND_PENDING = "land_pending"  # land requested but not (yet) accepted: nothing but land retries sent
+    LANDED = "landed"  # land accepted: nothing else is sent until a new takeoff()
+    STOPPED = "stopped"  # emergency stop accepted: motors off
+
+
+@dataclass
+class _Job:
+    """A takeoff or land of the wrapped drone running on a worker thread (a Tello's take seconds)."""
+
+    kind: str  # "takeoff" or "land"
+    reason: str
+    started: float  # mission clock (s)
+    error: BaseException | None = None
+    finished: bool = False
+    collected: bool = False
+    thread: threading.Thread | None = None
+
+
+class SafeDrone:
+    """A hal.Drone that enforces the safety rules on the hal.Drone it wraps (see the module docstring).
+
+    Args:
+        drone_id: the mission's id of this drone (used in events).
+        drone: the wrapped drone (hardware driver or simulator).
+        poses: the motion-capture source; `body` names this drone's rigid body in it.
+        clock: the mission clock (s); every age is measured with it.
+        limits: the safety limits.
+        log: the event log shared with the mission.
+        background: run the wrapped drone's takeoff() and land() on worker threads (real drones, whose
+            takeoff and land block for seconds); tick() collects the outcome. Off: inline (simulated).
+
+    `landed` is True once a land() or emergency_stop() of the wrapped drone was accepted and until the next
+    takeoff(); it starts False because the wrapper cannot know (a simulated drone may start airborne).
+    """
+
+    def __init__(
+        self,
+        drone_id: int,
+        drone: Drone,
+        poses: PoseSource,
+        body: str,
+        clock: Clock,
+        limits: SafetyLimits,
+        log: EventLog,
+        background: bool = False,
+    ) -> None:
+        self.drone_id = drone_id
+        self.background = background
+        self._jobs: dict[str, _Job] = {}
+        self._next_land_try = -math.inf
+        self._link_down_while_landing = False
+        self.takeoff_error: str | None = None
+        """Why the wrapped drone's takeoff() failed (background jobs), None otherwise."""
+        self.inner = drone
+        self.poses = poses
+        self.body = body
+        self.clock = clock
+        self.limits = limits
+        self.log = log
+        self._lock = threading.RLock()
+        self._phase = _Phase.IDLE
+        self._episodes: set[str] = set()
+        now = clock.now()
+        self._active_since = now
+        self._last_command_t = now
+        self._last_pose: StampedPose | None = None
+        self._floor_armed = False
+        self._link_seen = False  # the drone reported link_alive since its activation
+        self._abort_reason: str | None = None
+        self._land_reason = ""  # why the pending land was asked for (shown by its retries)
+        self._inner_thread: int | None = None
+        self.last_command: np.ndarray = np.zeros(4)
+        """The last command received by send_body_velocity (float (4,), as given; zeros if not numeric)."""
+        self.last_sent: np.ndarray | None = None
+        """The last velocity actually sent to the wrapped drone (body frame), None before the first."""
+
+    # ---- state -----------------------------------------------------------------------------------------
+    @property
+    def landed(self) -> bool:
+        """True once land/emergency stop was accepted by the wrapped drone (until the next takeoff)."""
+        return self._phase in (_Phase.LANDED, _Phase.STOPPED)
+
+    @property
+    def phase(self) -> str:
+        """'idle', 'flying', 'land_pending', 'landed' or 'stopped'."""
+        return self._phase.value
+
+    def in_inner_call(self) -> bool:
+        """True if the calling thread is currently inside a call to the wrapped drone."""
+        return self._inner_thread == threading.get_ident()
+
+    def request_abort(self, reason: str) -> None:
+        """Ask for a landing on the next send_body_velocity/tick (safe to call from a signal handler)."""
+        self._abort_reason = reason
+
+    # ---- hal.Drone -------------------------------------------------------------------------------------
+    def connect(self) -> None:
+        with self._lock:
+            self._call(self.inner.connect)
+
+    def state(self) -> DroneState:
+        with self._lock:
+            return self._call(self.inner.state)
+
+    def takeoff(self) -> None:
+        """Take off after the checks: battery >= min_battery_takeoff, a fresh pose, x/y inside the hard fence.
+
+        Raises SafetyError (and logs) when a check fails; the wrapped drone is then not asked to take off.
+        """
+        with self._lock:
+            now = self.clock.now()
+            battery = float(self._call(self.inner.state).battery_pct)
+            if not battery >= self.limits.min_battery_takeoff:  # also refuses NaN
+                self._event(
+                    now,
+                    "battery_refuse_takeoff",
+                    f"battery {battery:.1f} % < {self.limits.min_battery_takeoff:.1f} %",
+                )
+                raise SafetyError(
+                    f"drone {self.drone_id}: takeoff refused, battery {battery:.1f} % "
+                    f"< {self.limits.min_battery_takeoff:.1f} %"
+                )
+            sp = self._read_pose(now)
+            if sp is None or now - sp.stamp > self.limits.pose_timeout:
+                age = "never seen" if sp is None else f"{now - sp.stamp:.3f} s old"
+                self._event(now, "pose_refuse_takeoff", f"pose of {self.body!r} {age}")
+                raise SafetyError(f"drone {self.drone_id}: takeoff refused, pose of {self.body!r} {age}")
+            faces = [f for f in outside_hard_fence(sp.pose.p, self.limits, check_floor=False) if f[1] in "xy"]
+            if faces:
+                where = np.round(sp.pose.p, 3).tolist()
+                self._event(now, "fence_refuse_takeoff", f"at {where}, beyond hard fence {faces}")
+                raise SafetyError(
+                    f"drone {self.drone_id}: takeoff refused, at {where} outside the hard fence"
+                )
+            self._activate(now)  # before the call: if takeoff raises half-way, land_all still lands it
+            self.takeoff_error = None
+            if self.background:  # tick() collects the outcome; state().flying says when it is up
+                self._event(now, "takeoff", f"battery {battery:.1f} % (on a worker thread)")
+                self._start_job("takeoff", self.inner.takeoff, "takeoff")
+                return
+            self._call(self.inner.takeoff)
+            self._last_command_t = self.clock.now()  # takeoff may block while climbing
+            self._event(self.clock.now(), "takeoff", f"battery {battery:.1f} %")
+
+    def land(self, reason: str = "land()") -> None:
+        """Land now (no-op if already landed); re-raises the wrapped drone's error after logging it.
+
+        With background jobs this starts the land and returns at once; tick() confirms it (`landed`)."""
+        with self._lock:
+            if self.landed:
+                return
+            err = self._do_land(self.clock.now(), reason)
+            if err is not None:
+                raise err
+
+    def emergency_stop(self, reason: str = "emergency_stop()") -> None:
+        """Motors off. Nothing is sent afterwards; the wrapped drone's error propagates."""
+        with self._lock:
+            if self._phase is not _Phase.STOPPED:
+                self._phase = _Phase.LAND_PENDING  # whatever happens, no more velocity commands
+            self._call(self.inner.emergency_stop)
+            self._phase = _Phase.STOPPED
+            self._abort_reason = None
+            self._event(self.clock.now(), "emergency_stop", reason)
+
+    def close(self, land_wait_s: float = 40.0) -> None:
+        """Land if not landed (errors logged, not raised), then close the wrapped drone.
+
+        With background jobs, waits for a land under way (at most `land_wait_s`, wall clock) first: closing
+        the driver would end it. This is the end of a run, never the control loop."""
+        with self._lock:
+            if not self.landed:
+                self._do_land(self.clock.now(), "close()")
+        for job in list(self._jobs.values()):
+            if job.thread is not None:
+                job.thread.join(land_wait_s)
+        with self._lock:
+            self._poll_jobs(self.clock.now())
+            self._call(self.inner.close)
+
+    def send_body_velocity(self, V: np.ndarray) -> None:
+        """Send V = [v_x, v_y, v_z, ω_z] (m/s, rad/s, body frame of this drone) through the safety rules.
+
+        In order: drop after land; NaN/inf/bad shape -> zeros; saturation; stale pose -> zeros (and land
+        once it is older than pose_land_after); outside the hard fence -> land; outside the soft fence ->
+        outward world components removed. The rules log and never raise; an error of the wrapped drone's
+        own send_body_velocity propagates.
+        """
+        with self._lock:
+            now = self.clock.now()
+            if self._abort_reason is not None and self._phase is _Phase.FLYING:
+                self._do_land(now, self._abort_reason)
+            if self._phase in (_Phase.LANDED, _Phase.STOPPED, _Phase.LAND_PENDING):
+                self._event_once(now, "command_after_land", f"command dropped: drone is {self.phase}")
+                return
+            if self._phase is _Phase.IDLE:
+                self._activate(now)
+            self._last_command_t = now
+            self._end("command_timeout")
+
+            cmd, problem = sanitize(V)
+            self.last_command = self._raw_copy(V)
+            if problem is None:
+                self._end("invalid_command")
+            else:
+                self._event_once(now, "invalid_command", f"{problem}; sending zero velocity")
+            cmd, changed = saturate(cmd, self.limits)
+            if changed:
+                self._event_once(now, "saturated", f"command {self.last_command.tolist()} -> {cmd.tolist()}")
+            else:
+                self._end("saturated")
+
+            pose = self._check_pose(now, hover_now=False)
+            if self._phase is not _Phase.FLYING:  # landed on a stale pose
+                return
+            if pose is None:
+                self._send(np.zeros(4))
+                return
+            if self._check_hard_fence(now, pose):
+                return
+            faces = outside_soft_fence(pose.p, self.limits)
+            if faces:
+                cmd, clipped = fence_clip(cmd, pose, self.limits)
+                where = np.round(pose.p, 3).tolist()
+                self._event_once(
+                    now, "fence_soft", f"at {where}, beyond soft fence {faces}; clipped {clipped}"
+                )
+            else:
+                self._end("fence_soft")
+            self._send(cmd)
+
+    # ---- periodic checks -------------------------------------------------------------------------------
+    def tick(self) -> None:
+        """Once per control period, command or not: stale pose, hard fence, link, battery, command watchdog.
+
+        Also retries a land that the wrapped drone refused. Never raises an Exception (logs instead).
+        """
+        with self._lock:
+            now = self.clock.now()
+            self._poll_jobs(now)
+            if self._abort_reason is not None and self._phase is _Phase.FLYING:
+                self._do_land(now, self._abort_reason)
+            if self._phase is _Phase.LAND_PENDING:
+                self._tick_landing(now)
+                return
+            if self._phase is not _Phase.FLYING:
+                return
+            pose = self._check_pose(now, hover_now=True)
+            if self._phase is not _Phase.FLYING:
+                return
+            if pose is not None and self._check_hard_fence(now, pose):
+                return
+            try:
+                st = self._call(self.inner.state)
+                battery, link_alive = float(st.battery_pct), bool(st.link_alive)
+            except Exception as exc:
+                self._event_once(now, "drone_error", f"state() raised {type(exc).__name__}: {exc}")
+            else:
+                self._end("drone_error")
+                if link_alive and st.phase == FlightPhase.GROUND and self._link_seen:
+                    # its own telemetry shows it down (auto-land, a land by someone else): stop commanding
+                    self._event(now, "landed_by_drone", "telemetry shows the drone on the ground")
+                    self._phase = _Phase.LANDED
+                    return
+                if link_alive:
+                    self._link_seen = True
+                elif self._link_seen:  # up since takeoff, now down (a link never up is not "lost")
+                    # the uplink may still work: hover now, land now, keep hovering and re-sending land
+                    self._event_once(now, "link_lost", "drone reports its link lost: hover and land")
+                    self._send_quietly(now, np.zeros(4))
+                    self._do_land(now, "link_lost")
+                    return
+                if battery < self.limits.land_battery:
+                    self._safety_land(
+                        now, "battery_land", f"battery {battery:.1f} % < {self.limits.land_battery:.1f} %"
+                    )
+                    return
+            silent = now - self._last_command_t
+            if silent > self.limits.command_timeout:  # every tick: a driver reads silence as a dead loop
+                self._event_once(now, "command_timeout", f"no command for {silent:.3f} s: zero velocity")
+                self._send_quietly(now, np.zeros(4))
+
+    # ---- internals -------------------------------------------------------------------------------------
+    def _call(self, fn: Callable[..., _T], *args: Any) -> _T:
+        """Call the wrapped drone, remembering which thread is inside it (for signal handlers)."""
+        prev = self._inner_thread
+        self._inner_thread = threading.get_ident()
+        try:
+            return fn(*args)
+        finally:
+            self._inner_thread = prev
+
+    def _link_up(self) -> bool:
+        try:
+            return bool(self._call(self.inner.state).link_alive)
+        except Exception:
+            return False
+
+    @staticmethod
+    def _raw_copy(V: object) -> np.ndarray:
+        try:
+            return np.array(V, dtype=float).reshape(-1).copy()
+        except (TypeError, ValueError):
+            return np.zeros(4)
+
+    def _event(self, now: float, kind: str, detail: str) -> None:
+        self.log.record(now, self.drone_id, kind, detail)
+
+    def _event_once(self, now: float, kind: str, detail: str) -> bool:
+        """Log `kind` if its episode is not already open; True if this call opened it."""
+        if kind in self._episodes:
+            return False
+        self._episodes.add(kind)
+        self._event(now, kind, detail)
+        return True
+
+    def _end(self, kind: str) -> None:
+        self._episodes.discard(kind)
+
+    def _activate(self, now: float) -> None:
+        self._phase = _Phase.FLYING
+        self._episodes.clear()
+        self._active_since = now
+        self._last_command_t = now
+        self._floor_armed = False
+        self._link_seen = False
+
+    def _send(self, V: np.ndarray) -> None:
+        out = np.array(V, dtype=float)
+        self._call(self.inner.send_body_velocity, out.copy())
+        self.last_sent = out
+
+    def _send_quietly(self, now: float, V: np.ndarray) -> None:
+        try:
+            self._send(V)
+        except Exception as exc:
+            self._event_once(now, "drone_error", f"send_body_velocity raised {type(exc).__name__}: {exc}")
+
+    def _read_pose(self, now: float) -> StampedPose | None:
+        """Latest valid pose from the source (remembered), or the last valid one; None if never seen."""
+        try:
+            sp = self.poses.latest(self.body)
+        except Exception as exc:
+            self._event_once(now, "pose_error", f"PoseSource.latest raised {type(exc).__name__}: {exc}")
+            return self._last_pose
+        self._end("pose_error")
+        if _valid_pose(sp):
+            self._last_pose = sp
+        return self._last_pose
+
+    def _check_pose(self, now: float, hover_now: bool) -> Pose | None:
+        """The fresh pose, or None when stale (hover: zeros sent once if hover_now; land when too old).
+
+        Never seen counts as stale at once (no fence without a pose), aged from the activation time.
+        """
+        sp = self._read_pose(now)
+        if sp is None:
+            age = now - self._active_since
+            seen, stale = f"never seen ({age:.3f} s since takeoff/first command)", True
+        else:
+            age = now - sp.stamp
+            seen, stale = f"{age:.3f} s old", age > self.limits.pose_timeout
+        if stale:
+            opened = self._event_once(now, "pose_stale_hover", f"pose of {self.body!r} {seen}: zero velocity")
+            if age > self.limits.pose_land_after:
+                self._safety_land(now, "pose_stale_land", f"pose of {self.body!r} {seen}")
+            elif opened and hover_now:
+                self._send_quietly(now, np.zeros(4))
+            return None
+        self._end("pose_stale_hover")
+        if sp.pose.p[2] >= self.limits.fence_lo[2]:
+            self._floor_armed = True
+        return sp.pose
+
+    def _check_hard_fence(self, now: float, pose: Pose) -> bool:
+        """Land if outside the hard fence (its floor only once the drone has been above the soft floor)."""
+        faces = outside_hard_fence(pose.p, self.limits, check_floor=self._floor_armed)
+        if not faces:
+            return False
+        where = np.round(pose.p, 3).tolist()
+        self._safety_land(now, "fence_hard_land", f"at {where}, beyond hard fence {faces}")
+        return True
+
+    def _safety_land(self, now: float, kind: str, detail: str) -> None:
+        """Land because of a rule; a refusal of the wrapped drone is logged and retried by tick()."""
+        self._event_once(now, kind, detail)
+        if self.landed:
+            return
+        if self._do_land(now, kind) is not None:
+            self._send_quietly(now, np.zeros(4))  # best effort: at least hover until land is accepted
+
+    def _do_land(self, now: float, reason: str, retry: bool = False) -> Exception | None:
+        """Send land to the wrapped drone; returns its Exception (logged once per episode) or None.
+
+        Background jobs: starts the land on a worker thread unless one is under way, returns None."""
+        self._phase = _Phase.LAND_PENDING  # from here on, no velocity reaches the wrapped drone
+        if not retry:
+            self._land_reason = reason
+        if self.background:
+            self._poll_jobs(now)
+            job = self._jobs.get("land")
+            if not self.landed and (job is None or job.finished):
+                self._next_land_try = now + self.limits.land_retry_s
+                self._start_job("land", self.inner.land, reason)
+            return None
+        try:
+            self._call(self.inner.land)
+        except Exception as exc:
+            self._event_once(now, "land_failed", f"{reason}: land() raised {type(exc).__name__}: {exc}")
+            self._next_land_try = now + self.limits.land_retry_s
+            return exc
+        self._confirm_landed(now, "", reason)
+        return None
+
+    def _confirm_landed(self, now: float, how: str, reason: str | None = None) -> None:
+        """LANDED; the event names the land that worked (`reason`, default the first) and, if not
+        land() itself, what confirmed it (`how`)."""
+        self._phase = _Phase.LANDED
+        self._abort_reason = None
+        self._end("land_failed")
+        why = self._land_reason if reason is None else reason
+        self._event(now, "land", f"{why}: {how}" if how else why)
+
+    def _tick_landing(self, now: float) -> None:
+        """A land is pending: confirm it (telemetry, motion capture), hover while the link is silent (the
+        uplink may still work), re-send land every land_retry_s. Never waits for the drone."""
+        takeoff = self._jobs.get("takeoff")
+        climbing = takeoff is not None and not takeoff.finished  # still on the floor: nothing to confirm
+        link = False
+        try:
+            st = self._call(self.inner.state)
+            link = bool(st.link_alive)
+            if link and st.phase == FlightPhase.GROUND and not climbing:
+                self._confirm_landed(now, "telemetry shows it on the ground")
+                return
+        except Exception as exc:
+            self._event_once(now, "drone_error", f"state() raised {type(exc).__name__}: {exc}")
+        sp = self._read_pose(now)
+        if (
+            sp is not None
+            and not climbing
+            and now - sp.stamp <= self.limits.pose_timeout
+            and sp.pose.p[2] <= self.limits.landed_height
+        ):
+            self._confirm_landed(now, f"motion capture shows it down (z {sp.pose.p[2]:.3f} m)")
+            return
+        if sp is not None:  # the rules keep running on the last known pose (events only: it is landing)
+            faces = outside_hard_fence(sp.pose.p, self.limits, check_floor=self._floor_armed)
+            if faces:
+                where = np.round(sp.pose.p, 3).tolist()
+                self._event_once(now, "fence_hard_land", f"at {where}, beyond hard fence {faces} (landing)")
+        if not link:
+            self._send_quietly(now, np.zeros(4))
+        elif self._link_down_while_landing:  # the link is back: a land sent now gets an answer
+            self._next_land_try = now
+        self._link_down_while_landing = not link
+        job = self._jobs.get("land")
+        if (job is None or job.finished) and not climbing and now >= self._next_land_try:
+            self._do_land(now, f"retry ({self._land_reason})", retry=True)
+
+    def _start_job(self, kind: str, fn: Callable[[], None], reason: str) -> None:
+        """Run fn (the wrapped drone's takeoff or land) on a worker thread; _poll_jobs collects it."""
+        job = _Job(kind, reason, self.clock.now())
+
+        def run() -> None:
+            try:
+                fn()
+            except BaseException as exc:  # collected by _poll_jobs on the control thread
+                job.error = exc
+            finally:
+                job.finished = True
+
+        job.thread = threading.Thread(target=run, name=f"{kind}-drone{self.drone_id}", daemon=True)
+        self._jobs[kind] = job
+        job.thread.start()
+
+    def _poll_jobs(self, now: float) -> None:
+        """Collect finished takeoff/land jobs: confirm a landing, log a failure (retried by tick)."""
+        for kind, job in list(self._jobs.items()):
+            if not job.finished or job.collected:
+                continue
+            job.collected = True
+            err = job.error
+            why = "" if err is None else f"{type(err).__name__}: {err}"
+            if kind == "takeoff":
+                self._last_command_t = max(self._last_command_t, now)
+                if err is not None:
+                    self.takeoff_error = why
+                    self._event(now, "takeoff_failed", why)
+                    if self._phase is _Phase.FLYING:
+                        self._do_land(now, "takeoff_failed")
+            elif self._phase is _Phase.LAND_PENDING:
+                takeoff = self._jobs.get("takeoff")
+                if takeoff is not None and not takeoff.finished:  # returned before the drone was up:
+                    self._next_land_try = now  # no proof of anything; sent again once the takeoff ends
+                elif err is None:
+                    self._confirm_landed(now, "", job.reason)
+                else:
+                    self._event_once(now, "land_failed", f"{job.reason}: land() raised {why}")
+                    self._next_land_try = now + self.limits.land_retry_s

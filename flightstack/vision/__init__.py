@@ -1,0 +1,1 @@
+"""Image side of the lab: marker extraction from camera frames and the camera calibration file."""

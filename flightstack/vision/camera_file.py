@@ -1,0 +1,271 @@
+"""The camera calibration file: intrinsics, lens distortion and the target's marker colours.
+
+One YAML file per camera (written by `flightstack calibrate`, read by missions and the sim renderer):
+
+    device: tello-1-down         # free text: which camera
+    date: '2026-11-22T18:00:00Z'
+    width: 320                   # image size in pixels
+    height: 240
+    camera_matrix: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]   # pixels
+    dist_coeffs: [k1, k2, p1, p2, k3]                       # OpenCV's model
+    rms_px: 0.31                 # reprojection RMS of the calibration, or null
+    pattern:                     # optional: the calibration target (written by `calibrate camera`)
+      kind: chessboard           # chessboard | charuco | acircles
+      cols: 7                    # inner corners (chessboard), squares (charuco) or circles per row
+      rows: 7
+      square_m: 0.0195           # square side, or circle spacing (metres)
+    views:                       # optional: the views used, with their reprojection RMS (pixels)
+      - {name: left01.jpg, error_px: 0.41}
+    markers:                     # one entry per target feature point, in the order of p0^j
+      - name: red
+        hsv_lo: [170, 120, 80]   # OpenCV HSV: H in 0..179, S and V in 0..255
+        hsv_hi: [8, 255, 255]    # hue wraps around when hsv_lo[0] > hsv_hi[0]
+        rgb: [220, 30, 30]       # the colour the simulator paints (optional)
+
+Pixel coordinates follow OpenCV: u to the right, v down, origin at the centre of the top-left pixel.
+`save` writes JSON instead of YAML when the file name ends in `.json` (the same mapping); `load_calibration`
+reads both (JSON is parsed as YAML).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from flightstack.config.safe_load import LoadError, load_yaml
+
+
+class CalibrationError(ValueError):
+    """A calibration file that cannot be used; the message names the key and the reason."""
+
+
+@dataclass(frozen=True)
+class MarkerColour:
+    """HSV thresholds of one marker (OpenCV ranges) and the RGB the simulator paints it with."""
+
+    name: str
+    hsv_lo: tuple[int, int, int]
+    hsv_hi: tuple[int, int, int]
+    rgb: tuple[int, int, int] | None = None
+
+    @property
+    def hue_wraps(self) -> bool:
+        return self.hsv_lo[0] > self.hsv_hi[0]
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    width: int
+    height: int
+    camera_matrix: np.ndarray  # (3, 3), pixels
+    dist_coeffs: np.ndarray  # (n,), OpenCV order k1, k2, p1, p2[, k3, ...]
+    markers: tuple[MarkerColour, ...] = ()
+    rms_px: float | None = None
+    device: str = ""
+    date: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
+    #: optional: the calibration target {kind, cols, rows, square_m[, marker_m, dictionary]} (metres)
+    pattern: dict[str, object] | None = None
+    #: optional: (view name, reprojection RMS in px) of every view the intrinsics were fitted to
+    views: tuple[tuple[str, float], ...] = ()
+
+    @property
+    def fx(self) -> float:
+        return float(self.camera_matrix[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.camera_matrix[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.camera_matrix[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.camera_matrix[1, 2])
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "device": self.device,
+            "date": self.date,
+            "width": int(self.width),
+            "height": int(self.height),
+            "camera_matrix": np.asarray(self.camera_matrix, dtype=float).tolist(),
+            "dist_coeffs": np.asarray(self.dist_coeffs, dtype=float).tolist(),
+            "rms_px": None if self.rms_px is None else float(self.rms_px),
+            "markers": [
+                {
+                    "name": m.name,
+                    "hsv_lo": list(m.hsv_lo),
+                    "hsv_hi": list(m.hsv_hi),
+                    **({"rgb": list(m.rgb)} if m.rgb is not None else {}),
+                }
+                for m in self.markers
+            ],
+            **({"pattern": dict(self.pattern)} if self.pattern is not None else {}),
+            **(
+                {"views": [{"name": n, "error_px": round(float(e), 6)} for n, e in self.views]}
+                if self.views
+                else {}
+            ),
+        }
+
+    def save(self, path: str | Path) -> None:
+        """Write the calibration (JSON if the name ends in .json, else YAML) atomically: a temporary file
+        in the same directory is renamed over `path` only once it is completely written."""
+        path = Path(path)
+        d = self.to_dict()
+        text = (
+            json.dumps(d, indent=2) + "\n"
+            if path.suffix.lower() == ".json"
+            else yaml.safe_dump(d, sort_keys=False)
+        )
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                f.write(text)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+
+
+def _triple(v: object, key: str, hi: int) -> tuple[int, int, int]:
+    if not (isinstance(v, list | tuple) and len(v) == 3 and all(isinstance(x, int) for x in v)):
+        raise CalibrationError(f"{key}: expected 3 integers, got {v!r}")
+    if any(x < 0 or x > hi for x in v):
+        raise CalibrationError(f"{key}: values must be in 0..{hi}, got {v!r}")
+    return (int(v[0]), int(v[1]), int(v[2]))
+
+
+def calibration_from_dict(d: object, source: str = "<calibration>") -> CameraCalibration:
+    """Validate a parsed calibration document; CalibrationError names the key path and the reason."""
+    if not isinstance(d, dict):
+        raise CalibrationError(f"{source}: a calibration must be a mapping")
+    known = {
+        "device",
+        "date",
+        "width",
+        "height",
+        "camera_matrix",
+        "dist_coeffs",
+        "rms_px",
+        "markers",
+        "pattern",
+        "views",
+    }
+    for k in d:
+        if k not in known:
+            raise CalibrationError(f"{source}: {k}: unknown key")
+    try:
+        w, h = d["width"], d["height"]
+        K = np.array(d["camera_matrix"], dtype=float)
+        dist = np.array(d.get("dist_coeffs", [0, 0, 0, 0, 0]), dtype=float).reshape(-1)
+    except KeyError as exc:
+        raise CalibrationError(f"{source}: {exc.args[0]}: missing") from None
+    except (TypeError, ValueError) as exc:
+        raise CalibrationError(f"{source}: camera_matrix/dist_coeffs: not numeric ({exc})") from None
+    if not (isinstance(w, int) and isinstance(h, int) and w > 0 and h > 0):
+        raise CalibrationError(f"{source}: width/height: positive integers required")
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1:
+        raise CalibrationError(
+            f"{source}: camera_matrix: must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0"
+        )
+    if dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+        raise CalibrationError(f"{source}: dist_coeffs: 4, 5, 8, 12 or 14 finite numbers required")
+    raw_markers = d.get("markers") or []
+    if not isinstance(raw_markers, list):
+        raise CalibrationError(f"{source}: markers: expected a list of marker colours, got {raw_markers!r}")
+    markers = []
+    for j, m in enumerate(raw_markers):
+        key = f"markers.{j}"
+        if not isinstance(m, dict) or set(m) - {"name", "hsv_lo", "hsv_hi", "rgb"}:
+            raise CalibrationError(f"{source}: {key}: expected keys name, hsv_lo, hsv_hi[, rgb]")
+        lo = _triple(m.get("hsv_lo"), f"{key}.hsv_lo", 255)
+        hi = _triple(m.get("hsv_hi"), f"{key}.hsv_hi", 255)
+        if lo[0] > 179 or hi[0] > 179:
+            raise CalibrationError(f"{source}: {key}: hue must be in 0..179 (OpenCV HSV)")
+        rgb = _triple(m["rgb"], f"{key}.rgb", 255) if m.get("rgb") is not None else None
+        markers.append(MarkerColour(str(m.get("name", f"marker{j}")), lo, hi, rgb))
+    rms = d.get("rms_px")
+    if rms is not None and not (
+        isinstance(rms, int | float) and not isinstance(rms, bool) and math.isfinite(rms) and rms >= 0
+    ):
+        raise CalibrationError(f"{source}: rms_px: a finite number >= 0 (pixels) or null, got {rms!r}")
+    return CameraCalibration(
+        w,
+        h,
+        K,
+        dist,
+        tuple(markers),
+        None if rms is None else float(rms),
+        str(d.get("device", "")),
+        str(d.get("date", "")),
+        _pattern(d.get("pattern"), source),
+        _views(d.get("views"), source),
+    )
+
+
+PATTERN_KINDS = ("chessboard", "charuco", "acircles")
+
+
+def _positive(v: object) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+
+
+def _pattern(p: object, source: str) -> dict[str, object] | None:
+    """Validate the optional `pattern` mapping (see the module docstring)."""
+    if p is None:
+        return None
+    allowed = {"kind", "cols", "rows", "square_m", "marker_m", "dictionary"}
+    if not isinstance(p, dict) or set(p) - allowed:
+        raise CalibrationError(
+            f"{source}: pattern: expected keys kind, cols, rows, square_m[, marker_m, dictionary]"
+        )
+    if p.get("kind") not in PATTERN_KINDS:
+        raise CalibrationError(f"{source}: pattern.kind: one of {', '.join(PATTERN_KINDS)} required")
+    for k in ("cols", "rows"):
+        if not (isinstance(p.get(k), int) and not isinstance(p.get(k), bool) and p[k] > 0):
+            raise CalibrationError(f"{source}: pattern.{k}: positive integer required")
+    for k in ("square_m", "marker_m"):
+        if (k == "square_m" or k in p) and not _positive(p.get(k)):
+            raise CalibrationError(f"{source}: pattern.{k}: positive number (metres) required")
+    if "dictionary" in p and not isinstance(p["dictionary"], str):
+        raise CalibrationError(f"{source}: pattern.dictionary: a name such as DICT_4X4_50 required")
+    return dict(p)
+
+
+def _views(v: object, source: str) -> tuple[tuple[str, float], ...]:
+    """Validate the optional `views` list of {name, error_px}."""
+    if v is None:
+        return ()
+    if not isinstance(v, list):
+        raise CalibrationError(f"{source}: views: a list of {{name, error_px}} required")
+    out = []
+    for j, e in enumerate(v):
+        if not (isinstance(e, dict) and set(e) == {"name", "error_px"}):
+            raise CalibrationError(f"{source}: views.{j}: expected keys name, error_px")
+        err = e["error_px"]
+        if not (
+            isinstance(err, int | float) and not isinstance(err, bool) and math.isfinite(err) and err >= 0
+        ):
+            raise CalibrationError(f"{source}: views.{j}.error_px: a finite number >= 0 required")
+        out.append((str(e["name"]), float(err)))
+    return tuple(out)
+
+
+def load_calibration(path: str | Path) -> CameraCalibration:
+    path = Path(path)
+    try:  # the hardened loader of missions (flightstack/config/safe_load.py)
+        doc, _ = load_yaml(path, "calibration file")
+    except LoadError as exc:
+        raise CalibrationError(str(exc)) from None
+    return calibration_from_dict(doc, str(path))

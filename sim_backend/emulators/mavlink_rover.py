@@ -1,0 +1,401 @@
+"""Loopback MAVLink emulator of an ArduPilot-Rover-like ground robot (stand-in for Scamper) for tests.
+
+The emulator is a pymavlink ``udpin`` endpoint bound to ``127.0.0.1`` (port picked by the OS unless given);
+it learns the ground station's address from the first datagram it receives (pymavlink ``udpin``
+behaviour), so a client on ``udpout:127.0.0.1:<emu.port>`` must send something (e.g. its own HEARTBEAT)
+before it hears anything back.
+
+Behaviour (a small subset of ArduPilot Rover, these are the emulator's rules):
+
+* **HEARTBEAT** at ``heartbeat_hz`` (default 1 Hz, as ArduPilot): type ``MAV_TYPE_GROUND_ROVER``,
+  autopilot ``MAV_AUTOPILOT_ARDUPILOTMEGA``, ``custom_mode`` = current mode number (Rover: 0 MANUAL,
+  4 HOLD, 15 GUIDED), ``base_mode`` with ``MAV_MODE_FLAG_CUSTOM_MODE_ENABLED`` and
+  ``MAV_MODE_FLAG_SAFETY_ARMED`` when armed.
+* **Mode**: ``SET_MODE`` (acked with ``COMMAND_ACK.command`` = 11, the SET_MODE message id, as ArduPilot
+  does) and ``COMMAND_LONG MAV_CMD_DO_SET_MODE`` (param2 = custom mode).  Only modes in ``ROVER_MODES`` are
+  accepted.
+* **Arming**: ``COMMAND_LONG MAV_CMD_COMPONENT_ARM_DISARM`` (param1 = 1 arm, 0 disarm) answered with
+  ``COMMAND_ACK``; ``faults.reject_arm`` / ``faults.reject_disarm`` answer ``MAV_RESULT_DENIED``.
+* **Motion**: ``SET_POSITION_TARGET_LOCAL_NED`` in ``MAV_FRAME_BODY_NED`` (8) with velocity + yaw-rate
+  (type mask bits 4, 5 and 12 clear) sets the body velocity ``[vx, vy, yaw_rate]`` (m/s, m/s, rad/s; x
+  forward, y right, yaw rate clockwise seen from above), but only while GUIDED and armed.  Other frames or
+  masks are recorded in ``setpoints`` but have no effect.  If no set-point arrives for
+  ``setpoint_timeout_s`` (3 s, like Rover's guided-mode timeout) the rover stops and ``stopped_by_timeout``
+  is set.  Disarming or leaving GUIDED stops it at once.
+* **Pose**: the body velocity is integrated exactly (constant twist over each step) into a planar pose
+  ``(x, y, yaw)`` in the emulator's local NED frame (x north, y east, yaw clockwise from north, rad), which
+  starts at the origin.  ``pose_flu()`` gives the same pose in FLU/ENU-like terms (x forward-at-start,
+  y left, yaw counter-clockwise), i.e. ``(x, -y, -yaw)``, as a ``flightstack.paper.geometry.Pose``.
+* **Faults** (`RoverFaults`, flip at any time; each is what real ArduPilot / MAVLink users reported):
+
+  - ``no_heartbeat``: the autopilot's HEARTBEATs stop (everything else keeps working).
+  - ``reject_arm`` / ``reject_disarm``: ``MAV_RESULT_DENIED`` (pre-arm checks failing).
+  - ``lost_acks`` (COMMAND_ACK command ids, e.g. 176, 400, 11): the command takes effect but its ACK is
+    never sent (UDP loss; github.com/PX4/PX4-Autopilot/issues/8924: "CF2 arms/disarms but COMMAND_ACK is
+    not received", the GCS then waits; github.com/mavlink/mavros/issues/1590 "wait ack timeout").
+  - ``duplicate_acks``: every ACK is sent twice (github.com/mavlink/qgroundcontrol/issues/2975: answers
+    "back three times", and for arm then disarm "which one is the ack for?"; github.com/mavlink/mavlink/
+    pull/768: every client receives every ACK; github.com/PX4/PX4-Autopilot/pull/27343: DO_SET_MODE
+    ACKed ACCEPTED at once, then again by the commander).
+  - ``ack_delay_s``: every ACK leaves this late, the command having taken effect at once (a late ACK is
+    then read as the answer to a later command with the same id: github.com/PX4/PX4-Autopilot/issues/12685,
+    arming succeeded "relying on acks that are still queued from the first attempt").
+  - ``ack_accepted_but_ignored`` (command ids): answered ``ACCEPTED`` but not applied, a lying device
+    (github.com/ArduPilot/ardupilot/issues/1385: arm reported success while ``init_arm_motors()`` failed;
+    github.com/PX4/PX4-Autopilot/issues/26034 and pull/27343: DO_SET_MODE ACKed ACCEPTED, mode unchanged).
+  - ``drop_commands``: the next N COMMAND_LONG / SET_MODE are lost on the way in (never seen, not in
+    ``commands``; counted in ``dropped_commands``): neither ACK nor change, so the sender must re-send
+    (github.com/mavlink/mavlink/issues/2198: MAVSDK re-sends up to 3 times when no ACK comes).
+  - ``companion_heartbeat``: a companion computer (component 191, ``MAV_TYPE_ONBOARD_CONTROLLER``,
+    ``MAV_AUTOPILOT_INVALID``, base_mode 0, custom_mode 0) also sends HEARTBEATs, just before the
+    autopilot's, even when ``no_heartbeat`` is set (github.com/mavlink/MAVSDK/pull/516: "if we listen to
+    the heartbeats from all components the armed flag will flicker"; github.com/ArduPilot/pymavlink/pull/87:
+    companion heartbeats flipping the displayed mode; pull/257: ``motors_armed`` only from vehicle ones).
+
+* **Pilot / failsafe**: ``pilot_override(mode=..., armed=...)`` changes the mode or arming as an RC mode
+  switch, an RC/GCS failsafe or another GCS does, with no command from the client
+  (github.com/ArduPilot/ardupilot/issues/17483: RC loss switched GUIDED to RTL;
+  github.com/ArduPilot/ardupilot/issues/19361: the RC mode switch overrides the mode set;
+  github.com/ArduPilot/ardupilot/pull/2362: a rover leaving GUIDED stops following guided commands).
+
+Why the client must read the HEARTBEAT: ArduPilot ACKs the ``SET_MODE`` message with command id 11
+(github.com/ArduPilot/pymavlink/pull/411), and its maintainers say a mode change should be checked on the
+HEARTBEAT (github.com/ArduPilot/ardupilot/pull/14452); the armed flag only shows in the next heartbeat,
+up to 1 s later (github.com/mavlink/qgroundcontrol/pull/10810 raised QGC's arming wait to 1.5 s).
+
+All traffic is on 127.0.0.1.  One daemon thread with a stop flag and bounded waits (<= 20 ms);
+``close()`` joins it within 1 s and closes the socket.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from pymavlink import mavutil
+
+from flightstack.paper.geometry import Pose, wrap_angle
+
+mavlink = mavutil.mavlink
+
+ROVER_MODES = {0: "MANUAL", 4: "HOLD", 10: "AUTO", 11: "RTL", 15: "GUIDED"}
+GUIDED = 15
+HOLD = 4
+# Type-mask bits that must be clear for a velocity + yaw-rate set-point: vx (8), vy (16), yaw_rate (2048).
+_VEL_YAWRATE_BITS = 8 | 16 | 2048
+
+
+COMPANION_COMPONENT = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
+
+
+@dataclass
+class RoverFaults:
+    """Fault switches a test may flip at any time (see the module docstring for what each is based on)."""
+
+    no_heartbeat: bool = False
+    reject_arm: bool = False
+    reject_disarm: bool = False
+    lost_acks: set[int] = field(default_factory=set)  # COMMAND_ACK.command ids never answered
+    duplicate_acks: bool = False
+    ack_delay_s: float = 0.0
+    ack_accepted_but_ignored: set[int] = field(default_factory=set)  # ACCEPTED, but nothing happens
+    drop_commands: int = 0  # the next N COMMAND_LONG / SET_MODE never arrive
+    companion_heartbeat: bool = False
+
+
+@dataclass(frozen=True)
+class SetpointRecord:
+    """One received SET_POSITION_TARGET_LOCAL_NED (t: emulator monotonic time, s)."""
+
+    t: float
+    frame: int
+    type_mask: int
+    vx: float
+    vy: float
+    yaw_rate: float
+    applied: bool
+
+
+@dataclass
+class _State:
+    mode: int = HOLD
+    armed: bool = False
+    x: float = 0.0
+    y: float = 0.0
+    yaw: float = 0.0
+    vel: tuple[float, float, float] = (0.0, 0.0, 0.0)  # body NED/FRD: vx fwd, vy right (m/s), r cw (rad/s)
+    last_setpoint_t: float | None = None
+    commands: list[tuple[int, float, int]] = field(default_factory=list)  # (command, param, result)
+    acks_sent: list[tuple[int, int]] = field(default_factory=list)  # (command, result), every copy
+    dropped: list[int] = field(default_factory=list)  # command ids lost on the way in
+
+
+class MavlinkRoverEmulator:
+    """A GUIDED-mode velocity-controlled rover speaking MAVLink on ``udpin:127.0.0.1:<port>``."""
+
+    def __init__(
+        self,
+        port: int = 0,
+        system_id: int = 1,
+        component_id: int = 1,
+        heartbeat_hz: float = 1.0,
+        setpoint_timeout_s: float = 3.0,
+    ) -> None:
+        self.faults = RoverFaults()
+        self.setpoint_timeout_s = setpoint_timeout_s
+        self.heartbeat_period_s = 1.0 / heartbeat_hz
+        self.setpoints: list[SetpointRecord] = []
+        self.gcs_heartbeats: list[float] = []  # emulator monotonic times (s) of the client's HEARTBEATs
+        self.stopped_by_timeout = False
+        self._s = _State()
+        self._pending_acks: list[tuple[float, int, int]] = []  # (due time, command, result)
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._conn = mavutil.mavlink_connection(
+            f"udpin:127.0.0.1:{port}", source_system=system_id, source_component=component_id
+        )
+        self.port: int = self._conn.port.getsockname()[1]
+        self.url = f"udpout:127.0.0.1:{self.port}"  # what a client should connect to
+        self._thread = threading.Thread(target=self._run, name="mavlink-rover-emu", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ queries (thread-safe)
+    @property
+    def mode(self) -> int:
+        with self._lock:
+            return self._s.mode
+
+    @property
+    def armed(self) -> bool:
+        with self._lock:
+            return self._s.armed
+
+    @property
+    def velocity(self) -> tuple[float, float, float]:
+        """Current body velocity (vx fwd m/s, vy right m/s, yaw rate clockwise rad/s)."""
+        with self._lock:
+            return self._s.vel
+
+    @property
+    def commands(self) -> list[tuple[int, float, int]]:
+        """Received COMMAND_LONG / SET_MODE as (command id, param, MAV_RESULT decided); see ``acks_sent``."""
+        with self._lock:
+            return list(self._s.commands)
+
+    @property
+    def acks_sent(self) -> list[tuple[int, int]]:
+        """COMMAND_ACKs actually transmitted as (command id, MAV_RESULT), duplicates included."""
+        with self._lock:
+            return list(self._s.acks_sent)
+
+    @property
+    def dropped_commands(self) -> list[int]:
+        """Command ids of the COMMAND_LONG / SET_MODE lost by ``faults.drop_commands``."""
+        with self._lock:
+            return list(self._s.dropped)
+
+    def pilot_override(self, mode: int | None = None, armed: bool | None = None) -> None:
+        """Change mode and/or arming as an RC switch or failsafe would (no ACK, shows in the heartbeat)."""
+        with self._lock:
+            if mode is not None:
+                self._s.mode = mode
+            if armed is not None:
+                self._s.armed = armed
+            if self._s.mode != GUIDED or not self._s.armed:
+                self._s.vel = (0.0, 0.0, 0.0)
+
+    def pose_ned(self) -> tuple[float, float, float]:
+        """(x north m, y east m, yaw clockwise rad) in the emulator's local NED frame."""
+        with self._lock:
+            return self._s.x, self._s.y, self._s.yaw
+
+    def pose_flu(self) -> Pose:
+        """The same pose with y to the left and yaw counter-clockwise (the flightstack convention), z = 0."""
+        x, y, yaw = self.pose_ned()
+        return Pose.make([x, -y, 0.0], -yaw)
+
+    def setpoint_records(self) -> list[SetpointRecord]:
+        with self._lock:
+            return list(self.setpoints)
+
+    def gcs_heartbeat_count(self) -> int:
+        """How many HEARTBEATs the client (ground station) has sent so far."""
+        with self._lock:
+            return len(self.gcs_heartbeats)
+
+    # ------------------------------------------------------------------ lifecycle
+    def close(self) -> None:
+        """Stop the thread (joined within 1 s) and close the socket. Idempotent."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=1.0)
+        with contextlib.suppress(OSError):
+            self._conn.close()
+
+    def __enter__(self) -> MavlinkRoverEmulator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ internals
+    def _run(self) -> None:
+        last = time.monotonic()
+        next_hb = last
+        while not self._stop.is_set():
+            try:
+                msg = self._conn.recv_match(blocking=True, timeout=0.02)
+            except OSError:
+                if self._stop.is_set():
+                    break
+                msg = None
+            now = time.monotonic()
+            with self._lock:
+                self._integrate(now - last)
+                last = now
+                if msg is not None:
+                    self._handle(msg, now)
+                self._flush_acks(now)
+                if (
+                    self._s.last_setpoint_t is not None
+                    and now - self._s.last_setpoint_t > self.setpoint_timeout_s
+                    and self._s.vel != (0.0, 0.0, 0.0)
+                ):
+                    self._s.vel = (0.0, 0.0, 0.0)
+                    self.stopped_by_timeout = True
+            if now >= next_hb:
+                next_hb = now + self.heartbeat_period_s
+                self._send_heartbeat()
+
+    def _send_heartbeat(self) -> None:
+        if self.faults.companion_heartbeat:
+            mav = self._conn.mav
+            own = mav.srcComponent  # only this thread sends, so borrowing the component id is safe
+            mav.srcComponent = COMPANION_COMPONENT
+            try:
+                self._send(
+                    lambda: mav.heartbeat_send(
+                        mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
+                    )
+                )
+            finally:
+                mav.srcComponent = own
+        if self.faults.no_heartbeat:
+            return
+        with self._lock:
+            base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+            if self._s.armed:
+                base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+            mode = self._s.mode
+            status = mavlink.MAV_STATE_ACTIVE if self._s.armed else mavlink.MAV_STATE_STANDBY
+        self._send(
+            lambda: self._conn.mav.heartbeat_send(
+                mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, base, mode, status
+            )
+        )
+
+    def _send(self, fn: Callable[[], None]) -> None:
+        with contextlib.suppress(OSError):
+            fn()
+
+    def _integrate(self, dt: float) -> None:
+        """Exact integration of the constant body twist over dt (s); caller holds the lock."""
+        vx, vy, r = self._s.vel
+        if dt <= 0.0 or (vx == 0.0 and vy == 0.0 and r == 0.0):
+            return
+        yaw0 = self._s.yaw
+        dpsi = r * dt
+        if abs(dpsi) < 1e-9:
+            bx, by = vx * dt, vy * dt
+        else:
+            s, c = math.sin(dpsi), math.cos(dpsi)
+            bx = (vx * s + vy * (c - 1.0)) / r
+            by = (vx * (1.0 - c) + vy * s) / r
+        c0, s0 = math.cos(yaw0), math.sin(yaw0)
+        self._s.x += c0 * bx - s0 * by
+        self._s.y += s0 * bx + c0 * by
+        self._s.yaw = wrap_angle(yaw0 + dpsi)
+
+    def _ack(self, command: int, result: int, param: float, now: float) -> None:
+        """Log the command and queue its ACK(s) per the faults; caller holds the lock."""
+        self._s.commands.append((command, param, result))
+        if command in self.faults.lost_acks:
+            return
+        due = now + max(0.0, self.faults.ack_delay_s)
+        for _ in range(2 if self.faults.duplicate_acks else 1):
+            self._pending_acks.append((due, command, result))
+
+    def _flush_acks(self, now: float) -> None:
+        """Send the ACKs that are due; caller holds the lock."""
+        due = [a for a in self._pending_acks if a[0] <= now]
+        self._pending_acks = [a for a in self._pending_acks if a[0] > now]
+        for _, command, result in due:
+            self._s.acks_sent.append((command, result))
+            self._send(lambda c=command, r=result: self._conn.mav.command_ack_send(c, r))
+
+    def _ignored(self, command: int) -> bool:
+        return command in self.faults.ack_accepted_but_ignored
+
+    def _set_mode(self, mode: int, ack_id: int) -> int:
+        if mode not in ROVER_MODES:
+            return mavlink.MAV_RESULT_DENIED
+        if self._ignored(ack_id):
+            return mavlink.MAV_RESULT_ACCEPTED
+        self._s.mode = mode
+        if mode != GUIDED:
+            self._s.vel = (0.0, 0.0, 0.0)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _handle(self, msg: Any, now: float) -> None:
+        """Dispatch one received message; caller holds the lock."""
+        mtype = msg.get_type()
+        if mtype in ("SET_MODE", "COMMAND_LONG") and self.faults.drop_commands > 0:
+            self.faults.drop_commands -= 1
+            self._s.dropped.append(
+                mavlink.MAVLINK_MSG_ID_SET_MODE if mtype == "SET_MODE" else int(msg.command)
+            )
+            return
+        if mtype == "HEARTBEAT":
+            self.gcs_heartbeats.append(now)
+        elif mtype == "SET_MODE":
+            sm = mavlink.MAVLINK_MSG_ID_SET_MODE
+            self._ack(sm, self._set_mode(int(msg.custom_mode), sm), msg.custom_mode, now)
+        elif mtype == "COMMAND_LONG":
+            cmd = int(msg.command)
+            if cmd == mavlink.MAV_CMD_DO_SET_MODE:
+                self._ack(cmd, self._set_mode(int(msg.param2), cmd), msg.param2, now)
+            elif cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+                arm = msg.param1 > 0.5
+                reject = self.faults.reject_arm if arm else self.faults.reject_disarm
+                if reject:
+                    result = mavlink.MAV_RESULT_DENIED
+                else:
+                    if not self._ignored(cmd):
+                        self._s.armed = arm
+                        if not arm:
+                            self._s.vel = (0.0, 0.0, 0.0)
+                    result = mavlink.MAV_RESULT_ACCEPTED
+                self._ack(cmd, result, msg.param1, now)
+            else:
+                self._ack(cmd, mavlink.MAV_RESULT_UNSUPPORTED, msg.param1, now)
+        elif mtype == "SET_POSITION_TARGET_LOCAL_NED":
+            frame, mask = int(msg.coordinate_frame), int(msg.type_mask)
+            ok = (
+                frame == mavlink.MAV_FRAME_BODY_NED
+                and (mask & _VEL_YAWRATE_BITS) == 0
+                and self._s.mode == GUIDED
+                and self._s.armed
+            )
+            vx, vy, r = float(msg.vx), float(msg.vy), float(msg.yaw_rate)
+            if ok and all(math.isfinite(v) for v in (vx, vy, r)):
+                self._s.vel = (vx, vy, r)
+                self._s.last_setpoint_t = now
+                self.stopped_by_timeout = False
+            else:
+                ok = False
+            self.setpoints.append(SetpointRecord(now, frame, mask, vx, vy, r, ok))
