@@ -305,12 +305,12 @@ def test_bad_inputs_raise_clear_errors() -> None:
 
 
 def test_fit_raises_when_every_restart_fails(monkeypatch) -> None:
-    import flightstack.paper.gp as gp_module
+    import flightstack.paper.gp_fit as gp_fit_module  # where GPExpert.fit's optimisation reads it
 
     def broken(*args, **kwargs):
         raise np.linalg.LinAlgError("boom")
 
-    monkeypatch.setattr(gp_module, "_lml_and_grad", broken)
+    monkeypatch.setattr(gp_fit_module, "_lml_and_grad", broken)
     X, Y = make_data(0, 10)
     with pytest.raises(ValueError, match="failed for output 0 from all 3 starting points"):
         GPExpert.fit(X, Y, 0.01, restarts=3)

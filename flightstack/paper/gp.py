@@ -17,18 +17,28 @@ Naming in this module: the paper's output index i is ``d`` (0..D-1), the expert 
 :class:`GPExpert` object per drone), M = M_j is the number of training points, Din the input dimension.
 The noise variance σ_n² is fixed (given), only σ_f and l are learned by maximising the log marginal
 likelihood (:meth:`GPExpert.fit`). Everything is numpy/scipy only.
+
+This module is the expert and the public face of the GP: the SE-ARD kernel, its hyperparameters and the log
+marginal likelihood are in flightstack/paper/gp_kernel.py, the hyperparameter optimisation in
+flightstack/paper/gp_fit.py, the argument checks in flightstack/paper/gp_checks.py; their public names (and
+the private ones used by benchmarks/run.py) are re-exported here.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 from scipy.spatial.distance import cdist
+
+from flightstack.paper.gp_checks import _as_finite_2d, _readonly, _validate_training_data
+from flightstack.paper.gp_fit import _LBFGSB_OPTIONS as _LBFGSB_OPTIONS
+from flightstack.paper.gp_fit import fit_hyperparameters
+from flightstack.paper.gp_kernel import _LOG_2PI, GPHyperparameters, log_marginal_likelihood_and_grad
+from flightstack.paper.gp_kernel import _lml_and_grad as _lml_and_grad
+from flightstack.paper.gp_kernel import _pairwise_sq_diff as _pairwise_sq_diff
 
 __all__ = ["VAR_FLOOR_REL", "GPExpert", "GPHyperparameters", "log_marginal_likelihood_and_grad"]
 
@@ -36,193 +46,6 @@ __all__ = ["VAR_FLOOR_REL", "GPExpert", "GPHyperparameters", "log_marginal_likel
 #: Analytically var ≥ 0, but σ_f² − ‖L^{-1} k_*‖² suffers cancellation close to the training inputs when
 #: σ_n² ≪ σ_f²; the floor keeps downstream precisions 1/var (PoE fusion) finite and positive.
 VAR_FLOOR_REL = 1e-12
-
-_LOG_2PI = math.log(2.0 * math.pi)
-#: Random restarts of :meth:`GPExpert.fit` are drawn within ± this (natural-log) distance of the
-#: data-driven start (intersected with the bounds), i.e. within a factor 100 of it; for the length scales
-#: only the lower end is narrowed, the upper end is the bound itself.
-_RESTART_LOG_HALF_WIDTH = math.log(100.0)
-#: Tighter than scipy's defaults (ftol 2.2e-9, gtol 1e-5): the fit is offline and the optimum should not
-#: depend on where the optimiser happened to stop.
-_LBFGSB_OPTIONS: dict[str, float] = {"ftol": 1e-12, "gtol": 1e-8}
-
-
-# --------------------------------------------------------------------------------------------------------
-# validation helpers
-# --------------------------------------------------------------------------------------------------------
-def _as_finite_2d(a: np.ndarray, name: str) -> np.ndarray:
-    arr = np.asarray(a, dtype=float)
-    if arr.ndim != 2:
-        raise ValueError(f"{name} must be a 2-D array, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains non-finite values (NaN or inf)")
-    return arr
-
-
-def _validate_training_data(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    X = _as_finite_2d(X, "X")
-    Y = _as_finite_2d(Y, "Y")
-    if X.shape[0] != Y.shape[0]:
-        raise ValueError(f"X and Y must have the same number of rows (M), got X {X.shape} and Y {Y.shape}")
-    if X.shape[0] < 2:
-        raise ValueError(f"need at least M = 2 training points, got M = {X.shape[0]}")
-    if X.shape[1] < 1 or Y.shape[1] < 1:
-        raise ValueError(f"X and Y need at least one column, got X {X.shape} and Y {Y.shape}")
-    return X, Y
-
-
-def _validate_noise_var(noise_var: float | np.ndarray, n_outputs: int) -> np.ndarray:
-    nv = np.asarray(noise_var, dtype=float)
-    if nv.ndim == 0:
-        nv = np.full(n_outputs, float(nv))
-    if nv.shape != (n_outputs,):
-        raise ValueError(f"noise_var must be a scalar or have shape ({n_outputs},), got shape {nv.shape}")
-    if not np.all(np.isfinite(nv)) or np.any(nv <= 0.0):
-        raise ValueError(f"noise_var (σ_n²) must be finite and > 0, got {nv}")
-    return nv
-
-
-def _validate_log_bounds(bounds: tuple[float, float], name: str) -> tuple[float, float]:
-    try:
-        lo, hi = (float(b) for b in bounds)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a pair (lo, hi) of floats, got {bounds!r}") from exc
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-        raise ValueError(f"{name} must be finite with lo < hi, got {(lo, hi)}")
-    return lo, hi
-
-
-def _readonly(a: np.ndarray) -> np.ndarray:
-    out = np.array(a, dtype=float, copy=True)
-    out.setflags(write=False)
-    return out
-
-
-# --------------------------------------------------------------------------------------------------------
-# hyperparameters
-# --------------------------------------------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class GPHyperparameters:
-    """SE-ARD hyperparameters of the D independent output GPs of one expert.
-
-    Attributes:
-        sigma_f: (D,) signal standard deviation σ_{f,d} per output (units of the output, e.g. m/s).
-        length_scales: (D, Din) length scales l_{d,m} (units of input column m).
-        noise_var: (D,) fixed observation-noise variance σ_{n,d}² (output units squared). A scalar is
-            accepted and broadcast to (D,).
-
-    The arrays are copied to read-only float64 arrays. ``eq=False``: comparing instances with ``==`` is
-    identity; compare the arrays explicitly (e.g. ``np.array_equal``).
-    """
-
-    sigma_f: np.ndarray
-    length_scales: np.ndarray
-    noise_var: np.ndarray
-
-    def __post_init__(self) -> None:
-        sigma_f = np.asarray(self.sigma_f, dtype=float)
-        if sigma_f.ndim != 1 or sigma_f.size < 1:
-            raise ValueError(f"sigma_f must have shape (D,), got shape {sigma_f.shape}")
-        if not np.all(np.isfinite(sigma_f)) or np.any(sigma_f <= 0.0):
-            raise ValueError(f"sigma_f (σ_f) must be finite and > 0, got {sigma_f}")
-        n_out = sigma_f.shape[0]
-        lengths = np.asarray(self.length_scales, dtype=float)
-        if lengths.ndim != 2 or lengths.shape[0] != n_out or lengths.shape[1] < 1:
-            raise ValueError(f"length_scales must have shape (D={n_out}, Din), got shape {lengths.shape}")
-        if not np.all(np.isfinite(lengths)) or np.any(lengths <= 0.0):
-            raise ValueError("length_scales (l) must be finite and > 0")
-        noise = _validate_noise_var(self.noise_var, n_out)
-        object.__setattr__(self, "sigma_f", _readonly(sigma_f))
-        object.__setattr__(self, "length_scales", _readonly(lengths))
-        object.__setattr__(self, "noise_var", _readonly(noise))
-
-    @property
-    def n_outputs(self) -> int:
-        """D, the number of outputs."""
-        return int(self.sigma_f.shape[0])
-
-    @property
-    def n_inputs(self) -> int:
-        """Din, the input dimension."""
-        return int(self.length_scales.shape[1])
-
-
-# --------------------------------------------------------------------------------------------------------
-# log marginal likelihood of one output dimension
-# --------------------------------------------------------------------------------------------------------
-def _pairwise_sq_diff(X: np.ndarray) -> np.ndarray:
-    """(M, Din) -> (M, M, Din) with entries (x_{a,m} - x_{b,m})²."""
-    diff = X[:, None, :] - X[None, :, :]
-    return diff * diff
-
-
-def _lml_and_grad(
-    sq_diff: np.ndarray, y: np.ndarray, log_sigma_f: float, log_lengths: np.ndarray, noise_var: float
-) -> tuple[float, np.ndarray]:
-    """Unvalidated core of :func:`log_marginal_likelihood_and_grad` (sq_diff from :func:`_pairwise_sq_diff`).
-
-    Raises ``numpy.linalg.LinAlgError`` if 𝒦 + σ_n² I is numerically not positive definite.
-    """
-    m = y.shape[0]
-    # R_m[a, b] = (x_{a,m} - x_{b,m})² / l_m²
-    R = sq_diff * np.exp(-2.0 * log_lengths)
-    # 𝒦 (noise-free Gram matrix), and 𝒦 + σ_n² I
-    K_f = math.exp(2.0 * log_sigma_f) * np.exp(-0.5 * R.sum(axis=-1))
-    K_y = K_f + noise_var * np.eye(m)
-    L = scipy.linalg.cholesky(K_y, lower=True, check_finite=False)
-    alpha = scipy.linalg.cho_solve((L, True), y, check_finite=False)  # α = (𝒦 + σ_n² I)^{-1} y
-    # log p(y | X, θ) = -½ yᵀα - Σ log L_aa - (M/2) log 2π
-    lml = -0.5 * float(y @ alpha) - float(np.sum(np.log(np.diag(L)))) - 0.5 * m * _LOG_2PI
-    # ∂ log p / ∂θ = ½ tr((α αᵀ - (𝒦 + σ_n² I)^{-1}) ∂𝒦/∂θ), with
-    #   ∂𝒦/∂ log σ_f = 2 𝒦,   ∂𝒦/∂ log l_m = 𝒦 ∘ R_m.
-    K_inv = scipy.linalg.cho_solve((L, True), np.eye(m), check_finite=False)
-    WK = (np.outer(alpha, alpha) - K_inv) * K_f
-    grad = np.empty(1 + log_lengths.shape[0])
-    grad[0] = float(np.sum(WK))
-    grad[1:] = 0.5 * np.einsum("ab,abm->m", WK, R)
-    return lml, grad
-
-
-def log_marginal_likelihood_and_grad(
-    X: np.ndarray, y: np.ndarray, log_sigma_f: float, log_lengths: np.ndarray, noise_var: float
-) -> tuple[float, np.ndarray]:
-    """Log marginal likelihood of one output dimension and its analytic gradient.
-
-    log p(y | X) = -½ yᵀ(𝒦 + σ_n² I)^{-1} y - ½ log|𝒦 + σ_n² I| - (M/2) log 2π, zero prior mean, SE-ARD 𝒦.
-
-    Args:
-        X: (M, Din) training inputs.
-        y: (M,) training targets of this output dimension.
-        log_sigma_f: natural log of σ_f.
-        log_lengths: (Din,) natural logs of the length scales l_1..l_Din.
-        noise_var: fixed σ_n² > 0 (not differentiated).
-
-    Returns:
-        ``(lml, grad)``: the log marginal likelihood (float, nats) and its gradient (1 + Din,) with respect
-        to ``[log σ_f, log l_1, ..., log l_Din]``.
-
-    Raises:
-        ValueError: on bad shapes / non-finite values / noise_var <= 0, or if 𝒦 + σ_n² I is numerically not
-            positive definite.
-    """
-    X = _as_finite_2d(X, "X")
-    y = np.asarray(y, dtype=float)
-    if y.ndim != 1 or y.shape[0] != X.shape[0]:
-        raise ValueError(f"y must have shape (M,) = ({X.shape[0]},), got shape {y.shape}")
-    if not np.all(np.isfinite(y)):
-        raise ValueError("y contains non-finite values (NaN or inf)")
-    log_lengths = np.asarray(log_lengths, dtype=float)
-    if log_lengths.shape != (X.shape[1],):
-        raise ValueError(
-            f"log_lengths must have shape (Din,) = ({X.shape[1]},), got shape {log_lengths.shape}"
-        )
-    if not (math.isfinite(float(log_sigma_f)) and np.all(np.isfinite(log_lengths))):
-        raise ValueError("log_sigma_f and log_lengths must be finite")
-    noise = float(_validate_noise_var(noise_var, 1)[0])
-    try:
-        return _lml_and_grad(_pairwise_sq_diff(X), y, float(log_sigma_f), log_lengths, noise)
-    except np.linalg.LinAlgError as exc:
-        raise ValueError("𝒦 + σ_n² I is not positive definite (increase noise_var?)") from exc
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -332,71 +155,17 @@ class GPExpert:
         Raises:
             ValueError: on bad inputs, or if every restart of some output dimension failed.
         """
-        X, Y = _validate_training_data(X, Y)
-        noise = _validate_noise_var(noise_var, Y.shape[1])
-        if isinstance(restarts, bool) or not isinstance(restarts, int | np.integer) or restarts < 1:
-            raise ValueError(f"restarts must be an integer >= 1, got {restarts!r}")
-        f_lo, f_hi = _validate_log_bounds(log_sigma_f_bounds, "log_sigma_f_bounds")
-        l_lo, l_hi = _validate_log_bounds(log_length_bounds, "log_length_bounds")
-        if maxiter is not None and (isinstance(maxiter, bool) or not isinstance(maxiter, int) or maxiter < 1):
-            raise ValueError(f"maxiter must be None or an integer >= 1, got {maxiter!r}")
-        options = _LBFGSB_OPTIONS if maxiter is None else {**_LBFGSB_OPTIONS, "maxiter": maxiter}
-
-        n_in = X.shape[1]
-        n_out = Y.shape[1]
-        sq_diff = _pairwise_sq_diff(X)
-        lo = np.array([f_lo] + [l_lo] * n_in)
-        hi = np.array([f_hi] + [l_hi] * n_in)
-        bounds = list(zip(lo, hi, strict=True))
-        x_std = X.std(axis=0)
-        log_l0 = np.log(np.where(x_std > 1e-12, x_std, 1.0))
-        rng = np.random.default_rng(seed)
-
-        sigma_f = np.empty(n_out)
-        lengths = np.empty((n_out, n_in))
-        for d in range(n_out):
-            y = Y[:, d]
-            y_std = float(y.std())
-            theta0 = np.clip(np.concatenate([[math.log(y_std if y_std > 1e-12 else 1.0)], log_l0]), lo, hi)
-            # narrowed sampling box for the random restarts (non-empty: theta0 lies inside the bounds)
-            box_lo = np.maximum(lo, theta0 - _RESTART_LOG_HALF_WIDTH)
-            box_hi = np.minimum(hi, theta0 + _RESTART_LOG_HALF_WIDTH)
-            box_hi[1:] = hi[1:]  # long length scales (input switched off by ARD) stay reachable
-            starts = [theta0] + [rng.uniform(box_lo, box_hi) for _ in range(restarts - 1)]
-            nv = float(noise[d])
-
-            def neg_lml(theta: np.ndarray, y: np.ndarray = y, nv: float = nv) -> tuple[float, np.ndarray]:
-                try:
-                    lml, grad = _lml_and_grad(sq_diff, y, float(theta[0]), theta[1:], nv)
-                except np.linalg.LinAlgError:
-                    return math.inf, np.zeros_like(theta)
-                return -lml, -grad
-
-            best_theta: np.ndarray | None = None
-            best_lml = -math.inf
-            for theta_start in starts:
-                try:
-                    res = scipy.optimize.minimize(
-                        neg_lml,
-                        theta_start,
-                        method="L-BFGS-B",
-                        jac=True,
-                        bounds=bounds,
-                        options=options,
-                    )
-                    theta = np.clip(np.asarray(res.x, dtype=float), lo, hi)
-                    lml, _ = _lml_and_grad(sq_diff, y, float(theta[0]), theta[1:], nv)
-                except (np.linalg.LinAlgError, ValueError, ArithmeticError):  # failed restart: skip it
-                    continue
-                if math.isfinite(lml) and lml > best_lml:
-                    best_lml, best_theta = lml, theta
-            if best_theta is None:
-                raise ValueError(
-                    f"hyperparameter optimisation failed for output {d} from all {restarts} starting points"
-                )
-            sigma_f[d] = math.exp(best_theta[0])
-            lengths[d] = np.exp(best_theta[1:])
-        return cls(X, Y, GPHyperparameters(sigma_f=sigma_f, length_scales=lengths, noise_var=noise))
+        X, Y, hyper = fit_hyperparameters(
+            X,
+            Y,
+            noise_var,
+            restarts=restarts,
+            seed=seed,
+            log_sigma_f_bounds=log_sigma_f_bounds,
+            log_length_bounds=log_length_bounds,
+            maxiter=maxiter,
+        )
+        return cls(X, Y, hyper)
 
     # ---------------------------------------------------------------------------------------------------
     # prediction

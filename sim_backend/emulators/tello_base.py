@@ -1,0 +1,184 @@
+"""Configuration, logs and shared state of the loopback Tello emulator, and its reply queue.
+
+`TelloEmulatorBase` is the bottom layer of ``TelloEmulator``: the constructor (addresses, ports, rates,
+durations in s, heights in cm), the public logs every layer appends to (``commands``, ``senders``,
+``rc_history``, ``phase_log``, ``refused``, ``replies_sent``, ``errors``, ``rejected``, ...; times are
+``time.monotonic()`` seconds), the ground-truth state (position in cm in the world frame ``x`` forward at
+takeoff heading, ``y`` right, ``z`` up; yaw in degrees clockwise; velocities in cm/s) and the FIFO reply
+queue (``ReplyScheduler`` of ``tello_faults``).  Layers on top: ``tello_physics`` (motion model, phases,
+battery, state stream), ``tello_commands`` (the text protocol), ``tello_video`` (the H.264 stream);
+``tello_emulator`` assembles them.  Protocol and behaviour: the docstring of ``tello.py``.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from .tello_faults import ReplyScheduler, TelloFaults
+from .tello_frames import FrameSource, default_frame_source
+from .tello_net import _require_loopback
+
+
+@dataclass
+class _Deferred:
+    """A reply that is sent when a takeoff/landing completes."""
+
+    addr: tuple[str, int] | None
+    delay_s: float
+
+
+class TelloEmulatorBase:
+    """State and configuration shared by the emulator's layers (see ``TelloEmulator``)."""
+
+    TAKEOFF_CLIMB_S = 2.0
+    """Time of the climb to ``takeoff_height_cm`` when the takeoff lasts longer (it then hovers until
+    ``ok``)."""
+    MIN_TAKEOFF_BATTERY = 10
+    DRAIN_FLYING_PCT_S = 0.12
+    DRAIN_IDLE_PCT_S = 0.01
+    TICK_S = 0.01
+
+    def __init__(
+        self,
+        ip: str = "127.0.0.2",
+        port: int = 0,
+        state_port: int = 8890,
+        client_ip: str = "127.0.0.1",
+        video_port: int = 11111,
+        frame_source: FrameSource | None = None,
+        fps: float = 30.0,
+        takeoff_s: float = 0.3,
+        faults: TelloFaults | None = None,
+        video_size: tuple[int, int] = (960, 720),
+        *,
+        auto_land_s: float = 15.0,
+        land_s: float = 0.3,
+        takeoff_height_cm: float = 80.0,
+        tau_s: float = 0.1,
+        state_hz: float = 10.0,
+        gop_size: int = 15,
+        pre_sdk_reply: str | None = None,
+        reply_port_latch: bool = False,
+    ) -> None:
+        """Configure the emulator; nothing is bound or started before :meth:`start`.
+
+        Args:
+            ip: loopback address the emulated drone owns (commands in, replies/state/video out).
+            port: command port on ``ip``; 0 lets the OS pick a free one (read it from ``address``).
+            state_port: client port receiving state packets (djitellopy: 8890).
+            client_ip: loopback address of the client (state and video destination).
+            video_port: client port receiving the H.264 stream (djitellopy: ``Tello(vs_udp=...)``).
+            frame_source: ``f(t, emu) -> image``; defaults to :func:`default_frame_source`.
+            fps: video frame rate.
+            takeoff_s: duration of the takeoff (the ``ok`` comes at its end).
+            faults: fault switches (a fresh :class:`TelloFaults` when None).
+            video_size: ``(width, height)`` of every frame, even numbers; one size per emulator.
+            auto_land_s: land by itself after this long without any command while flying (real: 15 s).
+            land_s: duration of the landing (the ``ok`` comes at its end).
+            takeoff_height_cm: height reached by ``takeoff``.
+            tau_s: time constant of the first-order velocity response to ``rc``.
+            state_hz: state packet rate.
+            gop_size: H.264 keyframe interval in frames.
+            pre_sdk_reply: reply to commands sent before ``command`` (None = ignore them, the default).
+            reply_port_latch: Tello EDU: every reply goes to the sender of the first ``command``.
+        """
+        _require_loopback(ip, "ip")
+        _require_loopback(client_ip, "client_ip")
+        width, height = video_size
+        if width <= 0 or height <= 0 or width % 2 or height % 2:
+            raise ValueError(f"video_size must be positive even numbers, got {video_size}")
+        if fps <= 0 or state_hz <= 0:
+            raise ValueError("fps and state_hz must be positive")
+        self.ip = ip
+        self._port = port
+        self.client_ip = client_ip
+        self.state_port = state_port
+        self.video_port = video_port
+        self.frame_source: FrameSource = frame_source or default_frame_source
+        self.fps = float(fps)
+        self.video_size = (int(width), int(height))
+        self.takeoff_s = float(takeoff_s)
+        self.land_s = float(land_s)
+        self.auto_land_s = float(auto_land_s)
+        self.takeoff_height_cm = float(takeoff_height_cm)
+        self.tau_s = float(tau_s)
+        self.state_hz = float(state_hz)
+        self.gop_size = int(gop_size)
+        self.pre_sdk_reply = pre_sdk_reply
+        self.reply_port_latch = reply_port_latch
+        self._first_client: tuple[str, int] | None = None  # sender of the first ``command``
+        self.faults = faults if faults is not None else TelloFaults()
+
+        self._lock = threading.RLock()
+        self.commands: list[tuple[float, str]] = []
+        self.senders: list[tuple[float, str, tuple[str, int]]] = []
+        """``(time.monotonic(), text, sender (ip, port))`` of every datagram, as ``commands``."""
+        self.rc_history: list[tuple[float, tuple[int, int, int, int]]] = []
+        self.errors: list[str] = []
+        """Problems inside the emulator (frame source, encoder, sockets); empty in a healthy run."""
+        self.rejected: list[str] = []
+        """Datagrams that were received but ignored (malformed ``rc``, non-loopback sender)."""
+        self.phase_log: list[tuple[float, str]] = [(time.monotonic(), "landed")]
+        """``(time.monotonic(), new phase)`` of every phase transition, starting with the initial
+        ``landed``."""
+        self.refused: list[tuple[float, str, str, str]] = []
+        """``(time.monotonic(), phase at receipt, command text, reply or "ignored")`` of every command the
+        drone did not carry out (see the docstring of ``tello.py``, "Refused commands"); never a command that
+        succeeded."""
+        self._replies = ReplyScheduler(self._lock, self.errors)
+        self.replies_sent: list[tuple[float, str, str]] = self._replies.sent
+        """``(time.monotonic(), reply text, "normal" | "duplicate")`` of every reply datagram sent
+        (recorded just before it leaves the socket)."""
+        self.state_packets_sent = 0
+        self.last_state = ""
+        self.video_frames_sent = 0
+        self.video_bytes_sent = 0
+        self.video_frame_index = -1
+        self.video_log: deque[tuple[int, float]] = deque(maxlen=2000)
+        """``(frame index, time.monotonic() when sent)`` of the most recent video frames."""
+
+        self.sdk_mode = False
+        self.streaming = False
+        self.downvision = False
+        self.landed_by_timeout = False
+        self.speed_setting = 100.0
+        self._phase = "landed"  # landed | takeoff | flying | landing
+        self._phase_t0 = 0.0
+        self._phase_z0 = 0.0
+        self._phase_s = 0.0  # duration of the current takeoff/landing
+        self._deferred: _Deferred | None = None
+        self._pos = np.zeros(3)  # x fwd, y right, z up [cm]
+        self._yaw = 0.0  # deg, clockwise
+        self._rc = np.zeros(4)  # right, fwd, up [cm/s], yaw rate [deg/s] targets
+        self._vel_body = np.zeros(4)  # filtered body velocities
+        self._vel_world = np.zeros(3)  # [cm/s]
+        self._acc_body = np.zeros(3)  # [cm/s^2]
+        self._motor_s = 0.0
+        self._drain = 0.0
+        self._bat_setpoint = self.faults.battery_pct
+        self._last_cmd_t = time.monotonic()
+        self._stream_epoch = 0
+
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._cmd_sock: socket.socket | None = None
+        self._tx_sock: socket.socket | None = None
+        self._bound: tuple[str, int] | None = None
+        self._started = False
+        self._closed = False
+
+    # ---------------------------------------------------------------------------------------------- replies
+    def _reply(self, text: str, addr: tuple[str, int] | None, now: float, delay: float) -> None:
+        """Queue ``text`` for ``addr`` (None = lost) at ``now + delay``, FIFO; plus any duplicate."""
+        self._replies.schedule(text, addr, now, delay, self.faults.duplicate_reply_after_s)
+
+    def _reply_loop(self) -> None:
+        # Replies leave from the command socket, like the real drone (source ip:port = address).
+        assert self._cmd_sock is not None
+        self._replies.run(self._cmd_sock, self._stop)

@@ -1,0 +1,274 @@
+"""The Tello emulator's command protocol: receive text datagrams, run them, queue the replies.
+
+The command thread reads UTF-8 text datagrams on the emulator's ``(ip, port)``, records them
+(``commands``, ``senders``, ``rc_history``, ``refused``, ``rejected``), applies the fault switches
+(``TelloFaults``: silence, lost replies, error replies, SDK 2.0 firmware, ``rc`` replies, reply delay in
+s), runs control/set/read commands against the simulation (moves in cm, rotations in degrees, speed in
+cm/s) and queues the replies; ``takeoff``/``land`` are answered by the simulation when they complete.
+`TelloCommands` is one layer of ``TelloEmulator`` (``tello_emulator``); the behaviour per command is
+described in the docstring of ``tello.py``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from .tello_base import _Deferred
+from .tello_faults import SDK3_ONLY_COMMANDS, has_sdk3
+from .tello_net import is_loopback, wait_until
+from .tello_physics import TelloPhysics, _wrap_deg
+
+LOG = logging.getLogger(f"{__package__}.tello")  # the public module's logger, as before the split
+
+_READ_ONLY_OK = frozenset(
+    {"keepalive", "mon", "moff", "mdirection", "setbitrate", "setresolution", "setfps", "wifi", "ap", "EXT"}
+)
+_MOVES = {"up": (0, 0, 1), "down": (0, 0, -1), "left": (0, -1, 0), "right": (0, 1, 0)}
+_MOVES |= {"forward": (1, 0, 0), "back": (-1, 0, 0)}
+
+
+class TelloCommands(TelloPhysics):
+    """The command thread (``_command_loop``), the command handlers and the read-command answers."""
+
+    def command_texts(self) -> list[str]:
+        """Snapshot of the received command texts."""
+        with self._lock:
+            return [text for _, text in self.commands]
+
+    def wait_for_command(self, text: str, timeout: float, start: int = 0) -> bool:
+        """Wait until a command equal to ``text`` was received (searching from index ``start``)."""
+        return wait_until(lambda: text in self.command_texts()[start:], timeout)
+
+    # ------------------------------------------------------------------------------------------- commands
+    def _command_loop(self) -> None:
+        sock = self._cmd_sock
+        assert sock is not None
+        while not self._stop.is_set():
+            try:
+                data, addr = sock.recvfrom(2048)
+            except TimeoutError:
+                continue
+            except OSError:
+                if self._stop.is_set():
+                    break
+                time.sleep(0.01)
+                continue
+            text = data.decode("utf-8", errors="replace").strip()
+            try:
+                self._handle(text, (str(addr[0]), int(addr[1])))
+            except Exception as exc:  # keep serving; surface the problem to the test
+                LOG.exception("emulator failed on %r", text)
+                self.errors.append(f"{text!r}: {exc!r}")
+
+    def _handle(self, text: str, addr: tuple[str, int]) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self.commands.append((now, text))
+            self.senders.append((now, text, addr))
+            if not is_loopback(addr[0]):
+                self.rejected.append(f"{text} (non-loopback sender {addr[0]})")
+                return
+            faults, phase = self.faults, self._phase
+            words = text.split()
+            verb, args = (words[0], words[1:]) if words else ("", [])
+            delay = float(faults.reply_delay_s)
+            if verb == "command" and self._first_client is None:
+                self._first_client = addr
+            to = self._first_client if self.reply_port_latch and self._first_client else addr
+            reply_addr = None if faults.silent or verb in faults.lost_replies else to
+            if not self.sdk_mode and verb != "command":
+                reply = self.pre_sdk_reply
+                self._refuse(now, phase, text, "ignored" if reply is None else reply)
+                if reply is not None:
+                    self._reply(reply, reply_addr, now, delay)
+                return
+            self._last_cmd_t = now
+            if verb in SDK3_ONLY_COMMANDS and not has_sdk3(faults.sdk_version):
+                answer: str | None = f"unknown command: {verb}"
+            elif verb == "rc":
+                answer = self._rc_command(args, now, phase)
+            elif verb in ("emergency", "reboot"):
+                self._execute_no_reply(verb, now)
+                return
+            elif faults.error_replies:
+                answer = "error"
+            else:
+                answer = self._execute(verb, args, now)
+                if answer is None:  # takeoff/land: replied on completion by the sim thread
+                    self._deferred = _Deferred(reply_addr, delay)
+                    return
+            if answer is None:  # rc without a reply
+                return
+            if _is_refusal(verb, answer):
+                self._refuse(now, phase, text, answer)
+            self._reply(answer, reply_addr, now, delay)
+
+    def _refuse(self, now: float, phase: str, text: str, reply: str) -> None:
+        self.refused.append((now, phase, text, reply))
+
+    def _rc_command(self, args: list[str], now: float, phase: str) -> str | None:
+        """Apply one ``rc``; return its reply (only with ``faults.rc_replies``) or None."""
+        text = text_of("rc", args)
+        try:
+            values = tuple(int(a) for a in args)
+        except ValueError:
+            values = ()
+        if len(values) != 4:
+            self.rejected.append(text)
+            self._refuse(now, phase, text, "ignored")
+            return None
+        a, b, c, d = (max(-100, min(100, v)) for v in values)
+        self.rc_history.append((now, (a, b, c, d)))
+        if phase == "flying":
+            self._rc[:] = (a, b, c, d)
+            return "ok" if self.faults.rc_replies else None
+        if self.faults.rc_replies:
+            return "error Not joystick"
+        self._refuse(now, phase, text, "ignored")
+        return None
+
+    def _execute_no_reply(self, verb: str, now: float) -> None:
+        """``emergency`` (motors stop at once, the drone drops) or ``reboot``."""
+        self._set_landed(now)
+        self._deferred = None  # an interrupted takeoff/landing never answers
+        self._pos[2] = 0.0
+        if verb == "reboot":
+            self.sdk_mode = False
+            self._first_client = None
+            self.streaming = False
+
+    def _busy_reply(self) -> str:
+        """Reply to a command that needs a settled drone while it takes off or lands."""
+        auto = self.landed_by_timeout and self._phase == "landing"
+        return "error Auto land" if auto else "error Not joystick"
+
+    def _execute(self, verb: str, args: list[str], now: float) -> str | None:
+        """Run one reply-expecting command; return the reply, or None when it is deferred."""
+        if verb.endswith("?"):
+            return self._read(verb)
+        if verb == "command":
+            self.sdk_mode = True
+            return "ok"
+        if verb == "takeoff":
+            if self._phase in ("takeoff", "landing"):
+                return self._busy_reply()
+            if self._phase == "flying":
+                return "error"
+            if self._battery_locked() < self.MIN_TAKEOFF_BATTERY:
+                return "error battery low"
+            self._rc[:] = 0.0
+            duration = self.faults.takeoff_s
+            self._start_phase("takeoff", now, self.takeoff_s if duration is None else float(duration))
+            self.landed_by_timeout = False
+            return None
+        if verb == "land":
+            if self._phase == "landed":
+                return "error Motor stop"
+            if self._phase != "flying":
+                return self._busy_reply()
+            self._start_phase("landing", now, self.land_s)
+            return None
+        if verb == "streamon":
+            if not self.streaming:
+                self._stream_epoch += 1
+            self.streaming = True
+            return "ok"
+        if verb == "streamoff":
+            self.streaming = False
+            return "ok"
+        if verb == "downvision":
+            if args not in (["0"], ["1"]):
+                return "error"
+            self.downvision = args[0] == "1"
+            return "ok"
+        if verb == "port":
+            try:
+                state_port, video_port = (int(a) for a in args)
+            except ValueError:
+                return "error"
+            if not (1025 <= state_port <= 65535 and 1025 <= video_port <= 65535):
+                return "error"
+            self.state_port, self.video_port = state_port, video_port
+            return "ok"
+        if verb == "speed":
+            try:
+                speed = float(args[0])
+            except (IndexError, ValueError):
+                return "error"
+            if not 10 <= speed <= 100:
+                return "out of range"
+            self.speed_setting = speed
+            return "ok"
+        if verb in ("motoron", "motoroff"):
+            return "ok" if self._phase == "landed" else "error"
+        if verb in _READ_ONLY_OK:
+            return "ok"
+        if verb in _MOVES or verb in ("cw", "ccw", "go", "curve", "jump", "flip", "stop"):
+            return self._move(verb, args)
+        return f"unknown command: {verb}"
+
+    def _move(self, verb: str, args: list[str]) -> str:
+        if self._phase in ("takeoff", "landing"):
+            return self._busy_reply()
+        if self._phase != "flying":
+            return "error Motor stop"
+        if verb == "stop":
+            self._rc[:] = 0.0
+            return "ok"
+        if verb == "flip":
+            return "ok" if args in (["l"], ["r"], ["f"], ["b"]) else "error"
+        try:
+            nums = [int(a) for a in args if not a.startswith("m")]
+        except ValueError:
+            return "error"
+        if verb in _MOVES:
+            if len(nums) != 1 or not 20 <= nums[0] <= 500:
+                return "out of range"
+            fwd, right, up = (nums[0] * k for k in _MOVES[verb])
+            self._displace(fwd, right, up)
+        elif verb in ("cw", "ccw"):
+            if len(nums) != 1 or not 1 <= nums[0] <= 3600:
+                return "out of range"
+            self._yaw = _wrap_deg(self._yaw + (nums[0] if verb == "cw" else -nums[0]))
+        elif verb == "go" and len(nums) >= 3:
+            self._displace(nums[0], nums[1], nums[2])
+        elif verb == "curve" and len(nums) >= 6:
+            self._displace(nums[3], nums[4], nums[5])
+        elif verb == "jump" and len(nums) >= 3:
+            self._displace(nums[0], nums[1], nums[2])
+        else:
+            return "error"
+        return "ok"
+
+    def _read(self, verb: str) -> str:
+        h = max(0, round(float(self._pos[2])))
+        values = {
+            "battery?": str(self._battery_locked()),
+            "speed?": f"{self.speed_setting:.1f}",
+            "time?": f"{int(self._motor_s)}s",
+            "height?": f"{round(h / 10)}dm",
+            "temp?": "60~63",
+            "attitude?": f"pitch:0;roll:0;yaw:{round(_wrap_deg(self._yaw))};",
+            "baro?": f"{12.3 + h / 100:.2f}",
+            "tof?": f"{(h + 10) * 10}mm",
+            "acceleration?": "agx:0.00;agy:0.00;agz:-1000.00;",
+            "wifi?": "90",
+            "sdk?": str(self.faults.sdk_version),
+            "sn?": "0TQEMU" + "".join(f"{int(o):03d}" for o in self.ip.split(".")[1:]),
+            "hardware?": "TELLO",
+            "active?": "ok",
+        }
+        return values.get(verb, f"unknown command: {verb}")
+
+
+def _is_refusal(verb: str, reply: str) -> bool:
+    """True when ``reply`` means the drone did not carry out ``verb`` (a read command answers a value)."""
+    if reply.startswith(("error", "unknown command")):
+        return True
+    return not verb.endswith("?") and reply != "ok"
+
+
+def text_of(verb: str, args: list[str]) -> str:
+    """Re-assemble a command from its verb and arguments."""
+    return " ".join([verb, *args])

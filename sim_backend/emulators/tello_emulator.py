@@ -1,0 +1,115 @@
+"""`TelloEmulator`: the loopback UDP Tello, assembled from its layers, with its lifecycle (start/close).
+
+Layers: ``tello_base`` (configuration, logs, state, reply queue), ``tello_physics`` (motion model,
+phases, battery, state stream), ``tello_commands`` (text protocol), ``tello_video`` (H.264 stream).  This
+module binds the sockets (IPv4 loopback only) and runs the command, reply, simulation and video threads
+(daemons with bounded waits, joined by ``close()``).  Import it from ``tello.py``, whose docstring
+describes the protocol and the emulated behaviour.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+from types import TracebackType
+
+from .tello_commands import TelloCommands
+from .tello_video import TelloVideoStream
+
+LOG = logging.getLogger(f"{__package__}.tello")  # the public module's logger, as before the split
+
+
+class TelloEmulator(TelloCommands, TelloVideoStream):
+    """Loopback UDP emulator of one Tello drone; see the docstring of ``tello.py`` for the protocol details.
+
+    Typical use with djitellopy::
+
+        with TelloEmulator("127.0.0.2") as emu:
+            tello = Tello("127.0.0.2")
+            tello.address = emu.address  # djitellopy would otherwise send to port 8889
+            tello.connect()
+
+    Public, thread-safe read access: ``commands`` (``(time.monotonic(), text)`` of every datagram),
+    ``senders`` (the same with the sender's ``(ip, port)``),
+    ``rc_history`` (``(time, (a, b, c, d))`` of every valid ``rc``), ``phase_log`` (``(time, phase)`` of every
+    phase transition), ``refused`` (``(time, phase at receipt, text, reply or "ignored")`` of every command
+    the drone did not carry out), ``replies_sent`` (``(time, text, "normal" | "duplicate")`` of every reply
+    sent), ``flying``, ``phase``, ``downvision``, ``streaming``, ``sdk_mode``, ``landed_by_timeout``,
+    ``state_packets_sent``, ``video_frames_sent``, ``errors``, ``rejected``.  Lists are only appended to;
+    take ``list(emu.commands)`` for a snapshot.
+    """
+
+    # ------------------------------------------------------------------------------------------- lifecycle
+    @property
+    def address(self) -> tuple[str, int]:
+        """``(ip, port)`` the client must send commands to (valid after :meth:`start`)."""
+        if self._bound is None:
+            if self._port == 0:
+                raise RuntimeError("address is only known after start() when port=0")
+            return (self.ip, self._port)
+        return self._bound
+
+    def start(self) -> TelloEmulator:
+        """Bind the sockets and start the command, reply, simulation and video threads."""
+        if self._started:
+            raise RuntimeError("emulator already started")
+        cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            cmd.bind((self.ip, self._port))
+            cmd.settimeout(0.1)
+            tx.bind((self.ip, 0))
+        except OSError:
+            cmd.close()
+            tx.close()
+            raise
+        self._cmd_sock, self._tx_sock = cmd, tx
+        host, port = cmd.getsockname()[:2]
+        self._bound = (str(host), int(port))
+        self._started = True
+        self._last_cmd_t = time.monotonic()
+        for name, target in (
+            ("cmd", self._command_loop),
+            ("reply", self._reply_loop),
+            ("sim", self._sim_loop),
+            ("video", self._video_loop),
+        ):
+            thread = threading.Thread(target=target, name=f"tello-emu-{self.ip}-{name}", daemon=True)
+            self._threads.append(thread)
+            thread.start()
+        return self
+
+    def close(self) -> None:
+        """Stop all threads (joined within ~1 s) and close the sockets; idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        self._replies.wake()
+        deadline = time.monotonic() + 1.5
+        for thread in self._threads:
+            thread.join(timeout=max(0.0, deadline - time.monotonic()))
+            if thread.is_alive():  # pragma: no cover - would indicate a bug
+                LOG.error("thread %s did not stop", thread.name)
+        for sock in (self._cmd_sock, self._tx_sock):
+            if sock is not None:
+                sock.close()
+
+    @property
+    def threads_alive(self) -> list[str]:
+        """Names of the emulator's threads that are still running."""
+        return [t.name for t in self._threads if t.is_alive()]
+
+    def __enter__(self) -> TelloEmulator:
+        """Start (if not yet started) and return the emulator."""
+        if not self._started:
+            self.start()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        """Close the emulator."""
+        self.close()

@@ -1,0 +1,81 @@
+"""Synthetic video frames of the Tello emulator: the default frame source and the frame-index bar code.
+
+A frame source is ``frame_source(t, emu) -> image`` (``t`` = stream time ``n / fps`` of frame ``n`` in
+seconds; image HxWx3 uint8 RGB, or HxW grey, of size ``emu.video_size = (width, height)`` in pixels).  The
+default source draws a square moving on a circle and stamps the frame index as a row of black/white
+blocks, so a test can match every decoded frame with the frame that was rendered.  Encoding and sending
+are in ``tello_video``; re-exported by ``tello.py``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from .tello_emulator import TelloEmulator
+
+FrameSource = Callable[[float, "TelloEmulator"], np.ndarray]
+"""``frame_source(t, emu) -> HxWx3 uint8 RGB`` (or HxW grey) image of size ``emu.video_size``."""
+
+INDEX_BITS = 16
+"""Bits of the frame-index bar code stamped by :func:`stamp_frame_index`."""
+
+
+def _barcode_geometry(width: int, height: int) -> tuple[int, int, int, int]:
+    """Return (x0, y0, block_w, block_h) of the frame-index bar code."""
+    block_w = max(4, width // (INDEX_BITS + 4))
+    block_h = max(8, height // 24)
+    return block_w * 2, block_h // 2, block_w, block_h
+
+
+def stamp_frame_index(img: np.ndarray, index: int) -> None:
+    """Draw ``index`` (mod 2**16) as a row of black/white blocks near the top edge of ``img`` (in place)."""
+    height, width = img.shape[:2]
+    x0, y0, bw, bh = _barcode_geometry(width, height)
+    for bit in range(INDEX_BITS):
+        value = 255 if (index >> bit) & 1 else 0
+        img[y0 : y0 + bh, x0 + bit * bw : x0 + (bit + 1) * bw] = value
+
+
+def read_frame_index(img: np.ndarray) -> int:
+    """Decode the bar code written by :func:`stamp_frame_index` from a (decoded, lossy) frame."""
+    height, width = img.shape[:2]
+    x0, y0, bw, bh = _barcode_geometry(width, height)
+    mx, my = max(1, bw // 4), max(1, bh // 4)
+    index = 0
+    for bit in range(INDEX_BITS):
+        block = img[y0 + my : y0 + bh - my, x0 + bit * bw + mx : x0 + (bit + 1) * bw - mx]
+        if float(block.mean()) > 127.0:
+            index |= 1 << bit
+    return index
+
+
+def default_square(t: float, size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """Pixel box ``(x0, y0, x1, y1)`` (exclusive ends) of the default source's square at stream time ``t``."""
+    width, height = size
+    side = max(4, height // 6)
+    cx = width / 2 + 0.3 * width * math.cos(2.0 * math.pi * 0.25 * t)
+    cy = height / 2 + 0.25 * height * math.sin(2.0 * math.pi * 0.25 * t)
+    x0 = round(cx - side / 2)
+    y0 = round(cy - side / 2)
+    return x0, y0, x0 + side, y0 + side
+
+
+def default_frame_source(t: float, emu: TelloEmulator) -> np.ndarray:
+    """Synthetic RGB frame: a coloured square moving on a circle, plus the frame index as a bar code.
+
+    Forward camera: grey background, red square.  Downward camera (``emu.downvision``): dark background,
+    green square.  The frame index ``round(t * emu.fps)`` is stamped with :func:`stamp_frame_index`, so a
+    test can match every decoded frame with the exact frame that was rendered (see :func:`default_square`).
+    """
+    width, height = emu.video_size
+    down = emu.downvision
+    img = np.full((height, width, 3), 60 if down else 128, dtype=np.uint8)
+    x0, y0, x1, y1 = default_square(t, (width, height))
+    img[max(0, y0) : max(0, y1), max(0, x0) : max(0, x1)] = (0, 255, 0) if down else (255, 0, 0)
+    stamp_frame_index(img, round(t * emu.fps))
+    return img

@@ -1,0 +1,179 @@
+"""The Tello emulator's simulation: flight phases, motion model, battery and the state stream.
+
+Ground truth in the world frame ``x`` forward at takeoff heading, ``y`` right, ``z`` up (cm), yaw in
+degrees clockwise wrapped to [-180, 180); ``rc`` targets are body-frame velocities (cm/s: right, forward,
+up) and a yaw rate (deg/s, clockwise), followed with a first-order lag ``tau_s``.  Phases ``landed`` ->
+``takeoff`` -> ``flying`` -> ``landing`` -> ``landed``; a takeoff/landing's deferred ``ok`` is queued when
+it completes.  The simulation thread steps every ``TICK_S`` s and sends the state string
+(``mid:-1;x:..;...;agz:..;\\r\\n``; ``vgx/vgy/vgz`` in dm/s, ``h``/``tof`` in cm, ``time`` = motor-on
+s, ``bat`` in %) at ``state_hz`` to ``(client_ip, state_port)`` in SDK mode.  `TelloPhysics` is one
+layer of ``TelloEmulator`` (``tello_emulator``); details in the docstring of ``tello.py``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+from .tello_base import TelloEmulatorBase
+
+
+class TelloPhysics(TelloEmulatorBase):
+    """Ground-truth state, its public read-outs, the motion model and the simulation/state thread."""
+
+    # ------------------------------------------------------------------------------------- public helpers
+    @property
+    def flying(self) -> bool:
+        """True while the motors run (takeoff, flight and landing phases)."""
+        return self._phase != "landed"
+
+    @property
+    def phase(self) -> str:
+        """``landed``, ``takeoff``, ``flying`` or ``landing``."""
+        return self._phase
+
+    @property
+    def position_cm(self) -> tuple[float, float, float]:
+        """Ground-truth position ``(x forward, y right, z up)`` in cm."""
+        with self._lock:
+            return (float(self._pos[0]), float(self._pos[1]), float(self._pos[2]))
+
+    @property
+    def yaw_deg(self) -> float:
+        """Ground-truth yaw in degrees, clockwise, wrapped to [-180, 180)."""
+        return _wrap_deg(self._yaw)
+
+    @property
+    def velocity_cm_s(self) -> tuple[float, float, float]:
+        """Ground-truth world velocity in cm/s."""
+        with self._lock:
+            return (float(self._vel_world[0]), float(self._vel_world[1]), float(self._vel_world[2]))
+
+    @property
+    def battery(self) -> int:
+        """Battery percentage currently reported."""
+        with self._lock:
+            return self._battery_locked()
+
+    def _displace(self, fwd: float, right: float, up: float) -> None:
+        c, s = math.cos(math.radians(self._yaw)), math.sin(math.radians(self._yaw))
+        self._pos += (fwd * c - right * s, fwd * s + right * c, up)
+        self._pos[2] = max(0.0, self._pos[2])
+
+    # ------------------------------------------------------------------------------------------- simulation
+    def _set_phase(self, phase: str, now: float) -> None:
+        if phase != self._phase:
+            self._phase = phase
+            self.phase_log.append((now, phase))
+
+    def _start_phase(self, phase: str, now: float, duration_s: float) -> None:
+        self._set_phase(phase, now)
+        self._phase_t0 = now
+        self._phase_z0 = float(self._pos[2])
+        self._phase_s = max(0.0, duration_s)
+
+    def _set_landed(self, now: float) -> None:
+        self._set_phase("landed", now)
+        self._rc[:] = 0.0
+        self._vel_body[:] = 0.0
+        self._vel_world[:] = 0.0
+        self._acc_body[:] = 0.0
+
+    def _battery_locked(self) -> int:
+        if self.faults.battery_pct != self._bat_setpoint:
+            self._bat_setpoint = self.faults.battery_pct
+            self._drain = 0.0
+        return max(0, min(100, math.ceil(self._bat_setpoint - self._drain)))
+
+    def _finish_phase(self, now: float) -> None:
+        deferred, self._deferred = self._deferred, None
+        if deferred is not None:
+            self._reply("ok", deferred.addr, now, deferred.delay_s)
+
+    def _step(self, now: float, dt: float) -> None:
+        with self._lock:
+            self._battery_locked()
+            self._drain += dt * (self.DRAIN_FLYING_PCT_S if self.flying else self.DRAIN_IDLE_PCT_S)
+            if self.flying:
+                self._motor_s += dt
+            z_before = float(self._pos[2])
+            if self._phase == "takeoff":  # climb at the normal rate, then hover (stabilise) until the ok
+                elapsed = now - self._phase_t0
+                climb_s = max(min(self._phase_s, self.TAKEOFF_CLIMB_S), 1e-3)
+                frac = min(1.0, elapsed / climb_s)
+                target = max(self._phase_z0, self.takeoff_height_cm)
+                self._pos[2] = self._phase_z0 + frac * (target - self._phase_z0)
+                self._vel_world[:2] = 0.0
+                self._vel_world[2] = (self._pos[2] - z_before) / dt
+                if elapsed >= self._phase_s:
+                    self._set_phase("flying", now)
+                    self._last_cmd_t = now
+                    self._vel_world[:] = 0.0
+                    self._finish_phase(now)
+            elif self._phase == "landing":
+                frac = min(1.0, (now - self._phase_t0) / max(self._phase_s, 1e-3))
+                self._pos[2] = self._phase_z0 * (1.0 - frac)
+                self._vel_world[:2] = 0.0
+                self._vel_world[2] = (self._pos[2] - z_before) / dt
+                if frac >= 1.0:
+                    self._set_landed(now)
+                    self._finish_phase(now)
+            elif self._phase == "flying":
+                if now - self._last_cmd_t > self.auto_land_s:
+                    self.landed_by_timeout = True
+                    self._rc[:] = 0.0
+                    self._start_phase("landing", now, self.land_s)
+                    return
+                alpha = 1.0 - math.exp(-dt / max(self.tau_s, 1e-6))
+                previous = self._vel_body[:3].copy()
+                self._vel_body += alpha * (self._rc - self._vel_body)
+                self._acc_body = (self._vel_body[:3] - previous) / dt
+                right, fwd, up, yaw_rate = self._vel_body
+                c, s = math.cos(math.radians(self._yaw)), math.sin(math.radians(self._yaw))
+                self._vel_world[:] = (fwd * c - right * s, fwd * s + right * c, up)
+                self._pos += self._vel_world * dt
+                if self._pos[2] < 0.0:
+                    self._pos[2] = 0.0
+                    self._vel_world[2] = 0.0
+                self._yaw = _wrap_deg(self._yaw + yaw_rate * dt)
+
+    def _state_string(self) -> str:
+        with self._lock:
+            x, y, z = (round(float(v)) for v in self._pos)
+            vgx, vgy, vgz = (round(float(v) / 10.0) for v in self._vel_world)
+            h = max(0, z)
+            acc = self._acc_body / 981.0 * 1000.0
+            return (
+                f"mid:-1;x:{x};y:{y};z:{z};mpry:0,0,0;pitch:0;roll:0;yaw:{round(_wrap_deg(self._yaw))};"
+                f"vgx:{vgx};vgy:{vgy};vgz:{vgz};templ:60;temph:63;tof:{h + 10};h:{h};"
+                f"bat:{self._battery_locked()};baro:{12.3 + h / 100:.2f};time:{int(self._motor_s)};"
+                f"agx:{acc[1]:.2f};agy:{acc[0]:.2f};agz:{acc[2] - 1000.0:.2f};\r\n"
+            )
+
+    def _sim_loop(self) -> None:
+        sock = self._tx_sock
+        assert sock is not None
+        last = time.monotonic()
+        next_state = last
+        while not self._stop.wait(self.TICK_S):
+            now = time.monotonic()
+            self._step(now, min(max(now - last, 1e-4), 0.1))
+            last = now
+            if now < next_state:
+                continue
+            next_state = max(next_state + 1.0 / self.state_hz, now - 1.0 / self.state_hz)
+            if not self.sdk_mode or self.faults.drop_state:
+                continue
+            state = self._state_string()
+            try:
+                sock.sendto(state.encode("ascii"), (self.client_ip, self.state_port))
+            except OSError as exc:
+                self.errors.append(f"state send failed: {exc!r}")
+                continue
+            with self._lock:
+                self.last_state = state
+                self.state_packets_sent += 1
+
+
+def _wrap_deg(angle: float) -> float:
+    return (angle + 180.0) % 360.0 - 180.0
