@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from flightstack.config.derive import derive
 from flightstack.config.mission import Mission
 from flightstack.drivers.guardian import Guardian, GuardianConfig
 from flightstack.drivers.mocap import MocapConfig, MocapPoseSource
@@ -62,20 +63,14 @@ def tello_config(mission: Mission, drone_id: int) -> TelloConfig:
     assert mission.hardware is not None
     hw = mission.hardware.drone(drone_id)
     spec = next(d for d in mission.drones if d.id == drone_id)
-    return TelloConfig(
-        host=hw.ip,
-        control_port=hw.control_port,
-        video_port=hw.video_port,
+    return derive(
+        TelloConfig,
+        hw,
+        rename={"ip": "host"},
+        skip={"id", "frame_timeout_s"},  # the drone's key; the camera's (flightstack.drivers.tello_camera)
         state_port=mission.hardware.state_port,
         rc_gains=RcGains(**spec.rc_gains.model_dump()),
-        connect_timeout_s=hw.connect_timeout_s,
-        command_timeout_s=hw.command_timeout_s,
-        link_timeout_s=hw.link_timeout_s,
-        keepalive_s=hw.keepalive_s,
-        loop_hover_s=hw.loop_hover_s,
-        loop_land_s=hw.loop_land_s,
         min_battery_pct=mission.safety.min_battery_takeoff,
-        max_temperature_c=hw.max_temperature_c,
         downward_camera=spec.camera is not None and spec.camera.mount == "down",
     )
 
@@ -83,7 +78,7 @@ def tello_config(mission: Mission, drone_id: int) -> TelloConfig:
 def mocap_config(mission: Mission) -> MocapConfig:
     assert mission.hardware is not None
     m = mission.hardware.mocap
-    return MocapConfig(m.system, dict(m.settings), m.connect_timeout_s, m.stale_after_s, m.max_tilt_rad)
+    return derive(MocapConfig, m, skip={"bodies"}, settings=dict(m.settings))  # bodies: body_names()
 
 
 def scamper_config(mission: Mission) -> ScamperConfig | None:
@@ -91,13 +86,7 @@ def scamper_config(mission: Mission) -> ScamperConfig | None:
     t = mission.hardware.target
     if t is None:
         return None
-    return ScamperConfig(
-        url=t.url,
-        heartbeat_timeout_s=t.heartbeat_timeout_s,
-        ack_timeout_s=t.ack_timeout_s,
-        stream_hz=t.stream_hz,
-        link_timeout_s=t.link_timeout_s,
-    )
+    return derive(ScamperConfig, t)
 
 
 def body_names(mission: Mission) -> dict[str, str]:
@@ -200,7 +189,7 @@ class HardwareBackend:
     def target(self) -> ScamperDriver | None:
         return self.robot
 
-    def truth(self) -> tuple[Any, dict[int, Any]]:
+    def truth(self) -> tuple[Pose, dict[int, Pose]]:
         """Motion-capture poses of the target and the drones (the last one seen while a body is lost)."""
         for name in self.names:
             sp = self.poses.latest(name)

@@ -1,4 +1,10 @@
-"""Builds the ideal simulation backend from a validated mission."""
+"""Builds the ideal simulation backend (the `ideal` rig, backend sim_ideal) from a validated mission.
+
+The target follows the experiment's law inside the world: the paper simulation's Duffing-like field, or
+the paper experiment's square law (eq. scamper_vel) evaluated on the target's exact pose and the world's
+time. Each drone's exact camera uses the same camera model as its observer: the normalised image plane
+with the experiment's mount and offset when it names a camera, else the focal length of `camera:`.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +12,7 @@ import numpy as np
 
 from flightstack.config.mission import Mission
 from flightstack.paper.geometry import Pose, compose, inverse
-from flightstack.paper.projection import CameraModel
+from flightstack.paper.target_law import SquareLaw
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity
 from flightstack.sim_backend.ideal import IdealSimBackend
 from flightstack.sim_backend.world import World
@@ -20,13 +26,19 @@ def initial_drone_pose(mission: Mission, index: int) -> Pose:
 
 
 def build_ideal(mission: Mission) -> IdealSimBackend:
-    prm = DuffingParams(**mission.target.duffing.model_dump())
     world = World(
         target_pose=mission.target.initial_pose.pose(),
-        target_field=lambda g: duffing_body_velocity(g, prm),
+        target_field=lambda g: np.zeros(4),
         drone_poses={d.id: initial_drone_pose(mission, k) for k, d in enumerate(mission.drones)},
         target_substeps=mission.target.substeps,
     )
+    if mission.target.motion == "duffing":
+        prm = DuffingParams(**mission.target.duffing.model_dump())
+        world.target_field = lambda g: duffing_body_velocity(g, prm)
+    else:  # the square law, on the world's clock (the reference starts at t = 0)
+        sq = mission.target.square
+        law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, mission.target.initial_pose.theta)
+        world.target_field = lambda g: law.command(world.t, g)
     P0 = np.array(mission.target.feature_points, dtype=float)
-    cam = CameraModel(focal_length=mission.camera.focal_length)
-    return IdealSimBackend(world, mission.dt_s, P0, cam, {d.id: d.sees_target for d in mission.drones})
+    cams = {d.id: mission.camera_model(k) for k, d in enumerate(mission.drones)}
+    return IdealSimBackend(world, mission.dt_s, P0, cams, {d.id: d.sees_target for d in mission.drones})

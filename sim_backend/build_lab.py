@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from flightstack.config.derive import derive
 from flightstack.config.mission import Mission
 from flightstack.drivers.tello_rc import RcGains
 from flightstack.paper.geometry import Pose
@@ -25,7 +26,9 @@ from flightstack.vision.camera_file import load_calibration
 
 
 class LabSimBackend:
-    """hal.Backend of the simulated lab, plus `truth()` (sim-only) for metrics."""
+    """hal.Backend of the simulated lab (virtual clock; `truth()` is the simulator's)."""
+
+    simulated = True
 
     def __init__(self, mission: Mission) -> None:
         rng = np.random.default_rng(mission.seed)
@@ -33,26 +36,16 @@ class LabSimBackend:
         g_w0 = mission.target.initial_pose.pose()
         r = mission.target.robot
         clock_now = lambda: self.world.t  # noqa: E731 - the models read the world's virtual time
-        robot = ScamperSim(
-            g_w0,
-            RobotParams(r.time_constant_s, r.max_speed_mps, r.max_yaw_rate, r.command_timeout_s),
-            clock_now,
-        )
+        robot = ScamperSim(g_w0, derive(RobotParams, r, rename={"max_speed_mps": "max_speed"}), clock_now)
         t = sim.tello
         drones = {}
         for k, d in enumerate(mission.drones):
-            params = TelloParams(
+            params = derive(
+                TelloParams,
+                t,
+                skip={"true_rc_gains"},
                 true_gains=RcGains(**t.true_rc_gains.model_dump()),
                 cmd_gains=RcGains(**d.rc_gains.model_dump()),
-                time_constant_s=t.time_constant_s,
-                latency_s=t.latency_s,
-                max_speed_xy=t.max_speed_xy,
-                max_speed_z=t.max_speed_z,
-                max_yaw_rate=t.max_yaw_rate,
-                takeoff_height_m=t.takeoff_height_m,
-                battery_pct=t.battery_pct,
-                battery_drain_pct_per_s=t.battery_drain_pct_per_s,
-                auto_land_s=t.auto_land_s,
             )
             # on the ground below the desired pose relative to the target's start, plus the offset
             above = initial_drone_pose(mission, k)
@@ -60,7 +53,7 @@ class LabSimBackend:
             drones[d.id] = TelloSim(d.id, start, params, clock_now)
         m = sim.mocap
         self.mocap = MocapSim(
-            MocapParams(m.rate_hz, m.noise_pos_m, m.noise_yaw_rad, m.dropout_prob),
+            derive(MocapParams, m),
             np.random.default_rng(rng.integers(2**32)),
         )
         self.world = LabWorld(robot, drones, self.mocap)
@@ -97,6 +90,9 @@ class LabSimBackend:
 
     def truth(self) -> tuple[Pose, dict[int, Pose]]:
         return self.world.robot.pose, {i: d.pose for i, d in self.world.drones.items()}
+
+    def heartbeat(self) -> None:
+        """No watchdog in simulation."""
 
     def close(self) -> None:
         for d in self.world.drones.values():

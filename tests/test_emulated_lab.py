@@ -17,6 +17,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from flightstack.config.rig import resolved_document
+
 pytest.importorskip("av")
 pytest.importorskip("motioncapture")
 pytest.importorskip("pymavlink")
@@ -72,7 +74,7 @@ def write_mission(
     cal["rms_px"] = 0.3  # a measured calibration (preflight fails on the never-measured templates)
     cal["device"] = "emulated tello"
     (tmp / "cal.yaml").write_text(yaml.safe_dump(cal, sort_keys=False))
-    m = yaml.safe_load((MISSIONS / "paper_experiment_sim.yaml").read_text())
+    m = resolved_document("paper_experiment")
     m["name"] = "emulated_lab"
     # a free port for the abort listener of this in-process hardware mission: the name-derived default
     # (21183) was once found taken on a CI machine, failing every flight of this file

@@ -22,7 +22,7 @@ from flightstack.hal import DroneState, StampedPose
 from flightstack.safety import EventLog, SafeDrone, SafetyLimits
 from tests.conftest import MISSIONS
 
-MISSION = MISSIONS / "paper_experiment_sim.yaml"
+MISSION = MISSIONS / "paper_experiment.yaml"
 ROWS = [
     "link_loss",
     "mocap_dropout_short",

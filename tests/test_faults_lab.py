@@ -2,7 +2,8 @@
 are handled, and their measured reaction times are within their limits.
 
 Every row runs once (module fixture, about 2 min on 2 cores); the tests read the results. The rows fly the
-loopback emulators of two Tellos (127.0.0.6/.7), NatNet and a MAVLink rover (flightstack.sim_backend.emulators),
+loopback emulators of two Tellos (127.0.0.6/.7), NatNet and a MAVLink rover
+(flightstack.sim_backend.emulators),
 through the
 hardware backend in this process or `flightstack fly` in a child process; clock_skew and
 abort_agent_missing use Zenoh sessions on 127.0.0.1. The last tests check the harness's measurements on

@@ -10,13 +10,15 @@ import pytest
 import yaml
 
 from flightstack.config.mission import MissionError, load_mission
+from flightstack.config.rig import resolved_document
 from tests.conftest import MISSIONS, run_cli
 
 REAL = MISSIONS / "paper_experiment.yaml"
 
 
 def real() -> dict:
-    return yaml.safe_load(REAL.read_text())
+    """The paper experiment on the lab template rig, as one resolved document (absolute camera paths)."""
+    return resolved_document("paper_experiment", "lab")
 
 
 def write(tmp_path: Path, doc: dict) -> Path:
@@ -29,7 +31,7 @@ def write(tmp_path: Path, doc: dict) -> Path:
 
 
 def test_real_lab_mission_validates() -> None:
-    m = load_mission(REAL)
+    m = load_mission(REAL, rig="lab")
     assert m.backend == "tello" and not m.simulated
     assert m.hardware is not None
     assert m.hardware.body("drone1") == "tello1" and m.hardware.body("target") == "scamper"
@@ -55,10 +57,10 @@ def test_station_mode_needs_distinct_addresses_and_video_ports(tmp_path: Path) -
 
 def test_access_point_mission_flown_from_one_process_is_refused_before_any_traffic(tmp_path: Path) -> None:
     """Two drones at 192.168.10.1 cannot be told apart from one computer: preflight FAILs naming the fix."""
-    r = run_cli("preflight", str(REAL), "--no-camera", "--deadline", "3", timeout=60)
+    r = run_cli("preflight", str(REAL), "--rig", "lab", "--no-camera", "--deadline", "3", timeout=60)
     assert r.returncode == 1
     assert "share an address or video port" in r.stdout and "--id N" in r.stdout
-    r = run_cli("preflight", str(REAL), "--id", "9", timeout=60)
+    r = run_cli("preflight", str(REAL), "--rig", "lab", "--id", "9", timeout=60)
     assert r.returncode == 2 and "no drone [9]" in r.stderr
 
 
@@ -117,7 +119,7 @@ def test_bad_hardware_sections_name_the_key(tmp_path: Path, mutate, expected: st
 
 
 def test_sim_refuses_a_hardware_mission_and_preflight_refuses_a_sim_mission(tmp_path: Path) -> None:
-    r = run_cli("sim", str(REAL), "--out", str(tmp_path / "run"), timeout=60)
+    r = run_cli("sim", str(REAL), "--rig", "lab", "--out", str(tmp_path / "run"), timeout=60)
     assert r.returncode == 2 and "flies real drones" in r.stderr
     assert not (tmp_path / "run").exists()
     r = run_cli("preflight", str(MISSIONS / "paper_sim.yaml"), timeout=60)

@@ -10,17 +10,16 @@ import pytest
 import yaml
 
 from flightstack.config.mission import load_mission
+from flightstack.config.rig import resolved_document
 from flightstack.runtime.runner import run_mode
 from tests.conftest import MISSIONS, interrupt_cli_sim, run_cli
 
-LAB = MISSIONS / "paper_experiment_sim.yaml"
+LAB = MISSIONS / "paper_experiment.yaml"
 
 
 def mission_copy(tmp_path: Path, **changes: object) -> Path:
     """A copy of the lab mission with top-level keys replaced, calibration paths made absolute."""
-    d = yaml.safe_load(LAB.read_text())
-    for dr in d["drones"]:
-        dr["camera"]["calibration"] = str(MISSIONS / dr["camera"]["calibration"])
+    d = resolved_document(LAB)  # the experiment on its lab-sim rig, calibration paths absolute
     d.update(changes)
     out = tmp_path / "mission.yaml"
     out.write_text(yaml.safe_dump(d))
@@ -71,7 +70,7 @@ def test_train_then_fly_with_saved_experts(lab_run: Path, tmp_path: Path) -> Non
         tmp_path,
         compare_modes=["dgp"],
         duration_s=10.0,
-        gp={**yaml.safe_load(LAB.read_text())["gp"], "experts_file": str(experts)},
+        gp={**resolved_document(LAB)["gp"], "experts_file": str(experts)},
     )
     out = tmp_path / "run"
     r = run_cli("sim", str(mission), "--out", str(out), "--no-progress")

@@ -8,11 +8,12 @@ import pytest
 import yaml
 
 from flightstack.config.mission import MissionError, load_mission, parse_mission
+from flightstack.config.rig import resolved_document
 from tests.conftest import MISSIONS, run_cli
 
 
 def paper() -> dict:
-    return yaml.safe_load((MISSIONS / "paper_sim.yaml").read_text())
+    return resolved_document("paper_sim")
 
 
 def test_paper_sim_loads_with_the_papers_values() -> None:

@@ -3,148 +3,22 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
-import json
-import logging
-import math
 import os
 import signal
 import sys
 import time
-from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
 
-from tqdm import tqdm
-
-from flightstack.config.mission import Mission, MissionError, load_mission
-
-if TYPE_CHECKING:
-    from flightstack.recording.run_dir import RunWriter
-
-
-def _progress_factory(bars: list[tqdm]) -> Callable[[str, int], Callable[[int], None]]:
-    def make(mode: str, total: int) -> Callable[[int], None]:
-        bar = tqdm(
-            total=total,
-            desc=f"mode {mode:6s}",
-            unit="tick",
-            unit_scale=True,
-            file=sys.stderr,
-            mininterval=0.5,
-            leave=True,
-        )
-        bars.append(bar)
-        pending = [0]
-
-        def update(n: int) -> None:
-            pending[0] += n  # tqdm per tick would cost more than a control tick: batch 500
-            if pending[0] >= 500 or bar.n + pending[0] >= total:
-                bar.update(pending[0])
-                pending[0] = 0
-
-        return update
-
-    return make
-
-
-def open_run_dir(out: Path) -> RunWriter | None:
-    """The run directory's writer, after checking (before anything takes off) that `out` is writable
-    and has flightstack.recording.run_dir.MIN_FREE_BYTES (50 MB) free; None after printing why not."""
-    from flightstack.recording.run_dir import RunWriter, check_out_dir
-
-    problem = check_out_dir(out)
-    if problem is None:
-        try:
-            return RunWriter(out)
-        except OSError as exc:
-            problem = f"cannot start the recording: {exc.strerror or exc}"
-    print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
-    return None
-
-
-def cmd_sim(args: argparse.Namespace) -> int:
-    from flightstack.runtime.experiment import resolved_mission_yaml, run_experiment, write_run_dir
-
-    logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")  # safety events, live
-    overrides = {"duration_s": args.duration} if args.duration is not None else None
-    mission = load_mission(args.mission, overrides)
-    if args.bus is not None and args.bus != mission.bus.kind:
-        mission = load_mission(args.mission, {**(overrides or {}), "bus": _bus_override(mission, args.bus)})
-    if args.command == "sim" and not mission.simulated:
-        print(
-            f"error: {args.mission}: backend {mission.backend!r} flies real drones; "
-            "use `flightstack preflight` then `flightstack fly`",
-            file=sys.stderr,
-        )
-        return 2
-    out = Path(args.out)
-    from flightstack.recording.run_dir import check_out_dir
-
-    problem = check_out_dir(out)  # before the preflight and the operator's confirmation
-    if problem is not None:
-        print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
-        return 2
-    if args.command == "fly" and not mission.simulated:
-        code = _confirm_and_preflight(args, mission)
-        if code:
-            return code
-    run_writer = open_run_dir(out)  # checked again: the preflight took time
-    if run_writer is None:
-        return 2
-    bars: list[tqdm] = []
-    try:
-        run_writer.write_file("mission_resolved.yaml", resolved_mission_yaml(mission))  # for `report`
-        with _awake_if_flying(mission):
-            res = run_experiment(mission, None if args.no_progress else _progress_factory(bars), run_writer)
-        for b in bars:
-            b.close()
-        m = write_run_dir(out, mission, res, run_writer)
-    finally:
-        run_writer.close()
-    if res.recordings:
-        _write_plots_or_warn(out, mission, res)
-    print(f"run directory: {out}")
-    for mode, mm in m["modes"].items():
-        line = f"  {mode:7s} mean_sq_error = {mm.get('mean_sq_error', float('nan')):.3e}"
-        if "mean_position_error_m" in mm:
-            seen = ", ".join(f"{i}: {100 * f:.0f} %" for i, f in mm["visible_fraction"].items())
-            line += f"   mean position error {mm['mean_position_error_m']:.3f} m   target seen {seen}"
-        if mm.get("max_fence_excursion_m"):
-            line += f"   OUTSIDE FENCE by {mm['max_fence_excursion_m']:.3f} m"
-        print(line)
-    if "ratios" in m:
-        ours, paper = m["ratios"]["ours"], m["ratios"]["paper"]
-        for key in ours:
-            print(f"  {key:10s} ours {ours[key]:8.2f}   paper {paper[key]:8.2f}")
-    gc = m["gain_condition"]
-    verdict = "satisfied" if gc["satisfied"] else "NOT satisfied"
-    print(
-        f"  gain condition: kappa = {gc['kappa']:.3f} ({verdict}), L_mu = {gc['L_mu']:.3f}, "
-        f"lambda_H = {gc['lambda_H']:.3f}"
-    )
-    print(f"  safety events: {len(m['safety_events'])} (events.jsonl)")
-    print(f"  sim {m['sim_seconds']:.1f} s in {m['wall_seconds']:.1f} s wall")
-    rec_status = m["recording"]
-    if not rec_status["complete"]:
-        print(f"error: recording incomplete: {rec_status['reason']}", file=sys.stderr)
-    if res.interrupted:
-        print("interrupted: every drone landed, partial recording written", file=sys.stderr)
-        return 130
-    if res.error:
-        print(f"error: {res.error}; every drone landed, partial recording written", file=sys.stderr)
-        return 1
-    return 0 if rec_status["complete"] else 1
-
-
-def _write_plots_or_warn(out: Path, mission: Mission, res: Any) -> None:
-    """The plots of a run; a write error (a full disk) is reported, not raised: `report` redraws them."""
-    from flightstack.recording.report import write_plots
-
-    try:
-        write_plots(out, mission, res.recordings, res.datasets)
-    except OSError as exc:
-        print(f"warning: plots not written ({exc}); `flightstack report {out}` redraws them", file=sys.stderr)
+from flightstack.cli.run import (
+    _confirm,
+    add_run_arguments,
+    cmd_migrate,
+    cmd_run,
+    cmd_validate,
+    seconds,
+)
+from flightstack.config.mission import MissionError, load_mission
+from flightstack.config.rig import RigError
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -153,7 +27,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     from flightstack.recording.report import rebuild_run
 
     run = Path(args.run_dir)
-    mission = load_mission(args.mission) if args.mission else None
+    mission = load_mission(args.mission, rig=args.rig) if args.mission else None
     try:
         m, plots = rebuild_run(run, mission, plots=not args.no_plots)
     except FileNotFoundError as exc:
@@ -170,69 +44,11 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def _awake_if_flying(mission: Mission) -> contextlib.AbstractContextManager[object]:
-    """On real hardware: keep the computer from sleeping while the drones fly (drivers/keep_awake.py)."""
-    if mission.simulated:
-        return contextlib.nullcontext()
-    from flightstack.drivers.keep_awake import keep_awake
-
-    @contextlib.contextmanager
-    def awake() -> Iterator[None]:
-        with keep_awake(f"flightstack: mission {mission.name} in flight") as how:
-            print(how, file=sys.stderr)
-            yield
-
-    return awake()
-
-
-def _bus_override(mission: Mission, kind: str) -> dict[str, object]:
-    """The mission's bus section switched to `kind`; for zenoh without endpoints, all agents of this
-    process listen on a free loopback port (nothing leaves the machine)."""
-    bus = mission.bus.model_dump(mode="json")
-    bus["kind"] = kind
-    if kind == "zenoh" and bus.get("zenoh") is None:
-        from flightstack.comms.factory import free_loopback_endpoints
-
-        # plaintext on loopback is allowed for simulations only; real drones need the mission's certificates
-        security = "plaintext" if mission.simulated else "mtls"
-        endpoint = free_loopback_endpoints()[0].replace("tcp/", "tls/" if security == "mtls" else "tcp/")
-        bus["zenoh"] = {"endpoints": {"agents": endpoint}, "security": security}
-    return bus
-
-
-def _confirm(question: str, yes: bool) -> bool:
-    """True when the operator confirmed (--yes, or 'y' at an interactive prompt)."""
-    if yes:
-        return True
-    if not sys.stdin.isatty():
-        print("error: this moves real hardware; pass --yes to confirm", file=sys.stderr)
-        return False
-    return input(f"{question} [y/N] ").strip().lower() in ("y", "yes")
-
-
-def _confirm_and_preflight(args: argparse.Namespace, mission: Mission) -> int:
-    """Preflight every device, then ask; 0 to go on, else the exit code."""
-    from flightstack.drivers.preflight import format_table, run_preflight
-
-    rows = run_preflight(mission)
-    print(format_table(rows))
-    if any(r.status == "FAIL" for r in rows):
-        print("error: preflight failed; nothing took off", file=sys.stderr)
-        return 1
-    ids = ", ".join(str(d.id) for d in mission.drones)
-    if not _confirm(
-        f"Drones {ids} will take off and fly {mission.duration_s:g} s per mode. Area clear?", args.yes
-    ):
-        print("aborted", file=sys.stderr)
-        return 1
-    return 0
-
-
 def cmd_preflight(args: argparse.Namespace) -> int:
     """Check every device and file of a hardware mission; exit 1 on any FAIL (drivers/preflight.py)."""
     from flightstack.drivers.preflight import format_table, run_preflight
 
-    mission = load_mission(args.mission, check_files=False)
+    mission = load_mission(args.mission, check_files=False, rig=args.rig)
     if mission.simulated:
         print(f"error: {args.mission}: backend {mission.backend!r} has no hardware to check", file=sys.stderr)
         return 2
@@ -254,7 +70,7 @@ def cmd_target(args: argparse.Namespace) -> int:
     from flightstack.drivers.target_run import drive_square, lap_summary
     from flightstack.paper.target_law import SquareLaw
 
-    mission = load_mission(args.mission, check_files=False)
+    mission = load_mission(args.mission, check_files=False, rig=args.rig)
     if mission.hardware is None or mission.hardware.target is None:
         print(f"error: {args.mission}: hardware.target: no robot to drive (set its url)", file=sys.stderr)
         return 2
@@ -396,27 +212,23 @@ def cmd_calibrate_drone(args: argparse.Namespace) -> int:
         guardian.finish()
 
 
-def _add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
-    """The arguments `sim` and `fly` share."""
-    p.add_argument("mission", help=mission_help)
-    p.add_argument("--out", required=True, help="run directory to write (created if missing)")
-    p.add_argument("--duration", type=seconds, default=None, help="override duration_s (seconds, > 0)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    p.add_argument("--bus", choices=["inproc", "zenoh"], help="override bus.kind (zenoh: on loopback)")
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="flightstack", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
-    s = sub.add_parser("sim", help="run a mission on the simulated backend")
-    _add_run_arguments(s, "mission YAML file (see mission_configs/)")
-    s.set_defaults(func=cmd_sim)
-    f = sub.add_parser("fly", help="fly a mission on real hardware (backend tello): preflight, confirm, fly")
-    _add_run_arguments(f, "mission YAML file with a hardware section")
+    r = sub.add_parser("run", help="fly an experiment on a rig (ideal, lab-sim, emulated-lab, a lab file)")
+    add_run_arguments(r, "experiment: a built-in name (paper_sim, paper_experiment) or a YAML file")
+    r.add_argument("--yes", action="store_true", help="confirm that real drones may take off")
+    r.set_defaults(func=cmd_run)
+    s = sub.add_parser("sim", help="run an experiment on a simulated rig (refuses real drones)")
+    add_run_arguments(s, "experiment or mission YAML file (see mission_configs/)")
+    s.set_defaults(func=cmd_run)
+    f = sub.add_parser("fly", help="fly an experiment on real hardware: preflight, confirm, fly")
+    add_run_arguments(f, "experiment (with --rig LAB.yaml) or mission YAML file")
     f.add_argument("--yes", action="store_true", help="confirm that the drones may take off")
-    f.set_defaults(func=cmd_sim)
+    f.set_defaults(func=cmd_run)
     pf = sub.add_parser("preflight", help="check every device of a hardware mission (pass/fail table)")
     pf.add_argument("mission")
+    pf.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     pf.add_argument("--deadline", type=float, default=9.0, help="bound on the whole check (s)")
     pf.add_argument("--no-camera", action="store_true", help="skip the video check")
     pf.add_argument(
@@ -425,6 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
     pf.set_defaults(func=cmd_preflight)
     tg = sub.add_parser("target", help="drive the real ground robot on the square law (motion capture)")
     tg.add_argument("mission", help="mission YAML file with hardware.mocap and hardware.target")
+    tg.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     tg.add_argument("--laps", type=float, default=1.0, help="laps of the square (default 1)")
     tg.add_argument("--duration", type=seconds, default=None, help="seconds instead of laps")
     tg.add_argument("--yes", action="store_true", help="confirm that the robot may move")
@@ -463,29 +276,15 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--mission", default=None, help="mission file (default: RUN_DIR/mission_resolved.yaml)")
     rp.add_argument("--no-plots", action="store_true", help="metrics.json only")
     rp.set_defaults(func=cmd_report)
-    v = sub.add_parser("validate", help="check a mission file and print the resolved mission")
+    v = sub.add_parser("validate", help="check an experiment (on its rig), a rig or lab file, or a mission")
     v.add_argument("mission")
+    v.add_argument("--rig", default=None, help="validate the experiment on this rig")
     v.set_defaults(func=cmd_validate)
+    mg = sub.add_parser("migrate", help="split an old single-file mission into an experiment and a rig")
+    mg.add_argument("mission")
+    mg.add_argument("--out", required=True, help="directory for <name>.yaml and <name>_rig.yaml")
+    mg.set_defaults(func=cmd_migrate)
     return p
-
-
-def cmd_validate(args: argparse.Namespace) -> int:
-    from flightstack.config.mission import mission_to_dict
-
-    m = load_mission(args.mission)
-    print(json.dumps(mission_to_dict(m), indent=2))
-    return 0
-
-
-def seconds(text: str) -> float:
-    """argparse type of a duration: a finite number of seconds > 0 (else exit 2 naming the value)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of seconds > 0")
-    return value
 
 
 def _sigterm_as_interrupt(signum: int, frame: object) -> None:
@@ -501,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         return int(args.func(args))
-    except MissionError as exc:
+    except (MissionError, RigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -24,7 +24,7 @@ from flightstack.config.mission import MissionError, load_mission
 
 
 def cmd_certs(args: argparse.Namespace) -> int:
-    mission = load_mission(args.mission, check_files=False)
+    mission = load_mission(args.mission, check_files=False, rig=args.rig)
     out = Path(args.out)
     ids = [d.id for d in mission.drones]
     try:
@@ -56,6 +56,7 @@ def cmd_certs(args: argparse.Namespace) -> int:
 def register(sub: Any) -> None:
     c = sub.add_parser("certs", help="create the mission CA and a certificate for each participant")
     c.add_argument("mission")
+    c.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     c.add_argument("--out", required=True, help="directory for the CA and the participants' keys (new files)")
     c.add_argument("--days", type=int, default=90, help="validity in days (1..3650, default 90)")
     c.set_defaults(func=cmd_certs)

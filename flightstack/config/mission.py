@@ -25,14 +25,17 @@ from pydantic import (
 )
 
 from flightstack.config.bus import BusSpec
-from flightstack.config.safe_load import Lines, LoadError, line_of, load_yaml
-from flightstack.config.types import Finite, NonNegative, Positive
+from flightstack.config.hardware import HardwareSpec
+from flightstack.config.safe_load import Lines, line_of
+from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
+from flightstack.config.types import Finite, Mode, NonNegative, Positive
 from flightstack.config.types import Strict as _Strict
 from flightstack.paper.fusion import FUSION_RULES
 from flightstack.paper.geometry import Pose
+from flightstack.paper.projection import CameraModel
 from flightstack.safety import SafetyLimits
 
-MODES = ("none", "local", "dgp", "oracle")
+MODES = tuple(m.value for m in Mode)
 MAX_TICKS = 10**7  # ticks of one mode (duration_s / dt_s)
 
 # Camera mounts in the drone's FLU body frame (columns: camera x right, y down, z optical axis).
@@ -74,15 +77,6 @@ class SquareSpec(_Strict):
     gain: NonNegative = 0.05
 
 
-class RobotSpec(_Strict):
-    """Simulated ground robot (sim_lab only)."""
-
-    time_constant_s: Positive = 0.2
-    max_speed_mps: Positive = 0.5
-    max_yaw_rate: Positive = 1.0
-    command_timeout_s: Positive = 3.0
-
-
 class TargetSpec(_Strict):
     motion: Literal["duffing", "square"] = "duffing"
     initial_pose: PoseSpec = PoseSpec(p=(-0.3, -1.0, 0.0), theta=0.0)
@@ -100,17 +94,9 @@ class CameraSpec(_Strict):
 class DroneCameraSpec(_Strict):
     """A real or rendered camera: calibration file (relative to the mission file), mount, offset (m)."""
 
-    calibration: str
+    calibration: str | None = None  # required on every rig but the ideal one (its camera is exact)
     mount: Literal["down", "forward"] = "down"
     offset: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
-
-
-class RcGainsSpec(_Strict):
-    """Velocity per Tello rc unit (m/s, rad/s)."""
-
-    xy: Positive = 0.01
-    z: Positive = 0.01
-    yaw: Positive = 0.0175
 
 
 class DroneSpec(_Strict):
@@ -188,45 +174,6 @@ class GPSpec(_Strict):
         return v
 
 
-class TelloSimSpec(_Strict):
-    """Physics of the simulated Tellos (sim_lab).
-
-    The rc gains here are the truth; drones.N.rc_gains are what the driver believes (its calibration)."""
-
-    true_rc_gains: RcGainsSpec = RcGainsSpec()
-    time_constant_s: Positive = 0.25
-    latency_s: NonNegative = 0.05
-    max_speed_xy: Positive = 1.0
-    max_speed_z: Positive = 0.5
-    max_yaw_rate: Positive = 1.75
-    takeoff_height_m: Positive = 1.0
-    battery_pct: Annotated[float, Field(ge=0, le=100)] = 90.0
-    battery_drain_pct_per_s: NonNegative = 0.12
-    auto_land_s: Positive = 15.0
-
-
-class MocapSimSpec(_Strict):
-    rate_hz: Positive = 120.0
-    noise_pos_m: NonNegative = 0.0005
-    noise_yaw_rad: NonNegative = 0.002
-    dropout_prob: Annotated[float, Field(ge=0, lt=1)] = 0.0
-
-
-class RenderSpec(_Strict):
-    marker_radius_m: Positive = 0.03
-    noise_std: NonNegative = 2.0
-    blur_px: NonNegative = 0.0
-
-
-class SimSpec(_Strict):
-    """Settings of the simulated lab (backend sim_lab)."""
-
-    world_dt_s: Annotated[float, Field(gt=0, le=0.1)] = 0.005
-    tello: TelloSimSpec = TelloSimSpec()
-    mocap: MocapSimSpec = MocapSimSpec()
-    render: RenderSpec = RenderSpec()
-
-
 def _safety_spec() -> type[BaseModel]:
     """The `safety:` section: exactly the fields and defaults of flightstack.safety.SafetyLimits (one
     source of truth), plus `enabled`; SafetyLimits' own checks run as the section's validator."""
@@ -251,114 +198,6 @@ def _safety_spec() -> type[BaseModel]:
 SafetySpec = _safety_spec()
 
 
-MOCAP_SYSTEMS = ("mock", "vicon", "optitrack", "qualisys", "vrpn")
-
-
-class TelloHardwareSpec(_Strict):
-    """One real Tello (backend `tello`). `ip`: its address (192.168.10.1 in access-point mode; the
-    router's lease in station mode). Ports: 8889 (commands) on a real drone; `video_port` is where it
-    streams on this computer (station mode with several drones: one port each, needs SDK 3.0).
-    `loop_hover_s`/`loop_land_s`: the driver's loop watchdog: a control loop silent this long (s) makes
-    the drone hover, then land by itself (README "Failsafe")."""
-
-    id: int = Field(ge=0, lt=2**16)
-    ip: str = Field(pattern=r"^\d{1,3}\.\d{1,3}\.\d{1,3}\.\d{1,3}$")
-    control_port: int = Field(default=8889, ge=1, le=65535)
-    video_port: int = Field(default=11111, ge=1, le=65535)
-    connect_timeout_s: Positive = 5.0
-    command_timeout_s: Positive = 3.0
-    link_timeout_s: Positive = 1.0
-    keepalive_s: Annotated[float, Field(gt=0, lt=15)] = 5.0
-    loop_hover_s: Annotated[float, Field(gt=0, lt=15)] = 0.5
-    loop_land_s: Annotated[float, Field(gt=0, lt=15)] = 2.0
-    max_temperature_c: Positive = 85.0
-    frame_timeout_s: Positive = 5.0
-
-    @model_validator(mode="after")
-    def _loop_watchdog_order(self) -> TelloHardwareSpec:
-        if not self.loop_hover_s < self.loop_land_s:
-            raise ValueError(
-                f"loop_hover_s ({self.loop_hover_s} s) must be below loop_land_s ({self.loop_land_s} s)"
-            )
-        return self
-
-
-class MocapHardwareSpec(_Strict):
-    """Motion capture through libmotioncapture (`drivers/mocap.py`). `system: mock` with
-    settings.rigid_bodies is the bench option (fixed bodies, no server). `bodies` maps flightstack's
-    body names (`drone<ID>`, `target`) to the names of the rigid bodies in the mocap software; a name
-    not listed is looked up as is."""
-
-    system: Literal["mock", "vicon", "optitrack", "qualisys", "vrpn"]
-    settings: dict[str, str] = Field(default_factory=dict)
-    bodies: dict[str, str] = Field(default_factory=dict)
-    connect_timeout_s: Positive = 5.0
-    stale_after_s: Positive = 0.1
-    max_tilt_rad: Annotated[float, Field(gt=0, le=math.pi / 2)] = 0.35
-
-
-class TargetHardwareSpec(_Strict):
-    """The ground robot over MAVLink (`drivers/scamper.py`); `url` is a pymavlink connection string."""
-
-    url: str = Field(min_length=1)
-    heartbeat_timeout_s: Positive = 5.0
-    ack_timeout_s: Positive = 2.0
-    stream_hz: Annotated[float, Field(ge=1, le=100)] = 10.0
-    link_timeout_s: Positive = 3.0
-
-
-class HardwareSpec(_Strict):
-    """The lab (backend `tello`). `target: null` when the robot is driven elsewhere (`flightstack target`
-    on another computer, or by hand): the mission then only reads its motion-capture pose.
-    `max_frame_age_s`: a camera frame older than this is treated as no frame (stalled video).
-
-    `topology` (README "Flying the real lab"): `access_point` (default) — each Tello is its own Wi-Fi
-    access point at 192.168.10.1, one computer per drone runs `flightstack agent --id N`, the agents talk
-    over Zenoh on another interface; works with SDK 2.0 and the default video port. `station` — every
-    Tello joins the lab Wi-Fi, one process may fly them all; several drones' video needs per-drone ports,
-    which need SDK 3.0 (preflight checks). `state_port`: the local UDP port the drones' state streams
-    arrive at (8890 on real Tellos; the tests use a free one)."""
-
-    topology: Literal["access_point", "station"] = "access_point"
-    state_port: int = Field(default=8890, ge=1, le=65535)
-    drones: list[TelloHardwareSpec] = Field(min_length=1)
-    mocap: MocapHardwareSpec
-    target: TargetHardwareSpec | None = None
-    max_frame_age_s: Positive = 0.5
-
-    @model_validator(mode="after")
-    def _unique(self) -> HardwareSpec:
-        ids = [d.id for d in self.drones]
-        if len(set(ids)) != len(ids):
-            raise ValueError("drones: ids must be unique")
-        if self.topology == "station":
-            ips = [(d.ip, d.control_port) for d in self.drones]
-            if len(set(ips)) != len(ips):
-                raise ValueError("drones: two drones share an ip and port (station mode: one address each)")
-            ports = [d.video_port for d in self.drones]
-            if len(set(ports)) != len(ports):
-                raise ValueError("drones: each drone needs its own video_port in station mode")
-        return self
-
-    def shared_by(self, drone_ids: list[int]) -> str | None:
-        """Why these drones cannot be flown from one process (same address or video port), or None."""
-        ds = [self.drone(i) for i in drone_ids]
-        if len({(d.ip, d.control_port) for d in ds}) < len(ds) or len({d.video_port for d in ds}) < len(ds):
-            return (
-                f"drones {drone_ids} share an address or video port ({self.topology} mode): in "
-                "access-point mode each drone needs its own computer; run `flightstack agent MISSION "
-                "--id N` (and `preflight --id N`) on each"
-            )
-        return None
-
-    def drone(self, drone_id: int) -> TelloHardwareSpec:
-        return next(d for d in self.drones if d.id == drone_id)
-
-    def body(self, name: str) -> str:
-        """The motion-capture name of flightstack body `name` (`drone<ID>` or `target`)."""
-        return self.mocap.bodies.get(name, name)
-
-
 class GainAnalysisSpec(_Strict):
     gamma_sq: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 10.0
     beta: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 2.0
@@ -369,6 +208,8 @@ class GainAnalysisSpec(_Strict):
 class Mission(_Strict):
     name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")
     description: str = ""
+    rig: str = ""  # the rig it was composed with (flightstack.config.rig); "" for an old single file
+    start_emulators: bool = False  # the emulated-lab rig: `run` starts loopback emulators for `hardware`
     backend: Literal["sim_ideal", "sim_lab", "tello"] = "sim_ideal"
     seed: int = Field(default=0, ge=0, le=2**32 - 1)  # numpy's generators take 0 .. 2³²−1
     duration_s: Annotated[float, Field(gt=0, le=86400, allow_inf_nan=False)]
@@ -430,14 +271,12 @@ class Mission(_Strict):
             if self.target.motion != "square":
                 raise ValueError("target.motion: the sim_lab backend drives the robot on the 'square' law")
             for d in self.drones:
-                if d.camera is None:
+                if d.camera is None or d.camera.calibration is None:
                     raise ValueError(f"drones: drone {d.id} needs a camera (calibration, mount) on sim_lab")
         if self.backend == "tello":
             self._check_hardware(ids)
         elif self.hardware is not None:
             raise ValueError(f"hardware: only used by backend 'tello' (this mission: {self.backend!r})")
-        if self.backend == "sim_ideal" and self.target.motion != "duffing":
-            raise ValueError("target.motion: the sim_ideal backend implements the 'duffing' field")
         return self
 
     def _check_hardware(self, ids: list[int]) -> None:
@@ -449,7 +288,7 @@ class Mission(_Strict):
         if self.target.motion != "square":
             raise ValueError("target.motion: real robots are driven on the 'square' law")
         for d in self.drones:
-            if d.camera is None:
+            if d.camera is None or d.camera.calibration is None:
                 raise ValueError(f"drones: drone {d.id} needs a camera (calibration, mount) on real hardware")
         if not self.safety.enabled:
             raise ValueError("safety.enabled: must be true on real hardware")
@@ -463,6 +302,15 @@ class Mission(_Strict):
     @property
     def simulated(self) -> bool:
         return self.backend != "tello"
+
+    def camera_model(self, index: int) -> CameraModel:
+        """The camera model of drone `index` (its observer's and, on the ideal rig, its exact camera's): the
+        normalised image plane (λ = 1) with the mount extrinsic and offset for a drone with a camera (the
+        lab rigs give image features in normalised coordinates), else `camera.focal_length` (paper Sec. 5)."""
+        d = self.drones[index]
+        if d.camera is None:
+            return CameraModel(focal_length=self.camera.focal_length)
+        return CameraModel(1.0, CAMERA_MOUNTS[d.camera.mount].copy(), np.array(d.camera.offset, dtype=float))
 
     def k_c_xy_unequal(self) -> bool:
         return self.gains.k_c[0] != self.gains.k_c[1] or self.gains.k_e[0] != self.gains.k_e[1]
@@ -509,31 +357,42 @@ def parse_mission(data: object, source: str = "<mission>", where: Lines | None =
 
 
 def load_mission(
-    path: str | Path, overrides: dict[str, object] | None = None, check_files: bool = True
+    path: str | Path,
+    overrides: dict[str, object] | None = None,
+    check_files: bool = True,
+    rig: str | Path | None = None,
 ) -> Mission:
-    """Read and validate a mission file; `overrides` replace top-level keys (e.g. duration_s) first.
+    """Read and validate a mission: an experiment on `rig` (a built-in name or a rig file; default: the
+    experiment's own `rig:`), a resolved mission written by a run, or an old single file (deprecated).
+    `path` may be a built-in experiment name. `overrides` replace top-level keys (e.g. duration_s) of the
+    resolved mission first.
 
     check_files=False skips the existence checks of referenced files (calibrations, experts) so that
     `flightstack preflight` can report them as rows of its table instead of stopping at the first one."""
-    path = Path(path)
+    from flightstack.config.rig import RigError, load_composed
+
     try:  # one hardened loader (safe_load.py): regular files only, bounded, UTF-8, no aliases, ...
-        data, where = load_yaml(path, "mission file")
-    except LoadError as exc:
+        data, path, where, label = load_composed(path, rig)
+    except RigError as exc:
         raise MissionError(str(exc)) from None
-    if isinstance(data, dict) and overrides:
+    if overrides:
         data = {**data, **overrides}
-    m = parse_mission(data, str(path), where)
-    m._base_dir = path.resolve().parent
+    m = parse_mission(data, label, where)
+    m._base_dir = Path(path).resolve().parent
     if not check_files:
         return m
     for d in m.drones:
-        if d.camera is not None and not m.resolve(d.camera.calibration).is_file():
+        if (
+            d.camera is not None
+            and d.camera.calibration is not None
+            and not m.resolve(d.camera.calibration).is_file()
+        ):
             raise MissionError(
-                f"{path}: drones.{m.drones.index(d)}.camera.calibration: file not found: "
+                f"{label}: drones.{m.drones.index(d)}.camera.calibration: file not found: "
                 f"{m.resolve(d.camera.calibration)}"
             )
     if m.gp.experts_file is not None and not m.resolve(m.gp.experts_file).is_file():
-        raise MissionError(f"{path}: gp.experts_file: file not found: {m.resolve(m.gp.experts_file)}")
+        raise MissionError(f"{label}: gp.experts_file: file not found: {m.resolve(m.gp.experts_file)}")
     return m
 
 

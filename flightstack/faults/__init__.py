@@ -20,6 +20,7 @@ import traceback
 from collections.abc import Iterable
 from pathlib import Path
 
+from flightstack.config.rig import MISSION_CONFIGS
 from flightstack.faults.result import FaultResult, FaultRow
 
 __all__ = [
@@ -34,7 +35,7 @@ __all__ = [
     "write_json",
 ]
 
-DEFAULT_MISSION = Path(__file__).resolve().parents[2] / "mission_configs" / "paper_experiment_sim.yaml"
+DEFAULT_MISSION = MISSION_CONFIGS / "paper_experiment.yaml"
 """The simulated lab mission (backend sim_lab, safety on) that the rows fly by default."""
 
 ROW_MODULES: list[str] = [

@@ -36,21 +36,21 @@ from typing import Any
 import numpy as np
 import yaml
 
-from flightstack.faults.rows_cli import REPO
+from flightstack.config.rig import MISSION_CONFIGS
 
 LAB_IPS: dict[int, str] = {1: "127.0.0.6", 2: "127.0.0.7"}
-"""Loopback address of each drone's Tello emulator."""
+"""Loopback address of each drone's Tello emulator in the fault table's lab (drone k at 127.0.0.(6 + k))."""
 DRONE_STARTS: dict[int, tuple[tuple[float, float, float], float]] = {
     1: ((-0.5, -0.5, 0.05), 0.0),
     2: ((-0.5, 0.2, 0.05), 0.3),
 }
-"""Where each drone stands before takeoff: position (m, mocap world) and yaw (rad, counter-clockwise)."""
+"""Where each drone stands before takeoff: position (m, mocap world) and yaw (rad, counter-clockwise);
+drones of other ids stand 0.7 m apart along y from (-0.5, -0.5)."""
 ROVER_START = (-0.5, -0.5)
 """The rover's start in the mocap world (m): the square's corner."""
 LEVEL = (1.0, 0.0, 0.0, 0.0)
 """Quaternion (w, x, y, z) of a level body facing world x."""
-MISSIONS = REPO / "mission_configs"
-BASE_MISSION = MISSIONS / "paper_experiment_sim.yaml"
+MISSIONS = MISSION_CONFIGS
 CALIBRATION = MISSIONS / "cameras" / "tello_down_sim.yaml"
 VIDEO_SIZE = (320, 240)
 """Frame size (px) of the emulated downward cameras (that of CALIBRATION)."""
@@ -128,6 +128,11 @@ class EmulatedLab:
     TelloEmulator keyword arguments per drone id (e.g. {2: {"land_s": 2.0}}). mission_edit: called with
     the mission dict (YAML) before it is written. `mocap_offset[i]` (m, world x/y/z) is added to drone i's
     motion-capture position from the moment it is set (a drone displaced as motion capture sees it).
+
+    experiment: a resolved mission document on the emulated-lab rig (`flightstack run EXP --rig
+    emulated-lab`): its drones, modes and camera mounts are flown as they are; a drone that sees the target
+    with a downward camera streams the fixed marker view, every other camera an empty floor. Without it
+    (the fault table): the paper experiment, mode `none`, both cameras downward and both see the markers.
     """
 
     def __init__(
@@ -137,12 +142,17 @@ class EmulatedLab:
         duration_s: float = 5.0,
         tello: dict[int, dict[str, Any]] | None = None,
         mission_edit: Callable[[dict[str, Any]], None] | None = None,
+        experiment: dict[str, Any] | None = None,
     ) -> None:
         self.workdir = Path(workdir)
+        self._experiment = experiment
+        ids = [int(d["id"]) for d in experiment["drones"]] if experiment is not None else list(LAB_IPS)
+        self.ips = {i: f"127.0.0.{6 + k}" for k, i in enumerate(ids)}
+        self.starts = {i: DRONE_STARTS.get(i, ((-0.5, -0.5 + 0.7 * k, 0.05), 0.0)) for k, i in enumerate(ids)}
         self.duration_s = float(duration_s)
         self._tello_kw = tello or {}
         self._mission_edit = mission_edit
-        self.mocap_offset: dict[int, np.ndarray] = {i: np.zeros(3) for i in LAB_IPS}
+        self.mocap_offset: dict[int, np.ndarray] = {i: np.zeros(3) for i in self.ips}
         self.tellos: dict[int, Any] = {}
         self.natnet: Any = None
         self.rover: Any = None
@@ -173,22 +183,24 @@ class EmulatedLab:
         emu = load_emulators()
         self.workdir.mkdir(parents=True, exist_ok=True)
         image = marker_image()
+        empty = np.full_like(image, 96)  # a grey floor without markers
         state_port = emu.free_udp_port()
-        for i, ip in LAB_IPS.items():
+        for i, ip in self.ips.items():
+            frame = image if self._sees_markers(i) else empty
             kw: dict[str, Any] = {
                 "state_port": state_port,
                 "video_port": emu.free_udp_port(),
-                "frame_source": lambda t, e, img=image: img,
+                "frame_source": lambda t, e, img=frame: img,
                 "video_size": VIDEO_SIZE,
                 "fps": VIDEO_FPS,
             }
             kw.update(self._tello_kw.get(i, {}))
             self.tellos[i] = emu.TelloEmulator(ip, **kw)
-        bodies = {f"tello_{'ab'[i - 1]}": i for i in LAB_IPS}
+        bodies = {self.body(i): i for i in self.ips}
         self.natnet = emu.NatNetEmulator(
             {
                 **{
-                    name: (DRONE_STARTS[i][0], _yaw_quaternion(DRONE_STARTS[i][1]))
+                    name: (self.starts[i][0], _yaw_quaternion(self.starts[i][1]))
                     for name, i in bodies.items()
                 },
                 "scamper": ((*ROVER_START, 0.0), LEVEL),
@@ -205,6 +217,16 @@ class EmulatedLab:
         self.operator_port = free_udp_port()
         self.mission_path = self.write_mission()
         self.t_start = time.monotonic()
+
+    def body(self, i: int) -> str:
+        """Drone i's rigid-body name in the emulated motion capture."""
+        return f"tello_{'ab'[i - 1]}" if self._experiment is None and i in (1, 2) else f"tello_{i}"
+
+    def _sees_markers(self, i: int) -> bool:
+        if self._experiment is None:
+            return True
+        d = next(d for d in self._experiment["drones"] if int(d["id"]) == i)
+        return bool(d.get("sees_target", True)) and (d.get("camera") or {}).get("mount", "down") == "down"
 
     def close(self) -> None:
         """Stop every emulator (bounded joins); idempotent."""
@@ -230,7 +252,7 @@ class EmulatedLab:
 
         emu = self.tellos[i]
         x, y, z = emu.position_cm
-        start = Pose.make(list(DRONE_STARTS[i][0]), DRONE_STARTS[i][1])
+        start = Pose.make(list(self.starts[i][0]), self.starts[i][1])
         g = compose(start, Pose.make([x / 100.0, -y / 100.0, z / 100.0], -math.radians(emu.yaw_deg)))
         now = time.monotonic()
         if now - self._truth_t.get(i, -math.inf) >= TRUTH_PERIOD_S:
@@ -240,48 +262,41 @@ class EmulatedLab:
 
     # ---- the mission -----------------------------------------------------------------------------------
     def write_mission(self) -> Path:
-        """The paper experiment re-pointed at the emulators (backend tello, mode `none`, `duration_s` of
-        pursuit, operator channel on a free port); returns the file written."""
+        """The experiment on the emulated-lab rig, its `hardware:` pointing at the running emulators, the
+        operator channel on a free port; returns the resolved mission file written. Without an experiment
+        (the fault table): the paper experiment, mode `none`, `duration_s` of pursuit, cameras downward."""
+        from flightstack.config.rig import emulated_hardware, resolved_document
         from flightstack.vision.camera_file import load_calibration
 
         cal = load_calibration(CALIBRATION).to_dict()
         cal["rms_px"] = 0.3  # a measured calibration (preflight fails on the never-measured templates)
         cal["device"] = "emulated tello"
         (self.workdir / "cal.yaml").write_text(yaml.safe_dump(cal, sort_keys=False))
-        m = yaml.safe_load(BASE_MISSION.read_text())
-        m["name"] = f"emulated_lab_{self.workdir.name}"[:60]
-        m["backend"] = "tello"
-        m.pop("sim", None)
-        m["duration_s"] = self.duration_s
-        m["compare_modes"] = ["none"]
-        m["bus"] = {"kind": "inproc", "operator_port": self.operator_port}
+        if self._experiment is not None:
+            m = dict(self._experiment)
+        else:
+            m = resolved_document("paper_experiment", "emulated-lab")
+            m["name"] = f"emulated_lab_{self.workdir.name}"[:60]
+            m["duration_s"] = self.duration_s
+            m["compare_modes"] = ["none"]
+            for d in m["drones"]:
+                d["camera"]["mount"] = "down"
+        m["start_emulators"] = False  # it flies the emulators running here (`run` must not start its own)
+        m["bus"] = {**m.get("bus", {}), "kind": "inproc", "operator_port": self.operator_port}
         for d in m["drones"]:
-            d["camera"] = {"calibration": "cal.yaml", "mount": "down"}
-        m["drones"][1]["desired_pose"] = {"p": [0.0, 0.7, -1.0], "theta": 0.0}
+            d["camera"]["calibration"] = str(self.workdir / "cal.yaml")
         first = next(iter(self.tellos.values()))
-        m["hardware"] = {
-            "topology": "station",
+        ports = {
             "state_port": first.state_port,
-            "drones": [
-                {
-                    "id": i,
-                    "ip": emu.ip,
-                    "control_port": emu.address[1],
-                    "video_port": emu.video_port,
-                    "connect_timeout_s": 2.0,
-                    "command_timeout_s": 1.0,
-                    "frame_timeout_s": 5.0,
-                }
-                for i, emu in self.tellos.items()
-            ],
-            "mocap": {
-                "system": "optitrack",
-                "settings": self.natnet.settings(),
-                "bodies": {"drone1": "tello_a", "drone2": "tello_b", "target": "scamper"},
-                "connect_timeout_s": 1.0,
+            "drones": {
+                i: {"control_port": e.address[1], "video_port": e.video_port} for i, e in self.tellos.items()
             },
-            "target": {"url": self.rover.url, "heartbeat_timeout_s": 3.0},
+            "natnet": self.natnet.settings(),
+            "rover_url": self.rover.url,
         }
+        hw = emulated_hardware(list(self.tellos), ports)
+        hw["mocap"]["bodies"] = {f"drone{i}": self.body(i) for i in self.tellos} | {"target": "scamper"}
+        m["hardware"] = hw
         if self._mission_edit is not None:
             self._mission_edit(m)
         path = self.workdir / "mission.yaml"

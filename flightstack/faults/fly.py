@@ -16,10 +16,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from flightstack.comms.bus import InProcBus
 from flightstack.config.mission import Mission, load_mission
+from flightstack.config.rig import resolved_document
 from flightstack.faults.inject import FaultSpec, FaultyBackend, FaultyBus
 from flightstack.faults.result import Checks
 from flightstack.paper.metrics import mode_metrics
@@ -78,7 +78,7 @@ def load_fault_mission(
     """The mission with `duration_s` of pursuit, mode `none` only, and `safety` keys replaced."""
     overrides: dict[str, Any] = {"duration_s": duration_s, "compare_modes": ["none"]}
     if safety:
-        data = yaml.safe_load(Path(mission_path).read_text(encoding="utf-8"))
+        data = resolved_document(mission_path)
         overrides["safety"] = {**(data.get("safety") or {}), **safety}
     return load_mission(mission_path, overrides)
 

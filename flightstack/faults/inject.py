@@ -184,6 +184,7 @@ class FaultyBackend:
         self.inner = inner
         self.spec = spec
         self.clock = inner.clock
+        self.simulated: bool = inner.simulated
         self.ids = list(drone_ids)
         now = self.clock.now
         self._drones = {
@@ -215,6 +216,9 @@ class FaultyBackend:
 
     def truth(self) -> Any:
         return self.inner.truth()
+
+    def heartbeat(self) -> None:
+        self.inner.heartbeat()
 
     def close(self) -> None:
         if not any(d.link_down() for d in self._drones.values()):
@@ -288,6 +292,22 @@ class FaultyBus:
 
     def latest(self, sender: int, now: float, stale_after: float) -> PredictionMessage | None:
         return self.inner.latest(sender, now, stale_after)
+
+    def wait_alive(self, senders: set[int], timeout_s: float) -> set[int]:
+        return self.inner.wait_alive(senders, timeout_s)
+
+    def wait_for_stamp(self, senders: set[int], stamp: float, timeout_s: float) -> set[int]:
+        return self.inner.wait_for_stamp(senders, stamp, timeout_s)
+
+    def control_events(self) -> list[Any]:
+        return self.inner.control_events()
+
+    def publish_control(self, kind: str, payload: dict[str, Any]) -> None:
+        self.inner.publish_control(kind, payload)
+
+    @property
+    def presence_events(self) -> list[tuple[float, int, str]]:
+        return self.inner.presence_events
 
     def close(self) -> None:
         self.inner.close()

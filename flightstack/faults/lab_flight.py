@@ -42,7 +42,7 @@ from flightstack.faults.emulated_lab import (
     rc_times,
 )
 from flightstack.faults.result import Checks, FaultResult
-from flightstack.faults.rows_cli import REPO, cli_command, cli_env
+from flightstack.faults.rows_cli import cli_command, cli_env
 
 PROCESS_TIMEOUT_S = 120.0
 """Bound on any child process of a lab row (s); it is killed after that."""
@@ -196,9 +196,7 @@ class FlyProcess:
         self.run_dir.parent.mkdir(parents=True, exist_ok=True)
         with open(self._out, "wb") as out, open(self._err, "wb") as err:
             self.t_start = time.monotonic()
-            self.proc = subprocess.Popen(
-                cli_command(*self.args), cwd=REPO, env=cli_env(), stdout=out, stderr=err
-            )
+            self.proc = subprocess.Popen(cli_command(*self.args), env=cli_env(), stdout=out, stderr=err)
         return self
 
     def __exit__(

@@ -20,12 +20,12 @@ import numpy as np
 import yaml
 
 from flightstack.config.mission import load_mission
+from flightstack.config.rig import resolved_document
 from flightstack.faults.result import Checks, FaultResult, FaultRow
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.runner import safety_limits
 from flightstack.safety import outside_hard_fence
 
-REPO = Path(__file__).resolve().parents[2]
 CLI_TIMEOUT_S = 60.0
 SIGINT_AFTER_S = 1.5
 """Wall seconds between the first progress bar of `flightstack sim` and SIGINT (the drones are then in
@@ -33,38 +33,28 @@ pursuit: takeoff takes 2 s of simulated time, about 0.3 s of wall time)."""
 
 
 def cli_command(*args: str) -> list[str]:
-    return [sys.executable, "-m", "flightstack.cli.app", *args]
+    """`flightstack ARGS` run by this interpreter (the installed package: no checkout needed)."""
+    return [sys.executable, "-m", "flightstack", *args]
 
 
 def cli_env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
-    return env
+    """The child's environment: this process's."""
+    return dict(os.environ)
 
 
 def run_cli(*args: str, timeout: float = CLI_TIMEOUT_S) -> subprocess.CompletedProcess[str]:
-    """`flightstack ARGS` in a subprocess from the repository root (bounded by `timeout` s)."""
-    return subprocess.run(
-        cli_command(*args), capture_output=True, text=True, timeout=timeout, cwd=REPO, env=cli_env()
-    )
+    """`flightstack ARGS` in a subprocess (bounded by `timeout` s)."""
+    return subprocess.run(cli_command(*args), capture_output=True, text=True, timeout=timeout, env=cli_env())
 
 
 # ---- malformed mission file --------------------------------------------------------------------------------
-def _absolute_calibrations(data: dict[str, Any], base: Path) -> dict[str, Any]:
-    for d in data.get("drones", []):
-        cam = d.get("camera") or {}
-        if "calibration" in cam:
-            cam["calibration"] = str((base / cam["calibration"]).resolve())
-    return data
-
-
 def malformed_variants(mission_path: Path) -> dict[str, tuple[str, str]]:
     """name -> (file text, the text stderr must contain): one defect each, on a copy of the mission."""
     text = Path(mission_path).read_text(encoding="utf-8")
     base = Path(mission_path).resolve().parent
 
     def variant(edit: Any) -> str:
-        data = _absolute_calibrations(yaml.safe_load(text), base)
+        data = resolved_document(mission_path)  # the experiment on its rig, calibrations absolute
         edit(data)
         return yaml.safe_dump(data, sort_keys=False)
 
@@ -77,7 +67,7 @@ def malformed_variants(mission_path: Path) -> dict[str, tuple[str, str]]:
     def missing_file(d: dict[str, Any]) -> None:
         d["drones"][-1]["camera"]["calibration"] = str(base / "cameras" / "no_such_calibration.yaml")
 
-    last = len(yaml.safe_load(text)["drones"]) - 1
+    last = len(resolved_document(mission_path)["drones"]) - 1
     return {
         "yaml_syntax": (text + "\nextra: [unclosed\n", "not valid YAML"),
         "unknown_key": (variant(unknown_key), "drones.0.speed: unknown key"),
@@ -136,7 +126,6 @@ def interrupt_sim(mission_path: Path, out: Path, after_s: float = SIGINT_AFTER_S
     `after_s` wall seconds, send SIGINT; (exit code or None if it had to be killed, stderr)."""
     proc = subprocess.Popen(
         cli_command("sim", str(mission_path), "--out", str(out), "--duration", "600"),
-        cwd=REPO,
         env=cli_env(),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

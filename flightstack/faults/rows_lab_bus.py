@@ -15,7 +15,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from flightstack.faults.emulated_lab import MISSIONS, LabUnavailableError, ms
+from flightstack.config.rig import resolved_document
+from flightstack.faults.emulated_lab import LabUnavailableError, ms
 from flightstack.faults.lab_flight import lab_result
 from flightstack.faults.result import Checks, FaultResult
 from flightstack.faults.rows_cli import run_cli
@@ -42,7 +43,7 @@ def abort_agent_missing(mission_path: Path, workdir: Path) -> FaultResult:
     from flightstack.comms.factory import free_loopback_endpoints, zenoh_bus_config
     from flightstack.config.mission import load_mission
 
-    m = yaml.safe_load((MISSIONS / "paper_sim.yaml").read_text())
+    m = resolved_document("paper_sim")
     endpoints = dict(zip(("1", "2", "3"), free_loopback_endpoints(3), strict=True))
     m["name"] = "abort_agent_missing"
     m["bus"] = {"kind": "zenoh", "zenoh": {"endpoints": endpoints, "lease_ms": 500, "security": "plaintext"}}

@@ -22,10 +22,11 @@ import numpy as np
 import yaml
 
 from flightstack.comms.factory import free_loopback_endpoints
+from flightstack.config.rig import MISSION_CONFIGS, resolved_document
 from flightstack.faults.result import Checks, FaultResult, FaultRow
-from flightstack.faults.rows_cli import REPO, cli_command, cli_env
+from flightstack.faults.rows_cli import cli_command, cli_env
 
-PAPER_SIM = REPO / "mission_configs" / "paper_sim.yaml"
+PAPER_SIM = MISSION_CONFIGS / "paper_sim.yaml"
 IDS = (1, 2, 3)
 PROCESS_TIMEOUT_S = 90.0
 DROP_WITHIN_S = 1.0  # issue 6: the others drop a dead agent from fusion within 1 s
@@ -42,7 +43,7 @@ def served_mission(
     from flightstack.runtime.training import save_experts
 
     workdir.mkdir(parents=True, exist_ok=True)
-    m = yaml.safe_load(PAPER_SIM.read_text())
+    m = resolved_document("paper_sim")
     m["name"] = name
     m["duration_s"] = duration_s
     m["dt_s"] = 0.01
@@ -119,7 +120,7 @@ class Lines:
 
 def popen(*args: str) -> subprocess.Popen[str]:
     out, err = subprocess.PIPE, subprocess.STDOUT
-    return subprocess.Popen(cli_command(*args), cwd=REPO, env=cli_env(), stdout=out, stderr=err, text=True)
+    return subprocess.Popen(cli_command(*args), env=cli_env(), stdout=out, stderr=err, text=True)
 
 
 class ServedRun:

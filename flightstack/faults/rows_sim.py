@@ -2,7 +2,7 @@
 
 Every row is a `FaultRow`: (mission file, work directory) -> FaultResult, and never raises for a failure
 of the system under test. Fault windows are in mission-clock seconds: the drones take off at t = 0 and
-pursuit starts at t ≈ 2.05 s on `paper_experiment_sim.yaml`, so faults start at T_FAULT = 4 s.
+pursuit starts at t ≈ 2.05 s on `paper_experiment.yaml`, so faults start at T_FAULT = 4 s.
 The drone ids 1 and 2 are those of the lab mission (drone 1 sees the target, drone 2 does not).
 """
 

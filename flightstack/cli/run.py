@@ -1,0 +1,335 @@
+"""`flightstack run EXPERIMENT --rig RIG` (and its older spellings `sim` and `fly`), `validate` and
+`migrate`: one experiment, any rig (flightstack.config.rig). A simulated rig flies at once; the
+emulated-lab rig starts its loopback emulators first; a real lab is preflighted and confirmed."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import math
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from tqdm import tqdm
+
+from flightstack.config.mission import Mission, load_mission
+
+if TYPE_CHECKING:
+    from flightstack.recording.run_dir import RunWriter
+
+
+def _progress_factory(bars: list[tqdm]) -> Callable[[str, int], Callable[[int], None]]:
+    def make(mode: str, total: int) -> Callable[[int], None]:
+        bar = tqdm(
+            total=total,
+            desc=f"mode {mode:6s}",
+            unit="tick",
+            unit_scale=True,
+            file=sys.stderr,
+            mininterval=0.5,
+            leave=True,
+        )
+        bars.append(bar)
+        pending = [0]
+
+        def update(n: int) -> None:
+            pending[0] += n  # tqdm per tick would cost more than a control tick: batch 500
+            if pending[0] >= 500 or bar.n + pending[0] >= total:
+                bar.update(pending[0])
+                pending[0] = 0
+
+        return update
+
+    return make
+
+
+def open_run_dir(out: Path) -> RunWriter | None:
+    """The run directory's writer, after checking (before anything takes off) that `out` is writable
+    and has flightstack.recording.run_dir.MIN_FREE_BYTES (50 MB) free; None after printing why not."""
+    from flightstack.recording.run_dir import RunWriter, check_out_dir
+
+    problem = check_out_dir(out)
+    if problem is None:
+        try:
+            return RunWriter(out)
+        except OSError as exc:
+            problem = f"cannot start the recording: {exc.strerror or exc}"
+    print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
+    return None
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """`run EXPERIMENT --rig RIG`, `sim MISSION` (simulated rigs only) and `fly MISSION`: load, check the
+    run directory, start an emulated lab or preflight and confirm real drones, fly, report."""
+    logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")  # safety events, live
+    overrides: dict[str, object] = {}
+    if args.duration is not None:
+        overrides["duration_s"] = args.duration
+    if args.modes is not None:
+        overrides["compare_modes"] = args.modes
+    mission = load_mission(args.mission, overrides, rig=args.rig)
+    if args.bus is not None and args.bus != mission.bus.kind:
+        bus = _bus_override(mission, args.bus)
+        mission = load_mission(args.mission, {**overrides, "bus": bus}, rig=args.rig)
+    if args.command == "sim" and not mission.simulated and not mission.start_emulators:
+        print(
+            f"error: {args.mission}: backend {mission.backend!r} flies real drones; "
+            "use `flightstack preflight` then `flightstack fly`",
+            file=sys.stderr,
+        )
+        return 2
+    out = Path(args.out)
+    from flightstack.recording.run_dir import check_out_dir
+
+    problem = check_out_dir(out)  # before the preflight and the operator's confirmation
+    if problem is not None:
+        print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
+        return 2
+    with contextlib.ExitStack() as rig_stack:
+        if mission.start_emulators:  # the emulated-lab rig: its devices start here, on loopback
+            mission = rig_stack.enter_context(_emulated_lab(mission, out))
+        elif not mission.simulated:
+            code = _confirm_and_preflight(args, mission)
+            if code:
+                return code
+        return _fly_and_report(args, mission, out)
+
+
+def _emulated_lab(mission: Mission, out: Path) -> contextlib.AbstractContextManager[Mission]:
+    """Start the emulators of the emulated-lab rig for `mission` (loopback only) and yield the mission
+    re-pointed at them; every emulator stops when the block ends (flightstack.faults.emulated_lab)."""
+    from flightstack.config.mission import mission_to_dict
+    from flightstack.faults.emulated_lab import EmulatedLab
+
+    doc = mission_to_dict(mission)
+    doc["start_emulators"] = False  # the written mission flies the running emulators
+
+    @contextlib.contextmanager
+    def lab() -> Iterator[Mission]:
+        with EmulatedLab(out / "emulated_lab", experiment=doc) as running:
+            print(
+                f"emulated lab: {len(running.tellos)} Tello emulators, NatNet, rover on loopback",
+                file=sys.stderr,
+            )
+            yield running.mission()
+
+    return lab()
+
+
+def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> int:
+    """Fly every mode of `mission` into the run directory `out` and print the summary; the exit code."""
+    from flightstack.runtime.experiment import resolved_mission_yaml, run_experiment, write_run_dir
+
+    run_writer = open_run_dir(out)  # checked again: the preflight took time
+    if run_writer is None:
+        return 2
+    bars: list[tqdm] = []
+    try:
+        run_writer.write_file("mission_resolved.yaml", resolved_mission_yaml(mission))  # for `report`
+        with _awake_if_flying(mission):
+            res = run_experiment(mission, None if args.no_progress else _progress_factory(bars), run_writer)
+        for b in bars:
+            b.close()
+        m = write_run_dir(out, mission, res, run_writer)
+    finally:
+        run_writer.close()
+    if res.recordings:
+        _write_plots_or_warn(out, mission, res)
+    print(f"run directory: {out}")
+    for mode, mm in m["modes"].items():
+        line = f"  {mode:7s} mean_sq_error = {mm.get('mean_sq_error', float('nan')):.3e}"
+        if "mean_position_error_m" in mm:
+            seen = ", ".join(f"{i}: {100 * f:.0f} %" for i, f in mm["visible_fraction"].items())
+            line += f"   mean position error {mm['mean_position_error_m']:.3f} m   target seen {seen}"
+        if mm.get("max_fence_excursion_m"):
+            line += f"   OUTSIDE FENCE by {mm['max_fence_excursion_m']:.3f} m"
+        print(line)
+    if "ratios" in m:
+        ours, paper = m["ratios"]["ours"], m["ratios"]["paper"]
+        for key in ours:
+            print(f"  {key:10s} ours {ours[key]:8.2f}   paper {paper[key]:8.2f}")
+    gc = m["gain_condition"]
+    verdict = "satisfied" if gc["satisfied"] else "NOT satisfied"
+    print(
+        f"  gain condition: kappa = {gc['kappa']:.3f} ({verdict}), L_mu = {gc['L_mu']:.3f}, "
+        f"lambda_H = {gc['lambda_H']:.3f}"
+    )
+    print(f"  safety events: {len(m['safety_events'])} (events.jsonl)")
+    print(f"  sim {m['sim_seconds']:.1f} s in {m['wall_seconds']:.1f} s wall")
+    rec_status = m["recording"]
+    if not rec_status["complete"]:
+        print(f"error: recording incomplete: {rec_status['reason']}", file=sys.stderr)
+    if res.interrupted:
+        print("interrupted: every drone landed, partial recording written", file=sys.stderr)
+        return 130
+    if res.error:
+        print(f"error: {res.error}; every drone landed, partial recording written", file=sys.stderr)
+        return 1
+    return 0 if rec_status["complete"] else 1
+
+
+def _write_plots_or_warn(out: Path, mission: Mission, res: Any) -> None:
+    """The plots of a run; a write error (a full disk) is reported, not raised: `report` redraws them."""
+    from flightstack.recording.report import write_plots
+
+    try:
+        write_plots(out, mission, res.recordings, res.datasets)
+    except OSError as exc:
+        print(f"warning: plots not written ({exc}); `flightstack report {out}` redraws them", file=sys.stderr)
+
+
+def _awake_if_flying(mission: Mission) -> contextlib.AbstractContextManager[object]:
+    """On real hardware: keep the computer from sleeping while the drones fly (drivers/keep_awake.py)."""
+    if mission.simulated:
+        return contextlib.nullcontext()
+    from flightstack.drivers.keep_awake import keep_awake
+
+    @contextlib.contextmanager
+    def awake() -> Iterator[None]:
+        with keep_awake(f"flightstack: mission {mission.name} in flight") as how:
+            print(how, file=sys.stderr)
+            yield
+
+    return awake()
+
+
+def _bus_override(mission: Mission, kind: str) -> dict[str, object]:
+    """The mission's bus section switched to `kind`; for zenoh without endpoints, all agents of this
+    process listen on a free loopback port (nothing leaves the machine)."""
+    bus = mission.bus.model_dump(mode="json")
+    bus["kind"] = kind
+    if kind == "zenoh" and bus.get("zenoh") is None:
+        from flightstack.comms.factory import free_loopback_endpoints
+
+        # plaintext on loopback is allowed for simulations only; real drones need the mission's certificates
+        security = "plaintext" if mission.simulated else "mtls"
+        endpoint = free_loopback_endpoints()[0].replace("tcp/", "tls/" if security == "mtls" else "tcp/")
+        bus["zenoh"] = {"endpoints": {"agents": endpoint}, "security": security}
+    return bus
+
+
+def _confirm(question: str, yes: bool) -> bool:
+    """True when the operator confirmed (--yes, or 'y' at an interactive prompt)."""
+    if yes:
+        return True
+    if not sys.stdin.isatty():
+        print("error: this moves real hardware; pass --yes to confirm", file=sys.stderr)
+        return False
+    return input(f"{question} [y/N] ").strip().lower() in ("y", "yes")
+
+
+def _confirm_and_preflight(args: argparse.Namespace, mission: Mission) -> int:
+    """Preflight every device, then ask; 0 to go on, else the exit code."""
+    from flightstack.drivers.preflight import format_table, run_preflight
+
+    rows = run_preflight(mission)
+    print(format_table(rows))
+    if any(r.status == "FAIL" for r in rows):
+        print("error: preflight failed; nothing took off", file=sys.stderr)
+        return 1
+    ids = ", ".join(str(d.id) for d in mission.drones)
+    if not _confirm(
+        f"Drones {ids} will take off and fly {mission.duration_s:g} s per mode. Area clear?", args.yes
+    ):
+        print("aborted", file=sys.stderr)
+        return 1
+    return 0
+
+
+def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
+    """The arguments `run`, `sim` and `fly` share."""
+    p.add_argument("mission", help=mission_help)
+    p.add_argument(
+        "--rig",
+        default=None,
+        help="rig to fly the experiment on: ideal, lab-sim, emulated-lab, lab or a rig file "
+        "(default: the experiment's own `rig:`)",
+    )
+    p.add_argument("--out", required=True, help="run directory to write (created if missing)")
+    p.add_argument("--duration", type=seconds, default=None, help="override duration_s (seconds, > 0)")
+    p.add_argument(
+        "--modes",
+        type=mode_list,
+        default=None,
+        help="override compare_modes, e.g. none,dgp (comma-separated)",
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--bus", choices=["inproc", "zenoh"], help="override bus.kind (zenoh: on loopback)")
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    """Validate an experiment (on its rig or --rig), a rig or lab file on its own, or a resolved mission;
+    print the resolved mission as JSON. Exit 2 naming the key and the reason when invalid."""
+    from flightstack.config.mission import mission_to_dict
+    from flightstack.config.rig import check_rig, find, kind_of, read
+
+    path = find(args.mission, "experiment") if args.rig is None else None
+    if path is not None and path.is_file():
+        src = read(path, "mission file")
+        if kind_of(src.data) == "rig":  # a rig or lab file on its own: structure and every section
+            check_rig(src)
+            from flightstack.config.rig_check import validate_rig
+
+            print(json.dumps(validate_rig(src), indent=2))
+            return 0
+    m = load_mission(args.mission, rig=args.rig)
+    print(json.dumps(mission_to_dict(m), indent=2))
+    return 0
+
+
+def cmd_migrate(args: argparse.Namespace) -> int:
+    """Split a single-file mission into `<name>.yaml` (experiment) and `<name>_rig.yaml` (rig) in --out;
+    the experiment names the rig file. Both are validated by composing them before anything is written."""
+    import yaml
+
+    from flightstack.config.rig import Source, compose, kind_of, read, split
+
+    src = read(Path(args.mission), "mission file")
+    if kind_of(src.data) not in ("single", "resolved"):
+        print(f"error: {args.mission}: not a single-file mission (it has no `backend:`)", file=sys.stderr)
+        return 2
+    name = str(src.data.get("name") or Path(args.mission).stem)
+    out = Path(args.out)
+    exp, rig = split(src.data, f"{name}_rig")
+    # calibrations were relative to the old file: make them absolute in the rig
+    for entry in rig.get("drones", []):
+        if "camera" in entry and not Path(entry["camera"]).is_absolute():
+            entry["camera"] = str((src.base / entry["camera"]).resolve())
+    e_path, r_path = out / f"{name}.yaml", out / f"{name}_rig.yaml"
+    doc = compose(Source(exp, e_path), Source(rig, r_path))
+    load_doc_check(doc, str(e_path))
+    out.mkdir(parents=True, exist_ok=True)
+    e_path.write_text(yaml.safe_dump(exp, sort_keys=False))
+    r_path.write_text(yaml.safe_dump(rig, sort_keys=False))
+    print(f"experiment: {e_path}\nrig: {r_path}\n(`flightstack run {e_path}` flies it on its rig)")
+    return 0
+
+
+def load_doc_check(doc: dict[str, Any], label: str) -> None:
+    """MissionError unless `doc` is a valid resolved mission."""
+    from flightstack.config.mission import parse_mission
+
+    parse_mission(doc, label)
+
+
+def seconds(text: str) -> float:
+    """argparse type of a duration: a finite number of seconds > 0 (else exit 2 naming the value)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of seconds > 0")
+    return value
+
+
+def mode_list(text: str) -> list[str]:
+    """argparse type of --modes: comma-separated mode names (the schema checks each name)."""
+    modes = [m.strip() for m in text.split(",") if m.strip()]
+    if not modes:
+        raise argparse.ArgumentTypeError(f"{text!r}: give at least one mode, e.g. none,dgp")
+    return modes

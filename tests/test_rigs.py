@@ -1,0 +1,169 @@
+"""One experiment, any rig (issue 17): the paper's experiment flies on `ideal`, `lab-sim` and
+`emulated-lab` from the same file; rig and lab files validate on their own; old single-file missions load
+with a warning and `flightstack migrate` splits them into an experiment and a rig that compose back to
+the same mission."""
+
+from __future__ import annotations
+
+import json
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from flightstack.cli.app import main
+from flightstack.config.mission import MissionError, load_mission, mission_to_dict
+from flightstack.config.rig import MISSION_CONFIGS, resolved_document, split
+from flightstack.recording.run_dir import load_run
+from tests.conftest import MISSIONS, run_cli
+
+EXPERIMENT = MISSIONS / "paper_experiment.yaml"
+PURSUIT_S = 4.0
+
+
+@pytest.mark.parametrize(
+    ("rig", "backend", "safety"),
+    [("ideal", "sim_ideal", False), ("lab-sim", "sim_lab", True), ("emulated-lab", "tello", True)],
+)
+def test_the_paper_experiment_flies_on_every_rig_from_one_file(
+    tmp_path: Path, rig: str, backend: str, safety: bool
+) -> None:
+    out = tmp_path / "run"
+    r = run_cli(
+        "run", str(EXPERIMENT), "--rig", rig, "--modes", "none", "--duration", str(PURSUIT_S),
+        "--out", str(out), "--no-progress", timeout=300,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    resolved = yaml.safe_load((out / "mission_resolved.yaml").read_text())
+    assert (resolved["rig"], resolved["backend"], resolved["safety"]["enabled"]) == (rig, backend, safety)
+    experiment = yaml.safe_load(EXPERIMENT.read_text())
+    for key in ("gains", "dt_s", "seed"):  # what the paper specifies is the experiment's
+        assert resolved[key] == experiment[key], key
+    assert experiment["graph"].items() <= resolved["graph"].items()  # resolved: the defaults added
+    assert [d["desired_pose"] for d in resolved["drones"]] == [
+        d["desired_pose"] for d in experiment["drones"]
+    ]
+    rec = load_run(out)["none"]
+    ticks = round(PURSUIT_S / experiment["dt_s"])
+    assert len(rec.t) == ticks  # every tick of the pursuit was flown and recorded
+    assert np.all(np.isfinite(rec.g_wi)) and np.all(np.isfinite(rec.g_bar_w))
+    metrics = json.loads((out / "metrics.json").read_text())
+    seen = metrics["modes"]["none"]["visible_fraction"]
+    assert seen["1"] > 0.9 and seen["2"] == 0.0  # drone 2 never sees the target (sees_target: false)
+
+
+def test_the_ideal_rig_is_the_paper_world_exact_cameras_no_safety() -> None:
+    m = load_mission(EXPERIMENT, rig="ideal")
+    assert m.backend == "sim_ideal" and not m.safety.enabled and m.rig == "ideal"
+    assert all(d.camera is not None and d.camera.calibration is None for d in m.drones)
+    m = load_mission(EXPERIMENT)  # the experiment's own default rig
+    assert m.rig == "lab-sim" and m.safety.enabled
+    assert all(Path(str(d.camera.calibration)).is_file() for d in m.drones if d.camera)
+
+
+def test_one_lab_file_validates_on_its_own_and_with_the_experiment(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    lab = MISSION_CONFIGS / "rigs" / "lab.yaml"
+    assert main(["validate", str(lab)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["backend"] == "tello" and "hardware" in summary["sections"] and summary["drones"] == [1, 2]
+    assert main(["validate", "paper_experiment", "--rig", str(lab)]) == 0
+    resolved = json.loads(capsys.readouterr().out)
+    assert resolved["hardware"]["mocap"]["system"] == "optitrack"
+
+
+@pytest.mark.parametrize(
+    ("edit", "expected"),
+    [
+        (lambda r: r["hardware"]["mocap"].update(system="kinect"), "hardware.mocap.system"),
+        (lambda r: r.update(gains={"k_s": 1.0}), "gains: unknown key (belongs in the experiment file)"),
+        (lambda r: r["safety"].update(enabled=False), "safety.enabled: false only on the ideal rig"),
+        (lambda r: r["drones"][0].update(camera="cameras/missing.yaml"), "drones.0.camera: file not found"),
+        (lambda r: r["hardware"]["drones"][0].update(ip="lab-drone"), "hardware.drones.0.ip"),
+    ],
+)
+def test_a_bad_lab_file_exits_2_naming_the_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], edit, expected: str
+) -> None:
+    rig = yaml.safe_load((MISSION_CONFIGS / "rigs" / "lab.yaml").read_text())
+    for d in rig["drones"]:  # absolute: the copy lives elsewhere
+        d["camera"] = str((MISSION_CONFIGS / "rigs" / d["camera"]).resolve())
+    edit(rig)
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(rig))
+    assert main(["validate", str(path)]) == 2
+    assert expected in capsys.readouterr().err
+
+
+def test_an_experiment_refuses_what_belongs_to_the_rig(tmp_path: Path) -> None:
+    exp = yaml.safe_load(EXPERIMENT.read_text())
+    exp["safety"] = {"enabled": False}  # safety-off belongs to the ideal rig, never to an experiment
+    exp["drones"][0]["camera"]["calibration"] = "x.yaml"
+    path = tmp_path / "exp.yaml"
+    path.write_text(yaml.safe_dump(exp))
+    with pytest.raises(MissionError) as err:
+        load_mission(path)
+    assert "safety: unknown key (belongs in the rig file)" in str(err.value)
+    assert "drones.0.camera.calibration: unknown key (the calibration belongs in the rig file)" in str(
+        err.value
+    )
+
+
+def test_a_rig_without_a_calibration_for_a_mount_says_which(tmp_path: Path) -> None:
+    rig = yaml.safe_load((MISSION_CONFIGS / "rigs" / "lab-sim.yaml").read_text())
+    del rig["cameras"]["forward"]
+    rig["cameras"]["down"] = str(MISSIONS / "cameras" / "tello_down_sim.yaml")
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(rig))
+    with pytest.raises(MissionError, match=r"cameras.forward: drone 2 .* has a forward camera"):
+        load_mission(EXPERIMENT, rig=path)
+
+
+def test_the_paper_simulation_needs_cameras_for_a_lab_rig() -> None:
+    with pytest.raises(MissionError, match=re.escape("needs `camera: {mount: down|forward}`")):
+        load_mission("paper_sim", rig="lab-sim")
+
+
+def test_old_single_files_load_with_a_warning_and_migrate_splits_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    resolved = resolved_document(EXPERIMENT)
+    single = {k: v for k, v in resolved.items() if k not in ("rig", "start_emulators")}  # the old format
+    old = tmp_path / "old.yaml"
+    old.write_text(yaml.safe_dump(single, sort_keys=False))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        m_old = load_mission(old)
+    assert any(issubclass(w.category, DeprecationWarning) and "migrate" in str(w.message) for w in caught)
+    assert main(["migrate", str(old), "--out", str(tmp_path / "new")]) == 0
+    capsys.readouterr()
+    exp_path = tmp_path / "new" / "paper_experiment.yaml"
+    rig_path = tmp_path / "new" / "paper_experiment_rig.yaml"
+    assert yaml.safe_load(exp_path.read_text())["rig"] == "paper_experiment_rig.yaml"
+    assert yaml.safe_load(rig_path.read_text())["backend"] == "sim_lab"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the migrated pair loads without a deprecation warning
+        m_new = load_mission(exp_path)
+    a, b = mission_to_dict(m_old), mission_to_dict(m_new)
+    assert b.pop("rig") == "paper_experiment_rig" and a.pop("rig") == ""
+    assert a == b  # the same mission, split in two
+
+
+def test_split_keeps_every_key_somewhere() -> None:
+    resolved = resolved_document(EXPERIMENT, "lab")
+    exp, rig = split(resolved, "lab_copy")
+    for key in resolved:
+        assert key in exp or key in rig or key in ("rig", "start_emulators", "backend"), key
+    assert "hardware" in rig and "hardware" not in exp
+
+
+def test_built_in_names_work_from_any_directory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    m = load_mission("paper_sim")
+    assert m.rig == "ideal" and len(m.drones) == 3
+    with pytest.raises(MissionError, match="not a built-in experiment"):
+        load_mission("paper_simulation")
