@@ -32,6 +32,7 @@ from flightstack.comms.operator_link import (
     signed_datagram,
 )
 from flightstack.config.mission import MissionError, load_mission
+from flightstack.config.rig import resolved_document
 from flightstack.runtime.runner import OperatorAbortError, _check_operator
 from tests.conftest import MISSIONS, REPO
 
@@ -163,9 +164,9 @@ def test_inproc_bus_on_hardware_yields_the_abort_to_the_runner(tmp_path: Path) -
     port = free_udp_port()
     nocerts = {"bus": {"operator_port": port, "certs": str(tmp_path / "none")}}
     with pytest.raises(MissionError, match=r"bus\.certs: .*none/ca\.pem: cannot read"):
-        make_bus(load_mission(MISSIONS / "paper_experiment.yaml", nocerts), "agents", {1, 2})
+        make_bus(load_mission(MISSIONS / "paper_experiment.yaml", nocerts, rig="lab"), "agents", {1, 2})
     bus_spec = {"operator_port": port, "certs": str(tmp_path / "certs")}
-    mission = load_mission(MISSIONS / "paper_experiment.yaml", {"bus": bus_spec})
+    mission = load_mission(MISSIONS / "paper_experiment.yaml", {"bus": bus_spec}, rig="lab")
     create_mission_certs(mission.name, [1, 2], tmp_path / "certs")
     assert not mission.simulated and mission.bus.kind == "inproc"
     bus = make_bus(mission, "agents", {1, 2})
@@ -189,10 +190,10 @@ def test_inproc_bus_on_hardware_yields_the_abort_to_the_runner(tmp_path: Path) -
 def test_operator_port_default_and_validation() -> None:
     p = default_operator_port("paper_experiment")
     assert 20000 <= p < 30000 and p == default_operator_port("paper_experiment")
-    assert operator_port(load_mission(MISSIONS / "paper_experiment.yaml")) == p
+    assert operator_port(load_mission(MISSIONS / "paper_experiment.yaml", rig="lab")) == p
     for bad in (80, 70000, "x"):
         with pytest.raises(MissionError, match="operator_port"):
-            load_mission(MISSIONS / "paper_experiment.yaml", {"bus": {"operator_port": bad}})
+            load_mission(MISSIONS / "paper_experiment.yaml", {"bus": {"operator_port": bad}}, rig="lab")
 
 
 def test_abort_with_nobody_listening_names_every_agent(
@@ -210,7 +211,7 @@ def test_abort_with_nobody_listening_names_every_agent(
 
 def _mission_file(tmp: Path, port: int) -> Path:
     """paper_sim on the in-process bus with a loopback operator port (a simulated run listens too)."""
-    m = yaml.safe_load((MISSIONS / "paper_sim.yaml").read_text())
+    m = resolved_document("paper_sim")
     m["bus"] = {"kind": "inproc", "operator_port": port}
     m["compare_modes"] = ["none"]
     path = tmp / "mission.yaml"
@@ -273,7 +274,7 @@ def test_abort_names_the_agent_that_did_not_acknowledge(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Agents 1 and 2 on the bus, agent 3 absent: exit 1 naming 3; with 3 there: exit 0."""
-    m = yaml.safe_load((MISSIONS / "paper_sim.yaml").read_text())
+    m = resolved_document("paper_sim")
     endpoints = dict(zip(("1", "2", "3"), free_loopback_endpoints(3), strict=True))
     m["bus"] = {"kind": "zenoh", "zenoh": {"endpoints": endpoints, "lease_ms": 500, "security": "plaintext"}}
     path = tmp_path / "mission.yaml"

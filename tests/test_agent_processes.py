@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from flightstack.comms.factory import free_loopback_endpoints
+from flightstack.config.rig import resolved_document
 from flightstack.faults.rows_processes import IDS, ServedRun, served_mission
 from tests.conftest import MISSIONS, REPO
 
@@ -62,7 +63,7 @@ def test_status_then_abort_lands_everyone(tmp_path: Path) -> None:
 def test_served_lab_streams_camera_images(tmp_path: Path) -> None:
     """The simulated lab served to two agent processes: rendered camera images go through Zenoh, the
     observing drone extracts the markers from them and pursues; both drones land."""
-    m = yaml.safe_load((MISSIONS / "paper_experiment_sim.yaml").read_text())
+    m = resolved_document("paper_experiment")
     m["duration_s"] = 3.0
     names = ("world", "1", "2")
     endpoints = dict(zip(names, free_loopback_endpoints(3), strict=True))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -105,6 +106,7 @@ forged = st.builds(
 )
 
 
+@pytest.mark.system  # long (emulator or fuzzing): the system tier
 @settings(max_examples=1500)
 @given(st.lists(forged, max_size=20), st.integers(0, 40), st.sampled_from(["stamps", "receiver"]))
 def test_no_forged_stream_locks_out_the_real_sender(bad: list[bytes], start: int, base: str) -> None:

@@ -184,9 +184,9 @@ def test_clock_drift_within_the_bound_is_tracked(ppm: float, dropped: bool) -> N
 
 
 def test_hardware_missions_use_the_receiver_time_base(tmp_path: Path) -> None:
-    hw_name = load_mission(MISSIONS / "paper_experiment.yaml").name
+    hw_name = load_mission(MISSIONS / "paper_experiment.yaml", rig="lab").name
     bus = secured_bus(tmp_path / "certs", hw_name, [1, 2], ("agents",))
-    hw = load_mission(MISSIONS / "paper_experiment.yaml", {"bus": bus})
+    hw = load_mission(MISSIONS / "paper_experiment.yaml", {"bus": bus}, rig="lab")
     plain = {"endpoints": {"agents": free_loopback_endpoints()[0]}, "security": "plaintext"}
     sim = load_mission(MISSIONS / "paper_sim.yaml", {"bus": {"kind": "zenoh", "zenoh": plain}})
     assert zenoh_bus_config(hw, "agents", {1, 2}).time_base == "receiver"

@@ -9,7 +9,7 @@ the rotation is scaled with it. Everything else is the stack's own code.
 Frames: the rover emulator integrates in its own local NED frame starting at the origin; `pose_flu()` gives
 x forward, y left, yaw counter-clockwise. The mocap world pose is that pose composed with a fixed world
 offset that puts the start at the square's corner (-0.5, -0.5), θ = 0, as mission_configs/
-paper_experiment_sim.yaml's target initial pose.
+paper_experiment.yaml's target initial pose.
 """
 
 from __future__ import annotations

@@ -31,6 +31,7 @@ import yaml
 
 from flightstack.comms.control import ControlEvent
 from flightstack.config.mission import load_mission
+from flightstack.config.rig import resolved_document
 from flightstack.drivers.guard import Guard
 from flightstack.drivers.guardian_process import Log
 from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port, wait_until
@@ -145,7 +146,7 @@ def stop(proc: subprocess.Popen[str]) -> None:
 
 def write_mission(tmp: Path, emus: dict[int, TelloEmulator], state_port: int) -> Path:
     """The shipped hardware mission re-pointed at the emulators: station topology, Zenoh on loopback."""
-    m = yaml.safe_load((REPO / "mission_configs" / "paper_experiment.yaml").read_text())
+    m = resolved_document("paper_experiment", "lab")
     m["name"] = f"guard_{tmp.name}"[:60]
     cal = REPO / "mission_configs" / "cameras" / "tello_down_template.yaml"
     for d in m["drones"]:
@@ -351,6 +352,6 @@ def test_guard_stops_sending_when_the_agent_is_back(lab: dict[str, Any]) -> None
 def test_guard_refuses_access_point_topology(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from flightstack.cli.app import main
 
-    assert main(["guard", str(REPO / "mission_configs" / "paper_experiment.yaml")]) == 2
+    assert main(["guard", str(REPO / "mission_configs" / "paper_experiment.yaml"), "--rig", "lab"]) == 2
     err = capsys.readouterr().err
     assert "hardware.topology is 'access_point'" in err and "topology: station" in err

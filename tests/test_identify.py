@@ -169,6 +169,7 @@ TRUTH = {"x": 0.01, "y": 0.01, "z": 0.01, "yaw": math.radians(1.0)}  # per rc un
 TRUE_TAU_S = 0.1
 
 
+@pytest.mark.system  # long (emulator or fuzzing): the system tier
 def test_identify_against_the_emulator() -> None:
     pytest.importorskip("av")
     from flightstack.drivers.tello import TelloDriver

@@ -22,6 +22,7 @@ import yaml
 
 from flightstack.cli import app as cli
 from flightstack.config.mission import Mission, load_mission
+from flightstack.config.rig import resolved_document
 from flightstack.faults.fly import write_run
 from flightstack.paper.metrics import mode_metrics
 from flightstack.recording import run_dir as recorder
@@ -40,7 +41,7 @@ from flightstack.runtime.experiment import resolved_mission_yaml
 from flightstack.runtime.runner import run_mode
 from tests.conftest import MISSIONS, REPO
 
-LAB = MISSIONS / "paper_experiment_sim.yaml"
+LAB = MISSIONS / "paper_experiment.yaml"
 
 
 def _lab(duration_s: float = 2.0) -> Mission:
@@ -66,7 +67,7 @@ def _fake(n_ticks: int, ids: tuple[int, ...] = (1, 2), seed: int = 0) -> Recordi
 
 def _small_sim_mission(tmp_path: Path, duration_s: float = 1.0) -> Path:
     """paper_sim (ideal simulation, 500 Hz) flying mode `none` only for duration_s."""
-    m = yaml.safe_load((MISSIONS / "paper_sim.yaml").read_text())
+    m = resolved_document("paper_sim")
     m.update(duration_s=duration_s, compare_modes=["none"])
     path = tmp_path / "mission.yaml"
     path.write_text(yaml.safe_dump(m))

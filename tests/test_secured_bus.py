@@ -124,22 +124,24 @@ def test_insecure_zenoh_sections_are_refused() -> None:
     load_mission(SIM, {"bus": wide})
     hw_plain = {"kind": "zenoh", "zenoh": {"endpoints": {"1": "tcp/127.0.0.1:7451"}, "security": "plaintext"}}
     with pytest.raises(MissionError, match="real drones fly only on an authenticated bus"):
-        load_mission(MISSIONS / "paper_experiment.yaml", {"bus": hw_plain})
+        load_mission(MISSIONS / "paper_experiment.yaml", {"bus": hw_plain}, rig="lab")
 
 
 def test_preflight_checks_the_certificate_this_computer_needs(tmp_path: Path) -> None:
     from flightstack.drivers.preflight import check_certs
 
     hw = MISSIONS / "paper_experiment.yaml"
-    name = load_mission(hw).name
-    missing = load_mission(hw, {"bus": {"certs": str(tmp_path / "none")}})
+    name = load_mission(hw, rig="lab").name
+    missing = load_mission(hw, {"bus": {"certs": str(tmp_path / "none")}}, rig="lab")
     [row] = check_certs(missing, [1, 2], all_in_one=True)
     assert (row.check, row.status) == ("certificate operator", "FAIL") and "cannot read" in row.detail
     create_mission_certs(name, [1, 2], tmp_path / "soon", days=3)
-    [row] = check_certs(load_mission(hw, {"bus": {"certs": str(tmp_path / "soon")}}), [1, 2], all_in_one=True)
+    [row] = check_certs(
+        load_mission(hw, {"bus": {"certs": str(tmp_path / "soon")}}, rig="lab"), [1, 2], all_in_one=True
+    )
     assert row.status == "WARN" and "(3 days)" in row.detail  # expires within WARN_DAYS
     bus = secured_bus(tmp_path / "certs", name, [1, 2], ("1", "2"))
-    zen = load_mission(hw, {"bus": bus})
+    zen = load_mission(hw, {"bus": bus}, rig="lab")
     assert [(r.check, r.status) for r in check_certs(zen, [1])] == [("certificate agent-1", "PASS")]
     assert [(r.check, r.status) for r in check_certs(zen, [1, 2], all_in_one=True)] == [
         ("certificate agents", "PASS")
