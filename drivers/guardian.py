@@ -63,10 +63,8 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Protocol
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 BEAT, ARM, UNARM, BYE = b".", b"A", b"a", b"B"  # parent -> guardian pipe bytes
 READY = b"ready"
 EXIT_BYE, EXIT_CONFIG, EXIT_DONE, EXIT_GAVE_UP = 0, 2, 10, 11  # guardian exit codes
@@ -214,8 +212,7 @@ class Guardian:
             cfg = dataclasses.replace(cfg, flag_path=path)
         flag = TakeoverFlag.create(cfg.flag_path)
         cfg = dataclasses.replace(cfg, parent_pid=cfg.parent_pid or os.getpid())
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO_ROOT), env.get("PYTHONPATH", "")) if p)
+        env = dict(os.environ)  # the child imports the installed flightstack package
         proc = subprocess.Popen(
             [sys.executable, "-m", "flightstack.drivers.guardian"],
             stdin=subprocess.PIPE,

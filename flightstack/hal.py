@@ -113,12 +113,29 @@ class GroundRobot(Protocol):
 
 @runtime_checkable
 class Backend(Protocol):
-    """Builds the hardware (or simulated) devices of a mission and owns the clock."""
+    """Builds the hardware (or simulated) devices of a mission and owns the clock.
+
+    simulated: True when the clock is virtual (the world advances only while the runner sleeps on it), so
+    after close() the runner keeps the clock going until every drone's own state says GROUND; False on
+    hardware (real time; closing the drivers lands the drones).
+    """
 
     clock: Clock
+    simulated: bool
 
     def drone(self, drone_id: int) -> Drone: ...
     def camera(self, drone_id: int) -> Camera: ...
     def pose_source(self) -> PoseSource: ...
     def target(self) -> GroundRobot | None: ...
+
+    def truth(self) -> tuple[Pose, dict[int, Pose]]:
+        """(g_w0, {id: g_wi}) in Σw now, for metrics and the recording, never for control: the simulator's
+        truth, or on hardware the newest motion-capture poses."""
+        ...
+
+    def heartbeat(self) -> None:
+        """Once per control tick: proves the loop alive to a watchdog (the guardian process on hardware;
+        a no-op in simulation). Raises when the watchdog has taken over (the run must land)."""
+        ...
+
     def close(self) -> None: ...

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flightstack.hal import DroneState, Frame, StampedPose
+from flightstack.hal import DroneState, FlightPhase, Frame, StampedPose
 from flightstack.paper.geometry import Pose, relative
 from flightstack.paper.projection import CameraModel, TargetNotVisibleError, measure
 from flightstack.sim_backend.world import World
@@ -65,6 +65,7 @@ class IdealDrone:
             height_m=float(self.world.drones[self.id].pose.p[2]),
             link_alive=True,
             flying=self.flying,
+            phase=str(FlightPhase.AIRBORNE if self.flying else FlightPhase.GROUND),
         )
 
     def close(self) -> None:
@@ -112,15 +113,23 @@ class TruthPoseSource:
 
 
 class IdealSimBackend:
-    """Backend of the paper's simulation (hal.Backend), plus `truth()` for metrics."""
+    """Backend of the paper's simulation (hal.Backend)."""
+
+    simulated = True
 
     def __init__(
-        self, world: World, dt: float, P0: np.ndarray, cam: CameraModel, sees_target: dict[int, bool]
+        self,
+        world: World,
+        dt: float,
+        P0: np.ndarray,
+        cams: dict[int, CameraModel],
+        sees_target: dict[int, bool],
     ) -> None:
+        """cams: each drone's camera model (focal length, mount extrinsic) by drone id."""
         self.world = world
         self.clock = VirtualClock(world, dt)
         self._drones = {i: IdealDrone(world, i) for i in world.drones}
-        self._cams = {i: IdealCamera(world, i, P0, cam, sees_target.get(i, True)) for i in world.drones}
+        self._cams = {i: IdealCamera(world, i, P0, cams[i], sees_target.get(i, True)) for i in world.drones}
         self._poses = TruthPoseSource(world)
 
     def drone(self, drone_id: int) -> IdealDrone:
@@ -138,6 +147,9 @@ class IdealSimBackend:
     def truth(self) -> tuple[Pose, dict[int, Pose]]:
         """(g_w0, {id: g_wi}) now: sim-only access for metrics, never used by agents."""
         return self.world.target.pose, {i: b.pose for i, b in self.world.drones.items()}
+
+    def heartbeat(self) -> None:
+        """No watchdog in simulation."""
 
     def close(self) -> None:
         for d in self._drones.values():

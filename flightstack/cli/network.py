@@ -18,13 +18,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from flightstack.config.mission import Mission, MissionError, load_mission
+from flightstack.config.types import Mode
 
 if TYPE_CHECKING:
     from flightstack.comms.control import StatusReport
 
 
-def _zenoh_mission(path: str) -> Mission:
-    mission = load_mission(path)
+def _zenoh_mission(path: str, rig: str | None = None) -> Mission:
+    mission = load_mission(path, rig=rig)
     if mission.bus.kind != "zenoh" or mission.bus.zenoh is None:
         raise MissionError(f"{path}: bus.kind: this command needs the zenoh bus (bus.zenoh.endpoints)")
     return mission
@@ -33,7 +34,7 @@ def _zenoh_mission(path: str) -> Mission:
 def cmd_world(args: argparse.Namespace) -> int:
     from flightstack.sim_backend.served.server import WorldServer
 
-    mission = _zenoh_mission(args.mission)
+    mission = _zenoh_mission(args.mission, args.rig)
     server = WorldServer(mission, log=lambda s: print(s, flush=True))
     summary = server.run()
     for e in summary.events:
@@ -48,7 +49,7 @@ def cmd_world(args: argparse.Namespace) -> int:
 
 
 def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
-    if mode == "none":
+    if not Mode(mode).needs_predictor:
         return None
     if mission.gp.experts_file is None:
         raise MissionError(f"gp.experts_file: mode {mode!r} in an agent process needs trained experts")
@@ -58,20 +59,20 @@ def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
 
 
 def cmd_agent(args: argparse.Namespace) -> int:
-    from flightstack.cli.app import _awake_if_flying
+    from flightstack.cli.run import _awake_if_flying
     from flightstack.comms.factory import make_bus
     from flightstack.recording.run_dir import RunWriter, check_out_dir
     from flightstack.recording.timeseries import Recording
     from flightstack.runtime.experiment import ExperimentResult, build_metrics, resolved_mission_yaml
     from flightstack.runtime.runner import run_mode
 
-    mission = _zenoh_mission(args.mission)
+    mission = _zenoh_mission(args.mission, args.rig)
     ids = [d.id for d in mission.drones]
     if args.id not in ids:
         print(f"error: --id {args.id}: the mission's drones are {ids}", file=sys.stderr)
         return 2
     mode = args.mode or mission.compare_modes[-1]
-    if mode == "oracle":  # sim-only truth predictor: it needs the world's truth, which agents do not get
+    if mode == Mode.ORACLE:  # sim-only truth predictor: it needs the world's truth, which agents do not get
         print("error: mode 'oracle' runs in one process only (flightstack sim)", file=sys.stderr)
         return 2
     predictors = _predictors(mission, mode)
@@ -162,7 +163,7 @@ def cmd_abort(args: argparse.Namespace) -> int:
     mission acknowledged, else 1 naming the others."""
     from flightstack.comms.abort import send_abort
 
-    mission = load_mission(args.mission)
+    mission = load_mission(args.mission, rig=args.rig)
     if not (args.timeout >= 0 and math.isfinite(args.timeout)):
         print(f"error: --timeout {args.timeout}: must be a finite number of seconds >= 0", file=sys.stderr)
         return 2
@@ -231,7 +232,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     from flightstack.comms.control import status_report
     from flightstack.comms.factory import make_bus
 
-    mission = _zenoh_mission(args.mission)
+    mission = _zenoh_mission(args.mission, args.rig)
     ids = [d.id for d in mission.drones]
     bus = make_bus(mission, "operator", set())
     statuses: dict[int, tuple[StatusReport, float]] = {}
@@ -268,7 +269,7 @@ def cmd_guard(args: argparse.Namespace) -> int:
     from flightstack.drivers.guard import Guard, guard_refusal
     from flightstack.drivers.guardian_process import Log
 
-    mission = load_mission(args.mission)
+    mission = load_mission(args.mission, rig=args.rig)
     why = guard_refusal(mission)
     if why is not None:
         print(f"error: {why}", file=sys.stderr)
@@ -310,19 +311,23 @@ def cmd_guard(args: argparse.Namespace) -> int:
 def register(sub: Any) -> None:
     w = sub.add_parser("world", help="serve a simulated mission's world to agent processes over Zenoh")
     w.add_argument("mission")
+    w.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     w.set_defaults(func=cmd_world)
     a = sub.add_parser(
         "agent", help="run one agent (its drone, camera, pose) talking to the others over Zenoh"
     )
     a.add_argument("mission")
+    a.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     a.add_argument("--id", type=int, required=True, help="the drone id this process flies")
-    a.add_argument("--mode", choices=["none", "local", "dgp"], help="default: the last of compare_modes")
+    agent_modes = [m.value for m in Mode if m is not Mode.ORACLE]
+    a.add_argument("--mode", choices=agent_modes, help="default: the last of compare_modes")
     a.add_argument("--out", required=True, help="directory for this agent's recording")
     a.set_defaults(func=cmd_agent)
     ab = sub.add_parser(
         "abort", help="make every agent of a mission land at once; exit 1 naming any that did not ack"
     )
     ab.add_argument("mission")
+    ab.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     ab.add_argument("--reason", default="operator abort")
     ab.add_argument(
         "--timeout",
@@ -335,6 +340,7 @@ def register(sub: Any) -> None:
     ab.set_defaults(func=cmd_abort)
     st = sub.add_parser("status", help="live table of every agent: liveliness, message age, battery, ...")
     st.add_argument("mission")
+    st.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     st.add_argument("--once", action="store_true", help="print one table when every agent reported, exit")
     st.add_argument("--wait", type=float, default=3.0, help="with --once: longest wait for reports (s)")
     st.add_argument("--duration", type=float, default=math.inf, help="stop after this long (s)")
@@ -344,6 +350,7 @@ def register(sub: Any) -> None:
         help="land the Tello of any agent that vanishes from the bus in flight (station topology only)",
     )
     gd.add_argument("mission")
+    gd.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     gd.add_argument("--duration", type=float, default=math.inf, help="stop watching after this long (s)")
     gd.add_argument(
         "--status-fresh",

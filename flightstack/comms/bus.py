@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from flightstack.comms.acceptance import AcceptanceBounds
 from flightstack.comms.control import ControlEvent
@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     from flightstack.comms.operator_link import LoopbackOperatorListener
 
 
-class Bus(Protocol):
+class PredictionBus(Protocol):
     """Publish own predictions; read the newest valid message of each neighbour."""
 
     @property
@@ -31,6 +31,36 @@ class Bus(Protocol):
     def publish_raw(self, data: bytes) -> None: ...
     def latest(self, sender: int, now: float, stale_after: float) -> PredictionMessage | None: ...
     def close(self) -> None: ...
+
+
+class LockstepBus(Protocol):
+    """Waiting for neighbours (agents in other processes on a virtual clock).
+
+    Both return the senders still missing after at most `timeout_s` seconds (wall clock); an in-process
+    bus returns an empty set at once (every agent is in this process; a message is readable as soon as it
+    is published)."""
+
+    def wait_alive(self, senders: set[int], timeout_s: float) -> set[int]: ...
+    def wait_for_stamp(self, senders: set[int], stamp: float, timeout_s: float) -> set[int]: ...
+
+
+class OperatorChannel(Protocol):
+    """The operator's side of a mission (flightstack/comms/control.py): aborts in, status out.
+
+    control_events: the operator commands received since the last call, oldest first (drained).
+    publish_control: a status report for `flightstack status` / `guard` (no-op where nobody can read it).
+    presence_events: (time.monotonic() s, sender, "joined" | "left") of the agents seen on the network.
+    """
+
+    def control_events(self) -> list[ControlEvent]: ...
+    def publish_control(self, kind: str, payload: dict[str, Any]) -> None: ...
+
+    @property
+    def presence_events(self) -> list[tuple[float, int, str]]: ...
+
+
+class Bus(PredictionBus, LockstepBus, OperatorChannel, Protocol):
+    """Everything the runner uses of a bus; InProcBus and flightstack.comms.zenoh_bus.ZenohBus are two."""
 
 
 class InProcBus:
@@ -90,6 +120,22 @@ class InProcBus:
     def control_events(self) -> list[ControlEvent]:
         """Operator commands (aborts) received since the last call, oldest first (drained)."""
         return [] if self.operator is None else self.operator.control_events()
+
+    def publish_control(self, kind: str, payload: dict[str, Any]) -> None:
+        """No-op: the loopback operator listener only receives (nobody reads an in-process status)."""
+
+    @property
+    def presence_events(self) -> list[tuple[float, int, str]]:
+        """Always empty: every agent is in this process."""
+        return []
+
+    def wait_alive(self, senders: set[int], timeout_s: float) -> set[int]:
+        """Every agent is in this process: none missing."""
+        return set()
+
+    def wait_for_stamp(self, senders: set[int], stamp: float, timeout_s: float) -> set[int]:
+        """Lock-step already: a message is readable as soon as it is published."""
+        return set()
 
     def close(self) -> None:
         self._book.newest.clear()

@@ -17,8 +17,9 @@ from typing import Protocol
 
 import numpy as np
 
-from flightstack.comms.bus import Bus
+from flightstack.comms.bus import PredictionBus
 from flightstack.comms.messages import PredictionMessage
+from flightstack.config.types import Mode
 from flightstack.hal import Camera, Drone, Frame, PoseSource
 from flightstack.paper.control import (
     Gains,
@@ -87,11 +88,11 @@ class Agent:
         drone: Drone,
         camera: Camera,
         poses: PoseSource,
-        bus: Bus,
+        bus: PredictionBus,
         predictor: Predictor | None,
         g_bar_w0: Pose,
     ) -> None:
-        if cfg.mode in ("local", "dgp", "oracle") and predictor is None:
+        if Mode(cfg.mode).needs_predictor and predictor is None:
             raise ValueError(f"mode {cfg.mode!r} needs a predictor (GP expert)")
         self.cfg = cfg
         self.drone = drone
@@ -139,7 +140,7 @@ class Agent:
             except TargetNotVisibleError:
                 rec.visible = False
         x = self.g_bar_w.as_vector()
-        if self.predictor is not None and cfg.mode != "none":
+        if self.predictor is not None and cfg.mode != Mode.NONE:
             mu, var = self.predictor.predict_one(x)
             prior = self.predictor.prior_var()
         else:
@@ -184,13 +185,13 @@ class Agent:
                 msgs.append(m)
         rec.neighbours_used = tuple(m.sender for m in msgs)
         c_i = consensus_term(self.g_bar_w, [Pose.from_vector(m.g_bar_w) for m in msgs])
-        if cfg.mode == "dgp":
+        if cfg.mode == Mode.DGP:
             mus = np.vstack([rec.mu_own, *[m.mu for m in msgs]])
             vars_ = np.vstack([rec.var_own, *[m.var for m in msgs]])
             priors = np.vstack([self.predictor.prior_var(), *[m.prior_var for m in msgs]])  # type: ignore[union-attr]
             mu, _ = fuse(mus, vars_, cfg.fusion_rule, priors)
             rec.n_fused = len(msgs) + 1
-        elif cfg.mode in ("local", "oracle"):
+        elif cfg.mode in (Mode.LOCAL, Mode.ORACLE):
             mu = rec.mu_own
             rec.n_fused = 1
         else:

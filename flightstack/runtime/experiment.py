@@ -17,6 +17,7 @@ import numpy as np
 import yaml
 
 from flightstack.config.mission import Mission, mission_to_dict
+from flightstack.config.types import Mode
 from flightstack.paper.control import Gains
 from flightstack.paper.gain_analysis import gain_condition, region_samples
 from flightstack.paper.geometry import Pose
@@ -72,7 +73,7 @@ def run_experiment(
     wall0 = time.perf_counter()
     res = ExperimentResult()
     n_ticks = round(mission.duration_s / mission.dt_s)
-    needs_gp = any(m in ("local", "dgp") for m in mission.compare_modes)
+    needs_gp = any(Mode(m).uses_gp for m in mission.compare_modes)
     if needs_gp and mission.gp.experts_file is not None:
         res.experts = load_experts(mission.resolve(mission.gp.experts_file))
         missing = {d.id for d in mission.drones} - set(res.experts)
@@ -81,7 +82,7 @@ def run_experiment(
         needs_gp = False  # trained already: no data run needed
     order = list(mission.compare_modes)
     if needs_gp:
-        order = ["none"] + [m for m in order if m != "none"]
+        order = [Mode.NONE.value] + [m for m in order if m != Mode.NONE]
 
     def prog(mode: str) -> Callable[[int], None] | None:
         return progress_factory(mode, n_ticks) if progress_factory else None
@@ -89,9 +90,9 @@ def run_experiment(
     gp_info: dict[str, object] = {}
     for mode in order:
         predictors = None
-        if mode in ("local", "dgp"):
+        if Mode(mode).uses_gp:
             predictors = res.experts
-        elif mode == "oracle":
+        elif mode == Mode.ORACLE:
             prm = DuffingParams(**mission.target.duffing.model_dump())
             predictors = {d.id: TruthPredictor(prm) for d in mission.drones}
         writer = (
@@ -103,7 +104,7 @@ def run_experiment(
             res.interrupted = rec.interrupted
             res.error = rec.error
             break
-        if mode == "none" and needs_gp:
+        if mode == Mode.NONE and needs_gp:
             t0 = time.perf_counter()
             try:
                 res.datasets = collect_datasets(mission, rec, mission.seed)
@@ -189,7 +190,7 @@ def resolved_mission_yaml(mission: Mission) -> str:
     """The mission as YAML with absolute file paths, so that it loads from the run directory."""
     resolved = mission_to_dict(mission)
     for d in resolved["drones"]:
-        if d.get("camera"):
+        if d.get("camera") and d["camera"].get("calibration"):
             d["camera"]["calibration"] = str(mission.resolve(d["camera"]["calibration"]))
     if resolved["gp"].get("experts_file"):
         resolved["gp"]["experts_file"] = str(mission.resolve(resolved["gp"]["experts_file"]))

@@ -25,41 +25,35 @@ from typing import Any
 
 import numpy as np
 
-from flightstack.comms.bus import Bus
+from flightstack.comms.bus import Bus, OperatorChannel, PredictionBus
 from flightstack.comms.factory import make_bus
-from flightstack.config.mission import CAMERA_MOUNTS, Mission
-from flightstack.hal import Drone
+from flightstack.config.mission import Mission
+from flightstack.hal import Backend, Clock, Drone
 from flightstack.paper.control import Gains
 from flightstack.paper.geometry import compose, inverse
-from flightstack.paper.projection import CameraModel
-from flightstack.paper.target_law import SquareLaw
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.agent import Agent, AgentConfig, Predictor
 from flightstack.runtime.backends import build_backend
+from flightstack.runtime.phases import (
+    LAND_TIMEOUT_S,
+    TAKEOFF_TIMEOUT_S,
+    TargetDriver,
+    advance_until,
+    settle_virtual_landing,
+)
 from flightstack.safety import EventLog, SafeDrone, SafetyLimits
 from flightstack.safety.supervisor import MissionSupervisor
 from flightstack.vision.camera_file import load_calibration
 
 _log = logging.getLogger(__name__)
-TAKEOFF_TIMEOUT_S = 25.0  # > the Tello driver's own 20 s bound, so its outcome is collected first
-LAND_TIMEOUT_S = 20.0  # > the Tello's own 15 s auto-land, so a drone that lost its link is seen down
-
-
-def camera_model(mission: Mission, index: int) -> CameraModel:
-    """The observer's camera model of drone `index`: λ and the mount extrinsic (normalised image for
-    image-based cameras, whose features come from flightstack.vision.markers in normalised coordinates)."""
-    d = mission.drones[index]
-    if d.camera is None:
-        return CameraModel(focal_length=mission.camera.focal_length)
-    return CameraModel(1.0, CAMERA_MOUNTS[d.camera.mount].copy(), np.array(d.camera.offset, dtype=float))
 
 
 def make_agents(
     mission: Mission,
     mode: str,
-    backend: Any,
+    backend: Backend,
     drones: dict[int, Drone],
-    bus: Bus,
+    bus: PredictionBus,
     predictors: dict[int, Predictor] | None,
     agent_ids: list[int] | None = None,
 ) -> list[Agent]:
@@ -78,13 +72,15 @@ def make_agents(
             body_name=f"drone{d.id}",
             g_d=d.desired_pose.pose(),
             P0=P0,
-            camera=camera_model(mission, k),
+            camera=mission.camera_model(k),
             gains=gains,
             mode=mode,
             fusion_rule=mission.gp.fusion,
             neighbour_ids=tuple(ids[j] for j in mission.neighbours(k)),
             stale_after=mission.bus.stale_after_s,
-            calibration=None if d.camera is None else load_calibration(mission.resolve(d.camera.calibration)),
+            calibration=None
+            if d.camera is None or d.camera.calibration is None
+            else load_calibration(mission.resolve(d.camera.calibration)),
             max_frame_age_s=math.inf if mission.hardware is None else mission.hardware.max_frame_age_s,
         )
         # ḡ_w,i(0) = g_w0(0) g_e(0)⁻¹; on sim_lab reset at pursuit start from the drone's own pose
@@ -140,40 +136,6 @@ class SafetyTickTimer:
         }
 
 
-class TargetDriver:
-    """Drives the ground robot on the paper's square law from its motion-capture pose (sim_lab)."""
-
-    def __init__(self, mission: Mission, backend: Any) -> None:
-        sq = mission.target.square
-        self.law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, mission.target.initial_pose.theta)
-        self.robot = backend.target()
-        self.poses = backend.pose_source()
-
-    def tick(self, t_mission: float) -> None:
-        own = self.poses.latest("target")
-        if own is None or self.robot is None:
-            return
-        self.robot.send_body_velocity(self.law.command(t_mission, own.pose))
-
-    def stop(self) -> None:
-        if self.robot is not None:
-            self.robot.stop()
-
-
-def _advance_until(
-    clock: Any, done: Callable[[], bool], timeout: float, step: float, each: Callable[[], None] | None = None
-) -> bool:
-    """Advance the clock in steps until done() or timeout (s); True if done."""
-    t_end = clock.now() + timeout
-    while not done():
-        if clock.now() >= t_end:
-            return False
-        if each is not None:
-            each()
-        clock.sleep_until(clock.now() + step)
-    return True
-
-
 class OperatorAbortError(Exception):
     """`flightstack abort` was received: land every drone now."""
 
@@ -184,8 +146,8 @@ def run_mode(
     predictors: dict[int, Predictor] | None = None,
     progress: Callable[[int], None] | None = None,
     *,
-    backend: Any = None,
-    bus: Any = None,
+    backend: Backend | None = None,
+    bus: Bus | None = None,
     agent_ids: list[int] | None = None,
     writer: Any = None,
 ) -> Recording:
@@ -210,7 +172,7 @@ def run_mode(
                 bus.close()
             raise
     try:  # setup; on failure nothing took off: close what is connected (an armed robot, video, mocap)
-        lockstep = hasattr(bus, "wait_for_stamp") and mission.simulated
+        lockstep = mission.simulated
         zspec = mission.bus.zenoh
         # every agent's message, own ones too: Zenoh loops them back asynchronously
         everyone = sorted(d.id for d in mission.drones)
@@ -244,7 +206,7 @@ def run_mode(
         wall0 = time.perf_counter()
         reason = "mission complete"
         status = StatusPublisher(bus, mode)
-        ticker = SafetyTickTimer(safe, getattr(backend, "heartbeat", None))
+        ticker = SafetyTickTimer(safe, backend.heartbeat)
         signals = _signal_guard(supervisor)
     except BaseException:
         backend.close()
@@ -253,7 +215,7 @@ def run_mode(
         raise
     signals.__enter__()
     try:
-        if hasattr(bus, "wait_alive") and zspec is not None:
+        if zspec is not None:
             missing = bus.wait_alive({d.id for d in mission.drones}, zspec.start_timeout_s)
             if missing:
                 raise RuntimeError(
@@ -272,7 +234,7 @@ def run_mode(
                 raise RuntimeError(f"takeoff failed: {failed}")
 
         airborne = lambda: all(d.state().flying for d in drones.values())  # noqa: E731
-        if not _advance_until(clock, airborne, TAKEOFF_TIMEOUT_S, dt, during_takeoff):
+        if not advance_until(clock, airborne, TAKEOFF_TIMEOUT_S, dt, during_takeoff):
             raise RuntimeError(f"takeoff: not every drone airborne after {TAKEOFF_TIMEOUT_S} s")
         t0 = clock.now()
         if mission.backend != "sim_ideal":
@@ -377,11 +339,10 @@ def run_mode(
         rec.events.extend({"event": "safety", "mode": mode, **e} for e in log.to_dicts())
         rec.wall_seconds = time.perf_counter() - wall0
         rec.bus_dropped = dict(bus.dropped)
-        if hasattr(bus, "presence_events"):
-            rec.events.extend(
-                {"event": "bus presence", "mode": mode, "sender": j, "what": what, "monotonic": tm}
-                for tm, j, what in bus.presence_events
-            )
+        rec.events.extend(
+            {"event": "bus presence", "mode": mode, "sender": j, "what": what, "monotonic": tm}
+            for tm, j, what in bus.presence_events
+        )
         if own_bus:
             bus.close()
         rec.vision_rejections = {str(i): dict(c) for i, c in rejections.items() if c}
@@ -391,10 +352,8 @@ def run_mode(
     return rec if rec.ticks_done == n_ticks and not rec.interrupted else rec.truncated()
 
 
-def _check_operator(bus: Any) -> None:
+def _check_operator(bus: OperatorChannel) -> None:
     """Raise OperatorAbortError when the operator channel carried an abort for this mission."""
-    if not hasattr(bus, "control_events"):
-        return
     for ev in bus.control_events():
         if ev.kind == "abort":
             raise OperatorAbortError(str(ev.payload.get("reason", "abort")))
@@ -406,15 +365,15 @@ class StatusPublisher:
 
     PERIOD_S = 0.5
 
-    def __init__(self, bus: Any, mode: str) -> None:
-        self.bus = bus if hasattr(bus, "publish_control") else None
+    def __init__(self, bus: Bus, mode: str) -> None:
+        self.bus = bus
         self.mode = mode
         self._next = 0.0
 
     def maybe_publish(self, t: float, tick: int, agents: list[Agent], force: bool = False) -> None:
         """Publish if PERIOD_S has passed since the last one (or `force`: the final status after landing)."""
         now = time.monotonic()
-        if self.bus is None or (now < self._next and not force):
+        if now < self._next and not force:
             return
         self._next = now + self.PERIOD_S
         for a in agents:
@@ -449,15 +408,15 @@ def _signal_guard(supervisor: MissionSupervisor | None) -> Any:
 
 
 def _land_everything(
-    backend: Any,
-    clock: Any,
+    backend: Backend,
+    clock: Clock,
     drones: dict[int, Drone],
     supervisor: MissionSupervisor | None,
     target: TargetDriver | None,
     reason: str,
     dt: float,
     ticker: SafetyTickTimer,
-    bus: Any,
+    bus: Bus,
 ) -> None:
     """Land every drone and stop the robot; on a virtual clock also let the landing complete.
 
@@ -472,7 +431,7 @@ def _land_everything(
     if supervisor is not None:
         supervisor.land_all(reason)
         if any(s.background for s in supervisor.drones.values()):
-            _advance_until(
+            advance_until(
                 clock,
                 lambda: all(s.landed for s in supervisor.drones.values()),
                 LAND_TIMEOUT_S,
@@ -480,14 +439,11 @@ def _land_everything(
                 lambda: _quietly(ticker.tick, bus),
             )
     backend.close()  # lands any drone the supervisor did not reach
-    if hasattr(backend, "truth") and getattr(backend, "simulated", True):  # let the virtual landing finish
-        inner = [backend.drone(i) for i in drones]
-        _advance_until(
-            clock, lambda: all(getattr(d, "phase", "ground") == "ground" for d in inner), LAND_TIMEOUT_S, dt
-        )
+    if backend.simulated:  # let the virtual landing finish: each drone's own state says it is down
+        settle_virtual_landing(backend, list(drones), dt)
 
 
-def _quietly(tick: Callable[[bool], None], bus: Any) -> None:
+def _quietly(tick: Callable[[bool], None], bus: OperatorChannel) -> None:
     """One tick while landing; an abort arriving now is already being obeyed (drained; the bus acks it)."""
     tick(False)
     with contextlib.suppress(OperatorAbortError):

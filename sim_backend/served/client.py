@@ -312,6 +312,9 @@ class RemoteBackend:
     def truth(self) -> tuple[Pose, dict[int, Pose]]:
         return truth_poses(self.link.tick(), self.drone_id)
 
+    def heartbeat(self) -> None:
+        """The world watches its agents by their commands; no watchdog here."""
+
     def close(self) -> None:
         """Land (queued for the world); the link stays open so the landing can be followed."""
         self._drone.land()

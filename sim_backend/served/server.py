@@ -7,7 +7,7 @@ process (`flightstack agent MISSION --id N`) sees its own drone, camera and moti
   2. it waits (at most `bus.zenoh.lockstep_timeout_s`) until every present agent has sent its cmd of
      tick k — agents that left the bus (liveliness) are not waited for;
   3. it applies the received hal.Drone calls in order, drives the target (square law on sim_lab, as
-     `runner.TargetDriver`), and advances the world to t_k + dt.
+     `phases.TargetDriver`), and advances the world to t_k + dt.
 Cmds are decoded into validated `WorldCmd`s (world_messages.py: known calls with their exact arguments, a
 body velocity within what a Tello can fly); a malformed cmd, one from an unknown sender or one of a tick
 not yet published is dropped and counted by reason in `WorldSummary.dropped` (printed by `flightstack
@@ -33,8 +33,14 @@ import zenoh
 
 from flightstack.comms.factory import make_bus
 from flightstack.config.mission import Mission
+from flightstack.hal import FlightPhase
 from flightstack.runtime.backends import build_backend
-from flightstack.runtime.runner import LAND_TIMEOUT_S, TAKEOFF_TIMEOUT_S, TargetDriver
+from flightstack.runtime.phases import (
+    LAND_TIMEOUT_S,
+    TAKEOFF_TIMEOUT_S,
+    TargetDriver,
+    settle_virtual_landing,
+)
 from flightstack.sim_backend.served import messages as wm
 
 
@@ -156,7 +162,7 @@ class WorldServer:
                 float(st.height_m),
                 bool(st.link_alive),
                 bool(st.flying),
-                str(getattr(d, "phase", "flying" if st.flying else "ground")),
+                str(st.phase),
             )
             rows = {
                 b: row for b in (f"drone{i}", "target") if (row := _pose_row(poses.latest(b))) is not None
@@ -202,7 +208,8 @@ class WorldServer:
                 self.summary.events.append(f"t = {t:.3f} s: agent {i} left the bus; its drone lands")
                 self.log(f"agent {i} left at t = {t:.3f} s: landing drone {i}")
                 d.send_body_velocity(np.zeros(4))
-                if d.state().flying or getattr(d, "phase", "ground") != "ground":
+                st = d.state()
+                if st.flying or st.phase != FlightPhase.GROUND:
                     d.land()
 
     def run(self) -> WorldSummary:
@@ -246,14 +253,8 @@ class WorldServer:
         return self.summary
 
     def _land_all(self, dt: float) -> None:
-        clock = self.backend.clock
         self.backend.close()  # lands every drone, stops the robot
-        t_end = clock.now() + LAND_TIMEOUT_S
-        drones = [self.backend.drone(i) for i in self.ids]
-        while clock.now() < t_end and any(getattr(d, "phase", "ground") != "ground" for d in drones):
-            clock.sleep_until(clock.now() + dt)
-        for i, d in zip(self.ids, drones, strict=True):
-            self.summary.landed[i] = getattr(d, "phase", "ground") == "ground"
+        self.summary.landed.update(settle_virtual_landing(self.backend, self.ids, dt))
 
     def _close(self) -> None:
         for obj in (self._sub, *self._pubs.values()):

@@ -1,0 +1,66 @@
+"""The parts of a flight that the runner and the served world share: the bounded waits of takeoff and
+landing on a clock, and the driver of the ground robot's square law.
+
+Times in seconds on the backend's clock (virtual in simulation, so a wait integrates the world).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from flightstack.config.mission import Mission
+from flightstack.hal import Backend, Clock, FlightPhase
+from flightstack.paper.target_law import SquareLaw
+
+TAKEOFF_TIMEOUT_S = 25.0  # > the Tello driver's own 20 s bound, so its outcome is collected first
+LAND_TIMEOUT_S = 20.0  # > the Tello's own 15 s auto-land, so a drone that lost its link is seen down
+
+
+class TargetDriver:
+    """Drives the ground robot on the paper's square law from its motion-capture pose (sim_lab)."""
+
+    def __init__(self, mission: Mission, backend: Backend) -> None:
+        sq = mission.target.square
+        self.law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, mission.target.initial_pose.theta)
+        self.robot = backend.target()
+        self.poses = backend.pose_source()
+
+    def tick(self, t_mission: float) -> None:
+        own = self.poses.latest("target")
+        if own is None or self.robot is None:
+            return
+        self.robot.send_body_velocity(self.law.command(t_mission, own.pose))
+
+    def stop(self) -> None:
+        if self.robot is not None:
+            self.robot.stop()
+
+
+def advance_until(
+    clock: Clock,
+    done: Callable[[], bool],
+    timeout: float,
+    step: float,
+    each: Callable[[], None] | None = None,
+) -> bool:
+    """Advance the clock in steps until done() or timeout (s); True if done."""
+    t_end = clock.now() + timeout
+    while not done():
+        if clock.now() >= t_end:
+            return False
+        if each is not None:
+            each()
+        clock.sleep_until(clock.now() + step)
+    return True
+
+
+def settle_virtual_landing(backend: Backend, ids: list[int], dt: float) -> dict[int, bool]:
+    """After backend.close() on a virtual clock: advance it (steps of dt s, at most LAND_TIMEOUT_S) until
+    every drone's own state says GROUND. Returns {id: on the ground}."""
+    drones = {i: backend.drone(i) for i in ids}
+
+    def grounded(i: int) -> bool:
+        return drones[i].state().phase == FlightPhase.GROUND
+
+    advance_until(backend.clock, lambda: all(grounded(i) for i in ids), LAND_TIMEOUT_S, dt)
+    return {i: grounded(i) for i in ids}
