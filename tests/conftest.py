@@ -10,6 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
@@ -23,6 +24,55 @@ settings.register_profile(
 settings.load_profile("flightstack")
 
 REPO = Path(__file__).resolve().parents[1]
+
+# Test tiers (pyproject.toml registers the markers; README "Tests"). `pytest -m unit` is the fast tier for
+# development (pure functions, in-process simulations, no emulators, no child processes); `system` runs
+# the loopback emulators, agent processes, the fault tables and the CLI end to end. CI runs both. A module
+# is `system` when it is listed here; a single slow test elsewhere carries @pytest.mark.system itself.
+SYSTEM_MODULES = frozenset(
+    {
+        "test_abort",
+        "test_agent_processes",
+        "test_attacker",
+        "test_cli_sim",
+        "test_decoders_property",  # hypothesis fuzzing of every decoder (~25 s)
+        "test_clock_offset",
+        "test_closed_loop_square",
+        "test_driver_threads",
+        "test_emulated_lab",
+        "test_faults",
+        "test_faults_lab",
+        "test_guard",
+        "test_guardian",
+        "test_hardware_mission",
+        "test_keep_awake",
+        "test_lab_sim",
+        "test_mocap",
+        "test_natnet_emulator",
+        "test_recorder",
+        "test_rigs",
+        "test_safety_background",
+        "test_scamper",
+        "test_secured_bus",
+        "test_sim_pursuit",
+        "test_tello_access_point",
+        "test_tello_driver",
+        "test_tello_emulator",
+        "test_zenoh_bus",
+        "test_zenoh_runner",
+    }
+)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Every test is in exactly one tier: `system` (listed module or explicit marker) or `unit`."""
+    for item in items:
+        if item.path.stem in SYSTEM_MODULES or item.get_closest_marker("system") is not None:
+            item.add_marker(pytest.mark.system)
+        else:
+            item.add_marker(pytest.mark.unit)
+
+
 MISSIONS = REPO / "mission_configs"
 
 finite = st.floats(-5.0, 5.0, allow_nan=False, allow_infinity=False)
@@ -42,7 +92,7 @@ def twists(draw: st.DrawFn) -> np.ndarray:
 def run_cli(*args: str, timeout: float = 400) -> subprocess.CompletedProcess:
     """Run `flightstack ARGS` in a subprocess from the repository root (bounded by `timeout` s)."""
     return subprocess.run(
-        [sys.executable, "-m", "flightstack.cli.app", *args],
+        [sys.executable, "-m", "flightstack", *args],
         capture_output=True,
         text=True,
         timeout=timeout,
@@ -60,7 +110,7 @@ def interrupt_cli_sim(
         [
             sys.executable,
             "-m",
-            "flightstack.cli.app",
+            "flightstack",
             "sim",
             str(mission),
             "--out",

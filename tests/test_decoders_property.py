@@ -373,7 +373,7 @@ WORLDS: dict[str, WorldServer] = {}
 
 def worlds() -> list[WorldServer]:
     if not WORLDS:
-        WORLDS.update({f: served_world(f) for f in ("paper_sim.yaml", "paper_experiment_sim.yaml")})
+        WORLDS.update({f: served_world(f) for f in ("paper_sim.yaml", "paper_experiment.yaml")})
     return list(WORLDS.values())
 
 

@@ -121,6 +121,7 @@ def test_bad_calibration_fields_are_named(tmp_path: Path, edit: str, field: str)
         load_calibration(path)
 
 
+@pytest.mark.system  # long (emulator or fuzzing): the system tier
 @settings(max_examples=3000)
 @given(st.binary(max_size=400))
 def test_arbitrary_bytes_load_or_raise_load_error(data: bytes) -> None:
@@ -155,6 +156,7 @@ _SCALARS = st.sampled_from(
 )
 
 
+@pytest.mark.system  # long (emulator or fuzzing): the system tier
 @settings(max_examples=1500)
 @given(st.integers(0, len(_LINES) - 1), st.sampled_from(["delete", "duplicate", "value"]), _SCALARS)
 def test_edited_missions_load_or_raise_mission_error(line: int, how: str, scalar: str) -> None:
@@ -175,6 +177,7 @@ def test_edited_missions_load_or_raise_mission_error(line: int, how: str, scalar
             load_mission(path, check_files=False)
 
 
+@pytest.mark.system  # long (emulator or fuzzing): the system tier
 @settings(max_examples=800)
 @given(st.sampled_from(list(yaml.safe_load(CAL.read_text()))), _SCALARS)
 def test_edited_calibrations_load_or_raise_calibration_error(key: str, scalar: str) -> None:
