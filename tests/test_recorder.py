@@ -25,6 +25,7 @@ from flightstack.config.mission import Mission, load_mission
 from flightstack.config.rig import resolved_document
 from flightstack.faults.fly import write_run
 from flightstack.paper.metrics import mode_metrics
+from flightstack.recording import files
 from flightstack.recording import run_dir as recorder
 from flightstack.recording.run_dir import (
     ROWS_SUFFIX,
@@ -338,7 +339,7 @@ def test_out_is_checked_before_anything_takes_off(
     class Usage:
         free = 10_000_000  # bytes: less than MIN_FREE_BYTES
 
-    monkeypatch.setattr(recorder.shutil, "disk_usage", lambda path: Usage)
+    monkeypatch.setattr(files.shutil, "disk_usage", lambda path: Usage)
     assert cli.main(["sim", str(mission), "--out", str(tmp_path / "run")]) == 2
     assert "only 10.0 MB free" in capsys.readouterr().err
     assert (

@@ -55,7 +55,7 @@ def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
         raise MissionError(f"gp.experts_file: mode {mode!r} in an agent process needs trained experts")
     from flightstack.runtime.training import load_experts
 
-    return load_experts(mission.resolve(mission.gp.experts_file))  # type: ignore[return-value]
+    return load_experts(mission.resolve(mission.gp.experts_file))
 
 
 def cmd_agent(args: argparse.Namespace) -> int:
@@ -78,7 +78,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
     predictors = _predictors(mission, mode)
     assert mission.bus.zenoh is not None
     out = Path(args.out)
-    problem = check_out_dir(out)  # before anything takes off (flightstack.recording.run_dir.MIN_FREE_BYTES)
+    problem = check_out_dir(out)  # before anything takes off (flightstack.recording.files.MIN_FREE_BYTES)
     if problem is not None:
         print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
         return 2
@@ -240,7 +240,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     t_end = time.monotonic() + (args.wait if args.once else args.duration)
     try:
         while True:
-            for ev in bus.control_events():  # type: ignore[attr-defined]
+            for ev in bus.control_events():
                 report = status_report(ev)
                 if report is not None and report.drone in ids:
                     statuses[report.drone] = (report, ev.time)
@@ -285,7 +285,7 @@ def cmd_guard(args: argparse.Namespace) -> int:
     try:
         guard = Guard(
             mission,
-            bus,  # type: ignore[arg-type]
+            bus,
             log,
             status_fresh_s=args.status_fresh,
             land_resend_s=args.land_resend,

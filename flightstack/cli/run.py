@@ -49,7 +49,7 @@ def _progress_factory(bars: list[tqdm]) -> Callable[[str, int], Callable[[int], 
 
 def open_run_dir(out: Path) -> RunWriter | None:
     """The run directory's writer, after checking (before anything takes off) that `out` is writable
-    and has flightstack.recording.run_dir.MIN_FREE_BYTES (50 MB) free; None after printing why not."""
+    and has flightstack.recording.files.MIN_FREE_BYTES (50 MB) free; None after printing why not."""
     from flightstack.recording.run_dir import RunWriter, check_out_dir
 
     problem = check_out_dir(out)

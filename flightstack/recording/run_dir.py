@@ -46,50 +46,60 @@ where tests inject ENOSPC. A run directory must have MIN_FREE_BYTES free before 
 from __future__ import annotations
 
 import contextlib
-import errno
-import json
 import logging
-import math
 import os
 import queue
-import shutil
-import struct
 import threading
 import time
-from collections import Counter
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-import numpy as np
+from flightstack.recording.files import (
+    BLOCK_MAX_ROWS,
+    BLOCK_PERIOD_S,
+    CLOSE_TIMEOUT_S,
+    EVENTS_FILE,
+    FSYNC_PERIOD_S,
+    MAX_PENDING_BYTES,
+    MIN_FREE_BYTES,
+    STATE_FILE,
+    atomic_write_bytes,
+    atomic_write_json,
+    check_out_dir,
+    errno_text,
+    event_line,
+)
+from flightstack.recording.mode_writer import ModeWriter
+from flightstack.recording.rows import MAGIC, ROWS_SUFFIX, STREAM_FIELDS, RowLayout, read_rows
+from flightstack.recording.run_reader import load_run, read_events, read_state, recording_status
+from flightstack.recording.timeseries import Recording
 
-from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
-
-if TYPE_CHECKING:
-    from flightstack.config.mission import Mission
+__all__ = [  # the public face: RunWriter here, the rest re-exported from the modules that hold it
+    "BLOCK_MAX_ROWS",
+    "BLOCK_PERIOD_S",
+    "CLOSE_TIMEOUT_S",
+    "FSYNC_PERIOD_S",
+    "MAGIC",
+    "MAX_PENDING_BYTES",
+    "MIN_FREE_BYTES",
+    "ROWS_SUFFIX",
+    "STREAM_FIELDS",
+    "ModeWriter",
+    "RowLayout",
+    "RunWriter",
+    "atomic_write_bytes",
+    "atomic_write_json",
+    "check_out_dir",
+    "event_line",
+    "load_run",
+    "read_events",
+    "read_rows",
+    "read_state",
+    "recording_status",
+]
 
 _log = logging.getLogger(__name__)
-
-MIN_FREE_BYTES = 50_000_000
-"""Free space (bytes, 50 MB) `--out` must have before takeoff: ~1 min of a 3-drone mission at 500 Hz in
-the row stream, or hours at a hardware rate of 20 Hz, plus the final npz files and the plots."""
-BLOCK_PERIOD_S = 0.5
-"""Wall time (s) after which the rows gathered are handed to the writer thread."""
-BLOCK_MAX_ROWS = 2000
-"""Ticks after which the rows gathered are handed over anyway (simulated clocks run faster than real)."""
-FSYNC_PERIOD_S = 1.0
-"""The writer thread fsyncs a file written to at most this often (s), and at close."""
-MAX_PENDING_BYTES = 64_000_000
-"""Bytes handed to the writer thread and not yet written beyond which the recording stops (a disk that
-does not keep up) rather than letting memory grow."""
-CLOSE_TIMEOUT_S = 60.0
-"""How long (s) closing waits for the writer thread (final npz included) before giving up."""
-MAGIC = b"FSROWS1\n"
-EVENTS_FILE = "events.jsonl"
-STATE_FILE = "recording.json"
-ROWS_SUFFIX = ".rows"
-STREAM_FIELDS = tuple(f for f in ARRAY_FIELDS if f not in ("e_c", "e_e"))
-"""The Recording arrays a ModeWriter streams (e_c and e_e are derived at the end from the poses)."""
 
 
 def _write_bytes(fd: int, data: bytes) -> None:
@@ -99,179 +109,6 @@ def _write_bytes(fd: int, data: bytes) -> None:
     while view:
         n = os.write(fd, view)
         view = view[n:]
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write `path` atomically: a temporary file in the same directory, fsync, os.replace, then fsync of
-    the directory (best effort). Raises OSError; never leaves a partial `path` behind."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-    _fsync_dir(path.parent)
-
-
-def atomic_write_json(path: Path, obj: Any, strict: bool = True) -> None:
-    """`obj` as indented strict JSON, written atomically. strict: a non-finite float raises ValueError
-    (a metric that is NaN is a finding); else it is written as null."""
-    text = json.dumps(obj if strict else _finite(obj), indent=2, allow_nan=False)
-    atomic_write_bytes(path, (text + "\n").encode())
-
-
-def _fsync_dir(d: Path) -> None:
-    with contextlib.suppress(OSError):
-        fd = os.open(d, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def _finite(x: Any) -> Any:
-    """`x` with numpy values as Python ones and non-finite floats as None (strict JSON)."""
-    if isinstance(x, Mapping):
-        return {str(k): _finite(v) for k, v in x.items()}
-    if isinstance(x, list | tuple | set | frozenset):
-        return [_finite(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _finite(x.tolist())
-    if isinstance(x, np.generic):
-        return _finite(x.item())
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if x is None or isinstance(x, bool | int | str):
-        return x
-    return str(x)
-
-
-def event_line(ev: Mapping[str, Any]) -> bytes:
-    """One events.jsonl line (strict JSON, newline-terminated)."""
-    try:
-        text = json.dumps(ev, allow_nan=False)
-    except (TypeError, ValueError):
-        text = json.dumps(_finite(ev), allow_nan=False)
-    return (text + "\n").encode()
-
-
-def check_out_dir(out: Path, min_free_bytes: int = MIN_FREE_BYTES) -> str | None:
-    """None when `out` can hold a run: it is (or is created as) a directory in which a file can be
-    created, written, fsync'ed and removed, on a file system with at least min_free_bytes (B) free;
-    else a sentence saying why not. Call it before anything takes off. Directories it had to create are
-    removed again (a check leaves nothing behind: a refused `fly` writes nothing)."""
-    out = Path(out)
-    created = [p for p in (out, *out.parents) if not p.exists()]
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        return f"cannot create the directory: {exc.strerror or exc}"
-    try:
-        return _probe_out_dir(out, min_free_bytes)
-    finally:
-        for p in created:  # deepest first
-            with contextlib.suppress(OSError):
-                p.rmdir()
-
-
-def _probe_out_dir(out: Path, min_free_bytes: int) -> str | None:
-    probe = out / f".flightstack-write-probe-{os.getpid()}"
-    try:
-        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        try:
-            os.write(fd, b"\0" * 4096)  # not through _write_bytes: that is the recording stream's
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-    except OSError as exc:
-        return f"not writable: {exc.strerror or exc}"
-    finally:
-        with contextlib.suppress(OSError):
-            probe.unlink()
-    free = shutil.disk_usage(out).free
-    if free < min_free_bytes:
-        return (
-            f"only {free / 1e6:.1f} MB free on its file system; a run needs at least "
-            f"{min_free_bytes / 1e6:.0f} MB (flightstack.recording.run_dir.MIN_FREE_BYTES)"
-        )
-    return None
-
-
-class RowLayout:
-    """The fixed-size rows of a row stream: named columns (dtype, per-row shape) plus `_seq`."""
-
-    def __init__(self, columns: Mapping[str, tuple[Any, tuple[int, ...]]], meta: Mapping[str, Any]):
-        """columns: name → (numpy dtype, shape of one row's value); meta: JSON-able facts for readers."""
-        self.columns = {
-            k: (np.dtype(dt).newbyteorder("<"), tuple(shape)) for k, (dt, shape) in columns.items()
-        }
-        self.meta = dict(meta)
-        self.dtype = np.dtype(
-            [("_seq", "<i8")] + [(name, dt, shape) for name, (dt, shape) in self.columns.items()]
-        )
-
-    @staticmethod
-    def of_recording(rec: Recording, fields: Iterable[str] = STREAM_FIELDS) -> RowLayout:
-        """The layout of a Recording's arrays (one row per tick), meta {mode, drone_ids}."""
-        cols = {f: (getattr(rec, f).dtype, getattr(rec, f).shape[1:]) for f in fields}
-        return RowLayout(cols, {"mode": rec.mode, "drone_ids": [int(i) for i in rec.drone_ids]})
-
-    def header(self) -> bytes:
-        """MAGIC, uint32 length, JSON padded to a multiple of 64 bytes."""
-        doc = {
-            "format": "flightstack rows",
-            "version": 1,
-            "columns": [
-                {"name": n, "dtype": dt.str, "shape": list(shape)} for n, (dt, shape) in self.columns.items()
-            ],
-            "meta": _finite(self.meta),
-        }
-        body = json.dumps(doc).encode()
-        total = len(MAGIC) + 4 + len(body) + 1
-        body += b" " * (-total % 64) + b"\n"
-        return MAGIC + struct.pack("<I", len(body)) + body
-
-    def pack(self, arrays: Mapping[str, np.ndarray], first_row: int) -> bytes:
-        """Rows first_row, first_row+1, ... of every column (each array has the same number of rows)."""
-        m = len(next(iter(arrays.values())))
-        block = np.zeros(m, dtype=self.dtype)
-        block["_seq"] = np.arange(first_row + 1, first_row + m + 1)
-        for name in self.columns:
-            block[name] = arrays[name]
-        return block.tobytes()
-
-
-def read_rows(path: Path) -> tuple[dict[str, Any], np.ndarray]:
-    """(meta, rows) of a row stream, also one cut short by a kill: only the leading rows whose `_seq`
-    is their row number + 1 are returned (a torn or zero-filled tail is dropped). `rows` is a numpy
-    structured array; rows[name] is one column, shape (N, *shape). ValueError if not a row stream."""
-    with open(path, "rb") as fh:
-        head = fh.read(len(MAGIC) + 4)
-        if len(head) < len(MAGIC) + 4 or head[: len(MAGIC)] != MAGIC:
-            raise ValueError(f"{path}: not a flightstack row stream")
-        (n,) = struct.unpack("<I", head[len(MAGIC) :])
-        body = fh.read(n)
-        if len(body) < n:
-            raise ValueError(f"{path}: header cut short")
-        doc = json.loads(body)
-        cols = {c["name"]: (c["dtype"], tuple(c["shape"])) for c in doc["columns"]}
-        layout = RowLayout(cols, doc.get("meta", {}))
-        size = os.fstat(fh.fileno()).st_size - len(MAGIC) - 4 - n
-        count = max(size, 0) // layout.dtype.itemsize
-        rows = np.fromfile(fh, dtype=layout.dtype, count=count)
-    ok = rows["_seq"] == np.arange(1, len(rows) + 1)
-    good = len(rows) if ok.all() else int(np.argmin(ok))
-    return layout.meta, rows[:good]
-
-
-def _errno_text(exc: OSError) -> str:
-    name = errno.errorcode.get(exc.errno or 0, "")
-    return f"{exc.strerror or exc}{f' ({name})' if name else ''}"
 
 
 class RunWriter:
@@ -455,7 +292,7 @@ class RunWriter:
                     self._maybe_fsync()
             except OSError as exc:
                 if not always:
-                    self.fail(f"{_errno_text(exc)} writing {getattr(exc, 'filename', None) or self.out}")
+                    self.fail(f"{errno_text(exc)} writing {getattr(exc, 'filename', None) or self.out}")
             except Exception as exc:  # a bug must not kill the thread (drain would wait for ever)
                 _log.exception("recorder job failed")
                 if not always:
@@ -497,7 +334,7 @@ class RunWriter:
         try:
             self._write_state()
         except OSError as exc:
-            _log.error("recording.json not updated: %s", _errno_text(exc))
+            _log.error("recording.json not updated: %s", errno_text(exc))
 
     def _close_files(self) -> None:
         with contextlib.suppress(OSError):
@@ -512,312 +349,3 @@ class RunWriter:
     def _mode_state(self, mode: str, **changes: Any) -> None:
         with self._lock:
             self._state_modes.setdefault(mode, {}).update(changes)
-
-
-class ModeWriter:
-    """Writes one mode's Recording as it is filled (see the module): `append` every tick, `event` for an
-    event that must reach the disk now, `close` at the end. No method raises into the control loop."""
-
-    def __init__(self, run: RunWriter, mode: str, ids: list[int], n_ticks: int) -> None:
-        self.run = run
-        self.mode = mode
-        self.ids = ids
-        self.n_ticks = n_ticks
-        self.closed = False
-        self.rows_written = 0  # rows on disk (updated by the writer thread)
-        self._layout: RowLayout | None = None
-        self._fd: int | None = None
-        self._sent = 0  # rows handed to the writer thread
-        self._last_send = time.monotonic()
-        self._event_cursor = 0  # rec.events[:cursor] were handled
-        self._direct: Counter[bytes] = Counter()  # lines written by event() not yet seen in rec.events
-        self._sources: list[tuple[Callable[[], Iterable[Mapping[str, Any]]], list[int]]] = []
-        self._lock = threading.Lock()
-        self._source_lock = threading.Lock()
-        self.rows_path = run.out / f"timeseries_{mode}{ROWS_SUFFIX}"
-        self.npz_path = run.out / f"timeseries_{mode}.npz"
-
-    # ---- the API ---------------------------------------------------------------------------------
-    def append(self, rec: Recording, upto_tick: int) -> None:
-        """Rows [0, upto_tick) of `rec` are final: hand the new ones to the writer when BLOCK_PERIOD_S of
-        wall time or BLOCK_MAX_ROWS ticks have gathered, and flush the events added to rec.events since
-        the last call (each at once). Call it every tick; it costs ~1 µs when it writes nothing."""
-        try:
-            if len(rec.events) > self._event_cursor:
-                self._sync_events(rec)
-            if self.run._failure is not None:
-                self._report_failure(rec)
-                return
-            few = upto_tick - self._sent < self.run.block_max_rows
-            if few and time.monotonic() - self._last_send < self.run.block_period_s:
-                return
-            self._send_rows(rec, upto_tick)
-        except Exception as exc:  # never into the control loop
-            self.run.fail(f"recorder error: {type(exc).__name__}: {exc}")
-
-    def event(self, ev: Mapping[str, Any]) -> None:
-        """Write one event now (events.jsonl). If the same event is (or later is) in the recording's
-        events, it is written once. Thread-safe; never raises."""
-        try:
-            line = event_line(ev)
-            with self._lock:
-                self._direct[line] += 1
-            self.run._submit(len(line), lambda: self.run._write_event_line(line))
-        except Exception as exc:
-            self.run.fail(f"recorder error: {type(exc).__name__}: {exc}")
-
-    def add_event_source(self, source: Callable[[], Iterable[Mapping[str, Any]]]) -> None:
-        """A thread-safe function returning every event of some log so far (oldest first, append-only,
-        e.g. the safety EventLog as dicts): the writer thread polls it every BLOCK_PERIOD_S (also during
-        takeoff and landing) and at close, and writes each new event once, even if it is added to
-        rec.events later."""
-        self._sources.append((source, [0]))
-
-    def flush(self, rec: Recording | None = None, timeout_s: float = CLOSE_TIMEOUT_S) -> bool:
-        """Hand everything of `rec` gathered so far (rows up to rec.ticks_done, events) to the writer
-        and wait until it is written; False on timeout (s). For tests and checkpoints."""
-        self._poll_sources()
-        if rec is not None:
-            self.append(rec, rec.ticks_done)
-            if self.run._failure is None:
-                self._send_rows(rec, rec.ticks_done)
-        return self.run.drain(timeout_s)
-
-    def close(self, rec: Recording | None = None, *, stream: bool = True) -> None:
-        """End the mode. With `rec` (after landing): its remaining rows and events, then the final
-        timeseries_<mode>.npz (atomic) and its meta in recording.json, then the row stream is removed.
-        Without: the row stream stays as the mode's data (`load_run` reads it). Waits for the writer
-        thread (≤ CLOSE_TIMEOUT_S). stream=False: write no row stream (a whole recording at once).
-        Idempotent; never raises."""
-        if self.closed:
-            return
-        try:
-            self._poll_sources()  # first: an event of a source that is also in rec.events is written once
-            if rec is not None:
-                self._sync_events(rec)
-                if stream and self.run._failure is None:
-                    self._send_rows(rec, rec.ticks_done)
-                self.run.drain()  # a write error of the above is reported in the recording too
-                self._report_failure(rec)
-            final = rec.truncated() if rec is not None else None
-            self.run._submit(0, lambda: self._finish(final), always=True)
-        except Exception as exc:
-            self.run.fail(f"recorder error: {type(exc).__name__}: {exc}")
-        finally:
-            self.closed = True
-        self.run.drain()
-
-    # ---- inside ----------------------------------------------------------------------------------
-    def _send_rows(self, rec: Recording, upto: int) -> None:
-        start = self._sent
-        self._last_send = time.monotonic()
-        if upto <= start:
-            return
-        if self._layout is None:
-            self._layout = RowLayout.of_recording(rec)
-            self._layout.meta["n_ticks"] = self.n_ticks
-            self.run._submit(0, self._open_stream)
-        data = self._layout.pack({f: getattr(rec, f)[start:upto] for f in self._layout.columns}, start)
-        self._sent = upto
-        self.run._submit(len(data), lambda: self._write_rows(data, upto))
-
-    def _start(self) -> None:
-        """In the writer thread: a stale final file or row stream of an earlier run in this directory
-        must not pass for this run's; recording.json names the mode."""
-        self.npz_path.unlink(missing_ok=True)
-        self.rows_path.unlink(missing_ok=True)
-        self.run._write_state()
-
-    def _open_stream(self) -> None:
-        assert self._layout is not None
-        self._fd = os.open(self.rows_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_APPEND, 0o644)
-        self.run._write_stream(self._fd, self._layout.header(), self.rows_path.name)
-
-    def _write_rows(self, data: bytes, upto: int) -> None:
-        if self._fd is None:
-            raise OSError(errno.EBADF, "row stream not open", self.rows_path.name)
-        self.run._write_stream(self._fd, data, self.rows_path.name)
-        self.rows_written = upto
-        self.run._mode_state(self.mode, rows_written=upto)
-
-    def _sync_events(self, rec: Recording) -> None:
-        new = rec.events[self._event_cursor :]
-        self._event_cursor += len(new)
-        for ev in new:
-            line = event_line(ev)
-            with self._lock:
-                if self._direct[line] > 0:
-                    self._direct[line] -= 1
-                    continue
-            self.run._submit(len(line), lambda line=line: self.run._write_event_line(line))
-
-    def _poll_sources(self) -> None:
-        with self._source_lock:
-            self._poll_sources_locked()
-
-    def _poll_sources_locked(self) -> None:
-        for source, cursor in self._sources:
-            try:
-                evs = list(source())
-            except Exception as exc:
-                _log.error("event source failed: %s", exc)
-                continue
-            for ev in evs[cursor[0] :]:
-                self.event(ev)
-            cursor[0] = max(cursor[0], len(evs))
-
-    def _report_failure(self, rec: Recording | None) -> None:
-        """Once per run: a `recording_stopped` event in the recording (and, if the disk still takes it,
-        in events.jsonl)."""
-        run = self.run
-        with run._lock:
-            if run._failure_reported or run._failure is None:
-                return
-            run._failure_reported = True
-        ev: dict[str, Any] = {
-            "t": float(rec.t[rec.ticks_done - 1]) if rec is not None and rec.ticks_done else None,
-            "event": "recording_stopped",
-            "mode": self.mode,
-            "reason": run._failure,
-            "ticks_written": int(self.rows_written),
-            "wall_t": time.time(),
-        }
-        if rec is not None:
-            rec.events.append(ev)
-            self._event_cursor = len(rec.events)
-        line = event_line(ev)
-
-        def best_effort() -> None:
-            with contextlib.suppress(OSError):
-                run._write_event_line(line)
-
-        run._submit(len(line), best_effort, always=True)
-
-    def _finish(self, final: Recording | None) -> None:
-        """In the writer thread: the final npz (also after a failure of the stream: the data in memory
-        is complete, so it is tried), then recording.json."""
-        run = self.run
-        state: dict[str, Any] = {"state": "closed", "rows_written": self.rows_written}
-        if final is not None:
-            state.update(final.meta())
-            try:
-                tmp = self.npz_path.with_name(f".{self.npz_path.name}.tmp{os.getpid()}")
-                try:
-                    with open(tmp, "wb") as fh:
-                        final.save(fh)
-                        fh.flush()
-                        os.fsync(fh.fileno())
-                    os.replace(tmp, self.npz_path)
-                finally:
-                    tmp.unlink(missing_ok=True)
-                _fsync_dir(run.out)
-                state["final"] = self.npz_path.name
-            except OSError as exc:
-                run.fail(f"{_errno_text(exc)} writing {self.npz_path.name}")
-        if self._fd is not None:
-            if self._fd in run._unsynced:
-                run._unsynced.discard(self._fd)
-                if not state.get("final"):  # the row stream stays the mode's data
-                    with contextlib.suppress(OSError):
-                        os.fsync(self._fd)
-            with contextlib.suppress(OSError):
-                os.close(self._fd)
-            self._fd = None
-            if state.get("final"):
-                self.rows_path.unlink(missing_ok=True)
-        run._mode_state(self.mode, **state)
-        run._write_state_quietly()
-
-
-def read_state(run_dir: Path) -> dict[str, Any]:
-    """recording.json of a run directory ({} if absent or unreadable)."""
-    try:
-        doc = json.loads((Path(run_dir) / STATE_FILE).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return {}
-    return doc if isinstance(doc, dict) else {}
-
-
-def read_events(run_dir: Path) -> list[dict[str, Any]]:
-    """The events of events.jsonl, oldest first; a line cut short by a kill is skipped."""
-    path = Path(run_dir) / EVENTS_FILE
-    out: list[dict[str, Any]] = []
-    if not path.is_file():
-        return out
-    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
-        try:
-            ev = json.loads(line)
-        except ValueError:
-            continue
-        if isinstance(ev, dict):
-            out.append(ev)
-    return out
-
-
-def recording_status(run_dir: Path, recs: Mapping[str, Recording] | None = None) -> dict[str, Any]:
-    """{"complete", "reason"} of a run directory's recording, as `RunWriter.status` said when it closed;
-    a run directory whose writer never closed (killed) is incomplete; one written before the recorder
-    existed (no recording.json) is complete if it has a final npz per mode."""
-    doc = read_state(run_dir)
-    if not doc:
-        return {"complete": bool(recs), "reason": None if recs else "no recording found"}
-    if doc.get("state") != "closed":
-        reason = "cut short: the process ended without closing the recording (killed?)"
-        if doc.get("reason") not in (None, "in progress"):
-            reason += f"; before that: {doc['reason']}"
-        return {"complete": False, "reason": reason}
-    return {"complete": bool(doc.get("complete")), "reason": doc.get("reason")}
-
-
-def load_run(run_dir: Path | str, mission: Mission | None = None) -> dict[str, Recording]:
-    """Every mode's Recording of a run directory, in the order flown: from the final
-    timeseries_<mode>.npz when there is one, else from its row stream (a run cut short by a kill, a
-    crash or a full disk), with the facts of recording.json and the events of events.jsonl (an event
-    without a `mode` belongs to the mode of the event before it). For a row stream e_c and e_e are
-    recomputed from the poses when `mission` is given (else zeros), and `error` says the recording was
-    cut short unless its writer closed it."""
-    run_dir = Path(run_dir)
-    state = read_state(run_dir)
-    modes_state: dict[str, dict[str, Any]] = state.get("modes", {}) if isinstance(state, dict) else {}
-    found = {p.name[len("timeseries_") : -len(".npz")] for p in run_dir.glob("timeseries_*.npz")}
-    found |= {
-        p.name[len("timeseries_") : -len(ROWS_SUFFIX)] for p in run_dir.glob(f"timeseries_*{ROWS_SUFFIX}")
-    }
-    order = [m for m in modes_state if m in found] + sorted(found - set(modes_state))
-    recs: dict[str, Recording] = {}
-    for mode in order:
-        st = modes_state.get(mode, {})
-        npz = run_dir / f"timeseries_{mode}.npz"
-        rows_path = run_dir / f"timeseries_{mode}{ROWS_SUFFIX}"
-        if npz.is_file():
-            rec = Recording.load(npz)
-            rec.apply_meta(st)
-        else:
-            try:
-                meta, rows = read_rows(rows_path)
-            except (OSError, ValueError) as exc:
-                _log.error("%s: %s", rows_path, exc)
-                continue
-            ids = [int(i) for i in meta.get("drone_ids", st.get("drone_ids", []))]
-            names = rows.dtype.names or ()
-            rec = Recording.from_columns(mode, ids, {f: rows[f] for f in ARRAY_FIELDS if f in names})
-            rec.apply_meta(st)
-            k = rec.ticks_done
-            if not st.get("wall_seconds") and k > 1:
-                rec.wall_seconds = float(rec.wall_t[k - 1] - rec.wall_t[0])
-            if st.get("state") != "closed" and not rec.error:
-                rec.error = f"recording cut short after {k} ticks (the process ended without closing it)"
-            if mission is not None:
-                desired = {d.id: d.desired_pose.pose().as_vector() for d in mission.drones}
-                if all(i in desired for i in ids):
-                    rec.fill_true_errors(np.array([desired[i] for i in ids]).reshape(len(ids), 4))
-        recs[mode] = rec
-    current = order[0] if order else None
-    for ev in read_events(run_dir):
-        m = ev.get("mode")
-        if isinstance(m, str):
-            current = m
-        target = m if isinstance(m, str) else current
-        if target in recs:
-            recs[target].events.append(ev)
-    return recs

@@ -62,7 +62,7 @@ class Recording:
     wall_seconds: float = 0.0
     interrupted: bool = False
     error: str | None = None
-    events: list[dict[str, object]] = field(default_factory=list)
+    events: list[dict[str, Any]] = field(default_factory=list)
     vision_rejections: dict[str, dict[str, int]] = field(default_factory=dict)
 
     @staticmethod

@@ -1,0 +1,234 @@
+"""The benchmark table: targets, PASS/MISS per row, the terminal and README renderings, machine facts.
+
+Used by benchmarks/run.py (which measures); kept apart so that the measuring code reads on its own."""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+README = REPO / "README.md"
+SIM_DURATION_S = 2.0  # shortened paper simulation (1000 ticks at dt = 2 ms)
+
+#: targets of issue 8 (value, unit, "max" = measured must be ≤ target, "min" = ≥ target)
+TARGETS = {
+    "tick_us_M10": (200.0, "µs per agent tick, M = 10", "max"),
+    "sim_per_wall": (100.0, "sim s per wall s", "min"),
+    "vision_fps": (300.0, "frames/s at 960×720", "min"),
+    "zenoh_p50_ms": (0.3, "ms Zenoh hop p50", "max"),
+}
+
+
+def _pct_ms(d: dict, q: str) -> float | None:
+    """p50/p99 in ms from a latency dict whatever its unit suffix (p50_ms, p50_us, p50_s, p50)."""
+    for key, scale in ((f"{q}_ms", 1.0), (f"{q}_us", 1e-3), (f"{q}_ns", 1e-6), (f"{q}_s", 1e3), (q, 1e3)):
+        if key in d and d[key] is not None:
+            return float(d[key]) * scale
+    return None
+
+
+def _status(key: str, measured: float | None) -> tuple[str, str, str]:
+    """(target text, measured/target ratio text, PASS/MISS) for one of TARGETS."""
+    target, _unit, kind = TARGETS[key]
+    if measured is None:
+        return (f"{'≤' if kind == 'max' else '≥'} {target:g}", "n/a", "N/A")
+    ok = measured <= target if kind == "max" else measured >= target
+    ratio = measured / target
+    return (
+        f"{'≤' if kind == 'max' else '≥'} {target:g}",
+        f"{ratio:.3g}× of target",
+        "PASS" if ok else "MISS",
+    )
+
+
+def build_rows(r: dict) -> list[tuple[str, str, str, str, str]]:
+    """(benchmark, measured, compared with, ratio, target/status) rows shared by console and README."""
+    rows: list[tuple[str, str, str, str, str]] = []
+    for M, g in r["gp_predict_one"].items():
+        rows.append(
+            (
+                f"GP predict_one (mean + var, 1 point), M = {M}",
+                f"{g['ours_us']:.1f} µs",
+                f"sklearn {g['sklearn_us']:.0f} µs",
+                f"{g['speedup']:.1f}× faster",
+                "",
+            )
+        )
+    for t in r["gp_train"]:
+        cap = "to tolerance" if t["maxiter"] is None else f"≤ {t['maxiter']} L-BFGS-B iterations"
+        n = t["N"]
+        rows.append(
+            (
+                f"GP LML+grad eval, pooled N = {n} vs 3 experts × {n // 3}",
+                f"{t['eval_3_experts_s'] * 1e3:.1f} ms",
+                f"pooled {t['eval_pooled_s'] * 1e3:.1f} ms",
+                f"{t['eval_ratio_pooled_over_experts']:.1f}× (pooled / experts)",
+                "",
+            )
+        )
+        rows.append(
+            (
+                f"GP fit (1 output, 1 restart, {cap}), N = {n}: 3 experts vs pooled",
+                f"{t['fit_3_experts_s']:.2f} s",
+                f"pooled {t['fit_pooled_s']:.2f} s",
+                f"{t['fit_ratio_pooled_over_experts']:.1f}× (pooled / experts)",
+                "",
+            )
+        )
+        rows.append(
+            (
+                f"GP fit pooled N = {n}: ours vs sklearn (same start/bounds/optimiser)",
+                f"{t['fit_pooled_s']:.2f} s, LML {t['lml_ours_pooled']:.2f}",
+                f"sklearn {t['fit_sklearn_s']:.2f} s, LML {t['lml_sklearn_pooled']:.2f}",
+                f"{t['fit_ratio_sklearn_over_ours']:.2f}× faster, "
+                f"ΔLML {t['lml_ours_minus_sklearn']:+.2g} nats",
+                "",
+            )
+        )
+    tk = r["agent_tick"]
+    tgt, ratio, st = _status("tick_us_M10", tk["10"]["per_agent_us"])
+    rows.append(
+        (
+            "agent tick (observer, predict, publish, fuse, control), M = 10",
+            f"{tk['10']['per_agent_us']:.0f} µs",
+            "dt = 2 ms",
+            f"{tk['10']['dt_over_tick']:.1f}× real time; {ratio}",
+            f"{tgt} µs: {st}",
+        )
+    )
+    rows.append(
+        (
+            "agent tick, M = 1000",
+            f"{tk['1000']['per_agent_us']:.0f} µs",
+            f"M = 10: {tk['10']['per_agent_us']:.0f} µs",
+            f"{tk['1000']['per_agent_us'] / tk['10']['per_agent_us']:.1f}× slower; "
+            f"{tk['1000']['dt_over_tick']:.1f}× real time",
+            "",
+        )
+    )
+    sim = r["paper_sim"]
+    tgt, ratio, st = _status("sim_per_wall", sim["dgp"]["sim_per_wall"])
+    rows.append(
+        (
+            f"paper simulation, 3 drones, dgp ({SIM_DURATION_S:g} s sim)",
+            f"{sim['dgp']['tick_ms']:.3f} ms/tick",
+            "dt = 2 ms",
+            f"{sim['dgp']['sim_per_wall']:.2f}× real time; {ratio}",
+            f"{tgt}×: {st}",
+        )
+    )
+    rows.append(
+        (
+            "lock-step tick, none / local / oracle",
+            " / ".join(f"{sim[k]['tick_ms']:.3f}" for k in ("none", "local", "oracle")) + " ms",
+            "dt = 2 ms",
+            " / ".join(f"{sim[k]['sim_per_wall']:.2f}" for k in ("none", "local", "oracle")) + "× real time",
+            "",
+        )
+    )
+    v = r["vision"]
+    tgt, ratio, st = _status("vision_fps", v["fps"])
+    rows.append(
+        (
+            "marker extraction, 960×720, 4 markers in view",
+            f"{v['ms_per_frame']:.2f} ms ({v['fps']:.0f} fps)",
+            f"render {v['render_ms_per_frame']:.2f} ms",
+            f"{v['fps'] / 30:.1f}× a 30 fps camera; {ratio}",
+            f"{tgt} fps: {st}",
+        )
+    )
+    b = r["bus"]
+    ip = b["inproc"]
+    rows.append(
+        (
+            "bus hop in-process (encode → publish → latest)",
+            f"p50 {ip['p50_ms'] * 1e3:.1f} µs, p99 {ip['p99_ms'] * 1e3:.1f} µs",
+            "dt = 2 ms",
+            f"{2.0 / ip['p50_ms']:.0f}× inside one tick (p50)",
+            "",
+        )
+    )
+    z = b.get("zenoh")
+    if z:
+        p50, p99 = _pct_ms(z, "p50"), _pct_ms(z, "p99")
+        tgt, ratio, st = _status("zenoh_p50_ms", p50)
+        rows.append(
+            (
+                "bus hop Zenoh (benchmarks/zenoh_hop.py)",
+                f"p50 {p50:.3f} ms, p99 {p99:.3f} ms" if p50 is not None and p99 is not None else str(z),
+                f"in-process p50 {ip['p50_ms']:.4f} ms",
+                (f"{p50 / ip['p50_ms']:.0f}× in-process; {ratio}" if p50 is not None else ratio),
+                f"{tgt} ms: {st}",
+            )
+        )
+    else:
+        tgt, _, _ = _status("zenoh_p50_ms", None)
+        rows.append(("bus hop Zenoh", str(b["zenoh_status"]), "", "", f"{tgt} ms: N/A"))
+    return rows
+
+
+def print_table(rows: list[tuple[str, str, str, str, str]]) -> None:
+    head = ("benchmark", "measured", "compared with", "ratio", "target")
+    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(head)]
+    line = "  ".join(h.ljust(w) for h, w in zip(head, widths, strict=True))
+    print(line)
+    print("-" * len(line))
+    for r in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)))
+
+
+def markdown_table(rows: list[tuple[str, str, str, str, str]], machine: dict) -> str:
+    out = [
+        "| benchmark | measured | compared with | ratio | target |",
+        "|---|---|---|---|---|",
+    ]
+    out += ["| " + " | ".join(c.replace("|", "/") for c in r) + " |" for r in rows]
+    out.append("")
+    out.append(
+        f"Measured on {machine['cpu_count']} CPUs ({machine['machine']}), Python {machine['python']}, "
+        f"numpy {machine['numpy']}; raw numbers in `benchmarks/results.json`."
+    )
+    return "\n".join(out) + "\n"
+
+
+BENCH_BLOCK = re.compile(r"(<!-- bench:start[^\n]*-->\n)(.*?)(<!-- bench:end -->)", re.DOTALL)
+
+
+def update_readme(table_md: str) -> None:
+    """Replace only the text between the bench markers; README.md is read fresh just before writing."""
+    text = README.read_text(encoding="utf-8")
+    match = BENCH_BLOCK.search(text)
+    if match is None:
+        raise SystemExit("README.md has no <!-- bench:start ... --> … <!-- bench:end --> block")
+    new = text[: match.start(2)] + table_md + text[match.end(2) :]
+    tmp = README.with_suffix(".md.tmp")
+    tmp.write_text(new, encoding="utf-8")
+    os.replace(tmp, README)
+
+
+def machine_info() -> dict[str, object]:
+    import cv2
+    import scipy
+    import sklearn
+
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except AttributeError:
+        usable = os.cpu_count()
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpus_usable": usable,
+        "machine": platform.machine(),
+        "processor": platform.processor(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "sklearn": sklearn.__version__,
+        "opencv": cv2.__version__,
+    }

@@ -1,0 +1,145 @@
+"""The files of a run directory: their names and limits, atomic writes, JSON-safe values, event lines,
+and the check that `--out` can take a run. No threads here (those are in run_dir and mode_writer)."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import logging
+import math
+import os
+import shutil
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    pass
+
+_log = logging.getLogger(__name__)
+
+MIN_FREE_BYTES = 50_000_000
+"""Free space (bytes, 50 MB) `--out` must have before takeoff: ~1 min of a 3-drone mission at 500 Hz in
+the row stream, or hours at a hardware rate of 20 Hz, plus the final npz files and the plots."""
+BLOCK_PERIOD_S = 0.5
+"""Wall time (s) after which the rows gathered are handed to the writer thread."""
+BLOCK_MAX_ROWS = 2000
+"""Ticks after which the rows gathered are handed over anyway (simulated clocks run faster than real)."""
+FSYNC_PERIOD_S = 1.0
+"""The writer thread fsyncs a file written to at most this often (s), and at close."""
+MAX_PENDING_BYTES = 64_000_000
+"""Bytes handed to the writer thread and not yet written beyond which the recording stops (a disk that
+does not keep up) rather than letting memory grow."""
+CLOSE_TIMEOUT_S = 60.0
+"""How long (s) closing waits for the writer thread (final npz included) before giving up."""
+EVENTS_FILE = "events.jsonl"
+STATE_FILE = "recording.json"
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write `path` atomically: a temporary file in the same directory, fsync, os.replace, then fsync of
+    the directory (best effort). Raises OSError; never leaves a partial `path` behind."""
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    fsync_dir(path.parent)
+
+
+def atomic_write_json(path: Path, obj: Any, strict: bool = True) -> None:
+    """`obj` as indented strict JSON, written atomically. strict: a non-finite float raises ValueError
+    (a metric that is NaN is a finding); else it is written as null."""
+    text = json.dumps(obj if strict else json_safe(obj), indent=2, allow_nan=False)
+    atomic_write_bytes(path, (text + "\n").encode())
+
+
+def fsync_dir(d: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(d, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def json_safe(x: Any) -> Any:
+    """`x` with numpy values as Python ones and non-finite floats as None (strict JSON)."""
+    if isinstance(x, Mapping):
+        return {str(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, list | tuple | set | frozenset):
+        return [json_safe(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return json_safe(x.tolist())
+    if isinstance(x, np.generic):
+        return json_safe(x.item())
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if x is None or isinstance(x, bool | int | str):
+        return x
+    return str(x)
+
+
+def event_line(ev: Mapping[str, Any]) -> bytes:
+    """One events.jsonl line (strict JSON, newline-terminated)."""
+    try:
+        text = json.dumps(ev, allow_nan=False)
+    except (TypeError, ValueError):
+        text = json.dumps(json_safe(ev), allow_nan=False)
+    return (text + "\n").encode()
+
+
+def check_out_dir(out: Path, min_free_bytes: int = MIN_FREE_BYTES) -> str | None:
+    """None when `out` can hold a run: it is (or is created as) a directory in which a file can be
+    created, written, fsync'ed and removed, on a file system with at least min_free_bytes (B) free;
+    else a sentence saying why not. Call it before anything takes off. Directories it had to create are
+    removed again (a check leaves nothing behind: a refused `fly` writes nothing)."""
+    out = Path(out)
+    created = [p for p in (out, *out.parents) if not p.exists()]
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"cannot create the directory: {exc.strerror or exc}"
+    try:
+        return _probe_out_dir(out, min_free_bytes)
+    finally:
+        for p in created:  # deepest first
+            with contextlib.suppress(OSError):
+                p.rmdir()
+
+
+def _probe_out_dir(out: Path, min_free_bytes: int) -> str | None:
+    probe = out / f".flightstack-write-probe-{os.getpid()}"
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            os.write(fd, b"\0" * 4096)  # not through _write_bytes: that is the recording stream's
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        return f"not writable: {exc.strerror or exc}"
+    finally:
+        with contextlib.suppress(OSError):
+            probe.unlink()
+    free = shutil.disk_usage(out).free
+    if free < min_free_bytes:
+        return (
+            f"only {free / 1e6:.1f} MB free on its file system; a run needs at least "
+            f"{min_free_bytes / 1e6:.0f} MB (flightstack.recording.files.MIN_FREE_BYTES)"
+        )
+    return None
+
+
+def errno_text(exc: OSError) -> str:
+    name = errno.errorcode.get(exc.errno or 0, "")
+    return f"{exc.strerror or exc}{f' ({name})' if name else ''}"
