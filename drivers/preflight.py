@@ -32,11 +32,14 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from flightstack.config.mission import Mission
+
+if TYPE_CHECKING:
+    from flightstack.drivers.tello_camera import TelloCamera
 
 Status = Literal["PASS", "WARN", "FAIL"]
 BODY_WAIT_S = 1.0  # after connecting, how long motion capture gets to report every body (s)
@@ -60,7 +63,7 @@ def check_files(mission: Mission) -> list[CheckRow]:
 
     rows = []
     for d in mission.drones:
-        if d.camera is None:
+        if d.camera is None or d.camera.calibration is None:
             continue
         path = mission.resolve(d.camera.calibration)
         dev = f"drone {d.id}"
@@ -182,20 +185,20 @@ def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> li
     return rows
 
 
-def _check_camera(mission: Mission, drone_id: int, dev: str, cam: object) -> CheckRow:
+def _check_camera(mission: Mission, drone_id: int, dev: str, cam: TelloCamera) -> CheckRow:
     from flightstack.vision.camera_file import load_calibration
 
     spec = next(d for d in mission.drones if d.id == drone_id)
-    assert mission.hardware is not None and spec.camera is not None
+    assert mission.hardware is not None and spec.camera is not None and spec.camera.calibration is not None
     timeout = mission.hardware.drone(drone_id).frame_timeout_s
     try:
-        cam.start()  # type: ignore[attr-defined]
+        cam.start()
         deadline = time.monotonic() + timeout
         frame = None
         while frame is None or frame.image is None:
             if time.monotonic() > deadline:
                 return _row(dev, "camera", False, f"no video frame within {timeout:g} s")
-            frame = cam.latest()  # type: ignore[attr-defined]
+            frame = cam.latest()
             time.sleep(0.02)
         h, w = frame.image.shape[:2]
         detail = f"{spec.camera.mount} camera streaming {w}x{h}"
@@ -212,7 +215,7 @@ def _check_camera(mission: Mission, drone_id: int, dev: str, cam: object) -> Che
         return _row(dev, "camera", False, f"video: {exc}")
     finally:
         with contextlib.suppress(Exception):
-            cam.stop()  # type: ignore[attr-defined]
+            cam.stop()
 
 
 def check_mocap(mission: Mission) -> list[CheckRow]:

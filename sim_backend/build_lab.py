@@ -35,7 +35,11 @@ class LabSimBackend:
         sim = mission.sim
         g_w0 = mission.target.initial_pose.pose()
         r = mission.target.robot
-        clock_now = lambda: self.world.t  # noqa: E731 - the models read the world's virtual time
+        self.world: LabWorld
+
+        def clock_now() -> float:  # the models read the world's virtual time
+            return self.world.t
+
         robot = ScamperSim(g_w0, derive(RobotParams, r, rename={"max_speed_mps": "max_speed"}), clock_now)
         t = sim.tello
         drones = {}
@@ -68,7 +72,7 @@ class LabSimBackend:
         self.calibrations = {}
         self._cams = {}
         for d in mission.drones:
-            assert d.camera is not None  # enforced by the mission schema for sim_lab
+            assert d.camera is not None and d.camera.calibration is not None  # the schema, for sim_lab
             cal = load_calibration(mission.resolve(d.camera.calibration))
             R_ic, t_ic = camera_extrinsic(d.camera.mount, d.camera.offset)
             self.calibrations[d.id] = cal

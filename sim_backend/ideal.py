@@ -6,6 +6,8 @@ module level; the runner loads it by the mission's `backend: sim_ideal` through 
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
 
 from flightstack.hal import DroneState, FlightPhase, Frame, StampedPose
@@ -14,10 +16,18 @@ from flightstack.paper.projection import CameraModel, TargetNotVisibleError, mea
 from flightstack.sim_backend.world import World
 
 
+class SteppedWorld(Protocol):
+    """A world integrated in virtual time: `t` (s) and `step(dt)` (s)."""
+
+    t: float
+
+    def step(self, dt: float) -> None: ...
+
+
 class VirtualClock:
     """Virtual time: sleep_until(t) integrates the world up to t in steps of at most dt."""
 
-    def __init__(self, world: World, dt: float) -> None:
+    def __init__(self, world: SteppedWorld, dt: float) -> None:
         self.world = world
         self.dt = dt
 

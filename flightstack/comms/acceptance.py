@@ -32,6 +32,11 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
+from numpy.typing import NDArray
+
+FloatSeq = Sequence[float] | NDArray[np.float64]  # four floats: a message field as a list or an array
+
 
 @dataclass(frozen=True)
 class AcceptanceBounds:
@@ -56,9 +61,7 @@ class AcceptanceBounds:
         if self.max_seq_jump < 1 or self.restart_after < 1:
             raise ValueError("max_seq_jump and restart_after must be >= 1")
 
-    def violation(
-        self, g: Sequence[float], mu: Sequence[float], var: Sequence[float], prior_var: Sequence[float]
-    ) -> str | None:
+    def violation(self, g: FloatSeq, mu: FloatSeq, var: FloatSeq, prior_var: FloatSeq) -> str | None:
         """The reason these (finite, 4-element) fields are out of bounds, or None."""
         lo, hi = self.var_floor, self.var_ceiling
         if not all(lo <= v <= hi for v in (*var, *prior_var)):

@@ -279,7 +279,7 @@ class StatusReport:
             visible=visible,
             n_fused=n_fused,
             pose_fresh=pose_fresh,
-            rejection=rejection,  # type: ignore[arg-type]
+            rejection=rejection,
             dropped=tuple(counts),
         )
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,10 +62,10 @@ def _check_fields(
     sender: int,
     seq: int,
     stamp: float,
-    g: np.ndarray,
-    mu: np.ndarray,
-    var: np.ndarray,
-    prior_var: np.ndarray,
+    g: Sequence[float],
+    mu: Sequence[float],
+    var: Sequence[float],
+    prior_var: Sequence[float],
 ) -> str | None:
     """Reason the fields are invalid, or None. Pure Python on 16 floats: this runs twice per message."""
     if not (0 <= sender < 2**16) or not (0 <= seq < 2**32):

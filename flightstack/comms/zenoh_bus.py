@@ -444,7 +444,8 @@ class ZenohBus:
                 and all(isinstance(d, int) and d in hosted for d in drones)
             )
         else:
-            ok = key == keys.status_key(p, m, ev.payload.get("drone"))
+            drone = ev.payload.get("drone")
+            ok = isinstance(drone, int | str) and key == keys.status_key(p, m, drone)
         return None if ok else f"control: {ev.kind} on the wrong key"
 
     def _ack_loop(self) -> None:

@@ -11,7 +11,7 @@ import itertools
 import math
 import typing
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal, cast
 
 import numpy as np
 from pydantic import (
@@ -178,7 +178,7 @@ def _safety_spec() -> type[BaseModel]:
     """The `safety:` section: exactly the fields and defaults of flightstack.safety.SafetyLimits (one
     source of truth), plus `enabled`; SafetyLimits' own checks run as the section's validator."""
     hints = typing.get_type_hints(SafetyLimits)
-    fields: dict[str, object] = {"enabled": (bool, True)}
+    fields: dict[str, Any] = {"enabled": (bool, True)}
     for f in dataclasses.fields(SafetyLimits):
         fields[f.name] = (hints[f.name], f.default)
 
@@ -190,12 +190,17 @@ def _safety_spec() -> type[BaseModel]:
         "SafetySpec",
         __base__=_Strict,
         __doc__="flightstack.safety.SafetyLimits; `enabled: false` only for the paper's ideal simulation.",
-        __validators__={"_limits_valid": model_validator(mode="after")(_limits_valid)},
+        __validators__=cast(dict[str, Any], {"_limits_valid": model_validator(mode="after")(_limits_valid)}),
         **fields,
     )
 
 
-SafetySpec = _safety_spec()
+if TYPE_CHECKING:
+    # The static view of the model built below: SafetyLimits' fields plus `enabled` (never executed).
+    class SafetySpec(_Strict, SafetyLimits):
+        enabled: bool = True
+else:
+    SafetySpec = _safety_spec()
 
 
 class GainAnalysisSpec(_Strict):
@@ -224,7 +229,7 @@ class Mission(_Strict):
     bus: BusSpec = BusSpec()
     gain_analysis: GainAnalysisSpec = GainAnalysisSpec()
     sim: SimSpec = SimSpec()
-    safety: SafetySpec = SafetySpec()  # type: ignore[valid-type]
+    safety: SafetySpec = SafetySpec()
     hardware: HardwareSpec | None = None
     _base_dir: Path = PrivateAttr(default=Path("."))
 
@@ -320,7 +325,12 @@ class Mission(_Strict):
         ids = [d.id for d in self.drones]
         if self.graph.kind == "complete":
             return [(a, b) for a in range(len(ids)) for b in range(a + 1, len(ids))]
-        return sorted({tuple(sorted((ids.index(a), ids.index(b)))) for a, b in self.graph.edges if a != b})
+        pairs = {
+            (min(ids.index(a), ids.index(b)), max(ids.index(a), ids.index(b)))
+            for a, b in self.graph.edges
+            if a != b
+        }
+        return sorted(pairs)
 
     def neighbours(self, index: int) -> list[int]:
         """0-based indices of the neighbours of drone `index`."""
@@ -396,6 +406,6 @@ def load_mission(
     return m
 
 
-def mission_to_dict(m: Mission) -> dict[str, object]:
+def mission_to_dict(m: Mission) -> dict[str, Any]:
     """The resolved mission (defaults filled in), JSON/YAML-serialisable."""
     return m.model_dump(mode="json")

@@ -187,8 +187,8 @@ def judge_recording(run: SimRun, expect_ticks: int | None = None, expect_error: 
     if k > 1:
         steps = np.diff(rec.t[:k])
         c.check(bool(np.allclose(steps, run.mission.dt_s, rtol=1e-6)), "tick times are not every dt")
-    ends = [e for e in rec.events if e.get("event") == "end"]
-    c.check(len(ends) == 1, f"{len(ends)} end events")
+    end_events = [e for e in rec.events if e.get("event") == "end"]
+    c.check(len(end_events) == 1, f"{len(end_events)} end events")
     for i in rec.drone_ids:
         fates = [e for e in rec.events if e.get("drone") == i and e.get("event") in ("landed", "NOT LANDED")]
         c.check(len(fates) == 1, f"drone {i}: {len(fates)} landed/NOT LANDED events")

@@ -106,7 +106,7 @@ def fly_inprocess(
     run_dir: Path,
     *,
     bus_wrapper: Callable[[Any], Any] | None = None,
-    injector: Callable[[Any], None] | None = None,
+    injector: Callable[[Any], object] | None = None,
     injector_timeout_s: float = 60.0,
 ) -> LabRun:
     """Fly mode `none` of the lab's mission in this process (hardware backend, in-process bus with its

@@ -87,7 +87,7 @@ def malformed_mission(mission_path: Path, workdir: Path) -> FaultResult:
     for name, (body, token) in malformed_variants(mission_path).items():
         path = root / f"{name}.yaml"
         path.write_text(body, encoding="utf-8")
-        commands = [("validate", str(path))]
+        commands: list[tuple[str, ...]] = [("validate", str(path))]
         if name == "unknown_key":
             out = root / f"out_{name}"
             out_dirs.append(out)

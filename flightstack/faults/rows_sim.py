@@ -48,7 +48,7 @@ def sim_result(
     problems += [f"reaction: {p}" for p in reaction.failed]
     if run.crashed:
         problems.insert(0, f"crashed: {run.crashed}")
-    info = {"run_dir": str(run.run_dir)}
+    info: dict[str, Any] = {"run_dir": str(run.run_dir)}
     if run.rec is not None:
         info |= {
             "ticks": run.rec.ticks_done,

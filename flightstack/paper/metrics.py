@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections import Counter
+from typing import Any
 
 import numpy as np
 
@@ -23,7 +24,7 @@ def fence_excursion(rec: Recording, lo: np.ndarray, hi: np.ndarray) -> float:
     return float(np.linalg.norm(out, axis=2).max()) if p.size else 0.0
 
 
-def mode_metrics(rec: Recording, mission: Mission | None = None) -> dict[str, object]:
+def mode_metrics(rec: Recording, mission: Mission | None = None) -> dict[str, Any]:
     """The paper's 'squared mean of e' as the time mean of ‖e(t)‖², its parts, and flight facts."""
     k = rec.ticks_done
     if k == 0:

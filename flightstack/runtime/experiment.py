@@ -8,7 +8,7 @@ Everything derives from the mission's seed, so a run is reproducible.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +26,7 @@ from flightstack.paper.metrics import mode_metrics
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity
 from flightstack.recording.run_dir import RunWriter
 from flightstack.recording.timeseries import Recording
+from flightstack.runtime.agent import Predictor
 from flightstack.runtime.runner import run_mode
 from flightstack.runtime.training import (
     ExpertData,
@@ -89,7 +90,7 @@ def run_experiment(
 
     gp_info: dict[str, object] = {}
     for mode in order:
-        predictors = None
+        predictors: Mapping[int, Predictor] | None = None
         if Mode(mode).uses_gp:
             predictors = res.experts
         elif mode == Mode.ORACLE:
@@ -138,7 +139,7 @@ def build_metrics(mission: Mission, res: ExperimentResult, gp_info: dict[str, ob
     gets the metrics that need no mission."""
     ids = [d.id for d in mission.drones]
     shown = [m for m in res.recordings if m in mission.compare_modes] or list(res.recordings)
-    modes = {
+    modes: dict[str, dict[str, Any]] = {
         m: mode_metrics(res.recordings[m], mission if res.recordings[m].drone_ids == ids else None)
         for m in shown
     }

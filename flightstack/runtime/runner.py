@@ -20,7 +20,7 @@ import math
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -54,7 +54,7 @@ def make_agents(
     backend: Backend,
     drones: dict[int, Drone],
     bus: PredictionBus,
-    predictors: dict[int, Predictor] | None,
+    predictors: Mapping[int, Predictor] | None,
     agent_ids: list[int] | None = None,
 ) -> list[Agent]:
     """One Agent per drone of the mission (or of `agent_ids`); estimates start from the initial errors."""
@@ -143,7 +143,7 @@ class OperatorAbortError(Exception):
 def run_mode(
     mission: Mission,
     mode: str,
-    predictors: dict[int, Predictor] | None = None,
+    predictors: Mapping[int, Predictor] | None = None,
     progress: Callable[[int], None] | None = None,
     *,
     backend: Backend | None = None,

@@ -69,7 +69,7 @@ def save_experts(path: str | Path, experts: dict[int, GPExpert]) -> None:
     for i, ex in experts.items():
         for key, val in ex.to_dict().items():
             arrays[f"drone{i}__{key}"] = np.asarray(val)
-    np.savez(path, **arrays)
+    np.savez(path, **arrays)  # type: ignore[arg-type]  # numpy's stub types **kwds as its `allow_pickle`
 
 
 def load_experts(path: str | Path) -> dict[int, GPExpert]:

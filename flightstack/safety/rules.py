@@ -105,8 +105,9 @@ class SafetyLimits:
             raise ValueError(f"fence must be finite, got lo={lo}, hi={hi}")
         if any(h <= low for low, h in zip(lo, hi, strict=True)):
             raise ValueError(f"fence_hi must exceed fence_lo on every axis, got lo={lo}, hi={hi}")
-        positive = ("max_speed_xy", "max_speed_z", "max_yaw_rate", "command_timeout", "pose_timeout")
-        positive += ("pose_land_after", "target_lost_hover_after", "target_lost_land_after", "land_retry_s")
+        positive: tuple[str, ...] = ("max_speed_xy", "max_speed_z", "max_yaw_rate", "command_timeout")
+        positive += ("pose_timeout", "pose_land_after", "target_lost_hover_after", "target_lost_land_after")
+        positive += ("land_retry_s",)
         for name in positive:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):

@@ -11,7 +11,7 @@ import contextlib
 import signal
 import threading
 from types import FrameType, TracebackType
-from typing import Any
+from typing import Any, Literal
 
 from flightstack.hal import Clock
 from flightstack.safety.drone import SafeDrone
@@ -211,7 +211,7 @@ class _Guard(contextlib.AbstractContextManager[MissionSupervisor]):
 
     def __exit__(
         self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
-    ) -> bool:
+    ) -> Literal[False]:
         if ev is not None:
             msg = str(ev)
             self._sup.land_all(f"{type(ev).__name__}: {msg}" if msg else type(ev).__name__)
@@ -244,7 +244,7 @@ class _SignalHandlers(contextlib.AbstractContextManager[MissionSupervisor]):
 
     def __exit__(
         self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
-    ) -> bool:
+    ) -> Literal[False]:
         try:
             reason, self._sup._deferred_land = self._sup._deferred_land, None
             if reason is not None:

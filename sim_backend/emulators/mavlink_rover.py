@@ -70,6 +70,7 @@ All traffic is on 127.0.0.1.  One daemon thread with a stop flag and bounded wai
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import threading
 import time
@@ -336,7 +337,7 @@ class MavlinkRoverEmulator:
         self._pending_acks = [a for a in self._pending_acks if a[0] > now]
         for _, command, result in due:
             self._s.acks_sent.append((command, result))
-            self._send(lambda c=command, r=result: self._conn.mav.command_ack_send(c, r))
+            self._send(functools.partial(self._conn.mav.command_ack_send, command, result))
 
     def _ignored(self, command: int) -> bool:
         return command in self.faults.ack_accepted_but_ignored

@@ -68,7 +68,7 @@ RESPONDER_MAX_LIFETIME_S = 600.0  # the child exits by itself after this long (s
 
 Vec3 = Sequence[float]
 QuatWXYZ = Sequence[float]
-PoseProvider = Callable[[], tuple[Vec3, QuatWXYZ]]
+PoseProvider = Callable[[], tuple[Vec3, QuatWXYZ]]  # position (m), quaternion (w, x, y, z)
 
 
 @dataclass
@@ -135,8 +135,8 @@ def _free_udp_port(host: str) -> int:
 @dataclass
 class _Body:
     body_id: int
-    position: tuple[float, float, float]
-    quaternion_wxyz: tuple[float, float, float, float]
+    position: Vec3  # m, 3 floats
+    quaternion_wxyz: QuatWXYZ  # 4 floats
     provider: PoseProvider | None = None
 
 
@@ -196,9 +196,9 @@ class NatNetEmulator:
         with self._lock:
             b = self._bodies.get(name)
             if b is None:
-                self._bodies[name] = _Body(len(self._bodies) + 1, p, q)  # type: ignore[arg-type]
+                self._bodies[name] = _Body(len(self._bodies) + 1, p, q)
             else:
-                b.position, b.quaternion_wxyz, b.provider = p, q, None  # type: ignore[assignment]
+                b.position, b.quaternion_wxyz, b.provider = p, q, None
 
     def set_pose_provider(self, name: str, fn: PoseProvider | None) -> None:
         """Stream body `name` from fn() -> (position (3,) m, quaternion (w, x, y, z)), called at each frame.

@@ -168,8 +168,8 @@ class WorldServer:
                 b: row for b in (f"drone{i}", "target") if (row := _pose_row(poses.latest(b))) is not None
             }
             truth = wm.Truth(
-                tuple(g_w0.as_vector().tolist()),  # type: ignore[arg-type]
-                tuple(g_wis[i].as_vector().tolist()),  # type: ignore[arg-type]
+                tuple(g_w0.as_vector().tolist()),
+                tuple(g_wis[i].as_vector().tolist()),
             )
             tick = wm.make_tick(k, float(t), state, rows, truth, frame)
             self._pubs[i].put(wm.encode_tick(tick, image))
@@ -216,7 +216,7 @@ class WorldServer:
         m = self.mission
         wall0 = time.perf_counter()
         clock = self.backend.clock
-        missing = self.bus.wait_alive(set(self.ids), self.z.start_timeout_s)  # type: ignore[attr-defined]
+        missing = self.bus.wait_alive(set(self.ids), self.z.start_timeout_s)
         if missing:
             raise RuntimeError(f"agents {sorted(missing)} did not join within {self.z.start_timeout_s:g} s")
         self._wait_cmds(-1, self.z.start_timeout_s)  # every agent subscribed to its ticks
