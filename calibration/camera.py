@@ -15,6 +15,7 @@ import datetime as _dt
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypedDict
 
 import cv2
 import numpy as np
@@ -51,6 +52,14 @@ class WizardResult:
     used: list[tuple[str, float]] = field(default_factory=list)  # (view, RMS px)
     frames_seen: int = 0
     coverage: Coverage | None = None
+
+
+class _Outcome(TypedDict):
+    """The WizardResult fields every outcome of the wizard reports."""
+
+    rejected: list[tuple[str, str]]
+    frames_seen: int
+    coverage: Coverage | None
 
 
 @dataclass
@@ -140,7 +149,7 @@ def run_camera_wizard(
     capture = capture or CaptureOptions()
     solve = solve or SolveOptions()
     cap = _capture(source, PatternDetector(spec), capture, on_frame)
-    base = {"rejected": cap.rejected, "frames_seen": cap.frames, "coverage": cap.coverage}
+    base: _Outcome = {"rejected": cap.rejected, "frames_seen": cap.frames, "coverage": cap.coverage}
     if cap.frames == 0:
         return WizardResult(EXIT_BAD_INPUT, "the source delivered no frames", **base)
     if cap.size is None:
@@ -156,7 +165,7 @@ def run_camera_wizard(
         res = calibrate_views(cap.views, cap.size, solve)
     except SolveError as exc:
         code = EXIT_BAD_INPUT if exc.kind == "input" else EXIT_VERDICT
-        return WizardResult(code, str(exc), **{**base, "rejected": cap.rejected + exc.rejected})
+        return WizardResult(code, str(exc), **(base | {"rejected": cap.rejected + exc.rejected}))
     cal = CameraCalibration(
         width=cap.size[0],
         height=cap.size[1],

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 import cv2
+import numpy as np
 
 from flightstack.calibration.camera import EXIT_BAD_INPUT, EXIT_OK, EXIT_VERDICT, CaptureOptions, WizardResult
 from flightstack.calibration.patterns import PatternSpec
@@ -195,9 +196,9 @@ def cmd_camera(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _sample_frames(args: argparse.Namespace, limit: int) -> list[tuple[str, object]]:
+def _sample_frames(args: argparse.Namespace, limit: int) -> list[tuple[str, np.ndarray]]:
     source = _open_source(args)
-    frames = []
+    frames: list[tuple[str, np.ndarray]] = []
     for f in source.frames():
         if f.image is None:
             raise SourceError(f"sample {f.name}: {f.error}")
@@ -234,12 +235,12 @@ def cmd_markers(args: argparse.Namespace) -> int:
         regions = [Region.parse(t) for t in texts]
         out = _check_out(args.out or cal_path)
         for name, img in frames:
-            if img.shape[:2] != (base.height, base.width):  # type: ignore[attr-defined]
+            if img.shape[:2] != (base.height, base.width):
                 raise ValueError(
-                    f"sample {name} is {img.shape[1]}x{img.shape[0]} but {cal_path} is for "  # type: ignore[attr-defined]
+                    f"sample {name} is {img.shape[1]}x{img.shape[0]} but {cal_path} is for "
                     f"{base.width}x{base.height}"
                 )
-        res = pick_markers(base, frames, regions)  # type: ignore[arg-type]
+        res = pick_markers(base, frames, regions)
     except (SourceError, MissingAnswerError, CalibrationError, MarkerPickError, ValueError) as exc:
         return _error(str(exc))
     print(f"calibrate markers: {len(regions)} marker(s) on {len(frames)} sample frame(s)")

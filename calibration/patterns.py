@@ -67,6 +67,7 @@ class PatternSpec:
         if self.kind == "chessboard":
             return f"chessboard {self.cols}x{self.rows} inner corners, {self.square_m * 1000:g} mm squares"
         if self.kind == "charuco":
+            assert self.marker_m is not None  # required for charuco (__post_init__)
             return (
                 f"ChArUco {self.cols}x{self.rows} squares ({self.dictionary}), "
                 f"{self.square_m * 1000:g} mm squares, {self.marker_m * 1000:g} mm markers"
@@ -105,6 +106,7 @@ class PatternSpec:
         return np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]], dtype=float)
 
     def charuco_board(self) -> cv2.aruco.CharucoBoard:
+        assert self.marker_m is not None, "charuco_board needs a charuco PatternSpec (marker_m)"
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
         return cv2.aruco.CharucoBoard((self.cols, self.rows), self.square_m, float(self.marker_m), dictionary)
 
@@ -127,9 +129,9 @@ class PatternDetector:
             self._board = spec.charuco_board()
             self._charuco = cv2.aruco.CharucoDetector(self._board)
         if spec.kind == "acircles":
-            params = cv2.SimpleBlobDetector_Params()
+            params = cv2.SimpleBlobDetector.Params()
             params.maxArea = 20000.0  # OpenCV's default 5000 px² misses circles of radius > 40 px
-            self._blobs = cv2.SimpleBlobDetector_create(params)
+            self._blobs = cv2.SimpleBlobDetector.create(params)
 
     def detect(self, gray: np.ndarray) -> PatternView | str:
         """Find the pattern in a uint8 (H, W) image; a string says why not."""
@@ -163,9 +165,9 @@ class PatternDetector:
 def _min_neighbour_distance(pts: np.ndarray, cols: int) -> float:
     """Smallest distance (px) between consecutive corners along rows and columns of a corner grid."""
     grid = pts.reshape(-1, cols, 2)
-    d = [
+    parts = [
         np.linalg.norm(np.diff(grid, axis=1), axis=2).ravel(),
         np.linalg.norm(np.diff(grid, axis=0), axis=2).ravel(),
     ]
-    d = np.concatenate([x for x in d if x.size])
+    d = np.concatenate([x for x in parts if x.size])
     return float(d.min()) if d.size else 10.0

@@ -73,7 +73,8 @@ def _fit(views: list[View], size: tuple[int, int], flags: int) -> tuple:
     obj = [v.object_points.reshape(-1, 1, 3).astype(np.float32) for v in views]
     img = [v.image_points.reshape(-1, 1, 2).astype(np.float32) for v in views]
     criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    rms, K, dist, rvecs, _, std_in, _, per_view = cv2.calibrateCameraExtended(
+    # the stubs require cameraMatrix/distCoeffs arrays; None lets OpenCV allocate them (no intrinsic guess)
+    rms, K, dist, rvecs, _, std_in, _, per_view = cv2.calibrateCameraExtended(  # type: ignore[call-overload]
         obj, img, size, None, None, flags=flags, criteria=criteria
     )
     normals = np.array([cv2.Rodrigues(np.asarray(r, dtype=float))[0][:, 2] for r in rvecs])

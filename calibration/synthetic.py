@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from flightstack.calibration.patterns import PatternSpec
 
@@ -119,7 +121,8 @@ def render_view(
     fine = cv2.remap(
         texture.image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=background
     )
-    img = cv2.resize(fine.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    # cv2's stubs do not carry the dtype: resizing a float32 image gives float32
+    img = cast(NDArray[np.float32], cv2.resize(fine.astype(np.float32), size, interpolation=cv2.INTER_AREA))
     if noise_std > 0:
         img += (rng or np.random.default_rng()).normal(0.0, noise_std, img.shape).astype(np.float32)
     return np.clip(np.round(img), 0, 255).astype(np.uint8)

@@ -35,9 +35,11 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from flightstack.vision.camera_file import CameraCalibration, MarkerColour
 
@@ -172,11 +174,14 @@ def _weighted_centre(
         return f"marker '{mk.name}': no contrast against the background"
     u = direction / np.float32(w_full)
     # w = (c − b)·û, the colour membership, linear in the covered fraction of the pixel
-    w = cv2.transform(win.astype(np.float32), u.reshape(1, 3)).reshape(win.shape[:2])
+    # cv2's stubs do not carry the dtype: the transform of a float32 image is float32
+    w = cast(NDArray[np.float32], cv2.transform(win.astype(np.float32), u.reshape(1, 3))).reshape(
+        win.shape[:2]
+    )
     w -= np.float32(bg @ u)
     np.maximum(w, 0.0, out=w)
     w *= neigh
-    foreign = cv2.LUT(hsv[:, :, 0], _foreign_hue_table(mk))
+    foreign = cast(NDArray[np.uint8], cv2.LUT(hsv[:, :, 0], _foreign_hue_table(mk)))  # uint8 table
     foreign &= hsv[:, :, 1] >= _HUE_GATE_SAT
     w[foreign.astype(bool)] = 0.0
     mom = cv2.moments(w)
@@ -234,7 +239,7 @@ def extract_markers(
         raise ValueError(f"downscale must be >= 1 and leave at least one pixel, got {downscale}")
     image = np.ascontiguousarray(image_rgb)
     hsv_full = cv2.cvtColor(image, cv2.COLOR_RGB2HSV) if ds == 1 else None
-    if ds == 1:
+    if hsv_full is not None:  # ds == 1
         hsv = hsv_full
     else:
         hsv = cv2.cvtColor(
@@ -250,11 +255,11 @@ def extract_markers(
     min_area = min_area_px / ds**2
     for idx, tab in _membership_tables(tuple(cal.markers)):
         bits = cv2.bitwise_and(cv2.LUT(hue, tab[0]), cv2.LUT(sat, tab[1]))
-        bits = cv2.bitwise_and(bits, cv2.LUT(val, tab[2]))
+        bits = cast(NDArray[np.uint8], cv2.bitwise_and(bits, cv2.LUT(val, tab[2])))  # uint8 tables
         for j in idx:
             mk = cal.markers[j]
-            mask = bits & np.uint8(1 << (j - idx.start))  # (numpy: cv2 takes a 1×1 array for a scalar)
-            mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, _OPEN_KERNEL)
+            in_box = bits & np.uint8(1 << (j - idx.start))  # (numpy: cv2 takes a 1×1 array for a scalar)
+            mask = cv2.morphologyEx(in_box, cv2.MORPH_OPEN, _OPEN_KERNEL)
             rx, ry, rw, rh = cv2.boundingRect(mask)  # connected components only inside the non-empty part
             if rw == 0 or rh == 0:
                 return MarkerDetection.rejected(f"marker '{mk.name}': 0 blobs")
