@@ -17,7 +17,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from typing import Any
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,6 +32,9 @@ from flightstack.drivers.tello_camera import TelloCamera
 from flightstack.drivers.tello_rc import RcGains
 from flightstack.hal import FlightPhase, StampedPose
 from flightstack.paper.geometry import Pose
+
+if TYPE_CHECKING:
+    from flightstack.runtime.backends import AgentSeat
 
 LOG = logging.getLogger("flightstack.hardware")
 
@@ -258,3 +262,11 @@ class HardwareBackend:
 
 def build_tello(mission: Mission) -> HardwareBackend:
     return HardwareBackend(mission)
+
+
+@contextlib.contextmanager
+def agent_backend(mission: Mission, seat: AgentSeat) -> Iterator[HardwareBackend]:
+    """AGENT_REGISTRY builder of the lab: this agent's drone (with its guardian logging to
+    `seat.guardian_log`), motion capture and, where the mission has one, the robot. The run lands and
+    closes it (`close()`); nothing more to release here."""
+    yield HardwareBackend(mission, drone_ids=[seat.drone_id], guardian_log=seat.guardian_log)

@@ -33,7 +33,7 @@ from flightstack.comms.operator_link import (
 )
 from flightstack.config.mission import MissionError, load_mission
 from flightstack.config.rig import resolved_document
-from flightstack.runtime.runner import OperatorAbortError, _check_operator
+from flightstack.runtime.runner import OperatorAbortError, check_operator
 from tests.conftest import MISSIONS, REPO
 
 CLI = (sys.executable, "-m", "flightstack.cli.app")
@@ -159,7 +159,7 @@ def test_hardware_listener_accepts_only_aborts_signed_by_the_operator(tmp_path: 
 def test_inproc_bus_on_hardware_yields_the_abort_to_the_runner(tmp_path: Path) -> None:
     """`flightstack fly` with the in-process bus: make_bus wraps a loopback listener on the mission's
     operator port; `flightstack abort` (send_abort, signed with the operator's key) gets every drone's
-    ack; the runner's `_check_operator(bus)` raises on its next call. A second process of the mission
+    ack; the runner's `check_operator(bus)` raises on its next call. A second process of the mission
     cannot bind it. Without the mission's certificates the bus refuses to start (issue 16)."""
     port = free_udp_port()
     nocerts = {"bus": {"operator_port": port, "certs": str(tmp_path / "none")}}
@@ -171,7 +171,7 @@ def test_inproc_bus_on_hardware_yields_the_abort_to_the_runner(tmp_path: Path) -
     assert not mission.simulated and mission.bus.kind == "inproc"
     bus = make_bus(mission, "agents", {1, 2})
     try:
-        _check_operator(bus)  # nothing yet
+        check_operator(bus)  # nothing yet
         with pytest.raises(RuntimeError, match=r"bus\.operator_port"):
             make_bus(mission, "agents", {1, 2})
         rep = send_abort(mission, "from another terminal", timeout_s=5.0)
@@ -179,7 +179,7 @@ def test_inproc_bus_on_hardware_yields_the_abort_to_the_runner(tmp_path: Path) -
         assert all(a.via == "loopback" for a in rep.acks.values())
         print(f"loopback: abort -> ack {rep.latency_ms(1):.2f} ms")
         with pytest.raises(OperatorAbortError, match="from another terminal"):
-            _check_operator(bus)
+            check_operator(bus)
     finally:
         bus.close()
     assert not udp_bound(port)  # closed with the bus

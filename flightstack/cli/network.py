@@ -61,8 +61,10 @@ def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
 def cmd_agent(args: argparse.Namespace) -> int:
     from flightstack.cli.run import _awake_if_flying
     from flightstack.comms.factory import make_bus
+    from flightstack.comms.zenoh_bus import ZenohBus
     from flightstack.recording.run_dir import RunWriter, check_out_dir
     from flightstack.recording.timeseries import Recording
+    from flightstack.runtime.backends import AgentSeat, open_agent_backend
     from flightstack.runtime.experiment import ExperimentResult, build_metrics, resolved_mission_yaml
     from flightstack.runtime.runner import run_mode
 
@@ -95,31 +97,14 @@ def cmd_agent(args: argparse.Namespace) -> int:
     except BaseException:
         run_writer.close()
         raise
-    backend: Any = None
     rec: Recording | None = None
+    seat = AgentSeat(args.id, bus.session if isinstance(bus, ZenohBus) else None, str(out / "guardian.log"))
     try:
-        if mission.simulated:
-            from flightstack.sim_backend.served.client import RemoteBackend
-
-            backend = RemoteBackend(
-                bus.session,  # type: ignore[attr-defined]
-                mission.bus.zenoh.key_prefix,
-                mission.name,
-                args.id,
-                timeout_s=mission.bus.zenoh.start_timeout_s,
-                tick_timeout_s=max(5.0, 2.0 * mission.bus.zenoh.lockstep_timeout_s),
-            )
-        else:
-            from flightstack.drivers.hardware import HardwareBackend
-
-            backend = HardwareBackend(mission, drone_ids=[args.id], guardian_log=str(out / "guardian.log"))
-        with _awake_if_flying(mission):
+        with open_agent_backend(mission, seat) as backend, _awake_if_flying(mission):
             rec = run_mode(
                 mission, mode, predictors, backend=backend, bus=bus, agent_ids=[args.id], writer=writer
             )
     finally:
-        if backend is not None and hasattr(backend, "disconnect"):
-            backend.disconnect()
         bus.close()
         if rec is None:  # run_mode raised: what was recorded stays (row stream, events)
             run_writer.close()

@@ -2,12 +2,25 @@
 
 flightstack never imports sim_backend/ or drivers/ at module level, so the simulator runs without
 hardware libraries and the hardware runs without the simulator.
+
+Two registries, one per kind of process:
+- `REGISTRY`: the whole fleet in one process (`flightstack run/sim/fly`): `build_backend(mission)`.
+- `AGENT_REGISTRY`: one drone in an agent process (`flightstack agent`): `open_agent_backend(mission,
+  seat)`, a context manager that releases what the agent opened (the link to the served world) after
+  the run; the run itself lands through `Backend.close()` as in one process.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
-from typing import Any
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, cast
+
+if TYPE_CHECKING:
+    from flightstack.config.mission import Mission
+    from flightstack.hal import Backend
 
 REGISTRY: dict[str, str] = {
     "sim_ideal": "flightstack.sim_backend.build:build_ideal",
@@ -15,14 +28,41 @@ REGISTRY: dict[str, str] = {
     "tello": "flightstack.drivers.hardware:build_tello",  # real Tellos + motion capture + Scamper
 }
 
+AGENT_REGISTRY: dict[str, str] = {
+    "sim_ideal": "flightstack.sim_backend.served.client:agent_backend",  # the world serves the physics
+    "sim_lab": "flightstack.sim_backend.served.client:agent_backend",
+    "tello": "flightstack.drivers.hardware:agent_backend",  # this agent's Tello + mocap (+ robot)
+}
 
-def build_backend(mission: Any) -> Any:
-    """Build the backend the mission names; ValueError for an unknown name."""
+
+@dataclass(frozen=True)
+class AgentSeat:
+    """What an agent process hands its backend: the drone it flies, its Zenoh session (`ZenohBus.session`;
+    the served world is reached through it), and the file its guardian logs to (hardware)."""
+
+    drone_id: int
+    session: Any
+    guardian_log: str
+
+
+def _resolve(registry: dict[str, str], mission: Mission) -> Callable[..., Any]:
     try:
-        target = REGISTRY[mission.backend]
+        target = registry[mission.backend]
     except KeyError:
         raise ValueError(
-            f"unknown backend {mission.backend!r}; known: {', '.join(sorted(REGISTRY))}"
+            f"unknown backend {mission.backend!r}; known: {', '.join(sorted(registry))}"
         ) from None
     module_name, func_name = target.split(":")
-    return getattr(importlib.import_module(module_name), func_name)(mission)
+    return cast(Callable[..., Any], getattr(importlib.import_module(module_name), func_name))
+
+
+def build_backend(mission: Mission) -> Backend:
+    """Build the backend the mission names; ValueError for an unknown name."""
+    return cast("Backend", _resolve(REGISTRY, mission)(mission))
+
+
+@contextlib.contextmanager
+def open_agent_backend(mission: Mission, seat: AgentSeat) -> Iterator[Backend]:
+    """The backend of one agent process (drone `seat.drone_id` only); ValueError for an unknown name."""
+    with _resolve(AGENT_REGISTRY, mission)(mission, seat) as backend:
+        yield cast("Backend", backend)

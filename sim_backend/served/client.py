@@ -23,7 +23,8 @@ import contextlib
 import threading
 import time
 from collections import Counter
-from typing import Any
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zenoh
@@ -31,6 +32,10 @@ import zenoh
 from flightstack.hal import DroneState, Frame, StampedPose
 from flightstack.paper.geometry import Pose
 from flightstack.sim_backend.served import messages as wm
+
+if TYPE_CHECKING:
+    from flightstack.config.mission import Mission
+    from flightstack.runtime.backends import AgentSeat
 
 
 class WorldLostError(RuntimeError):
@@ -326,3 +331,24 @@ class RemoteBackend:
     def _own(self, drone_id: int) -> None:
         if drone_id != self.drone_id:
             raise KeyError(f"this agent process flies drone {self.drone_id}, not {drone_id}")
+
+
+@contextlib.contextmanager
+def agent_backend(mission: Mission, seat: AgentSeat) -> Iterator[RemoteBackend]:
+    """AGENT_REGISTRY builder of the simulated rigs: drone `seat.drone_id` of the world served over
+    `seat.session`; the link is flushed and closed after the run (the run lands through close())."""
+    z = mission.bus.zenoh
+    if z is None or seat.session is None:
+        raise ValueError("bus.kind: an agent of a simulated mission reaches the world over the zenoh bus")
+    backend = RemoteBackend(
+        seat.session,
+        z.key_prefix,
+        mission.name,
+        seat.drone_id,
+        timeout_s=z.start_timeout_s,
+        tick_timeout_s=max(5.0, 2.0 * z.lockstep_timeout_s),
+    )
+    try:
+        yield backend
+    finally:
+        backend.disconnect()

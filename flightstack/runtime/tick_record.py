@@ -1,0 +1,93 @@
+"""Recording one tick: the fields each agent contributes, declared once (DESIGN §7).
+
+`AGENT_FIELDS` names, for every per-drone array of `Recording`, the attribute of the agent's
+`TickRecord` it copies (a `Pose` is stored as its vector (x, y, z, θ) in the world frame, m and rad).
+`record_tick` writes one row from it plus the truth; `TickBook` keeps the per-drone facts that are
+counted or reported as events rather than stored per tick (vision rejections, neighbour changes).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+from flightstack.paper.geometry import Pose
+from flightstack.recording.timeseries import Recording
+from flightstack.runtime.agent import Agent, TickRecord
+
+#: Recording array (shape (n_ticks, n_drones, ...)) <- TickRecord attribute, in recording order
+AGENT_FIELDS: tuple[tuple[str, str], ...] = (
+    ("g_bar_w", "g_bar_w"),  # ḡ_w,i: the observer's estimate of the target pose (world)
+    ("e_e_meas", "e_e_meas"),  # e_e from the image (zeros when the target is not visible)
+    ("u_e", "u_e"),  # observer input u_e,i
+    ("mu_used", "mu_used"),  # fused GP mean μ of the target's body velocity
+    ("var_own", "var_own"),  # own expert's predictive variance σ²
+    ("V_cmd", "V_cmd"),  # body velocity command sent to the drone (m/s, rad/s)
+    ("visible", "visible"),  # the target's features were measured this tick
+    ("n_fused", "n_fused"),  # experts that entered the fusion
+)
+
+
+def _tick_value(last: TickRecord, attr: str) -> object:
+    value = getattr(last, attr)  # a declared TickRecord field (AGENT_FIELDS), never a probe
+    return value.as_vector() if isinstance(value, Pose) else value
+
+
+@dataclass
+class TickBook:
+    """Per-drone facts kept across ticks: vision rejection counts and the neighbours last used."""
+
+    mode: str
+    rejections: dict[int, Counter[str]] = field(default_factory=dict)
+    neighbours_used: dict[int, set[int]] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, mode: str, ids: list[int]) -> TickBook:
+        return cls(mode, {i: Counter() for i in ids}, {i: set() for i in ids})
+
+    def note(self, rec: Recording, t: float, agent: Agent) -> None:
+        """Count the agent's rejection reasons; an event when its set of neighbours changed."""
+        i, last = agent.cfg.drone_id, agent.last
+        if last.rejection:
+            self.rejections[i][last.rejection] += 1
+        if not last.own_pose_fresh:
+            self.rejections[i]["own pose lost (hovered)"] += 1
+        used, prev = set(last.neighbours_used), self.neighbours_used[i]
+        if used != prev:  # a neighbour left or rejoined fusion/consensus
+            rec.events.append(
+                {
+                    "t": t,
+                    "event": "neighbours",
+                    "drone": i,
+                    "dropped": sorted(prev - used),
+                    "added": sorted(used - prev),
+                    "mode": self.mode,
+                }
+            )
+            self.neighbours_used[i] = used
+
+    def vision_rejections(self) -> dict[str, dict[str, int]]:
+        return {str(i): dict(c) for i, c in self.rejections.items() if c}
+
+
+def record_tick(
+    rec: Recording,
+    k: int,
+    t: float,
+    agents: list[Agent],
+    truth: tuple[Pose, dict[int, Pose]],
+    book: TickBook,
+) -> None:
+    """Row k of `rec`: mission time t (s), the truth (g_w0, g_wi: world frame) and AGENT_FIELDS of each
+    agent (in recording order); marks the row done (`ticks_done = k + 1`)."""
+    g_w0, g_wis = truth
+    rec.t[k] = t
+    rec.g_w0[k] = g_w0.as_vector()
+    for i, a in enumerate(agents):
+        rec.g_wi[k, i] = g_wis[a.cfg.drone_id].as_vector()
+        for name, attr in AGENT_FIELDS:
+            getattr(rec, name)[k, i] = _tick_value(a.last, attr)
+        book.note(rec, t, a)
+    rec.wall_t[k] = time.time()
+    rec.ticks_done = k + 1
