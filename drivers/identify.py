@@ -16,29 +16,18 @@ rc unit. Time: monotonic seconds (time.monotonic), the hardware clock of flights
 
 Velocity measurement — position differencing, not the vg* fields. The default source differences the
 state's x/y/z (cm) and yaw (deg, unwrapped) between consecutive state packets and stamps each difference at
-the middle of the two packets' arrival times. Both were measured against the loopback emulator (10 Hz
-state, τ = 0.1 s, one 2 s step forward and one back per axis and amplitude; truth 0.01 m/s per unit):
-
-    rc amplitude   position differencing (x, y, z, yaw)    vg* fields (x, y, z)
-                   gain per unit / truth, τ                 gain per unit / truth, τ
-    40             0.99…1.00, 0.073…0.104 s                 1.00, 0.010 (bound)…0.097 s
-    35             0.99…1.00, 0.059…0.099 s                 0.857 (−14 %), τ at its 0.01 s bound
-    44             0.99…1.01, 0.053…0.095 s                 0.91 (−9 %), 0.010 (bound)…0.087 s
-    60             0.99…1.00, 0.080…0.098 s                 1.00, 0.070…0.097 s
+the middle of the two packets' arrival times. Measurements behind this choice (both sources against the
+emulator, a Monte Carlo of the τ estimate): docs/lab_notes.md (section "drivers/identify.py").
 
 - The vg* fields are integers in dm/s. A first-order response approaches its target from below, so 35 cm/s
   is reported as 3 dm/s for the whole step: the error is the same in every steady-state sample and never
   averages out, and the transient is one or two 10 cm/s levels, which often hides τ. Only speeds that are
   multiples of 10 cm/s come out right, and a real drone's gain is not known in advance to be such.
-- Differencing integer positions is coarse per sample (±1 cm over 0.1 s: ±10 cm/s; RMS residual
-  0.02–0.09 m/s, rad/s, against 0.005–0.013 m/s for vg*) but unbiased: the rounding errors telescope, so
-  the mean of N successive differences is the displacement over N intervals, exact to ±1 cm / (N · 0.1 s).
-  Because each rounding error enters two neighbouring differences with opposite signs, `identify` fits
-  such data with `differenced=True` (residuals weighted through their running sum: a position-domain
-  fit). A Monte Carlo of this pipeline (τ = 0.1 s, 10 Hz, 1 cm rounding, random packet phase, mean of a
-  forward and a back step) gives τ = 0.085 ± 0.022 s with plain least squares and 0.093 ± 0.011 s
-  with that weighting at rc 40, and 0.097 ± 0.007 s at rc 60 (no 1 cm rounding: 0.1007 ± 0.001 s).
-  τ is the weakest estimate: the rise is seen in ~3 samples, and τ trades off against the dead time.
+- Differencing integer positions is coarse per sample (±1 cm over 0.1 s: ±10 cm/s) but unbiased: the
+  rounding errors telescope, so the mean of N successive differences is the displacement over N
+  intervals, exact to ±1 cm / (N · 0.1 s). Because each rounding error enters two neighbouring
+  differences with opposite signs, `identify` fits such data with `differenced=True` (residuals weighted
+  through their running sum: a position-domain fit). Measured residuals and τ accuracy: docs/lab_notes.md.
 - There is no yaw-rate field at all: yaw must be differenced anyway, so one method serves every axis.
 - A difference is the exact mean velocity over the interval between two packets; for a first-order
   response that mean equals the point value at the interval's middle shifted by τ·ln(sinh(h/τ)/(h/τ))
@@ -408,7 +397,7 @@ def identify(
     positions (state_velocity_source), fitted with differenced=True. step_kw go to measure_step
     (baseline_s, settle_s, rate_hz, poll_s). Returns {axis: StepFit}; ValueError names the axis that
     failed. The rc amplitude trades the distance flown (rc 40 ≈ 0.4 m/s for duration_s, then back)
-    against the resolution of the 1 cm / 1° state rounding (module docstring).
+    against the resolution of the 1 cm / 1° state rounding (module docstring; numbers in docs/lab_notes.md).
     """
     for axis in axes:
         _check_axis(axis)

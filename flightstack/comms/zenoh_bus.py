@@ -19,15 +19,13 @@ session when Python is slow. Bad messages are dropped and counted in `dropped` b
 "control: ..."), exactly like `InProcBus`. Predictions are reliable; congestion control is DROP in real
 time (a newer one follows next tick) and BLOCK when `reliable` is set (lock-step simulations wait for
 every message, so a dropped one would stall a tick for the whole lock-step timeout). They are *not*
-express: zenoh's tx queue holds only 2 batches per priority and a DROP message that finds both taken
-for 1 ms is discarded; express puts every message in its own batch, so a burst from a CPU-starved process
-lost messages in testing, while batched messages share one batch (the batch is flushed as soon as the link
-is free: hop latency p50 unchanged, ~0.3 ms between two processes on loopback). Control messages are
-express, congestion control BLOCK (never dropped), priority INTERACTIVE_HIGH.
+express (batched); why, and the latency measured: docs/lab_notes.md (section "Batched, not express").
+Control messages are express, congestion control BLOCK (never dropped), priority INTERACTIVE_HIGH.
 
-Own-process loopback. A Zenoh session receives its own publications (verified with zenoh 1.10.2: the
-sample is delivered to the local subscriber asynchronously, on the subscriber's callback thread), so
-messages of agents hosted in this process take the same path as remote ones: encode -> Zenoh -> decode.
+Own-process loopback. A Zenoh session receives its own publications (the sample is delivered to the
+local subscriber asynchronously, on the subscriber's callback thread), so messages of agents hosted in
+this process take the same path as remote ones: encode -> Zenoh -> decode. Version this was verified
+with: docs/lab_notes.md (section "Own-process loopback").
 `wait_for` covers own senders too; the result is identical to `InProcBus`, where publish = decode.
 
 Lock-step. `wait_for({sender: seq})` blocks (threading.Condition, no polling) until each sender's newest
@@ -39,9 +37,10 @@ so a peer that sees the token has also received the subscriber declarations (sam
 its next publication reaches that process. A liveliness subscriber (history=True) tracks `alive()` and
 appends `presence_events` (monotonic time s, sender, "joined"|"left"); agents of this process are alive
 (and "joined") from construction on. A killed process closes its TCP
-links and is seen as left in ~0.1-0.2 s; a hung one (stopped, partitioned) only after `lease_ms` (the
-transport lease; keep-alives every lease/4). A sender that has left reads as None (counted "left") and
-its newest message and sequence number are forgotten, so a restarted agent (seq from 0) is accepted.
+links and is seen as left without waiting for the lease; a hung one (stopped, partitioned) only after
+`lease_ms` (the transport lease; keep-alives every lease/4). Measured time to "left": docs/lab_notes.md
+(section "Presence"). A sender that has left reads as None (counted "left") and its newest message and
+sequence number are forgotten, so a restarted agent (seq from 0) is accepted.
 
 Time base (issue 15, freshness.py). `cfg.time_base` "stamps" (the default; lock-step runs on a simulated
 clock): a message's age is `now − stamp` on the mission clock, as the in-process bus. "receiver" (real

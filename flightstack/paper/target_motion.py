@@ -3,7 +3,7 @@
 Duffing-like field of the paper's simulation (Sec. 5), with the world position p_w0 = (x, y, z):
     V_w0 = 0.5 Ad_{Rᵀ(θ_w0)} [y, z, v_z, 2ω]ᵀ
     v_z  = 0.2 (−δ z − α y − 3β x² y − γ ω sin θ_w0)
-(ω is a constant of the field, 0.4, and also half the yaw rate.)
+(ω is a constant of the field, 0.4 rad/s; the yaw rate is 0.5 · 2ω = ω.)
 """
 
 from __future__ import annotations
