@@ -55,6 +55,7 @@ from flightstack.config.mission import Mission
 from flightstack.drivers.guardian import EXIT_DONE, GuardianConfig
 from flightstack.drivers.guardian_process import GuardianProcess, Log
 from flightstack.drivers.hardware import tello_config
+from flightstack.events import Event
 
 POLL_S = 0.01  # longest wait between two looks at the bus and the landers (s)
 STATUS_FRESH_MIN_S = 2.0  # lower bound of status_fresh_s (s)
@@ -64,7 +65,7 @@ class GuardBus(Protocol):
     """What guard reads of a flightstack.comms.zenoh_bus.ZenohBus."""
 
     @property
-    def presence_events(self) -> list[tuple[float, int, str]]: ...
+    def presence_events(self) -> list[Event]: ...
     def control_events(self) -> list[ControlEvent]: ...
 
 
@@ -242,8 +243,9 @@ class Guard:
         """One look: statuses and presence changes in order of receipt, silences, running takeovers."""
         events: list[tuple[float, int, str, StatusReport | None]] = []
         presence = self.bus.presence_events
-        for t, i, what in presence[self._n_presence :]:
-            events.append((t, i, what, None))
+        for p in presence[self._n_presence :]:
+            if p.drone is not None:
+                events.append((p.t, p.drone, p.kind, None))
         self._n_presence = len(presence)
         for ev in self.bus.control_events():
             report = status_report(ev)  # None: not a status, or a malformed one (the bus counted it)

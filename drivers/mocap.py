@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from flightstack.drivers.tello_link import ERROR_PAUSE_S, ErrorLog
+from flightstack.events import Event
 from flightstack.hal import StampedPose
 from flightstack.paper.geometry import Pose
 
@@ -173,7 +174,7 @@ class MocapPoseSource:
         self._last_frame: float | None = None
         self._reader_error: str | None = None  # the last error of the reader thread (kept after recovery)
         self._failing = False  # the reader's last attempt failed
-        self.events: list[tuple[float, str, str]] = []
+        self.events: list[Event] = []  # source mocap; detail: the body's name
         self.counts: Counter[str] = Counter()
         self.errors = ErrorLog(self.counts, f"mocap {cfg.system} reader", LOG)
 
@@ -288,7 +289,7 @@ class MocapPoseSource:
         return (len(r) - 1) / (r[-1] - r[0])
 
     def _event(self, kind: str, name: str) -> None:
-        self.events.append((self._clock(), kind, name))
+        self.events.append(Event(self._clock(), None, kind, name, source="mocap", clock="monotonic"))
         if len(self.events) > MAX_EVENTS:
             del self.events[: len(self.events) - MAX_EVENTS]
 

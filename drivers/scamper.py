@@ -85,6 +85,7 @@ from flightstack.drivers.scamper_link import (
     probe_heartbeat,
 )
 from flightstack.drivers.tello_link import MutedCheck
+from flightstack.events import Event
 
 __all__ = [
     "GCS_HEARTBEAT_PERIOD_S",
@@ -151,7 +152,7 @@ class ScamperDriver:
     def __init__(self, config: ScamperConfig | None = None, muted: MutedCheck | None = None) -> None:
         """muted: the guardian's takeover check (module docstring); also settable by `set_muted`."""
         self.config = config or ScamperConfig()
-        self.events: list[tuple[float, str, str]] = []
+        self.events: list[Event] = []  # source scamper, time.monotonic() s
         self.resends = 0  # COMMAND_LONG re-sends (no ACK and no heartbeat change in time)
         self.counts: Counter[str] = Counter()
         self._muted = muted
@@ -294,7 +295,7 @@ class ScamperDriver:
     # ------------------------------------------------------------------ internals
     def _event(self, kind: str, detail: str) -> None:
         """Append an event; caller holds the lock."""
-        self.events.append((time.monotonic(), kind, detail))
+        self.events.append(Event(time.monotonic(), None, kind, detail, source="scamper", clock="monotonic"))
 
     def _state_text(self, now: float) -> str:
         """What the last heartbeat said, for messages; caller holds the lock."""

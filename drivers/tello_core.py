@@ -21,6 +21,7 @@ from flightstack.drivers.tello_config import TelloConfig
 from flightstack.drivers.tello_link import CommandChannel, ErrorLog, StateReceiver
 from flightstack.drivers.tello_phase import PhaseTracker
 from flightstack.drivers.tello_state import TelloTelemetry
+from flightstack.events import Event
 from flightstack.hal import DroneState, FlightPhase
 
 LOG = logging.getLogger("flightstack.tello")
@@ -48,7 +49,7 @@ class TelloDriverCore:
         self._monitor: threading.Thread | None = None
         self._once: set[str] = set()
         self.last_rc: tuple[int, int, int, int] = (0, 0, 0, 0)
-        self.events: list[tuple[float, str, str]] = []
+        self.events: list[Event] = []  # source tello, time.monotonic() s
         self.counts: Counter[str] = Counter()
         self.rc_sent = 0
         self._muted: Callable[[], bool] | None = None
@@ -58,7 +59,7 @@ class TelloDriverCore:
 
     # ---- events, state ---------------------------------------------------------------------------
     def _event(self, kind: str, detail: str = "") -> None:
-        self.events.append((time.monotonic(), kind, detail))
+        self.events.append(Event(time.monotonic(), None, kind, detail, source="tello", clock="monotonic"))
         del self.events[:-1000]
         LOG.warning("tello %s %s %s", self.cfg.host, kind, detail)
 

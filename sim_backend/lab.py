@@ -16,6 +16,7 @@ import numpy as np
 
 from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
+from flightstack.events import Event
 from flightstack.hal import DroneState, Frame, StampedPose
 from flightstack.paper.geometry import Pose, integrate_body_velocity, relative, rot_z
 from flightstack.vision.camera_file import CameraCalibration
@@ -57,7 +58,7 @@ class TelloSim:
         self._queue: deque[tuple[float, tuple[int, int, int, int]]] = deque()
         self.last_command_t = -math.inf
         self.rc_log: list[tuple[float, tuple[int, int, int, int]]] = []
-        self.events: list[tuple[float, str]] = []
+        self.events: list[Event] = []  # source lab, on the world's virtual clock (s)
         self.connected = False
 
     # ---- hal.Drone ------------------------------------------------------------------------------
@@ -110,10 +111,10 @@ class TelloSim:
         airborne = self.phase != self.GROUND
         if self.phase == self.FLYING:
             if t - self.last_command_t > self.p.auto_land_s:
-                self.events.append((t, "auto_land_no_command"))
+                self.events.append(Event(t, self.id, "auto_land_no_command", source="lab"))
                 self.phase = self.LANDING
             elif self.battery <= 0.0:
-                self.events.append((t, "battery_empty"))
+                self.events.append(Event(t, self.id, "battery_empty", source="lab"))
                 self.phase = self.LANDING
         if self.phase == self.FLYING:
             a = 1.0 - math.exp(-dt / self.p.time_constant_s)

@@ -123,7 +123,7 @@ def test_offset_is_the_minimum_over_the_join_window_then_frozen() -> None:
         if k == 4:
             assert book.offset(0) == pytest.approx(50.002)  # min over the first 5
     assert book.offset(0) == pytest.approx(50.001)  # a less delayed message lowers it (within bounds)
-    events = [what for _, _, what, _ in book.offset_events]
+    events = [e.kind for e in book.offset_events]
     assert events == ["offset learning", "offset frozen"]
 
 
@@ -165,7 +165,7 @@ def test_a_sender_jumping_its_clock_fails_closed_until_it_rejoins() -> None:
         t += 3.0  # silent for 3 s > rejoin_after_s: the next message opens a new join window
         assert publish(t, t + 600.0 + jump) is not None
         assert book.latest(0, t, 0.5) is not None
-        assert book.offset_events[-1][2] == "offset re-learning after silence"
+        assert book.offset_events[-1].kind == "offset re-learning after silence"
 
 
 @pytest.mark.parametrize(("ppm", "dropped"), [(50.0, False), (1000.0, True)])

@@ -44,6 +44,7 @@ from flightstack.comms.control import (
 )
 from flightstack.config.mission import load_mission
 from flightstack.drivers.guard import AgentWatch, Guard, GuardSummary
+from flightstack.events import Event
 from flightstack.hal import DroneState, Frame, StampedPose
 from flightstack.runtime.backends import build_backend
 from flightstack.sim_backend.served import messages as wm
@@ -392,7 +393,7 @@ def consume_cmd(data: bytes) -> str | None:
 class FakeGuardBus:
     def __init__(self, events: list[ControlEvent]) -> None:
         self.events = events
-        self.presence_events: list[tuple[float, int, str]] = []
+        self.presence_events: list[Event] = []
 
     def control_events(self) -> list[ControlEvent]:
         out, self.events = self.events, []

@@ -144,7 +144,7 @@ def test_tello_command_channel_and_monitor_survive_errors(
         assert wait_for(lambda: d.counts["monitor_error"] == 3)
 
         def kinds() -> list[str]:
-            return [k for _, k, _ in d.events]
+            return [e.kind for e in d.events]
 
         tello.faults.drop_state = True  # the monitor (not the age check of state()) reports the loss
         assert wait_for(lambda: "link_lost" in kinds(), 2.0)
@@ -259,7 +259,7 @@ def check_mocap_survives(src: MocapPoseSource, flaky: list[FlakyMocap], body: st
     st = src.stats()
     assert st["reader_alive"] and not st["reader_failing"] and "unreachable" in str(st["reader_error"])
     assert src.latest(body) is not None
-    kinds = [k for _, k, _ in src.events]
+    kinds = [e.kind for e in src.events]
     assert kinds.count("reader_error") == 1 and kinds.count("reader_recovered") == 1
 
 
@@ -386,7 +386,7 @@ def test_scamper_threads_survive_send_receive_and_handler_errors(
         # still receiving: a pilot's mode switch is seen, the heartbeat stays fresh, the link alive
         rover.pilot_override(mode=4)
         assert wait_for(lambda: drv.robot_state().custom_mode == 4)
-        assert "mode_changed" in [k for _, k, _ in drv.events]
+        assert "mode_changed" in [e.kind for e in drv.events]
         assert drv.link_alive() and drv.robot_state().age_s < 0.5
         assert drv.threads_alive() == {"scamper-rx": True, "scamper-tx": True}
         assert drv.counts["thread_error"] == 14  # recv 10, handler 2, tx 2; send errors: own count
@@ -425,7 +425,7 @@ def test_scamper_mute_stops_every_send(rover: Any) -> None:
         drv.close()  # zero set-point and disarm: not sent, the process that took over is in charge
     assert len(rover.setpoint_records()) == n_sp and len(rover.commands) == n_cmd
     assert not any(c == arm_disarm and p == 0.0 for c, p, _ in rover.commands)
-    assert rover.armed and "disarm_skipped_muted" in [k for _, k, _ in drv.events]
+    assert rover.armed and "disarm_skipped_muted" in [e.kind for e in drv.events]
 
 
 def test_scamper_mute_set_before_connect_and_lifted(rover: Any) -> None:

@@ -34,6 +34,7 @@ from flightstack.config.mission import load_mission
 from flightstack.config.rig import resolved_document
 from flightstack.drivers.guard import Guard
 from flightstack.drivers.guardian_process import Log
+from flightstack.events import Event
 from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port, wait_until
 from tests.conftest import secured_bus
 from tests.conftest import status_payload as status
@@ -301,11 +302,11 @@ class FakeBus:
     """The two things guard reads of a ZenohBus, filled by the test."""
 
     def __init__(self) -> None:
-        self.presence: list[tuple[float, int, str]] = []
+        self.presence: list[Event] = []
         self.controls: list[ControlEvent] = []
 
     @property
-    def presence_events(self) -> list[tuple[float, int, str]]:
+    def presence_events(self) -> list[Event]:
         return list(self.presence)
 
     def control_events(self) -> list[ControlEvent]:
@@ -326,18 +327,18 @@ def test_guard_stops_sending_when_the_agent_is_back(lab: dict[str, Any]) -> None
                 g.step(time.monotonic())
                 time.sleep(0.01)
 
-        bus.presence.append((time.monotonic(), 1, "joined"))
+        bus.presence.append(Event(time.monotonic(), 1, "joined", source="bus", clock="monotonic"))
         bus.controls.append(ControlEvent(time.monotonic(), "status", status(1, flying=True), (1,)))
         bus.controls.append(ControlEvent(time.monotonic(), "status", status(2, flying=True), (1,)))
         malformed = {"drone": 1, "flying": False}  # not a full status: ignored, 1 is still flying
         bus.controls.append(ControlEvent(time.monotonic(), "status", malformed, (1,)))
         steps(0.1)
         assert from_port(emu, port) == []
-        bus.presence.append((time.monotonic(), 1, "left"))
+        bus.presence.append(Event(time.monotonic(), 1, "left", source="bus", clock="monotonic"))
         steps(0.35)
         sent = [x for _, x in from_port(emu, port)]
         assert sent[:2] == ["rc 0 0 0 0", "land"] and len(sent) >= 6  # re-sent every 0.1 s
-        bus.presence.append((time.monotonic(), 1, "joined"))
+        bus.presence.append(Event(time.monotonic(), 1, "joined", source="bus", clock="monotonic"))
         steps(0.05)
         n = len(from_port(emu, port))
         steps(0.4)

@@ -85,7 +85,7 @@ def test_tello_auto_land_without_commands_and_battery() -> None:
     run(d, clock, 14.0)
     assert d.state().flying
     run(d, clock, 1.5)
-    assert not d.state().flying and d.events[-1][1] == "auto_land_no_command"
+    assert not d.state().flying and d.events[-1].kind == "auto_land_no_command"
     run(d, clock, 5.0)
     assert d.phase == "ground" and d.pose.p[2] == 0.0
     # airborne: climb 2 s + hover 3 s + 15 s until auto-land + descent 2.5 s; no drain on the ground

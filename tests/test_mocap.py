@@ -157,7 +157,7 @@ def test_is_pose_source_and_receive_stamps(fake: FakeMocap) -> None:
         time.sleep(0.05)
         sp2 = src.latest("cf1")
         assert sp2 is not None and sp2.stamp > sp.stamp  # stamps advance with received frames
-        assert "cf1" in [e[2] for e in src.events if e[1] == "body_found"]
+        assert "cf1" in [e.detail for e in src.events if e.kind == "body_found"]
     finally:
         src.close()
 
@@ -183,7 +183,7 @@ def test_stale_after_body_disappears(fake: FakeMocap) -> None:
         assert _wait_for(lambda: src.latest("cf1") is not None)
         fake.set("cf1", None)
         t_removed = time.monotonic()
-        assert _wait_for(lambda: any(e[1:] == ("body_lost", "cf1") for e in src.events))
+        assert _wait_for(lambda: any((e.kind, e.detail) == ("body_lost", "cf1") for e in src.events))
         assert _wait_for(lambda: src.latest("cf1") is None, timeout=1.0)
         t_stale = time.monotonic()
         assert 0.08 <= t_stale - t_removed <= 0.5
@@ -191,7 +191,7 @@ def test_stale_after_body_disappears(fake: FakeMocap) -> None:
         assert src.tilt("cf1") is not None  # last tilt stays known
         fake.set("cf1", _body((0.0, 0.0, 1.0), Rotation.identity()))
         assert _wait_for(lambda: src.latest("cf1") is not None)
-        assert any(e[1:] == ("body_regained", "cf1") for e in src.events)
+        assert any((e.kind, e.detail) == ("body_regained", "cf1") for e in src.events)
     finally:
         src.close()
 
@@ -218,13 +218,13 @@ def test_tilt_refusal(fake: FakeMocap) -> None:
         fake.set("cf1", _body((1.0, 2.0, 0.5), Rotation.from_euler("ZYX", [0.7, 0.0, 0.5])))
         assert _wait_for(lambda: src.latest("cf1") is None)
         assert src.tilt("cf1") == pytest.approx(0.5, abs=1e-6)
-        assert any(e[1:] == ("tilt_refused", "cf1") for e in src.events)
+        assert any((e.kind, e.detail) == ("tilt_refused", "cf1") for e in src.events)
         time.sleep(0.05)
         assert src.latest("cf1") is None  # refused while tilted, although fresh
-        assert [e[1] for e in src.events].count("tilt_refused") == 1  # one event per episode
+        assert [e.kind for e in src.events].count("tilt_refused") == 1  # one event per episode
         fake.set("cf1", _body((1.0, 2.0, 0.5), Rotation.from_euler("ZYX", [0.7, 0.2, 0.0])))
         assert _wait_for(lambda: src.latest("cf1") is not None)
-        assert any(e[1:] == ("tilt_ok", "cf1") for e in src.events)
+        assert any((e.kind, e.detail) == ("tilt_ok", "cf1") for e in src.events)
     finally:
         src.close()
 
@@ -262,7 +262,7 @@ def test_close_is_bounded_when_reader_blocked(fake: FakeMocap) -> None:
     t0 = time.monotonic()
     src.close(join_timeout_s=0.2)
     assert time.monotonic() - t0 < 1.0
-    assert any(e[1] == "reader_join_timeout" for e in src.events)
+    assert any(e.kind == "reader_join_timeout" for e in src.events)
     fake.release.set()  # the reader then sees the stop flag and exits
     assert _wait_for(lambda: not src.stats()["reader_alive"])
 

@@ -118,14 +118,14 @@ def test_lost_body_goes_stale_and_returns(emu: NatNetEmulator, omit: bool) -> No
         assert wait_for(lambda: src.latest("cf1") is not None and src.latest("target") is not None)
         emu.faults.lost_bodies.add("cf1")
         t_lost = time.monotonic()
-        assert wait_for(lambda: any(e[1:] == ("body_lost", "cf1") for e in src.events))
+        assert wait_for(lambda: any((e.kind, e.detail) == ("body_lost", "cf1") for e in src.events))
         assert wait_for(lambda: src.latest("cf1") is None)
         assert 0.08 <= time.monotonic() - t_lost <= 0.6  # stale after stale_after_s, as documented
         assert src.latest("target") is not None  # the others are unaffected
         assert src.stats()["bodies"]["cf1"]["present"] is False
         emu.faults.lost_bodies.clear()
         assert wait_for(lambda: src.latest("cf1") is not None)
-        assert any(e[1:] == ("body_regained", "cf1") for e in src.events)
+        assert any((e.kind, e.detail) == ("body_regained", "cf1") for e in src.events)
 
 
 def test_dropped_frames_make_bodies_stale(emu: NatNetEmulator) -> None:
@@ -141,7 +141,7 @@ def test_dropped_frames_make_bodies_stale(emu: NatNetEmulator) -> None:
             assert st["last_frame_age_s"] > 0.09 and st["bodies"]["cf1"]["rate_hz"] == 0.0
             assert st["reader_alive"]  # blocked in waitForNextFrame, not dead
             # no "body_lost": the bodies were not reported missing, the stream stopped
-            assert not any(e[1] == "body_lost" for e in src.events)
+            assert not any(e.kind == "body_lost" for e in src.events)
         finally:
             emu.faults.drop_frames = False  # lets the reader leave waitForNextFrame before close()
         assert wait_for(lambda: src.latest("cf1") is not None)

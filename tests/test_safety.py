@@ -220,7 +220,8 @@ def test_event_log_is_thread_safe_and_exports() -> None:
     assert len(log) == 4000
     assert log.counts() == {"saturated": 2000, "land": 2000}
     d = log.to_dicts()[0]
-    assert set(d) == {"t", "drone", "kind", "detail"}
+    assert set(d) == {"t", "drone", "kind", "detail", "source", "clock", "value"}
+    assert d["source"] == "safety" and d["clock"] == "mission"
     assert len(log.of_kind("land")) == 2000
     with pytest.raises(ValueError):
         log.append(SafetyEvent(0.0, None, "not_a_kind", ""))

@@ -59,11 +59,11 @@ def make_driver(emu: MavlinkRoverEmulator, **kw: float) -> ScamperDriver:
 
 
 def kinds(drv: ScamperDriver) -> list[str]:
-    return [k for _, k, _ in drv.events]
+    return [e.kind for e in drv.events]
 
 
 def details(drv: ScamperDriver, kind: str) -> list[str]:
-    return [d for _, k, d in drv.events if k == kind]
+    return [e.detail for e in drv.events if e.kind == kind]
 
 
 def sent(emu: MavlinkRoverEmulator, command: int, param: float | None = None) -> int:
@@ -189,10 +189,10 @@ def test_link_loss_and_restore(emu: MavlinkRoverEmulator) -> None:
     try:
         emu.faults.no_heartbeat = True
         assert wait_for(lambda: not drv.link_alive(), 2.5)
-        assert [k for _, k, _ in drv.events][-1] == "link_lost"
+        assert [e.kind for e in drv.events][-1] == "link_lost"
         emu.faults.no_heartbeat = False
         assert wait_for(drv.link_alive, 1.5)
-        assert [k for _, k, _ in drv.events][-1] == "link_restored"
+        assert [e.kind for e in drv.events][-1] == "link_restored"
     finally:
         drv.close()
 

@@ -183,10 +183,10 @@ def test_state_stream_loss_is_detected_and_reported(emu: TelloEmulator) -> None:
         assert d.state().link_alive
         emu.faults.drop_state = True
         assert wait_until(lambda: not d.state().link_alive, 2.0)
-        assert wait_until(lambda: any(kind == "link_lost" for _, kind, _ in d.events), 1.0)
+        assert wait_until(lambda: any(e.kind == "link_lost" for e in d.events), 1.0)
         emu.faults.drop_state = False
         assert wait_until(lambda: d.state().link_alive, 2.0)
-        assert wait_until(lambda: any(kind == "link_restored" for _, kind, _ in d.events), 1.0)
+        assert wait_until(lambda: any(e.kind == "link_restored" for e in d.events), 1.0)
     finally:
         d.close()
 
@@ -240,11 +240,11 @@ def test_a_silent_loop_makes_the_drone_hover_then_land_by_itself(emu: TelloEmula
         n = len(emu.rc_history)
         assert wait_until(lambda: len(emu.rc_history) > n and emu.rc_history[-1][1] == (0, 0, 0, 0), 2.0)
         t_hover = time.monotonic() - t_last
-        assert any(kind == "loop_silent_hover" for _, kind, _ in d.events)
+        assert any(e.kind == "loop_silent_hover" for e in d.events)
         assert wait_until(lambda: "land" in emu.command_texts(), 3.0)
         t_land = time.monotonic() - t_last
         assert 0.3 <= t_hover < 0.6 and 1.0 <= t_land < 1.5, (t_hover, t_land)
-        assert any(kind == "loop_lost_land" for _, kind, _ in d.events)
+        assert any(e.kind == "loop_lost_land" for e in d.events)
         assert wait_until(lambda: d.phase is FlightPhase.GROUND, 10.0)
         assert not emu.landed_by_timeout
         n = len(emu.rc_history)
@@ -321,7 +321,7 @@ def test_lost_replies_are_confirmed_by_telemetry(emu: TelloEmulator, lost: set[s
         else:
             assert times["takeoff_s"] < 3.5
         assert_clean(d, emu)
-        confirmed = [detail for _, kind, detail in d.events if kind == "reply_lost_confirmed"]
+        confirmed = [e.detail for e in d.events if e.kind == "reply_lost_confirmed"]
         assert len(confirmed) == len(lost), d.events
         for verb in lost:
             assert any(verb in c for c in confirmed)

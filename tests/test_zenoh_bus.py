@@ -260,7 +260,7 @@ def test_closed_bus_is_seen_left_within_one_second() -> None:
         t_close = time.monotonic()
         b.close()
         assert eventually(lambda: a.alive() == {0}, 5.0)
-        left = {s: t for t, s, what in a.presence_events if what == "left"}
+        left = {e.drone: e.t for e in a.presence_events if e.kind == "left"}
         assert set(left) == {1, 2}
         assert max(left.values()) - t_close < DETECT_BOUND_S, left
         assert a.latest(1, 1.0, 1.0) is None
@@ -286,7 +286,7 @@ def test_restarted_agent_is_accepted_with_fresh_seq() -> None:
             finally:
                 b.close()
             assert eventually(lambda: 1 not in a.alive(), 5.0)
-        assert [(s, what) for _, s, what in a.presence_events if s == 1] == [
+        assert [(e.drone, e.kind) for e in a.presence_events if e.drone == 1] == [
             (1, "joined"),
             (1, "left"),
             (1, "joined"),
@@ -354,7 +354,7 @@ def test_killed_or_hung_peer_process_is_dropped(how: str) -> None:
             os.kill(proc.pid, getattr(signal, how))
             try:
                 assert eventually(lambda: 2 not in a.alive(), 10.0)
-                t_left = next(t for t, s, what in a.presence_events if s == 2 and what == "left")
+                t_left = next(e.t for e in a.presence_events if e.drone == 2 and e.kind == "left")
                 detect = t_left - t_kill
                 print(f"{how}: peer seen left after {detect * 1e3:.0f} ms (lease {LEASE_MS} ms)")
                 assert detect < DETECT_BOUND_S

@@ -16,6 +16,7 @@ from flightstack.comms.acceptance import AcceptanceBounds
 from flightstack.comms.control import ControlEvent
 from flightstack.comms.freshness import Freshness, OffsetPolicy, TimeBase
 from flightstack.comms.messages import PredictionMessage, encode
+from flightstack.events import Event
 
 if TYPE_CHECKING:
     from flightstack.comms.operator_link import LoopbackOperatorListener
@@ -49,14 +50,15 @@ class OperatorChannel(Protocol):
 
     control_events: the operator commands received since the last call, oldest first (drained).
     publish_control: a status report for `flightstack status` / `guard` (no-op where nobody can read it).
-    presence_events: (time.monotonic() s, sender, "joined" | "left") of the agents seen on the network.
+    presence_events: `Event`s (kind "joined" | "left", drone = the sender, time.monotonic() s) of the
+    agents seen on the network.
     """
 
     def control_events(self) -> list[ControlEvent]: ...
     def publish_control(self, kind: str, payload: dict[str, Any]) -> None: ...
 
     @property
-    def presence_events(self) -> list[tuple[float, int, str]]: ...
+    def presence_events(self) -> list[Event]: ...
 
 
 class Bus(PredictionBus, LockstepBus, OperatorChannel, Protocol):
@@ -125,7 +127,7 @@ class InProcBus:
         """No-op: the loopback operator listener only receives (nobody reads an in-process status)."""
 
     @property
-    def presence_events(self) -> list[tuple[float, int, str]]:
+    def presence_events(self) -> list[Event]:
         """Always empty: every agent is in this process."""
         return []
 

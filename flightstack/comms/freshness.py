@@ -57,9 +57,15 @@ from typing import Literal
 
 from flightstack.comms.acceptance import AcceptanceBounds, SeqState, restart_run, seq_verdict
 from flightstack.comms.messages import PredictionMessage, decode
+from flightstack.events import Event
 
 TimeBase = Literal["stamps", "receiver"]
 TIME_BASES: tuple[str, ...] = ("stamps", "receiver")
+
+
+def _offset_event(t_recv: float, sender: int, what: str, offset_s: float) -> Event:
+    """A change of what this receiver knows about sender's clock offset (receiver − sender, s)."""
+    return Event(t_recv, sender, what, source="bus", clock="monotonic", value=float(offset_s))
 
 
 @dataclass(frozen=True)
@@ -121,7 +127,7 @@ class Freshness:
         self.newest: dict[int, PredictionMessage] = {}
         self.received: dict[int, float] = {}  # receipt time of each sender's newest accepted message (s)
         self.clocks: dict[int, SenderClock] = {}
-        self.offset_events: list[tuple[float, int, str, float]] = []  # (t_recv s, sender, what, offset s)
+        self.offset_events: list[Event] = []  # drone = sender, kind = what, value = offset (s), t = t_recv
         self.dropped: Counter[str] = Counter()
         self.delivered = 0
         self.bounds = bounds or AcceptanceBounds()
@@ -225,7 +231,7 @@ class Freshness:
             what = "offset learning" if c is None else "offset re-learning after silence"
             c = SenderClock(offset=raw, n=1, t_first=t_recv, last_heard=t_recv, raws=[raw])
             self.clocks[msg.sender] = c
-            self.offset_events.append((t_recv, msg.sender, what, raw))
+            self.offset_events.append(_offset_event(t_recv, msg.sender, what, raw))
             self._maybe_freeze(c, msg.sender, t_recv)
             return None
         c.last_heard = t_recv
@@ -251,7 +257,7 @@ class Freshness:
         if c.n >= self.policy.join_messages or t_recv - c.t_first >= self.policy.join_window_s:
             c.frozen_at = t_recv
             c.frozen_offset = c.offset
-            self.offset_events.append((t_recv, sender, "offset frozen", c.offset))
+            self.offset_events.append(_offset_event(t_recv, sender, "offset frozen", c.offset))
 
 
 __all__ = ["TIME_BASES", "Freshness", "OffsetPolicy", "SenderClock", "TimeBase"]

@@ -89,6 +89,7 @@ from flightstack.comms.control import (
 from flightstack.comms.freshness import Freshness, OffsetPolicy
 from flightstack.comms.messages import MAGIC, PredictionMessage, encode
 from flightstack.comms.zenoh_config import ZenohBusConfig, zenoh_config
+from flightstack.events import Event
 
 
 def _header_sender(data: bytes) -> str:
@@ -96,6 +97,11 @@ def _header_sender(data: bytes) -> str:
     if len(data) >= 8 and data[:4] == MAGIC:
         return str(int.from_bytes(data[6:8], "little"))
     return "raw"
+
+
+def _presence(t: float, sender: int, what: str) -> Event:
+    """A presence change: `what` ("joined" | "left") of agent `sender` at time.monotonic() t (s)."""
+    return Event(t, sender, what, source="bus", clock="monotonic")
 
 
 class ZenohBus:
@@ -126,13 +132,13 @@ class ZenohBus:
         self.acks_sent = 0
         self._alive: set[int] = set()
         self._left: set[int] = set()
-        self._events: list[tuple[float, int, str]] = []
+        self._events: list[Event] = []  # presence: kind joined|left, drone = sender, monotonic s
         self._control: list[ControlEvent] = []
         self._closed = False
         t_start = time.monotonic()
         for i in sorted(self.self_ids):  # own agents: alive by definition, not after a zenoh round trip
             self._alive.add(i)
-            self._events.append((t_start, i, "joined"))
+            self._events.append(_presence(t_start, i, "joined"))
         self._publishers: dict[str, Any] = {}
         self._control_pubs: dict[str, Any] = {}
         self.name = cfg.name()  # participant name: the CN of this process's certificate
@@ -283,7 +289,7 @@ class ZenohBus:
             return set(self._alive)
 
     @property
-    def presence_events(self) -> list[tuple[float, int, str]]:
+    def presence_events(self) -> list[Event]:
         """(time.monotonic() s, sender, "joined"|"left") in order of receipt (copy)."""
         with self._cond:
             return list(self._events)
@@ -390,12 +396,12 @@ class ZenohBus:
             if joined and sender not in self._alive:
                 self._alive.add(sender)
                 self._left.discard(sender)
-                self._events.append((now, sender, "joined"))
+                self._events.append(_presence(now, sender, "joined"))
             elif not joined and sender in self._alive:
                 self._alive.discard(sender)
                 self._left.add(sender)
                 self._book.forget(sender)  # a restarted agent counts seq from 0, re-learns its offset
-                self._events.append((now, sender, "left"))
+                self._events.append(_presence(now, sender, "left"))
             self._cond.notify_all()
 
     def _on_control(self, sample: zenoh.Sample) -> None:

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from flightstack.comms.messages import PredictionMessage, encode
+from flightstack.events import Event
 from flightstack.hal import DroneState, Frame, StampedPose
 
 __all__ = [
@@ -306,7 +307,7 @@ class FaultyBus:
         self.inner.publish_control(kind, payload)
 
     @property
-    def presence_events(self) -> list[tuple[float, int, str]]:
+    def presence_events(self) -> list[Event]:
         return self.inner.presence_events
 
     def close(self) -> None:

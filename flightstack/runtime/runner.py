@@ -219,8 +219,8 @@ def finish_recording(f: Fleet, rec: Recording, book: TickBook, wall_seconds: flo
     rec.wall_seconds = wall_seconds
     rec.bus_dropped = dict(f.bus.dropped)
     rec.events.extend(
-        {"event": "bus presence", "mode": mode, "sender": j, "what": what, "monotonic": tm}
-        for tm, j, what in f.bus.presence_events
+        {"event": "bus presence", "mode": mode, "sender": p.drone, "what": p.kind, "monotonic": p.t}
+        for p in f.bus.presence_events
     )
     rec.vision_rejections = book.vision_rejections()
     rec.fill_true_errors(f.g_d)

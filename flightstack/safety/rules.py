@@ -11,10 +11,11 @@ import logging
 import math
 import threading
 from collections import Counter
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
+from flightstack.events import Event
 from flightstack.paper.geometry import Pose
 
 _logger = logging.getLogger(__name__)
@@ -151,17 +152,9 @@ class SafetyLimits:
         return (self.fence_hi[0] + m, self.fence_hi[1] + m, self.fence_hi[2] + m)
 
 
-@dataclass(frozen=True)
-class SafetyEvent:
-    """One safety event: mission-clock time t (s), drone id (None: mission-wide), kind (in EVENT_KINDS)."""
-
-    t: float
-    drone: int | None
-    kind: str
-    detail: str
-
-    def to_dict(self) -> dict[str, object]:
-        return asdict(self)
+SafetyEvent = Event
+"""A safety event is an `Event` (flightstack.events) with source "safety", on the mission clock, kind in
+EVENT_KINDS; the name stays for readability at the call sites."""
 
 
 class EventLog:
@@ -186,7 +179,7 @@ class EventLog:
 
     def record(self, t: float, drone: int | None, kind: str, detail: str) -> SafetyEvent:
         """Build, append and return an event."""
-        ev = SafetyEvent(float(t), drone, kind, detail)
+        ev = Event(float(t), drone, kind, detail, source="safety")
         self.append(ev)
         return ev
 
@@ -204,7 +197,7 @@ class EventLog:
         return dict(Counter(e.kind for e in self.events))
 
     def to_dicts(self) -> list[dict[str, object]]:
-        """The events as dicts {t, drone, kind, detail} (for the run directory's event log)."""
+        """The events as dicts (`Event.to_dict`: t, drone, kind, detail, ...) for the run's event log."""
         return [e.to_dict() for e in self.events]
 
     def __len__(self) -> int:

@@ -33,6 +33,7 @@ import zenoh
 
 from flightstack.comms.factory import make_bus
 from flightstack.config.mission import Mission
+from flightstack.events import Event
 from flightstack.hal import FlightPhase
 from flightstack.runtime.backends import build_backend
 from flightstack.runtime.phases import (
@@ -49,7 +50,7 @@ class WorldSummary:
     ticks: int = 0
     sim_seconds: float = 0.0
     wall_seconds: float = 0.0
-    events: list[str] = field(default_factory=list)
+    events: list[Event] = field(default_factory=list)  # source world, mission clock (s)
     dropped: dict[str, int] = field(default_factory=dict)
     landed: dict[int, bool] = field(default_factory=dict)
 
@@ -185,7 +186,10 @@ class WorldServer:
                     return
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    self.summary.events.append(f"tick {k}: no cmd from agents {waiting} (went on)")
+                    detail = f"tick {k}: no cmd from agents {waiting} (went on)"
+                    self.summary.events.append(
+                        Event(k * self.mission.dt_s, None, "lockstep_timeout", detail, "world")
+                    )
                     self.log(f"tick {k}: no cmd from agents {waiting} within {timeout_s:g} s")
                     return
                 self._cond.wait(min(remaining, 0.01))  # also re-checks liveliness
@@ -205,7 +209,7 @@ class WorldServer:
             if i not in alive and i not in self._gone:
                 self._gone.add(i)
                 d = self.backend.drone(i)
-                self.summary.events.append(f"t = {t:.3f} s: agent {i} left the bus; its drone lands")
+                self.summary.events.append(Event(t, i, "agent_left", "its drone lands", source="world"))
                 self.log(f"agent {i} left at t = {t:.3f} s: landing drone {i}")
                 d.send_body_velocity(np.zeros(4))
                 st = d.state()
