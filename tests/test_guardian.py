@@ -121,6 +121,7 @@ class Child:
             text=True,
         )
         self.lines: dict[str, list[str]] = {}
+        self._partial = ""  # the start of a line whose end has not been read yet
 
     def wait_line(self, key: str, timeout: float = 10.0) -> list[str]:
         """The fields of the child's first stdout line starting with `key` (reads ≤ timeout s)."""
@@ -128,14 +129,19 @@ class Child:
         deadline = time.monotonic() + timeout
         os.set_blocking(self.proc.stdout.fileno(), False)
         while key not in self.lines and time.monotonic() < deadline:
-            line = self.proc.stdout.readline()
-            if not line:
+            chunk = self.proc.stdout.readline()
+            if not chunk:
                 if self.proc.poll() is not None:
                     break
                 time.sleep(0.01)
                 continue
+            self._partial += chunk  # a non-blocking read can return part of a line: wait for its end
+            if not self._partial.endswith("\n"):
+                continue
+            line, self._partial = self._partial, ""
             words = line.split()
-            self.lines.setdefault(words[0], words[1:])
+            if words:
+                self.lines.setdefault(words[0], words[1:])
         if key not in self.lines:
             pytest.fail(f"child never said {key!r}; stderr: {self.stderr()[-3000:]}")
         return self.lines[key]
