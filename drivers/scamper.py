@@ -318,9 +318,10 @@ class ScamperDriver:
         link, self._link = self._link, None
         with self._lock:
             self._streaming = False
-            self._link_alive = False
         if link is not None:
-            link.close()
+            link.close()  # joins scamper-rx: a HEARTBEAT it was handling cannot revive the link after this
+        with self._lock:
+            self._link_alive = False
 
     def _send_setpoint(self, sp: np.ndarray) -> None:
         """Send the set-point sp (body NED) now, from the caller's thread (never raises)."""
