@@ -268,5 +268,11 @@ def build_tello(mission: Mission) -> HardwareBackend:
 def agent_backend(mission: Mission, seat: AgentSeat) -> Iterator[HardwareBackend]:
     """AGENT_REGISTRY builder of the lab: this agent's drone (with its guardian logging to
     `seat.guardian_log`), motion capture and, where the mission has one, the robot. The run lands and
-    closes it (`close()`); nothing more to release here."""
-    yield HardwareBackend(mission, drone_ids=[seat.drone_id], guardian_log=seat.guardian_log)
+    closes it (`close()`); if the agent fails before the run takes it over (e.g. keeping the computer
+    awake fails), it is closed here so that no armed robot or running guardian is left behind."""
+    backend = HardwareBackend(mission, drone_ids=[seat.drone_id], guardian_log=seat.guardian_log)
+    try:
+        yield backend
+    except BaseException:
+        backend.close()  # never raises; a second close after the run's own is a no-op for what is closed
+        raise

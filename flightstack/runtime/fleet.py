@@ -201,6 +201,7 @@ class Fleet:
     ticker: SafetyTickTimer
     status: StatusPublisher
     g_d: np.ndarray  # (n, 4) desired relative poses g_d,i as vectors, recording order
+    everyone: frozenset[int]  # every drone of the mission, own ones too (the lock-step wait's senders)
 
     @property
     def lockstep(self) -> bool:
@@ -286,4 +287,5 @@ def _build(
         ticker=SafetyTickTimer(safe, backend.heartbeat),
         status=StatusPublisher(bus, mode),
         g_d=np.array([a.cfg.g_d.as_vector() for a in agents]),
+        everyone=frozenset(d.id for d in mission.drones),
     )

@@ -142,7 +142,7 @@ def take_off(f: Fleet) -> None:
     mission, clock, drones = f.mission, f.clock, f.drones
     zspec = mission.bus.zenoh
     if zspec is not None:
-        missing = f.bus.wait_alive({d.id for d in mission.drones}, zspec.start_timeout_s)
+        missing = f.bus.wait_alive(set(f.everyone), zspec.start_timeout_s)
         if missing:
             raise RuntimeError(f"agents {sorted(missing)} not on the bus after {zspec.start_timeout_s:g} s")
     for d in drones.values():
@@ -185,8 +185,8 @@ def pursuit_tick(f: Fleet, t: float, t_pursuit: float, rec: Recording) -> str | 
         a.sense_and_publish(t)
     zspec = f.mission.bus.zenoh
     if f.lockstep and zspec is not None:  # phase 2 needs every neighbour's message of this tick
-        everyone = {d.id for d in f.mission.drones}  # own ones too: Zenoh loops them back asynchronously
-        late = f.bus.wait_for_stamp(everyone, t, zspec.lockstep_timeout_s)
+        # own messages too: Zenoh loops them back asynchronously
+        late = f.bus.wait_for_stamp(set(f.everyone), t, zspec.lockstep_timeout_s)
         if late:
             rec.events.append({"t": t, "event": "lock-step wait timed out", "late": sorted(late)})
     if f.supervisor is not None:
