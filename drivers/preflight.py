@@ -58,6 +58,17 @@ def _row(device: str, check: str, ok: bool, detail: str, warn: bool = False) -> 
 
 
 # ---- files and gains (no device) ---------------------------------------------------------------------
+def check_kernels() -> CheckRow:
+    """Compile or load the tick's kernels now (flightstack.paper.kernels_warmup), never mid-flight."""
+    from flightstack.paper.kernels_warmup import warm_up
+
+    try:
+        took = warm_up()
+    except Exception as exc:  # numba missing or broken: the agents could not run
+        return _row("computer", "compiled math", False, f"{type(exc).__name__}: {exc}")
+    return _row("computer", "compiled math", True, f"kernels ready ({took:.1f} s)")
+
+
 def check_files(mission: Mission) -> list[CheckRow]:
     from flightstack.vision.camera_file import CalibrationError, load_calibration
 
@@ -294,6 +305,8 @@ def run_preflight(
     shared = mission.hardware.shared_by(ids)
     if shared is not None:
         return [_row("mission", "topology", False, shared)]
+    # the tick's compiled math, before any device thread starts: a cold compile holds the GIL for a while
+    warm_row = check_kernels()
     jobs: dict[str, Callable[[], list[CheckRow]]] = {}
     for d in mission.drones:
         if d.id not in ids:
@@ -317,7 +330,7 @@ def run_preflight(
     t_end = time.monotonic() + deadline_s
     for th in threads:
         th.start()
-    rows = check_files(mission) + check_certs(mission, ids, all_in_one=drone_ids is None)
+    rows = [warm_row, *check_files(mission), *check_certs(mission, ids, all_in_one=drone_ids is None)]
     try:
         rows.append(check_gains(mission))
     except Exception as exc:

@@ -13,7 +13,7 @@ import numpy as np
 from flightstack.config.mission import Mission
 from flightstack.paper.geometry import Pose, compose, inverse
 from flightstack.paper.target_law import SquareLaw
-from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity
+from flightstack.paper.target_motion import DuffingField, DuffingParams
 from flightstack.sim_backend.ideal import IdealSimBackend
 from flightstack.sim_backend.world import World
 
@@ -34,7 +34,7 @@ def build_ideal(mission: Mission) -> IdealSimBackend:
     )
     if mission.target.motion == "duffing":
         prm = DuffingParams(**mission.target.duffing.model_dump())
-        world.target_field = lambda g: duffing_body_velocity(g, prm)
+        world.target_field = DuffingField(prm)  # a class, not a lambda: the compiled loop reads its prm
     else:  # the square law, on the world's clock (the reference starts at t = 0)
         sq = mission.target.square
         law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, mission.target.initial_pose.theta)

@@ -9,7 +9,8 @@ error e_e (from the image):
 This is u = −K N e − B k_s c − A μ with N = [[I, 0], [−Ad_{Rᵀ(θc)}, I]], B = [Ad_{R(θc)}; I],
 A = [Ad_{R(θc)} Ad_{R(θe)}; Ad_{R(θe)}]: the paper prints N with Ad_{R(θc)} and A, B transposed; the
 versions here are the ones for which Lemma S (Ṡ_i = eᵢᵀ Nᵢᵀ uᵢ + eᵢᵀ [0; Ad_{R(θe)}] V_w0) holds, which
-tests/test_control.py checks by finite differences.
+tests/test_control.py checks by finite differences. The arithmetic is the compiled kernels'
+(flightstack.paper.kernels: control_error, consensus_term, pursuit_law, drone_velocity_command).
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flightstack.paper.geometry import Pose, ad_g, compose, inverse, vec, wrap_angle
+from flightstack.paper import kernels as kern
+from flightstack.paper.geometry import Pose
 
 
 @dataclass(frozen=True)
@@ -43,26 +45,30 @@ class Gains:
         return Gains(kc, ke, float(k_s))
 
 
+def _vec4(x: np.ndarray | Sequence[float]) -> np.ndarray:
+    out = np.array(x, dtype=float).reshape(-1)
+    if out.shape != (4,):
+        raise ValueError(f"expected 4 numbers, got shape {out.shape}")
+    return out
+
+
+def _pose4(g: Pose) -> np.ndarray:
+    return np.array((g.p[0], g.p[1], g.p[2], g.theta), dtype=float)
+
+
 def control_error(g_d: Pose, g_bar_i0: Pose) -> tuple[np.ndarray, float]:
     """e_c = vec(g_d⁻¹ ḡ_i0) (4,) and θ_c (rad)."""
-    g_c = compose(inverse(g_d), g_bar_i0)
-    return vec(g_c), g_c.theta
+    e_c = np.empty(4)
+    theta_c = kern.control_error(_pose4(g_d), _pose4(g_bar_i0), e_c)
+    return e_c, float(theta_c)
 
 
 def consensus_term(g_bar_w_i: Pose, g_bar_w_neighbours: Sequence[Pose]) -> np.ndarray:
     """c_i = Σ_{j∈N_i} vec(ḡ_w,i⁻¹ ḡ_w,j) (4,); zero for no neighbours."""
-    inv_i = inverse(g_bar_w_i)
-    # vec(ḡ_w,i⁻¹ ḡ_w,j) with compose() and vec() inlined on floats (same arithmetic, no temporaries)
-    ca, sa = math.cos(inv_i.theta), math.sin(inv_i.theta)
-    ax, ay, az = inv_i.p.tolist()
-    c0 = c1 = c2 = c3 = 0.0
-    for g_j in g_bar_w_neighbours:
-        bx, by, bz = g_j.p.tolist()
-        c0 += ax + ca * bx - sa * by
-        c1 += ay + sa * bx + ca * by
-        c2 += az + bz
-        c3 += math.sin(wrap_angle(inv_i.theta + g_j.theta))
-    return np.array([c0, c1, c2, c3])
+    G = np.array([_pose4(g) for g in g_bar_w_neighbours], dtype=float).reshape(-1, 4)
+    c_i = np.empty(4)
+    kern.consensus_term(_pose4(g_bar_w_i), G, G.shape[0], c_i)
+    return c_i
 
 
 def pursuit_law(
@@ -79,34 +85,19 @@ def pursuit_law(
 
     visible is v_i: when the target is not seen, the innovation term v_i k_e (…) is dropped.
     """
-    v_i = 1.0 if visible else 0.0
-    # the same element-wise arithmetic as the numpy expressions
-    #   u_e = −v_i k_e (e_e − Ad_{Rᵀ(θc)} e_c) − k_s c_i − Ad_{R(θe)} μ_i
-    #   u_c = −k_c e_c − k_s Ad_{R(θc)} c_i − Ad_{R(θc)} Ad_{R(θe)} μ_i
-    # on Python floats (4-vectors are cheaper in scalar code than in numpy calls; results are identical)
-    ee = e_e.tolist() if isinstance(e_e, np.ndarray) else [float(v) for v in e_e]
-    ec = e_c.tolist() if isinstance(e_c, np.ndarray) else [float(v) for v in e_c]
-    ci = c_i.tolist() if isinstance(c_i, np.ndarray) else [float(v) for v in c_i]
-    m = mu.tolist() if isinstance(mu, np.ndarray) else [float(v) for v in mu]
-    ke, kc, ks = gains.k_e.tolist(), gains.k_c.tolist(), gains.k_s
-    # Ad_{R(θe)} μ_i
-    c, s = math.cos(theta_e), math.sin(theta_e)
-    mu_e = (c * m[0] - s * m[1], s * m[0] + c * m[1], m[2], m[3])
-    # Ad_{Rᵀ(θc)} e_c = Ad_{R(−θc)} e_c
-    c, s = math.cos(-theta_c), math.sin(-theta_c)
-    ec_r = (c * ec[0] - s * ec[1], s * ec[0] + c * ec[1], ec[2], ec[3])
-    u_e = [-v_i * ke[k] * (ee[k] - ec_r[k]) - ks * ci[k] - mu_e[k] for k in range(4)]
-    # Ad_{R(θc)} c_i and Ad_{R(θc)} Ad_{R(θe)} μ_i
-    c, s = math.cos(theta_c), math.sin(theta_c)
-    ci_r = (c * ci[0] - s * ci[1], s * ci[0] + c * ci[1], ci[2], ci[3])
-    mu_r = (c * mu_e[0] - s * mu_e[1], s * mu_e[0] + c * mu_e[1], mu_e[2], mu_e[3])
-    u_c = [-kc[k] * ec[k] - ks * ci_r[k] - mu_r[k] for k in range(4)]
-    return np.array(u_c), np.array(u_e)
+    u_c, u_e = np.empty(4), np.empty(4)
+    kern.pursuit_law(
+        _vec4(e_c), float(theta_c), _vec4(e_e), float(theta_e), _vec4(c_i), _vec4(mu),
+        gains.k_c, gains.k_e, float(gains.k_s), bool(visible), u_c, u_e,
+    )  # fmt: skip
+    return u_c, u_e
 
 
 def drone_velocity_command(u_c: np.ndarray, g_d: Pose) -> np.ndarray:
     """V_wi = −Ad_{g_d} u_c: body velocity of the drone (m/s, rad/s) that realises û_c = −g_d⁻¹V̂_wi g_d."""
-    return -(ad_g(g_d) @ u_c)
+    V = np.empty(4)
+    kern.drone_velocity_command(_vec4(u_c), _pose4(g_d), V)
+    return V
 
 
 def storage_function(e_c_pose: Pose, e_e_pose: Pose) -> float:

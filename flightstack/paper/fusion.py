@@ -23,6 +23,10 @@ robust BCM (rBCM). All rules have the form
 where σ_**² is the prior variance of the latent function (σ_f² of the SE kernel). Array convention here:
 ``mu``/``var`` are (K, D) — row k is expert k (row 0 the own expert; the order is otherwise irrelevant),
 column d is the output dimension (the paper's j).
+
+`fuse` runs the compiled kernel (flightstack.paper.kernels.fuse, the copy the control tick uses);
+`fusion_weights` is the same rules written as numpy array expressions (weights w_k), and the tests hold
+the two equal.
 """
 
 from __future__ import annotations
@@ -30,6 +34,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from flightstack.paper import kernels as kern
 
 __all__ = ["FUSION_RULES", "fuse", "fusion_weights"]
 
@@ -164,5 +170,19 @@ def fuse(
         raise ValueError(f"mu and var must have the same shape (K, D), got {mu.shape} and {var.shape}")
     if not np.isfinite(mu).all():
         raise ValueError("mu must be finite")
-    fused_var, weights = _fused_var_and_weights(var, rule, prior_var)
-    return (weights * mu).sum(axis=0), fused_var
+    if rule in ("bcm", "rbcm"):
+        _prior_var_star(prior_var, var.shape, rule)  # validates; the kernel takes the mean over experts
+        prior = np.ascontiguousarray(np.broadcast_to(np.asarray(prior_var, dtype=float), var.shape))
+    else:
+        prior = var  # unused by poe and gpoe
+    mu_f, var_f = np.empty(var.shape[1]), np.empty(var.shape[1])
+    kern.fuse(
+        np.ascontiguousarray(mu),
+        np.ascontiguousarray(var),
+        FUSION_RULES.index(rule),
+        prior,
+        var.shape[0],
+        mu_f,
+        var_f,
+    )
+    return mu_f, var_f

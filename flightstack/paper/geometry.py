@@ -9,7 +9,9 @@ Conventions used everywhere in flightstack (DESIGN.md section 3):
     Ad_R(θ) = diag(R(θ), 1)                                (paper: Ad_{R(θ)})
     Ad_g    = [[R, (p_y, -p_x, 0)^T], [0, 1]]              (adjoint restricted to planar twists)
 
-All functions are pure; poses are immutable.
+All functions are pure; poses are immutable. The arithmetic of wrap_angle, compose, inverse, exp_twist and
+integrate_body_velocity is the compiled kernels' (flightstack.paper.kernels, the only copy, also used by the
+control tick and the compiled simulator); these functions convert Poses to and from pose vectors.
 """
 
 from __future__ import annotations
@@ -19,15 +21,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flightstack.paper import kernels as kern
+
 TWO_PI = 2.0 * math.pi
 
 
 def wrap_angle(theta: float) -> float:
-    """Wrap an angle in radians to (-π, π]."""
-    wrapped = math.remainder(theta, TWO_PI)  # in [-π, π]
-    if wrapped <= -math.pi:
-        wrapped += TWO_PI
-    return wrapped
+    """Wrap an angle in radians to (-π, π] (kernels.wrap_angle: equal to math.remainder(θ, 2π), −π → π)."""
+    return float(kern.wrap_angle(float(theta)))
 
 
 def rot_z(theta: float) -> np.ndarray:
@@ -90,24 +91,34 @@ class Pose:
         return Pose(np.array(x[:3], dtype=float), wrap_angle(float(x[3])))
 
 
+def _v(g: Pose) -> np.ndarray:
+    """The pose vector [x, y, z, θ] the kernels take."""
+    return np.array((g.p[0], g.p[1], g.p[2], g.theta), dtype=float)
+
+
+def _pose(v: np.ndarray) -> Pose:
+    return Pose(v[:3].copy(), float(v[3]))
+
+
 def compose(a: Pose, b: Pose) -> Pose:
     """a·b = (p_a + R_a p_b, θ_a + θ_b)."""
-    c, s = math.cos(a.theta), math.sin(a.theta)
-    pb = b.p
-    p = np.array([a.p[0] + c * pb[0] - s * pb[1], a.p[1] + s * pb[0] + c * pb[1], a.p[2] + pb[2]])
-    return Pose(p, wrap_angle(a.theta + b.theta))
+    out = np.empty(4)
+    kern.compose4(_v(a), _v(b), out)
+    return _pose(out)
 
 
 def inverse(g: Pose) -> Pose:
     """g⁻¹ = (-Rᵀ p, -θ)."""
-    c, s = math.cos(g.theta), math.sin(g.theta)
-    p = g.p
-    return Pose(np.array([-(c * p[0] + s * p[1]), -(-s * p[0] + c * p[1]), -p[2]]), wrap_angle(-g.theta))
+    out = np.empty(4)
+    kern.inverse4(_v(g), out)
+    return _pose(out)
 
 
 def relative(a: Pose, b: Pose) -> Pose:
     """a⁻¹·b (e.g. g_ij = g_wi⁻¹ g_wj)."""
-    return compose(inverse(a), b)
+    out = np.empty(4)
+    kern.relative4(_v(a), _v(b), out)
+    return _pose(out)
 
 
 def vec(g: Pose) -> np.ndarray:
@@ -145,23 +156,18 @@ def exp_twist(V: np.ndarray, dt: float) -> Pose:
 
     Closed form for rotation about z (exact, no integration error):
         θ = ω dt,  p_xy = [[sin θ, -(1 - cos θ)], [1 - cos θ, sin θ]] / ω · v_xy,  p_z = v_z dt,
-    with a Taylor series for |ω dt| < 1e-6 so that ω → 0 is smooth.
+    with a Taylor series for |ω dt| < 1e-6 so that ω → 0 is smooth (kernels.exp_twist4).
     """
-    vx, vy, vz, w = float(V[0]), float(V[1]), float(V[2]), float(V[3])
-    th = w * dt
-    if abs(th) < 1e-6:
-        # sin θ/ω ≈ dt (1 - θ²/6), (1 - cos θ)/ω ≈ dt (θ/2 - θ³/24)
-        a = dt * (1.0 - th * th / 6.0)
-        b = dt * (th / 2.0 - th**3 / 24.0)
-    else:
-        a = math.sin(th) / w
-        b = (1.0 - math.cos(th)) / w
-    return Pose(np.array([a * vx - b * vy, b * vx + a * vy, vz * dt]), wrap_angle(th))
+    out = np.empty(4)
+    kern.exp_twist4(np.asarray(V, dtype=float).reshape(4).copy(), float(dt), out)
+    return _pose(out)
 
 
 def integrate_body_velocity(g: Pose, V: np.ndarray, dt: float) -> Pose:
     """g(t + dt) = g(t) exp(V̂ dt) for a body velocity V held constant over dt (zero-order hold)."""
-    return compose(g, exp_twist(V, dt))
+    out = np.empty(4)
+    kern.integrate4(_v(g), np.asarray(V, dtype=float).reshape(4).copy(), float(dt), out)
+    return _pose(out)
 
 
 def angle_difference(a: float, b: float) -> float:

@@ -33,6 +33,7 @@ import numpy as np
 import scipy.linalg
 from scipy.spatial.distance import cdist
 
+from flightstack.paper import kernels as kern
 from flightstack.paper.gp_checks import _as_finite_2d, _readonly, _validate_training_data
 from flightstack.paper.gp_fit import _LBFGSB_OPTIONS as _LBFGSB_OPTIONS
 from flightstack.paper.gp_fit import fit_hyperparameters
@@ -63,7 +64,8 @@ class GPExpert:
         * ``L[d]``: (M, M) lower Cholesky factor of 𝒦_d + σ_{n,d}² I,
         * ``alpha[d]``: (M,) α_d = (𝒦_d + σ_{n,d}² I)^{-1} Y_d,
         * ``L_inv[d]``: (M, M) L_d^{-1}, so that v = L_d^{-1} k_* and var = σ_f² − ‖v‖² in
-          :meth:`predict_one` are one batched matmul across the D dimensions (together with the mean).
+          :meth:`predict_one` (the compiled kernel kernels.gp_predict_one, the control tick's only copy;
+          :meth:`predict` is the vectorised scipy form for many points, and the tests hold the two equal).
     """
 
     def __init__(self, X: np.ndarray, Y: np.ndarray, hyper: GPHyperparameters) -> None:
@@ -104,9 +106,6 @@ class GPExpert:
         self.L = L
         self.alpha = alpha
         self.L_inv = L_inv
-        # rows: [α_dᵀ; L_d^{-1}] so that proj @ k_* = [μ_d; v_d] in one batched matmul, (D, M+1, M)
-        self._proj = np.concatenate([alpha[:, None, :], L_inv], axis=1)
-        self._sf2_col = self._sf2[:, None]
         self._n_in = X.shape[1]
 
     # ---------------------------------------------------------------------------------------------------
@@ -223,12 +222,16 @@ class GPExpert:
         x = np.asarray(x, dtype=float)
         if x.shape != (self._n_in,):
             raise ValueError(f"x must have shape (Din,) = ({self._n_in},), got shape {x.shape}")
-        diff = (x * self._inv_l)[:, None, :] - self._Z  # (D, M, Din): (x_* − x^{(l)}) / l_d
-        k_star = self._sf2_col * np.exp(-0.5 * np.einsum("dmk,dmk->dm", diff, diff))  # k_*, (D, M)
-        out = np.matmul(self._proj, k_star[:, :, None])[:, :, 0]  # (D, M+1): [μ_d, v_d = L_d^{-1} k_*]
-        v = out[:, 1:]
-        var = self._sf2 - np.einsum("dm,dm->d", v, v)  # var = σ_f² − k_*ᵀ(𝒦+σ_n²I)^{-1}k_*
-        return out[:, 0], np.maximum(var, self._var_floor)
+        mu, var = np.empty(self.n_outputs), np.empty(self.n_outputs)
+        kern.gp_predict_one(np.ascontiguousarray(x), *self.kernel_arrays(), mu, var)
+        return mu, var
+
+    def kernel_arrays(
+        self,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+        """(1/l (D, Din), X/l (D, M, Din), σ_f² (D,), α (D, M), L⁻¹ (D, M, M), variance floor (D,), M): the
+        expert as kernels.gp_predict_one takes it (read-only views; the compiled loop stacks them)."""
+        return self._inv_l, self._Z, self._sf2, self.alpha, self.L_inv, self._var_floor, int(self.X.shape[0])
 
     def mean_gradient(self, Xs: np.ndarray) -> np.ndarray:
         """Analytic input gradient of the predictive mean.

@@ -15,19 +15,31 @@ from __future__ import annotations
 
 import numpy as np
 
+from flightstack.paper import kernels as kern
 from flightstack.paper.geometry import Pose, integrate_body_velocity
-from flightstack.paper.projection import CameraModel, features_and_jacobian
+from flightstack.paper.projection import CameraModel, TargetNotVisibleError
 
 
 def estimation_error(f: np.ndarray, g_bar_i0: Pose, P0: np.ndarray, cam: CameraModel) -> np.ndarray:
     """e_e = J⁺ (f − f̄): the first-order estimate of vec(ḡ_i0⁻¹ g_i0) from the image, shape (4,).
 
     f (2m,) is the measured feature vector, f̄ = f(ḡ_i0) the predicted one; J (2m × 4) has full column
-    rank for m ≥ 4 non-degenerate points, so J⁺ r is the least-squares solution of J ξ = r.
+    rank for m ≥ 4 non-degenerate points, so J⁺ r is the least-squares solution of J ξ = r, computed from
+    the 4×4 normal equations (kernels.estimation_error). Raises TargetNotVisibleError if a point of the
+    estimate is behind the camera, numpy.linalg.LinAlgError if JᵀJ is singular.
     """
-    f_bar, J = features_and_jacobian(g_bar_i0, P0, cam)
-    # J⁺ r = (JᵀJ)⁻¹ Jᵀ r for full column rank (4 × 4 solve; 10× cheaper than an SVD per tick)
-    return np.linalg.solve(J.T @ J, J.T @ (f - f_bar))
+    P = np.ascontiguousarray(P0, dtype=float)
+    fv = np.ascontiguousarray(f, dtype=float).reshape(-1)
+    if P.ndim != 2 or P.shape[1] != 3 or fv.shape != (2 * P.shape[0],):
+        raise ValueError(f"need P0 (m, 3) and f (2m,), got {P.shape} and {fv.shape}")
+    xi = np.empty(4)
+    g = np.array((g_bar_i0.p[0], g_bar_i0.p[1], g_bar_i0.p[2], g_bar_i0.theta), dtype=float)
+    status = kern.estimation_error(fv, g, P, cam.packed, xi)
+    if status == kern.NOT_VISIBLE:
+        raise TargetNotVisibleError("estimated feature point behind the camera")
+    if status == kern.SINGULAR:
+        raise np.linalg.LinAlgError("JᵀJ is singular (degenerate feature points)")
+    return xi
 
 
 def observer_step(g_bar_w: Pose, u_e: np.ndarray, dt: float) -> Pose:

@@ -7,6 +7,10 @@ With the default extrinsic (identity) Σc = Σi, exactly the paper's model.
 
 Image coordinates f are in the paper's metric image-plane units: f^j = λ/z^j [x^j, y^j] (λ = focal length,
 same unit as f; λ = 1 gives normalised coordinates). Pixel measurements are converted by the caller.
+
+The arithmetic is the compiled kernels' (flightstack.paper.kernels: points_in_camera, measure,
+features_and_jacobian); these functions check shapes and turn a depth ≤ min_depth into
+TargetNotVisibleError.
 """
 
 from __future__ import annotations
@@ -15,7 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flightstack.paper.geometry import Pose, rot_z
+from flightstack.paper import kernels as kern
+from flightstack.paper.geometry import Pose
 
 
 class TargetNotVisibleError(ValueError):
@@ -37,16 +42,39 @@ class CameraModel:
         R = np.asarray(self.R_ic, dtype=float)
         if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9) or np.linalg.det(R) < 0:
             raise ValueError("R_ic must be a 3x3 rotation matrix")
+        t = np.asarray(self.t_ic, dtype=float).reshape(3)
+        packed = np.concatenate([[float(self.focal_length), float(self.min_depth)], R.reshape(9), t])
+        object.__setattr__(self, "packed", packed)
+
+    #: [λ, min_depth, R_ic (row-major), t_ic]: the camera as the kernels take it (set in __post_init__)
+    packed: np.ndarray = field(init=False, repr=False, compare=False)
+
+
+def _pose_vec(g: Pose) -> np.ndarray:
+    return np.array((g.p[0], g.p[1], g.p[2], g.theta), dtype=float)
+
+
+def _points(P0: np.ndarray) -> np.ndarray:
+    P = np.ascontiguousarray(P0, dtype=float)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f"P0 must have shape (m, 3), got {P.shape}")
+    return P
 
 
 def points_in_drone_frame(g_i0: Pose, P0: np.ndarray) -> np.ndarray:
     """p_i^j = R(θ_i0) p_0^j + p_i0 for the m feature points P0 (m, 3) given in Σ0; returns (m, 3)."""
-    return P0 @ rot_z(g_i0.theta).T + g_i0.p
+    P = _points(P0)
+    out = np.empty_like(P)
+    kern.points_in_camera(_pose_vec(g_i0), P, CameraModel().packed, out)  # identity extrinsic: Σc = Σi
+    return out
 
 
 def points_in_camera(g_i0: Pose, P0: np.ndarray, cam: CameraModel) -> np.ndarray:
     """Feature points in the physical camera frame Σc, shape (m, 3), metres."""
-    return (points_in_drone_frame(g_i0, P0) - cam.t_ic) @ cam.R_ic
+    P = _points(P0)
+    out = np.empty_like(P)
+    kern.points_in_camera(_pose_vec(g_i0), P, cam.packed, out)
+    return out
 
 
 def project(points_c: np.ndarray, cam: CameraModel) -> np.ndarray:
@@ -60,7 +88,11 @@ def project(points_c: np.ndarray, cam: CameraModel) -> np.ndarray:
 
 def measure(g_i0: Pose, P0: np.ndarray, cam: CameraModel) -> np.ndarray:
     """The measurement function f(g_i0) of the paper, shape (2m,)."""
-    return project(points_in_camera(g_i0, P0, cam), cam)
+    P = _points(P0)
+    f = np.empty(2 * P.shape[0])
+    if not kern.measure(_pose_vec(g_i0), P, cam.packed, f):
+        raise TargetNotVisibleError("feature point on or behind the camera plane")
+    return f
 
 
 def image_jacobian(g_bar: Pose, P0: np.ndarray, cam: CameraModel) -> np.ndarray:
@@ -75,24 +107,11 @@ def features_and_jacobian(g_bar: Pose, P0: np.ndarray, cam: CameraModel) -> tupl
         J^j = (λ/z̄)·[[1, 0, −x̄/z̄], [0, 1, −ȳ/z̄]] · R_icᵀ · R̄ · [I₃ | (−b, a, 0)ᵀ]
     where (x̄, ȳ, z̄) is the point in Σc under the estimate ḡ. Since g_i0 = ḡ_i0 g_e, this is the
     Jacobian of f with respect to e_e = vec(g_e) to first order, so e_e ≈ J⁺ (f − f̄).
-    Returns (f̄ = f(ḡ) (2m,), J (2m, 4)), sharing the point transform.
+    Returns (f̄ = f(ḡ) (2m,), J (2m, 4)).
     """
-    pc = points_in_camera(g_bar, P0, cam)
-    x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
-    if z.min() <= cam.min_depth:
+    P = _points(P0)
+    m = P.shape[0]
+    f_bar, J = np.empty(2 * m), np.empty((2 * m, 4))
+    if not kern.features_and_jacobian(_pose_vec(g_bar), P, cam.packed, f_bar, J):
         raise TargetNotVisibleError("estimated feature point behind the camera")
-    m = P0.shape[0]
-    lam = cam.focal_length
-    # ∂p_c/∂ξ = M [I | (−b, a, 0)ᵀ] with M = R_icᵀ R̄: columns M, and M (−b, a, 0)ᵀ per point
-    M = cam.R_ic.T @ rot_z(g_bar.theta)
-    rot_col = np.column_stack([-P0[:, 1], P0[:, 0], np.zeros(m)]) @ M.T  # (m, 3)
-    D = np.empty((m, 3, 4))
-    D[:, :, :3] = M
-    D[:, :, 3] = rot_col
-    # projection derivative (λ/z)[[1, 0, −x/z], [0, 1, −y/z]] applied to D
-    inv_z = lam / z
-    J = np.empty((m, 2, 4))
-    J[:, 0, :] = inv_z[:, None] * (D[:, 0, :] - (x / z)[:, None] * D[:, 2, :])
-    J[:, 1, :] = inv_z[:, None] * (D[:, 1, :] - (y / z)[:, None] * D[:, 2, :])
-    f_bar = (pc[:, :2] * inv_z[:, None]).reshape(-1)
-    return f_bar, J.reshape(2 * m, 4)
+    return f_bar, J

@@ -21,17 +21,11 @@ from flightstack.comms.bus import PredictionBus
 from flightstack.comms.messages import PredictionMessage
 from flightstack.config.types import Mode
 from flightstack.hal import Camera, Drone, Frame, PoseSource
-from flightstack.paper.control import (
-    Gains,
-    consensus_term,
-    control_error,
-    drone_velocity_command,
-    pursuit_law,
-)
-from flightstack.paper.fusion import fuse
-from flightstack.paper.geometry import Pose, relative
-from flightstack.paper.observer import estimation_error, observer_step
-from flightstack.paper.projection import CameraModel, TargetNotVisibleError
+from flightstack.paper import kernels as kern
+from flightstack.paper.control import Gains
+from flightstack.paper.fusion import FUSION_RULES
+from flightstack.paper.geometry import Pose
+from flightstack.paper.projection import CameraModel
 from flightstack.vision.camera_file import CameraCalibration
 from flightstack.vision.markers import extract_markers, features_from_detection
 
@@ -82,6 +76,12 @@ class TickRecord:
 
 
 class Agent:
+    """One drone's control tick; its math is two compiled kernels (flightstack.paper.kernels.agent_sense
+    and agent_act, the copy the compiled simulator also calls), its glue the devices and the bus.
+
+    State: the agent's tick buffer `_T` (10, 4) (rows kernels.G_BAR_W … V_CMD; ḡ_w,i in row G_BAR_W is
+    the observer state), the last u_e and its time."""
+
     def __init__(
         self,
         cfg: AgentConfig,
@@ -100,51 +100,73 @@ class Agent:
         self.poses = poses
         self.bus = bus
         self.predictor = predictor
-        self.g_bar_w = g_bar_w0  # ḡ_w,i: the observer state
         self.seq = 0
+        self._T = np.zeros((10, 4))
+        self._T[kern.G_BAR_W] = g_bar_w0.as_vector()
         self._u_e_prev: np.ndarray | None = None
         self._t_prev: float | None = None
-        self._g_wi: Pose | None = None
-        self._g_bar_i0 = g_bar_w0
+        self._g_wi: np.ndarray | None = None  # the own pose g_wi as a vector (last one measured)
+        self._P0 = np.ascontiguousarray(cfg.P0, dtype=float)
+        self._cam = cfg.camera.packed
+        self._g_d = cfg.g_d.as_vector()
+        self._mode = _MODE_CODES[Mode(cfg.mode)]
+        self._rule = FUSION_RULES.index(cfg.fusion_rule)
+        self._no_features = np.zeros(2 * len(self._P0))
+        k = max(1, len(cfg.neighbour_ids))
+        self._NG, self._NMU, self._NVAR, self._NPRIOR = (np.zeros((k, 4)) for _ in range(4))
         self.last = TickRecord(g_bar_w0)
         self.hold = False  # set by the safety supervisor: hover instead of pursuing
 
+    @property
+    def g_bar_w(self) -> Pose:
+        """ḡ_w,i: the observer's estimate of the target pose in the world frame."""
+        return _pose(self._T[kern.G_BAR_W])
+
+    @property
+    def _g_bar_i0(self) -> Pose:
+        """ḡ_i0 = g_wi⁻¹ ḡ_w,i of the last phase 1."""
+        return _pose(self._T[kern.G_BAR_I0])
+
     def reset_estimate(self, g_bar_w: Pose) -> None:
         """Restart the observer from ḡ_w,i (e.g. at pursuit start on hardware, from the own pose and g_d)."""
-        self.g_bar_w = g_bar_w
+        self._T[kern.G_BAR_W] = g_bar_w.as_vector()
         self._u_e_prev = None
         self._t_prev = None
 
     # ---- phase 1 -------------------------------------------------------------------------------
     def sense_and_publish(self, t: float) -> None:
-        cfg = self.cfg
-        if self._u_e_prev is not None and self._t_prev is not None and t > self._t_prev:
-            self.g_bar_w = observer_step(self.g_bar_w, self._u_e_prev, t - self._t_prev)
+        cfg, T = self.cfg, self._T
         own = self.poses.latest(cfg.body_name)
-        rec = TickRecord(self.g_bar_w)
+        fresh = own is not None
         if own is not None:
-            self._g_wi = own.pose
+            self._g_wi = own.pose.as_vector()
         elif self._g_wi is None:
             raise RuntimeError(f"no pose for {cfg.body_name}")
-        else:  # a motion-capture dropout: keep the last pose, hover; the safety layer decides beyond that
-            rec.own_pose_fresh = False
-        g_bar_i0 = relative(self._g_wi, self.g_bar_w)  # ḡ_i0 = g_wi⁻¹ ḡ_w,i
-        self._g_bar_i0 = g_bar_i0
-        frame = self.camera.latest()
-        features = self._features(frame, rec, t)
-        if features is not None:
-            try:
-                xi = estimation_error(features, g_bar_i0, cfg.P0, cfg.camera)  # ≈ [p_e, θ_e]
-                rec.e_e_meas = np.array([xi[0], xi[1], xi[2], math.sin(xi[3])])
-                rec.visible = True
-            except TargetNotVisibleError:
-                rec.visible = False
-        x = self.g_bar_w.as_vector()
+        # else a motion-capture dropout: keep the last pose, hover; the safety layer decides beyond that
+        rec = TickRecord(self.g_bar_w)  # replaced below: the estimate after the observer step
+        rec.own_pose_fresh = fresh
+        features = self._features(self.camera.latest(), rec, t)
+        step = self._u_e_prev is not None and self._t_prev is not None and t > self._t_prev
+        visible = kern.agent_sense(
+            T,
+            self._u_e_prev if self._u_e_prev is not None else _ZERO4,
+            t - self._t_prev if step and self._t_prev is not None else 0.0,
+            self._g_wi,
+            features if features is not None else self._no_features,
+            features is not None,
+            self._P0,
+            self._cam,
+        )
+        rec.g_bar_w = _pose(T[kern.G_BAR_W])
+        rec.visible = bool(visible)
+        rec.e_e_meas = T[kern.E_E].copy()
+        x = T[kern.G_BAR_W].copy()
         if self.predictor is not None and cfg.mode != Mode.NONE:
             mu, var = self.predictor.predict_one(x)
             prior = self.predictor.prior_var()
         else:
             mu, var, prior = np.zeros(4), UNINFORMATIVE_VAR, UNINFORMATIVE_VAR
+        T[kern.MU_OWN], T[kern.VAR_OWN], T[kern.PRIOR] = mu, var, prior
         rec.mu_own, rec.var_own = mu, var
         self.last = rec
         self.seq += 1
@@ -161,7 +183,7 @@ class Agent:
             rec.rejection = "stale frame"
             return None
         if frame.features is not None:
-            f = np.asarray(frame.features, dtype=float).reshape(-1)
+            f = np.array(frame.features, dtype=float).reshape(-1)  # a writable copy: the kernels' type
             if f.shape != (2 * len(self.cfg.P0),) or not np.all(np.isfinite(f)):
                 rec.rejection = "bad features"  # e.g. a served frame with another marker count (issue 16)
                 return None
@@ -170,38 +192,54 @@ class Agent:
             return None
         det = extract_markers(frame.image, self.cfg.calibration)
         rec.rejection = det.reason
-        return features_from_detection(det, self.cfg.camera.focal_length)
+        seen = features_from_detection(det, self.cfg.camera.focal_length)
+        return None if seen is None else np.array(seen, dtype=float).reshape(-1)
 
     # ---- phase 2 -------------------------------------------------------------------------------
     def fuse_control_act(self, t: float) -> np.ndarray:
-        cfg = self.cfg
-        rec = self.last
+        cfg, rec, T = self.cfg, self.last, self._T
         if self._g_wi is None:
             raise RuntimeError("fuse_control_act before sense_and_publish")
-        msgs: list[PredictionMessage] = []
+        n = 0
+        used = []
         for j in cfg.neighbour_ids:
             m = self.bus.latest(j, t, cfg.stale_after)
             if m is not None:
-                msgs.append(m)
-        rec.neighbours_used = tuple(m.sender for m in msgs)
-        c_i = consensus_term(self.g_bar_w, [Pose.from_vector(m.g_bar_w) for m in msgs])
-        if cfg.mode == Mode.DGP:
-            mus = np.vstack([rec.mu_own, *[m.mu for m in msgs]])
-            vars_ = np.vstack([rec.var_own, *[m.var for m in msgs]])
-            priors = np.vstack([self.predictor.prior_var(), *[m.prior_var for m in msgs]])  # type: ignore[union-attr]
-            mu, _ = fuse(mus, vars_, cfg.fusion_rule, priors)
-            rec.n_fused = len(msgs) + 1
-        elif cfg.mode in (Mode.LOCAL, Mode.ORACLE):
-            mu = rec.mu_own
-            rec.n_fused = 1
-        else:
-            mu = np.zeros(4)
-        e_c, th_c = control_error(cfg.g_d, self._g_bar_i0)
-        th_e = math.asin(max(-1.0, min(1.0, rec.e_e_meas[3])))
-        u_c, u_e = pursuit_law(e_c, th_c, rec.e_e_meas, th_e, c_i, mu, cfg.gains, rec.visible)
+                self._NG[n], self._NMU[n], self._NVAR[n], self._NPRIOR[n] = (
+                    m.g_bar_w,
+                    m.mu,
+                    m.var,
+                    m.prior_var,
+                )
+                used.append(m.sender)
+                n += 1
+        rec.neighbours_used = tuple(used)
         hover = self.hold or not rec.own_pose_fresh
-        V = drone_velocity_command(u_c, cfg.g_d) if not hover else np.zeros(4)
+        rec.n_fused = kern.agent_act(
+            T, rec.visible, self._NG, self._NMU, self._NVAR, self._NPRIOR, n, self._mode, self._rule,
+            self._g_d, cfg.gains.k_c, cfg.gains.k_e, cfg.gains.k_s, hover,
+        )  # fmt: skip
+        V = T[kern.V_CMD].copy()
         self.drone.send_body_velocity(V)
-        rec.mu_used, rec.u_c, rec.u_e, rec.V_cmd = mu, u_c, u_e, V
-        self._u_e_prev, self._t_prev = u_e, t
+        rec.mu_used, rec.u_c, rec.u_e, rec.V_cmd = (
+            T[kern.MU_USED].copy(),
+            T[kern.U_C].copy(),
+            T[kern.U_E].copy(),
+            V,
+        )
+        self._u_e_prev, self._t_prev = rec.u_e, t
         return V
+
+
+_ZERO4 = np.zeros(4)
+_MODE_CODES = {
+    Mode.NONE: kern.MODE_NONE,
+    Mode.LOCAL: kern.MODE_LOCAL,
+    Mode.DGP: kern.MODE_DGP,
+    Mode.ORACLE: kern.MODE_ORACLE,
+}
+
+
+def _pose(v: np.ndarray) -> Pose:
+    """A Pose of a (wrapped) pose vector [x, y, z, θ]."""
+    return Pose(v[:3].copy(), float(v[3]))

@@ -8,6 +8,7 @@ parts every tick uses live on the `Fleet`; the runner (flightstack.runtime.runne
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import math
 import threading
@@ -24,6 +25,7 @@ from flightstack.config.mission import Mission
 from flightstack.hal import Backend, Clock, Drone
 from flightstack.paper.control import Gains
 from flightstack.paper.geometry import compose, inverse
+from flightstack.paper.kernels_warmup import warm_up
 from flightstack.runtime.agent import Agent, AgentConfig, Predictor
 from flightstack.runtime.backends import build_backend
 from flightstack.runtime.phases import TargetDriver
@@ -224,6 +226,8 @@ def assemble_fleet(
     behind); on failure close what was opened and re-raise. The bus built here is closed on exit; a bus
     or backend passed in belongs to the caller (the backend is closed by landing)."""
     ids = [d.id for d in mission.drones] if agent_ids is None else list(agent_ids)
+    # compile (or load) the tick's kernels before any device is opened: a compile mid-flight holds the GIL
+    warm_up(loop=mission.backend == "sim_ideal")
     own_bus = bus is None
     if bus is None:
         participant = "agents" if agent_ids is None else str(ids[0])
@@ -271,6 +275,11 @@ def _build(
     else:
         drones = {i: backend.drone(i) for i in ids}
     agents = make_agents(mission, mode, backend, drones, bus, predictors, ids)
+    if not mission.simulated:
+        # what exists now lives for the whole flight: out of the collector's way, so that a full collection
+        # mid-flight walks only what the flight allocates (its pause stays far below the loop watchdog's)
+        gc.collect()
+        gc.freeze()
     return Fleet(
         mission=mission,
         mode=mode,

@@ -29,6 +29,7 @@ from flightstack.hal import Backend
 from flightstack.paper.geometry import compose
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.agent import Predictor
+from flightstack.runtime.compiled import CompiledLoop
 from flightstack.runtime.fleet import (
     Fleet,
     OperatorAbortError,
@@ -74,6 +75,7 @@ def run_mode(
     bus: Bus | None = None,
     agent_ids: list[int] | None = None,
     writer: Any = None,
+    compiled: bool = True,
 ) -> Recording:
     """Fly `mode` of a mission for mission.duration_s of pursuit; never leaves a drone flying.
 
@@ -82,7 +84,9 @@ def run_mode(
     agent_ids: the drones this process flies (default all); the others are neighbours on the bus.
     writer: a flightstack.recording.run_dir mode writer that appends the recording to disk as the run goes.
     On a simulated clock with a network bus, phase 2 waits for the neighbours' messages of the same tick
-    (`bus.zenoh.lockstep_timeout_s`), so the result equals the in-process bus's."""
+    (`bus.zenoh.lockstep_timeout_s`), so the result equals the in-process bus's.
+    compiled: fly the ideal rig's ticks in the compiled loop (flightstack.runtime.compiled; the same
+    kernels, bit-identical recordings); False flies every tick through the Agents (the reference path)."""
     with assemble_fleet(
         mission, mode, predictors, backend=backend, bus=bus, agent_ids=agent_ids, writer=writer
     ) as f:
@@ -97,7 +101,19 @@ def run_mode(
         try:
             take_off(f)
             t0 = f.clock.now()
-            for k in range(n_ticks):
+            loop = CompiledLoop.plan(f) if compiled else None
+            k = 0
+            while k < n_ticks:
+                if loop is not None and k > 0 and loop.ready(book):  # tick 0 in Python: its events
+                    k_new = loop.run(rec, k, min(n_ticks, k + loop.chunk))
+                    if k_new > k:
+                        if writer is not None:
+                            writer.append(rec, k_new)
+                        f.status.maybe_publish(f.clock.now(), k_new - 1, f.agents)
+                        if progress is not None:
+                            progress(k_new - k)
+                        k = k_new
+                        continue
                 t = f.clock.now()
                 ended = pursuit_tick(f, t, t - t0, rec)
                 if ended is not None:
@@ -110,6 +126,12 @@ def run_mode(
                 if progress is not None:
                     progress(1)
                 f.clock.sleep_until(t + dt)
+                k += 1
+            if loop is not None and loop.chunks:
+                rec.events.append(
+                    {"t": f.clock.now(), "event": "compiled loop", "mode": mode, "ticks": loop.compiled_ticks,
+                     "chunks": loop.chunks, "python_ticks": k - loop.compiled_ticks}
+                )  # fmt: skip
         except KeyboardInterrupt:
             rec.interrupted = True
             reason = "interrupted"
