@@ -164,6 +164,9 @@ class GPSpec(_Strict):
     samples_per_region: int = Field(default=10, ge=2, le=100000)
     regions: RegionsSpec
     restarts: int = Field(default=5, ge=1, le=100)
+    # per_expert: each expert maximises its own log marginal likelihood (the paper); shared: one set of
+    # hyperparameters for all experts maximising the sum of theirs (Deisenroth & Ng 2015; gp_shared_fit.py)
+    hyperparameters: Literal["per_expert", "shared"] = "per_expert"
     fusion: str = "poe"
 
     @field_validator("fusion")

@@ -15,6 +15,7 @@ import numpy as np
 
 from flightstack.config.mission import Mission
 from flightstack.paper.gp import GPExpert
+from flightstack.paper.gp_shared_fit import fit_shared_hyperparameters
 from flightstack.recording.timeseries import Recording
 
 
@@ -56,7 +57,14 @@ def collect_datasets(mission: Mission, rec: Recording, seed: int) -> list[Expert
 
 
 def train_experts(mission: Mission, data: list[ExpertData], seed: int) -> dict[int, GPExpert]:
-    """Fit one GP expert per drone on its own dataset (hyperparameters by max. marginal likelihood)."""
+    """One GP expert per drone on its own dataset, hyperparameters by max. marginal likelihood: each
+    expert's own (gp.hyperparameters: per_expert, seed + its index) or one set shared by all, maximising
+    the sum of the experts' log marginal likelihoods (shared, seed)."""
+    if mission.gp.hyperparameters == "shared":
+        hyper = fit_shared_hyperparameters(
+            [(d.X, d.Y) for d in data], mission.gp.noise_var, restarts=mission.gp.restarts, seed=seed
+        )
+        return {d.drone_id: GPExpert(d.X, d.Y, hyper) for d in data}
     return {
         d.drone_id: GPExpert.fit(d.X, d.Y, mission.gp.noise_var, restarts=mission.gp.restarts, seed=seed + i)
         for i, d in enumerate(data)
