@@ -263,12 +263,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     register_calibration(cal_sub)
     from flightstack.cli.certs import register as register_certs
+    from flightstack.cli.generate import register as register_generate
     from flightstack.cli.network import register as register_network
+    from flightstack.cli.sweep import register as register_sweep
     from flightstack.faults.cli import register as register_faults
 
     register_network(sub)
     register_faults(sub)
     register_certs(sub)
+    register_sweep(sub)
+    register_generate(sub)
     rp = sub.add_parser(
         "report", help="rebuild metrics.json and the plots of a run directory (also one cut short by a kill)"
     )

@@ -10,6 +10,7 @@ import json
 import logging
 import math
 import sys
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -124,6 +125,7 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
     """Fly every mode of `mission` into the run directory `out` and print the summary; the exit code."""
     from flightstack.runtime.experiment import resolved_mission_yaml, run_experiment, write_run_dir
 
+    t_cmd0 = time.perf_counter()
     run_writer = open_run_dir(out)  # checked again: the preflight took time
     if run_writer is None:
         return 2
@@ -142,6 +144,7 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
     print(f"run directory: {out}")
     for mode, mm in m["modes"].items():
         line = f"  {mode:7s} mean_sq_error = {mm.get('mean_sq_error', float('nan')):.3e}"
+        line += f"   sq_mean_error = {mm.get('sq_mean_error', float('nan')):.3e}"
         if "mean_position_error_m" in mm:
             seen = ", ".join(f"{i}: {100 * f:.0f} %" for i, f in mm["visible_fraction"].items())
             line += f"   mean position error {mm['mean_position_error_m']:.3f} m   target seen {seen}"
@@ -150,8 +153,10 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
         print(line)
     if "ratios" in m:
         ours, paper = m["ratios"]["ours"], m["ratios"]["paper"]
+        sq_mean = m["ratios"].get("ours_sq_mean", {})
         for key in ours:
-            print(f"  {key:10s} ours {ours[key]:8.2f}   paper {paper[key]:8.2f}")
+            other = f"   (of sq_mean_error {sq_mean[key]:8.2f})" if key in sq_mean else ""
+            print(f"  {key:10s} ours {ours[key]:8.2f}   paper {paper[key]:8.2f}{other}")
     gc = m["gain_condition"]
     verdict = "satisfied" if gc["satisfied"] else "NOT satisfied"
     print(
@@ -159,7 +164,8 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
         f"lambda_H = {gc['lambda_H']:.3f}"
     )
     print(f"  safety events: {len(m['safety_events'])} (events.jsonl)")
-    print(f"  sim {m['sim_seconds']:.1f} s in {m['wall_seconds']:.1f} s wall")
+    for line in speed_lines(m, time.perf_counter() - t_cmd0):
+        print(line)
     rec_status = m["recording"]
     if not rec_status["complete"]:
         print(f"error: recording incomplete: {rec_status['reason']}", file=sys.stderr)
@@ -170,6 +176,24 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
         print(f"error: {res.error}; every drone landed, partial recording written", file=sys.stderr)
         return 1
     return 0 if rec_status["complete"] else 1
+
+
+def speed_lines(m: dict[str, Any], command_s: float) -> list[str]:
+    """Sim-time / wall-time of each flown mode's loop (takeoff to landing, kernels already warm), of the
+    flown modes together, and of the whole command (warm-up, training, gain analysis, files and plots)."""
+    lines, sim, wall = [], 0.0, 0.0
+    for mode, mm in m["modes"].items():
+        s, w = float(mm.get("sim_seconds", 0.0)), float(mm.get("wall_seconds", 0.0))
+        if s > 0 and w > 0:
+            lines.append(f"  speed {mode:7s} {s:8.1f} s simulated in {w:7.2f} s: {s / w:8.1f}x real time")
+            sim, wall = sim + s, wall + w
+    if wall > 0:
+        train = float(m.get("gp", {}).get("train_seconds", 0.0))
+        lines.append(
+            f"  speed flown modes {sim:.1f} s in {wall:.2f} s ({sim / wall:.1f}x real time); whole command "
+            f"{command_s:.1f} s ({sim / command_s:.1f}x; GP training {train:.1f} s)"
+        )
+    return lines
 
 
 def _write_plots_or_warn(out: Path, mission: Mission, res: Any) -> None:

@@ -10,7 +10,8 @@ experiment. `compose(experiment, rig)` merges the two into one `Mission` (flight
 resolved object every other layer consumes and every run writes (`mission_resolved.yaml`).
 
 Built-in names (package data under `flightstack.mission_configs`, found from any directory): experiments
-`paper_sim`, `paper_experiment`; rigs `ideal`, `lab-sim`, `emulated-lab`, and `lab` (the real-lab
+`paper_sim`, `paper_experiment`, `scaling_11`, `scaling_31` (paper_sim for 11 and 31 drones,
+flightstack.config.generate); rigs `ideal`, `lab-sim`, `emulated-lab`, and `lab` (the real-lab
 template). A name that is not built in is read as a path.
 
 Single-file missions (the format before issue 17: one file with `backend:` and everything else) still
@@ -30,7 +31,7 @@ from typing import Any
 from flightstack.config.safe_load import LoadError, load_yaml
 
 PACKAGE = "flightstack.mission_configs"
-BUILTIN_EXPERIMENTS = ("paper_sim", "paper_experiment")
+BUILTIN_EXPERIMENTS = ("paper_sim", "paper_experiment", "scaling_11", "scaling_31")  # scaling_*: issue 18
 MISSION_CONFIGS = Path(str(resources.files(PACKAGE)))
 """Where the built-in experiments, rigs (rigs/) and camera files (cameras/) are: package data."""
 BUILTIN_RIGS = ("ideal", "lab-sim", "emulated-lab", "lab")
