@@ -5,8 +5,9 @@ holds the GIL, long enough to trip the Tello driver's loop watchdog (0.5 s) mid-
 every kernel once with the argument types its callers use (C-contiguous writable float64 arrays, Python
 or numpy floats, int64 and booleans), so a mission's first tick finds them compiled. It runs when a fleet is
 assembled (flightstack.runtime.fleet) and in preflight; tests/test_kernels.py asserts that a run after it
-adds no signature to any kernel. What it costs: the first run on a machine (no cache yet) compiles for
-about a minute on 2 cores; later runs load the cache in about a second (README, "Performance").
+adds no signature to any kernel. What it costs (2-core CI machine): the first run on a machine (no cache
+yet) compiles for ~11 s, ~9 s more for the compiled simulator's loop; later runs load the cache in
+~0.3–0.7 s (README, "Performance").
 """
 
 from __future__ import annotations
