@@ -314,3 +314,31 @@ def test_fit_raises_when_every_restart_fails(monkeypatch) -> None:
     X, Y = make_data(0, 10)
     with pytest.raises(ValueError, match="failed for output 0 from all 3 starting points"):
         GPExpert.fit(X, Y, 0.01, restarts=3)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_shared_kernel_expert_matches_sklearn_and_predict_one(seed: int) -> None:
+    """Equal hyperparameter rows: one factor for all outputs (Dk = 1); each output still equals sklearn's
+    GP, predict_one equals predict, and the LML is every output's own."""
+    m = (10, 25, 50, 37)[seed]
+    X, Y = make_data(seed, m)
+    h = random_hyper(seed)
+    hyper = GPHyperparameters(
+        np.full(D_OUT, h.sigma_f[0]), np.tile(h.length_scales[0], (D_OUT, 1)), h.noise_var[0]
+    )
+    gp = GPExpert.from_hyperparameters(X, Y, hyper)
+    assert gp.shared_kernel and gp.L.shape == (1, m, m) and gp.L_inv.shape == (1, m, m)
+    assert not GPExpert.from_hyperparameters(X, Y, h).shared_kernel
+    Xs = make_data(seed + 100, 20)[0]
+    mean, var = gp.predict(Xs)
+    lml = gp.log_marginal_likelihood()
+    for d in range(D_OUT):
+        ref = sklearn_gp(X, Y[:, d], hyper.sigma_f[d], hyper.length_scales[d], hyper.noise_var[d])
+        ref_mean, ref_std = ref.predict(Xs, return_std=True)
+        np.testing.assert_allclose(mean[:, d], ref_mean, rtol=1e-8, atol=1e-12)
+        np.testing.assert_allclose(var[:, d], ref_std**2, rtol=1e-8, atol=1e-12)
+        np.testing.assert_allclose(lml[d], ref.log_marginal_likelihood_value_, rtol=1e-8)
+    for x, mu_ref, var_ref in zip(Xs, mean, var, strict=True):
+        mu1, var1 = gp.predict_one(x)
+        np.testing.assert_allclose(mu1, mu_ref, rtol=1e-10, atol=1e-13)
+        np.testing.assert_allclose(var1, var_ref, rtol=1e-10, atol=1e-13)

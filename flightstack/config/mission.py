@@ -167,6 +167,10 @@ class GPSpec(_Strict):
     # per_expert: each expert maximises its own log marginal likelihood (the paper); shared: one set of
     # hyperparameters for all experts maximising the sum of theirs (Deisenroth & Ng 2015; gp_shared_fit.py)
     hyperparameters: Literal["per_expert", "shared"] = "per_expert"
+    # separate: one SE-ARD kernel per output (the paper); shared: one σ_f and one set of length scales for
+    # the four outputs (maximising the sum of the outputs' log marginal likelihoods), so an expert keeps
+    # one Cholesky factor and predicts with one k_* and one L⁻¹k_* (~4× cheaper; for large M, README)
+    output_kernel: Literal["separate", "shared"] = "separate"
     fusion: str = "poe"
 
     @field_validator("fusion")

@@ -84,13 +84,22 @@ class GPExpert:
         m, n_out = Y.shape
         self._sf2 = hyper.sigma_f**2  # σ_f², (D,)
         self._var_floor = VAR_FLOOR_REL * self._sf2  # (D,)
-        self._inv_l = 1.0 / hyper.length_scales  # (D, Din)
-        self._Z = X[None, :, :] * self._inv_l[:, None, :]  # scaled inputs x/l_d, (D, M, Din)
+        # One kernel for every output when their hyperparameters are equal (gp.output_kernel: shared, or
+        # experts built so): then 𝒦 + σ_n² I, its factor and k_* are the same for all D outputs, so they are
+        # kept once (Dk = 1) and predict_one computes k_* and L⁻¹k_* once: the same numbers, D× less work.
+        self.shared_kernel = bool(
+            np.all(hyper.sigma_f == hyper.sigma_f[0])
+            and np.all(hyper.length_scales == hyper.length_scales[0])
+            and np.all(hyper.noise_var == hyper.noise_var[0])
+        )
+        n_k = 1 if self.shared_kernel else n_out
+        self._inv_l = 1.0 / hyper.length_scales[:n_k]  # (Dk, Din)
+        self._Z = X[None, :, :] * self._inv_l[:, None, :]  # scaled inputs x/l_d, (Dk, M, Din)
         eye = np.eye(m)
-        L = np.empty((n_out, m, m))
+        L = np.empty((n_k, m, m))
         alpha = np.empty((n_out, m))
-        L_inv = np.empty((n_out, m, m))
-        for d in range(n_out):
+        L_inv = np.empty((n_k, m, m))
+        for d in range(n_k):
             # 𝒦_d + σ_{n,d}² I
             K_y = self._sf2[d] * np.exp(-0.5 * cdist(self._Z[d], self._Z[d], "sqeuclidean"))
             K_y[np.diag_indices(m)] += hyper.noise_var[d]
@@ -101,12 +110,17 @@ class GPExpert:
                     f"𝒦 + σ_n² I of output {d} is not positive definite (increase noise_var?)"
                 ) from exc
             L[d] = np.tril(c)
-            alpha[d] = scipy.linalg.cho_solve((L[d], True), Y[:, d], check_finite=False)
             L_inv[d] = scipy.linalg.solve_triangular(L[d], eye, lower=True, check_finite=False)
-        self.L = L
+        for d in range(n_out):
+            alpha[d] = scipy.linalg.cho_solve((L[self._k(d)], True), Y[:, d], check_finite=False)
+        self.L = L  # (Dk, M, M): the factor of output d is L[self._k(d)]
         self.alpha = alpha
         self.L_inv = L_inv
         self._n_in = X.shape[1]
+
+    def _k(self, d: int) -> int:
+        """The index of output d's kernel caches (0 for every d with a shared kernel)."""
+        return 0 if self.shared_kernel else d
 
     # ---------------------------------------------------------------------------------------------------
     # construction
@@ -187,7 +201,8 @@ class GPExpert:
 
     def _k_star(self, Xs: np.ndarray, d: int) -> np.ndarray:
         """k_* for output d: (N, M) with [k_*]_{nl} = k_d(x_{*n}, x^{(l)})."""
-        return self._sf2[d] * np.exp(-0.5 * cdist(Xs * self._inv_l[d], self._Z[d], "sqeuclidean"))
+        k = self._k(d)
+        return self._sf2[d] * np.exp(-0.5 * cdist(Xs * self._inv_l[k], self._Z[k], "sqeuclidean"))
 
     def predict(self, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predictive mean μ_i^{(j)} and latent variance var_i^{(j)} at N test inputs.
@@ -206,7 +221,7 @@ class GPExpert:
         for d in range(self.n_outputs):
             Ks = self._k_star(Xs, d)  # (N, M)
             mean[:, d] = Ks @ self.alpha[d]
-            v = scipy.linalg.solve_triangular(self.L[d], Ks.T, lower=True, check_finite=False)  # (M, N)
+            v = scipy.linalg.solve_triangular(self.L[self._k(d)], Ks.T, lower=True, check_finite=False)
             var[:, d] = self._sf2[d] - np.einsum("mn,mn->n", v, v)
         return mean, np.maximum(var, self._var_floor)
 
@@ -231,7 +246,16 @@ class GPExpert:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
         """(1/l (D, Din), X/l (D, M, Din), σ_f² (D,), α (D, M), L⁻¹ (D, M, M), variance floor (D,), M): the
         expert as kernels.gp_predict_one takes it (read-only views; the compiled loop stacks them)."""
-        return self._inv_l, self._Z, self._sf2, self.alpha, self.L_inv, self._var_floor, int(self.X.shape[0])
+        n_k = self._inv_l.shape[0]
+        return (
+            self._inv_l,
+            self._Z,
+            self._sf2[:n_k],
+            self.alpha,
+            self.L_inv,
+            self._var_floor[:n_k],
+            int(self.X.shape[0]),
+        )
 
     def mean_gradient(self, Xs: np.ndarray) -> np.ndarray:
         """Analytic input gradient of the predictive mean.
@@ -249,7 +273,7 @@ class GPExpert:
         diff = Xs[:, None, :] - self.X[None, :, :]  # (N, M, Din)
         for d in range(self.n_outputs):
             w = self._k_star(Xs, d) * self.alpha[d]  # (N, M)
-            grad[:, d, :] = -np.einsum("nl,nlm->nm", w, diff) * self._inv_l[d] ** 2
+            grad[:, d, :] = -np.einsum("nl,nlm->nm", w, diff) * self._inv_l[self._k(d)] ** 2
         return grad
 
     def prior_var(self) -> np.ndarray:
@@ -260,7 +284,9 @@ class GPExpert:
         """(D,) log marginal likelihood log p(Y_d | X) at the current hyperparameters (nats)."""
         m = self.X.shape[0]
         data_fit = -0.5 * np.einsum("md,dm->d", self.Y, self.alpha)
-        log_det = np.sum(np.log(np.diagonal(self.L, axis1=1, axis2=2)), axis=1)
+        log_det = np.sum(np.log(np.diagonal(self.L, axis1=1, axis2=2)), axis=1)[
+            [self._k(d) for d in range(self.n_outputs)]
+        ]
         return data_fit - log_det - 0.5 * m * _LOG_2PI
 
     # ---------------------------------------------------------------------------------------------------

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from flightstack.config.mission import Mission
-from flightstack.paper.gp import GPExpert
+from flightstack.paper.gp import GPExpert, GPHyperparameters
 from flightstack.paper.gp_shared_fit import fit_shared_hyperparameters
 from flightstack.recording.timeseries import Recording
 
@@ -59,16 +59,39 @@ def collect_datasets(mission: Mission, rec: Recording, seed: int) -> list[Expert
 def train_experts(mission: Mission, data: list[ExpertData], seed: int) -> dict[int, GPExpert]:
     """One GP expert per drone on its own dataset, hyperparameters by max. marginal likelihood: each
     expert's own (gp.hyperparameters: per_expert, seed + its index) or one set shared by all, maximising
-    the sum of the experts' log marginal likelihoods (shared, seed)."""
-    if mission.gp.hyperparameters == "shared":
+    the sum of the experts' log marginal likelihoods (shared, seed). gp.output_kernel: shared makes the
+    four outputs share one σ_f and one set of length scales too (the sum runs over the outputs as well)."""
+    gp = mission.gp
+    if gp.output_kernel == "shared":
+        if gp.hyperparameters == "shared":
+            hyper = _one_kernel([d.X for d in data], [d.Y for d in data], gp.noise_var, gp.restarts, seed)
+            return {d.drone_id: GPExpert(d.X, d.Y, hyper) for d in data}
+        return {
+            d.drone_id: GPExpert(d.X, d.Y, _one_kernel([d.X], [d.Y], gp.noise_var, gp.restarts, seed + i))
+            for i, d in enumerate(data)
+        }
+    if gp.hyperparameters == "shared":
         hyper = fit_shared_hyperparameters(
-            [(d.X, d.Y) for d in data], mission.gp.noise_var, restarts=mission.gp.restarts, seed=seed
+            [(d.X, d.Y) for d in data], gp.noise_var, restarts=gp.restarts, seed=seed
         )
         return {d.drone_id: GPExpert(d.X, d.Y, hyper) for d in data}
     return {
-        d.drone_id: GPExpert.fit(d.X, d.Y, mission.gp.noise_var, restarts=mission.gp.restarts, seed=seed + i)
+        d.drone_id: GPExpert.fit(d.X, d.Y, gp.noise_var, restarts=gp.restarts, seed=seed + i)
         for i, d in enumerate(data)
     }
+
+
+def _one_kernel(
+    Xs: list[np.ndarray], Ys: list[np.ndarray], noise_var: float, restarts: int, seed: int
+) -> GPHyperparameters:
+    """One (σ_f, l) for every output of every given dataset: the sum of their log marginal likelihoods
+    maximised (each output of each dataset one term), tiled to the D outputs."""
+    terms = [(X, Y[:, [d]]) for X, Y in zip(Xs, Ys, strict=True) for d in range(Y.shape[1])]
+    one = fit_shared_hyperparameters(terms, noise_var, restarts=restarts, seed=seed)
+    n_out = Ys[0].shape[1]
+    return GPHyperparameters(
+        np.full(n_out, one.sigma_f[0]), np.tile(one.length_scales[0], (n_out, 1)), np.full(n_out, noise_var)
+    )
 
 
 def save_experts(path: str | Path, experts: dict[int, GPExpert]) -> None:

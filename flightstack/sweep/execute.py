@@ -44,8 +44,9 @@ def job_of(c: Combination, base_dir: Path, keep_dir: Path | None) -> dict[str, A
 def run_combination(job: dict[str, Any]) -> dict[str, Any]:
     """In a worker: validate the job's mission, run `run_experiment`, return its metrics (JSON-safe).
 
-    BLAS runs single-threaded in the worker (threadpoolctl). SIGINT interrupts the run (workers of the local pool ignore it between runs); the result then says
-    `interrupted` and is not kept. With `keep_dir` the run's full directory is written there (no plots).
+    BLAS runs single-threaded in the worker (threadpoolctl). SIGINT interrupts the run (workers of the
+    local pool ignore it between runs); the result then says `interrupted` and is not kept. With
+    `keep_dir` the run's full directory is written there (no plots).
     Safety events are not logged (40 runs' takeoffs and landings would bury the progress lines); they are
     in the metrics (`safety_events`, `safety_event_counts`)."""
     from threadpoolctl import threadpool_limits
