@@ -13,10 +13,8 @@ M = 1000 vs M = 10, measured vs target), so machine speed cancels in the ratio. 
   evaluation and per fit; and our fit against scikit-learn's fit (ConstantKernel·RBF(ARD), alpha = σ_n²,
   i.e. a fixed WhiteKernel) with the same start, bounds and L-BFGS-B settings, reporting the time ratio
   and the log marginal likelihood each reached. One restart; N ≥ 1500 stops after a few iterations.
-* One agent tick (observer, own prediction, publish, fuse, control), per agent, on the ideal backend of
-  the paper simulation with experts of M = 10 and M = 1000 points.
-* Paper simulation speed (sim-seconds per wall-second, 3 drones, mode dgp, shortened run), and the
-  lock-step tick of every mode.
+* The agent tick against M and neighbours, the paper simulation's speed (its loop and the whole command),
+  the simulator against drones, and a 20-seed sweep: benchmarks/sim_speed.py.
 * Marker extraction (flightstack.vision.markers.extract_markers) on 960×720 frames rendered by
   flightstack.sim_backend.render with the tello_front_sim calibration, all four markers in view.
 * Bus hop latency: encode → InProcBus.publish (decode, validation) → latest; Zenoh through
@@ -39,8 +37,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from benchmarks import sim_speed  # noqa: E402
 from benchmarks.table import (  # noqa: E402
-    SIM_DURATION_S,
     TARGETS,
     build_rows,
     machine_info,
@@ -55,13 +53,11 @@ from flightstack.paper.geometry import Pose  # noqa: E402
 from flightstack.paper.gp import GPExpert, GPHyperparameters, _lml_and_grad, _pairwise_sq_diff  # noqa: E402
 from flightstack.paper.projection import CameraModel, points_in_camera  # noqa: E402
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch  # noqa: E402
-from flightstack.runtime.backends import build_backend  # noqa: E402
-from flightstack.runtime.experiment import TruthPredictor  # noqa: E402
-from flightstack.runtime.runner import make_agents, run_mode  # noqa: E402
 from flightstack.vision.camera_file import load_calibration  # noqa: E402
 from flightstack.vision.markers import extract_markers  # noqa: E402
 
 PAPER_SIM = REPO / "mission_configs" / "paper_sim.yaml"
+SCALING = {n: REPO / "mission_configs" / f"scaling_{n}.yaml" for n in (11, 31)}
 FRONT_CAMERA = REPO / "mission_configs" / "cameras" / "tello_front_sim.yaml"
 README = REPO / "README.md"
 RESULTS = REPO / "benchmarks" / "results.json"
@@ -208,78 +204,6 @@ def bench_gp_train(N: int, maxiter: int | None) -> dict[str, float | int | None]
     }
 
 
-# ---- agent tick and simulation ------------------------------------------------------------------------
-def truth_experts(mission, M: int, seed: int = 0) -> dict[int, GPExpert]:
-    """Experts of M points on the target's field (the trained experts' role, any size M, no data run)."""
-    rng = np.random.default_rng(seed)
-    prm = DuffingParams(**mission.target.duffing.model_dump())
-    lo, hi = np.array([-2.0, -1.5, -0.05, -math.pi]), np.array([1.9, 1.5, 0.05, math.pi])
-    hyper = GPHyperparameters(np.full(4, 0.5), np.tile([0.8, 0.8, 1.0, 2.0], (4, 1)), np.full(4, NOISE_VAR))
-    out = {}
-    for d in mission.drones:
-        X = rng.uniform(lo, hi, size=(M, 4))
-        Y = duffing_body_velocity_batch(X, prm) + math.sqrt(NOISE_VAR) * rng.normal(size=(M, 4))
-        out[d.id] = GPExpert.from_hyperparameters(X, Y, hyper)
-    return out
-
-
-def bench_agent_tick(M: int, rounds: int) -> dict[str, float]:
-    """Per-agent time of sense_and_publish + fuse_control_act (mode dgp), agents built as the runner does."""
-    m = load_mission(PAPER_SIM, {"duration_s": 1.0})
-    backend = build_backend(m)
-    ids = [d.id for d in m.drones]
-    bus = InProcBus(m.name, set(ids))
-    drones = {i: backend.drone(i) for i in ids}
-    agents = make_agents(m, "dgp", backend, drones, bus, truth_experts(m, M))
-    clock = backend.clock
-    spent, visible = 0.0, 0
-    samples = []
-    for k in range(rounds + 20):
-        t = clock.now()
-        t0 = time.perf_counter()
-        for a in agents:
-            a.sense_and_publish(t)
-        for a in agents:
-            a.fuse_control_act(t)
-        dt_wall = time.perf_counter() - t0
-        if k >= 20:  # warm-up excluded
-            spent += dt_wall
-            samples.append(dt_wall / len(agents))
-            visible += sum(a.last.visible for a in agents)
-        clock.sleep_until(t + m.dt_s)
-    per_agent = spent / (rounds * len(agents))
-    return {
-        "M": M,
-        "per_agent_us": per_agent * 1e6,
-        "per_agent_median_us": float(np.median(samples)) * 1e6,
-        "dt_over_tick": m.dt_s / per_agent,
-        "visible_fraction": visible / (rounds * len(agents)),
-    }
-
-
-def bench_sim() -> dict[str, dict[str, float]]:
-    m = load_mission(PAPER_SIM, {"duration_s": SIM_DURATION_S})
-    n_ticks = round(m.duration_s / m.dt_s)
-    experts = truth_experts(m, 10)
-    preds = {
-        "none": None,
-        "local": experts,
-        "dgp": experts,
-        "oracle": {d.id: TruthPredictor(DuffingParams()) for d in m.drones},
-    }
-    out = {}
-    for mode, p in preds.items():
-        rec = run_mode(m, mode, p)
-        if rec.error or rec.ticks_done != n_ticks:
-            raise RuntimeError(f"simulation mode {mode} failed: {rec.error}")
-        out[mode] = {
-            "tick_ms": rec.wall_seconds / n_ticks * 1e3,
-            "sim_per_wall": m.duration_s / rec.wall_seconds,
-            "wall_s": rec.wall_seconds,
-        }
-    return out
-
-
 # ---- vision -------------------------------------------------------------------------------------------
 def bench_vision(n_frames: int = 8, number: int = 40) -> dict[str, float]:
     from flightstack.sim_backend.render import RenderOptions, render_markers
@@ -366,8 +290,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  [{name}: {time.perf_counter() - t0:.1f} s]", file=sys.stderr, flush=True)
 
     stage("gp_predict_one", lambda: {str(M): bench_gp_predict(M) for M in (10, 100, 1000)})
-    stage("agent_tick", lambda: {"10": bench_agent_tick(10, 2000), "1000": bench_agent_tick(1000, 200)})
-    stage("paper_sim", bench_sim)
+    stage("agent_tick", lambda: sim_speed.bench_ticks(PAPER_SIM, SCALING))
+    stage("shared_kernel", lambda: sim_speed.shared_kernel_accuracy(PAPER_SIM))
+    stage("paper_sim", lambda: sim_speed.bench_paper_sim(PAPER_SIM))
+    stage("drones", lambda: sim_speed.bench_drones(PAPER_SIM, SCALING))
+    stage("sweep", sim_speed.bench_sweep)
     stage("vision", bench_vision)
     stage("bus", bench_bus)
     stage("gp_train", lambda: [bench_gp_train(N, it) for N, it in TRAIN_SIZES])

@@ -13,12 +13,14 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
-SIM_DURATION_S = 2.0  # shortened paper simulation (1000 ticks at dt = 2 ms)
 
-#: targets of issue 8 (value, unit, "max" = measured must be ≤ target, "min" = ≥ target)
+#: targets of issues 8 and 18 (value, unit, "max" = measured must be ≤ target, "min" = ≥ target)
 TARGETS = {
-    "tick_us_M10": (200.0, "µs per agent tick, M = 10", "max"),
-    "sim_per_wall": (100.0, "sim s per wall s", "min"),
+    "tick_us_M10": (30.0, "µs per agent tick, M = 10", "max"),
+    "tick_us_M1000_shared": (500.0, "µs per agent tick, M = 1000, one kernel for the outputs", "max"),
+    "sim_per_wall": (200.0, "paper simulation's flown modes, sim s per wall s", "min"),
+    "sim_per_wall_31": (10.0, "31 drones, sim s per wall s", "min"),
+    "sweep_20_s": (60.0, "s for a 20-seed sweep of the paper simulation", "max"),
     "vision_fps": (300.0, "frames/s at 960×720", "min"),
     "zenoh_p50_ms": (0.3, "ms Zenoh hop p50", "max"),
 }
@@ -90,47 +92,7 @@ def build_rows(r: dict) -> list[tuple[str, str, str, str, str]]:
                 "",
             )
         )
-    tk = r["agent_tick"]
-    tgt, ratio, st = _status("tick_us_M10", tk["10"]["per_agent_us"])
-    rows.append(
-        (
-            "agent tick (observer, predict, publish, fuse, control), M = 10",
-            f"{tk['10']['per_agent_us']:.0f} µs",
-            "dt = 2 ms",
-            f"{tk['10']['dt_over_tick']:.1f}× real time; {ratio}",
-            f"{tgt} µs: {st}",
-        )
-    )
-    rows.append(
-        (
-            "agent tick, M = 1000",
-            f"{tk['1000']['per_agent_us']:.0f} µs",
-            f"M = 10: {tk['10']['per_agent_us']:.0f} µs",
-            f"{tk['1000']['per_agent_us'] / tk['10']['per_agent_us']:.1f}× slower; "
-            f"{tk['1000']['dt_over_tick']:.1f}× real time",
-            "",
-        )
-    )
-    sim = r["paper_sim"]
-    tgt, ratio, st = _status("sim_per_wall", sim["dgp"]["sim_per_wall"])
-    rows.append(
-        (
-            f"paper simulation, 3 drones, dgp ({SIM_DURATION_S:g} s sim)",
-            f"{sim['dgp']['tick_ms']:.3f} ms/tick",
-            "dt = 2 ms",
-            f"{sim['dgp']['sim_per_wall']:.2f}× real time; {ratio}",
-            f"{tgt}×: {st}",
-        )
-    )
-    rows.append(
-        (
-            "lock-step tick, none / local / oracle",
-            " / ".join(f"{sim[k]['tick_ms']:.3f}" for k in ("none", "local", "oracle")) + " ms",
-            "dt = 2 ms",
-            " / ".join(f"{sim[k]['sim_per_wall']:.2f}" for k in ("none", "local", "oracle")) + "× real time",
-            "",
-        )
-    )
+    rows += _sim_rows(r)
     v = r["vision"]
     tgt, ratio, st = _status("vision_fps", v["fps"])
     rows.append(
@@ -169,6 +131,106 @@ def build_rows(r: dict) -> list[tuple[str, str, str, str, str]]:
     else:
         tgt, _, _ = _status("zenoh_p50_ms", None)
         rows.append(("bus hop Zenoh", str(b["zenoh_status"]), "", "", f"{tgt} ms: N/A"))
+    return rows
+
+
+def _sim_rows(r: dict) -> list[tuple[str, str, str, str, str]]:
+    """Agent tick, paper simulation, drones and sweep rows (benchmarks/sim_speed.py)."""
+    tk, rows = r["agent_tick"], []
+    t10 = tk["M10"]["per_agent_us"]
+    tgt, ratio, st = _status("tick_us_M10", t10)
+    rows.append(
+        (
+            "agent tick (observer, predict, publish, fuse, control), M = 10, 2 neighbours",
+            f"{t10:.1f} µs",
+            "dt = 2 ms",
+            f"{tk['M10']['dt_over_tick']:.0f}× real time; {ratio}",
+            f"{tgt} µs: {st}",
+        )
+    )
+    for key, label in (("M100", "M = 100"), ("M1000", "M = 1000")):
+        rows.append(
+            (
+                f"agent tick, {label} (one kernel per output, the paper's model)",
+                f"{tk[key]['per_agent_us']:.0f} µs",
+                f"M = 10: {t10:.1f} µs",
+                f"{tk[key]['per_agent_us'] / t10:.1f}× slower; {tk[key]['dt_over_tick']:.1f}× real time",
+                "",
+            )
+        )
+    sh, acc = tk["M1000_shared"]["per_agent_us"], r["shared_kernel"]
+    tgt, ratio, st = _status("tick_us_M1000_shared", sh)
+    rows.append(
+        (
+            "agent tick, M = 1000, gp.output_kernel: shared",
+            f"{sh:.0f} µs",
+            f"per output: {tk['M1000']['per_agent_us']:.0f} µs",
+            f"{tk['M1000']['per_agent_us'] / sh:.1f}× faster; {ratio}",
+            f"{tgt} µs: {st}",
+        )
+    )
+    rows.append(
+        (
+            "accuracy of gp.output_kernel: shared, M = 1000 (RMS error of μ vs the true field)",
+            f"{acc['rmse_shared']:.4f} m/s",
+            f"per output {acc['rmse_exact']:.4f} m/s",
+            f"RMS difference {acc['rms_difference']:.4f} m/s; var ratio {acc['median_var_ratio']:.2f}",
+            "",
+        )
+    )
+    for n in (10, 30):
+        key = f"n{n + 1}"
+        rows.append(
+            (
+                f"agent tick, M = 10, {n} neighbours ({n + 1} drones)",
+                f"{tk[key]['per_agent_us']:.1f} µs",
+                f"2 neighbours: {t10:.1f} µs",
+                f"{tk[key]['per_agent_us'] / t10:.2f}×",
+                "",
+            )
+        )
+    ps = r["paper_sim"]
+    tgt, ratio, st = _status("sim_per_wall", ps["loop_sim_per_wall"])
+    rows.append(
+        (
+            "paper simulation, flown modes none + local + dgp (3 × 40 s), compiled loop",
+            " / ".join(f"{ps['modes'][k]['wall_s']:.2f}" for k in ("none", "local", "dgp")) + " s",
+            "real time 40 s each",
+            f"{ps['loop_sim_per_wall']:.0f}× real time; {ratio}",
+            f"{tgt}×: {st}",
+        )
+    )
+    rows.append(
+        (
+            "`flightstack run paper_sim`, whole command (warm cache, training, plots)",
+            f"{ps['command_s']:.1f} s",
+            "120 s simulated",
+            f"{ps['command_sim_per_wall']:.0f}× real time",
+            "",
+        )
+    )
+    dr = r["drones"]
+    tgt, ratio, st = _status("sim_per_wall_31", dr["31"]["sim_per_wall"])
+    rows.append(
+        (
+            "simulation speed, 3 / 11 / 31 drones (dgp, compiled loop)",
+            " / ".join(f"{dr[k]['sim_per_wall']:.0f}" for k in ("3", "11", "31")) + "× real time",
+            "3 drones",
+            f"31 drones {dr['31']['sim_per_wall'] / dr['3']['sim_per_wall']:.2f}× of 3; {ratio}",
+            f"{tgt}× (31): {st}",
+        )
+    )
+    sw = r["sweep"]
+    tgt, ratio, st = _status("sweep_20_s", sw["wall_s"])
+    rows.append(
+        (
+            f"`flightstack sweep paper_sim --seeds {sw['seeds']}` (3 modes each), {sw['jobs']} jobs",
+            f"{sw['wall_s']:.1f} s",
+            f"one run: {ps['command_s']:.1f} s",
+            f"{sw['seeds'] * ps['command_s'] / sw['wall_s']:.1f}× the runs one after another; {ratio}",
+            f"{tgt} s: {st}",
+        )
+    )
     return rows
 
 

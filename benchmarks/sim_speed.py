@@ -1,0 +1,201 @@
+"""Speed of the tick and of the simulator (issue 18), measured as ratios in one run (benchmarks/run.py).
+
+* Agent tick (observer, own prediction, publish, fuse, control), per agent, on the ideal backend: against
+  M (10, 100, 1000 training points per expert; the paper's model, one kernel per output) and against the
+  number of neighbours (2, 10, 30: the paper simulation with 3 drones and the generated 11- and 31-drone
+  missions, complete graphs); M = 1000 also with one kernel shared by the four outputs (gp.output_kernel:
+  shared), and that option's accuracy against the per-output expert fitted on the same data.
+* The paper simulation's flown modes (none, local, dgp; 40 s each) in the compiled loop, and the whole
+  `flightstack run paper_sim` command (kernel cache load, training, gain analysis, files and plots) in a
+  subprocess; simulation speed against drones (3, 11, 31; mode dgp).
+* A 20-seed sweep of the paper simulation (`flightstack sweep paper_sim --seeds 20`, 3 modes each) on
+  every core of this machine.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from flightstack.comms.bus import InProcBus
+from flightstack.config.mission import Mission, load_mission
+from flightstack.paper.gp import GPExpert, GPHyperparameters
+from flightstack.paper.gp_fit import fit_hyperparameters
+from flightstack.paper.kernels_warmup import warm_up
+from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch
+from flightstack.runtime.backends import build_backend
+from flightstack.runtime.fleet import make_agents
+from flightstack.runtime.runner import run_mode
+from flightstack.runtime.training import _one_kernel
+
+NOISE_VAR = 0.01  # σ_n², the paper's data specification
+LO, HI = np.array([-2.0, -1.5, -0.05, -math.pi]), np.array([1.9, 1.5, 0.05, math.pi])  # the path's box
+
+
+def field_data(mission: Mission, M: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """M noisy samples (σ_n² = 0.01) of the target's true body-velocity field over its path's box."""
+    rng = np.random.default_rng(seed)
+    prm = DuffingParams(**mission.target.duffing.model_dump())
+    X = rng.uniform(LO, HI, size=(M, 4))
+    return X, duffing_body_velocity_batch(X, prm) + math.sqrt(NOISE_VAR) * rng.normal(size=(M, 4))
+
+
+def field_experts(mission: Mission, M: int, shared: bool = False, seed: int = 0) -> dict[int, GPExpert]:
+    """Experts of M points on the target's field for every drone (the trained experts' role at any size);
+    per-output length scales (the paper's model) unless `shared` (one kernel for the four outputs)."""
+    rows = (
+        np.tile([0.8, 0.8, 1.0, 2.0], (4, 1))
+        if shared
+        else np.array(
+            [[0.8, 0.9, 1.0, 2.0], [0.9, 0.8, 1.1, 1.8], [0.7, 1.0, 0.9, 2.2], [1.0, 0.7, 1.2, 1.9]]
+        )
+    )
+    hyper = GPHyperparameters(np.full(4, 0.5), rows, np.full(4, NOISE_VAR))
+    return {
+        d.id: GPExpert.from_hyperparameters(*field_data(mission, M, seed + k), hyper)
+        for k, d in enumerate(mission.drones)
+    }
+
+
+def bench_agent_tick(mission: Mission, experts: dict[int, GPExpert], rounds: int) -> dict[str, float]:
+    """Per-agent seconds of sense_and_publish + fuse_control_act (mode dgp), agents built as the runner
+    does, the world advanced between ticks (not timed)."""
+    backend = build_backend(mission)
+    ids = [d.id for d in mission.drones]
+    bus = InProcBus(mission.name, set(ids))
+    drones = {i: backend.drone(i) for i in ids}
+    agents = make_agents(mission, "dgp", backend, drones, bus, experts)
+    clock = backend.clock
+    samples = []
+    for k in range(rounds + 20):
+        t = clock.now()
+        t0 = time.perf_counter()
+        for a in agents:
+            a.sense_and_publish(t)
+        for a in agents:
+            a.fuse_control_act(t)
+        if k >= 20:  # warm-up excluded
+            samples.append((time.perf_counter() - t0) / len(agents))
+        clock.sleep_until(t + mission.dt_s)
+    s = np.array(samples)
+    return {
+        "per_agent_us": float(np.median(s) * 1e6),
+        "per_agent_mean_us": float(s.mean() * 1e6),
+        "neighbours": len(ids) - 1,
+        "dt_over_tick": mission.dt_s / float(np.median(s)),
+    }
+
+
+def bench_ticks(paper: Path, scaling: dict[int, Path]) -> dict[str, dict[str, float]]:
+    """Agent tick against M (3 drones) and against neighbours (M = 10), and M = 1000 with one kernel."""
+    warm_up()
+    m3 = load_mission(paper, {"duration_s": 1.0})
+    out = {
+        f"M{M}": bench_agent_tick(m3, field_experts(m3, M), r)
+        for M, r in ((10, 3000), (100, 2000), (1000, 300))
+    }
+    out["M1000_shared"] = bench_agent_tick(m3, field_experts(m3, 1000, shared=True), 300)
+    for n, path in scaling.items():
+        mn = load_mission(path, {"duration_s": 1.0})
+        out[f"n{n}"] = bench_agent_tick(mn, field_experts(mn, 10), max(200, 6000 // n))
+    return out
+
+
+def shared_kernel_accuracy(paper: Path, M: int = 1000, fit_M: int = 300, seed: int = 0) -> dict[str, float]:
+    """gp.output_kernel: shared against the paper's per-output kernels, both fitted (type-II ML, 2
+    restarts, ≤ 60 L-BFGS-B iterations) on the same fit_M points and then conditioned on the same M:
+    RMS error of each expert's mean against the true field on 2000 test points, and their RMS difference."""
+    m = load_mission(paper)
+    X, Y = field_data(m, M, seed)
+    _, _, per_output = fit_hyperparameters(X[:fit_M], Y[:fit_M], NOISE_VAR, restarts=2, seed=seed, maxiter=60)
+    one = _one_kernel([X[:fit_M]], [Y[:fit_M]], NOISE_VAR, 2, seed)
+    exact, cheap = GPExpert(X, Y, per_output), GPExpert(X, Y, one)
+    Xt = np.random.default_rng(seed + 1).uniform(LO, HI, size=(2000, 4))
+    truth = duffing_body_velocity_batch(Xt, DuffingParams(**m.target.duffing.model_dump()))
+    mu_e, var_e = exact.predict(Xt)
+    mu_c, var_c = cheap.predict(Xt)
+
+    def rms(a: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(a**2)))
+
+    return {
+        "rmse_exact": rms(mu_e - truth),
+        "rmse_shared": rms(mu_c - truth),
+        "rms_difference": rms(mu_c - mu_e),
+        "median_var_ratio": float(np.median(var_c / var_e)),
+        "shared_kernel": bool(cheap.shared_kernel),
+    }
+
+
+def bench_paper_sim(paper: Path) -> dict[str, object]:
+    """The paper simulation's flown modes (compiled loop, experts of M = 10 on the field), then the whole
+    `flightstack run paper_sim` in a subprocess (its own printout gives the loop's share)."""
+    warm_up(loop=True)
+    m = load_mission(paper)
+    experts = field_experts(m, 10)
+    modes = {}
+    for mode in ("none", "local", "dgp"):
+        rec = run_mode(m, mode, None if mode == "none" else experts)
+        if rec.error or rec.interrupted:
+            raise RuntimeError(f"paper simulation {mode}: {rec.error}")
+        modes[mode] = {"wall_s": rec.wall_seconds, "sim_per_wall": m.duration_s / rec.wall_seconds}
+    sim = 3 * m.duration_s
+    loop = sum(v["wall_s"] for v in modes.values())
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        cmd = [
+            sys.executable,
+            "-m",
+            "flightstack",
+            "run",
+            "paper_sim",
+            "--out",
+            f"{tmp}/run",
+            "--no-progress",
+        ]
+        subprocess.run(cmd, check=True, capture_output=True, timeout=600)
+        command = time.perf_counter() - t0
+    return {
+        "modes": modes,
+        "loop_sim_per_wall": sim / loop,
+        "command_s": command,
+        "command_sim_per_wall": sim / command,
+    }
+
+
+def bench_drones(
+    paper: Path, scaling: dict[int, Path], duration_s: float = 4.0
+) -> dict[str, dict[str, float]]:
+    """Simulated seconds per wall second against drones (mode dgp, compiled loop, experts of M = 10)."""
+    warm_up(loop=True)
+    out = {}
+    for n, path in {3: paper, **scaling}.items():
+        m = load_mission(path, {"duration_s": duration_s})
+        rec = run_mode(m, "dgp", field_experts(m, 10))
+        if rec.error or rec.interrupted:
+            raise RuntimeError(f"{n} drones: {rec.error}")
+        out[str(n)] = {"wall_s": rec.wall_seconds, "sim_per_wall": duration_s / rec.wall_seconds}
+    return out
+
+
+def bench_sweep(seeds: int = 20) -> dict[str, float]:
+    """`flightstack sweep paper_sim --seeds 20` on every core, wall seconds of the whole command."""
+    jobs = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        cmd = [sys.executable, "-m", "flightstack", "sweep", "paper_sim", "--seeds", str(seeds)]
+        subprocess.run(
+            [*cmd, "--jobs", str(jobs), "--out", f"{tmp}/sweep"],
+            check=True,
+            capture_output=True,
+            timeout=1200,
+        )
+        wall = time.perf_counter() - t0
+    return {"seeds": seeds, "jobs": jobs, "wall_s": wall, "runs_per_s": seeds / wall}
