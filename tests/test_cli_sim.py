@@ -16,7 +16,21 @@ def paper_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("paper")
     r = run_cli("sim", str(MISSIONS / "paper_sim.yaml"), "--out", str(out))
     assert r.returncode == 0, r.stderr[-3000:]
+    (out.parent / "paper_stdout.txt").write_text(r.stdout)
     return out
+
+
+def test_paper_sim_reports_its_speed(paper_run: Path) -> None:
+    """Each flown mode's sim-time/wall-time ratio and the whole command's, matching metrics.json."""
+    out = (paper_run.parent / "paper_stdout.txt").read_text()
+    m = json.loads((paper_run / "metrics.json").read_text())
+    for mode in ("none", "local", "dgp"):
+        (line,) = [ln for ln in out.splitlines() if ln.strip().startswith(f"speed {mode} ")]
+        ratio = float(line.split(":")[-1].split("x")[0])
+        mm = m["modes"][mode]
+        assert ratio == pytest.approx(mm["sim_seconds"] / mm["wall_seconds"], rel=0.01)
+    (total,) = [ln for ln in out.splitlines() if "speed flown modes" in ln]
+    assert "whole command" in total and "x real time" in total
 
 
 def test_paper_sim_ordering_none_local_dgp(paper_run: Path) -> None:
