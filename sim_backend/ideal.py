@@ -6,13 +6,15 @@ module level; the runner loads it by the mission's `backend: sim_ideal` through 
 
 from __future__ import annotations
 
+import math
 from typing import Protocol
 
 import numpy as np
 
 from flightstack.hal import DroneState, FlightPhase, Frame, StampedPose
-from flightstack.paper.geometry import Pose, relative
-from flightstack.paper.projection import CameraModel, TargetNotVisibleError, measure
+from flightstack.paper import kernels as kern
+from flightstack.paper.geometry import Pose
+from flightstack.paper.projection import CameraModel, measure_vector
 from flightstack.sim_backend.world import World
 
 
@@ -63,7 +65,7 @@ class IdealDrone:
 
     def send_body_velocity(self, V: np.ndarray) -> None:
         V = np.asarray(V, dtype=float)
-        if V.shape != (4,) or not np.all(np.isfinite(V)):
+        if V.shape != (4,) or not all(map(math.isfinite, V.tolist())):
             raise ValueError(f"body velocity must be 4 finite numbers, got {V!r}")
         if self.flying:
             self.world.command_drone(self.id, V)
@@ -97,12 +99,11 @@ class IdealCamera:
     def latest(self) -> Frame:
         if not self.sees_target:
             return Frame(self.world.t, None, None)
-        g_i0 = relative(self.world.drones[self.id].pose, self.world.target.pose)
-        try:
-            f = measure(g_i0, self.P0, self.cam)
-        except TargetNotVisibleError:
-            f = None
-        return Frame(self.world.t, None, f)
+        # f(g_i0), g_i0 = g_wi⁻¹ g_w0: geometry.relative and projection.measure on pose vectors (the same
+        # kernels and numbers, without the Pose in between; None where measure raises not visible)
+        g_i0 = np.empty(4)
+        kern.relative4(self.world.drones[self.id].pose.as_vector(), self.world.target.pose.as_vector(), g_i0)
+        return Frame(self.world.t, None, measure_vector(g_i0, self.P0, self.cam))
 
 
 class TruthPoseSource:

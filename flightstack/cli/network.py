@@ -62,6 +62,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
     from flightstack.cli.run import _awake_if_flying
     from flightstack.comms.factory import make_bus
     from flightstack.comms.zenoh_bus import ZenohBus
+    from flightstack.paper.kernels_warmup import warm_up
     from flightstack.recording.run_dir import RunWriter, check_out_dir
     from flightstack.recording.timeseries import Recording
     from flightstack.runtime.backends import AgentSeat, open_agent_backend
@@ -90,6 +91,8 @@ def cmd_agent(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"error: --out {out}: cannot start the recording: {exc}; nothing took off", file=sys.stderr)
         return 2
+    # the tick's kernels (and the message check the bus's receive thread runs) before the bus opens
+    warm_up()
     wall0 = time.perf_counter()
     writer = run_writer.mode(mode, [args.id], round(mission.duration_s / mission.dt_s))
     try:

@@ -61,8 +61,24 @@ class AcceptanceBounds:
         if self.max_seq_jump < 1 or self.restart_after < 1:
             raise ValueError("max_seq_jump and restart_after must be >= 1")
 
+    def packed(self) -> NDArray[np.float64]:
+        """[var_floor, var_ceiling, max_speed_mps, max_yaw_rate_rps, max_position_m, max_angle_rad]: the
+        value bounds as the compiled checks take them (kernels.message_check, message_fault); a new array."""
+        return np.array(
+            [
+                self.var_floor,
+                self.var_ceiling,
+                self.max_speed_mps,
+                self.max_yaw_rate_rps,
+                self.max_position_m,
+                self.max_angle_rad,
+            ],
+            dtype=np.float64,
+        )
+
     def violation(self, g: FloatSeq, mu: FloatSeq, var: FloatSeq, prior_var: FloatSeq) -> str | None:
-        """The reason these (finite, 4-element) fields are out of bounds, or None."""
+        """The reason these (finite, 4-element) fields are out of bounds, or None. The receive path
+        checks the same in compiled form (kernels.message_check, with the decoder's checks)."""
         lo, hi = self.var_floor, self.var_ceiling
         if not all(lo <= v <= hi for v in (*var, *prior_var)):
             return "variance out of bounds"

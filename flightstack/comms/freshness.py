@@ -56,7 +56,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from flightstack.comms.acceptance import AcceptanceBounds, SeqState, restart_run, seq_verdict
-from flightstack.comms.messages import PredictionMessage, decode
+from flightstack.comms.messages import PredictionMessage, decode_checked
 from flightstack.events import Event
 
 TimeBase = Literal["stamps", "receiver"]
@@ -131,6 +131,7 @@ class Freshness:
         self.dropped: Counter[str] = Counter()
         self.delivered = 0
         self.bounds = bounds or AcceptanceBounds()
+        self._packed, self._packed_of = self.bounds.packed(), self.bounds
         self.runs: dict[int, SeqState] = {}  # per sender: the current run of rejected seqs
         self.restarts: Counter[int] = Counter()  # per sender: sequence restarts accepted
 
@@ -142,15 +143,16 @@ class Freshness:
         key_sender: the sender named by the transport (Zenoh key), checked against the payload's.
         t_recv: receipt time on the receiver's clock (s); read from `clock` when None in time base
         "receiver" (and left unread in "stamps")."""
-        msg, reason = decode(data, self.mission, self.known)
+        if self.bounds is not self._packed_of:  # the bounds as the compiled check takes them
+            self._packed, self._packed_of = self.bounds.packed(), self.bounds
+        msg, reason, bad = decode_checked(data, self.mission, self.known, self._packed)
         if msg is None:
             self.dropped[reason or "unknown"] += 1
             return None
         if key_sender is not None and key_sender != str(msg.sender):
             self.dropped["key sender mismatch"] += 1
             return None
-        bad = self.bounds.violation(msg.g_bar_w, msg.mu, msg.var, msg.prior_var)
-        if bad:
+        if bad:  # AcceptanceBounds.violation, decided by decode's compiled pass
             self.dropped[bad] += 1
             return None
         prev = self.newest.get(msg.sender)

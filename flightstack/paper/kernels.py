@@ -698,3 +698,36 @@ def lockstep_chunk(
             clock, t + dt, dt, target, target_V, drones, drones_V, 1 if substeps < 1 else substeps, prm
         )
     return k1
+
+
+# ---- the prediction message's checks (flightstack.comms.messages, acceptance) ------------------------------
+#: message_check's verdicts, in the order they are decided; flightstack.comms.messages.REASONS names them
+#: (the drop reasons counted by the buses). Codes below MSG_OUT_OF_BOUNDS are the wire checks (decode
+#: rejects, encode refuses), the others AcceptanceBounds (the receiver drops).
+MSG_OK, MSG_NONFINITE_G, MSG_NONFINITE_MU, MSG_NONFINITE_VAR, MSG_NONFINITE_PRIOR = range(5)
+MSG_VAR_NOT_POSITIVE = 5
+MSG_OUT_OF_BOUNDS = MSG_VAR_BOUNDS = 6
+MSG_MU_BOUNDS, MSG_POSE_BOUNDS = 7, 8
+
+
+@kernel
+def message_check(body: np.ndarray, bounds: np.ndarray) -> int:
+    """The first defect of a prediction message's 16 floats body = [ḡ_w (4), μ (4), var (4), σ_f² (4)],
+    as a MSG_* code (MSG_OK: none): per field in that order a non-finite element, then a variance ≤ 0 (the
+    wire checks), then AcceptanceBounds.violation's checks in its order with bounds = [var_floor,
+    var_ceiling, max_speed_mps, max_yaw_rate_rps, max_position_m, max_angle_rad] (as message_fault)."""
+    for k in range(4):
+        for q in range(4 * k, 4 * k + 4):
+            if not math.isfinite(body[q]):
+                return MSG_NONFINITE_G + k
+    for q in range(8, 16):
+        if body[q] <= 0.0:
+            return MSG_VAR_NOT_POSITIVE
+    for q in range(8, 16):
+        if not (bounds[0] <= body[q] <= bounds[1]):
+            return MSG_VAR_BOUNDS
+    if max(abs(body[4]), abs(body[5]), abs(body[6])) > bounds[2] or abs(body[7]) > bounds[3]:
+        return MSG_MU_BOUNDS
+    if max(abs(body[0]), abs(body[1]), abs(body[2])) > bounds[4] or abs(body[3]) > bounds[5]:
+        return MSG_POSE_BOUNDS
+    return MSG_OK

@@ -87,6 +87,7 @@ def warm_up(loop: bool = False) -> float:
         False,
     )
     kern.message_fault(g, mu, var, var, np.array([1e-12, 1e12, 10.0, 10.0, 1e3, 1e3]))
+    kern.message_check(np.concatenate((g, mu, var, var)), np.array([1e-12, 1e12, 10.0, 10.0, 1e3, 1e3]))
     if loop:
         _warm_loop()
     _warm.add(loop)

@@ -88,11 +88,18 @@ def project(points_c: np.ndarray, cam: CameraModel) -> np.ndarray:
 
 def measure(g_i0: Pose, P0: np.ndarray, cam: CameraModel) -> np.ndarray:
     """The measurement function f(g_i0) of the paper, shape (2m,)."""
-    P = _points(P0)
-    f = np.empty(2 * P.shape[0])
-    if not kern.measure(_pose_vec(g_i0), P, cam.packed, f):
+    f = measure_vector(_pose_vec(g_i0), P0, cam)
+    if f is None:
         raise TargetNotVisibleError("feature point on or behind the camera plane")
     return f
+
+
+def measure_vector(g_i0: np.ndarray, P0: np.ndarray, cam: CameraModel) -> np.ndarray | None:
+    """`measure` of g_i0 given as its pose vector [x, y, z, θ] (C-contiguous float64 (4,)); None where
+    `measure` raises TargetNotVisibleError (the ideal camera's hot path: no Pose, no exception)."""
+    P = _points(P0)
+    f = np.empty(2 * P.shape[0])
+    return f if kern.measure(g_i0, P, cam.packed, f) else None
 
 
 def image_jacobian(g_bar: Pose, P0: np.ndarray, cam: CameraModel) -> np.ndarray:

@@ -113,7 +113,8 @@ class Agent:
         self._rule = FUSION_RULES.index(cfg.fusion_rule)
         self._no_features = np.zeros(2 * len(self._P0))
         k = max(1, len(cfg.neighbour_ids))
-        self._NG, self._NMU, self._NVAR, self._NPRIOR = (np.zeros((k, 4)) for _ in range(4))
+        self._N = np.zeros((4, k, 4))  # neighbour messages: field (ḡ_w, μ, var, σ_f²) × neighbour × 4
+        self._NG, self._NMU, self._NVAR, self._NPRIOR = self._N  # (k, 4) C-contiguous views: agent_act's
         self.last = TickRecord(g_bar_w0)
         self.hold = False  # set by the safety supervisor: hover instead of pursuing
 
@@ -143,9 +144,7 @@ class Agent:
         elif self._g_wi is None:
             raise RuntimeError(f"no pose for {cfg.body_name}")
         # else a motion-capture dropout: keep the last pose, hover; the safety layer decides beyond that
-        rec = TickRecord(self.g_bar_w)  # replaced below: the estimate after the observer step
-        rec.own_pose_fresh = fresh
-        features = self._features(self.camera.latest(), rec, t)
+        features, rejection = self._features(self.camera.latest(), t)
         step = self._u_e_prev is not None and self._t_prev is not None and t > self._t_prev
         visible = kern.agent_sense(
             T,
@@ -157,9 +156,7 @@ class Agent:
             self._P0,
             self._cam,
         )
-        rec.g_bar_w = _pose(T[kern.G_BAR_W])
-        rec.visible = bool(visible)
-        rec.e_e_meas = T[kern.E_E].copy()
+        g_bar_w = _pose(T[kern.G_BAR_W])  # the estimate after the observer step
         x = T[kern.G_BAR_W].copy()
         if self.predictor is not None and cfg.mode != Mode.NONE:
             mu, var = self.predictor.predict_one(x)
@@ -167,33 +164,38 @@ class Agent:
         else:
             mu, var, prior = np.zeros(4), UNINFORMATIVE_VAR, UNINFORMATIVE_VAR
         T[kern.MU_OWN], T[kern.VAR_OWN], T[kern.PRIOR] = mu, var, prior
-        rec.mu_own, rec.var_own = mu, var
+        rec = TickRecord(
+            g_bar_w,
+            visible=bool(visible),
+            e_e_meas=T[kern.E_E].copy(),
+            mu_own=mu,
+            var_own=var,
+            rejection=rejection,
+            own_pose_fresh=fresh,
+        )
         self.last = rec
         self.seq += 1
         self.bus.publish(
             PredictionMessage(cfg.mission, cfg.drone_id, self.seq, t, rec.visible, x, mu, var, prior)
         )
 
-    def _features(self, frame: Frame | None, rec: TickRecord, t: float) -> np.ndarray | None:
-        """f (2m,) from the frame: given directly (ideal camera) or extracted from the image."""
+    def _features(self, frame: Frame | None, t: float) -> tuple[np.ndarray | None, str | None]:
+        """(f (2m,), None) from the frame: given directly (ideal camera) or extracted from the image; or
+        (None, why the image gave no features: TickRecord.rejection)."""
         if frame is None:
-            rec.rejection = "no frame"
-            return None
+            return None, "no frame"
         if t - frame.stamp > self.cfg.max_frame_age_s:
-            rec.rejection = "stale frame"
-            return None
+            return None, "stale frame"
         if frame.features is not None:
             f = np.array(frame.features, dtype=float).reshape(-1)  # a writable copy: the kernels' type
-            if f.shape != (2 * len(self.cfg.P0),) or not np.all(np.isfinite(f)):
-                rec.rejection = "bad features"  # e.g. a served frame with another marker count (issue 16)
-                return None
-            return f
+            if f.shape != self._no_features.shape or not all(map(math.isfinite, f.tolist())):
+                return None, "bad features"  # e.g. a served frame with another marker count (issue 16)
+            return f, None
         if frame.image is None or self.cfg.calibration is None:
-            return None
+            return None, None
         det = extract_markers(frame.image, self.cfg.calibration)
-        rec.rejection = det.reason
         seen = features_from_detection(det, self.cfg.camera.focal_length)
-        return None if seen is None else np.array(seen, dtype=float).reshape(-1)
+        return (None if seen is None else np.array(seen, dtype=float).reshape(-1)), det.reason
 
     # ---- phase 2 -------------------------------------------------------------------------------
     def fuse_control_act(self, t: float) -> np.ndarray:
@@ -205,12 +207,16 @@ class Agent:
         for j in cfg.neighbour_ids:
             m = self.bus.latest(j, t, cfg.stale_after)
             if m is not None:
-                self._NG[n], self._NMU[n], self._NVAR[n], self._NPRIOR[n] = (
-                    m.g_bar_w,
-                    m.mu,
-                    m.var,
-                    m.prior_var,
-                )
+                body = m.body()
+                if body is not None:  # a decoded message: its four fields are one array
+                    self._N[:, n] = body.reshape(4, 4)
+                else:
+                    self._NG[n], self._NMU[n], self._NVAR[n], self._NPRIOR[n] = (
+                        m.g_bar_w,
+                        m.mu,
+                        m.var,
+                        m.prior_var,
+                    )
                 used.append(m.sender)
                 n += 1
         rec.neighbours_used = tuple(used)

@@ -135,16 +135,7 @@ class CompiledLoop:
             gp=_stack_experts(agents),
             nb=nb,
             nb_n=np.array([len(a.cfg.neighbour_ids) for a in agents], dtype=np.int64),
-            bounds=np.array(
-                [
-                    b.var_floor,
-                    b.var_ceiling,
-                    b.max_speed_mps,
-                    b.max_yaw_rate_rps,
-                    b.max_position_m,
-                    b.max_angle_rad,
-                ]
-            ),
+            bounds=b.packed(),
             prm=backend.world.target_field.prm.packed(),  # type: ignore[attr-defined]
             chunk=min(CHUNK_TICKS, b.max_seq_jump),
         )
