@@ -124,14 +124,22 @@ def points_in_camera(g_i0: np.ndarray, P0: np.ndarray, cam: np.ndarray, out: np.
 
 
 @kernel
+def points_in_view(g_i0: np.ndarray, P0: np.ndarray, cam: np.ndarray, pc: np.ndarray) -> bool:
+    """pc (m, 3) = the points in Σc (points_in_camera); False if a depth is ≤ min_depth (behind it)."""
+    points_in_camera(g_i0, P0, cam, pc)
+    for j in range(P0.shape[0]):  # noqa: SIM110  (numba compiles no generator in all())
+        if not pc[j, 2] > cam[1]:
+            return False
+    return True
+
+
+@kernel
 def measure(g_i0: np.ndarray, P0: np.ndarray, cam: np.ndarray, f: np.ndarray) -> bool:
     """f (2m,) = [λ x^j / z^j, λ y^j / z^j]_j; False (f untouched) if a depth is ≤ min_depth."""
     m = P0.shape[0]
     pc = np.empty((m, 3))
-    points_in_camera(g_i0, P0, cam, pc)
-    for j in range(m):
-        if not pc[j, 2] > cam[1]:
-            return False
+    if not points_in_view(g_i0, P0, cam, pc):
+        return False
     for j in range(m):
         f[2 * j] = cam[0] * pc[j, 0] / pc[j, 2]
         f[2 * j + 1] = cam[0] * pc[j, 1] / pc[j, 2]
@@ -148,10 +156,8 @@ def features_and_jacobian(
     """
     m = P0.shape[0]
     pc = np.empty((m, 3))
-    points_in_camera(g_bar, P0, cam, pc)
-    for j in range(m):
-        if not pc[j, 2] > cam[1]:
-            return False
+    if not points_in_view(g_bar, P0, cam, pc):
+        return False
     c, s = math.cos(g_bar[3]), math.sin(g_bar[3])
     # M = R_icᵀ R(θ): M[k, q] = Σ_r R_ic[r, k] R[r, q]
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

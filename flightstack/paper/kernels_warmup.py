@@ -51,6 +51,7 @@ def warm_up(loop: bool = False) -> float:
     g_i0 = np.array([0.0, 0.0, 1.5, 0.1])
     pc, f, J = np.zeros((4, 3)), np.zeros(8), np.zeros((8, 4))
     kern.points_in_camera(g_i0, P0, cam, pc)
+    kern.points_in_view(g_i0, P0, cam, pc)
     kern.measure(g_i0, P0, cam, f)
     kern.features_and_jacobian(g_i0, P0, cam, f, J)
     kern.estimation_error(f, g_i0, P0, cam, out)
