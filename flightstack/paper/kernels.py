@@ -278,10 +278,19 @@ def gp_predict_one(
                     s += diff * diff
                 k[i] = sf2[dk] * math.exp(-0.5 * s)
             acc = 0.0
-            for r in range(n):
-                v = 0.0
-                for i in range(r + 1):
-                    v += L_inv[dk, r, i] * k[i]
+            for r in range(n):  # v_r = Σ_{i≤r} (L⁻¹)_ri k_i in four interleaved partial sums (a fixed
+                a0 = a1 = a2 = a3 = 0.0  # order, so the bits do not depend on the caller; 4× the throughput
+                i = 0  # of one dependent chain at large M)
+                while i + 3 <= r:
+                    a0 += L_inv[dk, r, i] * k[i]
+                    a1 += L_inv[dk, r, i + 1] * k[i + 1]
+                    a2 += L_inv[dk, r, i + 2] * k[i + 2]
+                    a3 += L_inv[dk, r, i + 3] * k[i + 3]
+                    i += 4
+                while i <= r:
+                    a0 += L_inv[dk, r, i] * k[i]
+                    i += 1
+                v = (a0 + a1) + (a2 + a3)
                 acc += v * v
         m = 0.0
         for i in range(n):
