@@ -25,7 +25,6 @@ from __future__ import annotations
 import itertools
 import json
 import math
-import socket
 import time
 from collections.abc import Callable, Iterable
 from contextlib import suppress
@@ -90,10 +89,10 @@ def load_emulators() -> SimpleNamespace:
 
 
 def free_udp_port(ip: str = "127.0.0.1") -> int:
-    """A UDP port of `ip` free right now (bound to port 0, then closed)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind((ip, 0))
-        return int(s.getsockname()[1])
+    """A UDP port of `ip` free right now, outside the ephemeral range (the emulators' free_udp_port)."""
+    from flightstack.sim_backend.emulators.tello_net import free_udp_port as pick
+
+    return pick(ip)
 
 
 def _yaw_quaternion(theta: float) -> tuple[float, float, float, float]:
