@@ -48,17 +48,28 @@ def test_slot_takeover_is_bounded_in_lockstep() -> None:
     assert book.latest(2, 0.49, 0.5).seq == 49  # type: ignore[union-attr]
 
 
-def test_a_forged_first_message_locks_nobody_out() -> None:
-    """Forged before the real sender's first message: accepted (any first seq is), never used (its stamp
-    is from the future), and the real sender resyncs after `restart_after` messages."""
+def test_a_forged_first_message_is_refused_and_locks_nobody_out() -> None:
+    """Forged before the real sender's first message (seq 2³²−1): refused as a seq jump, since a sender
+    counts from 0 or 1 (issue 18: once accepted, it held the slot for `restart_after` ticks and changed a
+    flight); repeating it never makes a restart run. The real sender is heard from its first message."""
     bounds = AcceptanceBounds()
     book = Freshness(MISSION, KNOWN, "stamps", bounds=bounds)
-    assert book.accept(real(2, 2**32 - 1, 1e300)) is not None
-    assert book.latest(2, 0.0, 0.5) is None and book.dropped["stamp ahead"] == 1
-    accepted = [book.accept(real(2, k, 0.01 * k)) is not None for k in range(1, 10)]
-    assert accepted == [False] * (bounds.restart_after - 1) + [True] * (10 - bounds.restart_after)
-    assert book.restarts[2] == 1 and book.dropped["old or duplicate seq"] == bounds.restart_after - 1
+    for _ in range(2 * bounds.restart_after):
+        assert book.accept(real(2, 2**32 - 1, 1e300)) is None
+    assert book.dropped["seq jump"] == 2 * bounds.restart_after and book.latest(2, 0.0, 0.5) is None
+    assert all(book.accept(real(2, k, 0.01 * k)) is not None for k in range(1, 10))
+    assert book.restarts[2] == 0 and book.dropped["old or duplicate seq"] == 0
     assert book.latest(2, 0.09, 0.5).seq == 9  # type: ignore[union-attr]
+
+
+def test_joining_a_live_sender_takes_it_after_a_restart_run() -> None:
+    """A receiver that starts while a sender is already at seq 5000 (its first message is beyond
+    max_seq_jump): taken on the `restart_after`-th consecutive increasing message."""
+    bounds = AcceptanceBounds()
+    book = Freshness(MISSION, KNOWN, "stamps", bounds=bounds)
+    accepted = [book.accept(real(2, 5000 + k, 0.01 * k)) is not None for k in range(6)]
+    assert accepted == [False] * (bounds.restart_after - 1) + [True] * (6 - bounds.restart_after + 1)
+    assert book.restarts[2] == 1
 
 
 def test_forged_stamp_cannot_become_the_learned_offset() -> None:
@@ -67,7 +78,7 @@ def test_forged_stamp_cannot_become_the_learned_offset() -> None:
     clock = Clock()
     book = Freshness(MISSION, KNOWN, "receiver", clock)
     skew = 600.0  # the sender's clock is 10 min ahead
-    assert book.accept(real(2, 2**32 - 1, 1e300)) is not None  # first: any seq
+    assert book.accept(real(2, 2**32 - 1, 1e300)) is None  # first, but not a sender's first seq
     seen = []
     for k in range(1, 40):
         clock.t += 0.02

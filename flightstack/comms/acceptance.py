@@ -11,12 +11,14 @@ target's pose in Σw):
                          overflowed the product-of-experts precision (1/var = inf) and made the fused μ NaN
     μ                    |v_x|, |v_y|, |v_z| ≤ max_speed_mps (m/s), |ω| ≤ max_yaw_rate_rps (rad/s)
     ḡ_w                  |x|, |y|, |z| ≤ max_position_m (m), |θ| ≤ max_angle_rad (rad)
-Sequence numbers. The first message of a sender (or after it left) is accepted whatever its seq.
-Afterwards seq must be in (prev, prev + max_seq_jump]: older ones are "old or duplicate seq", larger
-jumps "seq jump". One forged message with seq 2³²−1 can therefore no longer take a sender's slot; if
-one ever is accepted first (before the real sender's first message), the restart rule gets the real
-sender back: `restart_after` consecutive rejected messages whose own seqs increase by at most
-max_seq_jump each are a restarted sender, and the newest of them is accepted (`restarts` counts it).
+Sequence numbers. A sender counts from 0 or 1, so the first message of a sender (or after it left)
+must have seq < max_seq_jump, as if its predecessor were seq −1 (issue 18: a forged seq 2³²−1 that
+arrived before the real sender's first message took its slot for `restart_after` ticks and changed a
+flight). Afterwards seq must be in (prev, prev + max_seq_jump]: older ones are "old or duplicate seq",
+larger jumps "seq jump". The restart rule takes a sender back whose seq moved on without us (a restarted
+receiver joining a live sender, or a real sender after an accepted forgery): `restart_after` consecutive
+rejected messages whose own seqs increase by at most max_seq_jump each are a restarted sender, and the
+newest of them is accepted (`restarts` counts it); a forger repeating one seq never makes such a run.
 Stamps: see freshness.py (time base "stamps": a stamp ahead of the receiver's mission clock is not
 used; "receiver": outliers cannot become the learned offset, and a stamp must be within bounds of it).
 
@@ -97,8 +99,11 @@ class SeqState:
     count: int = 0  # its length
 
 
-def seq_verdict(prev: int, seq: int, bounds: AcceptanceBounds) -> str | None:
-    """Why `seq` does not follow `prev` ("old or duplicate seq" | "seq jump"), or None."""
+def seq_verdict(prev: int | None, seq: int, bounds: AcceptanceBounds) -> str | None:
+    """Why `seq` does not follow `prev` ("old or duplicate seq" | "seq jump"), or None; prev None (the
+    sender's first message) counts as −1: a sender counts from 0 or 1, its first seq is < max_seq_jump."""
+    if prev is None:
+        prev = -1
     if seq <= prev:
         return "old or duplicate seq"
     if seq > prev + bounds.max_seq_jump:

@@ -156,7 +156,7 @@ class Freshness:
             self.dropped[bad] += 1
             return None
         prev = self.newest.get(msg.sender)
-        why = None if prev is None else seq_verdict(prev.seq, msg.seq, self.bounds)
+        why = seq_verdict(None if prev is None else prev.seq, msg.seq, self.bounds)
         restart = False
         if why:  # before the clock: a message refused here must not move the sender's offset
             if not restart_run(self.runs.setdefault(msg.sender, SeqState()), msg.seq, self.bounds):
