@@ -55,7 +55,7 @@ class PatternSpec:
         if self.kind == "charuco":
             if self.marker_m is None or not (0 < self.marker_m < self.square_m):
                 raise ValueError(
-                    f"--marker: the ArUco marker side (metres) must be in (0, square={self.square_m}), "
+                    f"--marker-size: the ArUco marker side (metres) must be in (0, square={self.square_m}), "
                     f"got {self.marker_m}"
                 )
             if not hasattr(cv2.aruco, self.dictionary):

@@ -41,6 +41,10 @@ class FlightPhase(enum.StrEnum):
 class DroneState:
     """battery in percent, height in metres above ground, link_alive from the drone's own telemetry.
 
+    A landed drone reports height_m ≥ 0. The ideal simulation has no ground: it reports 0.0 once landed
+    and, while flying, its world z (the camera's optical axis there, possibly negative), which is not a
+    height to compare with the ground (sim_backend/ideal.py).
+
     `flying` is True when the drone is airborne and obeys velocity commands (phase AIRBORNE). `phase`
     (a FlightPhase value) says more; when a backend does not give it, it is derived from `flying`:
     AIRBORNE, or UNKNOWN (not flying could be on the ground, taking off or landing).

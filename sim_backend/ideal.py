@@ -72,9 +72,13 @@ class IdealDrone:
             self.commands += 1
 
     def state(self) -> DroneState:
+        """Full battery, live link. height_m: the ideal world has no ground and its z is the camera's
+        optical axis, not a height (a drone 1.5 m from the target along it may sit at z = −1.5), so a
+        landed drone is on the ground by definition: 0.0; a flying one reports its world z, which may be
+        negative (nothing reads it as below ground: the ideal rig flies without the safety layer)."""
         return DroneState(
             battery_pct=100.0,
-            height_m=float(self.world.drones[self.id].pose.p[2]),
+            height_m=float(self.world.drones[self.id].pose.p[2]) if self.flying else 0.0,
             link_alive=True,
             flying=self.flying,
             phase=str(FlightPhase.AIRBORNE if self.flying else FlightPhase.GROUND),

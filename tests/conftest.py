@@ -117,6 +117,7 @@ def interrupt_cli_sim(
             str(out),
             "--duration",
             "600",
+            "--progress",  # stderr is a pipe here: the bars only with --progress
         ],
         cwd=REPO,
         stdout=subprocess.PIPE,

@@ -68,10 +68,10 @@ def test_one_lab_file_validates_on_its_own_and_with_the_experiment(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     lab = MISSION_CONFIGS / "rigs" / "lab.yaml"
-    assert main(["validate", str(lab)]) == 0
+    assert main(["validate", str(lab), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["backend"] == "tello" and "hardware" in summary["sections"] and summary["drones"] == [1, 2]
-    assert main(["validate", "paper_experiment", "--rig", str(lab)]) == 0
+    assert main(["validate", "paper_experiment", "--rig", str(lab), "--json"]) == 0
     resolved = json.loads(capsys.readouterr().out)
     assert resolved["hardware"]["mocap"]["system"] == "optitrack"
 

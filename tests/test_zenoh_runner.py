@@ -55,14 +55,17 @@ def test_paper_sim_over_zenoh_equals_inproc() -> None:
 
 def test_cli_bus_override_and_too_little_training_data(tmp_path) -> None:
     """`--bus zenoh` runs a mission without a zenoh section on a loopback endpoint; a run too short to
-    fill every expert region ends with a clear message and keeps the `none` recording."""
+    fill every expert region is refused before anything flies, naming the band (exit 2, nothing written;
+    the check after the data run is tests/test_cli_run_options.py's)."""
     from tests.conftest import run_cli
 
     out = tmp_path / "run"
     args = ["sim", str(MISSIONS / "paper_sim.yaml"), "--out", str(out), "--duration", "1", "--bus", "zenoh"]
     r = run_cli(*args, "--no-progress", timeout=120)
-    assert r.returncode == 1, r.stderr
-    assert "GP training data: drone 3: only 0 ticks inside its expert band" in r.stderr
-    assert "Traceback" not in r.stderr
+    assert r.returncode == 2, r.stderr
+    assert "too short to train" in r.stderr and "drone 3's band x >= 0.6: 0 ticks" in r.stderr
+    assert "Traceback" not in r.stderr and not out.exists()
+    r = run_cli(*args, "--modes", "none", "--no-progress", timeout=120)
+    assert r.returncode == 0, r.stderr
     assert (out / "timeseries_none.npz").is_file()
     assert "kind: zenoh" in (out / "mission_resolved.yaml").read_text()

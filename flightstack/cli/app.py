@@ -1,3 +1,4 @@
+# PYTHON_ARGCOMPLETE_OK
 """Operator command line (`flightstack -h`): sim, fly, report, preflight, target, world, agent, abort, ..."""
 
 from __future__ import annotations
@@ -7,14 +8,16 @@ import os
 import signal
 import sys
 import time
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
+
+import argcomplete
 
 from flightstack.cli.run import (
     _confirm,
     add_run_arguments,
     cmd_migrate,
     cmd_run,
-    cmd_validate,
     seconds,
 )
 from flightstack.config.mission import MissionError, load_mission
@@ -212,8 +215,18 @@ def cmd_calibrate_drone(args: argparse.Namespace) -> int:
         guardian.finish()
 
 
+def package_version() -> str:
+    """The installed distribution's version (pyproject.toml), or "unknown" when flightstack runs from a
+    checkout that was never installed (no distribution metadata)."""
+    try:
+        return version("flightstack")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="flightstack", description=__doc__)
+    p.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="fly an experiment on a rig (ideal, lab-sim, emulated-lab, a lab file)")
     add_run_arguments(r, "experiment: a built-in name (paper_sim, paper_experiment) or a YAML file")
@@ -280,14 +293,16 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--mission", default=None, help="mission file (default: RUN_DIR/mission_resolved.yaml)")
     rp.add_argument("--no-plots", action="store_true", help="metrics.json only")
     rp.set_defaults(func=cmd_report)
-    v = sub.add_parser("validate", help="check an experiment (on its rig), a rig or lab file, or a mission")
-    v.add_argument("mission")
-    v.add_argument("--rig", default=None, help="validate the experiment on this rig")
-    v.set_defaults(func=cmd_validate)
+    from flightstack.cli.validate import register as register_validate
+
+    register_validate(sub)
     mg = sub.add_parser("migrate", help="split an old single-file mission into an experiment and a rig")
     mg.add_argument("mission")
     mg.add_argument("--out", required=True, help="directory for <name>.yaml and <name>_rig.yaml")
     mg.set_defaults(func=cmd_migrate)
+    from flightstack.cli.completion import register as register_completion
+
+    register_completion(sub)
     return p
 
 
@@ -297,7 +312,10 @@ def _sigterm_as_interrupt(signum: int, frame: object) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point. SIGTERM is handled like Ctrl-C: drones land, the recording is written, exit 130."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    # a tab-completion request (the shell code of `flightstack completion`) is answered here, then exits
+    argcomplete.autocomplete(parser)
+    args = parser.parse_args(argv)
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
     # Ctrl-C must stop a run even when whoever started us ignored SIGINT (a background job of a script,
     # some launchers): Python then keeps SIG_IGN and `kill -INT` would do nothing

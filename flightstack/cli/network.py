@@ -59,11 +59,12 @@ def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
 
 
 def cmd_agent(args: argparse.Namespace) -> int:
-    from flightstack.cli.run import _awake_if_flying
+    from flightstack.cli.run import _awake_if_flying, claim_out_dir, clear_for_run, default_out_dir
     from flightstack.comms.factory import make_bus
     from flightstack.comms.zenoh_bus import ZenohBus
     from flightstack.paper.kernels_warmup import warm_up
-    from flightstack.recording.run_dir import RunWriter, check_out_dir
+    from flightstack.recording.files import AGENT_SUMMARY_FILE, GUARDIAN_LOG, MISSION_FILE
+    from flightstack.recording.run_dir import RunWriter
     from flightstack.recording.timeseries import Recording
     from flightstack.runtime.backends import AgentSeat, open_agent_backend
     from flightstack.runtime.experiment import ExperimentResult, build_metrics, resolved_mission_yaml
@@ -80,14 +81,17 @@ def cmd_agent(args: argparse.Namespace) -> int:
         return 2
     predictors = _predictors(mission, mode)
     assert mission.bus.zenoh is not None
-    out = Path(args.out)
-    problem = check_out_dir(out)  # before anything takes off (flightstack.recording.files.MIN_FREE_BYTES)
+    out = Path(args.out) if args.out is not None else default_out_dir(f"{mission.name}-agent{args.id}")
+    problem = claim_out_dir(out, args.force)  # before anything takes off: empty (or --force), 50 MB free
     if problem is not None:
         print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
         return 2
+    if args.out is None:
+        print(f"agent {args.id}: run directory {out} (--out DIR chooses another)", file=sys.stderr)
     try:
+        clear_for_run(out, args.force)
         run_writer = RunWriter(out)
-        run_writer.write_file("mission_resolved.yaml", resolved_mission_yaml(mission))  # for `report`
+        run_writer.write_file(MISSION_FILE, resolved_mission_yaml(mission))  # for `report`
     except OSError as exc:
         print(f"error: --out {out}: cannot start the recording: {exc}; nothing took off", file=sys.stderr)
         return 2
@@ -101,7 +105,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
         run_writer.close()
         raise
     rec: Recording | None = None
-    seat = AgentSeat(args.id, bus.session if isinstance(bus, ZenohBus) else None, str(out / "guardian.log"))
+    seat = AgentSeat(args.id, bus.session if isinstance(bus, ZenohBus) else None, str(out / GUARDIAN_LOG))
     try:
         with open_agent_backend(mission, seat) as backend, _awake_if_flying(mission):
             rec = run_mode(
@@ -114,6 +118,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
     try:  # the recording (npz, events) is on disk already: metrics and summary, atomically
         run_writer.record(rec)
         res = ExperimentResult(recordings={mode: rec}, interrupted=rec.interrupted, error=rec.error)
+        res.experts = dict(predictors or {})  # the loaded experts: the gain condition is evaluated
         metrics = run_writer.write_metrics(build_metrics(mission, res, {}, time.perf_counter() - wall0))
         summary = {
             "drone": args.id,
@@ -125,7 +130,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
             # served world only: world ticks this agent refused, by reason (world_messages.py)
             "world_dropped": dict(backend.link.dropped) if hasattr(backend, "link") else {},
         }
-        run_writer.write_metrics(summary, "summary.json")
+        run_writer.write_metrics(summary, AGENT_SUMMARY_FILE)
     except OSError as exc:  # the drone has landed; the row stream and events.jsonl stay readable
         print(f"agent {args.id}: metrics not written: {exc}", file=sys.stderr)
         metrics = {"recording": {"complete": False, "reason": str(exc)}}
@@ -309,7 +314,17 @@ def register(sub: Any) -> None:
     a.add_argument("--id", type=int, required=True, help="the drone id this process flies")
     agent_modes = [m.value for m in Mode if m is not Mode.ORACLE]
     a.add_argument("--mode", choices=agent_modes, help="default: the last of compare_modes")
-    a.add_argument("--out", required=True, help="directory for this agent's recording")
+    a.add_argument(
+        "--out",
+        default=None,
+        help="directory for this agent's recording (must be empty unless --force; default: "
+        "runs/<experiment name>-agent<ID>-<YYYYmmdd-HHMMSS>)",
+    )
+    a.add_argument(
+        "--force",
+        action="store_true",
+        help="reuse a non-empty --out: first remove the files a run writes there; every other file is kept",
+    )
     a.set_defaults(func=cmd_agent)
     ab = sub.add_parser(
         "abort", help="make every agent of a mission land at once; exit 1 naming any that did not ack"

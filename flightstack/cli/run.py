@@ -6,14 +6,15 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
+import datetime
 import logging
 import math
+import re
 import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TextIO
 
 from tqdm import tqdm
 
@@ -21,6 +22,66 @@ from flightstack.config.mission import Mission, load_mission
 
 if TYPE_CHECKING:
     from flightstack.recording.run_dir import RunWriter
+
+
+RUNS_ROOT = Path("runs")
+"""Where a run without --out goes: runs/<experiment name>-<YYYYmmdd-HHMMSS> (relative to the current
+directory)."""
+
+
+def want_progress(flag: bool | None, stream: TextIO | None = None) -> bool:
+    """Progress bars or not: --progress (True) and --no-progress (False) decide; without either, only
+    when `stream` (default sys.stderr, where the bars go) is a terminal."""
+    if flag is not None:
+        return flag
+    stream = sys.stderr if stream is None else stream
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        return False
+
+
+def default_out_dir(name: str, now: datetime.datetime | None = None, root: Path = RUNS_ROOT) -> Path:
+    """root/<name>-<YYYYmmdd-HHMMSS> (local time `now`, default the present), with -2, -3, … appended
+    when that already exists (two runs started in the same second); `name` reduced to file-name-safe
+    characters."""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "run"
+    stamp = (now or datetime.datetime.now()).strftime("%Y%m%d-%H%M%S")
+    out = root / f"{safe}-{stamp}"
+    k = 2
+    while out.exists():
+        out, k = root / f"{safe}-{stamp}-{k}", k + 1
+    return out
+
+
+def claim_out_dir(out: Path, force: bool) -> str | None:
+    """None when `out` may take a run: missing or empty (or, with `force`, holding anything), writable,
+    with MIN_FREE_BYTES free (flightstack.recording.files.check_out_dir); else why not. Nothing is
+    removed here (`clear_for_run` does that once nothing else can refuse the run)."""
+    from flightstack.recording.files import check_out_dir, out_dir_entries, run_files
+
+    entries = out_dir_entries(out)
+    if entries and not force:
+        ours = run_files(out)
+        names = ", ".join(p.name for p in entries[:4]) + (", ..." if len(entries) > 4 else "")
+        return (
+            f"not empty ({len(entries)} entries: {names}); pass --force to remove the {len(ours)} files "
+            "a run writes there (recordings, metrics, plots; every other file is kept), or choose "
+            "another directory"
+        )
+    return check_out_dir(out)
+
+
+def clear_for_run(out: Path, force: bool) -> None:
+    """With --force: remove the files an earlier run wrote in `out` (flightstack.recording.files.RUN_FILES,
+    nothing else), so that none of them passes for this run's; says how many on stderr."""
+    if not force:
+        return
+    from flightstack.recording.files import clear_run_files
+
+    removed = clear_run_files(out)
+    if removed:
+        print(f"--force: removed {len(removed)} files of an earlier run from {out}", file=sys.stderr)
 
 
 def _progress_factory(bars: list[tqdm]) -> Callable[[str, int], Callable[[int], None]]:
@@ -83,20 +144,30 @@ def cmd_run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    out = Path(args.out)
-    from flightstack.recording.run_dir import check_out_dir
+    from flightstack.runtime.training import training_shortfall
 
-    problem = check_out_dir(out)  # before the preflight and the operator's confirmation
+    short = training_shortfall(mission)  # a data run too short to train the experts: say so now
+    if short is not None:
+        print(f"error: {mission.name}: {short}; nothing took off", file=sys.stderr)
+        return 2
+    out = Path(args.out) if args.out is not None else default_out_dir(mission.name)
+    problem = claim_out_dir(out, args.force)  # before the preflight and the operator's confirmation
     if problem is not None:
         print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
         return 2
+    if args.out is None:
+        print(f"run directory: {out} (--out DIR chooses another)", file=sys.stderr)
+    real = not mission.simulated and not mission.start_emulators
+    if not real:
+        clear_for_run(out, args.force)
     with contextlib.ExitStack() as rig_stack:
         if mission.start_emulators:  # the emulated-lab rig: its devices start here, on loopback
             mission = rig_stack.enter_context(_emulated_lab(mission, out))
-        elif not mission.simulated:
+        elif real:
             code = _confirm_and_preflight(args, mission)
             if code:
                 return code
+            clear_for_run(out, args.force)  # only once the operator confirmed
         return _fly_and_report(args, mission, out)
 
 
@@ -105,13 +176,14 @@ def _emulated_lab(mission: Mission, out: Path) -> contextlib.AbstractContextMana
     re-pointed at them; every emulator stops when the block ends (flightstack.faults.emulated_lab)."""
     from flightstack.config.mission import mission_to_dict
     from flightstack.faults.emulated_lab import EmulatedLab
+    from flightstack.recording.files import EMULATED_LAB_DIR
 
     doc = mission_to_dict(mission)
     doc["start_emulators"] = False  # the written mission flies the running emulators
 
     @contextlib.contextmanager
     def lab() -> Iterator[Mission]:
-        with EmulatedLab(out / "emulated_lab", experiment=doc) as running:
+        with EmulatedLab(out / EMULATED_LAB_DIR, experiment=doc) as running:
             print(
                 f"emulated lab: {len(running.tellos)} Tello emulators, NatNet, rover on loopback",
                 file=sys.stderr,
@@ -123,6 +195,7 @@ def _emulated_lab(mission: Mission, out: Path) -> contextlib.AbstractContextMana
 
 def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> int:
     """Fly every mode of `mission` into the run directory `out` and print the summary; the exit code."""
+    from flightstack.recording.files import MISSION_FILE
     from flightstack.runtime.experiment import resolved_mission_yaml, run_experiment, write_run_dir
 
     t_cmd0 = time.perf_counter()
@@ -131,9 +204,10 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
         return 2
     bars: list[tqdm] = []
     try:
-        run_writer.write_file("mission_resolved.yaml", resolved_mission_yaml(mission))  # for `report`
+        run_writer.write_file(MISSION_FILE, resolved_mission_yaml(mission))  # for `report`
+        progress = _progress_factory(bars) if want_progress(args.progress) else None
         with _awake_if_flying(mission):
-            res = run_experiment(mission, None if args.no_progress else _progress_factory(bars), run_writer)
+            res = run_experiment(mission, progress, run_writer)
         for b in bars:
             b.close()
         m = write_run_dir(out, mission, res, run_writer)
@@ -158,11 +232,14 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
             other = f"   (of sq_mean_error {sq_mean[key]:8.2f})" if key in sq_mean else ""
             print(f"  {key:10s} ours {ours[key]:8.2f}   paper {paper[key]:8.2f}{other}")
     gc = m["gain_condition"]
-    verdict = "satisfied" if gc["satisfied"] else "NOT satisfied"
-    print(
-        f"  gain condition: kappa = {gc['kappa']:.3f} ({verdict}), L_mu = {gc['L_mu']:.3f}, "
-        f"lambda_H = {gc['lambda_H']:.3f}"
-    )
+    if gc.get("evaluated", True):
+        verdict = "satisfied" if gc["satisfied"] else "NOT satisfied"
+        print(
+            f"  gain condition: kappa = {gc['kappa']:.3f} ({verdict}), L_mu = {gc['L_mu']:.3f}, "
+            f"lambda_H = {gc['lambda_H']:.3f}"
+        )
+    else:
+        print(f"  gain condition: not evaluated ({gc.get('reason') or 'no GP expert'})")
     print(f"  safety events: {len(m['safety_events'])} (events.jsonl)")
     for line in speed_lines(m, time.perf_counter() - t_cmd0):
         print(line)
@@ -273,7 +350,18 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
         help="rig to fly the experiment on: ideal, lab-sim, emulated-lab, lab or a rig file "
         "(default: the experiment's own `rig:`)",
     )
-    p.add_argument("--out", required=True, help="run directory to write (created if missing)")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="run directory (created if missing; it must be empty unless --force; default: "
+        "runs/<experiment name>-<YYYYmmdd-HHMMSS>)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="reuse a non-empty --out: first remove the files a run writes there (recordings, metrics, "
+        "plots of an earlier run); every other file is kept",
+    )
     p.add_argument("--duration", type=seconds, default=None, help="override duration_s (seconds, > 0)")
     p.add_argument(
         "--modes",
@@ -281,28 +369,18 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
         default=None,
         help="override compare_modes, e.g. none,dgp (comma-separated)",
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    bars = p.add_mutually_exclusive_group()
+    bars.add_argument(
+        "--progress",
+        dest="progress",
+        action="store_true",
+        default=None,
+        help="progress bars on stderr even when it is not a terminal (default: only on a terminal)",
+    )
+    bars.add_argument(
+        "--no-progress", dest="progress", action="store_false", default=None, help="no progress bars"
+    )
     p.add_argument("--bus", choices=["inproc", "zenoh"], help="override bus.kind (zenoh: on loopback)")
-
-
-def cmd_validate(args: argparse.Namespace) -> int:
-    """Validate an experiment (on its rig or --rig), a rig or lab file on its own, or a resolved mission;
-    print the resolved mission as JSON. Exit 2 naming the key and the reason when invalid."""
-    from flightstack.config.mission import mission_to_dict
-    from flightstack.config.rig import check_rig, find, kind_of, read
-
-    path = find(args.mission, "experiment") if args.rig is None else None
-    if path is not None and path.is_file():
-        src = read(path, "mission file")
-        if kind_of(src.data) == "rig":  # a rig or lab file on its own: structure and every section
-            check_rig(src)
-            from flightstack.config.rig_check import validate_rig
-
-            print(json.dumps(validate_rig(src), indent=2))
-            return 0
-    m = load_mission(args.mission, rig=args.rig)
-    print(json.dumps(mission_to_dict(m), indent=2))
-    return 0
 
 
 def cmd_migrate(args: argparse.Namespace) -> int:

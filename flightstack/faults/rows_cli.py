@@ -125,7 +125,8 @@ def interrupt_sim(mission_path: Path, out: Path, after_s: float = SIGINT_AFTER_S
     """Start `flightstack sim MISSION --out OUT --duration 600`, wait for its first progress bar, let it fly
     `after_s` wall seconds, send SIGINT; (exit code or None if it had to be killed, stderr)."""
     proc = subprocess.Popen(
-        cli_command("sim", str(mission_path), "--out", str(out), "--duration", "600"),
+        # --progress: its stderr is a pipe, and the first bar is the sign that the drones fly
+        cli_command("sim", str(mission_path), "--out", str(out), "--duration", "600", "--progress"),
         env=cli_env(),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fnmatch
 import json
 import logging
 import math
@@ -37,6 +38,39 @@ CLOSE_TIMEOUT_S = 60.0
 """How long (s) closing waits for the writer thread (final npz included) before giving up."""
 EVENTS_FILE = "events.jsonl"
 STATE_FILE = "recording.json"
+METRICS_FILE = "metrics.json"
+MISSION_FILE = "mission_resolved.yaml"
+"""The resolved mission of a run (absolute file paths): `flightstack report` and `train` read it."""
+DATASETS_FILE = "datasets.npz"
+EXPERTS_FILE = "experts.npz"
+ROWS_SUFFIX = ".rows"
+"""Suffix of a mode's row stream `timeseries_<mode>.rows` (flightstack.recording.rows)."""
+PLOTS = {"trajectory": "trajectory.png", "e_c": "error_ec.png", "e_e": "error_ee.png"}
+"""The plots of a run (flightstack.recording.report.write_plots), by what they show."""
+AGENT_SUMMARY_FILE = "summary.json"
+GUARDIAN_LOG = "guardian.log"
+"""An agent process's files besides the recording (`flightstack agent`, flightstack/cli/network.py)."""
+EMULATED_LAB_DIR = "emulated_lab"
+"""The emulated-lab rig's working directory inside the run directory (mission, calibration)."""
+PROBE_PREFIX = ".flightstack-write-probe-"
+
+RUN_FILES: tuple[str, ...] = (
+    f"timeseries_*{ROWS_SUFFIX}",
+    "timeseries_*.npz",
+    EVENTS_FILE,
+    STATE_FILE,
+    METRICS_FILE,
+    MISSION_FILE,
+    DATASETS_FILE,
+    EXPERTS_FILE,
+    *PLOTS.values(),
+    AGENT_SUMMARY_FILE,
+    GUARDIAN_LOG,
+    EMULATED_LAB_DIR,
+)
+"""Every name (fnmatch pattern) a run of `run`/`sim`/`fly`/`agent` writes in its run directory: the one
+list `--out` is checked against and `--force` removes (`run_files`). A writer of a new file adds it here
+(tests/test_cli_run_options.py checks that a run writes nothing else)."""
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -98,6 +132,43 @@ def event_line(ev: Mapping[str, Any]) -> bytes:
     return (text + "\n").encode()
 
 
+def is_run_file(name: str) -> bool:
+    """True when an entry called `name` of a run directory is written by a run: one of RUN_FILES, or an
+    atomic write's temporary file of one of them (`.NAME.tmpPID`, left by a kill), or a write probe."""
+    patterns = [*RUN_FILES, *(f".{p}.tmp*" for p in RUN_FILES), f"{PROBE_PREFIX}*"]
+    return any(fnmatch.fnmatchcase(name, p) for p in patterns)
+
+
+def run_files(out: Path) -> list[Path]:
+    """The entries of the directory `out` that a run writes (is_run_file), sorted; [] if it is missing."""
+    try:
+        return sorted(p for p in Path(out).iterdir() if is_run_file(p.name))
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+
+
+def out_dir_entries(out: Path) -> list[Path]:
+    """Every entry of the directory `out`, sorted ([] when it is missing or not a directory)."""
+    try:
+        return sorted(Path(out).iterdir())
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+
+
+def clear_run_files(out: Path) -> list[Path]:
+    """Remove the entries of `out` a run writes (run_files; a directory among them with its contents)
+    and nothing else; returns what was removed. Raises OSError if one cannot be removed."""
+    removed = run_files(out)
+    for p in removed:
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+    if removed:
+        fsync_dir(Path(out))
+    return removed
+
+
 def check_out_dir(out: Path, min_free_bytes: int = MIN_FREE_BYTES) -> str | None:
     """None when `out` can hold a run: it is (or is created as) a directory in which a file can be
     created, written, fsync'ed and removed, on a file system with at least min_free_bytes (B) free;
@@ -118,7 +189,7 @@ def check_out_dir(out: Path, min_free_bytes: int = MIN_FREE_BYTES) -> str | None
 
 
 def _probe_out_dir(out: Path, min_free_bytes: int) -> str | None:
-    probe = out / f".flightstack-write-probe-{os.getpid()}"
+    probe = out / f"{PROBE_PREFIX}{os.getpid()}"
     try:
         fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         try:

@@ -13,8 +13,8 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
-from flightstack.recording.files import CLOSE_TIMEOUT_S, errno_text, event_line, fsync_dir
-from flightstack.recording.rows import ROWS_SUFFIX, RowLayout
+from flightstack.recording.files import CLOSE_TIMEOUT_S, ROWS_SUFFIX, errno_text, event_line, fsync_dir
+from flightstack.recording.rows import RowLayout
 from flightstack.recording.timeseries import Recording
 
 if TYPE_CHECKING:

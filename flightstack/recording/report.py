@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from flightstack.config.mission import Mission, load_mission
+from flightstack.recording.files import DATASETS_FILE, EXPERTS_FILE, METRICS_FILE, MISSION_FILE, PLOTS
 from flightstack.recording.run_dir import atomic_write_json, load_run, recording_status
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.training import ExpertData, bands, load_experts
@@ -100,20 +101,20 @@ def plot_error_norms(path: Path, recs: dict[str, Recording], which: str) -> None
 def write_plots(
     out: Path, mission: Mission, recs: dict[str, Recording], data: list[ExpertData]
 ) -> list[Path]:
-    """trajectory.png, error_ec.png, error_ee.png in `out` (recordings without ticks are left out; no
-    plot without any tick); returns the paths written."""
+    """trajectory.png, error_ec.png, error_ee.png (flightstack.recording.files.PLOTS) in `out`
+    (recordings without ticks are left out; no plot without any tick); returns the paths written."""
     out.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
     recs = {m: r for m, r in recs.items() if r.ticks_done > 0}
     if not recs:
         return paths
     ref = recs.get("none") or next(iter(recs.values()))
-    p = out / "trajectory.png"
+    p = out / PLOTS["trajectory"]
     plot_trajectory(p, mission, ref, data, show_drones=mission.backend != "sim_ideal")
     paths.append(p)
     shown = {m: r for m, r in recs.items() if m in mission.compare_modes}
     for which in ("c", "e"):
-        p = out / f"error_e{which}.png"
+        p = out / PLOTS[f"e_{which}"]
         plot_error_norms(p, shown, which)
         paths.append(p)
     return paths
@@ -146,7 +147,7 @@ def rebuild_run(
 
     run_dir = Path(run_dir)
     if mission is None:
-        path = run_dir / "mission_resolved.yaml"
+        path = run_dir / MISSION_FILE
         if not path.is_file():
             raise FileNotFoundError(f"{path.name} not found (pass --mission)")
         mission = load_mission(path, check_files=False)
@@ -155,11 +156,11 @@ def rebuild_run(
         raise FileNotFoundError("no recording (timeseries_<mode>.npz or .rows) in it")
     old: dict[str, Any] = {}
     with contextlib.suppress(OSError, ValueError):
-        old = json.loads((run_dir / "metrics.json").read_text(encoding="utf-8"))
+        old = json.loads((run_dir / METRICS_FILE).read_text(encoding="utf-8"))
     res = ExperimentResult(recordings=recs)
-    res.datasets = _load_datasets(run_dir / "datasets.npz")
-    if (run_dir / "experts.npz").is_file():
-        res.experts = load_experts(run_dir / "experts.npz")
+    res.datasets = _load_datasets(run_dir / DATASETS_FILE)
+    if (run_dir / EXPERTS_FILE).is_file():
+        res.experts = load_experts(run_dir / EXPERTS_FILE)
     res.interrupted = any(r.interrupted for r in recs.values()) or old.get("interrupted") is True
     res.error = next((r.error for r in recs.values() if r.error), None) or old.get("error")  # e.g. GP data
     wall = old.get("wall_seconds")
@@ -167,6 +168,6 @@ def rebuild_run(
         wall = float(sum(r.wall_seconds for r in recs.values()))
     metrics = build_metrics(mission, res, old.get("gp") or {}, float(wall))
     metrics["recording"] = recording_status(run_dir, recs)
-    atomic_write_json(run_dir / "metrics.json", metrics)
+    atomic_write_json(run_dir / METRICS_FILE, metrics)
     paths = write_plots(run_dir, mission, recs, res.datasets) if plots else []
     return metrics, paths

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from flightstack.recording.files import ROWS_SUFFIX as ROWS_SUFFIX  # defined with RUN_FILES
 from flightstack.recording.files import json_safe
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
 
@@ -22,7 +23,6 @@ if TYPE_CHECKING:
 _log = logging.getLogger(__name__)
 
 MAGIC = b"FSROWS1\n"
-ROWS_SUFFIX = ".rows"
 STREAM_FIELDS = tuple(f for f in ARRAY_FIELDS if f not in ("e_c", "e_e"))
 """The Recording arrays a ModeWriter streams (e_c and e_e are derived at the end from the poses)."""
 

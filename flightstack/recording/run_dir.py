@@ -62,7 +62,9 @@ from flightstack.recording.files import (
     EVENTS_FILE,
     FSYNC_PERIOD_S,
     MAX_PENDING_BYTES,
+    METRICS_FILE,
     MIN_FREE_BYTES,
+    ROWS_SUFFIX,
     STATE_FILE,
     atomic_write_bytes,
     atomic_write_json,
@@ -71,7 +73,7 @@ from flightstack.recording.files import (
     event_line,
 )
 from flightstack.recording.mode_writer import ModeWriter
-from flightstack.recording.rows import MAGIC, ROWS_SUFFIX, STREAM_FIELDS, RowLayout, read_rows
+from flightstack.recording.rows import MAGIC, STREAM_FIELDS, RowLayout, read_rows
 from flightstack.recording.run_reader import load_run, read_events, read_state, recording_status
 from flightstack.recording.timeseries import Recording
 
@@ -131,7 +133,7 @@ class RunWriter:
         self.block_period_s = block_period_s
         self.block_max_rows = block_max_rows
         self.out.mkdir(parents=True, exist_ok=True)
-        for stale in [*self.out.glob(f"timeseries_*{ROWS_SUFFIX}"), self.out / "metrics.json"]:
+        for stale in [*self.out.glob(f"timeseries_*{ROWS_SUFFIX}"), self.out / METRICS_FILE]:
             stale.unlink(missing_ok=True)
         self._lock = threading.RLock()
         self._failure: str | None = None
@@ -184,7 +186,7 @@ class RunWriter:
         stopped by it: the caller decides)."""
         atomic_write_bytes(self.out / name, data.encode() if isinstance(data, str) else data)
 
-    def write_metrics(self, metrics: Mapping[str, Any], name: str = "metrics.json") -> dict[str, Any]:
+    def write_metrics(self, metrics: Mapping[str, Any], name: str = METRICS_FILE) -> dict[str, Any]:
         """metrics + {"recording": status()} written atomically as strict JSON after everything handed
         to the writer thread is written (bounded by CLOSE_TIMEOUT_S); returns what was written. Raises
         OSError if it cannot be written, ValueError if a metric is not finite (nothing written)."""

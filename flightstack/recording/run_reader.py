@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from flightstack.recording.files import EVENTS_FILE, STATE_FILE
-from flightstack.recording.rows import ROWS_SUFFIX, read_rows
+from flightstack.recording.files import EVENTS_FILE, ROWS_SUFFIX, STATE_FILE
+from flightstack.recording.rows import read_rows
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
 
 if TYPE_CHECKING:

@@ -24,6 +24,7 @@ from flightstack.paper.geometry import Pose
 from flightstack.paper.gp import GPExpert
 from flightstack.paper.metrics import mode_metrics
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity
+from flightstack.recording.files import DATASETS_FILE, EXPERTS_FILE, MISSION_FILE
 from flightstack.recording.run_dir import RunWriter
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.agent import Predictor
@@ -37,6 +38,8 @@ from flightstack.runtime.training import (
 )
 
 PAPER_MEAN_SQ_ERROR = {"none": 3.0e-7, "local": 3.6e-8, "dgp": 5.6e-9}
+NO_EXPERTS = "no GP expert was trained or loaded (kappa needs the experts' Lipschitz constant)"
+"""metrics.json → gain_condition.reason of a run without experts (then "evaluated": false)."""
 
 
 class TruthPredictor:
@@ -139,7 +142,9 @@ def build_metrics(mission: Mission, res: ExperimentResult, gp_info: dict[str, ob
     `ratios.paper` of the paper's numbers (flightstack.paper.metrics explains both readings).
 
     wall: wall time of the whole run (s). A recording of only some of the mission's drones (an agent's)
-    gets the metrics that need no mission."""
+    gets the metrics that need no mission. `gain_condition` has "evaluated": true and Theorem 1's numbers
+    when res.experts holds experts; without any (no GP mode, a data run cut short, an agent flying
+    `none`) it is {"evaluated": false, "reason", "region_lo", "region_hi"}: no κ or L_μ is made up."""
     ids = [d.id for d in mission.drones]
     shown = [m for m in res.recordings if m in mission.compare_modes] or list(res.recordings)
     modes: dict[str, dict[str, Any]] = {
@@ -153,22 +158,26 @@ def build_metrics(mission: Mission, res: ExperimentResult, gp_info: dict[str, ob
         lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     else:
         lo, hi = np.full(3, -1.0), np.full(3, 1.0)
-    ga = mission.gain_analysis
-    cond = gain_condition(
-        gains,
-        len(mission.drones),
-        mission.edge_index_pairs(),
-        [d.sees_target for d in mission.drones],
-        list(res.experts.values()),
-        region_samples(lo, hi, ga.samples, mission.seed),
-        ga.gamma_sq,
-        ga.beta,
-        ga.eta,
-    )
+    region = {"region_lo": lo.tolist(), "region_hi": hi.tolist()}
+    gc: dict[str, object] = {"evaluated": False, "reason": NO_EXPERTS, **region}
+    if res.experts:  # L_μ and Δ̄ are the experts': without one, κ would be a made-up number
+        ga = mission.gain_analysis
+        cond = gain_condition(
+            gains,
+            len(mission.drones),
+            mission.edge_index_pairs(),
+            [d.sees_target for d in mission.drones],
+            list(res.experts.values()),
+            region_samples(lo, hi, ga.samples, mission.seed),
+            ga.gamma_sq,
+            ga.beta,
+            ga.eta,
+        )
+        gc = {"evaluated": True, **cond.to_dict(), **region}
     out: dict[str, object] = {
         "mission": mission.name,
         "modes": modes,
-        "gain_condition": {**cond.to_dict(), "region_lo": lo.tolist(), "region_hi": hi.tolist()},
+        "gain_condition": gc,
         "gp": gp_info,
         "sim_seconds": float(sum(m.get("sim_seconds", 0.0) for m in modes.values())),
         "wall_seconds": wall,
@@ -222,7 +231,7 @@ def write_run_dir(
     own = run_writer is None
     writer = RunWriter(out) if run_writer is None else run_writer
     try:
-        writer.write_file("mission_resolved.yaml", resolved_mission_yaml(mission))
+        writer.write_file(MISSION_FILE, resolved_mission_yaml(mission))
         for rec in res.recordings.values():
             writer.record(rec)
         _write_training(writer, res)
@@ -237,11 +246,11 @@ def _write_training(writer: RunWriter, res: ExperimentResult) -> None:
     out = writer.out
     try:
         if res.experts:
-            save_experts(out / "experts.npz", res.experts)
+            save_experts(out / EXPERTS_FILE, res.experts)
         if res.datasets:
             arrays = {
                 f"drone{d.drone_id}__{k}": getattr(d, k) for d in res.datasets for k in ("X", "Y", "ticks")
             }
-            np.savez(out / "datasets.npz", **arrays)
+            np.savez(out / DATASETS_FILE, **arrays)
     except OSError as exc:
         writer.fail(f"experts/datasets not written: {exc.strerror or exc}")

@@ -4,19 +4,31 @@ From a run without GP, drone i's data are its own estimates X = ḡ_w,i = [x, y,
 target body velocity Y = −u_ei (the body velocity of ḡ_w,i, since dḡ_w,i/dt = −ḡ_w,i û_ei) plus noise
 N(0, σ_n² I), taken only while ḡ_w,i lies in drone i's expert region: band i of the xy plane.
 `samples_per_region` samples are taken evenly spaced in time over the ticks inside the band.
+`training_shortfall` predicts, before anything flies, whether a run is long enough for that.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from flightstack.config.mission import Mission
+from flightstack.config.types import Mode
+from flightstack.paper import kernels as kern
 from flightstack.paper.gp import GPExpert, GPHyperparameters
 from flightstack.paper.gp_shared_fit import fit_shared_hyperparameters
+from flightstack.paper.target_law import SquareLaw
+from flightstack.paper.target_motion import DuffingParams
 from flightstack.recording.timeseries import Recording
+
+SHORTFALL_HORIZON_S = 300.0
+"""How far (s, at least 10 × duration_s) training_shortfall follows the predicted path to say how long a
+run that is too short would have to be."""
+SHORTFALL_MAX_TICKS = 1_000_000
+"""Bound on the ticks of that longer prediction (its cost: about 1 µs each)."""
 
 
 @dataclass(frozen=True)
@@ -32,6 +44,99 @@ def bands(mission: Mission) -> list[tuple[float, float]]:
     """Band k = [edge_{k-1}, edge_k) along gp.regions.axis, open-ended at both extremes."""
     e = [-np.inf, *mission.gp.regions.edges, np.inf]
     return [(float(e[k]), float(e[k + 1])) for k in range(len(e) - 1)]
+
+
+def predicted_target_path(mission: Mission, n_ticks: int | None = None) -> np.ndarray:
+    """The target's poses [x, y, z, θ] (n_ticks, 4) at ticks k = 0 … n_ticks − 1 (t = k·dt_s) of a run,
+    as the simulation moves it; default n_ticks = round(duration_s / dt_s).
+
+    duffing: the field integrated from target.initial_pose in steps of dt_s, re-evaluated target.substeps
+    times per step (kernels.world_advance: the ideal rig's own world step, compiled; no drones);
+    square: SquareLaw's reference path (the robot starts on it and its law tracks it)."""
+    dt = mission.dt_s
+    n = round(mission.duration_s / dt) if n_ticks is None else int(n_ticks)
+    tgt = mission.target
+    path = np.empty((n, 4))
+    if tgt.motion == "square":
+        sq = tgt.square
+        law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, tgt.initial_pose.theta)
+        for k in range(n):
+            path[k] = law.reference(k * dt)[0].as_vector()
+        return path
+    prm = DuffingParams(**tgt.duffing.model_dump()).packed()
+    g = np.array([*tgt.initial_pose.p, tgt.initial_pose.theta], dtype=float)
+    V, clock, no_drones, no_commands = np.zeros(4), np.zeros(1), np.zeros((0, 4)), np.zeros((0, 4))
+    for k in range(n):
+        path[k] = g
+        kern.world_advance(clock, (k + 1) * dt, dt, g, V, no_drones, no_commands, tgt.substeps, prm)
+    return path
+
+
+def _band_text(axis: str, lo: float, hi: float) -> str:
+    """A band as an inequality, e.g. `x >= 0.6` or `-0.7 <= x < 0.6`."""
+    if math.isinf(lo) and math.isinf(hi):
+        return f"every {axis}"
+    if math.isinf(lo):
+        return f"{axis} < {hi:g}"
+    if math.isinf(hi):
+        return f"{axis} >= {lo:g}"
+    return f"{lo:g} <= {axis} < {hi:g}"
+
+
+def _ticks_in_bands(mission: Mission, path: np.ndarray) -> list[np.ndarray]:
+    """Per band (bands(mission) order): a boolean per tick of `path`, True where the pose is inside."""
+    coord = path[:, 0 if mission.gp.regions.axis == "x" else 1]
+    return [(coord >= lo) & (coord < hi) for lo, hi in bands(mission)]
+
+
+def training_shortfall(mission: Mission) -> str | None:
+    """Why a run of `mission` cannot train its GP experts, said before anything flies; None when it can
+    or trains nothing (no GP mode in compare_modes, or gp.experts_file gives trained experts).
+
+    The data run (mode `none`) trains drone k's expert on gp.samples_per_region ticks of its estimate
+    ḡ_w,k inside band k (collect_datasets). The estimates follow the target, so the target's predicted
+    path over duration_s (predicted_target_path) is counted per band. The prediction ignores the
+    estimates' transient: a band with just enough ticks may still come up short in flight, which the run
+    then reports after its data run."""
+    if mission.gp.experts_file is not None or not any(Mode(m).uses_gp for m in mission.compare_modes):
+        return None
+    need = mission.gp.samples_per_region
+    dt = mission.dt_s
+    n = round(mission.duration_s / dt)
+    counts = [int(inside.sum()) for inside in _ticks_in_bands(mission, predicted_target_path(mission, n))]
+    short = [k for k, c in enumerate(counts) if c < need]
+    if not short:
+        return None
+    axis, edges = mission.gp.regions.axis, bands(mission)
+    where = "; ".join(
+        f"drone {mission.drones[k].id}'s band {_band_text(axis, *edges[k])}: {counts[k]} ticks" for k in short
+    )
+    what = (
+        f"duration_s = {mission.duration_s:g} s is too short to train the GP experts: the target's "
+        f"predicted path ({mission.target.motion}) leaves too few ticks in an expert band ({where}; "
+        f"gp.samples_per_region = {need} needed in each)"
+    )
+    horizon = min(max(10.0 * mission.duration_s, SHORTFALL_HORIZON_S), SHORTFALL_MAX_TICKS * dt)
+    needed = _ticks_to_fill(mission, predicted_target_path(mission, max(n, round(horizon / dt))), need)
+    if needed is None:
+        longer = f"the path does not fill every band within {horizon:g} s: move gp.regions.edges"
+    else:
+        longer = f"fly at least {math.ceil(needed * dt * 10) / 10:g} s (--duration, or duration_s)"
+    return (
+        f"{what}; {longer}, lower gp.samples_per_region, or train the experts once "
+        "(`flightstack train`) and set gp.experts_file"
+    )
+
+
+def _ticks_to_fill(mission: Mission, path: np.ndarray, need: int) -> int | None:
+    """The fewest leading ticks of `path` that put `need` ticks in every band; None if it never does."""
+    first = 0
+    for inside in _ticks_in_bands(mission, path):
+        count = np.cumsum(inside)
+        if count.size == 0 or count[-1] < need:
+            return None
+        first = max(first, int(np.searchsorted(count, need)) + 1)
+    return first
 
 
 def collect_datasets(mission: Mission, rec: Recording, seed: int) -> list[ExpertData]:

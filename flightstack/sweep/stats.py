@@ -84,11 +84,13 @@ def ordering_fraction(records: Sequence[dict[str, Any]], metric: str) -> dict[st
 
 
 def gain_summary(records: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
-    """κ, L_μ, λ_min(H) described over seeds, and the fraction of seeds whose condition is satisfied."""
+    """κ, L_μ, λ_min(H) described over seeds, and the fraction of seeds whose condition is satisfied (of
+    the runs that evaluated it: a run without experts says "evaluated": false)."""
     gcs = [
         r["metrics"]["gain_condition"]
         for r in records
         if isinstance(r["metrics"].get("gain_condition"), dict)
+        and r["metrics"]["gain_condition"].get("evaluated", True)
     ]
     if not gcs:
         return None
