@@ -30,6 +30,7 @@ restarts with the real sender; mutual TLS with the access control (acl.py) is wh
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -63,9 +64,11 @@ class AcceptanceBounds:
         if self.max_seq_jump < 1 or self.restart_after < 1:
             raise ValueError("max_seq_jump and restart_after must be >= 1")
 
+    @functools.cached_property
     def packed(self) -> NDArray[np.float64]:
         """[var_floor, var_ceiling, max_speed_mps, max_yaw_rate_rps, max_position_m, max_angle_rad]: the
-        value bounds as the compiled checks take them (kernels.message_check, message_fault); a new array."""
+        value bounds as the compiled check takes them (kernels.message_check); computed once (the bounds
+        are frozen; the array is the callers' to read, not to change)."""
         return np.array(
             [
                 self.var_floor,

@@ -131,7 +131,6 @@ class Freshness:
         self.dropped: Counter[str] = Counter()
         self.delivered = 0
         self.bounds = bounds or AcceptanceBounds()
-        self._packed, self._packed_of = self.bounds.packed(), self.bounds
         self.runs: dict[int, SeqState] = {}  # per sender: the current run of rejected seqs
         self.restarts: Counter[int] = Counter()  # per sender: sequence restarts accepted
 
@@ -143,9 +142,7 @@ class Freshness:
         key_sender: the sender named by the transport (Zenoh key), checked against the payload's.
         t_recv: receipt time on the receiver's clock (s); read from `clock` when None in time base
         "receiver" (and left unread in "stamps")."""
-        if self.bounds is not self._packed_of:  # the bounds as the compiled check takes them
-            self._packed, self._packed_of = self.bounds.packed(), self.bounds
-        msg, reason, bad = decode_checked(data, self.mission, self.known, self._packed)
+        msg, reason, bad = decode_checked(data, self.mission, self.known, self.bounds.packed)
         if msg is None:
             self.dropped[reason or "unknown"] += 1
             return None

@@ -159,7 +159,7 @@ def decode_checked(
     data: bytes, mission: str, known_senders: frozenset[int] | set[int], bounds: np.ndarray
 ) -> tuple[PredictionMessage | None, str | None, str | None]:
     """`decode`, plus the first AcceptanceBounds violation of a decoded message (None if none), checked in
-    the same compiled pass; bounds: `AcceptanceBounds.packed()` (a float64 (6,) array). Never raises."""
+    the same compiled pass; bounds: `AcceptanceBounds.packed` (a float64 (6,) array). Never raises."""
     try:
         if not isinstance(data, _BYTES_LIKE):
             return None, "not bytes", None

@@ -541,23 +541,6 @@ def agent_act(
     return n_fused
 
 
-@kernel
-def message_fault(
-    g: np.ndarray, mu: np.ndarray, var: np.ndarray, prior: np.ndarray, bounds: np.ndarray
-) -> bool:
-    """True if a prediction message (ḡ_w, μ, var, σ_f²) fails the wire checks or AcceptanceBounds;
-    bounds = [var_floor, var_ceiling, max_speed_mps, max_yaw_rate_rps, max_position_m, max_angle_rad]."""
-    for q in range(4):
-        for a in (g[q], mu[q], var[q], prior[q]):
-            if not math.isfinite(a):
-                return True
-        if not (bounds[0] <= var[q] <= bounds[1] and bounds[0] <= prior[q] <= bounds[1]):
-            return True
-    if max(abs(mu[0]), abs(mu[1]), abs(mu[2])) > bounds[2] or abs(mu[3]) > bounds[3]:
-        return True
-    return max(abs(g[0]), abs(g[1]), abs(g[2])) > bounds[4] or abs(g[3]) > bounds[5]
-
-
 # ---- the compiled lock-step loop (ideal rig, in-process bus, safety off) ---------------------------------
 @kernel
 def world_advance(
@@ -645,6 +628,7 @@ def lockstep_chunk(
     T_save = np.empty_like(T)
     g_i0 = np.empty(4)
     x = np.empty(4)
+    body = np.empty(16)  # a message's 16 floats, as the bus checks them
     K = max(1, nb.shape[1])
     NG, NMU, NVAR, NPRIOR = np.empty((K, 4)), np.empty((K, 4)), np.empty((K, 4)), np.empty((K, 4))
     k_c, k_e, k_s = gains[0:4], gains[4:8], gains[8]
@@ -678,7 +662,13 @@ def lockstep_chunk(
                 )  # fmt: skip
                 for d in range(4):
                     T[i, PRIOR, d] = gp_sf2[i, d if gp_sf2.shape[1] == 4 else 0]
-            if message_fault(T[i, G_BAR_W], T[i, MU_OWN], T[i, VAR_OWN], T[i, PRIOR], bounds):
+            body[0:4], body[4:8], body[8:12], body[12:16] = (
+                T[i, G_BAR_W],
+                T[i, MU_OWN],
+                T[i, VAR_OWN],
+                T[i, PRIOR],
+            )
+            if message_check(body, bounds) != MSG_OK:  # the bus would drop it (or encode refuse it)
                 T[:] = T_save
                 return k
         for i in range(n):
@@ -730,7 +720,8 @@ def message_check(body: np.ndarray, bounds: np.ndarray) -> int:
     """The first defect of a prediction message's 16 floats body = [ḡ_w (4), μ (4), var (4), σ_f² (4)],
     as a MSG_* code (MSG_OK: none): per field in that order a non-finite element, then a variance ≤ 0 (the
     wire checks), then AcceptanceBounds.violation's checks in its order with bounds = [var_floor,
-    var_ceiling, max_speed_mps, max_yaw_rate_rps, max_position_m, max_angle_rad] (as message_fault)."""
+    var_ceiling, max_speed_mps, max_yaw_rate_rps, max_position_m, max_angle_rad] (AcceptanceBounds.packed).
+    The compiled lock-step loop calls it too: a message it would fail hands that tick to Python."""
     for k in range(4):
         for q in range(4 * k, 4 * k + 4):
             if not math.isfinite(body[q]):

@@ -135,7 +135,7 @@ class CompiledLoop:
             gp=_stack_experts(agents),
             nb=nb,
             nb_n=np.array([len(a.cfg.neighbour_ids) for a in agents], dtype=np.int64),
-            bounds=b.packed(),
+            bounds=b.packed,
             prm=backend.world.target_field.prm.packed(),  # type: ignore[attr-defined]
             chunk=min(CHUNK_TICKS, b.max_seq_jump),
         )
