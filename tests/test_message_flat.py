@@ -188,7 +188,7 @@ def test_decode_rejects_exactly_what_it_rejected(data: st.DataObject) -> None:
     vals = old[5]
     assert np.concatenate([getattr(new, f) for f in FIELDS]).tobytes() == _BODY.pack(*vals)
     bounds = AcceptanceBounds(max_speed_mps=data.draw(st.sampled_from([0.05, 10.0])))
-    _, _, bad = decode_checked(blob, MISSION, KNOWN, bounds.packed())
+    _, _, bad = decode_checked(blob, MISSION, KNOWN, bounds.packed)
     assert bad == _old_violation(bounds, vals[0:4], vals[4:8], vals[8:12], vals[12:16])
     assert bad == bounds.violation(new.g_bar_w, new.mu, new.var, new.prior_var)
 
@@ -208,7 +208,7 @@ def bodies(draw: st.DrawFn) -> list[float]:
 @given(bodies(), st.sampled_from([AcceptanceBounds(), None]))
 def test_the_kernel_decides_as_the_python_checks(vals: list[float], b: AcceptanceBounds | None) -> None:
     bounds = b or AcceptanceBounds(var_floor=1e-3, max_yaw_rate_rps=1.0, max_position_m=5.0)
-    code = kern.message_check(np.array(vals), bounds.packed())
+    code = kern.message_check(np.array(vals), bounds.packed)
     g, mu, var, prior = vals[0:4], vals[4:8], vals[8:12], vals[12:16]
     expected = _old_check_fields(1, 1, 0.0, g, mu, var, prior) or _old_violation(bounds, g, mu, var, prior)
     assert REASONS[code] == expected
