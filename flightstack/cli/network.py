@@ -238,7 +238,10 @@ def cmd_status(args: argparse.Namespace) -> int:
                 if report is not None and report.drone in ids:
                     statuses[report.drone] = (report, ev.time)
             now = time.monotonic()
-            done = now >= t_end or (args.once and all(i in statuses for i in ids))
+            # --once: every status, and a prediction of every agent (a live sender is heard after a
+            # short run of consecutive messages: acceptance.py's first-seq rule), or the wait is over
+            heard = all(i in statuses and bus.message_age(i) is not None for i in ids)  # type: ignore[attr-defined]
+            done = now >= t_end or (args.once and heard)
             if done or not args.once:
                 ages = {i: bus.message_age(i) for i in ids}  # type: ignore[attr-defined]
                 table = status_table(statuses, bus.alive(), ids, now, ages)  # type: ignore[attr-defined]
