@@ -14,6 +14,7 @@ from flightstack.paper.target_law import SquareLaw
 
 TAKEOFF_TIMEOUT_S = 25.0  # > the Tello driver's own 20 s bound, so its outcome is collected first
 LAND_TIMEOUT_S = 20.0  # > the Tello's own 15 s auto-land, so a drone that lost its link is seen down
+POSE_WAIT_S = 3.0  # before takeoff: how long a drone's motion-capture pose may take to be fresh
 
 
 class TargetDriver:

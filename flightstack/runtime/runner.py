@@ -43,6 +43,7 @@ from flightstack.runtime.fleet import (
 )
 from flightstack.runtime.phases import (
     LAND_TIMEOUT_S,
+    POSE_WAIT_S,
     TAKEOFF_TIMEOUT_S,
     advance_until,
     settle_virtual_landing,
@@ -157,6 +158,26 @@ def run_mode(
     return rec if rec.ticks_done == n_ticks and not rec.interrupted else rec.truncated()
 
 
+def wait_for_poses(f: Fleet) -> None:
+    """Wait, bounded by POSE_WAIT_S, until every safety-wrapped drone's own pose is fresh.
+
+    The pose source reports a body as None while its newest sample is older than its stale bound (0.1 s
+    for motion capture), and SafeDrone.takeoff refuses without a fresh pose. A stream that has only just
+    connected, or a single late frame on a loaded computer, must not abort a mission; a body that stays
+    unseen for POSE_WAIT_S still does (RuntimeError naming the bodies), before any drone has left the
+    ground."""
+    if not f.safe:
+        return
+
+    def missing() -> list[str]:
+        return [s.body for s in f.safe.values() if s.poses.latest(s.body) is None]
+
+    if not advance_until(f.clock, lambda: not missing(), POSE_WAIT_S, f.mission.dt_s, f.ticker.tick):
+        raise RuntimeError(
+            f"no fresh motion-capture pose of {missing()} within {POSE_WAIT_S:g} s; nothing took off"
+        )
+
+
 def take_off(f: Fleet) -> None:
     """Wait for every agent on the bus (network bus), take every drone off together and wait, bounded by
     TAKEOFF_TIMEOUT_S, until each says it is airborne; then start each estimate from the drone's own
@@ -169,6 +190,7 @@ def take_off(f: Fleet) -> None:
             raise RuntimeError(f"agents {sorted(missing)} not on the bus after {zspec.start_timeout_s:g} s")
     for d in drones.values():
         d.connect()
+    wait_for_poses(f)
     for d in drones.values():  # on real drones each returns at once: they climb together
         d.takeoff()
 
