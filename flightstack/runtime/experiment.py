@@ -8,7 +8,7 @@ Everything derives from the mission's seed, so a run is reproducible.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,6 +29,7 @@ from flightstack.recording.run_dir import RunWriter
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.agent import Predictor
 from flightstack.runtime.runner import run_mode
+from flightstack.runtime.taps import TickTap
 from flightstack.runtime.training import (
     ExpertData,
     collect_datasets,
@@ -69,11 +70,12 @@ def run_experiment(
     mission: Mission,
     progress_factory: Callable[[str, int], Callable[[int], None]] | None = None,
     run_writer: RunWriter | None = None,
+    taps: Sequence[TickTap] = (),
 ) -> ExperimentResult:
     """Run every mode of `mission.compare_modes` (plus the data run if needed) and compute metrics.
 
     run_writer: records each mode to its run directory as it flies (flightstack.recording.run_dir); the caller
-    closes it after `write_run_dir`."""
+    closes it after `write_run_dir`. taps: observers of every mode's flight (runner.run_mode)."""
     wall0 = time.perf_counter()
     res = ExperimentResult()
     n_ticks = round(mission.duration_s / mission.dt_s)
@@ -102,7 +104,7 @@ def run_experiment(
         writer = (
             None if run_writer is None else run_writer.mode(mode, [d.id for d in mission.drones], n_ticks)
         )
-        rec = run_mode(mission, mode, predictors, prog(mode), writer=writer)
+        rec = run_mode(mission, mode, predictors, prog(mode), writer=writer, taps=taps)
         res.recordings[mode] = rec
         if rec.interrupted or rec.error:
             res.interrupted = rec.interrupted

@@ -20,7 +20,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from flightstack.comms.bus import Bus, OperatorChannel
@@ -48,6 +48,7 @@ from flightstack.runtime.phases import (
     advance_until,
     settle_virtual_landing,
 )
+from flightstack.runtime.taps import TapSet, TickTap
 from flightstack.runtime.tick_record import TickBook, record_tick
 
 __all__ = [  # run_mode and its parts here; the fleet's parts re-exported from flightstack.runtime.fleet
@@ -77,6 +78,7 @@ def run_mode(
     agent_ids: list[int] | None = None,
     writer: Any = None,
     compiled: bool = True,
+    taps: Sequence[TickTap] = (),
 ) -> Recording:
     """Fly `mode` of a mission for mission.duration_s of pursuit; never leaves a drone flying.
 
@@ -87,7 +89,9 @@ def run_mode(
     On a simulated clock with a network bus, phase 2 waits for the neighbours' messages of the same tick
     (`bus.zenoh.lockstep_timeout_s`), so the result equals the in-process bus's.
     compiled: fly the ideal rig's ticks in the compiled loop (flightstack.runtime.compiled; the same
-    kernels, bit-identical recordings); False flies every tick through the Agents (the reference path)."""
+    kernels, bit-identical recordings); False flies every tick through the Agents (the reference path).
+    taps: observers told after each recorded tick or chunk (live viewer, live export;
+    flightstack.runtime.taps); one that raises is switched off, the flight goes on."""
     with assemble_fleet(
         mission, mode, predictors, backend=backend, bus=bus, agent_ids=agent_ids, writer=writer
     ) as f:
@@ -95,6 +99,8 @@ def run_mode(
         n_ticks = round(mission.duration_s / dt)
         rec = Recording.empty(mode, f.ids, n_ticks)
         book = TickBook.of(mode, f.ids)
+        observers = TapSet(taps)
+        observers.start(f, rec)
         wall0 = time.perf_counter()
         reason = "mission complete"
         signals = signal_guard(f.supervisor)
@@ -110,6 +116,8 @@ def run_mode(
                     if k_new > k:
                         if writer is not None:
                             writer.append(rec, k_new)
+                        if observers:
+                            observers.on_tick(f, rec, k_new)
                         f.status.maybe_publish(f.clock.now(), k_new - 1, f.agents)
                         if progress is not None:
                             progress(k_new - k)
@@ -123,6 +131,8 @@ def run_mode(
                 record_tick(rec, k, t, f.agents, f.backend.truth(), book)
                 if writer is not None:
                     writer.append(rec, k + 1)
+                if observers:
+                    observers.on_tick(f, rec, k + 1)
                 f.status.maybe_publish(t, k, f.agents)
                 if progress is not None:
                     progress(1)
@@ -155,6 +165,7 @@ def run_mode(
             finish_recording(f, rec, book, time.perf_counter() - wall0)
             if writer is not None:
                 writer.close(rec)
+            observers.close(rec)
     return rec if rec.ticks_done == n_ticks and not rec.interrupted else rec.truncated()
 
 
