@@ -79,7 +79,8 @@ def test_every_file_a_run_writes_is_in_run_files(gp_run: Path) -> None:
     names = {p.name for p in gp_run.iterdir()}
     for expected in ("timeseries_none.npz", "timeseries_dgp.npz", "experts.npz", "datasets.npz"):
         assert expected in names
-    assert set(PLOTS.values()) <= names
+    # loop_health.png only when ticks were timed: this ideal-rig run flies in compiled chunks
+    assert set(PLOTS.values()) - {PLOTS["loop_health"]} <= names
     assert {"metrics.json", "events.jsonl", "recording.json", "mission_resolved.yaml"} <= names
     assert sorted(gp_run.iterdir()) == run_files(gp_run)
     assert json.loads((gp_run / "metrics.json").read_text())["gain_condition"]["evaluated"] is True

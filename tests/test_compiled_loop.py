@@ -12,13 +12,13 @@ import pytest
 from flightstack.config.mission import load_mission
 from flightstack.paper.gp import GPExpert, GPHyperparameters
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch
-from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
+from flightstack.recording.timeseries import ARRAY_FIELDS, MACHINE_FIELDS, Recording
 from flightstack.runtime.compiled import CHUNK_TICKS, CompiledLoop, why_not_compiled
 from flightstack.runtime.experiment import TruthPredictor
 from flightstack.runtime.fleet import assemble_fleet
 from flightstack.runtime.runner import run_mode
 
-COMPARED = tuple(f for f in ARRAY_FIELDS if f != "wall_t")  # wall_t: when a row was written (wall clock)
+COMPARED = tuple(f for f in ARRAY_FIELDS if f not in MACHINE_FIELDS)  # wall time: this computer
 
 
 def _experts(mission, sizes: dict[int, int], scale: float = 1.0, seed: int = 0) -> dict[int, GPExpert]:

@@ -8,6 +8,7 @@ Tello emulators send their state streams to one free port of 127.0.0.1 (`hardwar
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Iterator
@@ -259,6 +260,17 @@ def test_fly_a_short_mission_on_the_emulated_lab(lab: Lab, capsys: pytest.Captur
     assert np.all(rec["g_wi"][:, :, 2] > 0.3)  # airborne (mocap z) for the whole pursuit
     events = (out_dir / "events.jsonl").read_text()
     assert events.count('"event": "landed"') == 2 and "NOT LANDED" not in events
+    # loop health (issue 19): every tick after the first timed, real time, the ages of what was used
+    health = json.loads((out_dir / "metrics.json").read_text())["modes"]["none"]["loop_health"]
+    assert health["real_time"] and health["dt_s"] == 0.05
+    assert health["period_s"]["n"] == 59 and health["compute_s"]["n"] == 60
+    assert 0.045 < health["period_s"]["p50"] < 0.075  # sleeps until start + dt: about dt, never much less
+    assert 0 < health["compute_s"]["p50"] < health["period_s"]["p50"]
+    assert health["overruns"] == int((rec["loop_period"][1:] > health["overrun_above_s"]).sum())
+    assert health["frame_age_s"]["n"] == 120 and 0 <= health["frame_age_s"]["p50"] < 0.5  # 320x240 video
+    assert health["pose_age_s"]["n"] == 120 and 0 <= health["pose_age_s"]["max"] <= 0.1  # mocap stale bound
+    assert (out_dir / "loop_health.png").stat().st_size > 10_000
+    assert "loop kept dt" in out or "loop DID NOT keep dt" in out, out
 
 
 def test_fly_with_a_drone_losing_its_link(lab: Lab, capsys: pytest.CaptureFixture[str]) -> None:

@@ -135,6 +135,30 @@ def test_cli_writes_json_and_exit_code(tmp_path: Path, capsys: pytest.CaptureFix
     assert "low_battery_takeoff" in capsys.readouterr().out
     doc = json.loads((tmp_path / "faults.json").read_text())
     assert doc["handled"] is True and [r["name"] for r in doc["results"]] == ["low_battery_takeoff"]
+    assert (tmp_path / "faults.png").stat().st_size > 5000  # the summary figure (README gallery)
+
+
+def test_fault_figure_families_and_events(tmp_path: Path) -> None:
+    from flightstack.faults.figure import FAMILIES, family, plot_fault_summary, safety_events
+
+    names = [f[0] for f in FAMILIES]
+    assert names[family("battery_refuse_takeoff")] == "refused"
+    assert names[family("pose_stale_land")] == "land"  # landing wins over its cause
+    assert names[family("pose_stale_hover")] == "hover / zero velocity"
+    assert names[family("link_lost")] == "link"
+    assert names[family("saturated")] == "other"
+    run = tmp_path / "row"
+    run.mkdir()
+    lines = [
+        json.dumps({"event": "safety", "t": 4.5, "kind": "link_lost"}),
+        "{cut short",
+        json.dumps({"event": "end", "t": 9.0}),
+        json.dumps({"event": "safety", "t": 7.0, "kind": "land"}),
+    ]
+    (run / "events.jsonl").write_text("\n".join(lines))
+    assert safety_events(run) == [(4.5, "link_lost"), (7.0, "land")]
+    rows = [{"name": "a", "handled": True, "details": {"run_dir": str(run)}}, {"name": "b", "handled": False}]
+    assert plot_fault_summary(rows, tmp_path / "f.png").stat().st_size > 5000
 
 
 def test_a_row_that_raises_is_an_unhandled_crash(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

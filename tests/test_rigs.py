@@ -167,3 +167,20 @@ def test_built_in_names_work_from_any_directory(tmp_path: Path, monkeypatch: pyt
     assert m.rig == "ideal" and len(m.drones) == 3
     with pytest.raises(MissionError, match="not a built-in experiment"):
         load_mission("paper_simulation")
+
+
+def test_bench_loop_measures_the_emulated_lab_and_its_exit_code_is_its_verdict(tmp_path: Path) -> None:
+    """`flightstack bench-loop` flies `none` on the emulated lab (every drone's video decoded on this
+    computer) and judges its loop health; whether a loaded CI machine keeps dt is not asserted, only that
+    the verdict, the numbers and the exit code agree."""
+    out = tmp_path / "bench"
+    r = run_cli("bench-loop", "--seconds", "2", "--out", str(out), timeout=300)
+    health = json.loads((out / "metrics.json").read_text())["modes"]["none"]["loop_health"]
+    ticks = round(2.0 / health["dt_s"])
+    assert health["real_time"] and health["period_s"]["n"] == ticks - 1 and health["compute_s"]["n"] == ticks
+    assert health["frame_age_s"]["n"] > 0 and health["pose_age_s"]["n"] == 2 * ticks
+    if health["keeps_dt"]:
+        assert r.returncode == 0 and "this computer KEEPS dt = 50 ms with 2 drones' video" in r.stdout
+    else:
+        assert r.returncode == 1 and "DOES NOT keep" in r.stdout, r.stdout + r.stderr[-2000:]
+    assert (out / "loop_health.png").is_file()

@@ -276,9 +276,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     register_calibration(cal_sub)
     from flightstack.cli.certs import register as register_certs
+    from flightstack.cli.export import register as register_export
     from flightstack.cli.generate import register as register_generate
     from flightstack.cli.network import register as register_network
     from flightstack.cli.sweep import register as register_sweep
+    from flightstack.cli.view import register as register_view
     from flightstack.faults.cli import register as register_faults
 
     register_network(sub)
@@ -286,6 +288,8 @@ def build_parser() -> argparse.ArgumentParser:
     register_certs(sub)
     register_sweep(sub)
     register_generate(sub)
+    register_export(sub)
+    register_view(sub)
     rp = sub.add_parser(
         "report", help="rebuild metrics.json and the plots of a run directory (also one cut short by a kill)"
     )
@@ -303,6 +307,9 @@ def build_parser() -> argparse.ArgumentParser:
     from flightstack.cli.completion import register as register_completion
 
     register_completion(sub)
+    from flightstack.cli.bench_loop import register as register_bench_loop
+
+    register_bench_loop(sub)
     return p
 
 

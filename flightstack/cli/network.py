@@ -60,6 +60,7 @@ def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
 
 def cmd_agent(args: argparse.Namespace) -> int:
     from flightstack.cli.run import _awake_if_flying, claim_out_dir, clear_for_run, default_out_dir
+    from flightstack.cli.view import open_live_viewer, viewer_problem
     from flightstack.comms.factory import make_bus
     from flightstack.comms.zenoh_bus import ZenohBus
     from flightstack.paper.kernels_warmup import warm_up
@@ -74,6 +75,10 @@ def cmd_agent(args: argparse.Namespace) -> int:
     ids = [d.id for d in mission.drones]
     if args.id not in ids:
         print(f"error: --id {args.id}: the mission's drones are {ids}", file=sys.stderr)
+        return 2
+    problem = viewer_problem(args.viewer)  # rerun-sdk missing: say how to install it, before anything flies
+    if problem is not None:
+        print(f"error: {problem}; nothing took off", file=sys.stderr)
         return 2
     mode = args.mode or mission.compare_modes[-1]
     if mode == Mode.ORACLE:  # sim-only truth predictor: it needs the world's truth, which agents do not get
@@ -99,20 +104,37 @@ def cmd_agent(args: argparse.Namespace) -> int:
     warm_up()
     wall0 = time.perf_counter()
     writer = run_writer.mode(mode, [args.id], round(mission.duration_s / mission.dt_s))
+    try:  # --viewer: this agent's drone live in Rerun (flightstack.viewer.live)
+        tap = open_live_viewer(args.viewer, mission, out, [mode])
+    except (OSError, RuntimeError) as exc:
+        run_writer.close()
+        print(f"error: --viewer: {exc}; nothing took off", file=sys.stderr)
+        return 2
     try:
         bus = make_bus(mission, str(args.id), {args.id})
     except BaseException:
         run_writer.close()
+        if tap is not None:
+            tap.finish()
         raise
     rec: Recording | None = None
     seat = AgentSeat(args.id, bus.session if isinstance(bus, ZenohBus) else None, str(out / GUARDIAN_LOG))
     try:
         with open_agent_backend(mission, seat) as backend, _awake_if_flying(mission):
             rec = run_mode(
-                mission, mode, predictors, backend=backend, bus=bus, agent_ids=[args.id], writer=writer
+                mission,
+                mode,
+                predictors,
+                backend=backend,
+                bus=bus,
+                agent_ids=[args.id],
+                writer=writer,
+                taps=[tap] if tap is not None else (),
             )
     finally:
         bus.close()
+        if tap is not None:
+            tap.finish()
         if rec is None:  # run_mode raised: what was recorded stays (row stream, events)
             run_writer.close()
     try:  # the recording (npz, events) is on disk already: metrics and summary, atomically
@@ -328,6 +350,9 @@ def register(sub: Any) -> None:
         action="store_true",
         help="reuse a non-empty --out: first remove the files a run writes there; every other file is kept",
     )
+    from flightstack.cli.view import add_viewer_argument
+
+    add_viewer_argument(a)
     a.set_defaults(func=cmd_agent)
     ab = sub.add_parser(
         "abort", help="make every agent of a mission land at once; exit 1 naming any that did not ack"

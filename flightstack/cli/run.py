@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 from tqdm import tqdm
 
 from flightstack.config.mission import Mission, load_mission
+from flightstack.recording.loop_health import loop_health_line
 
 if TYPE_CHECKING:
     from flightstack.recording.run_dir import RunWriter
@@ -155,6 +156,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     if problem is not None:
         print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
         return 2
+    mcap = getattr(args, "mcap", None)
+    if mcap is not None and Path(mcap).exists() and not args.force:
+        print(f"error: --mcap {mcap} exists (--force replaces it); nothing took off", file=sys.stderr)
+        return 2
+    from flightstack.cli.view import viewer_problem
+
+    problem = viewer_problem(getattr(args, "viewer", None))  # no rerun-sdk: how to install it, before flying
+    if problem is not None:
+        print(f"error: {problem}; nothing took off", file=sys.stderr)
+        return 2
     if args.out is None:
         print(f"run directory: {out} (--out DIR chooses another)", file=sys.stderr)
     real = not mission.simulated and not mission.start_emulators
@@ -199,20 +210,31 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
     from flightstack.runtime.experiment import resolved_mission_yaml, run_experiment, write_run_dir
 
     t_cmd0 = time.perf_counter()
+    from flightstack.cli.view import flown_modes, open_live_viewer
+
+    try:  # --viewer: the live Rerun view (a tap of every mode; flightstack.viewer.live)
+        tap = open_live_viewer(getattr(args, "viewer", None), mission, out, flown_modes(mission))
+    except (OSError, RuntimeError) as exc:
+        print(f"error: --viewer: {exc}; nothing took off", file=sys.stderr)
+        return 2
     run_writer = open_run_dir(out)  # checked again: the preflight took time
     if run_writer is None:
+        if tap is not None:
+            tap.finish()
         return 2
     bars: list[tqdm] = []
     try:
         run_writer.write_file(MISSION_FILE, resolved_mission_yaml(mission))  # for `report`
         progress = _progress_factory(bars) if want_progress(args.progress) else None
         with _awake_if_flying(mission):
-            res = run_experiment(mission, progress, run_writer)
+            res = run_experiment(mission, progress, run_writer, taps=[tap] if tap is not None else ())
         for b in bars:
             b.close()
         m = write_run_dir(out, mission, res, run_writer)
     finally:
         run_writer.close()
+        if tap is not None:
+            tap.finish()
     if res.recordings:
         _write_plots_or_warn(out, mission, res)
     print(f"run directory: {out}")
@@ -225,6 +247,10 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
         if mm.get("max_fence_excursion_m"):
             line += f"   OUTSIDE FENCE by {mm['max_fence_excursion_m']:.3f} m"
         print(line)
+        health = mm.get("loop_health")
+        if health and health["real_time"]:  # a simulated clock's wall period only says how fast it ran
+            verdict = "kept dt" if health["keeps_dt"] else "DID NOT keep dt"
+            print(f"          loop {verdict}: {loop_health_line(health)}")
     if "ratios" in m:
         ours, paper = m["ratios"]["ours"], m["ratios"]["paper"]
         sq_mean = m["ratios"].get("ours_sq_mean", {})
@@ -246,13 +272,36 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
     rec_status = m["recording"]
     if not rec_status["complete"]:
         print(f"error: recording incomplete: {rec_status['reason']}", file=sys.stderr)
+    exported = _export_mcap(args, mission, out)
     if res.interrupted:
         print("interrupted: every drone landed, partial recording written", file=sys.stderr)
         return 130
     if res.error:
         print(f"error: {res.error}; every drone landed, partial recording written", file=sys.stderr)
         return 1
-    return 0 if rec_status["complete"] else 1
+    return 0 if rec_status["complete"] and exported else 1
+
+
+def _export_mcap(args: argparse.Namespace, mission: Mission, out: Path) -> bool:
+    """--mcap FILE: the run directory as MCAP, written after the landing from the recording (so the
+    control loop never waits on it; `flightstack export` writes the same file later). False on failure,
+    which is reported; the run directory is complete either way."""
+    target = getattr(args, "mcap", None)
+    if target is None:
+        return True
+    from flightstack.recording.mcap_export import export_mcap
+
+    try:
+        s = export_mcap(out, Path(target), None, mission)
+    except Exception as exc:  # the flight is over and recorded: say so, and how to export it again
+        print(
+            f"error: --mcap {target}: {type(exc).__name__}: {exc}; the run directory is intact "
+            f"(flightstack export {out} --mcap FILE)",
+            file=sys.stderr,
+        )
+        return False
+    print(f"  MCAP: {target} ({len(s.topics)} topics, {s.messages} messages; Foxglove, PlotJuggler)")
+    return True
 
 
 def speed_lines(m: dict[str, Any], command_s: float) -> list[str]:
@@ -381,6 +430,16 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
         "--no-progress", dest="progress", action="store_false", default=None, help="no progress bars"
     )
     p.add_argument("--bus", choices=["inproc", "zenoh"], help="override bus.kind (zenoh: on loopback)")
+    p.add_argument(
+        "--mcap",
+        default=None,
+        metavar="FILE",
+        help="also write the run as MCAP (Foxglove, PlotJuggler) after the landing, from the recording; "
+        "the same file as `flightstack export RUN_DIR --mcap FILE`",
+    )
+    from flightstack.cli.view import add_viewer_argument
+
+    add_viewer_argument(p)
 
 
 def cmd_migrate(args: argparse.Namespace) -> int:

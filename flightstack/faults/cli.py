@@ -1,8 +1,9 @@
 """The `faults` subcommand: `flightstack faults [--only NAME ...] [--out DIR] [--mission FILE]`.
 
-Runs the rows of flightstack.faults, prints the table, writes DIR/faults.json (and each row's run files
-under DIR), and exits 0 iff every row was handled (1 otherwise). `flightstack.cli.app` adds it with
-`faults_cli.register(sub)`; `python -m flightstack.faults.cli ...` runs it alone.
+Runs the rows of flightstack.faults, prints the table, writes DIR/faults.json, the summary figure
+DIR/faults.png (flightstack.faults.figure) and each row's run files under DIR, and exits 0 iff every
+row was handled (1 otherwise). `flightstack.cli.app` adds it with `faults_cli.register(sub)`;
+`python -m flightstack.faults.cli ...` runs it alone.
 """
 
 from __future__ import annotations
@@ -49,6 +50,13 @@ def cmd_faults(args: argparse.Namespace) -> int:
     print(format_table(results, expected=args.expected))
     write_json(results, out / "faults.json")
     print(f"written: {out / 'faults.json'}")
+    try:  # the picture is a convenience: a failure to draw it never changes the verdict
+        from flightstack.faults.figure import plot_fault_summary
+
+        fig = plot_fault_summary([r.to_dict() for r in results], out / "faults.png")
+        print(f"written: {fig}")
+    except Exception as exc:
+        print(f"faults.png not written: {type(exc).__name__}: {exc}", file=sys.stderr)
     return 0 if all(r.handled for r in results) else 1
 
 

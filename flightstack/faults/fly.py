@@ -24,13 +24,20 @@ from flightstack.faults.inject import FaultSpec, FaultyBackend, FaultyBus
 from flightstack.faults.result import Checks
 from flightstack.paper.metrics import mode_metrics
 from flightstack.recording.run_dir import RunWriter
-from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
+from flightstack.recording.timeseries import ARRAY_FIELDS, LOOP_HEALTH_FIELDS, Recording
 from flightstack.runtime.backends import build_backend
 from flightstack.runtime.runner import run_mode, safety_limits
 from flightstack.safety import outside_hard_fence, outside_soft_fence
 
-FINITE_FIELDS = tuple(f for f in ARRAY_FIELDS if f not in ("visible", "n_fused", "wall_t"))
-"""Recording arrays that must be finite on every recorded tick."""
+FINITE_FIELDS = tuple(
+    f for f in ARRAY_FIELDS if f not in ("visible", "n_fused", "wall_t", *LOOP_HEALTH_FIELDS)
+)
+"""Recording arrays that must be finite on every recorded tick (loop health is NaN where unmeasured)."""
+
+
+def same_array(a: np.ndarray, b: np.ndarray) -> bool:
+    """Equal shape and values, NaN equal to NaN (float arrays)."""
+    return bool(np.array_equal(a, b, equal_nan=np.issubdtype(a.dtype, np.floating)))
 
 
 @dataclass
@@ -196,7 +203,7 @@ def judge_recording(run: SimRun, expect_ticks: int | None = None, expect_error: 
     if c.check(path.is_file(), f"{path.name} not written"):
         back = Recording.load(str(path))
         c.check(back.ticks_done == k, f"saved recording has {back.ticks_done} ticks, flown {k}")
-        same = all(np.array_equal(getattr(back, f), getattr(rec, f)[:k]) for f in FINITE_FIELDS)
+        same = all(same_array(getattr(back, f), getattr(rec, f)[:k]) for f in ARRAY_FIELDS)
         c.check(same, "saved recording differs from the flown one")
     n_lines = len((run.run_dir / "events.jsonl").read_text().splitlines()) if run.run_dir.is_dir() else 0
     c.check(n_lines == len(rec.events), f"events.jsonl has {n_lines} lines for {len(rec.events)} events")

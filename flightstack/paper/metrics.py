@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from flightstack.config.mission import Mission
+from flightstack.recording.loop_health import loop_health
 from flightstack.recording.timeseries import Recording
 
 
@@ -107,6 +108,12 @@ def mode_metrics(
         "interrupted": bool(rec.interrupted),
         "error": rec.error,
         "vision_rejections": rec.vision_rejections,
+        # did this computer keep dt (hardware, emulated lab); on a simulated clock only how fast it ran
+        "loop_health": loop_health(
+            rec,
+            mission.dt_s if mission is not None else dt,
+            real_time=mission is not None and not mission.simulated,
+        ),
     }
     if mission is not None:
         g_d = np.array([[*d.desired_pose.p, d.desired_pose.theta] for d in mission.drones])

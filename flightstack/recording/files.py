@@ -45,13 +45,22 @@ DATASETS_FILE = "datasets.npz"
 EXPERTS_FILE = "experts.npz"
 ROWS_SUFFIX = ".rows"
 """Suffix of a mode's row stream `timeseries_<mode>.rows` (flightstack.recording.rows)."""
-PLOTS = {"trajectory": "trajectory.png", "e_c": "error_ec.png", "e_e": "error_ee.png"}
+PLOTS = {
+    "trajectory": "trajectory.png",
+    "e_c": "error_ec.png",
+    "e_e": "error_ee.png",
+    "loop_health": "loop_health.png",  # only when ticks were timed (flightstack.recording.loop_health)
+}
 """The plots of a run (flightstack.recording.report.write_plots), by what they show."""
 AGENT_SUMMARY_FILE = "summary.json"
 GUARDIAN_LOG = "guardian.log"
 """An agent process's files besides the recording (`flightstack agent`, flightstack/cli/network.py)."""
 EMULATED_LAB_DIR = "emulated_lab"
 """The emulated-lab rig's working directory inside the run directory (mission, calibration)."""
+REPLAY_FILE = "run.rrd"
+"""`flightstack view` without --spawn/--connect/--save on a machine without a display writes it here."""
+LIVE_FILE = "live.rrd"
+"""`--viewer` on a machine without a display writes the live Rerun recording here."""
 PROBE_PREFIX = ".flightstack-write-probe-"
 
 RUN_FILES: tuple[str, ...] = (
@@ -67,6 +76,8 @@ RUN_FILES: tuple[str, ...] = (
     AGENT_SUMMARY_FILE,
     GUARDIAN_LOG,
     EMULATED_LAB_DIR,
+    REPLAY_FILE,
+    LIVE_FILE,
 )
 """Every name (fnmatch pattern) a run of `run`/`sim`/`fly`/`agent` writes in its run directory: the one
 list `--out` is checked against and `--force` removes (`run_files`). A writer of a new file adds it here

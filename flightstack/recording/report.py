@@ -16,6 +16,7 @@ import numpy as np
 
 from flightstack.config.mission import Mission, load_mission
 from flightstack.recording.files import DATASETS_FILE, EXPERTS_FILE, METRICS_FILE, MISSION_FILE, PLOTS
+from flightstack.recording.loop_health import plot_loop_health
 from flightstack.recording.run_dir import atomic_write_json, load_run, recording_status
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.training import ExpertData, bands, load_experts
@@ -101,7 +102,8 @@ def plot_error_norms(path: Path, recs: dict[str, Recording], which: str) -> None
 def write_plots(
     out: Path, mission: Mission, recs: dict[str, Recording], data: list[ExpertData]
 ) -> list[Path]:
-    """trajectory.png, error_ec.png, error_ee.png (flightstack.recording.files.PLOTS) in `out`
+    """trajectory.png, error_ec.png, error_ee.png and, when ticks were timed, loop_health.png
+    (flightstack.recording.files.PLOTS) in `out`
     (recordings without ticks are left out; no plot without any tick); returns the paths written."""
     out.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
@@ -116,6 +118,9 @@ def write_plots(
     for which in ("c", "e"):
         p = out / PLOTS[f"e_{which}"]
         plot_error_norms(p, shown, which)
+        paths.append(p)
+    p = out / PLOTS["loop_health"]
+    if plot_loop_health(p, recs, mission.dt_s):
         paths.append(p)
     return paths
 

@@ -31,7 +31,18 @@ ARRAY_FIELDS = (
     "visible",
     "n_fused",
     "wall_t",
+    "loop_period",
+    "loop_compute",
+    "frame_age",
+    "pose_age",
 )
+
+LOOP_HEALTH_FIELDS = ("loop_period", "loop_compute", "frame_age", "pose_age")
+"""Arrays that are NaN where nothing was measured (the first tick's period, a compiled chunk, a tick
+without a frame or during a pose dropout): never required finite."""
+MACHINE_FIELDS = ("wall_t", "loop_period", "loop_compute")
+"""Arrays that measure the computer that flew, not the flight: two runs of the same mission differ in
+them (the compiled loop's guard test compares every other array)."""
 
 META_FIELDS = ("ticks_done", "bus_dropped", "wall_seconds", "interrupted", "error", "vision_rejections")
 """The scalar facts of a Recording besides its arrays and events (JSON-able; see `Recording.meta`)."""
@@ -57,6 +68,11 @@ class Recording:
     visible: np.ndarray  # (N, n) bool
     n_fused: np.ndarray  # (N, n) int: predictions fused (own + fresh neighbours) by each agent
     wall_t: np.ndarray  # (N,) wall-clock time.time() of each tick (s since the epoch; across processes)
+    # loop health (flightstack.recording.loop_health); NaN where not measured (compiled ticks, old files)
+    loop_period: np.ndarray  # (N,) wall time (s) from the previous tick's start to this one's
+    loop_compute: np.ndarray  # (N,) wall time (s) of this tick's sensing, fusion, command and record
+    frame_age: np.ndarray  # (N, n) age (s, mission clock) of the camera frame the tick looked at
+    pose_age: np.ndarray  # (N, n) age (s, mission clock) of the drone's own pose the tick used
     ticks_done: int = 0
     bus_dropped: dict[str, int] = field(default_factory=dict)
     wall_seconds: float = 0.0
@@ -89,6 +105,10 @@ class Recording:
             np.zeros((n_ticks, n), dtype=bool),
             np.zeros((n_ticks, n), dtype=int),
             np.zeros(n_ticks),
+            np.full(n_ticks, np.nan),
+            np.full(n_ticks, np.nan),
+            np.full((n_ticks, n), np.nan),
+            np.full((n_ticks, n), np.nan),
         )
 
     def truncated(self) -> Recording:
@@ -101,8 +121,9 @@ class Recording:
 
     @staticmethod
     def from_columns(mode: str, ids: list[int], columns: Mapping[str, np.ndarray]) -> Recording:
-        """A recording of the N rows in `columns` (ARRAY_FIELDS, each with N rows); a missing field is
-        zeros of its usual shape (e_c and e_e before `fill_true_errors`, or files written before it)."""
+        """A recording of the N rows in `columns` (ARRAY_FIELDS, each with N rows); a missing field keeps
+        `empty`'s value of its usual shape: zeros (e_c and e_e before `fill_true_errors`, or files written
+        before a field existed), NaN for the loop-health arrays (not measured)."""
         N = int(np.asarray(columns["t"]).shape[0])
         rec = Recording.empty(mode, ids, N)
         for f in ARRAY_FIELDS:
@@ -146,7 +167,7 @@ class Recording:
         """Read a recording written by `save` (arrays only; events and counters live in the run dir)."""
         with np.load(path) as z:
             ids = [int(i) for i in z["drone_ids"]]
-            # fields missing in older files (n_fused, wall_t) are zeros
+            # fields missing in older files: n_fused and wall_t zeros, loop health NaN
             return Recording.from_columns(str(z["mode"]), ids, {f: z[f] for f in ARRAY_FIELDS if f in z})
 
     def fill_true_errors(self, g_d: np.ndarray) -> None:

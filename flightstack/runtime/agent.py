@@ -73,6 +73,9 @@ class TickRecord:
     neighbours_used: tuple[int, ...] = ()  # neighbours whose fresh message entered consensus (and fusion)
     rejection: str | None = None  # why the image gave no features (None: seen, or no image)
     own_pose_fresh: bool = True  # False: motion capture lost the drone; it hovers (V = 0) this tick
+    # ages at use (s, mission clock): t − stamp; a sample that arrived after the tick's start t counts 0
+    frame_age: float = math.nan  # the camera frame looked at; NaN: no frame
+    pose_age: float = math.nan  # the own pose used; NaN: none this tick (dropout)
 
 
 class Agent:
@@ -144,7 +147,8 @@ class Agent:
         elif self._g_wi is None:
             raise RuntimeError(f"no pose for {cfg.body_name}")
         # else a motion-capture dropout: keep the last pose, hover; the safety layer decides beyond that
-        features, rejection = self._features(self.camera.latest(), t)
+        frame = self.camera.latest()
+        features, rejection = self._features(frame, t)
         step = self._u_e_prev is not None and self._t_prev is not None and t > self._t_prev
         visible = kern.agent_sense(
             T,
@@ -172,6 +176,8 @@ class Agent:
             var_own=var,
             rejection=rejection,
             own_pose_fresh=fresh,
+            frame_age=math.nan if frame is None else max(0.0, t - frame.stamp),
+            pose_age=math.nan if own is None else max(0.0, t - own.stamp),
         )
         self.last = rec
         self.seq += 1

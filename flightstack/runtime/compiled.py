@@ -205,6 +205,9 @@ class CompiledLoop:
             getattr(rec, name)[k0:k] = rec_f[:done, :, p]
         rec.visible[k0:k] = rec_vis[:done]
         rec.n_fused[k0:k] = rec_nf[:done]
+        # the ideal rig's camera and pose source stamp their samples with the world's time of the tick
+        rec.frame_age[k0:k] = 0.0
+        rec.pose_age[k0:k] = 0.0
         rec.wall_t[k0:k] = time.time()
         rec.ticks_done = k
         self.compiled_ticks += done

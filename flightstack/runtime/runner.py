@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -110,9 +111,11 @@ def run_mode(
             t0 = f.clock.now()
             loop = CompiledLoop.plan(f) if compiled else None
             k = 0
+            w_prev = math.nan  # wall time (perf_counter, s) of the last Python tick's start: loop health
             while k < n_ticks:
                 if loop is not None and k > 0 and loop.ready(book):  # tick 0 in Python: its events
                     k_new = loop.run(rec, k, min(n_ticks, k + loop.chunk))
+                    w_prev = math.nan  # the next Python tick's period would span the chunk
                     if k_new > k:
                         if writer is not None:
                             writer.append(rec, k_new)
@@ -124,11 +127,15 @@ def run_mode(
                         k = k_new
                         continue
                 t = f.clock.now()
+                w_start = time.perf_counter()
                 ended = pursuit_tick(f, t, t - t0, rec)
                 if ended is not None:
                     reason = ended
                     break
                 record_tick(rec, k, t, f.agents, f.backend.truth(), book)
+                rec.loop_compute[k] = time.perf_counter() - w_start
+                rec.loop_period[k] = w_start - w_prev
+                w_prev = w_start
                 if writer is not None:
                     writer.append(rec, k + 1)
                 if observers:

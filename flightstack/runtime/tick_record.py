@@ -26,6 +26,8 @@ AGENT_FIELDS: tuple[tuple[str, str], ...] = (
     ("V_cmd", "V_cmd"),  # body velocity command sent to the drone (m/s, rad/s)
     ("visible", "visible"),  # the target's features were measured this tick
     ("n_fused", "n_fused"),  # experts that entered the fusion
+    ("frame_age", "frame_age"),  # age of the camera frame looked at (s); NaN without one
+    ("pose_age", "pose_age"),  # age of the own pose used (s); NaN during a dropout
 )
 
 

@@ -1,0 +1,87 @@
+"""`flightstack bench-loop [EXPERIMENT] [--rig emulated-lab] [--seconds S]`: does this computer keep the
+mission's control period while decoding every drone's video? (issue 19, loop health)
+
+It flies the experiment's `none` mode for S seconds on the emulated lab: one Tello emulator per drone
+streaming H.264 video on loopback, the NatNet motion-capture emulator, the MAVLink rover, the real
+drivers, decoders, marker extraction and safety layer, on the wall clock. That is the flight's own
+loop, so its loop health (flightstack.recording.loop_health) is the answer. The emulators encode the
+video on this computer too, which real Tellos do on board: the benchmark is pessimistic by that load.
+
+Exit 0 when the loop kept dt (at most 1 % of the ticks overran and the p99 compute time < dt), 1 when
+it did not or the run failed, 2 for bad arguments. Real drones are never flown: any rig whose devices
+are not the emulated lab's is refused."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from flightstack.config.mission import MissionError, load_mission
+from flightstack.config.rig import RigError
+from flightstack.recording.files import METRICS_FILE
+from flightstack.recording.loop_health import loop_health_line
+
+DEFAULT_EXPERIMENT = "paper_experiment"
+
+
+def cmd_bench_loop(args: argparse.Namespace) -> int:
+    """Fly `none` on the emulated lab for args.seconds and judge its loop health (module docstring)."""
+    try:
+        mission = load_mission(args.experiment, {"compare_modes": ["none"]}, rig=args.rig)
+    except (MissionError, RigError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if not mission.start_emulators:
+        print(
+            f"error: bench-loop runs on the emulated lab only (rig {args.rig!r} is "
+            f"{'simulated' if mission.simulated else 'real hardware'}); it never flies real drones "
+            "and a simulated clock does not measure the wall-clock loop",
+            file=sys.stderr,
+        )
+        return 2
+    from flightstack.cli.app import build_parser
+
+    argv = ["run", args.experiment, "--rig", args.rig, "--modes", "none", "--duration", str(args.seconds)]
+    argv += ["--no-progress"] + (["--out", args.out, "--force"] if args.out else [])
+    run_args = build_parser().parse_args(argv)
+    code = int(run_args.func(run_args))
+    out = Path(args.out) if args.out else _newest_run(mission.name)
+    try:
+        metrics = json.loads((out / METRICS_FILE).read_text(encoding="utf-8"))
+        health = metrics["modes"]["none"]["loop_health"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        print(f"bench-loop: no loop health recorded ({type(exc).__name__}: {exc}); run exit {code}")
+        return 1
+    n = len(mission.drones)
+    verdict = "KEEPS" if health["keeps_dt"] else "DOES NOT keep"
+    print(f"bench-loop: this computer {verdict} dt = {1e3 * mission.dt_s:.0f} ms with {n} drones' video")
+    print(f"  {loop_health_line(health)}")
+    print(f"  plot: {out / 'loop_health.png'}")
+    return 0 if code == 0 and health["keeps_dt"] else 1
+
+
+def _newest_run(name: str) -> Path:
+    """The newest runs/<name>-<stamp> directory (the run's default --out)."""
+    found = sorted(Path("runs").glob(f"{name}-*"), key=lambda p: p.stat().st_mtime)
+    return found[-1] if found else Path("runs") / name
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add `bench-loop` to the top-level subcommands."""
+    from flightstack.cli.run import seconds
+
+    b = sub.add_parser(
+        "bench-loop",
+        help="does this computer keep the mission's dt while decoding every drone's video? (emulated lab)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    b.add_argument(
+        "experiment", nargs="?", default=DEFAULT_EXPERIMENT, help=f"experiment (default {DEFAULT_EXPERIMENT})"
+    )
+    b.add_argument("--rig", default="emulated-lab", help="an emulated-lab rig (default emulated-lab)")
+    b.add_argument("--seconds", type=seconds, default=10.0, help="pursuit seconds to measure (default 10)")
+    b.add_argument("--out", default=None, help="run directory (default runs/<experiment>-<stamp>)")
+    b.set_defaults(func=cmd_bench_loop)

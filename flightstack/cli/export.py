@@ -1,0 +1,71 @@
+"""`flightstack export RUN_DIR --mcap FILE [--modes a,b] [--force]`: a run directory as one MCAP file for
+Foxglove and PlotJuggler (flightstack.recording.mcap_export: topics `/<mode>/...`, mission-clock time
+base, NaN written as null).
+
+Exit codes: 0 written; 2 bad input (no such run directory, no recording in it, an unknown mode, FILE
+exists without --force, FILE is a directory); 1 an error while writing (reported by `cli.app.main`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from flightstack.cli.run import mode_list
+
+
+def register(sub: Any) -> None:
+    """Add the `export` subcommand to the CLI's subparsers."""
+    p = sub.add_parser("export", help="export a run directory as an MCAP file (Foxglove, PlotJuggler)")
+    p.add_argument("run_dir", help="run directory written by `flightstack run`/`sim`/`fly`/`agent`")
+    p.add_argument("--mcap", required=True, metavar="FILE", help="MCAP file to write (e.g. run.mcap)")
+    p.add_argument(
+        "--modes", type=mode_list, default=None, metavar="A,B", help="only these modes (default: every one)"
+    )
+    p.add_argument("--force", action="store_true", help="overwrite FILE if it exists")
+    p.set_defaults(func=cmd_export)
+
+
+def _mission(run: Path) -> Any:
+    """The run's resolved mission (for e_c, e_e of a recording cut short), or None when it is absent or
+    does not load (the export then goes on without it)."""
+    from flightstack.config.mission import load_mission
+    from flightstack.recording.files import MISSION_FILE
+
+    path = run / MISSION_FILE
+    if not path.is_file():
+        return None
+    try:
+        return load_mission(path, check_files=False)
+    except Exception as exc:  # an old or hand-edited file: export the arrays as recorded
+        print(f"note: {path}: not used ({type(exc).__name__}: {exc})", file=sys.stderr)
+        return None
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """Write RUN_DIR's recording to FILE and print a short summary (topics, messages, span)."""
+    from flightstack.recording.mcap_export import ExportError, export_mcap
+
+    run, out = Path(args.run_dir), Path(args.mcap)
+    if not run.is_dir():
+        print(f"error: {run}: no such run directory", file=sys.stderr)
+        return 2
+    if out.is_dir():
+        print(f"error: {out}: is a directory (give a file name, e.g. {out / 'run.mcap'})", file=sys.stderr)
+        return 2
+    if out.exists() and not args.force:
+        print(f"error: {out} exists (pass --force to overwrite it)", file=sys.stderr)
+        return 2
+    try:
+        s = export_mcap(run, out, args.modes, _mission(run))
+    except ExportError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    size_mb = out.stat().st_size / 1e6
+    print(f"wrote {out} ({size_mb:.1f} MB): {len(s.topics)} topics, {s.messages} messages")
+    for mode in s.modes:
+        topics = f"/{mode}/..."
+        print(f"  {topics:14s} {s.mode_ticks[mode]:7d} ticks   {s.mode_seconds[mode]:8.2f} s mission clock")
+    print(f"  time line {s.duration_s:.2f} s (log time = each mode's mission clock from its first wall time)")
+    return 0

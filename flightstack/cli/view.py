@@ -1,0 +1,156 @@
+"""`flightstack view RUN_DIR [--mode M] [--save FILE.rrd | --connect [ADDR] | --spawn]`: a run directory in
+the Rerun 3-D viewer (flightstack.viewer; the optional extra `viewer`), and the `--viewer` option of
+run/sim/fly/agent (`add_viewer_argument`, `open_live_viewer`)."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from flightstack.recording.files import LIVE_FILE, REPLAY_FILE
+
+if TYPE_CHECKING:
+    from flightstack.config.mission import Mission
+    from flightstack.viewer.live import RerunTap
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    """Rebuild a Rerun recording from a run directory and show it (spawn/connect) or save it; exit 2
+    without rerun-sdk (naming the extra) or without a recording."""
+    from flightstack.viewer.rerun_import import ViewerUnavailable, load_rerun
+
+    try:
+        rr = load_rerun()
+    except ViewerUnavailable as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    from flightstack.viewer import blueprint, layout
+    from flightstack.viewer.replay import Replay
+    from flightstack.viewer.sinks import AUTO, Sink, close_stream, connect_url, open_stream, resolve
+
+    run = Path(args.run_dir)
+    try:
+        replay = Replay.load(run, args.mode)
+    except FileNotFoundError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.save is not None:
+        sink = Sink("save", str(args.save))
+    elif args.connect is not None:
+        sink = Sink("connect", connect_url(args.connect or None))
+    else:
+        sink = resolve("spawn" if args.spawn else AUTO, run / REPLAY_FILE)
+    t0 = time.perf_counter()
+    name = f"{replay.mission.name if replay.mission else 'run'} ({run.name})"
+    try:
+        stream = open_stream(rr, sink, name, blueprint.build(rr, list(replay.recordings)))
+    except OSError as exc:
+        print(f"error: {sink.describe()}: {exc}", file=sys.stderr)
+        return 1
+    try:
+        replay.log(rr, stream)
+    except BaseException:
+        with contextlib.suppress(Exception):
+            close_stream(stream)
+        raise
+    try:
+        close_stream(stream)
+    except RuntimeError as exc:  # a viewer that went away while we sent
+        print(f"error: {sink.describe()}: {exc}", file=sys.stderr)
+        return 1
+    print(f"run directory: {run}")
+    for mode in replay.recordings:
+        r = replay.rates(mode)
+        print(
+            f"  {mode:7s} {r.ticks:7d} ticks: 3-D every {r.pose_stride} ticks ({r.pose_rows} poses per body, "
+            f"<= {layout.REPLAY_3D_HZ:g} Hz), scalars every {r.scalar_stride} ({r.scalar_rows} rows), "
+            f"{r.events} events"
+        )
+    print(f"  logged in {time.perf_counter() - t0:.1f} s to {sink.describe()}")
+    return 0
+
+
+def add_viewer_argument(p: argparse.ArgumentParser) -> None:
+    """`--viewer [spawn|connect[:ADDR]|save:FILE.rrd]` (run, sim, fly, agent)."""
+    from flightstack.viewer.sinks import AUTO, viewer_spec
+
+    p.add_argument(
+        "--viewer",
+        nargs="?",
+        const=AUTO,
+        default=None,
+        type=viewer_spec,
+        metavar="spawn|connect[:ADDR]|save:FILE.rrd",
+        help="watch the flight live in the Rerun 3-D viewer (needs `pip install 'flightstack[viewer]'`): "
+        "spawn a viewer, connect to one (default 127.0.0.1:9876) or save an .rrd; without a value, spawn "
+        f"when there is a display, else save RUN_DIR/{LIVE_FILE} (then put --viewer last, or write "
+        "--viewer=auto)",
+    )
+
+
+def viewer_problem(spec: str | None) -> str | None:
+    """Why `--viewer` cannot work here (rerun-sdk missing, with the install hint), checked before anything
+    takes off; None when it can (or was not asked for)."""
+    if spec is None:
+        return None
+    from flightstack.viewer.rerun_import import ViewerUnavailable, load_rerun
+
+    try:
+        load_rerun()
+    except ViewerUnavailable as exc:
+        return f"--viewer: {exc}"
+    return None
+
+
+def flown_modes(mission: Mission) -> list[str]:
+    """The modes `run_experiment` flies, in order: the data run `none` first when a GP mode needs experts
+    that are not given (gp.experts_file)."""
+    from flightstack.config.types import Mode
+
+    modes = list(mission.compare_modes)
+    if mission.gp.experts_file is None and any(Mode(m).uses_gp for m in modes):
+        modes = [Mode.NONE.value] + [m for m in modes if m != Mode.NONE]
+    return modes
+
+
+def open_live_viewer(spec: str | None, mission: Mission, out: Path, modes: list[str]) -> RerunTap | None:
+    """The live tap of `--viewer` (None without it), its recording named after the mission and `out`;
+    prints where it goes. The caller passes it to the runner and calls `finish()` at the end."""
+    if spec is None:
+        return None
+    from flightstack.viewer.live import RerunTap
+    from flightstack.viewer.sinks import resolve
+
+    sink = resolve(spec, out / LIVE_FILE)
+    tap = RerunTap.open(sink, mission, modes, name=f"{mission.name} ({out.name}, live)")
+    print(f"viewer: live to {sink.describe()}", file=sys.stderr)
+    return tap
+
+
+def register(sub: Any) -> None:
+    v = sub.add_parser(
+        "view",
+        help="show a run directory in the Rerun 3-D viewer (poses, estimates, cameras, GP, errors, events)",
+        description="Rebuild a Rerun recording from RUN_DIR (every mode on one `mission_time` timeline, "
+        "under /<mode>/) and spawn a viewer, connect to one, or save an .rrd. Without a choice: spawn "
+        f"when there is a display, else write RUN_DIR/{REPLAY_FILE}. "
+        "Needs `pip install 'flightstack[viewer]'`.",
+    )
+    v.add_argument("run_dir", help="run directory written by `flightstack run`/`sim`/`fly`/`agent`")
+    v.add_argument("--mode", default=None, help="only this mode (default: every recorded mode)")
+    where = v.add_mutually_exclusive_group()
+    where.add_argument("--save", default=None, metavar="FILE.rrd", help="write the recording to FILE.rrd")
+    where.add_argument(
+        "--connect",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="ADDR",
+        help="send it to a running viewer (HOST:PORT or a rerun+http:// URL; default 127.0.0.1:9876)",
+    )
+    where.add_argument("--spawn", action="store_true", help="start a viewer and send it there")
+    v.set_defaults(func=cmd_view)
