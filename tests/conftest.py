@@ -15,6 +15,7 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
 from flightstack.paper.geometry import Pose
+from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
 
 # Property tests are deterministic in CI and locally: the same examples every run (derandomize), no
 # wall-clock deadline (a 2-core CI machine under load must not turn a slow example into a failure).
@@ -179,3 +180,21 @@ def eventually(pred: Callable[[], bool], timeout_s: float = 10.0) -> bool:
             return True
         time.sleep(0.005)
     return pred()
+
+
+def random_recording(mode: str, ids: list[int], n_ticks: int, seed: int = 0) -> Recording:
+    """A recording of n_ticks ticks with every array of ARRAY_FIELDS random (bool, small ints, normal
+    floats), t every 0.05 s and ticks_done = n_ticks: for tests of what stores or exports recordings."""
+    rng = np.random.default_rng(seed)
+    rec = Recording.empty(mode, list(ids), n_ticks)
+    for f in ARRAY_FIELDS:
+        a = getattr(rec, f)
+        if a.dtype == bool:
+            a[:] = rng.random(a.shape) > 0.5
+        elif a.dtype.kind == "i":
+            a[:] = rng.integers(0, 4, a.shape)
+        else:
+            a[:] = rng.normal(size=a.shape)
+    rec.t[:] = np.arange(n_ticks) * 0.05
+    rec.ticks_done = n_ticks
+    return rec

@@ -23,6 +23,7 @@ from flightstack.recording.mcap_export import CLOCK_FIELDS, POSE_FIELDS, export_
 from flightstack.recording.mcap_messages import FOXGLOVE_SCHEMAS, LOG_ERROR, LOG_INFO, LOG_WARNING
 from flightstack.recording.run_reader import load_run
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
+from tests.conftest import random_recording
 
 SCHEMA_DIR = resources.files("flightstack.recording") / "schemas" / "foxglove"
 IDS = (1, 2)
@@ -62,17 +63,7 @@ LEVELS = [LOG_INFO, LOG_WARNING, LOG_INFO, LOG_INFO, LOG_ERROR, LOG_ERROR, LOG_E
 
 def _fake(mode: str, seed: int, wall: bool = True) -> Recording:
     """N random ticks at 20 Hz of every array of ARRAY_FIELDS; e_c of drone 2 at tick 3 has a NaN θ."""
-    rng = np.random.default_rng(seed)
-    rec = Recording.empty(mode, list(IDS), N)
-    for f in ARRAY_FIELDS:
-        a = getattr(rec, f)
-        if a.dtype == bool:
-            a[:] = rng.random(a.shape) > 0.5
-        elif a.dtype.kind == "i":
-            a[:] = rng.integers(0, 4, a.shape)
-        else:
-            a[:] = rng.normal(size=a.shape)
-    rec.t[:] = np.arange(N) * 0.05
+    rec = random_recording(mode, list(IDS), N, seed)
     rec.wall_t[:] = WALL0 + 3.0 * seed + rec.t if wall else 0.0
     rec.e_c[3, 1, 3] = np.nan
     rec.ticks_done = N

@@ -40,7 +40,7 @@ from flightstack.recording.run_dir import (
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
 from flightstack.runtime.experiment import resolved_mission_yaml
 from flightstack.runtime.runner import run_mode
-from tests.conftest import MISSIONS, REPO
+from tests.conftest import MISSIONS, REPO, random_recording
 
 LAB = MISSIONS / "paper_experiment.yaml"
 
@@ -51,18 +51,9 @@ def _lab(duration_s: float = 2.0) -> Mission:
 
 
 def _fake(n_ticks: int, ids: tuple[int, ...] = (1, 2), seed: int = 0) -> Recording:
-    """A recording of n_ticks random ticks (every array filled)."""
-    rng = np.random.default_rng(seed)
-    rec = Recording.empty("none", list(ids), n_ticks)
-    for f in ARRAY_FIELDS:
-        a = getattr(rec, f)
-        if a.dtype == bool:
-            a[:] = rng.random(a.shape) > 0.5
-        elif a.dtype.kind == "i":
-            a[:] = rng.integers(0, 4, a.shape)
-        else:
-            a[:] = rng.normal(size=a.shape)
-    rec.t[:] = np.arange(n_ticks) * 0.05
+    """A recording of n_ticks random ticks (every array filled), not yet marked done."""
+    rec = random_recording("none", list(ids), n_ticks, seed)
+    rec.ticks_done = 0
     return rec
 
 

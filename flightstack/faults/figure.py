@@ -9,9 +9,10 @@ faults.json and the run directories, so `flightstack faults` and the README gall
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
+
+from flightstack.recording.run_reader import read_events
 
 FAMILIES: tuple[tuple[str, tuple[str, ...], str, str], ...] = (
     # label, substrings of the event kind, marker, colour
@@ -32,19 +33,12 @@ def family(kind: str) -> int:
 
 
 def safety_events(run_dir: Path) -> list[tuple[float, str]]:
-    """(t, kind) of the safety events in run_dir/events.jsonl (unreadable lines skipped)."""
-    path = Path(run_dir) / "events.jsonl"
-    out: list[tuple[float, str]] = []
-    if not path.is_file():
-        return out
-    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
-        try:
-            ev = json.loads(line)
-        except ValueError:
-            continue
-        if isinstance(ev, dict) and ev.get("event") == "safety" and isinstance(ev.get("t"), int | float):
-            out.append((float(ev["t"]), str(ev.get("kind", ""))))
-    return out
+    """(t, kind) of the safety events in run_dir/events.jsonl (lines cut short skipped)."""
+    return [
+        (float(ev["t"]), str(ev.get("kind", "")))
+        for ev in read_events(run_dir)
+        if ev.get("event") == "safety" and isinstance(ev.get("t"), int | float)
+    ]
 
 
 def plot_fault_summary(results: list[dict[str, Any]], path: Path) -> Path:
