@@ -220,6 +220,7 @@ def test_live_viewer_shows_camera_images_and_does_not_change_the_flight(tmp_path
         assert np.array_equal(getattr(seen, name), getattr(alone, name)), name
     rrd = Rrd(rrd_path)
     assert rrd.rows[layout.image("none", 1)] >= 1  # at most IMAGE_HZ per wall second
+    assert rrd.rows[layout.markers("none", 1)] >= 1  # the markers drone 1's agent detected, over its image
     assert rrd.rows[layout.drone("none", 2)] == math.ceil(seen.ticks_done / 2)  # dt 0.05 s: 10 Hz
     assert tap.dropped == 0 and tap.errors == 0
 

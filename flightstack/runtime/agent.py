@@ -119,6 +119,9 @@ class Agent:
         self._N = np.zeros((4, k, 4))  # neighbour messages: field (ḡ_w, μ, var, σ_f²) × neighbour × 4
         self._NG, self._NMU, self._NVAR, self._NPRIOR = self._N  # (k, 4) C-contiguous views: agent_act's
         self.last = TickRecord(g_bar_w0)
+        # the marker centres (m, 2) in pixels of the distorted image the last tick detected; None when
+        # it had no image, or the image was rejected (a viewer draws them over the frame)
+        self.markers_px: np.ndarray | None = None
         self.hold = False  # set by the safety supervisor: hover instead of pursuing
 
     @property
@@ -188,6 +191,7 @@ class Agent:
     def _features(self, frame: Frame | None, t: float) -> tuple[np.ndarray | None, str | None]:
         """(f (2m,), None) from the frame: given directly (ideal camera) or extracted from the image; or
         (None, why the image gave no features: TickRecord.rejection)."""
+        self.markers_px = None
         if frame is None:
             return None, "no frame"
         if t - frame.stamp > self.cfg.max_frame_age_s:
@@ -200,6 +204,7 @@ class Agent:
         if frame.image is None or self.cfg.calibration is None:
             return None, None
         det = extract_markers(frame.image, self.cfg.calibration)
+        self.markers_px = det.pixels
         seen = features_from_detection(det, self.cfg.camera.focal_length)
         return (None if seen is None else np.array(seen, dtype=float).reshape(-1)), det.reason
 

@@ -99,6 +99,11 @@ def image(mode: str, i: int) -> str:
     return f"/{mode}/world/drone{i}/camera/image"
 
 
+def markers(mode: str, i: int) -> str:
+    """Live: the marker centres drone i's agent detected in the image shown (pixels, distorted image)."""
+    return f"{image(mode, i)}/markers"
+
+
 def trail(mode: str, body: str) -> str:
     """The path of `body` ("target", "drone<i>", "estimate<i>") over the last TRAIL_S seconds."""
     return f"/{mode}/world/trails/{body}"

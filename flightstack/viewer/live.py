@@ -86,7 +86,8 @@ class _Rows:
     cols: dict[str, np.ndarray]  # rows at the scalar rate (t, poses, GP, ...)
     pose: np.ndarray  # bool per row: also a 3-D row
     events: list[dict[str, Any]] = field(default_factory=list)
-    images: list[tuple[int, float, np.ndarray]] = field(default_factory=list)  # (drone id, stamp s, RGB)
+    # (drone id, stamp s, RGB image, the markers the agent detected in it: (m, 2) pixels or None)
+    images: list[tuple[int, float, np.ndarray, np.ndarray | None]] = field(default_factory=list)
 
 
 @dataclass
@@ -238,13 +239,16 @@ class RerunTap:
         idx = np.arange(-(-self._k // e) * e, k_end, e)
         cols = {name: np.array(getattr(rec, name)[idx]) for name in (*LIVE_FIELDS, *self._health)}
         events = [dict(ev) for ev in rec.events[self._n_events :]]
-        images: list[tuple[int, float, np.ndarray]] = []
+        images: list[tuple[int, float, np.ndarray, np.ndarray | None]] = []
         now = time.monotonic()
         if self._keepers and now - self._last_image >= 1.0 / layout.IMAGE_HZ:
+            markers = {a.cfg.drone_id: a.markers_px for a in self._agents}
             for i, keeper in self._keepers.items():
                 fr = keeper.last
                 if fr is not None and fr.image is not None:
-                    images.append((i, float(fr.stamp), np.array(fr.image, dtype=np.uint8)))
+                    px = markers.get(i)
+                    seen = None if px is None else np.array(px, dtype=float)
+                    images.append((i, float(fr.stamp), np.array(fr.image, dtype=np.uint8), seen))
             if images:
                 self._last_image = now
         return _Rows(self._mode, cols, idx % self._pose_every == 0, events, images)
@@ -331,10 +335,15 @@ class RerunTap:
             logger.poses({k: v[job.pose] for k, v in cols.items()})
         t_default = float(cols["t"][-1]) if n else 0.0
         logger.events(job.events, t_default)
-        for i, stamp, img in job.images:
+        for i, stamp, img, px in job.images:
             self.stream.set_time(layout.TIMELINE, duration=stamp)
             enc = self.rr.Image(img, color_model="RGB").compress(jpeg_quality=layout.JPEG_QUALITY)
             self.stream.log(layout.image(job.mode, i), enc)
+            if px is None:  # nothing detected in this frame: no stale markers over it
+                self.stream.log(layout.markers(job.mode, i), self.rr.Clear(recursive=False))
+            else:
+                labels = [f"marker {k + 1}" for k in range(px.shape[0])]
+                self.stream.log(layout.markers(job.mode, i), self.rr.Points2D(px, radii=3.0, labels=labels))
 
 
 def _true_errors(
