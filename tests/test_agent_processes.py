@@ -5,6 +5,7 @@ tests/test_faults.py.) Every process is bounded (timeouts, killed on exit)."""
 
 from __future__ import annotations
 
+import importlib.util
 import subprocess
 import sys
 import time
@@ -76,7 +77,10 @@ def test_served_lab_streams_camera_images(tmp_path: Path) -> None:
         d["camera"]["calibration"] = str(MISSIONS / d["camera"]["calibration"])
     mission = tmp_path / "lab.yaml"
     mission.write_text(yaml.safe_dump(m))
-    with ServedRun(mission, tmp_path, ids=(1, 2), mode="none") as run:
+    live = tmp_path / "agent1_live.rrd"  # agent 1 also streams its flight to a Rerun file (--viewer)
+    viewer = importlib.util.find_spec("rerun") is not None  # the `viewer` extra (CI installs it)
+    extra = {1: ("--viewer", f"save:{live}")} if viewer else {}
+    with ServedRun(mission, tmp_path, ids=(1, 2), mode="none", agent_args=extra) as run:
         codes = {i: a.wait(timeout=90) for i, a in run.agents.items()}
         run.world.wait(timeout=30)
         wout = run.world_lines.rest()
@@ -86,6 +90,13 @@ def test_served_lab_streams_camera_images(tmp_path: Path) -> None:
     assert rec["t"].shape[0] == 60 and rec["visible"][:, 0].mean() > 0.9  # drone 1 saw the markers
     height = rec["g_wi"][:, 0, 2] - rec["g_w0"][:, 2]
     assert np.all(np.abs(height - 1.0) < 0.1)  # and held 1 m above the target
+    if viewer:
+        from flightstack.viewer import layout
+        from tests.test_viewer import Rrd
+
+        rrd = Rrd(live)
+        assert rrd.rows[layout.drone("none", 1)] > 0 and rrd.rows[layout.image("none", 1)] >= 1
+        assert rrd.rows[layout.markers("none", 1)] >= 1  # what agent 1 detected in the served images
 
 
 def test_agent_without_a_world_fails_clearly(tmp_path: Path) -> None:

@@ -126,14 +126,26 @@ def popen(*args: str) -> subprocess.Popen[str]:
 class ServedRun:
     """`flightstack world` + one `flightstack agent` per drone; everything killed on exit."""
 
-    def __init__(self, mission: Path, out: Path, ids: tuple[int, ...] = IDS, mode: str = "dgp") -> None:
+    def __init__(
+        self,
+        mission: Path,
+        out: Path,
+        ids: tuple[int, ...] = IDS,
+        mode: str = "dgp",
+        agent_args: dict[int, tuple[str, ...]] | None = None,
+    ) -> None:
+        """agent_args: extra arguments of some agents' command lines (e.g. --viewer), by drone id."""
         self.out = out
         self.world = popen("world", str(mission))
         self.world_lines = Lines(self.world)
+        extra = agent_args or {}
         self.agents = {
-            i: popen("agent", str(mission), "--id", str(i), "--mode", mode, "--out", str(out / f"agent{i}"))
+            i: popen(
+                "agent", str(mission), "--id", str(i), "--mode", mode, "--out", str(out / f"agent{i}"),
+                *extra.get(i, ()),
+            )
             for i in ids
-        }
+        }  # fmt: skip
         self.agent_lines = {i: Lines(p) for i, p in self.agents.items()}
 
     def __enter__(self) -> ServedRun:
