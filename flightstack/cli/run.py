@@ -306,9 +306,13 @@ def _export_mcap(args: argparse.Namespace, mission: Mission, out: Path) -> bool:
 
 def speed_lines(m: dict[str, Any], command_s: float) -> list[str]:
     """Sim-time / wall-time of each flown mode's loop (takeoff to landing, kernels already warm), of the
-    flown modes together, and of the whole command (warm-up, training, gain analysis, files and plots)."""
+    flown modes together, and of the whole command (warm-up, training, gain analysis, files and plots).
+    Modes flown on the wall clock (hardware, the emulated lab) are left out: they run at 1x by design and
+    their loop-health line says whether they kept dt."""
     lines, sim, wall = [], 0.0, 0.0
     for mode, mm in m["modes"].items():
+        if (mm.get("loop_health") or {}).get("real_time"):
+            continue
         s, w = float(mm.get("sim_seconds", 0.0)), float(mm.get("wall_seconds", 0.0))
         if s > 0 and w > 0:
             lines.append(f"  speed {mode:7s} {s:8.1f} s simulated in {w:7.2f} s: {s / w:8.1f}x real time")

@@ -73,7 +73,7 @@ def plot_fault_summary(results: list[dict[str, Any]], path: Path) -> Path:
     ax.set_title(f"Fault table: {handled} of {n} rows handled")
     ax.grid(True, axis="x", alpha=0.3)
     if seen:
-        ax.legend(fontsize=7, loc="lower right")
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the lanes
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
