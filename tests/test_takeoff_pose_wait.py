@@ -44,3 +44,34 @@ def test_a_pose_that_never_arrives_stops_the_mission_before_any_takeoff(tmp_path
     assert not run.events("takeoff")
     assert run.rec is None or run.rec.ticks_done == 0
     assert not run.backend.inner.drone(1).state().flying and not run.backend.inner.drone(2).state().flying
+
+
+def test_a_pose_source_that_raises_counts_as_no_pose_and_never_crashes_the_wait() -> None:
+    from types import SimpleNamespace
+
+    from flightstack.runtime.runner import wait_for_poses
+
+    class Broken:
+        def latest(self, body: str) -> None:
+            raise OSError("motion capture socket closed")
+
+    class Clock:
+        t = 0.0
+
+        def now(self) -> float:
+            return self.t
+
+        def sleep_until(self, t: float) -> None:
+            self.t = t
+
+    ticks: list[float] = []
+    clock = Clock()
+    f = SimpleNamespace(
+        safe={1: SimpleNamespace(poses=Broken(), body="drone1")},
+        clock=clock,
+        mission=SimpleNamespace(dt_s=0.05),
+        ticker=SimpleNamespace(tick=lambda: ticks.append(clock.t)),
+    )
+    with pytest.raises(RuntimeError, match=r"no fresh motion-capture pose of \['drone1'\]"):
+        wait_for_poses(f)  # type: ignore[arg-type]
+    assert clock.t >= POSE_WAIT_S and len(ticks) >= POSE_WAIT_S / 0.05 - 1  # the safety timers kept ticking

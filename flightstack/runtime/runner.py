@@ -51,6 +51,7 @@ from flightstack.runtime.phases import (
 )
 from flightstack.runtime.taps import TapSet, TickTap
 from flightstack.runtime.tick_record import TickBook, record_tick
+from flightstack.safety import SafeDrone
 
 __all__ = [  # run_mode and its parts here; the fleet's parts re-exported from flightstack.runtime.fleet
     "OperatorAbortError",
@@ -187,8 +188,14 @@ def wait_for_poses(f: Fleet) -> None:
     if not f.safe:
         return
 
+    def fresh(s: SafeDrone) -> bool:
+        try:
+            return s.poses.latest(s.body) is not None
+        except Exception:  # a pose source that raises has no pose: counted as missing, never a crash here
+            return False
+
     def missing() -> list[str]:
-        return [s.body for s in f.safe.values() if s.poses.latest(s.body) is None]
+        return [s.body for s in f.safe.values() if not fresh(s)]
 
     if not advance_until(f.clock, lambda: not missing(), POSE_WAIT_S, f.mission.dt_s, f.ticker.tick):
         raise RuntimeError(
