@@ -188,9 +188,9 @@ class _Plan:
             poses(f"drone{i}", rec.g_wi[:, j])
             poses(f"drone{i}/estimate", rec.g_bar_w[:, j])
         for f in ARRAY_FIELDS:
-            if f in POSE_FIELDS or f in CLOCK_FIELDS or not hasattr(rec, f):
+            if f in POSE_FIELDS or f in CLOCK_FIELDS:
                 continue
-            a = np.asarray(getattr(rec, f))[: len(rec.t)]
+            a = np.asarray(getattr(rec, f))
             schema = f"flightstack.{f}"
             doc = FIELD_DOCS.get(f, f"per-tick array {f} of the recording (flightstack.recording.timeseries)")
             if a.ndim >= 2 and a.shape[1] == len(rec.drone_ids):  # per drone
@@ -228,8 +228,9 @@ def _write(fh: IO[bytes], run_dir: Path, recs: dict[str, Recording], out: Path) 
     streams: list[Iterator[Message]] = []
     bases: dict[str, float] = {}
     for mode, rec in recs.items():
-        n_ticks = min(rec.ticks_done, len(rec.t)) if rec.ticks_done else len(rec.t)
-        rec = rec if n_ticks == len(rec.t) else _head(rec, n_ticks)
+        if rec.ticks_done != len(rec.t):  # load_run's recordings hold exactly their ticks; never export more
+            rec = rec.truncated()
+        n_ticks = rec.ticks_done
         bases[mode] = base = time_base(rec)
         # times never decrease within a topic, even for a (never seen) tick whose t goes back
         ns = list(accumulate((to_ns(base, float(x)) for x in rec.t), max))
@@ -260,10 +261,3 @@ def _write(fh: IO[bytes], run_dir: Path, recs: dict[str, Recording], out: Path) 
     writer.finish()
     return summary
 
-
-def _head(rec: Recording, k: int) -> Recording:
-    """The first k ticks of every array (a recording whose arrays are longer than its ticks done)."""
-    cols = {f: getattr(rec, f)[:k] for f in ARRAY_FIELDS if hasattr(rec, f)}
-    cut = Recording.from_columns(rec.mode, rec.drone_ids, cols)
-    cut.events = rec.events
-    return cut

@@ -67,7 +67,7 @@ def plain_schema(name: str, keys: Sequence[str], a: np.ndarray, doc: str) -> byt
 def time_base(rec: Recording) -> float:
     """Seconds added to the mission clock t for log times: first wall_t − first t when wall_t is
     present and nonzero (epoch s), else 0."""
-    wall = np.asarray(getattr(rec, "wall_t", np.zeros(0)), dtype=float)
+    wall = np.asarray(rec.wall_t, dtype=float)
     if len(rec.t) == 0 or wall.size == 0 or not math.isfinite(wall[0]) or wall[0] == 0.0:
         return 0.0
     return float(wall[0]) - float(rec.t[0])
@@ -83,15 +83,6 @@ def dumps(obj: Any) -> bytes:
     return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
 
 
-def _clean(v: Any) -> Any:
-    """A value of `ndarray.tolist()` with non-finite floats as None (recursively for lists)."""
-    if isinstance(v, list):
-        return [_clean(x) for x in v]
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
-
-
 def stamp(ns: int) -> dict[str, int]:
     """A Foxglove `time` {sec, nsec} of log time ns."""
     sec, nsec = divmod(ns, 1_000_000_000)
@@ -105,7 +96,7 @@ def rows(a: np.ndarray) -> Callable[[int], Any]:
         return lambda k: a[k].tolist()
     bad = ~np.isfinite(a)
     bad_rows = bad.any(axis=tuple(range(1, a.ndim))) if a.ndim > 1 else bad
-    return lambda k: _clean(a[k].tolist()) if bad_rows[k] else a[k].tolist()
+    return lambda k: json_safe(a[k].tolist()) if bad_rows[k] else a[k].tolist()
 
 
 def pose_encoders(poses: np.ndarray, child: str) -> tuple[Encoder, Encoder]:

@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 
+from flightstack.recording.timeseries import LOOP_HEALTH_FIELDS
+
 TIMELINE = "mission_time"
 """The one timeline: the mission clock of each mode (s, a Rerun duration)."""
 
@@ -45,8 +47,8 @@ POSE_ERROR_NAMES = ("x [m]", "y [m]", "z [m]", "sin θ")  # vec(g) = [p, sin θ]
 VELOCITY_NAMES = ("v_x [m/s]", "v_y [m/s]", "v_z [m/s]", "ω [rad/s]")  # body velocity of the target
 VARIANCE_NAMES = ("v_x [m²/s²]", "v_y [m²/s²]", "v_z [m²/s²]", "ω [rad²/s²]")
 
-HEALTH_FIELDS = ("loop_period", "loop_compute", "frame_age", "pose_age")
-"""Loop-health arrays of a Recording (s): logged as scalars when the Recording has them ((N,) under
+HEALTH_FIELDS = LOOP_HEALTH_FIELDS
+"""Loop-health arrays of a Recording (s), logged as scalars where measured ((N,) under
 `/<mode>/loop/<name>`, (N, n) under `/<mode>/<name>/drone<i>`)."""
 
 TARGET_RGB = (255, 140, 0)

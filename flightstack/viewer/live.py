@@ -31,8 +31,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from flightstack.paper.gp import GPExpert
 from flightstack.viewer import layout, scene
-from flightstack.viewer.mode_logger import MeanPredictor, ModeLogger
+from flightstack.viewer.mode_logger import ModeLogger
 
 if TYPE_CHECKING:
     from rerun import RecordingStream
@@ -76,7 +77,7 @@ class _Start:
     ids: list[int]
     g_d: np.ndarray  # (n, 4) desired relative poses, recording order
     mission: Mission
-    experts: dict[int, MeanPredictor]
+    experts: dict[int, GPExpert]
     uses_gp: bool
 
 
@@ -119,7 +120,6 @@ class RerunTap:
         self._n_events = 0
         self._every = 1
         self._pose_every = 1
-        self._health: tuple[str, ...] = ()
         self._keepers: dict[int, FrameKeeper] = {}
         self._agents: list[Any] = []
         self._last_image = -math.inf
@@ -149,7 +149,6 @@ class RerunTap:
         self._mode, self._k, self._n_events, self._mode_dropped = rec.mode, 0, 0, 0
         self._every = layout.stride(mission.dt_s, layout.LIVE_SCALAR_HZ)
         self._pose_every = layout.stride(mission.dt_s, layout.LIVE_3D_HZ, base=self._every)
-        self._health = tuple(n for n in layout.HEALTH_FIELDS if isinstance(getattr(rec, n, None), np.ndarray))
         self._agents = list(f.agents)
         self._keepers = {}
         if any(d.camera is not None and d.camera.calibration for d in mission.drones):  # image cameras
@@ -161,11 +160,7 @@ class RerunTap:
             uses_gp = Mode(rec.mode).uses_gp
         except ValueError:
             uses_gp = False
-        experts = {
-            a.cfg.drone_id: a.predictor
-            for a in self._agents
-            if hasattr(a.predictor, "predict") and hasattr(a.predictor, "X")
-        }
+        experts = {a.cfg.drone_id: a.predictor for a in self._agents if isinstance(a.predictor, GPExpert)}
         self._put(
             _Start(rec.mode, list(rec.drone_ids), np.array(f.g_d, dtype=float), mission, experts, uses_gp)
         )
@@ -237,7 +232,7 @@ class RerunTap:
         agents' newest frames when IMAGE_HZ allows."""
         e = self._every
         idx = np.arange(-(-self._k // e) * e, k_end, e)
-        cols = {name: np.array(getattr(rec, name)[idx]) for name in (*LIVE_FIELDS, *self._health)}
+        cols = {name: np.array(getattr(rec, name)[idx]) for name in (*LIVE_FIELDS, *layout.HEALTH_FIELDS)}
         events = [dict(ev) for ev in rec.events[self._n_events :]]
         images: list[tuple[int, float, np.ndarray, np.ndarray | None]] = []
         now = time.monotonic()
@@ -313,7 +308,7 @@ class RerunTap:
             scene.log_regions(rr, stream, job.mission, predicted_target_path(job.mission, n)[:, :3])
             self._static_done.add("world")
         if job.experts and "training" not in self._static_done:
-            inputs = {i: np.asarray(ex.X) for i, ex in job.experts.items()}  # type: ignore[attr-defined]
+            inputs = {i: np.asarray(ex.X) for i, ex in job.experts.items()}
             scene.log_training(rr, stream, inputs, [d.id for d in job.mission.drones])
             self._static_done.add("training")
         scene.log_bodies(rr, stream, job.mode, job.ids)

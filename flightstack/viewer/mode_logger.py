@@ -165,10 +165,10 @@ class ModeLogger:
                     self._scalars(layout.series(m, name, i), t, cols[name][:, j])
         for name in layout.HEALTH_FIELDS:
             a = cols.get(name)
-            if a is None or a.shape[0] != t.shape[0]:
+            if a is None:
                 continue
             per_drone: list[tuple[int | None, np.ndarray]] = (
-                [(None, a)] if a.ndim == 1 else [(i, a[:, j]) for j, i in enumerate(self.ids[: a.shape[1]])]
+                [(None, a)] if a.ndim == 1 else [(i, a[:, j]) for j, i in enumerate(self.ids)]
             )
             for who, v in per_drone:
                 ok = np.isfinite(v)  # NaN: not measured (compiled ticks, files written before loop health)

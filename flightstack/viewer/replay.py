@@ -30,6 +30,7 @@ if TYPE_CHECKING:
 _log = logging.getLogger(__name__)
 
 SCALAR_FIELDS = ("t", "e_c", "e_e", "mu_used", "var_own", "visible", "n_fused", "g_bar_w")
+SCALAR_FIELDS += layout.HEALTH_FIELDS
 POSE_FIELDS = ("t", "g_w0", "g_wi", "g_bar_w")
 
 
@@ -106,7 +107,7 @@ class Replay:
                 scene.log_cameras(rr, stream, self.mission, mode, ids)
             logger = ModeLogger(rr, stream, mode, ids, experts=self.experts, uses_gp=uses_gp)
             r = self.rates(mode)
-            logger.scalars(_columns(rec, layout.ticks(n, r.scalar_stride), SCALAR_FIELDS, health=True))
+            logger.scalars(_columns(rec, layout.ticks(n, r.scalar_stride), SCALAR_FIELDS))
             logger.poses(_columns(rec, layout.ticks(n, r.pose_stride), POSE_FIELDS))
             t_end = float(rec.t[n - 1]) if n else 0.0
             logger.events(rec.events, t_end)
@@ -126,18 +127,9 @@ class Replay:
         return np.concatenate(pts)
 
 
-def _columns(
-    rec: Recording, idx: np.ndarray, names: tuple[str, ...], health: bool = False
-) -> dict[str, np.ndarray]:
-    """The rows `idx` of the Recording's arrays `names` (and of its loop-health arrays, when it has
-    them and `health`)."""
-    out = {name: np.asarray(getattr(rec, name))[idx] for name in names}
-    if health:
-        for name in layout.HEALTH_FIELDS:
-            a = getattr(rec, name, None)
-            if isinstance(a, np.ndarray) and a.shape[0] >= rec.ticks_done and rec.ticks_done > 0:
-                out[name] = a[idx]
-    return out
+def _columns(rec: Recording, idx: np.ndarray, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The rows `idx` of the Recording's arrays `names`."""
+    return {name: np.asarray(getattr(rec, name))[idx] for name in names}
 
 
 def _mission(run_dir: Path) -> Mission | None:
