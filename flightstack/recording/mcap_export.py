@@ -260,4 +260,3 @@ def _write(fh: IO[bytes], run_dir: Path, recs: dict[str, Recording], out: Path) 
             writer.add_attachment(summary.start_ns, summary.start_ns, name, media_type, path.read_bytes())
     writer.finish()
     return summary
-

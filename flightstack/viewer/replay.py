@@ -29,8 +29,10 @@ if TYPE_CHECKING:
 
 _log = logging.getLogger(__name__)
 
-SCALAR_FIELDS = ("t", "e_c", "e_e", "mu_used", "var_own", "visible", "n_fused", "g_bar_w")
-SCALAR_FIELDS += layout.HEALTH_FIELDS
+SCALAR_FIELDS: tuple[str, ...] = (
+    *("t", "e_c", "e_e", "mu_used", "var_own", "visible", "n_fused", "g_bar_w"),
+    *layout.HEALTH_FIELDS,
+)
 POSE_FIELDS = ("t", "g_w0", "g_wi", "g_bar_w")
 
 
