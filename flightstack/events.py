@@ -12,10 +12,16 @@ with the mode and the record's name under "event" (e.g. {"event": "safety", "mod
 
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
 Clock = Literal["mission", "monotonic"]
+Severity = Literal["ERROR", "WARNING", "INFO"]
+
+ERROR_EVENTS = frozenset({"NOT LANDED", "recording_stopped"})
+WARNING_EVENTS = frozenset({"safety", "lock-step wait timed out"})
 
 
 @dataclass(frozen=True)
@@ -41,3 +47,30 @@ class Event:
         who = "" if self.drone is None else f" drone {self.drone}"
         tail = f": {self.detail}" if self.detail else ""
         return f"t = {self.t:.3f} s ({self.source}{who}) {self.kind}{tail}"
+
+
+def mission_time(ev: Mapping[str, Any]) -> float | None:
+    """The recorded event's time on the mission clock (s), or None when it has none: no finite `t`, or
+    a `t` on another clock (a device's or the bus's monotonic stamp)."""
+    t = ev.get("t")
+    if isinstance(t, int | float) and not isinstance(t, bool) and math.isfinite(t):
+        return float(t) if ev.get("clock", "mission") == "mission" else None
+    return None
+
+
+def severity(ev: Mapping[str, Any]) -> Severity:
+    """How a viewer should show a recorded event (the MCAP export's Log level, the Rerun text log's).
+
+    ERROR: a failure (a drone NOT LANDED, the recording stopped, an `error` field, an event or kind naming
+    an error or a failure, a run ended by an exception). WARNING: safety events, a lock-step timeout, a
+    run not ended by "mission complete". INFO: the rest."""
+    name = str(ev.get("event", ""))
+    words = f"{name} {ev.get('kind', '')}".lower()
+    reason = str(ev.get("reason") or "")
+    if name in ERROR_EVENTS or ev.get("error") or "error" in words or "fail" in words:
+        return "ERROR"
+    if name == "end" and reason.startswith("exception"):
+        return "ERROR"
+    if name in WARNING_EVENTS or (name == "end" and reason and reason != "mission complete"):
+        return "WARNING"
+    return "INFO"

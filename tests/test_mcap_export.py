@@ -351,3 +351,17 @@ def test_run_writes_mcap_after_the_landing_and_refuses_an_existing_file_before_f
     assert cli.main([*argv, "--out", str(other), "--mcap", str(mcap_file)]) == 2
     assert "exists (--force replaces it); nothing took off" in capsys.readouterr().err
     assert not other.exists()
+
+
+def test_the_viewer_shows_every_event_at_the_level_and_time_the_export_gives_it() -> None:
+    """One severity and one mission-time rule (flightstack.events) for both viewers: the Rerun text log's
+    level is the MCAP Log level in Rerun's names, and an event on another clock has no mission time."""
+    from flightstack.events import mission_time
+    from flightstack.viewer.mode_logger import event_level as rerun_level
+    from flightstack.viewer.mode_logger import event_time
+
+    names = {LOG_INFO: "INFO", LOG_WARNING: "WARN", LOG_ERROR: "ERROR"}
+    assert [rerun_level(ev) for ev in EVENTS] == [names[lv] for lv in LEVELS]
+    times = [event_time(ev, -1.0) for ev in EVENTS]
+    assert times == [-1.0 if mission_time(ev) is None else ev["t"] for ev in EVENTS]
+    assert mission_time(EVENTS[4]) is None and event_time(EVENTS[4], 7.0) == 7.0  # monotonic t = 99

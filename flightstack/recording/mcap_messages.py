@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from flightstack.events import mission_time, severity
 from flightstack.recording.files import json_safe
 from flightstack.recording.timeseries import Recording
 
@@ -24,8 +25,7 @@ VEC4_KEYS = ("x", "y", "z", "theta")
 """Keys of a 4-vector [x, y, z, θ] (a pose or twist's components in the recording's order)."""
 LOG_INFO, LOG_WARNING, LOG_ERROR = 2, 3, 4
 """foxglove.LogLevel values (Log.json)."""
-ERROR_EVENTS = frozenset({"NOT LANDED", "recording_stopped"})
-WARNING_EVENTS = frozenset({"safety", "lock-step wait timed out"})
+_LOG_LEVELS = {"ERROR": LOG_ERROR, "WARNING": LOG_WARNING, "INFO": LOG_INFO}
 FIELD_DOCS = {
     "e_c": "control error vec(g_d^-1 gbar_i0) of the drone (m, rad)",
     "e_e": "true estimation error vec(gbar_i0^-1 g_i0) (m, rad)",
@@ -136,19 +136,8 @@ def plain_encoder(a: np.ndarray) -> tuple[Encoder, list[str]]:
 
 
 def event_level(ev: dict[str, Any]) -> int:
-    """foxglove.LogLevel of an event: ERROR for a failure (NOT LANDED, recording_stopped, an `error`, an
-    event or kind naming an error or failure, a run ended by an exception), WARNING for safety events, a
-    lock-step timeout and a run not ended by "mission complete", INFO for the rest."""
-    name = str(ev.get("event", ""))
-    words = f"{name} {ev.get('kind', '')}".lower()
-    reason = str(ev.get("reason") or "")
-    if name in ERROR_EVENTS or ev.get("error") or "error" in words or "fail" in words:
-        return LOG_ERROR
-    if name == "end" and reason.startswith("exception"):
-        return LOG_ERROR
-    if name in WARNING_EVENTS or (name == "end" and reason and reason != "mission complete"):
-        return LOG_WARNING
-    return LOG_INFO
+    """foxglove.LogLevel of an event: its flightstack.events.severity."""
+    return _LOG_LEVELS[severity(ev)]
 
 
 def event_text(ev: dict[str, Any]) -> str:
@@ -170,10 +159,9 @@ def event_messages(events: list[dict[str, Any]], base: float, first_ns: int, cid
     (a device's monotonic stamp, no t) at the time of the event before it (first_ns for the first)."""
     out, last = [], first_ns
     for ev in events:
-        t = ev.get("t")
-        on_mission = ev.get("clock", "mission") == "mission"
-        if isinstance(t, int | float) and not isinstance(t, bool) and math.isfinite(t) and on_mission:
-            last = to_ns(base, float(t))
+        t = mission_time(ev)
+        if t is not None:
+            last = to_ns(base, t)
         msg = {"timestamp": stamp(last), "level": event_level(ev), "message": event_text(ev)}
         msg.update(name=str(ev.get("source") or "flightstack"), file="", line=0)
         out.append((last, cid, dumps(msg)))

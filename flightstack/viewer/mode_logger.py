@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from flightstack.events import mission_time, severity
 from flightstack.viewer import layout
 
 if TYPE_CHECKING:
@@ -30,8 +31,6 @@ class MeanPredictor(Protocol):
     def predict(self, Xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
-_WARN_EVENTS = frozenset({"safety", "lock-step wait timed out", "recording_stopped"})
-_ERROR_EVENTS = frozenset({"NOT LANDED"})
 _QUIET_KEYS = ("t", "event", "drone", "mode")
 
 
@@ -45,23 +44,15 @@ def event_text(ev: Mapping[str, Any]) -> str:
 
 
 def event_level(ev: Mapping[str, Any]) -> str:
-    """TextLog level: ERROR for a drone not landed, WARN for safety events and a run that did not end
-    as planned, else INFO."""
-    kind = str(ev.get("event", ""))
-    if kind in _ERROR_EVENTS:
-        return "ERROR"
-    if kind in _WARN_EVENTS or (kind == "end" and ev.get("reason") != "mission complete"):
-        return "WARN"
-    return "INFO"
+    """TextLog level of an event: its flightstack.events.severity in Rerun's names."""
+    return {"WARNING": "WARN"}.get(severity(ev), severity(ev))
 
 
 def event_time(ev: Mapping[str, Any], default: float) -> float:
-    """The event's mission time t (s), or `default` for an event without one (bus presence events carry
-    a monotonic stamp instead)."""
-    t = ev.get("t")
-    if isinstance(t, int | float) and not isinstance(t, bool) and math.isfinite(t):
-        return float(t)
-    return default
+    """The event's mission time t (s), or `default` for an event without one (bus presence events and
+    device events carry a monotonic stamp instead)."""
+    t = mission_time(ev)
+    return default if t is None else t
 
 
 class Trail:
