@@ -131,3 +131,22 @@ def test_batched_ops_match_scalar_ops(A: list[Pose], B: list[Pose]) -> None:
         assert close(Pose.from_vector(comp[k]), compose(A[k], B[k]))
         assert close(Pose.from_vector(inverse_arrays(a)[k]), inverse(A[k]))
         assert np.allclose(vec_arrays(a)[k], vec(A[k]))
+
+
+def test_yaw_quaternions_are_the_rotations_rot_z() -> None:
+    """The quaternion (x, y, z, w) of yaw θ, turned back into a matrix by the standard formula, is R(θ)."""
+    from flightstack.paper.geometry import rot_z, yaw_quaternions
+
+    thetas = np.linspace(-3 * np.pi, 3 * np.pi, 37)
+    q = yaw_quaternions(thetas)
+    assert q.shape == (37, 4)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, rtol=0, atol=1e-15)
+    for th, (x, y, z, w) in zip(thetas, q, strict=True):
+        R = np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+        np.testing.assert_allclose(R, rot_z(float(th)), rtol=0, atol=1e-12)

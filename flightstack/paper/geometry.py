@@ -203,3 +203,11 @@ def vec_arrays(g: np.ndarray) -> np.ndarray:
     out = np.array(g, dtype=float)
     out[..., 3] = np.sin(g[..., 3])
     return out
+
+
+def yaw_quaternions(theta: np.ndarray) -> np.ndarray:
+    """The rotations about z by θ (rad) as unit quaternions (x, y, z, w) = (0, 0, sin θ/2, cos θ/2),
+    shape θ.shape + (4,) (the 3-D viewers' form of a planar pose's attitude)."""
+    half = 0.5 * np.asarray(theta, dtype=float)
+    zero = np.zeros_like(half)
+    return np.stack([zero, zero, np.sin(half), np.cos(half)], axis=-1)

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from flightstack.events import mission_time, severity
+from flightstack.paper.geometry import yaw_quaternions
 from flightstack.recording.files import json_safe
 from flightstack.recording.timeseries import Recording
 
@@ -102,9 +103,8 @@ def rows(a: np.ndarray) -> Callable[[int], Any]:
 def pose_encoders(poses: np.ndarray, child: str) -> tuple[Encoder, Encoder]:
     """(foxglove.FrameTransform world → child, foxglove.PoseInFrame in world) encoders of the poses
     (N, 4) [x, y, z, θ] in Σw (m, rad): rotation (x, y, z, w) = (0, 0, sin θ/2, cos θ/2)."""
-    half = np.asarray(poses[:, 3], dtype=float) / 2.0
     xyz = rows(np.asarray(poses[:, :3], dtype=float))
-    quat = rows(np.stack([np.sin(half), np.cos(half)], axis=1))
+    quat = rows(yaw_quaternions(poses[:, 3])[:, 2:])  # (z, w); x = y = 0
 
     def parts(k: int) -> tuple[dict[str, Any], dict[str, Any]]:
         x, y, z = xyz(k)

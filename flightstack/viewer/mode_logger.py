@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from flightstack.events import mission_time, severity
+from flightstack.paper.geometry import yaw_quaternions
 from flightstack.viewer import layout
 
 if TYPE_CHECKING:
@@ -70,13 +71,6 @@ class Trail:
         while self._points and self._points[0][0] < t - layout.TRAIL_S:
             self._points.popleft()
         return np.array([p for _, p in self._points] + [xyz], dtype=np.float32)
-
-
-def yaw_quaternions(theta: np.ndarray) -> np.ndarray:
-    """Rotations about z by θ (rad) as quaternions (x, y, z, w), (K, 4)."""
-    half = 0.5 * np.asarray(theta, dtype=float)
-    zero = np.zeros_like(half)
-    return np.stack([zero, zero, np.sin(half), np.cos(half)], axis=-1)
 
 
 class ModeLogger:
