@@ -353,3 +353,20 @@ def test_faults_write_run_reports_a_full_disk(tmp_path: Path, monkeypatch: pytes
     problems = write_run(tmp_path / "full", mission, rec)
     assert len(problems) == 1 and "recording incomplete: No space left on device" in problems[0]
     assert json.loads((tmp_path / "full" / "metrics.json").read_text())["recording"]["complete"] is False
+
+
+def test_datasets_file_round_trip(tmp_path: Path) -> None:
+    """datasets.npz: what the experiment writes (save_datasets) is what report and view read back."""
+    from flightstack.runtime.training import ExpertData, load_datasets, save_datasets
+
+    rng = np.random.default_rng(3)
+    data = [ExpertData(i, (0.0, 1.0), rng.normal(size=(5, 4)), rng.normal(size=(5, 4)), np.arange(5) * i)
+            for i in (3, 1)]  # fmt: skip
+    save_datasets(tmp_path / "d.npz", data)
+    back = load_datasets(tmp_path / "d.npz")
+    assert [d.drone_id for d in back] == [1, 3]
+    for d in back:
+        ref = next(x for x in data if x.drone_id == d.drone_id)
+        for k in ("X", "Y", "ticks"):
+            np.testing.assert_array_equal(getattr(d, k), getattr(ref, k))
+    assert load_datasets(tmp_path / "missing.npz") == []

@@ -27,25 +27,11 @@ def register(sub: Any) -> None:
     p.set_defaults(func=cmd_export)
 
 
-def _mission(run: Path) -> Any:
-    """The run's resolved mission (for e_c, e_e of a recording cut short), or None when it is absent or
-    does not load (the export then goes on without it)."""
-    from flightstack.config.mission import load_mission
-    from flightstack.recording.files import MISSION_FILE
-
-    path = run / MISSION_FILE
-    if not path.is_file():
-        return None
-    try:
-        return load_mission(path, check_files=False)
-    except Exception as exc:  # an old or hand-edited file: export the arrays as recorded
-        print(f"note: {path}: not used ({type(exc).__name__}: {exc})", file=sys.stderr)
-        return None
-
-
 def cmd_export(args: argparse.Namespace) -> int:
     """Write RUN_DIR's recording to FILE and print a short summary (topics, messages, span)."""
+    from flightstack.recording.files import MISSION_FILE
     from flightstack.recording.mcap_export import ExportError, export_mcap
+    from flightstack.recording.run_reader import resolved_mission
 
     run, out = Path(args.run_dir), Path(args.mcap)
     if not run.is_dir():
@@ -57,8 +43,11 @@ def cmd_export(args: argparse.Namespace) -> int:
     if out.exists() and not args.force:
         print(f"error: {out} exists (pass --force to overwrite it)", file=sys.stderr)
         return 2
+    mission, why = resolved_mission(run)  # lets a run cut short get its e_c and e_e recomputed
+    if why is not None and (run / MISSION_FILE).is_file():
+        print(f"note: {run}: {why}; exporting the arrays as recorded", file=sys.stderr)
     try:
-        s = export_mcap(run, out, args.modes, _mission(run))
+        s = export_mcap(run, out, args.modes, mission)
     except ExportError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -19,7 +19,7 @@ from flightstack.recording.files import DATASETS_FILE, EXPERTS_FILE, METRICS_FIL
 from flightstack.recording.loop_health import plot_loop_health
 from flightstack.recording.run_dir import atomic_write_json, load_run, recording_status
 from flightstack.recording.timeseries import Recording
-from flightstack.runtime.training import ExpertData, bands, load_experts
+from flightstack.runtime.training import ExpertData, bands, load_datasets, load_experts
 
 MODE_STYLE = {
     "none": ("tab:gray", "without GP"),
@@ -125,16 +125,6 @@ def write_plots(
     return paths
 
 
-def _load_datasets(path: Path) -> list[ExpertData]:
-    """The training data of datasets.npz (keys drone<id>__X/Y/ticks; the band is not stored: NaN)."""
-    if not path.is_file():
-        return []
-    with np.load(path) as z:
-        ids = sorted({int(k.split("__")[0][5:]) for k in z.files})
-        nan = (float("nan"), float("nan"))
-        return [ExpertData(i, nan, z[f"drone{i}__X"], z[f"drone{i}__Y"], z[f"drone{i}__ticks"]) for i in ids]
-
-
 def rebuild_run(
     run_dir: Path, mission: Mission | None = None, plots: bool = True
 ) -> tuple[dict[str, Any], list[Path]]:
@@ -163,7 +153,7 @@ def rebuild_run(
     with contextlib.suppress(OSError, ValueError):
         old = json.loads((run_dir / METRICS_FILE).read_text(encoding="utf-8"))
     res = ExperimentResult(recordings=recs)
-    res.datasets = _load_datasets(run_dir / DATASETS_FILE)
+    res.datasets = load_datasets(run_dir / DATASETS_FILE)
     if (run_dir / EXPERTS_FILE).is_file():
         res.experts = load_experts(run_dir / EXPERTS_FILE)
     res.interrupted = any(r.interrupted for r in recs.values()) or old.get("interrupted") is True

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from flightstack.recording.files import EVENTS_FILE, ROWS_SUFFIX, STATE_FILE
+from flightstack.recording.files import EVENTS_FILE, MISSION_FILE, ROWS_SUFFIX, STATE_FILE
 from flightstack.recording.rows import read_rows
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
 
@@ -28,6 +28,21 @@ def read_state(run_dir: Path) -> dict[str, Any]:
     except (OSError, ValueError):
         return {}
     return doc if isinstance(doc, dict) else {}
+
+
+def resolved_mission(run_dir: Path) -> tuple[Mission | None, str | None]:
+    """The run's mission_resolved.yaml as a Mission (its files not required to exist here), or (None, why
+    not): the file is missing, or it does not load (an old or hand-edited file). For readers that can do
+    without it (`view`, `export`); `report` and `train` insist on a mission."""
+    from flightstack.config.mission import load_mission
+
+    path = Path(run_dir) / MISSION_FILE
+    if not path.is_file():
+        return None, f"no {MISSION_FILE}"
+    try:
+        return load_mission(path, check_files=False), None
+    except (OSError, ValueError) as exc:  # MissionError is a ValueError
+        return None, f"{MISSION_FILE} does not load ({type(exc).__name__}: {exc})"
 
 
 def read_events(run_dir: Path) -> list[dict[str, Any]]:

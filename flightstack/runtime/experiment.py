@@ -34,6 +34,7 @@ from flightstack.runtime.training import (
     ExpertData,
     collect_datasets,
     load_experts,
+    save_datasets,
     save_experts,
     train_experts,
 )
@@ -250,9 +251,6 @@ def _write_training(writer: RunWriter, res: ExperimentResult) -> None:
         if res.experts:
             save_experts(out / EXPERTS_FILE, res.experts)
         if res.datasets:
-            arrays = {
-                f"drone{d.drone_id}__{k}": getattr(d, k) for d in res.datasets for k in ("X", "Y", "ticks")
-            }
-            np.savez(out / DATASETS_FILE, **arrays)
+            save_datasets(out / DATASETS_FILE, res.datasets)
     except OSError as exc:
         writer.fail(f"experts/datasets not written: {exc.strerror or exc}")

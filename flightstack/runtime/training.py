@@ -199,6 +199,24 @@ def _one_kernel(
     )
 
 
+def save_datasets(path: str | Path, datasets: list[ExpertData]) -> None:
+    """One npz with every expert's training data: keys 'drone<id>__X', '__Y', '__ticks' (the band is not
+    stored)."""
+    arrays = {f"drone{d.drone_id}__{k}": getattr(d, k) for d in datasets for k in ("X", "Y", "ticks")}
+    np.savez(path, **arrays)
+
+
+def load_datasets(path: str | Path) -> list[ExpertData]:
+    """Inverse of save_datasets, by drone id ([] when the file is missing; the band is NaN). OSError or
+    ValueError for a file that is not a datasets file."""
+    if not Path(path).is_file():
+        return []
+    with np.load(path) as z:
+        ids = sorted({int(k.split("__")[0][5:]) for k in z.files})
+        nan = (float("nan"), float("nan"))
+        return [ExpertData(i, nan, z[f"drone{i}__X"], z[f"drone{i}__Y"], z[f"drone{i}__ticks"]) for i in ids]
+
+
 def save_experts(path: str | Path, experts: dict[int, GPExpert]) -> None:
     """One npz with every expert's data and hyperparameters: keys 'drone<id>__<field>'."""
     arrays: dict[str, np.ndarray] = {}

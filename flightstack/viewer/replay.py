@@ -18,8 +18,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from flightstack.paper.gp import GPExpert
 from flightstack.viewer import layout, scene
-from flightstack.viewer.mode_logger import MeanPredictor, ModeLogger
+from flightstack.viewer.mode_logger import ModeLogger
 
 if TYPE_CHECKING:
     from rerun import RecordingStream
@@ -57,19 +58,21 @@ class Replay:
     run_dir: Path
     recordings: dict[str, Recording]
     mission: Mission | None
-    experts: dict[int, MeanPredictor] = field(default_factory=dict)
+    experts: dict[int, GPExpert] = field(default_factory=dict)
     training: dict[int, np.ndarray] = field(default_factory=dict)
 
     @staticmethod
     def load(run_dir: Path, mode: str | None = None) -> Replay:
         """Read `run_dir` (only `mode` when given). FileNotFoundError when it holds no recording (or not
         that mode, naming the ones it has)."""
-        from flightstack.recording.run_reader import load_run
+        from flightstack.recording.run_reader import load_run, resolved_mission
 
         run_dir = Path(run_dir)
         if not run_dir.is_dir():
             raise FileNotFoundError(f"{run_dir}: not a directory")
-        mission = _mission(run_dir)
+        mission, why = resolved_mission(run_dir)
+        if why is not None:
+            _log.warning("%s: %s: no expert regions or cameras", run_dir, why)
         recs = load_run(run_dir, mission)
         if not recs:
             raise FileNotFoundError(f"{run_dir}: no recording (timeseries_<mode>.npz or .rows) found")
@@ -77,7 +80,8 @@ class Replay:
             if mode not in recs:
                 raise FileNotFoundError(f"{run_dir}: no mode {mode!r} recorded (modes: {', '.join(recs)})")
             recs = {mode: recs[mode]}
-        return Replay(run_dir, recs, mission, _experts(run_dir), scene.training_inputs_from_files(run_dir))
+        experts = _experts(run_dir)
+        return Replay(run_dir, recs, mission, experts, _training_inputs(run_dir, experts))
 
     def rates(self, mode: str) -> ModeRates:
         """The rate rule applied to `mode` (layout): 3-D at most REPLAY_3D_HZ of mission time, scalars
@@ -134,23 +138,7 @@ def _columns(rec: Recording, idx: np.ndarray, names: tuple[str, ...]) -> dict[st
     return {name: np.asarray(getattr(rec, name))[idx] for name in names}
 
 
-def _mission(run_dir: Path) -> Mission | None:
-    """The run's resolved mission, or None (with a warning) when it is missing or does not load here."""
-    from flightstack.config.mission import MissionError, load_mission
-    from flightstack.recording.files import MISSION_FILE
-
-    path = run_dir / MISSION_FILE
-    if not path.is_file():
-        _log.warning("%s: no %s: no expert regions or cameras", run_dir, MISSION_FILE)
-        return None
-    try:
-        return load_mission(path, check_files=False)
-    except (MissionError, OSError) as exc:
-        _log.warning("%s: %s does not load (%s): no expert regions or cameras", run_dir, MISSION_FILE, exc)
-        return None
-
-
-def _experts(run_dir: Path) -> dict[int, MeanPredictor]:
+def _experts(run_dir: Path) -> dict[int, GPExpert]:
     """The run's experts (experts.npz), {} when there are none or the file does not load."""
     from flightstack.recording.files import EXPERTS_FILE
     from flightstack.runtime.training import load_experts
@@ -159,8 +147,23 @@ def _experts(run_dir: Path) -> dict[int, MeanPredictor]:
     if not path.is_file():
         return {}
     try:
-        experts: Mapping[int, MeanPredictor] = load_experts(path)
+        experts = load_experts(path)
     except (OSError, ValueError) as exc:
         _log.warning("%s not usable: %s", path, exc)
         return {}
     return dict(experts)
+
+
+def _training_inputs(run_dir: Path, experts: Mapping[int, GPExpert]) -> dict[int, np.ndarray]:
+    """drone id → training inputs X (M, 4): datasets.npz (runtime.training.load_datasets), else the
+    experts' own inputs (experts.npz); {} when there are neither."""
+    from flightstack.recording.files import DATASETS_FILE
+    from flightstack.runtime.training import load_datasets
+
+    path = run_dir / DATASETS_FILE
+    try:
+        found = {d.drone_id: np.asarray(d.X) for d in load_datasets(path)}
+    except (OSError, ValueError, KeyError) as exc:
+        _log.warning("%s not readable: %s", path, exc)
+        found = {}
+    return found or {i: np.asarray(ex.X) for i, ex in experts.items()}

@@ -11,7 +11,6 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING
 
@@ -179,26 +178,3 @@ def log_training(
             ),
             static=True,
         )
-
-
-def training_inputs_from_files(run_dir: Path) -> dict[int, np.ndarray]:
-    """drone id → training inputs X (M, 4) from a run directory's datasets.npz, else its experts.npz
-    (keys `drone<id>__X`); {} when neither is readable."""
-    from flightstack.recording.files import DATASETS_FILE, EXPERTS_FILE
-
-    for name in (DATASETS_FILE, EXPERTS_FILE):
-        path = run_dir / name
-        if not path.is_file():
-            continue
-        try:
-            with np.load(path) as z:
-                out = {}
-                for key in z.files:
-                    head, _, field = key.partition("__")
-                    if field == "X" and head.startswith("drone") and head[5:].isdigit():
-                        out[int(head[5:])] = np.array(z[key])
-                if out:
-                    return out
-        except (OSError, ValueError) as exc:
-            _log.warning("%s not readable: %s", path, exc)
-    return {}
