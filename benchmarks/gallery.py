@@ -22,7 +22,6 @@ import argparse
 import datetime
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -31,10 +30,12 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
-README = REPO / "README.md"
+sys.path.insert(0, str(REPO))
+
+from benchmarks.table import read_readme_block, write_readme_block  # noqa: E402
+
 GALLERY = REPO / "docs" / "gallery"
 MANIFEST = GALLERY / "manifest.json"
-START, END = "<!-- gallery:start", "<!-- gallery:end -->"
 SIM_FAULT_ROWS = ("link_loss", "mocap_dropout_short", "mocap_dropout_long", "occlusion_short",
                   "occlusion_long", "low_battery", "low_battery_takeoff")  # fmt: skip
 
@@ -128,24 +129,9 @@ def render(manifest: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def update_readme(section: str) -> None:
-    text = README.read_text(encoding="utf-8")
-    pat = re.compile(rf"({re.escape(START)}[^\n]*-->\n)(.*?)({re.escape(END)})", re.S)
-    match = pat.search(text)
-    if match is None:
-        raise SystemExit(f"README.md has no {START} --> … {END} block")
-    tmp = README.with_suffix(".md.tmp")
-    tmp.write_text(text[: match.start(2)] + section + text[match.end(2) :], encoding="utf-8")
-    os.replace(tmp, README)
-
-
 def readme_section() -> str:
     """README.md's current text between the gallery markers."""
-    text = README.read_text(encoding="utf-8")
-    match = re.search(rf"{re.escape(START)}[^\n]*-->\n(.*?){re.escape(END)}", text, re.S)
-    if match is None:
-        raise SystemExit(f"README.md has no {START} --> … {END} block")
-    return match.group(1)
+    return read_readme_block("gallery")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -163,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         MANIFEST.write_text(json.dumps(manifest, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
     manifest = json.loads(MANIFEST.read_text(encoding="utf-8"))
-    update_readme(render(manifest))
+    write_readme_block("gallery", render(manifest))
     print(f"README gallery: {len(manifest['entries'])} pictures in {GALLERY.relative_to(REPO)}")
     return 0
 

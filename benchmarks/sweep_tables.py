@@ -15,14 +15,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import re
 import sys
 from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
-README = REPO / "README.md"
+sys.path.insert(0, str(REPO))
+
+from benchmarks.table import write_readme_block  # noqa: E402
+
 MODES = ("none", "local", "dgp")
 
 
@@ -87,20 +88,6 @@ def sweep_block(summary: dict[str, Any]) -> str:
     return "".join(parts)
 
 
-def update_readme(name: str, block: str) -> None:
-    text = README.read_text(encoding="utf-8")
-    pat = re.compile(
-        rf"(<!-- sweep:{re.escape(name)}:start[^\n]*-->\n)(.*?)(<!-- sweep:{re.escape(name)}:end -->)", re.S
-    )
-    match = pat.search(text)
-    if match is None:
-        raise SystemExit(f"README.md has no <!-- sweep:{name}:start --> … <!-- sweep:{name}:end --> block")
-    new = text[: match.start(2)] + block + text[match.end(2) :]
-    tmp = README.with_suffix(".md.tmp")
-    tmp.write_text(new, encoding="utf-8")
-    os.replace(tmp, README)
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sweeps", nargs="+", metavar="NAME=DIR", help="a README block name and a sweep directory")
@@ -120,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
         block = sweep_block(summary)
         print(f"<!-- {name} -->\n{block}")
         if args.update_readme:
-            update_readme(name, block)
+            write_readme_block(f"sweep:{name}", block)
     return 0
 
 

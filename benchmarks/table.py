@@ -259,19 +259,36 @@ def markdown_table(rows: list[tuple[str, str, str, str, str]], machine: dict) ->
     return "\n".join(out) + "\n"
 
 
-BENCH_BLOCK = re.compile(r"(<!-- bench:start[^\n]*-->\n)(.*?)(<!-- bench:end -->)", re.DOTALL)
+def readme_block(key: str) -> re.Pattern[str]:
+    """README.md's generated block `key` (bench, sweep:NAME, gallery): the start marker line
+    `<!-- KEY:start ... -->`, the block's text, the end marker `<!-- KEY:end -->`."""
+    k = re.escape(key)
+    return re.compile(rf"(<!-- {k}:start[^\n]*-->\n)(.*?)(<!-- {k}:end -->)", re.DOTALL)
+
+
+def read_readme_block(key: str) -> str:
+    """The text of README.md's block `key` (SystemExit naming the markers when it has none)."""
+    match = readme_block(key).search(README.read_text(encoding="utf-8"))
+    if match is None:
+        raise SystemExit(f"README.md has no <!-- {key}:start ... --> … <!-- {key}:end --> block")
+    return match.group(2)
+
+
+def write_readme_block(key: str, block: str) -> None:
+    """Replace only the text of README.md's block `key`; README.md is read fresh just before the atomic
+    write (SystemExit naming the markers when it has none)."""
+    text = README.read_text(encoding="utf-8")
+    match = readme_block(key).search(text)
+    if match is None:
+        raise SystemExit(f"README.md has no <!-- {key}:start ... --> … <!-- {key}:end --> block")
+    tmp = README.with_suffix(".md.tmp")
+    tmp.write_text(text[: match.start(2)] + block + text[match.end(2) :], encoding="utf-8")
+    os.replace(tmp, README)
 
 
 def update_readme(table_md: str) -> None:
-    """Replace only the text between the bench markers; README.md is read fresh just before writing."""
-    text = README.read_text(encoding="utf-8")
-    match = BENCH_BLOCK.search(text)
-    if match is None:
-        raise SystemExit("README.md has no <!-- bench:start ... --> … <!-- bench:end --> block")
-    new = text[: match.start(2)] + table_md + text[match.end(2) :]
-    tmp = README.with_suffix(".md.tmp")
-    tmp.write_text(new, encoding="utf-8")
-    os.replace(tmp, README)
+    """The benchmark table into README.md's bench block."""
+    write_readme_block("bench", table_md)
 
 
 def machine_info() -> dict[str, object]:
