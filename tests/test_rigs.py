@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -172,9 +174,15 @@ def test_built_in_names_work_from_any_directory(tmp_path: Path, monkeypatch: pyt
 def test_bench_loop_measures_the_emulated_lab_and_its_exit_code_is_its_verdict(tmp_path: Path) -> None:
     """`flightstack bench-loop` flies `none` on the emulated lab (every drone's video decoded on this
     computer) and judges its loop health; whether a loaded CI machine keeps dt is not asserted, only that
-    the verdict, the numbers and the exit code agree."""
-    out = tmp_path / "bench"
-    r = run_cli("bench-loop", "--seconds", "2", "--out", str(out), timeout=300)
+    the verdict, the numbers and the exit code agree. Run from another directory without --out: the
+    default run directory runs/<name>-<stamp> is relative, and the emulated lab once wrote a mission there
+    whose calibration path was then resolved twice ("file not found: …/emulated_lab/runs/…/cal.yaml")."""
+    r = subprocess.run(
+        [sys.executable, "-m", "flightstack", "bench-loop", "--seconds", "2"],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+    )  # fmt: skip
+    (out,) = (tmp_path / "runs").iterdir()
+    assert r.returncode in (0, 1), r.stderr[-3000:]
     health = json.loads((out / "metrics.json").read_text())["modes"]["none"]["loop_health"]
     ticks = round(2.0 / health["dt_s"])
     assert health["real_time"] and health["period_s"]["n"] == ticks - 1 and health["compute_s"]["n"] == ticks

@@ -42,12 +42,13 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
         )
         return 2
     from flightstack.cli.app import build_parser
+    from flightstack.cli.run import default_out_dir
 
+    out = Path(args.out) if args.out else default_out_dir(mission.name)  # chosen here: read back below
     argv = ["run", args.experiment, "--rig", args.rig, "--modes", "none", "--duration", str(args.seconds)]
-    argv += ["--no-progress"] + (["--out", args.out, "--force"] if args.out else [])
+    argv += ["--no-progress", "--out", str(out)] + (["--force"] if args.out else [])
     run_args = build_parser().parse_args(argv)
     code = int(run_args.func(run_args))
-    out = Path(args.out) if args.out else _newest_run(mission.name)
     try:
         metrics = json.loads((out / METRICS_FILE).read_text(encoding="utf-8"))
         health = metrics["modes"]["none"]["loop_health"]
@@ -60,12 +61,6 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
     print(f"  {loop_health_line(health)}")
     print(f"  plot: {out / 'loop_health.png'}")
     return 0 if code == 0 and health["keeps_dt"] else 1
-
-
-def _newest_run(name: str) -> Path:
-    """The newest runs/<name>-<stamp> directory (the run's default --out)."""
-    found = sorted(Path("runs").glob(f"{name}-*"), key=lambda p: p.stat().st_mtime)
-    return found[-1] if found else Path("runs") / name
 
 
 def register(sub: argparse._SubParsersAction) -> None:

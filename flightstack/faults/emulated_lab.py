@@ -143,7 +143,7 @@ class EmulatedLab:
         mission_edit: Callable[[dict[str, Any]], None] | None = None,
         experiment: dict[str, Any] | None = None,
     ) -> None:
-        self.workdir = Path(workdir)
+        self.workdir = Path(workdir).resolve()  # the mission written there names its files absolutely
         self._experiment = experiment
         ids = [int(d["id"]) for d in experiment["drones"]] if experiment is not None else list(LAB_IPS)
         self.ips = {i: f"127.0.0.{6 + k}" for k, i in enumerate(ids)}
