@@ -5,11 +5,22 @@ ticking (SIGSTOP, Ctrl-Z on a process that ignores it, a hang), nothing in it ca
 its last `rc` for up to 15 s (its own auto-land). The guardian is a second, small OS process that does it.
 
 Design (decided):
-- **Launch**: `Guardian.start(cfg)` runs `python -m flightstack.drivers.guardian` with
-`start_new_session=True`, so that
-  Ctrl-C / SIGHUP / SIGTSTP sent to the terminal's process group never reach it, BEFORE takeoff. The parent
-  writes one JSON line of `GuardianConfig` on the guardian's stdin and waits (≤ `ready_timeout_s`) for its
-  `ready` line on stdout (the guardian has then mapped the flag and opened its own sockets).
+- **Launch**: `Guardian.start(cfg)` starts the guardian BEFORE takeoff with `start_new_session=True`
+  (its own session and process group), so that Ctrl-C / SIGHUP / SIGTSTP sent to the terminal's process
+  group never reach it. Its command line never contains the word "flightstack", so that an operator's
+  `pkill -f flightstack` (or `-9`) takes the flight but never its safety net (`guardian_argv`): the
+  interpreter is reached through a neutral symlink to `sys.prefix` (`<tmp>/tello-guardian-XXXX/prefix/…`,
+  which keeps a virtual environment whatever its path), the code is `-c` BOOTSTRAP and the module to run
+  comes from the environment (`GUARDIAN_ENTRY`), which `pkill -f` does not read. The parent writes one
+  JSON line of `GuardianConfig` on the guardian's stdin and waits (≤ `ready_timeout_s`) for its `ready`
+  line on stdout (the guardian has then mapped the flag and opened its own sockets).
+- **Its heartbeat** (the other direction): after `ready`, the guardian writes one byte on its stdout every
+  `GUARDIAN_BEAT_S`. `Guardian.lost()` (called by the control loop every tick, non-blocking) says why
+  the guardian is gone: it exited, its pipe closed, or no byte for `GUARDIAN_SILENT_S`. The flight then
+  lands at once: a flight never flies on without its guardian.
+- **Stopping it on purpose**: SIGTERM (`kill PID`; the pid is in its log and in the parent's) makes it
+  take over (land what it guards, mute the parent) and exit when the drones are down; nothing else
+  stops a running guardian short of SIGKILL.
 - **Heartbeat**: one byte per control tick on the same pipe (`heartbeat()`: non-blocking, never raises;
   a full or broken pipe is counted in `counts`). `arm()` arms the stall detection (call it when the control
   loop starts ticking, before the first takeoff); `arm(False)` disarms it around a known blocking phase.
@@ -40,8 +51,9 @@ Design (decided):
   except, at most, one datagram per thread that had passed the check when it was stopped (superseded by
   the guardian's next `rc 0 0 0 0` + `land`).
 
-Not covered by any process on the laptop: sleep, power or Wi-Fi loss of the laptop itself; the Tello's own
-15 s auto-land (no datagram for 15 s) is the last backstop. For a robot reached through `udpin:` or a
+Not covered by any process on the laptop: both processes killed at once by pid, sleep, power or Wi-Fi loss
+of the laptop itself; the Tello's own 15 s auto-land (no datagram for 15 s) and the robot's own
+ArduPilot GCS failsafe are the last backstops (README, "Failsafe"). For a robot reached through `udpin:` or a
 serial device the stopped parent holds, give the guardian its own endpoint (`robot_url`, e.g. a second
 mavlink-router UDP endpoint: a router's UDP server endpoint answers one client only).
 
@@ -56,6 +68,7 @@ import json
 import mmap
 import os
 import select
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -68,6 +81,19 @@ from typing import Any, Protocol
 BEAT, ARM, UNARM, BYE = b".", b"A", b"a", b"B"  # parent -> guardian pipe bytes
 READY = b"ready"
 EXIT_BYE, EXIT_CONFIG, EXIT_DONE, EXIT_GAVE_UP = 0, 2, 10, 11  # guardian exit codes
+GUARDIAN_BEAT_S = 0.1
+"""The guardian writes one byte on its stdout this often (s): its heartbeat to the parent."""
+GUARDIAN_SILENT_S = 1.0
+"""The parent counts its guardian as lost after this long without a byte from it (s): 10 beats, so that
+a guardian descheduled on a loaded computer is not mistaken for a dead one (a dead one closes the pipe,
+which is seen at once)."""
+ENTRY_ENV = "GUARDIAN_ENTRY"
+"""The environment variable naming the module the guardian runs (`main()`), read by BOOTSTRAP."""
+ENTRY_MODULE = "flightstack.drivers.guardian_process"
+BOOTSTRAP = "import os,sys,importlib;sys.exit(importlib.import_module(os.environ['GUARDIAN_ENTRY']).main())"
+"""The guardian's `-c` code: names no module itself, so that its command line has no "flightstack"."""
+HIDDEN_WORD = "flightstack"
+"""The word an operator's `pkill -f` matches; never in the guardian's command line."""
 
 
 class GuardianError(RuntimeError):
@@ -109,7 +135,7 @@ class GuardianConfig:
     robot_url: pymavlink connection string of the robot (None: no robot); robot_target: its (system,
     component), learned from its HEARTBEAT when one arrives; robot_source: the guardian's own MAVLink ids.
     flag_path: the takeover flag file ("" = a new temporary file, made by Guardian.start); parent_pid: 0 =
-    the pid of the process calling Guardian.start.
+    the pid of the process calling Guardian.start; launch_dir: set by Guardian.start (guardian_argv).
     """
 
     tellos: tuple[GuardedTello, ...] = ()
@@ -126,6 +152,7 @@ class GuardianConfig:
     flag_path: str = ""
     log_path: str | None = None
     parent_pid: int = 0
+    launch_dir: str = ""  # the neutral directory of the guardian's interpreter link; removed at its exit
     extra: dict[str, Any] = field(default_factory=dict)  # free-form, logged (e.g. mission name)
 
     def __post_init__(self) -> None:
@@ -186,6 +213,56 @@ class TakeoverFlag:
             self._mm.close()
 
 
+def _neutral_dirs() -> list[str]:
+    """Where a neutral launch directory may go, in order of preference."""
+    home = os.path.expanduser("~")
+    return [d for d in ("/dev/shm", tempfile.gettempdir(), "/tmp", "/var/tmp", home) if os.path.isdir(d)]
+
+
+def guardian_argv(
+    executable: str = sys.executable, prefix: str = sys.prefix, roots: list[str] | None = None
+) -> tuple[list[str], str]:
+    """The guardian's command line and the directory made for it: (argv, launch_dir).
+
+    argv[0] is `<root>/tello-guardian-XXXX/prefix/<executable relative to prefix>`, where `prefix` is a
+    symlink to `prefix` (sys.prefix): Python finds a virtual environment's pyvenv.cfg, and the standard
+    library, from the path it was started by, so the link keeps whatever environment this process runs
+    in, while the word "flightstack" in that environment's path stays out of the command line. Falls back
+    to `executable` itself when it does not lie under `prefix` and is neutral. GuardianError when no
+    neutral command line can be made (every root's path contains the word)."""
+    rel = os.path.relpath(executable, prefix)
+    for root in _neutral_dirs() if roots is None else roots:
+        if HIDDEN_WORD in root.lower():
+            continue
+        if rel.startswith(os.pardir) or HIDDEN_WORD in rel.lower():
+            break
+        try:
+            launch = tempfile.mkdtemp(prefix="tello-guardian-", dir=root)
+            os.symlink(prefix, os.path.join(launch, "prefix"), target_is_directory=True)
+        except OSError:
+            continue
+        argv = [os.path.join(launch, "prefix", rel), "-c", BOOTSTRAP]
+        if HIDDEN_WORD not in " ".join(argv).lower():
+            return argv, launch
+        shutil.rmtree(launch, ignore_errors=True)
+    if HIDDEN_WORD not in executable.lower():
+        return [executable, "-c", BOOTSTRAP], ""
+    raise GuardianError(
+        f"no command line without {HIDDEN_WORD!r} for the guardian: {executable} and every temporary "
+        "directory contain it (set TMPDIR to a neutral directory)"
+    )
+
+
+def remove_launch_dir(path: str) -> None:
+    """Remove a directory made by guardian_argv (its symlink only; never what the link points to)."""
+    if not path or not os.path.basename(path).startswith("tello-guardian-"):
+        return
+    with contextlib.suppress(OSError):
+        os.unlink(os.path.join(path, "prefix"))
+    with contextlib.suppress(OSError):
+        os.rmdir(path)
+
+
 class Guardian:
     """The parent's handle on its guardian process (see the module docstring)."""
 
@@ -196,6 +273,9 @@ class Guardian:
         self.counts: Counter[str] = Counter()  # "beats", "pipe_full", "pipe_broken"
         self._lock = threading.Lock()
         self._fd = proc.stdin.fileno() if proc.stdin is not None else -1
+        self._beat_fd = -1  # the guardian's stdout after `ready`: its heartbeat
+        self._last_guardian_beat = time.monotonic()
+        self._lost: str | None = None
         self._own_flag = False
 
     @property
@@ -211,10 +291,18 @@ class Guardian:
             os.close(fd)
             cfg = dataclasses.replace(cfg, flag_path=path)
         flag = TakeoverFlag.create(cfg.flag_path)
-        cfg = dataclasses.replace(cfg, parent_pid=cfg.parent_pid or os.getpid())
+        try:
+            argv, launch = guardian_argv()
+        except GuardianError:
+            if own:
+                with contextlib.suppress(OSError):
+                    os.unlink(cfg.flag_path)
+            raise
+        cfg = dataclasses.replace(cfg, parent_pid=cfg.parent_pid or os.getpid(), launch_dir=launch)
         env = dict(os.environ)  # the child imports the installed flightstack package
+        env[ENTRY_ENV] = ENTRY_MODULE
         proc = subprocess.Popen(
-            [sys.executable, "-m", "flightstack.drivers.guardian"],
+            argv,
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             start_new_session=True,
@@ -248,8 +336,12 @@ class Guardian:
                     return f"exited with {self.proc.poll()} ({buf.decode(errors='replace').strip()!r})"
                 buf += chunk
         line = buf.split(b"\n", 1)[0]
-        self.proc.stdout.close()
-        return "" if line.startswith(READY) else line.decode(errors="replace")
+        if not line.startswith(READY):
+            self.proc.stdout.close()
+            return line.decode(errors="replace")
+        os.set_blocking(out, False)
+        self._beat_fd, self._last_guardian_beat = out, time.monotonic()
+        return ""
 
     def _abort(self) -> None:
         with contextlib.suppress(OSError):
@@ -257,6 +349,7 @@ class Guardian:
         with contextlib.suppress(subprocess.TimeoutExpired):
             self.proc.wait(timeout=2.0)
         self._close_pipe()
+        remove_launch_dir(self.cfg.launch_dir)
         if self._own_flag:
             with contextlib.suppress(OSError):
                 os.unlink(self.flag.path)
@@ -293,6 +386,34 @@ class Guardian:
     def alive(self) -> bool:
         return self.proc.poll() is None
 
+    def lost(self) -> str | None:
+        """Why this process's guardian can no longer cover it (it exited, its heartbeat pipe closed, or it
+        was silent for GUARDIAN_SILENT_S), else None. Non-blocking, never raises; once lost, always lost.
+        Call it every control tick: the flight must land when it is not None."""
+        if self._lost is not None:
+            return self._lost
+        now = time.monotonic()
+        fd = self._beat_fd
+        if fd >= 0:
+            try:
+                while data := os.read(fd, 4096):
+                    self._last_guardian_beat = now
+                    if len(data) < 4096:
+                        break
+                else:
+                    self._lost = f"the guardian (pid {self.pid}) closed its heartbeat pipe"
+            except BlockingIOError:
+                pass
+            except (OSError, ValueError) as exc:
+                self._lost = f"the guardian's heartbeat pipe failed: {exc}"
+        code = self.proc.poll()
+        if code is not None:
+            self._lost = f"the guardian (pid {self.pid}) exited with {code}"
+        elif self._lost is None and now - self._last_guardian_beat > GUARDIAN_SILENT_S:
+            silent = now - self._last_guardian_beat
+            self._lost = f"the guardian (pid {self.pid}) is silent for {silent:.2f} s"
+        return self._lost
+
     def finish(self, timeout_s: float = 2.0) -> int | None:
         """Drones landed normally: "bye", close the pipe, wait ≤ timeout_s; the guardian's exit code (None
         while it still runs, e.g. finishing a takeover: it is then left to complete it)."""
@@ -302,20 +423,28 @@ class Guardian:
             code: int | None = self.proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             code = None
-        if self._own_flag and code is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(self.flag.path)  # both mappings stay valid
+        if code is not None:
+            remove_launch_dir(self.cfg.launch_dir)  # the guardian removes it too; whoever is last
+            if self._own_flag:
+                with contextlib.suppress(OSError):
+                    os.unlink(self.flag.path)  # both mappings stay valid
         return code
 
     def _close_pipe(self) -> None:
         with self._lock:
             fd, self._fd = self._fd, -1
+            beat_fd, self._beat_fd = self._beat_fd, -1
         if fd >= 0 and self.proc.stdin is not None:
             with contextlib.suppress(OSError):
                 self.proc.stdin.close()
+        if beat_fd >= 0 and self.proc.stdout is not None:
+            with contextlib.suppress(OSError):
+                self.proc.stdout.close()
 
 
-if __name__ == "__main__":
+if (
+    __name__ == "__main__"
+):  # `python -m flightstack.drivers.guardian`, by hand (Guardian.start uses BOOTSTRAP)
     from flightstack.drivers.guardian_process import main
 
     sys.exit(main())

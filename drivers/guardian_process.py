@@ -3,8 +3,10 @@ drivers/guardian.py.
 
 One thread runs everything (plus a log writer, so that a blocked stderr never delays a takeover): a
 select() loop of ≤ 20 ms over the parent's pipe (stdin), the guardian's own Tello command sockets and the
-Tello state ports it could bind. Every socket is non-blocking; every error is logged and counted, never
-fatal. Times: time.monotonic() seconds; heights cm.
+Tello state ports it could bind; every GUARDIAN_BEAT_S it writes one byte on stdout (its heartbeat to the
+parent). SIGTERM is the one way to stop it on purpose: it takes over (lands what it guards) and exits
+when that is done. Every socket is non-blocking; every error is logged and counted, never fatal.
+Times: time.monotonic() seconds; heights cm.
 """
 
 from __future__ import annotations
@@ -26,16 +28,19 @@ from typing import Any, TextIO
 
 from flightstack.drivers.guardian import (
     ARM,
+    BEAT,
     BYE,
     EXIT_BYE,
     EXIT_CONFIG,
     EXIT_DONE,
     EXIT_GAVE_UP,
+    GUARDIAN_BEAT_S,
     READY,
     UNARM,
     GuardedTello,
     GuardianConfig,
     TakeoverFlag,
+    remove_launch_dir,
 )
 from flightstack.drivers.tello_phase import PhaseThresholds, PhaseTracker
 from flightstack.drivers.tello_state import StateRejectedError, parse_state
@@ -116,11 +121,15 @@ class Robot:
     first_send_t: float | None = None
     done: bool = False
     mavlink: Any = None  # pymavlink's mavutil.mavlink
+    is_vehicle_heartbeat: Any = None  # drivers.scamper_link.is_vehicle_heartbeat
 
     def __post_init__(self) -> None:
         from pymavlink import mavutil  # imported now (~0.3 s), not during a takeover
 
+        from flightstack.drivers.scamper_link import is_vehicle_heartbeat
+
         self.mavlink = mavutil.mavlink
+        self.is_vehicle_heartbeat = is_vehicle_heartbeat
 
     def step(self, now: float) -> None:
         if self.done:
@@ -175,8 +184,6 @@ class Robot:
     def _receive(self, now: float) -> None:
         if self.conn is None:
             return
-        from flightstack.drivers.scamper_link import is_vehicle_heartbeat
-
         for _ in range(100):
             try:
                 msg = self.conn.recv_match(type="HEARTBEAT", blocking=False)
@@ -185,7 +192,7 @@ class Robot:
                 return
             if msg is None:
                 return
-            if not is_vehicle_heartbeat(msg):
+            if not self.is_vehicle_heartbeat(msg):
                 continue
             src = (msg.get_srcSystem(), msg.get_srcComponent())
             if src != self.target:
@@ -210,9 +217,19 @@ class GuardianProcess:
     flag None (no parent to mute), then `take_over`, and `poll` + `step_takeover` until it returns."""
 
     def __init__(
-        self, cfg: GuardianConfig, flag: TakeoverFlag | None, log: Log, watch_stdin: bool = True
+        self,
+        cfg: GuardianConfig,
+        flag: TakeoverFlag | None,
+        log: Log,
+        watch_stdin: bool = True,
+        beat_fd: int | None = None,
     ) -> None:
+        """beat_fd: where to write the guardian's heartbeat to its parent (None: nowhere)."""
         self.cfg, self.flag, self.log = cfg, flag, log
+        self.beat_fd = beat_fd
+        self.last_beat_out = -math.inf
+        self.beats_dropped = 0
+        self.terminate = False  # SIGTERM: stop on purpose = take over, then exit
         th = PhaseThresholds(ground_h_cm=cfg.ground_h_cm, motor_quiet_s=cfg.motor_quiet_s)
         self.drones = [Drone(t, PhaseTracker(th)) for t in cfg.tellos]
         self.sel = selectors.DefaultSelector()
@@ -388,7 +405,10 @@ class GuardianProcess:
     def run(self) -> int:
         c = self.cfg
         hosts = [t.host for t in c.tellos]
-        self.log(f"watching parent {c.parent_pid}: Tellos {hosts}, robot {c.robot_url!r}, {c.extra}")
+        self.log(
+            f"watching parent {c.parent_pid}: Tellos {hosts}, robot {c.robot_url!r}, {c.extra}; "
+            f"python {os.path.realpath(sys.prefix)}; stop on purpose: kill -TERM {os.getpid()}"
+        )
         errors = 0
         while True:
             try:
@@ -414,15 +434,30 @@ class GuardianProcess:
             else:
                 self.drain_replies(arg)
 
+    def beat_parent(self, now: float) -> None:
+        """One byte to the parent every GUARDIAN_BEAT_S (non-blocking; a full or closed pipe is counted)."""
+        if self.beat_fd is None or now - self.last_beat_out < GUARDIAN_BEAT_S:
+            return
+        self.last_beat_out = now
+        try:
+            os.write(self.beat_fd, BEAT)
+        except BlockingIOError:
+            self.beats_dropped += 1  # the parent is not reading (blocked or stopped): it reads them later
+        except OSError:
+            self.beat_fd = None  # the parent is gone: the pipe's EOF on stdin says so too
+
     def tick(self) -> int | None:
         """One pass of the loop (≤ TICK_S of waiting); the exit code once the guardian is done."""
         self.poll(TICK_S)
         now = time.monotonic()
+        self.beat_parent(now)
         if self.bye and self.takeover_t is None:
             return EXIT_BYE
         if self.takeover_t is None:
             silent = now - self.last_beat
-            if self.parent_gone():
+            if self.terminate:
+                self.take_over(now, "SIGTERM: stopped on purpose")
+            elif self.parent_gone():
                 self.take_over(now, f"parent {self.cfg.parent_pid} is gone")
             elif self.armed and silent > self.cfg.stall_s:
                 self.take_over(now, f"no heartbeat for {silent:.2f} s (stall_s {self.cfg.stall_s:g})")
@@ -465,11 +500,15 @@ def main() -> int:
     log = Log(cfg.log_path)
     g = None
     try:
-        g = GuardianProcess(cfg, flag, log)
+        g = GuardianProcess(cfg, flag, log, beat_fd=1)
+        guardian = g
+
+        def on_term(signum: int, frame: Any) -> None:
+            guardian.terminate = True  # acted on by the next tick (≤ TICK_S): take over, then exit
+
+        signal.signal(signal.SIGTERM, on_term)
         os.write(1, READY + b"\n")
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, 1)  # nobody reads stdout any more
-        os.close(devnull)
+        os.set_blocking(1, False)  # from now on stdout carries only the heartbeat
         code = g.run()
     except Exception as exc:
         log(f"error: {type(exc).__name__}: {exc}")
@@ -477,6 +516,7 @@ def main() -> int:
     finally:
         if g is not None:
             g.close()
+        remove_launch_dir(cfg.launch_dir)
     log(f"exit {code}")
     log.close()
     return code

@@ -114,6 +114,10 @@ class GuardianTakeoverError(RuntimeError):
     """The guardian process took over this process's devices (it had stalled): end the run."""
 
 
+class GuardianLostError(RuntimeError):
+    """This process's guardian is gone (killed, crashed, hung): land now, never fly on without it."""
+
+
 class HardwareBackend:
     """hal.Backend of the lab. `truth()` returns the motion-capture poses (the lab's reference)."""
 
@@ -148,6 +152,7 @@ class HardwareBackend:
         self.guardian: Guardian | None = None
         self._armed = False
         self._takeover_reported = False
+        self._lost_reported = False
         try:
             self.guardian = Guardian.start(
                 GuardianConfig.for_devices(
@@ -212,7 +217,8 @@ class HardwareBackend:
         """One control tick, for the guardian (the runner calls it every tick, also in takeoff and landing).
 
         Raises GuardianTakeoverError once when the guardian has taken over (this process is then muted:
-        the run must end); never otherwise."""
+        the run must end), GuardianLostError once when the guardian is gone (the run lands its drones
+        itself: nothing would cover it if this process died now); never otherwise."""
         g = self.guardian
         if g is None:
             return
@@ -226,6 +232,11 @@ class HardwareBackend:
                 "the guardian process took over (this process stalled): it lands the drones; nothing more "
                 "is sent from here"
             )
+        lost = g.lost()
+        if lost is not None and not self._lost_reported:
+            self._lost_reported = True
+            LOG.error("%s: landing every drone of this process now", lost)
+            raise GuardianLostError(f"{lost}: no safety net if this process dies; landing")
 
     def close(self) -> None:
         """Land every drone still flying, stop video, stop and disarm the robot, close motion capture,

@@ -38,6 +38,8 @@ LAB_ROWS = [
     "abort_agent_missing",
     "process_killed",
     "agent_stopped",
+    "pkill_pattern",
+    "guardian_killed",
 ]
 
 
@@ -225,3 +227,18 @@ def test_a_stopped_process_is_taken_over_and_muted_after_it_resumes(results: dic
         assert 400 <= d[f"drone{i}"]["rc0_ms"] <= 800, d  # the guardian's 0.5 s stall bound, not earlier
         assert d[f"drone{i}"]["land_ms"] <= 2500, d
     assert d["exit_code"] not in (0, None)
+
+
+def test_the_operators_pkill_spares_the_guardian(results: dict[str, FaultResult]) -> None:
+    d = results["pkill_pattern"].details
+    assert d["guardians_spared"] == 1 and any(" fly " in line for line in d["killed"])
+    assert not any("tello-guardian-" in line for line in d["killed"])
+    for i in (1, 2):
+        assert d[f"drone{i}"]["stop_ms"] <= 500.0 and d[f"drone{i}"]["down_ms"] <= 8000.0
+
+
+def test_a_killed_guardian_lands_the_flight(results: dict[str, FaultResult]) -> None:
+    d = results["guardian_killed"].details
+    assert d["exit_code"] == 1
+    for i in (1, 2):
+        assert d[f"drone{i}"]["stop_ms"] <= 500.0 and d[f"drone{i}"]["down_ms"] <= 8000.0

@@ -25,7 +25,19 @@ from typing import Any
 
 import pytest
 
-from flightstack.drivers.guardian import EXIT_GAVE_UP, GuardedTello, Guardian, GuardianConfig, TakeoverFlag
+from flightstack.drivers.guardian import (
+    BOOTSTRAP,
+    EXIT_GAVE_UP,
+    GUARDIAN_BEAT_S,
+    GUARDIAN_SILENT_S,
+    GuardedTello,
+    Guardian,
+    GuardianConfig,
+    GuardianError,
+    TakeoverFlag,
+    guardian_argv,
+    remove_launch_dir,
+)
 from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
 from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port, wait_until
 
@@ -324,6 +336,129 @@ def test_stall_only_when_armed_and_heartbeat_never_raises(tmp_path: Path, state_
         g.heartbeat()
         assert g.counts["pipe_broken"] >= 1
         assert g.finish() == EXIT_GAVE_UP and g.taken_over()
+    finally:
+        if g.alive():
+            g.proc.kill()
+        emu.close()
+
+
+def test_guardian_argv_keeps_the_word_out_and_the_environment_in(tmp_path: Path) -> None:
+    """The command line has no "flightstack" even when the environment's path has it; the link leads to
+    that environment's interpreter; no neutral place at all is an error, not a silent exposure."""
+    prefix = tmp_path / "flightstack-venv"
+    (prefix / "bin").mkdir(parents=True)
+    exe = prefix / "bin" / "python3"
+    exe.write_text("")
+    neutral = tmp_path / "neutral"
+    neutral.mkdir()
+    argv, launch = guardian_argv(
+        str(exe), str(prefix), roots=[str(tmp_path / "flightstack-tmp"), str(neutral)]
+    )
+    try:
+        assert "flightstack" not in " ".join(argv).lower()
+        assert argv[1:] == ["-c", BOOTSTRAP]
+        assert Path(launch).parent == neutral
+        assert os.path.realpath(argv[0]) == os.path.realpath(exe)
+    finally:
+        remove_launch_dir(launch)
+    assert not Path(launch).exists() and exe.exists()  # the link went, never what it points to
+    with pytest.raises(GuardianError, match="flightstack"):
+        guardian_argv(str(exe), str(prefix), roots=[str(tmp_path / "flightstack-tmp")])
+    plain = tmp_path / "plain" / "python3"
+    assert guardian_argv(str(plain), str(prefix), roots=[]) == ([str(plain), "-c", BOOTSTRAP], "")
+
+
+VENV_CHILD = r"""
+import sys, time
+from flightstack.drivers.guardian import Guardian, GuardianConfig
+g = Guardian.start(GuardianConfig(log_path=sys.argv[1]))
+print(g.pid, sys.prefix, flush=True)
+sys.stdin.readline()
+print(g.finish(), flush=True)
+"""
+
+
+def test_guardian_of_a_venv_named_flightstack_survives_pkill_f(tmp_path: Path) -> None:
+    """Started from a virtual environment whose path contains "flightstack", the guardian's command line
+    does not (what `pkill -f flightstack` matches), yet it runs in that environment."""
+    venv = tmp_path / "flightstack-venv"
+    subprocess.run(
+        [sys.executable, "-m", "venv", "--without-pip", "--system-site-packages", str(venv)],
+        check=True,
+        timeout=60,
+    )
+    log = tmp_path / "guardian.log"
+    proc = subprocess.Popen(
+        [str(venv / "bin" / "python"), "-c", VENV_CHILD, str(log)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None and proc.stdin is not None
+        pid_text, child_prefix = proc.stdout.readline().split()
+        assert Path(child_prefix).resolve() == venv.resolve()
+        cmdline = Path(f"/proc/{pid_text}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+        print(f"guardian command line: {cmdline}")
+        assert "flightstack" not in cmdline.lower() and "tello-guardian-" in cmdline
+        assert wait_until(lambda: "watching parent" in (log.read_text() if log.exists() else ""), 5.0)
+        assert f"python {venv.resolve()}" in log.read_text()  # the venv, reached through the neutral link
+        proc.stdin.write("\n")
+        proc.stdin.flush()
+        assert proc.stdout.readline().strip() == "0"
+        launch = cmdline.split("/prefix/")[0]
+        assert not Path(launch).exists()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=5)
+
+
+def test_parent_sees_its_guardian_killed_or_hung(tmp_path: Path) -> None:
+    """lost() stays None while the guardian beats (checked for 1.5 s), is set at once when it is killed
+    and GUARDIAN_SILENT_S after it stops (SIGSTOP)."""
+    for sig, bound in ((signal.SIGKILL, 0.3), (signal.SIGSTOP, GUARDIAN_SILENT_S + 0.5)):
+        g = Guardian.start(
+            GuardianConfig(flag_path=str(tmp_path / f"flag{sig}"), log_path=str(tmp_path / "log"))
+        )
+        try:
+            t_end = time.monotonic() + 1.5
+            while time.monotonic() < t_end:
+                assert g.lost() is None
+                time.sleep(0.05)
+            t0 = time.monotonic()
+            os.kill(g.pid, sig)
+            assert wait_until(lambda g=g: g.lost() is not None, bound + 1.0, 0.005)
+            dt = time.monotonic() - t0
+            print(f"{sig.name} to the guardian -> parent sees it lost after {1e3 * dt:.0f} ms: {g.lost()}")
+            assert dt <= bound
+            if sig == signal.SIGSTOP:
+                assert dt >= GUARDIAN_SILENT_S - GUARDIAN_BEAT_S - 0.05 and "silent" in (g.lost() or "")
+        finally:
+            if g.proc.poll() is None:
+                g.proc.send_signal(signal.SIGCONT)
+                g.proc.kill()
+            g.proc.wait(timeout=5)
+
+
+def test_sigterm_is_a_takeover(tmp_path: Path, state_port: int) -> None:
+    """Stopping the guardian on purpose (SIGTERM) lands what it guards and mutes the parent first."""
+    emu = start_emulator("127.0.0.44", state_port)
+    cfg = GuardianConfig(
+        tellos=(GuardedTello(emu.ip, emu.address[1], state_port, "127.0.0.1"),),
+        give_up_s=1.0,
+        flag_path=str(tmp_path / "flag"),
+        log_path=str(tmp_path / "log"),
+    )
+    g = Guardian.start(cfg)
+    try:
+        t0 = time.monotonic()
+        g.proc.send_signal(signal.SIGTERM)
+        assert wait_until(lambda: "land" in emu.command_texts(), 2.0, 0.002)
+        print(f"SIGTERM -> land at the drone after {1e3 * (time.monotonic() - t0):.0f} ms")
+        assert g.taken_over() and emu.command_texts()[:2] == ["rc 0 0 0 0", "land"]
+        assert g.proc.wait(timeout=5) == EXIT_GAVE_UP  # no telemetry: the drone is not in SDK mode
+        assert "SIGTERM" in (tmp_path / "log").read_text()
     finally:
         if g.alive():
             g.proc.kill()

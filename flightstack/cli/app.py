@@ -115,10 +115,14 @@ def cmd_target(args: argparse.Namespace) -> int:
             duration,
             body=body,
             link_alive=robot.link_alive,
-            robot_ready=lambda: robot.robot_state().ready and not guardian.taken_over(),
+            robot_ready=lambda: (
+                robot.robot_state().ready and not guardian.taken_over() and guardian.lost() is None
+            ),
             on_tick=beat,
         )
         print(lap_summary(res, law))
+        if (lost := guardian.lost()) is not None:
+            print(f"error: {lost}: the robot was stopped (never driven without it)", file=sys.stderr)
         return 0 if res.ended_by == "duration" else 1
     finally:
         guardian.arm(False)
@@ -193,6 +197,9 @@ def cmd_calibrate_drone(args: argparse.Namespace) -> int:
     driver.set_muted(guardian.taken_over)
     try:
         driver.connect()
+        if (lost := guardian.lost()) is not None:
+            print(f"error: {lost}: not taking off without it", file=sys.stderr)
+            return 1
         failed = [c for c in driver.preflight() if not c.ok]
         if failed:
             for c in failed:

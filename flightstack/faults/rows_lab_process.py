@@ -1,19 +1,23 @@
-"""The guardian's rows of `flightstack faults` (issue 15): the process that flies the emulated lab is
-killed (`process_killed`: SIGKILL, as an out-of-memory kill or a crash in native code would) or stopped
-(`agent_stopped`: SIGSTOP, a hang, then SIGCONT), mid-pursuit. Nothing of that process can react; its
-guardian process (drivers/guardian.py) must.
+"""The guardian's rows of `flightstack faults`: the process that flies the emulated lab is killed
+(`process_killed`: SIGKILL, as an out-of-memory kill or a crash in native code would) or stopped
+(`agent_stopped`: SIGSTOP, a hang, then SIGCONT), mid-pursuit: nothing of that process can react; its
+guardian process (drivers/guardian.py) must. `pkill_pattern` is the operator's reflex `pkill -9 -f
+flightstack`, applied to this row's own process tree only: the guardian, whose command line never has the
+word, survives it and lands. `guardian_killed` kills the guardian alone: the flight, which watches the
+guardian's heartbeat, lands by itself at once.
 
 Times are time.monotonic() seconds shared with the emulators, reported in milliseconds in `details`.
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import time
 from pathlib import Path
 from typing import Any
 
-from flightstack.faults.emulated_lab import EmulatedLab, first, ms, phase_times, rc_times
+from flightstack.faults.emulated_lab import EmulatedLab, command_times, first, ms, phase_times, rc_times
 from flightstack.faults.lab_flight import (
     FAULT_AFTER_S,
     PURSUIT_WAIT_S,
@@ -31,6 +35,62 @@ STALL_S = 0.5
 """The guardian's stall bound (GuardianConfig.stall_s, s): a stopped parent is taken over after it."""
 DOWN_WAIT_S = 15.0
 """How long the row waits for the drones to be down after the fault (s; the Tello's own auto-land is 15 s)."""
+STOP_S = 0.5
+"""`pkill_pattern`, `guardian_killed`: `rc 0 0 0 0` or `land` at every drone within this (s)."""
+DOWN_S = 8.0
+"""... and every drone down within this (s): far below the Tello's own 15 s auto-land."""
+PKILL_WORD = "flightstack"
+"""What the operator's `pkill -9 -f flightstack` matches in a command line."""
+GUARDIAN_MARK = "tello-guardian-"
+"""In the guardian's command line (drivers/guardian.guardian_argv): how this row finds it."""
+
+
+def command_line(pid: int) -> str:
+    """/proc/PID/cmdline with spaces for NULs ("" once the process is gone)."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def descendants(root: int) -> list[int]:
+    """Every living descendant of process `root` (not root itself), from /proc/*/stat's parent pids."""
+    children: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{entry}/stat").read_text()
+        except OSError:
+            continue
+        ppid = int(stat[stat.rindex(")") + 2 :].split()[1])  # fields after "(comm)": state, ppid, ...
+        children.setdefault(ppid, []).append(int(entry))
+    out, todo = [], list(children.get(root, []))
+    while todo:
+        pid = todo.pop()
+        out.append(pid)
+        todo.extend(children.get(pid, []))
+    return out
+
+
+def pkill_in_tree(word: str, root: int) -> dict[int, str]:
+    """`pkill -9 -f WORD`, limited to the descendants of `root` (never root, never anything outside its
+    tree): SIGKILL every one whose command line contains `word`. The killed {pid: command line}."""
+    killed = {}
+    for pid in descendants(root):
+        line = command_line(pid)
+        if word in line:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                continue
+            killed[pid] = line
+    return killed
+
+
+def guardian_pids(root: int) -> list[int]:
+    """The guardian processes among root's descendants."""
+    return [pid for pid in descendants(root) if GUARDIAN_MARK in command_line(pid)]
 
 
 def _wait_down(lab: EmulatedLab, timeout_s: float) -> None:
@@ -167,4 +227,125 @@ def agent_stopped(mission_path: Path, workdir: Path) -> FaultResult:
     return lab_result("agent_stopped", expected, observed, wall0, c, [], [], details, None)
 
 
-ROWS = {"process_killed": process_killed, "agent_stopped": agent_stopped}
+def _stopped_and_down(lab: EmulatedLab, t_fault: float, c: Checks) -> dict[str, Any]:
+    """Per drone: `rc 0 0 0 0` or `land` within STOP_S of t_fault, no non-zero rc after that first stop
+    command, down within DOWN_S (not by the Tello's own auto-land). Returns the times in ms."""
+    out: dict[str, Any] = {}
+    for i, e in lab.tellos.items():
+        t_rc0 = first(rc_times(e, after=t_fault, value=(0, 0, 0, 0)))
+        t_land = first(command_times(e, "land", after=t_fault))
+        stops = [t for t in (t_rc0, t_land) if t is not None]
+        t_stop = min(stops) if stops else None
+        stop = None if t_stop is None else t_stop - t_fault
+        c.check(
+            stop is not None and stop <= STOP_S, f"drone {i}: first rc 0 0 0 0 / land after {ms(stop)} ms"
+        )
+        moving = rc_times(e, after=t_stop, nonzero=True) if t_stop is not None else []
+        c.check(not moving, f"drone {i}: {len(moving)} non-zero rc after the first stop command")
+        t_down = first(phase_times(e, "landed", after=t_fault))
+        down = None if t_down is None else t_down - t_fault
+        c.check(
+            down is not None and down <= DOWN_S, f"drone {i}: down after {ms(down)} ms (limit {DOWN_S:g} s)"
+        )
+        c.check(not e.landed_by_timeout, f"drone {i}: landed by the Tello's own auto-land")
+        out[f"drone{i}"] = {
+            "stop_ms": ms(stop),
+            "rc0_ms": ms(None if t_rc0 is None else t_rc0 - t_fault),
+            "land_ms": ms(None if t_land is None else t_land - t_fault),
+            "down_ms": ms(down),
+        }
+    return out
+
+
+def _summary(details: dict[str, Any]) -> str:
+    parts = [
+        f"drone {i}: rc 0 0 0 0 +{d['rc0_ms']} ms, land +{d['land_ms']} ms, down +{d['down_ms']} ms"
+        for i, d in ((i, details.get(f"drone{i}")) for i in (1, 2))
+        if d
+    ]
+    return (
+        "; ".join(parts) + f"; robot armed {details.get('robot_armed')}, speed {details.get('robot_speed')}"
+    )
+
+
+def pkill_pattern(mission_path: Path, workdir: Path) -> FaultResult:
+    """`pkill -9 -f flightstack` (this row's process tree only) 1 s into pursuit of `flightstack fly`."""
+    wall0 = time.perf_counter()
+    root = workdir / "pkill_pattern"
+    c, details = Checks(), {}
+    with EmulatedLab(root, duration_s=30.0) as lab:
+        with FlyProcess(lab, root / "run") as fly:
+            started = lab.wait_for_pursuit(PURSUIT_WAIT_S) is not None
+            c.check(started, "the pursuit never started")
+            t_kill, killed, spared = time.monotonic(), {}, []
+            if started:
+                time.sleep(FAULT_AFTER_S)
+                guardians = guardian_pids(os.getpid())
+                t_kill = time.monotonic()
+                killed = pkill_in_tree(PKILL_WORD, os.getpid())
+                spared = [pid for pid in guardians if pid not in killed]
+            c.check(fly.proc is not None and fly.proc.pid in killed, f"`fly` not among the killed {killed}")
+            c.check(
+                bool(spared), f"no guardian survived the pattern (guardians {guardian_pids(os.getpid())})"
+            )
+            code = fly.wait()
+            _wait_down(lab, DOWN_WAIT_S)
+        time.sleep(0.5)  # the robot's disarm repeats until its heartbeat shows it
+        lab.write_log(root / "emulators.json")
+        c.check(code == -signal.SIGKILL, f"exit {code}")
+        details = _stopped_and_down(lab, t_kill, c) | _robot(lab, c)
+        details["killed"] = sorted(killed.values())
+        details["guardians_spared"] = len(spared)
+    expected = (
+        f"the guardian survives the pattern: rc 0 0 0 0 or land within {STOP_S:g} s at every drone, every "
+        f"drone down within {DOWN_S:g} s, the robot stopped and disarmed"
+    )
+    observed = f"killed {len(details.get('killed', []))} process(es), {details.get('guardians_spared')} "
+    observed += "guardian(s) spared; " + _summary(details)
+    return lab_result("pkill_pattern", expected, observed, wall0, c, [], [], details, None)
+
+
+def guardian_killed(mission_path: Path, workdir: Path) -> FaultResult:
+    """SIGKILL to the guardian of `flightstack fly` alone, 1 s into pursuit."""
+    wall0 = time.perf_counter()
+    root = workdir / "guardian_killed"
+    c, details = Checks(), {}
+    with EmulatedLab(root, duration_s=30.0) as lab:
+        with FlyProcess(lab, root / "run") as fly:
+            started = lab.wait_for_pursuit(PURSUIT_WAIT_S) is not None
+            c.check(started, "the pursuit never started")
+            t_kill = time.monotonic()
+            guardians = guardian_pids(fly.proc.pid) if fly.proc is not None else []
+            c.check(len(guardians) == 1, f"guardians of `fly`: {guardians}")
+            if started and guardians:
+                time.sleep(FAULT_AFTER_S)
+                t_kill = time.monotonic()
+                os.kill(guardians[0], signal.SIGKILL)
+            code = fly.wait()
+            _wait_down(lab, DOWN_WAIT_S)
+            run = fly.result(code)
+        lab.write_log(root / "emulators.json")
+        c.check(code not in (0, None), f"exit {code}: the flight did not end as having lost its guardian")
+        c.check(
+            "GuardianLostError" in run.output,
+            "the output does not say the guardian was lost",
+        )
+        details = _stopped_and_down(lab, t_kill, c) | _robot(lab, c)
+        details["exit_code"] = code
+        rec_problems = [] if run.metrics is not None else ["no metrics.json"]
+        rec_problems += _killed_recording(run.run_dir, t_kill)
+    expected = (
+        f"the flight sees its guardian gone and lands: rc 0 0 0 0 or land within {STOP_S:g} s at every "
+        f"drone, every drone down within {DOWN_S:g} s, the robot stopped and disarmed, exit non-zero, the "
+        "recording and metrics written"
+    )
+    observed = _summary(details) + f"; exit {details.get('exit_code')}"
+    return lab_result("guardian_killed", expected, observed, wall0, c, [], rec_problems, details, run.crashed)
+
+
+ROWS = {
+    "process_killed": process_killed,
+    "agent_stopped": agent_stopped,
+    "pkill_pattern": pkill_pattern,
+    "guardian_killed": guardian_killed,
+}
