@@ -216,7 +216,7 @@ class TakeoverFlag:
 def _neutral_dirs() -> list[str]:
     """Where a neutral launch directory may go, in order of preference."""
     home = os.path.expanduser("~")
-    return [d for d in ("/dev/shm", tempfile.gettempdir(), "/tmp", "/var/tmp", home) if os.path.isdir(d)]
+    return [d for d in (tempfile.gettempdir(), "/tmp", "/dev/shm", "/var/tmp", home) if os.path.isdir(d)]
 
 
 def guardian_argv(
