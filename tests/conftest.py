@@ -47,6 +47,7 @@ SYSTEM_MODULES = frozenset(
         "test_guardian",
         "test_hardware_mission",
         "test_keep_awake",
+        "test_key_ownership",
         "test_lab_sim",
         "test_mocap",
         "test_natnet_emulator",
