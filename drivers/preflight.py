@@ -112,9 +112,11 @@ def check_certs(mission: Mission, drone_ids: list[int], all_in_one: bool = False
     """The mission's certificates (issue 16) for what this computer runs. On Zenoh: its participant's
     pair (`agent-N` for `--id N`, `agents` for a process flying all, `all_in_one`) with the mission CA.
     On the in-process bus: the operator's (`fly` verifies loopback aborts with it, `abort` signs).
-    FAIL when missing, unreadable, of another mission or CA, key readable by others, or expired;
-    WARN within WARN_DAYS of expiry."""
+    FAIL when the mission does not have that participant (`agents` its endpoints do not name), when
+    missing, unreadable, of another mission or CA, key readable by others, or expired; WARN within
+    WARN_DAYS of expiry."""
     from flightstack.comms.certs import OPERATOR, WARN_DAYS, CertError, agent_name, check_participant
+    from flightstack.comms.factory import mission_participants
 
     z = mission.bus.zenoh if mission.bus.kind == "zenoh" else None
     if z is not None and z.security != "mtls":
@@ -125,6 +127,9 @@ def check_certs(mission: Mission, drone_ids: list[int], all_in_one: bool = False
     directory = mission.resolve(mission.bus.certs)
     rows = []
     for name in names:
+        if name not in mission_participants(mission):
+            rows.append(_row("bus", f"certificate {name}", False, "bus.zenoh.endpoints do not name it"))
+            continue
         try:
             st = check_participant(directory, name, mission.name)
         except CertError as exc:

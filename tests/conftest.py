@@ -47,6 +47,7 @@ SYSTEM_MODULES = frozenset(
         "test_guardian",
         "test_hardware_mission",
         "test_keep_awake",
+        "test_key_ownership",
         "test_lab_sim",
         "test_mocap",
         "test_natnet_emulator",
@@ -143,11 +144,12 @@ def secured_bus(
     certs_dir: Path, mission: str, drone_ids: list[int], names: tuple[str, ...], **zenoh: object
 ) -> dict:
     """A `bus:` section of kind zenoh with mutual TLS on free loopback ports: `flightstack certs`' files
-    for `mission` (drones `drone_ids`) written to `certs_dir`, one `tls/127.0.0.1:PORT` per name."""
-    from flightstack.comms.certs import create_mission_certs
+    for `mission` (drones `drone_ids`, endpoints `names`) written to `certs_dir`, one
+    `tls/127.0.0.1:PORT` per name."""
+    from flightstack.comms.certs import create_mission_certs, participants
     from flightstack.comms.factory import free_loopback_endpoints
 
-    create_mission_certs(mission, drone_ids, certs_dir)
+    create_mission_certs(mission, participants(drone_ids, names), certs_dir)
     eps = [e.replace("tcp/", "tls/", 1) for e in free_loopback_endpoints(len(names))]
     endpoints = dict(zip(names, eps, strict=True))
     return {"kind": "zenoh", "certs": str(certs_dir), "zenoh": {"endpoints": endpoints, **zenoh}}

@@ -20,7 +20,12 @@ import yaml
 
 from flightstack.cli.app import main
 from flightstack.comms.abort import send_abort
-from flightstack.comms.certs import create_mission_certs, operator_private_key, operator_public_key
+from flightstack.comms.certs import (
+    create_mission_certs,
+    operator_private_key,
+    operator_public_key,
+    participants,
+)
 from flightstack.comms.control import encode_control
 from flightstack.comms.factory import free_loopback_endpoints, make_bus
 from flightstack.comms.operator_link import (
@@ -127,9 +132,9 @@ def test_loopback_listener_acks_and_drops_malformed_messages() -> None:
 def test_hardware_listener_accepts_only_aborts_signed_by_the_operator(tmp_path: Path) -> None:
     """Issue 16: on real drones any local process can reach the loopback port; only the holder of the
     mission's operator key can land them this way."""
-    create_mission_certs("lb_test", [1, 2], tmp_path)
+    create_mission_certs("lb_test", participants([1, 2], None), tmp_path)
     other = tmp_path / "other"
-    create_mission_certs("lb_test", [1, 2], other)  # same names, another CA
+    create_mission_certs("lb_test", participants([1, 2], None), other)  # same names, another CA
     pub = operator_public_key(tmp_path, "lb_test")
     key = operator_private_key(tmp_path, "lb_test")
     forged_key = operator_private_key(other, "lb_test")
@@ -167,7 +172,7 @@ def test_inproc_bus_on_hardware_yields_the_abort_to_the_runner(tmp_path: Path) -
         make_bus(load_mission(MISSIONS / "paper_experiment.yaml", nocerts, rig="lab"), "agents", {1, 2})
     bus_spec = {"operator_port": port, "certs": str(tmp_path / "certs")}
     mission = load_mission(MISSIONS / "paper_experiment.yaml", {"bus": bus_spec}, rig="lab")
-    create_mission_certs(mission.name, [1, 2], tmp_path / "certs")
+    create_mission_certs(mission.name, participants([1, 2], None), tmp_path / "certs")
     assert not mission.simulated and mission.bus.kind == "inproc"
     bus = make_bus(mission, "agents", {1, 2})
     try:

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flightstack.comms.certs import create_mission_certs, files_of
+from flightstack.comms.certs import create_mission_certs, files_of, participants
 from flightstack.comms.factory import tls_settings
 from flightstack.faults.rows_processes import IDS, ServedRun, served_mission
 from tests.conftest import REPO
@@ -120,7 +120,7 @@ def test_a_secured_mission_accepts_nothing_from_outside(tmp_path: Path) -> None:
     work = tmp_path / "attacked"
     mission = _mission(work, "mtls")
     eps = _endpoints(mission)
-    create_mission_certs(NAME, list(IDS), work / "foreign")  # another CA, same names
+    create_mission_certs(NAME, participants(IDS, None), work / "foreign")  # another CA, same names
     common = {"duration_s": 12.0, "forgeries": ALL_FORGERIES}
     attackers = {
         "no certificate": {**common, "connect": [e.replace("tls/", "tcp/") for e in eps], "tls": None},

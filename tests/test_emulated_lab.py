@@ -25,7 +25,7 @@ pytest.importorskip("motioncapture")
 pytest.importorskip("pymavlink")
 
 from flightstack.cli.app import main
-from flightstack.comms.certs import create_mission_certs
+from flightstack.comms.certs import create_mission_certs, participants
 from flightstack.paper.geometry import Pose, compose
 from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
 from flightstack.sim_backend.emulators.natnet import NatNetEmulator
@@ -110,7 +110,8 @@ def write_mission(
     }
     path = tmp / "mission.yaml"
     path.write_text(yaml.safe_dump(m, sort_keys=False))
-    create_mission_certs(m["name"], [d["id"] for d in m["drones"]], tmp / "certs")  # bus.certs (issue 16)
+    ids = [d["id"] for d in m["drones"]]
+    create_mission_certs(m["name"], participants(ids, None), tmp / "certs")  # bus.certs (issue 16)
     return path
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flightstack.comms.certs import CertError, check_participant, create_mission_certs
+from flightstack.comms.certs import CertError, check_participant, create_mission_certs, participants
 from flightstack.comms.control import ControlEvent
 from flightstack.comms.factory import make_bus, zenoh_bus_config
 from flightstack.comms.messages import PredictionMessage, encode
@@ -74,8 +74,10 @@ def test_certs_command_writes_private_keys_0600_and_never_overwrites(tmp_path: P
     out = tmp_path / "c"
     assert main(["certs", str(SIM), "--out", str(out), "--days", "30"]) == 0
     names = {p.name for p in out.iterdir()}
-    for n in ("ca", "agent-1", "agent-2", "agent-3", "agents", "world", "operator", "guard"):
-        assert {f"{n}.pem", f"{n}.key"} <= names
+    # paper_sim runs in one process (no zenoh section): its Zenoh form is `--bus zenoh`, named `agents`
+    expected = ("ca", "agent-1", "agent-2", "agent-3", "agents", "operator", "guard")
+    assert names == {f"{n}{ext}" for n in expected for ext in (".pem", ".key")}
+    for n in expected:
         assert stat.S_IMODE(os.stat(out / f"{n}.key").st_mode) == 0o600
     st = check_participant(out, "agent-2", load_mission(SIM).name)
     assert 29.9 < st.days_left <= 30.0
@@ -97,7 +99,7 @@ def test_unusable_certificates_are_named(tmp_path: Path) -> None:
     with pytest.raises(CertError, match="issued for mission"):
         check_participant(tmp_path / "certs", "agent-1", "another_mission")
     other = tmp_path / "other"
-    create_mission_certs(name, [1, 2, 3], other)
+    create_mission_certs(name, participants([1, 2, 3], ["1"]), other)
     (tmp_path / "certs" / "ca.pem").write_bytes((other / "ca.pem").read_bytes())  # CA swapped
     with pytest.raises(MissionError, match="not signed by the mission CA"):
         zenoh_bus_config(mission, "1", {1})
@@ -135,7 +137,7 @@ def test_preflight_checks_the_certificate_this_computer_needs(tmp_path: Path) ->
     missing = load_mission(hw, {"bus": {"certs": str(tmp_path / "none")}}, rig="lab")
     [row] = check_certs(missing, [1, 2], all_in_one=True)
     assert (row.check, row.status) == ("certificate operator", "FAIL") and "cannot read" in row.detail
-    create_mission_certs(name, [1, 2], tmp_path / "soon", days=3)
+    create_mission_certs(name, participants([1, 2], None), tmp_path / "soon", days=3)
     [row] = check_certs(
         load_mission(hw, {"bus": {"certs": str(tmp_path / "soon")}}, rig="lab"), [1, 2], all_in_one=True
     )
@@ -143,6 +145,14 @@ def test_preflight_checks_the_certificate_this_computer_needs(tmp_path: Path) ->
     bus = secured_bus(tmp_path / "certs", name, [1, 2], ("1", "2"))
     zen = load_mission(hw, {"bus": bus}, rig="lab")
     assert [(r.check, r.status) for r in check_certs(zen, [1])] == [("certificate agent-1", "PASS")]
-    assert [(r.check, r.status) for r in check_certs(zen, [1, 2], all_in_one=True)] == [
+    # `fly` with every agent in one process: refused where the endpoints do not name `agents`
+    [row] = check_certs(zen, [1, 2], all_in_one=True)
+    assert (row.check, row.status, row.detail) == (
+        "certificate agents",
+        "FAIL",
+        "bus.zenoh.endpoints do not name it",
+    )
+    shared = load_mission(hw, {"bus": secured_bus(tmp_path / "shared", name, [1, 2], ("agents",))}, rig="lab")
+    assert [(r.check, r.status) for r in check_certs(shared, [1, 2], all_in_one=True)] == [
         ("certificate agents", "PASS")
     ]

@@ -1,7 +1,11 @@
 """`flightstack certs MISSION --out DIR`: the mission CA and a certificate per participant (issue 16).
 
+Makes exactly the mission's participants (factory.mission_participants): `agent-<id>` per drone,
+`operator` and `guard`, and `agents` / `world` only when `bus.zenoh.endpoints` names them, because the
+`agents` certificate may publish every drone's keys. Refuses a DIR that holds any participant's files,
+also of one this mission no longer has (a folder never mixes two CAs' pairs or keeps a stale `agents`).
 Prints where each file goes: every computer of the mission gets `ca.pem` and the pair of the
-participant(s) it runs, into the directory the mission's `bus.zenoh.certs` names (README "Securing the
+participant(s) it runs, into the directory the mission's `bus.certs` names (README "Securing the
 bus"). `ca.key` stays where it was made.
 """
 
@@ -20,33 +24,37 @@ from flightstack.comms.certs import (
     agent_name,
     create_mission_certs,
 )
+from flightstack.comms.factory import mission_participants
 from flightstack.config.mission import MissionError, load_mission
+
+_RUNS = {
+    AGENTS: "flightstack fly/sim with every agent in one process",
+    WORLD: "flightstack world (served simulation)",
+    OPERATOR: "flightstack abort / status",
+    GUARD: "flightstack guard",
+}
 
 
 def cmd_certs(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission, check_files=False, rig=args.rig)
     out = Path(args.out)
-    ids = [d.id for d in mission.drones]
+    names = mission_participants(mission)
     try:
-        create_mission_certs(mission.name, ids, out, days=args.days)
+        create_mission_certs(mission.name, names, out, days=args.days)
     except CertError as exc:
         raise MissionError(f"certs: {exc}") from None
     except OSError as exc:
         raise MissionError(f"certs: cannot write {out}: {exc.strerror or exc}") from None
     z = mission.bus.zenoh
-    where = mission.bus.certs
-    n = len(ids) + 4
-    print(f"mission {mission.name!r}: CA and {n} participant certificates in {out} ({args.days} days)")
-    print(f"copy to each computer, into the mission's bus.certs directory ({where!r}):")
-    rows = [(agent_name(i), f"flightstack agent MISSION --id {i}") for i in ids]
-    rows += [
-        (AGENTS, "flightstack fly/sim with every agent in one process"),
-        (WORLD, "flightstack world (served simulation)"),
-        (OPERATOR, "flightstack abort / status"),
-        (GUARD, "flightstack guard"),
-    ]
-    for name, what in rows:
-        print(f"  ca.pem {name}.pem {name}.key   -> the computer running {what}")
+    print(
+        f"mission {mission.name!r}: CA and {len(names)} participant certificates in {out} ({args.days} days)"
+    )
+    print(f"copy to each computer, into the mission's bus.certs directory ({mission.bus.certs!r}):")
+    runs = {agent_name(d.id): f"flightstack agent MISSION --id {d.id}" for d in mission.drones} | _RUNS
+    for name in names:
+        print(f"  ca.pem {name}.pem {name}.key   -> the computer running {runs[name]}")
+    if AGENTS not in names:
+        print("no `agents` certificate: the mission's endpoints do not name one process flying every drone")
     print("keep ca.key on this computer only (it signs; no participant needs it)")
     if mission.simulated and (z is None or z.security != "mtls"):
         print("note: this simulated mission runs plaintext on loopback; it does not need them")

@@ -2,13 +2,17 @@
 
 Keys (one mission = one key space `{prefix}/{mission}`):
 
-    pred/{i}                 agent i's prediction                      publisher: agent-i (or agents)
-    alive/{i}                agent i's liveliness token                 declarer:  agent-i (or agents)
+    pred/{i}                 agent i's prediction                      publisher: agent-i (or agents*)
+    alive/{i}                agent i's liveliness token                 declarer:  agent-i (or agents*)
     control/abort            an operator abort                          publisher: operator
-    control/status/{i}       agent i's status report                    publisher: agent-i (or agents)
+    control/status/{i}       agent i's status report                    publisher: agent-i (or agents*)
     control/ack/{name}       abort acknowledgement of participant name publisher: that participant
     world/tick/{i}           what drone i's sensors see (served sim)    publisher: world
     world/cmd/{i}            what agent i did to drone i (served sim)   publisher: agent-i
+
+(*) `agents`, the one certificate that speaks for every drone, and `world` are granted only to a mission
+that has them, i.e. whose `bus.zenoh.endpoints` names them (certs.participants); otherwise no rule or
+subject mentions them, and a drone's keys can be published only with that drone's own certificate.
 
 `access_control(...)` turns that table into Zenoh's `access_control` section, with `default_permission:
 deny`. Every node enforces it on *ingress*: a message that arrives on a link is accepted only if the
@@ -20,7 +24,11 @@ mission's keys, since links exist only to authenticated participants. Nothing ou
 
 What the key alone cannot say is checked on receipt: the sender field of a prediction equals its key
 (freshness.py), a status names the drone of its key, an acknowledgement names only drones its
-participant hosts (zenoh_bus.py). Messages a participant's own session publishes reach its own
+participant hosts (zenoh_bus.py). A receiver cannot learn the certificate a message came with: a Zenoh
+sample carries no link or certificate, and its optional `source_info` is an id the publishing session
+declares about itself, not authenticated. So who may publish a key is decided by this ACL alone, on the
+receiving node's ingress, before any subscriber sees the message (tests/test_key_ownership.py tries
+every certificate on every key). Messages a participant's own session publishes reach its own
 subscribers without passing a link (Zenoh's local delivery), i.e. without the ACL; a process only
 publishes its own keys, so this admits nothing foreign.
 """
@@ -29,7 +37,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from flightstack.comms.certs import AGENTS, OPERATOR, WORLD, agent_name, participants
+from flightstack.comms.certs import AGENTS, OPERATOR, WORLD, agent_name
 
 PUBLISH = ["put", "delete"]
 READ = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
@@ -100,9 +108,14 @@ def _agent_keys(prefix: str, mission: str, ids: list[int], name: str) -> list[st
     return keys
 
 
-def access_control(prefix: str, mission: str, drone_ids: set[int] | list[int]) -> dict[str, Any]:
-    """Zenoh's `access_control` section for a mission with these drones (see the module docstring)."""
+def access_control(
+    prefix: str, mission: str, drone_ids: set[int] | list[int], names: list[str]
+) -> dict[str, Any]:
+    """Zenoh's `access_control` section for a mission with these drones and participants `names`
+    (certs.participants; see the module docstring). `agents` and `world` are granted only when in
+    `names`; every drone of `drone_ids` has its `agent-<id>`."""
     ids = sorted(drone_ids)
+    names = list(dict.fromkeys([*(agent_name(i) for i in ids), *names]))
     everything = f"{space(prefix, mission)}/**"
     rules: list[dict[str, Any]] = [
         {"id": "egress", "messages": EVERY_MESSAGE, "flows": ["egress"], "permission": "allow",
@@ -112,7 +125,7 @@ def access_control(prefix: str, mission: str, drone_ids: set[int] | list[int]) -
     ]  # fmt: skip
     subjects: list[dict[str, Any]] = [
         {"id": "any-link"},
-        {"id": "participants", "cert_common_names": participants(ids)},
+        {"id": "participants", "cert_common_names": names},
     ]
     policies: list[dict[str, Any]] = [
         {"id": "egress", "rules": ["egress"], "subjects": ["any-link"]},
@@ -142,8 +155,11 @@ def access_control(prefix: str, mission: str, drone_ids: set[int] | list[int]) -
             [*_agent_keys(prefix, mission, [i], agent_name(i)), cmd_key(prefix, mission, i)],
             [alive_key(prefix, mission, i)],
         )
-    grant(AGENTS, _agent_keys(prefix, mission, ids, AGENTS), [alive_key(prefix, mission, i) for i in ids])
-    grant(WORLD, [tick_key(prefix, mission, i) for i in ids], [])
+    if AGENTS in names:
+        alive = [alive_key(prefix, mission, i) for i in ids]
+        grant(AGENTS, _agent_keys(prefix, mission, ids, AGENTS), alive)
+    if WORLD in names:
+        grant(WORLD, [tick_key(prefix, mission, i) for i in ids], [])
     grant(OPERATOR, [abort_key(prefix, mission)], [])
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}  # fmt: skip

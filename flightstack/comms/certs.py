@@ -10,6 +10,12 @@ certificate signed by the mission's own CA, with the participant's name as the c
     operator     `flightstack abort` / `flightstack status`, and the signer of loopback aborts
     guard        `flightstack guard`
 
+Which of them a mission has (decision, `participants`): `agent-<id>` for each of its drones, `operator`
+and `guard` always; `agents` and `world` only when the mission's `bus.zenoh.endpoints` names them. The
+shared `agents` certificate speaks for every drone, so a mission whose processes are one agent each must
+not have one. A mission without a zenoh section runs in one process; its only Zenoh form is
+`--bus zenoh`, which names `agents` (flightstack/cli/run.py), so it has `agents` and no `world`.
+
 How names are verified (decision). Mutual TLS with `root_ca_certificate` = the mission CA: a peer
 without a certificate signed by that CA cannot open a link at all. Zenoh's access control then binds
 each key expression to the CN of the certificate on the link it arrives from (flightstack/comms/acl.py).
@@ -36,12 +42,16 @@ import datetime as dt
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cryptography import x509
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable
 
 CA_NAME = "ca"
 OPERATOR = "operator"
@@ -67,9 +77,28 @@ def participant_name(participant: str) -> str:
     return agent_name(int(participant)) if participant.isdigit() else participant
 
 
-def participants(drone_ids: list[int] | set[int]) -> list[str]:
-    """Every participant of a mission with these drones, in a stable order."""
-    return [*(agent_name(i) for i in sorted(drone_ids)), AGENTS, WORLD, OPERATOR, GUARD]
+def participants(drone_ids: Iterable[int], endpoint_names: Iterable[str] | None) -> list[str]:
+    """Every participant of a mission with these drones, in a stable order (module docstring):
+    `endpoint_names` are the names of its `bus.zenoh.endpoints`, None when it has no zenoh section."""
+    named = {AGENTS} if endpoint_names is None else set(endpoint_names)
+    shared = [n for n in (AGENTS, WORLD) if n in named]
+    return [*(agent_name(i) for i in sorted(set(drone_ids))), *shared, OPERATOR, GUARD]
+
+
+def is_participant_name(name: str) -> bool:
+    """True for a name `participants` can return (`agent-<id>`, `agents`, `world`, `operator`, `guard`)."""
+    return name in (AGENTS, WORLD, OPERATOR, GUARD) or (name.startswith("agent-") and name[6:].isdigit())
+
+
+def any_participant_files(directory: Path) -> list[str]:
+    """The certificate files of any possible participant (or the CA) that `directory` holds: what a
+    `certs` run into it would clash with or leave behind."""
+    files = sorted(directory.iterdir()) if directory.is_dir() else []
+    return [
+        p.name
+        for p in files
+        if p.suffix in (".pem", ".key") and (p.stem == CA_NAME or is_participant_name(p.stem))
+    ]
 
 
 @dataclass(frozen=True)
@@ -181,22 +210,28 @@ def _leaf(
     return key, cert
 
 
-def create_mission_certs(
-    mission: str, drone_ids: list[int] | set[int], out: Path, days: int = 90
-) -> list[Path]:
-    """Create the CA and every participant's certificate and key in `out` (created, mode 0700 if new).
+def create_mission_certs(mission: str, names: list[str], out: Path, days: int = 90) -> list[Path]:
+    """Create the CA and the certificate and key of each participant `names` (`participants`) in `out`
+    (created, mode 0700 if new).
 
-    Refuses (CertError) when any file it would write exists: certificates are never silently replaced
-    (delete the directory to start over). Returns the files written."""
+    Refuses (CertError) when `out` holds any participant's or the CA's files, also of a participant not
+    in `names`: certificates are never silently replaced, and a folder never keeps a pair (say `agents`,
+    from a run before the mission dropped it) beside the pairs of a new CA (delete the directory to
+    start over). Returns the files written."""
     if not 1 <= days <= 3650:
         raise CertError(f"--days: {days} is outside 1..3650")
-    out.mkdir(mode=0o700, parents=True, exist_ok=True)
-    names = participants(drone_ids)
-    targets = [out / f"{CA_NAME}.pem", out / f"{CA_NAME}.key"]
-    targets += [out / f"{n}{ext}" for n in names for ext in (".pem", ".key")]
-    existing = [p.name for p in targets if p.exists()]
+    wrong = [n for n in names if not is_participant_name(n)]
+    if wrong:
+        raise CertError(
+            f"{wrong[0]!r} is not a participant name (agent-<id>, agents, world, operator, guard)"
+        )
+    existing = any_participant_files(out)
     if existing:
         raise CertError(f"{out}: already holds {', '.join(existing)} (remove them to create new ones)")
+    out.mkdir(mode=0o700, parents=True, exist_ok=True)
+    names = list(dict.fromkeys(names))
+    targets = [out / f"{CA_NAME}.pem", out / f"{CA_NAME}.key"]
+    targets += [out / f"{n}{ext}" for n in names for ext in (".pem", ".key")]
     now = dt.datetime.now(dt.UTC)
     ca_key, ca_cert = _ca(mission, now, days)
     _write_new(out / f"{CA_NAME}.key", _key_pem(ca_key), 0o600)
@@ -341,9 +376,11 @@ __all__ = [
     "CertStatus",
     "ParticipantFiles",
     "agent_name",
+    "any_participant_files",
     "check_participant",
     "create_mission_certs",
     "files_of",
+    "is_participant_name",
     "operator_private_key",
     "operator_public_key",
     "participant_name",

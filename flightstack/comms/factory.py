@@ -15,7 +15,9 @@ terminal; `bus.control_events()` yields its aborts.
 
 Security (issue 16): a `security: mtls` Zenoh bus gets this participant's certificate files from
 `bus.certs` (checked first: certs.check_participant) and the access control generated from the
-mission's participants (acl.py); a hardware mission refuses plaintext Zenoh, and its loopback listener
+mission's participants (`mission_participants`, acl.py); a participant the mission does not have (say
+`agents` when its endpoints do not name it) is refused before it opens, even when an older `certs` run
+left its pair in `bus.certs`. A hardware mission refuses plaintext Zenoh, and its loopback listener
 verifies the operator's signature (`operator_key`). Participant names map to certificate common names:
 a drone id N → "agent-N"; "agents", "world", "operator", "guard" as they are.
 """
@@ -28,12 +30,26 @@ from typing import TYPE_CHECKING, Any
 from flightstack.comms.acceptance import AcceptanceBounds
 from flightstack.comms.acl import access_control
 from flightstack.comms.bus import Bus, InProcBus
-from flightstack.comms.certs import CertError, ParticipantFiles, check_participant, files_of, participant_name
+from flightstack.comms.certs import (
+    CertError,
+    ParticipantFiles,
+    check_participant,
+    files_of,
+    participant_name,
+    participants,
+)
 from flightstack.config.mission import Mission, MissionError
 
 if TYPE_CHECKING:
     from flightstack.comms.operator_link import LoopbackOperatorListener
     from flightstack.comms.zenoh_config import ZenohBusConfig
+
+
+def mission_participants(mission: Mission) -> list[str]:
+    """The certificate common names of `mission`'s participants (certs.participants): `agent-<id>` per
+    drone, `agents` and `world` when `bus.zenoh.endpoints` names them, `operator`, `guard`."""
+    z = mission.bus.zenoh
+    return participants([d.id for d in mission.drones], None if z is None else list(z.endpoints))
 
 
 def zenoh_bus_config(mission: Mission, participant: str, self_ids: set[int]) -> ZenohBusConfig:
@@ -58,8 +74,14 @@ def zenoh_bus_config(mission: Mission, participant: str, self_ids: set[int]) -> 
         )
     tls = acl = None
     if z.security == "mtls":
+        names = mission_participants(mission)
+        if name not in names:
+            raise MissionError(
+                f"bus.zenoh.endpoints: this mission has no participant {name!r} (it has {', '.join(names)});"
+                f" name it in the endpoints to run it (and make its certificate with `flightstack certs`)"
+            )
         tls = mtls_settings(mission, name)
-        acl = access_control(z.key_prefix, mission.name, ids)
+        acl = access_control(z.key_prefix, mission.name, ids, names)
     return ZenohBusConfig(
         mission=mission.name,
         self_ids=set(self_ids),

@@ -35,7 +35,9 @@ class ZenohSpec(_Strict):
     `tls/host:port`, every link is mutual TLS with the certificates `flightstack certs` made for this
     mission (directory `bus.certs`; each computer needs `ca.pem` and its own participant's pair), and
     Zenoh's access control, generated from the mission's participants (flightstack/comms/acl.py), lets
-    each participant publish only its own keys. `security: plaintext`:
+    each participant publish only its own keys. The keys of `endpoints` say which participants the
+    mission has: `agents` (whose certificate may publish every drone's keys) and `world` get a
+    certificate and a grant only when named here (certs.participants). `security: plaintext`:
     `tcp/` endpoints on loopback (127.0.0.0/8, localhost, [::1]) only, for simulations on one computer;
     refused on real hardware. Listening on every interface (0.0.0.0, [::]) is refused unless
     `allow_all_interfaces: true`. There is no raw `tls` or `access_control` section: both are generated."""

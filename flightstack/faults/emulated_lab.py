@@ -302,9 +302,11 @@ class EmulatedLab:
         path.write_text(yaml.safe_dump(m, sort_keys=False))
         certs = path.parent / "certs"  # the mission's default bus.certs: real drones need them (issue 16)
         if not (certs / "ca.pem").exists():
-            from flightstack.comms.certs import create_mission_certs
+            from flightstack.comms.certs import create_mission_certs, participants
 
-            create_mission_certs(str(m["name"]), [int(d["id"]) for d in m["drones"]], certs)
+            zenoh = (m.get("bus") or {}).get("zenoh")
+            ids = [int(d["id"]) for d in m["drones"]]
+            create_mission_certs(str(m["name"]), participants(ids, zenoh and zenoh["endpoints"]), certs)
         return path
 
     def mission(self) -> Any:

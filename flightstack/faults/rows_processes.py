@@ -61,9 +61,10 @@ def served_mission(
         "zenoh": {"endpoints": endpoints, "lease_ms": 500, "security": security},
     }
     if security == "mtls":
-        from flightstack.comms.certs import create_mission_certs
+        from flightstack.comms.certs import create_mission_certs, participants
 
-        create_mission_certs(name, [int(d["id"]) for d in m["drones"]], workdir / "certs")
+        ids = [int(d["id"]) for d in m["drones"]]
+        create_mission_certs(name, participants(ids, endpoints), workdir / "certs")
     experts = {}
     for k, d in enumerate(m["drones"]):
         rng = np.random.default_rng(k)
