@@ -42,7 +42,7 @@ from flightstack.drivers.scamper_link import (
 
 mavlink = mavutil.mavlink
 
-REPLY_TIMEOUT_S = 0.5  # wait for the replies to one round of requests (s)
+REPLY_TIMEOUT_S = 1.0  # wait for the replies to one round of requests (s)
 ATTEMPTS = 3  # rounds of requests for a name that does not answer
 RX_WAIT_S = 0.05  # longest single receive wait (s)
 PARAM_ID_LEN = 16  # MAVLink param_id: up to 16 ASCII characters

@@ -180,9 +180,17 @@ def test_emulator_answers_by_name_by_index_and_the_whole_list() -> None:
             gcs.close()
 
 
-def test_failsafe_holds_a_guided_rover_when_our_heartbeats_stop() -> None:
+@pytest.mark.parametrize(
+    "params",
+    [
+        RoverParams(**FAST),
+        RoverParams(absent=frozenset({"FS_GCS_TIMEOUT"}), fs_gcs_timeout_s=99.0, fs_timeout_s=1.0),
+    ],
+    ids=["FS_GCS_TIMEOUT 2", "older firmware: fixed 2 s"],
+)
+def test_failsafe_holds_a_guided_rover_when_our_heartbeats_stop(params: RoverParams) -> None:
     """Set-points keep coming, heartbeats stop: HOLD, zero velocity, still armed, after 2 + 1 s."""
-    with rover(RoverParams(**FAST)) as emu:
+    with rover(params) as emu:
         gcs, stranger = BareGcs(emu), BareGcs(emu, sysid=254)
         try:
             gcs.guided_and_armed()

@@ -71,7 +71,8 @@ Behaviour (a small subset of ArduPilot Rover, these are the emulator's rules):
     containing it emulates that firmware).  Checked at 10 Hz.  A GCS never heard from never triggers it.
   - ``FS_TIMEOUT`` (REAL32, s; default 1.5, documented range 1–100): the loss must then last longer than
     this before ``FS_ACTION`` is taken, so the action comes ``FS_GCS_TIMEOUT + FS_TIMEOUT`` (+ ≤ 0.1 s)
-    after the last GCS heartbeat; a heartbeat in between clears it.  The action is taken once per loss.
+    after the last GCS heartbeat (FS_GCS_ENABLE's description names FS_TIMEOUT alone; the code adds
+    both); a heartbeat in between clears it.  The action is taken once per loss.
   - ``FS_ACTION`` (INT8; default 2): 0 Nothing (mode and set-point stay: GUIDED keeps driving until its
     own 3 s set-point timeout), 1 RTL (RTL, else HOLD), 2 Hold (HOLD: stops, stays armed), 3 SmartRTL
     or RTL (or HOLD), 4 SmartRTL or Hold, 5 Terminate (disarm), 6 Loiter or Hold.
