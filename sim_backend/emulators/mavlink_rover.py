@@ -75,7 +75,7 @@ Behaviour (a small subset of ArduPilot Rover, these are the emulator's rules):
     both); a heartbeat in between clears it.  The action is taken once per loss.
   - ``FS_ACTION`` (INT8; default 2): 0 Nothing (mode and set-point stay: GUIDED keeps driving until its
     own 3 s set-point timeout), 1 RTL (RTL, else HOLD), 2 Hold (HOLD: stops, stays armed), 3 SmartRTL
-    or RTL (or HOLD), 4 SmartRTL or Hold, 5 Terminate (disarm), 6 Loiter or Hold.
+    or RTL (or HOLD), 4 SmartRTL or Hold, 5 Terminate (disarm), 6 Loiter or Hold (newer firmware).
   - Which heartbeats count: a HEARTBEAT whose source system is ``SYSID_MYGCS`` (INT16; default 255);
     newer firmware (libraries/GCS_MAVLink/GCS.cpp) calls it ``MAV_GCS_SYSID`` and adds
     ``MAV_GCS_SYSID_HI``: when that is ≥ ``MAV_GCS_SYSID`` the whole range counts.  Component and
