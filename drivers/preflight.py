@@ -21,7 +21,9 @@ The checks (README "Preflight"):
   (access-point mode: `--id N` on each drone's computer).
 - mocap: the server answers; every body (drones, target) is tracked, level (tilt limit) and, for the
   drones, inside the fence's x/y box (the target too: the drones follow it).
-- robot: a HEARTBEAT within heartbeat_timeout_s (mode and armed state reported).
+- robot: a HEARTBEAT within heartbeat_timeout_s (mode and armed state reported); its own GCS failsafe
+  (ArduPilot parameters read over MAVLink, judged by drivers/scamper_failsafe.py): FAIL unless it is on,
+  holds the robot, acts within 5 s of our last heartbeat and watches our system id.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ import numpy as np
 from flightstack.config.mission import Mission
 
 if TYPE_CHECKING:
+    from flightstack.drivers.scamper_link import ScamperConfig
     from flightstack.drivers.tello_camera import TelloCamera
 
 Status = Literal["PASS", "WARN", "FAIL"]
@@ -279,17 +282,30 @@ def check_mocap(mission: Mission) -> list[CheckRow]:
 
 def check_robot(mission: Mission) -> list[CheckRow]:
     from flightstack.drivers.hardware import scamper_config
-    from flightstack.drivers.scamper import probe_heartbeat
 
     cfg = scamper_config(mission)
     if cfg is None:
         return [_row("robot", "link", True, "not driven by this mission (hardware.target is null)")]
+    return robot_rows(cfg)
+
+
+def robot_rows(cfg: ScamperConfig) -> list[CheckRow]:
+    """The robot's HEARTBEAT, and its own GCS failsafe read from its parameters (nothing armed or set)."""
+    from flightstack.drivers.guardian import GuardianConfig
+    from flightstack.drivers.scamper_failsafe import PARAMETERS, enough, judge_gcs_failsafe
+    from flightstack.drivers.scamper_params import probe_parameters
+
     dev = f"robot ({cfg.url})"
     try:
-        hb = probe_heartbeat(cfg)
+        hb, read = probe_parameters(cfg, PARAMETERS, enough=enough)
     except Exception as exc:
         return [_row(dev, "heartbeat", False, str(exc))]
-    return [_row(dev, "heartbeat", True, f"mode {hb.custom_mode}, {'ARMED' if hb.armed else 'disarmed'}")]
+    ours = {"flightstack": cfg.source_system, "guardian": GuardianConfig().robot_source[0]}
+    verdict = judge_gcs_failsafe(read.values, ours)
+    return [
+        _row(dev, "heartbeat", True, f"mode {hb.custom_mode}, {'ARMED' if hb.armed else 'disarmed'}"),
+        CheckRow(dev, "GCS failsafe", verdict.status, verdict.detail),
+    ]
 
 
 # ---- all of it ---------------------------------------------------------------------------------------

@@ -242,29 +242,45 @@ def probe_heartbeat(config: ScamperConfig) -> HeartbeatProbe:
     vehicle's heartbeat counts (not a companion computer's, gimbal's, GCS's).  Raises ScamperLinkError
     when nothing arrives in time.
     """
-    conn = mavutil.mavlink_connection(
-        config.url, source_system=config.source_system, source_component=config.source_component
-    )
+    conn = open_connection(config)
     try:
-        deadline = time.monotonic() + config.heartbeat_timeout_s
-        next_hb = 0.0
-        while True:
-            now = time.monotonic()
-            if now >= deadline:
-                raise ScamperLinkError(
-                    f"no HEARTBEAT from Scamper at {config.url!r} within {config.heartbeat_timeout_s:g} s"
-                )
-            if now >= next_hb:
-                next_hb = now + 0.25
-                with contextlib.suppress(OSError):
-                    conn.mav.heartbeat_send(*_GCS_HEARTBEAT)
-            try:
-                msg = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=min(0.05, deadline - now))
-            except (OSError, ValueError):
-                msg = None
-            if msg is not None and is_vehicle_heartbeat(msg):
-                armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-                return HeartbeatProbe(int(msg.type), int(msg.custom_mode), armed)
+        return wait_vehicle_heartbeat(conn, config)[0]
     finally:
         with contextlib.suppress(OSError):
             conn.close()
+
+
+def open_connection(config: ScamperConfig) -> Any:
+    """A pymavlink connection to ``config.url`` with our source system and component."""
+    return mavutil.mavlink_connection(
+        config.url, source_system=config.source_system, source_component=config.source_component
+    )
+
+
+def send_gcs_heartbeat(conn: Any) -> None:
+    """Our GCS HEARTBEAT on a bare pymavlink connection (probes; a socket error is ignored)."""
+    with contextlib.suppress(OSError):
+        conn.mav.heartbeat_send(*_GCS_HEARTBEAT)
+
+
+def wait_vehicle_heartbeat(conn: Any, config: ScamperConfig) -> tuple[HeartbeatProbe, tuple[int, int]]:
+    """`probe_heartbeat` on an open connection; also returns the vehicle's (system, component)."""
+    deadline = time.monotonic() + config.heartbeat_timeout_s
+    next_hb = 0.0
+    while True:
+        now = time.monotonic()
+        if now >= deadline:
+            raise ScamperLinkError(
+                f"no HEARTBEAT from Scamper at {config.url!r} within {config.heartbeat_timeout_s:g} s"
+            )
+        if now >= next_hb:
+            next_hb = now + 0.25
+            send_gcs_heartbeat(conn)
+        try:
+            msg = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=min(0.05, deadline - now))
+        except (OSError, ValueError):
+            msg = None
+        if msg is not None and is_vehicle_heartbeat(msg):
+            armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            probe = HeartbeatProbe(int(msg.type), int(msg.custom_mode), armed)
+            return probe, (int(msg.get_srcSystem()), int(msg.get_srcComponent()))

@@ -255,6 +255,7 @@ def test_fly_a_short_mission_on_the_emulated_lab(lab: Lab, capsys: pytest.Captur
     assert all(len(e.rc_history) > 20 for e in lab.tellos.values())  # 20 Hz control for 3 s
     assert not any(e.flying for e in lab.tellos.values())  # every drone landed
     assert not lab.rover.armed  # the robot was driven, then stopped and disarmed
+    assert not [e for e in lab.rover.failsafe_events if e.armed]  # its GCS failsafe never acted while armed
     assert lab.rover.setpoint_records
     rec = np.load(out_dir / "timeseries_none.npz")
     assert np.all(np.isfinite(rec["g_wi"])) and rec["g_wi"].shape[0] == 60

@@ -20,8 +20,9 @@ Behaviour (a small subset of ArduPilot Rover, these are the emulator's rules):
   (type mask bits 4, 5 and 12 clear) sets the body velocity ``[vx, vy, yaw_rate]`` (m/s, m/s, rad/s; x
   forward, y right, yaw rate clockwise seen from above), but only while GUIDED and armed.  Other frames or
   masks are recorded in ``setpoints`` but have no effect.  If no set-point arrives for
-  ``setpoint_timeout_s`` (3 s, like Rover's guided-mode timeout) the rover stops and ``stopped_by_timeout``
-  is set.  Disarming or leaving GUIDED stops it at once.
+  ``setpoint_timeout_s`` (3 s, like Rover's guided-mode timeout: Rover/mode_guided.cpp stops the vehicle,
+  "target not received last 3secs, stopping", and stays in GUIDED) the rover stops and
+  ``stopped_by_timeout`` is set.  Disarming or leaving GUIDED stops it at once.
 * **Pose**: the body velocity is integrated exactly (constant twist over each step) into a planar pose
   ``(x, y, yaw)`` in the emulator's local NED frame (x north, y east, yaw clockwise from north, rad), which
   starts at the origin.  ``pose_flu()`` gives the same pose in FLU/ENU-like terms (x forward-at-start,
@@ -51,6 +52,42 @@ Behaviour (a small subset of ArduPilot Rover, these are the emulator's rules):
     autopilot's, even when ``no_heartbeat`` is set (github.com/mavlink/MAVSDK/pull/516: "if we listen to
     the heartbeats from all components the armed flag will flicker"; github.com/ArduPilot/pymavlink/pull/87:
     companion heartbeats flipping the displayed mode; pull/257: ``motors_armed`` only from vehicle ones).
+
+* **Parameters** (`RoverParams`, a constructor argument; the defaults are what the lab's Scamper must be
+  set to for `flightstack preflight` to pass): ``PARAM_REQUEST_READ`` by name (``param_index`` -1) or by
+  index, and ``PARAM_REQUEST_LIST`` (every parameter in index order), answered with ``PARAM_VALUE``
+  (value as a float, ``param_type`` as ArduPilot's: INT8 for the enums, INT16 for system ids, REAL32 for
+  times); a name or index the firmware lacks gets no answer.  Requests addressed to another system are
+  ignored.  ``faults.drop_param_replies`` loses the next N replies, ``faults.duplicate_param_replies``
+  sends each twice.
+* **GCS failsafe**, as ArduPilot Rover implements it (Rover/Parameters.cpp, Rover/Rover.cpp
+  ``gcs_failsafe_check``, Rover/failsafe.cpp ``failsafe_trigger``, libraries/GCS_MAVLink ``GCS.cpp``/
+  ``GCS_Common.cpp``):
+
+  - ``FS_GCS_ENABLE`` (INT8; ArduPilot's default 0): 0 disabled, 1 enabled, 2 enabled but an AUTO
+    mission continues.
+  - ``FS_GCS_TIMEOUT`` (REAL32, s; default 5, documented range 2–120): the GCS is lost once no HEARTBEAT
+    came from it for this long (firmware before this parameter: a fixed 2 s; `RoverParams.absent`
+    containing it emulates that firmware).  Checked at 10 Hz.  A GCS never heard from never triggers it.
+  - ``FS_TIMEOUT`` (REAL32, s; default 1.5, documented range 1–100): the loss must then last longer than
+    this before ``FS_ACTION`` is taken, so the action comes ``FS_GCS_TIMEOUT + FS_TIMEOUT`` (+ ≤ 0.1 s)
+    after the last GCS heartbeat (FS_GCS_ENABLE's description names FS_TIMEOUT alone; the code adds
+    both); a heartbeat in between clears it.  The action is taken once per loss.
+  - ``FS_ACTION`` (INT8; default 2): 0 Nothing (mode and set-point stay: GUIDED keeps driving until its
+    own 3 s set-point timeout), 1 RTL (RTL, else HOLD), 2 Hold (HOLD: stops, stays armed), 3 SmartRTL
+    or RTL (or HOLD), 4 SmartRTL or Hold, 5 Terminate (disarm), 6 Loiter or Hold (newer firmware).
+  - Which heartbeats count: a HEARTBEAT whose source system is ``SYSID_MYGCS`` (INT16; default 255);
+    newer firmware (libraries/GCS_MAVLink/GCS.cpp) calls it ``MAV_GCS_SYSID`` and adds
+    ``MAV_GCS_SYSID_HI``: when that is ≥ ``MAV_GCS_SYSID`` the whole range counts.  Component and
+    MAV_TYPE do not matter.
+  - When it acts: armed or not (failsafe_trigger does not look at arming; disarmed, a mode change moves
+    nothing); never while in RTL, nor in HOLD unless ``FS_OPTIONS`` bit 0 is set; in AUTO with
+    ``FS_GCS_ENABLE`` 2 the mission continues.
+  - Emulator model of the modes a failsafe enters: RTL and SmartRTL drive straight toward home (the pose
+    at arming) at ``RoverParams.rtl_speed_mps`` until within ``wp_radius_m`` (ArduPilot's WP_RADIUS
+    default 2 m), then stop; without a home (never armed) RTL cannot be entered and HOLD is used; LOITER
+    stays still (nothing pushes the emulated rover).  ``failsafe_events`` records each action (time,
+    action, mode after); ``failsafe_t`` / ``failsafe_action`` give the first.
 
 * **Pilot / failsafe**: ``pilot_override(mode=..., armed=...)`` changes the mode or arming as an RC mode
   switch, an RC/GCS failsafe or another GCS does, with no command from the client
@@ -84,9 +121,16 @@ from flightstack.paper.geometry import Pose, wrap_angle
 
 mavlink = mavutil.mavlink
 
-ROVER_MODES = {0: "MANUAL", 4: "HOLD", 10: "AUTO", 11: "RTL", 15: "GUIDED"}
+ROVER_MODES = {0: "MANUAL", 4: "HOLD", 5: "LOITER", 10: "AUTO", 11: "RTL", 12: "SMART_RTL", 15: "GUIDED"}
 GUIDED = 15
 HOLD = 4
+LOITER = 5
+AUTO = 10
+RTL = 11
+SMART_RTL = 12
+FS_CHECK_PERIOD_S = 0.1  # Rover runs gcs_failsafe_check at 10 Hz
+OLD_FIRMWARE_GCS_TIMEOUT_S = 2.0  # the fixed GCS timeout of firmware without FS_GCS_TIMEOUT
+FS_OPTION_ACTIVE_IN_HOLD = 1  # FS_OPTIONS bit 0
 # Type-mask bits that must be clear for a velocity + yaw-rate set-point: vx (8), vy (16), yaw_rate (2048).
 _VEL_YAWRATE_BITS = 8 | 16 | 2048
 
@@ -107,6 +151,72 @@ class RoverFaults:
     ack_accepted_but_ignored: set[int] = field(default_factory=set)  # ACCEPTED, but nothing happens
     drop_commands: int = 0  # the next N COMMAND_LONG / SET_MODE never arrive
     companion_heartbeat: bool = False
+    drop_param_replies: int = 0  # the next N PARAM_VALUE are lost on the way out
+    duplicate_param_replies: bool = False  # every PARAM_VALUE is sent twice
+
+
+@dataclass(frozen=True)
+class RoverParams:
+    """The emulated firmware's parameters (module docstring "GCS failsafe"); the defaults are what the
+    lab's Scamper must be set to: the failsafe on, Hold, 3 s + 1 s, our GCS system id 255."""
+
+    fs_gcs_enable: int = 1
+    fs_action: int = 2  # Hold
+    fs_timeout_s: float = 1.0
+    fs_gcs_timeout_s: float = 3.0
+    gcs_sysid: int = 255
+    gcs_sysid_name: str = "SYSID_MYGCS"  # or "MAV_GCS_SYSID" (newer firmware, which also has _HI)
+    gcs_sysid_hi: int = 0  # MAV_GCS_SYSID_HI (only with gcs_sysid_name "MAV_GCS_SYSID")
+    fs_options: int = 0
+    absent: frozenset[str] = frozenset()  # parameters this firmware does not have (never answered)
+    rtl_speed_mps: float = 0.5  # emulator's RTL / SmartRTL speed toward home
+    wp_radius_m: float = 2.0  # WP_RADIUS: RTL stops this close to home
+
+    def __post_init__(self) -> None:
+        if self.gcs_sysid_name not in ("SYSID_MYGCS", "MAV_GCS_SYSID"):
+            raise ValueError(
+                f"gcs_sysid_name must be SYSID_MYGCS or MAV_GCS_SYSID, got {self.gcs_sysid_name!r}"
+            )
+
+    def table(self, system_id: int) -> list[tuple[str, float, int]]:
+        """(name, value, MAV_PARAM_TYPE) in index order, without the absent ones."""
+        i8, i16, i32, f32 = (
+            mavlink.MAV_PARAM_TYPE_INT8, mavlink.MAV_PARAM_TYPE_INT16, mavlink.MAV_PARAM_TYPE_INT32,
+            mavlink.MAV_PARAM_TYPE_REAL32,
+        )  # fmt: skip
+        rows = [
+            ("SYSID_THISMAV", float(system_id), i16),
+            (self.gcs_sysid_name, float(self.gcs_sysid), i16),
+            ("FS_ACTION", float(self.fs_action), i8),
+            ("FS_TIMEOUT", float(self.fs_timeout_s), f32),
+            ("FS_GCS_ENABLE", float(self.fs_gcs_enable), i8),
+            ("FS_OPTIONS", float(self.fs_options), i32),
+            ("FS_GCS_TIMEOUT", float(self.fs_gcs_timeout_s), f32),
+        ]
+        if self.gcs_sysid_name == "MAV_GCS_SYSID":
+            rows.insert(2, ("MAV_GCS_SYSID_HI", float(self.gcs_sysid_hi), i16))
+        return [r for r in rows if r[0] not in self.absent]
+
+    def is_gcs(self, sysid: int) -> bool:
+        """Does a HEARTBEAT from this source system count as our GCS's (GCS::sysid_is_gcs)?"""
+        if self.gcs_sysid_name == "MAV_GCS_SYSID" and self.gcs_sysid_hi >= self.gcs_sysid:
+            return self.gcs_sysid <= sysid <= self.gcs_sysid_hi
+        return sysid == self.gcs_sysid
+
+    @property
+    def gcs_lost_after_s(self) -> float:
+        """FS_GCS_TIMEOUT, or the fixed 2 s of firmware without it."""
+        return OLD_FIRMWARE_GCS_TIMEOUT_S if "FS_GCS_TIMEOUT" in self.absent else self.fs_gcs_timeout_s
+
+
+@dataclass(frozen=True)
+class FailsafeEvent:
+    """One GCS failsafe action: t (emulator monotonic s), FS_ACTION value, mode (and armed) after it."""
+
+    t: float
+    action: int
+    mode: int
+    armed: bool
 
 
 @dataclass(frozen=True)
@@ -134,6 +244,12 @@ class _State:
     commands: list[tuple[int, float, int]] = field(default_factory=list)  # (command, param, result)
     acks_sent: list[tuple[int, int]] = field(default_factory=list)  # (command, result), every copy
     dropped: list[int] = field(default_factory=list)  # command ids lost on the way in
+    home: tuple[float, float] | None = None  # NED x, y (m) at arming: where RTL drives to
+    gcs_last_seen: float | None = None  # last HEARTBEAT from the GCS system id (monotonic s)
+    fs_on: bool = False  # GCS lost (FS_GCS_TIMEOUT passed)
+    fs_start: float = 0.0
+    fs_triggered: bool = False  # the action for this loss was taken
+    param_replies: int = 0  # PARAM_VALUE messages sent (duplicates included)
 
 
 class MavlinkRoverEmulator:
@@ -146,8 +262,12 @@ class MavlinkRoverEmulator:
         component_id: int = 1,
         heartbeat_hz: float = 1.0,
         setpoint_timeout_s: float = 3.0,
+        params: RoverParams | None = None,
     ) -> None:
         self.faults = RoverFaults()
+        self.params = params or RoverParams()
+        self.system_id = system_id
+        self.failsafe_events: list[FailsafeEvent] = []
         self.setpoint_timeout_s = setpoint_timeout_s
         self.heartbeat_period_s = 1.0 / heartbeat_hz
         self.setpoints: list[SetpointRecord] = []
@@ -229,6 +349,30 @@ class MavlinkRoverEmulator:
         with self._lock:
             return len(self.gcs_heartbeats)
 
+    @property
+    def failsafe_t(self) -> float | None:
+        """When the GCS failsafe first acted (emulator monotonic s), None if never."""
+        with self._lock:
+            return self.failsafe_events[0].t if self.failsafe_events else None
+
+    @property
+    def failsafe_action(self) -> int | None:
+        """The FS_ACTION the GCS failsafe first took, None if never."""
+        with self._lock:
+            return self.failsafe_events[0].action if self.failsafe_events else None
+
+    @property
+    def gcs_last_seen(self) -> float | None:
+        """Last HEARTBEAT from the GCS system id (emulator monotonic s), None before the first."""
+        with self._lock:
+            return self._s.gcs_last_seen
+
+    @property
+    def param_replies(self) -> int:
+        """PARAM_VALUE messages sent so far (duplicates included, dropped ones not)."""
+        with self._lock:
+            return self._s.param_replies
+
     # ------------------------------------------------------------------ lifecycle
     def close(self) -> None:
         """Stop the thread (joined within 1 s) and close the socket. Idempotent."""
@@ -247,7 +391,7 @@ class MavlinkRoverEmulator:
     # ------------------------------------------------------------------ internals
     def _run(self) -> None:
         last = time.monotonic()
-        next_hb = last
+        next_hb = next_fs = last
         while not self._stop.is_set():
             try:
                 msg = self._conn.recv_match(blocking=True, timeout=0.02)
@@ -269,6 +413,10 @@ class MavlinkRoverEmulator:
                 ):
                     self._s.vel = (0.0, 0.0, 0.0)
                     self.stopped_by_timeout = True
+                if now >= next_fs:
+                    next_fs = now + FS_CHECK_PERIOD_S
+                    self._gcs_failsafe_check(now)
+                self._drive_home()
             if now >= next_hb:
                 next_hb = now + self.heartbeat_period_s
                 self._send_heartbeat()
@@ -342,6 +490,79 @@ class MavlinkRoverEmulator:
     def _ignored(self, command: int) -> bool:
         return command in self.faults.ack_accepted_but_ignored
 
+    # ---- parameters and the GCS failsafe (caller holds the lock) ---------------------------------------
+    def _answer_params(self, msg: Any) -> None:
+        table = self.params.table(self.system_id)
+        if msg.get_type() == "PARAM_REQUEST_LIST":
+            wanted = list(range(len(table)))
+        elif int(msg.param_index) >= 0:
+            wanted = [int(msg.param_index)] if int(msg.param_index) < len(table) else []
+        else:
+            wanted = [i for i, row in enumerate(table) if row[0] == str(msg.param_id)]
+        for i in wanted:  # an unknown name or index: no answer, as ArduPilot
+            name, value, ptype = table[i]
+            for _ in range(2 if self.faults.duplicate_param_replies else 1):
+                if self.faults.drop_param_replies > 0:
+                    self.faults.drop_param_replies -= 1
+                    continue
+                self._s.param_replies += 1
+                self._send(
+                    functools.partial(
+                        self._conn.mav.param_value_send, name.encode(), value, ptype, len(table), i
+                    )
+                )
+
+    def _gcs_failsafe_check(self, now: float) -> None:
+        """Rover::gcs_failsafe_check then failsafe_trigger (module docstring), at 10 Hz."""
+        p, st = self.params, self._s
+        if p.fs_gcs_enable == 0 or st.gcs_last_seen is None:
+            return
+        on = now - st.gcs_last_seen >= p.gcs_lost_after_s
+        if on and not st.fs_on:
+            st.fs_start = now
+        st.fs_on = on
+        if not on:
+            st.fs_triggered = False
+            return
+        in_hold = st.mode == HOLD and not (p.fs_options & FS_OPTION_ACTIVE_IN_HOLD)
+        if st.fs_triggered or now - st.fs_start <= p.fs_timeout_s or st.mode == RTL or in_hold:
+            return
+        st.fs_triggered = True
+        if not (st.mode == AUTO and p.fs_gcs_enable == 2):  # 2: an AUTO mission continues
+            self._failsafe_action(p.fs_action)
+        self.failsafe_events.append(FailsafeEvent(now, p.fs_action, st.mode, st.armed))
+
+    def _failsafe_action(self, action: int) -> None:
+        """FS_ACTION as Rover/failsafe.cpp takes it (fallbacks when a mode cannot be entered)."""
+        returns = self._s.home is not None  # RTL and SmartRTL need a home
+        if action == 1:
+            self._enter(RTL if returns else HOLD)
+        elif action == 2:
+            self._enter(HOLD)
+        elif action in (3, 4):
+            self._enter(SMART_RTL if returns else HOLD)
+        elif action == 5:
+            self._s.armed = False
+            self._s.vel = (0.0, 0.0, 0.0)
+        elif action == 6:
+            self._enter(LOITER)
+
+    def _enter(self, mode: int) -> None:
+        self._s.mode = mode
+        self._s.vel = (0.0, 0.0, 0.0)
+
+    def _drive_home(self) -> None:
+        """RTL / SmartRTL: face home and drive to it at rtl_speed_mps; stop within wp_radius_m."""
+        st = self._s
+        if st.mode not in (RTL, SMART_RTL) or not st.armed or st.home is None:
+            return
+        dx, dy = st.home[0] - st.x, st.home[1] - st.y
+        if math.hypot(dx, dy) <= self.params.wp_radius_m:
+            st.vel = (0.0, 0.0, 0.0)
+            return
+        st.yaw = math.atan2(dy, dx)  # NED: yaw clockwise from north = atan2(east, north)
+        st.vel = (self.params.rtl_speed_mps, 0.0, 0.0)
+
     def _set_mode(self, mode: int, ack_id: int) -> int:
         if mode not in ROVER_MODES:
             return mavlink.MAV_RESULT_DENIED
@@ -363,6 +584,11 @@ class MavlinkRoverEmulator:
             return
         if mtype == "HEARTBEAT":
             self.gcs_heartbeats.append(now)
+            if self.params.is_gcs(int(msg.get_srcSystem())):
+                self._s.gcs_last_seen = now
+        elif mtype in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST"):
+            if int(msg.target_system) in (0, self.system_id):
+                self._answer_params(msg)
         elif mtype == "SET_MODE":
             sm = mavlink.MAVLINK_MSG_ID_SET_MODE
             self._ack(sm, self._set_mode(int(msg.custom_mode), sm), msg.custom_mode, now)
@@ -377,6 +603,8 @@ class MavlinkRoverEmulator:
                     result = mavlink.MAV_RESULT_DENIED
                 else:
                     if not self._ignored(cmd):
+                        if arm and not self._s.armed:
+                            self._s.home = (self._s.x, self._s.y)
                         self._s.armed = arm
                         if not arm:
                             self._s.vel = (0.0, 0.0, 0.0)
