@@ -64,7 +64,8 @@ class Replay:
     @staticmethod
     def load(run_dir: Path, mode: str | None = None) -> Replay:
         """Read `run_dir` (only `mode` when given). FileNotFoundError when it holds no recording (or not
-        that mode, naming the ones it has)."""
+        that mode, naming the ones it has); RunDirError naming the file when a recording is damaged
+        (damaged optional files are skipped and logged: recording.run_reader.load_run)."""
         from flightstack.recording.run_reader import load_run, resolved_mission
 
         run_dir = Path(run_dir)
