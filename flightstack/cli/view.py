@@ -40,6 +40,8 @@ def cmd_view(args: argparse.Namespace) -> int:
     except (FileNotFoundError, RunDirError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    for line in replay.skipped:
+        print(f"skipped: {line}", file=sys.stderr)
     if args.save is not None:
         sink = Sink("save", str(args.save))
     elif args.connect is not None:
