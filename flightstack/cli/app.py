@@ -26,16 +26,21 @@ from flightstack.config.rig import RigError
 
 def cmd_report(args: argparse.Namespace) -> int:
     """Rebuild metrics.json and the plots of a run directory from its recording (also one cut short by
-    a kill, a crash or a full disk: then from the row streams); exit 2 if there is no recording."""
+    a kill, a crash or a full disk: then from the row streams); exit 2 with one line `error: <file>:
+    <what>` when a file it needs is missing or damaged (recording.files.REQUIRED_FILES); a damaged
+    optional file is skipped with a line `skipped: <file>: <what>` on stderr."""
+    from flightstack.recording.files import RunDirError
     from flightstack.recording.report import rebuild_run
 
     run = Path(args.run_dir)
     mission = load_mission(args.mission, rig=args.rig) if args.mission else None
     try:
-        m, plots = rebuild_run(run, mission, plots=not args.no_plots)
-    except FileNotFoundError as exc:
-        print(f"error: {run}: {exc}", file=sys.stderr)
+        m, plots, skipped = rebuild_run(run, mission, plots=not args.no_plots)
+    except RunDirError as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
+    for line in skipped:
+        print(f"skipped: {line}", file=sys.stderr)
     print(f"run directory: {run}")
     for mode, mm in m["modes"].items():
         err = f"   ({mm['error']})" if mm.get("error") else ""
@@ -152,8 +157,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     if not src.is_file():
         print(f"error: {src}: no recording of mode {args.from_mode!r} in {run}", file=sys.stderr)
         return 2
-    rec = Recording.load(str(src))
     try:
+        rec = Recording.load(str(src))
         data = collect_datasets(mission, rec, mission.seed)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -2,8 +2,9 @@
 Foxglove and PlotJuggler (flightstack.recording.mcap_export: topics `/<mode>/...`, mission-clock time
 base, NaN written as null).
 
-Exit codes: 0 written; 2 bad input (no such run directory, no recording in it, an unknown mode, FILE
-exists without --force, FILE is a directory); 1 an error while writing (reported by `cli.app.main`)."""
+Exit codes: 0 written (a damaged optional file skipped: a line `skipped: <file>: <what>` on stderr); 2
+bad input (no such run directory, no recording in it, a damaged recording, an unknown mode, FILE exists
+without --force, FILE is a directory); 1 an error while writing (reported by `cli.app.main`)."""
 
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ def register(sub: Any) -> None:
 
 def cmd_export(args: argparse.Namespace) -> int:
     """Write RUN_DIR's recording to FILE and print a short summary (topics, messages, span)."""
-    from flightstack.recording.files import MISSION_FILE
+    from flightstack.recording.files import MISSION_FILE, RunDirError
     from flightstack.recording.mcap_export import ExportError, export_mcap
     from flightstack.recording.run_reader import resolved_mission
 
@@ -48,9 +49,11 @@ def cmd_export(args: argparse.Namespace) -> int:
         print(f"note: {run}: {why}; exporting the arrays as recorded", file=sys.stderr)
     try:
         s = export_mcap(run, out, args.modes, mission)
-    except ExportError as exc:
+    except (ExportError, RunDirError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    for line in s.skipped:
+        print(f"skipped: {line}", file=sys.stderr)
     size_mb = out.stat().st_size / 1e6
     print(f"wrote {out} ({size_mb:.1f} MB): {len(s.topics)} topics, {s.messages} messages")
     for mode in s.modes:

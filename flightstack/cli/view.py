@@ -20,7 +20,8 @@ if TYPE_CHECKING:
 
 def cmd_view(args: argparse.Namespace) -> int:
     """Rebuild a Rerun recording from a run directory and show it (spawn/connect) or save it; exit 2
-    without rerun-sdk (naming the extra) or without a recording."""
+    without rerun-sdk (naming the extra), without a recording or with a damaged one (one line naming
+    the file)."""
     from flightstack.viewer.rerun_import import ViewerUnavailable, load_rerun
 
     try:
@@ -28,6 +29,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     except ViewerUnavailable as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    from flightstack.recording.files import RunDirError
     from flightstack.viewer import blueprint, layout
     from flightstack.viewer.replay import Replay
     from flightstack.viewer.sinks import AUTO, Sink, close_stream, connect_url, open_stream, resolve
@@ -35,9 +37,11 @@ def cmd_view(args: argparse.Namespace) -> int:
     run = Path(args.run_dir)
     try:
         replay = Replay.load(run, args.mode)
-    except FileNotFoundError as exc:
+    except (FileNotFoundError, RunDirError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    for line in replay.skipped:
+        print(f"skipped: {line}", file=sys.stderr)
     if args.save is not None:
         sink = Sink("save", str(args.save))
     elif args.connect is not None:

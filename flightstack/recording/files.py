@@ -8,17 +8,17 @@ import errno
 import fnmatch
 import json
 import logging
+import lzma
 import math
 import os
 import shutil
+import zipfile
+import zlib
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
-
-if TYPE_CHECKING:
-    pass
 
 _log = logging.getLogger(__name__)
 
@@ -82,6 +82,103 @@ RUN_FILES: tuple[str, ...] = (
 """Every name (fnmatch pattern) a run of `run`/`sim`/`fly`/`agent` writes in its run directory: the one
 list `--out` is checked against and `--force` removes (`run_files`). A writer of a new file adds it here
 (tests/test_cli_run_options.py checks that a run writes nothing else)."""
+
+RECORDING_FILES = ("timeseries_<mode>.npz", f"timeseries_<mode>{ROWS_SUFFIX}")
+"""A mode's recording: its final npz, else (a run cut short) its row stream."""
+REQUIRED_FILES: dict[str, str] = {
+    " or ".join(RECORDING_FILES): "every mode found is required (a metrics.json without one of the modes "
+    "flown would compare what was not flown); a row stream damaged after N good rows gives those N rows",
+    MISSION_FILE: "`report` and `train` need it (unless --mission); `view` and `export` do without",
+}
+"""What the readers of a run directory (`report`, `export`, `view`) need: a damaged one is a RunDirError
+(the CLI: exit 2, one line `error: <file>: <what>`). At least one mode's recording must be there."""
+OPTIONAL_FILES: dict[str, str] = {
+    STATE_FILE: "without it the recording's state is unknown: reported incomplete",
+    EVENTS_FILE: "a line that is not a JSON object is skipped (the last one, cut short by a kill, too)",
+    METRICS_FILE: "an earlier report's GP facts and wall time; rebuilt without them",
+    DATASETS_FILE: "the GP training data of the plots; plotted without it",
+    EXPERTS_FILE: "the GP experts of the gain condition; rebuilt as not evaluated",
+}
+"""What the readers of a run directory can do without: a damaged one is skipped, and the reader says so
+in one line `<file>: <what>` (the CLI prints `skipped: <file>: <what>`)."""
+MAX_JSON_BYTES = 64_000_000
+"""Bound on a JSON file of a run directory (B); recording.json and metrics.json are a few kB."""
+NPZ_KINDS = frozenset("biufcUS")
+"""numpy dtype kinds an npz of a run directory may hold (no Python objects: nothing is unpickled)."""
+
+
+class RunDirError(ValueError):
+    """A file of a run directory is missing or damaged: `path` names it, `what` says what is wrong (one
+    line). Raised by the readers at the point where they decode what they read."""
+
+    def __init__(self, path: Path | str, what: str) -> None:
+        self.path = Path(path)
+        self.what = " ".join(str(what).split())
+        super().__init__(f"{self.path}: {self.what}")
+
+
+def read_json_object(path: Path) -> dict[str, Any]:
+    """The JSON object in the file `path` (strict UTF-8 JSON, at most MAX_JSON_BYTES). RunDirError when
+    it cannot be read, is not JSON or is JSON of another shape than an object."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        data = path.read_bytes() if size <= MAX_JSON_BYTES else b""
+    except OSError as exc:
+        raise RunDirError(path, errno_text(exc)) from None
+    if size > MAX_JSON_BYTES:
+        raise RunDirError(path, f"larger than {MAX_JSON_BYTES / 1e6:.0f} MB")
+    try:
+        doc = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:  # JSONDecodeError is a ValueError
+        raise RunDirError(path, f"not JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise RunDirError(path, f"JSON {type(doc).__name__}, not an object")
+    return doc
+
+
+def read_npz(path: Path) -> dict[str, np.ndarray]:
+    """Every array of the npz file `path` by name (without `.npy`). Each member's header is checked
+    against the member's size before anything is allocated, and no Python object is unpickled.
+    RunDirError when the file cannot be read, is not a zip of .npy arrays, or a member is damaged."""
+    path = Path(path)
+    out: dict[str, np.ndarray] = {}
+    try:
+        with zipfile.ZipFile(path) as zf:
+            for info in zf.infolist():
+                name = info.filename.removesuffix(".npy")
+                if name == info.filename:
+                    raise RunDirError(path, f"member {info.filename!r} is not a .npy array")
+                out[name] = _read_npy(path, zf, info)
+    except (OSError, EOFError, zipfile.BadZipFile, zlib.error, lzma.LZMAError, NotImplementedError) as exc:
+        raise RunDirError(path, f"not a readable npz ({type(exc).__name__}: {exc})") from None
+    except RuntimeError as exc:  # zipfile: an encrypted member (a flipped flag bit)
+        raise RunDirError(path, f"not a readable npz ({exc})") from None
+    return out
+
+
+def _read_npy(path: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> np.ndarray:
+    with zf.open(info) as fh:
+        try:
+            version = np.lib.format.read_magic(fh)
+            if version == (1, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
+            elif version == (2, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
+            else:
+                raise ValueError(f"npy format version {version}")
+        except ValueError as exc:
+            raise RunDirError(path, f"{info.filename}: not a .npy array ({exc})") from None
+        if dtype.hasobject or dtype.kind not in NPZ_KINDS or any(d < 0 for d in shape):
+            raise RunDirError(path, f"{info.filename}: dtype {dtype} shape {shape} not allowed")
+        nbytes = math.prod(shape) * dtype.itemsize
+        if nbytes != info.file_size - fh.tell():
+            raise RunDirError(
+                path, f"{info.filename}: its header says {nbytes} B, it holds {info.file_size - fh.tell()} B"
+            )
+        data = fh.read(nbytes)
+    a = np.frombuffer(data, dtype=dtype).copy()
+    return a.reshape(shape[::-1]).T if fortran else a.reshape(shape)
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:

@@ -72,7 +72,7 @@ from flightstack.recording.mcap_messages import (
     time_base,
     to_ns,
 )
-from flightstack.recording.run_reader import load_run
+from flightstack.recording.run_reader import read_run
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
 
 if TYPE_CHECKING:
@@ -107,6 +107,8 @@ class ExportSummary:
     mode_seconds: dict[str, float] = field(default_factory=dict)
     start_ns: int = 0
     end_ns: int = 0
+    skipped: list[str] = field(default_factory=list)
+    """Damaged optional files and row stream tails left out (`<file>: <what>`, run_reader.read_run)."""
 
     @property
     def messages(self) -> int:
@@ -123,13 +125,14 @@ def export_mcap(
 ) -> ExportSummary:
     """Write the run directory's recording (every mode, or `modes` in that order) to the MCAP file `out`
     (replaced atomically if it exists; the module docstring has the topics and the time base).
-    mission: lets `load_run` recompute e_c and e_e of a recording cut short (a row stream). Raises
-    ExportError for a missing run directory, one without a recording, or an unknown mode; OSError when
-    `out` cannot be written."""
+    mission: lets `read_run` recompute e_c and e_e of a recording cut short (a row stream). Raises
+    ExportError for a missing run directory, one without a recording, or an unknown mode; RunDirError
+    (naming the file) for a damaged recording; OSError when `out` cannot be written."""
     run_dir, out = Path(run_dir), Path(out)
     if not run_dir.is_dir():
         raise ExportError(f"{run_dir}: no such run directory")
-    recs = load_run(run_dir, mission)
+    contents = read_run(run_dir, mission)
+    recs = contents.recordings
     if not recs:
         raise ExportError(f"{run_dir}: no recording (timeseries_<mode>.npz or .rows) in it")
     chosen = list(recs) if modes is None else list(modes)
@@ -141,6 +144,7 @@ def export_mcap(
         with open(tmp, "wb") as fh:
             summary = _write(fh, run_dir, {m: recs[m] for m in chosen}, out)
         os.replace(tmp, out)
+        summary.skipped = contents.skipped
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -228,7 +232,7 @@ def _write(fh: IO[bytes], run_dir: Path, recs: dict[str, Recording], out: Path) 
     streams: list[Iterator[Message]] = []
     bases: dict[str, float] = {}
     for mode, rec in recs.items():
-        if rec.ticks_done != len(rec.t):  # load_run's recordings hold exactly their ticks; never export more
+        if rec.ticks_done != len(rec.t):  # read_run's recordings hold exactly their ticks; never export more
             rec = rec.truncated()
         n_ticks = rec.ticks_done
         bases[mode] = base = time_base(rec)

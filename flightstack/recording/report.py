@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import contextlib
-import json
 from pathlib import Path
 from typing import Any
 
@@ -15,9 +13,18 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from flightstack.config.mission import Mission, load_mission
-from flightstack.recording.files import DATASETS_FILE, EXPERTS_FILE, METRICS_FILE, MISSION_FILE, PLOTS
+from flightstack.recording.files import (
+    DATASETS_FILE,
+    EXPERTS_FILE,
+    METRICS_FILE,
+    MISSION_FILE,
+    PLOTS,
+    RunDirError,
+    atomic_write_json,
+    read_json_object,
+)
 from flightstack.recording.loop_health import plot_loop_health
-from flightstack.recording.run_dir import atomic_write_json, load_run, recording_status
+from flightstack.recording.run_reader import read_run
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.training import ExpertData, bands, load_datasets, load_experts
 
@@ -127,42 +134,76 @@ def write_plots(
 
 def rebuild_run(
     run_dir: Path, mission: Mission | None = None, plots: bool = True
-) -> tuple[dict[str, Any], list[Path]]:
+) -> tuple[dict[str, Any], list[Path], list[str]]:
     """Rebuild metrics.json (atomically) and, if `plots`, the plots of a run directory from its
     recording: the final npz files, or the row streams of a run cut short by a kill, a crash or a full
-    disk (flightstack.recording.run_dir.load_run). mission: default RUN_DIR/mission_resolved.yaml. The GP
-    facts
-    and the run's wall time are kept from an earlier metrics.json when there is one (the sum of the
-    modes' wall time otherwise). Returns (metrics, plot paths); FileNotFoundError without a recording
-    or a mission."""
+    disk (flightstack.recording.run_reader.read_run). mission: default RUN_DIR/mission_resolved.yaml.
+    The GP facts and the run's wall time are kept from an earlier metrics.json when there is one (the
+    sum of the modes' wall time otherwise). Returns (metrics, plot paths, skipped: `<file>: <what>` for
+    each damaged optional file or row stream tail left out, files.OPTIONAL_FILES). RunDirError (naming
+    the file) when the directory, its mission or a mode's recording is missing or damaged
+    (files.REQUIRED_FILES)."""
     from flightstack.runtime.experiment import (  # experiment imports the runner
         ExperimentResult,
         build_metrics,
     )
 
     run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise RunDirError(run_dir, "no such run directory")
+    for out in [METRICS_FILE, *(PLOTS.values() if plots else ())]:
+        if (run_dir / out).exists() and not (run_dir / out).is_file():
+            raise RunDirError(run_dir / out, "not a file, so it cannot be rebuilt")
     if mission is None:
-        path = run_dir / MISSION_FILE
-        if not path.is_file():
-            raise FileNotFoundError(f"{path.name} not found (pass --mission)")
-        mission = load_mission(path, check_files=False)
-    recs = load_run(run_dir, mission)
+        mission = _run_mission(run_dir / MISSION_FILE)
+    contents = read_run(run_dir, mission)
+    recs, skipped = contents.recordings, list(contents.skipped)
     if not recs:
-        raise FileNotFoundError("no recording (timeseries_<mode>.npz or .rows) in it")
-    old: dict[str, Any] = {}
-    with contextlib.suppress(OSError, ValueError):
-        old = json.loads((run_dir / METRICS_FILE).read_text(encoding="utf-8"))
+        raise RunDirError(run_dir, "no recording (timeseries_<mode>.npz or .rows) in it")
+    old = _old_metrics(run_dir / METRICS_FILE, skipped)
     res = ExperimentResult(recordings=recs)
-    res.datasets = load_datasets(run_dir / DATASETS_FILE)
-    if (run_dir / EXPERTS_FILE).is_file():
-        res.experts = load_experts(run_dir / EXPERTS_FILE)
+    try:
+        res.datasets = load_datasets(run_dir / DATASETS_FILE)
+    except RunDirError as exc:
+        skipped.append(f"{DATASETS_FILE}: {exc.what}")
+    if (run_dir / EXPERTS_FILE).exists():
+        try:
+            res.experts = load_experts(run_dir / EXPERTS_FILE)
+        except RunDirError as exc:
+            skipped.append(f"{EXPERTS_FILE}: {exc.what}")
     res.interrupted = any(r.interrupted for r in recs.values()) or old.get("interrupted") is True
     res.error = next((r.error for r in recs.values() if r.error), None) or old.get("error")  # e.g. GP data
     wall = old.get("wall_seconds")
     if not isinstance(wall, int | float):
         wall = float(sum(r.wall_seconds for r in recs.values()))
     metrics = build_metrics(mission, res, old.get("gp") or {}, float(wall))
-    metrics["recording"] = recording_status(run_dir, recs)
+    metrics["recording"] = contents.status
     atomic_write_json(run_dir / METRICS_FILE, metrics)
     paths = write_plots(run_dir, mission, recs, res.datasets) if plots else []
-    return metrics, paths
+    return metrics, paths, skipped
+
+
+def _run_mission(path: Path) -> Mission:
+    """The run's mission_resolved.yaml (its files need not exist here); RunDirError when it is missing
+    or does not load."""
+    if not path.exists():
+        raise RunDirError(path, "not found (pass --mission)")
+    try:
+        return load_mission(path, check_files=False)
+    except (OSError, ValueError) as exc:  # MissionError is a ValueError
+        raise RunDirError(path, f"does not load ({str(exc).removeprefix(f'{path}: ')})") from None
+
+
+def _old_metrics(path: Path, skipped: list[str]) -> dict[str, Any]:
+    """The facts an earlier metrics.json keeps for the rebuilt one ({} without one; a damaged one is
+    skipped and listed in `skipped`)."""
+    if not path.exists():
+        return {}
+    try:
+        old = read_json_object(path)
+        if not isinstance(old.get("gp", {}), dict | None) or not isinstance(old.get("error"), str | None):
+            raise RunDirError(path, "gp / error: not an object / a text")
+    except RunDirError as exc:
+        skipped.append(f"{METRICS_FILE}: {exc.what}; its GP facts and wall time are not kept")
+        return {}
+    return old

@@ -5,24 +5,27 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import struct
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from flightstack.recording.files import ROWS_SUFFIX as ROWS_SUFFIX  # defined with RUN_FILES
-from flightstack.recording.files import json_safe
+from flightstack.recording.files import RunDirError, errno_text, json_safe
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
-
-if TYPE_CHECKING:
-    pass
 
 _log = logging.getLogger(__name__)
 
 MAGIC = b"FSROWS1\n"
+MAX_HEADER_BYTES = 1 << 20
+"""Bound on a row stream's header (B): the writer's is about 2 kB (header length read from a file is
+checked against it, and against the file's size, before it is read)."""
+MAX_ROW_BYTES = 1 << 20
+"""Bound on one row (B): about 1 kB for 3 drones."""
 STREAM_FIELDS = tuple(f for f in ARRAY_FIELDS if f not in ("e_c", "e_e"))
 """The Recording arrays a ModeWriter streams (e_c and e_e are derived at the end from the poses)."""
 
@@ -74,21 +77,78 @@ class RowLayout:
 def read_rows(path: Path) -> tuple[dict[str, Any], np.ndarray]:
     """(meta, rows) of a row stream, also one cut short by a kill: only the leading rows whose `_seq`
     is their row number + 1 are returned (a torn or zero-filled tail is dropped). `rows` is a numpy
-    structured array; rows[name] is one column, shape (N, *shape). ValueError if not a row stream."""
-    with open(path, "rb") as fh:
-        head = fh.read(len(MAGIC) + 4)
-        if len(head) < len(MAGIC) + 4 or head[: len(MAGIC)] != MAGIC:
-            raise ValueError(f"{path}: not a flightstack row stream")
-        (n,) = struct.unpack("<I", head[len(MAGIC) :])
-        body = fh.read(n)
-        if len(body) < n:
-            raise ValueError(f"{path}: header cut short")
-        doc = json.loads(body)
-        cols = {c["name"]: (c["dtype"], tuple(c["shape"])) for c in doc["columns"]}
-        layout = RowLayout(cols, doc.get("meta", {}))
-        size = os.fstat(fh.fileno()).st_size - len(MAGIC) - 4 - n
-        count = max(size, 0) // layout.dtype.itemsize
-        rows = np.fromfile(fh, dtype=layout.dtype, count=count)
+    structured array; rows[name] is one column, shape (N, *shape). RunDirError if not a row stream."""
+    meta, rows, _ = read_row_stream(path)
+    return meta, rows
+
+
+def read_row_stream(path: Path) -> tuple[dict[str, Any], np.ndarray, str | None]:
+    """(meta, rows, dropped) of a row stream as `read_rows`; dropped says what was left out after the good
+    rows (None when nothing was). RunDirError naming the file when its header is damaged: it is checked
+    (length at most MAX_HEADER_BYTES, JSON of the documented shape, numeric columns, a row at most
+    MAX_ROW_BYTES) before anything is allocated from it."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            head = fh.read(len(MAGIC) + 4)
+            if len(head) < len(MAGIC) + 4 or head[: len(MAGIC)] != MAGIC:
+                raise RunDirError(path, "not a flightstack row stream (no FSROWS1 magic)")
+            (n,) = struct.unpack("<I", head[len(MAGIC) :])
+            if n > min(MAX_HEADER_BYTES, size - len(head)):
+                raise RunDirError(
+                    path, f"header length {n} B: more than the file ({size} B) or {MAX_HEADER_BYTES} B"
+                )
+            layout = _layout(path, fh.read(n))
+            count = (size - len(head) - n) // layout.dtype.itemsize
+            rows = np.fromfile(fh, dtype=layout.dtype, count=count)
+    except OSError as exc:
+        raise RunDirError(path, errno_text(exc)) from None
     ok = rows["_seq"] == np.arange(1, len(rows) + 1)
     good = len(rows) if ok.all() else int(np.argmin(ok))
-    return layout.meta, rows[:good]
+    partial = (size - len(head) - n) % layout.dtype.itemsize
+    dropped = None
+    if good < count or partial:
+        dropped = f"kept the first {good} rows; dropped " + " and ".join(
+            [f"{count - good} rows whose _seq is not their row number"] * (good < count)
+            + [f"a partial row of {partial} B"] * bool(partial)
+        )
+    return layout.meta, rows[:good], dropped
+
+
+def _layout(path: Path, body: bytes) -> RowLayout:
+    """The RowLayout of a row stream's header JSON; RunDirError for one of another shape."""
+    try:
+        doc = json.loads(body.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise RunDirError(path, f"header is not JSON ({exc})") from None
+    cols = doc.get("columns") if isinstance(doc, dict) else None
+    meta = doc.get("meta", {}) if isinstance(doc, dict) else None
+    if not isinstance(cols, list) or not isinstance(meta, dict):
+        raise RunDirError(path, "header: not an object with a list of columns and a meta object")
+    columns: dict[str, tuple[Any, tuple[int, ...]]] = {}
+    for c in cols:
+        name = c.get("name") if isinstance(c, dict) else None
+        dt, shape = (c.get("dtype"), c.get("shape")) if isinstance(c, dict) else (None, None)
+        if (
+            not isinstance(name, str)
+            or name in columns
+            or name == "_seq"
+            or not isinstance(dt, str)
+            or not isinstance(shape, list)
+            or not all(
+                isinstance(d, int) and not isinstance(d, bool) and 0 <= d <= MAX_ROW_BYTES for d in shape
+            )
+        ):
+            raise RunDirError(path, f"header: column {str(c)[:80]} is not {{name, dtype, shape}}")
+        try:
+            dtype = np.dtype(dt)
+        except (TypeError, ValueError):
+            raise RunDirError(path, f"header: column {name}: {dt[:40]!r} is not a dtype") from None
+        if dtype.kind not in "biuf" or dtype.subdtype is not None:
+            raise RunDirError(path, f"header: column {name}: dtype {dt[:40]!r} is not a number")
+        columns[name] = (dtype, tuple(shape))
+    itemsize = 8 + sum(dt.itemsize * math.prod(shape) for dt, shape in columns.values())
+    if itemsize > MAX_ROW_BYTES:
+        raise RunDirError(path, f"header: a row of {itemsize} B, more than {MAX_ROW_BYTES} B")
+    return RowLayout(columns, meta)

@@ -10,11 +10,13 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 
 from flightstack.paper.geometry import compose_arrays, inverse_arrays, vec_arrays
+from flightstack.recording.files import RunDirError, read_npz
 
 ARRAY_FIELDS = (
     "t",
@@ -43,6 +45,18 @@ without a frame or during a pose dropout): never required finite."""
 MACHINE_FIELDS = ("wall_t", "loop_period", "loop_compute")
 """Arrays that measure the computer that flew, not the flight: two runs of the same mission differ in
 them (the compiled loop's guard test compares every other array)."""
+
+REQUIRED_FIELDS = ("t", "g_w0", "g_wi", "g_bar_w")
+"""Arrays every stored recording has (the others default as `Recording.from_columns` says)."""
+MAX_DRONES = 1000
+"""Bound on the drones of a stored recording (a drone count read from a file is checked against it)."""
+VALUE_BOUND = 1e6
+"""Bound on the magnitude of a recorded value (m, rad, m/s, s of mission time, ...; wall_t: WALL_T_BOUND)
+beyond which a value read back from a row stream is damage, not a flight (`plausible_ticks`)."""
+WALL_T_BOUND = 1e11
+"""Bound on wall_t (s since the epoch: the year 5138)."""
+_KINDS = {"b": "b", "i": "iu", "f": "fiu"}
+"""dtype kinds a stored array may have, by the kind of its in-memory array."""
 
 META_FIELDS = ("ticks_done", "bus_dropped", "wall_seconds", "interrupted", "error", "vision_rejections")
 """The scalar facts of a Recording besides its arrays and events (JSON-able; see `Recording.meta`)."""
@@ -123,7 +137,11 @@ class Recording:
     def from_columns(mode: str, ids: list[int], columns: Mapping[str, np.ndarray]) -> Recording:
         """A recording of the N rows in `columns` (ARRAY_FIELDS, each with N rows); a missing field keeps
         `empty`'s value of its usual shape: zeros (e_c and e_e before `fill_true_errors`, or files written
-        before a field existed), NaN for the loop-health arrays (not measured)."""
+        before a field existed), NaN for the loop-health arrays (not measured). ValueError (saying
+        which) when a REQUIRED_FIELDS array is missing, or an array's shape or dtype does not fit ids."""
+        problem = columns_problem(ids, columns)
+        if problem is not None:
+            raise ValueError(problem)
         N = int(np.asarray(columns["t"]).shape[0])
         rec = Recording.empty(mode, ids, N)
         for f in ARRAY_FIELDS:
@@ -131,6 +149,24 @@ class Recording:
                 setattr(rec, f, np.asarray(columns[f]))
         rec.ticks_done = N
         return rec
+
+    def plausible_ticks(self) -> tuple[int, str | None]:
+        """(k, why): the leading k of the ticks done whose every float value is finite and within
+        VALUE_BOUND (wall_t within WALL_T_BOUND; the loop-health arrays may be NaN: not measured), and
+        what is wrong with tick k (None when every tick is plausible). For data without a checksum (a
+        row stream), where a damaged byte gives a value no flight records."""
+        k, why = self.ticks_done, None
+        for f in ARRAY_FIELDS:
+            a = getattr(self, f)[: self.ticks_done]
+            if a.dtype.kind != "f":
+                continue
+            with np.errstate(invalid="ignore"):
+                bad = np.abs(a) > (WALL_T_BOUND if f == "wall_t" else VALUE_BOUND)
+            bad |= np.isinf(a) if f in LOOP_HEALTH_FIELDS else ~np.isfinite(a)
+            first = np.flatnonzero(bad.reshape(len(a), -1).any(axis=1))
+            if first.size and first[0] < k:
+                k, why = int(first[0]), f"{f} not finite or beyond {VALUE_BOUND:g} at tick {first[0]}"
+        return k, why
 
     def meta(self) -> dict[str, Any]:
         """META_FIELDS as a JSON-able dict (the run directory's recording.json keeps it per mode)."""
@@ -144,6 +180,33 @@ class Recording:
                 str(i): {str(k): int(v) for k, v in c.items()} for i, c in self.vision_rejections.items()
             },
         }
+
+    @staticmethod
+    def meta_problem(meta: Mapping[str, Any]) -> str | None:
+        """What is wrong with stored META_FIELDS (JSON read back), or None when each present one has the
+        type `meta` writes."""
+        kinds: dict[str, tuple[type | tuple[type, ...], str]] = {
+            "ticks_done": (int, "an integer"),
+            "wall_seconds": ((int, float), "a number"),
+            "interrupted": (bool, "a boolean"),
+            "error": ((str, type(None)), "a text or null"),
+        }
+        for name, (ok, what) in kinds.items():
+            v = meta.get(name)
+            if name in meta and (not isinstance(v, ok) or (isinstance(v, bool) and ok is not bool)):
+                return f"{name}: {str(v)[:40]!r} is not {what}"
+
+        def counts(c: object) -> bool:
+            return isinstance(c, dict) and all(
+                isinstance(v, int) and not isinstance(v, bool) for v in c.values()
+            )
+
+        rejections = meta.get("vision_rejections", {})
+        if not counts(meta.get("bus_dropped", {})):
+            return "bus_dropped: not a map of counts"
+        if not isinstance(rejections, dict) or not all(counts(c) for c in rejections.values()):
+            return "vision_rejections: not a map of counts per drone"
+        return None
 
     def apply_meta(self, meta: Mapping[str, Any]) -> None:
         """Restore the META_FIELDS present in `meta` (as written by `meta`), except ticks_done, which
@@ -164,11 +227,18 @@ class Recording:
 
     @staticmethod
     def load(path: str | os.PathLike[str]) -> Recording:
-        """Read a recording written by `save` (arrays only; events and counters live in the run dir)."""
-        with np.load(path) as z:
-            ids = [int(i) for i in z["drone_ids"]]
-            # fields missing in older files: n_fused and wall_t zeros, loop health NaN
-            return Recording.from_columns(str(z["mode"]), ids, {f: z[f] for f in ARRAY_FIELDS if f in z})
+        """Read a recording written by `save` (arrays only; events and counters live in the run dir).
+        RunDirError naming the file when it is not one (files.read_npz; shapes as `from_columns`)."""
+        z = read_npz(Path(path))
+        mode, ids = z.get("mode"), z.get("drone_ids")
+        if mode is None or mode.shape != () or mode.dtype.kind != "U":
+            raise RunDirError(Path(path), "no mode name in it")
+        if ids is None or ids.ndim != 1 or ids.dtype.kind not in "iu" or len(ids) > MAX_DRONES:
+            raise RunDirError(Path(path), f"drone_ids: not a list of at most {MAX_DRONES} integers")
+        try:  # fields missing in older files: n_fused and wall_t zeros, loop health NaN
+            return Recording.from_columns(str(mode), [int(i) for i in ids], z)
+        except ValueError as exc:
+            raise RunDirError(Path(path), str(exc)) from None
 
     def fill_true_errors(self, g_d: np.ndarray) -> None:
         """e_c = vec(g_d⁻¹ ḡ_i0) and the true e_e = vec(ḡ_i0⁻¹ g_i0) from the recorded poses (vectorised).
@@ -188,3 +258,27 @@ class Recording:
         k = self.ticks_done
         g_i0 = compose_arrays(inverse_arrays(self.g_wi[:k]), self.g_w0[:k, None, :])
         return vec_arrays(compose_arrays(inverse_arrays(g_d)[None], g_i0))
+
+
+def columns_problem(ids: list[int], columns: Mapping[str, np.ndarray]) -> str | None:
+    """What keeps `columns` (stored arrays by name) from being the recording of the drones `ids`, or None:
+    a REQUIRED_FIELDS array missing, more than MAX_DRONES drones, or an ARRAY_FIELDS array whose shape is
+    not (N, *one tick's shape for len(ids) drones) or whose dtype kind does not fit. Checked before
+    anything is allocated for the recording."""
+    missing = [f for f in REQUIRED_FIELDS if f not in columns]
+    if missing:
+        return f"no {', '.join(missing)} array"
+    if len(ids) > MAX_DRONES or len(set(ids)) != len(ids):
+        return f"drone ids {ids[:10]}...: more than {MAX_DRONES} or repeated"
+    ref = Recording.empty("", list(ids), 0)
+    N = int(np.asarray(columns["t"]).shape[0]) if np.ndim(columns["t"]) == 1 else -1
+    for f in ARRAY_FIELDS:
+        if f not in columns:
+            continue
+        a, want = np.asarray(columns[f]), getattr(ref, f)
+        if a.shape != (N, *want.shape[1:]) or a.dtype.kind not in _KINDS[want.dtype.kind]:
+            return (
+                f"{f}: shape {a.shape} {a.dtype}, expected {('N', *want.shape[1:])} {want.dtype} for "
+                f"{len(ids)} drones (N = {N} ticks of t)"
+            )
+    return None

@@ -22,6 +22,7 @@ from flightstack.paper.gp import GPExpert, GPHyperparameters
 from flightstack.paper.gp_shared_fit import fit_shared_hyperparameters
 from flightstack.paper.target_law import SquareLaw
 from flightstack.paper.target_motion import DuffingParams
+from flightstack.recording.files import RunDirError, read_npz
 from flightstack.recording.timeseries import Recording
 
 SHORTFALL_HORIZON_S = 300.0
@@ -207,14 +208,39 @@ def save_datasets(path: str | Path, datasets: list[ExpertData]) -> None:
 
 
 def load_datasets(path: str | Path) -> list[ExpertData]:
-    """Inverse of save_datasets, by drone id ([] when the file is missing; the band is NaN). OSError or
-    ValueError for a file that is not a datasets file."""
-    if not Path(path).is_file():
+    """Inverse of save_datasets, by drone id ([] when the file is missing; the band is NaN). RunDirError
+    (a ValueError, naming the file) for a file that is not a datasets file: each drone needs X and Y of
+    shape (M, 4) and integer ticks of shape (M,)."""
+    path = Path(path)
+    if not path.exists():
         return []
-    with np.load(path) as z:
-        ids = sorted({int(k.split("__")[0][5:]) for k in z.files})
-        nan = (float("nan"), float("nan"))
-        return [ExpertData(i, nan, z[f"drone{i}__X"], z[f"drone{i}__Y"], z[f"drone{i}__ticks"]) for i in ids]
+    fields = _by_drone(path, read_npz(path))
+    nan = (float("nan"), float("nan"))
+    out = []
+    for i in sorted(fields):
+        f = fields[i]
+        X, Y, ticks = f.get("X"), f.get("Y"), f.get("ticks")
+        if X is None or Y is None or ticks is None or set(f) != {"X", "Y", "ticks"}:
+            raise RunDirError(path, f"drone {i}: keys {sorted(f)}, expected X, Y, ticks")
+        M = ticks.shape[0] if ticks.ndim == 1 and ticks.dtype.kind in "iu" else -1
+        numbers = X.dtype.kind in "fiu" and Y.dtype.kind in "fiu"
+        if X.shape != (M, 4) or Y.shape != (M, 4) or not numbers:
+            raise RunDirError(
+                path, f"drone {i}: X {X.shape}, Y {Y.shape}, ticks {ticks.shape}: not numbers (M, 4), (M,)"
+            )
+        out.append(ExpertData(i, nan, X, Y, ticks))
+    return out
+
+
+def _by_drone(path: Path, arrays: dict[str, np.ndarray]) -> dict[int, dict[str, np.ndarray]]:
+    """The arrays `drone<id>__<field>` of an npz by drone id and field; RunDirError for another key."""
+    fields: dict[int, dict[str, np.ndarray]] = {}
+    for key, a in arrays.items():
+        head, sep, name = key.partition("__")
+        if not sep or not head.startswith("drone") or not head[5:].isdigit() or len(head) > 12:
+            raise RunDirError(path, f"unexpected key {key[:40]!r} (not drone<id>__<field>)")
+        fields.setdefault(int(head[5:]), {})[name] = a
+    return fields
 
 
 def save_experts(path: str | Path, experts: dict[int, GPExpert]) -> None:
@@ -227,14 +253,12 @@ def save_experts(path: str | Path, experts: dict[int, GPExpert]) -> None:
 
 
 def load_experts(path: str | Path) -> dict[int, GPExpert]:
-    """Inverse of save_experts; ValueError naming the file when it is not an experts file."""
-    with np.load(path) as z:
-        fields: dict[int, dict[str, np.ndarray]] = {}
-        for key in z.files:
-            head, sep, name = key.partition("__")
-            if not sep or not head.startswith("drone") or not head[5:].isdigit():
-                raise ValueError(f"{path}: not a flightstack experts file (unexpected key {key!r})")
-            fields.setdefault(int(head[5:]), {})[name] = z[key]
+    """Inverse of save_experts; RunDirError (a ValueError) naming the file when it is not an experts file."""
+    path = Path(path)
+    fields = _by_drone(path, read_npz(path))
     if not fields:
-        raise ValueError(f"{path}: no experts in file")
-    return {i: GPExpert.from_dict(f) for i, f in fields.items()}
+        raise RunDirError(path, "no experts in file")
+    try:
+        return {i: GPExpert.from_dict(f) for i, f in fields.items()}
+    except (ValueError, np.linalg.LinAlgError) as exc:  # missing keys, shapes that do not fit
+        raise RunDirError(path, f"not an experts file ({exc})") from None

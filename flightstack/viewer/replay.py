@@ -60,12 +60,15 @@ class Replay:
     mission: Mission | None
     experts: dict[int, GPExpert] = field(default_factory=dict)
     training: dict[int, np.ndarray] = field(default_factory=dict)
+    skipped: list[str] = field(default_factory=list)
+    """Damaged optional files and row stream tails left out (`<file>: <what>`, run_reader.read_run)."""
 
     @staticmethod
     def load(run_dir: Path, mode: str | None = None) -> Replay:
         """Read `run_dir` (only `mode` when given). FileNotFoundError when it holds no recording (or not
-        that mode, naming the ones it has)."""
-        from flightstack.recording.run_reader import load_run, resolved_mission
+        that mode, naming the ones it has); RunDirError naming the file when a recording is damaged
+        (damaged optional files are skipped and listed in `skipped`: recording.run_reader.read_run)."""
+        from flightstack.recording.run_reader import read_run, resolved_mission
 
         run_dir = Path(run_dir)
         if not run_dir.is_dir():
@@ -73,15 +76,18 @@ class Replay:
         mission, why = resolved_mission(run_dir)
         if why is not None:
             _log.warning("%s: %s: no expert regions or cameras", run_dir, why)
-        recs = load_run(run_dir, mission)
+        contents = read_run(run_dir, mission)
+        recs = contents.recordings
         if not recs:
             raise FileNotFoundError(f"{run_dir}: no recording (timeseries_<mode>.npz or .rows) found")
         if mode is not None:
             if mode not in recs:
                 raise FileNotFoundError(f"{run_dir}: no mode {mode!r} recorded (modes: {', '.join(recs)})")
             recs = {mode: recs[mode]}
-        experts = _experts(run_dir)
-        return Replay(run_dir, recs, mission, experts, _training_inputs(run_dir, experts))
+        skipped = list(contents.skipped)
+        experts = _experts(run_dir, skipped)
+        training = _training_inputs(run_dir, experts, skipped)
+        return Replay(run_dir, recs, mission, experts, training, skipped)
 
     def rates(self, mode: str) -> ModeRates:
         """The rate rule applied to `mode` (layout): 3-D at most REPLAY_3D_HZ of mission time, scalars
@@ -138,32 +144,35 @@ def _columns(rec: Recording, idx: np.ndarray, names: tuple[str, ...]) -> dict[st
     return {name: np.asarray(getattr(rec, name))[idx] for name in names}
 
 
-def _experts(run_dir: Path) -> dict[int, GPExpert]:
-    """The run's experts (experts.npz), {} when there are none or the file does not load."""
-    from flightstack.recording.files import EXPERTS_FILE
+def _experts(run_dir: Path, skipped: list[str]) -> dict[int, GPExpert]:
+    """The run's experts (experts.npz), {} when there are none or the file is damaged (then listed in
+    `skipped`)."""
+    from flightstack.recording.files import EXPERTS_FILE, RunDirError
     from flightstack.runtime.training import load_experts
 
     path = run_dir / EXPERTS_FILE
-    if not path.is_file():
+    if not path.exists():
         return {}
     try:
         experts = load_experts(path)
-    except (OSError, ValueError) as exc:
-        _log.warning("%s not usable: %s", path, exc)
+    except RunDirError as exc:
+        skipped.append(f"{EXPERTS_FILE}: {exc.what}")
         return {}
     return dict(experts)
 
 
-def _training_inputs(run_dir: Path, experts: Mapping[int, GPExpert]) -> dict[int, np.ndarray]:
+def _training_inputs(
+    run_dir: Path, experts: Mapping[int, GPExpert], skipped: list[str]
+) -> dict[int, np.ndarray]:
     """drone id → training inputs X (M, 4): datasets.npz (runtime.training.load_datasets), else the
-    experts' own inputs (experts.npz); {} when there are neither."""
-    from flightstack.recording.files import DATASETS_FILE
+    experts' own inputs (experts.npz); {} when there are neither (a damaged datasets.npz is listed in
+    `skipped`)."""
+    from flightstack.recording.files import DATASETS_FILE, RunDirError
     from flightstack.runtime.training import load_datasets
 
-    path = run_dir / DATASETS_FILE
     try:
-        found = {d.drone_id: np.asarray(d.X) for d in load_datasets(path)}
-    except (OSError, ValueError, KeyError) as exc:
-        _log.warning("%s not readable: %s", path, exc)
+        found = {d.drone_id: np.asarray(d.X) for d in load_datasets(run_dir / DATASETS_FILE)}
+    except RunDirError as exc:
+        skipped.append(f"{DATASETS_FILE}: {exc.what}")
         found = {}
     return found or {i: np.asarray(ex.X) for i, ex in experts.items()}
