@@ -31,12 +31,25 @@ from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 from flightstack.config.types import Finite, Mode, NonNegative, Positive
 from flightstack.config.types import Strict as _Strict
 from flightstack.paper.fusion import FUSION_RULES
+from flightstack.paper.gain_analysis import (
+    MAX_RATE_DT,
+    fastest_error_rate,
+    laplacian_lambda_max,
+    own_loop_rate,
+)
 from flightstack.paper.geometry import Pose
 from flightstack.paper.projection import CameraModel
 from flightstack.safety import SafetyLimits
 
 MODES = tuple(m.value for m in Mode)
 MAX_TICKS = 10**7  # ticks of one mode (duration_s / dt_s)
+MAX_DRONES = 1000
+"""At most this many drones in a mission. The scaling missions fly 31; beyond 1000 nothing carries them:
+the operator's abort and its acknowledgements name every drone and carry at most 1024 ids
+(flightstack.comms.control), the lock-step tick of a complete graph exchanges n(n − 1) messages (10⁶ per
+tick at 1000), and `flightstack generate-mission` writes at most 1000. The recording's memory (n × ticks)
+is checked against the computer's separately (flightstack.runtime.resources). Checked on the raw list,
+before any drone is validated: a 9,000-drone file is refused at once."""
 
 # Camera mounts in the drone's FLU body frame (columns: camera x right, y down, z optical axis).
 CAMERA_MOUNTS = {
@@ -245,6 +258,17 @@ class Mission(_Strict):
         p = Path(relative)
         return p if p.is_absolute() else (self._base_dir / p).resolve()
 
+    @field_validator("drones", mode="before")
+    @classmethod
+    def _at_most_max_drones(cls, v: object) -> object:
+        if isinstance(v, list) and len(v) > MAX_DRONES:
+            raise ValueError(
+                f"{len(v)} drones; at most {MAX_DRONES} (the operator's abort names at most 1024 "
+                "drones and a complete graph's lock-step tick exchanges n(n − 1) messages; the scaling "
+                "missions fly 31)"
+            )
+        return v
+
     @field_validator("compare_modes")
     @classmethod
     def _modes(cls, v: list[str]) -> list[str]:
@@ -263,10 +287,11 @@ class Mission(_Strict):
                 "(the recording holds every tick in memory)"
             )
         ids = [d.id for d in self.drones]
-        if len(set(ids)) != len(ids):
+        id_set = set(ids)
+        if len(id_set) != len(ids):
             raise ValueError("drones: ids must be unique")
         for a, b in self.graph.edges:
-            if a not in ids or b not in ids:
+            if a not in id_set or b not in id_set:
                 raise ValueError(f"graph.edges: edge ({a}, {b}) names a drone id that is not in drones")
         if self.graph.kind == "edges" and not self.graph.edges and len(ids) > 1:
             raise ValueError("graph.edges: kind 'edges' needs at least one edge")
@@ -279,6 +304,7 @@ class Mission(_Strict):
             raise ValueError("drones: at least one drone must see the target (Assumption 3)")
         if self.k_c_xy_unequal():
             raise ValueError("gains: k_c and k_e must have equal x and y components")
+        self._check_sampled_loop()
         if self.backend == "sim_lab":
             if self.target.motion != "square":
                 raise ValueError("target.motion: the sim_lab backend drives the robot on the 'square' law")
@@ -290,6 +316,21 @@ class Mission(_Strict):
         elif self.hardware is not None:
             raise ValueError(f"hardware: only used by backend 'tello' (this mission: {self.backend!r})")
         return self
+
+    def _check_sampled_loop(self) -> None:
+        """Refuse gains the sampled loop cannot carry: (k_max + k_s·λ_max(L))·dt < 2, k_max the fastest
+        mode of a drone's own pursuit loop (flightstack.paper.gain_analysis.fastest_error_rate)."""
+        g = self.gains
+        lam = self.laplacian_lambda_max()
+        k_max = own_loop_rate(g.k_c, g.k_e)
+        rate_dt = fastest_error_rate(g.k_c, g.k_e, g.k_s, lam) * self.dt_s
+        if not rate_dt < MAX_RATE_DT:
+            raise ValueError(
+                "gains: the sampled loop diverges: (k_max + k_s·λ_max(L))·dt_s = "
+                f"({k_max:.6g} + {g.k_s:.6g} · {lam:.6g}) · {self.dt_s:g} s = {rate_dt:.4g}, must be < "
+                f"{MAX_RATE_DT:g} (k_max: the fastest mode of a drone's own loop from k_c and k_e; λ_max(L) "
+                "of the graph); lower gains.k_c, gains.k_e, gains.k_s or dt_s"
+            )
 
     def _check_hardware(self, ids: list[int]) -> None:
         if self.hardware is None:
@@ -311,6 +352,14 @@ class Mission(_Strict):
                 "certificates of `flightstack certs`); plaintext is for simulations on one computer"
             )
 
+    def flown_modes(self) -> list[str]:
+        """The modes a run flies, in order: the data run `none` first when a GP mode needs experts that
+        are not given (gp.experts_file)."""
+        modes = list(self.compare_modes)
+        if self.gp.experts_file is None and any(Mode(m).uses_gp for m in modes):
+            modes = [Mode.NONE.value] + [m for m in modes if m != Mode.NONE]
+        return modes
+
     @property
     def simulated(self) -> bool:
         return self.backend != "tello"
@@ -328,26 +377,42 @@ class Mission(_Strict):
         return self.gains.k_c[0] != self.gains.k_c[1] or self.gains.k_e[0] != self.gains.k_e[1]
 
     def edge_index_pairs(self) -> list[tuple[int, int]]:
-        """Graph edges as 0-based index pairs into `drones` (complete graph when kind is 'complete')."""
-        ids = [d.id for d in self.drones]
+        """Graph edges as sorted 0-based index pairs into `drones` (complete graph when kind is 'complete').
+        A complete graph's list has n(n − 1)/2 pairs: use `edge_count` and `neighbours` where the list
+        itself is not needed."""
+        n = len(self.drones)
         if self.graph.kind == "complete":
-            return [(a, b) for a in range(len(ids)) for b in range(a + 1, len(ids))]
-        pairs = {
-            (min(ids.index(a), ids.index(b)), max(ids.index(a), ids.index(b)))
-            for a, b in self.graph.edges
-            if a != b
-        }
-        return sorted(pairs)
+            return [(a, b) for a in range(n) for b in range(a + 1, n)]
+        return sorted(self._edge_pair_set())
+
+    def _edge_pair_set(self) -> set[tuple[int, int]]:
+        """The `edges` graph's distinct pairs (a < b) of 0-based indices; self-loops dropped."""
+        index = {d.id: k for k, d in enumerate(self.drones)}
+        return {(min(index[a], index[b]), max(index[a], index[b])) for a, b in self.graph.edges if a != b}
+
+    def edge_count(self) -> int:
+        """Number of distinct undirected edges of the graph, without listing a complete graph's."""
+        n = len(self.drones)
+        return n * (n - 1) // 2 if self.graph.kind == "complete" else len(self._edge_pair_set())
 
     def neighbours(self, index: int) -> list[int]:
-        """0-based indices of the neighbours of drone `index`."""
+        """0-based indices of the neighbours of drone `index` (linear in the drones and the edges)."""
+        if self.graph.kind == "complete":
+            return [j for j in range(len(self.drones)) if j != index]
         out = set()
-        for a, b in self.edge_index_pairs():
+        for a, b in self._edge_pair_set():
             if a == index:
                 out.add(b)
             elif b == index:
                 out.add(a)
         return sorted(out)
+
+    def laplacian_lambda_max(self) -> float:
+        """λ_max(L) of the graph's Laplacian: n for a complete graph (n ≥ 2), else from its edges."""
+        n = len(self.drones)
+        if self.graph.kind == "complete":
+            return float(n) if n > 1 else 0.0
+        return laplacian_lambda_max(n, sorted(self._edge_pair_set()))
 
 
 def _format_errors(err: ValidationError, where: Lines | None = None) -> list[str]:

@@ -1,0 +1,237 @@
+"""`validate` (and `run` before takeoff) refuse what cannot run: too many drones (refused fast, without the
+complete graph's quadratic list), a recording larger than the computer's memory, gains beyond the sampled
+loop's divergence bound; every shipped experiment still validates."""
+
+from __future__ import annotations
+
+import itertools
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from flightstack.cli.app import main
+from flightstack.config.mission import MAX_DRONES, MissionError, load_mission, parse_mission
+from flightstack.config.rig import resolved_document
+from flightstack.paper.gain_analysis import (
+    MAX_RATE_DT,
+    fastest_error_rate,
+    laplacian,
+    own_loop_rate,
+)
+from flightstack.recording.timeseries import ARRAY_FIELDS, Recording, recording_nbytes
+from flightstack.runtime import resources
+from tests.conftest import MISSIONS, run_cli
+
+EXPERIMENTS = sorted(p for p in MISSIONS.glob("*.yaml"))
+
+
+def paper() -> dict:
+    return resolved_document("paper_sim")
+
+
+def with_drones(doc: dict, n: int) -> dict:
+    """paper_sim's document flown by n drones (ids 0..n-1, one band each)."""
+    doc["drones"] = [{"id": i, "desired_pose": {"p": [0.5, 0.0, 1.5], "theta": 0.0}} for i in range(n)]
+    doc["gp"]["regions"]["edges"] = [float(i) for i in range(n - 1)]
+    return doc
+
+
+# ---- the drone bound and the graph ------------------------------------------------------------------------
+def test_9000_drones_are_refused_at_once_with_little_memory() -> None:
+    doc = with_drones(paper(), 9000)
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    try:
+        with pytest.raises(MissionError) as exc:
+            parse_mission(doc, "m.yaml")
+        elapsed = time.perf_counter() - t0
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert f"drones: 9000 drones; at most {MAX_DRONES}" in str(exc.value)
+    assert "scaling missions fly 31" in str(exc.value)
+    # the complete graph as a list of 40 M tuples took 4.4 GB; the refusal takes a few MB at most
+    assert elapsed < 0.5, elapsed
+    assert peak < 20e6, peak
+
+
+def test_the_largest_mission_validates_without_listing_its_complete_graph() -> None:
+    doc = with_drones(paper(), MAX_DRONES)
+    doc["gains"]["k_s"] = 0.2  # (261.8 + 0.2 · 1000) · 0.002 < 2
+    tracemalloc.start()
+    try:
+        m = parse_mission(doc, "m.yaml")
+        assert m.edge_count() == MAX_DRONES * (MAX_DRONES - 1) // 2
+        assert m.laplacian_lambda_max() == MAX_DRONES
+        assert m.neighbours(7) == [j for j in range(MAX_DRONES) if j != 7]
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 60e6, peak  # the pair list alone: 499,500 tuples, ~ 70 MB
+
+
+@pytest.mark.parametrize("kind", ["complete", "edges"])
+def test_graph_queries_agree_with_the_edge_list(kind: str) -> None:
+    """neighbours, edge_count and λ_max(L) equal what the listed pairs give (an independent reference)."""
+    rng = np.random.default_rng(3)
+    doc = with_drones(paper(), 9)
+    for i, d in enumerate(doc["drones"]):
+        d["id"] = 10 + 3 * i  # ids that are not indices
+    ids = [d["id"] for d in doc["drones"]]
+    edges = [[int(a), int(b)] for a, b in rng.choice(ids, size=(14, 2))] + [
+        [ids[0], ids[1]],
+        [ids[1], ids[0]],
+    ]
+    doc["graph"] = {"kind": kind, "edges": edges if kind == "edges" else []}
+    doc["gains"]["k_s"] = 10.0
+    m = parse_mission(doc, "m.yaml")
+    pairs = m.edge_index_pairs()
+    if kind == "complete":
+        assert pairs == list(itertools.combinations(range(9), 2))
+    else:
+        index = {i: k for k, i in enumerate(ids)}
+        assert pairs == sorted({tuple(sorted((index[a], index[b]))) for a, b in edges if a != b})
+    assert m.edge_count() == len(pairs)
+    for k in range(9):
+        assert m.neighbours(k) == sorted({b for a, b in pairs if a == k} | {a for a, b in pairs if b == k})
+    assert m.laplacian_lambda_max() == pytest.approx(np.linalg.eigvalsh(laplacian(9, pairs))[-1], abs=1e-12)
+
+
+# ---- the sampled loop's divergence bound ------------------------------------------------------------------
+def test_own_loop_rate_is_the_largest_eigenvalue_of_nt_k_n() -> None:
+    """Reference: numpy's eigenvalues of NᵀKN with N = [[I, 0], [−I, I]] (θ_c = 0), K = diag(k_c, k_e)."""
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        k_c, k_e = rng.uniform(0.1, 500, 4), rng.uniform(0.1, 500, 4)
+        N = np.block([[np.eye(4), np.zeros((4, 4))], [-np.eye(4), np.eye(4)]])
+        K = np.diag(np.concatenate([k_c, k_e]))
+        assert own_loop_rate(k_c, k_e) == pytest.approx(np.linalg.eigvalsh(N.T @ K @ N)[-1], rel=1e-12)
+
+
+def network_rate(k_c: float, k_e: float, k_s: float, L: np.ndarray, visible: np.ndarray) -> float:
+    """λ_max of the linearised network error dynamics of one component, built directly: ė_c = −k_c e_c
+    + v k_e (e_e − e_c), ė_e = −v k_e (e_e − e_c) − k_s L e_e (consensus c = L e_e)."""
+    n = len(L)
+    V = np.diag(visible.astype(float))
+    M = np.block([[k_c * np.eye(n) + k_e * V, -k_e * V], [-k_e * V, k_e * V + k_s * L]])
+    return float(np.linalg.eigvalsh(M)[-1])
+
+
+def test_fastest_error_rate_bounds_the_network_and_is_exact_without_consensus() -> None:
+    rng = np.random.default_rng(1)
+    for n in (2, 3, 7):
+        L = laplacian(n, list(itertools.combinations(range(n), 2)))
+        for _ in range(20):
+            k_c, k_e, k_s = rng.uniform(1, 300), rng.uniform(1, 300), rng.uniform(0, 100)
+            visible = rng.random(n) > 0.3
+            bound = fastest_error_rate([k_c] * 4, [k_e] * 4, k_s, float(n))
+            assert network_rate(k_c, k_e, k_s, L, visible) <= bound * (1 + 1e-12)
+            all_seen = network_rate(k_c, k_e, 0.0, L, np.ones(n, bool))
+            assert all_seen == pytest.approx(fastest_error_rate([k_c] * 4, [k_e] * 4, 0.0, float(n)))
+
+
+@pytest.mark.parametrize("path", EXPERIMENTS, ids=lambda p: p.stem)
+def test_every_shipped_experiment_validates_and_keeps_its_loop_sampled(
+    path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["validate", str(path)]) == 0
+    assert capsys.readouterr().out.endswith("valid\n")
+    m = load_mission(path)
+    g = m.gains
+    assert fastest_error_rate(g.k_c, g.k_e, g.k_s, m.laplacian_lambda_max()) * m.dt_s < MAX_RATE_DT
+
+
+def test_gains_of_a_million_are_refused_naming_the_key_and_the_numbers(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    doc = paper()
+    doc["gains"] = {"k_c": [1e6] * 4, "k_e": [1e6] * 4, "k_s": 70}
+    path = tmp_path / "fast.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    assert main(["validate", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "gains: the sampled loop diverges" in err
+    assert "(2.61803e+06 + 70 · 3) · 0.002 s = 5236, must be < 2" in err
+
+
+def test_gains_just_below_the_bound_validate_and_just_above_are_refused() -> None:
+    k_ok = 0.97 * MAX_RATE_DT / 0.002 / own_loop_rate([1.0] * 4, [1.0] * 4)  # rate ∝ k for k_c = k_e = k
+    for k, ok in ((k_ok, True), (k_ok * 1.03 / 0.97, False)):
+        doc = paper()
+        doc["gains"] = {"k_c": [k] * 4, "k_e": [k] * 4, "k_s": 0.0}
+        if ok:
+            parse_mission(doc, "m.yaml")
+        else:
+            with pytest.raises(MissionError, match="gains: the sampled loop diverges"):
+                parse_mission(doc, "m.yaml")
+
+
+# ---- the recording's memory -------------------------------------------------------------------------------
+def test_recording_nbytes_is_what_empty_allocates() -> None:
+    for n, ticks in ((1, 1), (3, 100), (31, 17)):
+        rec = Recording.empty("none", list(range(n)), ticks)
+        assert recording_nbytes(n, ticks) == sum(getattr(rec, f).nbytes for f in ARRAY_FIELDS)
+
+
+def test_available_memory_is_read_from_meminfo(tmp_path: Path) -> None:
+    info = tmp_path / "meminfo"
+    info.write_text("MemTotal:       16000000 kB\nMemFree:  100 kB\nMemAvailable:    8000000 kB\n")
+    assert resources.available_memory_bytes(info) == 8000000 * 1024
+    info.write_text("MemTotal:       16000000 kB\n")
+    assert resources.available_memory_bytes(info) is None
+    assert resources.available_memory_bytes(tmp_path / "missing") is None
+
+
+def test_a_recording_larger_than_the_available_memory_is_refused_naming_the_numbers() -> None:
+    m = load_mission("paper_sim")  # 3 modes × 20,000 ticks × 3 drones, 1003 bytes per tick
+    need = resources.recording_memory_bytes(m)
+    assert need == 3 * recording_nbytes(3, 20000) == 3 * 20000 * 1003
+    resources.check_recording_memory(m, available_bytes=int(need / resources.MEMORY_FRACTION))
+    with pytest.raises(MissionError) as exc:
+        resources.check_recording_memory(m, available_bytes=int(need / resources.MEMORY_FRACTION) - 1)
+    msg = str(exc.value)
+    assert msg.startswith("paper_sim: duration_s / dt_s: the recording needs 0.056 GiB of memory")
+    assert "3 mode(s) none, local, dgp × 20000 ticks × 3 drone(s), 1003 bytes per tick" in msg
+    assert "more than 50% of the 0.112 GiB this computer has available" in msg
+
+
+@pytest.mark.parametrize("command", ["validate", "run"])
+def test_validate_and_run_refuse_a_recording_the_computer_cannot_hold(
+    command: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(resources, "available_memory_bytes", lambda: 100 * 2**20)  # 100 MiB available
+    out = tmp_path / "run"
+    args = ["validate", "paper_sim"] if command == "validate" else ["run", "paper_sim", "--out", str(out)]
+    t0 = time.perf_counter()
+    assert main(args) == 2
+    assert time.perf_counter() - t0 < 10  # refused before anything flies (a flight takes minutes)
+    err = capsys.readouterr().err
+    assert "duration_s / dt_s: the recording needs 0.056 GiB of memory" in err
+    assert "more than 50% of the 0.0977 GiB this computer has available" in err
+    assert not out.exists()  # nothing was created, nothing took off
+
+
+# ---- the command line end to end --------------------------------------------------------------------------
+@pytest.mark.system
+def test_cli_refuses_9000_drones_and_a_recording_no_computer_holds(tmp_path: Path) -> None:
+    big = tmp_path / "big.yaml"
+    big.write_text(yaml.safe_dump(with_drones(paper(), 9000), default_flow_style=None))
+    t0 = time.perf_counter()
+    res = run_cli("validate", str(big), timeout=120)
+    assert res.returncode == 2, res.stderr
+    assert "drones: 9000 drones; at most 1000" in res.stderr
+    assert time.perf_counter() - t0 < 60  # it took 19 s and 4.4 GB before; the YAML parse is most of it now
+    doc = resolved_document("scaling_31")
+    doc.update(dt_s=1e-4, duration_s=1000.0)  # 1e7 ticks × 31 drones: ~ 280 GB for three modes
+    long = tmp_path / "long.yaml"
+    long.write_text(yaml.safe_dump(doc))
+    for args in (("validate", str(long)), ("run", str(long), "--out", str(tmp_path / "run"))):
+        res = run_cli(*args, timeout=120)
+        assert res.returncode == 2, res.stderr
+        assert "duration_s / dt_s: the recording needs" in res.stderr
+        assert "× 10000000 ticks × 31 drone(s)" in res.stderr
+    assert not (tmp_path / "run").exists()
