@@ -235,3 +235,71 @@ def test_cli_refuses_9000_drones_and_a_recording_no_computer_holds(tmp_path: Pat
         assert "duration_s / dt_s: the recording needs" in res.stderr
         assert "× 10000000 ticks × 31 drone(s)" in res.stderr
     assert not (tmp_path / "run").exists()
+
+
+# ---- absurd physical parameters ---------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("mutate", "expected"),
+    [
+        (lambda d: d["drones"][0]["desired_pose"].update(p=[0.5, 0.0, 1e300]), "drones.0.desired_pose.p.2"),
+        (lambda d: d["target"]["initial_pose"].update(theta=1e9), "target.initial_pose.theta"),
+        (lambda d: d["target"]["feature_points"][0].__setitem__(0, -5000.0), "target.feature_points.0.0"),
+        (lambda d: d["target"]["duffing"].update(beta=1e6), "target.duffing.beta"),
+        (lambda d: d["target"].update(square={"speed_mps": 300.0}), "target.square.speed_mps"),
+        (lambda d: d["camera"].update(focal_length=1e300), "camera.focal_length"),
+        (lambda d: d["target"].update(robot={"max_speed_mps": 1e9}), "target.robot.max_speed_mps"),
+        (lambda d: d["sim"]["tello"].update(time_constant_s=1e12), "sim.tello.time_constant_s"),
+        (lambda d: d["sim"]["tello"].update(takeoff_height_m=5000.0), "sim.tello.takeoff_height_m"),
+        (lambda d: d["sim"]["mocap"].update(rate_hz=1e9), "sim.mocap.rate_hz"),
+        (lambda d: d["drones"][1].update(rc_gains={"xy": 50.0}), "drones.1.rc_gains.xy"),
+    ],
+)
+def test_absurd_physical_parameters_are_refused_naming_the_key(mutate, expected: str) -> None:
+    doc = paper()
+    doc.setdefault("sim", {}).setdefault("tello", {})
+    doc["sim"].setdefault("mocap", {})
+    mutate(doc)
+    with pytest.raises(MissionError) as exc:
+        parse_mission(doc, "m.yaml")
+    assert f"{expected}: Input should be" in str(exc.value)
+
+
+# ---- camera calibrations ----------------------------------------------------------------------------------
+def calibration_doc(width: int, height: int, cx: float, cy: float) -> dict:
+    return {
+        "width": width,
+        "height": height,
+        "camera_matrix": [[260.0, 0.0, cx], [0.0, 260.0, cy], [0.0, 0.0, 1.0]],
+        "dist_coeffs": [0.0, 0.0, 0.0, 0.0, 0.0],
+    }
+
+
+def test_a_principal_point_outside_the_image_is_refused() -> None:
+    from flightstack.vision.camera_file import CalibrationError, calibration_from_dict
+
+    calibration_from_dict(calibration_doc(320, 240, 160.0, 120.0))
+    calibration_from_dict(calibration_doc(320, 240, -0.5, 239.5))  # the image's outer pixel edges
+    for w, h, cx, cy in ((1, 240, 480.0, 120.0), (320, 240, 320.0, 120.0), (320, 240, 160.0, -1.0)):
+        with pytest.raises(CalibrationError) as exc:
+            calibration_from_dict(calibration_doc(w, h, cx, cy), "cam.yaml")
+        assert (
+            f"cam.yaml: camera_matrix: the principal point (cx, cy) = ({cx:g}, {cy:g}) px lies outside"
+            in (str(exc.value))
+        )
+        assert f"the {w} × {h} image" in str(exc.value)
+
+
+def test_validate_refuses_an_experiment_whose_calibration_has_its_principal_point_outside(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cal = tmp_path / "cam.yaml"
+    cal.write_text(yaml.safe_dump(calibration_doc(1, 240, 480.0, 120.0)))
+    doc = resolved_document("paper_experiment")
+    for d in doc["drones"]:
+        d["camera"]["calibration"] = str(cal)
+    path = tmp_path / "exp.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    assert main(["validate", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "drones.0.camera.calibration: " in err
+    assert "principal point (cx, cy) = (480, 120) px lies outside the 1 × 240 image" in err

@@ -28,7 +28,7 @@ from flightstack.config.bus import BusSpec
 from flightstack.config.hardware import HardwareSpec
 from flightstack.config.safe_load import Lines, line_of
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
-from flightstack.config.types import Finite, Mode, NonNegative, Positive
+from flightstack.config.types import Angle, Coordinate, Distance, Finite, Mode, Speed
 from flightstack.config.types import Strict as _Strict
 from flightstack.paper.fusion import FUSION_RULES
 from flightstack.paper.gain_analysis import (
@@ -65,29 +65,34 @@ class MissionError(ValueError):
 class PoseSpec(_Strict):
     """A pose (p in metres, theta in radians)."""
 
-    p: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
-    theta: Finite = 0.0
+    p: tuple[Coordinate, Coordinate, Coordinate] = (0.0, 0.0, 0.0)
+    theta: Angle = 0.0
 
     def pose(self) -> Pose:
         return Pose.make(self.p, self.theta)
 
 
+DuffingCoefficient = Annotated[float, Field(ge=-100, le=100, allow_inf_nan=False)]
+"""The paper's coefficients are at most 1 in size; the field is cubic in the position, so beyond 100 the
+target leaves any arena within a fraction of a second."""
+
+
 class DuffingSpec(_Strict):
     """Coefficients of the paper's Duffing-like target velocity field (Sec. 5)."""
 
-    alpha: Finite = -1.0
-    beta: Finite = 1.0
-    gamma: Finite = 0.39
-    delta: Finite = 0.1
-    omega: Finite = 0.4
+    alpha: DuffingCoefficient = -1.0
+    beta: DuffingCoefficient = 1.0
+    gamma: DuffingCoefficient = 0.39
+    delta: DuffingCoefficient = 0.1
+    omega: DuffingCoefficient = 0.4
 
 
 class SquareSpec(_Strict):
     """The paper's experiment law (eq. scamper_vel): a square lap with one rotation per lap."""
 
-    side_m: Positive = 1.0
-    speed_mps: Positive = 0.1
-    gain: NonNegative = 0.05
+    side_m: Distance = 1.0
+    speed_mps: Speed = 0.1
+    gain: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.05  # 1/s
 
 
 class TargetSpec(_Strict):
@@ -96,12 +101,14 @@ class TargetSpec(_Strict):
     duffing: DuffingSpec = DuffingSpec()
     square: SquareSpec = SquareSpec()
     robot: RobotSpec = RobotSpec()
-    feature_points: list[tuple[Finite, Finite, Finite]] = Field(min_length=4)
+    feature_points: list[tuple[Coordinate, Coordinate, Coordinate]] = Field(min_length=4)
     substeps: int = Field(default=1, ge=1, le=1000)
 
 
 class CameraSpec(_Strict):
-    focal_length: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 1.0
+    """The ideal camera: focal length λ in image units (1: the normalised image plane; pixels: ~10²–10³)."""
+
+    focal_length: Annotated[float, Field(gt=0, le=1e5, allow_inf_nan=False)] = 1.0
 
 
 class DroneCameraSpec(_Strict):
@@ -109,7 +116,7 @@ class DroneCameraSpec(_Strict):
 
     calibration: str | None = None  # required on every rig but the ideal one (its camera is exact)
     mount: Literal["down", "forward"] = "down"
-    offset: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
+    offset: tuple[Coordinate, Coordinate, Coordinate] = (0.0, 0.0, 0.0)
 
 
 class DroneSpec(_Strict):
@@ -449,8 +456,10 @@ def load_mission(
     `path` may be a built-in experiment name. `overrides` replace top-level keys (e.g. duration_s) of the
     resolved mission first.
 
-    check_files=False skips the existence checks of referenced files (calibrations, experts) so that
-    `flightstack preflight` can report them as rows of its table instead of stopping at the first one."""
+    Referenced files must exist (calibrations, experts); each camera calibration is parsed and checked
+    (flightstack.vision.camera_file: intrinsics, image size, principal point in the image).
+    check_files=False skips these checks so that `flightstack preflight` can report them as rows of its
+    table instead of stopping at the first one."""
     from flightstack.config.rig import RigError, load_composed
 
     try:  # one hardened loader (safe_load.py): regular files only, bounded, UTF-8, no aliases, ...
@@ -463,16 +472,21 @@ def load_mission(
     m._base_dir = Path(path).resolve().parent
     if not check_files:
         return m
-    for d in m.drones:
-        if (
-            d.camera is not None
-            and d.camera.calibration is not None
-            and not m.resolve(d.camera.calibration).is_file()
-        ):
-            raise MissionError(
-                f"{label}: drones.{m.drones.index(d)}.camera.calibration: file not found: "
-                f"{m.resolve(d.camera.calibration)}"
-            )
+    from flightstack.vision.camera_file import CalibrationError, load_calibration
+
+    checked: set[Path] = set()
+    for k, d in enumerate(m.drones):
+        if d.camera is None or d.camera.calibration is None:
+            continue
+        cal = m.resolve(d.camera.calibration)
+        if not cal.is_file():
+            raise MissionError(f"{label}: drones.{k}.camera.calibration: file not found: {cal}")
+        if cal not in checked:  # parsed and checked (intrinsics, image size) once per file
+            try:
+                load_calibration(cal)
+            except CalibrationError as exc:
+                raise MissionError(f"{label}: drones.{k}.camera.calibration: {exc}") from None
+            checked.add(cal)
     if m.gp.experts_file is not None and not m.resolve(m.gp.experts_file).is_file():
         raise MissionError(f"{label}: gp.experts_file: file not found: {m.resolve(m.gp.experts_file)}")
     return m
