@@ -24,7 +24,7 @@ from flightstack.paper.gain_analysis import (
 )
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording, recording_nbytes
 from flightstack.runtime import resources
-from tests.conftest import MISSIONS, run_cli
+from tests.conftest import MISSIONS, random_recording, run_cli
 
 EXPERIMENTS = sorted(p for p in MISSIONS.glob("*.yaml"))
 
@@ -303,3 +303,94 @@ def test_validate_refuses_an_experiment_whose_calibration_has_its_principal_poin
     err = capsys.readouterr().err
     assert "drones.0.camera.calibration: " in err
     assert "principal point (cx, cy) = (480, 120) px lies outside the 1 × 240 image" in err
+
+
+# ---- a state that diverges at run time --------------------------------------------------------------------
+def test_check_rows_names_the_first_diverged_tick_drone_and_quantity() -> None:
+    from flightstack.runtime.divergence import (
+        DIVERGED_ABOVE,
+        DIVERGED_POSITION_M,
+        DivergedError,
+        check_rows,
+    )
+
+    rec = random_recording("none", [4, 7, 9], 50)
+    check_rows(rec, 0, 50)  # normal values pass
+    rec.V_cmd[30, 2, 3] = np.nan
+    rec.g_bar_w[31, 0, 0] = np.inf
+    rec.g_wi[20, 1, 1] = 1.5 * DIVERGED_POSITION_M
+    rec.g_wi[10, 1, 3] = 0.5 * DIVERGED_ABOVE  # an angle may wind up; a position of 15 km is gone
+    check_rows(rec, 0, 20)  # rows before the first bad one
+    with pytest.raises(DivergedError, match=r"^diverged at t = 1 s \(drone 7, g_wi y = 1.5e\+04;"):
+        check_rows(rec, 0, 50)
+    # motion capture's poses are measurements: on hardware only what the stack computes is checked
+    with pytest.raises(DivergedError, match=r"^diverged at t = 1.5 s \(drone 9, V_cmd θ = nan;"):
+        check_rows(rec, 0, 50, simulated=False)
+    rec.g_w0[5, 2] = -np.inf
+    with pytest.raises(DivergedError, match=r"^diverged at t = 0.25 s \(g_w0 z = -inf;"):
+        check_rows(rec, 0, 50)
+
+
+def test_metrics_of_a_failed_run_are_written_with_null(tmp_path: Path) -> None:
+    import json
+
+    from flightstack.recording.run_dir import RunWriter
+
+    writer = RunWriter(tmp_path / "run")
+    try:
+        with pytest.raises(ValueError):
+            writer.write_metrics({"x": float("inf")})  # a finished run: a non-finite metric is a finding
+        written = writer.write_metrics({"x": float("inf"), "y": [1.0, float("nan")]}, strict=False)
+    finally:
+        writer.close()
+    assert written["x"] == float("inf")
+    on_disk = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert on_disk["x"] is None and on_disk["y"] == [1.0, None]
+
+
+def test_a_run_that_diverges_stops_lands_writes_metrics_and_exits_1(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The issue's gains of 1e6 on the ideal rig, with validation's gain bound switched off in-process."""
+    import json
+
+    from flightstack.config.mission import Mission
+    from flightstack.recording.run_reader import load_run
+
+    doc = paper()
+    doc["gains"] = {"k_c": [1e6] * 4, "k_e": [1e6] * 4, "k_s": 70}
+    path = tmp_path / "fast.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    monkeypatch.setattr(Mission, "_check_sampled_loop", lambda self: None)
+    out = tmp_path / "run"
+    code = main(["run", str(path), "--out", str(out), "--modes", "none", "--duration", "2"])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "error: diverged at t = 0.004 s (drone " in err and "every drone landed" in err
+    metrics = json.loads((out / "metrics.json").read_text())  # strict JSON: non-finite values are null
+    assert metrics["modes"]["none"]["error"].startswith("diverged at t = 0.004 s (drone ")
+    assert metrics["modes"]["none"]["ticks"] == 3  # stopped on the third tick, not after 1000
+    rec = load_run(out)["none"]  # the recording so far stays readable
+    assert rec.ticks_done == 3 and np.abs(rec.u_e[2]).max() > 1e6 >= np.abs(rec.u_e[1]).max()
+    events = [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
+    assert any(e.get("event") == "end" and e.get("reason") == "diverged" for e in events)
+    assert any(e.get("event") == "landed" for e in events)
+
+
+def test_the_ideal_rig_diverges_where_the_bound_says(monkeypatch: pytest.MonkeyPatch) -> None:
+    """k_c = k_e = k, k_s = 0: 3 % below the bound the validated mission flies with errors of mm; 3 % above
+    it (past validation) the ideal rig's errors grow by orders of magnitude. max(k_c, k_e)·dt is only 0.79
+    there: that reading of k_max would let it fly."""
+    from flightstack.config.mission import Mission
+    from flightstack.runtime.runner import run_mode
+
+    k_bound = MAX_RATE_DT / 0.002 / own_loop_rate([1.0] * 4, [1.0] * 4)
+    monkeypatch.setattr(Mission, "_check_sampled_loop", lambda self: None)
+    worst = {}
+    for factor in (0.97, 1.03):
+        gains = {"k_c": [factor * k_bound] * 4, "k_e": [factor * k_bound] * 4, "k_s": 0.0}
+        over = {"duration_s": 3.0, "compare_modes": ["none"], "gains": gains}
+        rec = run_mode(load_mission("paper_sim", overrides=over), "none")
+        assert rec.ticks_done == 1500 or (rec.error or "").startswith("diverged at t = ")
+        worst[factor] = float(np.abs(rec.e_c[1000 : rec.ticks_done]).max())
+    assert worst[0.97] < 0.01 and worst[1.03] > 10.0, worst

@@ -231,7 +231,7 @@ def write_run_dir(
     run_writer: the writer that recorded the run as it flew (its modes' npz and events are on disk
     already; the caller closes it). Without one, everything is written here through a new RunWriter.
     A write error of the datasets or experts marks the recording incomplete; one of metrics.json raises
-    OSError."""
+    OSError. After an error (res.error, e.g. a diverged state) non-finite metrics are written as null."""
     own = run_writer is None
     writer = RunWriter(out) if run_writer is None else run_writer
     try:
@@ -239,7 +239,8 @@ def write_run_dir(
         for rec in res.recordings.values():
             writer.record(rec)
         _write_training(writer, res)
-        return writer.write_metrics(res.metrics)
+        # a run that ended in an error (a diverged state) need not have finite metrics: null in the JSON
+        return writer.write_metrics(res.metrics, strict=res.error is None)
     finally:
         if own:
             writer.close()
