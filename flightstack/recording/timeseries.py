@@ -109,7 +109,8 @@ class Recording:
             shape = _array_shape(f, n_ticks, n)
             return np.zeros(shape, dtype) if fill == 0 else np.full(shape, fill, dtype)
 
-        return Recording(mode, list(ids), *(alloc(f) for f in ARRAY_FIELDS))
+        arrays: dict[str, Any] = {f: alloc(f) for f in ARRAY_FIELDS}
+        return Recording(mode, list(ids), **arrays)
 
     def truncated(self) -> Recording:
         """Only the ticks actually flown (after an interrupt or an error)."""
