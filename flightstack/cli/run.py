@@ -138,6 +138,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.bus is not None and args.bus != mission.bus.kind:
         bus = _bus_override(mission, args.bus)
         mission = load_mission(args.mission, {**overrides, "bus": bus}, rig=args.rig)
+    from flightstack.runtime.resources import check_recording_memory
+
+    check_recording_memory(mission)  # MissionError (exit 2) before anything is created or flies
     if args.command == "sim" and not mission.simulated and not mission.start_emulators:
         print(
             f"error: {args.mission}: backend {mission.backend!r} flies real drones; "
@@ -210,10 +213,10 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
     from flightstack.runtime.experiment import resolved_mission_yaml, run_experiment, write_run_dir
 
     t_cmd0 = time.perf_counter()
-    from flightstack.cli.view import flown_modes, open_live_viewer
+    from flightstack.cli.view import open_live_viewer
 
     try:  # --viewer: the live Rerun view (a tap of every mode; flightstack.viewer.live)
-        tap = open_live_viewer(getattr(args, "viewer", None), mission, out, flown_modes(mission))
+        tap = open_live_viewer(getattr(args, "viewer", None), mission, out, mission.flown_modes())
     except (OSError, RuntimeError) as exc:
         print(f"error: --viewer: {exc}; nothing took off", file=sys.stderr)
         return 2

@@ -3,7 +3,8 @@
 A valid file prints a short summary (what will fly, on what, for how long, with which gains, GP options,
 safety and devices) ending in `valid`; `--json` prints the full resolved mission instead (for a rig or
 lab file on its own: its summary as JSON). An invalid one exits 2 naming the key and the reason (the
-MissionError/RigError is reported by `flightstack.cli.app.main`)."""
+MissionError/RigError is reported by `flightstack.cli.app.main`), also when the recording would not fit
+in this computer's memory (flightstack.runtime.resources)."""
 
 from __future__ import annotations
 
@@ -46,7 +47,7 @@ def mission_summary(m: Mission) -> list[str]:
     rig = f"rig {m.rig}" if m.rig else "no rig (single-file mission)"
     lines = [f"mission {m.name}: {rig}, backend {m.backend} ({where})"]
     blind = [d.id for d in m.drones if not d.sees_target]
-    n_edges = len(m.edge_index_pairs())
+    n_edges = m.edge_count()
     graph = "complete graph" if m.graph.kind == "complete" else f"graph of {n_edges} edge(s)"
     lines.append(
         f"drones: {len(m.drones)} (ids {id_ranges([d.id for d in m.drones])}); {graph}"
@@ -111,6 +112,9 @@ def cmd_validate(args: argparse.Namespace) -> int:
             print(json.dumps(summary, indent=2) if as_json else "\n".join([*rig_summary(summary), "valid"]))
             return 0
     m = load_mission(args.mission, rig=args.rig)
+    from flightstack.runtime.resources import check_recording_memory
+
+    check_recording_memory(m)  # on the computer that validates; `run` checks again before takeoff
     print(json.dumps(mission_to_dict(m), indent=2) if as_json else "\n".join([*mission_summary(m), "valid"]))
     return 0
 

@@ -110,17 +110,6 @@ def viewer_problem(spec: str | None) -> str | None:
     return None
 
 
-def flown_modes(mission: Mission) -> list[str]:
-    """The modes `run_experiment` flies, in order: the data run `none` first when a GP mode needs experts
-    that are not given (gp.experts_file)."""
-    from flightstack.config.types import Mode
-
-    modes = list(mission.compare_modes)
-    if mission.gp.experts_file is None and any(Mode(m).uses_gp for m in modes):
-        modes = [Mode.NONE.value] + [m for m in modes if m != Mode.NONE]
-    return modes
-
-
 def open_live_viewer(spec: str | None, mission: Mission, out: Path, modes: list[str]) -> RerunTap | None:
     """The live tap of `--viewer` (None without it), its recording named after the mission and `out`;
     prints where it goes. The caller passes it to the runner and calls `finish()` at the end."""

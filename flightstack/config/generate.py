@@ -48,9 +48,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-import numpy as np
-
-from flightstack.config.mission import Mission, TargetSpec, load_mission, parse_mission
+from flightstack.config.mission import MAX_DRONES, Mission, TargetSpec, load_mission, parse_mission
 from flightstack.config.rig import RigError, Source, builtin_path, compose, find, kind_of, read
 
 MAX_K_DT = 0.62
@@ -59,8 +57,6 @@ RANGE_STEP_M = 0.1
 """The target path's extent is rounded to this (m): the precision of paper_sim's band edges."""
 DECIMALS = 6
 """Desired positions and band edges are written to 1 µm (6 decimals of a metre)."""
-MAX_DRONES = 1000
-"""A guard against a typo: the complete graph's tick costs O(n²) messages."""
 GRAPHS = ("complete", "ring")
 _REL_TOL = 1e-9  # float rounding of (k + k_s λ) dt at the bound (310 · 0.002 is not exactly 0.62)
 
@@ -103,21 +99,9 @@ def ring_lambda_max(n: int) -> float:
     return 2.0 - 2.0 * math.cos(2.0 * math.pi * (n // 2) / n)
 
 
-def laplacian_lambda_max(n: int, edges: Sequence[tuple[int, int]]) -> float:
-    """Largest eigenvalue of the Laplacian of an undirected graph on n nodes (0-based index pairs)."""
-    from flightstack.paper.gain_analysis import laplacian
-
-    if n < 2:
-        return 0.0
-    return float(np.linalg.eigvalsh(laplacian(n, edges))[-1])
-
-
 def mission_lambda_max(m: Mission) -> float:
     """λ_max of a mission's graph Laplacian: n for a complete graph, else from its edges."""
-    n = len(m.drones)
-    if m.graph.kind == "complete":
-        return float(n) if n > 1 else 0.0
-    return laplacian_lambda_max(n, m.edge_index_pairs())
+    return m.laplacian_lambda_max()
 
 
 def target_path_range(

@@ -28,15 +28,28 @@ from flightstack.config.bus import BusSpec
 from flightstack.config.hardware import HardwareSpec
 from flightstack.config.safe_load import Lines, line_of
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
-from flightstack.config.types import Finite, Mode, NonNegative, Positive
+from flightstack.config.types import Angle, Coordinate, Distance, Finite, Mode, Speed
 from flightstack.config.types import Strict as _Strict
 from flightstack.paper.fusion import FUSION_RULES
+from flightstack.paper.gain_analysis import (
+    MAX_RATE_DT,
+    fastest_error_rate,
+    laplacian_lambda_max,
+    own_loop_rate,
+)
 from flightstack.paper.geometry import Pose
 from flightstack.paper.projection import CameraModel
 from flightstack.safety import SafetyLimits
 
 MODES = tuple(m.value for m in Mode)
 MAX_TICKS = 10**7  # ticks of one mode (duration_s / dt_s)
+MAX_DRONES = 1000
+"""At most this many drones in a mission. The scaling missions fly 31; beyond 1000 nothing carries them:
+the operator's abort and its acknowledgements name every drone and carry at most 1024 ids
+(flightstack.comms.control), the lock-step tick of a complete graph exchanges n(n − 1) messages (10⁶ per
+tick at 1000), and `flightstack generate-mission` writes at most 1000. The recording's memory (n × ticks)
+is checked against the computer's separately (flightstack.runtime.resources). Checked on the raw list,
+before any drone is validated: a 9,000-drone file is refused at once."""
 
 # Camera mounts in the drone's FLU body frame (columns: camera x right, y down, z optical axis).
 CAMERA_MOUNTS = {
@@ -52,29 +65,34 @@ class MissionError(ValueError):
 class PoseSpec(_Strict):
     """A pose (p in metres, theta in radians)."""
 
-    p: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
-    theta: Finite = 0.0
+    p: tuple[Coordinate, Coordinate, Coordinate] = (0.0, 0.0, 0.0)
+    theta: Angle = 0.0
 
     def pose(self) -> Pose:
         return Pose.make(self.p, self.theta)
 
 
+DuffingCoefficient = Annotated[float, Field(ge=-100, le=100, allow_inf_nan=False)]
+"""The paper's coefficients are at most 1 in size; the field is cubic in the position, so beyond 100 the
+target leaves any arena within a fraction of a second."""
+
+
 class DuffingSpec(_Strict):
     """Coefficients of the paper's Duffing-like target velocity field (Sec. 5)."""
 
-    alpha: Finite = -1.0
-    beta: Finite = 1.0
-    gamma: Finite = 0.39
-    delta: Finite = 0.1
-    omega: Finite = 0.4
+    alpha: DuffingCoefficient = -1.0
+    beta: DuffingCoefficient = 1.0
+    gamma: DuffingCoefficient = 0.39
+    delta: DuffingCoefficient = 0.1
+    omega: DuffingCoefficient = 0.4
 
 
 class SquareSpec(_Strict):
     """The paper's experiment law (eq. scamper_vel): a square lap with one rotation per lap."""
 
-    side_m: Positive = 1.0
-    speed_mps: Positive = 0.1
-    gain: NonNegative = 0.05
+    side_m: Distance = 1.0
+    speed_mps: Speed = 0.1
+    gain: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.05  # 1/s
 
 
 class TargetSpec(_Strict):
@@ -83,12 +101,14 @@ class TargetSpec(_Strict):
     duffing: DuffingSpec = DuffingSpec()
     square: SquareSpec = SquareSpec()
     robot: RobotSpec = RobotSpec()
-    feature_points: list[tuple[Finite, Finite, Finite]] = Field(min_length=4)
+    feature_points: list[tuple[Coordinate, Coordinate, Coordinate]] = Field(min_length=4)
     substeps: int = Field(default=1, ge=1, le=1000)
 
 
 class CameraSpec(_Strict):
-    focal_length: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 1.0
+    """The ideal camera: focal length λ in image units (1: the normalised image plane; pixels: ~10²–10³)."""
+
+    focal_length: Annotated[float, Field(gt=0, le=1e5, allow_inf_nan=False)] = 1.0
 
 
 class DroneCameraSpec(_Strict):
@@ -96,7 +116,7 @@ class DroneCameraSpec(_Strict):
 
     calibration: str | None = None  # required on every rig but the ideal one (its camera is exact)
     mount: Literal["down", "forward"] = "down"
-    offset: tuple[Finite, Finite, Finite] = (0.0, 0.0, 0.0)
+    offset: tuple[Coordinate, Coordinate, Coordinate] = (0.0, 0.0, 0.0)
 
 
 class DroneSpec(_Strict):
@@ -245,6 +265,17 @@ class Mission(_Strict):
         p = Path(relative)
         return p if p.is_absolute() else (self._base_dir / p).resolve()
 
+    @field_validator("drones", mode="before")
+    @classmethod
+    def _at_most_max_drones(cls, v: object) -> object:
+        if isinstance(v, list) and len(v) > MAX_DRONES:
+            raise ValueError(
+                f"{len(v)} drones; at most {MAX_DRONES} (the operator's abort names at most 1024 "
+                "drones and a complete graph's lock-step tick exchanges n(n − 1) messages; the scaling "
+                "missions fly 31)"
+            )
+        return v
+
     @field_validator("compare_modes")
     @classmethod
     def _modes(cls, v: list[str]) -> list[str]:
@@ -263,10 +294,11 @@ class Mission(_Strict):
                 "(the recording holds every tick in memory)"
             )
         ids = [d.id for d in self.drones]
-        if len(set(ids)) != len(ids):
+        id_set = set(ids)
+        if len(id_set) != len(ids):
             raise ValueError("drones: ids must be unique")
         for a, b in self.graph.edges:
-            if a not in ids or b not in ids:
+            if a not in id_set or b not in id_set:
                 raise ValueError(f"graph.edges: edge ({a}, {b}) names a drone id that is not in drones")
         if self.graph.kind == "edges" and not self.graph.edges and len(ids) > 1:
             raise ValueError("graph.edges: kind 'edges' needs at least one edge")
@@ -279,6 +311,7 @@ class Mission(_Strict):
             raise ValueError("drones: at least one drone must see the target (Assumption 3)")
         if self.k_c_xy_unequal():
             raise ValueError("gains: k_c and k_e must have equal x and y components")
+        self._check_sampled_loop()
         if self.backend == "sim_lab":
             if self.target.motion != "square":
                 raise ValueError("target.motion: the sim_lab backend drives the robot on the 'square' law")
@@ -290,6 +323,21 @@ class Mission(_Strict):
         elif self.hardware is not None:
             raise ValueError(f"hardware: only used by backend 'tello' (this mission: {self.backend!r})")
         return self
+
+    def _check_sampled_loop(self) -> None:
+        """Refuse gains the sampled loop cannot carry: (k_max + k_s·λ_max(L))·dt < 2, k_max the fastest
+        mode of a drone's own pursuit loop (flightstack.paper.gain_analysis.fastest_error_rate)."""
+        g = self.gains
+        lam = self.laplacian_lambda_max()
+        k_max = own_loop_rate(g.k_c, g.k_e)
+        rate_dt = fastest_error_rate(g.k_c, g.k_e, g.k_s, lam) * self.dt_s
+        if not rate_dt < MAX_RATE_DT:
+            raise ValueError(
+                "gains: the sampled loop diverges: (k_max + k_s·λ_max(L))·dt_s = "
+                f"({k_max:.6g} + {g.k_s:.6g} · {lam:.6g}) · {self.dt_s:g} s = {rate_dt:.4g}, must be < "
+                f"{MAX_RATE_DT:g} (k_max: the fastest mode of a drone's own loop from k_c and k_e; λ_max(L) "
+                "of the graph); lower gains.k_c, gains.k_e, gains.k_s or dt_s"
+            )
 
     def _check_hardware(self, ids: list[int]) -> None:
         if self.hardware is None:
@@ -311,6 +359,14 @@ class Mission(_Strict):
                 "certificates of `flightstack certs`); plaintext is for simulations on one computer"
             )
 
+    def flown_modes(self) -> list[str]:
+        """The modes a run flies, in order: the data run `none` first when a GP mode needs experts that
+        are not given (gp.experts_file)."""
+        modes = list(self.compare_modes)
+        if self.gp.experts_file is None and any(Mode(m).uses_gp for m in modes):
+            modes = [Mode.NONE.value] + [m for m in modes if m != Mode.NONE]
+        return modes
+
     @property
     def simulated(self) -> bool:
         return self.backend != "tello"
@@ -328,26 +384,42 @@ class Mission(_Strict):
         return self.gains.k_c[0] != self.gains.k_c[1] or self.gains.k_e[0] != self.gains.k_e[1]
 
     def edge_index_pairs(self) -> list[tuple[int, int]]:
-        """Graph edges as 0-based index pairs into `drones` (complete graph when kind is 'complete')."""
-        ids = [d.id for d in self.drones]
+        """Graph edges as sorted 0-based index pairs into `drones` (complete graph when kind is 'complete').
+        A complete graph's list has n(n − 1)/2 pairs: use `edge_count` and `neighbours` where the list
+        itself is not needed."""
+        n = len(self.drones)
         if self.graph.kind == "complete":
-            return [(a, b) for a in range(len(ids)) for b in range(a + 1, len(ids))]
-        pairs = {
-            (min(ids.index(a), ids.index(b)), max(ids.index(a), ids.index(b)))
-            for a, b in self.graph.edges
-            if a != b
-        }
-        return sorted(pairs)
+            return [(a, b) for a in range(n) for b in range(a + 1, n)]
+        return sorted(self._edge_pair_set())
+
+    def _edge_pair_set(self) -> set[tuple[int, int]]:
+        """The `edges` graph's distinct pairs (a < b) of 0-based indices; self-loops dropped."""
+        index = {d.id: k for k, d in enumerate(self.drones)}
+        return {(min(index[a], index[b]), max(index[a], index[b])) for a, b in self.graph.edges if a != b}
+
+    def edge_count(self) -> int:
+        """Number of distinct undirected edges of the graph, without listing a complete graph's."""
+        n = len(self.drones)
+        return n * (n - 1) // 2 if self.graph.kind == "complete" else len(self._edge_pair_set())
 
     def neighbours(self, index: int) -> list[int]:
-        """0-based indices of the neighbours of drone `index`."""
+        """0-based indices of the neighbours of drone `index` (linear in the drones and the edges)."""
+        if self.graph.kind == "complete":
+            return [j for j in range(len(self.drones)) if j != index]
         out = set()
-        for a, b in self.edge_index_pairs():
+        for a, b in self._edge_pair_set():
             if a == index:
                 out.add(b)
             elif b == index:
                 out.add(a)
         return sorted(out)
+
+    def laplacian_lambda_max(self) -> float:
+        """λ_max(L) of the graph's Laplacian: n for a complete graph (n ≥ 2), else from its edges."""
+        n = len(self.drones)
+        if self.graph.kind == "complete":
+            return float(n) if n > 1 else 0.0
+        return laplacian_lambda_max(n, sorted(self._edge_pair_set()))
 
 
 def _format_errors(err: ValidationError, where: Lines | None = None) -> list[str]:
@@ -384,8 +456,10 @@ def load_mission(
     `path` may be a built-in experiment name. `overrides` replace top-level keys (e.g. duration_s) of the
     resolved mission first.
 
-    check_files=False skips the existence checks of referenced files (calibrations, experts) so that
-    `flightstack preflight` can report them as rows of its table instead of stopping at the first one."""
+    Referenced files must exist (calibrations, experts); each camera calibration is parsed and checked
+    (flightstack.vision.camera_file: intrinsics, image size, principal point in the image).
+    check_files=False skips these checks so that `flightstack preflight` can report them as rows of its
+    table instead of stopping at the first one."""
     from flightstack.config.rig import RigError, load_composed
 
     try:  # one hardened loader (safe_load.py): regular files only, bounded, UTF-8, no aliases, ...
@@ -398,16 +472,21 @@ def load_mission(
     m._base_dir = Path(path).resolve().parent
     if not check_files:
         return m
-    for d in m.drones:
-        if (
-            d.camera is not None
-            and d.camera.calibration is not None
-            and not m.resolve(d.camera.calibration).is_file()
-        ):
-            raise MissionError(
-                f"{label}: drones.{m.drones.index(d)}.camera.calibration: file not found: "
-                f"{m.resolve(d.camera.calibration)}"
-            )
+    from flightstack.vision.camera_file import CalibrationError, load_calibration
+
+    checked: set[Path] = set()
+    for k, d in enumerate(m.drones):
+        if d.camera is None or d.camera.calibration is None:
+            continue
+        cal = m.resolve(d.camera.calibration)
+        if not cal.is_file():
+            raise MissionError(f"{label}: drones.{k}.camera.calibration: file not found: {cal}")
+        if cal not in checked:  # parsed and checked (intrinsics, image size) once per file
+            try:
+                load_calibration(cal)
+            except CalibrationError as exc:
+                raise MissionError(f"{label}: drones.{k}.camera.calibration: {exc}") from None
+            checked.add(cal)
     if m.gp.experts_file is not None and not m.resolve(m.gp.experts_file).is_file():
         raise MissionError(f"{label}: gp.experts_file: file not found: {m.resolve(m.gp.experts_file)}")
     return m

@@ -3,29 +3,34 @@ believes (per drone) and the simulated physics (`sim:`). Used by flightstack.con
 
 from __future__ import annotations
 
+import math
 from typing import Annotated
 
 from pydantic import Field
 
-from flightstack.config.types import NonNegative, Positive
+from flightstack.config.types import MAX_TIME_S, Distance, Seconds, Speed, YawRate
 from flightstack.config.types import Strict as _Strict
 
 
 class RobotSpec(_Strict):
     """Simulated ground robot (sim_lab only)."""
 
-    time_constant_s: Positive = 0.2
-    max_speed_mps: Positive = 0.5
-    max_yaw_rate: Positive = 1.0
-    command_timeout_s: Positive = 3.0
+    time_constant_s: Seconds = 0.2
+    max_speed_mps: Speed = 0.5
+    max_yaw_rate: YawRate = 1.0
+    command_timeout_s: Seconds = 3.0
+
+
+RcGain = Annotated[float, Field(gt=0, le=1.0, allow_inf_nan=False)]
+"""Velocity per rc unit; rc commands go to ±100 units, so more than 1 per unit would be 100 m/s."""
 
 
 class RcGainsSpec(_Strict):
     """Velocity per Tello rc unit (m/s, rad/s)."""
 
-    xy: Positive = 0.01
-    z: Positive = 0.01
-    yaw: Positive = 0.0175
+    xy: RcGain = 0.01
+    z: RcGain = 0.01
+    yaw: RcGain = 0.0175
 
 
 class TelloSimSpec(_Strict):
@@ -34,28 +39,28 @@ class TelloSimSpec(_Strict):
     The rc gains here are the truth; drones.N.rc_gains are what the driver believes (its calibration)."""
 
     true_rc_gains: RcGainsSpec = RcGainsSpec()
-    time_constant_s: Positive = 0.25
-    latency_s: NonNegative = 0.05
-    max_speed_xy: Positive = 1.0
-    max_speed_z: Positive = 0.5
-    max_yaw_rate: Positive = 1.75
-    takeoff_height_m: Positive = 1.0
+    time_constant_s: Seconds = 0.25
+    latency_s: Annotated[float, Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)] = 0.05
+    max_speed_xy: Speed = 1.0
+    max_speed_z: Speed = 0.5
+    max_yaw_rate: YawRate = 1.75
+    takeoff_height_m: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 1.0  # m; Tello: 30 m
     battery_pct: Annotated[float, Field(ge=0, le=100)] = 90.0
-    battery_drain_pct_per_s: NonNegative = 0.12
-    auto_land_s: Positive = 15.0
+    battery_drain_pct_per_s: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.12
+    auto_land_s: Seconds = 15.0
 
 
 class MocapSimSpec(_Strict):
-    rate_hz: Positive = 120.0
-    noise_pos_m: NonNegative = 0.0005
-    noise_yaw_rad: NonNegative = 0.002
+    rate_hz: Annotated[float, Field(gt=0, le=10000, allow_inf_nan=False)] = 120.0  # cameras: ≤ 1 kHz
+    noise_pos_m: Annotated[float, Field(ge=0, le=1.0, allow_inf_nan=False)] = 0.0005
+    noise_yaw_rad: Annotated[float, Field(ge=0, le=math.pi, allow_inf_nan=False)] = 0.002
     dropout_prob: Annotated[float, Field(ge=0, lt=1)] = 0.0
 
 
 class RenderSpec(_Strict):
-    marker_radius_m: Positive = 0.03
-    noise_std: NonNegative = 2.0
-    blur_px: NonNegative = 0.0
+    marker_radius_m: Distance = 0.03
+    noise_std: Annotated[float, Field(ge=0, le=255, allow_inf_nan=False)] = 2.0  # 8-bit grey levels
+    blur_px: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.0
 
 
 class SimSpec(_Strict):

@@ -44,6 +44,37 @@ def laplacian(n: int, edges: Sequence[tuple[int, int]]) -> np.ndarray:
     return L
 
 
+def laplacian_lambda_max(n: int, edges: Sequence[tuple[int, int]]) -> float:
+    """Largest eigenvalue of the Laplacian of an undirected graph on n nodes (0-based index pairs)."""
+    if n < 2:
+        return 0.0
+    return float(np.linalg.eigvalsh(laplacian(n, edges))[-1])
+
+
+MAX_RATE_DT = 2.0
+"""The sampled error loop e⁺ = (I − M dt) e diverges once λ_max(M)·dt exceeds 2 (explicit Euler)."""
+
+
+def own_loop_rate(k_c: Sequence[float], k_e: Sequence[float]) -> float:
+    """k_max (1/s): the fastest mode of one drone's own pursuit loop without consensus, the largest
+    eigenvalue of Nᵀ K N = [[k_c + k_e, −k_e], [−k_e, k_e]] over the four components (closed form).
+
+    Linearised at e = 0, the law (45) with θ_c = θ_e = 0 gives ė = Nᵀu, u = −K N e, so ė = −NᵀKN e: the
+    control and observer errors are coupled, and the fastest rate is (k_c + 2k_e + sqrt(k_c² + 4k_e²))/2,
+    not max(k_c, k_e) (k_c = k_e = k: 2.618 k; the ideal rig diverges at k·dt ≈ 2/2.618 = 0.76)."""
+    return max(0.5 * (c + 2.0 * e + math.sqrt(c * c + 4.0 * e * e)) for c, e in zip(k_c, k_e, strict=True))
+
+
+def fastest_error_rate(k_c: Sequence[float], k_e: Sequence[float], k_s: float, lambda_max_L: float) -> float:
+    """k_max + k_s·λ_max(L) (1/s): a bound on the fastest mode of the linearised network error dynamics
+    ė = −(NᵀKN ⊗ I_n + diag(0, k_s L)) e (consensus −k_s c_i enters ė_e as −k_s L e_e and cancels in ė_c).
+
+    By Weyl's inequality λ_max of the sum is at most k_max + k_s λ_max(L), exactly k_max when k_s = 0; a
+    drone that does not see the target (v_i = 0) only lowers its block (NᵀKN ⪰ diag(k_c, 0)). So
+    fastest_error_rate·dt < MAX_RATE_DT is sufficient for the sampled loop not to diverge."""
+    return own_loop_rate(k_c, k_e) + k_s * lambda_max_L
+
+
 def lambda_K(gains: Gains) -> float:
     """λ_min(Nᵀ K N) with N = [[I, 0], [−Ad_{Rᵀ(θc)}, I]] at θ_c = 0 and K = diag(k_c, k_e)."""
     N = np.block([[np.eye(4), np.zeros((4, 4))], [-np.eye(4), np.eye(4)]])

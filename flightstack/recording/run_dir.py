@@ -186,13 +186,16 @@ class RunWriter:
         stopped by it: the caller decides)."""
         atomic_write_bytes(self.out / name, data.encode() if isinstance(data, str) else data)
 
-    def write_metrics(self, metrics: Mapping[str, Any], name: str = METRICS_FILE) -> dict[str, Any]:
+    def write_metrics(
+        self, metrics: Mapping[str, Any], name: str = METRICS_FILE, strict: bool = True
+    ) -> dict[str, Any]:
         """metrics + {"recording": status()} written atomically as strict JSON after everything handed
         to the writer thread is written (bounded by CLOSE_TIMEOUT_S); returns what was written. Raises
-        OSError if it cannot be written, ValueError if a metric is not finite (nothing written)."""
+        OSError if it cannot be written; strict: ValueError if a metric is not finite (nothing written),
+        else a non-finite metric is written as null (a run that ended in an error, e.g. diverged)."""
         self.drain()
         out = {**metrics, "recording": self.status()}
-        atomic_write_json(self.out / name, out)
+        atomic_write_json(self.out / name, out, strict=strict)
         return out
 
     def status(self) -> dict[str, Any]:

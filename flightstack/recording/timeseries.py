@@ -7,6 +7,7 @@ writes this npz at the end; `flightstack.recording.run_dir.load_run` reads eithe
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -18,26 +19,43 @@ import numpy as np
 from flightstack.paper.geometry import compose_arrays, inverse_arrays, vec_arrays
 from flightstack.recording.files import RunDirError, read_npz
 
-ARRAY_FIELDS = (
-    "t",
-    "g_w0",
-    "g_wi",
-    "g_bar_w",
-    "e_c",
-    "e_e",
-    "e_e_meas",
-    "u_e",
-    "mu_used",
-    "var_own",
-    "V_cmd",
-    "visible",
-    "n_fused",
-    "wall_t",
-    "loop_period",
-    "loop_compute",
-    "frame_age",
-    "pose_age",
-)
+ARRAY_LAYOUT: dict[str, tuple[tuple[int | str, ...], type, float]] = {
+    # field: (shape of one tick, "n" standing for the drones; dtype; value before it is recorded)
+    "t": ((), np.float64, 0.0),
+    "g_w0": ((4,), np.float64, 0.0),
+    "g_wi": (("n", 4), np.float64, 0.0),
+    "g_bar_w": (("n", 4), np.float64, 0.0),
+    "e_c": (("n", 4), np.float64, 0.0),
+    "e_e": (("n", 4), np.float64, 0.0),
+    "e_e_meas": (("n", 4), np.float64, 0.0),
+    "u_e": (("n", 4), np.float64, 0.0),
+    "mu_used": (("n", 4), np.float64, 0.0),
+    "var_own": (("n", 4), np.float64, 0.0),
+    "V_cmd": (("n", 4), np.float64, 0.0),
+    "visible": (("n",), np.bool_, 0.0),
+    "n_fused": (("n",), np.int_, 0.0),
+    "wall_t": ((), np.float64, 0.0),
+    "loop_period": ((), np.float64, np.nan),
+    "loop_compute": ((), np.float64, np.nan),
+    "frame_age": (("n",), np.float64, np.nan),
+    "pose_age": (("n",), np.float64, np.nan),
+}
+"""The in-memory arrays of a Recording, in ARRAY_FIELDS order: `Recording.empty` allocates exactly these
+and `recording_nbytes` sizes them."""
+ARRAY_FIELDS = tuple(ARRAY_LAYOUT)
+
+
+def _array_shape(field: str, n_ticks: int, n_drones: int) -> tuple[int, ...]:
+    return (n_ticks, *(n_drones if d == "n" else int(d) for d in ARRAY_LAYOUT[field][0]))
+
+
+def recording_nbytes(n_drones: int, n_ticks: int) -> int:
+    """Bytes that `Recording.empty(mode, ids, n_ticks)` allocates for n_drones drones (its arrays)."""
+    total = 0
+    for f, (_, dtype, _) in ARRAY_LAYOUT.items():
+        total += math.prod(_array_shape(f, n_ticks, n_drones)) * np.dtype(dtype).itemsize
+    return total
+
 
 LOOP_HEALTH_FIELDS = ("loop_period", "loop_compute", "frame_age", "pose_age")
 """Arrays that are NaN where nothing was measured (the first tick's period, a compiled chunk, a tick
@@ -97,33 +115,16 @@ class Recording:
 
     @staticmethod
     def empty(mode: str, ids: list[int], n_ticks: int) -> Recording:
+        """n_ticks ticks of every array of ARRAY_LAYOUT (zeros; NaN where nothing is measured yet)."""
         n = len(ids)
 
-        def z() -> np.ndarray:
-            return np.zeros((n_ticks, n, 4))
+        def alloc(f: str) -> np.ndarray:
+            _, dtype, fill = ARRAY_LAYOUT[f]
+            shape = _array_shape(f, n_ticks, n)
+            return np.zeros(shape, dtype) if fill == 0 else np.full(shape, fill, dtype)
 
-        return Recording(
-            mode,
-            list(ids),
-            np.zeros(n_ticks),
-            np.zeros((n_ticks, 4)),
-            z(),
-            z(),
-            z(),
-            z(),
-            z(),
-            z(),
-            z(),
-            z(),
-            z(),
-            np.zeros((n_ticks, n), dtype=bool),
-            np.zeros((n_ticks, n), dtype=int),
-            np.zeros(n_ticks),
-            np.full(n_ticks, np.nan),
-            np.full(n_ticks, np.nan),
-            np.full((n_ticks, n), np.nan),
-            np.full((n_ticks, n), np.nan),
-        )
+        arrays: dict[str, Any] = {f: alloc(f) for f in ARRAY_FIELDS}
+        return Recording(mode, list(ids), **arrays)
 
     def truncated(self) -> Recording:
         """Only the ticks actually flown (after an interrupt or an error)."""

@@ -28,6 +28,7 @@ from flightstack.recording.files import DATASETS_FILE, EXPERTS_FILE, MISSION_FIL
 from flightstack.recording.run_dir import RunWriter
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.agent import Predictor
+from flightstack.runtime.resources import check_recording_memory
 from flightstack.runtime.runner import run_mode
 from flightstack.runtime.taps import TickTap
 from flightstack.runtime.training import (
@@ -76,7 +77,9 @@ def run_experiment(
     """Run every mode of `mission.compare_modes` (plus the data run if needed) and compute metrics.
 
     run_writer: records each mode to its run directory as it flies (flightstack.recording.run_dir); the caller
-    closes it after `write_run_dir`. taps: observers of every mode's flight (runner.run_mode)."""
+    closes it after `write_run_dir`. taps: observers of every mode's flight (runner.run_mode). Raises
+    MissionError first when the recordings would not fit in memory (flightstack.runtime.resources)."""
+    check_recording_memory(mission)  # MissionError before anything is allocated or takes off
     wall0 = time.perf_counter()
     res = ExperimentResult()
     n_ticks = round(mission.duration_s / mission.dt_s)
@@ -87,9 +90,7 @@ def run_experiment(
         if missing:
             raise ValueError(f"gp.experts_file has no expert for drone(s) {sorted(missing)}")
         needs_gp = False  # trained already: no data run needed
-    order = list(mission.compare_modes)
-    if needs_gp:
-        order = [Mode.NONE.value] + [m for m in order if m != Mode.NONE]
+    order = mission.flown_modes()  # the data run `none` first when the experts are trained here
 
     def prog(mode: str) -> Callable[[int], None] | None:
         return progress_factory(mode, n_ticks) if progress_factory else None
@@ -230,7 +231,7 @@ def write_run_dir(
     run_writer: the writer that recorded the run as it flew (its modes' npz and events are on disk
     already; the caller closes it). Without one, everything is written here through a new RunWriter.
     A write error of the datasets or experts marks the recording incomplete; one of metrics.json raises
-    OSError."""
+    OSError. After an error (res.error, e.g. a diverged state) non-finite metrics are written as null."""
     own = run_writer is None
     writer = RunWriter(out) if run_writer is None else run_writer
     try:
@@ -238,7 +239,8 @@ def write_run_dir(
         for rec in res.recordings.values():
             writer.record(rec)
         _write_training(writer, res)
-        return writer.write_metrics(res.metrics)
+        # a run that ended in an error (a diverged state) need not have finite metrics: null in the JSON
+        return writer.write_metrics(res.metrics, strict=res.error is None)
     finally:
         if own:
             writer.close()

@@ -7,7 +7,8 @@ tick the target driver (sim_lab) commands the ground robot, the safety superviso
 all agents run phase 1, then all run phase 2, then the backend's clock advances by dt. Before the loop
 every drone takes off (bounded wait); after it, whatever ended it (end of mission, a signal, an operator
 abort, an exception in any agent), every drone is landed and the recording is returned with what was
-flown.
+flown. A state that diverges (flightstack.runtime.divergence, checked once per tick or compiled chunk)
+ends the run the same way, with the error "diverged at t = … s (drone N, quantity …)".
 
 On real drones nothing waits for a drone on the control thread (issue 15): takeoffs and landings run on
 worker threads (flightstack.safety, `background`), and the safety tick, the operator's abort and the
@@ -31,6 +32,7 @@ from flightstack.paper.geometry import compose
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.agent import Predictor
 from flightstack.runtime.compiled import CompiledLoop
+from flightstack.runtime.divergence import DivergedError, check_rows
 from flightstack.runtime.fleet import (
     Fleet,
     OperatorAbortError,
@@ -120,6 +122,7 @@ def run_mode(
                     if k_new > k:
                         if writer is not None:
                             writer.append(rec, k_new)
+                        check_rows(rec, k, k_new, f.backend.simulated)  # DivergedError ends the run
                         if observers:
                             observers.on_tick(f, rec, k_new)
                         f.status.maybe_publish(f.clock.now(), k_new - 1, f.agents)
@@ -139,6 +142,7 @@ def run_mode(
                 w_prev = w_start
                 if writer is not None:
                     writer.append(rec, k + 1)
+                check_rows(rec, k, k + 1, f.backend.simulated)  # DivergedError ends the run
                 if observers:
                     observers.on_tick(f, rec, k + 1)
                 f.status.maybe_publish(t, k, f.agents)
@@ -157,6 +161,9 @@ def run_mode(
         except OperatorAbortError as exc:
             rec.error = f"operator abort: {exc}"
             reason = "operator abort"
+        except DivergedError as exc:  # the state left every bound: land, keep what was recorded
+            rec.error = str(exc)
+            reason = "diverged"
         except Exception as exc:  # an exception in any agent: land everyone, keep the data, report
             rec.error = f"{type(exc).__name__}: {exc}"
             reason = f"exception: {rec.error}"

@@ -22,7 +22,8 @@ One YAML file per camera (written by `flightstack calibrate`, read by missions a
         hsv_hi: [8, 255, 255]    # hue wraps around when hsv_lo[0] > hsv_hi[0]
         rgb: [220, 30, 30]       # the colour the simulator paints (optional)
 
-Pixel coordinates follow OpenCV: u to the right, v down, origin at the centre of the top-left pixel.
+Pixel coordinates follow OpenCV: u to the right, v down, origin at the centre of the top-left pixel. The
+principal point (cx, cy) must lie in the image: −0.5 ≤ cx ≤ width − 0.5, −0.5 ≤ cy ≤ height − 0.5.
 `save` writes JSON instead of YAML when the file name ends in `.json` (the same mapping); `load_calibration`
 reads both (JSON is parsed as YAML).
 """
@@ -41,6 +42,9 @@ import numpy as np
 import yaml
 
 from flightstack.config.safe_load import LoadError, load_yaml
+
+MAX_IMAGE_PX = 100_000
+"""Image width and height at most this (pixels): no camera has 10⁵ pixels on a side."""
 
 
 class CalibrationError(ValueError):
@@ -173,11 +177,18 @@ def calibration_from_dict(d: object, source: str = "<calibration>") -> CameraCal
         raise CalibrationError(f"{source}: {exc.args[0]}: missing") from None
     except (TypeError, ValueError) as exc:
         raise CalibrationError(f"{source}: camera_matrix/dist_coeffs: not numeric ({exc})") from None
-    if not (isinstance(w, int) and isinstance(h, int) and w > 0 and h > 0):
-        raise CalibrationError(f"{source}: width/height: positive integers required")
+    if not (isinstance(w, int) and isinstance(h, int) and 0 < w <= MAX_IMAGE_PX and 0 < h <= MAX_IMAGE_PX):
+        raise CalibrationError(f"{source}: width/height: integers in 1..{MAX_IMAGE_PX} (pixels) required")
     if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1:
         raise CalibrationError(
             f"{source}: camera_matrix: must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0"
+        )
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if not (-0.5 <= cx <= w - 0.5 and -0.5 <= cy <= h - 0.5):
+        raise CalibrationError(
+            f"{source}: camera_matrix: the principal point (cx, cy) = ({cx:g}, {cy:g}) px lies outside the "
+            f"{w} × {h} image (cx in [-0.5, {w - 0.5:g}], cy in [-0.5, {h - 0.5:g}]); width, height or "
+            "camera_matrix is wrong"
         )
     if dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
         raise CalibrationError(f"{source}: dist_coeffs: 4, 5, 8, 12 or 14 finite numbers required")

@@ -1,0 +1,79 @@
+"""What a run will take of the computer, checked before anything is allocated or flies.
+
+The recording of every mode lives in memory while the run flies: `run_mode` allocates one
+`Recording.empty` per mode and `run_experiment` keeps every mode's for the metrics. Its size is
+`recording_nbytes` (flightstack.recording.timeseries: computed from the layout that allocates it) times the
+modes flown (Mission.flown_modes). It must fit in MEMORY_FRACTION of the memory the computer has available
+(MemAvailable of /proc/meminfo, read when checked): the rest is for what a run allocates besides the
+recording (fill_true_errors and the metrics make temporaries of up to about one recording's size, the GP
+training, Python, numba). `flightstack validate` checks it on the computer that validates, `run` again
+before anything takes off; a mission that does not fit raises MissionError (exit 2) naming the numbers
+and the keys to change.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from flightstack.config.mission import Mission, MissionError
+from flightstack.recording.timeseries import recording_nbytes
+
+MEMORY_FRACTION = 0.5
+"""The recordings may take at most this fraction of the available memory."""
+MEMINFO = Path("/proc/meminfo")
+
+
+def available_memory_bytes(meminfo: Path = MEMINFO) -> int | None:
+    """MemAvailable of `meminfo` in bytes (the kernel's estimate of what can be allocated without
+    swapping); None where the file or the line is missing (not Linux): then nothing is checked."""
+    try:
+        text = meminfo.read_text(encoding="ascii", errors="replace")
+    except OSError:
+        return None
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key == "MemAvailable":
+            parts = value.split()
+            if parts and parts[0].isdigit():
+                return int(parts[0]) * (1024 if parts[1:] == ["kB"] else 1)
+    return None
+
+
+def recording_memory_bytes(mission: Mission) -> int:
+    """Bytes of the in-memory recordings of every mode `mission` flies (all kept until the metrics)."""
+    n_ticks = round(mission.duration_s / mission.dt_s)
+    return len(mission.flown_modes()) * recording_nbytes(len(mission.drones), n_ticks)
+
+
+def _gib(x: float) -> str:
+    return f"{x / 2**30:.3g} GiB"
+
+
+def check_recording_memory(mission: Mission, available_bytes: int | None = None) -> None:
+    """Raise MissionError when the recordings need more than MEMORY_FRACTION of the available memory.
+
+    available_bytes: the memory to check against (default: MemAvailable of this computer, read now; when
+    the system does not say, nothing is checked)."""
+    avail = available_memory_bytes() if available_bytes is None else available_bytes
+    if avail is None:
+        return
+    need = recording_memory_bytes(mission)
+    if need <= MEMORY_FRACTION * avail:
+        return
+    n_ticks = round(mission.duration_s / mission.dt_s)
+    modes = mission.flown_modes()
+    raise MissionError(
+        f"{mission.name}: duration_s / dt_s: the recording needs {_gib(need)} of memory ({len(modes)} "
+        f"mode(s) {', '.join(modes)} × {n_ticks} ticks × {len(mission.drones)} drone(s), "
+        f"{recording_nbytes(len(mission.drones), 1)} bytes per tick), more than {MEMORY_FRACTION:.0%} of the "
+        f"{_gib(avail)} this computer has available; shorten duration_s, raise dt_s, or fly fewer "
+        "compare_modes or drones"
+    )
+
+
+__all__ = [
+    "MEMORY_FRACTION",
+    "available_memory_bytes",
+    "check_recording_memory",
+    "recording_memory_bytes",
+]
