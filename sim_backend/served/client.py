@@ -10,9 +10,13 @@ A tick that does not come within `timeout_s` raises `WorldLostError` (the world 
 lands (queues `land`) and ends with the error recorded.
 
 Ticks are decoded into validated `WorldTick`s (world_messages.py: a malformed tick is dropped and counted
-in `_Link.dropped` by reason, as are ticks older than the newest and ticks whose time goes back), so the
-accessors below cannot fail on any accepted tick. Velocities are saturated to what the world accepts
-(`world_messages.saturate_velocity`: beyond what a Tello can fly; never reached by the agents' control).
+in `_Link.dropped` by reason, as are ticks older than the newest, ticks whose time goes back or is not
+k·dt, and ticks further ahead than the world can be: tick_gate.py), so the accessors below cannot fail
+on any accepted tick; gaps (ticks the world went on without this agent) are counted in `_Link.gaps`.
+Every cmd carries this process's session label (comms/identity.py): the world obeys the session that
+said hello first for a drone, and drops and reports a second one. Velocities are saturated to what the
+world accepts (`world_messages.saturate_velocity`: beyond what a Tello can fly; never reached by the
+agents' control).
 A forged tick that is well formed and newer cannot be told from the world's here: who may publish on
 the world keys is the transport's to authenticate (Zenoh mutual TLS and ACL).
 """
@@ -29,9 +33,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import zenoh
 
+from flightstack.comms.identity import UNLABELLED, session_label
 from flightstack.hal import DroneState, Frame, StampedPose
 from flightstack.paper.geometry import Pose
 from flightstack.sim_backend.served import messages as wm
+from flightstack.sim_backend.served.tick_gate import TickBounds, tick_refusal
 
 if TYPE_CHECKING:
     from flightstack.config.mission import Mission
@@ -40,17 +46,6 @@ if TYPE_CHECKING:
 
 class WorldLostError(RuntimeError):
     """No tick from the served world within the timeout."""
-
-
-def tick_refusal(current: wm.WorldTick | None, new: wm.WorldTick) -> str | None:
-    """Why `new` must not replace the newest tick `current` (a reason to count), or None."""
-    if current is None:
-        return None
-    if new.k <= current.k:
-        return "old tick"
-    if new.t < current.t:
-        return "tick time went back"
-    return None
 
 
 def drone_state(tick: wm.WorldTick) -> DroneState:
@@ -85,15 +80,30 @@ def truth_poses(tick: wm.WorldTick, drone_id: int) -> tuple[Pose, dict[int, Pose
 class _Link:
     """Receives this agent's ticks, sends its cmds; all state behind one condition."""
 
-    def __init__(self, session: Any, prefix: str, mission: str, drone_id: int, timeout_s: float) -> None:
+    def __init__(
+        self,
+        session: Any,
+        prefix: str,
+        mission: str,
+        drone_id: int,
+        timeout_s: float,
+        bounds: TickBounds | None = None,
+        label: str = UNLABELLED,
+    ) -> None:
+        """bounds: which ticks are possible (tick_gate.py; None: order only); label: this process's
+        session label, put on every cmd (comms/identity.py)."""
         self.drone_id = drone_id
         self.timeout_s = timeout_s
+        self.bounds = bounds
+        self._attachment = label.encode("ascii")
         self._cond = threading.Condition()
         self._tick: wm.WorldTick | None = None
+        self._ref_wall: float | None = None  # when the newest tick arrived (before it: the first hello)
         self._image: np.ndarray | None = None
         self._calls: list[wm.DroneCall] = []
         self._sent_k = -1
         self.dropped: Counter[str] = Counter()
+        self.gaps: Counter[str] = Counter()  # "gaps": accepted ticks after a skip; "ticks skipped"
         # the world waits for every cmd: never drop one under congestion (a lost cmd stalls a whole tick)
         self._pub = session.declare_publisher(
             wm.cmd_key(prefix, mission, drone_id),
@@ -111,16 +121,21 @@ class _Link:
             return
         self.receive(data)
 
-    def receive(self, data: bytes) -> str | None:
-        """Decode one tick message; keep it as the newest, or count why not (returned). Never raises."""
+    def receive(self, data: bytes, now: float | None = None) -> str | None:
+        """Decode one tick message received at wall time `now` (s, default time.monotonic()); keep it as
+        the newest, or count why not (returned). Never raises."""
+        now = time.monotonic() if now is None else now
         tick, image, reason = wm.decode_tick(data)
         with self._cond:
             if tick is not None:
-                reason = tick_refusal(self._tick, tick)
+                reason = tick_refusal(self._tick, tick, self.bounds, self._ref_wall, now)
             if tick is None or reason is not None:
                 self.dropped[reason or "bad tick"] += 1
                 return reason or "bad tick"
-            self._tick, self._image = tick, image
+            if self._tick is not None and tick.k > self._tick.k + 1:
+                self.gaps["gaps"] += 1
+                self.gaps["ticks skipped"] += tick.k - self._tick.k - 1
+            self._tick, self._image, self._ref_wall = tick, image, now
             self._cond.notify_all()
             return None
 
@@ -151,15 +166,20 @@ class _Link:
         with self._cond:
             self._calls.append(call)
 
-    def hello(self) -> None:
-        """Tell the world we are subscribed (cmd of tick -1): it starts ticking when every agent has."""
-        self._pub.put(wm.encode_cmd(wm.WorldCmd(-1, ())))
+    def hello(self, now: float | None = None) -> None:
+        """Tell the world we are subscribed (cmd of tick -1): it starts ticking when every agent has. The
+        first hello (wall time `now`, s) is the reference of the first tick's bound (tick_gate.py)."""
+        with self._cond:
+            if self._ref_wall is None and self._tick is None:
+                self._ref_wall = time.monotonic() if now is None else now
+        self._pub.put(wm.encode_cmd(wm.WorldCmd(-1, ())), attachment=self._attachment)
 
     def _put(self, k: int, calls: list[wm.DroneCall]) -> None:
         """Send `calls` as cmd(s) of tick k: one cmd, or several of wm.MAX_CALLS calls in order (a backlog
         after the world was lost); the world applies every cmd it receives, in order."""
         for i in range(0, max(len(calls), 1), wm.MAX_CALLS):
-            self._pub.put(wm.encode_cmd(wm.WorldCmd(k, tuple(calls[i : i + wm.MAX_CALLS]))))
+            cmd = wm.WorldCmd(k, tuple(calls[i : i + wm.MAX_CALLS]))
+            self._pub.put(wm.encode_cmd(cmd), attachment=self._attachment)
 
     def send(self) -> None:
         """Send the calls made during the current tick as its cmd (once per tick)."""
@@ -289,10 +309,12 @@ class RemoteBackend:
         drone_id: int,
         timeout_s: float = 10.0,
         tick_timeout_s: float = 5.0,
+        bounds: TickBounds | None = None,
     ) -> None:
-        """timeout_s: wait for the world's first tick (s); tick_timeout_s: for every later tick (s)."""
+        """timeout_s: wait for the world's first tick (s); tick_timeout_s: for every later tick (s);
+        bounds: which ticks the world can have sent (tick_gate.py)."""
         self.drone_id = drone_id
-        self.link = _Link(session, prefix, mission, drone_id, timeout_s)
+        self.link = _Link(session, prefix, mission, drone_id, timeout_s, bounds, session_label(session))
         self.link.wait_first()
         self.link.timeout_s = tick_timeout_s  # after the first tick: how long a missing tick may take
         self.clock = RemoteClock(self.link)
@@ -347,6 +369,7 @@ def agent_backend(mission: Mission, seat: AgentSeat) -> Iterator[RemoteBackend]:
         seat.drone_id,
         timeout_s=z.start_timeout_s,
         tick_timeout_s=max(5.0, 2.0 * z.lockstep_timeout_s),
+        bounds=TickBounds(mission.dt_s, z.lockstep_timeout_s),
     )
     try:
         yield backend
