@@ -10,22 +10,35 @@ with its recordings and metrics.
 
 from __future__ import annotations
 
+import json
+import os
+import re
 import threading
+import time
 from collections import defaultdict
+from pathlib import Path
 
+import numpy as np
 import pytest
+import yaml
 
+from flightstack.comms.factory import free_loopback_endpoints
 from flightstack.comms.identity import MAX_LABEL_CHARS, UNLABELLED, SessionBook, parse_label
+from flightstack.comms.messages import PredictionMessage
+from flightstack.comms.zenoh_bus import ZenohBus, ZenohBusConfig
 from flightstack.config.mission import load_mission
+from flightstack.faults.rows_processes import IDS, Lines, ServedRun, popen, served_mission
 from flightstack.runtime.backends import build_backend
 from flightstack.sim_backend.served import messages as wm
 from flightstack.sim_backend.served.client import _Link
 from flightstack.sim_backend.served.server import WorldServer
 from flightstack.sim_backend.served.tick_gate import TickBounds, tick_refusal
-from tests.conftest import MISSIONS
+from tests.conftest import MISSIONS, eventually
 from tests.test_world_messages import tick_header
 
 DT = 0.01
+BUS_MISSION = "identity_test"
+DUP_DURATION_S = 30.0  # simulated s: long enough for the duplicate to start while the world ticks
 STEP_S = 2.0  # the world's lock-step timeout (s): it goes on without an agent's cmd after this long
 
 
@@ -165,3 +178,122 @@ def test_tick_bound_is_the_lockstep_protocol() -> None:
     assert tick_refusal(None, wm.decode_tick(_tick(0))[0], b, 0.0, 0.0) is None  # type: ignore[arg-type]
     with pytest.raises(ValueError):
         TickBounds(0.0, STEP_S)
+
+
+# ---------------------------------------------------------------- two sessions, one id, on Zenoh (system)
+def _bus(self_ids: set[int], listen: list[str], connect: list[str]) -> ZenohBus:
+    return ZenohBus(ZenohBusConfig(BUS_MISSION, self_ids, {0, 1, 2}, listen, connect, lease_ms=500))
+
+
+def _msg(seq: int) -> PredictionMessage:
+    v = np.full(4, 0.1)
+    return PredictionMessage(BUS_MISSION, 1, seq, 0.01 * seq, True, v, v, v, v)
+
+
+@pytest.mark.system
+def test_a_second_session_publishing_as_an_agent_is_dropped_and_named() -> None:
+    """Receiver 0 hears agent 1 (session B) first, then a second process as agent 1 (session C, seqs
+    far ahead): C is dropped, counted and named; B's messages still arrive. B leaves while C holds the
+    token: 1 stays owned by B (stale, not handed to C). C leaves too: the next session claims 1."""
+    ep_a, ep_b, ep_c = free_loopback_endpoints(3)
+    a = _bus({0}, [ep_a], [])
+    b = c = None
+    try:
+        b = _bus({1}, [ep_b], [ep_a])
+        assert a.wait_alive({1}, 20.0) == set()
+        b.publish(_msg(1))
+        assert a.wait_for({1: 1}, 10.0) == set()
+        c = _bus({1}, [ep_c], [ep_a])
+        deadline = time.monotonic() + 10.0
+        while "second session" not in a.dropped and time.monotonic() < deadline:
+            c.publish(_msg(500))  # until C's links are up and a message of it arrived
+            time.sleep(0.05)
+        b.publish(_msg(2))
+        assert a.wait_for({1: 2}, 10.0) == set()
+        got = a.latest(1, 0.02, 1.0)
+        assert got is not None and got.seq == 2  # B's, not C's seq 500
+        reports = a.session_reports
+        assert len(reports) == 1, reports
+        assert reports[0].startswith(f"agent-1: a second session ({c.label}) publishes as drone 1")
+        assert f"pid {os.getpid()}" in reports[0] and b.label in reports[0]
+        assert [e.kind for e in a.presence_events if e.drone == 1] == ["joined", "second session"]
+        assert "second session" in c.dropped  # C hears B as the second session: it keeps its own id
+        b.close()
+        for seq in range(501, 504):
+            c.publish(_msg(seq))
+        time.sleep(1.0)  # B is gone, C's token keeps 1 alive: C is still not agent 1 here
+        assert 1 in a.alive() and (a.latest(1, 0.03, 1.0) or _msg(0)).seq == 2
+        c.close()
+        assert eventually(lambda: 1 not in a.alive(), 5.0)
+        d = _bus({1}, free_loopback_endpoints(1), [ep_a])
+        try:
+            assert a.wait_alive({1}, 20.0) == set()
+            d.publish(_msg(1))
+            assert a.wait_for({1: 1}, 10.0) == set()  # the owner was forgotten when 1 left
+        finally:
+            d.close()
+    finally:
+        for bus in (b, c, a):
+            if bus is not None:
+                bus.close()
+
+
+# ---------------------------------------------------------------- a duplicated agent process (system)
+def _duplicate_of(mission: Path, workdir: Path) -> Path:
+    """The same mission as seen by a second process started as agent 1 on another port (as if on
+    another computer with agent-1's files), giving up 3 s after its first hello."""
+    m = yaml.safe_load(mission.read_text())
+    m["bus"]["zenoh"]["endpoints"]["1"] = free_loopback_endpoints(1)[0]
+    m["bus"]["zenoh"]["start_timeout_s"] = 3.0
+    path = workdir / "duplicate.yaml"
+    path.write_text(yaml.safe_dump(m))
+    return path
+
+
+@pytest.mark.system
+def test_a_duplicated_agent_is_reported_and_the_run_completes_with_its_recording(tmp_path: Path) -> None:
+    mission = served_mission(tmp_path, DUP_DURATION_S)
+    m = yaml.safe_load(mission.read_text())
+    m["bus"]["zenoh"]["start_timeout_s"] = 60.0  # four processes starting on a loaded 2-core machine
+    mission.write_text(yaml.safe_dump(m))
+    duplicate = _duplicate_of(mission, tmp_path)
+    t0 = time.monotonic()
+    dup = None
+    try:
+        with ServedRun(mission, tmp_path) as run:
+            assert run.world_lines.wait_for("present", 60), run.world_lines.rest()
+            dup = popen("agent", str(duplicate), "--id", "1", "--out", str(tmp_path / "duplicate"))
+            dup_lines = Lines(dup)
+            assert run.world_lines.wait_for("a second session", 60), run.world_lines.rest()
+            codes, world = run.wait()
+            wout = run.world_lines.rest()
+        dup_code = dup.wait(timeout=60)
+        dup_out = dup_lines.rest()
+    finally:
+        if dup is not None and dup.poll() is None:
+            dup.kill()
+            dup.wait(timeout=10)
+    wall = time.monotonic() - t0
+    print(f"duplicated identity: {wall:.1f} s wall; {wout.strip().splitlines()[-1]}")
+    assert codes == {1: 0, 2: 0, 3: 0} and world == 0, wout
+    assert "drones 1: landed, 2: landed, 3: landed" in wout
+    named = (
+        rf"agent-1: a second session \(\w{{32}} pid {dup.pid} on \S+\) sends commands as drone 1; "
+        rf"dropped, the first session \((\w{{32}} pid {run.agents[1].pid} on \S+)\) keeps it"
+    )
+    found = re.search(named, wout)
+    assert found, wout
+    assert re.search(r"dropped \{'second session': \d+\}", wout), wout
+    n = round(DUP_DURATION_S / DT)
+    for i in IDS:
+        with np.load(tmp_path / f"agent{i}" / "timeseries_dgp.npz") as z:
+            assert z["t"].shape[0] == n  # every tick of the mission flown and recorded
+        metrics = json.loads((tmp_path / f"agent{i}" / "metrics.json").read_text())
+        assert metrics["recording"]["complete"], metrics["recording"]
+        summary = json.loads((tmp_path / f"agent{i}" / "summary.json").read_text())
+        assert summary["world_dropped"] == {}, summary  # no tick refused by a genuine agent
+    # the world serves drone 1 to the first session: the duplicate refused every tick, flew nothing,
+    # published no prediction, and said why
+    assert dup_code == 1, dup_out
+    assert f"flies drone 1 for another session ({found.group(1)})" in dup_out, dup_out
+    assert "This process flies nothing" in dup_out and "Traceback" not in dup_out

@@ -14,9 +14,11 @@ in `_Link.dropped` by reason, as are ticks older than the newest, ticks whose ti
 k·dt, and ticks further ahead than the world can be: tick_gate.py), so the accessors below cannot fail
 on any accepted tick; gaps (ticks the world went on without this agent) are counted in `_Link.gaps`.
 Every cmd carries this process's session label (comms/identity.py): the world obeys the session that
-said hello first for a drone, and drops and reports a second one. Velocities are saturated to what the
-world accepts (`world_messages.saturate_velocity`: beyond what a Tello can fly; never reached by the
-agents' control).
+said hello first for a drone, drops and reports a second one, and puts the label of the session it
+serves on each tick (the attachment); a process that receives ticks served to another session refuses
+them ("tick for another session"), never starts flying, and ends naming that session. Velocities are
+saturated to what the world accepts (`world_messages.saturate_velocity`: beyond what a Tello can fly;
+never reached by the agents' control).
 A forged tick that is well formed and newer cannot be told from the world's here: who may publish on
 the world keys is the transport's to authenticate (Zenoh mutual TLS and ACL).
 """
@@ -33,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import zenoh
 
-from flightstack.comms.identity import UNLABELLED, session_label
+from flightstack.comms.identity import UNLABELLED, sample_label, session_label
 from flightstack.hal import DroneState, Frame, StampedPose
 from flightstack.paper.geometry import Pose
 from flightstack.sim_backend.served import messages as wm
@@ -42,6 +44,9 @@ from flightstack.sim_backend.served.tick_gate import TickBounds, tick_refusal
 if TYPE_CHECKING:
     from flightstack.config.mission import Mission
     from flightstack.runtime.backends import AgentSeat
+
+
+TICK_FOR_ANOTHER = "tick for another session"
 
 
 class WorldLostError(RuntimeError):
@@ -95,7 +100,9 @@ class _Link:
         self.drone_id = drone_id
         self.timeout_s = timeout_s
         self.bounds = bounds
+        self.label = label
         self._attachment = label.encode("ascii")
+        self.served_to: str | None = None  # the session the world serves this drone to, when not us
         self._cond = threading.Condition()
         self._tick: wm.WorldTick | None = None
         self._ref_wall: float | None = None  # when the newest tick arrived (before it: the first hello)
@@ -119,12 +126,19 @@ class _Link:
             with self._cond:
                 self.dropped["bad sample"] += 1
             return
-        self.receive(data)
+        self.receive(data, owner=None if sample.attachment is None else sample_label(sample))
 
-    def receive(self, data: bytes, now: float | None = None) -> str | None:
+    def receive(self, data: bytes, now: float | None = None, owner: str | None = None) -> str | None:
         """Decode one tick message received at wall time `now` (s, default time.monotonic()); keep it as
-        the newest, or count why not (returned). Never raises."""
+        the newest, or count why not (returned). owner: the session the world serves this drone to (the
+        tick's attachment; None: not said): a tick served to another session is refused ("tick for
+        another session"): this process is a second one for the drone. Never raises."""
         now = time.monotonic() if now is None else now
+        if owner is not None and owner != self.label:
+            with self._cond:
+                self.served_to = owner
+                self.dropped[TICK_FOR_ANOTHER] += 1
+            return TICK_FOR_ANOTHER
         tick, image, reason = wm.decode_tick(data)
         with self._cond:
             if tick is not None:
@@ -148,7 +162,17 @@ class _Link:
                     return self._tick  # type: ignore[return-value]
         with self._cond:
             if not self._cond.wait_for(lambda: self._tick is not None, self.timeout_s):
-                raise WorldLostError(f"no tick from the served world within {self.timeout_s:g} s")
+                if self.served_to is not None:
+                    raise WorldLostError(
+                        f"the served world flies drone {self.drone_id} for another session "
+                        f"({self.served_to}), not this one ({self.label}): is a second `flightstack agent "
+                        f"--id {self.drone_id}` running? This process flies nothing"
+                    )
+                refused = ", ".join(f"{r}: {n}" for r, n in sorted(self.dropped.items()))
+                raise WorldLostError(
+                    f"no tick from the served world within {self.timeout_s:g} s"
+                    + (f" (ticks refused: {refused})" if refused else "")
+                )
             assert self._tick is not None
             return self._tick
 

@@ -184,7 +184,10 @@ class WorldServer:
                 tuple(g_wis[i].as_vector().tolist()),
             )
             tick = wm.make_tick(k, float(t), state, rows, truth, frame)
-            self._pubs[i].put(wm.encode_tick(tick, image))
+            with self._cond:
+                owner = self._sessions.owner(i)  # the session served: a second one refuses the tick
+            att = None if owner is None else owner.encode("ascii")
+            self._pubs[i].put(wm.encode_tick(tick, image), attachment=att)
 
     def _wait_cmds(self, k: int, timeout_s: float | None = None) -> None:
         timeout_s = self.z.lockstep_timeout_s if timeout_s is None else timeout_s
