@@ -407,7 +407,8 @@ class ZenohBus:
             return
         label = sample_label(sample)
         t_recv = self._clock()
-        sender = int(key_sender) if key_sender.isdigit() and len(key_sender) <= 9 else None
+        ok = key_sender.isascii() and key_sender.isdigit() and len(key_sender) <= 9
+        sender = int(key_sender) if ok else None
         with self._cond:
             if sender is not None and sender in self.known:
                 n_events = len(self._sessions.events)
