@@ -31,7 +31,7 @@ from flightstack.faults.rows_processes import IDS, Lines, ServedRun, popen, serv
 from flightstack.runtime.backends import build_backend
 from flightstack.sim_backend.served import messages as wm
 from flightstack.sim_backend.served.client import _Link
-from flightstack.sim_backend.served.server import WorldServer
+from flightstack.sim_backend.served.server import WorldServer, WorldSummary
 from flightstack.sim_backend.served.tick_gate import TickBounds, tick_refusal
 from tests.conftest import MISSIONS, eventually
 from tests.test_world_messages import tick_header
@@ -110,11 +110,11 @@ def _world() -> WorldServer:
     srv._cond, srv._queued = threading.Condition(), defaultdict(list)
     srv._done_k, srv._tick_k, srv._dropped = {i: -2 for i in srv.ids}, 5, {}
     srv._sessions, srv._n_reported = SessionBook("sends commands as"), 0
-    from flightstack.sim_backend.served.server import WorldSummary
-
-    srv.summary = WorldSummary()
-    srv.log = srv.summary.events.append  # type: ignore[method-assign,assignment]
+    srv.summary, srv.log = WorldSummary(), LOGGED.append
     return srv
+
+
+LOGGED: list[str] = []  # what _world()'s servers printed
 
 
 def _cmd(k: int, *calls: str) -> bytes:
@@ -130,13 +130,17 @@ def test_the_world_obeys_the_session_that_said_hello_first() -> None:
     assert srv.receive_cmd(key, _cmd(3, "land"), "genuine") is None
     assert srv._done_k[1] == 3 and [c.calls[0].name for c in srv._queued[1][1:]] == ["land"]
     assert srv._dropped == {"second session": 2}
+    LOGGED.clear()
     srv._report_sessions(0.03)  # the main loop logs and records it once, naming the participant
     srv._report_sessions(0.04)
-    assert len(srv.summary.events) == 2  # one Event, one log line
-    ev = srv.summary.events[0]
-    assert (
-        ev.kind == "second session" and ev.drone == 1 and "agent-1: a second session (dup pid 9" in ev.detail
-    )
+    logged = [
+        "agent-1: a second session (dup pid 9 on h) sends commands as drone 1; dropped, the first "
+        "session (genuine) keeps it"
+    ]
+    assert logged == LOGGED
+    assert [(e.t, e.drone, e.kind, e.detail, e.source) for e in srv.summary.events] == [
+        (0.03, 1, "second session", LOGGED[0], "world")
+    ]
 
 
 # ---------------------------------------------------------------- world ticks at the agent (unit)
@@ -150,11 +154,13 @@ def _tick(k: int, t: float | None = None) -> bytes:
 def test_tick_bounds_refuse_future_and_mistimed_ticks_without_poisoning_later_ones() -> None:
     bounds = TickBounds(DT, STEP_S)
     link = _Link(FakeSession(), "p", "m", 1, 1.0, bounds)
-    link.hello(now=100.0)  # the reference of the first tick: the world starts after every hello
-    assert link.receive(_tick(2**20), now=100.1) == "tick from the future"
+    assert link.receive(_tick(0, t=0.5), now=100.1) == "tick time off its index"
+    # the first tick has no reference: an agent that said hello late joins a world at any tick
     assert link.receive(_tick(0), now=100.2) is None
     assert link.receive(_tick(1), now=100.21) is None
-    assert link.receive(_tick(7_000_000), now=100.22) == "tick from the future"  # today's poison
+    assert (
+        link.receive(_tick(7_000_000), now=100.22) == "tick from the future"
+    )  # one such tick once made all later ones "old"
     assert link.receive(_tick(2), now=100.23) is None  # not made "old" by the refused one
     assert link.receive(_tick(3, t=0.5), now=100.24) == "tick time off its index"
     assert link.receive(_tick(3, t=3 * DT + 1e-9), now=100.25) is None  # rounding of t += dt
@@ -166,7 +172,7 @@ def test_tick_bounds_refuse_future_and_mistimed_ticks_without_poisoning_later_on
     assert link.receive(_tick(8), now=104.85) is None
     assert link.receive(_tick(9), now=104.86) is None
     assert link.tick().k == 9 and link.tick().t == 9 * DT
-    assert link.dropped == {"tick from the future": 3, "tick time off its index": 1, "old tick": 2}
+    assert link.dropped == {"tick from the future": 2, "tick time off its index": 2, "old tick": 2}
     assert link.gaps == {"gaps": 1, "ticks skipped": 4}
 
 
@@ -174,8 +180,11 @@ def test_tick_bound_is_the_lockstep_protocol() -> None:
     """max_k against the protocol written out: one tick at once (our cmd), then one per timed-out wait."""
     b = TickBounds(DT, STEP_S, latency_s=0.0, margin_ticks=0)
     assert [b.max_k(10, s) for s in (0.0, 1.99, 2.0, 5.9, 6.0)] == [11, 11, 12, 13, 14]
-    assert tick_refusal(None, wm.decode_tick(_tick(5))[0], b, 0.0, 0.0) == "tick from the future"  # type: ignore[arg-type]
-    assert tick_refusal(None, wm.decode_tick(_tick(0))[0], b, 0.0, 0.0) is None  # type: ignore[arg-type]
+    t10, t12 = (wm.decode_tick(_tick(k))[0] for k in (10, 12))
+    assert t10 is not None and t12 is not None
+    assert tick_refusal(t10, t12, b, 0.0, 1.0) == "tick from the future"
+    assert tick_refusal(t10, t12, b, 0.0, 2.0) is None  # the world waited once for our cmd: a gap
+    assert tick_refusal(None, t12, b) is None  # a first tick: no reference
     with pytest.raises(ValueError):
         TickBounds(0.0, STEP_S)
 

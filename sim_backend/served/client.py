@@ -105,7 +105,7 @@ class _Link:
         self.served_to: str | None = None  # the session the world serves this drone to, when not us
         self._cond = threading.Condition()
         self._tick: wm.WorldTick | None = None
-        self._ref_wall: float | None = None  # when the newest tick arrived (before it: the first hello)
+        self._ref_wall: float | None = None  # when the newest tick arrived (wall s)
         self._image: np.ndarray | None = None
         self._calls: list[wm.DroneCall] = []
         self._sent_k = -1
@@ -190,12 +190,8 @@ class _Link:
         with self._cond:
             self._calls.append(call)
 
-    def hello(self, now: float | None = None) -> None:
-        """Tell the world we are subscribed (cmd of tick -1): it starts ticking when every agent has. The
-        first hello (wall time `now`, s) is the reference of the first tick's bound (tick_gate.py)."""
-        with self._cond:
-            if self._ref_wall is None and self._tick is None:
-                self._ref_wall = time.monotonic() if now is None else now
+    def hello(self) -> None:
+        """Tell the world we are subscribed (cmd of tick -1): it starts ticking when every agent has."""
         self._pub.put(wm.encode_cmd(wm.WorldCmd(-1, ())), attachment=self._attachment)
 
     def _put(self, k: int, calls: list[wm.DroneCall]) -> None:

@@ -9,8 +9,9 @@ time r_a, the world can have published tick k_a + 1 at once and every further ti
     k ≤ k_a + 1 + margin_ticks + ⌊(r − r_a + latency_s) / step_timeout_s⌋
 
 (latency_s: how much earlier than its receipt the world may have published k_a; margin_ticks: timer
-granularity). Before the first tick the reference is (k_a, r_a) = (−1, the agent's first hello): the
-world starts only once every agent said hello. A tick must also carry the time of its index,
+granularity). The first tick has no reference: the world starts ticking once every agent said hello or
+after its start timeout, and then advances one tick per `step_timeout_s` for an agent that has not said
+hello yet, so a late agent legitimately starts at any k. A tick must also carry the time of its index,
 t = k·dt, within `time_tol_ticks`·dt (the world's clock adds dt per tick: rounding stays orders of
 magnitude below that for any run of less than 10⁶ ticks).
 
@@ -20,8 +21,10 @@ bound above). A refused tick never becomes the reference, so one forged future t
 world's later ticks look old. An accepted tick with k > k_a + 1 is a gap (the world went on without
 this agent's cmd, e.g. after a lock-step timeout): accepted, counted in `gaps` and `ticks_skipped`.
 
-Residual risk: a forged tick within these bounds (plausible k and t) is accepted on a plaintext bus;
-who may publish ticks is the transport's to authenticate (mutual TLS and the ACL, comms/acl.py).
+Residual risk: a forged tick within these bounds (plausible k and t) is accepted on a plaintext bus,
+and so is a forged *first* tick with any k (t = k·dt): the agent then waits for a newer tick, the world
+for its cmd, and it ends with WorldLostError before it took off (fails safe). Who may publish ticks is
+the transport's to authenticate (mutual TLS and the ACL, comms/acl.py).
 Units: s (wall seconds on time.monotonic(), mission seconds for t and dt).
 """
 
@@ -70,7 +73,7 @@ def tick_refusal(
     """Why `new` must not replace the newest accepted tick `current` (a reason to count), or None.
 
     bounds None: only order is checked (old tick, time going back). ref_wall_s: when `current` arrived
-    (or, before any tick, the first hello), wall s; now_wall_s: now, on the same clock."""
+    (wall s); now_wall_s: now, on the same clock."""
     if current is not None and new.k <= current.k:
         return "old tick"
     if current is not None and new.t < current.t:
@@ -79,10 +82,12 @@ def tick_refusal(
         return None
     if bounds.time_mismatch(new):
         return "tick time off its index"
-    if ref_wall_s is not None:
-        k_ref = -1 if current is None else current.k
-        if new.k > bounds.max_k(k_ref, now_wall_s - ref_wall_s):
-            return "tick from the future"
+    if (
+        current is not None
+        and ref_wall_s is not None
+        and new.k > bounds.max_k(current.k, now_wall_s - ref_wall_s)
+    ):
+        return "tick from the future"
     return None
 
 
