@@ -3,11 +3,14 @@
     python -m tests.attacker_peer SPEC.json
 
 SPEC: {"mission", "prefix", "connect": [endpoints], "tls": null | {zenoh tls keys}, "duration_s",
-"period_s", "forgeries": [names of FORGERIES]}. It opens one Zenoh session (peer mode, connecting to
-every endpoint; plaintext, or TLS with whatever certificate it was given) and puts every forgery every
-`period_s` until `duration_s` has passed; then prints one JSON line: {"sent": {forgery: count},
-"max_peers": the most peers its session ever saw}. Every message is built by hand (struct, json), not
-with the project's encoders, which refuse to produce most of them. Loopback only; stops by itself.
+"period_s", "forgeries": [names of FORGERIES], "copy_labels": optional bool}. It opens one Zenoh
+session (peer mode, connecting to every endpoint; plaintext, or TLS with whatever certificate it was
+given) and puts every forgery every `period_s` until `duration_s` has passed; then prints one JSON
+line: {"sent": {forgery: count}, "max_peers": the most peers its session ever saw}. Every message is
+built by hand (struct, json), not with the project's encoders, which refuse to produce most of them.
+With "copy_labels" it also listens to the predictions and puts each forged one with the session label
+(Zenoh attachment, flightstack/comms/identity.py) the real sender of that key used last: on plaintext a
+label is no authentication. Loopback only; stops by itself.
 """
 
 from __future__ import annotations
@@ -83,6 +86,14 @@ def main(spec_path: str) -> int:
     sent: Counter[str] = Counter()
     max_peers = 0
     session = zenoh.open(conf)
+    labels: dict[str, bytes] = {}  # pred key -> the attachment its real sender put last
+
+    def learn(sample: Any) -> None:
+        if sample.attachment is not None:
+            labels[str(sample.key_expr)] = bytes(sample.attachment.to_bytes())
+
+    if spec.get("copy_labels"):
+        session.declare_subscriber(f"{spec['prefix']}/{spec['mission']}/pred/*", learn)
     try:
         t_end = time.monotonic() + float(spec["duration_s"])
         k = 0
@@ -90,8 +101,9 @@ def main(spec_path: str) -> int:
             max_peers = max(max_peers, len(list(session.info.peers_zid())))
             for name, (key, data) in forgeries(spec["mission"], spec["prefix"], k).items():
                 if name in spec["forgeries"]:
-                    session.put(key, data)
+                    session.put(key, data, attachment=labels.get(key))
                     sent[name] += 1
+                    sent["with a copied label"] += key in labels
             k += 1
             time.sleep(float(spec["period_s"]))
     finally:

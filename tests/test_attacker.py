@@ -13,8 +13,10 @@ that may read but publish nothing). Nothing they send is accepted: each agent's 
 bit-identical to the undisturbed run and its drop counters are unchanged.
 
 Plaintext (simulations on loopback): nothing authenticates, so what the bounded-acceptance rules do is
-shown with the prediction forgeries: no slot takeover, no NaN fusion; the recording again equals the
-undisturbed run, and the forgeries are counted by reason.
+shown with the prediction forgeries, each wearing the session label its real sender put on its last
+prediction (so the one-session rule, flightstack/comms/identity.py, does not stop them): no slot
+takeover, no NaN fusion; the recording again equals the undisturbed run, and the forgeries are counted
+by reason.
 """
 
 from __future__ import annotations
@@ -150,7 +152,13 @@ def test_a_plaintext_simulation_bounds_what_it_accepts(tmp_path: Path) -> None:
     clean = _fly(tmp_path / "clean", _mission(tmp_path / "clean", "plaintext"), {})
     work = tmp_path / "attacked"
     mission = _mission(work, "plaintext")
-    spec = {"duration_s": 12.0, "forgeries": PRED_FORGERIES, "connect": _endpoints(mission), "tls": None}
+    spec = {
+        "duration_s": 12.0,
+        "forgeries": PRED_FORGERIES,
+        "connect": _endpoints(mission),
+        "tls": None,
+        "copy_labels": True,  # each forgery wears its real sender's session label (identity.py)
+    }
     attacked = _fly(work, mission, {"plaintext peer": spec})
     rep = attacked["reports"]["plaintext peer"]  # type: ignore[index]
     print("plaintext mission, attempts:", json.dumps(rep))
@@ -158,10 +166,13 @@ def test_a_plaintext_simulation_bounds_what_it_accepts(tmp_path: Path) -> None:
         "plaintext mission, dropped:",
         json.dumps({i: attacked["metrics"][i]["modes"]["dgp"]["bus_dropped"] for i in IDS}),
     )  # type: ignore[index]
-    assert rep["max_peers"] >= 1 and sum(rep["sent"].values()) >= 300, rep
+    assert rep["max_peers"] >= 1 and sum(rep["sent"][f] for f in PRED_FORGERIES) >= 300, rep
+    assert rep["sent"].get("with a copied label", 0) >= 100, rep
     _same_flight(clean, attacked)  # no slot takeover, no NaN fusion: the flight is the undisturbed one
     for i in IDS:
         dropped = attacked["metrics"][i]["modes"]["dgp"]["bus_dropped"]  # type: ignore[index]
         assert sum(dropped.values()) > sum(clean["metrics"][i]["modes"]["dgp"]["bus_dropped"].values()), (
             dropped
         )  # type: ignore[index]
+        # a copied label passes the one-session rule; the bounds refuse what it carries
+        assert {"seq jump", "variance out of bounds", "mu out of bounds"} & set(dropped), dropped

@@ -42,6 +42,7 @@ from flightstack.comms.control import (
     read_ack,
     status_report,
 )
+from flightstack.comms.identity import SessionBook
 from flightstack.config.mission import load_mission
 from flightstack.drivers.guard import AgentWatch, Guard, GuardSummary
 from flightstack.events import Event
@@ -312,7 +313,7 @@ class FakePublisher:
     def __init__(self) -> None:
         self.sent: list[bytes] = []
 
-    def put(self, data: bytes) -> None:
+    def put(self, data: bytes, **_: Any) -> None:
         self.sent.append(bytes(data))
 
     def undeclare(self) -> None:
@@ -366,6 +367,7 @@ def served_world(mission_file: str) -> WorldServer:
     srv.mission, srv.ids, srv.backend = mission, [d.id for d in mission.drones], build_backend(mission)
     srv._cond, srv._queued = threading.Condition(), defaultdict(list)
     srv._done_k, srv._tick_k, srv._dropped = {i: -2 for i in srv.ids}, wm.MAX_TICK, {}
+    srv._sessions = SessionBook("sends commands as")
     return srv
 
 

@@ -151,6 +151,10 @@ def cmd_agent(args: argparse.Namespace) -> int:
             "bus_dropped": rec.bus_dropped,
             # served world only: world ticks this agent refused, by reason (world_messages.py)
             "world_dropped": dict(backend.link.dropped) if hasattr(backend, "link") else {},
+            # ticks the world went on without this agent's cmd (tick_gate.py)
+            "world_gaps": dict(backend.link.gaps) if hasattr(backend, "link") else {},
+            # other processes that spoke as a drone (comms/identity.py): one line each
+            "second_sessions": list(getattr(bus, "session_reports", [])),
         }
         run_writer.write_metrics(summary, AGENT_SUMMARY_FILE)
     except OSError as exc:  # the drone has landed; the row stream and events.jsonl stay readable
@@ -158,6 +162,8 @@ def cmd_agent(args: argparse.Namespace) -> int:
         metrics = {"recording": {"complete": False, "reason": str(exc)}}
     finally:
         run_writer.close()
+    for line in getattr(bus, "session_reports", []):
+        print(f"agent {args.id}: {line}", file=sys.stderr)
     print(f"agent {args.id}: {rec.ticks_done} ticks of mode {mode}; recording in {out}", flush=True)
     if not metrics["recording"]["complete"]:
         print(f"agent {args.id}: recording incomplete: {metrics['recording']['reason']}", file=sys.stderr)
@@ -267,6 +273,7 @@ def cmd_status(args: argparse.Namespace) -> int:
             if done or not args.once:
                 ages = {i: bus.message_age(i) for i in ids}  # type: ignore[attr-defined]
                 table = status_table(statuses, bus.alive(), ids, now, ages)  # type: ignore[attr-defined]
+                table += "".join(f"\nWARNING {r}" for r in bus.session_reports)  # type: ignore[attr-defined]
                 print(("\x1b[2J\x1b[H" if live else "") + table, flush=True)
             if done:
                 break

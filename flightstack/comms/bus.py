@@ -51,7 +51,8 @@ class OperatorChannel(Protocol):
     control_events: the operator commands received since the last call, oldest first (drained).
     publish_control: a status report for `flightstack status` / `guard` (no-op where nobody can read it).
     presence_events: `Event`s (kind "joined" | "left", drone = the sender, time.monotonic() s) of the
-    agents seen on the network.
+    agents seen on the network, and "second session" (detail: the report) when a second process speaks
+    for one of them (identity.py).
     """
 
     def control_events(self) -> list[ControlEvent]: ...

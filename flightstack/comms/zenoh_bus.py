@@ -22,6 +22,13 @@ every message, so a dropped one would stall a tick for the whole lock-step timeo
 express (batched); why, and the latency measured: docs/lab_notes.md (section "Batched, not express").
 Control messages are express, congestion control BLOCK (never dropped), priority INTERACTIVE_HIGH.
 
+One identity, one session (identity.py). Every prediction carries this process's session label (zid,
+pid, host) as its Zenoh attachment; per sender, the session of the first accepted message owns it (this
+process's own ids are its own from the start). Messages of another session for that sender are dropped
+("second session") before any other check, and each such session is reported once by name: an Event
+of kind "second session" in `presence_events` (detail: "agent-1: a second session (…) publishes as
+drone 1; …") and `session_reports`. When the sender leaves the bus the owner is forgotten.
+
 Own-process loopback. A Zenoh session receives its own publications (the sample is delivered to the
 local subscriber asynchronously, on the subscriber's callback thread), so messages of agents hosted in
 this process take the same path as remote ones: encode -> Zenoh -> decode. Version this was verified
@@ -87,6 +94,13 @@ from flightstack.comms.control import (
     parse_control,
 )
 from flightstack.comms.freshness import Freshness, OffsetPolicy
+from flightstack.comms.identity import (
+    SECOND_SESSION,
+    SessionBook,
+    SessionEvent,
+    sample_label,
+    session_label,
+)
 from flightstack.comms.messages import MAGIC, PredictionMessage, encode
 from flightstack.comms.zenoh_config import ZenohBusConfig, zenoh_config
 from flightstack.events import Event
@@ -102,6 +116,11 @@ def _header_sender(data: bytes) -> str:
 def _presence(t: float, sender: int, what: str) -> Event:
     """A presence change: `what` ("joined" | "left") of agent `sender` at time.monotonic() t (s)."""
     return Event(t, sender, what, source="bus", clock="monotonic")
+
+
+def _session_event(e: SessionEvent) -> Event:
+    """A second session speaking for sender e.sender (kind "second session", detail: the report)."""
+    return Event(e.t, e.sender, e.kind, e.text, source="bus", clock="monotonic")
 
 
 class ZenohBus:
@@ -135,6 +154,7 @@ class ZenohBus:
         self._events: list[Event] = []  # presence: kind joined|left, drone = sender, monotonic s
         self._control: list[ControlEvent] = []
         self._closed = False
+        self._sessions = SessionBook()  # which session speaks for each sender (identity.py)
         t_start = time.monotonic()
         for i in sorted(self.self_ids):  # own agents: alive by definition, not after a zenoh round trip
             self._alive.add(i)
@@ -150,6 +170,9 @@ class ZenohBus:
             raise RuntimeError(f"cannot open the zenoh session: {exc}") from exc
         try:
             s = self._session
+            self.label = session_label(s)  # put on every prediction (the attachment; identity.py)
+            for i in self.self_ids:
+                self._sessions.own(i, self.label, self._clock())
             # Subscribers before tokens: seeing our token implies our subscribers are declared there.
             self._subs.append(s.declare_subscriber(cfg.pred_key("*"), self._on_pred))
             self._subs.append(
@@ -290,9 +313,15 @@ class ZenohBus:
 
     @property
     def presence_events(self) -> list[Event]:
-        """(time.monotonic() s, sender, "joined"|"left") in order of receipt (copy)."""
+        """(time.monotonic() s, sender, "joined"|"left"|"second session") in order of receipt (copy)."""
         with self._cond:
             return list(self._events)
+
+    @property
+    def session_reports(self) -> list[str]:
+        """One line per second session heard speaking for a sender (identity.py), oldest first."""
+        with self._cond:
+            return [e.text for e in self._sessions.events]
 
     # ------------------------------------------------------------------ operator channel
     def publish_control(self, kind: str, payload: dict[str, Any]) -> None:
@@ -362,7 +391,7 @@ class ZenohBus:
             pub = self._publisher(key_sender)
         except Exception as exc:  # e.g. a key chunk zenoh rejects
             raise ValueError(f"cannot publish on sender key {key_sender!r}: {exc}") from exc
-        pub.put(data)
+        pub.put(data, attachment=self.label.encode("ascii"))
 
     def _drop(self, reason: str) -> None:
         with self._cond:
@@ -376,9 +405,20 @@ class ZenohBus:
         except Exception:
             self._drop("bad sample")
             return
+        label = sample_label(sample)
         t_recv = self._clock()
+        ok = key_sender.isascii() and key_sender.isdigit() and len(key_sender) <= 9
+        sender = int(key_sender) if ok else None
         with self._cond:
-            if self._book.accept(data, key_sender, t_recv) is not None:
+            if sender is not None and sender in self.known:
+                n_events = len(self._sessions.events)
+                if not self._sessions.admit(sender, label, t_recv):
+                    self._dropped[SECOND_SESSION] += 1
+                    self._events.extend(_session_event(e) for e in self._sessions.events[n_events:])
+                    return
+            msg = self._book.accept(data, key_sender, t_recv)
+            if msg is not None:
+                self._sessions.claim(msg.sender, label, t_recv)
                 self._cond.notify_all()
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
@@ -401,6 +441,8 @@ class ZenohBus:
                 self._alive.discard(sender)
                 self._left.add(sender)
                 self._book.forget(sender)  # a restarted agent counts seq from 0, re-learns its offset
+                if sender not in self.self_ids:
+                    self._sessions.forget(sender)  # every session of it is gone: the next one claims it
                 self._events.append(_presence(now, sender, "left"))
             self._cond.notify_all()
 

@@ -296,6 +296,7 @@ def finish_recording(f: Fleet, rec: Recording, book: TickBook, wall_seconds: flo
     rec.bus_dropped = dict(f.bus.dropped)
     rec.events.extend(
         {"event": "bus presence", "mode": mode, "sender": p.drone, "what": p.kind, "monotonic": p.t}
+        | ({"detail": p.detail} if p.detail else {})  # a second session: the report naming it
         for p in f.bus.presence_events
     )
     rec.vision_rejections = book.vision_rejections()

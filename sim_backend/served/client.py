@@ -10,9 +10,15 @@ A tick that does not come within `timeout_s` raises `WorldLostError` (the world 
 lands (queues `land`) and ends with the error recorded.
 
 Ticks are decoded into validated `WorldTick`s (world_messages.py: a malformed tick is dropped and counted
-in `_Link.dropped` by reason, as are ticks older than the newest and ticks whose time goes back), so the
-accessors below cannot fail on any accepted tick. Velocities are saturated to what the world accepts
-(`world_messages.saturate_velocity`: beyond what a Tello can fly; never reached by the agents' control).
+in `_Link.dropped` by reason, as are ticks older than the newest, ticks whose time goes back or is not
+k·dt, and ticks further ahead than the world can be: tick_gate.py), so the accessors below cannot fail
+on any accepted tick; gaps (ticks the world went on without this agent) are counted in `_Link.gaps`.
+Every cmd carries this process's session label (comms/identity.py): the world obeys the session that
+said hello first for a drone, drops and reports a second one, and puts the label of the session it
+serves on each tick (the attachment); a process that receives ticks served to another session refuses
+them ("tick for another session"), never starts flying, and ends naming that session. Velocities are
+saturated to what the world accepts (`world_messages.saturate_velocity`: beyond what a Tello can fly;
+never reached by the agents' control).
 A forged tick that is well formed and newer cannot be told from the world's here: who may publish on
 the world keys is the transport's to authenticate (Zenoh mutual TLS and ACL).
 """
@@ -29,28 +35,22 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import zenoh
 
+from flightstack.comms.identity import UNLABELLED, sample_label, session_label
 from flightstack.hal import DroneState, Frame, StampedPose
 from flightstack.paper.geometry import Pose
 from flightstack.sim_backend.served import messages as wm
+from flightstack.sim_backend.served.tick_gate import TickBounds, tick_refusal
 
 if TYPE_CHECKING:
     from flightstack.config.mission import Mission
     from flightstack.runtime.backends import AgentSeat
 
 
+TICK_FOR_ANOTHER = "tick for another session"
+
+
 class WorldLostError(RuntimeError):
     """No tick from the served world within the timeout."""
-
-
-def tick_refusal(current: wm.WorldTick | None, new: wm.WorldTick) -> str | None:
-    """Why `new` must not replace the newest tick `current` (a reason to count), or None."""
-    if current is None:
-        return None
-    if new.k <= current.k:
-        return "old tick"
-    if new.t < current.t:
-        return "tick time went back"
-    return None
 
 
 def drone_state(tick: wm.WorldTick) -> DroneState:
@@ -85,15 +85,32 @@ def truth_poses(tick: wm.WorldTick, drone_id: int) -> tuple[Pose, dict[int, Pose
 class _Link:
     """Receives this agent's ticks, sends its cmds; all state behind one condition."""
 
-    def __init__(self, session: Any, prefix: str, mission: str, drone_id: int, timeout_s: float) -> None:
+    def __init__(
+        self,
+        session: Any,
+        prefix: str,
+        mission: str,
+        drone_id: int,
+        timeout_s: float,
+        bounds: TickBounds | None = None,
+        label: str = UNLABELLED,
+    ) -> None:
+        """bounds: which ticks are possible (tick_gate.py; None: order only); label: this process's
+        session label, put on every cmd (comms/identity.py)."""
         self.drone_id = drone_id
         self.timeout_s = timeout_s
+        self.bounds = bounds
+        self.label = label
+        self._attachment = label.encode("ascii")
+        self.served_to: str | None = None  # the session the world serves this drone to, when not us
         self._cond = threading.Condition()
         self._tick: wm.WorldTick | None = None
+        self._ref_wall: float | None = None  # when the newest tick arrived (wall s)
         self._image: np.ndarray | None = None
         self._calls: list[wm.DroneCall] = []
         self._sent_k = -1
         self.dropped: Counter[str] = Counter()
+        self.gaps: Counter[str] = Counter()  # "gaps": accepted ticks after a skip; "ticks skipped"
         # the world waits for every cmd: never drop one under congestion (a lost cmd stalls a whole tick)
         self._pub = session.declare_publisher(
             wm.cmd_key(prefix, mission, drone_id),
@@ -109,18 +126,30 @@ class _Link:
             with self._cond:
                 self.dropped["bad sample"] += 1
             return
-        self.receive(data)
+        self.receive(data, owner=None if sample.attachment is None else sample_label(sample))
 
-    def receive(self, data: bytes) -> str | None:
-        """Decode one tick message; keep it as the newest, or count why not (returned). Never raises."""
+    def receive(self, data: bytes, now: float | None = None, owner: str | None = None) -> str | None:
+        """Decode one tick message received at wall time `now` (s, default time.monotonic()); keep it as
+        the newest, or count why not (returned). owner: the session the world serves this drone to (the
+        tick's attachment; None: not said): a tick served to another session is refused ("tick for
+        another session"): this process is a second one for the drone. Never raises."""
+        now = time.monotonic() if now is None else now
+        if owner is not None and owner != self.label:
+            with self._cond:
+                self.served_to = owner
+                self.dropped[TICK_FOR_ANOTHER] += 1
+            return TICK_FOR_ANOTHER
         tick, image, reason = wm.decode_tick(data)
         with self._cond:
             if tick is not None:
-                reason = tick_refusal(self._tick, tick)
+                reason = tick_refusal(self._tick, tick, self.bounds, self._ref_wall, now)
             if tick is None or reason is not None:
                 self.dropped[reason or "bad tick"] += 1
                 return reason or "bad tick"
-            self._tick, self._image = tick, image
+            if self._tick is not None and tick.k > self._tick.k + 1:
+                self.gaps["gaps"] += 1
+                self.gaps["ticks skipped"] += tick.k - self._tick.k - 1
+            self._tick, self._image, self._ref_wall = tick, image, now
             self._cond.notify_all()
             return None
 
@@ -133,7 +162,17 @@ class _Link:
                     return self._tick  # type: ignore[return-value]
         with self._cond:
             if not self._cond.wait_for(lambda: self._tick is not None, self.timeout_s):
-                raise WorldLostError(f"no tick from the served world within {self.timeout_s:g} s")
+                if self.served_to is not None:
+                    raise WorldLostError(
+                        f"the served world flies drone {self.drone_id} for another session "
+                        f"({self.served_to}), not this one ({self.label}): is a second `flightstack agent "
+                        f"--id {self.drone_id}` running? This process flies nothing"
+                    )
+                refused = ", ".join(f"{r}: {n}" for r, n in sorted(self.dropped.items()))
+                raise WorldLostError(
+                    f"no tick from the served world within {self.timeout_s:g} s"
+                    + (f" (ticks refused: {refused})" if refused else "")
+                )
             assert self._tick is not None
             return self._tick
 
@@ -153,13 +192,14 @@ class _Link:
 
     def hello(self) -> None:
         """Tell the world we are subscribed (cmd of tick -1): it starts ticking when every agent has."""
-        self._pub.put(wm.encode_cmd(wm.WorldCmd(-1, ())))
+        self._pub.put(wm.encode_cmd(wm.WorldCmd(-1, ())), attachment=self._attachment)
 
     def _put(self, k: int, calls: list[wm.DroneCall]) -> None:
         """Send `calls` as cmd(s) of tick k: one cmd, or several of wm.MAX_CALLS calls in order (a backlog
         after the world was lost); the world applies every cmd it receives, in order."""
         for i in range(0, max(len(calls), 1), wm.MAX_CALLS):
-            self._pub.put(wm.encode_cmd(wm.WorldCmd(k, tuple(calls[i : i + wm.MAX_CALLS]))))
+            cmd = wm.WorldCmd(k, tuple(calls[i : i + wm.MAX_CALLS]))
+            self._pub.put(wm.encode_cmd(cmd), attachment=self._attachment)
 
     def send(self) -> None:
         """Send the calls made during the current tick as its cmd (once per tick)."""
@@ -289,10 +329,12 @@ class RemoteBackend:
         drone_id: int,
         timeout_s: float = 10.0,
         tick_timeout_s: float = 5.0,
+        bounds: TickBounds | None = None,
     ) -> None:
-        """timeout_s: wait for the world's first tick (s); tick_timeout_s: for every later tick (s)."""
+        """timeout_s: wait for the world's first tick (s); tick_timeout_s: for every later tick (s);
+        bounds: which ticks the world can have sent (tick_gate.py)."""
         self.drone_id = drone_id
-        self.link = _Link(session, prefix, mission, drone_id, timeout_s)
+        self.link = _Link(session, prefix, mission, drone_id, timeout_s, bounds, session_label(session))
         self.link.wait_first()
         self.link.timeout_s = tick_timeout_s  # after the first tick: how long a missing tick may take
         self.clock = RemoteClock(self.link)
@@ -347,6 +389,7 @@ def agent_backend(mission: Mission, seat: AgentSeat) -> Iterator[RemoteBackend]:
         seat.drone_id,
         timeout_s=z.start_timeout_s,
         tick_timeout_s=max(5.0, 2.0 * z.lockstep_timeout_s),
+        bounds=TickBounds(mission.dt_s, z.lockstep_timeout_s),
     )
     try:
         yield backend

@@ -32,6 +32,7 @@ import numpy as np
 import zenoh
 
 from flightstack.comms.factory import make_bus
+from flightstack.comms.identity import SECOND_SESSION, UNLABELLED, SessionBook, sample_label
 from flightstack.config.mission import Mission
 from flightstack.events import Event
 from flightstack.hal import FlightPhase
@@ -114,6 +115,10 @@ class WorldServer:
         self._done_k: dict[int, int] = {i: -2 for i in self.ids}  # -1: hello (subscribed); k: cmd of tick k
         self.summary = WorldSummary()
         self._dropped = self.summary.dropped
+        self._sessions = SessionBook("sends commands as")  # which session commands each drone
+        self._n_reported = 0  # second sessions (self._sessions.events) reported by the main loop
+        # the owner of a contested drone silent this long (wall s) has left: its drone lands
+        self.owner_silent_s = 2.0 * self.z.lockstep_timeout_s + 1.0
         self._sub = session.declare_subscriber(wm.cmd_key(prefix, name, "*"), self._on_cmd)
         self._gone: set[int] = set()
 
@@ -124,24 +129,30 @@ class WorldServer:
             with self._cond:
                 self._dropped["bad sample"] = self._dropped.get("bad sample", 0) + 1
             return
-        self.receive_cmd(key, data)
+        self.receive_cmd(key, data, sample_label(sample))
 
-    def receive_cmd(self, key: str, data: bytes) -> str | None:
+    def receive_cmd(self, key: str, data: bytes, session: str = UNLABELLED) -> str | None:
         """Decode one cmd that came on `key` (…/world/cmd/<id>, the id exactly as the agent's key writes
-        it); queue it, or count why not (returned). Never raises."""
+        it) from `session` (its label, comms/identity.py); queue it, or count why not (returned). The
+        session of a drone's first accepted cmd (its hello) commands it; a second session's cmds are
+        dropped ("second session") and reported by name. Never raises."""
         cmd, reason = wm.decode_cmd(data)
         last = key.rsplit("/", 1)[-1]
         ok = len(last) <= 9 and last.isascii() and last.isdigit() and str(int(last)) == last
         sender = int(last) if ok else -1
+        now = time.monotonic()
         with self._cond:
             if cmd is not None and sender not in self._done_k:
                 reason = "unknown sender"
+            elif cmd is not None and not self._sessions.admit(sender, session, now):
+                reason = SECOND_SESSION
             elif cmd is not None and cmd.k > self._tick_k:
                 reason = "cmd of a future tick"
             if cmd is None or reason is not None:
                 r = reason or "bad cmd"
                 self._dropped[r] = self._dropped.get(r, 0) + 1
                 return r
+            self._sessions.claim(sender, session, now)
             self._queued[sender].append(cmd)
             self._done_k[sender] = max(self._done_k[sender], cmd.k)
             self._cond.notify_all()
@@ -173,7 +184,10 @@ class WorldServer:
                 tuple(g_wis[i].as_vector().tolist()),
             )
             tick = wm.make_tick(k, float(t), state, rows, truth, frame)
-            self._pubs[i].put(wm.encode_tick(tick, image))
+            with self._cond:
+                owner = self._sessions.owner(i)  # the session served: a second one refuses the tick
+            att = None if owner is None else owner.encode("ascii")
+            self._pubs[i].put(wm.encode_tick(tick, image), attachment=att)
 
     def _wait_cmds(self, k: int, timeout_s: float | None = None) -> None:
         timeout_s = self.z.lockstep_timeout_s if timeout_s is None else timeout_s
@@ -203,13 +217,34 @@ class WorldServer:
             for cmd in queued.get(i, []):
                 apply_cmd(d, cmd)
 
+    def _report_sessions(self, t: float) -> None:
+        """Log and record (mission time t, s) every second session heard since the last call."""
+        with self._cond:
+            news = self._sessions.events[self._n_reported :]
+            self._n_reported += len(news)
+        for e in news:
+            self.summary.events.append(Event(t, e.sender, SECOND_SESSION, e.text, source="world"))
+            self.log(e.text)
+
     def _handle_departures(self, t: float) -> None:
+        """Land the drone of every agent that left: its token is gone, or its commanding session has
+        been silent for `owner_silent_s` while a second session speaks for it (and holds the token)."""
+        self._report_sessions(t)
         alive = self.bus.alive()  # type: ignore[attr-defined]
+        now = time.monotonic()
         for i in self.ids:
-            if i not in alive and i not in self._gone:
+            if i in self._gone:
+                continue
+            with self._cond:
+                quiet = self._sessions.silent_for(i, now) > self.owner_silent_s
+                silent = quiet and self._sessions.contested(i)
+            if i not in alive or silent:
                 self._gone.add(i)
                 d = self.backend.drone(i)
-                self.summary.events.append(Event(t, i, "agent_left", "its drone lands", source="world"))
+                why = "its drone lands"
+                if silent and i in alive:
+                    why = f"its session is silent, a second session holds its token; {why}"
+                self.summary.events.append(Event(t, i, "agent_left", why, source="world"))
                 self.log(f"agent {i} left at t = {t:.3f} s: landing drone {i}")
                 d.send_body_velocity(np.zeros(4))
                 st = d.state()
