@@ -39,8 +39,6 @@ from flightstack.runtime.experiment import resolved_mission_yaml
 from flightstack.runtime.training import ExpertData, save_datasets, save_experts
 from tests.conftest import MISSIONS, random_recording
 
-pytestmark = pytest.mark.unit
-
 NPZ = "timeseries_none.npz"
 ROWS = "timeseries_dgp.rows"
 DGP_NPZ = "timeseries_dgp.npz"
