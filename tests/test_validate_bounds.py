@@ -190,13 +190,25 @@ def test_a_recording_larger_than_the_available_memory_is_refused_naming_the_numb
     m = load_mission("paper_sim")  # 3 modes × 20,000 ticks × 3 drones, 1003 bytes per tick
     need = resources.recording_memory_bytes(m)
     assert need == 3 * recording_nbytes(3, 20000) == 3 * 20000 * 1003
-    resources.check_recording_memory(m, available_bytes=int(need / resources.MEMORY_FRACTION))
+    resources.check_recording_fits(m, available_bytes=int(need / resources.MEMORY_FRACTION))
     with pytest.raises(MissionError) as exc:
-        resources.check_recording_memory(m, available_bytes=int(need / resources.MEMORY_FRACTION) - 1)
+        resources.check_recording_fits(m, available_bytes=int(need / resources.MEMORY_FRACTION) - 1)
     msg = str(exc.value)
     assert msg.startswith("paper_sim: duration_s / dt_s: the recording needs 0.056 GiB of memory")
     assert "3 mode(s) none, local, dgp × 20000 ticks × 3 drone(s), 1003 bytes per tick" in msg
     assert "more than 50% of the 0.112 GiB this computer has available" in msg
+
+
+def test_a_mode_recording_the_recorder_cannot_close_in_time_is_refused(tmp_path: Path) -> None:
+    """dt 1e-4 s for 1000 s on paper_sim (10 GB in one mode) fits a large computer's memory, but its final
+    npz would take minutes to compress: refused whatever the memory (and before any memory check)."""
+    m = load_mission("paper_sim").model_copy(update={"dt_s": 1e-4, "duration_s": 1000.0})
+    assert recording_nbytes(3, 10_000_000) > resources.MAX_MODE_RECORDING_BYTES
+    with pytest.raises(MissionError, match=r"one mode's recording would be 10030 MB .* close timeout"):
+        resources.check_recording_fits(m, available_bytes=2**50)
+    largest_shipped = recording_nbytes(31, 20000)  # scaling_31
+    assert largest_shipped < resources.MAX_MODE_RECORDING_BYTES / 3
+    resources.check_recording_fits(load_mission("scaling_31"), available_bytes=2**50)
 
 
 @pytest.mark.parametrize("command", ["validate", "run"])
@@ -232,8 +244,8 @@ def test_cli_refuses_9000_drones_and_a_recording_no_computer_holds(tmp_path: Pat
     for args in (("validate", str(long)), ("run", str(long), "--out", str(tmp_path / "run"))):
         res = run_cli(*args, timeout=120)
         assert res.returncode == 2, res.stderr
-        assert "duration_s / dt_s: the recording needs" in res.stderr
-        assert "× 10000000 ticks × 31 drone(s)" in res.stderr
+        assert "duration_s / dt_s: one mode's recording would be 97670 MB" in res.stderr
+        assert "(10000000 ticks × 31 drone(s))" in res.stderr
     assert not (tmp_path / "run").exists()
 
 

@@ -138,9 +138,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.bus is not None and args.bus != mission.bus.kind:
         bus = _bus_override(mission, args.bus)
         mission = load_mission(args.mission, {**overrides, "bus": bus}, rig=args.rig)
-    from flightstack.runtime.resources import check_recording_memory
+    from flightstack.runtime.resources import check_recording_fits
 
-    check_recording_memory(mission)  # MissionError (exit 2) before anything is created or flies
+    check_recording_fits(mission)  # MissionError (exit 2) before anything is created or flies
     if args.command == "sim" and not mission.simulated and not mission.start_emulators:
         print(
             f"error: {args.mission}: backend {mission.backend!r} flies real drones; "

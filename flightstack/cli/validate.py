@@ -112,9 +112,9 @@ def cmd_validate(args: argparse.Namespace) -> int:
             print(json.dumps(summary, indent=2) if as_json else "\n".join([*rig_summary(summary), "valid"]))
             return 0
     m = load_mission(args.mission, rig=args.rig)
-    from flightstack.runtime.resources import check_recording_memory
+    from flightstack.runtime.resources import check_recording_fits
 
-    check_recording_memory(m)  # on the computer that validates; `run` checks again before takeoff
+    check_recording_fits(m)  # on the computer that validates; `run` checks again before takeoff
     print(json.dumps(mission_to_dict(m), indent=2) if as_json else "\n".join([*mission_summary(m), "valid"]))
     return 0
 

@@ -28,7 +28,7 @@ from flightstack.recording.files import DATASETS_FILE, EXPERTS_FILE, MISSION_FIL
 from flightstack.recording.run_dir import RunWriter
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.agent import Predictor
-from flightstack.runtime.resources import check_recording_memory
+from flightstack.runtime.resources import check_recording_fits
 from flightstack.runtime.runner import run_mode
 from flightstack.runtime.taps import TickTap
 from flightstack.runtime.training import (
@@ -79,7 +79,7 @@ def run_experiment(
     run_writer: records each mode to its run directory as it flies (flightstack.recording.run_dir); the caller
     closes it after `write_run_dir`. taps: observers of every mode's flight (runner.run_mode). Raises
     MissionError first when the recordings would not fit in memory (flightstack.runtime.resources)."""
-    check_recording_memory(mission)  # MissionError before anything is allocated or takes off
+    check_recording_fits(mission)  # MissionError before anything is allocated or takes off
     wall0 = time.perf_counter()
     res = ExperimentResult()
     n_ticks = round(mission.duration_s / mission.dt_s)
