@@ -409,6 +409,7 @@ class Guardian:
         code = self.proc.poll()
         if code is not None:
             self._lost = f"the guardian (pid {self.pid}) exited with {code}"
+            remove_launch_dir(self.cfg.launch_dir)  # a killed guardian could not remove it itself
         elif self._lost is None and now - self._last_guardian_beat > GUARDIAN_SILENT_S:
             silent = now - self._last_guardian_beat
             self._lost = f"the guardian (pid {self.pid}) is silent for {silent:.2f} s"

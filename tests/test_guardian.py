@@ -434,11 +434,14 @@ def test_parent_sees_its_guardian_killed_or_hung(tmp_path: Path) -> None:
             assert dt <= bound
             if sig == signal.SIGSTOP:
                 assert dt >= GUARDIAN_SILENT_S - GUARDIAN_BEAT_S - 0.05 and "silent" in (g.lost() or "")
+            else:  # its neutral launch directory does not outlive it
+                assert g.cfg.launch_dir and not Path(g.cfg.launch_dir).exists()
         finally:
             if g.proc.poll() is None:
                 g.proc.send_signal(signal.SIGCONT)
                 g.proc.kill()
             g.proc.wait(timeout=5)
+            remove_launch_dir(g.cfg.launch_dir)
 
 
 def test_sigterm_is_a_takeover(tmp_path: Path, state_port: int) -> None:
