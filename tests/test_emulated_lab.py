@@ -111,7 +111,7 @@ def write_mission(
     path = tmp / "mission.yaml"
     path.write_text(yaml.safe_dump(m, sort_keys=False))
     ids = [d["id"] for d in m["drones"]]
-    create_mission_certs(m["name"], participants(ids, None), tmp / "certs")  # bus.certs (issue 16)
+    create_mission_certs(m["name"], participants(ids, None), tmp / "certs")  # what bus.certs names
     return path
 
 
