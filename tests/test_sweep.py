@@ -132,11 +132,12 @@ def test_build_metrics_reports_the_ratios_of_both_readings() -> None:
         k: c**2 + a**2 / 2
         for k, (c, a) in {"none": (0.4, 0.2), "local": (0.2, 0.2), "dgp": (0.1, 0.1)}.items()
     }
-    assert m["ratios"]["ours"]["none/dgp"] == pytest.approx(ms["none"] / ms["dgp"])
-    assert m["ratios"]["ours"]["local/dgp"] == pytest.approx(ms["local"] / ms["dgp"])
-    assert m["ratios"]["ours_sq_mean"]["none/dgp"] == pytest.approx(16.0)
-    assert m["ratios"]["ours_sq_mean"]["local/dgp"] == pytest.approx(4.0)
-    assert set(m["ratios"]["paper"]) == {"none/dgp", "local/dgp"}
+    assert m["ratios"]["mean_sq_error"]["none/dgp"] == pytest.approx(ms["none"] / ms["dgp"])
+    assert m["ratios"]["mean_sq_error"]["local/dgp"] == pytest.approx(ms["local"] / ms["dgp"])
+    assert m["ratios"]["sq_mean_error"]["none/dgp"] == pytest.approx(16.0)
+    assert m["ratios"]["sq_mean_error"]["local/dgp"] == pytest.approx(4.0)
+    assert {k: v["ours"] for k, v in m["paper"]["ratios"].items()} == m["ratios"]["sq_mean_error"]
+    assert m["paper"]["modes"]["none"] == {"ours": pytest.approx(0.16), "paper": 3.0e-7}
 
 
 # ---- plan ---------------------------------------------------------------------------------------------

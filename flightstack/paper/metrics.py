@@ -26,6 +26,14 @@ from flightstack.config.mission import Mission
 from flightstack.recording.loop_health import loop_health
 from flightstack.recording.timeseries import Recording
 
+PAPER_SQ_MEAN_ERROR = {"none": 3.0e-7, "local": 3.6e-8, "dgp": 5.6e-9}
+"""The paper's "squared mean of e" of its simulation (Sec. 5) per mode, compared with `sq_mean_error`, the
+literal reading. The absolute values cannot match under the stated gains (docs: the paper comparison):
+with no GP the target's yaw rate ω₀ leaves sin θ_c = ω₀/k_c and sin θ_e = ω₀(1/k_c + 1/k_e) per drone."""
+
+PAPER_RATIOS = {f"{m}/dgp": PAPER_SQ_MEAN_ERROR[m] / PAPER_SQ_MEAN_ERROR["dgp"] for m in ("none", "local")}
+"""The paper's ratios none/dgp and local/dgp of its squared means (of `sq_mean_error`)."""
+
 
 def error_vector_sq_norm(rec: Recording) -> np.ndarray:
     """‖e(t)‖² per tick with e = [e_c; e_e] ∈ R^{8n} (paper Sec. 2.4), shape (N,)."""
