@@ -20,7 +20,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from flightstack.drivers.tello import TelloConfig, TelloDriver
 from flightstack.drivers.tello_rc import RcGains
-from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port
+from flightstack.ports import free_udp_port
+from flightstack.sim_backend.emulators.tello import TelloEmulator
 
 AS_DRIVER = {"landed": "ground", "takeoff": "taking_off", "flying": "flying", "landing": "landing"}
 SCENARIOS: dict[str, dict[str, object]] = {

@@ -24,7 +24,6 @@ a drone id N → "agent-N"; "agents", "world", "operator", "guard" as they are.
 
 from __future__ import annotations
 
-import socket
 from typing import TYPE_CHECKING, Any
 
 from flightstack.comms.acceptance import AcceptanceBounds
@@ -39,6 +38,7 @@ from flightstack.comms.certs import (
     participants,
 )
 from flightstack.config.mission import Mission, MissionError
+from flightstack.ports import free_tcp_port
 
 if TYPE_CHECKING:
     from flightstack.comms.operator_link import LoopbackOperatorListener
@@ -184,25 +184,6 @@ def operator_key(mission: Mission, private: bool) -> Any:
         ) from None
 
 
-_HANDED_OUT: set[int] = set()
-
-
 def free_loopback_endpoints(n: int = 1) -> list[str]:
-    """n endpoints `tcp/127.0.0.1:PORT` whose ports are free now and were not handed out before by this
-    process. The probe sockets stay open together while choosing: once one is closed, the OS may hand
-    out the same port again, and two participants would then try to listen on it."""
-    socks: list[socket.socket] = []
-    ports: list[int] = []
-    try:
-        while len(ports) < n:
-            s = socket.socket()
-            socks.append(s)
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-            if port not in _HANDED_OUT:
-                _HANDED_OUT.add(port)
-                ports.append(port)
-    finally:
-        for s in socks:
-            s.close()
-    return [f"tcp/127.0.0.1:{p}" for p in ports]
+    """n endpoints `tcp/127.0.0.1:PORT` on distinct ports that are free now (`flightstack.ports`)."""
+    return [f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(n)]

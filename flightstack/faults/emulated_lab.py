@@ -11,7 +11,8 @@ The emulators ship in the package (flightstack.sim_backend.emulators, issue 17) 
 when a lab starts. Without the optional packages av, motioncapture and pymavlink, starting a lab raises
 `LabUnavailableError` saying what is missing (the row then reports a crash).
 
-Addresses (all 127.0.0.0/8): the Tellos own 127.0.0.6 and 127.0.0.7 (station mode: both send their state
+Addresses (all 127.0.0.0/8): the Tellos own LAB_FIRST_IP and the next addresses, 127.0.0.6 and 127.0.0.7
+by default (station mode: both send their state
 to one free port of 127.0.0.1); NatNet and the rover use 127.0.0.1 with OS-assigned ports; the operator
 channel of the in-process bus is a free UDP port of 127.0.0.1 (`bus.operator_port`).
 
@@ -22,6 +23,7 @@ durations in seconds; positions in metres in the motion-capture world (z up) unl
 
 from __future__ import annotations
 
+import ipaddress
 import itertools
 import json
 import math
@@ -36,9 +38,14 @@ import numpy as np
 import yaml
 
 from flightstack.config.rig import MISSION_CONFIGS
+from flightstack.ports import free_udp_port
 
-LAB_IPS: dict[int, str] = {1: "127.0.0.6", 2: "127.0.0.7"}
-"""Loopback address of each drone's Tello emulator in the fault table's lab (drone k at 127.0.0.(6 + k))."""
+LAB_IDS = (1, 2)
+"""The drones of the fault table's lab."""
+LAB_FIRST_IP = "127.0.0.6"
+"""The first drone's Tello emulator address; the k-th drone's is k - 1 addresses above it. A Tello answers on
+its fixed UDP port 8889, so two labs flying at once need address blocks of their own (the fault-table
+tests move theirs, tests/test_faults_lab.py)."""
 DRONE_STARTS: dict[int, tuple[tuple[float, float, float], float]] = {
     1: ((-0.5, -0.5, 0.05), 0.0),
     2: ((-0.5, 0.2, 0.05), 0.3),
@@ -65,7 +72,7 @@ class LabUnavailableError(RuntimeError):
 
 # ---- lazy imports of the emulators -------------------------------------------------------------------------
 def load_emulators() -> SimpleNamespace:
-    """The emulator classes (TelloEmulator, NatNetEmulator, MavlinkRoverEmulator, free_udp_port);
+    """The emulator classes (TelloEmulator, NatNetEmulator, MavlinkRoverEmulator);
     LabUnavailableError naming the optional package that is missing."""
     try:
         import av  # noqa: F401  # the emulators encode H.264 video
@@ -78,21 +85,13 @@ def load_emulators() -> SimpleNamespace:
         ) from exc
     from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
     from flightstack.sim_backend.emulators.natnet import NatNetEmulator
-    from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port
+    from flightstack.sim_backend.emulators.tello import TelloEmulator
 
     return SimpleNamespace(
         TelloEmulator=TelloEmulator,
         NatNetEmulator=NatNetEmulator,
         MavlinkRoverEmulator=MavlinkRoverEmulator,
-        free_udp_port=free_udp_port,
     )
-
-
-def free_udp_port(ip: str = "127.0.0.1") -> int:
-    """A UDP port of `ip` free right now, outside the ephemeral range (the emulators' free_udp_port)."""
-    from flightstack.sim_backend.emulators.tello_net import free_udp_port as pick
-
-    return pick(ip)
 
 
 def _yaw_quaternion(theta: float) -> tuple[float, float, float, float]:
@@ -145,8 +144,8 @@ class EmulatedLab:
     ) -> None:
         self.workdir = Path(workdir).resolve()  # the mission written there names its files absolutely
         self._experiment = experiment
-        ids = [int(d["id"]) for d in experiment["drones"]] if experiment is not None else list(LAB_IPS)
-        self.ips = {i: f"127.0.0.{6 + k}" for k, i in enumerate(ids)}
+        ids = [int(d["id"]) for d in experiment["drones"]] if experiment is not None else list(LAB_IDS)
+        self.ips = {i: str(ipaddress.ip_address(LAB_FIRST_IP) + k) for k, i in enumerate(ids)}
         self.starts = {i: DRONE_STARTS.get(i, ((-0.5, -0.5 + 0.7 * k, 0.05), 0.0)) for k, i in enumerate(ids)}
         self.duration_s = float(duration_s)
         self._tello_kw = tello or {}
@@ -183,12 +182,12 @@ class EmulatedLab:
         self.workdir.mkdir(parents=True, exist_ok=True)
         image = marker_image()
         empty = np.full_like(image, 96)  # a grey floor without markers
-        state_port = emu.free_udp_port()
+        state_port = free_udp_port()
         for i, ip in self.ips.items():
             frame = image if self._sees_markers(i) else empty
             kw: dict[str, Any] = {
                 "state_port": state_port,
-                "video_port": emu.free_udp_port(),
+                "video_port": free_udp_port(),
                 "frame_source": lambda t, e, img=frame: img,
                 "video_size": VIDEO_SIZE,
                 "fps": VIDEO_FPS,
@@ -426,13 +425,13 @@ def ms(seconds: float | None) -> float | None:
 
 __all__ = [
     "DRONE_STARTS",
-    "LAB_IPS",
+    "LAB_FIRST_IP",
+    "LAB_IDS",
     "TRUTH_PERIOD_S",
     "EmulatedLab",
     "LabUnavailableError",
     "command_times",
     "first",
-    "free_udp_port",
     "load_emulators",
     "marker_image",
     "max_gap",

@@ -125,13 +125,6 @@ def frame_packet(frame: int, t_s: float, bodies: Sequence[tuple[int, Vec3, QuatW
     return _pack_packet(NAT_FRAMEOFDATA, b"".join(out))
 
 
-def _free_udp_port(host: str) -> int:
-    """An OS-assigned free UDP port on host (released again, so a client may bind it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
-
-
 @dataclass
 class _Body:
     body_id: int
@@ -226,7 +219,9 @@ class NatNetEmulator:
         if self._proc is not None:
             raise RuntimeError("NatNetEmulator.start() called twice")
         if self.data_port == 0:
-            self.data_port = _free_udp_port(self.host)
+            from flightstack.ports import free_udp_port  # (the responder imports only the stdlib)
+
+            self.data_port = free_udp_port(self.host)
         self._proc = subprocess.Popen(
             [sys.executable, os.path.abspath(__file__), "--responder", self.host, str(self.command_port),
              server_info_packet(self.data_port).hex()],

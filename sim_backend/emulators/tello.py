@@ -119,6 +119,8 @@ threads, start/close), built from ``tello_base`` (configuration, logs, state, re
 
 from __future__ import annotations
 
+from flightstack.ports import free_udp_port
+
 from .tello_commands import text_of as text_of
 from .tello_emulator import TelloEmulator
 from .tello_faults import SDK3_ONLY_COMMANDS, ReplyScheduler, TelloFaults
@@ -131,7 +133,7 @@ from .tello_frames import (
     stamp_frame_index,
 )
 from .tello_frames import default_square as default_square
-from .tello_net import free_udp_port, is_loopback, wait_until
+from .tello_net import is_loopback, wait_until
 from .tello_video import MAX_VIDEO_DATAGRAM as MAX_VIDEO_DATAGRAM
 
 __all__ = [
