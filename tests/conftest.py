@@ -37,6 +37,7 @@ SYSTEM_MODULES = frozenset(
         "test_attacker",
         "test_cli_sim",
         "test_decoders_property",  # hypothesis fuzzing of every decoder (~25 s)
+        "test_ci_venv",
         "test_clock_offset",
         "test_closed_loop_square",
         "test_driver_threads",
@@ -66,13 +67,87 @@ SYSTEM_MODULES = frozenset(
 )
 
 
+# The system tier runs on three workers (`-n 3 --dist loadgroup`, pytest-xdist; README): most of its time is
+# spent waiting on real-time flights, not computing. The modules that open loopback devices (Tello, NatNet
+# and MAVLink emulators, each Tello at its fixed port 8889 on an address of 127.0.0.0/8 a module owns; the
+# emulated lab at 127.0.0.6/.7) run one after the other in one group, as without xdist; the emulated-lab
+# fault table, whose lab owns 127.0.2.0/24, is a group of its own; everything else (simulations, Zenoh agents
+# on picked ports, sweeps, fuzzing) is spread over the workers. A new module that binds a fixed port or
+# address joins DEVICE_MODULES.
+DEVICE_MODULES = frozenset(
+    {
+        "test_closed_loop_square",
+        "test_driver_threads",
+        "test_emulated_lab",
+        "test_guard",
+        "test_guardian",
+        "test_hardware_mission",
+        "test_identify",
+        "test_keep_awake",
+        "test_mocap",
+        "test_natnet_emulator",
+        "test_rigs",
+        "test_scamper",
+        "test_scamper_failsafe",
+        "test_tello_access_point",
+        "test_tello_driver",
+        "test_tello_emulator",
+    }
+)
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Every test is in exactly one tier: `system` (listed module or explicit marker) or `unit`."""
+    """Every test is in exactly one tier: `system` (listed module or explicit marker) or `unit`; the
+    device modules' tests share one xdist group."""
     for item in items:
         if item.path.stem in SYSTEM_MODULES or item.get_closest_marker("system") is not None:
             item.add_marker(pytest.mark.system)
         else:
             item.add_marker(pytest.mark.unit)
+        if item.path.stem == "test_faults_lab":
+            item.add_marker(pytest.mark.xdist_group("emulated-lab-fault-table"))
+        elif item.path.stem in DEVICE_MODULES:
+            item.add_marker(pytest.mark.xdist_group("loopback-devices"))
+
+
+# Safety reactions bounded in time (a hover, a landing, a tick that must not block): the bound is the one
+# that matters for safety, never loosened for a slow machine, and every measured value is printed in the
+# session's summary (`safety reaction bounds`), so CI's log shows the margin. Anything else asserts
+# behaviour, not speed; speed lives in benchmarks/ and in the fault table's measured columns.
+Bound = Callable[..., None]
+"""The type of the `safety_bound` fixture."""
+SAFETY_BOUND = "safety_bound"
+"""The user_properties key of a recorded bound: (what, measured, bound, unit)."""
+
+
+@pytest.fixture
+def safety_bound(request: pytest.FixtureRequest) -> Bound:
+    """`safety_bound(what, measured, bound, unit="ms")`: assert `measured <= bound` for a safety reaction
+    and record both in the test's report (printed in the session's summary)."""
+
+    def check(what: str, measured: float, bound: float, unit: str = "ms") -> None:
+        request.node.user_properties.append((SAFETY_BOUND, (what, float(measured), float(bound), unit)))
+        assert measured <= bound, f"{what}: {measured:.1f} {unit}, above its safety bound of {bound:g} {unit}"
+
+    return check
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    rows = [
+        (report.nodeid, *value)
+        for reports in terminalreporter.stats.values()
+        for report in reports
+        if getattr(report, "when", None) == "call"
+        for key, value in getattr(report, "user_properties", ())
+        if key == SAFETY_BOUND
+    ]
+    if not rows:
+        return
+    terminalreporter.section("safety reaction bounds (measured / bound)")
+    for test, what, measured, bound, unit in sorted(rows, key=lambda r: -r[2] / max(r[3], 1e-9)):
+        share = f"{100 * measured / bound:3.0f} %" if bound > 0 else ""
+        terminalreporter.write_line(f"{measured:9.1f} / {bound:7g} {unit:2s} {share:>5s}  {what}  [{test}]")
 
 
 MISSIONS = REPO / "mission_configs"

@@ -47,7 +47,8 @@ def thread_names() -> set[str]:
 @pytest.fixture
 def tello() -> Iterator[Any]:
     pytest.importorskip("av")
-    from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port
+    from flightstack.ports import free_udp_port
+    from flightstack.sim_backend.emulators.tello import TelloEmulator
 
     emu = TelloEmulator(
         "127.0.0.31", state_port=free_udp_port(), video_port=free_udp_port(), fps=30.0, video_size=(320, 240)

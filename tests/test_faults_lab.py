@@ -2,7 +2,7 @@
 are handled, and their measured reaction times are within their limits.
 
 Every row runs once (module fixture, about 2 min on 2 cores); the tests read the results. The rows fly the
-loopback emulators of two Tellos (127.0.0.6/.7), NatNet and a MAVLink rover
+loopback emulators of two Tellos (127.0.2.6/.7), NatNet and a MAVLink rover
 (flightstack.sim_backend.emulators),
 through the
 hardware backend in this process or `flightstack fly` in a child process; clock_skew and
@@ -24,6 +24,7 @@ from flightstack.faults import emulated_lab, rows_lab, rows_lab_drivers
 from flightstack.faults.emulated_lab import LabUnavailableError, command_times, max_gap, rc_times
 from flightstack.faults.lab_flight import drone_reaction
 from flightstack.faults.result import Checks, FaultResult
+from tests.conftest import Bound
 
 LAB_ROWS = [
     "link_loss_uplink",
@@ -43,12 +44,19 @@ LAB_ROWS = [
 ]
 
 
+FAULT_TABLE_FIRST_IP = "127.0.2.6"
+"""The rows' Tellos (127.0.2.6/.7): no other test module's emulator uses 127.0.2.0/24, so this module runs
+on its own xdist worker beside the other device tests (tests/conftest.py)."""
+
+
 @pytest.fixture(scope="module")
 def results(tmp_path_factory: pytest.TempPathFactory) -> dict[str, FaultResult]:
     for module in ("av", "motioncapture", "pymavlink", "zenoh"):
         pytest.importorskip(module)
     out = tmp_path_factory.mktemp("faults_lab")
-    res = faults.run_faults(LAB_ROWS, out)
+    with pytest.MonkeyPatch.context() as mp:  # an address block of its own: flies beside the other labs
+        mp.setattr(emulated_lab, "LAB_FIRST_IP", FAULT_TABLE_FIRST_IP)
+        res = faults.run_faults(LAB_ROWS, out)
     print("\n" + faults.format_table(res))
     faults.write_json(res, out / "faults.json")
     return {r.name: r for r in res}
@@ -68,12 +76,6 @@ def test_row_handled(results: dict[str, FaultResult], name: str) -> None:
     assert r.problems == [] and r.expected and r.observed and r.seconds > 0
 
 
-def test_rows_fit_the_time_budget(results: dict[str, FaultResult]) -> None:
-    total = sum(r.seconds for r in results.values())
-    print({n: round(r.seconds, 1) for n, r in results.items()}, f"total {total:.1f} s")
-    assert total < 240.0
-
-
 def test_faults_json_reports_the_reaction_times(results: dict[str, FaultResult], tmp_path: Path) -> None:
     faults.write_json(list(results.values()), tmp_path / "faults.json")
     doc = json.loads((tmp_path / "faults.json").read_text())
@@ -83,26 +85,34 @@ def test_faults_json_reports_the_reaction_times(results: dict[str, FaultResult],
 
 
 # ---- the measured numbers against their limits (ms) ---------------------------------------------------
-def test_link_loss_with_a_working_uplink(results: dict[str, FaultResult]) -> None:
+def test_link_loss_with_a_working_uplink(results: dict[str, FaultResult], safety_bound: Bound) -> None:
     d = results["link_loss_uplink"].details
-    assert 800.0 <= d["detect_ms"] <= 1250.0  # link_timeout_s 1 s after the last state packet
-    assert d["rc0_after_detect_ms"] <= 100.0  # hover within two ticks of the detection
-    assert d["land_after_detect_ms"] <= 1000.0
-    assert d["land_sends"] >= 2 and all(r <= 1300.0 for r in d["land_resend_ms"])  # re-sent about every 1 s
-    assert d["drone2_max_rc_gap_ms"] <= 150.0  # the other drone flies on, commanded every tick
+    assert d["detect_ms"] >= 800.0  # link_timeout_s 1 s after the last state packet, not earlier
+    safety_bound("link loss detected after the last state packet", d["detect_ms"], 1250.0)
+    safety_bound("hover after the detection (two ticks)", d["rc0_after_detect_ms"], 100.0)
+    safety_bound("land after the detection", d["land_after_detect_ms"], 1000.0)
+    assert d["land_sends"] >= 2  # re-sent about every 1 s
+    safety_bound("land re-sent after the previous one", max(d["land_resend_ms"]), 1300.0)
+    safety_bound("the other drone's largest rc gap (flies on)", d["drone2_max_rc_gap_ms"], 150.0)
 
 
-def test_loop_stall_hovers_then_lands(results: dict[str, FaultResult]) -> None:
+def test_loop_stall_hovers_then_lands(results: dict[str, FaultResult], safety_bound: Bound) -> None:
     d = results["loop_stall"].details
     assert d["stall_ms"] >= 2900.0
     for i in (1, 2):
         one = d[f"drone{i}"]
-        assert one["hover_after_last_rc_ms"] <= 600.0  # loop_hover_s 0.5 s + 0.1 s
-        assert one["land_after_last_rc_ms"] <= 2300.0  # loop_land_s 2 s + 0.3 s
+        safety_bound(
+            f"drone {i} hover after the loop's last rc (0.5 s + 0.1 s)", one["hover_after_last_rc_ms"], 600.0
+        )
+        safety_bound(
+            f"drone {i} land after the loop's last rc (2 s + 0.3 s)", one["land_after_last_rc_ms"], 2300.0
+        )
         assert one["down_after_last_rc_ms"] is not None
 
 
-def test_driver_threads_count_errors_and_keep_going(results: dict[str, FaultResult]) -> None:
+def test_driver_threads_count_errors_and_keep_going(
+    results: dict[str, FaultResult], safety_bound: Bound
+) -> None:
     d = results["driver_thread_error"].details
     counted = d["errors_counted"]
     assert counted["state receiver"] == rows_lab_drivers.INJECTED["state receiver recv_error"]
@@ -115,27 +125,37 @@ def test_driver_threads_count_errors_and_keep_going(results: dict[str, FaultResu
         assert counted[f"drone {i} video"] == rows_lab_drivers.INJECTED["video recv_error"]
     assert counted["robot link"] == rows_lab_drivers.INJECTED["robot send_error"]
     assert all(d["threads_alive"].values()) and len(d["threads_alive"]) == 10
-    assert max(d["max_rc_gap_ms"].values()) <= 350.0
+    safety_bound("largest rc gap while driver threads fail", max(d["max_rc_gap_ms"].values()), 350.0)
     assert d["robot_setpoints_after_errors"] > 0
 
 
-def test_lost_land_replies_never_block_a_safety_tick(results: dict[str, FaultResult]) -> None:
+def test_lost_land_replies_never_block_a_safety_tick(
+    results: dict[str, FaultResult], safety_bound: Bound
+) -> None:
     d = results["land_reply_lost"].details
-    assert d["safety_tick_ms"]["max_ms"] < 50.0  # one control period
+    safety_bound(
+        "longest safety tick with land replies lost (one period)", d["safety_tick_ms"]["max_ms"], 50.0
+    )
     assert d["land_replies_received"] == 0
-    assert d["land_after_fence_ms"] <= 500.0 and d["rc0_after_fence_ms"] <= 100.0
-    assert d["drone2_max_rc_gap_ms"] <= 150.0  # drone 2 stays supervised while drone 1 lands
+    safety_bound("land after the fence", d["land_after_fence_ms"], 500.0)
+    safety_bound("hover after the fence", d["rc0_after_fence_ms"], 100.0)
+    safety_bound("drone 2's largest rc gap while drone 1 lands", d["drone2_max_rc_gap_ms"], 150.0)
     assert d["down_after_fence_ms"] >= 1900.0  # the slow landing (2 s) really was in progress
 
 
 @pytest.mark.parametrize("name", ["sighup", "double_sigint"])
-def test_signals_land_every_drone_and_exit_130(results: dict[str, FaultResult], name: str) -> None:
+def test_signals_land_every_drone_and_exit_130(
+    results: dict[str, FaultResult], name: str, safety_bound: Bound
+) -> None:
     d = results[name].details
     assert d["exit_code"] == 130
     for i in (1, 2):
-        assert d[f"drone{i}"]["rc0_ms"] <= 500.0 and d[f"drone{i}"]["land_ms"] <= 500.0
+        safety_bound(f"{name}: drone {i} hover after the signal", d[f"drone{i}"]["rc0_ms"], 500.0)
+        safety_bound(f"{name}: drone {i} land after the signal", d[f"drone{i}"]["land_ms"], 500.0)
     if name == "double_sigint":
-        assert 15.0 <= d["second_signal_after_ms"] <= 200.0
+        assert (
+            15.0 <= d["second_signal_after_ms"] <= 200.0
+        )  # the row's own timing: the second came mid-landing
 
 
 def test_disk_full_stops_the_recording_not_the_flight(results: dict[str, FaultResult]) -> None:
@@ -153,12 +173,15 @@ def test_skewed_clocks_fuse_and_go_stale_alike(results: dict[str, FaultResult]) 
     assert not any(d["unfused"].values())
 
 
-def test_abort_during_takeoff(results: dict[str, FaultResult]) -> None:
+def test_abort_during_takeoff(results: dict[str, FaultResult], safety_bound: Bound) -> None:
     d = results["abort_during_takeoff"].details
     assert d["abort_exit_code"] == 0 and sorted(d["ack_ms"]) == ["1", "2"]
-    assert d["drone1_after_abort"]["land_ms"] <= 500.0 and d["drone1_after_abort"]["rc0_ms"] <= 500.0
+    safety_bound("abort: drone 1 land", d["drone1_after_abort"]["land_ms"], 500.0)
+    safety_bound("abort: drone 1 hover", d["drone1_after_abort"]["rc0_ms"], 500.0)
     assert d["drone2_takeoff_done_after_abort_ms"] > 1000.0  # the abort came during its takeoff
-    assert d["drone2_after_its_takeoff"]["land_ms"] <= 500.0
+    safety_bound(
+        "abort: drone 2 land after its takeoff ended", d["drone2_after_its_takeoff"]["land_ms"], 500.0
+    )
     assert d["fly_exit_code"] == 1
 
 
@@ -212,33 +235,43 @@ def test_without_an_optional_package_the_lab_says_which(monkeypatch: pytest.Monk
         emulated_lab.load_emulators()
 
 
-def test_a_killed_process_is_landed_by_its_guardian(results: dict[str, FaultResult]) -> None:
-    """Issue 15: parent killed -> rc 0 0 0 0 <= 0.5 s and land <= 2 s at the emulators, robot disarmed."""
+def test_a_killed_process_is_landed_by_its_guardian(
+    results: dict[str, FaultResult], safety_bound: Bound
+) -> None:
+    """Parent killed -> rc 0 0 0 0 <= 0.5 s and land <= 2 s at the emulators, robot disarmed."""
     d = results["process_killed"].details
     for i in (1, 2):
-        assert d[f"drone{i}"]["rc0_ms"] <= 500 and d[f"drone{i}"]["land_ms"] <= 2000, d
+        safety_bound(f"flight killed: drone {i} hover", d[f"drone{i}"]["rc0_ms"], 500.0)
+        safety_bound(f"flight killed: drone {i} land", d[f"drone{i}"]["land_ms"], 2000.0)
         assert d[f"drone{i}"]["down_ms"] is not None
     assert d["robot_armed"] is False and d["robot_speed"] < 1e-6
 
 
-def test_a_stopped_process_is_taken_over_and_muted_after_it_resumes(results: dict[str, FaultResult]) -> None:
+def test_a_stopped_process_is_taken_over_and_muted_after_it_resumes(
+    results: dict[str, FaultResult], safety_bound: Bound
+) -> None:
     d = results["agent_stopped"].details
     for i in (1, 2):
-        assert 400 <= d[f"drone{i}"]["rc0_ms"] <= 800, d  # the guardian's 0.5 s stall bound, not earlier
-        assert d[f"drone{i}"]["land_ms"] <= 2500, d
+        assert d[f"drone{i}"]["rc0_ms"] >= 400, d  # the guardian's 0.5 s stall bound, not earlier
+        safety_bound(f"flight stopped: drone {i} hover by the guardian", d[f"drone{i}"]["rc0_ms"], 800.0)
+        safety_bound(f"flight stopped: drone {i} land by the guardian", d[f"drone{i}"]["land_ms"], 2500.0)
     assert d["exit_code"] not in (0, None)
 
 
-def test_the_operators_pkill_spares_the_guardian(results: dict[str, FaultResult]) -> None:
+def test_the_operators_pkill_spares_the_guardian(
+    results: dict[str, FaultResult], safety_bound: Bound
+) -> None:
     d = results["pkill_pattern"].details
     assert d["guardians_spared"] == 1 and any(" fly " in line for line in d["killed"])
     assert not any("tello-guardian-" in line for line in d["killed"])
     for i in (1, 2):
-        assert d[f"drone{i}"]["stop_ms"] <= 500.0 and d[f"drone{i}"]["down_ms"] <= 8000.0
+        safety_bound(f"pkill: drone {i} stopped", d[f"drone{i}"]["stop_ms"], 500.0)
+        safety_bound(f"pkill: drone {i} down", d[f"drone{i}"]["down_ms"], 8000.0)
 
 
-def test_a_killed_guardian_lands_the_flight(results: dict[str, FaultResult]) -> None:
+def test_a_killed_guardian_lands_the_flight(results: dict[str, FaultResult], safety_bound: Bound) -> None:
     d = results["guardian_killed"].details
     assert d["exit_code"] == 1
     for i in (1, 2):
-        assert d[f"drone{i}"]["stop_ms"] <= 500.0 and d[f"drone{i}"]["down_ms"] <= 8000.0
+        safety_bound(f"guardian killed: drone {i} stopped", d[f"drone{i}"]["stop_ms"], 500.0)
+        safety_bound(f"guardian killed: drone {i} down", d[f"drone{i}"]["down_ms"], 8000.0)

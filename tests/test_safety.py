@@ -903,20 +903,18 @@ def test_every_logged_kind_is_documented() -> None:
 
 def test_concurrent_land_all_lands_slow_drones_at_once() -> None:
     """Real drones' land() blocks until touchdown: with concurrent_land every drone starts landing at
-    once, so three 0.4 s landings take ~0.4 s, not 1.2 s; all end landed, one event each."""
+    once (each land() waits until all three have started: one after the other, the first would never
+    see the others start); all end landed, one event each."""
     clock = FakeClock()
     log = EventLog()
     rigs = {i: Rig(drone_id=i, clock=clock, log=log) for i in (1, 2, 3)}
-    started: dict[int, float] = {}
-    for i, r in rigs.items():
-        r.inner.on_land = lambda i=i: (started.setdefault(i, time.perf_counter()), time.sleep(0.4))
+    all_landing = threading.Barrier(3, timeout=30.0)
+    for r in rigs.values():
+        r.inner.on_land = all_landing.wait  # raises BrokenBarrierError unless the three overlap
     sup = MissionSupervisor({i: r.sd for i, r in rigs.items()}, clock, LIM, log, concurrent_land=True)
-    t0 = time.perf_counter()
     sup.land_all("test")
-    elapsed = time.perf_counter() - t0
+    assert not all_landing.broken  # no drone waited for another's landing
     assert all(r.sd.landed for r in rigs.values())
-    assert max(started.values()) - min(started.values()) < 0.2  # no drone waited for another's landing
-    assert elapsed < 1.0
     assert sorted(e.drone for e in log.events if e.kind == "land") == [1, 2, 3]
 
 

@@ -26,11 +26,12 @@ from flightstack.drivers.tello_camera import TelloCamera
 from flightstack.drivers.tello_rc import RcGains, velocity_to_rc
 from flightstack.hal import FlightPhase
 from flightstack.paper.geometry import Pose, rot_z
-from flightstack.sim_backend.emulators.tello import TelloEmulator, free_udp_port, wait_until
+from flightstack.ports import free_udp_port
+from flightstack.sim_backend.emulators.tello import TelloEmulator, wait_until
 from flightstack.sim_backend.render import RenderOptions, render_markers
 from flightstack.vision.camera_file import load_calibration
 from flightstack.vision.markers import extract_markers
-from tests.conftest import MISSIONS
+from tests.conftest import MISSIONS, Bound
 
 CAL = load_calibration(MISSIONS / "cameras" / "tello_down_sim.yaml")
 P0 = np.array([[0.1, 0.1, 0.15], [-0.1, 0.1, 0.15], [-0.1, -0.1, 0.15], [0.1, -0.1, 0.15]])
@@ -119,7 +120,7 @@ def assert_clean(d: TelloDriver, emu: TelloEmulator) -> None:
 
 
 # ---- the happy path, video, link ---------------------------------------------------------------------
-def test_short_flight_rc_values_and_video(emu: TelloEmulator) -> None:
+def test_short_flight_rc_values_and_video(safety_bound: Bound, emu: TelloEmulator) -> None:
     d = TelloDriver(config(emu, downward_camera=True))
     try:
         d.connect()
@@ -133,7 +134,7 @@ def test_short_flight_rc_values_and_video(emu: TelloEmulator) -> None:
         for V in ([0.3, 0.0, 0.0, 0.0], [0.0, -0.25, 0.1, 0.0], [0.1, 0.1, 0.0, 0.5], [0.0, 0.0, 0.0, -0.35]):
             t0 = time.monotonic()
             d.send_body_velocity(np.array(V))
-            assert time.monotonic() - t0 < 0.01  # fire and forget: the loop never waits
+            safety_bound("send_body_velocity returns (fire and forget)", 1e3 * (time.monotonic() - t0), 10.0)
             sent.append(velocity_to_rc(np.array(V), d.cfg.rc_gains))
             time.sleep(0.3)
         assert wait_until(lambda: len(emu.rc_history) >= 4, 2.0)
@@ -317,9 +318,9 @@ def test_lost_replies_are_confirmed_by_telemetry(emu: TelloEmulator, lost: set[s
     try:
         times = fly(d, emu)
         if "takeoff" in lost:
-            assert 5.0 <= times["takeoff_s"] < 6.0
+            assert 5.0 <= times["takeoff_s"] < 8.0  # decided at takeoff_timeout_s, not at the 20 s default
         else:
-            assert times["takeoff_s"] < 3.5
+            assert times["takeoff_s"] < 5.0  # on the ok, before takeoff_timeout_s
         assert_clean(d, emu)
         confirmed = [e.detail for e in d.events if e.kind == "reply_lost_confirmed"]
         assert len(confirmed) == len(lost), d.events
