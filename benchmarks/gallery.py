@@ -1,8 +1,8 @@
-"""The README's picture gallery, made by running the commands it shows (never assembled by hand).
+"""The docs' picture gallery (docs/gallery.md), made by running the commands it shows (never by hand).
 
     python benchmarks/gallery.py                      # runs everything below (~2 min on 2 cores)
     python benchmarks/gallery.py --sweep runs/sweep_paper   # reuse a finished sweep instead of running one
-    python benchmarks/gallery.py --check              # only re-render README from docs/gallery/manifest.json
+    python benchmarks/gallery.py --check              # only re-render docs/gallery.md from the manifest
 
 It runs, each into a scratch directory:
 1. `flightstack run paper_sim` (the paper's simulation: trajectory, ‖e_c‖ and ‖e_e‖ per mode);
@@ -11,8 +11,8 @@ It runs, each into a scratch directory:
 4. `flightstack faults` on the simulated rows (the fault table's summary figure);
 
 copies each picture to docs/gallery/, writes docs/gallery/manifest.json (file, caption, the command that
-made it, the commit and date) and rewrites README.md between `<!-- gallery:start -->` and
-`<!-- gallery:end -->` from the manifest. tests/test_gallery.py holds the README section equal to what the
+made it, the commit and date) and rewrites docs/gallery.md between `<!-- gallery:start -->` and
+`<!-- gallery:end -->` from the manifest. tests/test_gallery.py holds the page's section equal to what the
 manifest renders and every linked file present.
 """
 
@@ -32,10 +32,12 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.table import read_readme_block, write_readme_block  # noqa: E402
+from benchmarks.table import DOCS, read_block, write_block  # noqa: E402
 
 GALLERY = REPO / "docs" / "gallery"
 MANIFEST = GALLERY / "manifest.json"
+PAGE = DOCS / "gallery.md"
+"""The page that shows the pictures; its links are relative to it (gallery/<file>)."""
 SIM_FAULT_ROWS = ("link_loss", "mocap_dropout_short", "mocap_dropout_long", "occlusion_short",
                   "occlusion_long", "low_battery", "low_battery_takeoff")  # fmt: skip
 
@@ -61,7 +63,9 @@ def _commit() -> str:
         return r.stdout.strip()
 
     head = git("rev-parse", "--short", "HEAD") or "unknown"
-    dirty = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":!docs/gallery", ":!README.md")
+    dirty = git(
+        "status", "--porcelain", "--untracked-files=no", "--", ".", ":!docs/gallery", ":!docs/gallery.md"
+    )
     return head + (" (with uncommitted changes)" if dirty else "")
 
 
@@ -113,7 +117,7 @@ def make(sweep: Path | None) -> list[dict[str, str]]:
 
 
 def render(manifest: dict[str, Any]) -> str:
-    """The README section (between the markers) for a manifest."""
+    """The page's section (between the markers) for a manifest."""
     lines = [
         f"Made by `python benchmarks/gallery.py` at commit {manifest['commit']} on {manifest['date']} "
         f"({manifest['machine']}); every picture is the output of the command under it.",
@@ -123,21 +127,21 @@ def render(manifest: dict[str, Any]) -> str:
         lines += [
             f"**{e['caption']}** (`{e['command']}`)",
             "",
-            f"![{e['caption']}](docs/gallery/{e['file']})",
+            f"![{e['caption']}]({GALLERY.name}/{e['file']})",
             "",
         ]
     return "\n".join(lines)
 
 
-def readme_section() -> str:
-    """README.md's current text between the gallery markers."""
-    return read_readme_block("gallery")
+def page_section() -> str:
+    """docs/gallery.md's current text between the gallery markers."""
+    return read_block(PAGE, "gallery")
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sweep", type=Path, default=None, help="a finished `flightstack sweep` directory")
-    ap.add_argument("--check", action="store_true", help="only re-render README.md from the manifest")
+    ap.add_argument("--check", action="store_true", help="only re-render docs/gallery.md from the manifest")
     args = ap.parse_args(argv)
     if not args.check:
         entries = make(args.sweep)
@@ -149,8 +153,8 @@ def main(argv: list[str] | None = None) -> int:
         }
         MANIFEST.write_text(json.dumps(manifest, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
     manifest = json.loads(MANIFEST.read_text(encoding="utf-8"))
-    write_readme_block("gallery", render(manifest))
-    print(f"README gallery: {len(manifest['entries'])} pictures in {GALLERY.relative_to(REPO)}")
+    write_block(PAGE, "gallery", render(manifest))
+    print(f"{PAGE.relative_to(REPO)}: {len(manifest['entries'])} pictures in {GALLERY.relative_to(REPO)}")
     return 0
 
 

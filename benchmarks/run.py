@@ -1,7 +1,7 @@
 """Core speed benchmarks, printed as ratios measured in one run (machines are shared and noisy).
 
     python benchmarks/run.py                  # table + benchmarks/results.json (< 5 min on 2 cores)
-    python benchmarks/run.py --update-readme  # also rewrites README.md between the bench markers
+    python benchmarks/run.py --update-docs    # also rewrites docs/performance.md between the bench markers
 
 Every row compares two things measured in the same run (ours vs scikit-learn, 3 experts vs one pooled GP,
 M = 1000 vs M = 10, measured vs target), so machine speed cancels in the ratio. Measured:
@@ -44,7 +44,7 @@ from benchmarks.table import (  # noqa: E402
     machine_info,
     markdown_table,
     print_table,
-    update_readme,
+    update_bench_page,
 )
 from flightstack.comms.bus import InProcBus  # noqa: E402
 from flightstack.comms.messages import PredictionMessage  # noqa: E402
@@ -59,7 +59,6 @@ from flightstack.vision.markers import extract_markers  # noqa: E402
 PAPER_SIM = REPO / "mission_configs" / "paper_sim.yaml"
 SCALING = {n: REPO / "mission_configs" / f"scaling_{n}.yaml" for n in (11, 31)}
 FRONT_CAMERA = REPO / "mission_configs" / "cameras" / "tello_front_sim.yaml"
-README = REPO / "README.md"
 RESULTS = REPO / "benchmarks" / "results.json"
 
 #: GP training benchmark: N (pooled), L-BFGS-B iteration cap (None: run to the tolerances), restarts = 1
@@ -279,7 +278,7 @@ def bench_bus(n: int = 2000) -> dict[str, object]:
 # ---- report -------------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--update-readme", action="store_true", help="rewrite README.md's bench block")
+    ap.add_argument("--update-docs", action="store_true", help="rewrite docs/performance.md's bench block")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
     results: dict[str, object] = {"machine": machine_info()}
@@ -304,9 +303,9 @@ def main(argv: list[str] | None = None) -> int:
     print_table(rows)
     print(f"(total {results['total_seconds']:.0f} s; raw numbers in {RESULTS.relative_to(REPO)})")
     RESULTS.write_text(json.dumps(results, indent=2) + "\n")
-    if args.update_readme:
-        update_readme(markdown_table(rows, results["machine"]))  # type: ignore[arg-type]
-        print("README.md: bench block rewritten")
+    if args.update_docs:
+        update_bench_page(markdown_table(rows, results["machine"]))  # type: ignore[arg-type]
+        print("docs/performance.md: bench block rewritten")
     return 0
 
 

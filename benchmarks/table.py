@@ -1,4 +1,5 @@
-"""The benchmark table: targets, PASS/MISS per row, the terminal and README renderings, machine facts.
+"""The benchmark table: targets, PASS/MISS per row, the terminal and markdown renderings, machine facts;
+the generated blocks of the docs pages.
 
 Used by benchmarks/run.py (which measures); kept apart so that the measuring code reads on its own."""
 
@@ -13,6 +14,9 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
+DOCS = REPO / "docs"
+BENCH_PAGE = DOCS / "performance.md"
+"""The docs page that holds the benchmark table (block `bench`)."""
 
 #: targets of issues 8 and 18 (value, unit, "max" = measured must be ≤ target, "min" = ≥ target)
 TARGETS = {
@@ -49,7 +53,7 @@ def _status(key: str, measured: float | None) -> tuple[str, str, str]:
 
 
 def build_rows(r: dict) -> list[tuple[str, str, str, str, str]]:
-    """(benchmark, measured, compared with, ratio, target/status) rows shared by console and README."""
+    """(benchmark, measured, compared with, ratio, target/status) rows shared by console and docs page."""
     rows: list[tuple[str, str, str, str, str]] = []
     for M, g in r["gp_predict_one"].items():
         rows.append(
@@ -259,36 +263,44 @@ def markdown_table(rows: list[tuple[str, str, str, str, str]], machine: dict) ->
     return "\n".join(out) + "\n"
 
 
-def readme_block(key: str) -> re.Pattern[str]:
-    """README.md's generated block `key` (bench, sweep:NAME, gallery): the start marker line
-    `<!-- KEY:start ... -->`, the block's text, the end marker `<!-- KEY:end -->`."""
+def block_pattern(key: str) -> re.Pattern[str]:
+    """A generated block `key` (bench, sweep:NAME, sweep:NAME:summary, gallery) of a markdown page: the start
+    marker line `<!-- KEY:start ... -->`, the block's text, the end marker `<!-- KEY:end -->`."""
     k = re.escape(key)
     return re.compile(rf"(<!-- {k}:start[^\n]*-->\n)(.*?)(<!-- {k}:end -->)", re.DOTALL)
 
 
-def read_readme_block(key: str) -> str:
-    """The text of README.md's block `key` (SystemExit naming the markers when it has none)."""
-    match = readme_block(key).search(README.read_text(encoding="utf-8"))
+def _where(page: Path) -> str:
+    return str(page.relative_to(REPO)) if page.is_relative_to(REPO) else str(page)
+
+
+def read_block(page: Path, key: str) -> str:
+    """The text of `page`'s block `key` (SystemExit naming the page and the markers when it has none)."""
+    match = block_pattern(key).search(page.read_text(encoding="utf-8"))
     if match is None:
-        raise SystemExit(f"README.md has no <!-- {key}:start ... --> … <!-- {key}:end --> block")
+        raise SystemExit(f"{_where(page)} has no <!-- {key}:start ... --> … <!-- {key}:end --> block")
     return match.group(2)
 
 
-def write_readme_block(key: str, block: str) -> None:
-    """Replace only the text of README.md's block `key`; README.md is read fresh just before the atomic
-    write (SystemExit naming the markers when it has none)."""
-    text = README.read_text(encoding="utf-8")
-    match = readme_block(key).search(text)
+def has_block(page: Path, key: str) -> bool:
+    return block_pattern(key).search(page.read_text(encoding="utf-8")) is not None
+
+
+def write_block(page: Path, key: str, block: str) -> None:
+    """Replace only the text of `page`'s block `key`; the page is read fresh just before the atomic write
+    (SystemExit naming the page and the markers when it has none)."""
+    text = page.read_text(encoding="utf-8")
+    match = block_pattern(key).search(text)
     if match is None:
-        raise SystemExit(f"README.md has no <!-- {key}:start ... --> … <!-- {key}:end --> block")
-    tmp = README.with_suffix(".md.tmp")
+        raise SystemExit(f"{_where(page)} has no <!-- {key}:start ... --> … <!-- {key}:end --> block")
+    tmp = page.with_suffix(".md.tmp")
     tmp.write_text(text[: match.start(2)] + block + text[match.end(2) :], encoding="utf-8")
-    os.replace(tmp, README)
+    os.replace(tmp, page)
 
 
-def update_readme(table_md: str) -> None:
-    """The benchmark table into README.md's bench block."""
-    write_readme_block("bench", table_md)
+def update_bench_page(table_md: str) -> None:
+    """The benchmark table into docs/performance.md's bench block."""
+    write_block(BENCH_PAGE, "bench", table_md)
 
 
 def machine_info() -> dict[str, object]:

@@ -53,7 +53,7 @@ Design (decided):
 
 Not covered by any process on the laptop: both processes killed at once by pid, sleep, power or Wi-Fi loss
 of the laptop itself; the Tello's own 15 s auto-land (no datagram for 15 s) and the robot's own
-ArduPilot GCS failsafe are the last backstops (README, "Failsafe"). For a robot reached through `udpin:` or a
+ArduPilot GCS failsafe are the last backstops (docs/safety.md). For a robot reached through `udpin:` or a
 serial device the stopped parent holds, give the guardian its own endpoint (`robot_url`, e.g. a second
 mavlink-router UDP endpoint: a router's UDP server endpoint answers one client only).
 

@@ -8,7 +8,7 @@ No process on the laptop can land a drone while the laptop sleeps, so `flightsta
 - macOS: `caffeinate -i -s -w PID` (ends with this process).
 
 Where neither exists or the request is refused (a container without logind, Windows), the run goes on and
-says so: the Tello's own 15 s auto-land stays the last backstop (README "Failsafe").
+says so: the Tello's own 15 s auto-land stays the last backstop (docs/safety.md).
 """
 
 from __future__ import annotations

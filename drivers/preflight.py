@@ -6,10 +6,14 @@ Nothing takes off, nothing moves: the robot is only listened to (HEARTBEAT), nev
 `command`, `streamon`/`streamoff` and read-only queries.
 
 Rows: (device, check, status, detail) with status PASS, WARN (flyable, but look) or FAIL (do not fly).
-The checks (README "Preflight"):
-- certificates (issue 16): the pair this computer's participant needs (check_certs), not expired;
+The checks (how an operator uses them: docs/real-lab.md):
+
+- certificates: the pair this computer's participant needs (check_certs), not expired;
+- computer: the tick's compiled math ("compiled math"), compiled or loaded before any device thread
+  starts (a cold compile holds the GIL for seconds);
 - files: every camera calibration exists, is valid, was measured (rms_px set; the nominal templates
-  are not) and matches the drone's video size; the experts file, if the mission names one.
+  are not) and matches the drone's video size, with one marker colour per feature point; the experts
+  file, if the mission names one.
 - gains: κ of Theorem 1. WARN (never FAIL) when not positive: the paper flies its experiment with
   gains that violate it. Without trained experts, L_μ = 0 gives an upper bound of κ.
 - drone N: reachable (SDK mode, confirmed by its state stream), battery ≥ safety.min_battery_takeoff,

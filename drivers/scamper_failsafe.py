@@ -59,7 +59,7 @@ ACTION_DRIVES = {
     4: "SmartRTL or Hold: it drives back along its path",
     6: "Loiter or Hold: it drives to hold its position",
 }
-NEEDED = {FS_GCS_ENABLE: 1, FS_ACTION: 2, FS_GCS_TIMEOUT: 3, FS_TIMEOUT: 1}  # what to set (README)
+NEEDED = {FS_GCS_ENABLE: 1, FS_ACTION: 2, FS_GCS_TIMEOUT: 3, FS_TIMEOUT: 1}  # what to set (docs/drivers.md)
 
 
 @dataclass(frozen=True)

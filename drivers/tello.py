@@ -11,32 +11,10 @@ telemetry view), drivers/tello_exchange.py (the blocking command exchange), driv
 freshness and the loop watchdog); this module adds `connect`, `close` and `preflight` and is the import
 path for all of it (settings, errors and reply parsers: drivers/tello_config.py).
 
-Principles (README "Tello driver", docs/architecture.md decision 26):
-- **Telemetry decides.** The state stream gives the phase (ground, taking off, airborne, landing).
-  `takeoff()` returns only when telemetry shows the drone airborne at a stable height (within
-  `takeoff_timeout_s` ≥ 20 s, what djitellopy allows); `land()` returns only when telemetry shows it on
-  the ground with the motors off. A lost reply whose effect telemetry confirms is a success (event
-  `reply_lost_confirmed`); an `error` reply while telemetry shows the command took effect likewise
-  (`error_reply_but_effect`); an `ok` that telemetry does not confirm is not trusted.
-- **Replies are advisory.** They carry no identifier. Before every blocking command the driver stops
-  sending `rc`, waits for a quiet window (`quiet_s`, 150 ms, since the last rc sent and the last datagram
-  received) and discards what is pending; replies arriving while no command waits are discarded and
-  counted (`counts["reply_discarded"]`); `error Not joystick` (the answer some firmwares give to `rc`) is
-  never taken as another command's answer.
-- **Nothing the drone would reject in its phase**: no `rc` unless airborne (and no land pending), no
-  keep-alive after `land` was sent or once down, no `land` while taking off (land waits until airborne,
-  bounded), `emergency` only when asked for. Suppressed commands are counted (`counts["rc_suppressed"]`).
-- **Never blocks the control loop**: send_body_velocity is a non-blocking datagram; takeoff/land block
-  only their caller (flightstack.safety runs them on worker threads).
-- **Loop watchdog** (the keep-alive is tied to the control loop): while airborne, a loop that sent no
-  velocity for `loop_hover_s` (0.5 s) gets `rc 0 0 0 0` once (hover; event `loop_silent_hover`) and after
-  `loop_land_s` (2 s) the driver lands by itself on its own thread (event `loop_lost_land`). A loop must
-  therefore command every tick (flightstack.safety's command watchdog sends zeros on a silent tick);
-  nothing keeps a drone hovering with no loop behind it.
-- **Silent telemetry during a land**: `rc 0 0 0 0` and `land` are re-sent every `land_resend_s` (0.5 s)
-  until the drone is seen down (the uplink may work while the state stream does not).
-- link loss: no state packet for `link_timeout_s` → state().link_alive is False (`link_lost`,
-  `link_restored` events). The monitor thread survives any error (counted, logged).
+Principles (telemetry decides, replies are advisory, nothing the drone would reject in its phase, never
+blocking the control loop, the loop watchdog, re-sent lands on silent telemetry, link loss), the phase
+rules and the reaction to each failure: docs/drivers.md, "Tello driver" (why: docs/architecture.md
+decision 26).
 
 Frames: body velocity V = [v_x, v_y, v_z, ω] in the drone's FLU frame (m/s, rad/s). Time: monotonic
 seconds (time.monotonic), the hardware clock of flightstack.

@@ -39,7 +39,7 @@ from flightstack.hal import FlightPhase
 
 @dataclass(frozen=True)
 class PhaseThresholds:
-    """Thresholds of the phase decisions (cm, dm/s, s); README "Tello driver" explains the choices."""
+    """Thresholds of the phase decisions (cm, dm/s, s); docs/drivers.md explains the choices."""
 
     ground_h_cm: float = 20.0
     airborne_h_cm: float = 50.0

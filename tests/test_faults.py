@@ -1,5 +1,5 @@
 """`flightstack faults`: every row of the fault table is handled (issue 8): no crash, every drone safe,
-recording intact, and the observed reaction is the documented one (README, "Faults").
+recording intact, and the observed reaction is the documented one (docs/faults.md).
 
 All rows run once (module fixture, ~50 s on 2 cores); the tests then read the results. The last two rows
 (`agent_killed`, `bus_partition`) run the served world and three agent processes over Zenoh (issue 6's
@@ -135,7 +135,7 @@ def test_cli_writes_json_and_exit_code(tmp_path: Path, capsys: pytest.CaptureFix
     assert "low_battery_takeoff" in capsys.readouterr().out
     doc = json.loads((tmp_path / "faults.json").read_text())
     assert doc["handled"] is True and [r["name"] for r in doc["results"]] == ["low_battery_takeoff"]
-    assert (tmp_path / "faults.png").stat().st_size > 5000  # the summary figure (README gallery)
+    assert (tmp_path / "faults.png").stat().st_size > 5000  # the summary figure (docs/gallery.md)
 
 
 def test_fault_figure_families_and_events(tmp_path: Path) -> None:

@@ -1,5 +1,5 @@
 """Every certificate of a mission tries every key on a live mutual-TLS network (loopback): only a key's
-owner is heard (README "Securing the bus").
+owner is heard (docs/security.md).
 
 One Zenoh session per certificate, each opened as its participant opens it (factory.zenoh_bus_config:
 the mission CA, its own pair, the generated access control; listening on its endpoint if the mission
@@ -9,7 +9,7 @@ certificate puts a real prediction and a real status on every drone's key, an ac
 participant's ack key, an abort, and world ticks and commands for every drone, and declares a liveliness
 token for every drone it does not own (a session sees its own tokens locally, so each forged token is
 watched by the sessions that did not declare it: always the drone's own agent). The expected owners
-are written out below from the README's table, not read from acl.py.
+are written out below from the table of docs/security.md, not read from acl.py.
 
 Two missions of drones 1, 2, 3: one whose endpoints name the shared `agents` process (and the world), and
 one whose processes are one agent each (and the world), where the folder still holds a valid `agents`
@@ -46,7 +46,7 @@ EVERY_NAME = (*AGENTS, "agents", "world", "operator", "guard")
 
 
 def may_put(cn: str, key: str, shared: bool) -> bool:
-    """The README's table: may certificate `cn` put on `key` (relative to the mission's key space)?
+    """The table of docs/security.md: may certificate `cn` put on `key` (relative to the mission's key space)?
     `shared`: the mission's endpoints name `agents`. Both test missions name `world`."""
     kind, _, arg = key.rpartition("/")
     own_drone = cn == f"agent-{arg}"

@@ -1,5 +1,5 @@
-"""Which participants a mission has, and that only they get certificates and grants (README "Securing the
-bus"): the shared `agents` certificate, which may publish every drone's keys, and `world` exist only
+"""Which participants a mission has, and that only they get certificates and grants (docs/security.md):
+the shared `agents` certificate, which may publish every drone's keys, and `world` exist only
 where the mission's endpoints name them. Pure functions, the generated access-control section, the
 `certs` command in-process and the bus factory's refusal; no Zenoh session is opened here (the keys
 tried on a live mutual-TLS network: tests/test_key_ownership.py).

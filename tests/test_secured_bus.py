@@ -3,7 +3,7 @@
 Participants with the mission's certificates exchange predictions, status, aborts and acknowledgements
 on their own keys; a participant publishing someone else's key is not heard (the access control of
 flightstack/comms/acl.py, enforced by Zenoh on the receiving side); `flightstack certs` writes what the
-README promises (modes, names, refusal to overwrite); bad certificate directories are named.
+docs/security.md promises (modes, names, refusal to overwrite); bad certificate directories are named.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Access-point topology on one host: two drones with the SAME address and default ports, one per network
-namespace, each flown by its own process at the same time (README "Flying the real lab").
+namespace, each flown by its own process at the same time (docs/real-lab.md).
 
 In the lab every access-point Tello is 192.168.10.1 and talks to UDP 8889/8890/11111 of its own computer;
 two such set-ups on one host only work if each lives in its own network namespace. Each namespace here

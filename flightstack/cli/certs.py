@@ -5,8 +5,8 @@ Makes exactly the mission's participants (factory.mission_participants): `agent-
 `agents` certificate may publish every drone's keys. Refuses a DIR that holds any participant's files,
 also of one this mission no longer has (a folder never mixes two CAs' pairs or keeps a stale `agents`).
 Prints where each file goes: every computer of the mission gets `ca.pem` and the pair of the
-participant(s) it runs, into the directory the mission's `bus.certs` names (README "Securing the
-bus"). `ca.key` stays where it was made.
+participant(s) it runs, into the directory the mission's `bus.certs` names (docs/security.md).
+`ca.key` stays where it was made.
 """
 
 from __future__ import annotations

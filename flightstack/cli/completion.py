@@ -1,5 +1,5 @@
 """`flightstack completion {bash,zsh,fish}`: the shell code that makes the shell complete `flightstack`'s
-subcommands and options through argcomplete (README "Shell completion"):
+subcommands and options through argcomplete (docs/getting-started.md):
 
     eval "$(flightstack completion bash)"        # in ~/.bashrc
     eval "$(flightstack completion zsh)"         # in ~/.zshrc, after compinit

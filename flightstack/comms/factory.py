@@ -111,8 +111,7 @@ def mtls_settings(mission: Mission, name: str) -> dict[str, str | bool]:
         check_participant(directory, name, mission.name)
     except CertError as exc:
         raise MissionError(
-            f"bus.certs: {exc} (create them with `flightstack certs MISSION --out DIR`; README "
-            '"Securing the bus")'
+            f"bus.certs: {exc} (create them with `flightstack certs MISSION --out DIR`; docs/security.md)"
         ) from None
     return tls_settings(files_of(directory, name))
 
@@ -180,7 +179,7 @@ def operator_key(mission: Mission, private: bool) -> Any:
     except CertError as exc:
         raise MissionError(
             f"bus.certs: {exc} (real drones accept only aborts signed by the operator's key; create the "
-            'certificates with `flightstack certs MISSION --out DIR`, README "Securing the bus")'
+            "certificates with `flightstack certs MISSION --out DIR`, docs/security.md)"
         ) from None
 
 

@@ -31,7 +31,7 @@ class ZenohSpec(_Strict):
     `lockstep_timeout_s`: on a simulated clock, how long phase 2 waits for a neighbour's message of the
     same tick. `start_timeout_s`: how long every participant waits for the others to appear.
 
-    Security (issue 16; README "Securing the bus"). `security: mtls` (the default): every endpoint is
+    Security (docs/security.md). `security: mtls` (the default): every endpoint is
     `tls/host:port`, every link is mutual TLS with the certificates `flightstack certs` made for this
     mission (directory `bus.certs`; each computer needs `ca.pem` and its own participant's pair), and
     Zenoh's access control, generated from the mission's participants (flightstack/comms/acl.py), lets

@@ -19,7 +19,7 @@ class TelloHardwareSpec(_Strict):
     router's lease in station mode). Ports: 8889 (commands) on a real drone; `video_port` is where it
     streams on this computer (station mode with several drones: one port each, needs SDK 3.0).
     `loop_hover_s`/`loop_land_s`: the driver's loop watchdog: a control loop silent this long (s) makes
-    the drone hover, then land by itself (README "Failsafe")."""
+    the drone hover, then land by itself (docs/safety.md)."""
 
     id: int = Field(ge=0, lt=2**16)
     ip: str = Field(pattern=r"^\d{1,3}\.\d{1,3}\.\d{1,3}\.\d{1,3}$")
@@ -72,7 +72,7 @@ class HardwareSpec(_Strict):
     on another computer, or by hand): the mission then only reads its motion-capture pose.
     `max_frame_age_s`: a camera frame older than this is treated as no frame (stalled video).
 
-    `topology` (README "Flying the real lab"): `access_point` (default) — each Tello is its own Wi-Fi
+    `topology` (docs/real-lab.md): `access_point` (default) — each Tello is its own Wi-Fi
     access point at 192.168.10.1, one computer per drone runs `flightstack agent --id N`, the agents talk
     over Zenoh on another interface; works with SDK 2.0 and the default video port. `station` — every
     Tello joins the lab Wi-Fi, one process may fly them all; several drones' video needs per-drone ports,

@@ -189,7 +189,8 @@ class GPSpec(_Strict):
     hyperparameters: Literal["per_expert", "shared"] = "per_expert"
     # separate: one SE-ARD kernel per output (the paper); shared: one σ_f and one set of length scales for
     # the four outputs (maximising the sum of the outputs' log marginal likelihoods), so an expert keeps
-    # one Cholesky factor and predicts with one k_* and one L⁻¹k_* (~4× cheaper; for large M, README)
+    # one Cholesky factor and predicts with one k_* and one L⁻¹k_* (~4× cheaper; for large M:
+    # docs/performance.md)
     output_kernel: Literal["separate", "shared"] = "separate"
     fusion: str = "poe"
 

@@ -4,7 +4,7 @@ The registry `FAULTS` maps a row name to a `FaultRow`, a function (mission file,
 `FaultResult` (flightstack/faults/result.py). Rows come from the modules named in `ROW_MODULES`, each of
 which defines `ROWS: dict[str, FaultRow]` in table order; `register_fault` adds one more at run time. A row
 is *handled* when nothing crashed, every drone ended safe, the recording is intact and the observed
-reaction is the expected one (README, "Faults").
+reaction is the expected one (docs/faults.md).
 
 Adding rows (e.g. the multi-process runner's "one agent process killed" and "bus partition"): write a
 module with `ROWS = {"agent_killed": fn, ...}` and append its import path to `ROW_MODULES`, or call

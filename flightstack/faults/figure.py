@@ -4,7 +4,7 @@ One lane per row of `flightstack faults`: its name coloured by the verdict (hand
 mission clock (s) the safety events of its run (`events.jsonl` in the row's run directory), one marker
 shape per family: hover (zero velocity), land, refusal, link, and everything else. Rows without a run
 directory (e.g. a mission file that is refused before anything flies) show the verdict only. Drawn from
-faults.json and the run directories, so `flightstack faults` and the README gallery share it.
+faults.json and the run directories, so `flightstack faults` and the docs' gallery share it.
 """
 
 from __future__ import annotations

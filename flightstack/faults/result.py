@@ -12,8 +12,8 @@ from typing import Any
 class FaultResult:
     """What the system did under one injected fault.
 
-    name: the row's key (`flightstack faults --only NAME`). expected: the documented reaction (README,
-    "Faults"). observed: what the events and the recording show, with mission-clock times (s).
+    name: the row's key (`flightstack faults --only NAME`). expected: the documented reaction
+    (docs/faults.md). observed: what the events and the recording show, with mission-clock times (s).
     all_safe: every drone ended landed (or hovering inside the fence) and no drone ever crossed the hard
     fence. recording_complete: every tick flown is recorded, finite, saved and re-read identically, and the
     event log has the end of the run and every drone's landing (for a row where nothing may fly: nothing

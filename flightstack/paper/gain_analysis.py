@@ -4,7 +4,7 @@
     κ = λ_min(H) − (π/2) L_μ λ_max(P^i) − 1/(2γ²)
     b = γ Δ̄ sqrt(n / (2 κ_ η)),  κ_ = min(κ, λ_min(Λ))
 
-Decisions (README, "parameters the paper does not state"):
+Decisions (docs/parameters.md, docs/paper-comparison.md):
 - The paper writes H = L + D_v; the consensus input −k_s c_i enters Ṡ as −k_s e_eᵀ (L ⊗ I) e_e, so the
   Laplacian is weighted by k_s here.
 - λ_Ki is independent of θ_c (Ad_R is orthogonal and K has equal x/y gains), so it is computed at θ_c = 0.

@@ -7,7 +7,7 @@ or numpy floats, int64 and booleans), so a mission's first tick finds them compi
 assembled (flightstack.runtime.fleet) and in preflight; tests/test_kernels.py asserts that a run after it
 adds no signature to any kernel. What it costs (2-core CI machine): the first run on a machine (no cache
 yet) compiles for ~11 s, ~9 s more for the compiled simulator's loop; later runs load the cache in
-~0.3–0.7 s (README, "Performance").
+~0.3–0.7 s (docs/performance.md).
 """
 
 from __future__ import annotations

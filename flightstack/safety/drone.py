@@ -1,31 +1,13 @@
 """Safety supervisor (DESIGN §7): wraps every hal.Drone of a mission, on every backend.
 
-`SafeDrone` is a hal.Drone that wraps another one and enforces, per drone:
-    - saturation of the body velocity V = [v_x, v_y, v_z, ω_z] (m/s, rad/s, body frame): the norm of
-      (v_x, v_y) is scaled down keeping its direction, v_z and ω_z are clipped; NaN/inf -> zero velocity;
-    - a geofence box in the world frame Σw (the motion-capture frame, z up, metres): outside the soft box
-      every world-frame velocity component that points further out is removed (the drone can come back
-      but not leave); outside the hard box (the soft box grown by `hard_margin`) the drone lands;
-    - a command watchdog: no command for `command_timeout` s -> zero velocity on every tick until one
-      arrives (the drivers read a silent loop as a dead one: see drivers/tello.py, "loop watchdog");
-    - a stale-pose rule: pose stamp older than `pose_timeout` s -> hover, older than `pose_land_after` s
-      -> land (both ages are measured from the last valid pose stamp, by the mission clock);
-    - battery: takeoff refused below `min_battery_takeoff` %, land in flight below `land_battery` %.
-    - link: the drone reported `link_alive` in flight and now reports it False (its telemetry stopped,
-      the uplink may still work) -> zero velocity on every tick (hover) and land at once.
-A land is never waited for on the control thread when the SafeDrone runs `background` jobs (hardware):
-takeoff() and land() of the wrapped drone run on a worker thread each; tick() collects their outcome. A
-land is re-sent every `land_retry_s` until it is confirmed, by the wrapped drone's land() returning, by
-its telemetry (phase ground) or by motion capture (z ≤ `landed_height`); meanwhile the pose, fence and
-watchdog rules keep running on the last known pose. Simulated drones (background off) land inline, so a
-simulated run stays deterministic.
-`MissionSupervisor` (flightstack/safety/supervisor.py) adds the mission-wide rules: hover when every drone has
-lost the target for longer than `target_lost_hover_after` s, land every drone (robust to a failing
-drone), on SIGINT, SIGTERM, SIGHUP, SIGQUIT and SIGTSTP (a repeated signal never interrupts the landing)
-and on any exception leaving a guarded block. Limits, events and the pure rules are in
-flightstack/safety/rules.py; the landing sequence, its background workers and the plumbing the rules share
-with it are in flightstack/safety/landing.py (the base class of SafeDrone), the phases in
-flightstack/safety/phases.py.
+`SafeDrone` is a hal.Drone that wraps another one and enforces the per-drone rules (saturation, geofence,
+command watchdog, stale pose, battery, link loss, landing confirmation); `MissionSupervisor`
+(flightstack/safety/supervisor.py) adds the mission-wide ones (target lost, land every drone, signals, the
+exception guard). The rules, their reactions and the limits they use are stated once, in docs/safety.md.
+Limits, events and the pure rules are in flightstack/safety/rules.py; the landing sequence, its background
+workers (hardware: takeoff and land on a worker thread each, never waited for on the control thread) and
+the plumbing the rules share with it are in flightstack/safety/landing.py (the base class of SafeDrone), the
+phases in flightstack/safety/phases.py.
 
 Every condition logs exactly one `SafetyEvent` per episode (the interval during which it holds), stamped
 with the mission clock. The event kinds form the closed set `EVENT_KINDS`:

@@ -1,6 +1,5 @@
 """The safety layer's limits, events and pure rules (no I/O, no state): flightstack/safety/drone.py applies
-them
-to every drone (see its docstring for the rules and the closed set of event kinds).
+them to every drone (its docstring lists the closed set of event kinds; the rules: docs/safety.md).
 
 Units: m, m/s, rad/s, s (mission clock), percent; positions in the world frame Σw (z up).
 """

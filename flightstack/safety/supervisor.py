@@ -1,6 +1,6 @@
-"""The mission-wide safety rules over every SafeDrone (DESIGN §7; flightstack/safety/drone.py has the
-per-drone
-ones): target lost → hover then land, land every drone, signal handlers, the exception guard.
+"""The mission-wide safety rules over every SafeDrone (DESIGN §7; the rules are stated in docs/safety.md;
+flightstack/safety/drone.py has the per-drone ones): target lost → hover then land, land every drone, signal
+handlers, the exception guard.
 
 Times in seconds of mission clock.
 """

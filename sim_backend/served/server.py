@@ -14,7 +14,7 @@ not yet published is dropped and counted by reason in `WorldSummary.dropped` (pr
 world`), and `apply_cmd` cannot fail on an accepted one.
 An agent that leaves (killed, or finished) has its drone landed by the world: the stand-in for a
 ground-station safety net. (On hardware a Tello whose agent was killed holds its last rc command until
-its own 15 s auto-land: README, "Agents in separate processes".) The world ends when every agent has
+its own 15 s auto-land: docs/bus.md.) The world ends when every agent has
 left, or after the mission's duration plus takeoff and landing allowances, and lands every drone.
 """
 

@@ -1,0 +1,173 @@
+"""MkDocs hook: the parts of the manual that a command or a constant already states, rendered at build time.
+
+A page asks for one with a marker line `<!-- generated: NAME -->`; `on_page_markdown` replaces the marker
+with the rendering of NAME from the installed package, so the site never holds a copy that can drift:
+
+- `cli`: every subcommand of `flightstack.cli.app.build_parser()`, its usage and its options;
+- `run-files`: `flightstack.recording.files.RUN_FILES`, `REQUIRED_FILES` and `OPTIONAL_FILES`;
+- `fault-rows`: the rows of `flightstack.faults.FAULTS`, in table order, with the fault each injects
+  (the row function's docstring) and the reaction documented for it in `fault_reactions.yml`.
+
+On GitHub the marker is an invisible comment; the page's prose says where the list comes from. An unknown
+NAME fails the build.
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+MARKER = re.compile(r"^<!-- generated: ([a-z-]+) -->$", re.MULTILINE)
+WIDTH = 100
+
+
+def _cell(text: str) -> str:
+    """One markdown table cell: one line, pipes escaped."""
+    return " ".join(str(text).split()).replace("|", "\\|")
+
+
+def _first_paragraph(doc: str | None) -> str:
+    return " ".join((inspect.cleandoc(doc or "").split("\n\n") or [""])[0].split())
+
+
+# ---- the CLI reference ------------------------------------------------------------------------------------
+def _subcommands(parser: argparse.ArgumentParser) -> list[tuple[str, str, argparse.ArgumentParser]]:
+    """(name, one-line help, parser) of each direct subcommand, in the parser's order."""
+    out = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {a.dest: a.help or "" for a in action._choices_actions}
+            out += [(name, helps.get(name, ""), sp) for name, sp in action.choices.items()]
+    return out
+
+
+def _usage(parser: argparse.ArgumentParser) -> str:
+    fmt = argparse.HelpFormatter(parser.prog, width=WIDTH)
+    fmt.add_usage(parser.usage, parser._actions, parser._mutually_exclusive_groups, prefix="")
+    return fmt.format_help().strip()
+
+
+def _option_rows(parser: argparse.ArgumentParser) -> list[str]:
+    fmt = argparse.HelpFormatter(parser.prog, width=WIDTH)
+    rows = []
+    for action in parser._actions:
+        if isinstance(action, (argparse._HelpAction, argparse._SubParsersAction)):
+            continue
+        if action.help == argparse.SUPPRESS:
+            continue
+        if action.option_strings:
+            metavar = "" if action.nargs == 0 else " " + fmt._format_args(action, action.dest.upper())
+            name = ", ".join(f"{s}{metavar}" for s in action.option_strings)
+        else:
+            name = fmt._metavar_formatter(action, action.dest)(1)[0]
+        help_text = fmt._expand_help(action) if action.help else ""
+        default = action.default
+        shown = "" if default in (None, False, argparse.SUPPRESS) or action.nargs == 0 else f"`{default}`"
+        if action.choices is not None and not isinstance(action.choices, dict) and action.metavar:
+            help_text += f" (one of: {', '.join(map(str, action.choices))})"
+        rows.append(f"| `{_cell(name)}` | {_cell(help_text)} | {shown} |")
+    return rows
+
+
+def _command_section(path: list[str], help_line: str, parser: argparse.ArgumentParser, level: int) -> str:
+    parts = [f"{'#' * level} {' '.join(path)}", ""]
+    if help_line:
+        parts += [help_line[0].upper() + help_line[1:] + ("" if help_line.endswith(".") else "."), ""]
+    if parser.description and parser.description.strip() != help_line.strip():
+        desc = inspect.cleandoc(parser.description)
+        parts += ["```text", desc, "```", ""] if "\n" in desc else [desc, ""]
+    parts += ["```text", _usage(parser), "```", ""]
+    rows = _option_rows(parser)
+    if rows:
+        parts += ["| argument | what | default |", "|---|---|---|", *rows, ""]
+    for name, sub_help, sub in _subcommands(parser):
+        parts.append(_command_section([*path, name], sub_help, sub, min(level + 1, 4)))
+    return "\n".join(parts)
+
+
+def render_cli() -> str:
+    """Every subcommand of `flightstack`, as the installed parser defines it."""
+    from flightstack.cli.app import build_parser
+
+    parser = build_parser()
+    parts = ["```text", _usage(parser), "```", "", "| argument | what | default |", "|---|---|---|"]
+    parts += [*_option_rows(parser), ""]
+    for name, help_line, sub in _subcommands(parser):
+        parts.append(_command_section([parser.prog, name], help_line, sub, 2))
+    return "\n".join(parts)
+
+
+# ---- the run directory ------------------------------------------------------------------------------------
+def render_run_files() -> str:
+    """The names a run writes and what each reader needs, from flightstack.recording.files."""
+    from flightstack.recording import files
+
+    lines = ["| name (pattern) a run writes |", "|---|"]
+    lines += [f"| `{_cell(name)}` |" for name in files.RUN_FILES]
+    lines += ["", "| required by `report`, `export`, `view` | why |", "|---|---|"]
+    lines += [f"| `{_cell(k)}` | {_cell(v)} |" for k, v in files.REQUIRED_FILES.items()]
+    lines += ["", "| optional (skipped when damaged) | without it |", "|---|---|"]
+    lines += [f"| `{_cell(k)}` | {_cell(v)} |" for k, v in files.OPTIONAL_FILES.items()]
+    return "\n".join(lines) + "\n"
+
+
+# ---- the fault table ------------------------------------------------------------------------------------
+REACTIONS = Path(__file__).with_name("fault_reactions.yml")
+CONSTANT = re.compile(r"\b[A-Z][A-Z0-9_]{2,}\b")
+
+
+def _fault(fn: Callable[..., Any]) -> str:
+    """The row function's docstring, its module's numeric constants given their values."""
+    module = inspect.getmodule(fn)
+
+    def value(match: re.Match[str]) -> str:
+        v = getattr(module, match.group(0), None)
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool)
+        return f"{match.group(0)} (= {v:g})" if ok else match.group(0)
+
+    return CONSTANT.sub(value, _first_paragraph(fn.__doc__))
+
+
+def render_fault_rows() -> str:
+    """Every row of `flightstack faults`, in table order: the fault it injects (the row function's
+    docstring) and the reaction documented in fault_reactions.yml (a name there that is not a row fails)."""
+    from flightstack.faults import FAULTS
+
+    reactions: dict[str, str] = yaml.safe_load(REACTIONS.read_text(encoding="utf-8"))
+    unknown = sorted(set(reactions) - set(FAULTS))
+    if unknown:
+        raise ValueError(f"{REACTIONS.name}: not rows of flightstack.faults.FAULTS: {', '.join(unknown)}")
+    lines = ["| row | where it flies | fault | reaction (measured in one run) |", "|---|---|---|---|"]
+    for name, fn in FAULTS.items():
+        module = fn.__module__.rsplit(".", 1)[-1]
+        where = {"rows_sim": "simulated lab", "rows_cli": "simulated lab, through the CLI"}.get(module)
+        where = where or {
+            "rows_processes": "agent processes (Zenoh)",
+            "rows_lab_bus": "Zenoh on loopback",
+        }.get(module, "emulated lab")
+        reaction = reactions.get(name, f"not documented: `flightstack faults --only {name} --expected`")
+        lines.append(f"| `{name}` | {where} | {_cell(_fault(fn))} | {_cell(reaction)} |")
+    return "\n".join(lines) + "\n"
+
+
+RENDERERS: dict[str, Callable[[], str]] = {
+    "cli": render_cli,
+    "run-files": render_run_files,
+    "fault-rows": render_fault_rows,
+}
+
+
+def on_page_markdown(markdown: str, page: Any, config: Any, files: Any) -> str:
+    def replace(match: re.Match[str]) -> str:
+        name = match.group(1)
+        if name not in RENDERERS:
+            raise ValueError(f"{page.file.src_path}: unknown generated block {name!r}")
+        return RENDERERS[name]()
+
+    return MARKER.sub(replace, markdown)
