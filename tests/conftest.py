@@ -67,13 +67,13 @@ SYSTEM_MODULES = frozenset(
 )
 
 
-# The system tier runs on three workers (`-n 3 --dist loadgroup`, pytest-xdist; README): most of its time is
-# spent waiting on real-time flights, not computing. The modules that open loopback devices (Tello, NatNet
-# and MAVLink emulators, each Tello at its fixed port 8889 on an address of 127.0.0.0/8 a module owns; the
-# emulated lab at 127.0.0.6/.7) run one after the other in one group, as without xdist; the emulated-lab
-# fault table, whose lab owns 127.0.2.0/24, is a group of its own; everything else (simulations, Zenoh agents
-# on picked ports, sweeps, fuzzing) is spread over the workers. A new module that binds a fixed port or
-# address joins DEVICE_MODULES.
+# The system tier runs on three workers (`-n 3 --dist loadgroup`, pytest-xdist; docs/getting-started.md):
+# most of its time is spent waiting on real-time flights, not computing. The modules that drive the
+# device emulators and drivers directly (some at the real Tello's fixed ports, in their own network
+# namespaces or on addresses a module owns) run one after the other in one group, as without xdist; the
+# emulated-lab fault table, whose emulators bind only free ports, is a group of its own beside them;
+# everything else (simulations, Zenoh agents on picked ports, sweeps, fuzzing) is spread over the workers.
+# A new module that binds a fixed port or address joins DEVICE_MODULES.
 DEVICE_MODULES = frozenset(
     {
         "test_closed_loop_square",

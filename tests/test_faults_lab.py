@@ -2,7 +2,7 @@
 are handled, and their measured reaction times are within their limits.
 
 Every row runs once (module fixture, about 2 min on 2 cores); the tests read the results. The rows fly the
-loopback emulators of two Tellos (127.0.2.6/.7), NatNet and a MAVLink rover
+loopback emulators of two Tellos (127.0.0.6/.7, each on a free port), NatNet and a MAVLink rover
 (flightstack.sim_backend.emulators),
 through the
 hardware backend in this process or `flightstack fly` in a child process; clock_skew and
@@ -44,19 +44,12 @@ LAB_ROWS = [
 ]
 
 
-FAULT_TABLE_FIRST_IP = "127.0.2.6"
-"""The rows' Tellos (127.0.2.6/.7): no other test module's emulator uses 127.0.2.0/24, so this module runs
-on its own xdist worker beside the other device tests (tests/conftest.py)."""
-
-
 @pytest.fixture(scope="module")
 def results(tmp_path_factory: pytest.TempPathFactory) -> dict[str, FaultResult]:
     for module in ("av", "motioncapture", "pymavlink", "zenoh"):
         pytest.importorskip(module)
     out = tmp_path_factory.mktemp("faults_lab")
-    with pytest.MonkeyPatch.context() as mp:  # an address block of its own: flies beside the other labs
-        mp.setattr(emulated_lab, "LAB_FIRST_IP", FAULT_TABLE_FIRST_IP)
-        res = faults.run_faults(LAB_ROWS, out)
+    res = faults.run_faults(LAB_ROWS, out)
     print("\n" + faults.format_table(res))
     faults.write_json(res, out / "faults.json")
     return {r.name: r for r in res}

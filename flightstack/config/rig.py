@@ -250,9 +250,15 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
     return out
 
 
+def emulated_tello_ip(k: int) -> str:
+    """The loopback address of the emulated lab's k-th Tello (0-based): 127.0.0.(6 + k). Its emulator
+    binds a free port there, so two labs on the same addresses can fly at once."""
+    return f"127.0.0.{6 + k}"
+
+
 def emulated_hardware(drone_ids: list[int], ports: dict[str, Any] | None = None) -> dict[str, Any]:
     """The `hardware:` section of the emulated-lab rig: station topology on loopback, drone k (0-based) at
-    127.0.0.(6 + k). `ports` (from the running emulators: flightstack.faults.emulated_lab) fills in the
+    `emulated_tello_ip(k)`. `ports` (from the running emulators: flightstack.faults.emulated_lab) fills in the
     real ports, the NatNet settings and the rover URL; without it the section holds placeholders, which
     is what `flightstack validate` checks before any emulator runs."""
     ports = ports or {}
@@ -262,7 +268,7 @@ def emulated_hardware(drone_ids: list[int], ports: dict[str, Any] | None = None)
         drones.append(
             {
                 "id": i,
-                "ip": f"127.0.0.{6 + k}",
+                "ip": emulated_tello_ip(k),
                 "control_port": own.get("control_port", 8889),
                 "video_port": own.get("video_port", 11111 + k),
                 "connect_timeout_s": 2.0,

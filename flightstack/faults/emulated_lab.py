@@ -11,8 +11,8 @@ The emulators ship in the package (flightstack.sim_backend.emulators, issue 17) 
 when a lab starts. Without the optional packages av, motioncapture and pymavlink, starting a lab raises
 `LabUnavailableError` saying what is missing (the row then reports a crash).
 
-Addresses (all 127.0.0.0/8): the Tellos own LAB_FIRST_IP and the next addresses, 127.0.0.6 and 127.0.0.7
-by default (station mode: both send their state
+Addresses (all 127.0.0.0/8): the Tellos own 127.0.0.6 and 127.0.0.7 (`config.rig.emulated_tello_ip`), each
+on a free port, so two labs can fly at once (station mode: both send their state
 to one free port of 127.0.0.1); NatNet and the rover use 127.0.0.1 with OS-assigned ports; the operator
 channel of the in-process bus is a free UDP port of 127.0.0.1 (`bus.operator_port`).
 
@@ -23,7 +23,6 @@ durations in seconds; positions in metres in the motion-capture world (z up) unl
 
 from __future__ import annotations
 
-import ipaddress
 import itertools
 import json
 import math
@@ -37,15 +36,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from flightstack.config.rig import MISSION_CONFIGS
+from flightstack.config.rig import MISSION_CONFIGS, emulated_tello_ip
 from flightstack.ports import free_udp_port
 
 LAB_IDS = (1, 2)
 """The drones of the fault table's lab."""
-LAB_FIRST_IP = "127.0.0.6"
-"""The first drone's Tello emulator address; the k-th drone's is k - 1 addresses above it. A Tello answers on
-its fixed UDP port 8889, so two labs flying at once need address blocks of their own (the fault-table
-tests move theirs, tests/test_faults_lab.py)."""
 DRONE_STARTS: dict[int, tuple[tuple[float, float, float], float]] = {
     1: ((-0.5, -0.5, 0.05), 0.0),
     2: ((-0.5, 0.2, 0.05), 0.3),
@@ -145,7 +140,7 @@ class EmulatedLab:
         self.workdir = Path(workdir).resolve()  # the mission written there names its files absolutely
         self._experiment = experiment
         ids = [int(d["id"]) for d in experiment["drones"]] if experiment is not None else list(LAB_IDS)
-        self.ips = {i: str(ipaddress.ip_address(LAB_FIRST_IP) + k) for k, i in enumerate(ids)}
+        self.ips = {i: emulated_tello_ip(k) for k, i in enumerate(ids)}
         self.starts = {i: DRONE_STARTS.get(i, ((-0.5, -0.5 + 0.7 * k, 0.05), 0.0)) for k, i in enumerate(ids)}
         self.duration_s = float(duration_s)
         self._tello_kw = tello or {}
@@ -425,7 +420,6 @@ def ms(seconds: float | None) -> float | None:
 
 __all__ = [
     "DRONE_STARTS",
-    "LAB_FIRST_IP",
     "LAB_IDS",
     "TRUTH_PERIOD_S",
     "EmulatedLab",
