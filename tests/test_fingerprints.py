@@ -1,0 +1,129 @@
+"""Fingerprints of the results (flightstack.recording.fingerprint): the fingerprint is of what the flight
+did, not of the computer that flew it."""
+
+from __future__ import annotations
+
+import hashlib
+import struct
+
+import numpy as np
+import pytest
+
+from flightstack.recording.fingerprint import (
+    EVENTS,
+    META,
+    array_fingerprint,
+    array_summary,
+    fingerprints,
+    summaries,
+)
+from flightstack.recording.timeseries import ARRAY_FIELDS, MACHINE_FIELDS, Recording
+
+
+def _recording(n_ticks: int = 6, done: int = 5, seed: int = 0) -> Recording:
+    """A recording of two drones with random values in every array and a few events."""
+    rng = np.random.default_rng(seed)
+    rec = Recording.empty("dgp", [1, 2], n_ticks)
+    for f in ARRAY_FIELDS:
+        a = getattr(rec, f)
+        if a.dtype.kind == "f":
+            a[...] = rng.normal(size=a.shape)
+        elif a.dtype.kind == "b":
+            a[...] = rng.random(a.shape) < 0.5
+        else:
+            a[...] = rng.integers(0, 3, a.shape)
+    rec.ticks_done = done
+    rec.wall_seconds = 1.25
+    rec.vision_rejections = {"2": {"marker 'red': 0 blobs": 3}}
+    rec.events = [
+        {"t": 0.0, "event": "safety", "kind": "takeoff", "drone": 1, "mode": "dgp", "detail": "battery 90 %"},
+        {
+            "t": 0.01,
+            "event": "safety tick",
+            "mode": "dgp",
+            "ticks": 5,
+            "p50_ms": 0.2,
+            "p99_ms": 0.4,
+            "max_ms": 0.5,
+        },
+    ]
+    return rec
+
+
+def test_array_fingerprint_is_sha256_of_the_header_and_little_endian_values() -> None:
+    a = np.arange(6, dtype=np.float64).reshape(2, 3) / 7
+    expected = hashlib.sha256(b"<f8 (2, 3)\n" + struct.pack("<6d", *(i / 7 for i in range(6)))).hexdigest()
+    assert array_fingerprint(a) == expected
+    flags = np.array([True, False, True])
+    assert array_fingerprint(flags) == hashlib.sha256(b"|b1 (3,)\n\x01\x00\x01").hexdigest()
+    # the same values in another layout or byte order: the same fingerprint
+    assert array_fingerprint(np.asfortranarray(a)) == expected
+    assert array_fingerprint(a.astype(">f8")) == expected
+    assert array_fingerprint(a.T.copy().T) == expected
+
+
+def test_array_fingerprint_changes_with_any_value_shape_or_dtype() -> None:
+    a = np.linspace(-1.0, 1.0, 12)
+    base = array_fingerprint(a)
+    b = a.copy()
+    b[7] = np.nextafter(b[7], 2.0)  # one ulp
+    assert array_fingerprint(b) != base
+    assert array_fingerprint(a.reshape(3, 4)) != base
+    assert array_fingerprint(a.astype(np.float32).astype(np.float64)) != base  # other values
+    assert array_fingerprint(np.arange(12)) != array_fingerprint(np.arange(12, dtype=np.int32))
+
+
+def test_array_fingerprint_is_of_values_not_of_nan_payloads_or_the_sign_of_zero() -> None:
+    a = np.array([1.0, np.nan, 0.0])
+    other_nan = np.frombuffer(struct.pack("<d", 1.0) + bytes.fromhex("010000000000f8ff") + bytes(8), "<f8")
+    assert np.isnan(other_nan[1]) and other_nan.tobytes() != a.tobytes()
+    assert array_fingerprint(other_nan) == array_fingerprint(a)
+    assert array_fingerprint(np.array([1.0, np.nan, -0.0])) == array_fingerprint(a)
+
+
+def test_array_summary() -> None:
+    s = array_summary(np.array([[3.0, np.nan], [4.0, 1e-30]]))
+    assert s == {"shape": [2, 2], "dtype": "float64", "norm": 5.0, "nonfinite": 1}
+    assert array_summary(np.array([1.0, 2.0, 2.0]) / 3 * np.pi)["norm"] == 3.14159  # 6 significant digits
+    assert array_summary(np.array([True, True, False, True]))["norm"] == pytest.approx(3**0.5, rel=1e-6)
+
+
+def test_every_array_but_the_machines_is_fingerprinted_over_the_ticks_done() -> None:
+    rec = _recording()
+    fp = fingerprints(rec)
+    assert set(fp) == {*ARRAY_FIELDS, EVENTS, META} - set(MACHINE_FIELDS)
+    assert set(summaries(rec)) == set(fp)
+    assert fp["g_wi"] == array_fingerprint(rec.g_wi[:5])
+    rec.g_wi[5] += 1.0  # a tick not flown
+    assert fingerprints(rec) == fp
+
+
+def test_what_measures_the_computer_does_not_change_the_fingerprints() -> None:
+    rec = _recording()
+    fp = fingerprints(rec)
+    for f in MACHINE_FIELDS:
+        getattr(rec, f)[:] += 0.125
+    rec.wall_seconds = 99.0
+    rec.events[1].update(p50_ms=3.0, p99_ms=4.0, max_ms=5.0)
+    assert fingerprints(rec) == fp
+
+
+@pytest.mark.parametrize(
+    ("change", "changed"),
+    [
+        (lambda r: r.g_wi.__setitem__((2, 1, 3), np.nextafter(r.g_wi[2, 1, 3], 9.0)), "g_wi"),
+        (lambda r: r.frame_age.__setitem__((0, 0), r.frame_age[0, 0] + 0.05), "frame_age"),
+        (lambda r: r.visible.__setitem__((4, 0), ~r.visible[4, 0]), "visible"),
+        (lambda r: r.events[0].__setitem__("t", 0.05), EVENTS),
+        (lambda r: r.events[1].__setitem__("ticks", 6), EVENTS),
+        (lambda r: r.events.pop(), EVENTS),
+        (lambda r: r.vision_rejections["2"].__setitem__("marker 'red': 0 blobs", 4), META),
+        (lambda r: setattr(r, "interrupted", True), META),
+    ],
+)
+def test_a_change_of_the_flight_changes_its_fingerprint_and_only_that(change, changed: str) -> None:
+    rec = _recording()
+    fp = fingerprints(rec)
+    change(rec)
+    new = fingerprints(rec)
+    assert [k for k in fp if fp[k] != new[k]] == [changed]
