@@ -108,6 +108,17 @@ def test_what_measures_the_computer_does_not_change_the_fingerprints() -> None:
     assert fingerprints(rec) == fp
 
 
+def test_the_order_in_which_events_were_written_does_not_count() -> None:
+    """events.jsonl gets the safety log's events when its writer thread polls it (wall time)."""
+    rec = _recording()
+    rec.events.append({"t": 0.005, "event": "neighbours", "drone": 2, "added": [1], "mode": "dgp"})
+    rec.events.append({"t": None, "event": "recording_stopped", "reason": "disk full", "wall_t": 1.7e9})
+    fp = fingerprints(rec)[EVENTS]
+    rec.events.reverse()
+    rec.events[0]["wall_t"] = 1.8e9
+    assert fingerprints(rec)[EVENTS] == fp
+
+
 @pytest.mark.parametrize(
     ("change", "changed"),
     [

@@ -9,9 +9,11 @@ What is fingerprinted, per mode's Recording (only its ticks done):
   stamp on the mission clock, which on the simulated rigs (ideal, lab-sim) is the virtual clock, so they
   are as deterministic as the poses (0 in the shipped simulated runs, NaN where no frame or pose was
   used; on hardware the mission clock is time.monotonic() and they vary from run to run like everything);
-- `events`: the event list with EVENT_MACHINE_KEYS removed from every event (the safety tick's wall-time
-  percentiles), as canonical JSON (keys sorted, numpy values and non-finite floats as events.jsonl
-  writes them); event kinds, drones, mission times and details stay;
+- `events`: the events with EVENT_MACHINE_KEYS removed from each (wall times), as canonical JSON (keys
+  sorted, numpy values and non-finite floats as events.jsonl writes them), in the order of their
+  mission time t, ties by content: the order of events.jsonl is partly the computer's (the run
+  directory's writer thread polls the safety log every 0.5 s of wall time, so under load a safety event
+  of t = 0.55 s can follow a runner event of t = 2.05 s); event kinds, drones, times and details stay;
 - `meta`: mode, drone ids and META_FIELDS except `wall_seconds` (ticks done, bus drops, interruption,
   error, vision rejections), as canonical JSON.
 
@@ -40,9 +42,10 @@ from flightstack.recording.timeseries import ARRAY_FIELDS, MACHINE_FIELDS, Recor
 
 FINGERPRINTED_FIELDS = tuple(f for f in ARRAY_FIELDS if f not in MACHINE_FIELDS)
 """The arrays fingerprinted: every array of a Recording except those that measure the computer."""
-EVENT_MACHINE_KEYS = frozenset({"p50_ms", "p99_ms", "max_ms"})
-"""Keys of an event that measure the computer: the safety tick's wall-time percentiles (ms) of the
-`safety tick` event (runtime.fleet SafetyTicker.summary); removed before the events are fingerprinted."""
+EVENT_MACHINE_KEYS = frozenset({"p50_ms", "p99_ms", "max_ms", "wall_t"})
+"""Keys of an event that measure the computer, removed before the events are fingerprinted: the safety
+tick's wall-time percentiles (ms) of the `safety tick` event (runtime.fleet SafetyTicker.summary) and the
+wall clock (s since the epoch) of `recording_stopped` (recording.mode_writer)."""
 META_MACHINE_KEYS = frozenset({"wall_seconds"})
 """Keys of `Recording.meta()` that measure the computer (wall time the mode took, s)."""
 EVENTS = "events"
@@ -89,8 +92,16 @@ def _event_key(ev: dict[str, Any]) -> str:
 
 
 def events_canonical(rec: Recording) -> list[dict[str, Any]]:
-    """The events of `rec` without EVENT_MACHINE_KEYS, JSON-able as events.jsonl writes them."""
-    return [json_safe({k: v for k, v in ev.items() if k not in EVENT_MACHINE_KEYS}) for ev in rec.events]
+    """The events of `rec` without EVENT_MACHINE_KEYS, JSON-able as events.jsonl writes them, ordered by
+    mission time t (s; an event without one last), ties by content."""
+    events = [json_safe({k: v for k, v in ev.items() if k not in EVENT_MACHINE_KEYS}) for ev in rec.events]
+
+    def order(ev: dict[str, Any]) -> tuple[float, str]:
+        t = ev.get("t")
+        when = float(t) if isinstance(t, int | float) and not isinstance(t, bool) else math.inf
+        return when, json.dumps(ev, sort_keys=True)
+
+    return sorted(events, key=order)
 
 
 def meta_canonical(rec: Recording) -> dict[str, Any]:
