@@ -1,10 +1,14 @@
-"""Fingerprints of the results (flightstack.recording.fingerprint): the fingerprint is of what the flight
-did, not of the computer that flew it."""
+"""Fingerprints of the results (flightstack.recording.fingerprint, tests/fingerprints.py): the short runs of
+every deterministic rig and mode still give the recordings of tests/data/fingerprints.json, and the
+fingerprint is of what the flight did, not of the computer that flew it."""
 
 from __future__ import annotations
 
+import copy
 import hashlib
+import json
 import struct
+import warnings
 
 import numpy as np
 import pytest
@@ -18,6 +22,7 @@ from flightstack.recording.fingerprint import (
     summaries,
 )
 from flightstack.recording.timeseries import ARRAY_FIELDS, MACHINE_FIELDS, Recording
+from tests.fingerprints import COMMAND, RUNS, STORED, compute, differences, report
 
 
 def _recording(n_ticks: int = 6, done: int = 5, seed: int = 0) -> Recording:
@@ -138,3 +143,61 @@ def test_a_change_of_the_flight_changes_its_fingerprint_and_only_that(change, ch
     change(rec)
     new = fingerprints(rec)
     assert [k for k in fp if fp[k] != new[k]] == [changed]
+
+
+def _doc(norm: float = 2.5, sha: str = "a" * 64, env: str = "numpy 2.4.6") -> dict:
+    entry = {"sha256": sha, "shape": [10, 2, 4], "dtype": "float64", "norm": norm, "nonfinite": 0}
+    modes = {"none": {"g_wi": entry, "e_c": dict(entry, norm=1e-13)}}
+    return {"format": 1, "environment": {"numpy": env}, "runs": {"ideal/paper_sim": {"modes": modes}}}
+
+
+def test_differences_are_exact_in_the_same_environment() -> None:
+    stored = _doc()
+    assert differences(stored, copy.deepcopy(stored)) == ([], True)
+    new = _doc(sha="b" * 64)  # last bits only: the same summaries
+    lines, exact = differences(stored, new)
+    assert exact and len(lines) == 2 and lines[0].startswith("ideal/paper_sim none g_wi (same summary")
+    text = report(lines, exact, stored["environment"], new["environment"])
+    assert "ideal/paper_sim none e_c" in text and COMMAND in text and "commit of its own" in text
+
+
+def test_differences_in_another_environment_compare_the_summaries() -> None:
+    stored = _doc()
+    noise = _doc(norm=2.5 * (1 + 2e-4), sha="b" * 64, env="numpy 2.5.0")
+    noise["runs"]["ideal/paper_sim"]["modes"]["none"]["e_c"]["norm"] = 1.3e-13
+    assert differences(stored, noise) == ([], False)
+    changed = _doc(norm=2.51, sha="b" * 64, env="numpy 2.5.0")
+    lines, exact = differences(stored, changed)
+    assert not exact and len(lines) == 1 and "g_wi" in lines[0] and "2.51" in lines[0]
+    assert "numpy" in report(lines, exact, stored["environment"], changed["environment"])
+    gone = _doc(env="numpy 2.5.0")
+    del gone["runs"]["ideal/paper_sim"]["modes"]["none"]["e_c"]
+    assert differences(stored, gone)[0] == [
+        'ideal/paper_sim none e_c:\n    stored {"dtype": "float64", "nonfinite": 0, "norm": 1e-13, '
+        '"shape": [10, 2, 4]}\n    now    absent'
+    ]
+
+
+def test_the_stored_file_covers_every_run_and_mode() -> None:
+    stored = json.loads(STORED.read_text())
+    assert stored["command"] == COMMAND
+    assert {r.key: list(r.modes) for r in RUNS} == {k: list(v["modes"]) for k, v in stored["runs"].items()}
+    for run in stored["runs"].values():
+        for entries in run["modes"].values():
+            assert set(entries) == {*ARRAY_FIELDS, EVENTS, META} - set(MACHINE_FIELDS)
+
+
+def test_the_short_runs_give_the_stored_recordings() -> None:
+    """Every rig, experiment and mode of RUNS, flown as `flightstack run` flies them (in a child process
+    with the pinned numeric environment), against tests/data/fingerprints.json."""
+    stored = json.loads(STORED.read_text())
+    new = compute()
+    lines, exact = differences(stored, new)
+    if lines:
+        pytest.fail(report(lines, exact, stored["environment"], new["environment"]), pytrace=False)
+    if not exact:
+        warnings.warn(
+            f"fingerprints compared by their summaries only: this environment is not that of {STORED.name} "
+            f"({new['environment']} vs {stored['environment']})",
+            stacklevel=1,
+        )
