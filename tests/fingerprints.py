@@ -16,8 +16,9 @@ functions, and glibc's libm has FMA variants of exp, log, pow, sin, cos, atan, .
 differently. So the runs fly in a child process started with `pinned_env()`, in place before numpy is
 imported: numpy without any dispatched loop (its baseline, x86-64-v2 in numpy 2.4), OpenBLAS's Nehalem
 (SSE) kernels on one thread, OpenCV without its dispatched paths (its SSE3 baseline) on one thread,
-glibc's libm without its FMA variants. Every x86-64-v2 machine (what numpy 2.4 itself requires) runs
-that same code, so the same library versions give the same bits on any of them. The numba kernels
+glibc's libm without its FMA variants. Every x86-64-v2 machine (what numpy 2.4 itself requires) has
+that code, so the same library versions should give the same bits on any of them (checked on one machine
+by forcing each path further down, below; no second machine yet). The numba kernels
 (flightstack/paper/kernels.py) are compiled for the host CPU, but without fastmath LLVM neither
 contracts nor reorders floating-point arithmetic, and numba uses no SVML (it would with Intel's icc_rt
 installed); NUMBA_CPU_NAME is left alone (it changes numba's cache key: every kernel would compile
@@ -320,6 +321,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-pin", action="store_true", help="without pinned_env() (experiments)")
     p.add_argument("--child", metavar="FILE", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.update and (args.env or args.no_pin):
+        p.error("--update stores what the pinned environment gives: not with --env or --no-pin")
     if args.child:
         _child(Path(args.child))
         return 0
