@@ -73,7 +73,8 @@ SYSTEM_MODULES = frozenset(
 # device emulators and drivers directly (some at the real Tello's fixed ports, in their own network
 # namespaces or on addresses a module owns) run one after the other in one group, as without xdist; the
 # emulated-lab fault table, whose emulators bind only free ports, is a group of its own beside them;
-# everything else (simulations, Zenoh agents on picked ports, sweeps, fuzzing) is spread over the workers.
+# every other module (simulations, Zenoh agents on picked ports, sweeps, fuzzing) is a group of its own, so
+# that a module-scoped fixture runs once.
 # A new module that binds a fixed port or address joins DEVICE_MODULES.
 DEVICE_MODULES = frozenset(
     {
@@ -99,17 +100,17 @@ DEVICE_MODULES = frozenset(
 
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Every test is in exactly one tier: `system` (listed module or explicit marker) or `unit`; the
-    device modules' tests share one xdist group."""
+    """Every test is in exactly one tier: `system` (listed module or explicit marker) or `unit`; a module's
+    tests share one xdist group, and the device modules' tests all share one."""
     for item in items:
         if item.path.stem in SYSTEM_MODULES or item.get_closest_marker("system") is not None:
             item.add_marker(pytest.mark.system)
         else:
             item.add_marker(pytest.mark.unit)
-        if item.path.stem == "test_faults_lab":
-            item.add_marker(pytest.mark.xdist_group("emulated-lab-fault-table"))
-        elif item.path.stem in DEVICE_MODULES:
-            item.add_marker(pytest.mark.xdist_group("loopback-devices"))
+        # one worker per module (its module-scoped fixtures, such as a fault table, run once), and one for
+        # all the device modules together
+        group = "loopback-devices" if item.path.stem in DEVICE_MODULES else item.path.stem
+        item.add_marker(pytest.mark.xdist_group(group))
 
 
 # Safety reactions bounded in time (a hover, a landing, a tick that must not block): the bound is the one
