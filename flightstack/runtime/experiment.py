@@ -196,10 +196,9 @@ def build_metrics(mission: Mission, res: ExperimentResult, gp_info: dict[str, ob
         ],
     }
     if "dgp" in modes and modes["dgp"].get("mean_sq_error") and mission.target.motion == "duffing":
-        out["ratios"] = {
-            k: _ratios(modes, k) for k in ("mean_sq_error", "sq_mean_error") if modes["dgp"].get(k)
-        }
-        if "sq_mean_error" in out["ratios"]:
+        ratios = {k: _ratios(modes, k) for k in ("mean_sq_error", "sq_mean_error") if modes["dgp"].get(k)}
+        out["ratios"] = ratios
+        if "sq_mean_error" in ratios:
             out["paper"] = {
                 "metric": "sq_mean_error",
                 "modes": {
@@ -208,8 +207,7 @@ def build_metrics(mission: Mission, res: ExperimentResult, gp_info: dict[str, ob
                     if "sq_mean_error" in modes.get(m, {})
                 },
                 "ratios": {
-                    k: {"ours": v, "paper": PAPER_RATIOS[k]}
-                    for k, v in out["ratios"]["sq_mean_error"].items()
+                    k: {"ours": v, "paper": PAPER_RATIOS[k]} for k, v in ratios["sq_mean_error"].items()
                 },
             }
     return out
