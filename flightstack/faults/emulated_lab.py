@@ -323,15 +323,6 @@ class EmulatedLab:
             time.sleep(0.01)
         return None
 
-    def wait_all_landed(self, timeout_s: float) -> bool:
-        """Wait until every emulated Tello is on the ground (s); True if they are."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if not any(e.flying for e in self.tellos.values()):
-                return True
-            time.sleep(0.02)
-        return not any(e.flying for e in self.tellos.values())
-
     def log(self) -> dict[str, Any]:
         """Every emulator's records, times in s since the lab started (JSON-ready)."""
         t0 = self.t_start

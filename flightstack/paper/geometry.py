@@ -170,11 +170,6 @@ def integrate_body_velocity(g: Pose, V: np.ndarray, dt: float) -> Pose:
     return _pose(out)
 
 
-def angle_difference(a: float, b: float) -> float:
-    """a − b wrapped to (-π, π]."""
-    return wrap_angle(a - b)
-
-
 # ---- batched versions on arrays of pose vectors [..., 4] = [x, y, z, θ] (for recordings) -----------------
 def compose_arrays(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a·b for arrays of pose vectors [x, y, z, θ] (broadcasting over leading axes)."""

@@ -61,14 +61,6 @@ def _points(P0: np.ndarray) -> np.ndarray:
     return P
 
 
-def points_in_drone_frame(g_i0: Pose, P0: np.ndarray) -> np.ndarray:
-    """p_i^j = R(θ_i0) p_0^j + p_i0 for the m feature points P0 (m, 3) given in Σ0; returns (m, 3)."""
-    P = _points(P0)
-    out = np.empty_like(P)
-    kern.points_in_camera(_pose_vec(g_i0), P, CameraModel().packed, out)  # identity extrinsic: Σc = Σi
-    return out
-
-
 def points_in_camera(g_i0: Pose, P0: np.ndarray, cam: CameraModel) -> np.ndarray:
     """Feature points in the physical camera frame Σc, shape (m, 3), metres."""
     P = _points(P0)

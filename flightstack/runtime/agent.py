@@ -129,11 +129,6 @@ class Agent:
         """ḡ_w,i: the observer's estimate of the target pose in the world frame."""
         return _pose(self._T[kern.G_BAR_W])
 
-    @property
-    def _g_bar_i0(self) -> Pose:
-        """ḡ_i0 = g_wi⁻¹ ḡ_w,i of the last phase 1."""
-        return _pose(self._T[kern.G_BAR_I0])
-
     def reset_estimate(self, g_bar_w: Pose) -> None:
         """Restart the observer from ḡ_w,i (e.g. at pursuit start on hardware, from the own pose and g_d)."""
         self._T[kern.G_BAR_W] = g_bar_w.as_vector()

@@ -72,12 +72,6 @@ class _LandingSequence:
         finally:
             self._inner_thread = prev
 
-    def _link_up(self) -> bool:
-        try:
-            return bool(self._call(self.inner.state).link_alive)
-        except Exception:
-            return False
-
     def _event(self, now: float, kind: str, detail: str) -> None:
         self.log.record(now, self.drone_id, kind, detail)
 

@@ -16,7 +16,7 @@ import time
 
 from .tello_base import _Deferred
 from .tello_faults import SDK3_ONLY_COMMANDS, has_sdk3
-from .tello_net import is_loopback, wait_until
+from .tello_net import is_loopback
 from .tello_physics import TelloPhysics, _wrap_deg
 
 LOG = logging.getLogger(f"{__package__}.tello")  # the public module's logger, as before the split
@@ -35,10 +35,6 @@ class TelloCommands(TelloPhysics):
         """Snapshot of the received command texts."""
         with self._lock:
             return [text for _, text in self.commands]
-
-    def wait_for_command(self, text: str, timeout: float, start: int = 0) -> bool:
-        """Wait until a command equal to ``text`` was received (searching from index ``start``)."""
-        return wait_until(lambda: text in self.command_texts()[start:], timeout)
 
     # ------------------------------------------------------------------------------------------- commands
     def _command_loop(self) -> None:
