@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -302,27 +301,6 @@ def cmd_check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-class DeprecatedAlias(argparse.Action):
-    """An old option name that still works for its new one (same dest) and warns on stderr once used."""
-
-    def __init__(self, option_strings: list[str], dest: str, new: str, **kwargs: Any) -> None:
-        super().__init__(option_strings, dest, **kwargs)
-        self.new = new
-
-    def __call__(
-        self,
-        parser: argparse.ArgumentParser,
-        namespace: argparse.Namespace,
-        values: Any,
-        option_string: str | None = None,
-    ) -> None:
-        print(
-            f"warning: {option_string} is deprecated here; use {self.new} (the same value)",
-            file=sys.stderr,
-        )
-        setattr(namespace, self.dest, values)
-
-
 def _add_pattern_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pattern", choices=PATTERN_KINDS, default=None, help="calibration target")
     p.add_argument(
@@ -331,15 +309,6 @@ def _add_pattern_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rows", type=int, default=None, help="the same per column")
     p.add_argument("--square", type=float, default=None, help="square side, or circle spacing s (metres)")
     p.add_argument("--marker-size", type=float, default=None, help="ChArUco: the ArUco marker side (metres)")
-    p.add_argument(  # the old spelling; `calibrate markers` has --marker NAME=X,Y,W,H, a pixel box
-        "--marker",
-        dest="marker_size",
-        type=float,
-        default=None,
-        action=DeprecatedAlias,
-        new="--marker-size",
-        help=argparse.SUPPRESS,
-    )
     p.add_argument(
         "--dictionary", default="DICT_4X4_50", help="ChArUco ArUco dictionary (default DICT_4X4_50)"
     )

@@ -1,6 +1,6 @@
 """The CLI conventions of issue 19: `--version`, `python -m flightstack`, shell completion (argcomplete),
 `validate` printing a summary (`--json` for the resolved mission), and one meaning per option name
-(`--marker-size` for the ChArUco marker side, `--marker` kept there as a deprecated alias)."""
+(`--marker-size` for the ChArUco marker side, `--marker` the pixel box of `calibrate markers`)."""
 
 from __future__ import annotations
 
@@ -222,16 +222,6 @@ def test_marker_size_is_the_charuco_marker_side(
     assert capsys.readouterr().err == ""
 
 
-@pytest.mark.parametrize("command", [["camera"], ["check", "cal.yaml", "--image", "x.png"]])
-def test_old_marker_length_still_works_with_a_warning(
-    command: list[str], capsys: pytest.CaptureFixture[str]
-) -> None:
-    args = build_parser().parse_args(["calibrate", *command, "--marker", "0.03"])
-    assert args.marker_size == 0.03
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "warning: --marker is deprecated" in err and "--marker-size" in err
-
-
 def test_marker_stays_the_pixel_box_of_calibrate_markers(capsys: pytest.CaptureFixture[str]) -> None:
     args = build_parser().parse_args(
         ["calibrate", "markers", "--marker", "red=1,2,3,4", "--marker", "green=5,6,7,8@1"]
@@ -243,14 +233,11 @@ def test_marker_stays_the_pixel_box_of_calibrate_markers(capsys: pytest.CaptureF
 def test_a_bad_marker_size_is_named_by_its_new_option(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """End to end through `calibrate check`: the deprecated spelling reaches the pattern, whose error names
-    --marker-size."""
+    """End to end through `calibrate check`: the pattern's error names --marker-size."""
     image = tmp_path / "sample.png"
     cv2.imwrite(str(image), np.zeros((240, 320, 3), np.uint8))
     cal = str(MISSIONS / "cameras" / "tello_down_sim.yaml")
     pattern = ["--pattern", "charuco", "--cols", "5", "--rows", "7", "--square", "0.04"]
-    for option in ("--marker-size", "--marker"):
-        assert main(["calibrate", "check", cal, "--image", str(image), *pattern, option, "0.05"]) == 2
-        err = capsys.readouterr().err
-        assert "--marker-size: the ArUco marker side (metres) must be in (0, square=0.04)" in err
-        assert ("deprecated" in err) == (option == "--marker")
+    assert main(["calibrate", "check", cal, "--image", str(image), *pattern, "--marker-size", "0.05"]) == 2
+    err = capsys.readouterr().err
+    assert "--marker-size: the ArUco marker side (metres) must be in (0, square=0.04)" in err
