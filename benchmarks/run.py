@@ -50,7 +50,8 @@ from flightstack.comms.bus import InProcBus  # noqa: E402
 from flightstack.comms.messages import PredictionMessage  # noqa: E402
 from flightstack.config.mission import load_mission  # noqa: E402
 from flightstack.paper.geometry import Pose  # noqa: E402
-from flightstack.paper.gp import GPExpert, GPHyperparameters, _lml_and_grad, _pairwise_sq_diff  # noqa: E402
+from flightstack.paper.gp import GPExpert, GPHyperparameters  # noqa: E402
+from flightstack.paper.gp_kernel import _lml_and_grad, _pairwise_sq_diff  # noqa: E402
 from flightstack.paper.projection import CameraModel, points_in_camera  # noqa: E402
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch  # noqa: E402
 from flightstack.vision.camera_file import load_calibration  # noqa: E402
@@ -147,7 +148,7 @@ def _sklearn_fit(X: np.ndarray, y: np.ndarray, maxiter: int | None):
     from sklearn.gaussian_process import GaussianProcessRegressor
     from sklearn.gaussian_process.kernels import RBF, ConstantKernel
 
-    from flightstack.paper.gp import _LBFGSB_OPTIONS
+    from flightstack.paper.gp_fit import _LBFGSB_OPTIONS
 
     options = dict(_LBFGSB_OPTIONS)
     if maxiter is not None:

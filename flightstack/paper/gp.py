@@ -20,8 +20,8 @@ likelihood (:meth:`GPExpert.fit`). Everything is numpy/scipy only.
 
 This module is the expert and the public face of the GP: the SE-ARD kernel, its hyperparameters and the log
 marginal likelihood are in flightstack/paper/gp_kernel.py, the hyperparameter optimisation in
-flightstack/paper/gp_fit.py, the argument checks in flightstack/paper/gp_checks.py; their public names (and
-the private ones used by benchmarks/run.py) are re-exported here.
+flightstack/paper/gp_fit.py, the argument checks in flightstack/paper/gp_checks.py; their public names are
+re-exported here.
 """
 
 from __future__ import annotations
@@ -35,11 +35,8 @@ from scipy.spatial.distance import cdist
 
 from flightstack.paper import kernels as kern
 from flightstack.paper.gp_checks import _as_finite_2d, _readonly, _validate_training_data
-from flightstack.paper.gp_fit import _LBFGSB_OPTIONS as _LBFGSB_OPTIONS
 from flightstack.paper.gp_fit import fit_hyperparameters
 from flightstack.paper.gp_kernel import _LOG_2PI, GPHyperparameters, log_marginal_likelihood_and_grad
-from flightstack.paper.gp_kernel import _lml_and_grad as _lml_and_grad
-from flightstack.paper.gp_kernel import _pairwise_sq_diff as _pairwise_sq_diff
 
 __all__ = ["VAR_FLOOR_REL", "GPExpert", "GPHyperparameters", "log_marginal_likelihood_and_grad"]
 
