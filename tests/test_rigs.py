@@ -1,7 +1,6 @@
-"""One experiment, any rig (issue 17): the paper's experiment flies on `ideal`, `lab-sim` and
-`emulated-lab` from the same file; rig and lab files validate on their own; old single-file missions load
-with a warning and `flightstack migrate` splits them into an experiment and a rig that compose back to
-the same mission."""
+"""One experiment, any rig: the paper's experiment flies on `ideal`, `lab-sim` and `emulated-lab` from
+the same file; rig and lab files validate on their own; a file that mixes an experiment with a backend is
+refused, a resolved mission written by a run loads as it is."""
 
 from __future__ import annotations
 
@@ -18,7 +17,7 @@ import yaml
 
 from flightstack.cli.app import main
 from flightstack.config.mission import MissionError, load_mission, mission_to_dict
-from flightstack.config.rig import MISSION_CONFIGS, resolved_document, split
+from flightstack.config.rig import MISSION_CONFIGS, resolved_document
 from flightstack.recording.run_dir import load_run
 from tests.conftest import MISSIONS, run_cli
 
@@ -130,37 +129,17 @@ def test_the_paper_simulation_needs_cameras_for_a_lab_rig() -> None:
         load_mission("paper_sim", rig="lab-sim")
 
 
-def test_old_single_files_load_with_a_warning_and_migrate_splits_them(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
+def test_an_experiment_with_a_backend_is_refused_and_a_resolved_mission_loads(tmp_path: Path) -> None:
     resolved = resolved_document(EXPERIMENT)
-    single = {k: v for k, v in resolved.items() if k not in ("rig", "start_emulators")}  # the old format
-    old = tmp_path / "old.yaml"
-    old.write_text(yaml.safe_dump(single, sort_keys=False))
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        m_old = load_mission(old)
-    assert any(issubclass(w.category, DeprecationWarning) and "migrate" in str(w.message) for w in caught)
-    assert main(["migrate", str(old), "--out", str(tmp_path / "new")]) == 0
-    capsys.readouterr()
-    exp_path = tmp_path / "new" / "paper_experiment.yaml"
-    rig_path = tmp_path / "new" / "paper_experiment_rig.yaml"
-    assert yaml.safe_load(exp_path.read_text())["rig"] == "paper_experiment_rig.yaml"
-    assert yaml.safe_load(rig_path.read_text())["backend"] == "sim_lab"
+    mixed = tmp_path / "mixed.yaml"
+    mixed.write_text(yaml.safe_dump({k: v for k, v in resolved.items() if k != "rig"}, sort_keys=False))
+    with pytest.raises(MissionError, match=r"mixed.yaml: backend: belongs in a rig file"):
+        load_mission(mixed)
+    whole = tmp_path / "resolved.yaml"
+    whole.write_text(yaml.safe_dump(resolved, sort_keys=False))
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # the migrated pair loads without a deprecation warning
-        m_new = load_mission(exp_path)
-    a, b = mission_to_dict(m_old), mission_to_dict(m_new)
-    assert b.pop("rig") == "paper_experiment_rig" and a.pop("rig") == ""
-    assert a == b  # the same mission, split in two
-
-
-def test_split_keeps_every_key_somewhere() -> None:
-    resolved = resolved_document(EXPERIMENT, "lab")
-    exp, rig = split(resolved, "lab_copy")
-    for key in resolved:
-        assert key in exp or key in rig or key in ("rig", "start_emulators", "backend"), key
-    assert "hardware" in rig and "hardware" not in exp
+        warnings.simplefilter("error")
+        assert mission_to_dict(load_mission(whole)) == mission_to_dict(load_mission(EXPERIMENT))
 
 
 def test_built_in_names_work_from_any_directory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -16,7 +16,6 @@ import argcomplete
 from flightstack.cli.run import (
     _confirm,
     add_run_arguments,
-    cmd_migrate,
     cmd_run,
     seconds,
 )
@@ -312,10 +311,6 @@ def build_parser() -> argparse.ArgumentParser:
     from flightstack.cli.validate import register as register_validate
 
     register_validate(sub)
-    mg = sub.add_parser("migrate", help="split an old single-file mission into an experiment and a rig")
-    mg.add_argument("mission")
-    mg.add_argument("--out", required=True, help="directory for <name>.yaml and <name>_rig.yaml")
-    mg.set_defaults(func=cmd_migrate)
     from flightstack.cli.completion import register as register_completion
 
     register_completion(sub)

@@ -1,6 +1,6 @@
-"""`flightstack run EXPERIMENT --rig RIG` (and its older spellings `sim` and `fly`), `validate` and
-`migrate`: one experiment, any rig (flightstack.config.rig). A simulated rig flies at once; the
-emulated-lab rig starts its loopback emulators first; a real lab is preflighted and confirmed."""
+"""`flightstack run EXPERIMENT --rig RIG` (and its older spellings `sim` and `fly`) and `validate`: one
+experiment, any rig (flightstack.config.rig). A simulated rig flies at once; the emulated-lab rig starts
+its loopback emulators first; a real lab is preflighted and confirmed."""
 
 from __future__ import annotations
 
@@ -450,41 +450,6 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
     from flightstack.cli.view import add_viewer_argument
 
     add_viewer_argument(p)
-
-
-def cmd_migrate(args: argparse.Namespace) -> int:
-    """Split a single-file mission into `<name>.yaml` (experiment) and `<name>_rig.yaml` (rig) in --out;
-    the experiment names the rig file. Both are validated by composing them before anything is written."""
-    import yaml
-
-    from flightstack.config.rig import Source, compose, kind_of, read, split
-
-    src = read(Path(args.mission), "mission file")
-    if kind_of(src.data) not in ("single", "resolved"):
-        print(f"error: {args.mission}: not a single-file mission (it has no `backend:`)", file=sys.stderr)
-        return 2
-    name = str(src.data.get("name") or Path(args.mission).stem)
-    out = Path(args.out)
-    exp, rig = split(src.data, f"{name}_rig")
-    # calibrations were relative to the old file: make them absolute in the rig
-    for entry in rig.get("drones", []):
-        if "camera" in entry and not Path(entry["camera"]).is_absolute():
-            entry["camera"] = str((src.base / entry["camera"]).resolve())
-    e_path, r_path = out / f"{name}.yaml", out / f"{name}_rig.yaml"
-    doc = compose(Source(exp, e_path), Source(rig, r_path))
-    load_doc_check(doc, str(e_path))
-    out.mkdir(parents=True, exist_ok=True)
-    e_path.write_text(yaml.safe_dump(exp, sort_keys=False))
-    r_path.write_text(yaml.safe_dump(rig, sort_keys=False))
-    print(f"experiment: {e_path}\nrig: {r_path}\n(`flightstack run {e_path}` flies it on its rig)")
-    return 0
-
-
-def load_doc_check(doc: dict[str, Any], label: str) -> None:
-    """MissionError unless `doc` is a valid resolved mission."""
-    from flightstack.config.mission import parse_mission
-
-    parse_mission(doc, label)
 
 
 def seconds(text: str) -> float:

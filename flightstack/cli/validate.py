@@ -44,7 +44,7 @@ def mission_summary(m: Mission) -> list[str]:
         where = "simulated"
     else:
         where = "real drivers, loopback emulators" if m.start_emulators else "real hardware"
-    rig = f"rig {m.rig}" if m.rig else "no rig (single-file mission)"
+    rig = f"rig {m.rig}" if m.rig else "no rig"
     lines = [f"mission {m.name}: {rig}, backend {m.backend} ({where})"]
     blind = [d.id for d in m.drones if not d.sees_target]
     n_edges = m.edge_count()

@@ -241,7 +241,7 @@ class GainAnalysisSpec(_Strict):
 class Mission(_Strict):
     name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")
     description: str = ""
-    rig: str = ""  # the rig it was composed with (flightstack.config.rig); "" for an old single file
+    rig: str = ""  # the rig it was composed with (flightstack.config.rig); "" if built without one
     start_emulators: bool = False  # the emulated-lab rig: `run` starts loopback emulators for `hardware`
     backend: Literal["sim_ideal", "sim_lab", "tello"] = "sim_ideal"
     seed: int = Field(default=0, ge=0, le=2**32 - 1)  # numpy's generators take 0 .. 2³²−1
@@ -453,7 +453,7 @@ def load_mission(
     rig: str | Path | None = None,
 ) -> Mission:
     """Read and validate a mission: an experiment on `rig` (a built-in name or a rig file; default: the
-    experiment's own `rig:`), a resolved mission written by a run, or an old single file (deprecated).
+    experiment's own `rig:`) or a resolved mission written by a run.
     `path` may be a built-in experiment name. `overrides` replace top-level keys (e.g. duration_s) of the
     resolved mission first.
 

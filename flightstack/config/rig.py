@@ -14,15 +14,12 @@ Built-in names (package data under `flightstack.mission_configs`, found from any
 flightstack.config.generate); rigs `ideal`, `lab-sim`, `emulated-lab`, and `lab` (the real-lab
 template). A name that is not built in is read as a path.
 
-Single-file missions (the format before issue 17: one file with `backend:` and everything else) still
-load, with a DeprecationWarning; `flightstack migrate OLD --out DIR` splits one into an experiment and a
-rig. A file with both `backend:` and `rig:` is a resolved mission written by a run; it loads silently.
+A file with both `backend:` and `rig:` is a resolved mission written by a run; it loads as it is.
 """
 
 from __future__ import annotations
 
 import copy
-import warnings
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -108,11 +105,11 @@ def read(path: Path, what: str) -> Source:
 
 
 def kind_of(data: dict[str, Any]) -> str:
-    """'resolved' (a run's mission_resolved.yaml), 'single' (a pre-issue-17 mission), 'rig' or
-    'experiment'."""
+    """'resolved' (a run's mission_resolved.yaml), 'mixed' (experiment and backend in one file, without the
+    rig name of a resolved mission: not accepted), 'rig' or 'experiment'."""
     # an experiment has `name` and no `backend`; a rig has `backend` and no `name` (`rig:` is its name)
     if "backend" in data and "name" in data:
-        return "resolved" if isinstance(data.get("rig"), str) and data.get("rig") else "single"
+        return "resolved" if isinstance(data.get("rig"), str) and data.get("rig") else "mixed"
     if "backend" in data:
         return "rig"
     return "experiment"
@@ -290,55 +287,24 @@ def emulated_hardware(drone_ids: list[int], ports: dict[str, Any] | None = None)
     }
 
 
-def split(single: dict[str, Any], rig_name: str) -> tuple[dict[str, Any], dict[str, Any]]:
-    """A pre-issue-17 single-file mission -> (experiment, rig) documents (`flightstack migrate`)."""
-    d = copy.deepcopy(single)
-    rig: dict[str, Any] = {"rig": rig_name, "backend": d.pop("backend", "sim_ideal")}
-    for key in ("sim", "safety", "bus", "hardware"):
-        if key in d:
-            rig[key] = d.pop(key)
-    target = d.get("target")
-    if isinstance(target, dict) and "robot" in target:
-        rig["robot"] = target.pop("robot")
-    rig_drones = []
-    for dr in d.get("drones", []):
-        entry: dict[str, Any] = {"id": dr.get("id")}
-        cam = dr.get("camera")
-        if isinstance(cam, dict) and "calibration" in cam:
-            entry["camera"] = cam.pop("calibration")
-        if "rc_gains" in dr:
-            entry["rc_gains"] = dr.pop("rc_gains")
-        if len(entry) > 1:
-            rig_drones.append(entry)
-    if rig_drones:
-        rig["drones"] = rig_drones
-    d["rig"] = f"{rig_name}.yaml"
-    return d, rig
-
-
 def load_composed(
     experiment: str | Path, rig: str | Path | None = None
 ) -> tuple[dict[str, Any], Path, Any, str]:
     """(resolved document, the file to resolve relative paths against, key→line map or None, label).
 
-    `experiment` may also be a single-file or resolved mission, which is returned as is (a single file
-    with a DeprecationWarning; `rig` must then be None)."""
+    `experiment` may also be a resolved mission (a run's mission_resolved.yaml), which is returned as is
+    (`rig` must then be None)."""
     exp_path = find(experiment, "experiment")
     src = read(exp_path, "mission file")
     kind = kind_of(src.data)
-    if kind in ("single", "resolved"):
+    if kind == "mixed":
+        raise RigError(
+            f"{exp_path}: backend: belongs in a rig file; an experiment names its rig with `rig:` "
+            "(docs/experiments.md)"
+        )
+    if kind == "resolved":
         if rig is not None:
-            raise RigError(
-                f"{exp_path}: this file names its own backend; --rig needs an experiment file "
-                f"(`flightstack migrate {exp_path} --out DIR` splits it)"
-            )
-        if kind == "single":
-            warnings.warn(
-                f"{exp_path}: single-file missions are deprecated; `flightstack migrate {exp_path} "
-                "--out DIR` splits it into an experiment and a rig",
-                DeprecationWarning,
-                stacklevel=3,
-            )
+            raise RigError(f"{exp_path}: this file names its own backend; --rig needs an experiment file")
         return src.data, exp_path, src.where, str(exp_path)
     if kind == "rig":
         raise RigError(f"{exp_path}: this is a rig file; give an experiment (and this rig with --rig)")
