@@ -1,4 +1,4 @@
-"""Speed of the tick and of the simulator (issue 18), measured as ratios in one run (benchmarks/run.py).
+"""Speed of the tick and of the simulator, measured as ratios in one run (benchmarks/run.py).
 
 * Agent tick (observer, own prediction, publish, fuse, control), per agent, on the ideal backend: against
   M (10, 100, 1000 training points per expert; the paper's model, one kernel per output) and against the

@@ -18,7 +18,7 @@ DOCS = REPO / "docs"
 BENCH_PAGE = DOCS / "performance.md"
 """The docs page that holds the benchmark table (block `bench`)."""
 
-#: targets of issues 8 and 18 (value, unit, "max" = measured must be ≤ target, "min" = ≥ target)
+#: performance targets (value, unit, "max" = measured must be ≤ target, "min" = ≥ target)
 TARGETS = {
     "tick_us_M10": (30.0, "µs per agent tick, M = 10", "max"),
     "tick_us_M1000_shared": (500.0, "µs per agent tick, M = 1000, one kernel for the outputs", "max"),

@@ -5,7 +5,7 @@
 Per scenario: whether takeoff() and land() succeeded, the time each took to be confirmed from telemetry,
 the replies the driver discarded or did not trust, the commands the drone rejected or ignored in its
 phase (`emu.refused`, should be 0), and whether the driver's phase agreed with the drone's at the end.
-The numbers go in the issue's closing note; tests/test_tello_driver.py asserts the same properties.
+tests/test_tello_driver.py asserts the same properties.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""`flightstack guard MISSION` (issue 15): land the Tello of an agent process that vanishes in flight.
+"""`flightstack guard MISSION`: land the Tello of an agent process that vanishes in flight.
 
 Optional, on the operator's computer, next to `flightstack status`. It joins the mission's Zenoh bus as
 the operator tool "guard" (it connects, hosts no agent, publishes nothing), follows every agent's

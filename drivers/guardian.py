@@ -1,4 +1,4 @@
-"""A guardian process for every process that commands hardware (`fly`, `agent`, `target`; issue 15).
+"""A guardian process for every process that commands hardware (`fly`, `agent`, `target`).
 
 When the process flying the drones dies (SIGKILL, out-of-memory kill, a crash in native code) or stops
 ticking (SIGSTOP, Ctrl-Z on a process that ignores it, a hang), nothing in it can land them: a Tello keeps

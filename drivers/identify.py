@@ -41,8 +41,8 @@ into
 the body frame with the reported yaw; during x/y/z steps the drone does not yaw (only one rc slot is
 non-zero), and `identify` flies the yaw steps last and back and forth, so for x/y the rotation is the
 identity up to a degree of rounding. On a real Tello the x/y/z fields are mission-pad coordinates (constant
-while no pad is detected), so hardware identification needs an external `velocity_source` (motion capture,
-a later issue); a real Tello's 'h' field would give the height without pads.
+while no pad is detected), so hardware identification needs an external `velocity_source` (e.g.
+motion capture); a real Tello's 'h' field would give the height without pads.
 """
 
 from __future__ import annotations

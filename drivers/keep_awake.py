@@ -1,4 +1,4 @@
-"""Keep the computer awake while it flies (issue 15: a laptop that sleeps leaves its drones alone).
+"""Keep the computer awake while it flies (a laptop that sleeps leaves its drones alone).
 
 No process on the laptop can land a drone while the laptop sleeps, so `flightstack fly` and a hardware
 `flightstack agent` ask the operating system not to sleep for as long as they fly:

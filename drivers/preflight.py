@@ -116,7 +116,7 @@ def check_files(mission: Mission) -> list[CheckRow]:
 
 
 def check_certs(mission: Mission, drone_ids: list[int], all_in_one: bool = False) -> list[CheckRow]:
-    """The mission's certificates (issue 16) for what this computer runs. On Zenoh: its participant's
+    """The mission's certificates for what this computer runs. On Zenoh: its participant's
     pair (`agent-N` for `--id N`, `agents` for a process flying all, `all_in_one`) with the mission CA.
     On the in-process bus: the operator's (`fly` verifies loopback aborts with it, `abort` signs).
     FAIL when the mission does not have that participant (`agents` its endpoints do not name), when

@@ -4,7 +4,7 @@ Drone body frame (FLU): x forward, y left, z up; yaw rate ω about +z (counter-c
 Tello SDK `rc a b c d`, each an integer in −100..100: a = left/right (+ right), b = forward/backward
 (+ forward), c = up/down (+ up), d = yaw (+ clockwise seen from above). Hence
     a = −v_y / g_xy,  b = v_x / g_xy,  c = v_z / g_z,  d = −ω / g_yaw
-with per-drone gains g (m/s or rad/s per rc unit) from `flightstack calibrate drone` (later issue).
+with per-drone gains g (m/s or rad/s per rc unit) from `flightstack calibrate drone`.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""One event type for everything that happens in a run (issue 17).
+"""One event type for everything that happens in a run.
 
 An `Event` is what a safety rule, a device driver, the bus, the simulated world or the runner reports:
 its time, the drone it concerns, a kind (a short snake_case or plain word), a human-readable detail, the

@@ -1,5 +1,5 @@
 """`flightstack bench-loop [EXPERIMENT] [--rig emulated-lab] [--seconds S]`: does this computer keep the
-mission's control period while decoding every drone's video? (issue 19, loop health)
+mission's control period while decoding every drone's video? (loop health)
 
 It flies the experiment's `none` mode for S seconds on the emulated lab: one Tello emulator per drone
 streaming H.264 video on loopback, the NatNet motion-capture emulator, the MAVLink rover, the real

@@ -1,4 +1,4 @@
-"""`flightstack certs MISSION --out DIR`: the mission CA and a certificate per participant (issue 16).
+"""`flightstack certs MISSION --out DIR`: the mission CA and a certificate per participant.
 
 Makes exactly the mission's participants (factory.mission_participants): `agent-<id>` per drone,
 `operator` and `guard`, and `agents` / `world` only when `bus.zenoh.endpoints` names them, because the

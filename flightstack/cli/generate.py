@@ -1,4 +1,4 @@
-"""`flightstack generate-mission --drones N`: the paper's simulation for N drones (issue 18).
+"""`flightstack generate-mission --drones N`: the paper's simulation for N drones.
 
 Writes the experiment YAML (flightstack.config.generate.n_drone_mission) to --out, or to stdout without
 it; an existing file is kept unless --force. The file loads with `flightstack validate FILE` and flies

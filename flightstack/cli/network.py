@@ -1,4 +1,4 @@
-"""Commands for agents in separate processes over Zenoh: `agent`, `world`, `abort`, `status` (issue 6).
+"""Commands for agents in separate processes over Zenoh: `agent`, `world`, `abort`, `status`.
 
     flightstack world MISSION                       # simulated missions: serve the world (clock master)
     flightstack agent MISSION --id N --out DIR      # one agent: its drone, camera, pose (sim or hardware)

@@ -1,11 +1,11 @@
-"""The operator's abort (`flightstack abort`, issue 15): publish at once, then collect acknowledgements.
+"""The operator's abort (`flightstack abort`): publish at once, then collect acknowledgements.
 
 `send_abort(mission)` publishes one abort (payload {"reason", "id"}) on every channel the mission's
 agents can hear, *before* waiting for anyone:
   - Zenoh (`bus.zenoh` section present): the mission's control key, as participant "operator";
   - loopback UDP to 127.0.0.1:`operator_port(mission)` (bus kind "inproc": `flightstack fly` with the
     in-process bus listens there, operator_link.py); on real hardware signed with the operator's key
-    from `bus.certs` (issue 16).
+    from `bus.certs`.
 An operator session that has just opened is not yet connected to the agents, so the abort is sent again
 as soon as a new agent's presence token is seen (its subscriber is declared by then) and every
 `resend_s` until every drone of the mission acknowledged or `timeout_s` passed. Agents acknowledge every

@@ -1,4 +1,4 @@
-"""Bounded acceptance of received predictions (issue 16): what a neighbour's message may claim.
+"""Bounded acceptance of received predictions: what a neighbour's message may claim.
 
 Decoding (messages.py) proves a message is well formed. These bounds say whether it is *physically and
 logically possible*; a message outside them is dropped and counted by reason (freshness.py), never
@@ -12,8 +12,8 @@ target's pose in Σw):
     μ                    |v_x|, |v_y|, |v_z| ≤ max_speed_mps (m/s), |ω| ≤ max_yaw_rate_rps (rad/s)
     ḡ_w                  |x|, |y|, |z| ≤ max_position_m (m), |θ| ≤ max_angle_rad (rad)
 Sequence numbers. A sender counts from 0 or 1, so the first message of a sender (or after it left)
-must have seq < max_seq_jump, as if its predecessor were seq −1 (issue 18: a forged seq 2³²−1 that
-arrived before the real sender's first message took its slot for `restart_after` ticks and changed a
+must have seq < max_seq_jump, as if its predecessor were seq −1 (otherwise a forged seq 2³²−1
+arriving before the real sender's first message takes its slot for `restart_after` ticks and changes a
 flight). Afterwards seq must be in (prev, prev + max_seq_jump]: older ones are "old or duplicate seq",
 larger jumps "seq jump". The restart rule takes a sender back whose seq moved on without us (a restarted
 receiver joining a live sender, or a real sender after an accepted forgery): `restart_after` consecutive

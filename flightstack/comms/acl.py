@@ -1,4 +1,4 @@
-"""The mission's key space and who may publish on each key (issue 16): Zenoh access control, generated.
+"""The mission's key space and who may publish on each key: Zenoh access control, generated.
 
 Keys (one mission = one key space `{prefix}/{mission}`):
 

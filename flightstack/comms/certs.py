@@ -1,4 +1,4 @@
-"""The mission's certificates (issue 16): a mission CA and one certificate per participant.
+"""The mission's certificates: a mission CA and one certificate per participant.
 
 Who is who. Every process that joins a secured mission's Zenoh network is a *participant* and holds a
 certificate signed by the mission's own CA, with the participant's name as the certificate's common name

@@ -1,4 +1,4 @@
-"""The operator channel's messages (issue 6, issue 15): abort, status, abort acknowledgements.
+"""The operator channel's messages: abort, status, abort acknowledgements.
 
 One JSON shape on every transport (the Zenoh key `{prefix}/{mission}/control`, and the loopback UDP
 listener of in-process missions, flightstack/comms/operator_link.py):

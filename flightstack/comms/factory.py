@@ -4,16 +4,16 @@
 (every agent in one process), `world` (the served simulated world), or anything else for operator
 tools, which only connect. Each participant listens on its own endpoint and connects to all others.
 
-Time base (issue 15, freshness.py): simulated missions keep comparing stamps on the one mission clock
+Time base (freshness.py): simulated missions keep comparing stamps on the one mission clock
 (lock-step, bit-identical); real-time (hardware) missions on Zenoh measure each neighbour's message age on
 the receiver's own clock through a per-sender offset learned when the sender joins. The in-process bus
 has one clock for every agent and always compares stamps.
 
-Operator channel (issue 15, operator_link.py): an in-process bus on hardware (or with `bus.operator_port`
+Operator channel (operator_link.py): an in-process bus on hardware (or with `bus.operator_port`
 set) wraps a loopback UDP listener, so `flightstack abort` reaches a `flightstack fly` from another
 terminal; `bus.control_events()` yields its aborts.
 
-Security (issue 16): a `security: mtls` Zenoh bus gets this participant's certificate files from
+Security: a `security: mtls` Zenoh bus gets this participant's certificate files from
 `bus.certs` (checked first: certs.check_participant) and the access control generated from the
 mission's participants (`mission_participants`, acl.py); a participant the mission does not have (say
 `agents` when its endpoints do not name it) is refused before it opens, even when an older `certs` run

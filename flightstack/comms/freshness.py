@@ -1,4 +1,4 @@
-"""Receive side of every bus, in one place: decode → sequence → sender clock → staleness (issue 15).
+"""Receive side of every bus, in one place: decode → sequence → sender clock → staleness.
 
 `Freshness` holds what a receiver knows about each sender: its newest valid prediction message, the
 receipt time of that message and, in real time, the offset between the sender's clock and the
@@ -9,7 +9,7 @@ receiver's. `InProcBus` and `ZenohBus` feed it the bytes they receive (`accept`)
 Time bases
 ----------
 "stamps" (lock-step runs, simulated clock; the in-process bus): a message's age is `now − stamp`, both
-    on the one mission clock. No clock is read; results are bit-identical to the buses before issue 15.
+    on the one mission clock. No clock is read, so lock-step runs stay bit-identical.
 
 "receiver" (real-time runs, agents on different computers): the stamps of sender j are on j's
     monotonic clock, unrelated to the receiver's. The receiver learns, per sender,

@@ -10,7 +10,7 @@ publishes μ = 0 and var = prior_var = 1 (never used for fusion in mode `none`).
 
 `decode` returns (message, None) or (None, reason) and never raises: bad input is the caller's to count.
 
-Flat layout in memory (issue 18): the 16 floats are one float64 array, written with one `tobytes()` and
+Flat layout in memory: the 16 floats are one float64 array, written with one `tobytes()` and
 read with one `np.frombuffer`; a message built by `decode` (or `PredictionMessage.of_body`) has its four
 fields as views of that array (`body()`). The checks on the 16 floats, and the receiver's
 AcceptanceBounds (acceptance.py), are one compiled kernel (flightstack.paper.kernels.message_check)

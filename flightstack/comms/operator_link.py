@@ -1,4 +1,4 @@
-"""The loopback operator channel of in-process missions (issue 15): `flightstack abort` from another
+"""The loopback operator channel of in-process missions: `flightstack abort` from another
 terminal of the same computer reaches a `flightstack fly` whose agents share the in-process bus.
 
     flightstack abort MISSION  --UDP-->  127.0.0.1:PORT  LoopbackOperatorListener (in the fly process)
@@ -17,7 +17,7 @@ every error and keeps running. A valid abort is queued for `control_events()` (t
 it to the runner, which lands at its next check) and acknowledged at once, from the listener thread,
 to the sending address, whatever the runner is doing.
 
-Signed aborts (issue 16). On real hardware the listener is given the operator's public key (from the
+Signed aborts. On real hardware the listener is given the operator's public key (from the
 mission's `bus.certs`: `operator.pem`, checked against `ca.pem`) and accepts only datagrams of the form
 
     <control JSON> NUL <DER ECDSA P-256/SHA-256 signature of the JSON by operator.key>

@@ -49,14 +49,14 @@ links and is seen as left without waiting for the lease; a hung one (stopped, pa
 (section "Presence"). A sender that has left reads as None (counted "left") and its newest message and
 sequence number are forgotten, so a restarted agent (seq from 0) is accepted.
 
-Time base (issue 15, freshness.py). `cfg.time_base` "stamps" (the default; lock-step runs on a simulated
+Time base (freshness.py). `cfg.time_base` "stamps" (the default; lock-step runs on a simulated
 clock): a message's age is `now − stamp` on the mission clock, as the in-process bus. "receiver" (real
 time, set by `factory.make_bus` for hardware missions): each sender's stamps are on its own computer's
 monotonic clock; the receiver learns a bounded offset per sender when it joins (first messages, or
 after `rejoin_after_s` of silence, or after it left the bus) and measures ages on its own
 time.monotonic() through it. `now` passed to `latest` is then unused.
 
-Abort acknowledgement (issue 15). A process hosting agents (`self_ids` not empty) answers every valid
+Abort acknowledgement. A process hosting agents (`self_ids` not empty) answers every valid
 "abort" it receives with an "abort_ack" control message (control.ack_payload: abort id, its drone ids,
 pid, host) as soon as the subscriber callback has it: the callback queues it and the bus's ack thread
 publishes it (the callback itself never calls zenoh). The abort is also queued for `control_events()`:

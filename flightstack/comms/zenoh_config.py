@@ -1,7 +1,7 @@
-"""How one process joins a mission's Zenoh network: `ZenohBusConfig` → `zenoh.Config` (issue 6, issue 16).
+"""How one process joins a mission's Zenoh network: `ZenohBusConfig` → `zenoh.Config`.
 
 Peer mode, multicast scouting off, explicit endpoints (full mesh), the transport lease. Transport
-security (issue 16) is checked here, before zenoh sees it, so that nothing runs less secured than the
+security is checked here, before zenoh sees it, so that nothing runs less secured than the
 mission says:
 - `tls` set: every listen and connect endpoint must be `tls/...`, mutual TLS (`enable_mtls: true`) and
   the five certificate paths are required. A `tls` section with a `tcp/` endpoint would run that link in

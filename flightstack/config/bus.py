@@ -57,7 +57,7 @@ class ZenohSpec(_Strict):
             for key in ("tls", "access_control"):
                 if key in data:
                     raise ValueError(
-                        f"{key}: no longer written by hand (issue 16); `security: mtls` uses the certificates"
+                        f"{key}: no longer written by hand; `security: mtls` uses the certificates"
                         " of `flightstack certs` and generates the access control from the participants"
                     )
         return data
@@ -103,7 +103,7 @@ class BusSpec(_Strict):
     `flightstack abort` (flightstack/comms/operator_link.py); default: derived from the mission name,
     listening on hardware only. Setting it also makes a simulated in-process run listen.
 
-    `certs` (issue 16): the directory (relative to the mission file) of this mission's certificates,
+    `certs`: the directory (relative to the mission file) of this mission's certificates,
     made by `flightstack certs`. On real hardware the bus is authenticated: Zenoh runs mutual TLS with
     them (ZenohSpec), and the loopback listener of an in-process flight accepts only aborts signed with
     the operator's key (`ca.pem` + `operator.pem` checked at start; `flightstack abort` signs with

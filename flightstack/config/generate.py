@@ -1,4 +1,4 @@
-"""The paper's simulation for n drones (issue 18): `n_drone_mission(n)` scales an experiment file.
+"""The paper's simulation for n drones: `n_drone_mission(n)` scales an experiment file.
 
 The result is an experiment document (the schema of mission_configs/paper_sim.yaml, `rig:` included),
 checked by composing it with its rig and validating the resolved mission (flightstack.config.mission)

@@ -1,4 +1,4 @@
-"""Experiment and rig files (issue 17): what the paper specifies, apart from how it is flown.
+"""Experiment and rig files: what the paper specifies, apart from how it is flown.
 
 An **experiment** file holds what the paper specifies: drones and their desired poses g_d, the graph,
 the gains, the GP, the target's motion law, the duration and control period, the compared modes, and the
@@ -28,7 +28,7 @@ from typing import Any
 from flightstack.config.safe_load import LoadError, load_yaml
 
 PACKAGE = "flightstack.mission_configs"
-BUILTIN_EXPERIMENTS = ("paper_sim", "paper_experiment", "scaling_11", "scaling_31")  # scaling_*: issue 18
+BUILTIN_EXPERIMENTS = ("paper_sim", "paper_experiment", "scaling_11", "scaling_31")
 MISSION_CONFIGS = Path(str(resources.files(PACKAGE)))
 """Where the built-in experiments, rigs (rigs/) and camera files (cameras/) are: package data."""
 BUILTIN_RIGS = ("ideal", "lab-sim", "emulated-lab", "lab")

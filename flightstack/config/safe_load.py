@@ -1,4 +1,4 @@
-"""One hardened loader for every file from outside: missions, camera calibrations, rig files (issue 16).
+"""One hardened loader for every file from outside: missions, camera calibrations, rig files.
 
 `load_yaml(path)` returns the document and a map from key paths to line numbers, or raises LoadError with
 one line naming the file and, where there is one, the line and the key path. Before anything is parsed:

@@ -1,4 +1,4 @@
-"""Rig-side schema sections of the simulated lab (issue 17): the ground robot, the rc gains a driver
+"""Rig-side schema sections of the simulated lab: the ground robot, the rc gains a driver
 believes (per drone) and the simulated physics (`sim:`). Used by flightstack.config.mission."""
 
 from __future__ import annotations

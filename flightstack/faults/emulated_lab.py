@@ -1,4 +1,4 @@
-"""The emulated lab of `flightstack faults` (issue 15): two Tello emulators, a NatNet (OptiTrack) server and a
+"""The emulated lab of `flightstack faults`: two Tello emulators, a NatNet (OptiTrack) server and a
 MAVLink rover on loopback, and a short mission pointing at them (`EmulatedLab`, a context manager). How
 to fly it (in this process, or `flightstack fly` in a child process) and judge the flight:
 flightstack/faults/lab_flight.py; the rows: rows_lab*.py.
@@ -7,7 +7,7 @@ What the drones did is judged at the emulators: every Tello emulator keeps `comm
 `phase_log` and `replies_sent` with their receive/send times; `lab.write_log(path)` saves them, and the
 helpers below (`command_times`, `rc_times`, `phase_times`, `max_gap`) measure reaction times on them.
 
-The emulators ship in the package (flightstack.sim_backend.emulators, issue 17) and are imported lazily
+The emulators ship in the package (flightstack.sim_backend.emulators) and are imported lazily
 when a lab starts. Without the optional packages av, motioncapture and pymavlink, starting a lab raises
 `LabUnavailableError` saying what is missing (the row then reports a crash).
 
@@ -294,7 +294,7 @@ class EmulatedLab:
             self._mission_edit(m)
         path = self.workdir / "mission.yaml"
         path.write_text(yaml.safe_dump(m, sort_keys=False))
-        certs = path.parent / "certs"  # the mission's default bus.certs: real drones need them (issue 16)
+        certs = path.parent / "certs"  # the mission's default bus.certs: real drones need them
         if not (certs / "ca.pem").exists():
             from flightstack.comms.certs import create_mission_certs, participants
 

@@ -1,4 +1,4 @@
-"""faults.png: the fault table at a glance (issue 19, "pictures where people would rather look").
+"""faults.png: the fault table at a glance.
 
 One lane per row of `flightstack faults`: its name coloured by the verdict (handled or not), and on the
 mission clock (s) the safety events of its run (`events.jsonl` in the row's run directory), one marker

@@ -1,4 +1,4 @@
-"""Flying the emulated lab (flightstack/faults/emulated_lab.py) for the rows of issue 15, and judging it.
+"""Flying the emulated lab (flightstack/faults/emulated_lab.py) for the fault table's rows, and judging it.
 
 - `fly_inprocess(lab, run_dir, ...)`: `runner.run_mode` in this process with the real hardware backend
   (drivers/hardware.py, guardian process included) and the streaming recorder, like `flightstack fly

@@ -1,9 +1,9 @@
-"""The rows of `flightstack faults` flown on the emulated lab (issue 15) in this process that concern the
+"""The rows of `flightstack faults` flown on the emulated lab in this process that concern the
 control loop and the link: link loss with a working uplink, a stalled control loop, and a lost land reply
 beyond the hard fence. Each is a FaultRow (mission file, work directory) -> FaultResult judged on times
 measured at the Tello emulators (flightstack/faults/emulated_lab.py, lab_flight.py).
 
-`ROWS` lists every emulated-lab row of issue 15 in table order, also those of rows_lab_drivers.py (driver
+`ROWS` lists every emulated-lab row in table order, also those of rows_lab_drivers.py (driver
 threads, full disk), rows_lab_cli.py (signals, abort during takeoff: `flightstack fly` in a child process)
 and rows_lab_bus.py (clock skew, abort with an agent missing: Zenoh) and rows_lab_process.py
 (`process_killed`, `agent_stopped`: the guardian process).
@@ -142,7 +142,7 @@ def link_loss_uplink(mission_path: Path, workdir: Path) -> FaultResult:
             f"link_lost after link_timeout_s ({timeout:g} s); at drone 1's emulator rc 0 0 0 0 within 2 "
             "ticks of detection and no non-zero rc after it, land within 1 s, re-sent (with rc 0 0 0 0) "
             "about every 1 s while telemetry is silent; drone 1 down; drone 2 flies to the end (rc never "
-            "paused > 0.15 s). Known deviation from issue 15's 'rc 0 0 0 0 every tick': the driver sends no "
+            "paused > 0.15 s). Known deviation from 'rc 0 0 0 0 every tick': the driver sends no "
             "rc while its land is pending (see details.rc0_max_gap_before_land_ms)"
         )
         return run_result(
@@ -411,4 +411,4 @@ ROWS: dict[str, FaultRow] = {
     "abort_agent_missing": rows_lab_bus.abort_agent_missing,
     **rows_lab_process.ROWS,
 }
-"""The emulated-lab rows of issue 15, in table order (the last two: the guardian's, rows_lab_process.py)."""
+"""The emulated-lab rows, in table order (the last two: the guardian's, rows_lab_process.py)."""

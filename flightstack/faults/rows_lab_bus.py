@@ -1,4 +1,4 @@
-"""The rows of `flightstack faults` (issue 15) played on the bus with real Zenoh sessions on 127.0.0.1:
+"""The rows of `flightstack faults` played on the bus with real Zenoh sessions on 127.0.0.1:
 `flightstack abort` with one agent absent (`abort_agent_missing`) and senders whose clocks are ±10 min
 off (`clock_skew`). FaultRows (mission file, work directory) -> FaultResult, listed in rows_lab.ROWS;
 nothing flies, so all_safe and recording_complete hold unless the row crashed. Times: time.monotonic() s;
@@ -178,8 +178,8 @@ def clock_skew(mission_path: Path, workdir: Path) -> FaultResult:
                 if i not in stale_at and rx.latest(i, now, STALE_AFTER_S) is None:
                     stale_at[i] = now - t_stop
             time.sleep(0.001)
-        # issue 16: a stamp from the future of the receiver's clock is refused ("stamp ahead"); before, the
-        # sender 10 min ahead was fused forever
+        # a stamp from the future of the receiver's clock is refused ("stamp ahead"): otherwise a sender
+        # 10 min ahead would be fused forever
         ahead_refused = rx_stamps.latest(1, time.monotonic(), STALE_AFTER_S) is None
         ahead_refused = ahead_refused and rx_stamps.dropped.get("stamp ahead", 0) > 0
         c.check(checks > 50 and not any(unfused.values()), f"not fused on {unfused} of {checks} checks")
@@ -192,8 +192,8 @@ def clock_skew(mission_path: Path, workdir: Path) -> FaultResult:
                 f"stale after {stale_at} s (stale_after {STALE_AFTER_S} s)",
             )
         c.check(rx.dropped.get("stamp ahead", 0) == 0, f"dropped {dict(rx.dropped)}")
-        # the control: comparing stamps (the old time base) never fuses the sender behind (issue 15), and
-        # refuses the one ahead (issue 16): both fail closed
+        # the control: comparing stamps (the "stamps" time base) never fuses the sender behind, and
+        # refuses the one ahead: both fail closed
         c.check(stamps_fused_behind == 0 and ahead_refused, "the stamp-comparing control did not fail closed")
         offsets = {SKEWS[i]: rx.freshness.offset(i) for i in SKEWS}
         details = {

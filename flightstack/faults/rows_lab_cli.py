@@ -1,4 +1,4 @@
-"""The rows of `flightstack faults` (issue 15) that fly `flightstack fly` on the emulated lab in a child
+"""The rows of `flightstack faults` that fly `flightstack fly` on the emulated lab in a child
 process: signals (`sighup`, `double_sigint`: the second Ctrl-C 20 ms after the first) and an operator abort
 while the Tellos take off (`abort_during_takeoff`). FaultRows (mission file, work directory) ->
 FaultResult, listed in rows_lab.ROWS. Reaction times are measured on the emulators' records

@@ -1,4 +1,4 @@
-"""The rows of `flightstack faults` (issue 15) that break the devices' I/O under a flight of the emulated
+"""The rows of `flightstack faults` that break the devices' I/O under a flight of the emulated
 lab in this process: socket errors in every driver thread (`driver_thread_error`) and a full disk under
 the recorder (`disk_full`). FaultRows (mission file, work directory) -> FaultResult, listed in
 rows_lab.ROWS; reaction times in `details` (ms), times time.monotonic() s.

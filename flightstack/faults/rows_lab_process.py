@@ -28,7 +28,7 @@ from flightstack.faults.lab_flight import (
 from flightstack.faults.result import Checks, FaultResult
 
 KILL_HOVER_S = 0.5
-"""Issue 15: parent killed → `rc 0 0 0 0` at every drone within this (s)."""
+"""Parent killed → `rc 0 0 0 0` at every drone within this (s)."""
 KILL_LAND_S = 2.0
 """... and `land` within this (s)."""
 STALL_S = 0.5

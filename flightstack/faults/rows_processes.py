@@ -29,7 +29,7 @@ from flightstack.faults.rows_cli import cli_command, cli_env
 PAPER_SIM = MISSION_CONFIGS / "paper_sim.yaml"
 IDS = (1, 2, 3)
 PROCESS_TIMEOUT_S = 90.0
-DROP_WITHIN_S = 1.0  # issue 6: the others drop a dead agent from fusion within 1 s
+DROP_WITHIN_S = 1.0  # the others drop a dead agent from fusion within 1 s
 
 
 def served_mission(
@@ -48,8 +48,8 @@ def served_mission(
     m["duration_s"] = duration_s
     m["dt_s"] = 0.01
     # paper_sim's gains (100) are stable for its dt of 2 ms (k·dt ≤ 0.62 for the fastest error mode);
-    # at 10 ms they are not: the served drones reached 1e37 m within 0.25 s (found in issue 16, when a
-    # test first bounded positions, not only their finiteness). Scaled by dt: 20 keeps k·dt at 0.62.
+    # at 10 ms they are not: the served drones reached 1e37 m within 0.25 s (seen once a test
+    # bounded positions, not only their finiteness). Scaled by dt: 20 keeps k·dt at 0.62.
     m["gains"] = {"k_c": [20.0] * 4, "k_e": [20.0] * 4, "k_s": 14.0}
     names = ["world"] + [str(d["id"]) for d in m["drones"]]
     proto = "tls/" if security == "mtls" else "tcp/"

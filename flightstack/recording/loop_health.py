@@ -1,4 +1,4 @@
-"""Did the computer keep the control period? The loop-health part of metrics.json and its plot (issue 19).
+"""Did the computer keep the control period? The loop-health part of metrics.json and its plot.
 
 The paper's own experiment names "the slow operating frequency" as a limit; on hardware nothing
 recorded it before. Every Python tick of `runtime.runner.run_mode` records, in wall seconds of this

@@ -194,7 +194,7 @@ class Agent:
         if frame.features is not None:
             f = np.array(frame.features, dtype=float).reshape(-1)  # a writable copy: the kernels' type
             if f.shape != self._no_features.shape or not all(map(math.isfinite, f.tolist())):
-                return None, "bad features"  # e.g. a served frame with another marker count (issue 16)
+                return None, "bad features"  # e.g. a served frame with another marker count
             return f, None
         if frame.image is None or self.cfg.calibration is None:
             return None, None

@@ -10,7 +10,7 @@ abort, an exception in any agent), every drone is landed and the recording is re
 flown. A state that diverges (flightstack.runtime.divergence, checked once per tick or compiled chunk)
 ends the run the same way, with the error "diverged at t = … s (drone N, quantity …)".
 
-On real drones nothing waits for a drone on the control thread (issue 15): takeoffs and landings run on
+On real drones nothing waits for a drone on the control thread: takeoffs and landings run on
 worker threads (flightstack.safety, `background`), and the safety tick, the operator's abort and the
 backend's heartbeat (the guardian process) keep running while they do, also during takeoff and landing.
 Signals (SIGINT, SIGTERM, SIGHUP, SIGQUIT, SIGTSTP) land every drone; a repeated one is ignored.

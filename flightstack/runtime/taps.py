@@ -1,4 +1,4 @@
-"""Observers of a flight that are not part of it: live viewers, live exporters (issue 19).
+"""Observers of a flight that are not part of it: live viewers, live exporters.
 
 A `TickTap` is told after every recorded tick (or chunk of ticks of the compiled loop) and once at the
 end of each mode. It must return at once: whatever it does with the data (draw it, encode images, write a

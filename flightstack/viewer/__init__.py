@@ -1,5 +1,5 @@
 """The Rerun 3-D viewer of a flight: replayed from a run directory (`flightstack view RUN_DIR`) or live
-while it flies (`--viewer` on run/sim/fly/agent, a `flightstack.runtime.taps.TickTap`). Issue 19.
+while it flies (`--viewer` on run/sim/fly/agent, a `flightstack.runtime.taps.TickTap`).
 
 Rerun (rerun-sdk, the optional extra `viewer`, pinned to `rerun_import.PINNED_VERSION` because its logging
 and read-back APIs change between releases) is imported lazily: nothing here imports it at module level,

@@ -1,4 +1,4 @@
-"""`flightstack world MISSION`: the simulated world served over Zenoh to agent processes (issue 6).
+"""`flightstack world MISSION`: the simulated world served over Zenoh to agent processes.
 
 One process owns the simulated backend (sim_ideal or sim_lab) and is the clock master; each agent
 process (`flightstack agent MISSION --id N`) sees its own drone, camera and motion-capture pose through
