@@ -1,61 +1,26 @@
 """A guardian process for every process that commands hardware (`fly`, `agent`, `target`).
 
-When the process flying the drones dies (SIGKILL, out-of-memory kill, a crash in native code) or stops
-ticking (SIGSTOP, Ctrl-Z on a process that ignores it, a hang), nothing in it can land them: a Tello keeps
-its last `rc` for up to 15 s (its own auto-land). The guardian is a second, small OS process that does it.
+A process that dies or stops ticking cannot land its drones (a Tello keeps its last `rc` for up to 15 s);
+the guardian, a second small OS process, does. What it covers and what it cannot, measured:
+docs/safety.md ("The guardian").
 
-Design (decided):
-- **Launch**: `Guardian.start(cfg)` starts the guardian BEFORE takeoff with `start_new_session=True`
-  (its own session and process group), so that Ctrl-C / SIGHUP / SIGTSTP sent to the terminal's process
-  group never reach it. Its command line never contains the word "flightstack", so that an operator's
-  `pkill -f flightstack` (or `-9`) takes the flight but never its safety net (`guardian_argv`): the
-  interpreter is reached through a neutral symlink to `sys.prefix` (`<tmp>/tello-guardian-XXXX/prefix/…`,
-  which keeps a virtual environment whatever its path), the code is `-c` BOOTSTRAP and the module to run
-  comes from the environment (`GUARDIAN_ENTRY`), which `pkill -f` does not read. The parent writes one
-  JSON line of `GuardianConfig` on the guardian's stdin and waits (≤ `ready_timeout_s`) for its `ready`
-  line on stdout (the guardian has then mapped the flag and opened its own sockets).
-- **Its heartbeat** (the other direction): after `ready`, the guardian writes one byte on its stdout every
-  `GUARDIAN_BEAT_S`. `Guardian.lost()` (called by the control loop every tick, non-blocking) says why
-  the guardian is gone: it exited, its pipe closed, or no byte for `GUARDIAN_SILENT_S`. The flight then
-  lands at once: a flight never flies on without its guardian.
-- **Stopping it on purpose**: SIGTERM (`kill PID`; the pid is in its log and in the parent's) makes it
-  take over (land what it guards, mute the parent) and exit when the drones are down; nothing else
-  stops a running guardian short of SIGKILL.
-- **Heartbeat**: one byte per control tick on the same pipe (`heartbeat()`: non-blocking, never raises;
-  a full or broken pipe is counted in `counts`). `arm()` arms the stall detection (call it when the control
-  loop starts ticking, before the first takeoff); `arm(False)` disarms it around a known blocking phase.
-  `finish()` writes "bye" (the drones landed normally) and waits briefly for the guardian to exit.
-- **Takeover** (final): on EOF of the pipe or a change of the guardian's parent pid (the parent is gone:
-  SIGKILL, OOM, crash; the pid check also covers a forked child that inherited the pipe), ALWAYS, armed or
-  not (the robot is armed during connect; an `rc`/`land` to a Tello on the ground is ignored by it); on
-  no heartbeat for `stall_s` (0.5 s) ONLY while armed (connect and preflight may block for seconds).
-  EOF after "bye" is no takeover.
-- **What it does** (drivers/guardian_process.py): first it sets the takeover flag, then, from its OWN UDP
-  socket, sends `rc 0 0 0 0` and `land` to every Tello, re-sent every `land_resend_s` (1 s) until that
-  drone's telemetry shows it down (h ≤ 20 cm with its motor-on time frozen for `motor_quiet_s`, as
-  drivers/tello_phase), or until `give_up_s` (20 s, beyond the Tello's 15 s auto-land). It does not send
-  `command`: the drone is in SDK mode already and executes commands from any source port (DJITelloPy
-  PR #163: EDU drones answer only the first client's port, yet execute a second client's commands;
-  sim_backend/emulators/tello.py `reply_port_latch`); no reply is awaited. Telemetry: it binds each Tello
-  state
-  port (SO_REUSEADDR) as soon as it is free; a stopped parent still holds it, a dead one does not. The
-  robot: from its own pymavlink connection (`robot_url`, by default the parent's), a GCS heartbeat, a zero
-  velocity set-point, a forced disarm (MAV_CMD_COMPONENT_ARM_DISARM, param2 21196) and HOLD mode, every
-  `robot_resend_s` until a robot HEARTBEAT shows it disarmed, at most `robot_sends` times. Every action is
-  logged with time.monotonic() stamps to stderr and `log_path`. It exits when its drones are down and the
-  robot stopped, after `give_up_s`, or at once after "bye".
-- **Takeover flag**: a 1-byte file mapped (mmap, MAP_SHARED) by both processes. The guardian sets it
-  before its first datagram; `TakeoverFlag.is_set()` / `Guardian.taken_over()` is one memory read, which
-  the parent's drivers call right before every send (`TelloDriver.set_muted(guardian.taken_over)`,
-  `ScamperDriver.set_muted(...)`). A parent resumed after a takeover (SIGCONT) therefore sends nothing more,
-  except, at most, one datagram per thread that had passed the check when it was stopped (superseded by
-  the guardian's next `rc 0 0 0 0` + `land`).
-
-Not covered by any process on the laptop: both processes killed at once by pid, sleep, power or Wi-Fi loss
-of the laptop itself; the Tello's own 15 s auto-land (no datagram for 15 s) and the robot's own
-ArduPilot GCS failsafe are the last backstops (docs/safety.md). For a robot reached through `udpin:` or a
-serial device the stopped parent holds, give the guardian its own endpoint (`robot_url`, e.g. a second
-mavlink-router UDP endpoint: a router's UDP server endpoint answers one client only).
+- **Launch** (`Guardian.start`, before takeoff): own session (`start_new_session=True`), and a command line
+  without the word "flightstack" (`guardian_argv`: the interpreter through a neutral symlink to
+  `sys.prefix`, `-c` BOOTSTRAP, the module from the environment, `GUARDIAN_ENTRY`), so neither the
+  terminal's signals nor `pkill -f flightstack` reach it. The parent writes one JSON line of
+  `GuardianConfig` on its stdin and waits ≤ `ready_timeout_s` for its `ready` line.
+- **Both directions beat.** `heartbeat()` writes one byte per control tick (non-blocking, never raises;
+  failures counted); `arm()` starts the stall detection, `arm(False)` pauses it around a known blocking
+  phase; `finish()` writes "bye". The guardian beats back every `GUARDIAN_BEAT_S`; `Guardian.lost()` says
+  why it is gone (exited, pipe closed, silent for `GUARDIAN_SILENT_S`) and the flight then lands.
+- **Takeover** (final): on EOF or a changed parent pid always (armed or not); on no heartbeat for
+  `stall_s` only while armed; never after "bye". SIGTERM also makes it take over, then exit.
+- **What it does** (drivers/guardian_process.py): sets the takeover flag (a 1-byte file mmap'd by both
+  processes; the parent's drivers read it before every send, `set_muted(guardian.taken_over)`), then from
+  its own socket sends `rc 0 0 0 0` + `land` to every Tello every `land_resend_s` until its telemetry shows
+  it down or `give_up_s`. No `command`: a Tello in SDK mode executes commands from any source port
+  (DJITelloPy PR #163). The robot gets a GCS heartbeat, a zero set-point, a forced disarm
+  (MAV_CMD_COMPONENT_ARM_DISARM, param2 21196) and HOLD until a HEARTBEAT shows it disarmed.
 
 Units: times in seconds (time.monotonic()), heights in cm, ports UDP.
 """

@@ -1,61 +1,27 @@
 """Scamper ground-robot driver over MAVLink (ArduPilot Rover conventions), implementing `hal.GroundRobot`.
 
-Scamper's own interface is not public, so the robot is driven like an ArduPilot Rover.  Its state is read
-from ITS OWN HEARTBEAT, never from a reply alone: ``custom_mode`` is the Rover mode (GUIDED = 15),
-``base_mode & MAV_MODE_FLAG_SAFETY_ARMED`` (128) says armed.  A COMMAND_ACK can be lost, duplicated, late,
-or ACCEPTED for a change that never happens (github.com/ArduPilot/ardupilot/issues/1385), so ACKs only
-steer re-sends and fast failure; success is a HEARTBEAT received after the command was sent that shows the
-requested state.  Only the autopilot's heartbeats count: the first vehicle heartbeat (as pymavlink's
-``probably_vehicle_heartbeat``: not a GCS, gimbal, ADS-B or onboard-controller type, not
-``MAV_AUTOPILOT_INVALID``) fixes the (system, component) listened to; a companion computer's heartbeats
-(mode 0, disarmed) are ignored.
+Scamper's own interface is not public, so the robot is driven like an ArduPilot Rover. **Its HEARTBEAT
+decides, not a reply**: ``custom_mode`` is the Rover mode (GUIDED = 15), ``base_mode & 128`` says armed. A
+COMMAND_ACK can be lost, duplicated, late, or ACCEPTED for a change that never happens
+(github.com/ArduPilot/ardupilot/issues/1385), so ACKs only steer re-sends and fast failure; a change
+succeeds when a heartbeat received after the send shows it (`_ensure`: nothing sent if a fresh heartbeat
+already shows it; an explicit rejection fails at once; no ACK and no change: re-sent every
+``ack_timeout_s``, ``command_sends`` in all; ACCEPTED but no change ``ack_timeout_s`` + 2 heartbeat
+periods later: not trusted). Only vehicle heartbeats count (as pymavlink's
+``probably_vehicle_heartbeat``); a companion computer's are ignored. The reaction to each condition and
+the robot's own failsafe settings: docs/drivers.md ("Ground robot").
 
-* ``connect()`` opens the pymavlink connection (``ScamperConfig.url``) and starts its two threads
-  (drivers/scamper_link.py: ``scamper-rx`` receives everything, ``scamper-tx`` sends a GCS HEARTBEAT at
-  1 Hz and streams the set-point; neither ends on an error, each error is counted in ``counts`` and
-  logged without flooding), waits for the robot's HEARTBEAT (``ScamperLinkError``
-  naming the URL after ``heartbeat_timeout_s``), then sets GUIDED (``COMMAND_LONG MAV_CMD_DO_SET_MODE``,
-  param2 = 15) and arms (``MAV_CMD_COMPONENT_ARM_DISARM``, param1 = 1).  Each change (`_ensure`):
+Threads (drivers/scamper_link.py): ``scamper-rx`` receives everything; ``scamper-tx`` sends a GCS
+HEARTBEAT at 1 Hz and re-sends the set-point at ``stream_hz`` (Rover stops ~3 s after the last one) as
+``SET_POSITION_TARGET_LOCAL_NED`` in ``MAV_FRAME_BODY_NED``, ``type_mask`` 1511 (vx, vy, yaw_rate).
+Neither ends on an error. The driver never fights a mode change or disarm by the robot (a pilot's switch
+must win). While muted (guardian takeover, ``set_muted(fn)``) nothing is written and ``close()`` skips
+its disarm.
 
-  - a heartbeat at most ``link_timeout_s`` old already shows it: nothing sent (event ``no_command_needed``);
-  - a heartbeat after the send shows it: success whatever the ACK said; no ACK at all logs
-    ``ack_lost_confirmed_by_heartbeat``, a rejecting ACK ``ack_contradicted_by_heartbeat`` (not errors);
-  - explicit rejection (``DENIED``, ``FAILED``, ``TEMPORARILY_REJECTED``, ``UNSUPPORTED``, ...) with no
-    change shown: ``ScamperCommandError`` at once, naming the command, the result and the heartbeat;
-  - neither ACK nor change within ``ack_timeout_s``: re-sent (``confirmation`` incremented, event
-    ``command_resent``, counted in ``resends``), up to ``command_sends`` sends in all;
-  - ACK ``ACCEPTED``/``IN_PROGRESS`` (then no re-send), or the last send made, and still no change shown
-    ``ack_timeout_s`` + 2 heartbeat periods (measured; 1 s until known) after that send:
-    ``ScamperCommandError`` (an ACCEPTED is "not trusted").
-
-  A change takes at most ``command_sends · ack_timeout_s`` + 2 heartbeat periods, ``connect()`` at most
-  ``heartbeat_timeout_s`` + twice that (defaults: 5 + 2 · 8 = 21 s).  On failure after an arm was sent,
-  a best-effort disarm (same rules, never raises) runs, then everything is closed.
-* ``send_body_velocity(V)`` stores the set-point and sends it at once; ``scamper-tx`` re-sends it at
-  ``stream_hz`` (ArduPilot Rover stops after ~3 s without one) as ``SET_POSITION_TARGET_LOCAL_NED`` in
-  ``MAV_FRAME_BODY_NED`` with ``type_mask`` 1511 (only vx, vy and yaw_rate used).
-* While running, a heartbeat showing another mode (RC mode switch, failsafe, another GCS) logs
-  ``mode_changed`` once per change; armed -> disarmed logs ``disarmed_by_robot`` (back: ``armed_by_robot``).
-  The driver does not fight it (no automatic re-GUIDED / re-arm: a pilot's switch must win) and keeps
-  streaming, which the robot ignores outside GUIDED.  ``robot_state()`` gives mode, armed, heartbeat age,
-  link alive and ``ready`` (GUIDED and armed) from the last heartbeat, for callers to stop on.
-* ``close()`` zeroes the set-point (sent at once), stops streaming, then disarms by the same rules, best
-  effort: any failure (refused, ACCEPTED but still armed, no answer) is the event ``disarm_failed``, never
-  an exception; nothing is sent when a fresh heartbeat already shows disarmed.
-* No HEARTBEAT for ``link_timeout_s``: event ``link_lost`` (``link_alive()`` False); back: ``link_restored``.
-* Mute (guardian takeover): ``ScamperDriver(config, muted=fn)`` or ``driver.set_muted(fn)`` at any time;
-  ``fn()`` is called right before every MAVLink write (set-points, GCS heartbeats, mode/arm/disarm
-  commands, from any thread); while it returns True nothing is written (``counts["muted"]``), a mode or
-  arm change fails at once (``ScamperCommandError``) and ``close()`` skips the disarm (event
-  ``disarm_skipped_muted``: the process that took over is in charge).
-
-Frames and units: ``V = [v_x, v_y, v_z, ω]`` is a body velocity in the flightstack body frame FLU
-(x forward, y left, z up; m/s, and ω in rad/s counter-clockwise seen from above).  MAVLink's body NED/FRD
-frame has y to the RIGHT and yaw rate positive clockwise, so the driver sends
-``vx = v_x, vy = -v_y, yaw_rate = -ω``; ``v_z`` is ignored (ground robot).
-
-Caveat (ArduPilot behaviour, not verified on hardware): a non-omni ArduPilot rover cannot move sideways;
-it derives speed/heading from (vx, vy), so ``v_y`` is only meaningful for an omni/holonomic Scamper.
+Frames and units: ``V = [v_x, v_y, v_z, ω]`` in the flightstack body frame FLU (m/s, rad/s
+counter-clockwise seen from above); MAVLink's body frame is FRD with yaw rate clockwise, so the driver
+sends ``vx = v_x, vy = -v_y, yaw_rate = -ω``; ``v_z`` is ignored. A non-omni rover cannot move sideways
+(ArduPilot behaviour, not verified on hardware).
 """
 
 from __future__ import annotations

@@ -4,68 +4,26 @@ Key layout (one mission = one key space; `prefix` defaults to "flightstack"):
     {prefix}/{mission}/pred/{sender}     PredictionMessage bytes (messages.encode), one key per sender
     {prefix}/{mission}/alive/{sender}    liveliness token, one per agent hosted by a process
     {prefix}/{mission}/control           operator channel, UTF-8 JSON (flightstack/comms/control.py)
-                                         {"mission": str, "kind": "abort"|"status"|"abort_ack",
-                                          "payload": {...}, "origin": [ids of the publishing process]}
 
-Delivery and QoS. One callback subscriber on `{prefix}/{mission}/pred/*` receives every sender. The
-callback hands the bytes to `freshness.Freshness.accept` (decode, sequence and sender-clock checks; pure
-Python, no zenoh call, never blocks on anything but a short lock), which keeps the newest valid message
-per sender in a dict: a ring buffer of depth 1 *per sender*.
-A `RingChannel(1)` handler would not do: on a wildcard subscription it keeps the newest sample of *any*
-sender and silently loses the others; one RingChannel per sender would not see unknown or mismatched
-senders (which must be counted) and would force `wait_for` to poll. The default FIFO handler blocks the
-session when Python is slow. Bad messages are dropped and counted in `dropped` by reason (the reasons of
-`decode`, plus "key sender mismatch", "old or duplicate seq", "stale", "stamp ahead", "left",
-"control: ..."), exactly like `InProcBus`. Predictions are reliable; congestion control is DROP in real
-time (a newer one follows next tick) and BLOCK when `reliable` is set (lock-step simulations wait for
-every message, so a dropped one would stall a tick for the whole lock-step timeout). They are *not*
-express (batched); why, and the latency measured: docs/lab_notes.md (section "Batched, not express").
-Control messages are express, congestion control BLOCK (never dropped), priority INTERACTIVE_HIGH.
+Receiving. One callback subscriber on `pred/*` hands the bytes to `freshness.Freshness.accept` (decode,
+sequence, sender clock; no zenoh call, only a short lock), which keeps the newest valid message per sender.
+Not a `RingChannel(1)`: on a wildcard it keeps the newest sample of *any* sender and loses the others; the
+FIFO handler blocks the session when Python is slow. Bad messages are dropped and counted by reason in
+`dropped`, as in `InProcBus`. Messages of a second session publishing as an owned sender are dropped first
+("second session", identity.py) and reported once in `presence_events`. Own agents' messages take the same
+encode → Zenoh → decode path as remote ones.
 
-One identity, one session (identity.py). Every prediction carries this process's session label (zid,
-pid, host) as its Zenoh attachment; per sender, the session of the first accepted message owns it (this
-process's own ids are its own from the start). Messages of another session for that sender are dropped
-("second session") before any other check, and each such session is reported once by name: an Event
-of kind "second session" in `presence_events` (detail: "agent-1: a second session (…) publishes as
-drone 1; …") and `session_reports`. When the sender leaves the bus the owner is forgotten.
+QoS: predictions reliable, congestion control DROP in real time and BLOCK when `reliable` (lock-step),
+batched, not express (why and the latency measured: docs/lab_notes.md); control messages express, BLOCK,
+priority INTERACTIVE_HIGH.
 
-Own-process loopback. A Zenoh session receives its own publications (the sample is delivered to the
-local subscriber asynchronously, on the subscriber's callback thread), so messages of agents hosted in
-this process take the same path as remote ones: encode -> Zenoh -> decode. Version this was verified
-with: docs/lab_notes.md (section "Own-process loopback").
-`wait_for` covers own senders too; the result is identical to `InProcBus`, where publish = decode.
-
-Lock-step. `wait_for({sender: seq})` blocks (threading.Condition, no polling) until each sender's newest
-message has seq >= the expected one, or the sender has left, or the timeout expires. A runner that
-publishes, waits, then reads gets bit-identical results to the in-process bus.
-
-Presence. Each process declares a liveliness token per hosted agent *after* declaring its subscribers,
-so a peer that sees the token has also received the subscriber declarations (same link, in order) and
-its next publication reaches that process. A liveliness subscriber (history=True) tracks `alive()` and
-appends `presence_events` (monotonic time s, sender, "joined"|"left"); agents of this process are alive
-(and "joined") from construction on. A killed process closes its TCP
-links and is seen as left without waiting for the lease; a hung one (stopped, partitioned) only after
-`lease_ms` (the transport lease; keep-alives every lease/4). Measured time to "left": docs/lab_notes.md
-(section "Presence"). A sender that has left reads as None (counted "left") and its newest message and
-sequence number are forgotten, so a restarted agent (seq from 0) is accepted.
-
-Time base (freshness.py). `cfg.time_base` "stamps" (the default; lock-step runs on a simulated
-clock): a message's age is `now − stamp` on the mission clock, as the in-process bus. "receiver" (real
-time, set by `factory.make_bus` for hardware missions): each sender's stamps are on its own computer's
-monotonic clock; the receiver learns a bounded offset per sender when it joins (first messages, or
-after `rejoin_after_s` of silence, or after it left the bus) and measures ages on its own
-time.monotonic() through it. `now` passed to `latest` is then unused.
-
-Abort acknowledgement. A process hosting agents (`self_ids` not empty) answers every valid
-"abort" it receives with an "abort_ack" control message (control.ack_payload: abort id, its drone ids,
-pid, host) as soon as the subscriber callback has it: the callback queues it and the bus's ack thread
-publishes it (the callback itself never calls zenoh). The abort is also queued for `control_events()`:
-the runner lands at its next check. Operator tools and the served world (no agents) do not acknowledge.
-
-Threading. Zenoh-python runs callbacks on its own (non-daemon) threads; all shared state is guarded by
-one lock/condition; the callbacks never call zenoh. The ack thread (daemon, started at the first abort)
-only publishes. `close()` ends the ack thread, undeclares everything and closes the session, which ends
-zenoh's threads: always close (the class is a context manager).
+Lock-step: `wait_for({sender: seq})` blocks (Condition, no polling) until each sender's newest seq reaches
+the expected one, the sender left, or the timeout; publish, wait, read gives bit-identical results to the
+in-process bus. Presence: liveliness tokens are declared after the subscribers, so a peer that sees a token
+also reaches its subscribers; a sender that left reads as None and its seq is forgotten (a restarted agent
+counts from 0 again). Time base "stamps" or "receiver": freshness.py. A process hosting agents answers
+every valid abort with an "abort_ack" from its ack thread (callbacks never call zenoh); close() ends the
+thread and the session (the class is a context manager). More: docs/bus.md ("How it works").
 
 Units: message stamps and `latest(now, stale_after)` are mission-clock seconds; `presence_events` and
 `ControlEvent.time` are `time.monotonic()` seconds; `lease_ms` is milliseconds; `timeout_s` seconds.

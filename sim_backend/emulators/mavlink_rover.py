@@ -1,107 +1,31 @@
 """Loopback MAVLink emulator of an ArduPilot-Rover-like ground robot (stand-in for Scamper) for tests.
 
-The emulator is a pymavlink ``udpin`` endpoint bound to ``127.0.0.1`` (port picked by the OS unless given);
-it learns the ground station's address from the first datagram it receives (pymavlink ``udpin``
-behaviour), so a client on ``udpout:127.0.0.1:<emu.port>`` must send something (e.g. its own HEARTBEAT)
-before it hears anything back.
+A pymavlink ``udpin`` endpoint on ``127.0.0.1`` (port from the OS unless given); it learns the ground
+station's address from the first datagram, so a client on ``udpout:127.0.0.1:<emu.port>`` must send
+something (e.g. its HEARTBEAT) before it hears anything. A small subset of ArduPilot Rover:
 
-Behaviour (a small subset of ArduPilot Rover, these are the emulator's rules):
+* **HEARTBEAT** at ``heartbeat_hz`` (1 Hz): ``MAV_TYPE_GROUND_ROVER``, ``MAV_AUTOPILOT_ARDUPILOTMEGA``,
+  ``custom_mode`` the Rover mode (0 MANUAL, 4 HOLD, 15 GUIDED), the armed flag in ``base_mode``.
+* **Mode** by ``SET_MODE`` (acked with command id 11, as ArduPilot) or ``MAV_CMD_DO_SET_MODE``; **arming**
+  by ``MAV_CMD_COMPONENT_ARM_DISARM``; only ``ROVER_MODES`` are accepted.
+* **Motion**: ``SET_POSITION_TARGET_LOCAL_NED`` in ``MAV_FRAME_BODY_NED`` with velocity + yaw rate sets the
+  body velocity ``[vx, vy, yaw_rate]`` (m/s, m/s, rad/s; x forward, y right, yaw rate clockwise), only while
+  GUIDED and armed; other frames or masks are recorded in ``setpoints`` only. No set-point for
+  ``setpoint_timeout_s`` (3 s, Rover/mode_guided.cpp) stops the rover (``stopped_by_timeout``); disarming
+  or leaving GUIDED stops it at once.
+* **Pose**: integrated exactly into ``(x, y, yaw)`` in the local NED frame (x north, y east, yaw clockwise
+  from north, rad) from the origin; ``pose_flu()`` is ``(x, -y, -yaw)`` as a ``Pose``.
+* **Faults** (`RoverFaults`), **parameters and the GCS failsafe** (`RoverParams`), each with the reports or
+  ArduPilot sources it follows, are described on those classes; ``pilot_override(mode=..., armed=...)``
+  changes mode or arming as an RC switch, a failsafe or another GCS would.
 
-* **HEARTBEAT** at ``heartbeat_hz`` (default 1 Hz, as ArduPilot): type ``MAV_TYPE_GROUND_ROVER``,
-  autopilot ``MAV_AUTOPILOT_ARDUPILOTMEGA``, ``custom_mode`` = current mode number (Rover: 0 MANUAL,
-  4 HOLD, 15 GUIDED), ``base_mode`` with ``MAV_MODE_FLAG_CUSTOM_MODE_ENABLED`` and
-  ``MAV_MODE_FLAG_SAFETY_ARMED`` when armed.
-* **Mode**: ``SET_MODE`` (acked with ``COMMAND_ACK.command`` = 11, the SET_MODE message id, as ArduPilot
-  does) and ``COMMAND_LONG MAV_CMD_DO_SET_MODE`` (param2 = custom mode).  Only modes in ``ROVER_MODES`` are
-  accepted.
-* **Arming**: ``COMMAND_LONG MAV_CMD_COMPONENT_ARM_DISARM`` (param1 = 1 arm, 0 disarm) answered with
-  ``COMMAND_ACK``; ``faults.reject_arm`` / ``faults.reject_disarm`` answer ``MAV_RESULT_DENIED``.
-* **Motion**: ``SET_POSITION_TARGET_LOCAL_NED`` in ``MAV_FRAME_BODY_NED`` (8) with velocity + yaw-rate
-  (type mask bits 4, 5 and 12 clear) sets the body velocity ``[vx, vy, yaw_rate]`` (m/s, m/s, rad/s; x
-  forward, y right, yaw rate clockwise seen from above), but only while GUIDED and armed.  Other frames or
-  masks are recorded in ``setpoints`` but have no effect.  If no set-point arrives for
-  ``setpoint_timeout_s`` (3 s, like Rover's guided-mode timeout: Rover/mode_guided.cpp stops the vehicle,
-  "target not received last 3secs, stopping", and stays in GUIDED) the rover stops and
-  ``stopped_by_timeout`` is set.  Disarming or leaving GUIDED stops it at once.
-* **Pose**: the body velocity is integrated exactly (constant twist over each step) into a planar pose
-  ``(x, y, yaw)`` in the emulator's local NED frame (x north, y east, yaw clockwise from north, rad), which
-  starts at the origin.  ``pose_flu()`` gives the same pose in FLU/ENU-like terms (x forward-at-start,
-  y left, yaw counter-clockwise), i.e. ``(x, -y, -yaw)``, as a ``flightstack.paper.geometry.Pose``.
-* **Faults** (`RoverFaults`, flip at any time; each is what real ArduPilot / MAVLink users reported):
+Why a client must read the HEARTBEAT: ArduPilot ACKs ``SET_MODE`` with command id 11
+(github.com/ArduPilot/pymavlink/pull/411), its maintainers say a mode change is to be checked on the
+HEARTBEAT (github.com/ArduPilot/ardupilot/pull/14452), and the armed flag shows only in the next one, up
+to 1 s later (github.com/mavlink/qgroundcontrol/pull/10810).
 
-  - ``no_heartbeat``: the autopilot's HEARTBEATs stop (everything else keeps working).
-  - ``reject_arm`` / ``reject_disarm``: ``MAV_RESULT_DENIED`` (pre-arm checks failing).
-  - ``lost_acks`` (COMMAND_ACK command ids, e.g. 176, 400, 11): the command takes effect but its ACK is
-    never sent (UDP loss; github.com/PX4/PX4-Autopilot/issues/8924: "CF2 arms/disarms but COMMAND_ACK is
-    not received", the GCS then waits; github.com/mavlink/mavros/issues/1590 "wait ack timeout").
-  - ``duplicate_acks``: every ACK is sent twice (github.com/mavlink/qgroundcontrol/issues/2975: answers
-    "back three times", and for arm then disarm "which one is the ack for?"; github.com/mavlink/mavlink/
-    pull/768: every client receives every ACK; github.com/PX4/PX4-Autopilot/pull/27343: DO_SET_MODE
-    ACKed ACCEPTED at once, then again by the commander).
-  - ``ack_delay_s``: every ACK leaves this late, the command having taken effect at once (a late ACK is
-    then read as the answer to a later command with the same id: github.com/PX4/PX4-Autopilot/issues/12685,
-    arming succeeded "relying on acks that are still queued from the first attempt").
-  - ``ack_accepted_but_ignored`` (command ids): answered ``ACCEPTED`` but not applied, a lying device
-    (github.com/ArduPilot/ardupilot/issues/1385: arm reported success while ``init_arm_motors()`` failed;
-    github.com/PX4/PX4-Autopilot/issues/26034 and pull/27343: DO_SET_MODE ACKed ACCEPTED, mode unchanged).
-  - ``drop_commands``: the next N COMMAND_LONG / SET_MODE are lost on the way in (never seen, not in
-    ``commands``; counted in ``dropped_commands``): neither ACK nor change, so the sender must re-send
-    (github.com/mavlink/mavlink/issues/2198: MAVSDK re-sends up to 3 times when no ACK comes).
-  - ``companion_heartbeat``: a companion computer (component 191, ``MAV_TYPE_ONBOARD_CONTROLLER``,
-    ``MAV_AUTOPILOT_INVALID``, base_mode 0, custom_mode 0) also sends HEARTBEATs, just before the
-    autopilot's, even when ``no_heartbeat`` is set (github.com/mavlink/MAVSDK/pull/516: "if we listen to
-    the heartbeats from all components the armed flag will flicker"; github.com/ArduPilot/pymavlink/pull/87:
-    companion heartbeats flipping the displayed mode; pull/257: ``motors_armed`` only from vehicle ones).
-
-* **Parameters** (`RoverParams`, a constructor argument; the defaults are what the lab's Scamper must be
-  set to for `flightstack preflight` to pass): ``PARAM_REQUEST_READ`` by name (``param_index`` -1) or by
-  index, and ``PARAM_REQUEST_LIST`` (every parameter in index order), answered with ``PARAM_VALUE``
-  (value as a float, ``param_type`` as ArduPilot's: INT8 for the enums, INT16 for system ids, REAL32 for
-  times); a name or index the firmware lacks gets no answer.  Requests addressed to another system are
-  ignored.  ``faults.drop_param_replies`` loses the next N replies, ``faults.duplicate_param_replies``
-  sends each twice.
-* **GCS failsafe**, as ArduPilot Rover implements it (Rover/Parameters.cpp, Rover/Rover.cpp
-  ``gcs_failsafe_check``, Rover/failsafe.cpp ``failsafe_trigger``, libraries/GCS_MAVLink ``GCS.cpp``/
-  ``GCS_Common.cpp``):
-
-  - ``FS_GCS_ENABLE`` (INT8; ArduPilot's default 0): 0 disabled, 1 enabled, 2 enabled but an AUTO
-    mission continues.
-  - ``FS_GCS_TIMEOUT`` (REAL32, s; default 5, documented range 2–120): the GCS is lost once no HEARTBEAT
-    came from it for this long (firmware before this parameter: a fixed 2 s; `RoverParams.absent`
-    containing it emulates that firmware).  Checked at 10 Hz.  A GCS never heard from never triggers it.
-  - ``FS_TIMEOUT`` (REAL32, s; default 1.5, documented range 1–100): the loss must then last longer than
-    this before ``FS_ACTION`` is taken, so the action comes ``FS_GCS_TIMEOUT + FS_TIMEOUT`` (+ ≤ 0.1 s)
-    after the last GCS heartbeat (FS_GCS_ENABLE's description names FS_TIMEOUT alone; the code adds
-    both); a heartbeat in between clears it.  The action is taken once per loss.
-  - ``FS_ACTION`` (INT8; default 2): 0 Nothing (mode and set-point stay: GUIDED keeps driving until its
-    own 3 s set-point timeout), 1 RTL (RTL, else HOLD), 2 Hold (HOLD: stops, stays armed), 3 SmartRTL
-    or RTL (or HOLD), 4 SmartRTL or Hold, 5 Terminate (disarm), 6 Loiter or Hold (newer firmware).
-  - Which heartbeats count: a HEARTBEAT whose source system is ``SYSID_MYGCS`` (INT16; default 255);
-    newer firmware (libraries/GCS_MAVLink/GCS.cpp) calls it ``MAV_GCS_SYSID`` and adds
-    ``MAV_GCS_SYSID_HI``: when that is ≥ ``MAV_GCS_SYSID`` the whole range counts.  Component and
-    MAV_TYPE do not matter.
-  - When it acts: armed or not (failsafe_trigger does not look at arming; disarmed, a mode change moves
-    nothing); never while in RTL, nor in HOLD unless ``FS_OPTIONS`` bit 0 is set; in AUTO with
-    ``FS_GCS_ENABLE`` 2 the mission continues.
-  - Emulator model of the modes a failsafe enters: RTL and SmartRTL drive straight toward home (the pose
-    at arming) at ``RoverParams.rtl_speed_mps`` until within ``wp_radius_m`` (ArduPilot's WP_RADIUS
-    default 2 m), then stop; without a home (never armed) RTL cannot be entered and HOLD is used; LOITER
-    stays still (nothing pushes the emulated rover).  ``failsafe_events`` records each action (time,
-    action, mode after); ``failsafe_t`` / ``failsafe_action`` give the first.
-
-* **Pilot / failsafe**: ``pilot_override(mode=..., armed=...)`` changes the mode or arming as an RC mode
-  switch, an RC/GCS failsafe or another GCS does, with no command from the client
-  (github.com/ArduPilot/ardupilot/issues/17483: RC loss switched GUIDED to RTL;
-  github.com/ArduPilot/ardupilot/issues/19361: the RC mode switch overrides the mode set;
-  github.com/ArduPilot/ardupilot/pull/2362: a rover leaving GUIDED stops following guided commands).
-
-Why the client must read the HEARTBEAT: ArduPilot ACKs the ``SET_MODE`` message with command id 11
-(github.com/ArduPilot/pymavlink/pull/411), and its maintainers say a mode change should be checked on the
-HEARTBEAT (github.com/ArduPilot/ardupilot/pull/14452); the armed flag only shows in the next heartbeat,
-up to 1 s later (github.com/mavlink/qgroundcontrol/pull/10810 raised QGC's arming wait to 1.5 s).
-
-All traffic is on 127.0.0.1.  One daemon thread with a stop flag and bounded waits (<= 20 ms);
-``close()`` joins it within 1 s and closes the socket.
+All traffic is on 127.0.0.1. One daemon thread with bounded waits (<= 20 ms); ``close()`` joins it
+within 1 s and closes the socket.
 """
 
 from __future__ import annotations
@@ -140,7 +64,25 @@ COMPANION_COMPONENT = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
 
 @dataclass
 class RoverFaults:
-    """Fault switches a test may flip at any time (see the module docstring for what each is based on)."""
+    """Fault switches a test may flip at any time, each what ArduPilot / MAVLink users reported.
+
+    - ``no_heartbeat``: the autopilot's HEARTBEATs stop (everything else keeps working).
+    - ``reject_arm`` / ``reject_disarm``: ``MAV_RESULT_DENIED`` (pre-arm checks failing).
+    - ``lost_acks`` (command ids): the command takes effect, its ACK is never sent
+      (github.com/PX4/PX4-Autopilot/issues/8924, github.com/mavlink/mavros/issues/1590).
+    - ``duplicate_acks``: every ACK twice (github.com/mavlink/qgroundcontrol/issues/2975,
+      github.com/mavlink/mavlink/pull/768, github.com/PX4/PX4-Autopilot/pull/27343).
+    - ``ack_delay_s``: every ACK this late, the command applied at once; a late ACK is read as the answer
+      to a later command with the same id (github.com/PX4/PX4-Autopilot/issues/12685).
+    - ``ack_accepted_but_ignored`` (command ids): ACCEPTED but not applied
+      (github.com/ArduPilot/ardupilot/issues/1385; github.com/PX4/PX4-Autopilot/issues/26034).
+    - ``drop_commands``: the next N COMMAND_LONG / SET_MODE are lost on the way in (counted in
+      ``dropped_commands``), so the sender must re-send (github.com/mavlink/mavlink/issues/2198).
+    - ``companion_heartbeat``: a companion computer (component 191, ``MAV_TYPE_ONBOARD_CONTROLLER``,
+      ``MAV_AUTOPILOT_INVALID``, mode 0, disarmed) also beats, just before the autopilot, even with
+      ``no_heartbeat`` (github.com/mavlink/MAVSDK/pull/516, github.com/ArduPilot/pymavlink/pull/87).
+    - ``drop_param_replies`` / ``duplicate_param_replies``: PARAM_VALUE lost / sent twice.
+    """
 
     no_heartbeat: bool = False
     reject_arm: bool = False
@@ -157,8 +99,20 @@ class RoverFaults:
 
 @dataclass(frozen=True)
 class RoverParams:
-    """The emulated firmware's parameters (module docstring "GCS failsafe"); the defaults are what the
-    lab's Scamper must be set to: the failsafe on, Hold, 3 s + 1 s, our GCS system id 255."""
+    """The emulated firmware's parameters; the defaults are what the lab's Scamper must be set to: the
+    failsafe on, Hold, 3 s + 1 s, our GCS system id 255 (docs/drivers.md, "The robot's own failsafe").
+
+    Read with ``PARAM_REQUEST_READ`` (by name or index) or ``PARAM_REQUEST_LIST``, answered with
+    ``PARAM_VALUE`` typed as ArduPilot's (INT8 enums, INT16 system ids, REAL32 times); an unknown one or a
+    request to another system gets no answer. The GCS failsafe follows ArduPilot Rover (Rover/Rover.cpp
+    ``gcs_failsafe_check``, Rover/failsafe.cpp ``failsafe_trigger``, libraries/GCS_MAVLink): the GCS is
+    lost after ``FS_GCS_TIMEOUT`` without a HEARTBEAT from system ``SYSID_MYGCS`` (newer firmware:
+    ``MAV_GCS_SYSID`` .. ``MAV_GCS_SYSID_HI``; absent: a fixed 2 s), checked at 10 Hz, never for a GCS never
+    heard; ``FS_ACTION`` is taken once per loss ``FS_TIMEOUT`` later (armed or not; not in RTL, nor in
+    HOLD unless ``FS_OPTIONS`` bit 0; an AUTO mission continues with ``FS_GCS_ENABLE`` 2). RTL and SmartRTL
+    drive straight home (the pose at arming) at ``rtl_speed_mps`` until within ``wp_radius_m``, HOLD
+    without a home; LOITER stays still. ``failsafe_events`` records each action.
+    """
 
     fs_gcs_enable: int = 1
     fs_action: int = 2  # Hold

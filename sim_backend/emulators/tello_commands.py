@@ -1,12 +1,42 @@
 """The Tello emulator's command protocol: receive text datagrams, run them, queue the replies.
 
-The command thread reads UTF-8 text datagrams on the emulator's ``(ip, port)``, records them
-(``commands``, ``senders``, ``rc_history``, ``refused``, ``rejected``), applies the fault switches
-(``TelloFaults``: silence, lost replies, error replies, SDK 2.0 firmware, ``rc`` replies, reply delay in
-s), runs control/set/read commands against the simulation (moves in cm, rotations in degrees, speed in
-cm/s) and queues the replies; ``takeoff``/``land`` are answered by the simulation when they complete.
-`TelloCommands` is one layer of ``TelloEmulator`` (``tello_emulator``); the behaviour per command is
-described in the docstring of ``tello.py``.
+`TelloCommands` is one layer of ``TelloEmulator`` (``tello_emulator``). The real drone's behaviour is partly
+undocumented; a choice no report backs is marked *unverified*, and clients may rely only on ``ok`` versus
+not ``ok`` (error texts differ between firmwares). Sources are abbreviated as in ``tello.py``.
+
+* **Before ``command``** the drone's parser is not active (SDK guides): datagrams are recorded in
+  ``commands`` and ``refused`` (as ``"ignored"``), not acted on and not answered (``pre_sdk_reply``).
+* **Firmware**: SDK 3.0 by default; with ``faults.sdk_version = "20"`` the SDK-3.0-only verbs
+  (``SDK3_ONLY_COMMANDS``) answer ``unknown command: <verb>`` (DJITelloPy #92, #107, #111, #138).
+* **Takeoff** answers ``ok`` after ``takeoff_s`` (0.3 s for fast tests; a real one ~3.9 s, Tello-Python
+  #88) or ``faults.takeoff_s`` (slow takeoff, DJITelloPy #31); ``error battery low`` below
+  ``MIN_TAKEOFF_BATTERY`` % (real drones: ``error`` or ``error Motor stop``, DJITelloPy #15, #60); ``error``
+  while flying (*unverified*). **Land** takes ``land_s`` (real ~1.7 s, Tello-Python #88); ``land`` while
+  landed answers ``error Motor stop`` (DJITelloPy #126, #15; RoboMaster-SDK ``TelloStatus``).
+* **Busy**: ``takeoff``, ``land`` and moves during a takeoff or landing answer ``error Not joystick``
+  (``error Auto land`` during an auto-landing) and do nothing (*unverified* for ``land`` during
+  ``takeoff``; both texts are Tello flight replies in the RoboMaster SDK and the MATLAB Tello package).
+  Read commands are answered in every phase (*unverified*); flight commands while landed answer
+  ``error Motor stop``.
+* **``rc``** acts only while ``flying`` (else recorded in ``rc_history`` and ``refused``); no reply unless
+  ``faults.rc_replies``; a malformed one goes to ``rejected`` and ``refused``.
+* **``emergency``**: no reply (Tello-Python #85, DJITelloPy #125), the motors stop and the drone drops; an
+  interrupted takeoff/landing never answers. ``reboot`` (SDK 3.0) does the same and leaves SDK mode.
+* **``refused``** holds ``(time, phase at receipt, text, reply or "ignored")`` for every command not
+  carried out, also when its reply was lost; successful commands never appear there.
+* **Replies** are FIFO (``reply_delay_s`` holds back later ones) and logged in ``replies_sent``;
+  ``faults.lost_replies`` drops given verbs' replies, ``faults.duplicate_reply_after_s`` re-sends each later.
+* Read replies have the real drone's formats (``height?`` -> ``"80dm"``, ``temp?`` -> ``"60~63"``,
+  ``time?`` -> ``"0s"``, ``speed?`` -> ``"100.0"``, ``tof?`` -> ``"900mm"``, which djitellopy's ``query_*``
+  fail to ``int()``-parse). ``port <state> <video>`` re-targets the streams; ``downvision 1`` only flips
+  ``emu.downvision`` (same video size: one encoder per stream).
+* **Several controllers** (e.g. the guardian of drivers/guardian.py): in SDK mode commands from any source
+  port run and each sender is logged in ``senders``; replies go to the sender (DJITelloPy #143), or with
+  ``reply_port_latch=True`` (Tello EDU) to the address of the first ``command`` (DJITelloPy PR #163, #168;
+  *unverified*: a second ``command`` does not move the latch).
+
+Not modelled: binary datagrams on the command port (carlospzlz/ctello#7), ``error No valid imu``,
+``error, high temp``, ``motoron`` mode, battery auto-land, the reply backlog of back-to-back commands.
 """
 
 from __future__ import annotations

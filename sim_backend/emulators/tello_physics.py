@@ -2,12 +2,16 @@
 
 Ground truth in the world frame ``x`` forward at takeoff heading, ``y`` right, ``z`` up (cm), yaw in
 degrees clockwise wrapped to [-180, 180); ``rc`` targets are body-frame velocities (cm/s: right, forward,
-up) and a yaw rate (deg/s, clockwise), followed with a first-order lag ``tau_s``.  Phases ``landed`` ->
-``takeoff`` -> ``flying`` -> ``landing`` -> ``landed``; a takeoff/landing's deferred ``ok`` is queued when
-it completes.  The simulation thread steps every ``TICK_S`` s and sends the state string
-(``mid:-1;x:..;...;agz:..;\\r\\n``; ``vgx/vgy/vgz`` in dm/s, ``h``/``tof`` in cm, ``time`` = motor-on
-s, ``bat`` in %) at ``state_hz`` to ``(client_ip, state_port)`` in SDK mode.  `TelloPhysics` is one
-layer of ``TelloEmulator`` (``tello_emulator``); details in the docstring of ``tello.py``.
+up) and a yaw rate (deg/s, clockwise), followed with a first-order lag ``tau_s``; discrete moves are
+instantaneous. Phases ``landed`` -> ``takeoff`` -> ``flying`` -> ``landing`` -> ``landed`` (logged in
+``phase_log``; motor-on time runs in all but ``landed``); a takeoff climbs to ``takeoff_height_cm`` in at
+most ``TAKEOFF_CLIMB_S`` (*unverified*), and its deferred ``ok`` is queued when it completes. No datagram
+for ``auto_land_s`` (15 s, SDK guides "Safety Function"; DJITelloPy #141) while flying: the drone lands
+itself (``landed_by_timeout``). The battery drains from the set-point ``faults.battery_pct``. The
+simulation thread steps every ``TICK_S`` s and sends the state string (``mid:-1;x:..;...;agz:..;\\r\\n``;
+``vgx/vgy/vgz`` in dm/s, ``h``/``tof`` in cm, ``x/y/z`` the integrated position in cm where a real drone
+reports mission-pad coordinates, ``time`` = motor-on s, ``bat`` in %) at ``state_hz`` to
+``(client_ip, state_port)`` in SDK mode. `TelloPhysics` is one layer of ``TelloEmulator``.
 """
 
 from __future__ import annotations
