@@ -1,44 +1,22 @@
 """`flightstack guard MISSION`: land the Tello of an agent process that vanishes in flight.
 
-Optional, on the operator's computer, next to `flightstack status`. It joins the mission's Zenoh bus as
-the operator tool "guard" (it connects, hosts no agent, publishes nothing), follows every agent's
-liveliness token `<prefix>/<mission>/alive/<id>` and its status reports (`flying`, about every 0.5 s,
-flightstack/runtime/runner.py StatusPublisher; read as validated control.StatusReport: a malformed status, or
-one
-about a drone its sender does not host, counts as no status), and when an agent vanishes in flight it
-lands that agent's Tello itself: `rc 0 0 0 0` then `land` from its own UDP socket, re-sent every
-`land_resend_s` (1 s) until the drone's telemetry shows it down or `give_up_s` (20 s, beyond the Tello's
-own 15 s auto-land). The sending, telemetry and "down" rule are those of the guardian process
-(drivers/guardian_process.py `GuardianProcess`, reused: one per drone, its sockets opened at start so a
-takeover sends at once).
+Optional, on the operator's computer (station topology only; refused in access-point mode,
+`guard_refusal`). It joins the mission's Zenoh bus as the operator tool "guard" (publishes nothing),
+follows every agent's liveliness token and its status reports (validated `control.StatusReport`s; a
+malformed one counts as none) and, when an agent vanishes in flight, lands its Tello with the guardian's
+code (drivers/guardian_process.py `GuardianProcess`, one per drone, sockets opened at start so a takeover
+sends at once): `rc 0 0 0 0` then `land`, re-sent every `land_resend_s` until telemetry shows it down or
+`give_up_s`. What it decides and why (in flight = last status `flying` and at most `status_fresh_s` old
+when the token went; silence alone never triggers; an agent that comes back ends the takeover), and what
+it measured: docs/bus.md ("Guard").
 
-Decisions:
-- **In flight** = the agent's last status said `flying: true` and arrived at most `status_fresh_s` before
-  its token vanished (default max(2 s, lease + 1 s): a killed agent's token goes in ~0.1 s, a stopped or
-  partitioned one's after the Zenoh lease, and statuses come every 0.5 s). Not in flight: no status yet
-  (taking off: only its own guardian covers that), a last status `flying: false` (on the ground, or
-  landing by itself), or a status older than that bound: the agent publishes statuses only from its
-  pursuit loop, so an older one means it was landing at the end of its run (or stalled, which its own
-  guardian handles). Hence an agent that lands and exits normally triggers nothing.
-- **Silence alone never triggers**: an agent whose token is present is alive, and guard never sends to
-  its drone (every normal run ends with seconds of landing without status). A silent but present agent
-  is reported once. A stalled process keeps its token only while its Zenoh threads run; its own guardian
-  (0.5 s) and its driver's loop watchdog (2 s) land it.
-- **An agent that comes back** (its token reappears) ends a takeover of its drone at once: nothing more is
-  sent to a drone whose agent is alive.
-- **Topology**: station only (every Tello on the lab network, reachable from here). In access-point mode
-  each Tello is its own Wi-Fi network, reachable only from its agent's computer: refused (`guard_refusal`).
-- **Telemetry**: the Tello streams its state to the computer that sent it `command` (the agent's). Guard
-  binds the mission's `state_port` during a takeover when it is free (SO_REUSEADDR; a live agent's driver
-  on this computer holds it exclusively, so guard never takes its telemetry), so it sees the drone down
-  only when it runs on the dead agent's computer; otherwise it re-sends until `give_up_s` (a Tello on the
-  ground ignores `rc` and refuses `land` with "error Motor stop"). Two takeovers at once on one computer
-  share that port: only one of them gets telemetry, the other re-sends until it gives up.
-- A partition that hides a live agent from guard for longer than the lease makes guard land its drone:
-  safety first.
+Telemetry: during a takeover guard binds the mission's `state_port` if free (SO_REUSEADDR; a live agent's
+driver on this computer holds it exclusively), so it sees the drone down only on the dead agent's
+computer; elsewhere it re-sends until `give_up_s` (a grounded Tello ignores both). A partition hiding a
+live agent for longer than the lease makes guard land its drone: safety first.
 
 Every event is one line `guard <pid> t=<time.monotonic() s> <text>` on stdout (`Log`, a writer thread: a
-blocked terminal never delays a takeover). One thread runs the watch: a loop of ≤ POLL_S over the bus's
+blocked terminal never delays a takeover). One thread runs the watch, a loop of ≤ POLL_S over the bus's
 presence and status events and the landers' sockets. Units: times in s (time.monotonic()).
 """
 

@@ -10,39 +10,22 @@ turns the result into the `RcGains` of flightstack.drivers.tello_rc and `save_id
 YAML.
 
 Axes and signs (body FLU frame, as in flightstack.drivers.tello_rc): "x" forward (rc b), "y" left (−rc a),
-"z" up (rc c), "yaw" counter-clockwise seen from above (−rc d). A command u > 0 on an axis moves the drone
-in that axis's positive direction, so the identified gains are positive: m/s (x, y, z) or rad/s (yaw) per
-rc unit. Time: monotonic seconds (time.monotonic), the hardware clock of flightstack.
+"z" up (rc c), "yaw" counter-clockwise seen from above (−rc d); the identified gains are positive, m/s
+(x, y, z) or rad/s (yaw) per rc unit. Time: monotonic seconds (time.monotonic).
 
-Velocity measurement — position differencing, not the vg* fields. The default source differences the
-state's x/y/z (cm) and yaw (deg, unwrapped) between consecutive state packets and stamps each difference at
-the middle of the two packets' arrival times. Measurements behind this choice (both sources against the
-emulator, a Monte Carlo of the τ estimate): docs/lab_notes.md (section "drivers/identify.py").
+Velocity: position differencing, not the vg* fields. The default source differences the state's x/y/z (cm)
+and unwrapped yaw (deg) between consecutive packets, stamped at the middle of their arrival times. The vg*
+fields are integers in dm/s, so a speed that is not a multiple of 10 cm/s is biased for the whole step
+(35 cm/s reads 3 dm/s) and the transient often hides τ; there is no yaw-rate field at all. Differenced
+integer positions are coarse per sample (±10 cm/s at 10 Hz) but unbiased (the rounding errors telescope),
+so `identify` fits them with `differenced=True` (residuals weighted through their running sum). The
+measurements behind this: docs/lab_notes.md ("drivers/identify.py"); `state_velocity_source(driver, axis,
+field="vg")` gives the vg* alternative for comparison.
 
-- The vg* fields are integers in dm/s. A first-order response approaches its target from below, so 35 cm/s
-  is reported as 3 dm/s for the whole step: the error is the same in every steady-state sample and never
-  averages out, and the transient is one or two 10 cm/s levels, which often hides τ. Only speeds that are
-  multiples of 10 cm/s come out right, and a real drone's gain is not known in advance to be such.
-- Differencing integer positions is coarse per sample (±1 cm over 0.1 s: ±10 cm/s) but unbiased: the
-  rounding errors telescope, so the mean of N successive differences is the displacement over N
-  intervals, exact to ±1 cm / (N · 0.1 s). Because each rounding error enters two neighbouring
-  differences with opposite signs, `identify` fits such data with `differenced=True` (residuals weighted
-  through their running sum: a position-domain fit). Measured residuals and τ accuracy: docs/lab_notes.md.
-- There is no yaw-rate field at all: yaw must be differenced anyway, so one method serves every axis.
-- A difference is the exact mean velocity over the interval between two packets; for a first-order
-  response that mean equals the point value at the interval's middle shifted by τ·ln(sinh(h/τ)/(h/τ))
-  (h = half the interval: 4 ms for τ = 0.1 s at 10 Hz), so the midpoint stamp adds no visible bias.
-`state_velocity_source(driver, axis, field="vg")` gives the vg* alternative for comparison (x, y, z only).
-
-Frames of the state stream (assumption): x forward and y right in the horizontal frame of the takeoff
-heading, z up, yaw clockwise in degrees from that heading — the emulator's convention
-(sim_backend/emulators/tello.py: x/y/z are its true position). Both sources rotate the horizontal velocity
-into
-the body frame with the reported yaw; during x/y/z steps the drone does not yaw (only one rc slot is
-non-zero), and `identify` flies the yaw steps last and back and forth, so for x/y the rotation is the
-identity up to a degree of rounding. On a real Tello the x/y/z fields are mission-pad coordinates (constant
-while no pad is detected), so hardware identification needs an external `velocity_source` (e.g.
-motion capture); a real Tello's 'h' field would give the height without pads.
+Frames of the state stream (assumption, the emulator's convention): x forward and y right in the
+horizontal frame of the takeoff heading, z up, yaw clockwise in degrees; the horizontal velocity is rotated
+into the body frame with the reported yaw. On a real Tello x/y/z are mission-pad coordinates, so hardware
+identification needs an external `velocity_source` (e.g. motion capture).
 """
 
 from __future__ import annotations

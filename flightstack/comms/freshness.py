@@ -3,44 +3,31 @@
 `Freshness` holds what a receiver knows about each sender: its newest valid prediction message, the
 receipt time of that message and, in real time, the offset between the sender's clock and the
 receiver's. `InProcBus` and `ZenohBus` feed it the bytes they receive (`accept`) and read through it
-(`latest`); drop reasons are counted in `dropped` exactly as before ("old or duplicate seq", "stale",
-"key sender mismatch", the reasons of `messages.decode`, plus "stamp ahead" in real time).
+(`latest`); drop reasons are counted in `dropped` ("old or duplicate seq", "stale", "key sender mismatch",
+the reasons of `messages.decode`, plus "stamp ahead" in real time).
 
 Time bases
 ----------
 "stamps" (lock-step runs, simulated clock; the in-process bus): a message's age is `now − stamp`, both
     on the one mission clock. No clock is read, so lock-step runs stay bit-identical.
 
-"receiver" (real-time runs, agents on different computers): the stamps of sender j are on j's
-    monotonic clock, unrelated to the receiver's. The receiver learns, per sender,
+"receiver" (real-time runs, agents on different computers): sender j's stamps are on j's monotonic
+    clock. The receiver learns, per sender,
 
         offset_j = min over the join window of (t_recv − stamp_j)          (receiver clock − sender clock)
 
-    where t_recv is the receiver's `clock()` (time.monotonic(), s) at receipt. The minimum is the least
-    delayed message, so offset_j = true clock offset + the smallest one-way delay seen (ms on a LAN):
-    ages are measured *excluding* that floor delay. The join window is the first `join_messages`
-    messages or `join_window_s` seconds after the first one, whichever ends first; then the offset is
-    frozen. A message's age is then, on the receiver's own clock,
+    (t_recv: the receiver's `clock()` at receipt), i.e. the true offset plus the smallest one-way delay
+    seen, over the first `join_messages` messages or `join_window_s` s, whichever ends first. Then
 
         age = clock() − (stamp_j + offset_j)          (`now` passed to `latest` is not used)
 
-    which is never less than the time since the message arrived here (offset_j ≤ t_recv − stamp_j).
-    A sender whose clock is minutes ahead or behind is fused, and goes stale, like one on the same
-    clock (tests/test_clock_offset.py: ±10 min).
-
-    Bounds after the window. A message whose implied age at receipt, t_recv − (stamp_j + offset_j), is
-    below −(`ahead_tolerance_s` + `drift_ppm`·1e-6 · seconds since the offset was frozen) is dropped and
-    counted "stamp ahead"; one within that bound lowers offset_j to its own t_recv − stamp_j (a less
-    delayed message, or the sender's clock running slightly fast). So offset_j never moves from its
-    frozen value by more than that bound, and never upwards. Consequences for a sender that jumps its
-    clock mid-run (monotonic clocks do not, unless a machine is suspended or a VM migrated):
-      - jump forward (stamps ahead) beyond the bound: every message dropped as "stamp ahead";
-      - jump backward (stamps behind): its messages read as older by the jump, so "stale" once the jump
-        exceeds `stale_after`;
-    both fail closed (the neighbour leaves fusion) until the sender rejoins: it is silent for more than
-    `rejoin_after_s` (no decodable message at all), or leaves the Zenoh bus (`forget`); its next message
-    then opens a new join window. A sender clock running slower than the receiver's (drift) makes its
-    ages grow by the drift (20 ppm: 72 ms per hour), i.e. towards stale, never towards fresh.
+    which is never less than the time since the message arrived; a sender minutes ahead or behind fuses
+    and goes stale like one on the same clock (tests/test_clock_offset.py: ±10 min). After the window, a
+    message implying an age below −(`ahead_tolerance_s` + `drift_ppm`·1e-6 · seconds since the window) is
+    dropped ("stamp ahead"); one within that bound lowers offset_j, which therefore never rises. A sender
+    that jumps its clock mid-run fails closed (ahead: "stamp ahead"; behind: "stale") until it rejoins:
+    silent for `rejoin_after_s`, or `forget` when it leaves the bus, opens a new join window. A slow
+    sender clock (20 ppm: 72 ms per hour) ages its messages, towards stale, never towards fresh.
 
 Units: stamps, `now`, `stale_after`, clock readings: seconds; `drift_ppm`: parts per million.
 Thread safety: none here; `ZenohBus` calls every method with its lock held.

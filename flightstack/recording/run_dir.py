@@ -9,38 +9,26 @@ One `RunWriter` per run directory, one `ModeWriter` per flown mode:
     w.close(rec)                                 # after landing: final timeseries_dgp.npz
     run.write_metrics(metrics); run.close()      # metrics.json (with "recording": complete, reason)
 
-Files of a run directory (all written by a background thread, so a slow or hung disk never blocks the
-control loop; the loop only copies the new rows, about every BLOCK_PERIOD_S):
+A background thread writes every file, so a slow or hung disk never blocks the control loop (which only
+copies the new rows, about every BLOCK_PERIOD_S):
 
-- `timeseries_<mode>.rows` (while the mode flies): an append-only file of fixed-size rows, readable after
-  a kill (`read_rows`). Layout: the 8 bytes MAGIC, a little-endian uint32 header length L, L bytes of
-  UTF-8 JSON {"format", "version", "columns": [{"name", "dtype", "shape"}...], "meta"} padded with
-  spaces to a multiple of 64 bytes, then rows of the numpy structured dtype the columns describe (C
-  order, no padding). Column `_seq` holds the row number + 1: a torn or zero-filled tail (kill, power
-  loss) is recognised and dropped. The ModeWriter writes every Recording array except e_c and e_e (zeros
-  while flying; `load_run` recomputes them from the poses and the mission). At about 1 kB per tick for
-  3 drones (10⁵ ticks ≈ 100 MB) this file is removed once the final npz is safely on disk.
-- `timeseries_<mode>.npz`: written at the end of the mode exactly as before (tmp + fsync + os.replace, so
-  a full disk never leaves a half-written file); every existing reader keeps working.
-- `events.jsonl`: one JSON object per line, appended when the event happens; each line is written with
-  one write(2) at once (it survives a kill of the process as soon as it is written: typically < 1 ms
-  after the call) and fsync'ed at most every FSYNC_PERIOD_S and at close (a power loss loses at most the
-  last ~1 s). Non-finite floats are written as null (strict JSON).
-- `recording.json`: the recording's state, rewritten atomically (tmp + fsync + os.replace) when a mode
-  starts or ends and when the recording stops: {"state": "running"|"closed", "complete", "reason",
-  "modes": {mode: {"state", "drone_ids", "n_ticks", "rows_written", Recording.meta()...}}}.
-- `metrics.json` (by the caller through `RunWriter.write_metrics`): atomic, with
-  "recording": {"complete": bool, "reason": str | None}.
+- `timeseries_<mode>.rows` (while the mode flies; removed once the npz is on disk): append-only, readable
+  after a kill (`read_rows`): the 8 bytes MAGIC, a little-endian uint32 length L, L bytes of UTF-8 JSON
+  {"format", "version", "columns": [{"name", "dtype", "shape"}...], "meta"} space-padded to a multiple of
+  64 bytes, then rows of the structured dtype the columns describe (C order, no padding). Column `_seq`
+  (row number + 1) lets a torn or zero-filled tail be dropped. e_c and e_e are not written (`load_run`
+  recomputes them). About 1 kB per tick for 3 drones.
+- `timeseries_<mode>.npz` at the end of the mode; `recording.json` (state, completeness, reason, per-mode
+  progress) when a mode starts or ends; `metrics.json` through `write_metrics`: each tmp + fsync +
+  os.replace, so a full disk never leaves a half-written file.
+- `events.jsonl`: one JSON object per line, one write(2) each (it survives a kill once written), fsync'ed
+  at most every FSYNC_PERIOD_S and at close. Non-finite floats are written as null.
 
-Data lost to a SIGKILL: the rows not yet handed over (at most BLOCK_PERIOD_S = 0.5 s of wall time, or
-BLOCK_MAX_ROWS ticks on a fast simulated clock) plus the write in flight (well under 0.5 s), so ≤ 1 s.
-
-On any write error (a full disk: ENOSPC, a removed USB stick: EIO, ...) the recording stops: nothing more
-is written to the stream, nothing raises into the control loop (safety first: the flight goes on), the
-run's recording gets a `recording_stopped` event with the reason, and metrics.json says
-"recording": {"complete": false, "reason": ...}. All stream writes go through `_write_bytes`, the point
-where tests inject ENOSPC. A run directory must have MIN_FREE_BYTES free before anything takes off
-(`check_out_dir`).
+A SIGKILL loses the rows not yet handed over (≤ BLOCK_PERIOD_S of wall time, or BLOCK_MAX_ROWS ticks) plus
+the write in flight: ≤ 1 s. On any write error (ENOSPC, EIO, ...) the recording stops without raising into
+the control loop (the flight goes on), with a `recording_stopped` event and "recording": {"complete":
+false, "reason": ...} in metrics.json; tests inject the error at `_write_bytes`. A run directory needs
+MIN_FREE_BYTES free before anything takes off (`check_out_dir`).
 """
 
 from __future__ import annotations

@@ -3,46 +3,17 @@
 `SafeDrone` is a hal.Drone that wraps another one and enforces the per-drone rules (saturation, geofence,
 command watchdog, stale pose, battery, link loss, landing confirmation); `MissionSupervisor`
 (flightstack/safety/supervisor.py) adds the mission-wide ones (target lost, land every drone, signals, the
-exception guard). The rules, their reactions and the limits they use are stated once, in docs/safety.md.
-Limits, events and the pure rules are in flightstack/safety/rules.py; the landing sequence, its background
-workers (hardware: takeoff and land on a worker thread each, never waited for on the control thread) and
-the plumbing the rules share with it are in flightstack/safety/landing.py (the base class of SafeDrone), the
-phases in flightstack/safety/phases.py.
+exception guard). The rules, their reactions, the limits and every event kind are stated once, in
+docs/safety.md. Limits, events and the pure rules are in flightstack/safety/rules.py; the landing sequence,
+its background workers (hardware: takeoff and land on a worker thread each, never waited for on the control
+thread) and the plumbing the rules share with it are in flightstack/safety/landing.py (the base class of
+SafeDrone), the phases in flightstack/safety/phases.py.
 
 Every condition logs exactly one `SafetyEvent` per episode (the interval during which it holds), stamped
-with the mission clock. The event kinds form the closed set `EVENT_KINDS`:
-
-    saturated               a command was saturated (speed, climb rate or yaw rate)
-    invalid_command         a command with NaN/inf, the wrong size or not numeric: replaced by zeros
-    fence_soft              the drone is outside the soft fence (outward velocity removed)
-    fence_hard_land         the drone is outside the hard fence: land
-    command_timeout         no command for command_timeout: zero velocity sent on every tick
-    pose_stale_hover        pose older than pose_timeout (or never seen): zero velocity
-    pose_stale_land         pose older than pose_land_after: land
-    pose_error              the PoseSource raised; treated as no pose
-    battery_refuse_takeoff  takeoff refused: battery below min_battery_takeoff (or unreadable as a number)
-    pose_refuse_takeoff     takeoff refused: no fresh pose
-    fence_refuse_takeoff    takeoff refused: the drone stands outside the hard fence in x or y
-    battery_land            battery below land_battery in flight: land
-    link_lost               the drone reports its link lost (state().link_alive False) in flight: hover, land
-    drone_error             the wrapped drone raised inside tick() (state() or the watchdog's command)
-    command_after_land      a command arrived after land/emergency stop: dropped
-    land_failed             the wrapped drone's land() raised (retried every land_retry_s)
-    landed_by_drone         the drone's own telemetry shows it on the ground in flight (an auto-land, a land
-                            by someone else): it is treated as landed and not commanded again
-    emergency_stop          emergency_stop() was sent to the wrapped drone
-    emergency_stop_failed   the wrapped drone's emergency_stop() raised too (MissionSupervisor.land_all)
-    target_lost_hover       every drone lost the target for longer than target_lost_hover_after
-    target_lost_land        ... and for longer than target_lost_land_after: land every drone
-    land_all                MissionSupervisor.land_all started landing the drones that were not landed
-    signal                  a signal received inside install_signal_handlers() (SIGINT, SIGTERM, SIGHUP, ...)
-    takeoff                 takeoff sent to the wrapped drone
-    takeoff_failed          the wrapped drone's takeoff() raised (background): land
-    land                    the landing is confirmed (detail = the reason, and by what when not by land())
-
-Errors from the wrapped drone inside `send_body_velocity`, `takeoff`, `connect`, `state` and `close`
-propagate unchanged (the caller's `MissionSupervisor.guard()` lands everything); the safety rules
-themselves never raise into the control loop.
+with the mission clock; its kind is one of the closed set `EVENT_KINDS`. Errors from the wrapped drone
+inside `send_body_velocity`, `takeoff`, `connect`, `state` and `close` propagate unchanged (the caller's
+`MissionSupervisor.guard()` lands everything); the safety rules themselves never raise into the control
+loop.
 """
 
 from __future__ import annotations
