@@ -1,4 +1,4 @@
-"""Dependable abort (issue 15): `flightstack abort` publishes at once, every agent process acknowledges as
+"""Dependable abort: `flightstack abort` publishes at once, every agent process acknowledges as
 soon as its bus has the abort, and the command exits 1 naming any agent that did not; in-process missions
 listen on a loopback UDP operator channel. Measured: abort published → acknowledgement received (ms),
 with agents in separate processes (Zenoh) and through the loopback listener of a running `flightstack
@@ -124,7 +124,7 @@ def test_loopback_listener_acks_and_drops_malformed_messages() -> None:
 
 
 def test_hardware_listener_accepts_only_aborts_signed_by_the_operator(tmp_path: Path) -> None:
-    """Issue 16: on real drones any local process can reach the loopback port; only the holder of the
+    """On real drones any local process can reach the loopback port; only the holder of the
     mission's operator key can land them this way."""
     create_mission_certs("lb_test", participants([1, 2], None), tmp_path)
     other = tmp_path / "other"
@@ -159,7 +159,7 @@ def test_inproc_bus_on_hardware_yields_the_abort_to_the_runner(tmp_path: Path) -
     """`flightstack fly` with the in-process bus: make_bus wraps a loopback listener on the mission's
     operator port; `flightstack abort` (send_abort, signed with the operator's key) gets every drone's
     ack; the runner's `check_operator(bus)` raises on its next call. A second process of the mission
-    cannot bind it. Without the mission's certificates the bus refuses to start (issue 16)."""
+    cannot bind it. Without the mission's certificates the bus refuses to start."""
     port = free_udp_port()
     nocerts = {"bus": {"operator_port": port, "certs": str(tmp_path / "none")}}
     with pytest.raises(MissionError, match=r"bus\.certs: .*none/ca\.pem: cannot read"):

@@ -1,4 +1,4 @@
-"""Agents in separate processes over Zenoh on loopback (issue 6): `flightstack world` serves the paper
+"""Agents in separate processes over Zenoh on loopback: `flightstack world` serves the paper
 simulation, one `flightstack agent` process per drone; `flightstack status` sees every agent and
 `flightstack abort` lands them all. (A killed agent and a bus partition are rows of `flightstack faults`,
 tests/test_faults.py.) Every process is bounded (timeouts, killed on exit)."""

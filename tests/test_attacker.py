@@ -1,4 +1,4 @@
-"""Issue 16: a peer that is not a participant tries every forgery that once worked, on loopback.
+"""A peer that is not a participant tries every forgery that once worked, on loopback.
 
 The paper simulation is served by `flightstack world` to three `flightstack agent` processes (lock-step,
 deterministic), once undisturbed and once with attackers connecting to every endpoint throughout the

@@ -1,4 +1,4 @@
-"""Issue 16: what a received prediction may claim (flightstack/comms/acceptance.py, freshness.py).
+"""What a received prediction may claim (flightstack/comms/acceptance.py, freshness.py).
 
 The forgeries that once worked, against the receive path of both buses, in both time bases: one
 message with seq 2³²−1 and stamp 1e300 took over a sender's slot for good; a variance of 5e-324 made the

@@ -1,4 +1,4 @@
-"""The CLI conventions of issue 19: `--version`, `python -m flightstack`, shell completion (argcomplete),
+"""The CLI conventions: `--version`, `python -m flightstack`, shell completion (argcomplete),
 `validate` printing a summary (`--json` for the resolved mission), and one meaning per option name
 (`--marker-size` for the ChArUco marker side, `--marker` the pixel box of `calibrate markers`)."""
 

@@ -1,4 +1,4 @@
-"""CLI conventions of `run`/`sim`/`fly`/`agent` (issue 19), in process: `--out` refuses a non-empty
+"""CLI conventions of `run`/`sim`/`fly`/`agent`, in process: `--out` refuses a non-empty
 directory unless `--force` (which removes exactly the files a run writes), a time-stamped default run
 directory, progress bars only on a terminal, a run too short to train refused before anything flies, no
 made-up gain condition without experts, and a landed drone of the ideal simulation at a height >= 0."""

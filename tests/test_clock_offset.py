@@ -1,4 +1,4 @@
-"""One time base for real-time runs (issue 15): a receiver learns each sender's clock offset when it joins
+"""One time base for real-time runs: a receiver learns each sender's clock offset when it joins
 and measures message ages on its own clock, so senders whose monotonic clocks are ±10 min off are fused
 and go stale exactly like a sender on the receiver's clock; lock-step runs keep comparing stamps.
 
@@ -90,11 +90,11 @@ def test_skewed_senders_are_fused_and_go_stale_exactly_like_a_same_clock_sender(
 
 def test_comparing_stamps_across_computers_is_what_failed() -> None:
     """The time base of lock-step runs ("stamps") on these senders: the one behind is never fused (the
-    failure of issue 15); the one ahead was never stale, and is now refused (issue 16). Here the
+    failure of issue 15); the one ahead was never stale, and is now refused. Here the
     receiver's `now` is its own clock, as on hardware before the fix."""
     fused, _, book = fly_and_stop("stamps")
     assert not any(fused[2])
-    # issue 16: the sender whose clock is 10 min ahead was fused forever (never stale); a stamp ahead of
+    # the sender whose clock is 10 min ahead was fused forever (never stale); a stamp ahead of
     # the receiver's clock is now refused ("stamp ahead"): it fails closed instead
     assert not any(fused[1]) and book.dropped["stamp ahead"] > 0
 
@@ -267,7 +267,7 @@ def test_skewed_senders_over_zenoh() -> None:
                 if i not in stale_at and rx.latest(i, now, STALE_AFTER_S) is None:
                     stale_at[i] = now - t_stop
             time.sleep(0.001)
-        # ahead: was never stale; now refused as "stamp ahead" (issue 16)
+        # ahead: was never stale; now refused as "stamp ahead"
         assert rx_stamps.latest(1, time.monotonic(), STALE_AFTER_S) is None
     ms = {i: round(1e3 * s, 1) for i, s in stale_at.items()}
     print(f"stale after the last send (ms) by skew: { {SKEWS[i]: v for i, v in ms.items()} }")

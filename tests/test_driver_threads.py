@@ -1,4 +1,4 @@
-"""Driver threads that cannot die (issue 15), and the guardian's mute hook.
+"""Driver threads that cannot die, and the guardian's mute hook.
 
 Each test injects errors into one background thread of a driver, through the thread's own socket (a
 `FaultySocket` proxy whose recv/recvfrom/send raise OSError(ENETUNREACH) a given number of times) or

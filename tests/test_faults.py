@@ -1,4 +1,4 @@
-"""`flightstack faults`: every row of the fault table is handled (issue 8): no crash, every drone safe,
+"""`flightstack faults`: every row of the fault table is handled: no crash, every drone safe,
 recording intact, and the observed reaction is the documented one (docs/faults.md).
 
 All rows run once (module fixture, ~50 s on 2 cores); the tests then read the results. The last two rows

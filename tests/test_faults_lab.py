@@ -1,4 +1,4 @@
-"""`flightstack faults`: the emulated-lab rows of issue 15 (flightstack/faults/rows_lab.py, rows_lab_cli.py)
+"""`flightstack faults`: the emulated-lab rows (flightstack/faults/rows_lab.py, rows_lab_cli.py)
 are handled, and their measured reaction times are within their limits.
 
 Every row runs once (module fixture, about 2 min on 2 cores); the tests read the results. The rows fly the
@@ -222,7 +222,7 @@ def test_a_late_reaction_fails_the_row() -> None:
 
 
 def test_without_an_optional_package_the_lab_says_which(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The emulators ship in the package (issue 17); what can be missing is an optional dependency."""
+    """The emulators ship in the package; what can be missing is an optional dependency."""
     monkeypatch.setitem(sys.modules, "pymavlink", None)  # `import pymavlink` now raises ImportError
     with pytest.raises(LabUnavailableError, match="pymavlink"):
         emulated_lab.load_emulators()

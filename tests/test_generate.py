@@ -1,4 +1,4 @@
-"""The n-drone mission generator (issue 18): flightstack.config.generate and `flightstack generate-mission`.
+"""The n-drone mission generator: flightstack.config.generate and `flightstack generate-mission`.
 
 Unit tier (tests/conftest.py): pure functions, one in-process 0.05 s flight, the CLI called in-process.
 """

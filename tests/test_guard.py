@@ -1,4 +1,4 @@
-"""`flightstack guard MISSION` (drivers/guard.py, issue 15) against loopback Tello emulators and Zenoh.
+"""`flightstack guard MISSION` (drivers/guard.py) against loopback Tello emulators and Zenoh.
 
 A station-topology mission on 127.0.0.8/.9 (Tello emulators in this process) with one Zenoh endpoint per
 agent on free loopback ports. Each agent is a fake agent process (AGENT below): it joins the bus as agent
@@ -153,7 +153,7 @@ def write_mission(tmp: Path, emus: dict[int, TelloEmulator], state_port: int) ->
     cal = REPO / "mission_configs" / "cameras" / "tello_down_template.yaml"
     for d in m["drones"]:
         d["camera"]["calibration"] = str(cal)
-    # issue 16: a hardware mission on Zenoh is mutual TLS with the mission's certificates
+    # a hardware mission on Zenoh is mutual TLS with the mission's certificates
     bus = secured_bus(tmp / "certs", m["name"], [d["id"] for d in m["drones"]], ("1", "2"), lease_ms=500)
     m["bus"] = {**bus, "stale_after_s": 0.5}
     m["hardware"]["topology"] = "station"

@@ -1,4 +1,4 @@
-"""The guardian process (drivers/guardian.py, issue 15) against the loopback Tello and rover emulators.
+"""The guardian process (drivers/guardian.py) against the loopback Tello and rover emulators.
 
 A child process (CHILD below) flies emulated Tellos with flightstack.drivers.tello.TelloDriver (and the
 emulated

@@ -1,4 +1,4 @@
-"""Issue 16: one hardened loader (flightstack/config/safe_load.py) for missions and calibration files.
+"""One hardened loader (flightstack/config/safe_load.py) for missions and calibration files.
 
 Every input the fuzzer once crashed or hung the loaders with exits 2 (`flightstack validate`) with one
 line naming the file and, where there is one, the line and key path. Property tests: arbitrary bytes

@@ -1,4 +1,4 @@
-"""Loop health (issue 19): the summary against hand-computed values, the recording's new arrays on both
+"""Loop health: the summary against hand-computed values, the recording's new arrays on both
 paths, old files without them, and `bench-loop`'s refusal of rigs it must not fly."""
 
 from __future__ import annotations

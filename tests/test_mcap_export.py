@@ -1,4 +1,4 @@
-"""`flightstack export RUN_DIR --mcap FILE` (issue 19, flightstack.recording.mcap_export), read back with
+"""`flightstack export RUN_DIR --mcap FILE` (flightstack.recording.mcap_export), read back with
 the mcap library: the topics and their schemas, one message per tick, times in order on the mission
 clock, values equal to the recording (NaN as null), events as foxglove.Log with their level, the CLI's
 exit codes, and the shipped Foxglove schemas."""

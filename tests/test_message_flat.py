@@ -1,4 +1,4 @@
-"""Issue 18: the prediction message as one float64 array, checked by one compiled kernel.
+"""The prediction message as one float64 array, checked by one compiled kernel.
 
 The layout, the checks and the drop reasons must be exactly those of the struct-based code it replaced:
 `_old_*` below is that code (messages.py and AcceptanceBounds.violation before issue 18), kept here as

@@ -1,4 +1,4 @@
-"""The recording is written as the run goes (issue 15, flightstack.recording.run_dir): row streams readable
+"""The recording is written as the run goes (flightstack.recording.run_dir): row streams readable
 after a
 kill, events once each, an injected ENOSPC stops the recording and not the flight, `--out` is checked
 before takeoff, and `flightstack report` rebuilds metrics.json from any recording."""

@@ -1,4 +1,4 @@
-"""Issue 16: the mutual-TLS bus built from a mission (factory.zenoh_bus_config), in one process.
+"""The mutual-TLS bus built from a mission (factory.zenoh_bus_config), in one process.
 
 Participants with the mission's certificates exchange predictions, status, aborts and acknowledgements
 on their own keys; a participant publishing someone else's key is not heard (the access control of

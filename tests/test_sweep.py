@@ -1,4 +1,4 @@
-"""Issue 18: both readings of the paper's error metric, the oscillation measures, and `flightstack sweep`
+"""Both readings of the paper's error metric, the oscillation measures, and `flightstack sweep`
 (plan, statistics against closed forms and scipy, end-to-end sweeps, resume, conflicts, Dask).
 
 Unit tier: the metrics on synthetic Recordings, the plan, the statistics. System tier (marked): the CLI

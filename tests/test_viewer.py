@@ -1,4 +1,4 @@
-"""The Rerun viewer (issue 19): `flightstack view RUN_DIR` and the live `--viewer` tap.
+"""The Rerun viewer: `flightstack view RUN_DIR` and the live `--viewer` tap.
 
 Each .rrd is read back with rerun 0.41's own reader (rerun.chunk.RrdReader: chunks with their entity path
 and row count; the version is pinned in pyproject.toml's `viewer` extra because this API changes between

@@ -118,7 +118,7 @@ def test_config_builds_and_rejects_bad_keys(tmp_path: Path) -> None:
         ({"key_prefix": "fs/**"}, "key_prefix"),
         ({"tls": {**tls, "root_ca_certificate": str(tmp_path / "missing.pem")}}, "tls.root_ca_certificate"),
         ({"tls": {**tls, "bogus": "x"}}, "tls.bogus"),
-        # issue 16: nothing runs less secured than it says
+        # nothing runs less secured than it says
         ({"tls": tls, "listen": ["tcp/127.0.0.1:1"]}, "plaintext beside TLS"),
         ({"tls": tls, "connect": ["tls/127.0.0.1:1", "tcp/127.0.0.1:2"]}, "plaintext beside TLS"),
         ({"tls": {**tls, "enable_mtls": False}}, "without client authentication"),
@@ -388,7 +388,7 @@ def test_control_channel() -> None:
         b.publish_control_raw(b'{"mission": "other", "kind": "abort", "payload": {}}')
         b.publish_control_raw(b'{"mission": "zb_test", "kind": "status", "payload": [1]}')
         b.publish_control("status", STATUS)
-        # issue 16: the key says what a control message may be (the ACL authenticates keys): a status on
+        # the key says what a control message may be (the ACL authenticates keys): a status on
         # the abort key, an acknowledgement naming a drone its participant does not host, a status of
         # drone 0 on drone 1's key are all dropped
         b.publish_control_raw(encode_control(MISSION, "status", STATUS, [1]))
@@ -405,7 +405,7 @@ def test_control_channel() -> None:
             ("abort", {"reason": "operator", "id": "x1"}, (1,)),
             ("status", STATUS, (1,)),
         ]
-        # issue 15: every process hosting agents acknowledges an abort as soon as its bus has it
+        # every process hosting agents acknowledges an abort as soon as its bus has it
         acks = sorted((e.origin, e.payload["drones"]) for e in got if e.kind == "abort_ack")
         assert acks == [((0,), [0]), ((1,), [1])]
         assert a.dropped == Counter(
