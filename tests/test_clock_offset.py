@@ -90,7 +90,7 @@ def test_skewed_senders_are_fused_and_go_stale_exactly_like_a_same_clock_sender(
 
 def test_comparing_stamps_across_computers_is_what_failed() -> None:
     """The time base of lock-step runs ("stamps") on these senders: the one behind is never fused (the
-    failure of issue 15); the one ahead was never stale, and is now refused. Here the
+    failure this time base fixes); the one ahead was never stale, and is now refused. Here the
     receiver's `now` is its own clock, as on hardware before the fix."""
     fused, _, book = fly_and_stop("stamps")
     assert not any(fused[2])
