@@ -119,6 +119,13 @@ def render_run_files() -> str:
 
 # ---- the fault table ------------------------------------------------------------------------------------
 REACTIONS = Path(__file__).with_name("fault_reactions.yml")
+WHERE = {
+    "rows_sim": "simulated lab",
+    "rows_cli": "simulated lab, through the CLI",
+    "rows_processes": "agent processes (Zenoh)",
+    "rows_lab_bus": "Zenoh on loopback",
+}
+"""Where a row flies, by its module (the other modules fly the emulated lab)."""
 CONSTANT = re.compile(r"\b[A-Z][A-Z0-9_]{2,}\b")
 
 
@@ -145,12 +152,7 @@ def render_fault_rows() -> str:
         raise ValueError(f"{REACTIONS.name}: not rows of flightstack.faults.FAULTS: {', '.join(unknown)}")
     lines = ["| row | where it flies | fault | reaction (measured in one run) |", "|---|---|---|---|"]
     for name, fn in FAULTS.items():
-        module = fn.__module__.rsplit(".", 1)[-1]
-        where = {"rows_sim": "simulated lab", "rows_cli": "simulated lab, through the CLI"}.get(module)
-        where = where or {
-            "rows_processes": "agent processes (Zenoh)",
-            "rows_lab_bus": "Zenoh on loopback",
-        }.get(module, "emulated lab")
+        where = WHERE.get(fn.__module__.rsplit(".", 1)[-1], "emulated lab")
         reaction = reactions.get(name, f"not documented: `flightstack faults --only {name} --expected`")
         lines.append(f"| `{name}` | {where} | {_cell(_fault(fn))} | {_cell(reaction)} |")
     return "\n".join(lines) + "\n"
