@@ -26,6 +26,7 @@ import numpy as np
 
 from flightstack.comms.bus import InProcBus
 from flightstack.config.mission import Mission, load_mission
+from flightstack.learning.training import _one_kernel
 from flightstack.paper.gp import GPExpert, GPHyperparameters
 from flightstack.paper.gp_fit import LOG_LENGTH_BOUNDS, LOG_SIGMA_F_BOUNDS, fit_hyperparameters
 from flightstack.paper.kernels_warmup import warm_up
@@ -33,7 +34,6 @@ from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity
 from flightstack.runtime.backends import build_backend
 from flightstack.runtime.fleet import make_agents
 from flightstack.runtime.runner import run_mode
-from flightstack.runtime.training import _one_kernel
 
 NOISE_VAR = 0.01  # σ_n², the paper's data specification
 LO, HI = np.array([-2.0, -1.5, -0.05, -math.pi]), np.array([1.9, 1.5, 0.05, math.pi])  # the path's box

@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.table import DOCS, README, has_block, write_block  # noqa: E402
-from flightstack.paper.metrics import PAPER_RATIOS, PAPER_SQ_MEAN_ERROR  # noqa: E402
+from flightstack.analysis.metrics import PAPER_RATIOS, PAPER_SQ_MEAN_ERROR  # noqa: E402
 
 RESULTS_PAGE = DOCS / "results.md"
 """The docs page of the sweep tables (blocks `sweep:NAME`)."""

@@ -153,7 +153,7 @@ def check_gains(mission: Mission) -> CheckRow:
 
     experts: list = []
     if mission.gp.experts_file is not None and mission.resolve(mission.gp.experts_file).is_file():
-        from flightstack.runtime.training import load_experts
+        from flightstack.learning.training import load_experts
 
         experts = list(load_experts(mission.resolve(mission.gp.experts_file)).values())
     s = mission.safety

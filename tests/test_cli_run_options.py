@@ -21,12 +21,12 @@ from flightstack.cli import app as cli
 from flightstack.cli.run import default_out_dir, want_progress
 from flightstack.config.mission import Mission, load_mission
 from flightstack.config.rig import resolved_document
+from flightstack.learning.training import bands, predicted_target_path, training_shortfall
 from flightstack.paper.geometry import Pose
 from flightstack.paper.target_motion import DuffingField, DuffingParams
 from flightstack.recording.files import PLOTS, RUN_FILES, is_run_file, run_files
 from flightstack.runtime.experiment import run_experiment
 from flightstack.runtime.runner import run_mode
-from flightstack.runtime.training import bands, predicted_target_path, training_shortfall
 from flightstack.sim_backend.ideal import IdealDrone
 from flightstack.sim_backend.world import World
 from tests.conftest import MISSIONS

@@ -16,6 +16,7 @@ from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 
 from flightstack.config.mission import MissionError, load_mission
 from flightstack.config.rig import resolved_document
+from flightstack.learning.training import ExpertData, train_experts
 from flightstack.paper.gp import GPExpert, GPHyperparameters, log_marginal_likelihood_and_grad
 from flightstack.paper.gp_fit import LOG_LENGTH_BOUNDS, LOG_SIGMA_F_BOUNDS, fit_hyperparameters
 from flightstack.paper.gp_shared_fit import (
@@ -23,7 +24,6 @@ from flightstack.paper.gp_shared_fit import (
     shared_log_marginal_likelihood_and_grad,
 )
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch
-from flightstack.runtime.training import ExpertData, train_experts
 
 NOISE_VAR = 0.01
 EDGES = (-0.7, 0.6)  # paper_sim's expert bands along x

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from flightstack.cli.app import main
 from flightstack.config.mission import MissionError, load_mission
-from flightstack.config.safe_load import LoadError, load_yaml
+from flightstack.safe_yaml import LoadError, load_yaml
 from flightstack.vision.camera_file import CalibrationError, load_calibration
 from tests.conftest import MISSIONS
 

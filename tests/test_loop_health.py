@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from flightstack.analysis.loop_health import OVERRUN_TOLERANCE, loop_health, percentiles, plot_loop_health
 from flightstack.cli.app import main
-from flightstack.recording.loop_health import OVERRUN_TOLERANCE, loop_health, percentiles, plot_loop_health
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
 from tests.conftest import MISSIONS
 

@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 import yaml
 
+from flightstack.analysis.metrics import mode_metrics
 from flightstack.cli import app as cli
 from flightstack.config.mission import Mission, load_mission
 from flightstack.config.rig import resolved_document
 from flightstack.faults.fly import write_run
-from flightstack.paper.metrics import mode_metrics
 from flightstack.recording import files
 from flightstack.recording import run_dir as recorder
 from flightstack.recording.run_dir import (
@@ -357,7 +357,7 @@ def test_faults_write_run_reports_a_full_disk(tmp_path: Path, monkeypatch: pytes
 
 def test_datasets_file_round_trip(tmp_path: Path) -> None:
     """datasets.npz: what the experiment writes (save_datasets) is what report and view read back."""
-    from flightstack.runtime.training import ExpertData, load_datasets, save_datasets
+    from flightstack.learning.training import ExpertData, load_datasets, save_datasets
 
     rng = np.random.default_rng(3)
     data = [ExpertData(i, (0.0, 1.0), rng.normal(size=(5, 4)), rng.normal(size=(5, 4)), np.arange(5) * i)

@@ -19,8 +19,10 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
+from flightstack.analysis.report import rebuild_run
 from flightstack.cli import app as cli
 from flightstack.config.mission import load_mission
+from flightstack.learning.training import ExpertData, save_datasets, save_experts
 from flightstack.paper.gp import GPExpert, GPHyperparameters
 from flightstack.recording.files import (
     DATASETS_FILE,
@@ -32,11 +34,9 @@ from flightstack.recording.files import (
     RunDirError,
 )
 from flightstack.recording.mcap_export import export_mcap
-from flightstack.recording.report import rebuild_run
 from flightstack.recording.rows import MAGIC
 from flightstack.recording.run_dir import RunWriter
 from flightstack.runtime.experiment import resolved_mission_yaml
-from flightstack.runtime.training import ExpertData, save_datasets, save_experts
 from tests.conftest import MISSIONS, random_recording
 
 NPZ = "timeseries_none.npz"

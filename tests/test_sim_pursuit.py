@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from flightstack.analysis.metrics import error_vector_sq_norm
 from flightstack.config.mission import load_mission
-from flightstack.paper.metrics import error_vector_sq_norm
 from flightstack.paper.target_motion import DuffingParams
 from flightstack.runtime.experiment import TruthPredictor
 from flightstack.runtime.runner import run_mode

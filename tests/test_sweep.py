@@ -20,11 +20,10 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
+from flightstack.analysis.metrics import build_metrics, default_transient_s, mode_metrics, oscillation
 from flightstack.config.mission import Mission, load_mission
 from flightstack.paper.geometry import compose_arrays, inverse_arrays
-from flightstack.paper.metrics import default_transient_s, mode_metrics, oscillation
 from flightstack.recording.timeseries import Recording
-from flightstack.runtime.experiment import ExperimentResult, build_metrics
 from flightstack.sweep.plan import (
     SweepError,
     build_plan,
@@ -123,11 +122,11 @@ def test_default_transient_and_short_windows() -> None:
 
 def test_build_metrics_reports_the_ratios_of_both_readings() -> None:
     mission = _mission()
-    res = ExperimentResult()
+    recordings = {}
     # (c, a) per mode: mean_sq = c² + a²/2, sq_mean = c²
     for mode, (c, a) in {"none": (0.4, 0.2), "local": (0.2, 0.2), "dgp": (0.1, 0.1)}.items():
-        res.recordings[mode] = _sinusoid_recording(mode, c, a)
-    m = build_metrics(mission, res, {}, 1.0)
+        recordings[mode] = _sinusoid_recording(mode, c, a)
+    m = build_metrics(mission, recordings, {}, {}, 1.0)
     ms = {
         k: c**2 + a**2 / 2
         for k, (c, a) in {"none": (0.4, 0.2), "local": (0.2, 0.2), "dgp": (0.1, 0.1)}.items()

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from flightstack.analysis.metrics import mode_metrics
 from flightstack.comms.factory import free_loopback_endpoints
 from flightstack.config.mission import load_mission
 from flightstack.paper.gp import GPExpert, GPHyperparameters
-from flightstack.paper.metrics import mode_metrics
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch
 from flightstack.runtime.runner import run_mode
 from tests.conftest import MISSIONS

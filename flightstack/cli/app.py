@@ -28,8 +28,8 @@ def cmd_report(args: argparse.Namespace) -> int:
     a kill, a crash or a full disk: then from the row streams); exit 2 with one line `error: <file>:
     <what>` when a file it needs is missing or damaged (recording.files.REQUIRED_FILES); a damaged
     optional file is skipped with a line `skipped: <file>: <what>` on stderr."""
+    from flightstack.analysis.report import rebuild_run
     from flightstack.recording.files import RunDirError
-    from flightstack.recording.report import rebuild_run
 
     run = Path(args.run_dir)
     mission = load_mission(args.mission, rig=args.rig) if args.mission else None
@@ -147,8 +147,8 @@ def mocap_wait(mocap: object, body: str, timeout_s: float) -> object | None:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    from flightstack.learning.training import collect_datasets, save_experts, train_experts
     from flightstack.recording.timeseries import Recording
-    from flightstack.runtime.training import collect_datasets, save_experts, train_experts
 
     run = Path(args.run_dir)
     mission = load_mission(args.mission or run / "mission_resolved.yaml")

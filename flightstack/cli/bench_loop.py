@@ -4,7 +4,7 @@ mission's control period while decoding every drone's video? (loop health)
 It flies the experiment's `none` mode for S seconds on the emulated lab: one Tello emulator per drone
 streaming H.264 video on loopback, the NatNet motion-capture emulator, the MAVLink rover, the real
 drivers, decoders, marker extraction and safety layer, on the wall clock. That is the flight's own
-loop, so its loop health (flightstack.recording.loop_health) is the answer. The emulators encode the
+loop, so its loop health (flightstack.analysis.loop_health) is the answer. The emulators encode the
 video on this computer too, which real Tellos do on board: the benchmark is pessimistic by that load.
 
 Exit 0 when the loop kept dt (at most 1 % of the ticks overran and the p99 compute time < dt), 1 when
@@ -18,10 +18,10 @@ import json
 import sys
 from pathlib import Path
 
+from flightstack.analysis.loop_health import loop_health_line
 from flightstack.config.mission import MissionError, load_mission
 from flightstack.config.rig import RigError
 from flightstack.recording.files import METRICS_FILE
-from flightstack.recording.loop_health import loop_health_line
 
 DEFAULT_EXPERIMENT = "paper_experiment"
 

@@ -53,12 +53,13 @@ def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
         return None
     if mission.gp.experts_file is None:
         raise MissionError(f"gp.experts_file: mode {mode!r} in an agent process needs trained experts")
-    from flightstack.runtime.training import load_experts
+    from flightstack.learning.training import load_experts
 
     return load_experts(mission.resolve(mission.gp.experts_file))
 
 
 def cmd_agent(args: argparse.Namespace) -> int:
+    from flightstack.analysis.metrics import build_metrics
     from flightstack.cli.run import _awake_if_flying, claim_out_dir, clear_for_run, default_out_dir
     from flightstack.cli.view import open_live_viewer, viewer_problem
     from flightstack.comms.factory import make_bus
@@ -68,7 +69,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
     from flightstack.recording.run_dir import RunWriter
     from flightstack.recording.timeseries import Recording
     from flightstack.runtime.backends import AgentSeat, open_agent_backend
-    from flightstack.runtime.experiment import ExperimentResult, build_metrics, resolved_mission_yaml
+    from flightstack.runtime.experiment import resolved_mission_yaml
     from flightstack.runtime.runner import run_mode
 
     mission = _zenoh_mission(args.mission, args.rig)
@@ -139,9 +140,18 @@ def cmd_agent(args: argparse.Namespace) -> int:
             run_writer.close()
     try:  # the recording (npz, events) is on disk already: metrics and summary, atomically
         run_writer.record(rec)
-        res = ExperimentResult(recordings={mode: rec}, interrupted=rec.interrupted, error=rec.error)
-        res.experts = dict(predictors or {})  # the loaded experts: the gain condition is evaluated
-        metrics = run_writer.write_metrics(build_metrics(mission, res, {}, time.perf_counter() - wall0))
+        experts = dict(predictors or {})  # the loaded experts: the gain condition is evaluated
+        metrics = run_writer.write_metrics(
+            build_metrics(
+                mission,
+                {mode: rec},
+                experts,
+                {},
+                time.perf_counter() - wall0,
+                interrupted=rec.interrupted,
+                error=rec.error,
+            )  # fmt: skip
+        )
         summary = {
             "drone": args.id,
             "mode": mode,

@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from tqdm import tqdm
 
+from flightstack.analysis.loop_health import loop_health_line
 from flightstack.config.mission import Mission, load_mission
-from flightstack.recording.loop_health import loop_health_line
 
 if TYPE_CHECKING:
     from flightstack.recording.run_dir import RunWriter
@@ -148,7 +148,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    from flightstack.runtime.training import training_shortfall
+    from flightstack.learning.training import training_shortfall
 
     short = training_shortfall(mission)  # a data run too short to train the experts: say so now
     if short is not None:
@@ -334,7 +334,7 @@ def speed_lines(m: dict[str, Any], command_s: float) -> list[str]:
 
 def _write_plots_or_warn(out: Path, mission: Mission, res: Any) -> None:
     """The plots of a run; a write error (a full disk) is reported, not raised: `report` redraws them."""
-    from flightstack.recording.report import write_plots
+    from flightstack.analysis.report import write_plots
 
     try:
         write_plots(out, mission, res.recordings, res.datasets)

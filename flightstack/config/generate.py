@@ -15,7 +15,7 @@ Graph. `complete` ({kind: complete}) or `ring` ({kind: edges}, drone i linked to
 schema knows `complete` and `edges` (flightstack.config.mission.GraphSpec).
 
 Expert bands. n bands of equal width along the base's region axis (x for paper_sim), drone i owning band
-i (flightstack.runtime.training.bands: the outer two are open-ended). The range split is the target
+i (flightstack.learning.training.bands: the outer two are open-ended). The range split is the target
 path's extent along that axis, from integrating the base's target law with the ideal world's own
 integrator (sim_backend/world.py: exact exponential, zero-order hold) over the base's duration_s
 at its dt_s, rounded to RANGE_STEP_M = 0.1 m. For paper_sim that path spans x ∈ [−2.020, 1.894] m, which

@@ -26,7 +26,6 @@ from pydantic import (
 
 from flightstack.config.bus import BusSpec
 from flightstack.config.hardware import HardwareSpec
-from flightstack.config.safe_load import Lines, line_of
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 from flightstack.config.types import Angle, Coordinate, Distance, Finite, Mode, Speed
 from flightstack.config.types import Strict as _Strict
@@ -39,6 +38,7 @@ from flightstack.paper.gain_analysis import (
 )
 from flightstack.paper.geometry import Pose
 from flightstack.paper.projection import CameraModel
+from flightstack.safe_yaml import Lines, line_of
 from flightstack.safety import SafetyLimits
 
 MODES = tuple(m.value for m in Mode)

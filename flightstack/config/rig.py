@@ -25,7 +25,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from flightstack.config.safe_load import LoadError, load_yaml
+from flightstack.safe_yaml import LoadError, load_yaml
 
 PACKAGE = "flightstack.mission_configs"
 BUILTIN_EXPERIMENTS = ("paper_sim", "paper_experiment", "scaling_11", "scaling_31")

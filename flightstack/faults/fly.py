@@ -17,12 +17,12 @@ from typing import Any
 
 import numpy as np
 
+from flightstack.analysis.metrics import mode_metrics
 from flightstack.comms.bus import InProcBus
 from flightstack.config.mission import Mission, load_mission
 from flightstack.config.rig import resolved_document
 from flightstack.faults.inject import FaultSpec, FaultyBackend, FaultyBus
 from flightstack.faults.result import Checks
-from flightstack.paper.metrics import mode_metrics
 from flightstack.recording.run_dir import RunWriter
 from flightstack.recording.timeseries import ARRAY_FIELDS, LOOP_HEALTH_FIELDS, Recording
 from flightstack.runtime.backends import build_backend

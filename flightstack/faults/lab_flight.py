@@ -114,8 +114,8 @@ def fly_inprocess(
     preflight. bus_wrapper(bus) may wrap the bus; injector(backend) runs on a daemon thread from the
     moment the backend is connected (it must bound its own waits; joined for injector_timeout_s s).
     Never raises for the flight itself: an exception is `LabRun.crashed`."""
+    from flightstack.analysis.metrics import mode_metrics
     from flightstack.comms.factory import make_bus
-    from flightstack.paper.metrics import mode_metrics
     from flightstack.recording.run_dir import RunWriter
     from flightstack.runtime.backends import build_backend
     from flightstack.runtime.experiment import resolved_mission_yaml

@@ -38,9 +38,9 @@ def served_mission(
     """paper_sim over Zenoh on loopback (world + one endpoint per agent, free ports), dt = 10 ms with the
     gains scaled to it, one fixed GP expert per drone fitted to its own samples of the paper's target
     field. `security` "mtls": tls/ endpoints and the mission's certificates in workdir/certs."""
+    from flightstack.learning.training import save_experts
     from flightstack.paper.gp import GPExpert, GPHyperparameters
     from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch
-    from flightstack.runtime.training import save_experts
 
     workdir.mkdir(parents=True, exist_ok=True)
     m = resolved_document("paper_sim")

@@ -1,5 +1,5 @@
 """The files of a run directory: their names and limits, atomic writes, JSON-safe values, event lines,
-and the check that `--out` can take a run. No threads here (those are in run_dir and mode_writer)."""
+and the check that `--out` can take a run. No threads here (those are in run_dir)."""
 
 from __future__ import annotations
 
@@ -49,9 +49,9 @@ PLOTS = {
     "trajectory": "trajectory.png",
     "e_c": "error_ec.png",
     "e_e": "error_ee.png",
-    "loop_health": "loop_health.png",  # only when ticks were timed (flightstack.recording.loop_health)
+    "loop_health": "loop_health.png",  # only when ticks were timed (flightstack.analysis.loop_health)
 }
-"""The plots of a run (flightstack.recording.report.write_plots), by what they show."""
+"""The plots of a run (flightstack.analysis.report.write_plots), by what they show."""
 AGENT_SUMMARY_FILE = "summary.json"
 GUARDIAN_LOG = "guardian.log"
 """An agent process's files besides the recording (`flightstack agent`, flightstack/cli/network.py)."""

@@ -45,7 +45,7 @@ FINGERPRINTED_FIELDS = tuple(f for f in ARRAY_FIELDS if f not in MACHINE_FIELDS)
 EVENT_MACHINE_KEYS = frozenset({"p50_ms", "p99_ms", "max_ms", "wall_t"})
 """Keys of an event that measure the computer, removed before the events are fingerprinted: the safety
 tick's wall-time percentiles (ms) of the `safety tick` event (runtime.fleet SafetyTicker.summary) and the
-wall clock (s since the epoch) of `recording_stopped` (recording.mode_writer)."""
+wall clock (s since the epoch) of `recording_stopped` (recording.run_dir)."""
 META_MACHINE_KEYS = frozenset({"wall_seconds"})
 """Keys of `Recording.meta()` that measure the computer (wall time the mode took, s)."""
 EVENTS = "events"

@@ -100,7 +100,7 @@ class Recording:
     visible: np.ndarray  # (N, n) bool
     n_fused: np.ndarray  # (N, n) int: predictions fused (own + fresh neighbours) by each agent
     wall_t: np.ndarray  # (N,) wall-clock time.time() of each tick (s since the epoch; across processes)
-    # loop health (flightstack.recording.loop_health); NaN where not measured (compiled ticks, old files)
+    # loop health (flightstack.analysis.loop_health); NaN where not measured (compiled ticks, old files)
     loop_period: np.ndarray  # (N,) wall time (s) from the previous tick's start to this one's
     loop_compute: np.ndarray  # (N,) wall time (s) of this tick's sensing, fusion, command and record
     frame_age: np.ndarray  # (N, n) age (s, mission clock) of the camera frame the tick looked at

@@ -16,13 +16,19 @@ from typing import Any
 import numpy as np
 import yaml
 
+from flightstack.analysis.metrics import build_metrics
 from flightstack.config.mission import Mission, mission_to_dict
 from flightstack.config.types import Mode
-from flightstack.paper.control import Gains
-from flightstack.paper.gain_analysis import gain_condition, region_samples
+from flightstack.learning.training import (
+    ExpertData,
+    collect_datasets,
+    load_experts,
+    save_datasets,
+    save_experts,
+    train_experts,
+)
 from flightstack.paper.geometry import Pose
 from flightstack.paper.gp import GPExpert
-from flightstack.paper.metrics import PAPER_RATIOS, PAPER_SQ_MEAN_ERROR, mode_metrics
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity
 from flightstack.recording.files import DATASETS_FILE, EXPERTS_FILE, MISSION_FILE
 from flightstack.recording.run_dir import RunWriter
@@ -31,17 +37,6 @@ from flightstack.runtime.agent import Predictor
 from flightstack.runtime.resources import check_recording_fits
 from flightstack.runtime.runner import run_mode
 from flightstack.runtime.taps import TickTap
-from flightstack.runtime.training import (
-    ExpertData,
-    collect_datasets,
-    load_experts,
-    save_datasets,
-    save_experts,
-    train_experts,
-)
-
-NO_EXPERTS = "no GP expert was trained or loaded (kappa needs the experts' Lipschitz constant)"
-"""metrics.json → gain_condition.reason of a run without experts (then "evaluated": false)."""
 
 
 class TruthPredictor:
@@ -133,90 +128,11 @@ def run_experiment(
                     for i, ex in res.experts.items()
                 },
             }
-    res.metrics = build_metrics(mission, res, gp_info, time.perf_counter() - wall0)
+    res.metrics = build_metrics(
+        mission, res.recordings, res.experts, gp_info, time.perf_counter() - wall0,
+        interrupted=res.interrupted, error=res.error,
+    )  # fmt: skip
     return res
-
-
-def build_metrics(mission: Mission, res: ExperimentResult, gp_info: dict[str, object], wall: float) -> dict:
-    """metrics.json of a run: per mode (those of compare_modes; every recorded one if none of them was
-    recorded, e.g. an agent's run or a failed data run), the gain condition, GP facts, safety events, and
-    for the paper's Duffing target with a dgp run the ratios none/dgp and local/dgp of each error metric
-    (`ratios.<metric>`), and `paper`: our sq_mean_error (‖time mean of e‖², the reading of the paper's
-    "squared mean of e") per mode and its ratios, each beside the paper's value of the same quantity
-    (flightstack.paper.metrics explains both readings).
-
-    wall: wall time of the whole run (s). A recording of only some of the mission's drones (an agent's)
-    gets the metrics that need no mission. `gain_condition` has "evaluated": true and Theorem 1's numbers
-    when res.experts holds experts; without any (no GP mode, a data run cut short, an agent flying
-    `none`) it is {"evaluated": false, "reason", "region_lo", "region_hi"}: no κ or L_μ is made up."""
-    ids = [d.id for d in mission.drones]
-    shown = [m for m in res.recordings if m in mission.compare_modes] or list(res.recordings)
-    modes: dict[str, dict[str, Any]] = {
-        m: mode_metrics(res.recordings[m], mission if res.recordings[m].drone_ids == ids else None)
-        for m in shown
-    }
-    gains = Gains.make(mission.gains.k_c, mission.gains.k_e, mission.gains.k_s)
-    ref = res.recordings.get("none") or next(iter(res.recordings.values()), None)
-    if ref is not None and ref.ticks_done > 0:
-        xyz = ref.g_w0[: ref.ticks_done, :3]
-        lo, hi = xyz.min(axis=0), xyz.max(axis=0)
-    else:
-        lo, hi = np.full(3, -1.0), np.full(3, 1.0)
-    region = {"region_lo": lo.tolist(), "region_hi": hi.tolist()}
-    gc: dict[str, object] = {"evaluated": False, "reason": NO_EXPERTS, **region}
-    if res.experts:  # L_μ and Δ̄ are the experts': without one, κ would be a made-up number
-        ga = mission.gain_analysis
-        cond = gain_condition(
-            gains,
-            len(mission.drones),
-            mission.edge_index_pairs(),
-            [d.sees_target for d in mission.drones],
-            list(res.experts.values()),
-            region_samples(lo, hi, ga.samples, mission.seed),
-            ga.gamma_sq,
-            ga.beta,
-            ga.eta,
-        )
-        gc = {"evaluated": True, **cond.to_dict(), **region}
-    out: dict[str, object] = {
-        "mission": mission.name,
-        "modes": modes,
-        "gain_condition": gc,
-        "gp": gp_info,
-        "sim_seconds": float(sum(m.get("sim_seconds", 0.0) for m in modes.values())),
-        "wall_seconds": wall,
-        "seed": mission.seed,
-        "interrupted": res.interrupted,
-        "error": res.error,
-        "safety_events": [
-            {k: v for k, v in e.items() if k != "event"}
-            for r in res.recordings.values()
-            for e in r.events
-            if e.get("event") == "safety"
-        ],
-    }
-    if "dgp" in modes and modes["dgp"].get("mean_sq_error") and mission.target.motion == "duffing":
-        ratios = {k: _ratios(modes, k) for k in ("mean_sq_error", "sq_mean_error") if modes["dgp"].get(k)}
-        out["ratios"] = ratios
-        if "sq_mean_error" in ratios:
-            out["paper"] = {
-                "metric": "sq_mean_error",
-                "modes": {
-                    m: {"ours": float(modes[m]["sq_mean_error"]), "paper": PAPER_SQ_MEAN_ERROR[m]}
-                    for m in PAPER_SQ_MEAN_ERROR
-                    if "sq_mean_error" in modes.get(m, {})
-                },
-                "ratios": {
-                    k: {"ours": v, "paper": PAPER_RATIOS[k]} for k, v in ratios["sq_mean_error"].items()
-                },
-            }
-    return out
-
-
-def _ratios(modes: Mapping[str, Mapping[str, Any]], key: str) -> dict[str, float]:
-    """{"none/dgp": ..., "local/dgp": ...} of metric `key` (the modes flown; dgp's value is not 0)."""
-    d = float(modes["dgp"][key])
-    return {f"{m}/dgp": float(modes[m][key]) / d for m in ("none", "local") if m in modes and key in modes[m]}
 
 
 def resolved_mission_yaml(mission: Mission) -> str:

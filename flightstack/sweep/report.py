@@ -14,13 +14,13 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from flightstack.paper.metrics import PAPER_RATIOS
+from flightstack.analysis.metrics import PAPER_RATIOS
 from flightstack.recording.files import atomic_write_bytes, atomic_write_json
 from flightstack.sweep.stats import ERROR_METRICS, GAIN_KEYS, MODE_METRICS, succeeded
 
 STAT_COLUMNS = ("n", "mean", "median", "ci_low", "ci_high")
 PAPER_METRIC = "sq_mean_error"
-"""The metric the paper's reported numbers are values of (flightstack.paper.metrics.PAPER_SQ_MEAN_ERROR)."""
+"""The metric the paper's numbers are values of (flightstack.analysis.metrics.PAPER_SQ_MEAN_ERROR)."""
 
 
 def csv_rows(

@@ -18,7 +18,7 @@ from scipy import stats
 from flightstack.sweep.plan import point_label
 
 ERROR_METRICS = ("mean_sq_error", "sq_mean_error")
-"""The two readings of the paper's 'squared mean of e' (flightstack.paper.metrics)."""
+"""The two readings of the paper's 'squared mean of e' (flightstack.analysis.metrics)."""
 MODE_METRICS = (*ERROR_METRICS, "position_error_std_m", "position_error_tv_mps")
 """Per-mode metrics described when present (the oscillation measures need the mission's drones)."""
 RATIOS = (("none", "dgp"), ("local", "dgp"))

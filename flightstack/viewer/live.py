@@ -301,7 +301,7 @@ class RerunTap:
     def _send_start(self, job: _Start) -> None:
         rr, stream = self.rr, self.stream
         if "world" not in self._static_done:
-            from flightstack.runtime.training import predicted_target_path
+            from flightstack.learning.training import predicted_target_path
 
             scene.log_world(rr, stream)
             n = min(round(job.mission.duration_s / job.mission.dt_s), EXTENT_TICKS)

@@ -147,8 +147,8 @@ def _columns(rec: Recording, idx: np.ndarray, names: tuple[str, ...]) -> dict[st
 def _experts(run_dir: Path, skipped: list[str]) -> dict[int, GPExpert]:
     """The run's experts (experts.npz), {} when there are none or the file is damaged (then listed in
     `skipped`)."""
+    from flightstack.learning.training import load_experts
     from flightstack.recording.files import EXPERTS_FILE, RunDirError
-    from flightstack.runtime.training import load_experts
 
     path = run_dir / EXPERTS_FILE
     if not path.exists():
@@ -167,8 +167,8 @@ def _training_inputs(
     """drone id → training inputs X (M, 4): datasets.npz (runtime.training.load_datasets), else the
     experts' own inputs (experts.npz); {} when there are neither (a damaged datasets.npz is listed in
     `skipped`)."""
+    from flightstack.learning.training import load_datasets
     from flightstack.recording.files import DATASETS_FILE, RunDirError
-    from flightstack.runtime.training import load_datasets
 
     try:
         found = {d.drone_id: np.asarray(d.X) for d in load_datasets(run_dir / DATASETS_FILE)}

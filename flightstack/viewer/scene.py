@@ -120,9 +120,9 @@ def log_cameras(
 
 def region_boxes(mission: Mission, extent_xyz: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, str]]:
     """(mins (3,), sizes (3,), label) of each drone's expert region (mission order): band k of gp.regions
-    along its axis (flightstack.runtime.training.bands), the open ends and the other axes over the
+    along its axis (flightstack.learning.training.bands), the open ends and the other axes over the
     points `extent_xyz` (K, 3; m) plus REGION_MARGIN_M, z over the points ± 0.05 m."""
-    from flightstack.runtime.training import _band_text, bands
+    from flightstack.learning.training import _band_text, bands
 
     pts = np.asarray(extent_xyz, dtype=float).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]

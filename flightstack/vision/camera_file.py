@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from flightstack.config.safe_load import LoadError, load_yaml
+from flightstack.safe_yaml import LoadError, load_yaml
 
 MAX_IMAGE_PX = 100_000
 """Image width and height at most this (pixels): no camera has 10⁵ pixels on a side."""

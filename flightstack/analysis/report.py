@@ -12,7 +12,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from flightstack.analysis.loop_health import plot_loop_health
+from flightstack.analysis.metrics import build_metrics
 from flightstack.config.mission import Mission, load_mission
+from flightstack.learning.training import ExpertData, bands, load_datasets, load_experts
+from flightstack.paper.gp import GPExpert
 from flightstack.recording.files import (
     DATASETS_FILE,
     EXPERTS_FILE,
@@ -23,10 +27,8 @@ from flightstack.recording.files import (
     atomic_write_json,
     read_json_object,
 )
-from flightstack.recording.loop_health import plot_loop_health
 from flightstack.recording.run_reader import read_run
 from flightstack.recording.timeseries import Recording
-from flightstack.runtime.training import ExpertData, bands, load_datasets, load_experts
 
 MODE_STYLE = {
     "none": ("tab:gray", "without GP"),
@@ -143,11 +145,6 @@ def rebuild_run(
     each damaged optional file or row stream tail left out, files.OPTIONAL_FILES). RunDirError (naming
     the file) when the directory, its mission or a mode's recording is missing or damaged
     (files.REQUIRED_FILES)."""
-    from flightstack.runtime.experiment import (  # experiment imports the runner
-        ExperimentResult,
-        build_metrics,
-    )
-
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise RunDirError(run_dir, "no such run directory")
@@ -161,25 +158,28 @@ def rebuild_run(
     if not recs:
         raise RunDirError(run_dir, "no recording (timeseries_<mode>.npz or .rows) in it")
     old = _old_metrics(run_dir / METRICS_FILE, skipped)
-    res = ExperimentResult(recordings=recs)
+    datasets: list[ExpertData] = []
+    experts: dict[int, GPExpert] = {}
     try:
-        res.datasets = load_datasets(run_dir / DATASETS_FILE)
+        datasets = load_datasets(run_dir / DATASETS_FILE)
     except RunDirError as exc:
         skipped.append(f"{DATASETS_FILE}: {exc.what}")
     if (run_dir / EXPERTS_FILE).exists():
         try:
-            res.experts = load_experts(run_dir / EXPERTS_FILE)
+            experts = load_experts(run_dir / EXPERTS_FILE)
         except RunDirError as exc:
             skipped.append(f"{EXPERTS_FILE}: {exc.what}")
-    res.interrupted = any(r.interrupted for r in recs.values()) or old.get("interrupted") is True
-    res.error = next((r.error for r in recs.values() if r.error), None) or old.get("error")  # e.g. GP data
+    interrupted = any(r.interrupted for r in recs.values()) or old.get("interrupted") is True
+    error = next((r.error for r in recs.values() if r.error), None) or old.get("error")  # e.g. GP data
     wall = old.get("wall_seconds")
     if not isinstance(wall, int | float):
         wall = float(sum(r.wall_seconds for r in recs.values()))
-    metrics = build_metrics(mission, res, old.get("gp") or {}, float(wall))
+    metrics = build_metrics(
+        mission, recs, experts, old.get("gp") or {}, float(wall), interrupted=interrupted, error=error
+    )
     metrics["recording"] = contents.status
     atomic_write_json(run_dir / METRICS_FILE, metrics)
-    paths = write_plots(run_dir, mission, recs, res.datasets) if plots else []
+    paths = write_plots(run_dir, mission, recs, datasets) if plots else []
     return metrics, paths, skipped
 
 

@@ -1,4 +1,4 @@
-"""Scalar metrics of a recorded run (pure functions of a Recording).
+"""Scalar metrics of a recorded run (pure functions of its Recordings) and metrics.json's contents.
 
 The paper (Sec. 4) reports "the squared mean of e" without defining it; two readings are reported:
 
@@ -18,12 +18,16 @@ second Σ_k |‖p_err(t_{k+1})‖ − ‖p_err(t_k)‖| / (t_last − t_first).
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
+from flightstack.analysis.loop_health import loop_health
 from flightstack.config.mission import Mission
-from flightstack.recording.loop_health import loop_health
+from flightstack.paper.control import Gains
+from flightstack.paper.gain_analysis import gain_condition, region_samples
+from flightstack.paper.gp import GPExpert
 from flightstack.recording.timeseries import Recording
 
 PAPER_SQ_MEAN_ERROR = {"none": 3.0e-7, "local": 3.6e-8, "dgp": 5.6e-9}
@@ -150,3 +154,99 @@ def mode_metrics(
             Counter(str(e.get("kind")) for e in rec.events if e.get("event") == "safety")
         )
     return out
+
+
+NO_EXPERTS = "no GP expert was trained or loaded (kappa needs the experts' Lipschitz constant)"
+"""metrics.json → gain_condition.reason of a run without experts (then "evaluated": false)."""
+
+
+def build_metrics(
+    mission: Mission,
+    recordings: Mapping[str, Recording],
+    experts: Mapping[int, GPExpert],
+    gp_info: dict[str, object],
+    wall: float,
+    *,
+    interrupted: bool = False,
+    error: str | None = None,
+) -> dict[str, Any]:
+    """metrics.json of a run: per mode (those of compare_modes; every recorded one if none of them was
+    recorded, e.g. an agent's run or a failed data run), the gain condition, GP facts, safety events, and
+    for the paper's Duffing target with a dgp run the ratios none/dgp and local/dgp of each error metric
+    (`ratios.<metric>`), and `paper`: our sq_mean_error (‖time mean of e‖², the reading of the paper's
+    "squared mean of e") per mode and its ratios, each beside the paper's value of the same quantity
+    (flightstack.analysis.metrics explains both readings).
+
+    recordings: mode -> its recording; experts: drone id -> its GP expert (none: κ is not evaluated);
+    gp_info: the training's facts; wall: wall time of the whole run (s); interrupted, error: how the
+    run ended. A recording of only some of the mission's drones (an agent's)
+    gets the metrics that need no mission. `gain_condition` has "evaluated": true and Theorem 1's numbers
+    when experts holds experts; without any (no GP mode, a data run cut short, an agent flying
+    `none`) it is {"evaluated": false, "reason", "region_lo", "region_hi"}: no κ or L_μ is made up."""
+    ids = [d.id for d in mission.drones]
+    shown = [m for m in recordings if m in mission.compare_modes] or list(recordings)
+    modes: dict[str, dict[str, Any]] = {
+        m: mode_metrics(recordings[m], mission if recordings[m].drone_ids == ids else None) for m in shown
+    }
+    gains = Gains.make(mission.gains.k_c, mission.gains.k_e, mission.gains.k_s)
+    ref = recordings.get("none") or next(iter(recordings.values()), None)
+    if ref is not None and ref.ticks_done > 0:
+        xyz = ref.g_w0[: ref.ticks_done, :3]
+        lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    else:
+        lo, hi = np.full(3, -1.0), np.full(3, 1.0)
+    region = {"region_lo": lo.tolist(), "region_hi": hi.tolist()}
+    gc: dict[str, object] = {"evaluated": False, "reason": NO_EXPERTS, **region}
+    if experts:  # L_μ and Δ̄ are the experts': without one, κ would be a made-up number
+        ga = mission.gain_analysis
+        cond = gain_condition(
+            gains,
+            len(mission.drones),
+            mission.edge_index_pairs(),
+            [d.sees_target for d in mission.drones],
+            list(experts.values()),
+            region_samples(lo, hi, ga.samples, mission.seed),
+            ga.gamma_sq,
+            ga.beta,
+            ga.eta,
+        )
+        gc = {"evaluated": True, **cond.to_dict(), **region}
+    out: dict[str, object] = {
+        "mission": mission.name,
+        "modes": modes,
+        "gain_condition": gc,
+        "gp": gp_info,
+        "sim_seconds": float(sum(m.get("sim_seconds", 0.0) for m in modes.values())),
+        "wall_seconds": wall,
+        "seed": mission.seed,
+        "interrupted": interrupted,
+        "error": error,
+        "safety_events": [
+            {k: v for k, v in e.items() if k != "event"}
+            for r in recordings.values()
+            for e in r.events
+            if e.get("event") == "safety"
+        ],
+    }
+    if "dgp" in modes and modes["dgp"].get("mean_sq_error") and mission.target.motion == "duffing":
+        ratios = {k: _ratios(modes, k) for k in ("mean_sq_error", "sq_mean_error") if modes["dgp"].get(k)}
+        out["ratios"] = ratios
+        if "sq_mean_error" in ratios:
+            out["paper"] = {
+                "metric": "sq_mean_error",
+                "modes": {
+                    m: {"ours": float(modes[m]["sq_mean_error"]), "paper": PAPER_SQ_MEAN_ERROR[m]}
+                    for m in PAPER_SQ_MEAN_ERROR
+                    if "sq_mean_error" in modes.get(m, {})
+                },
+                "ratios": {
+                    k: {"ours": v, "paper": PAPER_RATIOS[k]} for k, v in ratios["sq_mean_error"].items()
+                },
+            }
+    return out
+
+
+def _ratios(modes: Mapping[str, Mapping[str, Any]], key: str) -> dict[str, float]:
+    """{"none/dgp": ..., "local/dgp": ...} of metric `key` (the modes flown; dgp's value is not 0)."""
+    d = float(modes["dgp"][key])
+    return {f"{m}/dgp": float(modes[m][key]) / d for m in ("none", "local") if m in modes and key in modes[m]}

@@ -1,0 +1,1 @@
+"""The GP experts' training: datasets from a data run's recording, fitting, saving and loading."""
