@@ -33,7 +33,7 @@ from flightstack.paper.kernels_warmup import warm_up
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch
 from flightstack.runtime.backends import build_backend
 from flightstack.runtime.fleet import make_agents
-from flightstack.runtime.runner import run_mode
+from flightstack.runtime.flight import Flight
 
 NOISE_VAR = 0.01  # σ_n², the paper's data specification
 LO, HI = np.array([-2.0, -1.5, -0.05, -math.pi]), np.array([1.9, 1.5, 0.05, math.pi])  # the path's box
@@ -145,7 +145,8 @@ def bench_paper_sim(paper: Path) -> dict[str, object]:
     experts = field_experts(m, 10)
     modes = {}
     for mode in ("none", "local", "dgp"):
-        rec = run_mode(m, mode, None if mode == "none" else experts)
+        with Flight(m) as flight:
+            rec = flight.fly_mode(mode, None if mode == "none" else experts)
         if rec.error or rec.interrupted:
             raise RuntimeError(f"paper simulation {mode}: {rec.error}")
         modes[mode] = {"wall_s": rec.wall_seconds, "sim_per_wall": m.duration_s / rec.wall_seconds}
@@ -181,7 +182,8 @@ def bench_drones(
     out = {}
     for n, path in {3: paper, **scaling}.items():
         m = load_mission(path, {"duration_s": duration_s})
-        rec = run_mode(m, "dgp", field_experts(m, 10))
+        with Flight(m) as flight:
+            rec = flight.fly_mode("dgp", field_experts(m, 10))
         if rec.error or rec.interrupted:
             raise RuntimeError(f"{n} drones: {rec.error}")
         out[str(n)] = {"wall_s": rec.wall_seconds, "sim_per_wall": duration_s / rec.wall_seconds}

@@ -8,6 +8,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -300,3 +301,19 @@ def random_recording(mode: str, ids: list[int], n_ticks: int, seed: int = 0) -> 
     rec.t[:] = np.arange(n_ticks) * 0.05
     rec.ticks_done = n_ticks
     return rec
+
+
+def fly_mode(
+    mission: Any,
+    mode: str,
+    predictors: Any = None,
+    progress: Callable[[int], None] | None = None,
+    **flight: Any,
+) -> Recording:
+    """One mode of `mission` through flightstack.runtime.flight.Flight, as every entry point flies it;
+    `flight`: Flight's keyword arguments (compiled, taps, backend, bus, ...)."""
+    from flightstack.runtime.flight import Flight
+
+    factory = None if progress is None else (lambda _mode, _n: progress)
+    with Flight(mission, progress=factory, **flight) as f:
+        return f.fly_mode(mode, predictors)

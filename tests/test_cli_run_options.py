@@ -25,11 +25,10 @@ from flightstack.learning.training import bands, predicted_target_path, training
 from flightstack.paper.geometry import Pose
 from flightstack.paper.target_motion import DuffingField, DuffingParams
 from flightstack.recording.files import PLOTS, RUN_FILES, is_run_file, run_files
-from flightstack.runtime.experiment import run_experiment
-from flightstack.runtime.runner import run_mode
+from flightstack.runtime.flight import Flight
 from flightstack.sim_backend.ideal import IdealDrone
 from flightstack.sim_backend.world import World
-from tests.conftest import MISSIONS
+from tests.conftest import MISSIONS, fly_mode
 
 GP_SECONDS = 0.3
 """The GP run's length (s): 150 ticks of paper_sim, the bands placed so that each gets a third."""
@@ -255,7 +254,7 @@ def test_cli_refuses_a_run_too_short_to_train_before_flying(
     def no_flight(*args: object, **kwargs: object) -> None:
         raise AssertionError("took off")
 
-    monkeypatch.setattr("flightstack.runtime.experiment.run_experiment", no_flight)
+    monkeypatch.setattr("flightstack.runtime.flight.Flight.fly", no_flight)
     out = tmp_path / "run"
     assert cli.main(["sim", "paper_sim", "--duration", "2", "--out", str(out), "--no-progress"]) == 2
     err = capsys.readouterr().err
@@ -266,7 +265,8 @@ def test_cli_refuses_a_run_too_short_to_train_before_flying(
 def test_a_data_run_that_still_comes_up_short_says_so_and_evaluates_no_gain_condition() -> None:
     """The check after the data run stays (the prediction ignores the estimates' transient); without
     experts metrics.json says the gain condition was not evaluated instead of L_mu = 0."""
-    res = run_experiment(load_mission("paper_sim", {"duration_s": 0.05}))
+    with Flight(load_mission("paper_sim", {"duration_s": 0.05})) as flight:
+        res = flight.fly()
     assert res.error is not None and res.error.startswith("GP training data: drone")
     assert list(res.recordings) == ["none"] and not res.experts
     gc = res.metrics["gain_condition"]
@@ -280,7 +280,7 @@ def _mission(duration_s: float) -> Mission:
 
 
 def test_landed_drones_of_the_ideal_sim_report_a_height_of_at_least_0() -> None:
-    rec = run_mode(_mission(0.05), "none")
+    rec = fly_mode(_mission(0.05), "none")
     landed = [e for e in rec.events if e["event"] == "landed"]
     assert {e["drone"] for e in landed} == {1, 2, 3}
     assert all(e["height_m"] >= 0.0 for e in landed), landed

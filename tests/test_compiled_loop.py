@@ -1,6 +1,6 @@
-"""The guard of the compiled lock-step loop (flightstack.runtime.compiled): on the ideal rig its recordings
-equal the Agent path's bit for bit, in every mode and fusion rule; ticks it does not model go to Python;
-it is used only where it applies; Ctrl-C between chunks stops the run and keeps what was flown."""
+"""The guard of the compiled lock-step loop (flightstack.sim_backend.compiled_loop): on the ideal rig its
+recordings equal the Agent path's bit for bit, in every mode and fusion rule; ticks it does not model go to
+Python; it is used only where it applies; Ctrl-C between chunks stops the run and keeps what was flown."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ from flightstack.config.mission import load_mission
 from flightstack.paper.gp import GPExpert, GPHyperparameters
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch
 from flightstack.recording.timeseries import ARRAY_FIELDS, MACHINE_FIELDS, Recording
-from flightstack.runtime.compiled import CHUNK_TICKS, CompiledLoop, why_not_compiled
-from flightstack.runtime.experiment import TruthPredictor
+from flightstack.runtime.agent import TruthPredictor
 from flightstack.runtime.fleet import assemble_fleet
-from flightstack.runtime.runner import run_mode
+from flightstack.sim_backend.compiled_loop import CHUNK_TICKS, CompiledLoop, why_not_compiled
+from tests.conftest import fly_mode
 
 COMPARED = tuple(f for f in ARRAY_FIELDS if f not in MACHINE_FIELDS)  # wall time: this computer
 
@@ -38,7 +38,7 @@ def _experts(mission, sizes: dict[int, int], scale: float = 1.0, seed: int = 0) 
 
 
 def _both(mission, mode: str, predictors) -> tuple[Recording, Recording]:
-    return run_mode(mission, mode, predictors, compiled=True), run_mode(
+    return fly_mode(mission, mode, predictors, compiled=True), fly_mode(
         mission, mode, predictors, compiled=False
     )
 
@@ -138,7 +138,7 @@ def test_ctrl_c_between_chunks_stops_and_keeps_the_flown_ticks():
         if len(seen) == 3:  # tick 0, one chunk, then Ctrl-C arrives
             raise KeyboardInterrupt
 
-    rec = run_mode(m, "none", None, progress)
+    rec = fly_mode(m, "none", None, progress)
     assert rec.interrupted
     assert rec.ticks_done == sum(seen) == 1 + 2 * CHUNK_TICKS
     assert np.all(np.diff(rec.t) > 0)

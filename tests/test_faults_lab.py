@@ -20,10 +20,11 @@ from types import SimpleNamespace
 import pytest
 
 from flightstack import faults
-from flightstack.faults import emulated_lab, rows_lab, rows_lab_drivers
-from flightstack.faults.emulated_lab import LabUnavailableError, command_times, max_gap, rc_times
+from flightstack.faults import rows_lab, rows_lab_drivers
 from flightstack.faults.lab_flight import drone_reaction
 from flightstack.faults.result import Checks, FaultResult
+from flightstack.sim_backend import emulated_lab
+from flightstack.sim_backend.emulated_lab import LabUnavailableError, command_times, max_gap, rc_times
 from tests.conftest import Bound
 
 LAB_ROWS = [

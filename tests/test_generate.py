@@ -134,10 +134,10 @@ def test_bad_requests_are_refused(kwargs: dict, match: str) -> None:
 
 
 def test_eleven_drones_fly_a_short_run() -> None:
-    from flightstack.runtime.runner import run_mode
+    from tests.conftest import fly_mode
 
     m = to_mission(n_drone_mission(11), duration_s=0.05)
-    rec = run_mode(m, "none")
+    rec = fly_mode(m, "none")
     assert rec.error is None and not rec.interrupted
     assert rec.drone_ids == list(range(1, 12)) and rec.g_wi.shape[1] == 11
     assert rec.ticks_done == round(0.05 / m.dt_s)

@@ -1,5 +1,5 @@
-"""drivers/keep_awake.py: the sleep inhibitor is held exactly while flying and released after, also when the
-block raises; a refused or missing inhibitor is reported, never fatal."""
+"""flightstack.runtime.keep_awake: the sleep inhibitor is held exactly while flying and released after,
+also when the block raises; a refused or missing inhibitor is reported, never fatal."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from flightstack.drivers import keep_awake as ka
+from flightstack.runtime import keep_awake as ka
 
 FAKE = """#!/bin/sh
 echo "$@" > "{log}"

@@ -15,7 +15,7 @@ from flightstack.paper.geometry import Pose
 from flightstack.paper.kernels_warmup import dispatchers, signature_counts, warm_up
 from flightstack.paper.observer import estimation_error
 from flightstack.paper.projection import CameraModel
-from flightstack.runtime.runner import run_mode
+from tests.conftest import fly_mode
 from tests.test_compiled_loop import _experts  # the same experts as the guard test
 
 
@@ -89,9 +89,9 @@ def test_nothing_compiles_during_a_run_after_warm_up():
     experts = _experts(sim, {1: 10, 2: 8, 3: 12})
     for mode in ("none", "local", "dgp"):
         for compiled in (True, False):
-            rec = run_mode(sim, mode, None if mode == "none" else experts, compiled=compiled)
+            rec = fly_mode(sim, mode, None if mode == "none" else experts, compiled=compiled)
             assert rec.ticks_done == 50 and rec.error is None
     lab = load_mission("paper_experiment", {"duration_s": 0.5}, rig="lab-sim")
-    rec = run_mode(lab, "none", None)
+    rec = fly_mode(lab, "none", None)
     assert rec.ticks_done > 0 and rec.error is None and rec.visible.any()
     assert signature_counts() == before

@@ -11,8 +11,7 @@ import yaml
 
 from flightstack.config.mission import load_mission
 from flightstack.config.rig import resolved_document
-from flightstack.runtime.runner import run_mode
-from tests.conftest import MISSIONS, interrupt_cli_sim, run_cli
+from tests.conftest import MISSIONS, fly_mode, interrupt_cli_sim, run_cli
 
 LAB = MISSIONS / "paper_experiment.yaml"
 
@@ -100,7 +99,7 @@ def test_tight_geofence_stops_the_pursuit_at_the_fence() -> None:
             "safety": {"fence_lo": [-2.0, -2.0, 0.3], "fence_hi": [0.2, 2.0, 2.0], "hard_margin": 0.3},
         },
     )
-    rec = run_mode(m, "none")
+    rec = fly_mode(m, "none")
     assert rec.error is None
     x = rec.g_wi[:, 0, 0]
     assert x.max() < 0.2 + 0.3  # never reaches the hard fence
@@ -124,7 +123,7 @@ def test_exception_in_an_agent_lands_everyone_and_keeps_the_data() -> None:
         def prior_var(self) -> np.ndarray:
             return np.ones(4)
 
-    rec = run_mode(m, "local", {1: Exploding(), 2: Exploding()})
+    rec = fly_mode(m, "local", {1: Exploding(), 2: Exploding()})
     assert rec.error == "RuntimeError: GP blew up"
     assert 40 <= rec.ticks_done <= 60 and rec.t.shape[0] == rec.ticks_done
     landed = [e for e in rec.events if e["event"] == "landed"]

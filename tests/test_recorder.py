@@ -38,8 +38,7 @@ from flightstack.recording.run_dir import (
     read_rows,
 )
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
-from flightstack.runtime.experiment import resolved_mission_yaml
-from flightstack.runtime.runner import run_mode
+from flightstack.runtime.flight import Flight, resolved_mission_yaml
 from tests.conftest import MISSIONS, REPO, random_recording
 
 LAB = MISSIONS / "paper_experiment.yaml"
@@ -134,11 +133,10 @@ def test_an_event_written_at_once_is_not_written_again(tmp_path: Path) -> None:
 
 def test_run_mode_records_as_it_flies(tmp_path: Path) -> None:
     mission = _lab(2.0)
-    ids = [d.id for d in mission.drones]
-    with RunWriter(tmp_path) as run:
-        w = run.mode("none", ids, round(mission.duration_s / mission.dt_s))
-        rec = run_mode(mission, "none", writer=w)
-        m = run.write_metrics(mode_metrics(rec, mission))
+    with Flight(mission, tmp_path) as flight:
+        rec = flight.fly_mode("none")
+        assert flight.writer is not None
+        m = flight.writer.write_metrics(mode_metrics(rec, mission))
     assert rec.ticks_done == 40 and m["recording"] == {"complete": True, "reason": None}
     assert not list(tmp_path.glob(f"*{ROWS_SUFFIX}"))
     state = json.loads((tmp_path / "recording.json").read_text())
@@ -152,6 +150,16 @@ def test_run_mode_records_as_it_flies(tmp_path: Path) -> None:
     key = lambda e: json.dumps(e, sort_keys=True)  # noqa: E731
     assert sorted(map(key, back.events)) == sorted(map(key, json.loads(json.dumps(rec.events))))
     assert back.vision_rejections == rec.vision_rejections and back.wall_seconds == rec.wall_seconds
+
+
+def _fly_with_writer(mission: Mission, writer: Any) -> Recording:
+    """Mode `none` through the runner with a writer the test controls (a block every tick, a process
+    killed at the end): below the Flight, which always opens its own."""
+    from flightstack.runtime.fleet import assemble_fleet
+    from flightstack.runtime.runner import run_mode
+
+    with assemble_fleet(mission, "none", None, backend=None, bus=None, agent_ids=None, writer=writer) as f:
+        return run_mode(f, writer=writer)
 
 
 def test_a_full_disk_stops_the_recording_not_the_flight(
@@ -171,7 +179,7 @@ def test_a_full_disk_stops_the_recording_not_the_flight(
     ids = [d.id for d in mission.drones]
     run = RunWriter(tmp_path, block_period_s=0.0)  # a block every tick: the disk fills mid-flight
     w = run.mode("none", ids, 40)
-    rec = run_mode(mission, "none", writer=w)
+    rec = _fly_with_writer(mission, w)
     assert rec.ticks_done == 40 and rec.error is None and not rec.interrupted  # flown to the end
     assert {e["drone"] for e in rec.events if e["event"] == "landed"} == set(ids)
     stopped = [e for e in rec.events if e["event"] == "recording_stopped"]
@@ -215,7 +223,7 @@ def test_report_rebuilds_metrics_of_a_killed_run_from_its_row_stream(tmp_path: P
     (tmp_path / "mission_resolved.yaml").write_text(resolved_mission_yaml(mission))
     run = RunWriter(tmp_path)
     w = run.mode("none", [d.id for d in mission.drones], 40)
-    rec = run_mode(mission, "none", writer=_KilledAtTheEnd(w))
+    rec = _fly_with_writer(mission, _KilledAtTheEnd(w))
     run._queue.put(None)  # the writer thread dies with the process; nothing is closed
     assert (tmp_path / f"timeseries_none{ROWS_SUFFIX}").is_file()
     assert not (tmp_path / "timeseries_none.npz").exists() and not (tmp_path / "metrics.json").exists()
@@ -312,7 +320,7 @@ def test_out_is_checked_before_anything_takes_off(
     def no_flight(*args: object, **kwargs: object) -> None:
         raise AssertionError("took off")
 
-    monkeypatch.setattr("flightstack.runtime.experiment.run_experiment", no_flight)
+    monkeypatch.setattr("flightstack.runtime.flight.Flight.fly", no_flight)
     monkeypatch.setattr("flightstack.comms.factory.make_bus", no_flight)
     mission = _small_sim_mission(tmp_path)
     blocker = tmp_path / "a_file"

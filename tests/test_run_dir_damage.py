@@ -36,7 +36,7 @@ from flightstack.recording.files import (
 from flightstack.recording.mcap_export import export_mcap
 from flightstack.recording.rows import MAGIC
 from flightstack.recording.run_dir import RunWriter
-from flightstack.runtime.experiment import resolved_mission_yaml
+from flightstack.runtime.flight import resolved_mission_yaml
 from tests.conftest import MISSIONS, random_recording
 
 NPZ = "timeseries_none.npz"

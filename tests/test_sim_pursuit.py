@@ -8,9 +8,8 @@ import pytest
 from flightstack.analysis.metrics import error_vector_sq_norm
 from flightstack.config.mission import load_mission
 from flightstack.paper.target_motion import DuffingParams
-from flightstack.runtime.experiment import TruthPredictor
-from flightstack.runtime.runner import run_mode
-from tests.conftest import MISSIONS
+from flightstack.runtime.agent import TruthPredictor
+from tests.conftest import MISSIONS, fly_mode
 
 
 @pytest.fixture(scope="module")
@@ -21,13 +20,13 @@ def short_mission():
 def test_true_velocity_keeps_error_at_numerical_zero(short_mission) -> None:
     """μ = V_w0 exactly (mode oracle) from e(0) = 0: the equilibrium is invariant up to rounding."""
     preds = {d.id: TruthPredictor(DuffingParams()) for d in short_mission.drones}
-    rec = run_mode(short_mission, "oracle", preds)
+    rec = fly_mode(short_mission, "oracle", preds)
     assert rec.ticks_done == 1500
     sq = error_vector_sq_norm(rec)
     assert np.sqrt(sq.max()) < 1e-10
     # the target really moved, and without μ the same run has a clearly non-zero error
     assert np.linalg.norm(rec.g_w0[-1, :3] - rec.g_w0[0, :3]) > 0.5
-    none = run_mode(short_mission, "none")
+    none = fly_mode(short_mission, "none")
     assert np.sqrt(error_vector_sq_norm(none)[-100:].mean()) > 1e-3
 
 
@@ -40,14 +39,14 @@ def test_initial_estimate_error_converges(short_mission) -> None:
     from flightstack.config.mission import parse_mission
 
     m = parse_mission(data)
-    rec = run_mode(m, "oracle", {d.id: TruthPredictor(DuffingParams()) for d in m.drones})
+    rec = fly_mode(m, "oracle", {d.id: TruthPredictor(DuffingParams()) for d in m.drones})
     sq = error_vector_sq_norm(rec)
     assert sq[0] > 1e-3
     assert sq[-1] < 1e-12
 
 
 def test_measured_estimation_error_tracks_truth(short_mission) -> None:
-    rec = run_mode(short_mission, "none")
+    rec = fly_mode(short_mission, "none")
     assert rec.visible.all()
     # J⁺(f − f̄) equals the true e_e up to second-order terms (errors here are ~1e-2)
     assert np.abs(rec.e_e_meas[10:] - rec.e_e[10:]).max() < 5e-3
@@ -55,6 +54,6 @@ def test_measured_estimation_error_tracks_truth(short_mission) -> None:
 
 
 def test_lock_step_is_deterministic(short_mission) -> None:
-    a = run_mode(short_mission, "none")
-    b = run_mode(short_mission, "none")
+    a = fly_mode(short_mission, "none")
+    b = fly_mode(short_mission, "none")
     assert np.array_equal(a.e_c, b.e_c) and np.array_equal(a.g_bar_w, b.g_bar_w)

@@ -164,7 +164,7 @@ def test_set_values_are_split_outside_brackets_and_parsed_as_yaml() -> None:
 def _base() -> tuple[dict, Path]:
     import yaml
 
-    from flightstack.runtime.experiment import resolved_mission_yaml
+    from flightstack.runtime.flight import resolved_mission_yaml
 
     m = _mission()
     return yaml.safe_load(resolved_mission_yaml(m)), m.resolve(".")

@@ -394,7 +394,7 @@ def test_the_ideal_rig_diverges_where_the_bound_says(monkeypatch: pytest.MonkeyP
     it (past validation) the ideal rig's errors grow by orders of magnitude. max(k_c, k_e)·dt is only 0.79
     there: that reading of k_max would let it fly."""
     from flightstack.config.mission import Mission
-    from flightstack.runtime.runner import run_mode
+    from tests.conftest import fly_mode
 
     k_bound = MAX_RATE_DT / 0.002 / own_loop_rate([1.0] * 4, [1.0] * 4)
     monkeypatch.setattr(Mission, "_check_sampled_loop", lambda self: None)
@@ -402,7 +402,7 @@ def test_the_ideal_rig_diverges_where_the_bound_says(monkeypatch: pytest.MonkeyP
     for factor in (0.97, 1.03):
         gains = {"k_c": [factor * k_bound] * 4, "k_e": [factor * k_bound] * 4, "k_s": 0.0}
         over = {"duration_s": 3.0, "compare_modes": ["none"], "gains": gains}
-        rec = run_mode(load_mission("paper_sim", overrides=over), "none")
+        rec = fly_mode(load_mission("paper_sim", overrides=over), "none")
         assert rec.ticks_done == 1500 or (rec.error or "").startswith("diverged at t = ")
         worst[factor] = float(np.abs(rec.e_c[1000 : rec.ticks_done]).max())
     assert worst[0.97] < 0.01 and worst[1.03] > 10.0, worst

@@ -27,11 +27,10 @@ from flightstack.cli.app import main  # noqa: E402
 from flightstack.config.mission import load_mission  # noqa: E402
 from flightstack.config.rig import resolved_document  # noqa: E402
 from flightstack.recording.run_reader import load_run, read_events  # noqa: E402
-from flightstack.runtime.runner import run_mode  # noqa: E402
 from flightstack.viewer import layout, sinks  # noqa: E402
 from flightstack.viewer.live import RerunTap  # noqa: E402
 from flightstack.viewer.rerun_import import INSTALL_HINT  # noqa: E402
-from tests.conftest import MISSIONS  # noqa: E402
+from tests.conftest import MISSIONS, fly_mode  # noqa: E402
 
 
 class Rrd:
@@ -212,10 +211,10 @@ def test_live_viewer_shows_camera_images_and_does_not_change_the_flight(tmp_path
     rrd_path = tmp_path / "lab.rrd"
     tap = RerunTap.open(sinks.Sink("save", str(rrd_path)), mission, ["none"], "lab test")
     try:
-        seen = run_mode(mission, "none", taps=[tap])
+        seen = fly_mode(mission, "none", taps=[tap])
     finally:
         tap.finish()
-    alone = run_mode(mission, "none")
+    alone = fly_mode(mission, "none")
     for name in ("g_wi", "g_bar_w", "e_e_meas", "V_cmd", "visible"):
         assert np.array_equal(getattr(seen, name), getattr(alone, name)), name
     rrd = Rrd(rrd_path)
@@ -260,7 +259,7 @@ def test_a_slow_viewer_drops_batches_instead_of_blocking_and_a_raising_tap_does_
 
     tap.on_tick = timed  # type: ignore[method-assign]
     try:
-        rec = run_mode(mission, "none", taps=[_Raising(), tap], compiled=False)  # on_tick every tick
+        rec = fly_mode(mission, "none", taps=[_Raising(), tap], compiled=False)  # on_tick every tick
     finally:
         tap.finish()
     assert rec.ticks_done == 500 and rec.error is None and not rec.interrupted  # the flight went on

@@ -11,8 +11,7 @@ from flightstack.comms.factory import free_loopback_endpoints
 from flightstack.config.mission import load_mission
 from flightstack.paper.gp import GPExpert, GPHyperparameters
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch
-from flightstack.runtime.runner import run_mode
-from tests.conftest import MISSIONS
+from tests.conftest import MISSIONS, fly_mode
 
 pytest.importorskip("zenoh")
 
@@ -40,8 +39,8 @@ def test_paper_sim_over_zenoh_equals_inproc() -> None:
     zen = load_mission(MISSIONS / "paper_sim.yaml", {"duration_s": 2.0, "bus": bus})
     preds = experts([d.id for d in inproc.drones])
     for mode in ("none", "dgp"):
-        a = run_mode(inproc, mode, preds)
-        b = run_mode(zen, mode, preds)
+        a = fly_mode(inproc, mode, preds)
+        b = fly_mode(zen, mode, preds)
         assert a.ticks_done == b.ticks_done == 1000 and not b.error, b.error
         ea, eb = mode_metrics(a, inproc)["mean_sq_error"], mode_metrics(b, zen)["mean_sq_error"]
         assert eb == pytest.approx(ea, rel=1e-9), (mode, ea, eb)

@@ -6,7 +6,9 @@ with the rendering of NAME from the installed package, so the site never holds a
 - `cli`: every subcommand of `flightstack.cli.app.build_parser()`, its usage and its options;
 - `run-files`: `flightstack.recording.files.RUN_FILES`, `REQUIRED_FILES` and `OPTIONAL_FILES`;
 - `fault-rows`: the rows of `flightstack.faults.FAULTS`, in table order, with the fault each injects
-  (the row function's docstring) and the reaction documented for it in `fault_reactions.yml`.
+  (the row function's docstring) and the reaction documented for it in `fault_reactions.yml`;
+- `import-contract`: the layers of `tests/import_contract.toml`, top first, with what each may import and
+  the contract's named exceptions and reserved names (tests/import_contract.py checks the code against it).
 
 On GitHub the marker is an invisible comment; the page's prose says where the list comes from. An unknown
 NAME fails the build.
@@ -17,6 +19,7 @@ from __future__ import annotations
 import argparse
 import inspect
 import re
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -158,10 +161,58 @@ def render_fault_rows() -> str:
     return "\n".join(lines) + "\n"
 
 
+def render_import_contract() -> str:
+    """The contract's layers (top first): members, what they may import and what they do import today
+    (from the source, by tests/import_contract.py); then the named exceptions and reserved names."""
+    import importlib.util
+    import tomllib
+
+    path = Path(__file__).parents[2] / "tests" / "import_contract.py"
+    spec = importlib.util.spec_from_file_location("import_contract", path)
+    assert spec is not None and spec.loader is not None
+    checker = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = checker  # dataclasses look their module up there
+    spec.loader.exec_module(checker)
+    contract = checker.Contract.load()
+    uses = checker.layer_imports(checker.build_graph(), contract)
+    data = tomllib.loads(checker.CONTRACT.read_text("utf-8"))
+    restricted = data.get("restricted", {})
+    rows = ["| layer | members | may import (besides itself) | imports today |", "|---|---|---|---|"]
+    for layer in reversed(data["layer"]):
+        members = layer["members"]
+        allowed = [p for m in members for p in restricted.get(m, [])]
+        may = f"the standard library, {', '.join(allowed)}" if allowed else "the layers below"
+        today = sorted({t.removeprefix("flightstack.") for m in members for t in uses.get(m, ())})
+        siblings = " (independent siblings)" if len(members) > 1 else ""
+        names = ", ".join(f"`{m}`" for m in members)
+        rows.append(f"| {layer['name']}{siblings} | {names} | {may} | {', '.join(today) or '-'} |")
+    exceptions = [
+        f"- `{e['importer']}` → `{e['imported']}`: {_cell(e['reason'])}" for e in data.get("exception", [])
+    ]
+    reserved = [
+        f"- `{r['name']}`: {', '.join(f'`{m}`' for m in r['only'])}" for r in data.get("reserved", [])
+    ]
+    return "\n".join(
+        [
+            *rows,
+            "",
+            "Named exceptions (an import of a higher layer that the contract allows, with its reason):",
+            "",
+            *(exceptions or ["- none"]),
+            "",
+            "Reserved names (imported only by the modules named):",
+            "",
+            *(reserved or ["- none"]),
+            "",
+        ]
+    )
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "cli": render_cli,
     "run-files": render_run_files,
     "fault-rows": render_fault_rows,
+    "import-contract": render_import_contract,
 }
 
 

@@ -14,14 +14,12 @@ are not the emulated lab's is refused."""
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 from flightstack.analysis.loop_health import loop_health_line
 from flightstack.config.mission import MissionError, load_mission
 from flightstack.config.rig import RigError
-from flightstack.recording.files import METRICS_FILE
 
 DEFAULT_EXPERIMENT = "paper_experiment"
 
@@ -29,7 +27,9 @@ DEFAULT_EXPERIMENT = "paper_experiment"
 def cmd_bench_loop(args: argparse.Namespace) -> int:
     """Fly `none` on the emulated lab for args.seconds and judge its loop health (module docstring)."""
     try:
-        mission = load_mission(args.experiment, {"compare_modes": ["none"]}, rig=args.rig)
+        mission = load_mission(
+            args.experiment, {"compare_modes": ["none"], "duration_s": args.seconds}, rig=args.rig
+        )
     except (MissionError, RigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -41,26 +41,38 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    from flightstack.cli.app import build_parser
-    from flightstack.cli.run import default_out_dir
+    from flightstack.cli.run import claim_out_dir, clear_for_run, default_out_dir
+    from flightstack.runtime.flight import Flight, NotFlownError
 
-    out = Path(args.out) if args.out else default_out_dir(mission.name)  # chosen here: read back below
-    argv = ["run", args.experiment, "--rig", args.rig, "--modes", "none", "--duration", str(args.seconds)]
-    argv += ["--no-progress", "--out", str(out)] + (["--force"] if args.out else [])
-    run_args = build_parser().parse_args(argv)
-    code = int(run_args.func(run_args))
+    out = Path(args.out) if args.out else default_out_dir(mission.name)
+    problem = claim_out_dir(out, force=bool(args.out))  # a directory named on purpose is reused
+    if problem is not None:
+        print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
+        return 2
+    clear_for_run(out, force=bool(args.out))
     try:
-        metrics = json.loads((out / METRICS_FILE).read_text(encoding="utf-8"))
-        health = metrics["modes"]["none"]["loop_health"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        print(f"bench-loop: no loop health recorded ({type(exc).__name__}: {exc}); run exit {code}")
+        with Flight(
+            mission, out, modes=["none"], plots=True, say=lambda line: print(line, file=sys.stderr)
+        ) as flight:
+            res = flight.fly()
+    except NotFlownError as exc:
+        print(f"error: {exc}; nothing took off", file=sys.stderr)
+        return 2
+    health = (res.metrics.get("modes", {}).get("none") or {}).get("loop_health")
+    if not health:
+        print(f"bench-loop: no loop health recorded ({res.error or 'no tick flown'}); run directory {out}")
         return 1
     n = len(mission.drones)
     verdict = "KEEPS" if health["keeps_dt"] else "DOES NOT keep"
     print(f"bench-loop: this computer {verdict} dt = {1e3 * mission.dt_s:.0f} ms with {n} drones' video")
     print(f"  {loop_health_line(health)}")
     print(f"  plot: {out / 'loop_health.png'}")
-    return 0 if code == 0 and health["keeps_dt"] else 1
+    complete = res.metrics.get("recording", {}).get("complete", False)
+    return 0 if complete and not res.error and not res.interrupted and health["keeps_dt"] else 1
+
+
+def _to_stderr(line: str) -> None:
+    print(line, file=sys.stderr)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

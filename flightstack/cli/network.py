@@ -48,45 +48,25 @@ def cmd_world(args: argparse.Namespace) -> int:
     return 0 if all(summary.landed.values()) else 1
 
 
-def _predictors(mission: Mission, mode: str) -> dict[int, Any] | None:
-    if not Mode(mode).needs_predictor:
-        return None
-    if mission.gp.experts_file is None:
-        raise MissionError(f"gp.experts_file: mode {mode!r} in an agent process needs trained experts")
-    from flightstack.learning.training import load_experts
-
-    return load_experts(mission.resolve(mission.gp.experts_file))
-
-
 def cmd_agent(args: argparse.Namespace) -> int:
-    from flightstack.analysis.metrics import build_metrics
-    from flightstack.cli.run import _awake_if_flying, claim_out_dir, clear_for_run, default_out_dir
+    """`agent MISSION --id N`: fly drone N of a mission over its Zenoh bus (one mode), record it in its
+    own run directory; the exit code."""
+    from flightstack.cli.run import claim_out_dir, clear_for_run, default_out_dir
     from flightstack.cli.view import open_live_viewer, viewer_problem
-    from flightstack.comms.factory import make_bus
-    from flightstack.comms.zenoh_bus import ZenohBus
-    from flightstack.paper.kernels_warmup import warm_up
-    from flightstack.recording.files import AGENT_SUMMARY_FILE, GUARDIAN_LOG, MISSION_FILE
-    from flightstack.recording.run_dir import RunWriter
-    from flightstack.recording.timeseries import Recording
-    from flightstack.runtime.backends import AgentSeat, open_agent_backend
-    from flightstack.runtime.experiment import resolved_mission_yaml
-    from flightstack.runtime.runner import run_mode
+    from flightstack.runtime.flight import Flight, NotFlownError
 
     mission = _zenoh_mission(args.mission, args.rig)
-    ids = [d.id for d in mission.drones]
-    if args.id not in ids:
-        print(f"error: --id {args.id}: the mission's drones are {ids}", file=sys.stderr)
+    mode = args.mode or mission.compare_modes[-1]
+    try:  # the drone, the bus and the mode's experts, before anything is opened
+        flight_args: dict[str, Any] = {"modes": [mode], "agent_id": args.id, "say": _to_stderr}
+        Flight(mission, None, **flight_args)
+    except MissionError as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     problem = viewer_problem(args.viewer)  # rerun-sdk missing: say how to install it, before anything flies
     if problem is not None:
         print(f"error: {problem}; nothing took off", file=sys.stderr)
         return 2
-    mode = args.mode or mission.compare_modes[-1]
-    if mode == Mode.ORACLE:  # sim-only truth predictor: it needs the world's truth, which agents do not get
-        print("error: mode 'oracle' runs in one process only (flightstack sim)", file=sys.stderr)
-        return 2
-    predictors = _predictors(mission, mode)
-    assert mission.bus.zenoh is not None
     out = Path(args.out) if args.out is not None else default_out_dir(f"{mission.name}-agent{args.id}")
     problem = claim_out_dir(out, args.force)  # before anything takes off: empty (or --force), 50 MB free
     if problem is not None:
@@ -94,97 +74,44 @@ def cmd_agent(args: argparse.Namespace) -> int:
         return 2
     if args.out is None:
         print(f"agent {args.id}: run directory {out} (--out DIR chooses another)", file=sys.stderr)
-    try:
-        clear_for_run(out, args.force)
-        run_writer = RunWriter(out)
-        run_writer.write_file(MISSION_FILE, resolved_mission_yaml(mission))  # for `report`
-    except OSError as exc:
-        print(f"error: --out {out}: cannot start the recording: {exc}; nothing took off", file=sys.stderr)
-        return 2
-    # the tick's kernels (and the message check the bus's receive thread runs) before the bus opens
-    warm_up()
-    wall0 = time.perf_counter()
-    writer = run_writer.mode(mode, [args.id], round(mission.duration_s / mission.dt_s))
     try:  # --viewer: this agent's drone live in Rerun (flightstack.viewer.live)
         tap = open_live_viewer(args.viewer, mission, out, [mode])
     except (OSError, RuntimeError) as exc:
-        run_writer.close()
         print(f"error: --viewer: {exc}; nothing took off", file=sys.stderr)
         return 2
     try:
-        bus = make_bus(mission, str(args.id), {args.id})
-    except BaseException:
-        run_writer.close()
+        clear_for_run(out, args.force)
+        flight = Flight(mission, out, taps=[tap] if tap is not None else (), **flight_args)
+        with flight:
+            res = flight.fly()
+    except NotFlownError as exc:
+        print(f"error: {exc}; nothing took off", file=sys.stderr)
+        return 2
+    finally:
         if tap is not None:
             tap.finish()
-        raise
-    rec: Recording | None = None
-    seat = AgentSeat(args.id, bus.session if isinstance(bus, ZenohBus) else None, str(out / GUARDIAN_LOG))
-    try:
-        with open_agent_backend(mission, seat) as backend, _awake_if_flying(mission):
-            rec = run_mode(
-                mission,
-                mode,
-                predictors,
-                backend=backend,
-                bus=bus,
-                agent_ids=[args.id],
-                writer=writer,
-                taps=[tap] if tap is not None else (),
-            )
-    finally:
-        bus.close()
-        if tap is not None:
-            tap.finish()
-        if rec is None:  # run_mode raised: what was recorded stays (row stream, events)
-            run_writer.close()
-    try:  # the recording (npz, events) is on disk already: metrics and summary, atomically
-        run_writer.record(rec)
-        experts = dict(predictors or {})  # the loaded experts: the gain condition is evaluated
-        metrics = run_writer.write_metrics(
-            build_metrics(
-                mission,
-                {mode: rec},
-                experts,
-                {},
-                time.perf_counter() - wall0,
-                interrupted=rec.interrupted,
-                error=rec.error,
-            )  # fmt: skip
-        )
-        summary = {
-            "drone": args.id,
-            "mode": mode,
-            "ticks": rec.ticks_done,
-            "interrupted": rec.interrupted,
-            "error": rec.error,
-            "bus_dropped": rec.bus_dropped,
-            # served world only: world ticks this agent refused, by reason (world_messages.py)
-            "world_dropped": dict(backend.link.dropped) if hasattr(backend, "link") else {},
-            # ticks the world went on without this agent's cmd (tick_gate.py)
-            "world_gaps": dict(backend.link.gaps) if hasattr(backend, "link") else {},
-            # other processes that spoke as a drone (comms/identity.py): one line each
-            "second_sessions": list(getattr(bus, "session_reports", [])),
-        }
-        run_writer.write_metrics(summary, AGENT_SUMMARY_FILE)
-    except OSError as exc:  # the drone has landed; the row stream and events.jsonl stay readable
-        print(f"agent {args.id}: metrics not written: {exc}", file=sys.stderr)
-        metrics = {"recording": {"complete": False, "reason": str(exc)}}
-    finally:
-        run_writer.close()
-    for line in getattr(bus, "session_reports", []):
+    rec = res.recordings.get(mode)
+    for line in flight.session_reports():
         print(f"agent {args.id}: {line}", file=sys.stderr)
-    print(f"agent {args.id}: {rec.ticks_done} ticks of mode {mode}; recording in {out}", flush=True)
-    if not metrics["recording"]["complete"]:
-        print(f"agent {args.id}: recording incomplete: {metrics['recording']['reason']}", file=sys.stderr)
-    if rec.interrupted:
+    ticks = 0 if rec is None else rec.ticks_done
+    print(f"agent {args.id}: {ticks} ticks of mode {mode}; recording in {out}", flush=True)
+    status = res.metrics.get("recording", {"complete": False, "reason": "metrics.json not written"})
+    if not status["complete"]:
+        print(f"agent {args.id}: recording incomplete: {status['reason']}", file=sys.stderr)
+    if res.interrupted:
         return 130
-    if rec.error:
-        landed = any(e.get("event") == "landed" and e.get("drone") == args.id for e in rec.events)
+    if res.error:
+        landed = rec is not None and any(
+            e.get("event") == "landed" and e.get("drone") == args.id for e in rec.events
+        )
         what = "its drone landed" if landed else "landing requested, not confirmed (no telemetry)"
-        print(f"agent {args.id}: {rec.error}; {what}", file=sys.stderr)
+        print(f"agent {args.id}: {res.error}; {what}", file=sys.stderr)
         return 1
-    return 0 if metrics["recording"]["complete"] else 1
+    return 0 if status["complete"] else 1
+
+
+def _to_stderr(line: str) -> None:
+    print(line, file=sys.stderr)
 
 
 def cmd_abort(args: argparse.Namespace) -> int:

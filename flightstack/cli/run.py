@@ -5,25 +5,20 @@ its loopback emulators first; a real lab is preflighted and confirmed."""
 from __future__ import annotations
 
 import argparse
-import contextlib
 import datetime
 import logging
 import math
 import re
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import Any, TextIO
 
 from tqdm import tqdm
 
 from flightstack.analysis.loop_health import loop_health_line
 from flightstack.config.mission import Mission, load_mission
-
-if TYPE_CHECKING:
-    from flightstack.recording.run_dir import RunWriter
-
 
 RUNS_ROOT = Path("runs")
 """Where a run without --out goes: runs/<experiment name>-<YYYYmmdd-HHMMSS> (relative to the current
@@ -110,21 +105,6 @@ def _progress_factory(bars: list[tqdm]) -> Callable[[str, int], Callable[[int], 
     return make
 
 
-def open_run_dir(out: Path) -> RunWriter | None:
-    """The run directory's writer, after checking (before anything takes off) that `out` is writable
-    and has flightstack.recording.files.MIN_FREE_BYTES (50 MB) free; None after printing why not."""
-    from flightstack.recording.run_dir import RunWriter, check_out_dir
-
-    problem = check_out_dir(out)
-    if problem is None:
-        try:
-            return RunWriter(out)
-        except OSError as exc:
-            problem = f"cannot start the recording: {exc.strerror or exc}"
-    print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
-    return None
-
-
 def cmd_run(args: argparse.Namespace) -> int:
     """`run EXPERIMENT --rig RIG`, `sim MISSION` (simulated rigs only) and `fly MISSION`: load, check the
     run directory, start an emulated lab or preflight and confirm real drones, fly, report."""
@@ -172,74 +152,47 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.out is None:
         print(f"run directory: {out} (--out DIR chooses another)", file=sys.stderr)
     real = not mission.simulated and not mission.start_emulators
-    if not real:
-        clear_for_run(out, args.force)
-    with contextlib.ExitStack() as rig_stack:
-        if mission.start_emulators:  # the emulated-lab rig: its devices start here, on loopback
-            mission = rig_stack.enter_context(_emulated_lab(mission, out))
-        elif real:
-            code = _confirm_and_preflight(args, mission)
-            if code:
-                return code
-            clear_for_run(out, args.force)  # only once the operator confirmed
-        return _fly_and_report(args, mission, out)
-
-
-def _emulated_lab(mission: Mission, out: Path) -> contextlib.AbstractContextManager[Mission]:
-    """Start the emulators of the emulated-lab rig for `mission` (loopback only) and yield the mission
-    re-pointed at them; every emulator stops when the block ends (flightstack.faults.emulated_lab)."""
-    from flightstack.config.mission import mission_to_dict
-    from flightstack.faults.emulated_lab import EmulatedLab
-    from flightstack.recording.files import EMULATED_LAB_DIR
-
-    doc = mission_to_dict(mission)
-    doc["start_emulators"] = False  # the written mission flies the running emulators
-
-    @contextlib.contextmanager
-    def lab() -> Iterator[Mission]:
-        with EmulatedLab(out / EMULATED_LAB_DIR, experiment=doc) as running:
-            print(
-                f"emulated lab: {len(running.tellos)} Tello emulators, NatNet, rover on loopback",
-                file=sys.stderr,
-            )
-            yield running.mission()
-
-    return lab()
+    if real:
+        code = _confirm_and_preflight(args, mission)
+        if code:
+            return code
+    clear_for_run(out, args.force)  # on real drones only once the operator confirmed
+    return _fly_and_report(args, mission, out)
 
 
 def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> int:
-    """Fly every mode of `mission` into the run directory `out` and print the summary; the exit code."""
-    from flightstack.recording.files import MISSION_FILE
-    from flightstack.runtime.experiment import resolved_mission_yaml, run_experiment, write_run_dir
+    """Fly every mode of `mission` into the run directory `out` (flightstack.runtime.flight) and print
+    the summary; the exit code."""
+    from flightstack.cli.view import open_live_viewer
+    from flightstack.runtime.flight import Flight, NotFlownError
 
     t_cmd0 = time.perf_counter()
-    from flightstack.cli.view import open_live_viewer
-
     try:  # --viewer: the live Rerun view (a tap of every mode; flightstack.viewer.live)
         tap = open_live_viewer(getattr(args, "viewer", None), mission, out, mission.flown_modes())
     except (OSError, RuntimeError) as exc:
         print(f"error: --viewer: {exc}; nothing took off", file=sys.stderr)
         return 2
-    run_writer = open_run_dir(out)  # checked again: the preflight took time
-    if run_writer is None:
-        if tap is not None:
-            tap.finish()
-        return 2
     bars: list[tqdm] = []
+    flight = Flight(
+        mission,
+        out,
+        taps=[tap] if tap is not None else (),
+        progress=_progress_factory(bars) if want_progress(args.progress) else None,
+        plots=True,
+        say=_to_stderr,
+    )
     try:
-        run_writer.write_file(MISSION_FILE, resolved_mission_yaml(mission))  # for `report`
-        progress = _progress_factory(bars) if want_progress(args.progress) else None
-        with _awake_if_flying(mission):
-            res = run_experiment(mission, progress, run_writer, taps=[tap] if tap is not None else ())
+        with flight:
+            res = flight.fly()
+    except NotFlownError as exc:
+        print(f"error: {exc}; nothing took off", file=sys.stderr)
+        return 2
+    finally:
         for b in bars:
             b.close()
-        m = write_run_dir(out, mission, res, run_writer)
-    finally:
-        run_writer.close()
         if tap is not None:
             tap.finish()
-    if res.recordings:
-        _write_plots_or_warn(out, mission, res)
+    m = res.metrics
     print(f"run directory: {out}")
     for mode, mm in m["modes"].items():
         line = f"  {mode:7s} mean_sq_error = {mm.get('mean_sq_error', float('nan')):.3e}"
@@ -278,7 +231,7 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
     rec_status = m["recording"]
     if not rec_status["complete"]:
         print(f"error: recording incomplete: {rec_status['reason']}", file=sys.stderr)
-    exported = _export_mcap(args, mission, out)
+    exported = _export_mcap(args, flight.mission, out)
     if res.interrupted:
         print("interrupted: every drone landed, partial recording written", file=sys.stderr)
         return 130
@@ -332,29 +285,8 @@ def speed_lines(m: dict[str, Any], command_s: float) -> list[str]:
     return lines
 
 
-def _write_plots_or_warn(out: Path, mission: Mission, res: Any) -> None:
-    """The plots of a run; a write error (a full disk) is reported, not raised: `report` redraws them."""
-    from flightstack.analysis.report import write_plots
-
-    try:
-        write_plots(out, mission, res.recordings, res.datasets)
-    except OSError as exc:
-        print(f"warning: plots not written ({exc}); `flightstack report {out}` redraws them", file=sys.stderr)
-
-
-def _awake_if_flying(mission: Mission) -> contextlib.AbstractContextManager[object]:
-    """On real hardware: keep the computer from sleeping while the drones fly (drivers/keep_awake.py)."""
-    if mission.simulated:
-        return contextlib.nullcontext()
-    from flightstack.drivers.keep_awake import keep_awake
-
-    @contextlib.contextmanager
-    def awake() -> Iterator[None]:
-        with keep_awake(f"flightstack: mission {mission.name} in flight") as how:
-            print(how, file=sys.stderr)
-            yield
-
-    return awake()
+def _to_stderr(line: str) -> None:
+    print(line, file=sys.stderr)
 
 
 def _bus_override(mission: Mission, kind: str) -> dict[str, object]:

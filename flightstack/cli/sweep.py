@@ -103,7 +103,7 @@ def _sweep(args: argparse.Namespace) -> int:
 
     from flightstack.config.mission import load_mission
     from flightstack.recording.files import atomic_write_json
-    from flightstack.runtime.experiment import resolved_mission_yaml
+    from flightstack.runtime.flight import resolved_mission_yaml
     from flightstack.sweep.execute import (
         RUNS_DIR,
         job_of,

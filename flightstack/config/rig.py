@@ -255,9 +255,9 @@ def emulated_tello_ip(k: int) -> str:
 
 def emulated_hardware(drone_ids: list[int], ports: dict[str, Any] | None = None) -> dict[str, Any]:
     """The `hardware:` section of the emulated-lab rig: station topology on loopback, drone k (0-based) at
-    `emulated_tello_ip(k)`. `ports` (from the running emulators: flightstack.faults.emulated_lab) fills in the
-    real ports, the NatNet settings and the rover URL; without it the section holds placeholders, which
-    is what `flightstack validate` checks before any emulator runs."""
+    `emulated_tello_ip(k)`. `ports` (from the running emulators: flightstack.sim_backend.emulated_lab)
+    fills in the real ports, the NatNet settings and the rover URL; without it the section holds
+    placeholders, which is what `flightstack validate` checks before any emulator runs."""
     ports = ports or {}
     drones = []
     for k, i in enumerate(drone_ids):

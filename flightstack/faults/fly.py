@@ -1,8 +1,9 @@
 """Fly one simulated mission mode under injected faults and judge safety and the recording.
 
 `fly_with_faults` loads the mission (shortened, mode `none` only, always on an in-process bus so that no
-traffic leaves the process), wraps its backend (and bus) with flightstack.faults.inject, runs
-`runner.run_mode`, writes the recording, events and metrics to the row's directory, and returns a `SimRun`.
+traffic leaves the process), flies it (flightstack.runtime.flight) with its backend (and bus) wrapped by
+flightstack.faults.inject, writes the recording, events and metrics to the row's directory, and returns
+a `SimRun`.
 `judge_safety` and `judge_recording` turn a SimRun into the FaultResult's flags and problem lists.
 Times are mission-clock seconds; positions are in the world frame Σw (m).
 """
@@ -23,10 +24,11 @@ from flightstack.config.mission import Mission, load_mission
 from flightstack.config.rig import resolved_document
 from flightstack.faults.inject import FaultSpec, FaultyBackend, FaultyBus
 from flightstack.faults.result import Checks
+from flightstack.hal import Backend
 from flightstack.recording.run_dir import RunWriter
 from flightstack.recording.timeseries import ARRAY_FIELDS, LOOP_HEALTH_FIELDS, Recording
-from flightstack.runtime.backends import build_backend
-from flightstack.runtime.runner import run_mode, safety_limits
+from flightstack.runtime.fleet import safety_limits
+from flightstack.runtime.flight import Flight
 from flightstack.safety import outside_hard_fence, outside_soft_fence
 
 FINITE_FIELDS = tuple(
@@ -42,8 +44,8 @@ def same_array(a: np.ndarray, b: np.ndarray) -> bool:
 
 @dataclass
 class SimRun:
-    """One faulty flight: the mission flown, the wrapped backend and bus, the recording (None if run_mode
-    raised: then `crashed` holds the traceback's last line), wall seconds and the row's directory."""
+    """One faulty flight: the mission flown, the wrapped backend and bus, the recording (None if the
+    flight raised: then `crashed` holds the traceback's last line), wall seconds and the row's directory."""
 
     mission: Mission
     backend: FaultyBackend
@@ -105,18 +107,28 @@ def fly_with_faults(
     wall0 = time.perf_counter()
     mission = load_fault_mission(mission_path, duration_s, safety)
     ids = [d.id for d in mission.drones]
-    backend = FaultyBackend(build_backend(mission), spec, ids)
     inner_bus = InProcBus(mission.name, set(ids))
     bus = FaultyBus(inner_bus, **bus_faults) if bus_faults else inner_bus
+    wrapped: list[FaultyBackend] = []
+
+    def faulty(backend: Backend) -> Backend:
+        wrapped.append(FaultyBackend(backend, spec, ids))
+        return wrapped[-1]
+
     rec: Recording | None = None
     crashed: str | None = None
     try:
-        rec = run_mode(mission, "none", backend=backend, bus=bus)
+        with Flight(mission, bus=bus, wrap_backend=faulty) as flight:
+            rec = flight.fly_mode("none")
     except Exception as exc:  # the runner must not let anything escape: this is the finding
         crashed = f"{type(exc).__name__}: {exc} ({traceback.format_exc(limit=-1).strip().splitlines()[-2]})"
+    finally:
+        inner_bus.close()
+    if not wrapped:  # the backend itself could not be built: the row cannot judge anything
+        raise RuntimeError(f"the backend was not built: {crashed}")
     run = SimRun(
         mission,
-        backend,
+        wrapped[0],
         bus,
         rec,
         crashed,

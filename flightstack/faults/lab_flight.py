@@ -1,9 +1,10 @@
-"""Flying the emulated lab (flightstack/faults/emulated_lab.py) for the fault table's rows, and judging it.
+"""Flying the emulated lab (sim_backend/emulated_lab.py) for the fault table's rows, and judging it.
 
-- `fly_inprocess(lab, run_dir, ...)`: `runner.run_mode` in this process with the real hardware backend
-  (drivers/hardware.py, guardian process included) and the streaming recorder, like `flightstack fly
-  --yes` without the preflight. Rows that reach into the drivers (socket errors), the bus (a stalled
-  tick) or the recorder (ENOSPC) use it; `injector(backend)` runs on a thread of its own meanwhile.
+- `fly_inprocess(lab, run_dir, ...)`: the flight (flightstack.runtime.flight) in this process with the
+  real hardware backend (drivers/hardware.py, guardian process included) and the streaming recorder,
+  like `flightstack fly --yes` without the preflight. Rows that reach into the drivers (socket errors),
+  the bus (a stalled tick) or the recorder (ENOSPC) use it; `injector(backend)` runs on a thread of its
+  own meanwhile.
 - `FlyProcess(lab, run_dir)`: `flightstack fly MISSION --out DIR --yes` as a child process (preflight
   included), for rows that send signals or talk to it from another "terminal" (`flightstack abort`).
 - `judge_lab_safety`, `judge_lab_recording`: the all-safe and recording verdicts of a lab row, judged at
@@ -32,7 +33,9 @@ from typing import Any
 
 import numpy as np
 
-from flightstack.faults.emulated_lab import (
+from flightstack.faults.result import Checks, FaultResult
+from flightstack.faults.rows_cli import cli_command, cli_env
+from flightstack.sim_backend.emulated_lab import (
     TRUTH_PERIOD_S,
     EmulatedLab,
     command_times,
@@ -41,8 +44,6 @@ from flightstack.faults.emulated_lab import (
     phase_times,
     rc_times,
 )
-from flightstack.faults.result import Checks, FaultResult
-from flightstack.faults.rows_cli import cli_command, cli_env
 
 PROCESS_TIMEOUT_S = 120.0
 """Bound on any child process of a lab row (s); it is killed after that."""
@@ -109,27 +110,19 @@ def fly_inprocess(
     injector: Callable[[Any], object] | None = None,
     injector_timeout_s: float = 60.0,
 ) -> LabRun:
-    """Fly mode `none` of the lab's mission in this process (hardware backend, in-process bus with its
-    operator listener, streaming RunWriter, metrics.json), like `flightstack fly --yes` without the
-    preflight. bus_wrapper(bus) may wrap the bus; injector(backend) runs on a daemon thread from the
-    moment the backend is connected (it must bound its own waits; joined for injector_timeout_s s).
-    Never raises for the flight itself: an exception is `LabRun.crashed`."""
-    from flightstack.analysis.metrics import mode_metrics
-    from flightstack.comms.factory import make_bus
-    from flightstack.recording.run_dir import RunWriter
-    from flightstack.runtime.backends import build_backend
-    from flightstack.runtime.experiment import resolved_mission_yaml
-    from flightstack.runtime.runner import run_mode
+    """Fly mode `none` of the lab's mission in this process through flightstack.runtime.flight (hardware
+    backend, in-process bus with its operator listener, the run directory written as it flies,
+    metrics.json), like `flightstack fly --yes` without the preflight. bus_wrapper(bus) may wrap the
+    bus; injector(backend) runs on a daemon thread from the moment the backend is built (it must bound
+    its own waits; joined for injector_timeout_s s). Never raises for the flight itself: an exception
+    is `LabRun.crashed`."""
+    from flightstack.runtime.flight import Flight
 
     run = LabRun(Path(run_dir), t_start=time.monotonic())
-    mission = lab.mission()
-    ids = [d.id for d in mission.drones]
     errors: list[str] = []
-    thread: threading.Thread | None = None
-    bus: Any = None
-    try:
-        bus = make_bus(mission, "agents", set(ids))
-        backend = build_backend(mission)
+    threads: list[threading.Thread] = []
+
+    def start_injector(backend: Any) -> Any:
         if injector is not None:
 
             def inject() -> None:
@@ -138,29 +131,21 @@ def fly_inprocess(
                 except Exception:
                     errors.append(traceback.format_exc(limit=-3))
 
-            thread = threading.Thread(target=inject, name="lab-injector", daemon=True)
-            thread.start()
-        writer = RunWriter(run.run_dir)
-        try:
-            writer.write_file("mission_resolved.yaml", resolved_mission_yaml(mission))
-            w = writer.mode("none", ids, round(mission.duration_s / mission.dt_s))
-            flown = run_mode(
-                mission,
-                "none",
-                backend=backend,
-                bus=bus if bus_wrapper is None else bus_wrapper(bus),
-                writer=w,
-            )
-            run.rec = flown
-            run.metrics = writer.write_metrics(mode_metrics(flown, mission))
-        finally:
-            writer.close()
+            threads.append(threading.Thread(target=inject, name="lab-injector", daemon=True))
+            threads[-1].start()
+        return backend
+
+    try:
+        with Flight(
+            lab.mission(), run.run_dir, modes=["none"], wrap_backend=start_injector, wrap_bus=bus_wrapper
+        ) as flight:
+            res = flight.fly()
+        run.rec = res.recordings.get("none")
+        run.metrics = res.metrics
     except Exception as exc:
         run.crashed = f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=-3)}"
     finally:
-        if bus is not None:
-            bus.close()
-        if thread is not None:
+        for thread in threads:
             thread.join(injector_timeout_s)
         run.t_end = time.monotonic()
     run.injector_error = errors[0] if errors else None

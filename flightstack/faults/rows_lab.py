@@ -1,7 +1,7 @@
 """The rows of `flightstack faults` flown on the emulated lab in this process that concern the
 control loop and the link: link loss with a working uplink, a stalled control loop, and a lost land reply
 beyond the hard fence. Each is a FaultRow (mission file, work directory) -> FaultResult judged on times
-measured at the Tello emulators (flightstack/faults/emulated_lab.py, lab_flight.py).
+measured at the Tello emulators (sim_backend/emulated_lab.py, lab_flight.py).
 
 `ROWS` lists every emulated-lab row in table order, also those of rows_lab_drivers.py (driver
 threads, full disk), rows_lab_cli.py (signals, abort during takeoff: `flightstack fly` in a child process)
@@ -22,15 +22,6 @@ from pathlib import Path
 from typing import Any
 
 from flightstack.faults import rows_lab_bus, rows_lab_cli, rows_lab_drivers, rows_lab_process
-from flightstack.faults.emulated_lab import (
-    EmulatedLab,
-    command_times,
-    first,
-    max_gap,
-    ms,
-    phase_times,
-    rc_times,
-)
 from flightstack.faults.lab_flight import (
     ZERO,
     emulator_errors,
@@ -44,6 +35,15 @@ from flightstack.faults.lab_flight import (
     within,
 )
 from flightstack.faults.result import Checks, FaultResult, FaultRow
+from flightstack.sim_backend.emulated_lab import (
+    EmulatedLab,
+    command_times,
+    first,
+    max_gap,
+    ms,
+    phase_times,
+    rc_times,
+)
 
 HOVER_MARGIN_S = 0.1
 """Allowed lateness of a hover beyond its bound (s): two control ticks of 50 ms."""

@@ -16,11 +16,11 @@ import numpy as np
 import yaml
 
 from flightstack.config.rig import resolved_document
-from flightstack.faults.emulated_lab import LabUnavailableError, ms
 from flightstack.faults.lab_flight import lab_result
 from flightstack.faults.result import Checks, FaultResult
 from flightstack.faults.rows_cli import run_cli
 from flightstack.faults.rows_lab_cli import abort_args, acks_in, cli_abort
+from flightstack.sim_backend.emulated_lab import LabUnavailableError, ms
 
 
 # ---- abort_agent_missing -----------------------------------------------------------------------------------

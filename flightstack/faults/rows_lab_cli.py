@@ -15,7 +15,6 @@ from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 from typing import Any
 
-from flightstack.faults.emulated_lab import EmulatedLab, command_times, first, ms, phase_times, rc_times
 from flightstack.faults.lab_flight import (
     FAULT_AFTER_S,
     PURSUIT_WAIT_S,
@@ -29,6 +28,7 @@ from flightstack.faults.lab_flight import (
     sub,
 )
 from flightstack.faults.result import Checks, FaultResult
+from flightstack.sim_backend.emulated_lab import EmulatedLab, command_times, first, ms, phase_times, rc_times
 
 SECOND_SIGNAL_S = 0.02
 """Delay of the second Ctrl-C after the first (s)."""

@@ -14,7 +14,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from flightstack.faults.emulated_lab import EmulatedLab, max_gap, ms, rc_times
 from flightstack.faults.lab_flight import (
     emulator_errors,
     event_t,
@@ -28,6 +27,7 @@ from flightstack.faults.lab_flight import (
 )
 from flightstack.faults.result import Checks, FaultResult
 from flightstack.recording import run_dir as recorder
+from flightstack.sim_backend.emulated_lab import EmulatedLab, max_gap, ms, rc_times
 
 
 # ---- driver_thread_error -----------------------------------------------------------------------------------

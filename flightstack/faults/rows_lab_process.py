@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-from flightstack.faults.emulated_lab import EmulatedLab, command_times, first, ms, phase_times, rc_times
 from flightstack.faults.lab_flight import (
     FAULT_AFTER_S,
     PURSUIT_WAIT_S,
@@ -26,6 +25,7 @@ from flightstack.faults.lab_flight import (
     lab_result,
 )
 from flightstack.faults.result import Checks, FaultResult
+from flightstack.sim_backend.emulated_lab import EmulatedLab, command_times, first, ms, phase_times, rc_times
 
 KILL_HOVER_S = 0.5
 """Parent killed → `rc 0 0 0 0` at every drone within this (s)."""

@@ -4,8 +4,8 @@ Every function here is a numba kernel (`@kernel` = `@njit(cache=True, error_mode
 scalars and C-contiguous float64 arrays. The public functions of flightstack.paper (geometry, projection,
 observer, gp, fusion, control, target_motion) are thin wrappers that validate their arguments and call
 these; the Agent calls `agent_sense` and `agent_act`; the compiled lock-step loop (`lockstep_chunk`, run
-by flightstack.runtime.compiled) calls the very same kernels, so the simulator and the flight code cannot
-drift apart. Symbols are the paper's (Saito et al., IFAC 2023); docs/equations.md maps them.
+by flightstack.sim_backend.compiled_loop) calls the very same kernels, so the simulator and the flight code
+cannot drift apart. Symbols are the paper's (Saito et al., IFAC 2023); docs/equations.md maps them.
 
 Numba's rules, kept here on purpose:
 * all kernels live in this one module: numba's on-disk cache is keyed on the file that defines a
@@ -40,7 +40,7 @@ RULE_POE, RULE_GPOE, RULE_BCM, RULE_RBCM = 0, 1, 2, 3
 MODE_NONE, MODE_LOCAL, MODE_DGP, MODE_ORACLE = 0, 1, 2, 3
 #: estimation_error's outcome
 OK, NOT_VISIBLE, SINGULAR = 0, 1, 2
-#: oracle predictor's variance and prior (flightstack.runtime.experiment.TruthPredictor)
+#: oracle predictor's variance and prior (flightstack.runtime.agent.TruthPredictor)
 ORACLE_VAR = 1e-9
 
 

@@ -98,7 +98,7 @@ def warm_up(loop: bool = False) -> float:
 
 
 def _warm_loop() -> None:
-    """One tick of kern.lockstep_chunk with the types flightstack.runtime.compiled passes."""
+    """One tick of kern.lockstep_chunk with the types flightstack.sim_backend.compiled_loop passes."""
     n, M = 2, 3
     drones = np.array([[0.0, 0.0, -1.5, 0.0], [0.2, 0.0, -1.5, 0.0]])
     T = np.zeros((n, 10, 4))

@@ -26,6 +26,7 @@ from flightstack.paper.control import Gains
 from flightstack.paper.fusion import FUSION_RULES
 from flightstack.paper.geometry import Pose
 from flightstack.paper.projection import CameraModel
+from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity
 from flightstack.vision.camera_file import CameraCalibration
 from flightstack.vision.markers import extract_markers, features_from_detection
 
@@ -112,8 +113,8 @@ class Agent:
         self._P0 = np.ascontiguousarray(cfg.P0, dtype=float)
         self._cam = cfg.camera.packed
         self._g_d = cfg.g_d.as_vector()
-        self._mode = _MODE_CODES[Mode(cfg.mode)]
-        self._rule = FUSION_RULES.index(cfg.fusion_rule)
+        self._mode = MODE_CODES[Mode(cfg.mode)]
+        self.rule_code = FUSION_RULES.index(cfg.fusion_rule)  # the kernels' fusion rule
         self._no_features = np.zeros(2 * len(self._P0))
         k = max(1, len(cfg.neighbour_ids))
         self._N = np.zeros((4, k, 4))  # neighbour messages: field (ḡ_w, μ, var, σ_f²) × neighbour × 4
@@ -127,7 +128,7 @@ class Agent:
     @property
     def g_bar_w(self) -> Pose:
         """ḡ_w,i: the observer's estimate of the target pose in the world frame."""
-        return _pose(self._T[kern.G_BAR_W])
+        return pose_of(self._T[kern.G_BAR_W])
 
     def reset_estimate(self, g_bar_w: Pose) -> None:
         """Restart the observer from ḡ_w,i (e.g. at pursuit start on hardware, from the own pose and g_d)."""
@@ -158,7 +159,7 @@ class Agent:
             self._P0,
             self._cam,
         )
-        g_bar_w = _pose(T[kern.G_BAR_W])  # the estimate after the observer step
+        g_bar_w = pose_of(T[kern.G_BAR_W])  # the estimate after the observer step
         x = T[kern.G_BAR_W].copy()
         if self.predictor is not None and cfg.mode != Mode.NONE:
             mu, var = self.predictor.predict_one(x)
@@ -228,7 +229,7 @@ class Agent:
         rec.neighbours_used = tuple(used)
         hover = self.hold or not rec.own_pose_fresh
         rec.n_fused = kern.agent_act(
-            T, rec.visible, self._NG, self._NMU, self._NVAR, self._NPRIOR, n, self._mode, self._rule,
+            T, rec.visible, self._NG, self._NMU, self._NVAR, self._NPRIOR, n, self._mode, self.rule_code,
             self._g_d, cfg.gains.k_c, cfg.gains.k_e, cfg.gains.k_s, hover,
         )  # fmt: skip
         V = T[kern.V_CMD].copy()
@@ -244,7 +245,8 @@ class Agent:
 
 
 _ZERO4 = np.zeros(4)
-_MODE_CODES = {
+MODE_CODES = {
+    # Mode -> the kernels' mode code
     Mode.NONE: kern.MODE_NONE,
     Mode.LOCAL: kern.MODE_LOCAL,
     Mode.DGP: kern.MODE_DGP,
@@ -252,6 +254,19 @@ _MODE_CODES = {
 }
 
 
-def _pose(v: np.ndarray) -> Pose:
-    """A Pose of a (wrapped) pose vector [x, y, z, θ]."""
+def pose_of(v: np.ndarray) -> Pose:
+    """A Pose of a pose vector [x, y, z, θ] the kernels keep wrapped (no second wrap)."""
     return Pose(v[:3].copy(), float(v[3]))
+
+
+class TruthPredictor:
+    """μ = the true target body velocity at the given pose (mode `oracle`; sim-only reference)."""
+
+    def __init__(self, prm: DuffingParams) -> None:
+        self.prm = prm
+
+    def predict_one(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return duffing_body_velocity(Pose.from_vector(x), self.prm), np.full(4, 1e-9)
+
+    def prior_var(self) -> np.ndarray:
+        return np.ones(4)

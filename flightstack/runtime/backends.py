@@ -1,13 +1,13 @@
-"""Backend registry: mission `backend:` name -> builder, imported lazily (DESIGN §1).
+"""What a rig provides, by name, imported lazily (DESIGN §1): the runtime never imports sim_backend/ or
+drivers/ (they sit above it), so the simulator runs without hardware libraries and the hardware runs
+without the simulator. Each entry is "module:attribute".
 
-flightstack never imports sim_backend/ or drivers/ at module level, so the simulator runs without
-hardware libraries and the hardware runs without the simulator.
-
-Two registries, one per kind of process:
-- `REGISTRY`: the whole fleet in one process (`flightstack run/sim/fly`): `build_backend(mission)`.
+- `REGISTRY`: mission `backend:` -> the builder of the whole fleet in one process: `build_backend(mission)`.
 - `AGENT_REGISTRY`: one drone in an agent process (`flightstack agent`): `open_agent_backend(mission,
   seat)`, a context manager that releases what the agent opened (the link to the served world) after
   the run; the run itself lands through `Backend.close()` as in one process.
+
+flightstack.runtime.flight names the rigs' compiled loops and the emulated lab the same way (`load_named`).
 """
 
 from __future__ import annotations
@@ -45,6 +45,15 @@ class AgentSeat:
     guardian_log: str
 
 
+def load_named(target: str) -> Callable[..., Any]:
+    """The object "module:attr.attr" names (imported now)."""
+    module_name, path = target.split(":")
+    obj: Any = importlib.import_module(module_name)
+    for name in path.split("."):
+        obj = getattr(obj, name)
+    return cast(Callable[..., Any], obj)
+
+
 def _resolve(registry: dict[str, str], mission: Mission) -> Callable[..., Any]:
     try:
         target = registry[mission.backend]
@@ -52,8 +61,7 @@ def _resolve(registry: dict[str, str], mission: Mission) -> Callable[..., Any]:
         raise ValueError(
             f"unknown backend {mission.backend!r}; known: {', '.join(sorted(registry))}"
         ) from None
-    module_name, func_name = target.split(":")
-    return cast(Callable[..., Any], getattr(importlib.import_module(module_name), func_name))
+    return load_named(target)
 
 
 def build_backend(mission: Mission) -> Backend:

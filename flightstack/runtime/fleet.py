@@ -221,10 +221,13 @@ def assemble_fleet(
     bus: Bus | None,
     agent_ids: list[int] | None,
     writer: Any,
+    wrap_backend: Callable[[Backend], Backend] | None = None,
+    wrap_bus: Callable[[Bus], Bus] | None = None,
 ) -> Iterator[Fleet]:
     """Build the fleet (bus first: a bus that cannot open must not leave a connected, armed backend
     behind); on failure close what was opened and re-raise. The bus built here is closed on exit; a bus
-    or backend passed in belongs to the caller (the backend is closed by landing)."""
+    or backend passed in belongs to the caller (the backend is closed by landing). wrap_backend and
+    wrap_bus wrap what is built here (the fault table's injectors)."""
     ids = [d.id for d in mission.drones] if agent_ids is None else list(agent_ids)
     # compile (or load) the tick's kernels before any device is opened: a compile mid-flight holds the GIL
     warm_up(loop=mission.backend == "sim_ideal")
@@ -232,9 +235,18 @@ def assemble_fleet(
     if bus is None:
         participant = "agents" if agent_ids is None else str(ids[0])
         bus = make_bus(mission, participant, set(ids))
+    built_bus = bus
     try:
+        if own_bus and wrap_bus is not None:
+            bus = wrap_bus(bus)
         if backend is None:
             backend = build_backend(mission)
+            if wrap_backend is not None:
+                try:
+                    backend = wrap_backend(backend)
+                except BaseException:
+                    backend.close()
+                    raise
         try:
             fleet = _build(mission, mode, predictors, backend, bus, ids, writer)
         except BaseException:
@@ -243,7 +255,7 @@ def assemble_fleet(
         yield fleet
     finally:
         if own_bus:
-            bus.close()
+            built_bus.close()
 
 
 def _build(

@@ -1,7 +1,7 @@
 """What a run will take of the computer, checked before anything is allocated or flies.
 
 The recording of every mode lives in memory while the run flies: `run_mode` allocates one
-`Recording.empty` per mode and `run_experiment` keeps every mode's for the metrics. Its size is
+`Recording.empty` per mode and the flight (runtime.flight) keeps every mode's for the metrics. Its size is
 `recording_nbytes` (flightstack.recording.timeseries: computed from the layout that allocates it) times the
 modes flown (Mission.flown_modes). It must fit in MEMORY_FRACTION of the memory the computer has available
 (MemAvailable of /proc/meminfo, read when checked): the rest is for what a run allocates besides the

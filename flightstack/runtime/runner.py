@@ -1,8 +1,9 @@
-"""Flies one mode of a mission: assemble the fleet, take off, tick, record, land (DESIGN §1–2, §7).
+"""Flies one mode of an assembled fleet: take off, tick, record, land (DESIGN §1–2, §7).
 
-`run_mode` is cut into its parts: `assemble_fleet` (flightstack.runtime.fleet; closes what it opened on
-failure), `take_off`, `pursuit_tick` (one control period), `record_tick` (flightstack.runtime.tick_record,
-from a declared field list), `_land_everything` and `finish_recording`. It flies in lock-step: each
+`run_mode` flies an assembled fleet (flightstack.runtime.fleet; the flight, flightstack.runtime.flight,
+assembles and closes it) and is cut into its parts: `take_off`, `pursuit_tick` (one control period),
+`record_tick` (flightstack.runtime.tick_record, from a declared field list), `_land_everything` and
+`finish_recording`. It flies in lock-step: each
 tick the target driver (sim_lab) commands the ground robot, the safety supervisor checks every drone,
 all agents run phase 1, then all run phase 2, then the backend's clock advances by dt. Before the loop
 every drone takes off (bounded wait); after it, whatever ended it (end of mission, a signal, an operator
@@ -22,23 +23,18 @@ import contextlib
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
 
-from flightstack.comms.bus import Bus, OperatorChannel
-from flightstack.config.mission import Mission
-from flightstack.hal import Backend
+from flightstack.comms.bus import OperatorChannel
 from flightstack.paper.geometry import compose
 from flightstack.recording.timeseries import Recording
-from flightstack.runtime.agent import Predictor
-from flightstack.runtime.compiled import CompiledLoop
 from flightstack.runtime.divergence import DivergedError, check_rows
 from flightstack.runtime.fleet import (
     Fleet,
     OperatorAbortError,
     SafetyTickTimer,
     StatusPublisher,
-    assemble_fleet,
     check_operator,
     make_agents,
     safety_limits,
@@ -71,116 +67,120 @@ __all__ = [  # run_mode and its parts here; the fleet's parts re-exported from f
 _log = logging.getLogger(__name__)
 
 
+class ChunkLoop(Protocol):
+    """A rig's faster way to fly runs of ticks (the ideal rig's compiled loop,
+    flightstack.sim_backend.compiled_loop): `run` flies ticks k0..k1-1 into `rec` and returns the first
+    tick it did not fly; `ready` says whether the next tick may be flown by it."""
+
+    chunk: int
+    chunks: int
+    compiled_ticks: int
+
+    def ready(self, book: TickBook) -> bool: ...
+
+    def run(self, rec: Recording, k0: int, k1: int) -> int: ...
+
+
 def run_mode(
-    mission: Mission,
-    mode: str,
-    predictors: Mapping[int, Predictor] | None = None,
+    f: Fleet,
     progress: Callable[[int], None] | None = None,
     *,
-    backend: Backend | None = None,
-    bus: Bus | None = None,
-    agent_ids: list[int] | None = None,
     writer: Any = None,
-    compiled: bool = True,
     taps: Sequence[TickTap] = (),
+    plan_loop: Callable[[Fleet], ChunkLoop | None] | None = None,
 ) -> Recording:
-    """Fly `mode` of a mission for mission.duration_s of pursuit; never leaves a drone flying.
+    """Fly the fleet's mode for mission.duration_s of pursuit; never leaves a drone flying.
 
-    backend: built from the mission when None (the served world's client for an agent process).
-    bus: built from `mission.bus` when None (closed here if built here).
-    agent_ids: the drones this process flies (default all); the others are neighbours on the bus.
     writer: a flightstack.recording.run_dir mode writer that appends the recording to disk as the run goes.
     On a simulated clock with a network bus, phase 2 waits for the neighbours' messages of the same tick
     (`bus.zenoh.lockstep_timeout_s`), so the result equals the in-process bus's.
-    compiled: fly the ideal rig's ticks in the compiled loop (flightstack.runtime.compiled; the same
-    kernels, bit-identical recordings); False flies every tick through the Agents (the reference path).
+    plan_loop: the rig's chunked loop for this fleet, if it has one (None: every tick through the Agents,
+    the reference path; the compiled loop's recordings are bit-identical).
     taps: observers told after each recorded tick or chunk (live viewer, live export;
     flightstack.runtime.taps); one that raises is switched off, the flight goes on."""
-    with assemble_fleet(
-        mission, mode, predictors, backend=backend, bus=bus, agent_ids=agent_ids, writer=writer
-    ) as f:
-        dt = mission.dt_s
-        n_ticks = round(mission.duration_s / dt)
-        rec = Recording.empty(mode, f.ids, n_ticks)
-        book = TickBook.of(mode, f.ids)
-        observers = TapSet(taps)
-        observers.start(f, rec)
-        wall0 = time.perf_counter()
-        reason = "mission complete"
-        signals = signal_guard(f.supervisor)
-        signals.__enter__()
-        try:
-            take_off(f)
-            t0 = f.clock.now()
-            loop = CompiledLoop.plan(f) if compiled else None
-            k = 0
-            w_prev = math.nan  # wall time (perf_counter, s) of the last Python tick's start: loop health
-            while k < n_ticks:
-                if loop is not None and k > 0 and loop.ready(book):  # tick 0 in Python: its events
-                    k_new = loop.run(rec, k, min(n_ticks, k + loop.chunk))
-                    w_prev = math.nan  # the next Python tick's period would span the chunk
-                    if k_new > k:
-                        if writer is not None:
-                            writer.append(rec, k_new)
-                        check_rows(rec, k, k_new, f.backend.simulated)  # DivergedError ends the run
-                        if observers:
-                            observers.on_tick(f, rec, k_new)
-                        f.status.maybe_publish(f.clock.now(), k_new - 1, f.agents)
-                        if progress is not None:
-                            progress(k_new - k)
-                        k = k_new
-                        continue
-                t = f.clock.now()
-                w_start = time.perf_counter()
-                ended = pursuit_tick(f, t, t - t0, rec)
-                if ended is not None:
-                    reason = ended
-                    break
-                record_tick(rec, k, t, f.agents, f.backend.truth(), book)
-                rec.loop_compute[k] = time.perf_counter() - w_start
-                rec.loop_period[k] = w_start - w_prev
-                w_prev = w_start
-                if writer is not None:
-                    writer.append(rec, k + 1)
-                check_rows(rec, k, k + 1, f.backend.simulated)  # DivergedError ends the run
-                if observers:
-                    observers.on_tick(f, rec, k + 1)
-                f.status.maybe_publish(t, k, f.agents)
-                if progress is not None:
-                    progress(1)
-                f.clock.sleep_until(t + dt)
-                k += 1
-            if loop is not None and loop.chunks:
-                rec.events.append(
-                    {"t": f.clock.now(), "event": "compiled loop", "mode": mode, "ticks": loop.compiled_ticks,
-                     "chunks": loop.chunks, "python_ticks": k - loop.compiled_ticks}
-                )  # fmt: skip
-        except KeyboardInterrupt:
-            rec.interrupted = True
-            reason = "interrupted"
-        except OperatorAbortError as exc:
-            rec.error = f"operator abort: {exc}"
-            reason = "operator abort"
-        except DivergedError as exc:  # the state left every bound: land, keep what was recorded
-            rec.error = str(exc)
-            reason = "diverged"
-        except Exception as exc:  # an exception in any agent: land everyone, keep the data, report
-            rec.error = f"{type(exc).__name__}: {exc}"
-            reason = f"exception: {rec.error}"
-        finally:
-            if f.supervisor is not None:  # a signal from here on must not interrupt landing or closing
-                f.supervisor.ignore_signals(f"the run's end ({reason})")
-            rec.events.append({"t": f.clock.now(), "event": "end", "reason": reason, "mode": mode})
+    mission, mode = f.mission, f.mode
+    dt = mission.dt_s
+    n_ticks = round(mission.duration_s / dt)
+    rec = Recording.empty(mode, f.ids, n_ticks)
+    book = TickBook.of(mode, f.ids)
+    observers = TapSet(taps)
+    observers.start(f, rec)
+    wall0 = time.perf_counter()
+    reason = "mission complete"
+    signals = signal_guard(f.supervisor)
+    signals.__enter__()
+    try:
+        take_off(f)
+        t0 = f.clock.now()
+        loop = plan_loop(f) if plan_loop is not None else None
+        k = 0
+        w_prev = math.nan  # wall time (perf_counter, s) of the last Python tick's start: loop health
+        while k < n_ticks:
+            if loop is not None and k > 0 and loop.ready(book):  # tick 0 in Python: its events
+                k_new = loop.run(rec, k, min(n_ticks, k + loop.chunk))
+                w_prev = math.nan  # the next Python tick's period would span the chunk
+                if k_new > k:
+                    if writer is not None:
+                        writer.append(rec, k_new)
+                    check_rows(rec, k, k_new, f.backend.simulated)  # DivergedError ends the run
+                    if observers:
+                        observers.on_tick(f, rec, k_new)
+                    f.status.maybe_publish(f.clock.now(), k_new - 1, f.agents)
+                    if progress is not None:
+                        progress(k_new - k)
+                    k = k_new
+                    continue
+            t = f.clock.now()
+            w_start = time.perf_counter()
+            ended = pursuit_tick(f, t, t - t0, rec)
+            if ended is not None:
+                reason = ended
+                break
+            record_tick(rec, k, t, f.agents, f.backend.truth(), book)
+            rec.loop_compute[k] = time.perf_counter() - w_start
+            rec.loop_period[k] = w_start - w_prev
+            w_prev = w_start
             if writer is not None:
-                writer.event(rec.events[-1])
-            _land_everything(f, reason, dt)
-            with contextlib.suppress(Exception):  # `status` and `guard` see the drones down before we leave
-                f.status.maybe_publish(f.clock.now(), rec.ticks_done, f.agents, force=True)
-            signals.__exit__(None, None, None)
-            finish_recording(f, rec, book, time.perf_counter() - wall0)
-            if writer is not None:
-                writer.close(rec)
-            observers.close(rec)
+                writer.append(rec, k + 1)
+            check_rows(rec, k, k + 1, f.backend.simulated)  # DivergedError ends the run
+            if observers:
+                observers.on_tick(f, rec, k + 1)
+            f.status.maybe_publish(t, k, f.agents)
+            if progress is not None:
+                progress(1)
+            f.clock.sleep_until(t + dt)
+            k += 1
+        if loop is not None and loop.chunks:
+            rec.events.append(
+                {"t": f.clock.now(), "event": "compiled loop", "mode": mode, "ticks": loop.compiled_ticks,
+                 "chunks": loop.chunks, "python_ticks": k - loop.compiled_ticks}
+            )  # fmt: skip
+    except KeyboardInterrupt:
+        rec.interrupted = True
+        reason = "interrupted"
+    except OperatorAbortError as exc:
+        rec.error = f"operator abort: {exc}"
+        reason = "operator abort"
+    except DivergedError as exc:  # the state left every bound: land, keep what was recorded
+        rec.error = str(exc)
+        reason = "diverged"
+    except Exception as exc:  # an exception in any agent: land everyone, keep the data, report
+        rec.error = f"{type(exc).__name__}: {exc}"
+        reason = f"exception: {rec.error}"
+    finally:
+        if f.supervisor is not None:  # a signal from here on must not interrupt landing or closing
+            f.supervisor.ignore_signals(f"the run's end ({reason})")
+        rec.events.append({"t": f.clock.now(), "event": "end", "reason": reason, "mode": mode})
+        if writer is not None:
+            writer.event(rec.events[-1])
+        _land_everything(f, reason, dt)
+        with contextlib.suppress(Exception):  # `status` and `guard` see the drones down before we leave
+            f.status.maybe_publish(f.clock.now(), rec.ticks_done, f.agents, force=True)
+        signals.__exit__(None, None, None)
+        finish_recording(f, rec, book, time.perf_counter() - wall0)
+        if writer is not None:
+            writer.close(rec)
+        observers.close(rec)
     return rec if rec.ticks_done == n_ticks and not rec.interrupted else rec.truncated()
 
 

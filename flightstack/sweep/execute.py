@@ -42,7 +42,8 @@ def job_of(c: Combination, base_dir: Path, keep_dir: Path | None) -> dict[str, A
 
 
 def run_combination(job: dict[str, Any]) -> dict[str, Any]:
-    """In a worker: validate the job's mission, run `run_experiment`, return its metrics (JSON-safe).
+    """In a worker: validate the job's mission, fly it (flightstack.runtime.flight), return its metrics
+    (JSON-safe).
 
     BLAS runs single-threaded in the worker (threadpoolctl). SIGINT interrupts the run (workers of the
     local pool ignore it between runs); the result then says `interrupted` and is not kept. With
@@ -52,7 +53,7 @@ def run_combination(job: dict[str, Any]) -> dict[str, Any]:
     from threadpoolctl import threadpool_limits
 
     from flightstack.config.mission import parse_mission
-    from flightstack.runtime.experiment import run_experiment, write_run_dir
+    from flightstack.runtime.flight import Flight, write_run_dir
 
     logging.getLogger("flightstack.safety").setLevel(logging.ERROR)
     on_main = threading.current_thread() is threading.main_thread()  # Dask runs tasks in threads
@@ -63,8 +64,8 @@ def run_combination(job: dict[str, Any]) -> dict[str, Any]:
         mission._base_dir = Path(job["base_dir"])
         # one BLAS thread per run: the sweep's parallelism is its workers; J workers × the cores' BLAS
         # threads oversubscribe the machine (measured: GP training 0.17 s alone, 15 s in 2 workers)
-        with threadpool_limits(limits=1):
-            res = run_experiment(mission)
+        with threadpool_limits(limits=1), Flight(mission) as flight:
+            res = flight.fly()
         if job.get("keep_dir") and not res.interrupted:
             write_run_dir(Path(job["keep_dir"]), mission, res)
     except KeyboardInterrupt:

@@ -31,7 +31,7 @@ from flightstack.paper import kernels as kern
 from flightstack.paper.gp import GPExpert
 from flightstack.paper.target_motion import DuffingField
 from flightstack.recording.timeseries import Recording
-from flightstack.runtime.agent import _MODE_CODES, Agent, TickRecord, _pose
+from flightstack.runtime.agent import MODE_CODES, Agent, TickRecord, TruthPredictor, pose_of
 from flightstack.runtime.fleet import Fleet
 from flightstack.runtime.tick_record import TickBook
 from flightstack.sim_backend.ideal import IdealDrone
@@ -71,8 +71,6 @@ def why_not_compiled(f: Fleet) -> str | None:
     if mode.uses_gp and len({p.kernel_arrays()[0].shape for p in preds if isinstance(p, GPExpert)}) != 1:
         return "experts of different shapes"
     if mode == Mode.ORACLE:
-        from flightstack.runtime.experiment import TruthPredictor
-
         prm = backend.world.target_field.prm
         if not all(isinstance(p, TruthPredictor) and p.prm == prm for p in preds):
             return "oracle predictors are not the world's field"
@@ -129,8 +127,8 @@ class CompiledLoop:
             sees=np.array([backend.camera(a.cfg.drone_id).sees_target for a in agents], dtype=np.bool_),  # type: ignore[attr-defined]
             g_d=np.array([a.cfg.g_d.as_vector() for a in agents]),
             gains=np.concatenate([g0.k_c, g0.k_e, [g0.k_s]]),
-            mode=_MODE_CODES[Mode(f.mode)],
-            rule=agents[0]._rule,
+            mode=MODE_CODES[Mode(f.mode)],
+            rule=agents[0].rule_code,
             oracle=Mode(f.mode) == Mode.ORACLE,
             gp=_stack_experts(agents),
             nb=nb,
@@ -178,10 +176,10 @@ class CompiledLoop:
             return k
         # the world, the drones' commands and the agents, as the Python ticks would have left them
         world.t = float(clock[0])
-        world.target.pose, world.target.velocity = _pose(target), target_V
+        world.target.pose, world.target.velocity = pose_of(target), target_V
         for i, drone_id in enumerate(ids):
             world.drones[drone_id].pose, world.drones[drone_id].velocity = (
-                _pose(drones[i]),
+                pose_of(drones[i]),
                 drones_V[i].copy(),
             )
             cast(IdealDrone, f.backend.drone(drone_id)).commands += done
@@ -218,7 +216,7 @@ class CompiledLoop:
 def _tick_record(a: Agent, visible: bool, n_fused: int) -> TickRecord:
     T = a._T
     return TickRecord(
-        g_bar_w=_pose(T[kern.G_BAR_W]),
+        g_bar_w=pose_of(T[kern.G_BAR_W]),
         visible=visible,
         e_e_meas=T[kern.E_E].copy(),
         mu_own=T[kern.MU_OWN].copy(),

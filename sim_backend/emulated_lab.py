@@ -1,7 +1,7 @@
-"""The emulated lab of `flightstack faults`: two Tello emulators, a NatNet (OptiTrack) server and a
-MAVLink rover on loopback, and a short mission pointing at them (`EmulatedLab`, a context manager). How
-to fly it (in this process, or `flightstack fly` in a child process) and judge the flight:
-flightstack/faults/lab_flight.py; the rows: rows_lab*.py.
+"""The emulated lab: Tello emulators, a NatNet (OptiTrack) server and a MAVLink rover on loopback, and a
+mission pointing at them (`EmulatedLab`, a context manager). The `emulated-lab` rig flies it (the flight
+starts it: flightstack.runtime.flight), and so do the fault table's lab rows (flightstack/faults/lab_flight.py
+flies and judges them).
 
 What the drones did is judged at the emulators: every Tello emulator keeps `commands`, `rc_history`,
 `phase_log` and `replies_sent` with their receive/send times; `lab.write_log(path)` saves them, and the
@@ -27,8 +27,8 @@ import itertools
 import json
 import math
 import time
-from collections.abc import Callable, Iterable
-from contextlib import suppress
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from types import SimpleNamespace, TracebackType
 from typing import Any
@@ -113,6 +113,18 @@ def marker_image() -> np.ndarray:
 
 
 # ---- the lab -----------------------------------------------------------------------------------------------
+@contextmanager
+def running_lab(mission: Any, lab_dir: Path) -> Iterator[Any]:
+    """The `emulated-lab` rig: an EmulatedLab for `mission` (a flightstack Mission), logging in lab_dir;
+    yields the mission re-pointed at the running devices. Every device stops when the block ends."""
+    from flightstack.config.mission import mission_to_dict
+
+    doc = mission_to_dict(mission)
+    doc["start_emulators"] = False  # the written mission flies the running emulators
+    with EmulatedLab(lab_dir, experiment=doc) as running:
+        yield running.mission()
+
+
 class EmulatedLab:
     """Two Tello emulators, NatNet and a rover on loopback, and `mission_path` flying them (a context
     manager: `with EmulatedLab(dir) as lab:`; every thread and child process is stopped on exit).
