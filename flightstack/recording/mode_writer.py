@@ -6,6 +6,7 @@ import contextlib
 import errno
 import functools
 import logging
+import math
 import os
 import threading
 import time
@@ -13,6 +14,7 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
+from flightstack.events import Event
 from flightstack.recording.files import CLOSE_TIMEOUT_S, ROWS_SUFFIX, errno_text, event_line, fsync_dir
 from flightstack.recording.rows import RowLayout
 from flightstack.recording.timeseries import Recording
@@ -184,14 +186,9 @@ class ModeWriter:
             if run._failure_reported or run._failure is None:
                 return
             run._failure_reported = True
-        ev: dict[str, Any] = {
-            "t": float(rec.t[rec.ticks_done - 1]) if rec is not None and rec.ticks_done else None,
-            "event": "recording_stopped",
-            "mode": self.mode,
-            "reason": run._failure,
-            "ticks_written": int(self.rows_written),
-            "wall_t": time.time(),
-        }
+        t = float(rec.t[rec.ticks_done - 1]) if rec is not None and rec.ticks_done else math.nan
+        facts = {"reason": run._failure, "ticks_written": int(self.rows_written), "wall_t": time.time()}
+        ev = Event(t, None, "recording_stopped", facts=facts).record(self.mode)
         if rec is not None:
             rec.events.append(ev)
             self._event_cursor = len(rec.events)
