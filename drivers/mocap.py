@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from flightstack.drivers.tello_link import ERROR_PAUSE_S, ErrorLog
-from flightstack.events import Event
+from flightstack.events import Event, MocapKind
 from flightstack.hal import StampedPose
 from flightstack.paper.geometry import Pose
 
@@ -288,7 +288,7 @@ class MocapPoseSource:
             return 0.0
         return (len(r) - 1) / (r[-1] - r[0])
 
-    def _event(self, kind: str, name: str) -> None:
+    def _event(self, kind: MocapKind, name: str) -> None:
         self.events.append(Event(self._clock(), None, kind, name, source="mocap", clock="monotonic"))
         if len(self.events) > MAX_EVENTS:
             del self.events[: len(self.events) - MAX_EVENTS]

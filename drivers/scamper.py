@@ -51,7 +51,7 @@ from flightstack.drivers.scamper_link import (
     probe_heartbeat,
 )
 from flightstack.drivers.tello_link import MutedCheck
-from flightstack.events import Event
+from flightstack.events import Event, ScamperKind
 
 __all__ = [
     "GCS_HEARTBEAT_PERIOD_S",
@@ -259,7 +259,7 @@ class ScamperDriver:
         self.close()
 
     # ------------------------------------------------------------------ internals
-    def _event(self, kind: str, detail: str) -> None:
+    def _event(self, kind: ScamperKind, detail: str) -> None:
         """Append an event; caller holds the lock."""
         self.events.append(Event(time.monotonic(), None, kind, detail, source="scamper", clock="monotonic"))
 

@@ -21,7 +21,7 @@ from flightstack.drivers.tello_config import TelloConfig
 from flightstack.drivers.tello_link import CommandChannel, ErrorLog, StateReceiver
 from flightstack.drivers.tello_phase import PhaseTracker
 from flightstack.drivers.tello_state import TelloTelemetry
-from flightstack.events import Event
+from flightstack.events import Event, TelloKind
 from flightstack.hal import DroneState, FlightPhase
 
 LOG = logging.getLogger("flightstack.tello")
@@ -58,7 +58,7 @@ class TelloDriverCore:
         self.serial: str | None = None
 
     # ---- events, state ---------------------------------------------------------------------------
-    def _event(self, kind: str, detail: str = "") -> None:
+    def _event(self, kind: TelloKind, detail: str = "") -> None:
         self.events.append(Event(time.monotonic(), None, kind, detail, source="tello", clock="monotonic"))
         del self.events[:-1000]
         LOG.warning("tello %s %s %s", self.cfg.host, kind, detail)

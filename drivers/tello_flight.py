@@ -10,10 +10,12 @@ drivers/tello.py's `TelloDriver` (whose module docstring gives the rules on ever
 from __future__ import annotations
 
 import time
+from typing import Literal
 
 from flightstack.drivers.tello_config import TelloCommandError, TelloLinkError
 from flightstack.drivers.tello_exchange import TelloExchange
 from flightstack.drivers.tello_sticks import TelloSticks
+from flightstack.events import TelloKind
 from flightstack.hal import FlightPhase
 
 
@@ -100,8 +102,9 @@ class TelloFlight(TelloExchange, TelloSticks):
             self._tracker.takeoff_sent(time.monotonic())
         self._chan.send("takeoff")
 
-    def _report_outcome(self, what: str, replies: list[str], elapsed: float) -> None:
-        self._event(f"{what}_confirmed", f"by telemetry after {elapsed:.2f} s; replies {replies}")
+    def _report_outcome(self, what: Literal["takeoff", "land"], replies: list[str], elapsed: float) -> None:
+        confirmed: TelloKind = "takeoff_confirmed" if what == "takeoff" else "land_confirmed"
+        self._event(confirmed, f"by telemetry after {elapsed:.2f} s; replies {replies}")
         if not replies:
             self._event("reply_lost_confirmed", f"{what!r}: no reply; telemetry shows it done")
         elif all(r.lower() != "ok" for r in replies):

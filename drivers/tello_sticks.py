@@ -15,6 +15,7 @@ import numpy as np
 
 from flightstack.drivers.tello_core import TelloDriverCore
 from flightstack.drivers.tello_rc import velocity_to_rc
+from flightstack.events import TelloKind
 from flightstack.hal import FlightPhase
 
 
@@ -53,7 +54,7 @@ class TelloSticks(TelloDriverCore):
         self._last_loop_t = time.monotonic()
         self._send_rc(tuple(max(-100, min(100, int(v))) for v in rc))  # type: ignore[arg-type]
 
-    def _send_rc(self, rc: tuple[int, int, int, int], why: str = "") -> None:
+    def _send_rc(self, rc: tuple[int, int, int, int], why: TelloKind | None = None) -> None:
         with self._lock:
             reason = ""
             if self._chan is None:

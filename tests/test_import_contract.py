@@ -118,3 +118,15 @@ def test_a_named_exception_silences_exactly_its_import_and_an_unused_one_is_a_br
 def test_the_contract_names_a_reason_for_every_exception() -> None:
     c = Contract.load(CONTRACT)
     assert all(len(reason.split()) >= 5 for reason in c.exceptions.values())
+
+
+def test_every_package_of_the_source_is_one_the_wheel_ships() -> None:
+    """A package folder missing from pyproject's `packages` list imports from the checkout and is absent
+    from the installed wheel (and from the type check, which runs on the installed tree)."""
+    import tomllib
+
+    from tests.import_contract import ROOT, module_files
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    packages = {m for m, path in module_files().items() if path.name == "__init__.py"}
+    assert packages - listed == set()

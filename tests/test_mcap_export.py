@@ -36,7 +36,7 @@ EVENTS = [
         "t": 0.5,
         "event": "safety",
         "drone": 2,
-        "kind": "stale_pose",
+        "kind": "pose_stale_hover",
         "detail": "pose 0.3 s old",
         "source": "safety",
     },
@@ -50,10 +50,10 @@ EVENTS = [
     {
         "t": 99.0,
         "clock": "monotonic",
-        "event": "safety",
-        "kind": "link_error",
-        "detail": "tello",
-        "source": "tello",
+        "event": "mocap",
+        "kind": "reader_error",
+        "detail": "natnet",
+        "source": "mocap",
     },
     {"t": 0.9, "event": "NOT LANDED", "drone": 2, "height_m": 0.4},
     {"t": 0.95, "event": "end", "reason": "exception: RuntimeError: boom"},
@@ -78,7 +78,7 @@ def fake_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     _fake("none", 0).save(run / "timeseries_none.npz")
     _fake("dgp", 1, wall=False).save(run / "timeseries_dgp.npz")
     lines = [json.dumps({**ev, "mode": "none"}) for ev in EVENTS] + [
-        json.dumps({"t": 0.0, "event": "x", "mode": "dgp"})
+        json.dumps({"t": 0.0, "event": "safety tick", "ticks": 0, "mode": "dgp"})
     ]
     (run / "events.jsonl").write_text("\n".join(lines) + "\n")
     (run / "metrics.json").write_text('{"modes": {}}\n')
@@ -254,7 +254,7 @@ def test_events_are_foxglove_logs_with_levels_in_time_order(fake_mcap: tuple[Any
     assert when["landed2"] == int((base + 0.2) * 1e9)  # sorted before the safety event at 0.5 s
     assert when["safety3"] == int((base + 0.5) * 1e9)
     assert when["bus presence2"] == when["landed2"]  # no t: the time of the event before it in the file
-    assert when["safety4"] == when["landed2"]  # a monotonic stamp is not on the mission clock: likewise
+    assert when["mocap4"] == when["landed2"]  # a monotonic stamp is not on the mission clock: likewise
     assert [m[2]["level"] for m in got["topics"]["/dgp/events"]] == [LOG_INFO]
 
 

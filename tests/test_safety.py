@@ -219,7 +219,7 @@ def test_event_log_is_thread_safe_and_exports() -> None:
         th.join()
     assert len(log) == 4000
     assert log.counts() == {"saturated": 2000, "land": 2000}
-    d = log.to_dicts()[0]
+    d = log.events[0].to_dict()
     assert set(d) == {"t", "drone", "kind", "detail", "source", "clock", "value"}
     assert d["source"] == "safety" and d["clock"] == "mission"
     assert len(log.of_kind("land")) == 2000

@@ -5,6 +5,8 @@ with the rendering of NAME from the installed package, so the site never holds a
 
 - `cli`: every subcommand of `flightstack.cli.app.build_parser()`, its usage and its options;
 - `run-files`: `flightstack.recording.files.RUN_FILES`, `REQUIRED_FILES` and `OPTIONAL_FILES`;
+- `event-kinds`: every kind of `flightstack.events.KINDS` with the sources that report it, its severity
+  and its meaning;
 - `fault-rows`: the rows of `flightstack.faults.FAULTS`, in table order, with the fault each injects
   (the row function's docstring) and the reaction documented for it in `fault_reactions.yml`;
 - `import-contract`: the layers of `tests/import_contract.toml`, top first, with what each may import and
@@ -120,6 +122,31 @@ def render_run_files() -> str:
     return "\n".join(lines) + "\n"
 
 
+# ---- the event kinds ------------------------------------------------------------------------------------
+def render_event_kinds() -> str:
+    """Every declared event kind, in declaration order: who reports it (the per-source Literals of
+    flightstack.events), its severity and its meaning."""
+    from typing import get_args
+
+    from flightstack import events
+
+    per_source = {
+        "safety": events.SafetyKind,
+        "run": events.RunKind,
+        "bus": events.BusKind,
+        "tello": events.TelloKind,
+        "mocap": events.MocapKind,
+        "scamper": events.ScamperKind,
+        "lab": events.LabKind,
+        "world": events.WorldKind,
+    }
+    sources = {k: [s for s, lit in per_source.items() if k in get_args(lit)] for k in events.KINDS}
+    lines = ["| kind | source | severity | meaning |", "|---|---|---|---|"]
+    for kind, info in events.KINDS.items():
+        lines.append(f"| `{kind}` | {', '.join(sources[kind])} | {info.severity} | {_cell(info.meaning)} |")
+    return "\n".join(lines) + "\n"
+
+
 # ---- the fault table ------------------------------------------------------------------------------------
 REACTIONS = Path(__file__).with_name("fault_reactions.yml")
 WHERE = {
@@ -211,6 +238,7 @@ def render_import_contract() -> str:
 RENDERERS: dict[str, Callable[[], str]] = {
     "cli": render_cli,
     "run-files": render_run_files,
+    "event-kinds": render_event_kinds,
     "fault-rows": render_fault_rows,
     "import-contract": render_import_contract,
 }

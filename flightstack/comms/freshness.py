@@ -44,13 +44,13 @@ from typing import Literal
 
 from flightstack.comms.acceptance import AcceptanceBounds, SeqState, restart_run, seq_verdict
 from flightstack.comms.messages import PredictionMessage, decode_checked
-from flightstack.events import Event
+from flightstack.events import BusKind, Event
 
 TimeBase = Literal["stamps", "receiver"]
 TIME_BASES: tuple[str, ...] = ("stamps", "receiver")
 
 
-def _offset_event(t_recv: float, sender: int, what: str, offset_s: float) -> Event:
+def _offset_event(t_recv: float, sender: int, what: BusKind, offset_s: float) -> Event:
     """A change of what this receiver knows about sender's clock offset (receiver − sender, s)."""
     return Event(t_recv, sender, what, source="bus", clock="monotonic", value=float(offset_s))
 
@@ -214,7 +214,7 @@ class Freshness:
         raw = t_recv - msg.stamp
         c = self.clocks.get(msg.sender)
         if c is None or t_recv - c.last_heard > p.rejoin_after_s:  # joins, or rejoins after silence
-            what = "offset learning" if c is None else "offset re-learning after silence"
+            what: BusKind = "offset learning" if c is None else "offset re-learning after silence"
             c = SenderClock(offset=raw, n=1, t_first=t_recv, last_heard=t_recv, raws=[raw])
             self.clocks[msg.sender] = c
             self.offset_events.append(_offset_event(t_recv, msg.sender, what, raw))

@@ -37,13 +37,13 @@ import os
 import socket
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Final
 
 from flightstack.comms.certs import agent_name
 
 MAX_LABEL_CHARS = 160
 UNLABELLED = "unlabelled"
-SECOND_SESSION = "second session"  # the drop reason
+SECOND_SESSION: Final = "second session"  # the drop reason, and the event kind
 
 
 def session_label(session: Any) -> str:

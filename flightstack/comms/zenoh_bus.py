@@ -36,7 +36,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal
 
 import zenoh
 
@@ -71,14 +71,14 @@ def _header_sender(data: bytes) -> str:
     return "raw"
 
 
-def _presence(t: float, sender: int, what: str) -> Event:
+def _presence(t: float, sender: int, what: Literal["joined", "left"]) -> Event:
     """A presence change: `what` ("joined" | "left") of agent `sender` at time.monotonic() t (s)."""
     return Event(t, sender, what, source="bus", clock="monotonic")
 
 
 def _session_event(e: SessionEvent) -> Event:
     """A second session speaking for sender e.sender (kind "second session", detail: the report)."""
-    return Event(e.t, e.sender, e.kind, e.text, source="bus", clock="monotonic")
+    return Event(e.t, e.sender, SECOND_SESSION, e.text, source="bus", clock="monotonic")
 
 
 class ZenohBus:

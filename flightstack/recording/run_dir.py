@@ -37,6 +37,7 @@ import contextlib
 import errno
 import functools
 import logging
+import math
 import os
 import queue
 import threading
@@ -46,6 +47,7 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from flightstack.events import Event
 from flightstack.recording.files import (
     BLOCK_MAX_ROWS,
     BLOCK_PERIOD_S,
@@ -507,14 +509,9 @@ class ModeWriter:
             if run._failure_reported or run._failure is None:
                 return
             run._failure_reported = True
-        ev: dict[str, Any] = {
-            "t": float(rec.t[rec.ticks_done - 1]) if rec is not None and rec.ticks_done else None,
-            "event": "recording_stopped",
-            "mode": self.mode,
-            "reason": run._failure,
-            "ticks_written": int(self.rows_written),
-            "wall_t": time.time(),
-        }
+        t = float(rec.t[rec.ticks_done - 1]) if rec is not None and rec.ticks_done else math.nan
+        facts = {"reason": run._failure, "ticks_written": int(self.rows_written), "wall_t": time.time()}
+        ev = Event(t, None, "recording_stopped", facts=facts).record(self.mode)
         if rec is not None:
             rec.events.append(ev)
             self._event_cursor = len(rec.events)

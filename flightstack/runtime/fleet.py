@@ -270,7 +270,7 @@ def _build(
     clock = backend.clock
     log = EventLog()
     if writer is not None:  # safety events reach the disk as they happen, also in takeoff and landing
-        writer.add_event_source(lambda: [{"event": "safety", "mode": mode, **e} for e in log.to_dicts()])
+        writer.add_event_source(lambda: [e.record(mode) for e in log.events])
     limits = safety_limits(mission)
     safe: dict[int, SafeDrone] = {}
     supervisor: MissionSupervisor | None = None

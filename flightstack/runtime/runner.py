@@ -27,6 +27,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
 from flightstack.comms.bus import OperatorChannel
+from flightstack.events import Event, RunKind, end_kind
 from flightstack.paper.geometry import compose
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.divergence import DivergedError, check_rows
@@ -151,10 +152,12 @@ def run_mode(
             f.clock.sleep_until(t + dt)
             k += 1
         if loop is not None and loop.chunks:
-            rec.events.append(
-                {"t": f.clock.now(), "event": "compiled loop", "mode": mode, "ticks": loop.compiled_ticks,
-                 "chunks": loop.chunks, "python_ticks": k - loop.compiled_ticks}
-            )  # fmt: skip
+            facts = {
+                "ticks": loop.compiled_ticks,
+                "chunks": loop.chunks,
+                "python_ticks": k - loop.compiled_ticks,
+            }
+            rec.events.append(Event(f.clock.now(), None, "compiled loop", facts=facts).record(mode))
     except KeyboardInterrupt:
         rec.interrupted = True
         reason = "interrupted"
@@ -170,7 +173,8 @@ def run_mode(
     finally:
         if f.supervisor is not None:  # a signal from here on must not interrupt landing or closing
             f.supervisor.ignore_signals(f"the run's end ({reason})")
-        rec.events.append({"t": f.clock.now(), "event": "end", "reason": reason, "mode": mode})
+        end = Event(f.clock.now(), None, end_kind(reason), facts={"reason": reason})
+        rec.events.append(end.record(mode))
         if writer is not None:
             writer.event(rec.events[-1])
         _land_everything(f, reason, dt)
@@ -264,7 +268,9 @@ def pursuit_tick(f: Fleet, t: float, t_pursuit: float, rec: Recording) -> str | 
         # own messages too: Zenoh loops them back asynchronously
         late = f.bus.wait_for_stamp(set(f.everyone), t, zspec.lockstep_timeout_s)
         if late:
-            rec.events.append({"t": t, "event": "lock-step wait timed out", "late": sorted(late)})
+            rec.events.append(
+                Event(t, None, "lock-step wait timed out", facts={"late": sorted(late)}).record(f.mode)
+            )
     if f.supervisor is not None:
         hold = f.supervisor.update_visibility({a.cfg.drone_id: a.last.visible for a in f.agents})
         for a in f.agents:
@@ -278,27 +284,17 @@ def finish_recording(f: Fleet, rec: Recording, book: TickBook, wall_seconds: flo
     """After landing: the safety tick's timing, each drone's own word on whether it is down, the safety
     events, the bus's drop counts and presence changes, vision rejections and the true errors."""
     mode, now = f.mode, f.clock.now
-    rec.events.append({"t": now(), "event": "safety tick", "mode": mode, **f.ticker.summary()})
+    rec.events.append(Event(now(), None, "safety tick", facts=f.ticker.summary()).record(mode))
     for i in f.ids:
         st = f.backend.drone(i).state()
-        rec.events.append(
-            {
-                "t": now(),
-                "event": "landed" if not st.flying else "NOT LANDED",
-                "drone": i,
-                "height_m": st.height_m,
-                "telemetry_alive": st.link_alive,  # False: height_m is the last one received
-                "mode": mode,
-            }
-        )
-    rec.events.extend({"event": "safety", "mode": mode, **e} for e in f.log.to_dicts())
+        fate: RunKind = "landed" if not st.flying else "NOT LANDED"
+        # telemetry_alive False: height_m is the last one received
+        facts = {"height_m": st.height_m, "telemetry_alive": st.link_alive}
+        rec.events.append(Event(now(), i, fate, facts=facts).record(mode))
+    rec.events.extend(e.record(mode) for e in f.log.events)
     rec.wall_seconds = wall_seconds
     rec.bus_dropped = dict(f.bus.dropped)
-    rec.events.extend(
-        {"event": "bus presence", "mode": mode, "sender": p.drone, "what": p.kind, "monotonic": p.t}
-        | ({"detail": p.detail} if p.detail else {})  # a second session: the report naming it
-        for p in f.bus.presence_events
-    )
+    rec.events.extend(p.record(mode) for p in f.bus.presence_events)  # detail of a second session: the report
     rec.vision_rejections = book.vision_rejections()
     rec.fill_true_errors(f.g_d)
 

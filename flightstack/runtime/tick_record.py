@@ -12,6 +12,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 
+from flightstack.events import Event
 from flightstack.paper.geometry import Pose
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.agent import Agent, TickRecord
@@ -57,16 +58,8 @@ class TickBook:
             self.rejections[i]["own pose lost (hovered)"] += 1
         used, prev = set(last.neighbours_used), self.neighbours_used[i]
         if used != prev:  # a neighbour left or rejoined fusion/consensus
-            rec.events.append(
-                {
-                    "t": t,
-                    "event": "neighbours",
-                    "drone": i,
-                    "dropped": sorted(prev - used),
-                    "added": sorted(used - prev),
-                    "mode": self.mode,
-                }
-            )
+            change = {"dropped": sorted(prev - used), "added": sorted(used - prev)}
+            rec.events.append(Event(t, i, "neighbours", facts=change).record(self.mode))
             self.neighbours_used[i] = used
 
     def vision_rejections(self) -> dict[str, dict[str, int]]:

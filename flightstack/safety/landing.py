@@ -22,6 +22,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from flightstack.events import SafetyKind
 from flightstack.hal import Clock, Drone, FlightPhase, PoseSource, StampedPose
 from flightstack.safety.phases import _Job, _Phase
 from flightstack.safety.rules import EventLog, SafetyLimits, _valid_pose, outside_hard_fence
@@ -72,10 +73,10 @@ class _LandingSequence:
         finally:
             self._inner_thread = prev
 
-    def _event(self, now: float, kind: str, detail: str) -> None:
+    def _event(self, now: float, kind: SafetyKind, detail: str) -> None:
         self.log.record(now, self.drone_id, kind, detail)
 
-    def _event_once(self, now: float, kind: str, detail: str) -> bool:
+    def _event_once(self, now: float, kind: SafetyKind, detail: str) -> bool:
         """Log `kind` if its episode is not already open; True if this call opened it."""
         if kind in self._episodes:
             return False
@@ -110,7 +111,7 @@ class _LandingSequence:
         return self._last_pose
 
     # ---- landing sequence ------------------------------------------------------------------------------
-    def _safety_land(self, now: float, kind: str, detail: str) -> None:
+    def _safety_land(self, now: float, kind: SafetyKind, detail: str) -> None:
         """Land because of a rule; a refusal of the wrapped drone is logged and retried by tick()."""
         self._event_once(now, kind, detail)
         if self.landed:

@@ -11,44 +11,17 @@ import math
 import threading
 from collections import Counter
 from dataclasses import dataclass
+from typing import get_args
 
 import numpy as np
 
-from flightstack.events import Event
+from flightstack.events import Event, SafetyKind
 from flightstack.paper.geometry import Pose
 
 _logger = logging.getLogger(__name__)
 
-EVENT_KINDS: frozenset[str] = frozenset(
-    {
-        "saturated",
-        "invalid_command",
-        "fence_soft",
-        "fence_hard_land",
-        "command_timeout",
-        "pose_stale_hover",
-        "pose_stale_land",
-        "pose_error",
-        "battery_refuse_takeoff",
-        "pose_refuse_takeoff",
-        "fence_refuse_takeoff",
-        "battery_land",
-        "target_lost_land",
-        "link_lost",
-        "drone_error",
-        "command_after_land",
-        "land_failed",
-        "landed_by_drone",
-        "emergency_stop",
-        "emergency_stop_failed",
-        "target_lost_hover",
-        "land_all",
-        "signal",
-        "takeoff",
-        "takeoff_failed",
-        "land",
-    }
-)
+EVENT_KINDS: frozenset[str] = frozenset(get_args(SafetyKind))
+"""The kinds a safety event may have (flightstack.events.KINDS says what each means)."""
 
 _AXES = ("x", "y", "z")
 
@@ -176,7 +149,7 @@ class EventLog:
         who = "mission" if event.drone is None else f"drone {event.drone}"
         _logger.warning("t=%.3f %s %s: %s", event.t, who, event.kind, event.detail)
 
-    def record(self, t: float, drone: int | None, kind: str, detail: str) -> SafetyEvent:
+    def record(self, t: float, drone: int | None, kind: SafetyKind, detail: str) -> SafetyEvent:
         """Build, append and return an event."""
         ev = Event(float(t), drone, kind, detail, source="safety")
         self.append(ev)
@@ -194,10 +167,6 @@ class EventLog:
     def counts(self) -> dict[str, int]:
         """Number of events per kind (kinds that never occurred are absent)."""
         return dict(Counter(e.kind for e in self.events))
-
-    def to_dicts(self) -> list[dict[str, object]]:
-        """The events as dicts (`Event.to_dict`: t, drone, kind, detail, ...) for the run's event log."""
-        return [e.to_dict() for e in self.events]
 
     def __len__(self) -> int:
         with self._lock:
