@@ -166,7 +166,7 @@ class CompiledLoop:
         rec_f, rec_t, rec_g_w0 = np.empty((rows, n, 7, 4)), np.empty(rows), np.empty((rows, 4))
         rec_vis, rec_nf = np.zeros((rows, n), dtype=np.bool_), np.zeros((rows, n), dtype=np.int64)
         k = _LOCKSTEP_CHUNK(
-            k0, k1, f.mission.dt_s, clock, target, target_V, drones, drones_V, world.substeps, self.prm,
+            k0, k1, f.loop.dt_s, clock, target, target_V, drones, drones_V, world.substeps, self.prm,
             self.P0, self.cams, self.sees, self.g_d, self.gains, self.mode, self.rule, self.oracle, *self.gp,
             self.nb, self.nb_n, T, u_e_prev, t_prev, has_prev, self.bounds,
             rec_f, rec_t, rec_g_w0, rec_vis, rec_nf,

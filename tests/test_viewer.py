@@ -241,7 +241,7 @@ def test_a_slow_viewer_drops_batches_instead_of_blocking_and_a_raising_tap_does_
 ) -> None:
     mission = load_mission("paper_sim", {"duration_s": 1.0, "compare_modes": ["none"]})
     stream = sinks.open_stream(rr, sinks.Sink("save", str(tmp_path / "slow.rrd")), "slow")
-    tap = RerunTap(rr, stream, queue_size=2)
+    tap = RerunTap(rr, stream, mission, queue_size=2)
     send = tap._send
 
     def slow_send(job: Any) -> None:  # a viewer that takes 0.2 s per batch

@@ -53,7 +53,7 @@ def mission_summary(m: Mission) -> list[str]:
         f"drones: {len(m.drones)} (ids {id_ranges([d.id for d in m.drones])}); {graph}"
         + (f"; not seeing the target: {id_ranges(blind)}" if blind else "")
     )
-    ticks = round(m.duration_s / m.dt_s)
+    ticks = m.n_ticks
     lines.append(
         f"duration {_num(m.duration_s)} s, dt {_num(m.dt_s)} s ({ticks} ticks per mode); "
         f"modes {', '.join(m.compare_modes)}; seed {m.seed}; target {m.target.motion}"

@@ -369,6 +369,11 @@ class Mission(_Strict):
         return modes
 
     @property
+    def n_ticks(self) -> int:
+        """Ticks of pursuit per mode: duration_s / dt_s, rounded (the one place it is computed)."""
+        return round(self.duration_s / self.dt_s)
+
+    @property
     def simulated(self) -> bool:
         return self.backend != "tello"
 

@@ -134,7 +134,7 @@ def fly_with_faults(
         crashed,
         0.0,
         run_dir,
-        round(mission.duration_s / mission.dt_s),
+        mission.n_ticks,
     )
     if rec is not None:
         run.write_problems = write_run(run_dir, mission, rec)

@@ -234,7 +234,7 @@ def disk_full(mission_path: Path, workdir: Path) -> FaultResult:
 
     with EmulatedLab(root, duration_s=5.0) as lab, patched(recorder, "_write_bytes", full):
         mission = lab.mission()
-        n_ticks = round(mission.duration_s / mission.dt_s)
+        n_ticks = mission.n_ticks
         run = fly_inprocess(
             lab, root / "run", injector=lambda backend: wait_then(lab, marks, armed.set) and None
         )

@@ -49,13 +49,13 @@ def bands(mission: Mission) -> list[tuple[float, float]]:
 
 def predicted_target_path(mission: Mission, n_ticks: int | None = None) -> np.ndarray:
     """The target's poses [x, y, z, θ] (n_ticks, 4) at ticks k = 0 … n_ticks − 1 (t = k·dt_s) of a run,
-    as the simulation moves it; default n_ticks = round(duration_s / dt_s).
+    as the simulation moves it; default n_ticks = mission.n_ticks.
 
     duffing: the field integrated from target.initial_pose in steps of dt_s, re-evaluated target.substeps
     times per step (kernels.world_advance: the ideal rig's own world step, compiled; no drones);
     square: SquareLaw's reference path (the robot starts on it and its law tracks it)."""
     dt = mission.dt_s
-    n = round(mission.duration_s / dt) if n_ticks is None else int(n_ticks)
+    n = mission.n_ticks if n_ticks is None else int(n_ticks)
     tgt = mission.target
     path = np.empty((n, 4))
     if tgt.motion == "square":
@@ -103,7 +103,7 @@ def training_shortfall(mission: Mission) -> str | None:
         return None
     need = mission.gp.samples_per_region
     dt = mission.dt_s
-    n = round(mission.duration_s / dt)
+    n = mission.n_ticks
     counts = [int(inside.sum()) for inside in _ticks_in_bands(mission, predicted_target_path(mission, n))]
     short = [k for k, c in enumerate(counts) if c < need]
     if not short:

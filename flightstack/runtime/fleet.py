@@ -183,12 +183,40 @@ def signal_guard(supervisor: MissionSupervisor | None) -> Any:
     return supervisor.install_signal_handlers()
 
 
+@dataclass(frozen=True)
+class LoopSpec:
+    """What the runner needs of the mission, derived once per mode: dt_s (s), n_ticks (of pursuit),
+    lockstep (a simulated clock: phase 2 waits for every neighbour's message of the same tick, on a
+    network bus), start_timeout_s and lockstep_timeout_s of the network bus (s; None: in-process bus),
+    reset_estimates (each estimate starts from the drone's own motion-capture pose at pursuit start:
+    every rig but the ideal one, where the truth is the initial estimate)."""
+
+    dt_s: float
+    n_ticks: int
+    lockstep: bool
+    start_timeout_s: float | None
+    lockstep_timeout_s: float | None
+    reset_estimates: bool
+
+    @classmethod
+    def of(cls, mission: Mission) -> LoopSpec:
+        z = mission.bus.zenoh
+        return cls(
+            dt_s=mission.dt_s,
+            n_ticks=mission.n_ticks,
+            lockstep=mission.simulated,
+            start_timeout_s=None if z is None else z.start_timeout_s,
+            lockstep_timeout_s=None if z is None else z.lockstep_timeout_s,
+            reset_estimates=mission.backend != "sim_ideal",
+        )
+
+
 @dataclass
 class Fleet:
     """Everything one run flies with: `ids` the drones this process flies (recording order), `drones`
     what the agents command (SafeDrone wrappers when safety is on), `safe` those wrappers ({} when off)."""
 
-    mission: Mission
+    loop: LoopSpec
     mode: str
     ids: list[int]
     bus: Bus
@@ -205,10 +233,6 @@ class Fleet:
     g_d: np.ndarray  # (n, 4) desired relative poses g_d,i as vectors, recording order
     everyone: frozenset[int]  # every drone of the mission, own ones too (the lock-step wait's senders)
 
-    @property
-    def lockstep(self) -> bool:
-        """A simulated clock: phase 2 waits for every neighbour's message of the same tick."""
-        return self.mission.simulated
 
 
 @contextlib.contextmanager
@@ -293,7 +317,7 @@ def _build(
         gc.collect()
         gc.freeze()
     return Fleet(
-        mission=mission,
+        loop=LoopSpec.of(mission),
         mode=mode,
         ids=ids,
         bus=bus,
@@ -304,7 +328,7 @@ def _build(
         supervisor=supervisor,
         drones=drones,
         agents=agents,
-        target=TargetDriver(mission, backend) if mission.target.motion == "square" else None,
+        target=TargetDriver(mission.target, backend) if mission.target.motion == "square" else None,
         ticker=SafetyTickTimer(safe, backend.heartbeat),
         status=StatusPublisher(bus, mode),
         g_d=np.array([a.cfg.g_d.as_vector() for a in agents]),

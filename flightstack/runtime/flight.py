@@ -145,8 +145,8 @@ class Flight:
 
     @property
     def n_ticks(self) -> int:
-        """Ticks of pursuit per mode: duration_s / dt_s."""
-        return round(self.mission.duration_s / self.mission.dt_s)
+        """Ticks of pursuit per mode (Mission.n_ticks)."""
+        return self.mission.n_ticks
 
     @property
     def ids(self) -> list[int]:

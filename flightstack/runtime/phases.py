@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from flightstack.config.mission import Mission
+from flightstack.config.mission import TargetSpec
 from flightstack.hal import Backend, Clock, FlightPhase
 from flightstack.paper.target_law import SquareLaw
 
@@ -20,9 +20,9 @@ POSE_WAIT_S = 3.0  # before takeoff: how long a drone's motion-capture pose may 
 class TargetDriver:
     """Drives the ground robot on the paper's square law from its motion-capture pose (sim_lab)."""
 
-    def __init__(self, mission: Mission, backend: Backend) -> None:
-        sq = mission.target.square
-        self.law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, mission.target.initial_pose.theta)
+    def __init__(self, target: TargetSpec, backend: Backend) -> None:
+        sq = target.square
+        self.law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, target.initial_pose.theta)
         self.robot = backend.target()
         self.poses = backend.pose_source()
 

@@ -50,7 +50,7 @@ def available_memory_bytes(meminfo: Path = MEMINFO) -> int | None:
 
 def recording_memory_bytes(mission: Mission) -> int:
     """Bytes of the in-memory recordings of every mode `mission` flies (all kept until the metrics)."""
-    n_ticks = round(mission.duration_s / mission.dt_s)
+    n_ticks = mission.n_ticks
     return len(mission.flown_modes()) * recording_nbytes(len(mission.drones), n_ticks)
 
 
@@ -64,7 +64,7 @@ def check_recording_fits(mission: Mission, available_bytes: int | None = None) -
 
     available_bytes: the memory to check against (default: MemAvailable of this computer, read now; when
     the system does not say, the memory is not checked)."""
-    n_ticks = round(mission.duration_s / mission.dt_s)
+    n_ticks = mission.n_ticks
     per_mode = recording_nbytes(len(mission.drones), n_ticks)
     if per_mode > MAX_MODE_RECORDING_BYTES:
         raise MissionError(

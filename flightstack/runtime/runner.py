@@ -90,7 +90,7 @@ def run_mode(
     taps: Sequence[TickTap] = (),
     plan_loop: Callable[[Fleet], ChunkLoop | None] | None = None,
 ) -> Recording:
-    """Fly the fleet's mode for mission.duration_s of pursuit; never leaves a drone flying.
+    """Fly the fleet's mode for its n_ticks of pursuit (f.loop); never leaves a drone flying.
 
     writer: a flightstack.recording.run_dir mode writer that appends the recording to disk as the run goes.
     On a simulated clock with a network bus, phase 2 waits for the neighbours' messages of the same tick
@@ -99,9 +99,7 @@ def run_mode(
     the reference path; the compiled loop's recordings are bit-identical).
     taps: observers told after each recorded tick or chunk (live viewer, live export;
     flightstack.runtime.taps); one that raises is switched off, the flight goes on."""
-    mission, mode = f.mission, f.mode
-    dt = mission.dt_s
-    n_ticks = round(mission.duration_s / dt)
+    mode, dt, n_ticks = f.mode, f.loop.dt_s, f.loop.n_ticks
     rec = Recording.empty(mode, f.ids, n_ticks)
     book = TickBook.of(mode, f.ids)
     observers = TapSet(taps)
@@ -208,7 +206,7 @@ def wait_for_poses(f: Fleet) -> None:
     def missing() -> list[str]:
         return [s.body for s in f.safe.values() if not fresh(s)]
 
-    if not advance_until(f.clock, lambda: not missing(), POSE_WAIT_S, f.mission.dt_s, f.ticker.tick):
+    if not advance_until(f.clock, lambda: not missing(), POSE_WAIT_S, f.loop.dt_s, f.ticker.tick):
         raise RuntimeError(
             f"no fresh motion-capture pose of {missing()} within {POSE_WAIT_S:g} s; nothing took off"
         )
@@ -218,12 +216,11 @@ def take_off(f: Fleet) -> None:
     """Wait for every agent on the bus (network bus), take every drone off together and wait, bounded by
     TAKEOFF_TIMEOUT_S, until each says it is airborne; then start each estimate from the drone's own
     motion-capture pose (rigs with motion capture). Raises RuntimeError with the reason."""
-    mission, clock, drones = f.mission, f.clock, f.drones
-    zspec = mission.bus.zenoh
-    if zspec is not None:
-        missing = f.bus.wait_alive(set(f.everyone), zspec.start_timeout_s)
+    clock, drones, wait_s = f.clock, f.drones, f.loop.start_timeout_s
+    if wait_s is not None:  # a network bus: every agent must be on it
+        missing = f.bus.wait_alive(set(f.everyone), wait_s)
         if missing:
-            raise RuntimeError(f"agents {sorted(missing)} not on the bus after {zspec.start_timeout_s:g} s")
+            raise RuntimeError(f"agents {sorted(missing)} not on the bus after {wait_s:g} s")
     for d in drones.values():
         d.connect()
     wait_for_poses(f)
@@ -240,9 +237,9 @@ def take_off(f: Fleet) -> None:
     def airborne() -> bool:
         return all(d.state().flying for d in drones.values())
 
-    if not advance_until(clock, airborne, TAKEOFF_TIMEOUT_S, mission.dt_s, during_takeoff):
+    if not advance_until(clock, airborne, TAKEOFF_TIMEOUT_S, f.loop.dt_s, during_takeoff):
         raise RuntimeError(f"takeoff: not every drone airborne after {TAKEOFF_TIMEOUT_S} s")
-    if mission.backend != "sim_ideal":
+    if f.loop.reset_estimates:
         for a in f.agents:  # the target's pose is unknown: assume it sits at the desired relative pose
             own = a.poses.latest(a.cfg.body_name)
             if own is None:
@@ -263,10 +260,10 @@ def pursuit_tick(f: Fleet, t: float, t_pursuit: float, rec: Recording) -> str | 
     check_operator(f.bus)
     for a in f.agents:
         a.sense_and_publish(t)
-    zspec = f.mission.bus.zenoh
-    if f.lockstep and zspec is not None:  # phase 2 needs every neighbour's message of this tick
+    wait_s = f.loop.lockstep_timeout_s
+    if f.loop.lockstep and wait_s is not None:  # phase 2 needs every neighbour's message of this tick
         # own messages too: Zenoh loops them back asynchronously
-        late = f.bus.wait_for_stamp(set(f.everyone), t, zspec.lockstep_timeout_s)
+        late = f.bus.wait_for_stamp(set(f.everyone), t, wait_s)
         if late:
             rec.events.append(
                 Event(t, None, "lock-step wait timed out", facts={"late": sorted(late)}).record(f.mode)

@@ -104,10 +104,13 @@ class _Close:
 class RerunTap:
     """TickTap sending a flight to a Rerun recording stream (entity layout: flightstack.viewer.layout).
 
-    dropped: batches the full queue refused; errors: batches the thread failed to send (logged)."""
+    mission: the flight's mission (its cameras, dt and geometry); dropped: batches the full queue refused;
+    errors: batches the thread failed to send (logged)."""
 
-    def __init__(self, rr: ModuleType, stream: RecordingStream, *, queue_size: int = QUEUE_SIZE) -> None:
-        self.rr, self.stream = rr, stream
+    def __init__(
+        self, rr: ModuleType, stream: RecordingStream, mission: Mission, *, queue_size: int = QUEUE_SIZE
+    ) -> None:
+        self.rr, self.stream, self.mission = rr, stream, mission
         self.queue: queue.Queue[_Start | _Rows | _Close | None] = queue.Queue(maxsize=queue_size)
         self.dropped = 0
         self.errors = 0
@@ -139,13 +142,13 @@ class RerunTap:
         from flightstack.viewer.sinks import open_stream
 
         rr = load_rerun()
-        return cls(rr, open_stream(rr, sink, name, blueprint.build(rr, list(modes))))
+        return cls(rr, open_stream(rr, sink, name, blueprint.build(rr, list(modes))), mission)
 
     # ---- TickTap (control thread: copies only, never waits) ----------------------------------------
     def start(self, f: Fleet, rec: Recording) -> None:
         from flightstack.config.types import Mode
 
-        mission = f.mission
+        mission = self.mission
         self._mode, self._k, self._n_events, self._mode_dropped = rec.mode, 0, 0, 0
         self._every = layout.stride(mission.dt_s, layout.LIVE_SCALAR_HZ)
         self._pose_every = layout.stride(mission.dt_s, layout.LIVE_3D_HZ, base=self._every)
@@ -304,7 +307,7 @@ class RerunTap:
             from flightstack.learning.training import predicted_target_path
 
             scene.log_world(rr, stream)
-            n = min(round(job.mission.duration_s / job.mission.dt_s), EXTENT_TICKS)
+            n = min(job.mission.n_ticks, EXTENT_TICKS)
             scene.log_regions(rr, stream, job.mission, predicted_target_path(job.mission, n)[:, :3])
             self._static_done.add("world")
         if job.experts and "training" not in self._static_done:
