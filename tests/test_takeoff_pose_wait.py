@@ -69,7 +69,7 @@ def test_a_pose_source_that_raises_counts_as_no_pose_and_never_crashes_the_wait(
     f = SimpleNamespace(
         safe={1: SimpleNamespace(poses=Broken(), body="drone1")},
         clock=clock,
-        mission=SimpleNamespace(dt_s=0.05),
+        loop=SimpleNamespace(dt_s=0.05),
         ticker=SimpleNamespace(tick=lambda: ticks.append(clock.t)),
     )
     with pytest.raises(RuntimeError, match=r"no fresh motion-capture pose of \['drone1'\]"):
