@@ -66,8 +66,8 @@ def run(name: str, faults: dict[str, object]) -> dict[str, object]:
         out["error"] = str(exc)
     finally:
         time.sleep(0.5)
-        assert d._chan is not None
-        out["replies_discarded"] = d._chan.counts["reply_discarded"]
+        assert d.link.chan is not None
+        out["replies_discarded"] = d.link.chan.counts["reply_discarded"]
         out["ok_not_trusted"] = d.counts["reply_not_trusted"]
         out["refused_by_drone"] = len(emu.refused)
         out["phase_agrees"] = d.phase.value == AS_DRIVER[emu.phase]

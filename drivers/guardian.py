@@ -406,11 +406,3 @@ class Guardian:
         if beat_fd >= 0 and self.proc.stdout is not None:
             with contextlib.suppress(OSError):
                 self.proc.stdout.close()
-
-
-if (
-    __name__ == "__main__"
-):  # `python -m flightstack.drivers.guardian`, by hand (Guardian.start uses BOOTSTRAP)
-    from flightstack.drivers.guardian_process import main
-
-    sys.exit(main())

@@ -1,4 +1,4 @@
-"""The guardian process itself (`python -m flightstack.drivers.guardian`); the design is in
+"""The guardian process itself (`python -m flightstack.drivers.guardian_process`); the design is in
 drivers/guardian.py.
 
 One thread runs everything (plus a log writer, so that a blocked stderr never delays a takeover): a
@@ -487,7 +487,7 @@ def read_config(timeout_s: float = 10.0) -> str:
 
 
 def main() -> int:
-    """Entry point of `python -m flightstack.drivers.guardian`."""
+    """Entry point of the guardian process (`Guardian.start` runs it through BOOTSTRAP)."""
     for sig in (signal.SIGINT, signal.SIGHUP, signal.SIGTSTP, signal.SIGTTOU, signal.SIGTTIN):
         signal.signal(sig, signal.SIG_IGN)
     try:
@@ -520,3 +520,7 @@ def main() -> int:
     log(f"exit {code}")
     log.close()
     return code
+
+
+if __name__ == "__main__":  # `python -m flightstack.drivers.guardian_process`, by hand
+    sys.exit(main())

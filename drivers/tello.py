@@ -1,15 +1,16 @@
 """DJI/Ryze Tello driver: implements flightstack.hal.Drone; the drone's own telemetry decides its phase.
 
 Written against the Tello SDK 2.0 and 3.0 user guides (Tello EDU firmware 02.05.01.x with SDK 3.0;
-SDK 2.0 firmware lacks `port`, `downvision` and the other SDK-3.0-only commands). Transport:
-drivers/tello_link.py (own command socket per drone, shared state-port receiver); phase: drivers/
-tello_phase.py; video: drivers/tello_camera.py (own UDP receiver and PyAV decoder).
+SDK 2.0 firmware lacks `port`, `downvision` and the other SDK-3.0-only commands). Video: drivers/
+tello_camera.py (own UDP receiver and PyAV decoder).
 
-The driver class is built in layers, one job each: drivers/tello_core.py (settings, locks, events, the
-telemetry view), drivers/tello_exchange.py (the blocking command exchange), drivers/tello_sticks.py
-(`rc`, hover, `emergency`), drivers/tello_flight.py (takeoff and land), drivers/tello_watchdog.py (link
-freshness and the loop watchdog); this module adds `connect`, `close` and `preflight` and is the import
-path for all of it (settings, errors and reply parsers: drivers/tello_config.py).
+`TelloDriver` owns its parts, each given only what it uses: `link` (drivers/tello_link.py: own command
+socket, place on the shared state port), `status` and its events (drivers/tello_status.py: telemetry,
+phase from drivers/tello_phase.py, the flags that decide what may be sent), `exchange` (drivers/
+tello_exchange.py: blocking command and reply), `sticks` (drivers/tello_sticks.py: `rc`, hover,
+`emergency`), `flight` (drivers/tello_flight.py: takeoff and land) and `watchdog` (drivers/
+tello_watchdog.py: link freshness, loop watchdog). This module wires them, adds `connect`, `close` and
+`preflight`, and is the import path (settings, errors and reply parsers: drivers/tello_config.py).
 
 Principles (telemetry decides, replies are advisory, nothing the drone would reject in its phase, never
 blocking the control loop, the loop watchdog, re-sent lands on silent telemetry, link loss), the phase
@@ -23,8 +24,11 @@ seconds (time.monotonic), the hardware clock of flightstack.
 from __future__ import annotations
 
 import math
-import threading
 import time
+from collections import Counter
+from collections.abc import Callable
+
+import numpy as np
 
 from flightstack.drivers.tello_config import (
     DEFAULT_VIDEO_PORT,
@@ -36,10 +40,15 @@ from flightstack.drivers.tello_config import (
     parse_sdk,
     parse_serial,
 )
-from flightstack.drivers.tello_core import LOG as LOG
-from flightstack.drivers.tello_exchange import RC_REPLIES as RC_REPLIES
-from flightstack.drivers.tello_link import CommandChannel, StateReceiver
-from flightstack.drivers.tello_watchdog import TelloWatchdog
+from flightstack.drivers.tello_exchange import CommandExchange
+from flightstack.drivers.tello_flight import FlightPhases
+from flightstack.drivers.tello_link import TelloLink
+from flightstack.drivers.tello_preflight import tello_preflight
+from flightstack.drivers.tello_status import DriverEvents, DriverStatus
+from flightstack.drivers.tello_sticks import Sticks
+from flightstack.drivers.tello_watchdog import Watchdog
+from flightstack.events import Event
+from flightstack.hal import DroneState, FlightPhase
 
 __all__ = [
     "DEFAULT_VIDEO_PORT",
@@ -54,32 +63,48 @@ __all__ = [
 ]
 
 
-class TelloDriver(TelloWatchdog):
-    """hal.Drone for one Tello (see the module docstring for the behaviour on every failure)."""
+class TelloDriver:
+    """hal.Drone for one Tello (see the module docstring for the behaviour on every failure).
+
+    `events` (source tello, time.monotonic() s) and `counts` are the driver's log; `sdk_version` and
+    `serial` are read by `connect`."""
+
+    def __init__(self, cfg: TelloConfig) -> None:
+        self.cfg = cfg
+        self._log = DriverEvents(cfg.host)
+        self.events: list[Event] = self._log.events
+        self.counts: Counter[str] = self._log.counts
+        self.link = TelloLink(cfg.host, cfg.control_port, cfg.state_port, cfg.bind_ip)
+        self.status = DriverStatus(cfg.phase, cfg.link_timeout_s, self._log)
+        self.exchange = CommandExchange(cfg, self.link, self.status, self._log)
+        self.sticks = Sticks(cfg.rc_gains, self.link, self.status, self._log)
+        self.flight = FlightPhases(cfg, self.link, self.status, self._log, self.exchange, self.sticks)
+        self.watchdog = Watchdog(cfg, self.status, self._log, self.sticks, land=self.land)
+        self.sdk_version: str | None = None
+        self.serial: str | None = None
 
     # ---- hal.Drone ----------------------------------------------------------------------------------
     def connect(self) -> None:
         """SDK mode, confirmed by the state stream, within connect_timeout_s; then `sdk?` and `sn?`.
 
         Idempotent (a connected driver returns at once). TelloLinkError names the drone's address."""
-        if self._monitor is not None and self._monitor.is_alive():
+        if self.watchdog.running():
             return
-        cfg = self.cfg
+        cfg, st = self.cfg, self.status
         try:
-            self._rx = StateReceiver.acquire(cfg.host, self._on_state, cfg.state_port, cfg.bind_ip)
-            self._chan = CommandChannel(cfg.host, cfg.control_port, cfg.bind_ip, muted=self.is_muted)
+            self.link.open(st.observe)
         except OSError as exc:
             self.close()
             raise TelloLinkError(f"Tello at {cfg.host}: {exc}") from exc
         deadline = time.monotonic() + cfg.connect_timeout_s
         answered = False
-        while time.monotonic() < deadline and self._last_state_t == -math.inf:
+        while time.monotonic() < deadline and st.last_state_t == -math.inf:
             wait = max(0.05, min(1.0, deadline - time.monotonic()))
-            answered |= self._request("command", wait, lambda r: r.lower() == "ok") is not None
+            answered |= self.exchange.request("command", wait, lambda r: r.lower() == "ok") is not None
             t_state = time.monotonic() + (0.5 if answered else 0.0)
-            while self._last_state_t == -math.inf and time.monotonic() < min(t_state, deadline):
+            while st.last_state_t == -math.inf and time.monotonic() < min(t_state, deadline):
                 time.sleep(0.01)
-        if self._last_state_t == -math.inf:
+        if st.last_state_t == -math.inf:
             self.close()
             if answered:
                 raise TelloLinkError(
@@ -91,28 +116,85 @@ class TelloDriver(TelloWatchdog):
                 f"{cfg.connect_timeout_s:.1f} s (is it on, and is this computer on its network?)"
             )
         if not answered:
-            self._event("reply_lost_confirmed", "'command': SDK mode confirmed by the state stream")
-        self._link_alive = True
+            self._log.add("reply_lost_confirmed", "'command': SDK mode confirmed by the state stream")
+        st.link_up = True
         self.sdk_version = self.query("sdk?", parse_sdk)
         self.serial = self.query("sn?", parse_serial)
-        self._stop.clear()
-        self._monitor = threading.Thread(target=self._monitor_loop, name=f"tello-mon-{cfg.host}", daemon=True)
-        self._monitor.start()
+        self.watchdog.start()
 
     def close(self) -> None:
         """Stop the monitor and the sockets; does NOT land (the supervisor lands before closing)."""
-        self._stop.set()
-        if self._monitor is not None:
-            self._monitor.join(timeout=1.0)
-        if self._rx is not None:
-            self._rx.release(self.cfg.host)
-            self._rx = None
-        if self._chan is not None:
-            self._chan.close()
+        self.watchdog.stop()
+        self.link.close()
+
+    def takeoff(self) -> None:
+        """Take off and return once airborne and done (drivers/tello_flight.py)."""
+        self.flight.takeoff()
+
+    def land(self) -> None:
+        """Land and return once down with the motors off (drivers/tello_flight.py)."""
+        self.flight.land()
+
+    def send_body_velocity(self, V: np.ndarray) -> None:
+        """V = [v_x, v_y, v_z, ω] (m/s, rad/s, FLU body) as `rc`; never blocks (drivers/tello_sticks.py)."""
+        self.sticks.send_body_velocity(V)
+
+    def send_rc(self, rc: tuple[int, int, int, int]) -> None:
+        """Raw stick values (-100..100) as the control loop; for system identification."""
+        self.sticks.send_rc(rc)
+
+    def emergency_stop(self) -> None:
+        """Motors off at once (`emergency`)."""
+        self.sticks.emergency_stop()
+
+    @property
+    def phase(self) -> FlightPhase:
+        return self.status.phase
+
+    def current_state(self) -> dict[str, float]:
+        """The fields of the latest valid state packet (a new dict per packet)."""
+        return self.status.fields
+
+    def link_alive(self) -> bool:
+        return self.status.link_alive()
+
+    def state(self) -> DroneState:
+        st, ph = self.status.fields, self.phase
+        return DroneState(
+            battery_pct=float(st.get("bat", 0.0)),
+            height_m=float(st.get("h", 0.0)) / 100.0,
+            link_alive=self.link_alive(),
+            flying=ph is FlightPhase.AIRBORNE,
+            phase=ph.value,
+        )
+
+    @property
+    def last_rc(self) -> tuple[int, int, int, int]:
+        """The last stick values sent."""
+        return self.sticks.last_rc
+
+    @property
+    def rc_sent(self) -> int:
+        return self.sticks.sent
+
+    # ---- commands, mute -----------------------------------------------------------------------------
+    def query(self, command: str, parse: Callable[[str], str | None], attempts: int = 2) -> str | None:
+        """A read command (`sdk?`, `sn?`, `wifi?`): the first reply `parse` accepts, or None."""
+        return self.exchange.query(command, parse, attempts)
+
+    def control(self, command: str, timeout: float, attempts: int = 2) -> None:
+        """A command answered `ok` (`streamon`, `port`, …) within `timeout` s; TelloCommandError if not."""
+        self.exchange.control(command, timeout, attempts)
+
+    def set_muted(self, muted: Callable[[], bool] | None) -> None:
+        """After `muted()` returns True nothing more is sent to the drone (a guardian process took it over:
+        drivers/guardian.py); checked right before every datagram, from every thread."""
+        self.link.set_muted(muted)
+
+    def is_muted(self) -> bool:
+        return self.link.is_muted()
 
     # ---- preflight --------------------------------------------------------------------------------
     def preflight(self) -> list[PreflightCheck]:
         """Battery, temperature, state stream, on the ground, SDK version and serial, Wi-Fi signal."""
-        from flightstack.drivers.tello_preflight import tello_preflight
-
         return tello_preflight(self)

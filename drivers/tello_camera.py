@@ -165,10 +165,10 @@ class TelloCamera:
             raise TelloCommandError(f"video on UDP {port}: {exc}") from exc
         try:
             if port != DEFAULT_VIDEO_PORT:  # station mode: each drone streams to its own port
-                d._control(f"port {d.cfg.state_port} {port}", d.cfg.command_timeout_s)
+                d.control(f"port {d.cfg.state_port} {port}", d.cfg.command_timeout_s)
             if d.cfg.downward_camera:
-                d._control("downvision 1", d.cfg.command_timeout_s)
-            d._control("streamon", d.cfg.command_timeout_s)
+                d.control("downvision 1", d.cfg.command_timeout_s)
+            d.control("streamon", d.cfg.command_timeout_s)
             if not rx.wait_first_frame(self.frame_timeout_s):
                 raise TelloCommandError(
                     f"video on UDP {port}: no decodable video within {self.frame_timeout_s:.1f} s "
@@ -197,6 +197,6 @@ class TelloCamera:
             self._rx.close()
             self._rx = None
             try:
-                self.driver._control("streamoff", streamoff_timeout_s, attempts=1)
+                self.driver.control("streamoff", streamoff_timeout_s, attempts=1)
             except TelloCommandError as exc:
                 LOG.info("tello %s: %s", self.driver.cfg.host, exc)

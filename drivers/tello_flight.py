@@ -3,8 +3,8 @@
 `takeoff()` returns once the state stream shows the drone airborne at a stable height and it answered `ok`
 at that height (or telemetry alone at `takeoff_timeout_s`, s); `land()` once it shows the drone down with
 the motors off, re-sending `land` when no descent shows and `rc 0 0 0 0` + `land` every `land_resend_s`
-(s) while telemetry is silent. Heights in cm as sent by the drone. `TelloFlight` is one layer of
-drivers/tello.py's `TelloDriver` (whose module docstring gives the rules on every failure).
+(s) while telemetry is silent. Heights in cm as sent by the drone. Each holds the command exchange
+(drivers/tello_exchange.py) for its whole length; the rules on every failure: drivers/tello.py.
 """
 
 from __future__ import annotations
@@ -12,15 +12,29 @@ from __future__ import annotations
 import time
 from typing import Literal
 
-from flightstack.drivers.tello_config import TelloCommandError, TelloLinkError
-from flightstack.drivers.tello_exchange import TelloExchange
-from flightstack.drivers.tello_sticks import TelloSticks
+from flightstack.drivers.tello_config import TelloCommandError, TelloConfig, TelloLinkError
+from flightstack.drivers.tello_exchange import CommandExchange
+from flightstack.drivers.tello_link import TelloLink
+from flightstack.drivers.tello_status import DriverEvents, DriverStatus
+from flightstack.drivers.tello_sticks import Sticks
 from flightstack.events import TelloKind
 from flightstack.hal import FlightPhase
 
 
-class TelloFlight(TelloExchange, TelloSticks):
-    """Takeoff and land of `TelloDriver` (blocking their caller only)."""
+class FlightPhases:
+    """Takeoff and land of one Tello (blocking their caller only)."""
+
+    def __init__(
+        self,
+        cfg: TelloConfig,
+        link: TelloLink,
+        status: DriverStatus,
+        events: DriverEvents,
+        exchange: CommandExchange,
+        sticks: Sticks,
+    ) -> None:
+        self.cfg, self._link, self._status, self._events = cfg, link, status, events
+        self._exchange, self._sticks = exchange, sticks
 
     def takeoff(self) -> None:
         """Take off; return once the drone is airborne and done with its takeoff.
@@ -35,40 +49,40 @@ class TelloFlight(TelloExchange, TelloSticks):
         show no effect, or when it is not airborne and stable within takeoff_timeout_s (it may still be
         climbing: land() then waits for the climb to end)."""
         cfg = self.cfg
-        if self.phase is FlightPhase.AIRBORNE:
+        st, tracker = self._status, self._status.tracker
+        if st.phase is FlightPhase.AIRBORNE:
             return
-        if self.phase is not FlightPhase.GROUND:
-            raise TelloCommandError(f"Tello {cfg.host}: takeoff while {self.phase.value}")
+        if st.phase is not FlightPhase.GROUND:
+            raise TelloCommandError(f"Tello {cfg.host}: takeoff while {st.phase.value}")
         t0 = time.monotonic()
         deadline = t0 + cfg.takeoff_timeout_s
-        with self._cmd_lock:
-            self._begin_exchange()
-            self._tracker.hold_takeoff = True
+        with self._exchange.session():
+            tracker.hold_takeoff = True
             try:
-                self._land_requested = False
+                st.land_requested = False
                 self._send_takeoff()
                 sends, replies, ok_at_height, t_probe = 1, [], False, t0
                 while True:
                     now = time.monotonic()
-                    if (r := self._next_reply()) is not None:
+                    if (r := self._exchange.next_reply()) is not None:
                         replies.append(r)
                         ok_at_height |= self._ok_at_height(r)
-                    with self._lock:
-                        ph = self._tracker.phase
-                        stable = self.link_alive() and self._tracker.airborne_stable(now)
+                    with st.lock:
+                        ph = tracker.phase
+                        stable = st.link_alive() and tracker.airborne_stable(now)
                         if ph is FlightPhase.TAKING_OFF and stable and (ok_at_height or now >= deadline):
-                            self._tracker.confirm_airborne(now)
+                            tracker.confirm_airborne(now)
                             ph = FlightPhase.AIRBORNE
                     if ph is FlightPhase.AIRBORNE:
                         self._report_outcome("takeoff", [r for r in replies if not r.isdigit()], now - t0)
-                        self._last_rc_t = self._last_loop_t = now  # the loop watchdog counts from here
+                        st.last_rc_t = st.last_loop_t = now  # the loop watchdog counts from here
                         return
                     if ph is FlightPhase.GROUND:  # no motor start within no_effect_s
                         refused = [r for r in replies if r.lower().startswith(("error", "unknown", "out"))]
                         if refused or sends >= 2:
                             why = f"answered {refused[-1]!r}" if refused else "no effect after 2 sends"
                             raise TelloCommandError(f"Tello {cfg.host}: takeoff refused ({why})")
-                        self._event("resend", "takeoff: no reply and no motor start")
+                        self._events.add("resend", "takeoff: no reply and no motor start")
                         self._send_takeoff()
                         sends += 1
                     if now > deadline:
@@ -77,98 +91,94 @@ class TelloFlight(TelloExchange, TelloSticks):
                             f"(phase {ph.value}, replies {replies})"
                         )
                     if stable and now - t_probe > cfg.keepalive_s:  # waiting for the ok: no auto-land
-                        assert self._chan is not None
-                        self._chan.send("battery?")
+                        assert self._link.chan is not None
+                        self._link.chan.send("battery?")
                         t_probe = now
                     time.sleep(0.01)
             finally:
-                self._tracker.hold_takeoff = False
-                self._end_exchange()
+                tracker.hold_takeoff = False
 
     def _ok_at_height(self, reply: str) -> bool:
         """An `ok` counts as the takeoff's answer only when the drone is at height when it arrives."""
         if reply.lower() != "ok":
             return False
-        s = self._tracker.latest
+        s = self._status.tracker.latest
         if s is not None and s.h_cm >= self.cfg.phase.airborne_h_cm:
             return True
-        self.counts["reply_not_trusted"] += 1
-        self._event("reply_not_trusted", f"'ok' during takeoff at h {s.h_cm if s else '?'} cm")
+        self._events.counts["reply_not_trusted"] += 1
+        self._events.add("reply_not_trusted", f"'ok' during takeoff at h {s.h_cm if s else '?'} cm")
         return False
 
     def _send_takeoff(self) -> None:
-        assert self._chan is not None
-        with self._lock:
-            self._tracker.takeoff_sent(time.monotonic())
-        self._chan.send("takeoff")
+        assert self._link.chan is not None
+        with self._status.lock:
+            self._status.tracker.takeoff_sent(time.monotonic())
+        self._link.chan.send("takeoff")
 
     def _report_outcome(self, what: Literal["takeoff", "land"], replies: list[str], elapsed: float) -> None:
         confirmed: TelloKind = "takeoff_confirmed" if what == "takeoff" else "land_confirmed"
-        self._event(confirmed, f"by telemetry after {elapsed:.2f} s; replies {replies}")
+        self._events.add(confirmed, f"by telemetry after {elapsed:.2f} s; replies {replies}")
         if not replies:
-            self._event("reply_lost_confirmed", f"{what!r}: no reply; telemetry shows it done")
+            self._events.add("reply_lost_confirmed", f"{what!r}: no reply; telemetry shows it done")
         elif all(r.lower() != "ok" for r in replies):
-            self._event("error_reply_but_effect", f"{what!r} answered {replies}; telemetry shows it done")
+            self._events.add(
+                "error_reply_but_effect", f"{what!r} answered {replies}; telemetry shows it done"
+            )
 
     def land(self) -> None:
         """Land; return once telemetry shows the drone down with the motors off (no-op on the ground).
 
         A drone still taking off is landed as soon as it is airborne. `land` is re-sent when telemetry
         shows no descent; TelloCommandError after land_timeout_s (takeoff_timeout_s more if climbing)."""
-        cfg = self.cfg
-        if self.phase is FlightPhase.GROUND:
+        cfg, st = self.cfg, self._status
+        if st.phase is FlightPhase.GROUND:
             return
-        if self.phase is FlightPhase.UNKNOWN:
+        if st.phase is FlightPhase.UNKNOWN:
             raise TelloLinkError(f"Tello {cfg.host}: no telemetry yet; land not sent")
-        self._hover_now()  # a Tello keeps its last rc: stop it before the quiet window and the land
+        self._sticks.hover_now()  # a Tello keeps its last rc: stop it before the quiet window and the land
         t0 = time.monotonic()
-        with self._cmd_lock:
-            self._begin_exchange()
-            try:
-                self._land_requested = True
-                climb_end = t0 + cfg.takeoff_timeout_s
-                while self.phase is FlightPhase.TAKING_OFF:
-                    if time.monotonic() > climb_end:
-                        raise TelloCommandError(f"Tello {cfg.host}: still taking off; land not sent")
-                    time.sleep(0.01)
-                if self.phase is FlightPhase.GROUND:
+        with self._exchange.session():
+            st.land_requested = True
+            climb_end = t0 + cfg.takeoff_timeout_s
+            while st.phase is FlightPhase.TAKING_OFF:
+                if time.monotonic() > climb_end:
+                    raise TelloCommandError(f"Tello {cfg.host}: still taking off; land not sent")
+                time.sleep(0.01)
+            if st.phase is FlightPhase.GROUND:
+                return
+            t1 = time.monotonic()
+            deadline, replies = t1 + cfg.land_timeout_s, []
+            t_sent = t1
+            if st.phase is FlightPhase.AIRBORNE:
+                self._send_land()
+            while True:
+                now = time.monotonic()
+                if (r := self._exchange.next_reply()) is not None:
+                    replies.append(r)
+                ph = st.phase
+                if ph is FlightPhase.GROUND:
+                    self._report_outcome("land", replies, now - t1)
                     return
-                t1 = time.monotonic()
-                deadline, replies = t1 + cfg.land_timeout_s, []
-                t_sent = t1
-                if self.phase is FlightPhase.AIRBORNE:
+                if ph is FlightPhase.AIRBORNE:  # no descent within no_effect_s: lost or refused
+                    self._events.add("resend", f"land: no descent (replies {replies})")
                     self._send_land()
-                while True:
-                    now = time.monotonic()
-                    if (r := self._next_reply()) is not None:
-                        replies.append(r)
-                    ph = self.phase
-                    if ph is FlightPhase.GROUND:
-                        self._report_outcome("land", replies, now - t1)
-                        return
-                    if ph is FlightPhase.AIRBORNE:  # no descent within no_effect_s: lost or refused
-                        self._event("resend", f"land: no descent (replies {replies})")
-                        self._send_land()
-                        t_sent = now
-                    elif not self.link_alive() and now - t_sent > cfg.land_resend_s:
-                        self._event("resend", "land: telemetry silent; rc 0 0 0 0 and land again")
-                        self._send_land(hover_first=True)
-                        t_sent = now
-                    if now > deadline:
-                        raise TelloCommandError(
-                            f"Tello {cfg.host}: not down within {cfg.land_timeout_s:.0f} s "
-                            f"(phase {ph.value}, replies {replies})"
-                        )
-                    time.sleep(0.01)
-            finally:
-                self._end_exchange()
+                    t_sent = now
+                elif not st.link_alive() and now - t_sent > cfg.land_resend_s:
+                    self._events.add("resend", "land: telemetry silent; rc 0 0 0 0 and land again")
+                    self._send_land(hover_first=True)
+                    t_sent = now
+                if now > deadline:
+                    raise TelloCommandError(
+                        f"Tello {cfg.host}: not down within {cfg.land_timeout_s:.0f} s "
+                        f"(phase {ph.value}, replies {replies})"
+                    )
+                time.sleep(0.01)
 
     def _send_land(self, hover_first: bool = False) -> None:
         """`land` (after `rc 0 0 0 0` when asked: with telemetry silent, the hover may not have arrived)."""
-        assert self._chan is not None
-        with self._lock:
-            self._tracker.land_sent(time.monotonic())
-        if hover_first and self._chan.send("rc 0 0 0 0"):
-            self.last_rc = (0, 0, 0, 0)
-            self.rc_sent += 1
-        self._chan.send("land")
+        assert self._link.chan is not None
+        with self._status.lock:
+            self._status.tracker.land_sent(time.monotonic())
+        if hover_first:
+            self._sticks.hover_unchecked()
+        self._link.chan.send("land")

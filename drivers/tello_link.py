@@ -298,3 +298,35 @@ class StateReceiver:
             self.errors.record("callback_error", f"state callback for {addr[0]}: {type(exc).__name__}: {exc}")
         else:
             self.counts["delivered"] += 1
+
+
+class TelloLink:
+    """One Tello's side of the transport: its command channel and its place on the shared state port.
+
+    `chan` stays set after `close()` (a closed channel counts what is still sent); `rx` is None when
+    closed. The mute check (module docstring) is read through `is_muted`, before every send."""
+
+    def __init__(self, host: str, control_port: int, state_port: int = 8890, bind_ip: str = "") -> None:
+        self.host, self.control_port, self.state_port, self.bind_ip = host, control_port, state_port, bind_ip
+        self.chan: CommandChannel | None = None
+        self.rx: StateReceiver | None = None
+        self._muted: MutedCheck | None = None
+
+    def open(self, on_state: StateCallback) -> None:
+        """Register `on_state` for this drone's state packets, then open the command channel (OSError)."""
+        self.rx = StateReceiver.acquire(self.host, on_state, self.state_port, self.bind_ip)
+        self.chan = CommandChannel(self.host, self.control_port, self.bind_ip, muted=self.is_muted)
+
+    def close(self) -> None:
+        if self.rx is not None:
+            self.rx.release(self.host)
+            self.rx = None
+        if self.chan is not None:
+            self.chan.close()
+
+    def set_muted(self, muted: MutedCheck | None) -> None:
+        self._muted = muted
+
+    def is_muted(self) -> bool:
+        m = self._muted
+        return m is not None and m()

@@ -1,20 +1,40 @@
 """Preflight checks of one connected Tello (`TelloDriver.preflight()`, `flightstack preflight`).
 
-The functions take the driver, read its latest telemetry and ask it `wifi?`.
+The functions take what they read of the driver (`PreflightTarget`): its latest telemetry, and `wifi?`.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import Protocol
 
-from flightstack.drivers.tello_config import PreflightCheck, parse_int_reply
+from flightstack.drivers.tello_config import PreflightCheck, TelloConfig, parse_int_reply
 from flightstack.hal import FlightPhase
 
-if TYPE_CHECKING:
-    from flightstack.drivers.tello import TelloDriver
+
+class PreflightTarget(Protocol):
+    """What the checks read of a connected Tello driver (drivers/tello.py's `TelloDriver`)."""
+
+    @property
+    def cfg(self) -> TelloConfig: ...
+
+    @property
+    def sdk_version(self) -> str | None: ...
+
+    @property
+    def serial(self) -> str | None: ...
+
+    @property
+    def phase(self) -> FlightPhase: ...
+
+    def current_state(self) -> dict[str, float]: ...
+
+    def link_alive(self) -> bool: ...
+
+    def query(self, command: str, parse: Callable[[str], str | None], attempts: int = 2) -> str | None: ...
 
 
-def tello_preflight(driver: TelloDriver) -> list[PreflightCheck]:
+def tello_preflight(driver: PreflightTarget) -> list[PreflightCheck]:
     """Battery, temperature, state stream, on the ground, SDK version and serial, Wi-Fi signal."""
     st, cfg = driver.current_state(), driver.cfg
     bat, temp = st.get("bat"), st.get("temph")
@@ -49,7 +69,7 @@ def tello_preflight(driver: TelloDriver) -> list[PreflightCheck]:
     return checks
 
 
-def sdk_check(driver: TelloDriver) -> PreflightCheck:
+def sdk_check(driver: PreflightTarget) -> PreflightCheck:
     """FAIL when the mission needs SDK 3.0 features that the firmware lacks."""
     sdk, sn, need = driver.sdk_version, driver.serial or "serial unknown", driver.cfg.sdk3_features
     if sdk is None:

@@ -85,7 +85,7 @@ def test_tello_state_receiver_survives_socket_and_parse_errors(
     d = tello_driver(tello)
     try:
         d.connect()
-        rx = d._rx
+        rx = d.link.rx
         rx._sock = FaultySocket(rx._sock, recvfrom=8)
         assert wait_for(lambda: rx.counts["recv_error"] == 8)
         # an unexpected exception from parsing (not a rejected datagram) does not end the thread either
@@ -103,7 +103,7 @@ def test_tello_state_receiver_survives_socket_and_parse_errors(
         n = rx.counts["delivered"]
         t_before = time.monotonic()
         assert wait_for(lambda: rx.counts["delivered"] >= n + 5)
-        assert d.current_state() and d._last_state_t > t_before and d.state().link_alive
+        assert d.current_state() and d.status.last_state_t > t_before and d.state().link_alive
         assert rx._thread.is_alive()
         assert rx.counts["thread_error"] == 11
         assert len(warnings_about(caplog, "recv_error")) == 1  # the first, not one per error
@@ -122,7 +122,7 @@ def test_tello_command_channel_and_monitor_survive_errors(
     d = tello_driver(tello)
     try:
         d.connect()
-        chan = d._chan
+        chan = d.link.chan
         chan._sock = FaultySocket(chan._sock, recv=6, send=4)
         assert wait_for(lambda: chan.counts["recv_error"] == 6)
         for _ in range(4):  # a network error on send is counted and reported, never raised
@@ -133,7 +133,7 @@ def test_tello_command_channel_and_monitor_survive_errors(
         assert d.query("battery?", parse_int_reply) is not None
         assert chan._thread.is_alive() and chan.counts["thread_error"] == 6
         # drivers/tello.py's monitor: errors raised in a step are counted, and it still watches the link
-        real_step, boom = d._monitor_step, [0]
+        real_step, boom = d.watchdog.step, [0]
 
         def step(now: float) -> None:
             if boom[0] < 3:
@@ -141,7 +141,7 @@ def test_tello_command_channel_and_monitor_survive_errors(
                 raise OSError(errno.ENETUNREACH, "injected")
             real_step(now)
 
-        d._monitor_step = step
+        d.watchdog.step = step
         assert wait_for(lambda: d.counts["monitor_error"] == 3)
 
         def kinds() -> list[str]:
@@ -151,7 +151,7 @@ def test_tello_command_channel_and_monitor_survive_errors(
         assert wait_for(lambda: "link_lost" in kinds(), 2.0)
         tello.faults.drop_state = False
         assert wait_for(lambda: "link_restored" in kinds()[kinds().index("link_lost") :], 2.0)
-        assert d._monitor.is_alive() and d.state().link_alive
+        assert d.watchdog.running() and d.state().link_alive
     finally:
         d.close()
 

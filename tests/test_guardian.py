@@ -102,7 +102,7 @@ if a["mode"] == "finish":
     if robot is not None:
         robot.close()
     say("finished", g.finish())
-say("muted", sum(d._chan.counts["muted"] for d in drones))
+say("muted", sum(d.link.chan.counts["muted"] for d in drones))
 for d in drones:
     d.close()
 """

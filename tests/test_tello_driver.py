@@ -196,7 +196,7 @@ def test_bad_and_foreign_state_datagrams_are_dropped_and_counted(emu: TelloEmula
     d = TelloDriver(config(emu))
     try:
         d.connect()
-        rx = d._rx
+        rx = d.link.rx
         assert rx is not None
         dest = ("127.0.0.1", emu.state_port)
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as same_ip:
@@ -374,7 +374,7 @@ def test_firmware_that_answers_rc(emu: TelloEmulator) -> None:
     try:
         fly(d, emu, seconds=1.5)
         assert_clean(d, emu)
-        assert d._chan is not None and d._chan.counts["reply_discarded"] >= 25  # the rc answers
+        assert d.link.chan is not None and d.link.chan.counts["reply_discarded"] >= 25  # the rc answers
         assert sum(t == "land" for t in emu.command_texts()) == 1
     finally:
         d.close()

@@ -234,7 +234,6 @@ class Fleet:
     everyone: frozenset[int]  # every drone of the mission, own ones too (the lock-step wait's senders)
 
 
-
 @contextlib.contextmanager
 def assemble_fleet(
     mission: Mission,

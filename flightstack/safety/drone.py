@@ -4,10 +4,13 @@
 command watchdog, stale pose, battery, link loss, landing confirmation); `MissionSupervisor`
 (flightstack/safety/supervisor.py) adds the mission-wide ones (target lost, land every drone, signals, the
 exception guard). The rules, their reactions, the limits and every event kind are stated once, in
-docs/safety.md. Limits, events and the pure rules are in flightstack/safety/rules.py; the landing sequence,
-its background workers (hardware: takeoff and land on a worker thread each, never waited for on the control
-thread) and the plumbing the rules share with it are in flightstack/safety/landing.py (the base class of
-SafeDrone), the phases in flightstack/safety/phases.py.
+docs/safety.md. Limits, events and the pure rules are in flightstack/safety/rules.py. The landing sequence
+is part of SafeDrone: a land puts the drone in LAND_PENDING (no velocity reaches the wrapped drone any more)
+and is re-sent every `land_retry_s` until confirmed by the wrapped drone's land() returning, by its
+telemetry (phase ground) or by motion capture (z ≤ `landed_height`), while the fence rule keeps logging on
+the last known pose and a silent link gets zero velocity (hover). With `background` on (hardware), the
+wrapped drone's takeoff() and land() run on worker threads (flightstack/safety/jobs.py), never waited for on
+the control thread; tick() collects their outcome.
 
 Every condition logs exactly one `SafetyEvent` per episode (the interval during which it holds), stamped
 with the mission clock; its kind is one of the closed set `EVENT_KINDS`. Errors from the wrapped drone
@@ -18,15 +21,18 @@ loop.
 
 from __future__ import annotations
 
+import enum
 import math
 import threading
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 import numpy as np
 
+from flightstack.events import SafetyKind
 from flightstack.hal import Clock, Drone, DroneState, FlightPhase, PoseSource, StampedPose
 from flightstack.paper.geometry import Pose
-from flightstack.safety.landing import _LandingSequence
-from flightstack.safety.phases import _Job, _Phase
+from flightstack.safety.jobs import DroneJobs
 from flightstack.safety.rules import (
     EventLog,
     SafetyError,
@@ -36,11 +42,22 @@ from flightstack.safety.rules import (
     outside_soft_fence,
     sanitize,
     saturate,
+    valid_pose,
 )
+
+_T = TypeVar("_T")
+
+
+class _Phase(enum.Enum):
+    IDLE = "idle"  # built; nothing commanded yet (a sim drone may already be airborne)
+    FLYING = "flying"  # after takeoff() or the first command: all rules enforced
+    LAND_PENDING = "land_pending"  # land requested but not (yet) accepted: nothing but land retries sent
+    LANDED = "landed"  # land accepted: nothing else is sent until a new takeoff()
+    STOPPED = "stopped"  # emergency stop accepted: motors off
 
 
 # ---- one drone ---------------------------------------------------------------------------------------------
-class SafeDrone(_LandingSequence):
+class SafeDrone:
     """A hal.Drone that enforces the safety rules on the hal.Drone it wraps (see the module docstring).
 
     Args:
@@ -70,7 +87,7 @@ class SafeDrone(_LandingSequence):
     ) -> None:
         self.drone_id = drone_id
         self.background = background
-        self._jobs: dict[str, _Job] = {}
+        self._jobs = DroneJobs(drone_id)
         self._next_land_try = -math.inf
         self._link_down_while_landing = False
         self.takeoff_error: str | None = None
@@ -103,6 +120,11 @@ class SafeDrone(_LandingSequence):
     def phase(self) -> str:
         """'idle', 'flying', 'land_pending', 'landed' or 'stopped'."""
         return self._phase.value
+
+    @property
+    def landed(self) -> bool:
+        """True once land/emergency stop was accepted by the wrapped drone (until the next takeoff)."""
+        return self._phase in (_Phase.LANDED, _Phase.STOPPED)
 
     def in_inner_call(self) -> bool:
         """True if the calling thread is currently inside a call to the wrapped drone."""
@@ -190,9 +212,7 @@ class SafeDrone(_LandingSequence):
         with self._lock:
             if not self.landed:
                 self._do_land(self.clock.now(), "close()")
-        for job in list(self._jobs.values()):
-            if job.thread is not None:
-                job.thread.join(land_wait_s)
+        self._jobs.join(land_wait_s)
         with self._lock:
             self._poll_jobs(self.clock.now())
             self._call(self.inner.close)
@@ -348,3 +368,154 @@ class SafeDrone(_LandingSequence):
         where = np.round(pose.p, 3).tolist()
         self._safety_land(now, "fence_hard_land", f"at {where}, beyond hard fence {faces}")
         return True
+
+    # ---- plumbing --------------------------------------------------------------------------------------
+    def _call(self, fn: Callable[..., _T], *args: Any) -> _T:
+        """Call the wrapped drone, remembering which thread is inside it (for signal handlers)."""
+        prev = self._inner_thread
+        self._inner_thread = threading.get_ident()
+        try:
+            return fn(*args)
+        finally:
+            self._inner_thread = prev
+
+    def _event(self, now: float, kind: SafetyKind, detail: str) -> None:
+        self.log.record(now, self.drone_id, kind, detail)
+
+    def _event_once(self, now: float, kind: SafetyKind, detail: str) -> bool:
+        """Log `kind` if its episode is not already open; True if this call opened it."""
+        if kind in self._episodes:
+            return False
+        self._episodes.add(kind)
+        self._event(now, kind, detail)
+        return True
+
+    def _end(self, kind: SafetyKind) -> None:
+        self._episodes.discard(kind)
+
+    def _send(self, V: np.ndarray) -> None:
+        out = np.array(V, dtype=float)
+        self._call(self.inner.send_body_velocity, out.copy())
+        self.last_sent = out
+
+    def _send_quietly(self, now: float, V: np.ndarray) -> None:
+        try:
+            self._send(V)
+        except Exception as exc:
+            self._event_once(now, "drone_error", f"send_body_velocity raised {type(exc).__name__}: {exc}")
+
+    def _read_pose(self, now: float) -> StampedPose | None:
+        """Latest valid pose from the source (remembered), or the last valid one; None if never seen."""
+        try:
+            sp = self.poses.latest(self.body)
+        except Exception as exc:
+            self._event_once(now, "pose_error", f"PoseSource.latest raised {type(exc).__name__}: {exc}")
+            return self._last_pose
+        self._end("pose_error")
+        if valid_pose(sp):
+            self._last_pose = sp
+        return self._last_pose
+
+    # ---- landing sequence ------------------------------------------------------------------------------
+    def _safety_land(self, now: float, kind: SafetyKind, detail: str) -> None:
+        """Land because of a rule; a refusal of the wrapped drone is logged and retried by tick()."""
+        self._event_once(now, kind, detail)
+        if self.landed:
+            return
+        if self._do_land(now, kind) is not None:
+            self._send_quietly(now, np.zeros(4))  # best effort: at least hover until land is accepted
+
+    def _do_land(self, now: float, reason: str, retry: bool = False) -> Exception | None:
+        """Send land to the wrapped drone; returns its Exception (logged once per episode) or None.
+
+        Background jobs: starts the land on a worker thread unless one is under way, returns None."""
+        self._phase = _Phase.LAND_PENDING  # from here on, no velocity reaches the wrapped drone
+        if not retry:
+            self._land_reason = reason
+        if self.background:
+            self._poll_jobs(now)
+            job = self._jobs.get("land")
+            if not self.landed and (job is None or job.finished):
+                self._next_land_try = now + self.limits.land_retry_s
+                self._start_job("land", self.inner.land, reason)
+            return None
+        try:
+            self._call(self.inner.land)
+        except Exception as exc:
+            self._event_once(now, "land_failed", f"{reason}: land() raised {type(exc).__name__}: {exc}")
+            self._next_land_try = now + self.limits.land_retry_s
+            return exc
+        self._confirm_landed(now, "", reason)
+        return None
+
+    def _confirm_landed(self, now: float, how: str, reason: str | None = None) -> None:
+        """LANDED; the event names the land that worked (`reason`, default the first) and, if not
+        land() itself, what confirmed it (`how`)."""
+        self._phase = _Phase.LANDED
+        self._abort_reason = None
+        self._end("land_failed")
+        why = self._land_reason if reason is None else reason
+        self._event(now, "land", f"{why}: {how}" if how else why)
+
+    def _tick_landing(self, now: float) -> None:
+        """A land is pending: confirm it (telemetry, motion capture), hover while the link is silent (the
+        uplink may still work), re-send land every land_retry_s. Never waits for the drone."""
+        takeoff = self._jobs.get("takeoff")
+        climbing = takeoff is not None and not takeoff.finished  # still on the floor: nothing to confirm
+        link = False
+        try:
+            st = self._call(self.inner.state)
+            link = bool(st.link_alive)
+            if link and st.phase == FlightPhase.GROUND and not climbing:
+                self._confirm_landed(now, "telemetry shows it on the ground")
+                return
+        except Exception as exc:
+            self._event_once(now, "drone_error", f"state() raised {type(exc).__name__}: {exc}")
+        sp = self._read_pose(now)
+        if (
+            sp is not None
+            and not climbing
+            and now - sp.stamp <= self.limits.pose_timeout
+            and sp.pose.p[2] <= self.limits.landed_height
+        ):
+            self._confirm_landed(now, f"motion capture shows it down (z {sp.pose.p[2]:.3f} m)")
+            return
+        if sp is not None:  # the rules keep running on the last known pose (events only: it is landing)
+            faces = outside_hard_fence(sp.pose.p, self.limits, check_floor=self._floor_armed)
+            if faces:
+                where = np.round(sp.pose.p, 3).tolist()
+                self._event_once(now, "fence_hard_land", f"at {where}, beyond hard fence {faces} (landing)")
+        if not link:
+            self._send_quietly(now, np.zeros(4))
+        elif self._link_down_while_landing:  # the link is back: a land sent now gets an answer
+            self._next_land_try = now
+        self._link_down_while_landing = not link
+        job = self._jobs.get("land")
+        if (job is None or job.finished) and not climbing and now >= self._next_land_try:
+            self._do_land(now, f"retry ({self._land_reason})", retry=True)
+
+    def _start_job(self, kind: str, fn: Callable[[], None], reason: str) -> None:
+        """Run fn (the wrapped drone's takeoff or land) on a worker thread; _poll_jobs collects it."""
+        self._jobs.start(kind, fn, reason, self.clock.now())
+
+    def _poll_jobs(self, now: float) -> None:
+        """Collect finished takeoff/land jobs: confirm a landing, log a failure (retried by tick)."""
+        for job in self._jobs.collect():
+            kind, err = job.kind, job.error
+            why = "" if err is None else f"{type(err).__name__}: {err}"
+            if kind == "takeoff":
+                self._last_command_t = max(self._last_command_t, now)
+                if err is not None:
+                    self.takeoff_error = why
+                    self._event(now, "takeoff_failed", why)
+                    if self._phase is _Phase.FLYING:
+                        self._do_land(now, "takeoff_failed")
+            elif self._phase is _Phase.LAND_PENDING:
+                takeoff = self._jobs.get("takeoff")
+                if takeoff is not None and not takeoff.finished:  # returned before the drone was up:
+                    self._next_land_try = now  # no proof of anything; sent again once the takeoff ends
+                elif err is None:
+                    self._confirm_landed(now, "", job.reason)
+                else:
+                    self._event_once(now, "land_failed", f"{job.reason}: land() raised {why}")
+                    self._next_land_try = now + self.limits.land_retry_s

@@ -269,7 +269,7 @@ def fence_clip(V: np.ndarray, pose: Pose, limits: SafetyLimits) -> tuple[np.ndar
     return out, clipped
 
 
-def _valid_pose(sp: object) -> bool:
+def valid_pose(sp: object) -> bool:
     """A StampedPose-like object with a finite stamp, a finite position (3,) and a finite yaw."""
     try:
         pose = sp.pose  # type: ignore[attr-defined]

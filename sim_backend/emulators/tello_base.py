@@ -22,11 +22,11 @@ import numpy as np
 
 from .tello_faults import ReplyScheduler, TelloFaults
 from .tello_frames import FrameSource, default_frame_source
-from .tello_net import _require_loopback
+from .tello_net import require_loopback
 
 
 @dataclass
-class _Deferred:
+class DeferredReply:
     """A reply that is sent when a takeoff/landing completes."""
 
     addr: tuple[str, int] | None
@@ -88,8 +88,8 @@ class TelloEmulatorBase:
             pre_sdk_reply: reply to commands sent before ``command`` (None = ignore them, the default).
             reply_port_latch: Tello EDU: every reply goes to the sender of the first ``command``.
         """
-        _require_loopback(ip, "ip")
-        _require_loopback(client_ip, "client_ip")
+        require_loopback(ip, "ip")
+        require_loopback(client_ip, "client_ip")
         width, height = video_size
         if width <= 0 or height <= 0 or width % 2 or height % 2:
             raise ValueError(f"video_size must be positive even numbers, got {video_size}")
@@ -152,7 +152,7 @@ class TelloEmulatorBase:
         self._phase_t0 = 0.0
         self._phase_z0 = 0.0
         self._phase_s = 0.0  # duration of the current takeoff/landing
-        self._deferred: _Deferred | None = None
+        self._deferred: DeferredReply | None = None
         self._pos = np.zeros(3)  # x fwd, y right, z up [cm]
         self._yaw = 0.0  # deg, clockwise
         self._rc = np.zeros(4)  # right, fwd, up [cm/s], yaw rate [deg/s] targets

@@ -44,10 +44,10 @@ from __future__ import annotations
 import logging
 import time
 
-from .tello_base import _Deferred
+from .tello_base import DeferredReply
 from .tello_faults import SDK3_ONLY_COMMANDS, has_sdk3
 from .tello_net import is_loopback
-from .tello_physics import TelloPhysics, _wrap_deg
+from .tello_physics import TelloPhysics, wrap_deg
 
 LOG = logging.getLogger(f"{__package__}.tello")  # the public module's logger, as before the split
 
@@ -122,7 +122,7 @@ class TelloCommands(TelloPhysics):
             else:
                 answer = self._execute(verb, args, now)
                 if answer is None:  # takeoff/land: replied on completion by the sim thread
-                    self._deferred = _Deferred(reply_addr, delay)
+                    self._deferred = DeferredReply(reply_addr, delay)
                     return
             if answer is None:  # rc without a reply
                 return
@@ -256,7 +256,7 @@ class TelloCommands(TelloPhysics):
         elif verb in ("cw", "ccw"):
             if len(nums) != 1 or not 1 <= nums[0] <= 3600:
                 return "out of range"
-            self._yaw = _wrap_deg(self._yaw + (nums[0] if verb == "cw" else -nums[0]))
+            self._yaw = wrap_deg(self._yaw + (nums[0] if verb == "cw" else -nums[0]))
         elif verb == "go" and len(nums) >= 3:
             self._displace(nums[0], nums[1], nums[2])
         elif verb == "curve" and len(nums) >= 6:
@@ -275,7 +275,7 @@ class TelloCommands(TelloPhysics):
             "time?": f"{int(self._motor_s)}s",
             "height?": f"{round(h / 10)}dm",
             "temp?": "60~63",
-            "attitude?": f"pitch:0;roll:0;yaw:{round(_wrap_deg(self._yaw))};",
+            "attitude?": f"pitch:0;roll:0;yaw:{round(wrap_deg(self._yaw))};",
             "baro?": f"{12.3 + h / 100:.2f}",
             "tof?": f"{(h + 10) * 10}mm",
             "acceleration?": "agx:0.00;agy:0.00;agz:-1000.00;",

@@ -11,14 +11,26 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from .tello_emulator import TelloEmulator
 
-FrameSource = Callable[[float, "TelloEmulator"], np.ndarray]
+class VideoSettings(Protocol):
+    """What a frame source reads of the emulator: ``video_size`` (width, height) in pixels, ``fps`` in
+    frames/s and ``downvision`` (True: the downward camera is selected)."""
+
+    @property
+    def video_size(self) -> tuple[int, int]: ...
+
+    @property
+    def fps(self) -> float: ...
+
+    @property
+    def downvision(self) -> bool: ...
+
+
+FrameSource = Callable[[float, VideoSettings], np.ndarray]
 """``frame_source(t, emu) -> HxWx3 uint8 RGB`` (or HxW grey) image of size ``emu.video_size``."""
 
 INDEX_BITS = 16
@@ -65,7 +77,7 @@ def default_square(t: float, size: tuple[int, int]) -> tuple[int, int, int, int]
     return x0, y0, x0 + side, y0 + side
 
 
-def default_frame_source(t: float, emu: TelloEmulator) -> np.ndarray:
+def default_frame_source(t: float, emu: VideoSettings) -> np.ndarray:
     """Synthetic RGB frame: a coloured square moving on a circle, plus the frame index as a bar code.
 
     Forward camera: grey background, red square.  Downward camera (``emu.downvision``): dark background,

@@ -19,7 +19,8 @@ def is_loopback(ip: str) -> bool:
         return False
 
 
-def _require_loopback(ip: str, what: str) -> None:
+def require_loopback(ip: str, what: str) -> None:
+    """Raise ValueError naming ``what`` unless ``ip`` is in 127.0.0.0/8."""
     if not is_loopback(ip):
         raise ValueError(f"{what} must be an IPv4 loopback address (127.0.0.0/8), got {ip!r}")
 

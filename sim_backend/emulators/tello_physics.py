@@ -45,7 +45,7 @@ class TelloPhysics(TelloEmulatorBase):
     @property
     def yaw_deg(self) -> float:
         """Ground-truth yaw in degrees, clockwise, wrapped to [-180, 180)."""
-        return _wrap_deg(self._yaw)
+        return wrap_deg(self._yaw)
 
     @property
     def velocity_cm_s(self) -> tuple[float, float, float]:
@@ -139,7 +139,7 @@ class TelloPhysics(TelloEmulatorBase):
                 if self._pos[2] < 0.0:
                     self._pos[2] = 0.0
                     self._vel_world[2] = 0.0
-                self._yaw = _wrap_deg(self._yaw + yaw_rate * dt)
+                self._yaw = wrap_deg(self._yaw + yaw_rate * dt)
 
     def _state_string(self) -> str:
         with self._lock:
@@ -148,7 +148,7 @@ class TelloPhysics(TelloEmulatorBase):
             h = max(0, z)
             acc = self._acc_body / 981.0 * 1000.0
             return (
-                f"mid:-1;x:{x};y:{y};z:{z};mpry:0,0,0;pitch:0;roll:0;yaw:{round(_wrap_deg(self._yaw))};"
+                f"mid:-1;x:{x};y:{y};z:{z};mpry:0,0,0;pitch:0;roll:0;yaw:{round(wrap_deg(self._yaw))};"
                 f"vgx:{vgx};vgy:{vgy};vgz:{vgz};templ:60;temph:63;tof:{h + 10};h:{h};"
                 f"bat:{self._battery_locked()};baro:{12.3 + h / 100:.2f};time:{int(self._motor_s)};"
                 f"agx:{acc[1]:.2f};agy:{acc[0]:.2f};agz:{acc[2] - 1000.0:.2f};\r\n"
@@ -179,5 +179,6 @@ class TelloPhysics(TelloEmulatorBase):
                 self.state_packets_sent += 1
 
 
-def _wrap_deg(angle: float) -> float:
+def wrap_deg(angle: float) -> float:
+    """``angle`` (degrees) wrapped into [-180, 180)."""
     return (angle + 180.0) % 360.0 - 180.0

@@ -40,7 +40,7 @@ class TelloVideoStream(TelloEmulatorBase):
         return ctx
 
     def _render(self, t: float) -> np.ndarray | None:
-        img = np.asarray(self.frame_source(t, self))  # type: ignore[arg-type]  # self: a TelloEmulator
+        img = np.asarray(self.frame_source(t, self))
         if img.ndim == 2:
             img = np.repeat(img[:, :, None], 3, axis=2)
         width, height = self.video_size
