@@ -41,7 +41,7 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    from flightstack.cli.run import claim_out_dir, clear_for_run, default_out_dir
+    from flightstack.cli.run import claim_out_dir, clear_for_run, default_out_dir, to_stderr
     from flightstack.runtime.flight import Flight, NotFlownError
 
     out = Path(args.out) if args.out else default_out_dir(mission.name)
@@ -51,9 +51,7 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
         return 2
     clear_for_run(out, force=bool(args.out))
     try:
-        with Flight(
-            mission, out, modes=["none"], plots=True, say=lambda line: print(line, file=sys.stderr)
-        ) as flight:
+        with Flight(mission, out, modes=["none"], plots=True, say=to_stderr) as flight:
             res = flight.fly()
     except NotFlownError as exc:
         print(f"error: {exc}; nothing took off", file=sys.stderr)
@@ -69,10 +67,6 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
     print(f"  plot: {out / 'loop_health.png'}")
     complete = res.metrics.get("recording", {}).get("complete", False)
     return 0 if complete and not res.error and not res.interrupted and health["keeps_dt"] else 1
-
-
-def _to_stderr(line: str) -> None:
-    print(line, file=sys.stderr)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

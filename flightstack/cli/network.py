@@ -51,14 +51,14 @@ def cmd_world(args: argparse.Namespace) -> int:
 def cmd_agent(args: argparse.Namespace) -> int:
     """`agent MISSION --id N`: fly drone N of a mission over its Zenoh bus (one mode), record it in its
     own run directory; the exit code."""
-    from flightstack.cli.run import claim_out_dir, clear_for_run, default_out_dir
+    from flightstack.cli.run import claim_out_dir, clear_for_run, default_out_dir, to_stderr
     from flightstack.cli.view import open_live_viewer, viewer_problem
     from flightstack.runtime.flight import Flight, NotFlownError
 
     mission = _zenoh_mission(args.mission, args.rig)
     mode = args.mode or mission.compare_modes[-1]
     try:  # the drone, the bus and the mode's experts, before anything is opened
-        flight_args: dict[str, Any] = {"modes": [mode], "agent_id": args.id, "say": _to_stderr}
+        flight_args: dict[str, Any] = {"modes": [mode], "agent_id": args.id, "say": to_stderr}
         Flight(mission, None, **flight_args)
     except MissionError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -108,10 +108,6 @@ def cmd_agent(args: argparse.Namespace) -> int:
         print(f"agent {args.id}: {res.error}; {what}", file=sys.stderr)
         return 1
     return 0 if status["complete"] else 1
-
-
-def _to_stderr(line: str) -> None:
-    print(line, file=sys.stderr)
 
 
 def cmd_abort(args: argparse.Namespace) -> int:

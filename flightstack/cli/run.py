@@ -179,7 +179,7 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
         taps=[tap] if tap is not None else (),
         progress=_progress_factory(bars) if want_progress(args.progress) else None,
         plots=True,
-        say=_to_stderr,
+        say=to_stderr,
     )
     try:
         with flight:
@@ -285,7 +285,8 @@ def speed_lines(m: dict[str, Any], command_s: float) -> list[str]:
     return lines
 
 
-def _to_stderr(line: str) -> None:
+def to_stderr(line: str) -> None:
+    """A status line of the flight (Flight's `say`), on stderr."""
     print(line, file=sys.stderr)
 
 

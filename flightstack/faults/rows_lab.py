@@ -220,7 +220,7 @@ def loop_stall(mission_path: Path, workdir: Path) -> FaultResult:
 
         def inject(backend: Any) -> None:
             for i, d in backend.drones.items():
-                ports[i] = {d._chan._sock.getsockname()[1]}
+                ports[i] = {d.link.chan._sock.getsockname()[1]}
             wait_then(lab, marks, lambda: holder["bus"].arm(time.monotonic()))
 
         run = fly_inprocess(lab, root / "run", injector=inject, bus_wrapper=wrap)

@@ -74,16 +74,16 @@ def _inject_thread_errors(backend: Any) -> dict[str, Any]:
     watch: name -> (Counter, key, expected count)."""
     watch: dict[str, Any] = {}
     drones = backend.drones
-    rx = next(iter(drones.values()))._rx  # one state receiver per state port (station mode: shared)
+    rx = next(iter(drones.values())).link.rx  # one state receiver per state port (station mode: shared)
     rx._sock = FaultySocket(rx._sock, recvfrom=INJECTED["state receiver recv_error"])
     watch["state receiver"] = (rx.counts, "recv_error", INJECTED["state receiver recv_error"])
     for i, d in drones.items():
-        chan = d._chan
+        chan = d.link.chan
         n_recv, n_send = INJECTED["command channel recv_error"], INJECTED["command channel send_error"]
         chan._sock = FaultySocket(chan._sock, recv=n_recv, send=n_send)
         watch[f"drone {i} command channel (recv)"] = (chan.counts, "recv_error", n_recv)
         watch[f"drone {i} command channel (send)"] = (chan.counts, "send_error", n_send)
-        real_step, boom = d._monitor_step, [0]
+        real_step, boom = d.watchdog.step, [0]
 
         def step(now: float, real: Callable[[float], None] = real_step, n: list[int] = boom) -> None:
             if n[0] < INJECTED["monitor_error"]:
@@ -91,7 +91,7 @@ def _inject_thread_errors(backend: Any) -> dict[str, Any]:
                 raise OSError(errno.ENETUNREACH, "Network is unreachable (injected)")
             real(now)
 
-        d._monitor_step = step
+        d.watchdog.step = step  # the watchdog thread calls self.step: this instance attribute
         watch[f"drone {i} monitor"] = (d.counts, "monitor_error", INJECTED["monitor_error"])
         cam = backend.cameras[i]
         if cam._rx is not None:
@@ -117,9 +117,10 @@ def _threads_alive(backend: Any) -> dict[str, bool]:
     """Thread name -> alive, for every background thread of the backend's drivers."""
     out: dict[str, bool] = {}
     for i, d in backend.drones.items():
-        out[f"drone {i} state receiver"] = d._rx is not None and d._rx._thread.is_alive()
-        out[f"drone {i} command channel"] = d._chan is not None and d._chan._thread.is_alive()
-        out[f"drone {i} monitor"] = d._monitor is not None and d._monitor.is_alive()
+        rx, chan = d.link.rx, d.link.chan
+        out[f"drone {i} state receiver"] = rx is not None and rx._thread.is_alive()
+        out[f"drone {i} command channel"] = chan is not None and chan._thread.is_alive()
+        out[f"drone {i} monitor"] = d.watchdog.running()
         cam = backend.cameras[i]
         out[f"drone {i} video"] = cam._rx is not None and cam._rx.alive()
     if backend.robot is not None:
