@@ -248,6 +248,27 @@ def test_the_predicted_path_is_the_simulators() -> None:
         assert ((path[:, 0] >= lo) & (path[:, 0] < hi)).sum() >= sq.gp.samples_per_region
 
 
+def test_a_ctrl_c_while_a_mode_is_assembled_still_writes_an_interrupted_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A SIGINT can arrive before the runner's handlers are in place (the kernels loading on a busy
+    computer): the flight ends as interrupted and metrics.json says so."""
+    calls: list[str] = []
+
+    def interrupted(*args: Any, **kwargs: Any) -> Any:
+        calls.append(args[1])
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("flightstack.runtime.flight.assemble_fleet", interrupted)
+    out = tmp_path / "run"
+    code = cli.main(
+        ["sim", "paper_sim", "--duration", "0.1", "--modes", "none", "--out", str(out), "--no-progress"]
+    )
+    assert code == 130 and calls == ["none"]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["interrupted"] is True and m["modes"] == {}
+
+
 def test_cli_refuses_a_run_too_short_to_train_before_flying(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -230,8 +230,9 @@ class Flight:
         """Every mode of `self.modes` (the data run first, then training), then the metrics; with a run
         directory, everything written there (metrics.json last: "recording" says whether the recording is
         complete, also when metrics.json itself could not be written; the plots if asked). Stops at the
-        first mode that was interrupted or ended in an error (the recordings so far are kept). Raises
-        MissionError before anything flies when the recordings would not fit in memory."""
+        first mode that was interrupted or ended in an error (the recordings so far are kept; a Ctrl-C
+        outside a mode's flight, e.g. while its fleet is assembled or in training, ends it the same
+        way). Raises MissionError before anything flies when the recordings would not fit in memory."""
         check_recording_fits(self.mission)
         mission, res = self.mission, FlightResult()
         wall0 = time.perf_counter()
@@ -241,14 +242,17 @@ class Flight:
             missing = set(self.ids) - set(res.experts)
             if missing:
                 raise MissionError(f"gp.experts_file has no expert for drone(s) {sorted(missing)}")
-        for mode in self.modes:
-            rec = self.fly_mode(mode, self._predictors(mode, res))
-            res.recordings[mode] = rec
-            if rec.interrupted or rec.error:
-                res.interrupted, res.error = rec.interrupted, rec.error
-                break
-            if mode == Mode.NONE and needs_training and not self._train(rec, res):
-                break
+        try:
+            for mode in self.modes:
+                rec = self.fly_mode(mode, self._predictors(mode, res))
+                res.recordings[mode] = rec
+                if rec.interrupted or rec.error:
+                    res.interrupted, res.error = rec.interrupted, rec.error
+                    break
+                if mode == Mode.NONE and needs_training and not self._train(rec, res):
+                    break
+        except KeyboardInterrupt:  # between modes, in training, or while a mode's fleet was assembled
+            res.interrupted = True  # (run_mode lands and records a Ctrl-C once its fleet flies)
         res.metrics = build_metrics(
             mission,
             res.recordings,
