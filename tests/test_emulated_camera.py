@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 import multiprocessing
 import socket
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -135,3 +137,43 @@ def test_the_paper_experiment_flies_closed_loop_on_the_emulated_lab(tmp_path: Pa
     assert m["visible_fraction"]["1"] >= 0.8, m["visible_fraction"]
     assert m["mean_position_error_m"] < 0.3, m["mean_position_error_m"]
     assert not multiprocessing.active_children()  # no camera process outlives the lab
+
+
+ORPHAN_SCRIPT = """
+import os, sys
+from flightstack.sim_backend.emulators.tello_video_process import SharedTarget, VideoProcess
+from tests.test_emulated_camera import down_camera
+cam = VideoProcess(down_camera(), "127.0.0.12", ("127.0.0.1", int(sys.argv[1])), SharedTarget())
+cam.start()
+cam.wait_ready()
+print(cam.process.pid, flush=True)
+os._exit(0)  # the parent dies without closing anything
+"""
+
+
+def running(pid: int) -> bool:
+    """pid exists and is not a zombie."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def test_a_camera_process_exits_when_its_parent_dies(safety_bound: Bound) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-c", ORPHAN_SCRIPT, str(free_udp_port())],
+        stdout=subprocess.PIPE, text=True, cwd=Path(__file__).parent.parent,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        pid = int(proc.stdout.readline().split()[0])  # the child's pid, once it is ready
+        assert proc.wait(timeout=30) == 0
+        t0 = time.monotonic()
+        assert wait_until(lambda: not running(pid), 5.0), f"camera process {pid} outlived its parent"
+        safety_bound("orphaned camera process exits after", 1e3 * (time.monotonic() - t0), 1000.0)
+    finally:
+        proc.kill()
+        proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
