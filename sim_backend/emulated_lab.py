@@ -11,6 +11,11 @@ The emulators ship in the package (flightstack.sim_backend.emulators) and are im
 when a lab starts. Without the optional packages av, motioncapture and pymavlink, starting a lab raises
 `LabUnavailableError` saying what is missing (the row then reports a crash).
 
+Cameras: with an experiment (`flightstack run EXP --rig emulated-lab`) every drone's camera renders what it
+sees of the flight through its mount's calibration, at 30 fps, in a child process per drone
+(`emulators/tello_video_process.py`; the lab publishes the rover's pose to them every 10 ms); the fault
+table keeps a fixed view of the markers (`marker_image`), rendered in the emulators' own threads.
+
 Addresses (all 127.0.0.0/8): the Tellos own 127.0.0.6 and 127.0.0.7 (`config.rig.emulated_tello_ip`), each
 on a free port, so two labs can fly at once (station mode: both send their state
 to one free port of 127.0.0.1); NatNet and the rover use 127.0.0.1 with OS-assigned ports; the operator
@@ -454,6 +459,8 @@ class EmulatedLab:
                 "errors": list(e.errors),
                 "landed_by_timeout": e.landed_by_timeout,
                 "state_packets_sent": e.state_packets_sent,
+                "video_frames_sent": e.video_frames_sent,
+                "video_capture_to_send_s_p50": _p50([ts - tc for _, tc, ts in list(e.video_capture_log)]),
             }
         if self.rover is not None:
             out["rover"] = {"armed": bool(self.rover.armed), "setpoints": len(self.rover.setpoint_records())}
@@ -466,6 +473,11 @@ class EmulatedLab:
 
 
 # ---- measurements on emulator records ----------------------------------------------------------------------
+def _p50(values: list[float]) -> float | None:
+    """The median of values (s, rounded to 0.1 ms), None when empty."""
+    return round(float(np.median(values)), 4) if values else None
+
+
 def _phase_start(emu: Any, phase: str) -> float:
     """The latest time the emulator entered `phase` (s), -inf if never."""
     times = [t for t, p in list(emu.phase_log) if p == phase]
