@@ -132,15 +132,22 @@ class VideoReceiver:
 class TelloCamera:
     """hal.Camera over the Tello's video stream (forward, or downward on the EDU with `downvision 1`).
 
-    Frames are RGB uint8, each stamped with the time.monotonic() (s) at which it was decoded; `frames_seen`
-    counts the distinct frames returned by `latest()`; `counts` holds the receiver's counters (module
-    docstring), kept across restarts.
+    Frames are RGB uint8, each stamped with its estimated capture time: the time.monotonic() (s) at which
+    it was decoded minus `latency_s` (the configured capture → decode latency; 0 by default, so the stamp
+    is the decode time). The emulated lab records every frame's true capture time beside it
+    (TelloEmulator.video_capture_log), so the estimate can be checked. `frames_seen` counts the distinct
+    frames returned by `latest()`; `counts` holds the receiver's counters (module docstring), kept across
+    restarts.
     """
 
-    def __init__(self, driver: TelloDriver, frame_timeout_s: float = 10.0) -> None:
-        """frame_timeout_s: how long `start()` waits for the first decoded frame (s)."""
+    def __init__(self, driver: TelloDriver, frame_timeout_s: float = 10.0, latency_s: float = 0.0) -> None:
+        """frame_timeout_s: how long `start()` waits for the first decoded frame (s); latency_s: subtracted
+        from the decode time to stamp a frame (s, ≥ 0)."""
+        if not (latency_s >= 0.0 and latency_s < 10.0):
+            raise ValueError(f"latency_s must be in [0, 10) s, got {latency_s}")
         self.driver = driver
         self.frame_timeout_s = frame_timeout_s
+        self.latency_s = float(latency_s)
         self.counts: Counter[str] = Counter()
         self._rx: VideoReceiver | None = None
         self._last_seq = 0
@@ -184,11 +191,11 @@ class TelloCamera:
         item = None if rx is None else rx.latest()
         if item is None:
             return None
-        seq, stamp, img = item
+        seq, t_decoded, img = item
         if seq != self._last_seq:
             self._last_seq = seq
             self.frames_seen += 1
-        return Frame(stamp, img, None)
+        return Frame(t_decoded - self.latency_s, img, None)
 
     def stop(self, streamoff_timeout_s: float = 1.0) -> None:
         """Stop decoding and ask the drone to stop streaming (`streamoff`, bounded, failure ignored: the

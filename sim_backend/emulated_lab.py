@@ -11,6 +11,11 @@ The emulators ship in the package (flightstack.sim_backend.emulators) and are im
 when a lab starts. Without the optional packages av, motioncapture and pymavlink, starting a lab raises
 `LabUnavailableError` saying what is missing (the row then reports a crash).
 
+Cameras: with an experiment (`flightstack run EXP --rig emulated-lab`) every drone's camera renders what it
+sees of the flight through its mount's calibration, at 30 fps, in a child process per drone
+(`emulators/tello_video_process.py`; the lab publishes the rover's pose to them every 10 ms); the fault
+table keeps a fixed view of the markers (`marker_image`), rendered in the emulators' own threads.
+
 Addresses (all 127.0.0.0/8): the Tellos own 127.0.0.6 and 127.0.0.7 (`config.rig.emulated_tello_ip`), each
 on a free port, so two labs can fly at once (station mode: both send their state
 to one free port of 127.0.0.1); NatNet and the rover use 127.0.0.1 with OS-assigned ports; the operator
@@ -26,6 +31,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager, suppress
@@ -54,9 +60,13 @@ LEVEL = (1.0, 0.0, 0.0, 0.0)
 MISSIONS = MISSION_CONFIGS
 CALIBRATION = MISSIONS / "cameras" / "tello_down_sim.yaml"
 VIDEO_SIZE = (320, 240)
-"""Frame size (px) of the emulated downward cameras (that of CALIBRATION)."""
+"""Frame size (px) of the fixed marker view (that of CALIBRATION)."""
 VIDEO_FPS = 15.0
-"""Emulated video rate (frames/s): enough for the agents (max_frame_age_s 0.5 s), light on 2 cores."""
+"""Rate of the fixed marker view (frames/s)."""
+LIVE_VIDEO_FPS = 30.0
+"""Rate of the cameras that render the flight (frames/s): the Tello's; each at its calibration's size."""
+TARGET_PERIOD_S = 0.01
+"""How often the lab publishes the rover's pose to the camera processes (s)."""
 TRUTH_PERIOD_S = 0.05
 """How often the lab samples each drone's true position for the fence judgement (s)."""
 
@@ -81,11 +91,14 @@ def load_emulators() -> SimpleNamespace:
     from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
     from flightstack.sim_backend.emulators.natnet import NatNetEmulator
     from flightstack.sim_backend.emulators.tello import TelloEmulator
+    from flightstack.sim_backend.emulators.tello_video_process import SharedTarget, VideoProcess
 
     return SimpleNamespace(
         TelloEmulator=TelloEmulator,
         NatNetEmulator=NatNetEmulator,
         MavlinkRoverEmulator=MavlinkRoverEmulator,
+        SharedTarget=SharedTarget,
+        VideoProcess=VideoProcess,
     )
 
 
@@ -135,9 +148,14 @@ class EmulatedLab:
     motion-capture position from the moment it is set (a drone displaced as motion capture sees it).
 
     experiment: a resolved mission document on the emulated-lab rig (`flightstack run EXP --rig
-    emulated-lab`): its drones, modes and camera mounts are flown as they are; a drone that sees the target
-    with a downward camera streams the fixed marker view, every other camera an empty floor. Without it
-    (the fault table): the paper experiment, mode `none`, both cameras downward and both see the markers.
+    emulated-lab`): its drones, modes and camera mounts are flown as they are, and every camera renders
+    what it sees of the flight (live cameras, below). Without it (the fault table): the paper experiment,
+    mode `none`, both cameras downward, both streaming a fixed view of the markers (15 fps, 320×240,
+    rendered in the emulators' threads) that the fault rows were judged with.
+
+    live_cameras (default: with an experiment): each drone's camera is its calibration (intrinsics,
+    distortion, size) on its mount, rendered from the drone's true pose and the rover's, at 30 fps, in a
+    child process per drone (tello_video_process.VideoProcess); `cameras[i]` is drone i's process handle.
     """
 
     def __init__(
@@ -148,6 +166,7 @@ class EmulatedLab:
         tello: dict[int, dict[str, Any]] | None = None,
         mission_edit: Callable[[dict[str, Any]], None] | None = None,
         experiment: dict[str, Any] | None = None,
+        live_cameras: bool | None = None,
     ) -> None:
         self.workdir = Path(workdir).resolve()  # the mission written there names its files absolutely
         self._experiment = experiment
@@ -168,6 +187,11 @@ class EmulatedLab:
         """(time.monotonic(), drone id, true position (m, world)) about every TRUTH_PERIOD_S per drone:
         where the emulator flies the drone, without `mocap_offset`."""
         self._truth_t: dict[int, float] = {}
+        self.live_cameras = experiment is not None if live_cameras is None else bool(live_cameras)
+        self.cameras: dict[int, Any] = {}
+        self._target: Any = None
+        self._publisher: threading.Thread | None = None
+        self._stop = threading.Event()
 
     # ---- lifecycle -------------------------------------------------------------------------------------
     def __enter__(self) -> EmulatedLab:
@@ -187,20 +211,38 @@ class EmulatedLab:
         """Start every emulator and write the mission (LabUnavailableError outside a checkout)."""
         emu = load_emulators()
         self.workdir.mkdir(parents=True, exist_ok=True)
-        image = marker_image()
-        empty = np.full_like(image, 96)  # a grey floor without markers
         state_port = free_udp_port()
-        for i, ip in self.ips.items():
-            frame = image if self._sees_markers(i) else empty
-            kw: dict[str, Any] = {
-                "state_port": state_port,
-                "video_port": free_udp_port(),
-                "frame_source": lambda t, e, img=frame: img,
-                "video_size": VIDEO_SIZE,
-                "fps": VIDEO_FPS,
-            }
-            kw.update(self._tello_kw.get(i, {}))
-            self.tellos[i] = emu.TelloEmulator(ip, **kw)
+        if self.live_cameras:
+            self._target = emu.SharedTarget()
+            for i, ip in self.ips.items():
+                port = free_udp_port()
+                cam = emu.VideoProcess(
+                    self.camera_spec(i), ip, ("127.0.0.1", port), self._target, fps=LIVE_VIDEO_FPS
+                )
+                kw: dict[str, Any] = {
+                    "state_port": state_port,
+                    "video_port": port,
+                    "video_size": cam.size,
+                    "fps": LIVE_VIDEO_FPS,
+                }
+                kw.update(self._tello_kw.get(i, {}))
+                self.tellos[i] = emu.TelloEmulator(ip, **kw)
+                self.tellos[i].use_remote_video(cam)
+                self.cameras[i] = cam
+        else:
+            image = marker_image()
+            empty = np.full_like(image, 96)  # a grey floor without markers
+            for i, ip in self.ips.items():
+                frame = image if self._sees_markers(i) else empty
+                kw = {
+                    "state_port": state_port,
+                    "video_port": free_udp_port(),
+                    "frame_source": lambda t, e, img=frame: img,
+                    "video_size": VIDEO_SIZE,
+                    "fps": VIDEO_FPS,
+                }
+                kw.update(self._tello_kw.get(i, {}))
+                self.tellos[i] = emu.TelloEmulator(ip, **kw)
         bodies = {self.body(i): i for i in self.ips}
         self.natnet = emu.NatNetEmulator(
             {
@@ -216,6 +258,16 @@ class EmulatedLab:
         self.natnet.set_pose_provider("scamper", self._rover_pose)
         for name, i in bodies.items():
             self.natnet.set_pose_provider(name, lambda i=i: self._drone_pose(i))
+        if self._target is not None:
+            self._publish_target()
+            for cam in self.cameras.values():  # the children import in parallel
+                cam.start()
+            for cam in self.cameras.values():
+                cam.wait_ready()
+            self._publisher = threading.Thread(
+                target=self._target_loop, name="emulated-lab-target", daemon=True
+            )
+            self._publisher.start()
         for e in self.tellos.values():
             e.start()
         self.natnet.start()
@@ -233,14 +285,65 @@ class EmulatedLab:
         d = next(d for d in self._experiment["drones"] if int(d["id"]) == i)
         return bool(d.get("sees_target", True)) and (d.get("camera") or {}).get("mount", "down") == "down"
 
+    def _drone_doc(self, i: int) -> dict[str, Any]:
+        assert self._experiment is not None
+        return dict(next(d for d in self._experiment["drones"] if int(d["id"]) == i))
+
+    def calibration_path(self, i: int) -> Path:
+        """Drone i's camera calibration: the experiment's (the rig's for its mount), else CALIBRATION."""
+        if self._experiment is None or not self.live_cameras:
+            return CALIBRATION
+        return Path(self._drone_doc(i)["camera"]["calibration"])
+
+    def camera_spec(self, i: int) -> Any:
+        """What drone i's live camera sees: its calibration on its mount, the experiment's markers (the
+        render's marker radius; no pixel noise: the H.264 encoding makes its own), its start pose."""
+        from flightstack.config.mission import CAMERA_MOUNTS
+        from flightstack.sim_backend.emulators.tello_view import CameraSpec
+        from flightstack.vision.camera_file import load_calibration
+
+        doc = self._experiment or {}
+        cam = self._drone_doc(i).get("camera") or {} if self._experiment is not None else {}
+        mount = str(cam.get("mount", "down"))
+        p0 = (doc.get("target") or {}).get("feature_points") or [
+            [0.1, 0.1, 0.15], [-0.1, 0.1, 0.15], [-0.1, -0.1, 0.15], [0.1, -0.1, 0.15]
+        ]  # fmt: skip
+        radius = ((doc.get("sim") or {}).get("render") or {}).get("marker_radius_m", 0.03)
+        (x, y, z), yaw = self.starts[i]
+        return CameraSpec(
+            calibration=load_calibration(self.calibration_path(i)).to_dict(),
+            R_ic=tuple(tuple(float(v) for v in row) for row in CAMERA_MOUNTS[mount]),
+            t_ic=tuple(float(v) for v in cam.get("offset", (0.0, 0.0, 0.0))),
+            feature_points=tuple(tuple(float(v) for v in q) for q in p0),
+            start=(float(x), float(y), float(z), float(yaw)),
+            marker_radius_m=float(radius),
+            seed=int(doc.get("seed", 0)) * 100 + i,
+        )
+
     def close(self) -> None:
-        """Stop every emulator (bounded joins); idempotent."""
+        """Stop every emulator and camera process (bounded joins); idempotent."""
+        self._stop.set()
+        if self._publisher is not None:
+            self._publisher.join(timeout=1.0)
         for e in self.tellos.values():
             e.close()
+        for cam in self.cameras.values():
+            cam.close()
         if self.natnet is not None:
             self.natnet.close()
         if self.rover is not None:
             self.rover.close()
+
+    # ---- the live cameras' target ----------------------------------------------------------------------
+    def _publish_target(self) -> None:
+        g, q = self._rover_pose()
+        self._target.write(float(g[0]), float(g[1]), 2.0 * math.atan2(q[3], q[0]))
+
+    def _target_loop(self) -> None:
+        """Publish the rover's pose to the camera processes every TARGET_PERIOD_S until close."""
+        while not self._stop.wait(TARGET_PERIOD_S):
+            with suppress(Exception):  # a rover not yet up: the cameras keep its last pose
+                self._publish_target()
 
     # ---- motion capture --------------------------------------------------------------------------------
     def _rover_pose(self) -> tuple[Any, tuple[float, float, float, float]]:
@@ -253,12 +356,11 @@ class EmulatedLab:
     def _drone_pose(self, i: int) -> tuple[Any, tuple[float, float, float, float]]:
         """Drone i's mocap pose: the emulator flies (x forward, y right, z up) cm, yaw clockwise deg, from
         its start; the world is FLU (y left, yaw counter-clockwise); plus `mocap_offset[i]`."""
-        from flightstack.paper.geometry import Pose, compose
+        from flightstack.sim_backend.emulators.tello_view import drone_world_pose
 
         emu = self.tellos[i]
-        x, y, z = emu.position_cm
-        start = Pose.make(list(self.starts[i][0]), self.starts[i][1])
-        g = compose(start, Pose.make([x / 100.0, -y / 100.0, z / 100.0], -math.radians(emu.yaw_deg)))
+        (x0, y0, z0), yaw0 = self.starts[i]
+        g = drone_world_pose((x0, y0, z0, yaw0), emu.position_cm, emu.yaw_deg)
         now = time.monotonic()
         if now - self._truth_t.get(i, -math.inf) >= TRUTH_PERIOD_S:
             self._truth_t[i] = now
@@ -273,10 +375,14 @@ class EmulatedLab:
         from flightstack.config.rig import emulated_hardware, resolved_document
         from flightstack.vision.camera_file import load_calibration
 
-        cal = load_calibration(CALIBRATION).to_dict()
-        cal["rms_px"] = 0.3  # a measured calibration (preflight fails on the never-measured templates)
-        cal["device"] = "emulated tello"
-        (self.workdir / "cal.yaml").write_text(yaml.safe_dump(cal, sort_keys=False))
+        cal_files = {}
+        for i in self.tellos:
+            cal = load_calibration(self.calibration_path(i)).to_dict()
+            cal["rms_px"] = 0.3  # a measured calibration (preflight fails on the never-measured templates)
+            cal["device"] = "emulated tello"
+            name = "cal.yaml" if self.calibration_path(i) == CALIBRATION else f"cal_{i}.yaml"
+            cal_files[i] = self.workdir / name
+            cal_files[i].write_text(yaml.safe_dump(cal, sort_keys=False))
         if self._experiment is not None:
             m = dict(self._experiment)
         else:
@@ -289,7 +395,7 @@ class EmulatedLab:
         m["start_emulators"] = False  # it flies the emulators running here (`run` must not start its own)
         m["bus"] = {**m.get("bus", {}), "kind": "inproc", "operator_port": self.operator_port}
         for d in m["drones"]:
-            d["camera"]["calibration"] = str(self.workdir / "cal.yaml")
+            d["camera"]["calibration"] = str(cal_files[int(d["id"])])
         first = next(iter(self.tellos.values()))
         ports = {
             "state_port": first.state_port,
@@ -353,6 +459,8 @@ class EmulatedLab:
                 "errors": list(e.errors),
                 "landed_by_timeout": e.landed_by_timeout,
                 "state_packets_sent": e.state_packets_sent,
+                "video_frames_sent": e.video_frames_sent,
+                "video_capture_to_send_s_p50": _p50([ts - tc for _, tc, ts in list(e.video_capture_log)]),
             }
         if self.rover is not None:
             out["rover"] = {"armed": bool(self.rover.armed), "setpoints": len(self.rover.setpoint_records())}
@@ -365,6 +473,11 @@ class EmulatedLab:
 
 
 # ---- measurements on emulator records ----------------------------------------------------------------------
+def _p50(values: list[float]) -> float | None:
+    """The median of values (s, rounded to 0.1 ms), None when empty."""
+    return round(float(np.median(values)), 4) if values else None
+
+
 def _phase_start(emu: Any, phase: str) -> float:
     """The latest time the emulator entered `phase` (s), -inf if never."""
     times = [t for t, p in list(emu.phase_log) if p == phase]

@@ -18,7 +18,7 @@ from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
 from flightstack.events import Event
 from flightstack.hal import DroneState, Frame, StampedPose
-from flightstack.paper.geometry import Pose, integrate_body_velocity, relative, rot_z
+from flightstack.paper.geometry import Pose, integrate_body_velocity, relative
 from flightstack.vision.camera_file import CameraCalibration
 
 
@@ -238,12 +238,10 @@ class RenderedCamera:
         self.frames = 0
 
     def latest(self) -> Frame:
-        from flightstack.sim_backend.render import render_markers
+        from flightstack.sim_backend.render import markers_in_camera, render_markers
 
         g_i0 = relative(self.world.drones[self.id].pose, self.world.robot.pose)
-        R = rot_z(g_i0.theta)
-        centres_c = ((self.P0 @ R.T + g_i0.p) - self.t_ic) @ self.R_ic
-        normal_c = np.tile(self.R_ic.T @ R @ np.array([0.0, 0.0, 1.0]), (len(self.P0), 1))
+        centres_c, normal_c = markers_in_camera(g_i0, self.P0, self.R_ic, self.t_ic)
         image, _, _ = render_markers(self.cal, centres_c, normal_c, self.opts, self.rng)
         self.frames += 1
         return Frame(self.world.t, image, None)

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from flightstack.paper.geometry import Pose, rot_z
 from flightstack.vision.camera_file import CameraCalibration
 
 #: Discs closer than this to the camera plane (metres along z) are clipped away.
@@ -231,6 +232,21 @@ def _gaussian_noise_int16(rng: np.random.Generator, n: int, std: float) -> np.nd
     table = np.clip(np.round(std * _GAUSS_QUANTILES), -32768, 32767).astype(np.int16)
     idx = rng.bit_generator.random_raw((n + 3) // 4).view(np.uint16)[:n]
     return np.take(table, idx)
+
+
+def markers_in_camera(
+    g_i0: Pose, P0: np.ndarray, R_ic: np.ndarray, t_ic: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(centres_c, normals_c), both (m, 3), of the target's markers in the camera frame Σc (metres).
+
+    g_i0: the target's pose in the drone's body frame (FLU, metres, radians); P0: (m, 3) marker centres
+    in the target's frame; R_ic, t_ic: the camera's mount (columns = Σc axes in the body frame) and its
+    offset (m, body frame). The discs lie flat on the target (normal = the target's z axis).
+    """
+    R = rot_z(g_i0.theta)
+    centres_c = ((P0 @ R.T + g_i0.p) - t_ic) @ R_ic
+    normals_c = np.tile(R_ic.T @ R @ np.array([0.0, 0.0, 1.0]), (len(P0), 1))
+    return centres_c, normals_c
 
 
 def render_markers(

@@ -39,6 +39,7 @@ SYSTEM_MODULES = frozenset(
         "test_attacker",
         "test_cli_sim",
         "test_decoders_property",  # hypothesis fuzzing of every decoder (~25 s)
+        "test_emulated_camera",
         "test_ci_venv",
         "test_clock_offset",
         "test_closed_loop_square",

@@ -142,6 +142,8 @@ class TelloEmulatorBase:
         self.video_frame_index = -1
         self.video_log: deque[tuple[int, float]] = deque(maxlen=2000)
         """``(frame index, time.monotonic() when sent)`` of the most recent video frames."""
+        self.video_capture_log: deque[tuple[int, float, float]] = deque(maxlen=20000)
+        """``(frame index, true capture time, send time)`` (time.monotonic() s) of the most recent frames."""
 
         self.sdk_mode = False
         self.streaming = False

@@ -5,15 +5,21 @@ frame ``n``; frames of ``video_size = (width, height)`` pixels, see ``tello_fram
 libx264 (ultrafast, zerolatency, repeat-headers, ``gop_size`` frames between keyframes) and sends the raw
 Annex-B byte stream in datagrams of at most ``MAX_VIDEO_DATAGRAM`` bytes to ``(client_ip, video_port)``.
 A new ``streamon`` restarts the encoder (a new stream epoch); a late thread skips frames rather than
-bursting.  `TelloVideoStream` is one layer of ``TelloEmulator`` (``tello_emulator``).
+bursting. Every frame sent is logged with its capture time (``video_capture_log``: index, the
+time.monotonic() s at which its content was taken, the time it was sent). With ``use_remote_video`` the
+video is made elsewhere (``tello_video_process``: the emulated lab's cameras that render the flight, in a
+child process) and this thread only feeds it the stream state and the true pose. `TelloVideoStream` is one
+layer of ``TelloEmulator`` (``tello_emulator``); ``make_encoder`` and ``send_frame`` are shared with the
+child process.
 """
 
 from __future__ import annotations
 
 import contextlib
+import socket
 import time
 from fractions import Fraction
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -23,21 +29,64 @@ MAX_VIDEO_DATAGRAM = 1460
 """Largest video datagram payload, like the real drone."""
 
 
+def make_encoder(size: tuple[int, int], fps: float, gop_size: int) -> Any:
+    """A libx264 encoder as the emulator streams: `size` (width, height) px, `fps` frames/s, a keyframe
+    every `gop_size` frames, ultrafast, zerolatency, SPS/PPS repeated before every keyframe."""
+    import av  # local import: only needed when streaming
+
+    ctx = av.CodecContext.create("libx264", "w")
+    ctx.width, ctx.height = size
+    ctx.pix_fmt = "yuv420p"
+    rate = Fraction(fps).limit_denominator(1001)
+    ctx.framerate = rate
+    ctx.time_base = 1 / rate
+    ctx.gop_size = gop_size
+    ctx.options = {"preset": "ultrafast", "tune": "zerolatency", "x264-params": "repeat-headers=1"}
+    return ctx
+
+
+def send_frame(encoder: Any, sock: socket.socket, dest: tuple[str, int], img: np.ndarray, index: int) -> int:
+    """Encode RGB `img` as frame `index` and send its Annex-B bytes to `dest` in datagrams of at most
+    MAX_VIDEO_DATAGRAM bytes (a refused send is ignored: nobody listening yet is fine); the bytes sent."""
+    import av
+
+    frame = av.VideoFrame.from_ndarray(img, format="rgb24")
+    frame.pts = index
+    sent = 0
+    for packet in encoder.encode(frame):
+        payload = bytes(packet)
+        for offset in range(0, len(payload), MAX_VIDEO_DATAGRAM):
+            with contextlib.suppress(OSError):
+                sock.sendto(payload[offset : offset + MAX_VIDEO_DATAGRAM], dest)
+        sent += len(payload)
+    return sent
+
+
+class RemoteVideo(Protocol):
+    """Video made outside the emulator's process (tello_video_process.VideoProcess): the emulator's video
+    thread publishes its stream state and true pose to it and copies its counters back."""
+
+    def publish(
+        self, on: bool, epoch: int, downvision: bool, position_cm: tuple[float, float, float], yaw_deg: float
+    ) -> None: ...
+
+    def sync(self, emu: TelloEmulatorBase) -> None: ...
+
+
 class TelloVideoStream(TelloEmulatorBase):
     """The video thread of the emulator (``_video_loop``) and its encoder, renderer and sender."""
 
-    def _make_encoder(self) -> Any:
-        import av  # local import: only needed when streaming
+    remote_video: RemoteVideo | None = None
+    """Set by `use_remote_video` before `start()`: the video is rendered, encoded and sent by it."""
 
-        ctx = av.CodecContext.create("libx264", "w")
-        ctx.width, ctx.height = self.video_size
-        ctx.pix_fmt = "yuv420p"
-        rate = Fraction(self.fps).limit_denominator(1001)
-        ctx.framerate = rate
-        ctx.time_base = 1 / rate
-        ctx.gop_size = self.gop_size
-        ctx.options = {"preset": "ultrafast", "tune": "zerolatency", "x264-params": "repeat-headers=1"}
-        return ctx
+    def use_remote_video(self, remote: RemoteVideo) -> None:
+        """Let `remote` make the video (call before `start()`); this emulator then only feeds it."""
+        if self._started:
+            raise RuntimeError("use_remote_video must be called before start()")
+        self.remote_video = remote
+
+    def _make_encoder(self) -> Any:
+        return make_encoder(self.video_size, self.fps, self.gop_size)
 
     def _render(self, t: float) -> np.ndarray | None:
         img = np.asarray(self.frame_source(t, self))
@@ -49,24 +98,31 @@ class TelloVideoStream(TelloEmulatorBase):
             return None
         return np.ascontiguousarray(img)
 
-    def _send_frame(self, encoder: Any, img: np.ndarray, index: int) -> None:
-        import av
-
-        frame = av.VideoFrame.from_ndarray(img, format="rgb24")
-        frame.pts = index
+    def _send_frame(self, encoder: Any, img: np.ndarray, index: int, t_capture: float) -> None:
         sock = self._tx_sock
         assert sock is not None
-        dest = (self.client_ip, self.video_port)
-        for packet in encoder.encode(frame):
-            payload = bytes(packet)
-            for offset in range(0, len(payload), MAX_VIDEO_DATAGRAM):
-                with contextlib.suppress(OSError):  # nobody listening yet is fine
-                    sock.sendto(payload[offset : offset + MAX_VIDEO_DATAGRAM], dest)
-            self.video_bytes_sent += len(payload)
+        self.video_bytes_sent += send_frame(encoder, sock, (self.client_ip, self.video_port), img, index)
         self.video_frames_sent += 1
-        self.video_log.append((index, time.monotonic()))
+        sent = time.monotonic()
+        self.video_log.append((index, sent))
+        self.video_capture_log.append((index, t_capture, sent))
+
+    def _remote_video_loop(self, remote: RemoteVideo) -> None:
+        """Feed the remote video every 10 ms: stream state and the true pose; copy its counters back."""
+        while not self._stop.is_set():
+            with self._lock:
+                on = self.streaming and not self.faults.no_video
+                epoch, down = self._stream_epoch, self.downvision
+                pos = (float(self._pos[0]), float(self._pos[1]), float(self._pos[2]))
+                yaw = float(self._yaw)
+            remote.publish(on, epoch, down, pos, yaw)
+            remote.sync(self)
+            self._stop.wait(0.01)
 
     def _video_loop(self) -> None:
+        if self.remote_video is not None:
+            self._remote_video_loop(self.remote_video)
+            return
         encoder: Any = None
         epoch = -1
         index = 0
@@ -98,9 +154,10 @@ class TelloVideoStream(TelloEmulatorBase):
             self.video_frame_index = index
             if not self.faults.no_video:
                 try:
+                    t_capture = time.monotonic()
                     img = self._render(t)
                     if img is not None:
-                        self._send_frame(encoder, img, index)
+                        self._send_frame(encoder, img, index, t_capture)
                 except Exception as exc:
                     self.errors.append(f"video frame {index}: {exc!r}")
             index += 1

@@ -1,0 +1,311 @@
+"""An emulated Tello's camera in a child process: it renders what the camera sees of the flight, encodes
+it as H.264 and streams it as the Tello does, without competing with the flight's loop for the
+interpreter lock.
+
+`VideoProcess` (parent side) is the `RemoteVideo` of one `TelloEmulator` (`use_remote_video`): the
+emulator's video thread publishes the stream state (`streamon`, its epoch, `downvision`, the `no_video`
+fault) and its true pose (its own frame: cm, yaw clockwise in degrees) every 10 ms into a shared-memory
+block; `SharedTarget` carries the target's (the rover's) pose in Σw (m, rad), written by the emulated lab
+at 100 Hz and read by every camera. The child (`spawn` start method: no inherited threads or locks)
+paces frames at `fps` from its `streamon`, reads both poses, renders (`tello_view.CameraView`), stamps the
+frame index as a bar code (`tello_frames.stamp_frame_index`), encodes and sends from the drone's
+loopback ip to (client_ip, video_port) with the emulator's own `make_encoder`/`send_frame`.
+
+Capture time: every frame sent is recorded with its true capture time, the time.monotonic() (s; Linux
+CLOCK_MONOTONIC is one clock for every process of the machine) at which the drone pose it shows was
+taken (the target's pose is at most 10 ms apart), and its send time; `sync` copies these records into the
+emulator's `video_capture_log` and `video_log`, its counters (`video_frames_sent`, `video_bytes_sent`,
+`video_frame_index`) and the child's errors (`errors`).
+
+Blocks are float64 arrays with a sequence lock (one writer each: the sequence number is odd while it
+writes); records go to a ring of `RING` entries. Stopping: `close()` sets the stop flag and joins (≤ 2 s),
+then terminates; the child also exits when its parent is gone (its parent pid changes) and ignores SIGINT
+(the parent decides when it stops).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import multiprocessing
+import os
+import signal
+import socket
+import time
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from .tello_base import TelloEmulatorBase
+from .tello_view import CameraSpec
+
+RING = 1 << 15
+"""Capture records kept in shared memory (18 min at 30 fps); `sync` copies them out every 10 ms."""
+START_TIMEOUT_S = 20.0
+"""How long `start()` waits for the child to be ready (imports of numpy, OpenCV and PyAV) (s)."""
+
+# control block (parent writes): sequence, then the fields below; STOP is outside the sequence lock
+_ON, _EPOCH, _DOWN, _X, _Y, _Z, _YAW, _T = range(1, 9)
+_CTRL_N = 9
+_STOP = _CTRL_N
+# stats block (child writes): counters, then the ring of (index, t_capture, t_sent, bytes)
+_READY, _FRAMES, _BYTES, _INDEX, _RECORDS = range(5)
+_STATS_HEAD = 5
+
+
+def f64(raw: Any) -> np.ndarray:
+    """A float64 view of a shared RawArray (no copy)."""
+    return np.frombuffer(raw, dtype=np.float64)
+
+
+class SeqBlock:
+    """A float64 array in shared memory with a sequence lock: one writer, any number of readers."""
+
+    def __init__(self, raw: Any, n: int) -> None:
+        """raw: a multiprocessing RawArray of at least n + 1 doubles; n: fields after the sequence."""
+        self.a = f64(raw)
+        self.n = n
+
+    def write(self, values: list[float]) -> None:
+        a = self.a
+        a[0] += 1.0  # odd: writing
+        a[1 : 1 + len(values)] = values
+        a[0] += 1.0
+
+    def read(self) -> np.ndarray | None:
+        """The fields (a copy), or None when no write has completed yet."""
+        a = self.a
+        for _ in range(1000):
+            s0 = a[0]
+            v = a[1 : 1 + self.n].copy()
+            if s0 == a[0] and s0 % 2 == 0:
+                return None if s0 == 0 else v
+        return None
+
+
+class SharedTarget:
+    """The target's pose in Σw (x, y m; theta rad; the time.monotonic() it was taken), shared with every
+    camera process (write in the parent, read in the children)."""
+
+    def __init__(self) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self.raw = ctx.RawArray(ctypes.c_double, 5)
+        self.block = SeqBlock(self.raw, 4)
+
+    def write(self, x: float, y: float, theta: float) -> None:
+        self.block.write([x, y, theta, time.monotonic()])
+
+
+class VideoProcess:
+    """Parent side of one emulated camera (a `RemoteVideo`, see the module docstring).
+
+    spec: what the camera sees; ip: the drone's loopback address (the video's source); dest: (client ip,
+    video port); fps: frames/s; gop_size: frames between keyframes; target: the shared target pose.
+    """
+
+    def __init__(
+        self,
+        spec: CameraSpec,
+        ip: str,
+        dest: tuple[str, int],
+        target: SharedTarget,
+        *,
+        fps: float = 30.0,
+        gop_size: int = 15,
+    ) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self.spec, self.ip, self.dest, self.fps, self.gop_size = spec, ip, dest, float(fps), int(gop_size)
+        self._ctrl_raw = ctx.RawArray(ctypes.c_double, _CTRL_N + 1)
+        self._stats_raw = ctx.RawArray(ctypes.c_double, _STATS_HEAD + 4 * RING)
+        self.ctrl = SeqBlock(self._ctrl_raw, _CTRL_N - 1)
+        self._stats = f64(self._stats_raw)
+        self._errors_rx, errors_tx = ctx.Pipe(duplex=False)
+        self._target = target
+        self._read = 0  # capture records copied out so far
+        self._t_start = math.nan
+        self.process = ctx.Process(
+            target=_child_main,
+            args=(
+                spec,
+                ip,
+                dest,
+                fps,
+                gop_size,
+                self._ctrl_raw,
+                target.raw,
+                self._stats_raw,
+                errors_tx,
+                os.getpid(),
+            ),
+            name=f"tello-camera-{ip}",
+            daemon=True,
+        )
+        self._errors_tx = errors_tx
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) px of the video: the calibration's."""
+        return self.spec.size
+
+    def start(self) -> None:
+        """Start the child (it imports and warms up in the background: see `wait_ready`)."""
+        self.process.start()
+        self._errors_tx.close()  # the child holds its end
+        self._t_start = time.monotonic()
+
+    def wait_ready(self) -> None:
+        """Return once the child is ready; RuntimeError with its error when it died or after
+        START_TIMEOUT_S from `start` (the child is then stopped)."""
+        deadline = self._t_start + START_TIMEOUT_S
+        while self._stats[_READY] == 0.0:
+            if not self.process.is_alive() or time.monotonic() > deadline:
+                errors = self._drain_errors()
+                self.close()
+                raise RuntimeError(
+                    f"emulated camera of {self.ip} did not start: {'; '.join(errors) or 'timeout'}"
+                )
+            time.sleep(0.01)
+
+    def publish(
+        self, on: bool, epoch: int, downvision: bool, position_cm: tuple[float, float, float], yaw_deg: float
+    ) -> None:
+        """The stream state and the drone's true pose (its own frame), taken now."""
+        x, y, z = position_cm
+        self.ctrl.write([float(on), float(epoch), float(downvision), x, y, z, yaw_deg, time.monotonic()])
+
+    def sync(self, emu: TelloEmulatorBase) -> None:
+        """Copy the child's counters, new capture records and errors into the emulator's logs."""
+        st = self._stats
+        n = int(st[_RECORDS])
+        if n > self._read:
+            ring = st[_STATS_HEAD:].reshape(RING, 4)
+            for k in range(max(self._read, n - RING), n):
+                index, t_cap, t_sent, _ = ring[k % RING]
+                emu.video_log.append((int(index), float(t_sent)))
+                emu.video_capture_log.append((int(index), float(t_cap), float(t_sent)))
+            self._read = n
+        emu.video_frames_sent = int(st[_FRAMES])
+        emu.video_bytes_sent = int(st[_BYTES])
+        emu.video_frame_index = int(st[_INDEX])
+        emu.errors.extend(self._drain_errors())
+
+    def _drain_errors(self) -> list[str]:
+        out = []
+        try:
+            while self._errors_rx.poll():
+                out.append(str(self._errors_rx.recv()))
+        except (EOFError, OSError):
+            pass
+        return out
+
+    @property
+    def alive(self) -> bool:
+        return self.process.is_alive()
+
+    def close(self) -> None:
+        """Stop the child (joined within 2 s, else terminated, then killed); idempotent."""
+        f64(self._ctrl_raw)[_STOP] = 1.0
+        if self.process.pid is not None:
+            self.process.join(timeout=2.0)
+            if self.process.is_alive():
+                self.process.terminate()
+                self.process.join(timeout=1.0)
+            if self.process.is_alive():
+                self.process.kill()
+                self.process.join(timeout=1.0)
+        self._errors_rx.close()
+
+
+# ---- the child ---------------------------------------------------------------------------------------
+def _child_main(
+    spec: CameraSpec,
+    ip: str,
+    dest: tuple[str, int],
+    fps: float,
+    gop_size: int,
+    ctrl_raw: Any,
+    target_raw: Any,
+    stats_raw: Any,
+    errors: Connection,
+    parent: int,
+) -> None:
+    """Render, encode and send frames until the stop flag is set or the parent is gone."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        _run(spec, ip, dest, fps, gop_size, ctrl_raw, target_raw, stats_raw, errors, parent)
+    except Exception as exc:  # reported to the parent, which logs it in the emulator's errors
+        errors.send(f"emulated camera {ip}: {exc!r}")
+    finally:
+        errors.close()
+
+
+def _run(
+    spec: CameraSpec,
+    ip: str,
+    dest: tuple[str, int],
+    fps: float,
+    gop_size: int,
+    ctrl_raw: Any,
+    target_raw: Any,
+    stats_raw: Any,
+    errors: Connection,
+    parent: int,
+) -> None:
+    from flightstack.paper.geometry import Pose
+
+    from .tello_frames import stamp_frame_index
+    from .tello_video import make_encoder, send_frame
+    from .tello_view import CameraView, drone_world_pose
+
+    ctrl = SeqBlock(ctrl_raw, _CTRL_N - 1)
+    stop = f64(ctrl_raw)
+    target = SeqBlock(target_raw, 4)
+    st = f64(stats_raw)
+    ring = st[_STATS_HEAD:].reshape(RING, 4)
+    view = CameraView(spec)
+    view.image(Pose.make([0.0, 0.0, 1.0], 0.0), Pose.make([0.0, 0.0, 0.0], 0.0))  # warm the renderer's caches
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind((ip, 0))
+    period = 1.0 / fps
+    encoder: Any = None
+    epoch, index, t0 = -1.0, 0, 0.0
+    st[_READY] = 1.0
+    try:
+        while stop[_STOP] == 0.0 and os.getppid() == parent:
+            c = ctrl.read()
+            if c is None or c[_ON - 1] == 0.0:
+                encoder = None
+                time.sleep(0.01)
+                continue
+            if encoder is None or c[_EPOCH - 1] != epoch:
+                encoder = make_encoder(spec.size, fps, gop_size)
+                epoch, index, t0 = c[_EPOCH - 1], 0, time.monotonic()
+            now = time.monotonic()
+            due = t0 + index * period
+            if due > now:
+                time.sleep(min(due - now, 0.05))
+                continue
+            if now - due > 3 * period:  # fell behind: skip frames instead of bursting
+                index = int((now - t0) / period)
+            g_wi = drone_world_pose(spec.start, (c[_X - 1], c[_Y - 1], c[_Z - 1]), c[_YAW - 1])
+            tg = target.read()
+            if tg is None:
+                g_w0 = Pose.make([0.0, 0.0, -1e3], 0.0)  # no target yet: far below the floor, unseen
+            else:
+                g_w0 = Pose.make([tg[0], tg[1], 0.0], tg[2])
+            img = view.image(g_wi, g_w0)
+            stamp_frame_index(img, index)
+            nbytes = send_frame(encoder, sock, dest, img, index)
+            k = int(st[_RECORDS])
+            ring[k % RING] = (index, c[_T - 1], time.monotonic(), nbytes)
+            st[_RECORDS] = k + 1  # after the record: a reader never sees a half-written one
+            st[_FRAMES] += 1
+            st[_BYTES] += nbytes
+            st[_INDEX] = index
+            index += 1
+    finally:
+        sock.close()
+
+
+__all__ = ["RING", "SeqBlock", "SharedTarget", "VideoProcess"]

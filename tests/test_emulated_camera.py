@@ -1,0 +1,179 @@
+"""The emulated lab's cameras see the flight: a Tello emulator's video, rendered in a child process from the
+drone's true pose and the target's, decoded by the driver's receiver, follows the drone's yaw and the
+target's motion with the expected signs; every frame's true capture time is recorded beside it; a short
+closed-loop flight of the paper's experiment on `--rig emulated-lab` sees the target and stays near it;
+no camera process outlives its lab.
+
+Loopback only: the emulator owns 127.0.0.12 with free ports; the lab's Tellos own 127.0.0.6 and .7.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("av")
+pytest.importorskip("motioncapture")
+pytest.importorskip("pymavlink")
+
+from flightstack.config.mission import CAMERA_MOUNTS, load_mission
+from flightstack.drivers.tello_camera import VideoReceiver
+from flightstack.ports import free_udp_port
+from flightstack.sim_backend.emulators.tello import TelloEmulator, read_frame_index, wait_until
+from flightstack.sim_backend.emulators.tello_video_process import SharedTarget, VideoProcess
+from flightstack.sim_backend.emulators.tello_view import CameraSpec
+from flightstack.vision.camera_file import load_calibration
+from flightstack.vision.markers import extract_markers
+from tests.conftest import MISSIONS, Bound
+
+IP = "127.0.0.12"
+CAL = MISSIONS / "cameras" / "tello_down_sim.yaml"
+P0 = ((0.1, 0.1, 0.15), (-0.1, 0.1, 0.15), (-0.1, -0.1, 0.15), (0.1, -0.1, 0.15))
+
+
+def down_camera() -> CameraSpec:
+    return CameraSpec(
+        calibration=load_calibration(CAL).to_dict(),
+        R_ic=tuple(tuple(r) for r in CAMERA_MOUNTS["down"].tolist()),
+        t_ic=(0.0, 0.0, 0.0),
+        feature_points=P0,
+        start=(0.0, 0.0, 0.0, 0.0),
+    )
+
+
+def centroid_after(rx: VideoReceiver, t_after: float, timeout_s: float = 3.0) -> np.ndarray:
+    """The markers' mean pixel in the first frame decoded after t_after (s) (+ 0.15 s to let the change
+    reach the image)."""
+    cal = load_calibration(CAL)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        item = rx.latest()
+        if item is not None and item[1] > t_after + 0.15:
+            det = extract_markers(item[2], cal)
+            assert det.pixels is not None, det.reason
+            return np.asarray(det.pixels).mean(axis=0)
+        time.sleep(0.01)
+    raise AssertionError("no frame decoded")
+
+
+def test_the_emulated_camera_follows_the_flight_and_records_capture_times(safety_bound: Bound) -> None:
+    target = SharedTarget()
+    target.write(0.15, 0.0, 0.0)  # 0.15 m ahead of the drone's start
+    port = free_udp_port()
+    cam = VideoProcess(down_camera(), IP, ("127.0.0.1", port), target, fps=30.0)
+    emu = TelloEmulator(IP, state_port=free_udp_port(), video_port=port, video_size=cam.size, fps=30.0)
+    emu.use_remote_video(cam)
+    rx = VideoReceiver(port, "127.0.0.1")
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    try:
+        cam.start()
+        cam.wait_ready()
+        emu.start()
+        for text in ("command", "streamon", "takeoff"):
+            sock.sendto(text.encode(), emu.address)
+        assert rx.wait_first_frame(10.0), emu.errors
+        assert wait_until(lambda: emu.phase == "flying", 5.0)
+        t = time.monotonic()
+        c0 = centroid_after(rx, t)
+        assert c0[1] < 120 - 20  # ahead of the drone: the upper half of the downward image
+        target.write(0.15, 0.1, 0.0)  # the target moves 0.1 m to the left (world y)
+        c1 = centroid_after(rx, time.monotonic())
+        assert c1[0] < c0[0] - 20, (c0, c1)  # left in the image
+        target.write(0.15, 0.0, 0.0)
+        yaw0 = emu.yaw_deg
+        t_end = time.monotonic() + 0.5
+        while time.monotonic() < t_end:  # yaw clockwise: the target ahead swings to the drone's left
+            sock.sendto(b"rc 0 0 0 40", emu.address)
+            time.sleep(0.05)
+        sock.sendto(b"rc 0 0 0 0", emu.address)
+        time.sleep(0.3)
+        assert emu.yaw_deg > yaw0 + 5
+        c2 = centroid_after(rx, time.monotonic())
+        assert c2[0] < c0[0] - 5, (c0, c2)
+        # capture times: the decoded frame's index (bar code) names its record at the emulator
+        ages = []
+        for _ in range(20):
+            _, t_dec, img = rx.latest() or (0, math.nan, None)
+            assert img is not None
+            records = {i: (tc, ts) for i, tc, ts in list(emu.video_capture_log)}
+            index = read_frame_index(img)
+            if index in records:
+                t_cap, t_sent = records[index]
+                assert t_cap <= t_sent <= t_dec
+                ages.append(t_dec - t_cap)
+            time.sleep(0.05)
+        assert len(ages) >= 10 and emu.video_frames_sent > 30 and not emu.errors
+        safety_bound("capture → decode, median", 1e3 * float(np.median(ages)), 200.0)
+    finally:
+        sock.close()
+        rx.close()
+        emu.close()
+        cam.close()
+    assert not cam.alive and cam.process.exitcode is not None
+    assert not Path(f"/proc/{cam.process.pid}").exists() or cam.process.exitcode is not None
+
+
+def test_the_paper_experiment_flies_closed_loop_on_the_emulated_lab(tmp_path: Path) -> None:
+    """Mode `none`, 12 s: the drone placed to see the target sees it most of the time and stays near its
+    place; the simulated lab's mean position error on this experiment is about 0.09 m (docs)."""
+    from flightstack.runtime.flight import Flight
+
+    mission = load_mission(
+        "paper_experiment", {"compare_modes": ["none"], "duration_s": 12.0}, rig="emulated-lab"
+    )
+    with Flight(mission, tmp_path / "run", modes=["none"], plots=False) as flight:
+        res = flight.fly()
+    m = res.metrics["modes"]["none"]
+    assert not res.error and m["ticks"] > 0, res.error
+    assert m["visible_fraction"]["1"] >= 0.8, m["visible_fraction"]
+    assert m["mean_position_error_m"] < 0.3, m["mean_position_error_m"]
+    assert not multiprocessing.active_children()  # no camera process outlives the lab
+
+
+ORPHAN_SCRIPT = """
+import os, sys
+from flightstack.sim_backend.emulators.tello_video_process import SharedTarget, VideoProcess
+from tests.test_emulated_camera import down_camera
+cam = VideoProcess(down_camera(), "127.0.0.12", ("127.0.0.1", int(sys.argv[1])), SharedTarget())
+cam.start()
+cam.wait_ready()
+print(cam.process.pid, flush=True)
+os._exit(0)  # the parent dies without closing anything
+"""
+
+
+def running(pid: int) -> bool:
+    """pid exists and is not a zombie."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def test_a_camera_process_exits_when_its_parent_dies(safety_bound: Bound) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-c", ORPHAN_SCRIPT, str(free_udp_port())],
+        stdout=subprocess.PIPE, text=True, cwd=Path(__file__).parent.parent,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        pid = int(proc.stdout.readline().split()[0])  # the child's pid, once it is ready
+        assert proc.wait(timeout=30) == 0
+        t0 = time.monotonic()
+        assert wait_until(lambda: not running(pid), 5.0), f"camera process {pid} outlived its parent"
+        safety_bound("orphaned camera process exits after", 1e3 * (time.monotonic() - t0), 1000.0)
+    finally:
+        proc.kill()
+        proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
