@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from flightstack.config.derive import derive
+from flightstack.config.links import LINKS
 from flightstack.config.mission import Mission
 from flightstack.drivers.tello_rc import RcGains
 from flightstack.paper.geometry import Pose
@@ -12,6 +13,7 @@ from flightstack.sim_backend.build import initial_drone_pose
 from flightstack.sim_backend.ideal import VirtualClock
 from flightstack.sim_backend.lab import (
     LabWorld,
+    LinkDelays,
     MocapParams,
     MocapSim,
     RenderedCamera,
@@ -23,6 +25,22 @@ from flightstack.sim_backend.lab import (
 )
 from flightstack.sim_backend.render import RenderOptions
 from flightstack.vision.camera_file import load_calibration
+
+CAMERA_RATE_HZ = 30.0
+"""Frames per second of a delayed camera whose link names no rate (the Tello streams 30 fps)."""
+
+
+class _LinkGenerators:
+    """One LinkDelays per (link, device), each with its own generator seeded from the mission's seed, the
+    link and the device, so that adding a link never changes another's draws."""
+
+    def __init__(self, mission: Mission) -> None:
+        self.mission = mission
+
+    def get(self, name: str, device: int) -> LinkDelays:
+        spec = self.mission.links.link(name)
+        key = [self.mission.seed, LINKS.index(name), device]
+        return LinkDelays(spec, np.random.default_rng(key))
 
 
 class LabSimBackend:
@@ -42,6 +60,7 @@ class LabSimBackend:
 
         robot = ScamperSim(g_w0, derive(RobotParams, r, rename={"max_speed_mps": "max_speed"}), clock_now)
         t = sim.tello
+        links = _LinkGenerators(mission)
         drones = {}
         for k, d in enumerate(mission.drones):
             params = derive(
@@ -54,11 +73,13 @@ class LabSimBackend:
             # on the ground below the desired pose relative to the target's start, plus the offset
             above = initial_drone_pose(mission, k)
             start = Pose(np.array([above.p[0], above.p[1], 0.0]), above.theta)
-            drones[d.id] = TelloSim(d.id, start, params, clock_now)
+            drones[d.id] = TelloSim(d.id, start, params, clock_now, links.get("rc", d.id))
         m = sim.mocap
         self.mocap = MocapSim(
             derive(MocapParams, m),
             np.random.default_rng(rng.integers(2**32)),
+            links.get("mocap", 0),
+            clock_now,
         )
         self.world = LabWorld(robot, drones, self.mocap)
         self.world.step(0.0)  # first motion-capture frame at t = 0
@@ -79,6 +100,9 @@ class LabSimBackend:
             self._cams[d.id] = RenderedCamera(
                 self.world, d.id, cal, R_ic, t_ic, P0, opts, np.random.default_rng(rng.integers(2**32))
             )
+            video = mission.links.link("video")
+            if not video.perfect:
+                self._cams[d.id].delay_frames(links.get("video", d.id), video.rate_hz or CAMERA_RATE_HZ)
 
     def drone(self, drone_id: int) -> TelloSim:
         return self.world.drones[drone_id]

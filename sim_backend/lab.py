@@ -3,17 +3,23 @@ ground robot and rendered cameras, each behind the flightstack.hal Protocols.
 
 Frames: Σw is the motion-capture frame, z up. Drones and robot have yaw-only poses (the Tello's tilt while
 accelerating is not modelled: the camera stays level). Drone body frame FLU (x forward, y left, z up).
-Time: the world's virtual clock (seconds); models advance in `LabWorld.step`.
+Time: the world's virtual clock (seconds); models advance in `LabWorld.step`. Links (the rig's `links:`,
+flightstack.config.links) make rc commands take effect late, camera frames arrive late (rendered at their
+capture time, stamped with it) and motion-capture samples arrive late, each drawn from its own seeded
+generator; a link that is neither late nor lossy draws nothing.
 """
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from flightstack.config.links import LinkSpec
 from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
 from flightstack.events import Event
@@ -29,7 +35,6 @@ class TelloParams:
     true_gains: RcGains = field(default_factory=RcGains)  # what one rc unit really does
     cmd_gains: RcGains = field(default_factory=RcGains)  # what the driver believes (mission calibration)
     time_constant_s: float = 0.25  # first-order velocity response
-    latency_s: float = 0.05  # command → effect
     max_speed_xy: float = 1.0  # m/s
     max_speed_z: float = 0.5
     max_yaw_rate: float = 1.75  # rad/s
@@ -41,13 +46,44 @@ class TelloParams:
     auto_land_s: float = 15.0  # the real Tello lands after 15 s without a command
 
 
+class LinkDelays:
+    """One link's samples (flightstack.config.links.LinkSpec): each arrives latency_s + U(0, jitter_s)
+    late (s) and is lost with probability `loss`. Draws from `rng` only for jitter and loss, so a link
+    without them draws nothing (the recordings of a rig without them do not change)."""
+
+    def __init__(self, spec: LinkSpec, rng: np.random.Generator | None = None) -> None:
+        if (spec.jitter_s > 0 or spec.loss > 0) and rng is None:
+            raise ValueError("a link with jitter or loss needs a generator")
+        self.spec, self.rng = spec, rng
+        self.lost_count = 0
+
+    def delay(self) -> float:
+        """How late the next sample arrives (s)."""
+        s = self.spec
+        jitter = float(self.rng.uniform(0.0, s.jitter_s)) if s.jitter_s > 0 and self.rng else 0.0
+        return s.latency_s + jitter
+
+    def lost(self) -> bool:
+        """Whether the next sample is lost (counted)."""
+        gone = self.spec.loss > 0 and self.rng is not None and bool(self.rng.random() < self.spec.loss)
+        self.lost_count += gone
+        return gone
+
+
+RC_LINK = LinkSpec(latency_s=0.05)
+"""A command's delay when none is given: the `perfect` profile's."""
+
+
 class TelloSim:
     """A Tello-like drone (hal.Drone). Commands arrive as the integer rc values the real driver sends."""
 
     GROUND, TAKING_OFF, FLYING, LANDING = "ground", "taking_off", "flying", "landing"
 
-    def __init__(self, drone_id: int, pose: Pose, params: TelloParams, clock_now) -> None:
+    def __init__(
+        self, drone_id: int, pose: Pose, params: TelloParams, clock_now, rc_link: LinkDelays | None = None
+    ) -> None:
         self.id = drone_id
+        self.rc_link = rc_link if rc_link is not None else LinkDelays(RC_LINK)
         self.pose = pose
         self.p = params
         self.now = clock_now
@@ -55,7 +91,8 @@ class TelloSim:
         self.battery = params.battery_pct
         self.v = np.zeros(4)  # actual body velocity
         self._v_target = np.zeros(4)
-        self._queue: deque[tuple[float, tuple[int, int, int, int]]] = deque()
+        self._queue: list[tuple[float, int, tuple[int, int, int, int]]] = []  # (arrival, seq, rc)
+        self._seq = 0
         self.last_command_t = -math.inf
         self.rc_log: list[tuple[float, tuple[int, int, int, int]]] = []
         self.events: list[Event] = []  # source lab, on the world's virtual clock (s)
@@ -84,8 +121,11 @@ class TelloSim:
     def send_body_velocity(self, V: np.ndarray) -> None:
         rc = velocity_to_rc(V, self.p.cmd_gains)
         t = self.now()
-        self._queue.append((t + self.p.latency_s, rc))
         self.rc_log.append((t, rc))
+        if self.rc_link.lost():  # the drone never hears it: its auto-land timer is not reset either
+            return
+        self._seq += 1  # arrivals in order of arrival; a later command can overtake with jitter
+        bisect.insort(self._queue, (t + self.rc_link.delay(), self._seq, rc))
         self.last_command_t = t
 
     def state(self) -> DroneState:
@@ -100,7 +140,7 @@ class TelloSim:
     def step(self, t: float, dt: float) -> None:
         """Advance dt seconds ending at t (deliver due commands, first-order response, phases)."""
         while self._queue and self._queue[0][0] <= t:
-            rc = self._queue.popleft()[1]
+            rc = self._queue.pop(0)[2]
             v = rc_to_velocity(rc, self.p.true_gains)
             sp = math.hypot(v[0], v[1])
             if sp > self.p.max_speed_xy:
@@ -185,11 +225,21 @@ class MocapParams:
 
 
 class MocapSim:
-    """Motion capture (hal.PoseSource): truth sampled at rate_hz, Gaussian noise, random dropouts."""
+    """Motion capture (hal.PoseSource): truth sampled at rate_hz, Gaussian noise, random dropouts; with
+    a late `link`, each sample becomes visible link.delay() after it was taken (stamped when taken)."""
 
-    def __init__(self, params: MocapParams, rng: np.random.Generator) -> None:
+    def __init__(
+        self,
+        params: MocapParams,
+        rng: np.random.Generator,
+        link: LinkDelays | None = None,
+        now: Callable[[], float] | None = None,
+    ) -> None:
         self.p = params
         self.rng = rng
+        self.link = link if link is not None and not link.spec.perfect else None
+        self.now = now
+        self._pending: deque[tuple[float, str, StampedPose]] = deque()  # (arrival, body, sample)
         self._latest: dict[str, StampedPose] = {}
         self._next_t = 0.0
         self.frames = 0
@@ -209,9 +259,21 @@ class MocapSim:
                 g.p + self.rng.normal(0.0, self.p.noise_pos_m, 3),
                 g.theta + self.rng.normal(0.0, self.p.noise_yaw_rad),
             )
-            self._latest[name] = StampedPose(t, noisy)
+            if self.link is None:
+                self._latest[name] = StampedPose(t, noisy)
+            elif not self.link.lost():
+                self._pending.append((t + self.link.delay(), name, StampedPose(t, noisy)))
 
     def latest(self, body: str) -> StampedPose | None:
+        if self.link is not None and self.now is not None:
+            now = self.now()
+            keep: deque[tuple[float, str, StampedPose]] = deque()
+            for arrival, name, sample in self._pending:  # jitter may reorder: the newest stamp wins
+                if arrival > now:
+                    keep.append((arrival, name, sample))
+                elif name not in self._latest or sample.stamp > self._latest[name].stamp:
+                    self._latest[name] = sample
+            self._pending = keep
         return self._latest.get(body)
 
 
@@ -219,7 +281,12 @@ MOUNTS = CAMERA_MOUNTS
 
 
 class RenderedCamera:
-    """hal.Camera that renders the target's markers as seen by a drone's camera (image only)."""
+    """hal.Camera that renders the target's markers as seen by a drone's camera (image only).
+
+    Without a video link (or a perfect one) every call renders the present. With one, frames are taken
+    at k / rate_hz, each rendered from the world as it was then (LabWorld.history) and stamped with that
+    capture time, and arrives link.delay() later unless lost; `latest` is the newest frame arrived (None
+    before the first)."""
 
     def __init__(
         self,
@@ -236,15 +303,44 @@ class RenderedCamera:
         self.R_ic, self.t_ic, self.P0 = R_ic, t_ic, P0
         self.opts, self.rng = render_opts, rng
         self.frames = 0
+        self.link: LinkDelays | None = None
+        self._rate_hz = 30.0
+        self._next_k = 0
+        self._in_flight: list[tuple[float, float]] = []  # (arrival, capture time) of frames on their way
+        self._shown: Frame | None = None
 
-    def latest(self) -> Frame:
+    def delay_frames(self, link: LinkDelays, rate_hz: float) -> None:
+        """Take frames at rate_hz (Hz) and deliver them through `link` (the world keeps its history)."""
+        self.link, self._rate_hz = link, rate_hz
+        self.world.keep_history(link.spec.latency_s + link.spec.jitter_s + 2.0 / rate_hz)
+
+    def latest(self) -> Frame | None:
+        if self.link is None:
+            return self._render(self.world.t, self.world.drones[self.id].pose, self.world.robot.pose)
+        now = self.world.t
+        while self._next_k / self._rate_hz <= now + 1e-12:  # frames taken by now, in order
+            taken = self._next_k / self._rate_hz
+            self._next_k += 1
+            if not self.link.lost():
+                self._in_flight.append((taken + self.link.delay(), taken))
+        arrived = [c for a, c in self._in_flight if a <= now]
+        if arrived:
+            newest = max(arrived)
+            self._in_flight = [(a, c) for a, c in self._in_flight if a > now and c > newest]
+            if self._shown is None or newest > self._shown.stamp:
+                drone, robot = self.world.poses_at(newest, self.id)
+                self._shown = self._render(newest, drone, robot)
+        return self._shown
+
+    def _render(self, taken: float, drone: Pose, robot: Pose) -> Frame:
+        """The image of the markers seen from `drone` with the robot at `robot`, stamped `taken` (s)."""
         from flightstack.sim_backend.render import markers_in_camera, render_markers
 
-        g_i0 = relative(self.world.drones[self.id].pose, self.world.robot.pose)
+        g_i0 = relative(drone, robot)
         centres_c, normal_c = markers_in_camera(g_i0, self.P0, self.R_ic, self.t_ic)
         image, _, _ = render_markers(self.cal, centres_c, normal_c, self.opts, self.rng)
         self.frames += 1
-        return Frame(self.world.t, image, None)
+        return Frame(taken, image, None)
 
 
 class LabWorld:
@@ -255,6 +351,21 @@ class LabWorld:
         self.robot = robot
         self.drones = drones
         self.mocap = mocap
+        self._horizon_s = 0.0  # how far back `poses_at` must reach (s); 0: no history kept
+        self._times: deque[float] = deque()
+        self._states: deque[tuple[dict[int, Pose], Pose]] = deque()
+
+    def keep_history(self, horizon_s: float) -> None:
+        """Keep at least horizon_s (s) of the drones' and the robot's poses for `poses_at`."""
+        self._horizon_s = max(self._horizon_s, horizon_s)
+
+    def poses_at(self, t: float, drone_id: int) -> tuple[Pose, Pose]:
+        """(drone pose, robot pose) as they were at time t (s): the last world step at or before t."""
+        k = bisect.bisect_right(self._times, t) - 1
+        if k < 0:
+            return self.drones[drone_id].pose, self.robot.pose
+        drones, robot = self._states[k]
+        return drones[drone_id], robot
 
     def step(self, dt: float) -> None:
         t = self.t + dt
@@ -262,6 +373,12 @@ class LabWorld:
         for d in self.drones.values():
             d.step(t, dt)
         self.t = t
+        if self._horizon_s > 0:
+            self._times.append(t)
+            self._states.append(({i: d.pose for i, d in self.drones.items()}, self.robot.pose))
+            while self._times and self._times[0] < t - self._horizon_s:
+                self._times.popleft()
+                self._states.popleft()
         bodies = {f"drone{i}": d.pose for i, d in self.drones.items()}
         bodies["target"] = self.robot.pose
         self.mocap.capture(t, bodies)

@@ -35,9 +35,9 @@ def test_a_section_field_without_counterpart_is_an_error() -> None:
 
 
 def test_sim_params_carry_every_schema_value() -> None:
-    spec = TelloSimSpec(time_constant_s=0.4, latency_s=0.07, auto_land_s=9.0, battery_pct=55.0)
+    spec = TelloSimSpec(time_constant_s=0.4, auto_land_s=9.0, battery_pct=55.0)
     p = derive(TelloParams, spec, skip={"true_rc_gains"})
-    assert (p.time_constant_s, p.latency_s, p.auto_land_s, p.battery_pct) == (0.4, 0.07, 9.0, 55.0)
+    assert (p.time_constant_s, p.auto_land_s, p.battery_pct) == (0.4, 9.0, 55.0)
     m = derive(MocapParams, MocapSimSpec(rate_hz=60.0, dropout_prob=0.2))
     assert (m.rate_hz, m.dropout_prob) == (60.0, 0.2)
 

@@ -9,10 +9,19 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from flightstack.config.links import LinkSpec
 from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
 from flightstack.paper.geometry import Pose
 from flightstack.paper.target_law import SquareLaw
-from flightstack.sim_backend.lab import MocapParams, MocapSim, RobotParams, ScamperSim, TelloParams, TelloSim
+from flightstack.sim_backend.lab import (
+    LinkDelays,
+    MocapParams,
+    MocapSim,
+    RobotParams,
+    ScamperSim,
+    TelloParams,
+    TelloSim,
+)
 
 
 class Clock:
@@ -44,9 +53,9 @@ def test_rc_round_trip(rc: list[int]) -> None:
     assert velocity_to_rc(rc_to_velocity(tuple(rc), g), g) == tuple(rc)
 
 
-def flying_tello(params: TelloParams) -> tuple[TelloSim, Clock]:
+def flying_tello(params: TelloParams, rc: LinkDelays | None = None) -> tuple[TelloSim, Clock]:
     clock = Clock()
-    d = TelloSim(1, Pose.make([0, 0, 0], 0.0), params, clock)
+    d = TelloSim(1, Pose.make([0, 0, 0], 0.0), params, clock, rc)
     d.connect()
     d.takeoff()
     run(d, clock, 5.0)
@@ -55,8 +64,8 @@ def flying_tello(params: TelloParams) -> tuple[TelloSim, Clock]:
 
 
 def test_tello_takeoff_latency_and_first_order_response() -> None:
-    p = TelloParams(time_constant_s=0.2, latency_s=0.1)
-    d, clock = flying_tello(p)
+    p = TelloParams(time_constant_s=0.2)
+    d, clock = flying_tello(p, LinkDelays(LinkSpec(latency_s=0.1)))
     t0 = clock.t
     d.send_body_velocity(np.array([0.5, 0.0, 0.0, 0.0]))
     run(d, clock, 0.095)
@@ -164,3 +173,45 @@ def test_square_law_closed_loop_follows_the_square() -> None:
         if k > 20:
             worst = max(worst, float(np.linalg.norm(r.pose.p[:2] - ref.p[:2])))
     assert worst < 0.06
+
+
+def test_a_lossy_jittery_rc_link_delivers_in_arrival_order_and_counts_what_it_loses() -> None:
+    """Each command takes effect latency + U(0, jitter) after it was sent (the generator's own draws,
+    replayed): at every step the drone flies the command that arrived last; a lost one never arrives."""
+    spec = LinkSpec(latency_s=0.05, jitter_s=0.04, loss=0.3)
+    d, clock = flying_tello(TelloParams(time_constant_s=1e-4), LinkDelays(spec, np.random.default_rng(7)))
+    mirror = np.random.default_rng(7)  # the same draws in the same order: lost?, then the delay
+    arrivals: list[tuple[float, float]] = []  # (arrival time, commanded forward speed)
+    checked = 0
+    for k in range(60):
+        speed = 0.01 * (k + 1)  # rc b = k + 1 exactly (gains 0.01 per unit)
+        d.send_body_velocity(np.array([speed, 0.0, 0.0, 0.0]))
+        if mirror.random() >= spec.loss:
+            arrivals.append((clock.t + spec.latency_s + mirror.uniform(0.0, spec.jitter_s), speed))
+        for _ in range(3):  # three world steps of 5 ms: a command every 15 ms, so jitter reorders some
+            run(d, clock, 0.005)
+            due = [a for a in arrivals if a[0] <= clock.t + 1e-9]
+            if due:
+                assert d.v[0] == pytest.approx(max(due)[1], abs=1e-6)
+                checked += 1
+    assert d.rc_link.lost_count == 60 - len(arrivals) > 0 and checked > 100
+    order = [v for _, v in sorted(arrivals)]
+    assert order != sorted(order)  # some commands overtook others: the drone followed arrival order
+
+
+def test_delayed_motion_capture_samples_are_stamped_when_taken_and_seen_when_they_arrive() -> None:
+    t = [0.0]
+    mocap = MocapSim(
+        MocapParams(rate_hz=100.0, noise_pos_m=0.0, noise_yaw_rad=0.0),
+        np.random.default_rng(0),
+        LinkDelays(LinkSpec(latency_s=0.03)),
+        lambda: t[0],
+    )
+    body = {"drone1": Pose.make([1.0, 2.0, 3.0], 0.0)}
+    mocap.capture(0.0, body)
+    assert mocap.latest("drone1") is None  # taken, not yet arrived
+    t[0] = 0.029
+    assert mocap.latest("drone1") is None
+    t[0] = 0.031
+    s = mocap.latest("drone1")
+    assert s is not None and s.stamp == 0.0 and np.allclose(s.pose.p, [1.0, 2.0, 3.0])

@@ -18,6 +18,7 @@ from typing import Any, TextIO
 from tqdm import tqdm
 
 from flightstack.analysis.loop_health import loop_health_line
+from flightstack.config.links import PROFILES
 from flightstack.config.mission import Mission, load_mission
 
 RUNS_ROOT = Path("runs")
@@ -114,6 +115,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         overrides["duration_s"] = args.duration
     if args.modes is not None:
         overrides["compare_modes"] = args.modes
+    if getattr(args, "links", None) is not None:
+        overrides["links"] = {"profile": args.links}
     mission = load_mission(args.mission, overrides, rig=args.rig)
     if args.bus is not None and args.bus != mission.bus.kind:
         bus = _bus_override(mission, args.bus)
@@ -373,6 +376,13 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
         "--no-progress", dest="progress", action="store_false", default=None, help="no progress bars"
     )
     p.add_argument("--bus", choices=["inproc", "zenoh"], help="override bus.kind (zenoh: on loopback)")
+    p.add_argument(
+        "--links",
+        choices=sorted(PROFILES),
+        default=None,
+        help="replace the rig's links with a profile: how late and lossy video, rc and motion capture "
+        "are (docs/links.md; applied by the simulated lab)",
+    )
     p.add_argument(
         "--mcap",
         default=None,

@@ -26,6 +26,7 @@ from pydantic import (
 
 from flightstack.config.bus import BusSpec
 from flightstack.config.hardware import HardwareSpec
+from flightstack.config.links import LinksSpec
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 from flightstack.config.types import Angle, Coordinate, Distance, Finite, Mode, Speed
 from flightstack.config.types import Strict as _Strict
@@ -257,6 +258,7 @@ class Mission(_Strict):
     bus: BusSpec = BusSpec()
     gain_analysis: GainAnalysisSpec = GainAnalysisSpec()
     sim: SimSpec = SimSpec()
+    links: LinksSpec = LinksSpec()  # how late and lossy each link is (flightstack.config.links)
     safety: SafetySpec = SafetySpec()
     hardware: HardwareSpec | None = None
     _base_dir: Path = PrivateAttr(default=Path("."))

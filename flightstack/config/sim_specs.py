@@ -8,7 +8,7 @@ from typing import Annotated
 
 from pydantic import Field
 
-from flightstack.config.types import MAX_TIME_S, Distance, Seconds, Speed, YawRate
+from flightstack.config.types import Distance, Seconds, Speed, YawRate
 from flightstack.config.types import Strict as _Strict
 
 
@@ -40,7 +40,6 @@ class TelloSimSpec(_Strict):
 
     true_rc_gains: RcGainsSpec = RcGainsSpec()
     time_constant_s: Seconds = 0.25
-    latency_s: Annotated[float, Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)] = 0.05
     max_speed_xy: Speed = 1.0
     max_speed_z: Speed = 0.5
     max_yaw_rate: YawRate = 1.75

@@ -1,0 +1,86 @@
+"""The rig's links (`links:`): how late, how often and how reliably each kind of data reaches the flight.
+
+A link is one direction of one kind of data: each drone's `video` (camera → computer), `state`
+(telemetry → computer) and `rc` (computer → drone), `mocap` (motion capture → computer), `robot`
+(computer → ground robot) and the `bus` (between agent processes). A `LinkSpec` gives its fixed latency
+and jitter (s: each sample is late by latency_s + U(0, jitter_s)), its rate (samples per second; None:
+as often as the source produces them) and the probability that a sample is lost.
+
+`profile` names a table of links; a link written out in the section replaces that link of the profile:
+
+- `perfect`: what the simulated lab did before links were modelled, kept so that its recordings do not
+  change: commands take effect 50 ms after they are sent, everything else arrives at once;
+- `tello`: a Tello on Wi-Fi and motion capture on a wired network, from users' measurements
+  (docs/links.md lists each number with its source).
+
+The simulated lab applies them with its seeded generator (sim_backend/lab.py); which links each rig
+applies is in docs/links.md.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from flightstack.config.types import MAX_TIME_S
+from flightstack.config.types import Strict as _Strict
+
+LINKS = ("video", "state", "rc", "mocap", "robot", "bus")
+"""The links of a rig, each one direction of one kind of data."""
+
+Delay = Annotated[float, Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)]
+
+
+class LinkSpec(_Strict):
+    """One link: latency_s + U(0, jitter_s) late (s); rate_hz samples per second (None: every sample
+    the source makes); loss: probability that a sample never arrives."""
+
+    latency_s: Delay = 0.0
+    jitter_s: Delay = 0.0
+    rate_hz: Annotated[float, Field(gt=0, le=10000, allow_inf_nan=False)] | None = None
+    loss: Annotated[float, Field(ge=0, lt=1)] = 0.0
+
+    @property
+    def perfect(self) -> bool:
+        """Nothing late, nothing lost, nothing resampled."""
+        return self.latency_s == 0 and self.jitter_s == 0 and self.rate_hz is None and self.loss == 0
+
+
+NONE = LinkSpec()
+
+PROFILES: dict[str, dict[str, LinkSpec]] = {
+    "perfect": {"rc": LinkSpec(latency_s=0.05)},
+    "tello": {
+        # the Tello's H.264 stream: 300-800 ms through the usual readers (DJITelloPy #77), ~1 s with
+        # OpenCV's buffered capture (DJITelloPy #87); 30 fps (Tello SDK 2.0); a few frames lost on Wi-Fi
+        "video": LinkSpec(latency_s=0.3, jitter_s=0.1, rate_hz=30.0, loss=0.02),
+        # the state string at about 10 Hz (Tello SDK 2.0 user guide), one Wi-Fi hop
+        "state": LinkSpec(latency_s=0.02, jitter_s=0.02, rate_hz=10.0, loss=0.02),
+        # an rc datagram over Wi-Fi, then the flight controller's response (the lab's 50 ms plus jitter)
+        "rc": LinkSpec(latency_s=0.05, jitter_s=0.03, loss=0.02),
+        # OptiTrack/Motive over wired Ethernet: a few ms of system latency (NatNet reports it per frame)
+        "mocap": LinkSpec(latency_s=0.005, jitter_s=0.002),
+        "robot": LinkSpec(latency_s=0.02, jitter_s=0.01),
+    },
+}
+"""Profile name -> its links (a link not named is NONE)."""
+
+
+class LinksSpec(_Strict):
+    """The `links:` section: a profile and links that replace the profile's."""
+
+    profile: Literal["perfect", "tello"] = "perfect"
+    video: LinkSpec | None = None
+    state: LinkSpec | None = None
+    rc: LinkSpec | None = None
+    mocap: LinkSpec | None = None
+    robot: LinkSpec | None = None
+    bus: LinkSpec | None = None
+
+    def link(self, name: str) -> LinkSpec:
+        """The link `name` (one of LINKS): the section's own, else the profile's, else NONE."""
+        if name not in LINKS:
+            raise ValueError(f"unknown link {name!r}; known: {', '.join(LINKS)}")
+        own: LinkSpec | None = getattr(self, name)
+        return own if own is not None else PROFILES[self.profile].get(name, NONE)
