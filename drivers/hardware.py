@@ -177,7 +177,9 @@ class HardwareBackend:
             if self.guardian is not None:
                 drv.set_muted(self.guardian.taken_over)
             drv.connect()
-            cam = TelloCamera(drv, self.mission.hardware.drone(d.id).frame_timeout_s)
+            # a frame is stamped when it was taken: decoded minus the video link's latency (config.links)
+            video_latency_s = self.mission.links.link("video").latency_s
+            cam = TelloCamera(drv, self.mission.hardware.drone(d.id).frame_timeout_s, video_latency_s)
             self.cameras[d.id] = cam
             cam.start()
         if self.robot is not None:
