@@ -96,7 +96,7 @@ class TelloVideoStream(TelloEmulatorBase):
                 index = int((now - t0) / period)
             t = index * period
             self.video_frame_index = index
-            if not self.faults.no_video:
+            if not self.faults.no_video and not self.downlink_blocked():
                 try:
                     img = self._render(t)
                     if img is not None:
