@@ -133,22 +133,22 @@ class TelloFaults:
     """Every datagram from the drone is lost: replies (logged in ``emu.downlink_lost``), state packets
     (counted in ``emu.state_packets_lost``) and video.  The drone still obeys what it receives."""
     powered_off: bool = False
-    """The drone has no power (battery knocked loose in flight; read every simulation tick).  On the switch
-    to True it falls (motors off at once, height 0); while True it receives nothing (datagrams logged in
-    ``emu.uplink_lost``) and sends nothing.  On the switch back it boots as after a power cycle: on the
-    ground, motor-on time 0, not in SDK mode, no state stream and no video until it gets ``command``
-    (DJITelloPy #169: after a battery swap "all you need to do is call ``drone.connect()`` again, which
-    tells the restarted drone your PC controls it"; SMerrony/tellodesk#3: status no longer updated after
-    reconnecting following a battery change, until the client re-entered SDK mode).  Each boot is logged
-    in ``emu.power_log``."""
+    """The drone has no power (battery knocked loose in flight; read every simulation tick). On the switch to
+    True it falls (motors off at once, height 0); while True it receives nothing (datagrams logged in
+    ``emu.uplink_lost``) and sends nothing. On the switch back it boots as after a power cycle: on the ground,
+    motor-on time 0, not in SDK mode, no state stream and no video until it gets ``command`` (DJITelloPy #169:
+    after a battery swap "all you need to do is call ``drone.connect()`` again, which tells the restarted
+    drone your PC controls it"; SMerrony/tellodesk#3: status no longer updated after reconnecting following a
+    battery change, https://github.com/SMerrony/tellodesk/issues/3). Each boot is logged in
+    ``emu.power_log``."""
     self_land_battery_pct: int | None = 10
-    """While flying with the battery below this (%), the drone lands by itself (``landed_by_battery``):
-    rc is ignored (recorded in ``refused``) and ``takeoff``/``land``/moves answer ``error Auto land`` until
-    it is down.  kebhr/scratch3-tello#10 (the Tello blinks red on low battery and lands);
-    wesbos/javascript-drones#6 (during its own landing the drone "will ignore any further commands until it
-    has landed but is still sending through status updates").  The threshold is *unverified* (no published
-    number; the emulator refuses takeoff below ``MIN_TAKEOFF_BATTERY`` = 10 %, so the two agree); None
-    disables the self-landing."""
+    """While flying with the battery below this (%), the drone lands by itself (``landed_by_battery``): rc is
+    ignored (recorded in ``refused``) and ``takeoff``/``land``/moves answer ``error Auto land`` until it is
+    down. kebhr/scratch3-tello#10 (https://github.com/kebhr/scratch3-tello/issues/10: the Tello blinks red on
+    low battery and lands); wesbos/javascript-drones#6 (https://github.com/wesbos/javascript-drones/issues/6:
+    during its own landing the drone "will ignore any further commands until it has landed but is still
+    sending through status updates"). The threshold is *unverified* (no published number; the emulator refuses
+    takeoff below ``MIN_TAKEOFF_BATTERY`` = 10 %, so the two agree); None disables the self-landing."""
     sdk_version: str = "30"
     """The answer to ``sdk?``.  Below ``"30"`` (e.g. ``"20"``, Tello/Tello EDU on SDK 2.0 firmware) every verb
     in :data:`SDK3_ONLY_COMMANDS` (``port``, ``downvision``, ``setfps``, ``setbitrate``, ``setresolution``,
