@@ -92,6 +92,7 @@ class PhaseTracker:
     # ---- what the driver sent ------------------------------------------------------------------------
     def takeoff_sent(self, t: float) -> None:
         self._takeoff_sent_t = t
+        self._last_throttle = 0  # a Tello takes off with its sticks centred
         if self.phase is FlightPhase.GROUND:
             self._set(FlightPhase.TAKING_OFF, t)
 
