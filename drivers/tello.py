@@ -8,12 +8,14 @@ tello_camera.py (own UDP receiver and PyAV decoder).
 socket, place on the shared state port), `status` and its events (drivers/tello_status.py: telemetry,
 phase from drivers/tello_phase.py, the flags that decide what may be sent), `exchange` (drivers/
 tello_exchange.py: blocking command and reply), `sticks` (drivers/tello_sticks.py: `rc`, hover,
-`emergency`), `flight` (drivers/tello_flight.py: takeoff and land) and `watchdog` (drivers/
-tello_watchdog.py: link freshness, loop watchdog). This module wires them, adds `connect`, `close` and
+`emergency`), `flight` (drivers/tello_flight.py: takeoff and land), `rejoin` (drivers/tello_rejoin.py:
+`command` again while the state stream is silent) and `watchdog` (drivers/tello_watchdog.py: link
+freshness, loop watchdog). This module wires them, adds `connect`, `close` and
 `preflight`, and is the import path (settings, errors and reply parsers: drivers/tello_config.py).
 
 Principles (telemetry decides, replies are advisory, nothing the drone would reject in its phase, never
-blocking the control loop, the loop watchdog, re-sent lands on silent telemetry, link loss), the phase
+blocking the control loop, the loop watchdog, lands re-sent until telemetry shows the descent, link loss
+and a rebooted drone, a drone landing by itself), the phase
 rules and the reaction to each failure: docs/drivers.md, "Tello driver" (why: docs/architecture.md
 decision 26).
 
@@ -44,6 +46,7 @@ from flightstack.drivers.tello_exchange import CommandExchange
 from flightstack.drivers.tello_flight import FlightPhases
 from flightstack.drivers.tello_link import TelloLink
 from flightstack.drivers.tello_preflight import tello_preflight
+from flightstack.drivers.tello_rejoin import SdkRejoin
 from flightstack.drivers.tello_status import DriverEvents, DriverStatus
 from flightstack.drivers.tello_sticks import Sticks
 from flightstack.drivers.tello_watchdog import Watchdog
@@ -79,7 +82,8 @@ class TelloDriver:
         self.exchange = CommandExchange(cfg, self.link, self.status, self._log)
         self.sticks = Sticks(cfg.rc_gains, self.link, self.status, self._log)
         self.flight = FlightPhases(cfg, self.link, self.status, self._log, self.exchange, self.sticks)
-        self.watchdog = Watchdog(cfg, self.status, self._log, self.sticks, land=self.land)
+        self.rejoin = SdkRejoin(cfg.rejoin_s, self.link, self._log)
+        self.watchdog = Watchdog(cfg, self.status, self._log, self.sticks, self.rejoin, land=self.land)
         self.sdk_version: str | None = None
         self.serial: str | None = None
 

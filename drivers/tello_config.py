@@ -45,9 +45,19 @@ class TelloConfig:
     loop_hover_s: float = 0.5
     loop_land_s: float = 2.0
     land_resend_s: float = 0.5
-    """While telemetry is silent during a land: `rc 0 0 0 0` + `land` this often (s). The driver sends no
+    """During a land, `rc 0 0 0 0` + `land` this often (s) while telemetry is silent, or shows neither a
+    descent nor the ground (after `land_confirm_s`, or at once when the link returns). The driver sends no
     rc on every tick during a land: whether a stick command cancels a Tello's landing is not documented,
     so a hover goes out only right before each land."""
+    land_confirm_s: float = 0.5
+    """A land that telemetry does not show as a descent (h more than half of the phase's `descent_cm` below
+    its highest of the last 0.5 s) or the ground this long (s) after it was sent is sent again (with
+    `rc 0 0 0 0` first), then every `land_resend_s`: a lost land, or one lost with its hover on a one-way
+    outage, leaves the drone on its last rc. A Tello descends at ~50 cm/s when landing (80 cm in 1.7 s,
+    dji-sdk/Tello-Python #88): 5 cm show within 0.2 s of the descent's start."""
+    rejoin_s: float = 1.0
+    """While the state stream is silent, `command` at most this often (s): a drone that rebooted streams
+    again only after it (drivers/tello_rejoin.py)."""
     quiet_s: float = 0.15
     min_battery_pct: float = 30.0
     max_temperature_c: float = 85.0
@@ -60,8 +70,8 @@ class TelloConfig:
             raise ValueError("keepalive_s must be below the Tello's 15 s auto-land")
         if not 0.0 < self.loop_hover_s < self.loop_land_s < 15.0:
             raise ValueError("need 0 < loop_hover_s < loop_land_s < 15 s (the Tello's own auto-land)")
-        if not self.land_resend_s > 0.0:
-            raise ValueError("land_resend_s must be > 0")
+        if not (self.land_resend_s > 0.0 and self.land_confirm_s > 0.0 and self.rejoin_s > 0.0):
+            raise ValueError("land_resend_s, land_confirm_s and rejoin_s must be > 0")
         if not self.quiet_s >= 0.15:
             raise ValueError("quiet_s must be at least 0.15 s")
 

@@ -2,9 +2,10 @@
 
 `takeoff()` returns once the state stream shows the drone airborne at a stable height and it answered `ok`
 at that height (or telemetry alone at `takeoff_timeout_s`, s); `land()` once it shows the drone down with
-the motors off, re-sending `land` when no descent shows and `rc 0 0 0 0` + `land` every `land_resend_s`
-(s) while telemetry is silent. Heights in cm as sent by the drone. Each holds the command exchange
-(drivers/tello_exchange.py) for its whole length; the rules on every failure: drivers/tello.py.
+the motors off, re-sending `rc 0 0 0 0` + `land` at once when telemetry returns after a lost link, and
+every `land_resend_s` (s) while telemetry is silent or shows neither a descent nor the ground. Heights in
+cm as sent by the drone. Each holds the command exchange (drivers/tello_exchange.py) for its whole length;
+the rules on every failure: drivers/tello.py.
 """
 
 from __future__ import annotations
@@ -128,9 +129,14 @@ class FlightPhases:
     def land(self) -> None:
         """Land; return once telemetry shows the drone down with the motors off (no-op on the ground).
 
-        A drone still taking off is landed as soon as it is airborne. `land` is re-sent when telemetry
-        shows no descent; TelloCommandError after land_timeout_s (takeoff_timeout_s more if climbing)."""
+        A drone still taking off is landed as soon as it is airborne. Whatever the replies say, `rc 0 0 0 0`
+        + `land` go out again (a lost land leaves a Tello on its last rc): at once when telemetry returns
+        after a lost link; every `land_resend_s` while it is silent; and every `land_resend_s` while it
+        shows neither a descent nor the ground, from `land_confirm_s` after the first land. A drone that
+        lands by itself (phase landing) gets a land only if its descent stops. TelloCommandError after
+        land_timeout_s (takeoff_timeout_s more if climbing)."""
         cfg, st = self.cfg, self._status
+        tracker = st.tracker
         if st.phase is FlightPhase.GROUND:
             return
         if st.phase is FlightPhase.UNKNOWN:
@@ -148,25 +154,36 @@ class FlightPhases:
                 return
             t1 = time.monotonic()
             deadline, replies = t1 + cfg.land_timeout_s, []
-            t_sent = t1
+            t_sent, wait = t1, cfg.land_confirm_s
+            silent = not st.link_alive()
             if st.phase is FlightPhase.AIRBORNE:
-                self._send_land()
+                self._send_land(hover_first=silent)
             while True:
                 now = time.monotonic()
                 if (r := self._exchange.next_reply()) is not None:
                     replies.append(r)
-                ph = st.phase
+                with st.lock:
+                    ph, alive = tracker.phase, st.link_alive()
+                    low = tracker.near_ground()
+                    settling = low or tracker.descending(now, tracker.th.descent_cm / 2)
                 if ph is FlightPhase.GROUND:
                     self._report_outcome("land", replies, now - t1)
                     return
-                if ph is FlightPhase.AIRBORNE:  # no descent within no_effect_s: lost or refused
-                    self._events.add("resend", f"land: no descent (replies {replies})")
-                    self._send_land()
-                    t_sent = now
-                elif not st.link_alive() and now - t_sent > cfg.land_resend_s:
-                    self._events.add("resend", "land: telemetry silent; rc 0 0 0 0 and land again")
+                why = ""
+                if not alive:
+                    silent = True
+                    if now - t_sent > cfg.land_resend_s:
+                        why = "telemetry silent"
+                elif silent:
+                    silent = False
+                    if not low:
+                        why = "telemetry back after a lost link"
+                elif not settling and now - t_sent >= wait:
+                    why = f"telemetry shows no descent {now - t_sent:.2f} s after the last land"
+                if why:
+                    self._events.add("resend", f"land: {why}: rc 0 0 0 0 and land again (replies {replies})")
                     self._send_land(hover_first=True)
-                    t_sent = now
+                    t_sent, wait = now, cfg.land_resend_s
                 if now > deadline:
                     raise TelloCommandError(
                         f"Tello {cfg.host}: not down within {cfg.land_timeout_s:.0f} s "

@@ -9,6 +9,12 @@ Signals (units as the drone sends them, see drivers/tello_state.py):
 - **motors running**: the motor-on time `time` (whole seconds) changed less than `motor_quiet_s` ago. It
   rises by one every second while the motors turn, so 1.5 s without a change means the motors are off.
 - **near the ground**: `h` ≤ `ground_h_cm` (h is relative to the takeoff point).
+- **descending**: the latest h is more than `descent_cm` (10 cm) below the highest of the last
+  `descent_window_s` (0.5 s); a **sustained descent** also has each of the last `descent_samples` (3)
+  samples lower than the one before (not one step of the readout: a firmware reporting h in 10 cm steps,
+  a hover flickering 80/90 cm, a drone passing over an object).
+- **descent commanded**: the last `rc` the driver sent had a negative throttle, or one with a negative
+  throttle went out within `uncommanded_after_s` (1 s: the drone's velocity lags the stick).
 - **airborne and stable**: over the last `stable_window_s` (1 s, ≥ 3 samples), every sample has
   h ≥ `airborne_h_cm` (50 cm) and |vgz| ≤ `stable_vgz_dm_s` (1 dm/s), h varied by at most
   `stable_range_cm` (10 cm: one step, should a firmware report h in 10 cm steps) and the least-squares
@@ -21,15 +27,19 @@ Transitions (every one is returned as an event text by `observe`):
 - TAKING_OFF → AIRBORNE when airborne and stable (while the driver holds a takeoff, only when it confirms:
   see `hold_takeoff`); → GROUND when, `no_effect_s` after the takeoff was sent,
   the motors do not run and the drone is near the ground (the takeoff was refused or never arrived).
-- AIRBORNE → LANDING when land was sent; → GROUND when near the ground with the motors off (an auto-land,
-  a low-battery landing or someone else's land).
+- AIRBORNE → LANDING when land was sent, or on a sustained descent with no descent commanded (`self_landing`:
+  the drone's own low-battery landing or 15 s auto-land, during which a Tello ignores rc); → GROUND when
+  near the ground with the motors off (someone else's land).
 - LANDING → GROUND when near the ground with the motors off; → AIRBORNE when, `no_effect_s` after the land
-  was sent, the motors run and h has not dropped by `descent_cm` (the land was lost or refused).
+  was sent, the motors run and h has not dropped by `descent_cm` (the land was lost or refused); a
+  landing of its own → AIRBORNE when h holds still above the ground for `descent_window_s` with the
+  motors running (it was no landing).
 - any → GROUND at once after `emergency` (motors stop; the drone drops).
 """
 
 from __future__ import annotations
 
+import itertools
 from collections import deque
 from dataclasses import dataclass
 
@@ -50,6 +60,9 @@ class PhaseThresholds:
     motor_quiet_s: float = 1.5
     no_effect_s: float = 3.0
     descent_cm: float = 10.0
+    descent_window_s: float = 0.5
+    descent_samples: int = 3
+    uncommanded_after_s: float = 1.0
 
 
 class PhaseTracker:
@@ -67,6 +80,10 @@ class PhaseTracker:
         self._land_h0 = 0.0
         self._min_h_since_land = float("inf")
         self.phase_since = -float("inf")
+        self._last_throttle = 0
+        self._down_cmd_t = -float("inf")
+        self.self_landing = False
+        """True from a descent the driver did not command until the drone is down or flies on."""
         self.hold_takeoff = False
         """Set by the driver while takeoff() waits for the drone's own `ok`: telemetry cannot tell a Tello
         still stabilising in its takeoff (it ignores rc) from one done, so TAKING_OFF → AIRBORNE then
@@ -75,6 +92,7 @@ class PhaseTracker:
     # ---- what the driver sent ------------------------------------------------------------------------
     def takeoff_sent(self, t: float) -> None:
         self._takeoff_sent_t = t
+        self._last_throttle = 0  # a Tello takes off with its sticks centred
         if self.phase is FlightPhase.GROUND:
             self._set(FlightPhase.TAKING_OFF, t)
 
@@ -84,6 +102,12 @@ class PhaseTracker:
         self._min_h_since_land = self._land_h0
         if self.phase is FlightPhase.AIRBORNE:
             self._set(FlightPhase.LANDING, t)
+
+    def rc_sent(self, t: float, throttle: int) -> None:
+        """An `rc` went out at `t` with this throttle (-100..100; negative: down)."""
+        if throttle < 0 or self._last_throttle < 0:  # a descent was commanded until now
+            self._down_cmd_t = t
+        self._last_throttle = throttle
 
     def emergency_sent(self, t: float) -> None:
         self._set(FlightPhase.GROUND, t)
@@ -101,6 +125,41 @@ class PhaseTracker:
         """Near the ground with the motors off."""
         s = self.latest
         return s is not None and s.h_cm <= self.th.ground_h_cm and not self.motors_running(t)
+
+    def near_ground(self) -> bool:
+        """The latest sample is near the ground (motors on or off)."""
+        s = self.latest
+        return s is not None and s.h_cm <= self.th.ground_h_cm
+
+    def descending(self, t: float, drop_cm: float | None = None) -> bool:
+        """h fell by more than `drop_cm` (default `descent_cm`) within the last `descent_window_s` before
+        `t`."""
+        w = [s.h_cm for s in self._window if s.t >= t - self.th.descent_window_s]
+        drop = self.th.descent_cm if drop_cm is None else drop_cm
+        return len(w) >= 2 and max(w) - w[-1] > drop
+
+    def sustained_descent(self, t: float) -> bool:
+        """`descending`, and each of the last `descent_samples` samples lower than the one before."""
+        th = self.th
+        w = [s.h_cm for s in self._window if s.t >= t - th.descent_window_s]
+        tail = w[-max(2, th.descent_samples) :]
+        return (
+            self.descending(t)
+            and len(tail) >= max(2, th.descent_samples)
+            and all(b < a for a, b in itertools.pairwise(tail))
+        )
+
+    def descent_commanded(self, t: float) -> bool:
+        return self._last_throttle < 0 or t - self._down_cmd_t <= self.th.uncommanded_after_s
+
+    def holding_height(self, t: float) -> bool:
+        """h still (within `stable_range_cm`) above the ground over `descent_window_s`, motors running."""
+        th = self.th
+        w = [s for s in self._window if s.t >= t - th.descent_window_s]
+        if len(w) < 3 or w[-1].t - w[0].t < 0.8 * th.descent_window_s:
+            return False
+        hs = [s.h_cm for s in w]
+        return min(hs) > th.ground_h_cm and max(hs) - min(hs) <= th.stable_range_cm and self.motors_running(t)
 
     def airborne_stable(self, t: float) -> bool:
         th = self.th
@@ -134,7 +193,9 @@ class PhaseTracker:
         self._step(t, s)
         if self.phase is before:
             return []
-        return [f"{before.value} -> {self.phase.value} (h {s.h_cm:.0f} cm, motor time {s.motor_s:.0f} s)"]
+        why = ", a descent not commanded: its own landing" if self.self_landing else ""
+        seen = f"h {s.h_cm:.0f} cm, motor time {s.motor_s:.0f} s{why}"
+        return [f"{before.value} -> {self.phase.value} ({seen})"]
 
     def _step(self, t: float, s: TelloTelemetry) -> None:
         th, P = self.th, FlightPhase
@@ -156,10 +217,14 @@ class PhaseTracker:
         elif self.phase is P.AIRBORNE:
             if self.down(t):
                 self._set(P.GROUND, t)
+            elif self.sustained_descent(t) and not self.descent_commanded(t):
+                self.self_landing = True
+                self._land_sent_t = None
+                self._set(P.LANDING, t)
         elif self.phase is P.LANDING:
             if self.down(t):
                 self._set(P.GROUND, t)
-            elif (
+            elif (self.self_landing and self._land_sent_t is None and self.holding_height(t)) or (
                 self._land_sent_t is not None
                 and t - self._land_sent_t > th.no_effect_s
                 and self.motors_running(t)
@@ -169,5 +234,7 @@ class PhaseTracker:
 
     def _set(self, phase: FlightPhase, t: float) -> None:
         if phase is not self.phase:
+            if phase is not FlightPhase.LANDING:
+                self.self_landing = False
             self.phase = phase
             self.phase_since = t

@@ -1,10 +1,10 @@
 """The Tello driver's stick commands: `rc` (body velocity or raw sticks), hover and `emergency`.
 
-`send_body_velocity` maps V = [v_x, v_y, v_z, ω] in the drone's FLU body frame (m/s, rad/s) to
-`rc a b c d` (drivers/tello_rc.py; -100..100 each) and sends it as one non-blocking datagram, only while
-the drone is airborne, no blocking command is running and no land is pending (otherwise counted in
-`counts["rc_suppressed"]`); every call tells the loop watchdog (drivers/tello_watchdog.py) that the
-control loop is alive.
+`send_body_velocity` maps V = [v_x, v_y, v_z, ω] in the drone's FLU body frame (m/s, rad/s) to `rc a b c d`
+(drivers/tello_rc.py; -100..100 each) and sends it as one non-blocking datagram, only while the drone is
+airborne, no blocking command is running and no land is pending (otherwise counted in
+`counts["rc_suppressed"]`; a drone landing by itself is `landing`, so it gets no rc); every call tells the
+loop watchdog (drivers/tello_watchdog.py) that the control loop is alive.
 """
 
 from __future__ import annotations
@@ -39,10 +39,11 @@ class Sticks:
             chan = self._link.chan
             if chan is None or self._status.tracker.phase is not FlightPhase.AIRBORNE:
                 return
-            self._status.last_rc_t = time.monotonic()
+            self._status.last_rc_t = now = time.monotonic()
             if chan.send("rc 0 0 0 0"):
                 self.last_rc = HOVER
                 self.sent += 1
+                self._status.tracker.rc_sent(now, 0)
 
     def hover_unchecked(self) -> None:
         """`rc 0 0 0 0` whatever the phase and flags (a land re-sent while telemetry is silent)."""
@@ -51,6 +52,8 @@ class Sticks:
         if chan.send("rc 0 0 0 0"):
             self.last_rc = HOVER
             self.sent += 1
+            with self._status.lock:
+                self._status.tracker.rc_sent(time.monotonic(), 0)
 
     def emergency_stop(self) -> None:
         """Motors off at once (`emergency`, no reply awaited, no quiet window)."""
@@ -97,9 +100,10 @@ class Sticks:
             self._once.clear()
             chan = self._link.chan
             assert chan is not None
-            st.last_rc_t = time.monotonic()
+            st.last_rc_t = now = time.monotonic()
             if chan.send("rc {} {} {} {}".format(*rc)):
                 self.last_rc = rc
                 self.sent += 1
+                st.tracker.rc_sent(now, rc[2])
         if why:
             self._events.add(why, f"rc {rc} sent")

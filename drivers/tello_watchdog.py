@@ -1,9 +1,10 @@
 """The Tello driver's monitor thread: link freshness and the control-loop watchdog.
 
-Every 0.02 s: no state packet for `link_timeout_s` (s) → link lost (`link_lost` / `link_restored`
-events); while airborne with no blocking command and no land pending, a control loop silent for
-`loop_hover_s` (s) gets `rc 0 0 0 0` once, and after `loop_land_s` (s) the driver lands by itself on its
-own thread. The thread survives any error (counted, logged).
+Every 0.02 s: no state packet for `link_timeout_s` (s) → link lost (`link_lost` / `link_restored` events), and
+while it is lost `command` at most every `rejoin_s` (drivers/tello_rejoin.py: a drone that rebooted streams
+again only after it); while airborne with no blocking command and no land pending, a control loop silent for
+`loop_hover_s` (s) gets `rc 0 0 0 0` once, and after `loop_land_s` (s) the driver lands by itself on its own
+thread. The thread survives any error (counted, logged).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from collections.abc import Callable
 
 from flightstack.drivers.tello_config import TelloConfig
 from flightstack.drivers.tello_link import ErrorLog
+from flightstack.drivers.tello_rejoin import SdkRejoin
 from flightstack.drivers.tello_status import LOG, DriverEvents, DriverStatus
 from flightstack.drivers.tello_sticks import HOVER, Sticks
 from flightstack.hal import FlightPhase
@@ -28,9 +30,11 @@ class Watchdog:
         status: DriverStatus,
         events: DriverEvents,
         sticks: Sticks,
+        rejoin: SdkRejoin,
         land: Callable[[], None],
     ) -> None:
         self._cfg, self._status, self._events, self._sticks, self._land = cfg, status, events, sticks, land
+        self._rejoin = rejoin
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._self_landing: threading.Thread | None = None
@@ -68,6 +72,8 @@ class Watchdog:
             st.link_up = True
             self._events.add("link_restored")
         with st.lock:
+            if not st.busy or st.land_requested:  # no other exchange: command's ok is no answer
+                self._rejoin.step(now, st.link_up)
             watched = st.tracker.phase is FlightPhase.AIRBORNE and not st.busy and not st.land_requested
             silent = now - st.last_loop_t
         if not watched:

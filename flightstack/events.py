@@ -37,7 +37,7 @@ BusKind = Literal["joined", "left", "second session", "offset learning", "offset
 TelloKind = Literal[
     "phase", "link_lost", "link_restored", "loop_lost_land", "loop_silent_hover", "resend",
     "reply_not_trusted", "takeoff_confirmed", "land_confirmed", "reply_lost_confirmed",
-    "error_reply_but_effect", "emergency", "rc_suppressed", "replies_discarded", "reply_rejected",
+    "error_reply_but_effect", "emergency", "rc_suppressed", "replies_discarded", "reply_rejected", "rejoin",
 ]  # fmt: skip
 MocapKind = Literal["reader_join_timeout", "reader_error", "reader_recovered", "bad_sample", "body_found",
                     "body_regained", "tilt_refused", "tilt_ok", "body_lost"]  # fmt: skip
@@ -120,7 +120,7 @@ KINDS: Mapping[str, KindInfo] = {
     "link_restored": _i("state packets again after a lost link"),
     "loop_lost_land": _w("no velocity from the control loop too long: the driver lands"),
     "loop_silent_hover": _w("no velocity from the control loop: sticks centred"),
-    "resend": _w("a takeoff or land sent again (no reply, no effect)"),
+    "resend": _w("a takeoff or land sent again (no effect in telemetry, silent telemetry, the link back)"),
     "reply_not_trusted": _w("an 'ok' the telemetry contradicts"),
     "takeoff_confirmed": _i("telemetry shows the takeoff done"),
     "land_confirmed": _i("telemetry shows the landing done"),
@@ -130,6 +130,7 @@ KINDS: Mapping[str, KindInfo] = {
     "rc_suppressed": _i("stick commands not sent (detail: why)"),
     "replies_discarded": _i("stale replies dropped before a command"),
     "reply_rejected": _w("a reply that does not answer the command"),
+    "rejoin": _w("state stream silent: 'command' sent again at a bounded rate (a rebooted drone needs it)"),
     # the motion-capture source (drivers/mocap.py; source "mocap", monotonic clock; detail: the body)
     "reader_join_timeout": _w("the reader thread did not stop in time"),
     "reader_error": _e("the reader thread raised"),

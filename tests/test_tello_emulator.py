@@ -167,6 +167,75 @@ def test_raw_protocol_sdk_mode_state_and_replies() -> None:
             assert emu.rc_history[-1][1] == (1, 2, 3, 4)
 
 
+def test_raw_one_way_links_power_loss_and_own_landing() -> None:
+    """A datagram lost on the uplink never reaches the drone (``uplink_lost``); on the downlink it is run
+    but its reply and the state are lost; a power loss drops the drone, which boots out of SDK mode and
+    streams only after ``command``; below its low-battery level it lands by itself, ignoring rc and
+    answering ``error Auto land``."""
+    with (
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as cli,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as state_rx,
+    ):
+        cli.bind(("127.0.0.1", 0))
+        cli.settimeout(0.3)
+        state_rx.bind(("127.0.0.1", 0))
+        state_rx.settimeout(0.3)
+        with TelloEmulator("127.0.1.5", state_port=state_rx.getsockname()[1], land_s=1.0) as emu:
+
+            def ask(text: str, timeout: float = 1.0) -> str:
+                cli.settimeout(timeout)
+                cli.sendto(text.encode(), emu.address)
+                return cli.recvfrom(1024)[0].decode()
+
+            def silent(text: str) -> None:
+                cli.settimeout(0.3)
+                cli.sendto(text.encode(), emu.address)
+                with pytest.raises(TimeoutError):
+                    cli.recvfrom(1024)
+
+            def drain_state() -> None:
+                with contextlib.suppress(TimeoutError):
+                    while True:
+                        state_rx.recvfrom(1024)
+
+            assert ask("command") == "ok"
+            emu.faults.uplink_down = True
+            silent("battery?")
+            assert [(text, why) for _, text, why in emu.uplink_lost] == [("battery?", "uplink_down")]
+            assert emu.command_texts() == ["command"]
+            emu.faults.uplink_down, emu.faults.downlink_down = False, True
+            n_state = emu.state_packets_lost
+            silent("battery?")
+            assert emu.command_texts()[-1] == "battery?" and emu.downlink_lost[-1][1].isdigit()
+            assert wait_until(lambda: emu.state_packets_lost > n_state, 1.0)
+            emu.faults.downlink_down = False
+
+            assert ask("takeoff") == "ok" and emu.phase == "flying"
+            emu.faults.powered_off = True
+            assert wait_until(lambda: emu.phase == "landed" and emu.power_log[-1][1] == "off", 1.0)
+            assert emu.position_cm[2] == 0.0 and not emu.sdk_mode  # it fell
+            silent("land")
+            assert emu.uplink_lost[-1][1:] == ("land", "powered_off")
+            emu.faults.powered_off = False
+            assert wait_until(lambda: emu.power_log[-1][1] == "boot", 1.0)
+            drain_state()
+            with pytest.raises(TimeoutError):  # booted out of SDK mode: no state until `command`
+                state_rx.recvfrom(1024)
+            silent("battery?")  # ignored before `command`
+            assert ask("command") == "ok"
+            state_rx.settimeout(1.0)
+            assert b";time:0;" in state_rx.recvfrom(1024)[0]  # the motor-on time counts from power-on
+
+            assert ask("takeoff") == "ok"
+            emu.faults.battery_pct = 8
+            assert wait_until(lambda: emu.phase == "landing", 1.0) and emu.landed_by_battery
+            silent("rc 0 50 0 0")
+            assert emu.refused[-1][1:3] == ("landing", "rc 0 50 0 0")
+            assert ask("land") == "error Auto land"
+            assert wait_until(lambda: emu.phase == "landed", 2.0)
+            assert not emu.landed_by_timeout and emu.errors == []
+
+
 def _drain(sock: socket.socket) -> list[bytes]:
     """Read every datagram currently queued on a non-blocking socket."""
     out = []

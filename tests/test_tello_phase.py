@@ -139,3 +139,48 @@ def test_takeoff_confirmed_with_height_quantised_to_10_cm() -> None:
     for k in range(15):  # hover: the readout flickers, the measured vertical speed is 0
         tr.observe(packet(2.5 + 0.1 * k, 80.0 + 10.0 * (k // 3 % 2), 2.0 + 0.1 * k, vgz=0.0))
     assert tr.phase is FlightPhase.AIRBORNE
+
+
+# ---- a descent the driver did not command ------------------------------------------------------------------
+def flying(tr: PhaseTracker) -> None:
+    stream(tr, 0.0, 2.0, lambda t: 80.0, 30.0, motors_on=True)
+    assert tr.phase is FlightPhase.AIRBORNE
+
+
+def test_a_descent_not_commanded_is_the_drones_own_landing() -> None:
+    tr = PhaseTracker()
+    flying(tr)
+    tr.rc_sent(1.9, 0)  # the loop holds height
+    descend = lambda t: max(0.0, 80.0 - (t - 2.0) * 47.0)  # noqa: E731  # 80 cm in 1.7 s
+    stream(tr, 2.0, 2.3, descend, 32.0, motors_on=True)
+    assert tr.phase is FlightPhase.AIRBORNE  # 9.4 cm: not yet
+    stream(tr, 2.3, 2.5, descend, 32.3, motors_on=True)
+    assert tr.phase is FlightPhase.LANDING and tr.self_landing
+    assert 2.3 <= tr.phase_since <= 2.45  # within ~0.4 s of the descent's start (10 Hz packets)
+    stream(tr, 2.5, 3.8, descend, 32.5, motors_on=True)
+    stream(tr, 3.8, 5.5, lambda t: 0.0, 33.8, motors_on=False)
+    assert tr.phase is FlightPhase.GROUND and not tr.self_landing
+
+
+def test_a_commanded_descent_is_not_a_landing() -> None:
+    tr = PhaseTracker()
+    flying(tr)
+    tr.rc_sent(1.9, -40)  # the loop asks for 40 cm/s down, then its last rc stays negative
+    stream(tr, 2.0, 3.0, lambda t: 80.0 - (t - 2.0) * 40.0, 32.0, motors_on=True)
+    assert tr.phase is FlightPhase.AIRBORNE
+    tr.rc_sent(3.0, 0)  # stops asking; the drone's velocity lags for uncommanded_after_s
+    stream(tr, 3.0, 3.5, lambda t: 40.0 - (t - 3.0) * 30.0, 33.0, motors_on=True)
+    assert tr.phase is FlightPhase.AIRBORNE
+
+
+def test_a_height_step_is_no_descent_and_a_stopped_descent_flies_on() -> None:
+    tr = PhaseTracker()
+    flying(tr)
+    stream(tr, 2.0, 3.0, lambda t: 80.0 if t < 2.45 else 60.0, 32.0, motors_on=True)  # over an object
+    assert tr.phase is FlightPhase.AIRBORNE
+    tr2 = PhaseTracker()
+    flying(tr2)
+    stream(tr2, 2.0, 2.6, lambda t: 80.0 - (t - 2.0) * 50.0, 32.0, motors_on=True)
+    assert tr2.phase is FlightPhase.LANDING and tr2.self_landing
+    stream(tr2, 2.6, 3.4, lambda t: 50.0, 32.6, motors_on=True)  # it stops: no landing after all
+    assert tr2.phase is FlightPhase.AIRBORNE and not tr2.self_landing

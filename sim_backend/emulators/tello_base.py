@@ -131,10 +131,21 @@ class TelloEmulatorBase:
         """``(time.monotonic(), phase at receipt, command text, reply or "ignored")`` of every command the
         drone did not carry out (see the docstring of ``tello.py``, "Refused commands"); never a command that
         succeeded."""
-        self._replies = ReplyScheduler(self._lock, self.errors)
+        self._replies = ReplyScheduler(self._lock, self.errors, blocked=self.downlink_blocked)
         self.replies_sent: list[tuple[float, str, str]] = self._replies.sent
         """``(time.monotonic(), reply text, "normal" | "duplicate")`` of every reply datagram sent
         (recorded just before it leaves the socket)."""
+        self.downlink_lost: list[tuple[float, str, str]] = self._replies.lost
+        """Replies lost because the downlink was down or the drone off (``faults.downlink_down``,
+        ``faults.powered_off``), as ``replies_sent``."""
+        self.uplink_lost: list[tuple[float, str, str]] = []
+        """``(time.monotonic(), text, "uplink_down" | "powered_off")`` of every datagram that never reached
+        the drone (not in ``commands``)."""
+        self.state_packets_lost = 0
+        self.power_log: list[tuple[float, str]] = []
+        """``(time.monotonic(), "off" | "boot")`` of every power loss and boot (``faults.powered_off``)."""
+        self.landed_by_battery = False
+        """True once the drone began a landing of its own on low battery (until the next takeoff)."""
         self.state_packets_sent = 0
         self.last_state = ""
         self.video_frames_sent = 0
@@ -166,6 +177,7 @@ class TelloEmulatorBase:
         self._bat_setpoint = self.faults.battery_pct
         self._last_cmd_t = time.monotonic()
         self._stream_epoch = 0
+        self._powered_off = False  # the power state the simulation last acted on
 
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -174,6 +186,10 @@ class TelloEmulatorBase:
         self._bound: tuple[str, int] | None = None
         self._started = False
         self._closed = False
+
+    def downlink_blocked(self) -> bool:
+        """True while nothing the drone sends arrives (``faults.downlink_down`` or ``faults.powered_off``)."""
+        return self.faults.downlink_down or self.faults.powered_off
 
     # ---------------------------------------------------------------------------------------------- replies
     def _reply(self, text: str, addr: tuple[str, int] | None, now: float, delay: float) -> None:

@@ -20,6 +20,13 @@ not ``ok`` (error texts differ between firmwares). Sources are abbreviated as in
   ``error Motor stop``.
 * **``rc``** acts only while ``flying`` (else recorded in ``rc_history`` and ``refused``); no reply unless
   ``faults.rc_replies``; a malformed one goes to ``rejected`` and ``refused``.
+* **Its own landing** (15 s without a command, or the battery below ``faults.self_land_battery_pct``):
+  ``rc`` is ignored (``refused``), ``takeoff``/``land``/moves answer ``error Auto land``
+  (wesbos/javascript-drones#6: it "will ignore any further commands until it has landed").
+* **Link and power** (``faults.uplink_down``, ``faults.downlink_down``, ``faults.powered_off``): a datagram
+  that never reached the drone is logged in ``uplink_lost`` (not in ``commands``); one lost on its way back
+  in ``downlink_lost`` (replies) or ``state_packets_lost``. After a power loss the drone boots out of SDK
+  mode and streams nothing until ``command`` (DJITelloPy #169).
 * **``emergency``**: no reply (Tello-Python #85, DJITelloPy #125), the motors stop and the drone drops; an
   interrupted takeoff/landing never answers. ``reboot`` (SDK 3.0) does the same and leaves SDK mode.
 * **``refused``** holds ``(time, phase at receipt, text, reply or "ignored")`` for every command not
@@ -36,7 +43,7 @@ not ``ok`` (error texts differ between firmwares). Sources are abbreviated as in
   *unverified*: a second ``command`` does not move the latch).
 
 Not modelled: binary datagrams on the command port (carlospzlz/ctello#7), ``error No valid imu``,
-``error, high temp``, ``motoron`` mode, battery auto-land, the reply backlog of back-to-back commands.
+``error, high temp``, ``motoron`` mode, the reply backlog of back-to-back commands.
 """
 
 from __future__ import annotations
@@ -81,6 +88,10 @@ class TelloCommands(TelloPhysics):
                 time.sleep(0.01)
                 continue
             text = data.decode("utf-8", errors="replace").strip()
+            if self.faults.powered_off or self.faults.uplink_down:  # never reached the drone
+                why = "powered_off" if self.faults.powered_off else "uplink_down"
+                self.uplink_lost.append((time.monotonic(), text, why))
+                continue
             try:
                 self._handle(text, (str(addr[0]), int(addr[1])))
             except Exception as exc:  # keep serving; surface the problem to the test
@@ -166,7 +177,7 @@ class TelloCommands(TelloPhysics):
 
     def _busy_reply(self) -> str:
         """Reply to a command that needs a settled drone while it takes off or lands."""
-        auto = self.landed_by_timeout and self._phase == "landing"
+        auto = (self.landed_by_timeout or self.landed_by_battery) and self._phase == "landing"
         return "error Auto land" if auto else "error Not joystick"
 
     def _execute(self, verb: str, args: list[str], now: float) -> str | None:
@@ -187,6 +198,7 @@ class TelloCommands(TelloPhysics):
             duration = self.faults.takeoff_s
             self._start_phase("takeoff", now, self.takeoff_s if duration is None else float(duration))
             self.landed_by_timeout = False
+            self.landed_by_battery = False
             return None
         if verb == "land":
             if self._phase == "landed":

@@ -36,8 +36,10 @@ class TelloEmulator(TelloCommands, TelloVideoStream):
     ``rc_history`` (``(time, (a, b, c, d))`` of every valid ``rc``), ``phase_log`` (``(time, phase)`` of every
     phase transition), ``refused`` (``(time, phase at receipt, text, reply or "ignored")`` of every command
     the drone did not carry out), ``replies_sent`` (``(time, text, "normal" | "duplicate")`` of every reply
-    sent), ``flying``, ``phase``, ``downvision``, ``streaming``, ``sdk_mode``, ``landed_by_timeout``,
-    ``state_packets_sent``, ``video_frames_sent``, ``errors``, ``rejected``.  Lists are only appended to;
+    sent), ``uplink_lost`` / ``downlink_lost`` (datagrams a link or power fault lost), ``power_log``,
+    ``flying``, ``phase``, ``downvision``, ``streaming``, ``sdk_mode``, ``landed_by_timeout``,
+    ``landed_by_battery``, ``state_packets_sent``, ``state_packets_lost``, ``video_frames_sent``,
+    ``errors``, ``rejected``.  Lists are only appended to;
     take ``list(emu.commands)`` for a snapshot.
     """
 

@@ -15,6 +15,7 @@ import math
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 __all__ = ["SDK3_ONLY_COMMANDS", "ReplyScheduler", "TelloFaults", "has_sdk3"]
@@ -120,6 +121,34 @@ class TelloFaults:
     support package for Ryze Tello deliberately ignores ``error Not joystick``/``error Auto land`` replies as
     belonging to "previous non-blocking command[s]".  With this switch a driver that streams ``rc`` next to
     blocking commands sees those stray replies."""
+    uplink_down: bool = False
+    """Every datagram to the drone is lost (read when one arrives): a Wi-Fi outage from the computer to the
+    drone. Lost datagrams go to ``emu.uplink_lost``, not to ``commands``; the drone keeps its last ``rc``
+    (SDK guides: ``rc`` sets the sticks until the next one) and lands by itself after ``auto_land_s``
+    without a command.  With ``downlink_down`` it is a two-way outage.  A lab Wi-Fi drops in bursts and in
+    one direction at a time: dji-sdk/Tello-Python #85 (a Ryze engineer: "UDP connections have a high
+    probability of packet loss"), DJITelloPy #167 (an ``ok`` seen in Wireshark that never reached the
+    client), DJITelloPy #2 (commands lost while others arrive)."""
+    downlink_down: bool = False
+    """Every datagram from the drone is lost: replies (logged in ``emu.downlink_lost``), state packets
+    (counted in ``emu.state_packets_lost``) and video.  The drone still obeys what it receives."""
+    powered_off: bool = False
+    """The drone has no power (battery knocked loose in flight; read every simulation tick). On the switch to
+    True it falls (motors off at once, height 0); while True it receives nothing (datagrams logged in
+    ``emu.uplink_lost``) and sends nothing. On the switch back it boots as after a power cycle: on the ground,
+    motor-on time 0, not in SDK mode, no state stream and no video until it gets ``command`` (DJITelloPy #169:
+    after a battery swap "all you need to do is call ``drone.connect()`` again, which tells the restarted
+    drone your PC controls it"; SMerrony/tellodesk#3: status no longer updated after reconnecting following a
+    battery change, https://github.com/SMerrony/tellodesk/issues/3). Each boot is logged in
+    ``emu.power_log``."""
+    self_land_battery_pct: int | None = 10
+    """While flying with the battery below this (%), the drone lands by itself (``landed_by_battery``): rc is
+    ignored (recorded in ``refused``) and ``takeoff``/``land``/moves answer ``error Auto land`` until it is
+    down. kebhr/scratch3-tello#10 (https://github.com/kebhr/scratch3-tello/issues/10: the Tello blinks red on
+    low battery and lands); wesbos/javascript-drones#6 (https://github.com/wesbos/javascript-drones/issues/6:
+    during its own landing the drone "will ignore any further commands until it has landed but is still
+    sending through status updates"). The threshold is *unverified* (no published number; the emulator refuses
+    takeoff below ``MIN_TAKEOFF_BATTERY`` = 10 %, so the two agree); None disables the self-landing."""
     sdk_version: str = "30"
     """The answer to ``sdk?``.  Below ``"30"`` (e.g. ``"20"``, Tello/Tello EDU on SDK 2.0 firmware) every verb
     in :data:`SDK3_ONLY_COMMANDS` (``port``, ``downvision``, ``setfps``, ``setbitrate``, ``setresolution``,
@@ -138,10 +167,16 @@ class ReplyScheduler:
     send is also reported in the emulator's ``errors``).
     """
 
-    def __init__(self, lock: threading.RLock, errors: list[str]) -> None:
-        """``lock``: the emulator's lock (replies are queued while holding it); ``errors``: its error list."""
+    def __init__(
+        self, lock: threading.RLock, errors: list[str], blocked: Callable[[], bool] | None = None
+    ) -> None:
+        """``lock``: the emulator's lock (replies are queued while holding it); ``errors``: its error list;
+        ``blocked``: True while the downlink is down (a due reply then goes to :attr:`lost`, not out)."""
         self.cond = threading.Condition(lock)
         self.sent: list[tuple[float, str, str]] = []
+        self.lost: list[tuple[float, str, str]] = []
+        """``(time.monotonic(), text, kind)`` of every reply lost on a downlink that was down when due."""
+        self._blocked = blocked
         self._errors = errors
         self._heap: list[tuple[float, int, str, tuple[str, int], str]] = []
         self._seq = itertools.count()
@@ -181,6 +216,9 @@ class ReplyScheduler:
                     self.cond.wait(min(wait, 0.1))
                     continue
                 heapq.heappop(self._heap)
+            if self._blocked is not None and self._blocked():
+                self.lost.append((time.monotonic(), text, kind))
+                continue
             # recorded just before it leaves, so that a client holding the datagram always finds the record
             self.sent.append((time.monotonic(), text, kind))
             try:

@@ -1,17 +1,19 @@
 """The Tello emulator's simulation: flight phases, motion model, battery and the state stream.
 
-Ground truth in the world frame ``x`` forward at takeoff heading, ``y`` right, ``z`` up (cm), yaw in
-degrees clockwise wrapped to [-180, 180); ``rc`` targets are body-frame velocities (cm/s: right, forward,
-up) and a yaw rate (deg/s, clockwise), followed with a first-order lag ``tau_s``; discrete moves are
-instantaneous. Phases ``landed`` -> ``takeoff`` -> ``flying`` -> ``landing`` -> ``landed`` (logged in
-``phase_log``; motor-on time runs in all but ``landed``); a takeoff climbs to ``takeoff_height_cm`` in at
-most ``TAKEOFF_CLIMB_S`` (*unverified*), and its deferred ``ok`` is queued when it completes. No datagram
-for ``auto_land_s`` (15 s, SDK guides "Safety Function"; DJITelloPy #141) while flying: the drone lands
-itself (``landed_by_timeout``). The battery drains from the set-point ``faults.battery_pct``. The
-simulation thread steps every ``TICK_S`` s and sends the state string (``mid:-1;x:..;...;agz:..;\\r\\n``;
-``vgx/vgy/vgz`` in dm/s, ``h``/``tof`` in cm, ``x/y/z`` the integrated position in cm where a real drone
-reports mission-pad coordinates, ``time`` = motor-on s, ``bat`` in %) at ``state_hz`` to
-``(client_ip, state_port)`` in SDK mode. `TelloPhysics` is one layer of ``TelloEmulator``.
+Ground truth in the world frame ``x`` forward at takeoff heading, ``y`` right, ``z`` up (cm), yaw in degrees
+clockwise wrapped to [-180, 180); ``rc`` targets are body-frame velocities (cm/s: right, forward, up) and a
+yaw rate (deg/s, clockwise), followed with a first-order lag ``tau_s``; discrete moves are instantaneous.
+Phases ``landed`` -> ``takeoff`` -> ``flying`` -> ``landing`` -> ``landed`` (logged in ``phase_log``; motor-on
+time runs in all but ``landed``); a takeoff climbs to ``takeoff_height_cm`` in at most ``TAKEOFF_CLIMB_S``
+(*unverified*), and its deferred ``ok`` is queued when it completes. No datagram for ``auto_land_s`` (15 s,
+SDK guides "Safety Function"; DJITelloPy #141) while flying: the drone lands itself (``landed_by_timeout``);
+so it does below ``faults.self_land_battery_pct`` (``landed_by_battery``). A power loss
+(``faults.powered_off``) drops it to the floor; it boots out of SDK mode, motor-on time 0. The battery drains
+from the set-point ``faults.battery_pct``. The simulation thread steps every ``TICK_S`` s and sends the state
+string (``mid:-1;x:..;...;agz:..;\\r\\n``; ``vgx/vgy/vgz`` in dm/s, ``h``/``tof`` in cm, ``x/y/z`` the
+integrated position in cm where a real drone reports mission-pad coordinates, ``time`` = motor-on s, ``bat``
+in %) at ``state_hz`` to ``(client_ip, state_port)`` in SDK mode. `TelloPhysics` is one layer of
+``TelloEmulator``.
 """
 
 from __future__ import annotations
@@ -128,6 +130,12 @@ class TelloPhysics(TelloEmulatorBase):
                     self._rc[:] = 0.0
                     self._start_phase("landing", now, self.land_s)
                     return
+                low = self.faults.self_land_battery_pct
+                if low is not None and self._battery_locked() < low:
+                    self.landed_by_battery = True
+                    self._rc[:] = 0.0
+                    self._start_phase("landing", now, self.land_s)
+                    return
                 alpha = 1.0 - math.exp(-dt / max(self.tau_s, 1e-6))
                 previous = self._vel_body[:3].copy()
                 self._vel_body += alpha * (self._rc - self._vel_body)
@@ -140,6 +148,24 @@ class TelloPhysics(TelloEmulatorBase):
                     self._pos[2] = 0.0
                     self._vel_world[2] = 0.0
                 self._yaw = wrap_deg(self._yaw + yaw_rate * dt)
+
+    def _power(self, now: float) -> None:
+        """Act on ``faults.powered_off`` once per change: a power loss (it falls), or a boot."""
+        off = bool(self.faults.powered_off)
+        if off == self._powered_off:
+            return
+        with self._lock:
+            self._powered_off = off
+            if off:  # motors off at once, on the floor; all it knew of its client is gone
+                self._set_landed(now)
+                self._pos[2] = 0.0
+                self._deferred = None
+                self.sdk_mode = False
+                self.streaming = False
+                self._first_client = None
+            self._motor_s = 0.0  # the motor-on time counts from power-on
+            self._last_cmd_t = now
+            self.power_log.append((now, "off" if off else "boot"))
 
     def _state_string(self) -> str:
         with self._lock:
@@ -161,12 +187,17 @@ class TelloPhysics(TelloEmulatorBase):
         next_state = last
         while not self._stop.wait(self.TICK_S):
             now = time.monotonic()
-            self._step(now, min(max(now - last, 1e-4), 0.1))
+            self._power(now)
+            if not self._powered_off:
+                self._step(now, min(max(now - last, 1e-4), 0.1))
             last = now
             if now < next_state:
                 continue
             next_state = max(next_state + 1.0 / self.state_hz, now - 1.0 / self.state_hz)
             if not self.sdk_mode or self.faults.drop_state:
+                continue
+            if self.downlink_blocked():
+                self.state_packets_lost += 1
                 continue
             state = self._state_string()
             try:

@@ -152,7 +152,7 @@ class TelloVideoStream(TelloEmulatorBase):
                 index = int((now - t0) / period)
             t = index * period
             self.video_frame_index = index
-            if not self.faults.no_video:
+            if not self.faults.no_video and not self.downlink_blocked():
                 try:
                     t_capture = time.monotonic()
                     img = self._render(t)
