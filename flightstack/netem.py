@@ -311,6 +311,60 @@ class LinkModel:
         return [due]
 
 
+class StreamModel:
+    """The same profile for one direction of a TCP connection: nothing is lost (TCP retransmits), so
+    every chunk of bytes is delivered, in order, at the time `decide` returns: rate cap (no drop: the
+    sender waits), latency, jitter and spikes as in LinkModel; a Gilbert–Elliott loss costs
+    RETRANSMIT_S more (Linux's minimum retransmission timeout); a chunk sent during a blackout is held
+    until the blackout ends (then its latency). Duplication and reordering do not exist on a stream.
+    Not thread-safe. `counts`: "chunks", "bytes", "retransmitted", "held" (by a blackout), "spiked"."""
+
+    RETRANSMIT_S = 0.2
+
+    def __init__(
+        self,
+        prof: LinkProfile,
+        seed: int,
+        device: str,
+        link: str,
+        *,
+        epoch: float = 0.0,
+        blackouts: list[tuple[float, float]] | None = None,
+    ) -> None:
+        self.profile = prof
+        self._rng = link_rng(seed, device, link)
+        self._bad = False
+        self._blackouts = [(epoch + a, epoch + b) for a, b in (blackouts or [])]
+        self._busy_until = -math.inf
+        self._last_due = -math.inf
+        self.counts: Counter[str] = Counter()
+
+    def decide(self, t: float, size: int) -> float:
+        """When a chunk of `size` bytes written at t reaches the other end (s)."""
+        p, rng = self.profile, self._rng
+        u = [rng.random() for _ in range(5)]
+        self.counts["chunks"] += 1
+        self.counts["bytes"] += size
+        self._bad = (u[0] >= p.loss_r) if self._bad else (u[0] < p.loss_p)
+        start = t
+        for a, b in self._blackouts:
+            if a <= t < b:
+                start = b
+                self.counts["held"] += 1
+        if p.rate_bps is not None:
+            start = max(start, self._busy_until) + 8.0 * size / p.rate_bps
+            self._busy_until = start
+        delay = p.latency_s + (-p.jitter_s * math.log(1.0 - u[2]) if p.jitter_s > 0 else 0.0)
+        if u[1] < (p.loss_bad if self._bad else p.loss_good):
+            delay += self.RETRANSMIT_S
+            self.counts["retransmitted"] += 1
+        if u[3] < p.spike_p:
+            delay += p.spike_s[0] + u[4] * (p.spike_s[1] - p.spike_s[0])
+            self.counts["spiked"] += 1
+        self._last_due = max(start + delay, self._last_due)
+        return self._last_due
+
+
 __all__ = [
     "LINK_KINDS",
     "PROFILES",
@@ -318,6 +372,7 @@ __all__ = [
     "LinkModel",
     "LinkProfile",
     "NetworkProfile",
+    "StreamModel",
     "blackout_windows",
     "link_rng",
     "profile",

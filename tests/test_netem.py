@@ -12,6 +12,7 @@ from flightstack.netem import (
     BlackoutPlan,
     LinkModel,
     LinkProfile,
+    StreamModel,
     blackout_windows,
     profile,
 )
@@ -131,3 +132,17 @@ def test_profiles() -> None:
     with pytest.raises(ValueError, match="probability"):
         LinkProfile(loss_p=1.5)
     assert "gemodel" in wifi.netem() and "rate 2500kbit" in crowded.link("video").netem()
+
+
+def test_stream_model_delivers_everything_in_order() -> None:
+    prof = LinkProfile.bursty(0.05, 2.0, latency_s=0.002, jitter_s=0.005, rate_bps=8e6)
+    m = StreamModel(prof, 2, "bus", "0:up", epoch=10.0, blackouts=[(1.0, 2.5)])
+    t = [10.0 + 0.01 * k for k in range(400)]
+    due = [m.decide(x, 1000) for x in t]
+    assert all(b >= a for a, b in itertools.pairwise(due)) and all(d > x for d, x in zip(due, t, strict=True))
+    held = [d for x, d in zip(t, due, strict=True) if 11.0 <= x < 12.5]
+    assert held and min(held) >= 12.5 + 0.002  # a blackout holds the bytes, then their latency
+    assert m.counts["held"] == len(held) and m.counts["chunks"] == 400
+    assert m.counts["retransmitted"] > 0  # a loss costs a retransmission, never the bytes
+    late = [d - x for x, d in zip(t, due, strict=True) if not 11.0 <= x < 12.7]
+    assert min(late) >= 0.002 + 8 * 1000 / 8e6 - 1e-12
