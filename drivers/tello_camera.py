@@ -217,6 +217,14 @@ class TelloCamera:
         if self._rx is not None:
             self._rx.close()
             self._rx = None
+            c = self.counts
+            if c["damaged"] or c["lost_head"] or c["lost_tail"] or c["frame_gap"]:  # the stream's losses
+                LOG.warning(
+                    "tello %s video: %d frames used, %d damaged frames dropped (lost head %d, tail %d, "
+                    "frame gaps %d, decode errors %d, resyncs %d)",
+                    self.driver.cfg.host, c["frames"], c["damaged"], c["lost_head"], c["lost_tail"],
+                    c["frame_gap"], c["decode_error"], c["resync"],
+                )  # fmt: skip
             try:
                 self.driver.control("streamoff", streamoff_timeout_s, attempts=1)
             except TelloCommandError as exc:
