@@ -35,6 +35,9 @@ from flightstack.drivers.tello_video_check import StreamCheck
 from flightstack.hal import Frame
 
 LOG = logging.getLogger("flightstack.tello")
+SETUP_ATTEMPTS = 4
+"""Tries of each video set-up command (`port`, `downvision 1`, `streamon`; all idempotent): on a lossy
+Wi-Fi (2 % loss in bursts of 2 both ways) two tries of one command failed in a few % of start-ups."""
 RECV_BUFFER_BYTES = 4 << 20  # socket receive buffer asked for (the OS may grant less): a keyframe burst
 MAX_DATAGRAM_BYTES = 65536
 
@@ -186,10 +189,10 @@ class TelloCamera:
             raise TelloCommandError(f"video on UDP {port}: {exc}") from exc
         try:
             if port != DEFAULT_VIDEO_PORT:  # station mode: each drone streams to its own port
-                d.control(f"port {d.cfg.state_port} {port}", d.cfg.command_timeout_s)
+                d.control(f"port {d.cfg.state_port} {port}", d.cfg.command_timeout_s, SETUP_ATTEMPTS)
             if d.cfg.downward_camera:
-                d.control("downvision 1", d.cfg.command_timeout_s)
-            d.control("streamon", d.cfg.command_timeout_s)
+                d.control("downvision 1", d.cfg.command_timeout_s, SETUP_ATTEMPTS)
+            d.control("streamon", d.cfg.command_timeout_s, SETUP_ATTEMPTS)
             if not rx.wait_first_frame(self.frame_timeout_s):
                 raise TelloCommandError(
                     f"video on UDP {port}: no decodable video within {self.frame_timeout_s:.1f} s "

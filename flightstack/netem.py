@@ -7,9 +7,11 @@ duplicated). In order of application:
 1. blackout: a packet that enters during one of the link's blackout windows is lost ("blackout");
 2. rate cap: the packet waits for the link to serialise the ones before it (`rate_bps`); when that wait
    would exceed `queue_s` it is dropped ("queue", a tail drop of the bottleneck's buffer);
-3. loss: the Gilbert–Elliott chain (per packet: good → bad with probability p, bad → good with r; lost
+3. loss: the Gilbert–Elliott chain (per step: good → bad with probability p, bad → good with r; lost
    with probability `loss_good` in the good state, `loss_bad` in the bad one; netem's `gemodel p r 1-h
-   1-k`) ("loss");
+   1-k`) ("loss"). A step is one packet (netem), or with `loss_step_s` a slice of time: the chain then
+   moves by the time between a link's packets, so that a burst lasts as long on a sparse link (commands)
+   as on a dense one (video);
 4. delay: `latency_s` + an exponential jitter of mean `jitter_s` + with probability `spike_p` a spike
    uniform in `spike_s`; packets leave in order (a packet is never delivered before one that entered
    earlier, as 802.11 delivers), so one spike holds back the packets behind it, as a retried frame does;
@@ -18,8 +20,9 @@ duplicated). In order of application:
 6. duplication: with probability `duplicate` a second copy follows 1 ms later.
 
 Every packet draws the same number of random numbers from its link's own generator
-(`link_rng(seed, device, link)`), so the n-th packet of a link meets the same decisions for the same seed,
-whatever the timing and the other links did. Blackout windows are drawn per device (both directions of
+(`link_rng(seed, device, link)`), so the n-th packet of a link meets the same decisions for the same seed
+and the same packet times, whatever the other links did (and whatever the times, for a chain stepped per
+packet). Blackout windows are drawn per device (both directions of
 all its radio links share them, as an out-of-range drone loses everything): `blackout_windows`.
 
 Pure: no I/O, no threads, no clock (times are arguments). The emulated lab applies it at its emulators'
@@ -60,6 +63,11 @@ class LinkProfile:
     """Loss probability in the bad state (netem's 1-h)."""
     loss_good: float = 0.0
     """Loss probability in the good state (netem's 1-k)."""
+    loss_step_s: float = 0.0
+    """0: the chain takes one step per packet (netem's gemodel). > 0: one step per loss_step_s of time
+    between a link's packets (fractional steps: the n-step transition of the chain), so a burst lasts
+    about as long on a sparse link (a command a second) as on a dense one (video), as a burst of Wi-Fi
+    interference does; p, r and the burst length are then per step."""
     duplicate: float = 0.0
     reorder: float = 0.0
     reorder_s: float = 0.03
@@ -72,7 +80,7 @@ class LinkProfile:
             v = getattr(self, name)
             if not (0.0 <= v <= 1.0):
                 raise ValueError(f"{name} must be a probability in [0, 1], got {v}")
-        for name in ("latency_s", "jitter_s", "reorder_s", "queue_s"):
+        for name in ("latency_s", "jitter_s", "reorder_s", "queue_s", "loss_step_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be finite and >= 0 s, got {v}")
@@ -83,11 +91,24 @@ class LinkProfile:
             raise ValueError(f"rate_bps must be > 0 or None, got {self.rate_bps}")
         if self.loss_p > 0 and self.loss_r == 0:
             raise ValueError("loss_r = 0 with loss_p > 0 would stay in the bad state forever")
+        if self.loss_step_s > 0 and self.loss_p + self.loss_r > 1:
+            raise ValueError("a time-stepped chain needs loss_p + loss_r <= 1")
+
+    def transition(self, bad: bool, steps: float) -> float:
+        """Probability of the bad state `steps` steps (≥ 0, fractional allowed) after `bad`: with
+        π = p/(p + r) and λ = 1 − p − r, π + (1 − π)·λⁿ from bad and π·(1 − λⁿ) from good."""
+        p, r = self.loss_p, self.loss_r
+        if p == 0.0:
+            return 0.0 if not bad else (1.0 - r) ** steps
+        pi, lam = p / (p + r), 1.0 - p - r
+        decay = lam**steps if lam > 0 else (1.0 if steps == 0 else (lam if steps == 1 else 0.0))
+        return pi + (1.0 - pi) * decay if bad else pi * (1.0 - decay)
 
     @classmethod
     def bursty(cls, loss: float, burst: float, **kw: object) -> LinkProfile:
-        """A profile losing `loss` of the packets (stationary) in bursts of `burst` packets on average
-        (the simple Gilbert model: loss_bad = 1, loss_good = 0): r = 1/burst, p = loss·r/(1 − loss)."""
+        """A profile losing `loss` of the packets (stationary) in bursts of `burst` steps on average
+        (the simple Gilbert model: loss_bad = 1, loss_good = 0): r = 1/burst, p = loss·r/(1 − loss);
+        a step is a packet, or loss_step_s of time when given."""
         if not (0.0 <= loss < 1.0) or burst < 1.0:
             raise ValueError(f"need 0 <= loss < 1 and burst >= 1, got {loss}, {burst}")
         r = 1.0 / burst
@@ -169,11 +190,12 @@ class NetworkProfile:
         return self.blackouts is None and all(p.clean for p in self.links.values())
 
 
-_WIFI = LinkProfile.bursty(0.02, 2.0, latency_s=0.003, jitter_s=0.010, duplicate=0.001)
+_WIFI = LinkProfile.bursty(0.02, 2.0, loss_step_s=0.01, latency_s=0.003, jitter_s=0.010, duplicate=0.001)
 _WIRED = LinkProfile(latency_s=0.0005, jitter_s=0.0002)
 _CROWDED = LinkProfile.bursty(
     0.05,
     5.0,
+    loss_step_s=0.01,
     latency_s=0.005,
     jitter_s=0.020,
     spike_p=0.01,
@@ -239,6 +261,15 @@ def blackout_windows(
     return out
 
 
+def gilbert_elliott_step(prof: LinkProfile, bad: bool, t_prev: float | None, t: float) -> float:
+    """Probability that a packet at t finds the chain bad, the previous packet (at t_prev; None: none
+    yet, the chain starts good) having found it `bad`: one step per packet, or (loss_step_s > 0) one per
+    loss_step_s of time in between."""
+    if prof.loss_step_s <= 0.0 or t_prev is None:
+        return (1.0 - prof.loss_r) if bad else prof.loss_p
+    return prof.transition(bad, max(0.0, t - t_prev) / prof.loss_step_s)
+
+
 class LinkModel:
     """The decisions for one direction of one link (module docstring). Not thread-safe: one caller at a
     time (the emulators lock around it). `counts`: "packets", "delivered", "lost" (Gilbert–Elliott),
@@ -260,6 +291,7 @@ class LinkModel:
         self.name = f"{device}/{link}"
         self._rng = link_rng(seed, device, link)
         self._bad = False
+        self._t_prev: float | None = None
         self._epoch = float(epoch)
         self._blackouts = [(self._epoch + a, self._epoch + b) for a, b in (blackouts or [])]
         self._busy_until = -math.inf  # when the rate cap has serialised every packet so far
@@ -276,8 +308,8 @@ class LinkModel:
         p, rng = self.profile, self._rng
         u = [rng.random() for _ in range(8)]  # a fixed number of draws per packet: module docstring
         self.counts["packets"] += 1
-        # Gilbert–Elliott: the state moves for every packet, lost or not
-        self._bad = (u[0] >= p.loss_r) if self._bad else (u[0] < p.loss_p)
+        self._bad = u[0] < gilbert_elliott_step(p, self._bad, self._t_prev, t)  # every packet moves it
+        self._t_prev = t
         if self.in_blackout(t):
             self.counts["blackout"] += 1
             return []
@@ -334,6 +366,7 @@ class StreamModel:
         self.profile = prof
         self._rng = link_rng(seed, device, link)
         self._bad = False
+        self._t_prev: float | None = None
         self._blackouts = [(epoch + a, epoch + b) for a, b in (blackouts or [])]
         self._busy_until = -math.inf
         self._last_due = -math.inf
@@ -345,7 +378,8 @@ class StreamModel:
         u = [rng.random() for _ in range(5)]
         self.counts["chunks"] += 1
         self.counts["bytes"] += size
-        self._bad = (u[0] >= p.loss_r) if self._bad else (u[0] < p.loss_p)
+        self._bad = u[0] < gilbert_elliott_step(p, self._bad, self._t_prev, t)
+        self._t_prev = t
         start = t
         for a, b in self._blackouts:
             if a <= t < b:
@@ -374,6 +408,7 @@ __all__ = [
     "NetworkProfile",
     "StreamModel",
     "blackout_windows",
+    "gilbert_elliott_step",
     "link_rng",
     "profile",
 ]

@@ -146,3 +146,24 @@ def test_stream_model_delivers_everything_in_order() -> None:
     assert m.counts["retransmitted"] > 0  # a loss costs a retransmission, never the bytes
     late = [d - x for x, d in zip(t, due, strict=True) if not 11.0 <= x < 12.7]
     assert min(late) >= 0.002 + 8 * 1000 / 8e6 - 1e-12
+
+
+@pytest.mark.parametrize("spacing_steps", [1.0, 20.0])
+def test_time_stepped_chain_against_its_n_step_closed_form(spacing_steps: float) -> None:
+    """A chain stepped per 10 ms: packets every 10 ms see the per-packet closed forms; packets every
+    200 ms see the 20-step transition: same stationary loss, mean burst 1/(1 − P(bad → bad in n steps))."""
+    prof = LinkProfile.bursty(0.05, 5.0, loss_step_s=0.01)
+    n = 200_000
+    model = LinkModel(prof, 9, "d", "l")
+    lost = [not model.decide(k * 0.01 * spacing_steps, 100) for k in range(n)]
+    stay = prof.transition(True, spacing_steps)
+    if spacing_steps == 1.0:
+        assert stay == pytest.approx(1 - prof.loss_r)
+    rate = sum(lost) / n
+    rho = stay - prof.transition(False, spacing_steps)  # the n-step chain's second eigenvalue
+    se_rate = math.sqrt(0.05 * 0.95 / n * (1 + rho) / (1 - rho))
+    assert abs(rate - 0.05) < 4 * se_rate, (rate, se_rate)
+    bursts = [len(list(g)) for k, g in itertools.groupby(lost) if k]
+    expected_burst = 1.0 / (1.0 - stay)
+    se_burst = math.sqrt(stay / (1 - stay) ** 2 / len(bursts))
+    assert abs(sum(bursts) / len(bursts) - expected_burst) < 4 * se_burst

@@ -77,8 +77,7 @@ def test_a_tello_on_lab_wifi_delivers_what_its_radio_decided() -> None:
                 received += 1
             except TimeoutError:
                 pass
-        _command(cmd, emu, "battery?")  # stop measuring: the drone keeps streaming, the count does not
-        time.sleep(0.2)  # what the radio still holds (≤ the largest delay) arrives
+        emu.faults.drop_state = True  # the drone stops streaming; what the radio still holds arrives
         while True:
             try:
                 state.recvfrom(2048)
@@ -88,10 +87,10 @@ def test_a_tello_on_lab_wifi_delivers_what_its_radio_decided() -> None:
         counts = emu.network_counts()
     s = counts["state"]
     sent_during = s["packets"]
-    assert received == pytest.approx(s["delivered"] + s["duplicated"], abs=3)  # the last ones in flight
+    assert received == s["delivered"] + s["duplicated"]  # every datagram the radio delivered, no other
     assert 0.9 <= s["delivered"] / sent_during <= 1.0 and sent_during >= 120
     assert 3.0 <= s["delay_mean_ms"] <= 30.0
-    assert counts["command"]["packets"] >= 2 and counts["reply"]["packets"] >= 2
+    assert counts["command"]["packets"] >= 1 and counts["reply"]["packets"] >= 1
     print(f"state: sent {sent_during:.0f}, delivered {s['delivered']:.0f}, received {received}, "
           f"lost {s.get('lost', 0):.0f}, mean delay {s['delay_mean_ms']:.1f} ms")  # fmt: skip
 
@@ -200,7 +199,7 @@ def test_natnet_and_rover_receive_what_their_radios_decided() -> None:
                 heard += 1
         time.sleep(0.5)  # the uplink's last datagrams are due
         counts = rover_radio.counts()
-        gcs = rover.gcs_heartbeat_count
+        gcs = rover.gcs_heartbeat_count()
     finally:
         client.close()
         rover.close()

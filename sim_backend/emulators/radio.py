@@ -32,6 +32,8 @@ from typing import Any
 from flightstack.netem import LinkModel, NetworkProfile, blackout_windows
 
 Address = tuple[str, int]
+COUNTERS = ("packets", "delivered", "lost", "blackout", "queue", "duplicated", "reordered", "spiked")
+"""The counters every link reports (LinkModel.counts), 0 included."""
 
 
 class DelayLine:
@@ -130,7 +132,7 @@ class DeviceRadio:
         out: dict[str, dict[str, float]] = {}
         with self._lock:
             for name, m in self._models.items():
-                row: dict[str, float] = dict(m.counts)
+                row: dict[str, float] = {k: 0 for k in COUNTERS} | dict(m.counts)
                 n = m.counts["delivered"]
                 row["delay_mean_ms"] = round(1e3 * m.delay_sum_s / n, 3) if n else 0.0
                 out[name] = row
@@ -217,10 +219,10 @@ class ImpairedSocket:
     def _drain(self, bufsize: int) -> None:
         """Decide every datagram waiting in the socket, in arrival order."""
         assert self._recv_link is not None
-        while True:
+        while select.select([self._sock], [], [], 0.0)[0]:  # (the socket's own timeout never waits here)
             try:
-                data, addr = self._sock.recvfrom(bufsize, socket.MSG_DONTWAIT)
-            except (BlockingIOError, InterruptedError):
+                data, addr = self._sock.recvfrom(bufsize)
+            except (BlockingIOError, InterruptedError, TimeoutError):
                 return
             for due in self._radio.decide(self._recv_link, len(data)):
                 heapq.heappush(self._pending, (due, next(self._seq), data, addr))
