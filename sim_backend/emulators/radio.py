@@ -132,7 +132,8 @@ class DeviceRadio:
         out: dict[str, dict[str, float]] = {}
         with self._lock:
             for name, m in self._models.items():
-                row: dict[str, float] = {k: 0 for k in COUNTERS} | dict(m.counts)
+                row: dict[str, float] = dict.fromkeys(COUNTERS, 0.0)
+                row.update(m.counts)
                 n = m.counts["delivered"]
                 row["delay_mean_ms"] = round(1e3 * m.delay_sum_s / n, 3) if n else 0.0
                 out[name] = row
