@@ -225,9 +225,9 @@ PROFILES: dict[str, NetworkProfile] = {
     ),
     "outage": NetworkProfile(
         "outage",
-        "lab-wifi plus radio blackouts of 1-3 s both ways, from 6 s after the lab starts, every 12 s",
+        "lab-wifi plus radio blackouts of 1-3 s both ways, from 12 s after the lab starts, every 15 s",
         {"tello": _WIFI, "video": _WIFI, "rover": _WIFI, "mocap": _WIRED, "bus": _WIRED},
-        blackouts=BlackoutPlan(first_s=6.0, every_s=12.0, min_s=1.0, max_s=3.0),
+        blackouts=BlackoutPlan(first_s=12.0, every_s=15.0, min_s=1.0, max_s=3.0),
     ),
 }
 """The named profiles (`--network NAME`); numbers and sources in docs/network.md."""
