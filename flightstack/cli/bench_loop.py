@@ -7,6 +7,9 @@ drivers, decoders, marker extraction and safety layer, on the wall clock. That i
 loop, so its loop health (flightstack.analysis.loop_health) is the answer. The emulators encode the
 video on this computer too, which real Tellos do on board: the benchmark is pessimistic by that load.
 
+With --network PROFILE every emulated device's packets pass a seeded lossy-network model (docs/network.md):
+the same question on a Wi-Fi that loses, delays, reorders and blacks out.
+
 Exit 0 when the loop kept dt (at most 1 % of the ticks overran and the p99 compute time < dt), 1 when
 it did not or the run failed, 2 for bad arguments. Real drones are never flown: any rig whose devices
 are not the emulated lab's is refused."""
