@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from pathlib import Path
 
 import pytest
 
@@ -167,3 +168,23 @@ def test_time_stepped_chain_against_its_n_step_closed_form(spacing_steps: float)
     expected_burst = 1.0 / (1.0 - stay)
     se_burst = math.sqrt(stay / (1 - stay) ** 2 / len(bursts))
     assert abs(sum(bursts) / len(bursts) - expected_burst) < 4 * se_burst
+
+
+def test_network_profiles_are_the_emulated_labs_only(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--network` reaches the mission on the emulated lab; a simulated rig refuses it (schema) and so does a
+    real lab (exit 2, nothing flies: tc netem impairs a real network)."""
+    from flightstack.cli.app import main
+    from flightstack.config.mission import MissionError, load_mission
+
+    m = load_mission("paper_experiment", {"network": "crowded"}, rig="emulated-lab")
+    assert m.network == "crowded" and m.start_emulators
+    assert load_mission("paper_experiment", rig="emulated-lab").network == "clean"
+    with pytest.raises(MissionError, match="network: profile 'lab-wifi' is applied by the emulated lab"):
+        load_mission("paper_experiment", {"network": "lab-wifi"}, rig="lab-sim")
+    with pytest.raises(MissionError, match="unknown network profile 'wifi'"):
+        load_mission("paper_experiment", {"network": "wifi"}, rig="emulated-lab")
+    out = tmp_path / "run"
+    assert main(["run", "paper_experiment", "--rig", "lab", "--network", "outage", "--out", str(out)]) == 2
+    assert "tc netem" in capsys.readouterr().err and not out.exists()
