@@ -182,7 +182,7 @@ def test_natnet_and_rover_receive_what_their_radios_decided() -> None:
                 got += 1
             except TimeoutError:
                 pass
-        frames = nat_radio.counts()["frames"]
+        frames = natnet.network_counts()["frames"]
     assert frames["packets"] >= 150 and got == pytest.approx(
         frames["delivered"] + frames["duplicated"], abs=2
     )
@@ -199,7 +199,7 @@ def test_natnet_and_rover_receive_what_their_radios_decided() -> None:
             if client.recv_match(type="HEARTBEAT", blocking=True, timeout=0.05) is not None:
                 heard += 1
         time.sleep(0.5)  # the uplink's last datagrams are due
-        counts = rover_radio.counts()
+        counts = rover.network_counts()
         gcs = rover.gcs_heartbeat_count()
     finally:
         client.close()

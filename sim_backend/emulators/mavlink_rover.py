@@ -335,6 +335,10 @@ class MavlinkRoverEmulator:
         with self._lock:
             return self._s.param_replies
 
+    def network_counts(self) -> dict[str, dict[str, float]]:
+        """What the radio did per link (`radio.DeviceRadio.counts`); empty on a perfect link."""
+        return {} if self.radio is None else self.radio.counts()
+
     # ------------------------------------------------------------------ lifecycle
     def close(self) -> None:
         """Stop the thread (joined within 1 s) and close the socket. Idempotent."""

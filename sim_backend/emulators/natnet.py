@@ -212,6 +212,10 @@ class NatNetEmulator:
                 raise KeyError(f"unknown body {name!r}; call set_body() first")
             self._bodies[name].provider = fn
 
+    def network_counts(self) -> dict[str, dict[str, float]]:
+        """What the radio did per link (`radio.DeviceRadio.counts`); empty on a perfect link."""
+        return {} if self.radio is None else self.radio.counts()
+
     def body_names(self) -> list[str]:
         with self._lock:
             return list(self._bodies)
