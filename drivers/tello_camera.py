@@ -9,6 +9,10 @@ of any error accounting. Here the thread survives every error: a socket error (`
 decoder rejects (`decode_error`, routine on a lossy stream: the next keyframe resynchronises), or anything
 else (`reader_error`, after which the decoder is rebuilt); each is counted in `TelloCamera.counts`
 (plus `thread_error` for the thread's own failures) and logged at the first and every 100th occurrence.
+A frame decoded after a lost or reordered datagram, up to the next intact keyframe, is damaged (smeared
+by the decoder's concealment): it is dropped, never published, and counted (`damaged`; how losses are
+found: flightstack.drivers.tello_video_check). The last clean frame stays the latest, so its age grows and
+the agent's frame-age rule (`max_frame_age_s`) sees the gap.
 
 A per-drone `video_port` (`port` command) and the downward camera need SDK 3.0: `start()` refuses them on
 older firmware before sending anything.
@@ -27,9 +31,13 @@ import numpy as np
 
 from flightstack.drivers.tello import DEFAULT_VIDEO_PORT, TelloCommandError, TelloDriver
 from flightstack.drivers.tello_link import ERROR_PAUSE_S, ErrorLog
+from flightstack.drivers.tello_video_check import StreamCheck
 from flightstack.hal import Frame
 
 LOG = logging.getLogger("flightstack.tello")
+SETUP_ATTEMPTS = 4
+"""Tries of each video set-up command (`port`, `downvision 1`, `streamon`; all idempotent): on a lossy
+Wi-Fi (2 % loss in bursts of 2 both ways) two tries of one command failed in a few % of start-ups."""
 RECV_BUFFER_BYTES = 4 << 20  # socket receive buffer asked for (the OS may grant less): a keyframe burst
 MAX_DATAGRAM_BYTES = 65536
 
@@ -38,7 +46,9 @@ class VideoReceiver:
     """H.264 over UDP on (bind_ip, port) → the latest decoded RGB frame, in one daemon thread.
 
     `latest()` gives (sequence number, decode time in time.monotonic() s, H × W × 3 RGB uint8 image).
-    `counts`: "datagrams", "frames", "decode_error", "recv_error", "reader_error", "thread_error".
+    `counts`: "datagrams", "frames" (published), "damaged" (decoded from a damaged stream, dropped),
+    "decode_error", "recv_error", "reader_error", "thread_error", and tello_video_check's ("lost_head",
+    "lost_tail", "frame_gap", "damaged_units", "resync", "framing_off").
     Raises OSError when the port cannot be bound, ImportError without PyAV.
     """
 
@@ -58,6 +68,7 @@ class VideoReceiver:
             raise
         self._sock.settimeout(0.1)
         self._codec: Any = None
+        self._check = StreamCheck(self.counts)
         self._lock = threading.Lock()
         self._latest: tuple[int, float, np.ndarray] | None = None
         self._first = threading.Event()
@@ -109,17 +120,30 @@ class VideoReceiver:
         self._decode(data)
 
     def _decode(self, data: bytes) -> None:
-        """Feed one datagram to the H.264 parser; publish every frame it completes."""
+        """Feed one datagram to the H.264 parser; publish every frame it completes from an intact stream
+        (tello_video_check: a frame after a loss, up to the next intact keyframe, is dropped and counted
+        "damaged")."""
         av = self._av
         if self._codec is None:
             self._codec = av.CodecContext.create("h264", "r")
+            self._codec.options = {"err_detect": "aggressive"}  # flags a frame with a truncated slice
+            self._check = StreamCheck(self.counts)
+        check = self._check
+        check.datagram(data)
         for packet in self._codec.parse(data):
+            intact = check.access_unit(bytes(packet))
             try:
                 frames = self._codec.decode(packet)
             except av.error.FFmpegError as exc:  # lost datagrams, no keyframe yet: wait for the next one
                 self.errors.record("decode_error", exc, thread=False)
+                check.mark_damaged()
                 continue
             for frame in frames:
+                if frame.is_corrupt:
+                    check.mark_damaged()
+                if not intact or frame.is_corrupt:
+                    self.counts["damaged"] += 1
+                    continue
                 img = frame.to_ndarray(format="rgb24")
                 t = time.monotonic()
                 with self._lock:
@@ -172,10 +196,10 @@ class TelloCamera:
             raise TelloCommandError(f"video on UDP {port}: {exc}") from exc
         try:
             if port != DEFAULT_VIDEO_PORT:  # station mode: each drone streams to its own port
-                d.control(f"port {d.cfg.state_port} {port}", d.cfg.command_timeout_s)
+                d.control(f"port {d.cfg.state_port} {port}", d.cfg.command_timeout_s, SETUP_ATTEMPTS)
             if d.cfg.downward_camera:
-                d.control("downvision 1", d.cfg.command_timeout_s)
-            d.control("streamon", d.cfg.command_timeout_s)
+                d.control("downvision 1", d.cfg.command_timeout_s, SETUP_ATTEMPTS)
+            d.control("streamon", d.cfg.command_timeout_s, SETUP_ATTEMPTS)
             if not rx.wait_first_frame(self.frame_timeout_s):
                 raise TelloCommandError(
                     f"video on UDP {port}: no decodable video within {self.frame_timeout_s:.1f} s "
@@ -203,6 +227,14 @@ class TelloCamera:
         if self._rx is not None:
             self._rx.close()
             self._rx = None
+            c = self.counts
+            if c["damaged"] or c["lost_head"] or c["lost_tail"] or c["frame_gap"]:  # the stream's losses
+                LOG.warning(
+                    "tello %s video: %d frames used, %d damaged frames dropped (lost head %d, tail %d, "
+                    "frame gaps %d, decode errors %d, resyncs %d)",
+                    self.driver.cfg.host, c["frames"], c["damaged"], c["lost_head"], c["lost_tail"],
+                    c["frame_gap"], c["decode_error"], c["resync"],
+                )  # fmt: skip
             try:
                 self.driver.control("streamoff", streamoff_timeout_s, attempts=1)
             except TelloCommandError as exc:

@@ -67,6 +67,9 @@ LIVE_VIDEO_FPS = 30.0
 """Rate of the cameras that render the flight (frames/s): the Tello's; each at its calibration's size."""
 TARGET_PERIOD_S = 0.01
 """How often the lab publishes the rover's pose to the camera processes (s)."""
+NETWORK_LOG = "network_log.json"
+"""The emulated lab's log (EmulatedLab.log, with every link's counters) written into the lab's directory
+after a flight on an impaired network."""
 TRUTH_PERIOD_S = 0.05
 """How often the lab samples each drone's true position for the fence judgement (s)."""
 
@@ -134,8 +137,12 @@ def running_lab(mission: Any, lab_dir: Path) -> Iterator[Any]:
 
     doc = mission_to_dict(mission)
     doc["start_emulators"] = False  # the written mission flies the running emulators
-    with EmulatedLab(lab_dir, experiment=doc) as running:
-        yield running.mission()
+    with EmulatedLab(lab_dir, experiment=doc, network=mission.network, seed=mission.seed) as running:
+        try:
+            yield running.mission()
+        finally:
+            if running.radios:  # what the impaired network did, per device and link
+                running.write_log(Path(lab_dir) / NETWORK_LOG)
 
 
 class EmulatedLab:
@@ -156,6 +163,12 @@ class EmulatedLab:
     live_cameras (default: with an experiment): each drone's camera is its calibration (intrinsics,
     distortion, size) on its mount, rendered from the drone's true pose and the rover's, at 30 fps, in a
     child process per drone (tello_video_process.VideoProcess); `cameras[i]` is drone i's process handle.
+
+    network: the impairment profile of every emulated device's links (flightstack.netem.PROFILES; the
+    mission's `network:`, `--network`), seeded by `seed` (the mission's seed) per device and link; its
+    blackout windows count from the lab's start. "clean": the emulators' sockets are not wrapped at all.
+    What each link did: `network_counts()`, also in `log()`. The live cameras' video leaves from their
+    child processes and is not impaired yet (commands, state, motion capture and the rover are).
     """
 
     def __init__(
@@ -167,7 +180,15 @@ class EmulatedLab:
         mission_edit: Callable[[dict[str, Any]], None] | None = None,
         experiment: dict[str, Any] | None = None,
         live_cameras: bool | None = None,
+        network: str = "clean",
+        seed: int = 0,
     ) -> None:
+        from flightstack.netem import profile
+
+        self.network = profile(network)
+        self.seed = int(seed)
+        self.radios: dict[str, Any] = {}
+        """Device name ("tello<i>", "natnet", "rover") -> its DeviceRadio (none on a clean network)."""
         self.workdir = Path(workdir).resolve()  # the mission written there names its files absolutely
         self._experiment = experiment
         ids = [int(d["id"]) for d in experiment["drones"]] if experiment is not None else list(LAB_IDS)
@@ -212,6 +233,7 @@ class EmulatedLab:
         emu = load_emulators()
         self.workdir.mkdir(parents=True, exist_ok=True)
         state_port = free_udp_port()
+        self._make_radios()
         if self.live_cameras:
             self._target = emu.SharedTarget()
             for i, ip in self.ips.items():
@@ -225,6 +247,8 @@ class EmulatedLab:
                     "video_size": cam.size,
                     "fps": LIVE_VIDEO_FPS,
                 }
+                if f"tello{i}" in self.radios:
+                    kw["radio"] = self.radios[f"tello{i}"]
                 kw.update(self._tello_kw.get(i, {}))
                 self.tellos[i] = emu.TelloEmulator(ip, **kw)
                 self.tellos[i].use_remote_video(cam)
@@ -241,6 +265,8 @@ class EmulatedLab:
                     "video_size": VIDEO_SIZE,
                     "fps": VIDEO_FPS,
                 }
+                if f"tello{i}" in self.radios:
+                    kw["radio"] = self.radios[f"tello{i}"]
                 kw.update(self._tello_kw.get(i, {}))
                 self.tellos[i] = emu.TelloEmulator(ip, **kw)
         bodies = {self.body(i): i for i in self.ips}
@@ -253,8 +279,9 @@ class EmulatedLab:
                 "scamper": ((*ROVER_START, 0.0), LEVEL),
             },
             rate_hz=100.0,
+            radio=self.radios.get("natnet"),
         )
-        self.rover = emu.MavlinkRoverEmulator(heartbeat_hz=5.0)
+        self.rover = emu.MavlinkRoverEmulator(heartbeat_hz=5.0, radio=self.radios.get("rover"))
         self.natnet.set_pose_provider("scamper", self._rover_pose)
         for name, i in bodies.items():
             self.natnet.set_pose_provider(name, lambda i=i: self._drone_pose(i))
@@ -274,6 +301,26 @@ class EmulatedLab:
         self.operator_port = free_udp_port()
         self.mission_path = self.write_mission()
         self.t_start = time.monotonic()
+
+    def _make_radios(self) -> None:
+        """One DeviceRadio per device when the network impairs anything (one epoch: now)."""
+        if self.network.clean:
+            return
+        from flightstack.sim_backend.emulators.radio import DeviceRadio
+
+        epoch = time.monotonic()
+        tello_links = {"command": "tello", "reply": "tello", "state": "tello", "video": "video"}
+        for i in self.ips:
+            name = f"tello{i}"
+            self.radios[name] = DeviceRadio(self.network, self.seed, name, tello_links, epoch)
+        self.radios["natnet"] = DeviceRadio(self.network, self.seed, "natnet", {"frames": "mocap"}, epoch)
+        self.radios["rover"] = DeviceRadio(
+            self.network, self.seed, "rover", {"uplink": "rover", "downlink": "rover"}, epoch
+        )
+
+    def network_counts(self) -> dict[str, dict[str, dict[str, float]]]:
+        """Per device and link, what its radio did (DeviceRadio.counts); empty on a clean network."""
+        return {name: r.counts() for name, r in self.radios.items()}
 
     def body(self, i: int) -> str:
         """Drone i's rigid-body name in the emulated motion capture."""
@@ -333,6 +380,8 @@ class EmulatedLab:
             self.natnet.close()
         if self.rover is not None:
             self.rover.close()
+        for r in self.radios.values():  # (idempotent; a device that never started does not own its radio)
+            r.close()
 
     # ---- the live cameras' target ----------------------------------------------------------------------
     def _publish_target(self) -> None:
@@ -448,7 +497,12 @@ class EmulatedLab:
         def rel(t: float) -> float:
             return round(t - t0, 4)
 
-        out: dict[str, Any] = {"t0_monotonic": t0}
+        out: dict[str, Any] = {"t0_monotonic": t0, "network": self.network.name}
+        if self.radios:
+            out["network_counts"] = self.network_counts()
+            out["blackouts"] = {
+                n: [(rel(a), rel(b)) for a, b in r.blackouts[:10]] for n, r in self.radios.items()
+            }
         for i, e in self.tellos.items():
             out[f"tello{i}"] = {
                 "ip": e.ip,

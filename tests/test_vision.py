@@ -43,7 +43,11 @@ P0 = np.array([[0.1, 0.1, 0.0], [-0.1, 0.1, 0.0], [-0.1, -0.1, 0.0], [0.1, -0.1,
 RADIUS = 0.03
 BG = np.array([90.0, 90.0, 90.0])
 FACING = np.tile([0.0, 0.0, -1.0], (4, 1))  # fronto-parallel discs
-REASON = re.compile(r"^marker '(red|green|blue|yellow)'(: \d+ blobs| touches the image border)$")
+_M = "'(red|green|blue|yellow)'"
+REASON = re.compile(
+    rf"^(marker {_M}(: \d+ blobs| touches the image border)|marker sizes: {_M} vs {_M}"
+    rf"|marker spacing: {_M} and {_M} overlap)$"
+)
 
 
 def random_target(rng: np.random.Generator, cal: CameraCalibration, max_tilt_deg: float = 8.0):
@@ -234,6 +238,30 @@ def test_two_blobs_of_one_colour_rejected_or_largest_taken():
     assert det.reason == "marker 'red': 2 blobs"
     det2 = extract_markers(img, cal, max_blobs_per_colour=2)
     assert det2.ok and np.linalg.norm(det2.pixels - true_px[:4], axis=1).max() < 0.2
+
+
+@pytest.mark.parametrize("cal_name", list(CALS))
+def test_blobs_that_cannot_be_the_target_are_rejected(cal_name):
+    """One marker much nearer than the others (a reflection, a smear): sizes; two markers on top of each
+    other: spacing. The same square at a steep tilt still passes."""
+    cal = CALS[cal_name]
+    centres = square_at(1.0)
+    centres[2] = [-0.02, -0.02, 0.2]  # blue five times nearer: 25 times the area
+    img, _, in_view = render_markers(cal, centres, None, RenderOptions())
+    assert in_view.all()
+    assert (extract_markers(img, cal).reason or "").startswith("marker sizes: 'blue' vs ")
+    assert extract_markers(img, cal, max_area_ratio=30.0).ok
+    centres = square_at(1.0)
+    centres[1] = centres[0] + [1.5 * RADIUS, 0.0, 0.0]  # green over red, their discs overlapping
+    img, _, _ = render_markers(cal, centres, FACING, RenderOptions())
+    det = extract_markers(img, cal)
+    assert det.reason == "marker spacing: 'red' and 'green' overlap", det.reason
+    tilt = Rotation.from_euler("x", 70, degrees=True).as_matrix()  # seen at 70° from its normal
+    centres = P0 @ tilt.T + [0.0, 0.0, 1.0]
+    normals = np.tile(tilt @ [0.0, 0.0, -1.0], (4, 1))
+    img, _, in_view = render_markers(cal, centres, normals, RenderOptions())
+    assert in_view.all()
+    assert extract_markers(img, cal).ok
 
 
 @pytest.mark.parametrize("cal_name", list(CALS))

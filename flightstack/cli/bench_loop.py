@@ -1,11 +1,14 @@
-"""`flightstack bench-loop [EXPERIMENT] [--rig emulated-lab] [--seconds S]`: does this computer keep the
-mission's control period while decoding every drone's video? (loop health)
+"""`flightstack bench-loop [EXPERIMENT] [--rig emulated-lab] [--seconds S] [--network PROFILE]`: does
+this computer keep the mission's control period while decoding every drone's video? (loop health)
 
 It flies the experiment's `none` mode for S seconds on the emulated lab: one Tello emulator per drone
 streaming H.264 video on loopback, the NatNet motion-capture emulator, the MAVLink rover, the real
 drivers, decoders, marker extraction and safety layer, on the wall clock. That is the flight's own
 loop, so its loop health (flightstack.analysis.loop_health) is the answer. The emulators encode the
 video on this computer too, which real Tellos do on board: the benchmark is pessimistic by that load.
+
+With --network PROFILE every emulated device's packets pass a seeded lossy-network model (docs/network.md):
+the same question on a Wi-Fi that loses, delays, reorders and blacks out.
 
 Exit 0 when the loop kept dt (at most 1 % of the ticks overran and the p99 compute time < dt), 1 when
 it did not or the run failed, 2 for bad arguments. Real drones are never flown: any rig whose devices
@@ -27,9 +30,10 @@ DEFAULT_EXPERIMENT = "paper_experiment"
 def cmd_bench_loop(args: argparse.Namespace) -> int:
     """Fly `none` on the emulated lab for args.seconds and judge its loop health (module docstring)."""
     try:
-        mission = load_mission(
-            args.experiment, {"compare_modes": ["none"], "duration_s": args.seconds}, rig=args.rig
-        )
+        overrides: dict[str, object] = {"compare_modes": ["none"], "duration_s": args.seconds}
+        if args.network is not None:
+            overrides["network"] = args.network
+        mission = load_mission(args.experiment, overrides, rig=args.rig)
     except (MissionError, RigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -62,7 +66,10 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
         return 1
     n = len(mission.drones)
     verdict = "KEEPS" if health["keeps_dt"] else "DOES NOT keep"
-    print(f"bench-loop: this computer {verdict} dt = {1e3 * mission.dt_s:.0f} ms with {n} drones' video")
+    print(
+        f"bench-loop: this computer {verdict} dt = {1e3 * mission.dt_s:.0f} ms with {n} drones' video "
+        f"(network {mission.network})"
+    )
     print(f"  {loop_health_line(health)}")
     print(f"  plot: {out / 'loop_health.png'}")
     complete = res.metrics.get("recording", {}).get("complete", False)
@@ -71,7 +78,7 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add `bench-loop` to the top-level subcommands."""
-    from flightstack.cli.run import seconds
+    from flightstack.cli.run import add_network_argument, seconds
 
     b = sub.add_parser(
         "bench-loop",
@@ -85,4 +92,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--rig", default="emulated-lab", help="an emulated-lab rig (default emulated-lab)")
     b.add_argument("--seconds", type=seconds, default=10.0, help="pursuit seconds to measure (default 10)")
     b.add_argument("--out", default=None, help="run directory (default runs/<experiment>-<stamp>)")
+    add_network_argument(b)
     b.set_defaults(func=cmd_bench_loop)

@@ -117,10 +117,16 @@ def cmd_run(args: argparse.Namespace) -> int:
         overrides["compare_modes"] = args.modes
     if getattr(args, "links", None) is not None:
         overrides["links"] = {"profile": args.links}
+    if getattr(args, "network", None) is not None:
+        overrides["network"] = args.network
     mission = load_mission(args.mission, overrides, rig=args.rig)
     if args.bus is not None and args.bus != mission.bus.kind:
         bus = _bus_override(mission, args.bus)
         mission = load_mission(args.mission, {**overrides, "bus": bus}, rig=args.rig)
+    problem = network_problem(mission)
+    if problem is not None:
+        print(f"error: {problem}; nothing took off", file=sys.stderr)
+        return 2
     from flightstack.runtime.resources import check_recording_fits
 
     check_recording_fits(mission)  # MissionError (exit 2) before anything is created or flies
@@ -376,6 +382,7 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
         "--no-progress", dest="progress", action="store_false", default=None, help="no progress bars"
     )
     p.add_argument("--bus", choices=["inproc", "zenoh"], help="override bus.kind (zenoh: on loopback)")
+    add_network_argument(p)
     p.add_argument(
         "--links",
         choices=sorted(PROFILES),
@@ -393,6 +400,30 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
     from flightstack.cli.view import add_viewer_argument
 
     add_viewer_argument(p)
+
+
+def add_network_argument(p: argparse.ArgumentParser) -> None:
+    """--network PROFILE: the emulated lab's impairment profile (the mission's `network:`)."""
+    from flightstack.netem import PROFILES
+
+    p.add_argument(
+        "--network",
+        choices=list(PROFILES),
+        default=None,
+        help="emulated lab only: impair every device's links with this seeded profile (default: the "
+        "rig's `network:`, clean); see docs/network.md",
+    )
+
+
+def network_problem(mission: Mission) -> str | None:
+    """Why the mission's network profile cannot be applied (None: it can): only the emulated lab's
+    emulators apply one; a real network is impaired with tc netem (docs/network.md)."""
+    if mission.network == "clean" or mission.start_emulators:
+        return None
+    return (
+        f"network: profile {mission.network!r} is applied by the emulated lab's emulators only; "
+        "to impair a real lab's network use `tc netem` (docs/network.md)"
+    )
 
 
 def seconds(text: str) -> float:

@@ -261,6 +261,7 @@ class Mission(_Strict):
     links: LinksSpec = LinksSpec()  # how late and lossy each link is (flightstack.config.links)
     safety: SafetySpec = SafetySpec()
     hardware: HardwareSpec | None = None
+    network: str = "clean"  # the emulated lab's impairment profile (flightstack.netem.PROFILES)
     _base_dir: Path = PrivateAttr(default=Path("."))
 
     def resolve(self, relative: str) -> Path:
@@ -279,6 +280,15 @@ class Mission(_Strict):
             )
         return v
 
+    @field_validator("network")
+    @classmethod
+    def _known_network(cls, v: str) -> str:
+        from flightstack.netem import PROFILES
+
+        if v not in PROFILES:
+            raise ValueError(f"unknown network profile {v!r}; valid: {', '.join(PROFILES)}")
+        return v
+
     @field_validator("compare_modes")
     @classmethod
     def _modes(cls, v: list[str]) -> list[str]:
@@ -295,6 +305,11 @@ class Mission(_Strict):
             raise ValueError(
                 f"duration_s / dt_s: {self.duration_s / self.dt_s:.3g} ticks per mode; at most {MAX_TICKS:g} "
                 "(the recording holds every tick in memory)"
+            )
+        if self.network != "clean" and self.backend != "tello":
+            raise ValueError(
+                f"network: profile {self.network!r} is applied by the emulated lab's emulators only "
+                "(rig emulated-lab); a simulated rig's links are its own (sim:)"
             )
         ids = [d.id for d in self.drones]
         id_set = set(ids)

@@ -46,7 +46,7 @@ EXPERIMENT_DRONE_KEYS = frozenset(
 EXPERIMENT_CAMERA_KEYS = frozenset({"mount", "offset"})
 RIG_KEYS = frozenset(
     {"rig", "description", "backend", "cameras", "drones", "rc_gains", "robot", "sim", "safety", "bus",
-     "hardware", "emulated", "links"}
+     "hardware", "emulated", "links", "network"}
 )  # fmt: skip
 """Top-level keys of a rig file."""
 RIG_DRONE_KEYS = frozenset({"id", "camera", "rc_gains"})
@@ -203,7 +203,7 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
     e.pop("rig", None)
     out: dict[str, Any] = {"name": e.pop("name", None), "rig": r["rig"], "backend": r["backend"]}
     out.update(e)
-    for key in ("sim", "safety", "bus", "hardware", "links"):
+    for key in ("sim", "safety", "bus", "hardware", "links", "network"):
         if key in r:
             out[key] = copy.deepcopy(r[key])
     if "emulated" in r:

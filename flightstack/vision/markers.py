@@ -204,6 +204,8 @@ def extract_markers(
     min_area_px: float = 6.0,
     max_blobs_per_colour: int = 1,
     downscale: int | None = None,
+    max_area_ratio: float = 16.0,
+    min_spacing: float = 1.0,
 ) -> MarkerDetection:
     """Find the m colour markers of cal.markers in an RGB frame and return their sub-pixel centres.
 
@@ -216,8 +218,15 @@ def extract_markers(
         *measured* at full resolution in a window around each blob. None: 2 for frames at least
         640×480, else 1. With 2, blobs narrower than about 6 px (disc radius < 3 px) are not found.
 
+    max_area_ratio: the largest marker's area over the smallest's above this rejects the frame ("marker
+        sizes"): the target's markers are alike and near one depth, so a blob much larger or smaller
+        than the others is not one of them (a reflection, a smear of a damaged video frame).
+    min_spacing: two markers whose centres are closer than this many times the sum of their radii
+        (radius = √(area/π)) reject the frame ("marker spacing"): the target's markers never overlap.
+
     Never raises on image content: a frame where any marker has no blob, too many blobs, a blob at the
-    image border or no usable contrast is returned rejected, with a reason naming the first such marker.
+    image border, no usable contrast, or sizes or spacing that cannot be the target's is returned
+    rejected, with a reason naming the first such marker (or pair).
     Raises ValueError for a non-uint8 / non-(H, W, 3) array, a size other than the calibration's, or a
     calibration without markers.
     """
@@ -295,6 +304,9 @@ def extract_markers(
                 return MarkerDetection.rejected(f"marker '{mk.name}' touches the image border")
             pixels[j] = (u, v)
             areas[j] = area
+    implausible = _implausible(pixels, areas, cal.markers, max_area_ratio, min_spacing)
+    if implausible is not None:
+        return MarkerDetection.rejected(implausible)
     normalized = cv2.undistortPoints(
         pixels.reshape(-1, 1, 2),
         np.asarray(cal.camera_matrix, dtype=float),
@@ -302,6 +314,25 @@ def extract_markers(
         criteria=_UNDISTORT_CRITERIA,
     ).reshape(m, 2)
     return MarkerDetection(pixels, normalized, None, areas)
+
+
+def _implausible(
+    pixels: np.ndarray,
+    areas: np.ndarray,
+    markers: tuple[MarkerColour, ...] | list[MarkerColour],
+    max_area_ratio: float,
+    min_spacing: float,
+) -> str | None:
+    """Why these m blobs cannot be the target's markers (sizes, spacing), or None."""
+    big, small = int(np.argmax(areas)), int(np.argmin(areas))
+    if areas[small] <= 0 or areas[big] > max_area_ratio * areas[small]:
+        return f"marker sizes: '{markers[big].name}' vs '{markers[small].name}'"
+    radii = np.sqrt(np.maximum(areas, 0.0) / np.pi)
+    for j in range(len(areas)):
+        for k in range(j + 1, len(areas)):
+            if np.hypot(*(pixels[j] - pixels[k])) < min_spacing * (radii[j] + radii[k]):
+                return f"marker spacing: '{markers[j].name}' and '{markers[k].name}' overlap"
+    return None
 
 
 def features_from_detection(det: MarkerDetection, focal_length: float = 1.0) -> np.ndarray | None:

@@ -43,6 +43,8 @@ from pymavlink import mavutil
 
 from flightstack.paper.geometry import Pose, wrap_angle
 
+from .radio import DeviceRadio
+
 mavlink = mavutil.mavlink
 
 ROVER_MODES = {0: "MANUAL", 4: "HOLD", 5: "LOITER", 10: "AUTO", 11: "RTL", 12: "SMART_RTL", 15: "GUIDED"}
@@ -217,8 +219,12 @@ class MavlinkRoverEmulator:
         heartbeat_hz: float = 1.0,
         setpoint_timeout_s: float = 3.0,
         params: RoverParams | None = None,
+        radio: DeviceRadio | None = None,
     ) -> None:
+        """radio: the robot's network (`radio.DeviceRadio` with links "uplink" (from the ground station)
+        and "downlink"); None: a perfect link."""
         self.faults = RoverFaults()
+        self.radio = radio
         self.params = params or RoverParams()
         self.system_id = system_id
         self.failsafe_events: list[FailsafeEvent] = []
@@ -235,6 +241,8 @@ class MavlinkRoverEmulator:
             f"udpin:127.0.0.1:{port}", source_system=system_id, source_component=component_id
         )
         self.port: int = self._conn.port.getsockname()[1]
+        if radio is not None:  # pymavlink reads and writes through `port` (non-blocking, select on fd)
+            self._conn.port = radio.socket(self._conn.port, lambda _a: "downlink", "uplink")
         self.url = f"udpout:127.0.0.1:{self.port}"  # what a client should connect to
         self._thread = threading.Thread(target=self._run, name="mavlink-rover-emu", daemon=True)
         self._thread.start()
@@ -327,12 +335,18 @@ class MavlinkRoverEmulator:
         with self._lock:
             return self._s.param_replies
 
+    def network_counts(self) -> dict[str, dict[str, float]]:
+        """What the radio did per link (`radio.DeviceRadio.counts`); empty on a perfect link."""
+        return {} if self.radio is None else self.radio.counts()
+
     # ------------------------------------------------------------------ lifecycle
     def close(self) -> None:
         """Stop the thread (joined within 1 s) and close the socket. Idempotent."""
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(timeout=1.0)
+        if self.radio is not None:
+            self.radio.close()
         with contextlib.suppress(OSError):
             self._conn.close()
 

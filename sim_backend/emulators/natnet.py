@@ -54,6 +54,10 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .radio import DeviceRadio
 
 NAT_CONNECT = 0
 NAT_SERVERINFO = 1
@@ -142,6 +146,9 @@ class NatNetEmulator:
     command_port: 0 = OS-assigned (see `command_port` after `start()`).
     data_port:    0 = a free port picked at `start()`; the client binds it, the emulator sends to it.
     faults:       see `NatNetFaults`.
+    radio:        the frames' network (`radio.DeviceRadio` with a link "frames"; None: perfect). The
+                  connect handshake (the child process) is not impaired: `motioncapture.connect` waits
+                  for its replies without a timeout, holding the GIL, so a lost reply would hang it.
     """
 
     def __init__(
@@ -152,6 +159,7 @@ class NatNetEmulator:
         command_port: int = 0,
         data_port: int = 0,
         faults: NatNetFaults | None = None,
+        radio: DeviceRadio | None = None,
     ) -> None:
         if not ipaddress.ip_address(host).is_loopback:
             raise ValueError(f"NatNetEmulator only serves loopback addresses, got {host!r}")
@@ -162,6 +170,7 @@ class NatNetEmulator:
         self.command_port = command_port
         self.data_port = data_port
         self.faults = faults or NatNetFaults()
+        self.radio = radio
         self.frames_sent = 0  # NAT_FRAMEOFDATA packets sent so far
         self.provider_errors: list[str] = []  # "name: exception" of pose providers that raised
         self._bodies: dict[str, _Body] = {}
@@ -203,6 +212,10 @@ class NatNetEmulator:
                 raise KeyError(f"unknown body {name!r}; call set_body() first")
             self._bodies[name].provider = fn
 
+    def network_counts(self) -> dict[str, dict[str, float]]:
+        """What the radio did per link (`radio.DeviceRadio.counts`); empty on a perfect link."""
+        return {} if self.radio is None else self.radio.counts()
+
     def body_names(self) -> list[str]:
         with self._lock:
             return list(self._bodies)
@@ -234,8 +247,9 @@ class NatNetEmulator:
         except BaseException:
             self._stop_responder()
             raise
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._sock.bind((self.host, 0))
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind((self.host, 0))
+        self._sock = sock if self.radio is None else self.radio.socket(sock, lambda _a: "frames", None)  # type: ignore[assignment]
         self._t0 = time.monotonic()
         self._thread = threading.Thread(target=self._run, name="natnet-emu", daemon=True)
         self._thread.start()
@@ -246,6 +260,8 @@ class NatNetEmulator:
         self._stop.set()
         if self._thread is not None and self._thread.is_alive():
             self._thread.join(timeout=1.0)
+        if self.radio is not None:
+            self.radio.close()
         if self._sock is not None:
             self._sock.close()
         self._stop_responder()

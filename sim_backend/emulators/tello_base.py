@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .radio import DeviceRadio
 from .tello_faults import ReplyScheduler, TelloFaults
 from .tello_frames import FrameSource, default_frame_source
 from .tello_net import require_loopback
@@ -65,6 +66,7 @@ class TelloEmulatorBase:
         gop_size: int = 15,
         pre_sdk_reply: str | None = None,
         reply_port_latch: bool = False,
+        radio: DeviceRadio | None = None,
     ) -> None:
         """Configure the emulator; nothing is bound or started before :meth:`start`.
 
@@ -87,6 +89,8 @@ class TelloEmulatorBase:
             gop_size: H.264 keyframe interval in frames.
             pre_sdk_reply: reply to commands sent before ``command`` (None = ignore them, the default).
             reply_port_latch: Tello EDU: every reply goes to the sender of the first ``command``.
+            radio: the drone's impaired radio (``radio.DeviceRadio`` with links ``command`` (in),
+                ``reply``, ``state`` and ``video`` (out)); None: a perfect link.
         """
         require_loopback(ip, "ip")
         require_loopback(client_ip, "client_ip")
@@ -114,6 +118,7 @@ class TelloEmulatorBase:
         self.reply_port_latch = reply_port_latch
         self._first_client: tuple[str, int] | None = None  # sender of the first ``command``
         self.faults = faults if faults is not None else TelloFaults()
+        self.radio = radio
 
         self._lock = threading.RLock()
         self.commands: list[tuple[float, str]] = []

@@ -67,8 +67,11 @@ class TelloEmulator(TelloCommands, TelloVideoStream):
             cmd.close()
             tx.close()
             raise
-        self._cmd_sock, self._tx_sock = cmd, tx
         host, port = cmd.getsockname()[:2]
+        if self.radio is not None:  # every datagram in and out passes the drone's radio links
+            cmd = self.radio.socket(cmd, send=lambda _addr: "reply", recv="command")  # type: ignore[assignment]
+            tx = self.radio.socket(tx, send=self._downlink, recv=None)  # type: ignore[assignment]
+        self._cmd_sock, self._tx_sock = cmd, tx
         self._bound = (str(host), int(port))
         self._started = True
         self._last_cmd_t = time.monotonic()
@@ -95,9 +98,19 @@ class TelloEmulator(TelloCommands, TelloVideoStream):
             thread.join(timeout=max(0.0, deadline - time.monotonic()))
             if thread.is_alive():  # pragma: no cover - would indicate a bug
                 LOG.error("thread %s did not stop", thread.name)
+        if self.radio is not None:
+            self.radio.close()
         for sock in (self._cmd_sock, self._tx_sock):
             if sock is not None:
                 sock.close()
+
+    def _downlink(self, addr: tuple[str, int]) -> str:
+        """The radio link of a datagram the drone sends to ``addr``: ``video`` or ``state``."""
+        return "video" if addr[1] == self.video_port else "state"
+
+    def network_counts(self) -> dict[str, dict[str, float]]:
+        """What the radio did per link (``radio.DeviceRadio.counts``); empty on a perfect link."""
+        return {} if self.radio is None else self.radio.counts()
 
     @property
     def threads_alive(self) -> list[str]:

@@ -1,0 +1,232 @@
+"""An emulated device's radio: its UDP sockets pass a seeded impairment model (flightstack.netem).
+
+`DeviceRadio` holds one `LinkModel` per named link of one device (e.g. a Tello's "command" uplink and its
+"reply", "state" and "video" downlinks), sharing the device's blackout windows, and one `DelayLine`:
+a scheduler thread that sends every delayed datagram at its due time, so that no device loop ever
+sleeps for the network. `ImpairedSocket` wraps a device's socket:
+
+* `sendto(data, addr)` (leaving the device): the link chosen by `route(addr)` decides; the copies to
+  deliver are queued on the delay line (None: sent at once, unimpaired);
+* `recvfrom(n)` (entering the device): every datagram that arrived is decided on the uplink at once
+  and kept until its due time; a call returns the earliest due one and honours the caller's timeout
+  (blocking, timeout, or non-blocking: `BlockingIOError`), waiting in select() on the socket or the next
+  due time, whichever comes first. The device's own receive loop is unchanged.
+
+Everything else (fileno, close, settimeout, getsockname, ...) is the wrapped socket's. Times are
+time.monotonic() seconds. Counters: `radio.counts()` (per link: packets, delivered, lost, blackout,
+queue, duplicated, reordered, spiked; plus delay_mean_ms of the delivered packets).
+"""
+
+from __future__ import annotations
+
+import errno
+import heapq
+import itertools
+import select
+import socket
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from flightstack.netem import LinkModel, NetworkProfile, blackout_windows
+
+Address = tuple[str, int]
+COUNTERS = ("packets", "delivered", "lost", "blackout", "queue", "duplicated", "reordered", "spiked")
+"""The counters every link reports (LinkModel.counts), 0 included."""
+
+
+class DelayLine:
+    """Sends queued datagrams at their due times from one daemon thread (started on first use)."""
+
+    def __init__(self, name: str) -> None:
+        self._cond = threading.Condition()
+        self._heap: list[tuple[float, int, socket.socket, bytes, Address]] = []
+        self._seq = itertools.count()
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self._name = name
+        self.send_errors = 0
+
+    def schedule(self, due: float, sock: socket.socket, data: bytes, addr: Address) -> None:
+        """Send `data` from `sock` to `addr` at `due` (time.monotonic() s)."""
+        with self._cond:
+            if self._stop:
+                return
+            heapq.heappush(self._heap, (due, next(self._seq), sock, data, addr))
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name=f"radio-{self._name}", daemon=True)
+                self._thread.start()
+            self._cond.notify()
+
+    def close(self) -> None:
+        """Stop the thread (joined ≤ 1 s); what is still queued is not sent."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+            thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=1.0)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                if self._stop:
+                    return
+                if not self._heap:
+                    self._cond.wait(0.1)
+                    continue
+                wait = self._heap[0][0] - time.monotonic()
+                if wait > 0:
+                    self._cond.wait(min(wait, 0.1))
+                    continue
+                _, _, sock, data, addr = heapq.heappop(self._heap)
+            try:
+                sock.sendto(data, addr)
+            except OSError:  # nobody listening yet, or the socket closed at shutdown
+                self.send_errors += 1
+
+
+class DeviceRadio:
+    """The radio links of one emulated device under `profile`, seeded by (seed, device, link).
+
+    links: link name -> kind (flightstack.netem.LINK_KINDS), e.g. {"command": "tello", "video": "video"}.
+    epoch: time.monotonic() from which the profile's blackout windows count (default: now)."""
+
+    def __init__(
+        self,
+        prof: NetworkProfile,
+        seed: int,
+        device: str,
+        links: dict[str, str],
+        epoch: float | None = None,
+    ) -> None:
+        self.profile = prof
+        self.device = device
+        self.epoch = time.monotonic() if epoch is None else float(epoch)
+        windows = blackout_windows(prof.blackouts, seed, device)
+        self.blackouts = [(self.epoch + a, self.epoch + b) for a, b in windows]
+        """Absolute (start, end) time.monotonic() of the device's blackouts (on its radio links)."""
+        self._models = {
+            name: LinkModel(
+                prof.link(kind),
+                seed,
+                device,
+                name,
+                epoch=self.epoch,
+                blackouts=windows if kind in prof.blackout_kinds else None,
+            )
+            for name, kind in links.items()
+        }
+        self._lock = threading.Lock()
+        self.delay_line = DelayLine(device)
+
+    def decide(self, link: str, size: int, now: float | None = None) -> list[float]:
+        """Delivery times of a datagram of `size` bytes entering `link` now (thread-safe)."""
+        t = time.monotonic() if now is None else now
+        with self._lock:
+            return self._models[link].decide(t, size)
+
+    def counts(self) -> dict[str, dict[str, float]]:
+        """Per link: the model's counters and delay_mean_ms of what it delivered (JSON-ready)."""
+        out: dict[str, dict[str, float]] = {}
+        with self._lock:
+            for name, m in self._models.items():
+                row: dict[str, float] = dict.fromkeys(COUNTERS, 0.0)
+                row.update(m.counts)
+                n = m.counts["delivered"]
+                row["delay_mean_ms"] = round(1e3 * m.delay_sum_s / n, 3) if n else 0.0
+                out[name] = row
+        return out
+
+    def socket(
+        self, sock: socket.socket, send: Callable[[Address], str | None] | None, recv: str | None
+    ) -> ImpairedSocket:
+        """`sock` wrapped: datagrams it sends go through link `send(addr)` (None: unimpaired), datagrams
+        it receives through link `recv` (None: unimpaired)."""
+        return ImpairedSocket(sock, self, send, recv)
+
+    def close(self) -> None:
+        """Stop the delay line."""
+        self.delay_line.close()
+
+
+class ImpairedSocket:
+    """A UDP socket whose traffic passes a DeviceRadio's links (module docstring)."""
+
+    def __init__(
+        self,
+        sock: socket.socket,
+        radio: DeviceRadio,
+        send: Callable[[Address], str | None] | None,
+        recv: str | None,
+    ) -> None:
+        self._sock = sock
+        self._radio = radio
+        self._send_link = send
+        self._recv_link = recv
+        self._timeout = sock.gettimeout()
+        self._pending: list[tuple[float, int, bytes, Any]] = []
+        self._seq = itertools.count()
+        self._rx_lock = threading.Lock()
+
+    # ---- the wrapped socket's own API ----------------------------------------------------------------
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._sock, name)
+
+    def settimeout(self, value: float | None) -> None:
+        self._timeout = value
+        self._sock.settimeout(value)
+
+    def gettimeout(self) -> float | None:
+        return self._timeout
+
+    def setblocking(self, flag: bool) -> None:
+        self.settimeout(None if flag else 0.0)
+
+    # ---- leaving the device ----------------------------------------------------------------------------
+    def sendto(self, data: bytes, addr: Address) -> int:
+        """Queue `data` for `addr` through its link (or send it at once when unimpaired)."""
+        link = None if self._send_link is None else self._send_link(addr)
+        if link is None:
+            return self._sock.sendto(data, addr)
+        for due in self._radio.decide(link, len(data)):
+            self._radio.delay_line.schedule(due, self._sock, bytes(data), addr)
+        return len(data)
+
+    # ---- entering the device ---------------------------------------------------------------------------
+    def recvfrom(self, bufsize: int) -> tuple[bytes, Any]:
+        """The earliest due datagram that passed the uplink (the caller's timeout semantics)."""
+        if self._recv_link is None:
+            return self._sock.recvfrom(bufsize)
+        timeout = self._timeout
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._rx_lock:
+            while True:
+                self._drain(bufsize)
+                now = time.monotonic()
+                if self._pending and self._pending[0][0] <= now:
+                    _, _, data, addr = heapq.heappop(self._pending)
+                    return data, addr
+                if timeout == 0.0:
+                    raise BlockingIOError(errno.EAGAIN, "no datagram due")
+                wait = self._pending[0][0] - now if self._pending else 0.1
+                if deadline is not None:
+                    if now >= deadline:
+                        raise TimeoutError("timed out")
+                    wait = min(wait, deadline - now)
+                select.select([self._sock], [], [], max(0.0, min(wait, 0.1)))
+
+    def _drain(self, bufsize: int) -> None:
+        """Decide every datagram waiting in the socket, in arrival order."""
+        assert self._recv_link is not None
+        while select.select([self._sock], [], [], 0.0)[0]:  # (the socket's own timeout never waits here)
+            try:
+                data, addr = self._sock.recvfrom(bufsize)
+            except (BlockingIOError, InterruptedError, TimeoutError):
+                return
+            for due in self._radio.decide(self._recv_link, len(data)):
+                heapq.heappush(self._pending, (due, next(self._seq), data, addr))
+
+
+__all__ = ["DelayLine", "DeviceRadio", "ImpairedSocket"]

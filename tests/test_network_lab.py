@@ -1,0 +1,307 @@
+"""The lossy radio of the emulated lab, judged on loopback: what the emulators' impaired sockets deliver,
+the Tello video receiver under burst loss, the TCP impairment proxy, and a short emulated-lab flight on
+`lab-wifi` that lands every drone.
+
+Addresses: the Tello emulator of this module owns 127.0.0.51 (free ports); everything else is on
+127.0.0.1 with free ports.
+"""
+
+from __future__ import annotations
+
+import json
+import select
+import socket
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flightstack.drivers.tello_camera import VideoReceiver
+from flightstack.netem import PROFILES, BlackoutPlan, LinkProfile, NetworkProfile
+from flightstack.ports import free_tcp_port, free_udp_port
+from flightstack.sim_backend.emulators.radio import DeviceRadio
+from flightstack.sim_backend.emulators.tcp_proxy import TcpImpairProxy
+from flightstack.sim_backend.emulators.tello import (
+    TelloEmulator,
+    default_square,
+    read_frame_index,
+    stamp_frame_index,
+    wait_until,
+)
+
+pytestmark = pytest.mark.system
+av = pytest.importorskip("av")
+
+IP = "127.0.0.51"
+TELLO_LINKS = {"command": "tello", "reply": "tello", "state": "tello", "video": "video"}
+
+
+def _command(sock: socket.socket, emu: TelloEmulator, text: str, tries: int = 10) -> str:
+    """Send `text` until a reply arrives (replies and commands may be lost); the reply."""
+    for _ in range(tries):
+        sock.sendto(text.encode(), emu.address)
+        try:
+            while True:
+                data, addr = sock.recvfrom(2048)
+                if addr[0] == IP:
+                    return data.decode()
+        except TimeoutError:
+            continue
+    raise AssertionError(f"no reply to {text!r} in {tries} tries")
+
+
+def test_a_tello_on_lab_wifi_delivers_what_its_radio_decided() -> None:
+    """State at 50 Hz for 3 s through `lab-wifi`: the client receives exactly what the radio delivered
+    (and its duplicates), about 98 % of what the drone sent, 3-30 ms late on average."""
+    state_port = free_udp_port()
+    radio = DeviceRadio(PROFILES["lab-wifi"], 1, "tello1", TELLO_LINKS)
+    emu = TelloEmulator(IP, state_port=state_port, video_port=free_udp_port(), state_hz=50.0, radio=radio)
+    with (
+        emu,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as cmd,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as state,
+    ):
+        state.bind(("127.0.0.1", state_port))
+        state.settimeout(0.3)
+        cmd.bind(("127.0.0.1", 0))
+        cmd.settimeout(0.3)
+        assert _command(cmd, emu, "command") == "ok"
+        received, t_end = 0, time.monotonic() + 3.0
+        while time.monotonic() < t_end:
+            try:
+                state.recvfrom(2048)
+                received += 1
+            except TimeoutError:
+                pass
+        emu.faults.drop_state = True  # the drone stops streaming; what the radio still holds arrives
+        while True:
+            try:
+                state.recvfrom(2048)
+                received += 1
+            except TimeoutError:
+                break
+        counts = emu.network_counts()
+    s = counts["state"]
+    sent_during = s["packets"]
+    assert received == s["delivered"] + s["duplicated"]  # every datagram the radio delivered, no other
+    assert 0.9 <= s["delivered"] / sent_during <= 1.0 and sent_during >= 120
+    assert 3.0 <= s["delay_mean_ms"] <= 30.0
+    assert counts["command"]["packets"] >= 1 and counts["reply"]["packets"] >= 1
+    print(f"state: sent {sent_during:.0f}, delivered {s['delivered']:.0f}, received {received}, "
+          f"lost {s.get('lost', 0):.0f}, mean delay {s['delay_mean_ms']:.1f} ms")  # fmt: skip
+
+
+def _textured(t: float, emu: object) -> np.ndarray:
+    """A smooth background, the moving square of the default source, and the frame index."""
+    width, height = 320, 240
+    yy, xx = np.mgrid[0:height, 0:width]
+    img = np.stack([(xx * 255 // width), (yy * 255 // height), ((xx + yy) * 255 // (width + height))], -1)
+    img = img.astype(np.uint8)
+    x0, y0, x1, y1 = default_square(t, (width, height))
+    img[max(0, y0) : max(0, y1), max(0, x0) : max(0, x1)] = (255, 0, 0)
+    stamp_frame_index(img, round(t * 30.0))
+    return img
+
+
+def test_video_resyncs_after_burst_loss_and_never_publishes_a_damaged_frame(safety_bound) -> None:
+    """Video at 30 fps (keyframe every 15 frames) through bursty loss (5 %, bursts of 3) and a 0.5 s
+    blackout: frames keep coming after each loss (the next keyframe), and every frame the receiver
+    publishes matches the frame that was rendered (no concealed, smeared frame)."""
+    video_port = free_udp_port()
+    prof = NetworkProfile(
+        "test",
+        "bursty video, one blackout",
+        {"video": LinkProfile.bursty(0.05, 3.0)},
+        blackouts=BlackoutPlan(first_s=1.5, every_s=100.0, min_s=0.5, max_s=0.5),
+    )
+    radio = DeviceRadio(prof, 3, "tello1", TELLO_LINKS)
+    rx = VideoReceiver(video_port, "127.0.0.1")
+    emu = TelloEmulator(
+        IP, state_port=free_udp_port(), video_port=video_port, fps=30.0, video_size=(320, 240),
+        frame_source=_textured, radio=radio,
+    )  # fmt: skip
+    published: dict[int, tuple[float, np.ndarray]] = {}
+    try:
+        with emu, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as cmd:
+            cmd.bind(("127.0.0.1", 0))
+            cmd.settimeout(0.3)
+            assert _command(cmd, emu, "command") == "ok"
+            assert _command(cmd, emu, "streamon") == "ok"
+            t_end = time.monotonic() + 4.5
+            while time.monotonic() < t_end:
+                item = rx.latest()
+                if item is not None and item[0] not in published:
+                    published[item[0]] = (item[1], item[2])
+                time.sleep(0.004)
+            blackout = radio.blackouts[0]
+    finally:
+        rx.close()
+    counts = dict(rx.counts)
+    assert counts["damaged"] > 0 and counts["resync"] >= 2, counts
+    assert len(published) >= 60, (len(published), counts)
+    worst = 0.0
+    for _, img in published.values():
+        index = read_frame_index(img)
+        expected = _textured(index / 30.0, None).astype(float)
+        err = np.abs(img.astype(float) - expected).mean(axis=2)
+        blocks = err[: 240 // 8 * 8, : 320 // 8 * 8].reshape(30, 8, 40, 8).mean(axis=(1, 3))
+        worst = max(worst, float(blocks.max()))
+    assert worst < 40.0, (
+        f"a published frame differs from its rendering by {worst:.0f} per pixel in an 8×8 block"
+    )
+    after = [t for t, _ in published.values() if t > blackout[1]]
+    assert after, "the stream froze after the blackout"
+    safety_bound("first clean frame after a 0.5 s video blackout", 1e3 * (min(after) - blackout[1]), 1500.0)
+    print(f"video: {len(published)} frames published, counts {counts}, worst block error {worst:.1f}")
+
+
+def test_natnet_and_rover_receive_what_their_radios_decided() -> None:
+    """Motion-capture frames (wired profile) and the rover's MAVLink both ways (crowded): every datagram the
+    client or the rover got was one the radio delivered."""
+    pytest.importorskip("pymavlink")
+    from pymavlink import mavutil
+
+    from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
+    from flightstack.sim_backend.emulators.natnet import NatNetEmulator
+
+    crowded = PROFILES["crowded"]
+    nat_radio = DeviceRadio(crowded, 0, "natnet", {"frames": "mocap"})
+    natnet = NatNetEmulator({"b": ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))}, rate_hz=100.0, radio=nat_radio)
+    with natnet, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as data:
+        data.bind(("127.0.0.1", natnet.data_port))
+        data.settimeout(0.2)
+        got, t_end = 0, time.monotonic() + 2.0
+        while time.monotonic() < t_end:
+            try:
+                data.recvfrom(65535)
+                got += 1
+            except TimeoutError:
+                pass
+        frames = natnet.network_counts()["frames"]
+    assert frames["packets"] >= 150 and got == pytest.approx(
+        frames["delivered"] + frames["duplicated"], abs=2
+    )
+
+    rover_radio = DeviceRadio(crowded, 0, "rover", {"uplink": "rover", "downlink": "rover"})
+    rover = MavlinkRoverEmulator(heartbeat_hz=20.0, radio=rover_radio)
+    client = mavutil.mavlink_connection(rover.url, source_system=255)
+    try:
+        heard, t_end = 0, time.monotonic() + 2.0
+        while time.monotonic() < t_end:
+            client.mav.heartbeat_send(
+                mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
+            )
+            if client.recv_match(type="HEARTBEAT", blocking=True, timeout=0.05) is not None:
+                heard += 1
+        time.sleep(0.5)  # the uplink's last datagrams are due
+        counts = rover.network_counts()
+        gcs = rover.gcs_heartbeat_count()
+    finally:
+        client.close()
+        rover.close()
+    up = counts["uplink"]
+    assert gcs == up["delivered"] + up["duplicated"] and up["delivered"] < up["packets"]
+    assert heard > 0 and counts["downlink"]["packets"] >= 30
+    print(f"rover: uplink {up}, downlink {counts['downlink']}")
+
+
+def _echo_server(port: int, stop: threading.Event) -> threading.Thread:
+    """A TCP echo server on 127.0.0.1:port (select-driven: it adds no delay of its own)."""
+    srv = socket.create_server(("127.0.0.1", port))
+
+    def run() -> None:
+        conns: list[socket.socket] = []
+        while not stop.is_set():
+            ready, _, _ = select.select([srv, *conns], [], [], 0.05)
+            for s in ready:
+                if s is srv:
+                    c, _ = srv.accept()
+                    c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                    conns.append(c)
+                    continue
+                try:
+                    data = s.recv(65536)
+                except OSError:
+                    data = b""
+                if data:
+                    s.sendall(data)
+                else:
+                    conns.remove(s)
+                    s.close()
+        for c in conns:
+            c.close()
+        srv.close()
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    return t
+
+
+def test_tcp_proxy_adds_latency_and_holds_bytes_through_a_blackout() -> None:
+    """An echo through the proxy (20 ms + 5 ms mean jitter each way): round trips of about 50 ms, every byte
+    in order; a message sent in a 0.6 s blackout arrives after it ends."""
+    port, stop = free_tcp_port(), threading.Event()
+    server = _echo_server(port, stop)
+    proxy = TcpImpairProxy(
+        ("127.0.0.1", port), LinkProfile(latency_s=0.020, jitter_s=0.005), seed=1, blackouts=[(1.0, 1.6)]
+    ).start()
+    try:
+        with socket.create_connection(proxy.address, timeout=3.0) as c:
+            c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            rtts, echoed = [], b""
+            for k in range(15):
+                msg = f"{k:04d}".encode() * 10
+                t0 = time.monotonic()
+                c.sendall(msg)
+                got = b""
+                while len(got) < len(msg):
+                    got += c.recv(65536)
+                rtts.append(time.monotonic() - t0)
+                echoed += got
+            assert echoed == b"".join(f"{k:04d}".encode() * 10 for k in range(15))
+            assert wait_until(lambda: time.monotonic() - proxy.epoch >= 1.1, 2.0)
+            t0 = time.monotonic()
+            c.sendall(b"during the blackout")
+            got = b""
+            while len(got) < 19:
+                got += c.recv(65536)
+            t_back = time.monotonic()
+        counts = proxy.counts()
+    finally:
+        proxy.close()
+        stop.set()
+        server.join(timeout=1.0)
+    median = statistics.median(rtts)
+    assert 0.045 <= median <= 0.12, rtts  # 2 × (20 ms + 5 ms mean jitter) and the machine's own
+    assert t_back >= proxy.epoch + 1.6 and counts["held"] >= 1 and counts["connections"] == 1
+    print(f"tcp proxy: median round trip {1e3 * median:.1f} ms; blackout message back after "
+          f"{1e3 * (t_back - t0):.0f} ms; counts {counts}")  # fmt: skip
+
+
+def test_a_short_emulated_lab_flight_on_lab_wifi_lands_every_drone(tmp_path: Path) -> None:
+    """`flightstack bench-loop --network lab-wifi`: two drones fly 3 s of pursuit through the lossy radio
+    and both land (judged at the emulators: network_log.json), with the radio's counters written."""
+    out = tmp_path / "run"
+    r = subprocess.run(
+        [sys.executable, "-m", "flightstack", "bench-loop", "--seconds", "3", "--network", "lab-wifi",
+         "--out", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert r.returncode in (0, 1), r.stderr[-3000:]
+    assert "(network lab-wifi)" in r.stdout
+    (log_path,) = out.rglob("network_log.json")
+    log = json.loads(log_path.read_text())
+    assert log["network"] == "lab-wifi"
+    for name in ("tello1", "tello2"):
+        phases = [p for _, p in log[name]["phase_log"]]
+        assert "flying" in phases and phases[-1] == "landed", phases
+        state = log["network_counts"][name]["state"]
+        assert state["packets"] > 30 and 0 < state["delivered"] < state["packets"] + 1
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["recording"]["complete"], metrics["recording"]
+    print("lab-wifi flight:", {n: c["state"] for n, c in log["network_counts"].items() if "state" in c})
