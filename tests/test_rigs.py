@@ -162,6 +162,7 @@ def test_bench_loop_measures_the_emulated_lab_and_its_exit_code_is_its_verdict(t
     )  # fmt: skip
     (out,) = (tmp_path / "runs").iterdir()
     assert r.returncode in (0, 1), r.stderr[-3000:]
+    assert (out / "metrics.json").is_file(), (r.returncode, r.stdout[-1000:], r.stderr[-3000:])
     health = json.loads((out / "metrics.json").read_text())["modes"]["none"]["loop_health"]
     ticks = round(2.0 / health["dt_s"])
     assert health["real_time"] and health["period_s"]["n"] == ticks - 1 and health["compute_s"]["n"] == ticks
