@@ -261,3 +261,49 @@ def test_where_the_mission_names_agents_only_the_owner_and_agents_are_heard(tmp_
 
 def test_a_mission_of_one_agent_each_hears_a_drone_only_from_its_own_agent(tmp_path: Path) -> None:
     _run_matrix(tmp_path, ("world", "1", "2", "3"), stale=("agents",))
+
+
+def test_a_certificate_the_mission_does_not_name_reads_nothing_while_it_connects(tmp_path: Path) -> None:
+    """A Zenoh peer sends data on a new link before that link's subscriber declarations are settled: the
+    moment a stale certificate connects is when a participant already publishing could leak to it."""
+    peers, mission = _open_all(tmp_path, ("world", "1", "2", "3"), ("agents",))
+    peers.pop("stale agents").close()  # its certificate stays in the folder
+    space = f"flightstack/{mission.name}"
+    stop = threading.Event()
+
+    def publish() -> None:
+        seq = 0
+        while not stop.is_set():
+            seq += 1
+            for p in peers.values():
+                p.put_all(mission.name, seq)
+            time.sleep(0.002)
+
+    from flightstack.comms.zenoh_config import ZenohBusConfig, zenoh_config
+
+    bus = mission.bus.zenoh
+    thread = threading.Thread(target=publish, daemon=True)
+    stale: list[Peer] = []
+    try:
+        thread.start()
+        for _ in range(5):  # five connections, each with its own settling window
+            cfg = ZenohBusConfig(
+                mission=mission.name,
+                self_ids=set(IDS),
+                known_senders=set(IDS),
+                connect=list(bus.endpoints.values()),
+                tls=dict(tls_settings(files_of(tmp_path / "certs", "agents"))),
+                participant="agents",
+            )
+            stale.append(Peer("agents", zenoh.open(zenoh_config(cfg)), space))
+        assert eventually(lambda: all(len(list(s.session.info.peers_zid())) >= 4 for s in stale), 20.0)
+        time.sleep(1.0)
+    finally:
+        stop.set()
+        thread.join(5.0)
+        for s in stale:
+            s.close()
+        for p in peers.values():
+            p.close()
+    heard = [sorted(m for m in s.received()[0] if m[1] != "agents") for s in stale]
+    assert all(not h for h in heard), heard

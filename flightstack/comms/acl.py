@@ -18,9 +18,11 @@ subject mentions them, and a drone's keys can be published only with that drone'
 deny`. Every node enforces it on *ingress*: a message that arrives on a link is accepted only if the
 certificate common name of that link (flightstack/comms/certs.py) may publish its key. Every
 participant may declare subscribers and liveliness subscribers on the mission's keys (to read is not
-to act: only mutual-TLS participants of this mission have links at all); egress is allowed on the
-mission's keys, since links exist only to authenticated participants. Nothing outside
-`{prefix}/{mission}/**` passes in either direction.
+to act). Egress is allowed on the mission's keys to the mission's participants only: a link may also
+come from a certificate of the same CA that the mission does not name (an older `certs` run), and a
+Zenoh peer sends data to a new link before that link's subscriber declarations are settled, so only the
+sender's egress filter keeps such a link from reading. Nothing outside `{prefix}/{mission}/**` passes
+in either direction.
 
 What the key alone cannot say is checked on receipt: the sender field of a prediction equals its key
 (freshness.py), a status names the drone of its key, an acknowledgement names only drones its
@@ -123,12 +125,9 @@ def access_control(
         {"id": "read", "messages": READ, "flows": ["ingress"], "permission": "allow",
          "key_exprs": [everything]},
     ]  # fmt: skip
-    subjects: list[dict[str, Any]] = [
-        {"id": "any-link"},
-        {"id": "participants", "cert_common_names": names},
-    ]
+    subjects: list[dict[str, Any]] = [{"id": "participants", "cert_common_names": names}]
     policies: list[dict[str, Any]] = [
-        {"id": "egress", "rules": ["egress"], "subjects": ["any-link"]},
+        {"id": "egress", "rules": ["egress"], "subjects": ["participants"]},
         {"id": "read", "rules": ["read"], "subjects": ["participants"]},
     ]
 
