@@ -197,7 +197,7 @@ def test_messages_of_one_sender_arrive_in_order_and_losses_are_counted() -> None
 
 # ---- a whole run ---------------------------------------------------------------------------------------
 def test_a_run_with_late_state_robot_and_bus_is_seeded() -> None:
-    links = {"profile": "tello", "bus": {"latency_s": 0.03, "jitter_s": 0.02, "loss": 0.02}}
+    links = {"profile": "tello", "bus": {"latency_s": 0.03, "jitter_s": 0.02, "loss": 0.1}}
     a = fly_mode(_lab(links), "none")
     b = fly_mode(_lab(links), "none")
     c = fly_mode(_lab(links, seed=1), "none")
@@ -207,3 +207,4 @@ def test_a_run_with_late_state_robot_and_bus_is_seeded() -> None:
             np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
     assert not np.array_equal(a.g_w0, c.g_w0) or not np.array_equal(a.g_bar_w, c.g_bar_w)
     assert math.isfinite(float(np.nanmean(a.g_bar_w)))
+    assert a.bus_dropped.get(LOST, 0) > 0 and a.bus_dropped == b.bus_dropped  # the fleet's bus is the lab's
