@@ -150,16 +150,22 @@ class ServedRun:
         """agent_args: extra arguments of some agents' command lines (e.g. --viewer), by drone id."""
         self.out = out
         self.proxies = None if network == "clean" else _bus_proxies(mission, network, seed)
+        try:
+            self._start(mission, ids, mode, agent_args or {})
+        except BaseException:
+            if self.proxies is not None:  # (a process started before the failure stops by its timeouts)
+                self.proxies.close()
+            raise
+
+    def _start(
+        self, mission: Path, ids: tuple[int, ...], mode: str, extra: dict[int, tuple[str, ...]]
+    ) -> None:
         views = {"world": mission, **{str(i): mission for i in ids}}
         if self.proxies is not None:
-            try:
-                views = {name: mission_view(mission, self.proxies, name) for name in views}
-            except BaseException:
-                self.proxies.close()
-                raise
+            views = {name: mission_view(mission, self.proxies, name) for name in views}
         self.world = popen("world", str(views["world"]))
         self.world_lines = Lines(self.world)
-        extra = agent_args or {}
+        out = self.out
         self.agents = {
             i: popen(
                 "agent", str(views[str(i)]), "--id", str(i), "--mode", mode, "--out", str(out / f"agent{i}"),
