@@ -5,6 +5,7 @@ Free loopback ports; every bus and proxy is closed in `finally`."""
 
 from __future__ import annotations
 
+import json
 import statistics
 import time
 from pathlib import Path
@@ -97,6 +98,30 @@ def test_a_prediction_stream_through_the_crowded_bus_is_late_by_its_latency_and_
     assert link.latency_s + link.jitter_s / 2 <= mean <= link.latency_s + link.jitter_s + 0.030, delays
     assert streamed == 200 and not dropped
     assert sum(c.get("chunks", 0) for c in counts.values()) > 0
+
+
+def test_the_served_simulation_flies_through_crowded_proxies(tmp_path: Path) -> None:
+    """`flightstack world` + three agents, each process with its own view of the endpoints (the others'
+    proxies): every process ends by itself, every drone lands, every agent flew every tick and lost no
+    message, and every pair's link passed a proxy."""
+    from flightstack.faults.rows_processes import ServedRun
+
+    mission = served_mission(tmp_path, duration_s=1.5)
+    t0 = time.monotonic()
+    with ServedRun(mission, tmp_path, network="crowded") as run:
+        codes, world = run.wait()
+        out = run.world_lines.rest()
+        assert run.proxies is not None
+        counts = run.proxies.counts()
+    wall = time.monotonic() - t0
+    print(f"served run through crowded proxies: {wall:.1f} s wall; {out.splitlines()[-1]}")
+    assert codes == {1: 0, 2: 0, 3: 0} and world == 0, out
+    assert "1: landed, 2: landed, 3: landed; dropped none" in out, out
+    assert {name for name, c in counts.items() if c.get("chunks", 0) > 0} == {"1", "2", "3", "world"}
+    for i in (1, 2, 3):
+        assert (tmp_path / f"mission_{i}.yaml").is_file()
+        metrics = json.loads((tmp_path / f"agent{i}" / "metrics.json").read_text())
+        assert metrics["modes"]["dgp"]["ticks"] == 150 and not metrics["modes"]["dgp"]["bus_dropped"]
 
 
 def test_split_endpoint() -> None:
