@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from flightstack.comms.bus import Bus
+from flightstack.comms.delayed_bus import DelayedBus
 from flightstack.config.derive import derive
 from flightstack.config.links import LINKS
 from flightstack.config.mission import Mission
@@ -49,6 +51,7 @@ class LabSimBackend:
     simulated = True
 
     def __init__(self, mission: Mission) -> None:
+        self.mission = mission
         rng = np.random.default_rng(mission.seed)
         sim = mission.sim
         g_w0 = mission.target.initial_pose.pose()
@@ -58,9 +61,15 @@ class LabSimBackend:
         def clock_now() -> float:  # the models read the world's virtual time
             return self.world.t
 
-        robot = ScamperSim(g_w0, derive(RobotParams, r, rename={"max_speed_mps": "max_speed"}), clock_now)
-        t = sim.tello
         links = _LinkGenerators(mission)
+        self.links = links
+        robot = ScamperSim(
+            g_w0,
+            derive(RobotParams, r, rename={"max_speed_mps": "max_speed"}),
+            clock_now,
+            links.get("robot", 0),
+        )
+        t = sim.tello
         drones = {}
         for k, d in enumerate(mission.drones):
             params = derive(
@@ -73,7 +82,9 @@ class LabSimBackend:
             # on the ground below the desired pose relative to the target's start, plus the offset
             above = initial_drone_pose(mission, k)
             start = Pose(np.array([above.p[0], above.p[1], 0.0]), above.theta)
-            drones[d.id] = TelloSim(d.id, start, params, clock_now, links.get("rc", d.id))
+            drones[d.id] = TelloSim(
+                d.id, start, params, clock_now, links.get("rc", d.id), links.get("state", d.id)
+            )
         m = sim.mocap
         self.mocap = MocapSim(
             derive(MocapParams, m),
@@ -103,6 +114,14 @@ class LabSimBackend:
             video = mission.links.link("video")
             if not video.perfect:
                 self._cams[d.id].delay_frames(links.get("video", d.id), video.rate_hz or CAMERA_RATE_HZ)
+
+    def delay_bus(self, bus: Bus) -> Bus:
+        """`bus` as the rig's `bus` link delivers it between the agents of this process: each message
+        late on the lab's clock, or lost, drawn per sender (comms.delayed_bus.DelayedBus); `bus` itself
+        when the link is perfect (nothing drawn)."""
+        if self.mission.links.link("bus").perfect:
+            return bus
+        return DelayedBus(bus, self.clock.now, lambda sender: self.links.get("bus", sender))
 
     def drone(self, drone_id: int) -> TelloSim:
         return self.world.drones[drone_id]

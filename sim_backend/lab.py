@@ -5,8 +5,9 @@ Frames: Σw is the motion-capture frame, z up. Drones and robot have yaw-only po
 accelerating is not modelled: the camera stays level). Drone body frame FLU (x forward, y left, z up).
 Time: the world's virtual clock (seconds); models advance in `LabWorld.step`. Links (the rig's `links:`,
 flightstack.config.links) make rc commands take effect late, camera frames arrive late (rendered at their
-capture time, stamped with it) and motion-capture samples arrive late, each drawn from its own seeded
-generator; a link that is neither late nor lossy draws nothing.
+capture time, stamped with it), motion-capture samples and the drones' telemetry arrive late and the robot
+acts on its commands late, each drawn from its own seeded generator; a link that is neither late nor lossy
+draws nothing. (The bus between agents is delayed on the same clock: build_lab.LabSimBackend.delay_bus.)
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Generic, TypeVar
 
 import numpy as np
 
@@ -70,8 +72,47 @@ class LinkDelays:
         return gone
 
 
+T = TypeVar("T")
+
 RC_LINK = LinkSpec(latency_s=0.05)
 """A command's delay when none is given: the `perfect` profile's."""
+
+UNKNOWN_STATE = DroneState(math.nan, 0.0, False, False, "unknown")
+"""What a drone's telemetry says before its first sample has arrived (no link yet, phase unknown)."""
+
+
+class LateSamples(Generic[T]):
+    """Samples of a device taken on the world's clock and seen through a link (LinkDelays): each taken at
+    most rate_hz times per second (None: every time one is offered), late by link.delay(), lost with the
+    link's loss; `newest(now)` is the newest sample (by the time it was taken) that has arrived by `now`
+    (s). Jitter may reorder arrivals: an older sample arriving after a newer one is never shown."""
+
+    def __init__(self, link: LinkDelays) -> None:
+        self.link = link
+        self._next_t = -math.inf  # the earliest time (s) of the next sample
+        self._pending: deque[tuple[float, float, T]] = deque()  # (arrival, taken, value)
+        self._shown: tuple[float, T] | None = None  # (taken, value)
+
+    def offer(self, t: float, value: T) -> None:
+        """The device's value at time t (s): taken when a sample is due, then lost or sent on its way."""
+        rate = self.link.spec.rate_hz
+        if t + 1e-12 < self._next_t:
+            return
+        if rate is not None:
+            self._next_t = (math.floor(t * rate + 1e-9) + 1) / rate
+        if not self.link.lost():
+            self._pending.append((t + self.link.delay(), t, value))
+
+    def newest(self, now: float) -> tuple[float, T] | None:
+        """(taken, value) of the newest sample arrived by `now` (s), None before the first."""
+        keep: deque[tuple[float, float, T]] = deque()
+        for arrival, taken, value in self._pending:
+            if arrival > now:
+                keep.append((arrival, taken, value))
+            elif self._shown is None or taken > self._shown[0]:
+                self._shown = (taken, value)
+        self._pending = keep
+        return self._shown
 
 
 class TelloSim:
@@ -80,10 +121,21 @@ class TelloSim:
     GROUND, TAKING_OFF, FLYING, LANDING = "ground", "taking_off", "flying", "landing"
 
     def __init__(
-        self, drone_id: int, pose: Pose, params: TelloParams, clock_now, rc_link: LinkDelays | None = None
+        self,
+        drone_id: int,
+        pose: Pose,
+        params: TelloParams,
+        clock_now,
+        rc_link: LinkDelays | None = None,
+        state_link: LinkDelays | None = None,
     ) -> None:
+        """rc_link: how late (and lossy) each rc command is (default RC_LINK). state_link: the telemetry
+        `state()` reports, sampled after each world step (None or perfect: the present)."""
         self.id = drone_id
         self.rc_link = rc_link if rc_link is not None else LinkDelays(RC_LINK)
+        self.telemetry: LateSamples[DroneState] | None = (
+            None if state_link is None or state_link.spec.perfect else LateSamples(state_link)
+        )
         self.pose = pose
         self.p = params
         self.now = clock_now
@@ -129,6 +181,13 @@ class TelloSim:
         self.last_command_t = t
 
     def state(self) -> DroneState:
+        """The drone's telemetry: the present, or with a state link the newest sample arrived."""
+        if self.telemetry is None:
+            return self._state_now()
+        seen = self.telemetry.newest(self.now())
+        return UNKNOWN_STATE if seen is None else seen[1]
+
+    def _state_now(self) -> DroneState:
         return DroneState(
             self.battery, float(self.pose.p[2]), self.connected, self.phase == self.FLYING, self.phase
         )
@@ -177,6 +236,8 @@ class TelloSim:
             self.phase = self.GROUND
         if z < 0.0:
             self.pose = Pose(np.array([self.pose.p[0], self.pose.p[1], 0.0]), self.pose.theta)
+        if self.telemetry is not None:
+            self.telemetry.offer(t, self._state_now())
 
 
 @dataclass(frozen=True)
@@ -188,15 +249,22 @@ class RobotParams:
 
 
 class ScamperSim:
-    """A holonomic ground robot (hal.GroundRobot) commanded by body velocity [v_x, v_y, 0, ω]."""
+    """A holonomic ground robot (hal.GroundRobot) commanded by body velocity [v_x, v_y, 0, ω].
 
-    def __init__(self, pose: Pose, params: RobotParams, clock_now) -> None:
+    With a `link` (the rig's `robot` link, not perfect) each command is acted on link.delay() s after it
+    was sent, in order of arrival (jitter may let a later one overtake), or never when lost; the command
+    timeout counts from the arrival. `stop()` acts at once (as `land` does on the drone)."""
+
+    def __init__(self, pose: Pose, params: RobotParams, clock_now, link: LinkDelays | None = None) -> None:
         self.pose = pose
         self.p = params
         self.now = clock_now
+        self.link = None if link is None or link.spec.perfect else link
         self.v = np.zeros(4)
         self._cmd = np.zeros(4)
         self._cmd_t = -math.inf
+        self._queue: list[tuple[float, int, np.ndarray]] = []  # (arrival, seq, command) on their way
+        self._seq = 0
 
     def send_body_velocity(self, V: np.ndarray) -> None:
         V = np.nan_to_num(np.asarray(V, dtype=float))
@@ -205,12 +273,20 @@ class ScamperSim:
             V[:2] *= self.p.max_speed / sp
         V[2] = 0.0
         V[3] = float(np.clip(V[3], -self.p.max_yaw_rate, self.p.max_yaw_rate))
-        self._cmd, self._cmd_t = V, self.now()
+        if self.link is None:
+            self._cmd, self._cmd_t = V, self.now()
+        elif not self.link.lost():
+            self._seq += 1
+            bisect.insort(self._queue, (self.now() + self.link.delay(), self._seq, V))
 
     def stop(self) -> None:
         self._cmd = np.zeros(4)
+        self._queue.clear()
 
     def step(self, t: float, dt: float) -> None:
+        while self._queue and self._queue[0][0] <= t:
+            arrival, _, self._cmd = self._queue.pop(0)
+            self._cmd_t = arrival
         target = self._cmd if t - self._cmd_t <= self.p.command_timeout_s else np.zeros(4)
         self.v += (1.0 - math.exp(-dt / self.p.time_constant_s)) * (target - self.v)
         self.pose = integrate_body_velocity(self.pose, self.v, dt)

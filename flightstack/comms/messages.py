@@ -138,6 +138,14 @@ def _flatten(msg: PredictionMessage) -> tuple[np.ndarray | None, str | None]:
     return np.concatenate(flat), None
 
 
+def sender_of(data: bytes) -> int | None:
+    """The sender id a message's header names (None when it has no readable header); nothing checked."""
+    if not isinstance(data, _BYTES_LIKE) or len(data) < _HEAD.size:
+        return None
+    magic, _version, _flags, sender, *_ = _HEAD.unpack_from(bytes(data[: _HEAD.size]), 0)
+    return int(sender) if magic == MAGIC else None
+
+
 def _head_reason(sender: int, seq: int, stamp: float) -> str | None:
     """Why sender, seq or stamp cannot be sent, or None (checked before the 16 floats)."""
     if not (0 <= sender < 2**16) or not (0 <= seq < 2**32):

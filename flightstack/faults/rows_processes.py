@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
@@ -25,6 +26,9 @@ from flightstack.comms.factory import free_loopback_endpoints
 from flightstack.config.rig import MISSION_CONFIGS, resolved_document
 from flightstack.faults.result import Checks, FaultResult, FaultRow
 from flightstack.faults.rows_cli import cli_command, cli_env
+
+if TYPE_CHECKING:
+    from flightstack.sim_backend.emulators.bus_proxies import BusProxies
 
 PAPER_SIM = MISSION_CONFIGS / "paper_sim.yaml"
 IDS = (1, 2, 3)
@@ -125,7 +129,13 @@ def popen(*args: str) -> subprocess.Popen[str]:
 
 
 class ServedRun:
-    """`flightstack world` + one `flightstack agent` per drone; everything killed on exit."""
+    """`flightstack world` + one `flightstack agent` per drone; everything killed on exit.
+
+    network: a flightstack.netem profile for the Zenoh links between the processes: not "clean", each
+    participant's endpoint gets a TcpImpairProxy in front of it (sim_backend/emulators/bus_proxies.py,
+    seeded by `seed`) and each process flies its own copy of the mission (`<stem>_<participant>.yaml`
+    beside it) naming the others' proxies; `proxies` holds them (None on a clean network). The proxies
+    close after the processes have been stopped."""
 
     def __init__(
         self,
@@ -134,15 +144,31 @@ class ServedRun:
         ids: tuple[int, ...] = IDS,
         mode: str = "dgp",
         agent_args: dict[int, tuple[str, ...]] | None = None,
+        network: str = "clean",
+        seed: int = 0,
     ) -> None:
         """agent_args: extra arguments of some agents' command lines (e.g. --viewer), by drone id."""
         self.out = out
-        self.world = popen("world", str(mission))
+        self.proxies = None if network == "clean" else _bus_proxies(mission, network, seed)
+        try:
+            self._start(mission, ids, mode, agent_args or {})
+        except BaseException:
+            if self.proxies is not None:  # (a process started before the failure stops by its timeouts)
+                self.proxies.close()
+            raise
+
+    def _start(
+        self, mission: Path, ids: tuple[int, ...], mode: str, extra: dict[int, tuple[str, ...]]
+    ) -> None:
+        views = {"world": mission, **{str(i): mission for i in ids}}
+        if self.proxies is not None:
+            views = {name: mission_view(mission, self.proxies, name) for name in views}
+        self.world = popen("world", str(views["world"]))
         self.world_lines = Lines(self.world)
-        extra = agent_args or {}
+        out = self.out
         self.agents = {
             i: popen(
-                "agent", str(mission), "--id", str(i), "--mode", mode, "--out", str(out / f"agent{i}"),
+                "agent", str(views[str(i)]), "--id", str(i), "--mode", mode, "--out", str(out / f"agent{i}"),
                 *extra.get(i, ()),
             )
             for i in ids
@@ -153,12 +179,16 @@ class ServedRun:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        for p in [self.world, *self.agents.values()]:
-            if p.poll() is None:
-                if p.pid and _stopped(p.pid):
-                    p.send_signal(signal.SIGCONT)
-                p.kill()
-            p.wait(timeout=10)
+        try:
+            for p in [self.world, *self.agents.values()]:
+                if p.poll() is None:
+                    if p.pid and _stopped(p.pid):
+                        p.send_signal(signal.SIGCONT)
+                    p.kill()
+                p.wait(timeout=10)
+        finally:
+            if self.proxies is not None:
+                self.proxies.close()
 
     def wait(self) -> tuple[dict[int, int | None], int | None]:
         """Exit codes of the agents and the world (None: still running after the timeout)."""
@@ -174,6 +204,24 @@ class ServedRun:
         except subprocess.TimeoutExpired:
             world = None
         return codes, world
+
+
+def _bus_proxies(mission: Path, network: str, seed: int) -> BusProxies:
+    """Started proxies in front of every endpoint of the mission file's `bus.zenoh.endpoints`."""
+    from flightstack.sim_backend.emulators.bus_proxies import BusProxies
+
+    endpoints = yaml.safe_load(mission.read_text())["bus"]["zenoh"]["endpoints"]
+    return BusProxies(endpoints, network, seed)
+
+
+def mission_view(mission: Path, proxies: BusProxies, participant: str) -> Path:
+    """A copy of the mission file beside it in which `participant` reaches the others through their
+    proxies (BusProxies.view)."""
+    doc = yaml.safe_load(mission.read_text())
+    doc["bus"]["zenoh"]["endpoints"] = proxies.view(participant)
+    path = mission.with_name(f"{mission.stem}_{participant}.yaml")
+    path.write_text(yaml.safe_dump(doc))
+    return path
 
 
 def _stopped(pid: int) -> bool:

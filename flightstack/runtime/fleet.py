@@ -15,7 +15,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -76,6 +76,14 @@ def make_agents(
         pred = None if predictors is None else predictors.get(d.id)
         agents.append(Agent(cfg, drones[d.id], backend.camera(d.id), backend.pose_source(), bus, pred, g_bar))
     return agents
+
+
+@runtime_checkable
+class DelaysBus(Protocol):
+    """A backend that models the link between the agents of its process (the simulated lab's `bus`
+    link, on its own clock): returns the bus as that link delivers it."""
+
+    def delay_bus(self, bus: Bus) -> Bus: ...
 
 
 def safety_limits(mission: Mission) -> SafetyLimits:
@@ -249,7 +257,8 @@ def assemble_fleet(
 ) -> Iterator[Fleet]:
     """Build the fleet (bus first: a bus that cannot open must not leave a connected, armed backend
     behind); on failure close what was opened and re-raise. The bus built here is closed on exit; a bus
-    or backend passed in belongs to the caller (the backend is closed by landing). wrap_backend and
+    or backend passed in belongs to the caller (the backend is closed by landing). A bus built here goes
+    through the backend's bus link (DelaysBus: the simulated lab's), then wrap_bus; wrap_backend and
     wrap_bus wrap what is built here (the fault table's injectors)."""
     ids = [d.id for d in mission.drones] if agent_ids is None else list(agent_ids)
     # compile (or load) the tick's kernels before any device is opened: a compile mid-flight holds the GIL
@@ -260,10 +269,9 @@ def assemble_fleet(
         bus = make_bus(mission, participant, set(ids))
     built_bus = bus
     try:
-        if own_bus and wrap_bus is not None:
-            bus = wrap_bus(bus)
+        built = backend
         if backend is None:
-            backend = build_backend(mission)
+            backend = built = build_backend(mission)
             if wrap_backend is not None:
                 try:
                     backend = wrap_backend(backend)
@@ -271,6 +279,10 @@ def assemble_fleet(
                     backend.close()
                     raise
         try:
+            if own_bus and isinstance(built, DelaysBus):  # the lab's own link, under any injector
+                bus = built.delay_bus(bus)
+            if own_bus and wrap_bus is not None:
+                bus = wrap_bus(bus)
             fleet = _build(mission, mode, predictors, backend, bus, ids, writer)
         except BaseException:
             backend.close()
