@@ -11,8 +11,8 @@ through the real drivers, decoders and safety layer on the wall clock, and reads
 
 - loop: whether the loop kept dt (analysis.loop_health: ≤ 1 % overruns, compute p99 < dt) and its
   overrun fraction;
-- failsafe events (link_lost, pose_stale_hover/land, command_timeout after takeoff, target_lost_land):
-  on a profile without blackouts every one of them is false;
+- failsafe events (FAILSAFE_KINDS, and command_timeout while the loop should command): on a profile
+  without blackouts every one of them is false;
 - frames: per mode, summed over the drones, the frames the receivers published, the distinct frames the
   loop looked at, the damaged frames dropped and the resynchronisations (recording `video_counts`), and
   the ticks whose frame was older than `max_frame_age_s` ("stale frame" rejections);
@@ -46,8 +46,11 @@ from benchmarks.table import DOCS, write_block  # noqa: E402
 
 PROFILES = ("clean", "lab-wifi", "crowded", "outage")
 MODES = ("none", "local", "dgp")
-FAILSAFE_KINDS = ("link_lost", "pose_stale_hover", "pose_stale_land", "target_lost_land", "loop_lost_land")
-"""Safety reactions that a network without blackouts must never cause."""
+FAILSAFE_KINDS = (
+    "link_lost", "pose_stale_hover", "pose_stale_land", "target_lost_hover", "target_lost_land", "land_all",
+    "landed_by_drone", "loop_lost_land", "takeoff_failed", "land_failed",
+)  # fmt: skip
+"""Safety reactions (events.jsonl kinds) that a network without blackouts must never cause."""
 RESULTS = REPO / "benchmarks" / "network_table.json"
 PAGE = DOCS / "network.md"
 
@@ -212,6 +215,9 @@ def markdown(results: list[dict[str, Any]], duration_s: float) -> str:
                 f"{_ms(row['frame_age_p50_s'])} / {_ms(row['frame_age_p99_s'])} | "
                 f"{'–' if err is None else f'{err:.3f}'} | {'' if ratio is None else f'{ratio:.2f}'} |"
             )
+    for r in results:
+        if r["run_error"] or r["exit_code"]:
+            lines.append(f"\n`{r['profile']}`: exit {r['exit_code']}: {r['run_error'] or 'see its log'}")
     outages = [o for r in results for o in r["outages"]]
     if outages:
         lost = [o["link_lost_after_s"] for o in outages if o["link_lost_after_s"] is not None]
