@@ -134,10 +134,17 @@ def running_lab(mission: Any, lab_dir: Path) -> Iterator[Any]:
     """The `emulated-lab` rig: an EmulatedLab for `mission` (a flightstack Mission), logging in lab_dir;
     yields the mission re-pointed at the running devices. Every device stops when the block ends."""
     from flightstack.config.mission import mission_to_dict
+    from flightstack.sim_backend.build import initial_drone_pose
 
     doc = mission_to_dict(mission)
     doc["start_emulators"] = False  # the written mission flies the running emulators
-    with EmulatedLab(lab_dir, experiment=doc, network=mission.network, seed=mission.seed) as running:
+    starts = {}  # on the ground below where the simulated lab starts them: the same experiment
+    for k, d in enumerate(mission.drones):
+        above = initial_drone_pose(mission, k)
+        starts[d.id] = ((float(above.p[0]), float(above.p[1]), DRONE_STARTS[1][0][2]), float(above.theta))
+    with EmulatedLab(
+        lab_dir, experiment=doc, network=mission.network, seed=mission.seed, starts=starts
+    ) as running:
         try:
             yield running.mission()
         finally:
@@ -153,6 +160,8 @@ class EmulatedLab:
     TelloEmulator keyword arguments per drone id (e.g. {2: {"land_s": 2.0}}). mission_edit: called with
     the mission dict (YAML) before it is written. `mocap_offset[i]` (m, world x/y/z) is added to drone i's
     motion-capture position from the moment it is set (a drone displaced as motion capture sees it).
+    starts: drone id -> where it stands before takeoff ((x, y, z) m and yaw rad, mocap world); default
+    DRONE_STARTS (`running_lab` passes the simulated lab's starts, so both labs fly the same experiment).
 
     experiment: a resolved mission document on the emulated-lab rig (`flightstack run EXP --rig
     emulated-lab`): its drones, modes and camera mounts are flown as they are, and every camera renders
@@ -182,6 +191,7 @@ class EmulatedLab:
         live_cameras: bool | None = None,
         network: str = "clean",
         seed: int = 0,
+        starts: dict[int, tuple[tuple[float, float, float], float]] | None = None,
     ) -> None:
         from flightstack.netem import profile
 
@@ -193,7 +203,9 @@ class EmulatedLab:
         self._experiment = experiment
         ids = [int(d["id"]) for d in experiment["drones"]] if experiment is not None else list(LAB_IDS)
         self.ips = {i: emulated_tello_ip(k) for k, i in enumerate(ids)}
-        self.starts = {i: DRONE_STARTS.get(i, ((-0.5, -0.5 + 0.7 * k, 0.05), 0.0)) for k, i in enumerate(ids)}
+        self.starts = starts or {
+            i: DRONE_STARTS.get(i, ((-0.5, -0.5 + 0.7 * k, 0.05), 0.0)) for k, i in enumerate(ids)
+        }
         self.duration_s = float(duration_s)
         self._tello_kw = tello or {}
         self._mission_edit = mission_edit

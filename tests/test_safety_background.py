@@ -168,6 +168,31 @@ def test_a_land_asked_during_takeoff_is_not_confirmed_by_a_drone_still_on_the_fl
     assert wait_until(lambda: (r.sd.tick(), r.sd.landed)[1])
 
 
+def test_ground_telemetry_while_its_takeoff_is_resent_is_not_a_landing_by_the_drone() -> None:
+    """A lost takeoff datagram: the driver sees no motor start, its phase falls back to ground, and it
+    sends takeoff again, all inside takeoff(). Telemetry showing the ground then is no landing by the
+    drone: the drone stays supervised and commanded once it is up (seen on a lossy emulated radio)."""
+    clock, log = FakeClock(), EventLog()
+    r = Rig(clock=clock, log=log, background=True, takeoff=False)
+    go = threading.Event()
+    r.inner.takeoff = lambda: go.wait(5.0) and None  # type: ignore[method-assign]
+    r.inner.phase = "taking_off"
+    r.sd.takeoff()
+    r.sd.tick()  # link seen
+    r.inner.phase = "ground"  # the first takeoff had no effect; the driver sends it again
+    for k in range(5):
+        clock.t = 0.05 * (k + 1)
+        r.sd.tick()
+    assert "landed_by_drone" not in r.kinds(), r.kinds()
+    r.inner.phase = "airborne"
+    go.set()
+    time.sleep(0.05)  # the takeoff job ends
+    r.sd.tick()
+    assert r.sd.takeoff_error is None
+    r.sd.send_body_velocity(np.array([0.1, 0.0, 0.0, 0.0]))
+    assert r.inner.sent and r.inner.sent[-1][0] > 0, r.kinds()
+
+
 @pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP])
 def test_hangup_quit_and_stop_signals_land_like_ctrl_c(sig: signal.Signals) -> None:
     sup, r1, r2, _ = fleet2()

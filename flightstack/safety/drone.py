@@ -296,7 +296,9 @@ class SafeDrone:
                 self._event_once(now, "drone_error", f"state() raised {type(exc).__name__}: {exc}")
             else:
                 self._end("drone_error")
-                if link_alive and st.phase == FlightPhase.GROUND and self._link_seen:
+                takeoff = self._jobs.get("takeoff")
+                climbing = takeoff is not None and not takeoff.finished  # a resent takeoff starts from there
+                if link_alive and st.phase == FlightPhase.GROUND and self._link_seen and not climbing:
                     # its own telemetry shows it down (auto-land, a land by someone else): stop commanding
                     self._event(now, "landed_by_drone", "telemetry shows the drone on the ground")
                     self._phase = _Phase.LANDED
