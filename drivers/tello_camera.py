@@ -38,6 +38,11 @@ LOG = logging.getLogger("flightstack.tello")
 SETUP_ATTEMPTS = 4
 """Tries of each video set-up command (`port`, `downvision 1`, `streamon`; all idempotent): on a lossy
 Wi-Fi (2 % loss in bursts of 2 both ways) two tries of one command failed in a few % of start-ups."""
+STREAM_COUNT_KEYS = (
+    "datagrams", "frames", "damaged", "decode_error", "recv_error", "reader_error", "thread_error",
+    "lost_head", "lost_tail", "frame_gap", "damaged_units", "resync", "framing_off",
+)  # fmt: skip
+"""The receiver's counters (VideoReceiver), in the order a report lists them."""
 RECV_BUFFER_BYTES = 4 << 20  # socket receive buffer asked for (the OS may grant less): a keyframe burst
 MAX_DATAGRAM_BYTES = 65536
 
@@ -220,6 +225,11 @@ class TelloCamera:
             self._last_seq = seq
             self.frames_seen += 1
         return Frame(t_decoded - self.latency_s, img, None)
+
+    def stream_counts(self) -> dict[str, int]:
+        """hal.StreamCounting: the receiver's counts so far (STREAM_COUNT_KEYS, zeros too) and
+        "frames_seen", the distinct frames `latest()` handed out."""
+        return {**{k: int(self.counts[k]) for k in STREAM_COUNT_KEYS}, "frames_seen": self.frames_seen}
 
     def stop(self, streamoff_timeout_s: float = 1.0) -> None:
         """Stop decoding and ask the drone to stop streaming (`streamoff`, bounded, failure ignored: the

@@ -94,6 +94,14 @@ class Camera(Protocol):
     def latest(self) -> Frame | None: ...
 
 
+@runtime_checkable
+class StreamCounting(Protocol):
+    """A camera whose frames come over a stream it checks (the Tello's H.264 over UDP): what that stream
+    did so far, e.g. frames published, damaged frames dropped, resynchronisations (counts)."""
+
+    def stream_counts(self) -> dict[str, int]: ...
+
+
 @dataclass(frozen=True)
 class StampedPose:
     stamp: float

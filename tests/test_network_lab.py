@@ -304,4 +304,8 @@ def test_a_short_emulated_lab_flight_on_lab_wifi_lands_every_drone(tmp_path: Pat
         assert state["packets"] > 30 and 0 < state["delivered"] < state["packets"] + 1
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["recording"]["complete"], metrics["recording"]
+    video = metrics["modes"]["none"]["video_counts"]  # each camera's stream, counted in this mode
+    for i in ("1", "2"):
+        assert 0 < video[i]["frames_seen"] <= video[i]["frames"] <= video[i]["datagrams"], video
+    print("video:", {i: {k: v for k, v in c.items() if v} for i, c in video.items()})
     print("lab-wifi flight:", {n: c["state"] for n, c in log["network_counts"].items() if "state" in c})

@@ -120,6 +120,7 @@ def mode_metrics(
         "interrupted": bool(rec.interrupted),
         "error": rec.error,
         "vision_rejections": rec.vision_rejections,
+        **({"video_counts": rec.video_counts} if rec.video_counts else {}),
         # did this computer keep dt (hardware, emulated lab); on a simulated clock only how fast it ran
         "loop_health": loop_health(
             rec,

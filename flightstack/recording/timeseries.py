@@ -76,7 +76,9 @@ WALL_T_BOUND = 1e11
 _KINDS = {"b": "b", "i": "iu", "f": "fiu"}
 """dtype kinds a stored array may have, by the kind of its in-memory array."""
 
-META_FIELDS = ("ticks_done", "bus_dropped", "wall_seconds", "interrupted", "error", "vision_rejections")
+META_FIELDS = (
+    "ticks_done", "bus_dropped", "wall_seconds", "interrupted", "error", "vision_rejections", "video_counts",
+)  # fmt: skip
 """The scalar facts of a Recording besides its arrays and events (JSON-able; see `Recording.meta`)."""
 
 
@@ -112,6 +114,9 @@ class Recording:
     error: str | None = None
     events: list[dict[str, Any]] = field(default_factory=list)
     vision_rejections: dict[str, dict[str, int]] = field(default_factory=dict)
+    video_counts: dict[str, dict[str, int]] = field(default_factory=dict)
+    """Per drone, what its camera's stream did in this mode (hal.StreamCounting); empty when no camera
+    counts a stream (every simulated rig), and then not written: `meta()` omits it."""
 
     @staticmethod
     def empty(mode: str, ids: list[int], n_ticks: int) -> Recording:
@@ -171,7 +176,7 @@ class Recording:
 
     def meta(self) -> dict[str, Any]:
         """META_FIELDS as a JSON-able dict (the run directory's recording.json keeps it per mode)."""
-        return {
+        out: dict[str, Any] = {
             "ticks_done": int(self.ticks_done),
             "bus_dropped": {str(k): int(v) for k, v in self.bus_dropped.items()},
             "wall_seconds": float(self.wall_seconds),
@@ -181,6 +186,11 @@ class Recording:
                 str(i): {str(k): int(v) for k, v in c.items()} for i, c in self.vision_rejections.items()
             },
         }
+        if self.video_counts:
+            out["video_counts"] = {
+                str(i): {str(k): int(v) for k, v in c.items()} for i, c in self.video_counts.items()
+            }
+        return out
 
     @staticmethod
     def meta_problem(meta: Mapping[str, Any]) -> str | None:
@@ -207,6 +217,9 @@ class Recording:
             return "bus_dropped: not a map of counts"
         if not isinstance(rejections, dict) or not all(counts(c) for c in rejections.values()):
             return "vision_rejections: not a map of counts per drone"
+        video = meta.get("video_counts", {})
+        if not isinstance(video, dict) or not all(counts(c) for c in video.values()):
+            return "video_counts: not a map of counts per drone"
         return None
 
     def apply_meta(self, meta: Mapping[str, Any]) -> None:

@@ -28,6 +28,7 @@ from typing import Any, Protocol
 
 from flightstack.comms.bus import OperatorChannel
 from flightstack.events import Event, RunKind, end_kind
+from flightstack.hal import StreamCounting
 from flightstack.paper.geometry import compose
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.divergence import DivergedError, check_rows
@@ -102,6 +103,7 @@ def run_mode(
     mode, dt, n_ticks = f.mode, f.loop.dt_s, f.loop.n_ticks
     rec = Recording.empty(mode, f.ids, n_ticks)
     book = TickBook.of(mode, f.ids)
+    book.video_at_start = stream_counts(f)
     observers = TapSet(taps)
     observers.start(f, rec)
     wall0 = time.perf_counter()
@@ -293,7 +295,18 @@ def finish_recording(f: Fleet, rec: Recording, book: TickBook, wall_seconds: flo
     rec.bus_dropped = dict(f.bus.dropped)
     rec.events.extend(p.record(mode) for p in f.bus.presence_events)  # detail of a second session: the report
     rec.vision_rejections = book.vision_rejections()
+    rec.video_counts = {
+        i: {k: v - book.video_at_start.get(i, {}).get(k, 0) for k, v in c.items()}
+        for i, c in stream_counts(f).items()
+    }
     rec.fill_true_errors(f.g_d)
+
+
+def stream_counts(f: Fleet) -> dict[str, dict[str, int]]:
+    """Per drone whose camera counts its stream (hal.StreamCounting), its counts so far (an agent's
+    backend lives for the whole flight: a mode's counts are the difference from its start)."""
+    cams = {str(i): f.backend.camera(i) for i in f.ids}
+    return {i: c.stream_counts() for i, c in cams.items() if isinstance(c, StreamCounting)}
 
 
 def _land_everything(f: Fleet, reason: str, dt: float) -> None:

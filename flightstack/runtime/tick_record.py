@@ -39,11 +39,13 @@ def _tick_value(last: TickRecord, attr: str) -> object:
 
 @dataclass
 class TickBook:
-    """Per-drone facts kept across ticks: vision rejection counts and the neighbours last used."""
+    """Per-drone facts kept across ticks: vision rejection counts, the neighbours last used, and the
+    camera streams' counts when the mode began (runner.stream_counts)."""
 
     mode: str
     rejections: dict[int, Counter[str]] = field(default_factory=dict)
     neighbours_used: dict[int, set[int]] = field(default_factory=dict)
+    video_at_start: dict[str, dict[str, int]] = field(default_factory=dict)
 
     @classmethod
     def of(cls, mode: str, ids: list[int]) -> TickBook:
