@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .device_links import DeviceLinks
 from .radio import DeviceRadio
 from .tello_faults import ReplyScheduler, TelloFaults
 from .tello_frames import FrameSource, default_frame_source
@@ -67,6 +68,7 @@ class TelloEmulatorBase:
         pre_sdk_reply: str | None = None,
         reply_port_latch: bool = False,
         radio: DeviceRadio | None = None,
+        links: DeviceLinks | None = None,
     ) -> None:
         """Configure the emulator; nothing is bound or started before :meth:`start`.
 
@@ -91,6 +93,9 @@ class TelloEmulatorBase:
             reply_port_latch: Tello EDU: every reply goes to the sender of the first ``command``.
             radio: the drone's impaired radio (``radio.DeviceRadio`` with links ``command`` (in),
                 ``reply``, ``state`` and ``video`` (out)); None: a perfect link.
+            links: the rig's links of this drone (``device_links.DeviceLinks``: ``rc`` acted on late,
+                ``state`` and ``video`` leaving late, before the radio); None: none. ``state_hz`` and
+                ``fps`` are the caller's (the links' rates).
         """
         require_loopback(ip, "ip")
         require_loopback(client_ip, "client_ip")
@@ -119,6 +124,7 @@ class TelloEmulatorBase:
         self._first_client: tuple[str, int] | None = None  # sender of the first ``command``
         self.faults = faults if faults is not None else TelloFaults()
         self.radio = radio
+        self.links = links
 
         self._lock = threading.RLock()
         self.commands: list[tuple[float, str]] = []
@@ -144,8 +150,8 @@ class TelloEmulatorBase:
         """Replies lost because the downlink was down or the drone off (``faults.downlink_down``,
         ``faults.powered_off``), as ``replies_sent``."""
         self.uplink_lost: list[tuple[float, str, str]] = []
-        """``(time.monotonic(), text, "uplink_down" | "powered_off")`` of every datagram that never reached
-        the drone (not in ``commands``)."""
+        """``(time.monotonic(), text, "uplink_down" | "powered_off" | "link")`` of every datagram that never
+        reached the drone (not in ``commands``; ``link``: lost by the rig's rc link)."""
         self.state_packets_lost = 0
         self.power_log: list[tuple[float, str]] = []
         """``(time.monotonic(), "off" | "boot")`` of every power loss and boot (``faults.powered_off``)."""
