@@ -127,8 +127,9 @@ def _stream_state(emu: TelloEmulator, stop: threading.Event) -> None:
 
 def test_live_camera_frames_arrive_as_late_as_the_video_link_says(safety_bound: Bound) -> None:
     """The `tello` video link (300 ms + U(0, 100 ms), 30 fps, 2 % lost) on a live camera: every frame the
-    receiver decodes is 300-400 ms (+ decode) older than its true capture time; the driver's stamp
-    (decode − 300 ms) is late by the jitter's part; the link's counters come back from the child."""
+    receiver decodes is 300-400 ms (+ render, encode and decode) older than its true capture time; the
+    driver's stamp (decode − latency_s − jitter_s/2) is checked against it (printed); the link's counters
+    come back from the child."""
     link = LinkSpec(latency_s=0.3, jitter_s=0.1, rate_hz=30.0, loss=0.02)
     target = SharedTarget()
     target.write(0.1, 0.0, 0.0)
@@ -163,7 +164,7 @@ def test_live_camera_frames_arrive_as_late_as_the_video_link_says(safety_bound: 
         cam.close()
     ages = np.array([t - records[i] for i, t in seen.items() if i in records])
     assert ages.size > 60, (ages.size, len(seen), len(records))
-    error = ages - link.latency_s  # the driver's stamp (decode − latency_s) minus the true capture time
+    error = ages - link.latency_s  # a stamp of decode − latency_s minus the true capture time
     print(
         f"frame age from capture p50/p99 {1e3 * np.median(ages):.0f}/{1e3 * np.percentile(ages, 99):.0f} ms "
         f"(min {1e3 * ages.min():.0f}); stamp error with latency_s: mean {1e3 * error.mean():.1f} ms, sd "
@@ -171,7 +172,7 @@ def test_live_camera_frames_arrive_as_late_as_the_video_link_says(safety_bound: 
         f"{1e3 * (error.mean() - 0.05):.1f} ms; link {counts}"
     )
     assert ages.min() >= 0.3, ages.min()
-    safety_bound("frame age from capture, p99 (video link 300-400 ms)", 1e3 * np.percentile(ages, 99), 500.0)
+    safety_bound("frame age from capture, p99 (video link 300-400 ms)", 1e3 * np.percentile(ages, 99), 600.0)
     assert counts["samples"] == counts["delivered"] + counts["lost"] and counts["samples"] > 100
     assert 300.0 <= counts["delay_mean_ms"] <= 400.0
 
