@@ -7,7 +7,9 @@
   capture times (the emulator's records), and the driver's stamp (decode time minus a latency) is checked
   against those;
 - a radio blackout silences the live camera's video (from its child process) together with the state
-  of the same drone (from the parent), and the child's counters come back to the parent.
+  of the same drone (from the parent), and the child's counters come back to the parent;
+- the rover acts on MAVLink setpoints late by its robot link; motion-capture frames leave late by the
+  mocap link, in order.
 
 Loopback only: the emulators own 127.0.0.61 and 127.0.0.62 with free ports.
 """
@@ -233,3 +235,64 @@ def test_a_blackout_silences_live_video_with_the_drones_state(safety_bound: Boun
         safety_bound(f"{name} back after a 0.8 s blackout", 1e3 * (min(t for t in times if t > b) - b), 300.0)
     assert child["blackout"] > 0 and child["delivered"] > 0, child
     assert video_counts["state"]["blackout"] > 0 and video_counts["video"]["packets"] == 0
+
+
+def test_the_rover_acts_on_mavlink_commands_late_by_its_robot_link() -> None:
+    """robot link 100 ms + U(0, 20 ms): every setpoint the rover recorded came 100-120 ms (+ its 20 ms
+    receive poll and scheduling) after the ground station sent it."""
+    from pymavlink import mavutil
+
+    from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
+
+    links = DeviceLinks({"robot": LinkSpec(latency_s=0.1, jitter_s=0.02)}, 0, 0, "rover")
+    rover = MavlinkRoverEmulator(heartbeat_hz=5.0, links=links)
+    gcs = mavutil.mavlink_connection(rover.url, source_system=255, source_component=190)
+    sent: dict[int, float] = {}
+    try:
+        for k in range(1, 31):
+            sent[k] = time.monotonic()
+            frame = mavutil.mavlink.MAV_FRAME_BODY_NED
+            gcs.mav.set_position_target_local_ned_send(
+                0, 1, 1, frame, 0, 0, 0, 0, k / 100, 0, 0, 0, 0, 0, 0, 0
+            )
+            time.sleep(0.02)
+        assert wait_until(lambda: len(rover.setpoint_records()) >= 30, 3.0)
+        acted = {round(100 * r.vx): r.t for r in rover.setpoint_records()}
+    finally:
+        gcs.close()
+        rover.close()
+    late = np.array([acted[k] - sent[k] for k in sent])
+    print(f"rover setpoints acted on {1e3 * late.min():.1f}-{1e3 * late.max():.1f} ms late")
+    assert late.min() >= 0.1 and late.max() <= 0.12 + 0.04, late
+
+
+def test_motion_capture_frames_leave_late_by_the_mocap_link() -> None:
+    """mocap link 100 ms + U(0, 10 ms) at 100 Hz: every frame reaches the client's data port about 100 ms
+    after the time it carries (its timestamp counts from the emulator's start, which ends just before
+    `t_started`: the delays measured against it are at most the true ones, by the frame thread's start,
+    20 ms allowed), in order, and the spread of those delays is the jitter's (+ 15 ms)."""
+    from flightstack.sim_backend.emulators.natnet import NatNetEmulator
+
+    links = DeviceLinks({"mocap": LinkSpec(latency_s=0.1, jitter_s=0.01)}, 0, 0, "natnet")
+    natnet = NatNetEmulator({"body": ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))}, links=links)
+    got: list[tuple[int, float, float]] = []  # (frame, its timestamp s, arrival)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+        natnet.data_port = free_udp_port()
+        rx.bind(("127.0.0.1", natnet.data_port))
+        rx.settimeout(0.2)
+        try:
+            natnet.start()
+            t_started = time.monotonic()
+            t_end = t_started + 1.5
+            while time.monotonic() < t_end:
+                with contextlib.suppress(TimeoutError):
+                    data = rx.recvfrom(4096)[0]
+                    frame = int.from_bytes(data[4:8], "little", signed=True)
+                    got.append((frame, float(np.frombuffer(data[-38:-30], "<f8")[0]), time.monotonic()))
+        finally:
+            natnet.close()
+    frames = [f for f, _, _ in got]
+    assert len(frames) > 100 and frames == sorted(frames)
+    late = np.array([t - ts - t_started for _, ts, t in got])
+    print(f"mocap frames {1e3 * late.min():.1f}-{1e3 * late.max():.1f} ms after their timestamp")
+    assert late.min() >= 0.1 - 0.02 and late.max() - late.min() <= 0.01 + 0.015, (late.min(), late.max())
