@@ -65,6 +65,12 @@ VIDEO_FPS = 15.0
 """Rate of the fixed marker view (frames/s)."""
 LIVE_VIDEO_FPS = 30.0
 """Rate of the cameras that render the flight (frames/s): the Tello's; each at its calibration's size."""
+TAKEOFF_S = 0.3
+"""The emulated Tellos' takeoff (s): a fast climb (a real one takes about 3.9 s, Tello-Python #88)."""
+TAKEOFF_HOVER_S = 1.0
+"""With a late state link, each emulated Tello hovers this long at height before its takeoff `ok` (s),
+as a real one does for seconds: the driver trusts an `ok` only when telemetry shows the drone at height,
+and a fast climb's `ok` would otherwise arrive before the late state that shows it."""
 MOCAP_RATE_HZ = 100.0
 """The emulated motion capture's frame rate when the mocap link names none (Hz)."""
 TARGET_PERIOD_S = 0.01
@@ -376,9 +382,12 @@ class EmulatedLab:
             kw["radio"] = self.radios[name]
         if name in self.links:
             kw["links"] = self.links[name]
-        rate = self.link_spec("state").rate_hz
-        if rate is not None:
-            kw["state_hz"] = rate
+        state = self.link_spec("state")
+        if state.rate_hz is not None:
+            kw["state_hz"] = state.rate_hz
+        if not state.perfect:  # late telemetry: the takeoff's `ok` must not beat the climb's state
+            kw["takeoff_s"] = TAKEOFF_S + TAKEOFF_HOVER_S
+            kw["takeoff_hover_s"] = TAKEOFF_HOVER_S
         return kw
 
     def _video_path(self, i: int) -> Any:

@@ -28,6 +28,7 @@ def test_perfect_applies_nothing_and_a_written_link_or_another_profile_applies_a
     assert tello["video"] == TELLO_VIDEO
     assert emulated_links(LinksSpec(profile="tello", rc=LinkSpec()))["video"] == TELLO_VIDEO
     assert "rc" not in emulated_links(LinksSpec(profile="tello", rc=LinkSpec()))
+    assert emulated_links(LinksSpec(bus=LinkSpec(latency_s=0.1))) == {}  # between processes: not a device's
 
 
 def test_an_emulated_lab_on_perfect_links_builds_no_link_stage(tmp_path: Path) -> None:

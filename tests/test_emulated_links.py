@@ -296,3 +296,21 @@ def test_motion_capture_frames_leave_late_by_the_mocap_link() -> None:
     late = np.array([t - ts - t_started for _, ts, t in got])
     print(f"mocap frames {1e3 * late.min():.1f}-{1e3 * late.max():.1f} ms after their timestamp")
     assert late.min() >= 0.1 - 0.02 and late.max() - late.min() <= 0.01 + 0.015, (late.min(), late.max())
+
+
+def test_a_takeoff_with_a_hover_reaches_its_height_before_its_ok() -> None:
+    """takeoff 1.3 s of which the last 1.0 s hovering (what the emulated lab sets with a late state link):
+    the drone is at its takeoff height 0.5 s after `takeoff`, still taking off, and answers `ok` after
+    1.3 s, so telemetry late by tens of ms shows it at height before the `ok` arrives."""
+    emu = TelloEmulator(
+        IP, state_port=free_udp_port(), video_port=free_udp_port(), takeoff_s=1.3, takeoff_hover_s=1.0
+    )
+    with emu, _udp(2.0) as sock:
+        sock.sendto(b"command", emu.address)
+        assert sock.recvfrom(100)[0] == b"ok"
+        t0 = time.monotonic()
+        sock.sendto(b"takeoff", emu.address)
+        time.sleep(0.5)
+        assert emu.phase == "takeoff" and emu.position_cm[2] == pytest.approx(emu.takeoff_height_cm)
+        assert sock.recvfrom(100)[0] == b"ok"
+        assert time.monotonic() - t0 >= 1.3 and emu.phase == "flying"

@@ -47,14 +47,17 @@ from flightstack.config.links import LINKS, NONE, LinkSpec, LinksSpec
 
 from .radio import Address, DelayLine, Sender
 
+EMULATED_LINKS = ("video", "state", "rc", "mocap", "robot")
+"""The links the emulators apply (the bus is between agent processes, not a device's)."""
 LINK_COUNTERS = ("samples", "lost", "delivered")
 """The counters every stage reports, 0 included (plus delay_mean_ms of the delivered samples)."""
 
 
 def emulated_links(links: LinksSpec) -> dict[str, LinkSpec]:
-    """The links the emulated lab applies (module docstring): link name -> spec, perfect ones left out."""
+    """The links the emulated lab applies (module docstring; EMULATED_LINKS): link name -> spec, perfect
+    ones left out."""
     out = {}
-    for name in LINKS:
+    for name in EMULATED_LINKS:
         own: LinkSpec | None = getattr(links, name)
         spec = own if own is not None else (NONE if links.profile == "perfect" else links.link(name))
         if not spec.perfect:
@@ -262,4 +265,4 @@ class LinkedSocket:
             heapq.heappush(self._pending, (due, next(self._seq), data, addr))
 
 
-__all__ = ["LINK_COUNTERS", "DeviceLinks", "LinkStage", "LinkedSocket", "emulated_links"]
+__all__ = ["EMULATED_LINKS", "LINK_COUNTERS", "DeviceLinks", "LinkStage", "LinkedSocket", "emulated_links"]

@@ -69,6 +69,7 @@ class TelloEmulatorBase:
         reply_port_latch: bool = False,
         radio: DeviceRadio | None = None,
         links: DeviceLinks | None = None,
+        takeoff_hover_s: float = 0.0,
     ) -> None:
         """Configure the emulator; nothing is bound or started before :meth:`start`.
 
@@ -81,6 +82,9 @@ class TelloEmulatorBase:
             frame_source: ``f(t, emu) -> image``; defaults to :func:`default_frame_source`.
             fps: video frame rate.
             takeoff_s: duration of the takeoff (the ``ok`` comes at its end).
+            takeoff_hover_s: the last part of the takeoff spent hovering at height before the ``ok``
+                (a real Tello stabilises at height for seconds before it answers; 0: the climb lasts
+                the whole takeoff, up to ``TAKEOFF_CLIMB_S``).
             faults: fault switches (a fresh :class:`TelloFaults` when None).
             video_size: ``(width, height)`` of every frame, even numbers; one size per emulator.
             auto_land_s: land by itself after this long without any command while flying (real: 15 s).
@@ -113,6 +117,7 @@ class TelloEmulatorBase:
         self.fps = float(fps)
         self.video_size = (int(width), int(height))
         self.takeoff_s = float(takeoff_s)
+        self.takeoff_hover_s = max(0.0, float(takeoff_hover_s))
         self.land_s = float(land_s)
         self.auto_land_s = float(auto_land_s)
         self.takeoff_height_cm = float(takeoff_height_cm)
