@@ -37,13 +37,16 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from types import SimpleNamespace, TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 
 from flightstack.config.rig import MISSION_CONFIGS, emulated_tello_ip
 from flightstack.ports import free_udp_port
+
+if TYPE_CHECKING:
+    from flightstack.config.links import LinksSpec
 
 LAB_IDS = (1, 2)
 """The drones of the fault table's lab."""
@@ -200,7 +203,7 @@ class EmulatedLab:
         live_cameras: bool | None = None,
         network: str = "clean",
         seed: int = 0,
-        links: Any = None,
+        links: LinksSpec | None = None,
     ) -> None:
         from flightstack.config.links import LinksSpec
         from flightstack.netem import profile
