@@ -22,6 +22,7 @@ from __future__ import annotations
 import errno
 import heapq
 import itertools
+import math
 import select
 import socket
 import threading
@@ -54,6 +55,7 @@ class DelayLine:
         self._cond = threading.Condition()
         self._heap: list[list[Any]] = []  # [due, seq, sender, data, addr, stream]
         self._seq = itertools.count()
+        self._stream_due: dict[str, float] = {}  # per stream, the latest due time scheduled so far
         self._stop = False
         self._thread: threading.Thread | None = None
         self._name = name
@@ -67,13 +69,12 @@ class DelayLine:
             if self._stop:
                 return
             if stream is not None:
-                lowered = False
-                for item in self._heap:
-                    if item[5] == stream and item[0] > due:
-                        item[0] = due
-                        lowered = True
-                if lowered:
+                if due < self._stream_due.get(stream, -math.inf):  # (in order: nothing to lower)
+                    for item in self._heap:
+                        if item[5] == stream and item[0] > due:
+                            item[0] = due
                     heapq.heapify(self._heap)
+                self._stream_due[stream] = due
             heapq.heappush(self._heap, [due, next(self._seq), sock, data, addr, stream])
             if self._thread is None:
                 self._thread = threading.Thread(target=self._run, name=f"radio-{self._name}", daemon=True)
