@@ -177,8 +177,10 @@ class HardwareBackend:
             if self.guardian is not None:
                 drv.set_muted(self.guardian.taken_over)
             drv.connect()
-            # a frame is stamped when it was taken: decoded minus the video link's latency (config.links)
-            video_latency_s = self.mission.links.link("video").latency_s
+            # a frame is stamped when it was taken: decoded minus the video link's mean delay, latency_s +
+            # jitter_s / 2 (config.links; measured on the emulated lab: docs/links.md)
+            video = self.mission.links.link("video")
+            video_latency_s = video.latency_s + video.jitter_s / 2
             cam = TelloCamera(drv, self.mission.hardware.drone(d.id).frame_timeout_s, video_latency_s)
             self.cameras[d.id] = cam
             cam.start()

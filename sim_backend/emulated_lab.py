@@ -37,13 +37,16 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from types import SimpleNamespace, TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 
 from flightstack.config.rig import MISSION_CONFIGS, emulated_tello_ip
 from flightstack.ports import free_udp_port
+
+if TYPE_CHECKING:
+    from flightstack.config.links import LinksSpec
 
 LAB_IDS = (1, 2)
 """The drones of the fault table's lab."""
@@ -65,11 +68,19 @@ VIDEO_FPS = 15.0
 """Rate of the fixed marker view (frames/s)."""
 LIVE_VIDEO_FPS = 30.0
 """Rate of the cameras that render the flight (frames/s): the Tello's; each at its calibration's size."""
+TAKEOFF_S = 0.3
+"""The emulated Tellos' takeoff (s): a fast climb (a real one takes about 3.9 s, Tello-Python #88)."""
+TAKEOFF_HOVER_S = 1.0
+"""With a late state link, each emulated Tello hovers this long at height before its takeoff `ok` (s),
+as a real one does for seconds: the driver trusts an `ok` only when telemetry shows the drone at height,
+and a fast climb's `ok` would otherwise arrive before the late state that shows it."""
+MOCAP_RATE_HZ = 100.0
+"""The emulated motion capture's frame rate when the mocap link names none (Hz)."""
 TARGET_PERIOD_S = 0.01
 """How often the lab publishes the rover's pose to the camera processes (s)."""
 NETWORK_LOG = "network_log.json"
 """The emulated lab's log (EmulatedLab.log, with every link's counters) written into the lab's directory
-after a flight on an impaired network."""
+after a flight on an impaired network or with late links."""
 TRUTH_PERIOD_S = 0.05
 """How often the lab samples each drone's true position for the fence judgement (s)."""
 
@@ -143,12 +154,17 @@ def running_lab(mission: Any, lab_dir: Path) -> Iterator[Any]:
         above = initial_drone_pose(mission, k)
         starts[d.id] = ((float(above.p[0]), float(above.p[1]), DRONE_STARTS[1][0][2]), float(above.theta))
     with EmulatedLab(
-        lab_dir, experiment=doc, network=mission.network, seed=mission.seed, starts=starts
+        lab_dir,
+        experiment=doc,
+        network=mission.network,
+        seed=mission.seed,
+        links=mission.links,
+        starts=starts,
     ) as running:
         try:
             yield running.mission()
         finally:
-            if running.radios:  # what the impaired network did, per device and link
+            if running.radios or running.links:  # what the links and the network did, per device
                 running.write_log(Path(lab_dir) / NETWORK_LOG)
 
 
@@ -177,7 +193,15 @@ class EmulatedLab:
     mission's `network:`, `--network`), seeded by `seed` (the mission's seed) per device and link; its
     blackout windows count from the lab's start. "clean": the emulators' sockets are not wrapped at all.
     What each link did: `network_counts()`, also in `log()`. The live cameras' video leaves from their
-    child processes and is not impaired yet (commands, state, motion capture and the rover are).
+    child processes through the same video link model, seeded alike, with the drone's blackout windows and
+    epoch (tello_video_process.VideoPath); its counters are the drone's "video" link.
+
+    links: the rig's `links:` (flightstack.config.links.LinksSpec; the mission's, `--links`), applied in
+    the emulators where the data is produced, before the radio (emulators/device_links.py; which links and
+    how: `emulated_links`): each drone's `video` (frames leave late, taken at its rate: the cameras' fps),
+    `state` (at its rate, each datagram late), `rc` (every command acted on late), `mocap` (frames late,
+    at its rate) and `robot` (MAVLink commands acted on late); seeded by `seed` per device and link as the
+    simulated lab seeds them. Profile `perfect` changes nothing here. What each link did: `link_counts()`.
     """
 
     def __init__(
@@ -191,12 +215,19 @@ class EmulatedLab:
         live_cameras: bool | None = None,
         network: str = "clean",
         seed: int = 0,
+        links: LinksSpec | None = None,
         starts: dict[int, tuple[tuple[float, float, float], float]] | None = None,
     ) -> None:
+        from flightstack.config.links import LinksSpec
         from flightstack.netem import profile
+        from flightstack.sim_backend.emulators.device_links import emulated_links
 
         self.network = profile(network)
         self.seed = int(seed)
+        self.link_specs = emulated_links(links if links is not None else LinksSpec())
+        """Link name -> the spec the emulators apply (perfect links left out)."""
+        self.links: dict[str, Any] = {}
+        """Device name ("tello<i>", "natnet", "rover") -> its DeviceLinks (none when no link applies)."""
         self.radios: dict[str, Any] = {}
         """Device name ("tello<i>", "natnet", "rover") -> its DeviceRadio (none on a clean network)."""
         self.workdir = Path(workdir).resolve()  # the mission written there names its files absolutely
@@ -246,21 +277,28 @@ class EmulatedLab:
         self.workdir.mkdir(parents=True, exist_ok=True)
         state_port = free_udp_port()
         self._make_radios()
+        self._make_links()
+        video = self.link_spec("video")
         if self.live_cameras:
             self._target = emu.SharedTarget()
+            fps = video.rate_hz or LIVE_VIDEO_FPS
             for i, ip in self.ips.items():
                 port = free_udp_port()
                 cam = emu.VideoProcess(
-                    self.camera_spec(i), ip, ("127.0.0.1", port), self._target, fps=LIVE_VIDEO_FPS
+                    self.camera_spec(i),
+                    ip,
+                    ("127.0.0.1", port),
+                    self._target,
+                    fps=fps,
+                    path=self._video_path(i),
                 )
                 kw: dict[str, Any] = {
                     "state_port": state_port,
                     "video_port": port,
                     "video_size": cam.size,
-                    "fps": LIVE_VIDEO_FPS,
+                    "fps": fps,
+                    **self._tello_links(i),
                 }
-                if f"tello{i}" in self.radios:
-                    kw["radio"] = self.radios[f"tello{i}"]
                 kw.update(self._tello_kw.get(i, {}))
                 self.tellos[i] = emu.TelloEmulator(ip, **kw)
                 self.tellos[i].use_remote_video(cam)
@@ -275,10 +313,9 @@ class EmulatedLab:
                     "video_port": free_udp_port(),
                     "frame_source": lambda t, e, img=frame: img,
                     "video_size": VIDEO_SIZE,
-                    "fps": VIDEO_FPS,
+                    "fps": video.rate_hz or VIDEO_FPS,
+                    **self._tello_links(i),
                 }
-                if f"tello{i}" in self.radios:
-                    kw["radio"] = self.radios[f"tello{i}"]
                 kw.update(self._tello_kw.get(i, {}))
                 self.tellos[i] = emu.TelloEmulator(ip, **kw)
         bodies = {self.body(i): i for i in self.ips}
@@ -290,10 +327,13 @@ class EmulatedLab:
                 },
                 "scamper": ((*ROVER_START, 0.0), LEVEL),
             },
-            rate_hz=100.0,
+            rate_hz=self.link_spec("mocap").rate_hz or MOCAP_RATE_HZ,
             radio=self.radios.get("natnet"),
+            links=self.links.get("natnet"),
         )
-        self.rover = emu.MavlinkRoverEmulator(heartbeat_hz=5.0, radio=self.radios.get("rover"))
+        self.rover = emu.MavlinkRoverEmulator(
+            heartbeat_hz=5.0, radio=self.radios.get("rover"), links=self.links.get("rover")
+        )
         self.natnet.set_pose_provider("scamper", self._rover_pose)
         for name, i in bodies.items():
             self.natnet.set_pose_provider(name, lambda i=i: self._drone_pose(i))
@@ -330,9 +370,75 @@ class EmulatedLab:
             self.network, self.seed, "rover", {"uplink": "rover", "downlink": "rover"}, epoch
         )
 
+    def link_spec(self, name: str) -> Any:
+        """The spec of link `name` the emulators apply (config.links.NONE when none)."""
+        from flightstack.config.links import NONE
+
+        return self.link_specs.get(name, NONE)
+
+    def _make_links(self) -> None:
+        """One DeviceLinks per device some link applies to, on its radio's delay line when it has one."""
+        from flightstack.sim_backend.emulators.device_links import DeviceLinks
+
+        def make(name: str, device: int, kinds: tuple[str, ...]) -> None:
+            specs = {k: v for k, v in self.link_specs.items() if k in kinds}
+            if specs:
+                radio = self.radios.get(name)
+                line = None if radio is None else radio.delay_line
+                self.links[name] = DeviceLinks(specs, self.seed, device, name, line)
+
+        for i in self.ips:
+            make(f"tello{i}", i, ("rc", "state", "video"))
+        make("natnet", 0, ("mocap",))
+        make("rover", 0, ("robot",))
+
+    def _tello_links(self, i: int) -> dict[str, Any]:
+        """TelloEmulator keyword arguments of drone i's radio, links and state rate."""
+        kw: dict[str, Any] = {}
+        name = f"tello{i}"
+        if name in self.radios:
+            kw["radio"] = self.radios[name]
+        if name in self.links:
+            kw["links"] = self.links[name]
+        state = self.link_spec("state")
+        if state.rate_hz is not None:
+            kw["state_hz"] = state.rate_hz
+        if not state.perfect:  # late telemetry: the takeoff's `ok` must not beat the climb's state
+            kw["takeoff_s"] = TAKEOFF_S + TAKEOFF_HOVER_S
+            kw["takeoff_hover_s"] = TAKEOFF_HOVER_S
+        return kw
+
+    def _video_path(self, i: int) -> Any:
+        """How drone i's live camera frames leave it: the video link, then its radio (VideoPath)."""
+        from flightstack.sim_backend.emulators.tello_video_process import VideoPath
+
+        video = self.link_specs.get("video")
+        radio = self.radios.get(f"tello{i}")
+        return VideoPath(
+            seed=self.seed,
+            drone=i,
+            link=None if video is None else video.model_dump(),
+            network=None if radio is None else self.network,
+            epoch=0.0 if radio is None else radio.epoch,
+        )
+
     def network_counts(self) -> dict[str, dict[str, dict[str, float]]]:
-        """Per device and link, what its radio did (DeviceRadio.counts); empty on a clean network."""
-        return {name: r.counts() for name, r in self.radios.items()}
+        """Per device and link, what its radio did (DeviceRadio.counts); empty on a clean network. A live
+        camera's "video" row is its child process's (the parent's own video link is then unused)."""
+        out = {name: r.counts() for name, r in self.radios.items()}
+        for i, cam in self.cameras.items():
+            if f"tello{i}" in out:
+                out[f"tello{i}"]["video"] = cam.network_counts()
+        return out
+
+    def link_counts(self) -> dict[str, dict[str, dict[str, float]]]:
+        """Per device and applied link, what the rig's link did (device_links.LinkStage.row); a live
+        camera's "video" row is its child process's."""
+        out = {name: links.counts() for name, links in self.links.items()}
+        if "video" in self.link_specs:
+            for i, cam in self.cameras.items():
+                out.setdefault(f"tello{i}", {})["video"] = cam.link_counts()
+        return out
 
     def body(self, i: int) -> str:
         """Drone i's rigid-body name in the emulated motion capture."""
@@ -394,6 +500,8 @@ class EmulatedLab:
             self.rover.close()
         for r in self.radios.values():  # (idempotent; a device that never started does not own its radio)
             r.close()
+        for links in self.links.values():
+            links.close()
 
     # ---- the live cameras' target ----------------------------------------------------------------------
     def _publish_target(self) -> None:
@@ -510,6 +618,9 @@ class EmulatedLab:
             return round(t - t0, 4)
 
         out: dict[str, Any] = {"t0_monotonic": t0, "network": self.network.name}
+        if self.link_specs:
+            out["links"] = {k: v.model_dump() for k, v in self.link_specs.items()}
+            out["link_counts"] = self.link_counts()
         if self.radios:
             out["network_counts"] = self.network_counts()
             out["blackouts"] = {

@@ -84,6 +84,7 @@ DEVICE_MODULES = frozenset(
         "test_closed_loop_square",
         "test_driver_threads",
         "test_emulated_lab",
+        "test_emulated_links",
         "test_guard",
         "test_guardian",
         "test_hardware_mission",

@@ -387,8 +387,8 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
         "--links",
         choices=sorted(PROFILES),
         default=None,
-        help="replace the rig's links with a profile: how late and lossy video, rc and motion capture "
-        "are (docs/links.md; applied by the simulated lab)",
+        help="replace the rig's links with a profile: how late and lossy video, state, rc, motion capture "
+        "and the robot are (docs/links.md; applied by the simulated and the emulated lab)",
     )
     p.add_argument(
         "--mcap",

@@ -43,6 +43,7 @@ from pymavlink import mavutil
 
 from flightstack.paper.geometry import Pose, wrap_angle
 
+from .device_links import DeviceLinks
 from .radio import DeviceRadio
 
 mavlink = mavutil.mavlink
@@ -220,9 +221,12 @@ class MavlinkRoverEmulator:
         setpoint_timeout_s: float = 3.0,
         params: RoverParams | None = None,
         radio: DeviceRadio | None = None,
+        links: DeviceLinks | None = None,
     ) -> None:
         """radio: the robot's network (`radio.DeviceRadio` with links "uplink" (from the ground station)
-        and "downlink"); None: a perfect link."""
+        and "downlink"); None: a perfect link. links: the rig's links of the robot
+        (`device_links.DeviceLinks`: every MAVLink message from the ground station is acted on late by
+        the "robot" link, or lost, after the radio); None: none."""
         self.faults = RoverFaults()
         self.radio = radio
         self.params = params or RoverParams()
@@ -243,6 +247,9 @@ class MavlinkRoverEmulator:
         self.port: int = self._conn.port.getsockname()[1]
         if radio is not None:  # pymavlink reads and writes through `port` (non-blocking, select on fd)
             self._conn.port = radio.socket(self._conn.port, lambda _a: "downlink", "uplink")
+        self.links = links
+        if links is not None:
+            self._conn.port = links.socket(self._conn.port, recv="robot")
         self.url = f"udpout:127.0.0.1:{self.port}"  # what a client should connect to
         self._thread = threading.Thread(target=self._run, name="mavlink-rover-emu", daemon=True)
         self._thread.start()
@@ -345,6 +352,8 @@ class MavlinkRoverEmulator:
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(timeout=1.0)
+        if self.links is not None:
+            self.links.close()
         if self.radio is not None:
             self.radio.close()
         with contextlib.suppress(OSError):

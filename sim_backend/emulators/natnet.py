@@ -57,6 +57,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from .device_links import DeviceLinks
     from .radio import DeviceRadio
 
 NAT_CONNECT = 0
@@ -149,6 +150,9 @@ class NatNetEmulator:
     radio:        the frames' network (`radio.DeviceRadio` with a link "frames"; None: perfect). The
                   connect handshake (the child process) is not impaired: `motioncapture.connect` waits
                   for its replies without a timeout, holding the GIL, so a lost reply would hang it.
+    links:        the rig's links of the motion capture (`device_links.DeviceLinks`: each frame leaves
+                  late by the "mocap" link, or is lost, before the radio); None: none. The frame's
+                  timestamp stays the time it was taken.
     """
 
     def __init__(
@@ -160,6 +164,7 @@ class NatNetEmulator:
         data_port: int = 0,
         faults: NatNetFaults | None = None,
         radio: DeviceRadio | None = None,
+        links: DeviceLinks | None = None,
     ) -> None:
         if not ipaddress.ip_address(host).is_loopback:
             raise ValueError(f"NatNetEmulator only serves loopback addresses, got {host!r}")
@@ -171,6 +176,7 @@ class NatNetEmulator:
         self.data_port = data_port
         self.faults = faults or NatNetFaults()
         self.radio = radio
+        self.links = links
         self.frames_sent = 0  # NAT_FRAMEOFDATA packets sent so far
         self.provider_errors: list[str] = []  # "name: exception" of pose providers that raised
         self._bodies: dict[str, _Body] = {}
@@ -250,6 +256,8 @@ class NatNetEmulator:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.bind((self.host, 0))
         self._sock = sock if self.radio is None else self.radio.socket(sock, lambda _a: "frames", None)  # type: ignore[assignment]
+        if self.links is not None and self.links.applies("mocap"):
+            self._sock = self.links.socket(self._sock, send=lambda _a: "mocap")
         self._t0 = time.monotonic()
         self._thread = threading.Thread(target=self._run, name="natnet-emu", daemon=True)
         self._thread.start()
@@ -260,6 +268,8 @@ class NatNetEmulator:
         self._stop.set()
         if self._thread is not None and self._thread.is_alive():
             self._thread.join(timeout=1.0)
+        if self.links is not None:
+            self.links.close()
         if self.radio is not None:
             self.radio.close()
         if self._sock is not None:

@@ -22,12 +22,13 @@ from __future__ import annotations
 import errno
 import heapq
 import itertools
+import math
 import select
 import socket
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 from flightstack.netem import LinkModel, NetworkProfile, blackout_windows
 
@@ -36,24 +37,45 @@ COUNTERS = ("packets", "delivered", "lost", "blackout", "queue", "duplicated", "
 """The counters every link reports (LinkModel.counts), 0 included."""
 
 
+class Sender(Protocol):
+    """Anything a datagram can leave by: a socket, or a wrapper that impairs it further on."""
+
+    def sendto(self, data: bytes, addr: Address, /) -> int: ...
+
+
 class DelayLine:
-    """Sends queued datagrams at their due times from one daemon thread (started on first use)."""
+    """Sends queued datagrams at their due times from one daemon thread (started on first use).
+
+    A datagram scheduled with a `stream` name is never sent after a newer one of the same stream: when
+    it is due after a datagram scheduled later, it leaves just before that one (a stream's newer sample
+    pushes the older ones out ahead of it, so a receiver sees the newest sample as soon as it is due
+    and the stream stays in order)."""
 
     def __init__(self, name: str) -> None:
         self._cond = threading.Condition()
-        self._heap: list[tuple[float, int, socket.socket, bytes, Address]] = []
+        self._heap: list[list[Any]] = []  # [due, seq, sender, data, addr, stream]
         self._seq = itertools.count()
+        self._stream_due: dict[str, float] = {}  # per stream, the latest due time scheduled so far
         self._stop = False
         self._thread: threading.Thread | None = None
         self._name = name
         self.send_errors = 0
 
-    def schedule(self, due: float, sock: socket.socket, data: bytes, addr: Address) -> None:
-        """Send `data` from `sock` to `addr` at `due` (time.monotonic() s)."""
+    def schedule(
+        self, due: float, sock: Sender, data: bytes, addr: Address, stream: str | None = None
+    ) -> None:
+        """Send `data` from `sock` to `addr` at `due` (time.monotonic() s); `stream`: see the class."""
         with self._cond:
             if self._stop:
                 return
-            heapq.heappush(self._heap, (due, next(self._seq), sock, data, addr))
+            if stream is not None:
+                if due < self._stream_due.get(stream, -math.inf):  # (in order: nothing to lower)
+                    for item in self._heap:
+                        if item[5] == stream and item[0] > due:
+                            item[0] = due
+                    heapq.heapify(self._heap)
+                self._stream_due[stream] = due
+            heapq.heappush(self._heap, [due, next(self._seq), sock, data, addr, stream])
             if self._thread is None:
                 self._thread = threading.Thread(target=self._run, name=f"radio-{self._name}", daemon=True)
                 self._thread.start()
@@ -80,7 +102,7 @@ class DelayLine:
                 if wait > 0:
                     self._cond.wait(min(wait, 0.1))
                     continue
-                _, _, sock, data, addr = heapq.heappop(self._heap)
+                _, _, sock, data, addr, _ = heapq.heappop(self._heap)
             try:
                 sock.sendto(data, addr)
             except OSError:  # nobody listening yet, or the socket closed at shutdown
@@ -195,6 +217,14 @@ class ImpairedSocket:
         return len(data)
 
     # ---- entering the device ---------------------------------------------------------------------------
+    def next_due(self) -> float | None:
+        """When the earliest datagram held for the device is due (time.monotonic() s; None: none held).
+        Read without the receive lock (a receive may be waiting with it): a snapshot."""
+        try:
+            return float(self._pending[0][0])
+        except IndexError:
+            return None
+
     def recvfrom(self, bufsize: int) -> tuple[bytes, Any]:
         """The earliest due datagram that passed the uplink (the caller's timeout semantics)."""
         if self._recv_link is None:
@@ -229,4 +259,4 @@ class ImpairedSocket:
                 heapq.heappush(self._pending, (due, next(self._seq), data, addr))
 
 
-__all__ = ["DelayLine", "DeviceRadio", "ImpairedSocket"]
+__all__ = ["DelayLine", "DeviceRadio", "ImpairedSocket", "Sender"]

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .device_links import DeviceLinks
 from .radio import DeviceRadio
 from .tello_faults import ReplyScheduler, TelloFaults
 from .tello_frames import FrameSource, default_frame_source
@@ -67,6 +68,8 @@ class TelloEmulatorBase:
         pre_sdk_reply: str | None = None,
         reply_port_latch: bool = False,
         radio: DeviceRadio | None = None,
+        links: DeviceLinks | None = None,
+        takeoff_hover_s: float = 0.0,
     ) -> None:
         """Configure the emulator; nothing is bound or started before :meth:`start`.
 
@@ -79,6 +82,9 @@ class TelloEmulatorBase:
             frame_source: ``f(t, emu) -> image``; defaults to :func:`default_frame_source`.
             fps: video frame rate.
             takeoff_s: duration of the takeoff (the ``ok`` comes at its end).
+            takeoff_hover_s: the last part of the takeoff spent hovering at height before the ``ok``
+                (a real Tello stabilises at height for seconds before it answers; 0: the climb lasts
+                the whole takeoff, up to ``TAKEOFF_CLIMB_S``).
             faults: fault switches (a fresh :class:`TelloFaults` when None).
             video_size: ``(width, height)`` of every frame, even numbers; one size per emulator.
             auto_land_s: land by itself after this long without any command while flying (real: 15 s).
@@ -91,6 +97,9 @@ class TelloEmulatorBase:
             reply_port_latch: Tello EDU: every reply goes to the sender of the first ``command``.
             radio: the drone's impaired radio (``radio.DeviceRadio`` with links ``command`` (in),
                 ``reply``, ``state`` and ``video`` (out)); None: a perfect link.
+            links: the rig's links of this drone (``device_links.DeviceLinks``: ``rc`` acted on late,
+                ``state`` and ``video`` leaving late, before the radio); None: none. ``state_hz`` and
+                ``fps`` are the caller's (the links' rates).
         """
         require_loopback(ip, "ip")
         require_loopback(client_ip, "client_ip")
@@ -108,6 +117,7 @@ class TelloEmulatorBase:
         self.fps = float(fps)
         self.video_size = (int(width), int(height))
         self.takeoff_s = float(takeoff_s)
+        self.takeoff_hover_s = max(0.0, float(takeoff_hover_s))
         self.land_s = float(land_s)
         self.auto_land_s = float(auto_land_s)
         self.takeoff_height_cm = float(takeoff_height_cm)
@@ -119,6 +129,7 @@ class TelloEmulatorBase:
         self._first_client: tuple[str, int] | None = None  # sender of the first ``command``
         self.faults = faults if faults is not None else TelloFaults()
         self.radio = radio
+        self.links = links
 
         self._lock = threading.RLock()
         self.commands: list[tuple[float, str]] = []
@@ -144,8 +155,8 @@ class TelloEmulatorBase:
         """Replies lost because the downlink was down or the drone off (``faults.downlink_down``,
         ``faults.powered_off``), as ``replies_sent``."""
         self.uplink_lost: list[tuple[float, str, str]] = []
-        """``(time.monotonic(), text, "uplink_down" | "powered_off")`` of every datagram that never reached
-        the drone (not in ``commands``)."""
+        """``(time.monotonic(), text, "uplink_down" | "powered_off" | "link")`` of every datagram that never
+        reached the drone (not in ``commands``; ``link``: lost by the rig's rc link)."""
         self.state_packets_lost = 0
         self.power_log: list[tuple[float, str]] = []
         """``(time.monotonic(), "off" | "boot")`` of every power loss and boot (``faults.powered_off``)."""

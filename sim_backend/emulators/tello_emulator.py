@@ -40,7 +40,8 @@ class TelloEmulator(TelloCommands, TelloVideoStream):
     ``flying``, ``phase``, ``downvision``, ``streaming``, ``sdk_mode``, ``landed_by_timeout``,
     ``landed_by_battery``, ``state_packets_sent``, ``state_packets_lost``, ``video_frames_sent``,
     ``errors``, ``rejected``.  Lists are only appended to;
-    take ``list(emu.commands)`` for a snapshot.
+    take ``list(emu.commands)`` for a snapshot. With the rig's rc link (``links``) a datagram is recorded
+    when the drone acts on it: when the link delivers it, late.
     """
 
     # ------------------------------------------------------------------------------------------- lifecycle
@@ -71,6 +72,10 @@ class TelloEmulator(TelloCommands, TelloVideoStream):
         if self.radio is not None:  # every datagram in and out passes the drone's radio links
             cmd = self.radio.socket(cmd, send=lambda _addr: "reply", recv="command")  # type: ignore[assignment]
             tx = self.radio.socket(tx, send=self._downlink, recv=None)  # type: ignore[assignment]
+        if self.links is not None:  # the rig's links, before the radio: rc acted on late, state sent late
+            cmd = self.links.socket(cmd, recv="rc", on_lost=self._link_lost)
+            if self.links.applies("state"):
+                tx = self.links.socket(tx, send=self._state_link)
         self._cmd_sock, self._tx_sock = cmd, tx
         self._bound = (str(host), int(port))
         self._started = True
@@ -98,6 +103,8 @@ class TelloEmulator(TelloCommands, TelloVideoStream):
             thread.join(timeout=max(0.0, deadline - time.monotonic()))
             if thread.is_alive():  # pragma: no cover - would indicate a bug
                 LOG.error("thread %s did not stop", thread.name)
+        if self.links is not None:
+            self.links.close()
         if self.radio is not None:
             self.radio.close()
         for sock in (self._cmd_sock, self._tx_sock):
@@ -107,6 +114,14 @@ class TelloEmulator(TelloCommands, TelloVideoStream):
     def _downlink(self, addr: tuple[str, int]) -> str:
         """The radio link of a datagram the drone sends to ``addr``: ``video`` or ``state``."""
         return "video" if addr[1] == self.video_port else "state"
+
+    def _state_link(self, addr: tuple[str, int]) -> str | None:
+        """The rig's link of a datagram the drone sends to ``addr``: ``state`` (video: decided per frame)."""
+        return None if addr[1] == self.video_port else "state"
+
+    def _link_lost(self, data: bytes, t: float) -> None:
+        """A datagram the rc link lost: it never reached the drone (``uplink_lost``, reason ``link``)."""
+        self.uplink_lost.append((t, data.decode("utf-8", errors="replace").strip(), "link"))
 
     def network_counts(self) -> dict[str, dict[str, float]]:
         """What the radio did per link (``radio.DeviceRadio.counts``); empty on a perfect link."""

@@ -5,15 +5,15 @@ clockwise wrapped to [-180, 180); ``rc`` targets are body-frame velocities (cm/s
 yaw rate (deg/s, clockwise), followed with a first-order lag ``tau_s``; discrete moves are instantaneous.
 Phases ``landed`` -> ``takeoff`` -> ``flying`` -> ``landing`` -> ``landed`` (logged in ``phase_log``; motor-on
 time runs in all but ``landed``); a takeoff climbs to ``takeoff_height_cm`` in at most ``TAKEOFF_CLIMB_S``
-(*unverified*), and its deferred ``ok`` is queued when it completes. No datagram for ``auto_land_s`` (15 s,
-SDK guides "Safety Function"; DJITelloPy #141) while flying: the drone lands itself (``landed_by_timeout``);
-so it does below ``faults.self_land_battery_pct`` (``landed_by_battery``). A power loss
-(``faults.powered_off``) drops it to the floor; it boots out of SDK mode, motor-on time 0. The battery drains
-from the set-point ``faults.battery_pct``. The simulation thread steps every ``TICK_S`` s and sends the state
-string (``mid:-1;x:..;...;agz:..;\\r\\n``; ``vgx/vgy/vgz`` in dm/s, ``h``/``tof`` in cm, ``x/y/z`` the
-integrated position in cm where a real drone reports mission-pad coordinates, ``time`` = motor-on s, ``bat``
-in %) at ``state_hz`` to ``(client_ip, state_port)`` in SDK mode. `TelloPhysics` is one layer of
-``TelloEmulator``.
+(*unverified*) and not in its last ``takeoff_hover_s``, and its deferred ``ok`` is queued when it completes.
+No datagram for ``auto_land_s`` (15 s, SDK guides "Safety Function"; DJITelloPy #141) while flying: the drone
+lands itself (``landed_by_timeout``); so it does below ``faults.self_land_battery_pct``
+(``landed_by_battery``). A power loss (``faults.powered_off``) drops it to the floor; it boots out of SDK
+mode, motor-on time 0. The battery drains from the set-point ``faults.battery_pct``. The simulation thread
+steps every ``TICK_S`` s and sends the state string (``mid:-1;x:..;...;agz:..;\\r\\n``; ``vgx/vgy/vgz`` in
+dm/s, ``h``/``tof`` in cm, ``x/y/z`` the integrated position in cm where a real drone reports mission-pad
+coordinates, ``time`` = motor-on s, ``bat`` in %) at ``state_hz`` to ``(client_ip, state_port)`` in SDK mode.
+`TelloPhysics` is one layer of ``TelloEmulator``.
 """
 
 from __future__ import annotations
@@ -105,7 +105,7 @@ class TelloPhysics(TelloEmulatorBase):
             z_before = float(self._pos[2])
             if self._phase == "takeoff":  # climb at the normal rate, then hover (stabilise) until the ok
                 elapsed = now - self._phase_t0
-                climb_s = max(min(self._phase_s, self.TAKEOFF_CLIMB_S), 1e-3)
+                climb_s = max(min(self._phase_s - self.takeoff_hover_s, self.TAKEOFF_CLIMB_S), 1e-3)
                 frac = min(1.0, elapsed / climb_s)
                 target = max(self._phase_z0, self.takeoff_height_cm)
                 self._pos[2] = self._phase_z0 + frac * (target - self._phase_z0)

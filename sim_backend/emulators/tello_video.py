@@ -9,8 +9,9 @@ bursting. Every frame sent is logged with its capture time (``video_capture_log`
 time.monotonic() s at which its content was taken, the time it was sent). With ``use_remote_video`` the
 video is made elsewhere (``tello_video_process``: the emulated lab's cameras that render the flight, in a
 child process) and this thread only feeds it the stream state and the true pose. `TelloVideoStream` is one
-layer of ``TelloEmulator`` (``tello_emulator``); ``make_encoder`` and ``send_frame`` are shared with the
-child process.
+layer of ``TelloEmulator`` (``tello_emulator``); ``make_encoder``, ``frame_datagrams`` and ``send_frame``
+are shared with the child process. With the rig's video link (``links``, device_links) each frame leaves
+late as a whole, or is lost; its send time is then when it was due to leave.
 """
 
 from __future__ import annotations
@@ -45,21 +46,28 @@ def make_encoder(size: tuple[int, int], fps: float, gop_size: int) -> Any:
     return ctx
 
 
-def send_frame(encoder: Any, sock: socket.socket, dest: tuple[str, int], img: np.ndarray, index: int) -> int:
-    """Encode RGB `img` as frame `index` and send its Annex-B bytes to `dest` in datagrams of at most
-    MAX_VIDEO_DATAGRAM bytes (a refused send is ignored: nobody listening yet is fine); the bytes sent."""
+def frame_datagrams(encoder: Any, img: np.ndarray, index: int) -> list[bytes]:
+    """Encode RGB `img` as frame `index`: its Annex-B bytes in datagrams of at most MAX_VIDEO_DATAGRAM
+    bytes, as the Tello splits them."""
     import av
 
     frame = av.VideoFrame.from_ndarray(img, format="rgb24")
     frame.pts = index
-    sent = 0
+    out: list[bytes] = []
     for packet in encoder.encode(frame):
         payload = bytes(packet)
-        for offset in range(0, len(payload), MAX_VIDEO_DATAGRAM):
-            with contextlib.suppress(OSError):
-                sock.sendto(payload[offset : offset + MAX_VIDEO_DATAGRAM], dest)
-        sent += len(payload)
-    return sent
+        out.extend(payload[k : k + MAX_VIDEO_DATAGRAM] for k in range(0, len(payload), MAX_VIDEO_DATAGRAM))
+    return out
+
+
+def send_frame(encoder: Any, sock: socket.socket, dest: tuple[str, int], img: np.ndarray, index: int) -> int:
+    """Encode RGB `img` as frame `index` and send its datagrams (`frame_datagrams`) to `dest` at once (a
+    refused send is ignored: nobody listening yet is fine); the bytes sent."""
+    datagrams = frame_datagrams(encoder, img, index)
+    for d in datagrams:
+        with contextlib.suppress(OSError):
+            sock.sendto(d, dest)
+    return sum(len(d) for d in datagrams)
 
 
 class RemoteVideo(Protocol):
@@ -101,9 +109,22 @@ class TelloVideoStream(TelloEmulatorBase):
     def _send_frame(self, encoder: Any, img: np.ndarray, index: int, t_capture: float) -> None:
         sock = self._tx_sock
         assert sock is not None
-        self.video_bytes_sent += send_frame(encoder, sock, (self.client_ip, self.video_port), img, index)
+        dest = (self.client_ip, self.video_port)
+        links = self.links
+        if links is None or not links.applies("video"):
+            self.video_bytes_sent += send_frame(encoder, sock, dest, img, index)
+            sent = time.monotonic()
+        else:  # the frame leaves late, as a whole, or never (device_links)
+            datagrams = frame_datagrams(encoder, img, index)
+            due = links.decide("video", t_capture)
+            if due is None:
+                return
+            for d in datagrams:
+                with contextlib.suppress(OSError):
+                    links.send_at(due, sock, d, dest, "video")
+            self.video_bytes_sent += sum(len(d) for d in datagrams)
+            sent = max(due, time.monotonic())
         self.video_frames_sent += 1
-        sent = time.monotonic()
         self.video_log.append((index, sent))
         self.video_capture_log.append((index, t_capture, sent))
 

@@ -11,11 +11,20 @@ paces frames at `fps` from its `streamon`, reads both poses, renders (`tello_vie
 frame index as a bar code (`tello_frames.stamp_frame_index`), encodes and sends from the drone's
 loopback ip to (client_ip, video_port) with the emulator's own `make_encoder`/`send_frame`.
 
+The way out (`VideoPath`): with the rig's video link (device_links) each frame, rendered and encoded
+when taken, leaves the drone latency_s + U(0, jitter_s) after its capture time, or never (lost as a
+whole); a newer frame pushes older ones out ahead of it, so the stream stays in order. Then its
+datagrams pass the drone's radio (flightstack.netem: the video link seeded by (seed, "tello<id>",
+"video"), with the same blackout windows and epoch as the parent's DeviceRadio of that drone, so that a
+blackout silences video with commands and state). Both are sent at their due times by one delay line
+thread in the child; their counters come back through shared memory (`link_counts`, `network_counts`).
+
 Capture time: every frame sent is recorded with its true capture time, the time.monotonic() (s; Linux
 CLOCK_MONOTONIC is one clock for every process of the machine) at which the drone pose it shows was
-taken (the target's pose is at most 10 ms apart), and its send time; `sync` copies these records into the
-emulator's `video_capture_log` and `video_log`, its counters (`video_frames_sent`, `video_bytes_sent`,
-`video_frame_index`) and the child's errors (`errors`).
+taken (the target's pose is at most 10 ms apart), and the time it left the drone (before the radio);
+`sync` copies these records into the emulator's `video_capture_log` and `video_log`, its counters
+(`video_frames_sent`, `video_bytes_sent`, `video_frame_index`) and the child's errors (`errors`). A frame
+the video link lost is neither recorded nor counted as sent.
 
 Blocks are float64 arrays with a sequence lock (one writer each: the sequence number is odd while it
 writes); records go to a ring of `RING` entries. Stopping: `close()` sets the stop flag and joins (≤ 2 s),
@@ -25,6 +34,7 @@ then terminates; the child also exits when its parent is gone (its parent pid ch
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import math
 import multiprocessing
@@ -32,11 +42,16 @@ import os
 import signal
 import socket
 import time
+from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
 
+from flightstack.netem import NetworkProfile
+
+from .device_links import LINK_COUNTERS
+from .radio import COUNTERS
 from .tello_base import TelloEmulatorBase
 from .tello_view import CameraSpec
 
@@ -49,9 +64,14 @@ START_TIMEOUT_S = 20.0
 _ON, _EPOCH, _DOWN, _X, _Y, _Z, _YAW, _T = range(1, 9)
 _CTRL_N = 9
 _STOP = _CTRL_N
-# stats block (child writes): counters, then the ring of (index, t_capture, t_sent, bytes)
+# stats block (child writes): counters, the video link's row (LINK_COUNTERS, delay_mean_ms), the radio's
+# video link row (COUNTERS, delay_mean_ms), then the ring of (index, t_capture, t_sent, bytes)
 _READY, _FRAMES, _BYTES, _INDEX, _RECORDS = range(5)
-_STATS_HEAD = 5
+_LINK_ROW = (*LINK_COUNTERS, "delay_mean_ms")
+_RADIO_ROW = (*COUNTERS, "delay_mean_ms")
+_LINK = 5
+_RADIO = _LINK + len(_LINK_ROW)
+_STATS_HEAD = _RADIO + len(_RADIO_ROW)
 
 
 def f64(raw: Any) -> np.ndarray:
@@ -97,11 +117,26 @@ class SharedTarget:
         self.block.write([x, y, theta, time.monotonic()])
 
 
+@dataclass(frozen=True)
+class VideoPath:
+    """How a camera's frames leave the drone: late by the rig's video link (`link`: LinkSpec fields;
+    None: at once), then through the drone's radio (`network`: a flightstack.netem profile, None: clean;
+    its blackout windows counted from `epoch`, time.monotonic() s); seeded as the parent's devices are,
+    by (seed, drone id) for the link and (seed, "tello<id>", "video") for the radio."""
+
+    seed: int = 0
+    drone: int = 0
+    link: dict[str, Any] | None = None
+    network: NetworkProfile | None = None
+    epoch: float = 0.0
+
+
 class VideoProcess:
     """Parent side of one emulated camera (a `RemoteVideo`, see the module docstring).
 
     spec: what the camera sees; ip: the drone's loopback address (the video's source); dest: (client ip,
-    video port); fps: frames/s; gop_size: frames between keyframes; target: the shared target pose.
+    video port); fps: frames/s; gop_size: frames between keyframes; target: the shared target pose;
+    path: the video link and radio the frames pass (default: none).
     """
 
     def __init__(
@@ -113,8 +148,10 @@ class VideoProcess:
         *,
         fps: float = 30.0,
         gop_size: int = 15,
+        path: VideoPath | None = None,
     ) -> None:
         ctx = multiprocessing.get_context("spawn")
+        self.path = path or VideoPath()
         self.spec, self.ip, self.dest, self.fps, self.gop_size = spec, ip, dest, float(fps), int(gop_size)
         self._ctrl_raw = ctx.RawArray(ctypes.c_double, _CTRL_N + 1)
         self._stats_raw = ctx.RawArray(ctypes.c_double, _STATS_HEAD + 4 * RING)
@@ -137,6 +174,7 @@ class VideoProcess:
                 self._stats_raw,
                 errors_tx,
                 os.getpid(),
+                self.path,
             ),
             name=f"tello-camera-{ip}",
             daemon=True,
@@ -190,6 +228,14 @@ class VideoProcess:
         emu.video_frame_index = int(st[_INDEX])
         emu.errors.extend(self._drain_errors())
 
+    def link_counts(self) -> dict[str, float]:
+        """What the video link did (device_links.LinkStage.row), as the child last reported."""
+        return {name: float(self._stats[_LINK + k]) for k, name in enumerate(_LINK_ROW)}
+
+    def network_counts(self) -> dict[str, float]:
+        """What the radio's video link did (radio.DeviceRadio.counts' row), as the child last reported."""
+        return {name: float(self._stats[_RADIO + k]) for k, name in enumerate(_RADIO_ROW)}
+
     def _drain_errors(self) -> list[str]:
         out = []
         try:
@@ -229,11 +275,12 @@ def _child_main(
     stats_raw: Any,
     errors: Connection,
     parent: int,
+    path: VideoPath,
 ) -> None:
     """Render, encode and send frames until the stop flag is set or the parent is gone."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        _run(spec, ip, dest, fps, gop_size, ctrl_raw, target_raw, stats_raw, errors, parent)
+        _run(spec, ip, dest, fps, gop_size, ctrl_raw, target_raw, stats_raw, errors, parent, path)
     except Exception as exc:  # reported to the parent, which logs it in the emulator's errors
         errors.send(f"emulated camera {ip}: {exc!r}")
     finally:
@@ -251,11 +298,15 @@ def _run(
     stats_raw: Any,
     errors: Connection,
     parent: int,
+    path: VideoPath,
 ) -> None:
+    from flightstack.config.links import LinkSpec
     from flightstack.paper.geometry import Pose
 
+    from .device_links import DeviceLinks
+    from .radio import DeviceRadio
     from .tello_frames import stamp_frame_index
-    from .tello_video import make_encoder, send_frame
+    from .tello_video import frame_datagrams, make_encoder
     from .tello_view import CameraView, drone_world_pose
 
     ctrl = SeqBlock(ctrl_raw, _CTRL_N - 1)
@@ -265,14 +316,43 @@ def _run(
     ring = st[_STATS_HEAD:].reshape(RING, 4)
     view = CameraView(spec)
     view.image(Pose.make([0.0, 0.0, 1.0], 0.0), Pose.make([0.0, 0.0, 0.0], 0.0))  # warm the renderer's caches
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind((ip, 0))
+    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    raw.bind((ip, 0))
+    # the frames' way out: the video link (whole frames, late), then the drone's radio (per datagram)
+    radio = None
+    if path.network is not None and not path.network.clean:
+        device = f"tello{path.drone}"
+        radio = DeviceRadio(path.network, path.seed, device, {"video": "video"}, path.epoch)
+    sock: Any = raw if radio is None else radio.socket(raw, send=lambda _a: "video", recv=None)
+    specs = {} if path.link is None else {"video": LinkSpec(**path.link)}
+    line = None if radio is None else radio.delay_line  # the link's stage before the radio's, one thread
+    links = DeviceLinks(specs, path.seed, path.drone, f"camera-{ip}", line)
+    leaving: list[list[float]] = []  # [index, t_capture, due, bytes] of frames that have not left yet
     period = 1.0 / fps
     encoder: Any = None
     epoch, index, t0 = -1.0, 0, 0.0
     st[_READY] = 1.0
+
+    def report(now: float) -> None:
+        """Record the frames that have left by now; copy the links' counters."""
+        while leaving and leaving[0][2] <= now:
+            rec = leaving.pop(0)
+            k = int(st[_RECORDS])
+            ring[k % RING] = rec
+            st[_RECORDS] = k + 1  # after the record: a reader never sees a half-written one
+            st[_FRAMES] += 1
+            st[_BYTES] += rec[3]
+        rows: list[tuple[int, tuple[str, ...], dict[str, float] | None]]
+        rows = [(_LINK, _LINK_ROW, links.counts().get("video"))]
+        if radio is not None:
+            rows.append((_RADIO, _RADIO_ROW, radio.counts()["video"]))
+        for at, names, row in rows:
+            if row is not None:
+                st[at : at + len(names)] = [row[n] for n in names]
+
     try:
         while stop[_STOP] == 0.0 and os.getppid() == parent:
+            report(time.monotonic())
             c = ctrl.read()
             if c is None or c[_ON - 1] == 0.0:
                 encoder = None
@@ -284,7 +364,10 @@ def _run(
             now = time.monotonic()
             due = t0 + index * period
             if due > now:
-                time.sleep(min(due - now, 0.05))
+                wait = min(due - now, 0.05)
+                if leaving:
+                    wait = min(wait, max(0.0, leaving[0][2] - now))
+                time.sleep(wait)
                 continue
             if now - due > 3 * period:  # fell behind: skip frames instead of bursting
                 index = int((now - t0) / period)
@@ -296,16 +379,26 @@ def _run(
                 g_w0 = Pose.make([tg[0], tg[1], 0.0], tg[2])
             img = view.image(g_wi, g_w0)
             stamp_frame_index(img, index)
-            nbytes = send_frame(encoder, sock, dest, img, index)
-            k = int(st[_RECORDS])
-            ring[k % RING] = (index, c[_T - 1], time.monotonic(), nbytes)
-            st[_RECORDS] = k + 1  # after the record: a reader never sees a half-written one
-            st[_FRAMES] += 1
-            st[_BYTES] += nbytes
+            datagrams = frame_datagrams(encoder, img, index)
+            t_capture = float(c[_T - 1])
+            leaves = links.decide("video", t_capture)
             st[_INDEX] = index
             index += 1
+            if leaves is None:  # the link lost the whole frame
+                continue
+            for d in datagrams:
+                with contextlib.suppress(OSError):  # nobody listening yet is fine
+                    links.send_at(leaves, sock, d, dest, "video")
+            leaves = max(leaves, time.monotonic())
+            for rec in leaving:  # a newer frame pushes the older ones out ahead of it (radio.DelayLine)
+                rec[2] = min(rec[2], leaves)
+            leaving.append([float(index - 1), t_capture, leaves, float(sum(len(d) for d in datagrams))])
+        report(time.monotonic())
     finally:
-        sock.close()
+        links.close()
+        if radio is not None:
+            radio.close()
+        raw.close()
 
 
-__all__ = ["RING", "SeqBlock", "SharedTarget", "VideoProcess"]
+__all__ = ["RING", "SeqBlock", "SharedTarget", "VideoPath", "VideoProcess"]

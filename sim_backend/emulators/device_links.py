@@ -1,0 +1,268 @@
+"""The rig's links (flightstack.config.links) applied at an emulated device, where its data is produced.
+
+A link of the rig's `links:` makes one kind of a device's data late and lossy: each sample leaves the
+device (or, for commands, is acted on) latency_s + U(0, jitter_s) after it was produced (or received),
+and is lost with probability `loss`. The emulated lab applies them in its emulators, before the radio
+(flightstack.netem, radio.py): a sample first waits for its link, then passes the device's radio.
+
+* `LinkStage`: one link's decisions, drawn by the simulated lab's own model (sim_backend.lab.LinkDelays)
+  from a generator seeded as the simulated lab seeds it (the mission's seed, the link, the device's
+  number: a drone's id, 0 for the motion capture and the robot), so both labs make the same decisions
+  for the same seed; with counters.
+* `DeviceLinks`: the stages of one device and the delay line that sends its late datagrams (the device
+  radio's line when it has one: one scheduler thread per device, the link's stage before the radio's).
+* `LinkedSocket` wraps a device's socket (or its radio's ImpairedSocket). `sendto` (a sample leaving the
+  device): the stage of `send(addr)` decides and the datagram leaves by the wrapped socket when due, as
+  part of that link's stream (radio.DelayLine: a newer sample pushes older ones out ahead of it, so the
+  stream stays in order and its newest sample arrives when due). `recvfrom` (commands entering the
+  device): every datagram is decided when it reaches the device and handed to the device's receive loop
+  when due, in order of due time (a later command can overtake an earlier one, as in the simulated lab);
+  the caller's timeout is honoured.
+* A video frame is decided as a whole: `DeviceLinks.decide("video", t_capture)` gives its due time (None:
+  lost) and the camera schedules its datagrams (`send_at`).
+
+`emulated_links(links)`: the links the emulated lab applies. Profile `perfect` is what the emulated lab
+did before links were modelled: nothing late (its rc 50 ms is the simulated lab's command-to-effect
+latency; the emulated Tello's own first-order response stands for it); links written out in `links:` and
+every link of another profile are applied as they are. Rates: a link's `rate_hz` sets the device's own
+rate (the Tello's state stream, the camera's frame rate, the motion capture's frame rate); commands have
+no rate. Times are time.monotonic() seconds.
+"""
+
+from __future__ import annotations
+
+import errno
+import heapq
+import itertools
+import select
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from flightstack.config.links import LINKS, NONE, LinkSpec, LinksSpec
+
+from .radio import Address, DelayLine, Sender
+
+EMULATED_LINKS = ("video", "state", "rc", "mocap", "robot")
+"""The links the emulators apply (the bus is between agent processes, not a device's)."""
+LINK_COUNTERS = ("samples", "lost", "delivered")
+"""The counters every stage reports, 0 included (plus delay_mean_ms of the delivered samples)."""
+
+
+def emulated_links(links: LinksSpec) -> dict[str, LinkSpec]:
+    """The links the emulated lab applies (module docstring; EMULATED_LINKS): link name -> spec, perfect
+    ones left out."""
+    out = {}
+    for name in EMULATED_LINKS:
+        own: LinkSpec | None = getattr(links, name)
+        spec = own if own is not None else (NONE if links.profile == "perfect" else links.link(name))
+        if not spec.perfect:
+            out[name] = spec
+    return out
+
+
+class LinkStage:
+    """The decisions of one link of one device (thread-safe): `decide(t)` -> due time or None (lost)."""
+
+    def __init__(self, spec: LinkSpec, seed: int, link: str, device: int) -> None:
+        from flightstack.sim_backend.lab import LinkDelays
+
+        self.spec = spec
+        self.name = link
+        self._delays = LinkDelays(spec, np.random.default_rng([int(seed), LINKS.index(link), int(device)]))
+        self._lock = threading.Lock()
+        self.counts: Counter[str] = Counter()
+        self.delay_sum_s = 0.0
+
+    @property
+    def late(self) -> bool:
+        """True when a sample can be late (else it leaves at once, unless lost)."""
+        return self.spec.latency_s > 0 or self.spec.jitter_s > 0
+
+    def decide(self, t: float) -> float | None:
+        """When a sample produced (or received) at t (s) is due, None when it is lost."""
+        with self._lock:
+            self.counts["samples"] += 1
+            if self._delays.lost():
+                self.counts["lost"] += 1
+                return None
+            d = self._delays.delay()
+            self.counts["delivered"] += 1
+            self.delay_sum_s += d
+            return t + d
+
+    def row(self) -> dict[str, float]:
+        """The counters and delay_mean_ms (JSON-ready)."""
+        with self._lock:
+            row: dict[str, float] = dict.fromkeys(LINK_COUNTERS, 0.0)
+            row.update(self.counts)
+            n = self.counts["delivered"]
+            row["delay_mean_ms"] = round(1e3 * self.delay_sum_s / n, 3) if n else 0.0
+            return row
+
+
+class DeviceLinks:
+    """The applied links of one emulated device (module docstring).
+
+    specs: link name -> spec (perfect ones are left out); seed: the mission's seed; device: the device's
+    number in the seed (a drone's id; 0 for the motion capture and the robot); name: for the thread;
+    delay_line: the device radio's (None: its own, started on first use and stopped by `close`)."""
+
+    def __init__(
+        self,
+        specs: dict[str, LinkSpec],
+        seed: int,
+        device: int,
+        name: str,
+        delay_line: DelayLine | None = None,
+    ) -> None:
+        self.name = name
+        self.stages = {k: LinkStage(v, seed, k, device) for k, v in specs.items() if not v.perfect}
+        self._own_line = delay_line is None
+        self.delay_line = DelayLine(f"{name}-links") if delay_line is None else delay_line
+
+    def applies(self, link: str) -> bool:
+        """True when `link` changes anything on this device."""
+        return link in self.stages
+
+    def spec(self, link: str) -> LinkSpec:
+        """The spec of `link` (NONE when it is not applied)."""
+        stage = self.stages.get(link)
+        return NONE if stage is None else stage.spec
+
+    def decide(self, link: str, t: float) -> float | None:
+        """When a sample of `link` produced at t is due (t when the link is not applied; None: lost)."""
+        stage = self.stages.get(link)
+        return t if stage is None else stage.decide(t)
+
+    def send_at(self, due: float, sock: Sender, data: bytes, addr: Address, link: str) -> None:
+        """Send `data` by `sock` at `due`, in order with `link`'s other samples (at once when the link
+        is never late)."""
+        stage = self.stages.get(link)
+        if stage is None or not stage.late:
+            sock.sendto(data, addr)
+        else:
+            self.delay_line.schedule(due, sock, data, addr, stream=link)
+
+    def socket(
+        self,
+        sock: Any,
+        send: Callable[[Address], str | None] | None = None,
+        recv: str | None = None,
+        on_lost: Callable[[bytes, float], None] | None = None,
+    ) -> Any:
+        """`sock` wrapped (module docstring): datagrams it sends pass link `send(addr)` (None: unchanged),
+        datagrams it receives pass link `recv`; on_lost(data, t) for every received datagram the link
+        loses. `sock` itself when `recv` is not applied and `send` is None."""
+        recv = recv if recv is not None and self.applies(recv) else None
+        if send is None and recv is None:
+            return sock
+        return LinkedSocket(sock, self, send, recv, on_lost)
+
+    def counts(self) -> dict[str, dict[str, float]]:
+        """Per applied link: LINK_COUNTERS and delay_mean_ms (JSON-ready)."""
+        return {name: stage.row() for name, stage in self.stages.items()}
+
+    def close(self) -> None:
+        """Stop the delay line when it is the device's own (a radio's is stopped by the radio)."""
+        if self._own_line:
+            self.delay_line.close()
+
+
+class LinkedSocket:
+    """A device's socket whose traffic passes the device's links (module docstring)."""
+
+    def __init__(
+        self,
+        sock: Any,
+        links: DeviceLinks,
+        send: Callable[[Address], str | None] | None,
+        recv: str | None,
+        on_lost: Callable[[bytes, float], None] | None,
+    ) -> None:
+        self._sock = sock
+        self._links = links
+        self._send = send
+        self._recv = recv
+        self._on_lost = on_lost
+        self._timeout = sock.gettimeout()
+        self._pending: list[tuple[float, int, bytes, Any]] = []
+        self._seq = itertools.count()
+        self._rx_lock = threading.Lock()
+        if recv is not None:
+            sock.settimeout(0.0)  # this wrapper does the waiting
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._sock, name)
+
+    def settimeout(self, value: float | None) -> None:
+        self._timeout = value
+        if self._recv is None:
+            self._sock.settimeout(value)
+
+    def gettimeout(self) -> float | None:
+        return self._timeout
+
+    def setblocking(self, flag: bool) -> None:
+        self.settimeout(None if flag else 0.0)
+
+    def sendto(self, data: bytes, addr: Address) -> int:
+        """Send `data` to `addr` through its link (at once when the link is not applied)."""
+        link = None if self._send is None else self._send(addr)
+        if link is None or not self._links.applies(link):
+            return int(self._sock.sendto(data, addr))
+        due = self._links.decide(link, time.monotonic())
+        if due is not None:
+            self._links.send_at(due, self._sock, bytes(data), addr, link)
+        return len(data)
+
+    def recvfrom(self, bufsize: int) -> tuple[bytes, Any]:
+        """The earliest due datagram that passed the link (the caller's timeout semantics)."""
+        if self._recv is None:
+            return self._sock.recvfrom(bufsize)
+        timeout = self._timeout
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._rx_lock:
+            while True:
+                self._pull(bufsize)
+                now = time.monotonic()
+                if self._pending and self._pending[0][0] <= now:
+                    _, _, data, addr = heapq.heappop(self._pending)
+                    return data, addr
+                if timeout == 0.0:
+                    raise BlockingIOError(errno.EAGAIN, "no datagram due")
+                wait = 0.1
+                if self._pending:
+                    wait = min(wait, self._pending[0][0] - now)
+                inner_due = getattr(self._sock, "next_due", None)  # a radio holding datagrams
+                held = inner_due() if callable(inner_due) else None
+                if held is not None:
+                    wait = min(wait, held - now)
+                if deadline is not None:
+                    if now >= deadline:
+                        raise TimeoutError("timed out")
+                    wait = min(wait, deadline - now)
+                select.select([self._sock], [], [], max(0.0, wait))
+
+    def _pull(self, bufsize: int) -> None:
+        """Decide every datagram that reached the device, in arrival order."""
+        assert self._recv is not None
+        while True:
+            try:
+                data, addr = self._sock.recvfrom(bufsize)
+            except (BlockingIOError, InterruptedError, TimeoutError):
+                return
+            now = time.monotonic()
+            due = self._links.decide(self._recv, now)
+            if due is None:
+                if self._on_lost is not None:
+                    self._on_lost(data, now)
+                continue
+            heapq.heappush(self._pending, (due, next(self._seq), data, addr))
+
+
+__all__ = ["EMULATED_LINKS", "LINK_COUNTERS", "DeviceLinks", "LinkStage", "LinkedSocket", "emulated_links"]
