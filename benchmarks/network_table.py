@@ -1,10 +1,12 @@
 """The emulated lab under each network profile: does the flight hold, and what does the radio cost?
 
-    python benchmarks/network_table.py                      # every profile, 30 s per mode (~12 min)
+    python benchmarks/network_table.py                      # every profile, 30 s per mode (~10 min)
     python benchmarks/network_table.py --profiles clean,outage --duration 20
+    python benchmarks/network_table.py --links perfect      # the radio alone, without the Tello's delays
     python benchmarks/network_table.py --update-docs        # also rewrite docs/network.md's table
 
-Per profile (docs/network.md) it flies `flightstack run paper_experiment --rig emulated-lab --network P`
+Per profile (docs/network.md) it flies `flightstack run paper_experiment --rig emulated-lab --network P
+--links L` (L: the rig's links profile, default `tello`: a Tello's own video, state and rc delays)
 (the data run, training, then modes none, local and dgp, each for --duration s of pursuit; the
 experiment's seed),
 through the real drivers, decoders and safety layer on the wall clock, and reads back the run directory:
@@ -51,16 +53,21 @@ FAILSAFE_KINDS = (
     "landed_by_drone", "loop_lost_land", "takeoff_failed", "land_failed",
 )  # fmt: skip
 """Safety reactions (events.jsonl kinds) that a network without blackouts must never cause."""
+MISSION_END = "mission complete"
+"""The detail of the `land_all` that ends every mode: not a reaction."""
 RESULTS = REPO / "benchmarks" / "network_table.json"
+"""Results are written beside it, one file per links profile (network_table_<links>.json)."""
 PAGE = DOCS / "network.md"
 
 
-def fly(profile: str, duration_s: float, out: Path) -> tuple[int, float]:
-    """One run of paper_experiment on the emulated lab under `profile`: (exit code, wall s)."""
+def fly(profile: str, links: str, duration_s: float, out: Path) -> tuple[int, float]:
+    """One run of paper_experiment on the emulated lab under network `profile` and links `links`: (exit
+    code, wall s)."""
     t0 = time.monotonic()
     cmd = [
         sys.executable, "-m", "flightstack", "run", "paper_experiment", "--rig", "emulated-lab",
-        "--network", profile, "--duration", str(duration_s), "--out", str(out), "--no-progress",
+        "--network", profile, "--links", links, "--duration", str(duration_s), "--out", str(out),
+        "--no-progress",
     ]  # fmt: skip
     with open(out.parent / f"{profile}.log", "w") as log:
         r = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, timeout=40 * duration_s + 600)
@@ -125,7 +132,7 @@ def outage_reactions(run: Path, events: list[dict[str, Any]]) -> list[dict[str, 
     return out
 
 
-def summarise(profile: str, run: Path, code: int, wall_s: float) -> dict[str, Any]:
+def summarise(profile: str, run: Path, code: int | None, wall_s: float) -> dict[str, Any]:
     """What the table shows for one profile's run (module docstring)."""
     mp = run / "metrics.json"
     metrics = json.loads(mp.read_text()) if mp.exists() else {}
@@ -150,7 +157,8 @@ def summarise(profile: str, run: Path, code: int, wall_s: float) -> dict[str, An
         a, b = (max(took_off) + 3.0 if took_off else np.inf), (min(landed) if landed else np.inf)
         failsafe = [
             e for e in mine
-            if e.get("kind") in FAILSAFE_KINDS or (e.get("kind") == "command_timeout" and a < e["t"] < b)
+            if (e.get("kind") in FAILSAFE_KINDS and not str(e.get("detail", "")).startswith(MISSION_END))
+            or (e.get("kind") == "command_timeout" and a < e["t"] < b)
         ]  # fmt: skip
         fa = h.get("frame_age_s") or {}
         rows[mode] = {
@@ -184,10 +192,10 @@ def _ms(v: float | None) -> str:
     return "–" if v is None else f"{1e3 * v:.0f}"
 
 
-def markdown(results: list[dict[str, Any]], duration_s: float) -> str:
+def markdown(results: list[dict[str, Any]], duration_s: float, links: str) -> str:
     """The table of docs/network.md (one row per profile × mode) and the outage reactions."""
     lines = [
-        f"Measured by `python benchmarks/network_table.py --duration {duration_s:g}` "
+        f"Measured by `python benchmarks/network_table.py --links {links} --duration {duration_s:g}` "
         f"({time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores; one seed per profile).",
         "",
         "| profile | mode | keeps dt (overruns) | false failsafe events | frames published / seen / "
@@ -217,7 +225,8 @@ def markdown(results: list[dict[str, Any]], duration_s: float) -> str:
             )
     for r in results:
         if r["run_error"] or r["exit_code"]:
-            lines.append(f"\n`{r['profile']}`: exit {r['exit_code']}: {r['run_error'] or 'see its log'}")
+            code = "" if r["exit_code"] is None else f"exit {r['exit_code']}: "
+            lines.append(f"\n`{r['profile']}`: {code}{r['run_error'] or 'see its log'}")
     outages = [o for r in results for o in r["outages"]]
     if outages:
         lost = [o["link_lost_after_s"] for o in outages if o["link_lost_after_s"] is not None]
@@ -238,29 +247,44 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--profiles", default=",".join(PROFILES))
     ap.add_argument("--duration", type=float, default=30.0, help="s of pursuit per mode")
+    ap.add_argument("--links", choices=("perfect", "tello"), default="tello", help="the rig's links profile")
     ap.add_argument("--out", type=Path, default=None, help="keep the run directories here")
     ap.add_argument("--update-docs", action="store_true")
+    ap.add_argument(
+        "--read", type=Path, default=None, help="tabulate the run directories of an earlier --out DIR again"
+    )
     args = ap.parse_args()
     profiles = [p for p in args.profiles.split(",") if p]
     unknown = sorted(set(profiles) - set(PROFILES))
     if unknown:
         print(f"error: unknown profiles {unknown}; known: {', '.join(PROFILES)}", file=sys.stderr)
         return 2
-    root = args.out or Path(tempfile.mkdtemp(prefix="network_table-"))
+    root = args.read or args.out or Path(tempfile.mkdtemp(prefix="network_table-"))
     root.mkdir(parents=True, exist_ok=True)
     results = []
     for p in profiles:
-        code, wall = fly(p, args.duration, root / p)
+        code: int | None
+        if args.read is not None:
+            if not (root / p).is_dir():
+                continue
+            code, wall = None, float("nan")  # the exit code was not kept; metrics.json says the error
+        else:
+            code, wall = fly(p, args.links, args.duration, root / p)
         r = summarise(p, root / p, code, wall)
         results.append(r)
         print(f"{p}: exit {code}, {wall:.0f} s; " + "; ".join(
             f"{m}: err {row['mean_position_error_m']}, keeps dt {row['keeps_dt']}, "
             f"failsafe {row['n_failsafe_events']}" for m, row in r["modes"].items()), flush=True)  # fmt: skip
-    table = markdown(results, args.duration)
+    table = markdown(results, args.duration, args.links)
     print(table)
-    RESULTS.write_text(json.dumps({"duration_s": args.duration, "results": results}, indent=1) + "\n")
+    if args.read is None:  # a re-read keeps the file of the run itself (its exit codes, wall times)
+        results_file = RESULTS.with_name(f"network_table_{args.links}.json")
+        results_file.write_text(
+            json.dumps({"duration_s": args.duration, "links": args.links, "results": results}, indent=1)
+            + "\n"
+        )
     if args.update_docs:
-        write_block(PAGE, "network-table", table)
+        write_block(PAGE, f"network-table:{args.links}", table)
     print(f"run directories: {root}")
     return 0
 

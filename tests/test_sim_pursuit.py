@@ -57,3 +57,18 @@ def test_lock_step_is_deterministic(short_mission) -> None:
     a = fly_mode(short_mission, "none")
     b = fly_mode(short_mission, "none")
     assert np.array_equal(a.e_c, b.e_c) and np.array_equal(a.g_bar_w, b.g_bar_w)
+
+
+def test_fence_excursion_counts_flight_outside_the_box_not_a_drone_on_the_floor() -> None:
+    from flightstack.analysis.metrics import fence_excursion
+    from flightstack.recording.timeseries import Recording
+
+    rec = Recording.empty("none", [1, 2], 3)
+    rec.ticks_done = 3
+    lo, hi = np.array([-2.0, -2.0, 0.3]), np.array([2.0, 2.0, 2.0])
+    rec.g_wi[:, :, :3] = [0.0, 0.0, 1.0]
+    assert fence_excursion(rec, lo, hi) == 0.0
+    rec.g_wi[2, 1, :3] = [0.0, 0.0, 0.05]  # drone 2 landed: below the box's floor, on the floor
+    assert fence_excursion(rec, lo, hi) == 0.0
+    rec.g_wi[1, 0, :3] = [2.3, 0.0, 0.2]  # drone 1 low and 0.3 m beyond x: (0.3, 0, 0.1) outside
+    assert fence_excursion(rec, lo, hi) == pytest.approx(np.hypot(0.3, 0.1))

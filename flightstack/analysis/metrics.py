@@ -82,11 +82,18 @@ def oscillation(
     return pk.std(axis=0), tv, tr
 
 
+ON_THE_FLOOR_M = 0.15
+"""A drone whose true height is below this (m) stands on the floor: landed, not outside the fence."""
+
+
 def fence_excursion(rec: Recording, lo: np.ndarray, hi: np.ndarray) -> float:
-    """Largest distance (m) any drone's true position was outside the box [lo, hi] (0 if never)."""
+    """Largest distance (m) any drone's true position was outside the box [lo, hi] while off the floor
+    (0 if never): a drone that landed during the mode sits below the box's floor, and that is no
+    excursion."""
     p = rec.g_wi[: rec.ticks_done, :, :3]
     out = np.maximum(lo - p, 0.0) + np.maximum(p - hi, 0.0)
-    return float(np.linalg.norm(out, axis=2).max()) if p.size else 0.0
+    dist = np.where(p[..., 2] >= ON_THE_FLOOR_M, np.linalg.norm(out, axis=2), 0.0)
+    return float(dist.max()) if p.size else 0.0
 
 
 def mode_metrics(
