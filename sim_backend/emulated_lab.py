@@ -71,7 +71,8 @@ LIVE_VIDEO_FPS = 30.0
 TAKEOFF_S = 0.3
 """The emulated Tellos' takeoff (s): a fast climb (a real one takes about 3.9 s, Tello-Python #88)."""
 TAKEOFF_HOVER_S = 1.0
-"""With a late state link, each emulated Tello hovers this long at height before its takeoff `ok` (s),
+"""With a late state link or an impaired network, each emulated Tello hovers this long at height before
+its takeoff `ok` (s),
 as a real one does for seconds: the driver trusts an `ok` only when telemetry shows the drone at height,
 and a fast climb's `ok` would otherwise arrive before the late state that shows it."""
 MOCAP_RATE_HZ = 100.0
@@ -403,7 +404,8 @@ class EmulatedLab:
         state = self.link_spec("state")
         if state.rate_hz is not None:
             kw["state_hz"] = state.rate_hz
-        if not state.perfect:  # late telemetry: the takeoff's `ok` must not beat the climb's state
+        if not state.perfect or not self.network.clean:  # late or lost telemetry: the takeoff's `ok`
+            # must not beat the climb's state (the radio delays and loses state datagrams too)
             kw["takeoff_s"] = TAKEOFF_S + TAKEOFF_HOVER_S
             kw["takeoff_hover_s"] = TAKEOFF_HOVER_S
         return kw
