@@ -164,17 +164,19 @@ class VideoProcess:
         self.process = ctx.Process(
             target=_child_main,
             args=(
-                spec,
-                ip,
-                dest,
-                fps,
-                gop_size,
-                self._ctrl_raw,
-                target.raw,
-                self._stats_raw,
-                errors_tx,
-                os.getpid(),
-                self.path,
+                ChildArgs(
+                    spec,
+                    ip,
+                    dest,
+                    float(fps),
+                    int(gop_size),
+                    self._ctrl_raw,
+                    target.raw,
+                    self._stats_raw,
+                    errors_tx,
+                    os.getpid(),
+                    self.path,
+                ),
             ),
             name=f"tello-camera-{ip}",
             daemon=True,
@@ -264,42 +266,37 @@ class VideoProcess:
 
 
 # ---- the child ---------------------------------------------------------------------------------------
-def _child_main(
-    spec: CameraSpec,
-    ip: str,
-    dest: tuple[str, int],
-    fps: float,
-    gop_size: int,
-    ctrl_raw: Any,
-    target_raw: Any,
-    stats_raw: Any,
-    errors: Connection,
-    parent: int,
-    path: VideoPath,
-) -> None:
+@dataclass(frozen=True)
+class ChildArgs:
+    """What the camera's child process is started with: the camera, its addresses (the drone's ip; the
+    client's (ip, port)), rate (frames/s) and keyframe interval (frames), the shared blocks (control,
+    target, stats), the error pipe's sending end, the parent's pid and the frames' way out."""
+
+    spec: CameraSpec
+    ip: str
+    dest: tuple[str, int]
+    fps: float
+    gop_size: int
+    ctrl_raw: Any
+    target_raw: Any
+    stats_raw: Any
+    errors: Connection
+    parent: int
+    path: VideoPath
+
+
+def _child_main(a: ChildArgs) -> None:
     """Render, encode and send frames until the stop flag is set or the parent is gone."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        _run(spec, ip, dest, fps, gop_size, ctrl_raw, target_raw, stats_raw, errors, parent, path)
+        _run(a)
     except Exception as exc:  # reported to the parent, which logs it in the emulator's errors
-        errors.send(f"emulated camera {ip}: {exc!r}")
+        a.errors.send(f"emulated camera {a.ip}: {exc!r}")
     finally:
-        errors.close()
+        a.errors.close()
 
 
-def _run(
-    spec: CameraSpec,
-    ip: str,
-    dest: tuple[str, int],
-    fps: float,
-    gop_size: int,
-    ctrl_raw: Any,
-    target_raw: Any,
-    stats_raw: Any,
-    errors: Connection,
-    parent: int,
-    path: VideoPath,
-) -> None:
+def _run(a: ChildArgs) -> None:
     from flightstack.config.links import LinkSpec
     from flightstack.paper.geometry import Pose
 
@@ -309,6 +306,8 @@ def _run(
     from .tello_video import frame_datagrams, make_encoder
     from .tello_view import CameraView, drone_world_pose
 
+    spec, ip, dest, fps, gop_size, path = a.spec, a.ip, a.dest, a.fps, a.gop_size, a.path
+    ctrl_raw, target_raw, stats_raw, parent = a.ctrl_raw, a.target_raw, a.stats_raw, a.parent
     ctrl = SeqBlock(ctrl_raw, _CTRL_N - 1)
     stop = f64(ctrl_raw)
     target = SeqBlock(target_raw, 4)
