@@ -45,8 +45,8 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    from flightstack.cli.run import claim_out_dir, clear_for_run, default_out_dir, to_stderr
-    from flightstack.runtime.flight import Flight, NotFlownError
+    from flightstack.cli.run import claim_out_dir, clear_for_run, default_out_dir, fly_or_say, to_stderr
+    from flightstack.runtime.flight import Flight
 
     out = Path(args.out) if args.out else default_out_dir(mission.name)
     problem = claim_out_dir(out, force=bool(args.out))  # a directory named on purpose is reused
@@ -54,11 +54,8 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
         print(f"error: --out {out}: {problem}; nothing took off", file=sys.stderr)
         return 2
     clear_for_run(out, force=bool(args.out))
-    try:
-        with Flight(mission, out, modes=["none"], plots=True, say=to_stderr) as flight:
-            res = flight.fly()
-    except NotFlownError as exc:
-        print(f"error: {exc}; nothing took off", file=sys.stderr)
+    res = fly_or_say(Flight(mission, out, modes=["none"], plots=True, say=to_stderr))
+    if res is None:
         return 2
     health = (res.metrics.get("modes", {}).get("none") or {}).get("loop_health")
     if not health:

@@ -51,9 +51,9 @@ def cmd_world(args: argparse.Namespace) -> int:
 def cmd_agent(args: argparse.Namespace) -> int:
     """`agent MISSION --id N`: fly drone N of a mission over its Zenoh bus (one mode), record it in its
     own run directory; the exit code."""
-    from flightstack.cli.run import claim_out_dir, clear_for_run, default_out_dir, to_stderr
+    from flightstack.cli.run import claim_out_dir, clear_for_run, default_out_dir, fly_or_say, to_stderr
     from flightstack.cli.view import open_live_viewer, viewer_problem
-    from flightstack.runtime.flight import Flight, NotFlownError
+    from flightstack.runtime.flight import Flight
 
     mission = _zenoh_mission(args.mission, args.rig)
     mode = args.mode or mission.compare_modes[-1]
@@ -82,14 +82,12 @@ def cmd_agent(args: argparse.Namespace) -> int:
     try:
         clear_for_run(out, args.force)
         flight = Flight(mission, out, taps=[tap] if tap is not None else (), **flight_args)
-        with flight:
-            res = flight.fly()
-    except NotFlownError as exc:
-        print(f"error: {exc}; nothing took off", file=sys.stderr)
-        return 2
+        res = fly_or_say(flight)
     finally:
         if tap is not None:
             tap.finish()
+    if res is None:
+        return 2
     rec = res.recordings.get(mode)
     for line in flight.session_reports():
         print(f"agent {args.id}: {line}", file=sys.stderr)

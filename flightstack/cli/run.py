@@ -13,13 +13,16 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from tqdm import tqdm
 
 from flightstack.analysis.loop_health import loop_health_line
 from flightstack.config.links import PROFILES
 from flightstack.config.mission import Mission, load_mission
+
+if TYPE_CHECKING:
+    from flightstack.runtime.flight import Flight, FlightResult
 
 RUNS_ROOT = Path("runs")
 """Where a run without --out goes: runs/<experiment name>-<YYYYmmdd-HHMMSS> (relative to the current
@@ -169,11 +172,23 @@ def cmd_run(args: argparse.Namespace) -> int:
     return _fly_and_report(args, mission, out)
 
 
+def fly_or_say(flight: Flight) -> FlightResult | None:
+    """Enter `flight` and fly it; None, said on stderr, when it could not start (nothing took off)."""
+    from flightstack.runtime.flight import NotFlownError
+
+    try:
+        with flight:
+            return flight.fly()
+    except NotFlownError as exc:
+        print(f"error: {exc}; nothing took off", file=sys.stderr)
+        return None
+
+
 def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> int:
     """Fly every mode of `mission` into the run directory `out` (flightstack.runtime.flight) and print
     the summary; the exit code."""
     from flightstack.cli.view import open_live_viewer
-    from flightstack.runtime.flight import Flight, NotFlownError
+    from flightstack.runtime.flight import Flight
 
     t_cmd0 = time.perf_counter()
     try:  # --viewer: the live Rerun view (a tap of every mode; flightstack.viewer.live)
@@ -191,16 +206,14 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
         say=to_stderr,
     )
     try:
-        with flight:
-            res = flight.fly()
-    except NotFlownError as exc:
-        print(f"error: {exc}; nothing took off", file=sys.stderr)
-        return 2
+        res = fly_or_say(flight)
     finally:
         for b in bars:
             b.close()
         if tap is not None:
             tap.finish()
+    if res is None:
+        return 2
     m = res.metrics
     print(f"run directory: {out}")
     for mode, mm in m["modes"].items():
