@@ -161,11 +161,14 @@ class Contract:
     exceptions: dict[tuple[str, str], str]
     reserved: dict[str, list[str]]
     restricted: dict[str, list[str]]
+    names: list[str] = field(default_factory=list)
+    """Each layer's name, bottom to top (as `layers`)."""
 
     @classmethod
     def load(cls, path: Path = CONTRACT) -> Contract:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
         return cls(
+            names=[str(layer["name"]) for layer in data["layer"]],
             layers=[list(layer["members"]) for layer in data["layer"]],
             exceptions={(e["importer"], e["imported"]): e["reason"] for e in data.get("exception", [])},
             reserved={r["name"]: list(r["only"]) for r in data.get("reserved", [])},

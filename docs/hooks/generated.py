@@ -192,7 +192,6 @@ def render_import_contract() -> str:
     """The contract's layers (top first): members, what they may import and what they do import today
     (from the source, by tests/import_contract.py); then the named exceptions and reserved names."""
     import importlib.util
-    import tomllib
 
     path = Path(__file__).parents[2] / "tests" / "import_contract.py"
     spec = importlib.util.spec_from_file_location("import_contract", path)
@@ -202,23 +201,19 @@ def render_import_contract() -> str:
     spec.loader.exec_module(checker)
     contract = checker.Contract.load()
     uses = checker.layer_imports(checker.build_graph(), contract)
-    data = tomllib.loads(checker.CONTRACT.read_text("utf-8"))
-    restricted = data.get("restricted", {})
     rows = ["| layer | members | may import (besides itself) | imports today |", "|---|---|---|---|"]
-    for layer in reversed(data["layer"]):
-        members = layer["members"]
-        allowed = [p for m in members for p in restricted.get(m, [])]
+    for name, members in reversed(list(zip(contract.names, contract.layers, strict=True))):
+        allowed = [p for m in members for p in contract.restricted.get(m, [])]
         may = f"the standard library, {', '.join(allowed)}" if allowed else "the layers below"
         today = sorted({t.removeprefix("flightstack.") for m in members for t in uses.get(m, ())})
         siblings = " (independent siblings)" if len(members) > 1 else ""
         names = ", ".join(f"`{m}`" for m in members)
-        rows.append(f"| {layer['name']}{siblings} | {names} | {may} | {', '.join(today) or '-'} |")
+        rows.append(f"| {name}{siblings} | {names} | {may} | {', '.join(today) or '-'} |")
     exceptions = [
-        f"- `{e['importer']}` → `{e['imported']}`: {_cell(e['reason'])}" for e in data.get("exception", [])
+        f"- `{importer}` → `{imported}`: {_cell(reason)}"
+        for (importer, imported), reason in contract.exceptions.items()
     ]
-    reserved = [
-        f"- `{r['name']}`: {', '.join(f'`{m}`' for m in r['only'])}" for r in data.get("reserved", [])
-    ]
+    reserved = [f"- `{n}`: {', '.join(f'`{m}`' for m in only)}" for n, only in contract.reserved.items()]
     return "\n".join(
         [
             *rows,
