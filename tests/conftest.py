@@ -321,3 +321,30 @@ def fly_mode(
     factory = None if progress is None else (lambda _mode, _n: progress)
     with Flight(mission, progress=factory, **flight) as f:
         return f.fly_mode(mode, predictors)
+
+
+def tello_emulator(ip: str = "127.0.0.3", **kw: Any) -> Any:
+    """A TelloEmulator on `ip` whose state and video go to free ports of 127.0.0.1 (not started)."""
+    from flightstack.ports import free_udp_port
+    from flightstack.sim_backend.emulators.tello import TelloEmulator
+
+    kw.setdefault("video_port", free_udp_port())
+    return TelloEmulator(ip, state_port=free_udp_port(), **kw)
+
+
+def tello_config(emu: Any, **kw: Any) -> Any:
+    """A TelloConfig for the driver against `emu`: the driver's default timing but short connect and
+    command timeouts (2 s, 1 s) and the lab's rc gains; `kw` replaces any field."""
+    from flightstack.drivers.tello import TelloConfig
+    from flightstack.drivers.tello_rc import RcGains
+
+    base: dict[str, Any] = dict(
+        host=emu.ip,
+        control_port=emu.address[1],
+        video_port=emu.video_port,
+        state_port=emu.state_port,
+        connect_timeout_s=2.0,
+        command_timeout_s=1.0,
+        rc_gains=RcGains(0.01, 0.01, 0.0175),
+    )
+    return TelloConfig(**{**base, **kw})

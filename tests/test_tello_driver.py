@@ -23,7 +23,7 @@ pytest.importorskip("av")
 from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.drivers.tello import TelloCommandError, TelloConfig, TelloDriver, TelloLinkError
 from flightstack.drivers.tello_camera import TelloCamera
-from flightstack.drivers.tello_rc import RcGains, velocity_to_rc
+from flightstack.drivers.tello_rc import velocity_to_rc
 from flightstack.hal import FlightPhase
 from flightstack.paper.geometry import Pose, rot_z
 from flightstack.ports import free_udp_port
@@ -31,7 +31,7 @@ from flightstack.sim_backend.emulators.tello import TelloEmulator, wait_until
 from flightstack.sim_backend.render import RenderOptions, render_markers
 from flightstack.vision.camera_file import load_calibration
 from flightstack.vision.markers import extract_markers
-from tests.conftest import MISSIONS, Bound
+from tests.conftest import MISSIONS, Bound, tello_config, tello_emulator
 
 CAL = load_calibration(MISSIONS / "cameras" / "tello_down_sim.yaml")
 P0 = np.array([[0.1, 0.1, 0.15], [-0.1, 0.1, 0.15], [-0.1, -0.1, 0.15], [0.1, -0.1, 0.15]])
@@ -55,26 +55,12 @@ def marker_frame(t: float, emu: TelloEmulator) -> np.ndarray:
     return img
 
 
-def make_emulator(ip: str = "127.0.0.3", **kw: object) -> TelloEmulator:
-    """An emulator whose state goes to a free port of 127.0.0.1 (see the module docstring)."""
-    kw.setdefault("video_port", free_udp_port())
-    return TelloEmulator(ip, state_port=free_udp_port(), **kw)  # type: ignore[arg-type]
+make_emulator = tello_emulator  # state and video to free ports of 127.0.0.1 (see the module docstring)
 
 
 def config(emu: TelloEmulator, **kw: object) -> TelloConfig:
-    base: dict[str, object] = dict(
-        host=emu.ip,
-        control_port=emu.address[1],
-        video_port=emu.video_port,
-        state_port=emu.state_port,
-        connect_timeout_s=2.0,
-        command_timeout_s=1.0,
-        link_timeout_s=0.5,
-        keepalive_s=1.0,
-        rc_gains=RcGains(0.01, 0.01, 0.0175),
-    )
-    base.update(kw)
-    return TelloConfig(**base)  # type: ignore[arg-type]
+    """tello_config with a shorter link timeout (0.5 s) and keep-alive (1 s) for these tests."""
+    return tello_config(emu, **{"link_timeout_s": 0.5, "keepalive_s": 1.0, **kw})
 
 
 @pytest.fixture

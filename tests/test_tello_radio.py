@@ -22,14 +22,12 @@ from collections.abc import Callable
 import numpy as np
 
 from flightstack.drivers.hardware import WallClock
-from flightstack.drivers.tello import TelloConfig, TelloDriver
-from flightstack.drivers.tello_rc import RcGains
+from flightstack.drivers.tello import TelloDriver
 from flightstack.hal import FlightPhase, StampedPose
 from flightstack.paper.geometry import Pose
-from flightstack.ports import free_udp_port
 from flightstack.safety import EventLog, SafeDrone, SafetyLimits
 from flightstack.sim_backend.emulators.tello import TelloEmulator, wait_until
-from tests.conftest import Bound
+from tests.conftest import Bound, tello_config, tello_emulator
 
 LAND_S = 1.7
 """The emulated landing's duration (s): a real Tello answered `land` after 1.7 s (Tello-Python #88)."""
@@ -38,23 +36,8 @@ OUTAGE_S = 1.4
 HOVER = (0, 0, 0, 0)
 
 
-def make_emulator(ip: str = "127.0.0.3", **kw: object) -> TelloEmulator:
-    return TelloEmulator(ip, state_port=free_udp_port(), video_port=free_udp_port(), **kw)  # type: ignore[arg-type]
-
-
-def config(emu: TelloEmulator, **kw: object) -> TelloConfig:
-    """The driver's default timing; short connect and command timeouts for the tests."""
-    base: dict[str, object] = dict(
-        host=emu.ip,
-        control_port=emu.address[1],
-        video_port=emu.video_port,
-        state_port=emu.state_port,
-        connect_timeout_s=2.0,
-        command_timeout_s=1.0,
-        rc_gains=RcGains(0.01, 0.01, 0.0175),
-    )
-    base.update(kw)
-    return TelloConfig(**base)  # type: ignore[arg-type]
+make_emulator = tello_emulator
+config = tello_config
 
 
 class LivePose:
