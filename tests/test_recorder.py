@@ -378,3 +378,31 @@ def test_datasets_file_round_trip(tmp_path: Path) -> None:
         for k in ("X", "Y", "ticks"):
             np.testing.assert_array_equal(getattr(d, k), getattr(ref, k))
     assert load_datasets(tmp_path / "missing.npz") == []
+
+
+def test_video_counts_never_stand_between_the_flight_and_its_recording() -> None:
+    """A camera that raises on the way to the recording gives no counts, not an exception."""
+    from types import SimpleNamespace
+
+    from flightstack.runtime.runner import stream_counts
+
+    class Counting:
+        def latest(self) -> None:
+            return None
+
+        def stream_counts(self) -> dict[str, int]:
+            return {"frames": 3}
+
+    class Broken(Counting):
+        def stream_counts(self) -> dict[str, int]:
+            raise OSError("receiver gone")
+
+    cams = {1: Counting(), 2: Broken()}
+
+    def camera(i: int) -> object:
+        if i == 3:
+            raise KeyError(i)  # never started
+        return cams[i]
+
+    fleet = SimpleNamespace(ids=[1, 2, 3], backend=SimpleNamespace(camera=camera))
+    assert stream_counts(fleet) == {"1": {"frames": 3}}  # type: ignore[arg-type]

@@ -304,9 +304,17 @@ def finish_recording(f: Fleet, rec: Recording, book: TickBook, wall_seconds: flo
 
 def stream_counts(f: Fleet) -> dict[str, dict[str, int]]:
     """Per drone whose camera counts its stream (hal.StreamCounting), its counts so far (an agent's
-    backend lives for the whole flight: a mode's counts are the difference from its start)."""
-    cams = {str(i): f.backend.camera(i) for i in f.ids}
-    return {i: c.stream_counts() for i, c in cams.items() if isinstance(c, StreamCounting)}
+    backend lives for the whole flight: a mode's counts are the difference from its start). Never
+    raises: it runs on the way to writing the recording, and counts are only a report."""
+    out: dict[str, dict[str, int]] = {}
+    for i in f.ids:
+        try:
+            cam = f.backend.camera(i)
+            if isinstance(cam, StreamCounting):
+                out[str(i)] = dict(cam.stream_counts())
+        except Exception as exc:  # a camera that failed to start: no counts, the recording goes on
+            _log.warning("drone %s: no video counts (%s: %s)", i, type(exc).__name__, exc)
+    return out
 
 
 def _land_everything(f: Fleet, reason: str, dt: float) -> None:
