@@ -349,10 +349,15 @@ def _run(a: ChildArgs) -> None:
             if row is not None:
                 st[at : at + len(names)] = [row[n] for n in names]
 
+    last: np.ndarray | None = None
     try:
         while stop[_STOP] == 0.0 and os.getppid() == parent:
             report(time.monotonic())
             c = ctrl.read()
+            if c is None:  # never written, or the writer was preempted mid-write: the last good values
+                c = last  # (a torn read is no `streamoff`: the stream and its frame index go on)
+            else:
+                last = c
             if c is None or c[_ON - 1] == 0.0:
                 encoder = None
                 time.sleep(0.01)
