@@ -31,10 +31,6 @@ no rate. Times are time.monotonic() seconds.
 
 from __future__ import annotations
 
-import errno
-import heapq
-import itertools
-import select
 import threading
 import time
 from collections import Counter
@@ -45,7 +41,7 @@ import numpy as np
 
 from flightstack.config.links import LINKS, NONE, LinkSpec, LinksSpec
 
-from .radio import Address, DelayLine, Sender
+from .radio import Address, DelayLine, HeldDatagrams, Sender
 
 EMULATED_LINKS = ("video", "state", "rc", "mocap", "robot")
 """The links the emulators apply (the bus is between agent processes, not a device's)."""
@@ -190,9 +186,7 @@ class LinkedSocket:
         self._recv = recv
         self._on_lost = on_lost
         self._timeout = sock.gettimeout()
-        self._pending: list[tuple[float, int, bytes, Any]] = []
-        self._seq = itertools.count()
-        self._rx_lock = threading.Lock()
+        self._held = HeldDatagrams()
         if recv is not None:
             sock.settimeout(0.0)  # this wrapper does the waiting
 
@@ -224,29 +218,9 @@ class LinkedSocket:
         """The earliest due datagram that passed the link (the caller's timeout semantics)."""
         if self._recv is None:
             return self._sock.recvfrom(bufsize)
-        timeout = self._timeout
-        deadline = None if timeout is None else time.monotonic() + timeout
-        with self._rx_lock:
-            while True:
-                self._pull(bufsize)
-                now = time.monotonic()
-                if self._pending and self._pending[0][0] <= now:
-                    _, _, data, addr = heapq.heappop(self._pending)
-                    return data, addr
-                if timeout == 0.0:
-                    raise BlockingIOError(errno.EAGAIN, "no datagram due")
-                wait = 0.1
-                if self._pending:
-                    wait = min(wait, self._pending[0][0] - now)
-                inner_due = getattr(self._sock, "next_due", None)  # a radio holding datagrams
-                held = inner_due() if callable(inner_due) else None
-                if held is not None:
-                    wait = min(wait, held - now)
-                if deadline is not None:
-                    if now >= deadline:
-                        raise TimeoutError("timed out")
-                    wait = min(wait, deadline - now)
-                select.select([self._sock], [], [], max(0.0, wait))
+        inner_due = getattr(self._sock, "next_due", None)  # a radio holding datagrams
+        below = inner_due if callable(inner_due) else None
+        return self._held.receive(self._timeout, lambda: self._pull(bufsize), self._sock, below)
 
     def _pull(self, bufsize: int) -> None:
         """Decide every datagram that reached the device, in arrival order."""
@@ -262,7 +236,7 @@ class LinkedSocket:
                 if self._on_lost is not None:
                     self._on_lost(data, now)
                 continue
-            heapq.heappush(self._pending, (due, next(self._seq), data, addr))
+            self._held.push(due, data, addr)
 
 
 __all__ = ["EMULATED_LINKS", "LINK_COUNTERS", "DeviceLinks", "LinkStage", "LinkedSocket", "emulated_links"]

@@ -173,6 +173,58 @@ class DeviceRadio:
         self.delay_line.close()
 
 
+class HeldDatagrams:
+    """Datagrams that entered a device and wait for their due time (time.monotonic() s), earliest first,
+    and the receive loop that hands them out with a socket's timeout semantics (shared by the radio's
+    and the device links' sockets)."""
+
+    def __init__(self) -> None:
+        self._heap: list[tuple[float, int, bytes, Any]] = []
+        self._seq = itertools.count()
+        self._lock = threading.Lock()
+
+    def push(self, due: float, data: bytes, addr: Any) -> None:
+        heapq.heappush(self._heap, (due, next(self._seq), data, addr))
+
+    def next_due(self) -> float | None:
+        """When the earliest held datagram is due (None: none held). Read without the receive lock (a
+        receive may be waiting with it): a snapshot."""
+        try:
+            return float(self._heap[0][0])
+        except IndexError:
+            return None
+
+    def receive(
+        self,
+        timeout: float | None,
+        pull: Callable[[], None],
+        sock: Any,
+        below_due: Callable[[], float | None] | None = None,
+    ) -> tuple[bytes, Any]:
+        """The earliest due datagram: `pull()` decides what reached `sock`, then wait on `sock` (at most
+        0.1 s at a time, less when a datagram held here or `below_due()`, one held by a wrapped socket,
+        falls due first). timeout None: wait; 0: BlockingIOError at once; else TimeoutError after it."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._lock:
+            while True:
+                pull()
+                now = time.monotonic()
+                if self._heap and self._heap[0][0] <= now:
+                    _, _, data, addr = heapq.heappop(self._heap)
+                    return data, addr
+                if timeout == 0.0:
+                    raise BlockingIOError(errno.EAGAIN, "no datagram due")
+                wait = 0.1
+                for due in (self.next_due(), None if below_due is None else below_due()):
+                    if due is not None:
+                        wait = min(wait, due - now)
+                if deadline is not None:
+                    if now >= deadline:
+                        raise TimeoutError("timed out")
+                    wait = min(wait, deadline - now)
+                select.select([sock], [], [], max(0.0, wait))
+
+
 class ImpairedSocket:
     """A UDP socket whose traffic passes a DeviceRadio's links (module docstring)."""
 
@@ -188,9 +240,7 @@ class ImpairedSocket:
         self._send_link = send
         self._recv_link = recv
         self._timeout = sock.gettimeout()
-        self._pending: list[tuple[float, int, bytes, Any]] = []
-        self._seq = itertools.count()
-        self._rx_lock = threading.Lock()
+        self._held = HeldDatagrams()
 
     # ---- the wrapped socket's own API ----------------------------------------------------------------
     def __getattr__(self, name: str) -> Any:
@@ -218,34 +268,14 @@ class ImpairedSocket:
 
     # ---- entering the device ---------------------------------------------------------------------------
     def next_due(self) -> float | None:
-        """When the earliest datagram held for the device is due (time.monotonic() s; None: none held).
-        Read without the receive lock (a receive may be waiting with it): a snapshot."""
-        try:
-            return float(self._pending[0][0])
-        except IndexError:
-            return None
+        """When the earliest datagram held for the device is due (time.monotonic() s; None: none held)."""
+        return self._held.next_due()
 
     def recvfrom(self, bufsize: int) -> tuple[bytes, Any]:
         """The earliest due datagram that passed the uplink (the caller's timeout semantics)."""
         if self._recv_link is None:
             return self._sock.recvfrom(bufsize)
-        timeout = self._timeout
-        deadline = None if timeout is None else time.monotonic() + timeout
-        with self._rx_lock:
-            while True:
-                self._drain(bufsize)
-                now = time.monotonic()
-                if self._pending and self._pending[0][0] <= now:
-                    _, _, data, addr = heapq.heappop(self._pending)
-                    return data, addr
-                if timeout == 0.0:
-                    raise BlockingIOError(errno.EAGAIN, "no datagram due")
-                wait = self._pending[0][0] - now if self._pending else 0.1
-                if deadline is not None:
-                    if now >= deadline:
-                        raise TimeoutError("timed out")
-                    wait = min(wait, deadline - now)
-                select.select([self._sock], [], [], max(0.0, min(wait, 0.1)))
+        return self._held.receive(self._timeout, lambda: self._drain(bufsize), self._sock)
 
     def _drain(self, bufsize: int) -> None:
         """Decide every datagram waiting in the socket, in arrival order."""
@@ -256,7 +286,7 @@ class ImpairedSocket:
             except (BlockingIOError, InterruptedError, TimeoutError):
                 return
             for due in self._radio.decide(self._recv_link, len(data)):
-                heapq.heappush(self._pending, (due, next(self._seq), data, addr))
+                self._held.push(due, data, addr)
 
 
-__all__ = ["DelayLine", "DeviceRadio", "ImpairedSocket", "Sender"]
+__all__ = ["DelayLine", "DeviceRadio", "HeldDatagrams", "ImpairedSocket", "Sender"]
