@@ -24,6 +24,7 @@ import pytest
 from flightstack.drivers.mocap import MocapConfig, MocapPoseSource
 from flightstack.drivers.tello_link import CommandChannel
 from flightstack.faults.rows_lab_drivers import FaultySocket
+from tests.conftest import tello_config
 
 
 def wait_for(pred: Callable[[], bool], timeout: float = 3.0, step: float = 0.005) -> bool:
@@ -61,19 +62,10 @@ def tello() -> Iterator[Any]:
 
 
 def tello_driver(emu: Any) -> Any:
-    from flightstack.drivers.tello import TelloConfig, TelloDriver
+    from flightstack.drivers.tello import TelloDriver
+    from flightstack.drivers.tello_rc import RcGains
 
-    cfg = TelloConfig(
-        host=emu.ip,
-        control_port=emu.address[1],
-        video_port=emu.video_port,
-        state_port=emu.state_port,
-        connect_timeout_s=2.0,
-        command_timeout_s=1.0,
-        link_timeout_s=0.5,
-        keepalive_s=1.0,
-    )
-    return TelloDriver(cfg)
+    return TelloDriver(tello_config(emu, link_timeout_s=0.5, keepalive_s=1.0, rc_gains=RcGains()))
 
 
 def test_tello_state_receiver_survives_socket_and_parse_errors(
