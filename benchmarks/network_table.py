@@ -55,8 +55,13 @@ FAILSAFE_KINDS = (
 """Safety reactions (events.jsonl kinds) that a network without blackouts must never cause."""
 MISSION_END = "mission complete"
 """The detail of the `land_all` that ends every mode: not a reaction."""
-RESULTS = REPO / "benchmarks" / "network_table.json"
-"""Results are written beside it, one file per links profile (network_table_<links>.json)."""
+
+
+def results_file(links: str) -> Path:
+    """Where a run of the table with the rig's links `links` keeps its results."""
+    return REPO / "benchmarks" / f"network_table_{links}.json"
+
+
 PAGE = DOCS / "network.md"
 
 
@@ -278,8 +283,7 @@ def main() -> int:
     table = markdown(results, args.duration, args.links)
     print(table)
     if args.read is None:  # a re-read keeps the file of the run itself (its exit codes, wall times)
-        results_file = RESULTS.with_name(f"network_table_{args.links}.json")
-        results_file.write_text(
+        results_file(args.links).write_text(
             json.dumps({"duration_s": args.duration, "links": args.links, "results": results}, indent=1)
             + "\n"
         )
