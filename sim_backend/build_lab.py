@@ -100,6 +100,7 @@ class LabSimBackend:
             marker_radius_m=sim.render.marker_radius_m,
             noise_std=sim.render.noise_std,
             blur_px=sim.render.blur_px,
+            region=sim.render.region,
         )
         self.calibrations = {}
         self._cams = {}

@@ -410,13 +410,13 @@ class RenderedCamera:
 
     def _render(self, taken: float, drone: Pose, robot: Pose) -> Frame:
         """The image of the markers seen from `drone` with the robot at `robot`, stamped `taken` (s)."""
-        from flightstack.sim_backend.render import markers_in_camera, render_markers
+        from flightstack.sim_backend.render import markers_in_camera, render_markers_region
 
         g_i0 = relative(drone, robot)
         centres_c, normal_c = markers_in_camera(g_i0, self.P0, self.R_ic, self.t_ic)
-        image, _, _ = render_markers(self.cal, centres_c, normal_c, self.opts, self.rng)
+        image, _, _, roi = render_markers_region(self.cal, centres_c, normal_c, self.opts, self.rng)
         self.frames += 1
-        return Frame(taken, image, None)
+        return Frame(taken, image, None, roi)
 
 
 class LabWorld:

@@ -4,7 +4,7 @@ believes (per drone) and the simulated physics (`sim:`). Used by flightstack.con
 from __future__ import annotations
 
 import math
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field
 
@@ -60,6 +60,9 @@ class RenderSpec(_Strict):
     marker_radius_m: Distance = 0.03
     noise_std: Annotated[float, Field(ge=0, le=255, allow_inf_nan=False)] = 2.0  # 8-bit grey levels
     blur_px: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.0
+    # where the noise is drawn: "markers" (around the painted markers, the same random numbers there,
+    # the same extracted features as "full", faster) or "full" (every pixel: frames for a viewer)
+    region: Literal["full", "markers"] = "markers"
 
 
 class SimSpec(_Strict):
