@@ -10,7 +10,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from flightstack.sim_backend.render import RenderOptions, _gaussian_noise_int16, _noise_span, render_markers_region
+from flightstack.sim_backend.render import (
+    RenderOptions,
+    _gaussian_noise_int16,
+    _noise_span,
+    render_markers_region,
+)
 from flightstack.vision.markers import extract_markers
 from tests.test_vision import CAL_FWD, CAL_TELLO
 

@@ -201,7 +201,10 @@ def fires(pixels_rgb: np.ndarray, cal: CameraCalibration) -> bool:
     """Whether any of the RGB pixels (n, 3) uint8 is inside any marker's HSV box of cal.markers."""
     hsv = cv2.cvtColor(np.ascontiguousarray(pixels_rgb, dtype=np.uint8).reshape(1, -1, 3), cv2.COLOR_RGB2HSV)
     hue, sat, val = hsv[0, :, 0], hsv[0, :, 1], hsv[0, :, 2]
-    return any(bool((tab[0][hue] & tab[1][sat] & tab[2][val]).any()) for _, tab in _membership_tables(tuple(cal.markers)))
+    return any(
+        bool((tab[0][hue] & tab[1][sat] & tab[2][val]).any())
+        for _, tab in _membership_tables(tuple(cal.markers))
+    )
 
 
 def extract_markers(
