@@ -40,7 +40,7 @@ def test_markers_region_detects_as_the_full_frame(cal, blur: float) -> None:
     gen = np.random.default_rng(3)
     accepted = 0
     for _ in range(60):
-        centres = P0 + [*gen.uniform(-0.7, 0.7, 2), gen.uniform(0.3, 1.5)]
+        centres = P0 + np.array([*gen.uniform(-0.7, 0.7, 2), gen.uniform(0.3, 1.5)])
         normals = np.tile([0.0, 0.0, 1.0], (4, 1)) + gen.normal(0.0, 0.1, (4, 3))
         seed = int(gen.integers(1 << 30))
         a, b = np.random.default_rng(seed), np.random.default_rng(seed)
@@ -63,7 +63,7 @@ def test_markers_region_detects_as_the_full_frame(cal, blur: float) -> None:
 def test_region_falls_back_to_the_full_frame_when_noise_could_look_like_a_marker() -> None:
     # a saturated red floor: noise on it may enter the red marker's colour box, so no roi is promised
     opts = RenderOptions(noise_std=2.0, background_rgb=(200, 40, 40), region="markers")
-    _, _, _, roi = render_markers_region(CAL_TELLO, P0 + [0, 0, 1.0], None, opts, np.random.default_rng(0))
+    _, _, _, roi = render_markers_region(CAL_TELLO, P0 + np.array([0.0, 0.0, 1.0]), None, opts, np.random.default_rng(0))
     assert roi is None
 
 
