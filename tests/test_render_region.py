@@ -63,7 +63,9 @@ def test_markers_region_detects_as_the_full_frame(cal, blur: float) -> None:
 def test_region_falls_back_to_the_full_frame_when_noise_could_look_like_a_marker() -> None:
     # a saturated red floor: noise on it may enter the red marker's colour box, so no roi is promised
     opts = RenderOptions(noise_std=2.0, background_rgb=(200, 40, 40), region="markers")
-    _, _, _, roi = render_markers_region(CAL_TELLO, P0 + np.array([0.0, 0.0, 1.0]), None, opts, np.random.default_rng(0))
+    _, _, _, roi = render_markers_region(
+        CAL_TELLO, P0 + np.array([0.0, 0.0, 1.0]), None, opts, np.random.default_rng(0)
+    )
     assert roi is None
 
 
