@@ -49,8 +49,9 @@ _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-1
 #: Where the simulated camera adds its pixel noise (RenderOptions.region).
 REGIONS = ("full", "markers")
 #: Pixels by which the noisy rectangle of region "markers" extends beyond the painted markers: more than
-#: marker extraction's window around a blob (flightstack.vision.markers: dilation 3 + ring 2).
-ROI_MARGIN_PX = 8
+#: marker extraction's window around a blob (flightstack.vision.markers: dilation 3 + ring 2, + 1 when
+#: it searches a frame shrunk by 2, + 1 for the shrunk pixel's size).
+ROI_MARGIN_PX = 10
 
 
 @dataclass(frozen=True)

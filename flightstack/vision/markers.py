@@ -235,8 +235,8 @@ def extract_markers(
     roi: (x0, y0, x1, y1) pixels, end exclusive: the caller's promise (a renderer's, e.g.
         flightstack.sim_backend.render with region "markers") that no pixel outside it is in any
         marker's HSV box and that it extends more than 5 pixels beyond every such pixel; blobs are then
-        searched only inside it, with the same result as on the whole frame. Used only when downscale
-        is 1.
+        searched only inside it, with the same result as on the whole frame (with downscale > 1 only
+        when it divides the frame's size).
     min_spacing: two markers whose centres are closer than this many times the sum of their radii
         (radius = √(area/π)) reject the frame ("marker spacing"): the target's markers never overlap.
 
@@ -263,21 +263,20 @@ def extract_markers(
     if ds < 1 or W // ds < 1 or H // ds < 1:
         raise ValueError(f"downscale must be >= 1 and leave at least one pixel, got {downscale}")
     image = np.ascontiguousarray(image_rgb)
-    ox, oy = 0, 0  # where the searched part starts in the frame (pixels)
-    if roi is not None and ds == 1:
-        ox, oy = max(0, int(roi[0])), max(0, int(roi[1]))
-        ex, ey = min(W, int(roi[2])), min(H, int(roi[3]))
-        if ex <= ox or ey <= oy:
+    ox, oy, ex, ey = 0, 0, W, H  # the searched part of the frame (pixels, end exclusive)
+    if roi is not None and W % ds == 0 and H % ds == 0:
+        if roi[2] <= roi[0] or roi[3] <= roi[1]:
             return MarkerDetection.rejected(f"marker '{cal.markers[0].name}': 0 blobs")
-    else:
-        ex, ey = W, H
-    hsv_full = cv2.cvtColor(image[oy:ey, ox:ex], cv2.COLOR_RGB2HSV) if ds == 1 else None
+        # on whole ds × ds blocks, so that the shrunk part is exactly that part of the shrunk frame
+        ox, oy = max(0, int(roi[0])) // ds * ds, max(0, int(roi[1])) // ds * ds
+        ex, ey = -(-min(W, int(roi[2])) // ds) * ds, -(-min(H, int(roi[3])) // ds) * ds
+    part = image[oy:ey, ox:ex]
+    hsv_full = cv2.cvtColor(part, cv2.COLOR_RGB2HSV) if ds == 1 else None
     if hsv_full is not None:  # ds == 1
         hsv = hsv_full
     else:
-        hsv = cv2.cvtColor(
-            cv2.resize(image, (W // ds, H // ds), interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2HSV
-        )
+        small = cv2.resize(part, ((ex - ox) // ds, (ey - oy) // ds), interpolation=cv2.INTER_AREA)
+        hsv = cv2.cvtColor(small, cv2.COLOR_RGB2HSV)
     h, w = H // ds, W // ds
     hue, sat, val = cv2.split(hsv)
     m = len(cal.markers)
@@ -305,8 +304,8 @@ def extract_markers(
             k = int(big[np.argmax(stats[big, cv2.CC_STAT_AREA])])
             bx, by, bw, bh = (int(v) for v in stats[k, :4])
             blob = labels[by : by + bh, bx : bx + bw] == k
-            bx += rx + ox
-            by += ry + oy
+            bx += rx + ox // ds
+            by += ry + oy // ds
             if bx == 0 or by == 0 or bx + bw == w or by + bh == h:
                 return MarkerDetection.rejected(f"marker '{mk.name}' touches the image border")
             # the blob's window at full resolution
