@@ -295,6 +295,8 @@ def main(argv: list[str] | None = None) -> int:
     stage("paper_sim", lambda: sim_speed.bench_paper_sim(PAPER_SIM))
     stage("drones", lambda: sim_speed.bench_drones(PAPER_SIM, SCALING))
     stage("sweep", sim_speed.bench_sweep)
+    stage("lab_run", sim_speed.bench_lab_run)
+    stage("lab_sweep", sim_speed.bench_lab_sweep)
     stage("vision", bench_vision)
     stage("bus", bench_bus)
     stage("gp_train", lambda: [bench_gp_train(N, it) for N, it in TRAIN_SIZES])

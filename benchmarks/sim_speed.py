@@ -10,6 +10,9 @@
   subprocess; simulation speed against drones (3, 11, 31; mode dgp).
 * A 20-seed sweep of the paper simulation (`flightstack sweep paper_sim --seeds 20`, 3 modes each) on
   every core of this machine.
+* The simulated lab (`paper_experiment --rig lab-sim`): one run's flown modes in sim s per wall s, and a
+  20-seed sweep, each with the rendered camera (the default) and with `sim.render.model: centres`, and
+  per mode the 20 seeds' mean error both ways with its 95 % CI (the option must stay within them).
 """
 
 from __future__ import annotations
@@ -187,6 +190,56 @@ def bench_drones(
         if rec.error or rec.interrupted:
             raise RuntimeError(f"{n} drones: {rec.error}")
         out[str(n)] = {"wall_s": rec.wall_seconds, "sim_per_wall": duration_s / rec.wall_seconds}
+    return out
+
+
+LAB_MODELS = ("image", "centres")
+"""The simulated lab's camera models benchmarked (`sim.render.model`)."""
+
+
+def bench_lab_run(duration_s: float = 80.0) -> dict[str, dict[str, float]]:
+    """One `paper_experiment` on lab-sim (seed 0, its three modes, GP training included), per camera
+    model: wall seconds of Flight.fly and simulated seconds (the flown modes) per wall second."""
+    out = {}
+    for model in LAB_MODELS:
+        m = load_mission("paper_experiment", {"duration_s": duration_s}, rig="lab-sim")
+        doc = m.model_dump(mode="json")
+        doc["sim"]["render"]["model"] = model
+        from flightstack.config.mission import parse_mission
+
+        mission = parse_mission(doc, "bench lab")
+        mission._base_dir = m._base_dir
+        t0 = time.perf_counter()
+        with Flight(mission) as flight:
+            res = flight.fly()
+        wall = time.perf_counter() - t0
+        if res.error or res.interrupted:
+            raise RuntimeError(f"lab run ({model}): {res.error}")
+        sim = duration_s * len(mission.compare_modes)
+        out[model] = {"wall_s": wall, "sim_per_wall": sim / wall}
+    return out
+
+
+def bench_lab_sweep(seeds: int = 20) -> dict[str, dict[str, object]]:
+    """`flightstack sweep paper_experiment --rig lab-sim --seeds 20` on every core, per camera model: wall
+    seconds of the whole command, and each mode's mean_sq_error over the seeds (mean, 95 % CI)."""
+    import json
+
+    jobs = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    out: dict[str, dict[str, object]] = {}
+    for model in LAB_MODELS:
+        with tempfile.TemporaryDirectory() as tmp:
+            cmd = [sys.executable, "-m", "flightstack", "sweep", "paper_experiment", "--rig", "lab-sim"]
+            cmd += ["--seeds", str(seeds), "--jobs", str(jobs), "--set", f"sim.render.model={model}"]
+            t0 = time.perf_counter()
+            subprocess.run([*cmd, "--out", f"{tmp}/sweep"], check=True, capture_output=True, timeout=3600)
+            wall = time.perf_counter() - t0
+            summary = json.loads(Path(f"{tmp}/sweep/summary.json").read_text())
+        errors = {
+            mode: {k: d["mean_sq_error"][k] for k in ("mean", "ci_low", "ci_high")}
+            for mode, d in summary["points"][0]["modes"].items()
+        }
+        out[model] = {"seeds": seeds, "jobs": jobs, "wall_s": wall, "mean_sq_error": errors}
     return out
 
 

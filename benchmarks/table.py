@@ -25,6 +25,7 @@ TARGETS = {
     "sim_per_wall": (200.0, "paper simulation's flown modes, sim s per wall s", "min"),
     "sim_per_wall_31": (10.0, "31 drones, sim s per wall s", "min"),
     "sweep_20_s": (60.0, "s for a 20-seed sweep of the paper simulation", "max"),
+    "lab_sweep_20_s": (60.0, "s for a 20-seed sweep of the paper's experiment on the simulated lab", "max"),
     "vision_fps": (300.0, "frames/s at 960×720", "min"),
     "zenoh_p50_ms": (0.3, "ms Zenoh hop p50", "max"),
 }
@@ -236,6 +237,41 @@ def _sim_rows(r: dict) -> list[tuple[str, str, str, str, str]]:
             f"{tgt} s: {st}",
         )
     )
+    rows.extend(_lab_rows(r))
+    return rows
+
+
+def _lab_rows(r: dict) -> list[tuple[str, str, str, str, str]]:
+    """The simulated lab's rows: one run and the 20-seed sweep, rendered camera against `centres`."""
+    rows: list[tuple[str, str, str, str, str]] = []
+    run, sweep = r.get("lab_run"), r.get("lab_sweep")
+    if run:
+        img, fast = run["image"], run["centres"]
+        rows.append(
+            (
+                "`paper_experiment` on lab-sim, one run (3 modes × 80 s, training incl.), sim s per wall s",
+                f"{img['sim_per_wall']:.1f} / {fast['sim_per_wall']:.1f}",
+                "rendered camera / `sim.render.model: centres`",
+                f"centres {fast['sim_per_wall'] / img['sim_per_wall']:.1f}× faster",
+                "",
+            )
+        )
+    if sweep:
+        img, fast = sweep["image"], sweep["centres"]
+        for name, s in (("rendered camera", img), ("`sim.render.model: centres`", fast)):
+            tgt, ratio, st = _status("lab_sweep_20_s", s["wall_s"])
+            e = s["mean_sq_error"]
+            rows.append(
+                (
+                    f"`flightstack sweep paper_experiment --rig lab-sim --seeds {s['seeds']}`, {name}, "
+                    f"{s['jobs']} jobs",
+                    f"{s['wall_s']:.1f} s",
+                    "mean_sq_error none / local / dgp: "
+                    + " / ".join(f"{e[k]['mean']:.2e}" for k in ("none", "local", "dgp")),
+                    ratio,
+                    f"{tgt} s: {st}",
+                )
+            )
     return rows
 
 

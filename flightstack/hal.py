@@ -82,11 +82,14 @@ class Frame:
     Either `image` (H × W × 3, RGB uint8) from a real or rendered camera, or `features` (2m,) in the
     paper's image-plane units (the ideal camera of the paper's simulation), or both; `features` is None
     when the target is not (fully) visible.
+    `roi` (x0, y0, x1, y1), pixels, end exclusive: a simulated camera's promise that no pixel of `image`
+    outside it shows a marker (flightstack.vision.markers.extract_markers' `roi`); None: no promise.
     """
 
     stamp: float
     image: np.ndarray | None
     features: np.ndarray | None
+    roi: tuple[int, int, int, int] | None = None
 
 
 @runtime_checkable

@@ -100,6 +100,7 @@ class LabSimBackend:
             marker_radius_m=sim.render.marker_radius_m,
             noise_std=sim.render.noise_std,
             blur_px=sim.render.blur_px,
+            region=sim.render.region,
         )
         self.calibrations = {}
         self._cams = {}
@@ -111,6 +112,8 @@ class LabSimBackend:
             self._cams[d.id] = RenderedCamera(
                 self.world, d.id, cal, R_ic, t_ic, P0, opts, np.random.default_rng(rng.integers(2**32))
             )
+            if sim.render.model == "centres":
+                self._cams[d.id].centres_only(sim.render.centre_noise_px)
             video = mission.links.link("video")
             if not video.perfect:
                 self._cams[d.id].delay_frames(links.get("video", d.id), video.rate_hz or CAMERA_RATE_HZ)

@@ -384,6 +384,15 @@ class RenderedCamera:
         self._next_k = 0
         self._in_flight: list[tuple[float, float]] = []  # (arrival, capture time) of frames on their way
         self._shown: Frame | None = None
+        self.centre_noise_px: float | None = None  # None: images; else features only (centres_only)
+
+    def centres_only(self, noise_px: float) -> None:
+        """Give frames without an image: the markers' exact normalised centres (the lab's λ = 1 image
+        features) plus Gaussian noise of noise_px pixels (divided by fx, fy), or no features unless every
+        disc lies inside the image (its projected centre ± its radius in pixels, at least 1 pixel from
+        the border, each centre at least 0.05 m in front). Much cheaper than rendering and extraction;
+        results differ from theirs within the measurement noise (docs/performance.md)."""
+        self.centre_noise_px = noise_px
 
     def delay_frames(self, link: LinkDelays, rate_hz: float) -> None:
         """Take frames at rate_hz (Hz) and deliver them through `link` (the world keeps its history)."""
@@ -410,13 +419,39 @@ class RenderedCamera:
 
     def _render(self, taken: float, drone: Pose, robot: Pose) -> Frame:
         """The image of the markers seen from `drone` with the robot at `robot`, stamped `taken` (s)."""
-        from flightstack.sim_backend.render import markers_in_camera, render_markers
+        from flightstack.sim_backend.render import markers_in_camera, render_markers_region
 
         g_i0 = relative(drone, robot)
         centres_c, normal_c = markers_in_camera(g_i0, self.P0, self.R_ic, self.t_ic)
-        image, _, _ = render_markers(self.cal, centres_c, normal_c, self.opts, self.rng)
+        if self.centre_noise_px is not None:
+            self.frames += 1
+            return Frame(taken, None, self._centres(centres_c, self.centre_noise_px))
+        image, _, _, roi = render_markers_region(self.cal, centres_c, normal_c, self.opts, self.rng)
         self.frames += 1
-        return Frame(taken, image, None)
+        return Frame(taken, image, None, roi)
+
+    def _centres(self, centres_c: np.ndarray, noise_px: float) -> np.ndarray | None:
+        """(2m,) noisy normalised centres of the markers at centres_c (m, 3) in Σc, or None (centres_only)."""
+        import cv2
+
+        from flightstack.sim_backend.render import MIN_IN_VIEW_DEPTH_M
+
+        cal, z = self.cal, centres_c[:, 2]
+        if z.min() <= MIN_IN_VIEW_DEPTH_M:
+            return None
+        px, _ = cv2.projectPoints(centres_c, _ZERO3, _ZERO3, cal.camera_matrix, cal.dist_coeffs)
+        px = px.reshape(-1, 2)
+        r_px = max(cal.fx, cal.fy) * self.opts.marker_radius_m / z
+        lo, hi = px.min(axis=0) - r_px.max(), px.max(axis=0) + r_px.max()
+        if lo[0] < 0.5 or lo[1] < 0.5 or hi[0] > cal.width - 1.5 or hi[1] > cal.height - 1.5:
+            return None
+        xy = centres_c[:, :2] / z[:, None]
+        if noise_px > 0:
+            xy = xy + self.rng.normal(0.0, noise_px, xy.shape) / np.array([cal.fx, cal.fy])
+        return xy.reshape(-1)
+
+
+_ZERO3 = np.zeros(3)
 
 
 class LabWorld:

@@ -46,6 +46,14 @@ _MASK_MARGIN = 8  # supersamples
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
 
 
+#: Where the simulated camera adds its pixel noise (RenderOptions.region).
+REGIONS = ("full", "markers")
+#: Pixels by which the noisy rectangle of region "markers" extends beyond the painted markers: more than
+#: marker extraction's window around a blob (flightstack.vision.markers: dilation 3 + ring 2, + 1 when
+#: it searches a frame shrunk by 2, + 1 for the shrunk pixel's size).
+ROI_MARGIN_PX = 10
+
+
 @dataclass(frozen=True)
 class RenderOptions:
     """How the simulated camera paints the markers.
@@ -56,6 +64,11 @@ class RenderOptions:
     blur_px: motion-blur length in pixels along blur_dir_rad (0 = none).
     blur_dir_rad: blur direction in the image, radians from the +u axis towards +v.
     supersample: anti-aliasing factor (samples per pixel per axis).
+    region: where the pixel noise is added. "full": every pixel. "markers": only in the rectangle
+        around the painted markers (grown by ROI_MARGIN_PX and the blur), with exactly the random
+        numbers the full frame would have drawn there (the generator is advanced past the rest); the
+        rest of the frame is the plain background and the frame says so (`render_markers_region`'s
+        roi), so marker extraction gives the same bits as on the fully noisy frame, faster.
     """
 
     marker_radius_m: float = 0.03
@@ -64,8 +77,11 @@ class RenderOptions:
     blur_px: float = 0.0
     blur_dir_rad: float = 0.0
     supersample: int = 4
+    region: str = "full"
 
     def __post_init__(self) -> None:
+        if self.region not in REGIONS:
+            raise ValueError(f"region must be one of {', '.join(REGIONS)}, got {self.region!r}")
         if not (self.marker_radius_m > 0 and math.isfinite(self.marker_radius_m)):
             raise ValueError(f"marker_radius_m must be > 0, got {self.marker_radius_m}")
         if not (self.noise_std >= 0 and self.blur_px >= 0):
@@ -216,6 +232,22 @@ def _blur_boxes(image: np.ndarray, kern: np.ndarray, boxes: list[tuple[int, int,
 
 
 _GAUSS_QUANTILES: np.ndarray | None = None
+_NOISE_TABLES: dict[float, np.ndarray] = {}
+
+
+def _noise_table(std: float) -> np.ndarray:
+    """(65536,) int16: round(std · Φ⁻¹((k + ½)/65536)), the noise of the 16-bit random value k."""
+    global _GAUSS_QUANTILES
+    table = _NOISE_TABLES.get(std)
+    if table is None:
+        if _GAUSS_QUANTILES is None:
+            from scipy.special import ndtri
+
+            _GAUSS_QUANTILES = ndtri((np.arange(65536) + 0.5) / 65536.0)
+        table = np.clip(np.round(std * _GAUSS_QUANTILES), -32768, 32767).astype(np.int16)
+        if len(_NOISE_TABLES) < 16:
+            _NOISE_TABLES[std] = table
+    return table
 
 
 def _gaussian_noise_int16(rng: np.random.Generator, n: int, std: float) -> np.ndarray:
@@ -224,14 +256,43 @@ def _gaussian_noise_int16(rng: np.random.Generator, n: int, std: float) -> np.nd
     Exact Gaussian quantiles (truncated at ±4.2σ), about 4× faster than rng.standard_normal; the integer
     rounding is exact for an integer image: round(I + ε) = I + round(ε).
     """
-    global _GAUSS_QUANTILES
-    if _GAUSS_QUANTILES is None:
-        from scipy.special import ndtri
-
-        _GAUSS_QUANTILES = ndtri((np.arange(65536) + 0.5) / 65536.0)
-    table = np.clip(np.round(std * _GAUSS_QUANTILES), -32768, 32767).astype(np.int16)
     idx = rng.bit_generator.random_raw((n + 3) // 4).view(np.uint16)[:n]
-    return np.take(table, idx)
+    return np.take(_noise_table(std), idx)
+
+
+def _noise_span(rng: np.random.Generator, n: int, e0: int, e1: int, std: float) -> np.ndarray:
+    """Elements e0 .. e1 − 1 of `_gaussian_noise_int16(rng, n, std)`, leaving `rng` where that call
+    leaves it: the words before and after the span are skipped with the bit generator's `advance`
+    (PCG64's, O(log n)) when it has one, else drawn and dropped."""
+    bits = rng.bit_generator
+    w0, w1, total = e0 // 4, (e1 + 3) // 4, (n + 3) // 4
+    advance = getattr(bits, "advance", None)
+    if advance is None:
+        return _gaussian_noise_int16(rng, n, std)[e0:e1]
+    if w0 > 0:
+        advance(w0)
+    raw = bits.random_raw(w1 - w0).view(np.uint16)[e0 - 4 * w0 : e1 - 4 * w0]
+    if total > w1:
+        advance(total - w1)
+    return np.take(_noise_table(std), raw)
+
+
+_QUIET_CACHE: dict[tuple[object, ...], bool] = {}
+
+
+def _noise_never_fires(cal: CameraCalibration, background: tuple[int, int, int], amplitude: int) -> bool:
+    """Whether no background pixel with noise of at most `amplitude` grey levels per channel is inside any
+    marker's colour box (flightstack.vision.markers.fires): checked on every such pixel, cached."""
+    key = (tuple(cal.markers), background, amplitude)
+    quiet = _QUIET_CACHE.get(key)
+    if quiet is None:
+        from flightstack.vision.markers import fires
+
+        d = np.arange(-amplitude, amplitude + 1)
+        grid = np.stack(np.meshgrid(d, d, d, indexing="ij"), axis=-1).reshape(-1, 3) + np.array(background)
+        quiet = not fires(np.clip(grid, 0, 255).astype(np.uint8), cal)
+        _QUIET_CACHE[key] = quiet
+    return quiet
 
 
 def markers_in_camera(
@@ -256,6 +317,18 @@ def render_markers(
     opts: RenderOptions,
     rng: np.random.Generator | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(image, true_px, in_view) of `render_markers_region` (its documentation)."""
+    image, true_px, in_view, _ = render_markers_region(cal, centres_c, normals_c, opts, rng)
+    return image, true_px, in_view
+
+
+def render_markers_region(
+    cal: CameraCalibration,
+    centres_c: np.ndarray,
+    normals_c: np.ndarray | None,
+    opts: RenderOptions,
+    rng: np.random.Generator | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int, int] | None]:
     """Paint the m disc markers into a simulated camera frame.
 
     centres_c: (m, 3) marker centres in the camera frame Σc (metres), in the order of cal.markers.
@@ -271,6 +344,11 @@ def render_markers(
         in_view: (m,) bool, the centre is in front of the camera (z > 0.05 m) AND the whole disc is
             inside the image without reaching its outermost row/column of pixels (every outline point
             in [½, W − 3/2] × [½, H − 3/2]), so an unblurred in-view marker never touches the border.
+        roi: with opts.region "markers", the rectangle (x0, y0, x1, y1) (pixels, end exclusive; empty
+            when nothing was painted) outside which the frame is the background, which no marker's
+            colour box accepts, with or without the noise (flightstack.vision.markers.extract_markers'
+            `roi`); None with region "full" or when that cannot be promised (then the whole frame is
+            noisy, as with "full").
 
     Markers are drawn far to near (painter's order by centre depth); discs behind the camera are not
     drawn, discs partly outside the image are drawn clipped. Raises ValueError when the shapes do not
@@ -387,12 +465,38 @@ def render_markers(
         image[by0:by1, bx0:bx1] = np.clip(box + 0.5, 0.0, 255.0).astype(np.uint8)
         boxes.append((bx0, by0, bx1, by1))
 
+    grow = ROI_MARGIN_PX
     if opts.blur_px > 0.0 and boxes:
-        image = _blur_boxes(image, _line_kernel(opts.blur_px, opts.blur_dir_rad), boxes)
+        kern = _line_kernel(opts.blur_px, opts.blur_dir_rad)
+        image = _blur_boxes(image, kern, boxes)
+        grow += kern.shape[0] // 2
+    roi: tuple[int, int, int, int] | None = None
+    if opts.region == "markers":
+        amplitude = int(np.abs(_noise_table(opts.noise_std)).max()) if opts.noise_std > 0.0 else 0
+        if _noise_never_fires(cal, opts.background_rgb, amplitude):
+            if boxes:
+                b = np.array(boxes)
+                roi = (
+                    max(0, int(b[:, 0].min()) - grow),
+                    max(0, int(b[:, 1].min()) - grow),
+                    min(W, int(b[:, 2].max()) + grow),
+                    min(H, int(b[:, 3].max()) + grow),
+                )
+            else:
+                roi = (0, 0, 0, 0)
     if opts.noise_std > 0.0:
         gen = rng if rng is not None else np.random.default_rng()
-        noisy = _gaussian_noise_int16(gen, image.size, opts.noise_std).reshape(image.shape)
-        noisy += image
-        np.clip(noisy, 0, 255, out=noisy)
-        image = noisy.astype(np.uint8)
-    return image, true_px, in_view
+        if roi is None:
+            noisy = _gaussian_noise_int16(gen, image.size, opts.noise_std).reshape(image.shape)
+            noisy += image
+            np.clip(noisy, 0, 255, out=noisy)
+            image = noisy.astype(np.uint8)
+        else:  # the rows of the rectangle drawn, the rest of the frame's draws skipped
+            x0, y0, x1, y1 = roi
+            y1 = max(y0, y1)
+            band = _noise_span(gen, image.size, y0 * W * 3, y1 * W * 3, opts.noise_std)
+            if x1 > x0 and y1 > y0:
+                patch = band.reshape(y1 - y0, W, 3)[:, x0:x1] + image[y0:y1, x0:x1]
+                np.clip(patch, 0, 255, out=patch)
+                image[y0:y1, x0:x1] = patch
+    return image, true_px, in_view, roi

@@ -4,7 +4,7 @@ believes (per drone) and the simulated physics (`sim:`). Used by flightstack.con
 from __future__ import annotations
 
 import math
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field
 
@@ -60,6 +60,14 @@ class RenderSpec(_Strict):
     marker_radius_m: Distance = 0.03
     noise_std: Annotated[float, Field(ge=0, le=255, allow_inf_nan=False)] = 2.0  # 8-bit grey levels
     blur_px: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.0
+    # where the noise is drawn: "markers" (around the painted markers, the same random numbers there,
+    # the same extracted features as "full", faster) or "full" (every pixel: frames for a viewer)
+    region: Literal["full", "markers"] = "markers"
+    # "image": render each frame and extract the markers from it; "centres" (faster, changes results
+    # within the measurement noise, docs/performance.md): no image, each marker's exact normalised centre
+    # plus Gaussian noise of centre_noise_px pixels (the extractor's measured error on these frames)
+    model: Literal["image", "centres"] = "image"
+    centre_noise_px: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.02
 
 
 class SimSpec(_Strict):

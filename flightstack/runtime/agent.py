@@ -199,7 +199,7 @@ class Agent:
             return f, None
         if frame.image is None or self.cfg.calibration is None:
             return None, None
-        det = extract_markers(frame.image, self.cfg.calibration)
+        det = extract_markers(frame.image, self.cfg.calibration, roi=frame.roi)
         self.markers_px = det.pixels
         seen = features_from_detection(det, self.cfg.camera.focal_length)
         return (None if seen is None else np.array(seen, dtype=float).reshape(-1)), det.reason

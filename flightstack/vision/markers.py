@@ -197,6 +197,16 @@ def _weighted_centre(
     return x0 + mom["m10"] / mom["m00"], y0 + mom["m01"] / mom["m00"], mom["m00"] / w_full, bool(cut)
 
 
+def fires(pixels_rgb: np.ndarray, cal: CameraCalibration) -> bool:
+    """Whether any of the RGB pixels (n, 3) uint8 is inside any marker's HSV box of cal.markers."""
+    hsv = cv2.cvtColor(np.ascontiguousarray(pixels_rgb, dtype=np.uint8).reshape(1, -1, 3), cv2.COLOR_RGB2HSV)
+    hue, sat, val = hsv[0, :, 0], hsv[0, :, 1], hsv[0, :, 2]
+    return any(
+        bool((tab[0][hue] & tab[1][sat] & tab[2][val]).any())
+        for _, tab in _membership_tables(tuple(cal.markers))
+    )
+
+
 def extract_markers(
     image_rgb: np.ndarray,
     cal: CameraCalibration,
@@ -206,6 +216,7 @@ def extract_markers(
     downscale: int | None = None,
     max_area_ratio: float = 16.0,
     min_spacing: float = 1.0,
+    roi: tuple[int, int, int, int] | None = None,
 ) -> MarkerDetection:
     """Find the m colour markers of cal.markers in an RGB frame and return their sub-pixel centres.
 
@@ -221,6 +232,11 @@ def extract_markers(
     max_area_ratio: the largest marker's area over the smallest's above this rejects the frame ("marker
         sizes"): the target's markers are alike and near one depth, so a blob much larger or smaller
         than the others is not one of them (a reflection, a smear of a damaged video frame).
+    roi: (x0, y0, x1, y1) pixels, end exclusive: the caller's promise (a renderer's, e.g.
+        flightstack.sim_backend.render with region "markers") that no pixel outside it is in any
+        marker's HSV box and that it extends more than 5 pixels beyond every such pixel; blobs are then
+        searched only inside it, with the same result as on the whole frame (with downscale > 1 only
+        when it divides the frame's size).
     min_spacing: two markers whose centres are closer than this many times the sum of their radii
         (radius = √(area/π)) reject the frame ("marker spacing"): the target's markers never overlap.
 
@@ -247,14 +263,21 @@ def extract_markers(
     if ds < 1 or W // ds < 1 or H // ds < 1:
         raise ValueError(f"downscale must be >= 1 and leave at least one pixel, got {downscale}")
     image = np.ascontiguousarray(image_rgb)
-    hsv_full = cv2.cvtColor(image, cv2.COLOR_RGB2HSV) if ds == 1 else None
+    ox, oy, ex, ey = 0, 0, W, H  # the searched part of the frame (pixels, end exclusive)
+    if roi is not None and W % ds == 0 and H % ds == 0:
+        if roi[2] <= roi[0] or roi[3] <= roi[1]:
+            return MarkerDetection.rejected(f"marker '{cal.markers[0].name}': 0 blobs")
+        # on whole ds × ds blocks, so that the shrunk part is exactly that part of the shrunk frame
+        ox, oy = max(0, int(roi[0])) // ds * ds, max(0, int(roi[1])) // ds * ds
+        ex, ey = -(-min(W, int(roi[2])) // ds) * ds, -(-min(H, int(roi[3])) // ds) * ds
+    part = image[oy:ey, ox:ex]
+    hsv_full = cv2.cvtColor(part, cv2.COLOR_RGB2HSV) if ds == 1 else None
     if hsv_full is not None:  # ds == 1
         hsv = hsv_full
     else:
-        hsv = cv2.cvtColor(
-            cv2.resize(image, (W // ds, H // ds), interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2HSV
-        )
-    h, w = hsv.shape[:2]
+        small = cv2.resize(part, ((ex - ox) // ds, (ey - oy) // ds), interpolation=cv2.INTER_AREA)
+        hsv = cv2.cvtColor(small, cv2.COLOR_RGB2HSV)
+    h, w = H // ds, W // ds
     hue, sat, val = cv2.split(hsv)
     m = len(cal.markers)
     pixels = np.empty((m, 2))
@@ -281,8 +304,8 @@ def extract_markers(
             k = int(big[np.argmax(stats[big, cv2.CC_STAT_AREA])])
             bx, by, bw, bh = (int(v) for v in stats[k, :4])
             blob = labels[by : by + bh, bx : bx + bw] == k
-            bx += rx
-            by += ry
+            bx += rx + ox // ds
+            by += ry + oy // ds
             if bx == 0 or by == 0 or bx + bw == w or by + bh == h:
                 return MarkerDetection.rejected(f"marker '{mk.name}' touches the image border")
             # the blob's window at full resolution
@@ -292,8 +315,8 @@ def extract_markers(
             if ds > 1:
                 blob = np.repeat(np.repeat(blob, ds, axis=0), ds, axis=1)
             comp[fy0 - box[1] : fy1 - box[1], fx0 - box[0] : fx1 - box[0]] = blob
-            if hsv_full is not None:
-                hsv_win = hsv_full[box[1] : box[3], box[0] : box[2]]
+            if hsv_full is not None and box[0] >= ox and box[1] >= oy and box[2] <= ex and box[3] <= ey:
+                hsv_win = hsv_full[box[1] - oy : box[3] - oy, box[0] - ox : box[2] - ox]
             else:
                 hsv_win = cv2.cvtColor(image[box[1] : box[3], box[0] : box[2]], cv2.COLOR_RGB2HSV)
             res = _weighted_centre(image, hsv_win, comp, box, dilate_px, mk)
