@@ -158,4 +158,102 @@ def estimate_delay(
     )
 
 
-__all__ = ["DelayEstimate", "cross_correlation_lag", "estimate_delay"]
+@dataclass(frozen=True)
+class ResponseEstimate:
+    """A command's effect: each change of the command acts `delay` s later (mean `mean_s`, spread `sd_s`
+    over `n_steps` changes timed), then the measured rate follows gain × command through a first-order lag
+    of `tau_s` (s). `peak_s`: the best common delay of the whole fit."""
+
+    mean_s: float
+    sd_s: float
+    tau_s: float
+    gain: float
+    peak_s: float
+    n_steps: int
+
+    def as_link(self) -> tuple[float, float]:
+        """(latency_s, jitter_s) of `latency_s + U(0, jitter_s)` with the same mean and spread."""
+        jitter = math.sqrt(12.0) * self.sd_s
+        return max(0.0, self.mean_s - jitter / 2.0), jitter
+
+
+def _lagged(u: np.ndarray, tau_s: float, dt: float) -> np.ndarray:
+    """u (on a grid of step dt) through a first-order lag of tau_s (exact for a piecewise-constant u)."""
+    if tau_s <= 0:
+        return u.copy()
+    a = math.exp(-dt / tau_s)
+    out = np.empty_like(u)
+    acc = u[0]
+    for i, v in enumerate(u):  # a Python loop over ≤ a few 10^4 samples: fast enough for a calibration
+        acc = a * acc + (1.0 - a) * v
+        out[i] = acc
+    return out
+
+
+def estimate_command_delay(
+    t_cmd: np.ndarray,
+    cmd: np.ndarray,
+    t_meas: np.ndarray,
+    angle: np.ndarray,
+    max_delay_s: float = 0.5,
+    taus_s: np.ndarray | None = None,
+    window_s: float = 0.1,
+    step_s: float = 0.001,
+) -> ResponseEstimate:
+    """How late a rate command acts: cmd (n,) sent at t_cmd (n,) (each held until the next), the angle it
+    drives (any unit, unwrapped) measured at t_meas (m,). The measured rate (angle differenced) is fitted
+    by gain × lag_tau(cmd(t − d)) over d in [0, max_delay_s] and tau in taus_s (default 0..0.5 s); then
+    each change of the command is timed alone within d ± window_s on the measurements up to the next
+    change. ValueError without changes to time."""
+    t_cmd, cmd = np.asarray(t_cmd, float), np.asarray(cmd, float)
+    t_meas, angle = np.asarray(t_meas, float), np.asarray(angle, float)
+    taus = np.arange(0.0, 0.5001, 0.01) if taus_s is None else np.asarray(taus_s, float)
+    rate = np.diff(angle) / np.diff(t_meas)
+    tm = 0.5 * (t_meas[1:] + t_meas[:-1])
+    t0 = t_cmd[0]
+    grid = np.arange(t0, max(tm[-1], t_cmd[-1]) + step_s, step_s)
+    u = cmd[np.clip(np.searchsorted(t_cmd, grid, side="right") - 1, 0, len(cmd) - 1)]
+    shifts = np.arange(0, round(max_delay_s / step_s) + 1)
+    keep = tm - max_delay_s >= t0
+    tm, rate = tm[keep], rate[keep]
+    idx = np.round((tm - t0) / step_s).astype(int)
+    best = (math.inf, 0.0, 0, 0.0)  # (sse, tau, shift, gain)
+    for tau in taus:
+        f = _lagged(u, float(tau), step_s)
+        x = f[idx[None, :] - shifts[:, None]]  # (shifts, m)
+        xx = np.einsum("sm,sm->s", x, x)
+        xr = x @ rate
+        gain = np.where(xx > 0, xr / np.where(xx > 0, xx, 1.0), 0.0)
+        sse = float(rate @ rate) - gain * xr
+        j = int(np.argmin(sse))
+        if sse[j] < best[0]:
+            best = (float(sse[j]), float(tau), int(shifts[j]), float(gain[j]))
+    _, tau, shift, gain = best
+    f = _lagged(u, tau, step_s)
+    changes = np.flatnonzero(np.diff(cmd) != 0) + 1
+    w = round(window_s / step_s)
+    local = np.arange(max(0, shift - w), shift + w + 1)
+    delays = []
+    for n, k in enumerate(changes):
+        end = t_cmd[changes[n + 1]] if n + 1 < len(changes) else t_cmd[k] + 1.0
+        seg = (tm >= t_cmd[k]) & (tm < end + shift * step_s)
+        if seg.sum() < 3 or idx[seg].min() - local.max() < 0:
+            continue
+        x = gain * f[idx[seg][None, :] - local[:, None]]
+        sse = np.sum((x - rate[seg]) ** 2, axis=1)
+        j = int(np.argmin(sse))
+        if 0 < j < len(local) - 1:
+            delays.append((local[j] + _parabola(sse[j - 1], sse[j], sse[j + 1])) * step_s)
+    if len(delays) < 2:
+        raise ValueError(f"only {len(delays)} command changes could be timed")
+    d = np.array(delays)
+    return ResponseEstimate(float(d.mean()), float(d.std(ddof=1)), tau, gain, shift * step_s, int(d.size))
+
+
+__all__ = [
+    "DelayEstimate",
+    "ResponseEstimate",
+    "cross_correlation_lag",
+    "estimate_command_delay",
+    "estimate_delay",
+]

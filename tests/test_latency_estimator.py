@@ -10,7 +10,12 @@ import math
 import numpy as np
 import pytest
 
-from flightstack.calibration.latency import DelayEstimate, cross_correlation_lag, estimate_delay
+from flightstack.calibration.latency import (
+    DelayEstimate,
+    cross_correlation_lag,
+    estimate_command_delay,
+    estimate_delay,
+)
 
 FREQS_HZ = (0.37, 0.83, 1.31)
 
@@ -106,3 +111,37 @@ def test_the_link_of_an_estimate_keeps_its_mean() -> None:
     est = DelayEstimate(0.35, 0.029, 0.3, 0.4, 0.35, 0.9, 100, 110)
     lat, jit = est.as_link()
     assert lat + jit / 2 == pytest.approx(0.35) and jit == pytest.approx(0.1, abs=1e-3)
+
+
+def test_a_rate_command_late_by_a_jittered_link_through_a_first_order_lag() -> None:
+    """Yaw-rate steps (rc units) sent at 20 Hz; each change acts 50 ms + U(0, 30 ms) late, then the yaw
+    rate follows 1.2 deg/s per unit through a 0.1 s lag; the yaw is measured at 100 Hz with 0.05° noise.
+    The timed changes give the delays' mean (65 ms) and spread (30/√12 ms) in closed form."""
+    rng = np.random.default_rng(6)
+    t_cmd = np.arange(0.0, 30.0, 0.05)
+    steps = [0.0]
+    for _ in range(29):  # a new level every second, never the same twice in a row
+        steps.append(float(rng.choice([v for v in (-40.0, -20.0, 0.0, 20.0, 40.0) if v != steps[-1]])))
+    cmd = np.repeat(steps, 20)[: t_cmd.size]
+    act = t_cmd + 0.05 + rng.uniform(0.0, 0.03, t_cmd.size)  # every datagram late by the link
+    dt = 0.0005
+    grid = np.arange(0.0, 31.0, dt)
+    order = np.argsort(act)
+    u = np.zeros_like(grid)
+    for a, v in zip(act[order], cmd[order], strict=True):
+        u[grid >= a] = v
+    rate = np.empty_like(u)
+    acc, alpha = 0.0, 1.0 - math.exp(-dt / 0.1)
+    for i, v in enumerate(1.2 * u):
+        acc += alpha * (v - acc)
+        rate[i] = acc
+    yaw_fine = np.cumsum(rate) * dt
+    t_meas = np.arange(0.5, 30.5, 0.01)
+    yaw_meas = np.interp(t_meas, grid, yaw_fine) + rng.normal(0.0, 0.05, t_meas.size)
+    changes = np.flatnonzero(np.diff(cmd) != 0) + 1
+    truth = act[changes] - t_cmd[changes]
+    est = estimate_command_delay(t_cmd, cmd, t_meas, yaw_meas)
+    assert abs(est.mean_s - truth.mean()) < 5e-3, (est, truth.mean())
+    assert abs(est.sd_s - 0.03 / math.sqrt(12)) < 5e-3, est
+    assert abs(est.tau_s - 0.1) <= 0.02 and abs(est.gain - 1.2) < 0.05, est
+    assert est.n_steps > 0.8 * changes.size
