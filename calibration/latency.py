@@ -6,9 +6,10 @@ t_obs) are taken to satisfy y_obs_i ≈ y_ref(t_obs_i − d_i): frame i shows th
 before it was stamped. `estimate_delay` finds the common lag by normalised cross-correlation (peak on a
 grid, refined by a parabola), then each frame's own d_i by aligning it alone within a window around that
 peak; the mean and spread of the d_i are the link's latency and jitter. A frame is timed only where its
-value is passed once in that window: frames taken while the reference stands still or turns back are
-left out. A pattern that moves one way at varying speed (a yaw turning on, faster and slower) times
-every frame.
+value is passed once in that window: frames taken while the reference stands still, or near where it
+turns back, are left out. A pattern that moves one way at varying speed (a yaw turning on, faster and
+slower) times nearly every frame. Pixel noise spreads the per-frame delays too (by σ/|dy/dt| each, σ
+taken from the fits' residuals): that part is taken out of the spread.
 
 `cross_correlation_lag` alone serves signals of different shapes (a commanded yaw rate against the
 measured one: its peak is the delay plus the response's own lag).
@@ -23,12 +24,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+AMBIGUOUS = 4.0
+"""A frame whose cost has a second minimum below this many times its best (or the median best) is not
+timed: two delays fit it about as well."""
+SEPARATION_S = 0.02
+"""How far from the best delay (s) another minimum counts as a second one (closer: the same, noisy)."""
+
 
 @dataclass(frozen=True)
 class DelayEstimate:
-    """A stream's delay (s): `mean_s` and `sd_s` of the per-frame delays, their 5th/95th percentiles
-    (`p5_s`, `p95_s`), the cross-correlation's peak lag (`peak_s`) and value (`correlation`, −1..1), and
-    `n_used` of `n_frames` frames timed (the others: the reference too still, or no clear minimum)."""
+    """A stream's delay (s): `mean_s` and `sd_s` of the per-frame delays (the spread without the timing
+    noise `noise_s`, the rms of what pixel noise alone adds to each frame's delay), their 5th/95th
+    percentiles (`p5_s`, `p95_s`, with the noise), the cross-correlation's peak lag (`peak_s`) and value
+    (`correlation`, −1..1), and `n_used` of `n_frames` frames timed (the others: the reference too still,
+    or two delays fit about as well)."""
 
     mean_s: float
     sd_s: float
@@ -38,6 +47,7 @@ class DelayEstimate:
     correlation: float
     n_used: int
     n_frames: int
+    noise_s: float = 0.0
 
     def as_link(self) -> tuple[float, float]:
         """(latency_s, jitter_s) of a link `latency_s + U(0, jitter_s)` with the same mean and standard
@@ -99,32 +109,28 @@ def cross_correlation_lag(
     return float(lags[i] + frac * step_s), float(corr[i])
 
 
-def estimate_delay(
+def frame_delays(
     t_ref: np.ndarray,
     y_ref: np.ndarray,
     t_obs: np.ndarray,
     y_obs: np.ndarray,
-    max_lag_s: float = 1.0,
-    window_s: float = 0.1,
+    peak_s: float,
+    window_s: float = 0.3,
     step_s: float = 0.001,
     min_speed_ratio: float = 0.3,
-) -> DelayEstimate:
-    """The delay of the observed stream behind the reference (module docstring).
-
-    t_ref (n,) increasing, y_ref (n,) or (n, k): the reference; t_obs (m,), y_obs (m,) or (m, k): each
-    observation stamped when it became available (NaN rows: not seen, skipped). max_lag_s: the largest
-    delay looked for; window_s: each frame's own delay is searched within the peak ± window_s (wider than
-    the jitter's half-range); step_s: the grid; min_speed_ratio: frames whose window has the reference
-    slower than this fraction of its median speed, or turning back, are not timed. ValueError when fewer
-    than 3 frames can be timed.
-    """
-    t_ref = np.asarray(t_ref, dtype=float)
-    t_obs = np.asarray(t_obs, dtype=float)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(delays (m,) s, timed (m,) bool, noise (m,) s): each observation aligned alone with the reference
+    within peak_s ± window_s (estimate_delay's arguments); NaN delay where it is outside the reference or
+    unseen; timed False where it cannot be timed (estimate_delay); noise: the standard deviation pixel
+    noise alone gives its delay (σ/|dy/dt|, σ² per component from the timed fits' mean residual)."""
+    t_ref, t_obs = np.asarray(t_ref, dtype=float), np.asarray(t_obs, dtype=float)
     yr, yo = _columns(y_ref), _columns(y_obs)
-    peak, corr = cross_correlation_lag(t_ref, yr, t_obs, yo, max_lag_s, step_s)
+    peak = peak_s
     lo, hi = max(0.0, peak - window_s), peak + window_s
     keep = (t_obs - hi >= t_ref[0]) & (t_obs - lo <= t_ref[-1]) & np.isfinite(yo).all(axis=1)
     t, y = t_obs[keep], yo[keep]
+    if t.size == 0:
+        return np.full(len(t_obs), np.nan), np.zeros(len(t_obs), dtype=bool), np.full(len(t_obs), np.nan)
     lags = np.arange(lo, hi + step_s / 2, step_s)
     z = _interp(t_ref, yr, t[:, None] - lags[None, :])  # (n, lags, k)
     cost = np.sum((z - y[:, None, :]) ** 2, axis=2)  # (n, lags)
@@ -136,25 +142,69 @@ def estimate_delay(
     den = c_m - 2.0 * c_0 + c_p
     frac = np.where(den > 0, np.clip(0.5 * (c_m - c_p) / np.where(den > 0, den, 1.0), -1, 1), 0.0)
     d = lags[b] + frac * step_s
-    # a frame is timed only where the reference passes its value once within the window: it moves on
-    # every step (no turning point, no standstill: min_speed_ratio of the median speed) in one direction
+    # a frame is timed only where the reference moves at its aligned time (min_speed_ratio of the median
+    # speed: no standstill) and passes the frame's value once within the window (no other minimum of the
+    # cost, away from the best, as low as AMBIGUOUS × the best or the typical fit: no turning back)
     v = np.diff(z, axis=1) / step_s  # (n, lags - 1, k): the reference's velocity along each window
-    speed = np.linalg.norm(v, axis=2)
-    v_best = v[rows, np.clip(b, 0, v.shape[1] - 1)]  # (n, k)
-    ahead = np.einsum("nlk,nk->nl", v, v_best) > 0
-    fast = (speed.min(axis=1) >= min_speed_ratio * float(np.median(speed))) & ahead.all(axis=1)
-    used = d[inner & fast]
+    speed = np.linalg.norm(v[rows, np.clip(b, 0, v.shape[1] - 1)], axis=1)
+    fast = speed >= min_speed_ratio * float(np.median(speed))
+    is_min = np.zeros_like(cost, dtype=bool)
+    is_min[:, 1:-1] = (cost[:, 1:-1] <= cost[:, :-2]) & (cost[:, 1:-1] <= cost[:, 2:])
+    is_min[:, 0], is_min[:, -1] = cost[:, 0] <= cost[:, 1], cost[:, -1] <= cost[:, -2]  # or beyond the edge
+    apart = np.abs(np.arange(len(lags))[None, :] - best[:, None]) * step_s > SEPARATION_S
+    second = np.where(is_min & apart, cost, np.inf).min(axis=1)
+    floor = AMBIGUOUS * max(float(np.median(c_0)), 1e-12)
+    fast &= second > np.maximum(AMBIGUOUS * c_0, floor)
+    timed = inner & fast
+    dof = max(yr.shape[1] - 1, 1)  # one of the k components' freedom goes into fitting the delay
+    var = float(np.mean(c_0[timed])) / dof if timed.any() else 0.0
+    out, ok, noise = (
+        np.full(len(t_obs), np.nan),
+        np.zeros(len(t_obs), dtype=bool),
+        np.full(len(t_obs), np.nan),
+    )
+    out[keep], ok[keep], noise[keep] = d, timed, math.sqrt(var) / np.maximum(speed, 1e-12)
+    return out, ok, noise
+
+
+def estimate_delay(
+    t_ref: np.ndarray,
+    y_ref: np.ndarray,
+    t_obs: np.ndarray,
+    y_obs: np.ndarray,
+    max_lag_s: float = 1.0,
+    window_s: float = 0.3,
+    step_s: float = 0.001,
+    min_speed_ratio: float = 0.3,
+) -> DelayEstimate:
+    """The delay of the observed stream behind the reference (module docstring).
+
+    t_ref (n,) increasing, y_ref (n,) or (n, k): the reference; t_obs (m,), y_obs (m,) or (m, k): each
+    observation stamped when it became available (NaN rows: not seen, skipped). max_lag_s: the largest
+    delay looked for; window_s: each frame's own delay is searched within the peak ± window_s (wider than
+    the jitter's half-range); step_s: the grid; min_speed_ratio: frames where the reference moves slower than
+    this fraction of its median speed are not timed, nor those two delays in the window fit about as well
+    (AMBIGUOUS). ValueError when fewer than 3 frames can be timed.
+    """
+    t_ref = np.asarray(t_ref, dtype=float)
+    t_obs = np.asarray(t_obs, dtype=float)
+    yr, yo = _columns(y_ref), _columns(y_obs)
+    peak, corr = cross_correlation_lag(t_ref, yr, t_obs, yo, max_lag_s, step_s)
+    d, timed, noise = frame_delays(t_ref, yr, t_obs, yo, peak, window_s, step_s, min_speed_ratio)
+    used = d[timed]
+    noise_var = float(np.mean(noise[timed] ** 2)) if timed.any() else 0.0
     if used.size < 3:
         raise ValueError(f"only {used.size} frames could be timed (the reference moves too little?)")
     return DelayEstimate(
         mean_s=float(used.mean()),
-        sd_s=float(used.std(ddof=1)),
+        sd_s=math.sqrt(max(0.0, float(used.var(ddof=1)) - noise_var)),
         p5_s=float(np.percentile(used, 5)),
         p95_s=float(np.percentile(used, 95)),
         peak_s=peak,
         correlation=corr,
         n_used=int(used.size),
         n_frames=len(t_obs),
+        noise_s=math.sqrt(noise_var),
     )
 
 
@@ -256,4 +306,5 @@ __all__ = [
     "cross_correlation_lag",
     "estimate_command_delay",
     "estimate_delay",
+    "frame_delays",
 ]

@@ -38,7 +38,7 @@ def video_delay(
     t_frames: np.ndarray,
     found: Sequence[np.ndarray | None],
     max_lag_s: float = 1.0,
-    window_s: float = 0.1,
+    window_s: float = 0.3,
 ) -> DelayEstimate:
     """The frames' delay (s) behind the poses: t_pose (n,) the poses' capture times, predicted (n, m, 2)
     their markers' pixels (predicted_pixels); t_frames (f,) each frame's stamp (its decode time on this
