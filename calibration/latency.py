@@ -273,11 +273,11 @@ def estimate_command_delay(
         x = f[idx[None, :] - shifts[:, None]]  # (shifts, m)
         xx = np.einsum("sm,sm->s", x, x)
         xr = x @ rate
-        gain = np.where(xx > 0, xr / np.where(xx > 0, xx, 1.0), 0.0)
-        sse = float(rate @ rate) - gain * xr
-        j = int(np.argmin(sse))
-        if sse[j] < best[0]:
-            best = (float(sse[j]), float(tau), int(shifts[j]), float(gain[j]))
+        gains = np.where(xx > 0, xr / np.where(xx > 0, xx, 1.0), 0.0)
+        sse_fit = float(rate @ rate) - gains * xr
+        j = int(np.argmin(sse_fit))
+        if sse_fit[j] < best[0]:
+            best = (float(sse_fit[j]), float(tau), int(shifts[j]), float(gains[j]))
     _, tau, shift, gain = best
     f = _lagged(u, tau, step_s)
     changes = np.flatnonzero(np.diff(cmd) != 0) + 1
