@@ -314,8 +314,58 @@ def _add_pattern_options(p: argparse.ArgumentParser) -> None:
     )
 
 
+MIN_CORRELATION = 0.8
+"""Below this cross-correlation of the frames' markers with the predicted ones, the video's latency is not
+trusted (the markers were mostly lost, or the session's calibration or mount is wrong)."""
+
+
+def cmd_latency(args: argparse.Namespace) -> int:
+    """Estimate the video and rc latencies of a recorded session; print and write the links file."""
+    from flightstack.calibration.latency import DelayEstimate, ResponseEstimate
+    from flightstack.calibration.latency_report import links_text, write_links_file
+    from flightstack.calibration.latency_session import load_session
+
+    try:
+        video, rc = load_session(args.session)
+    except (OSError, ValueError) as exc:
+        return _error(f"session {args.session}: {exc}")
+    if video is None and rc is None:
+        return _error(f"session {args.session}: neither a video nor an rc part")
+    v_est: DelayEstimate | None = None
+    r_est: ResponseEstimate | None = None
+    try:
+        if video is not None:
+            v_est = video.estimate(args.max_lag, args.window)
+            print(
+                f"video: capture -> decoded {1e3 * v_est.mean_s:.1f} ms mean, {1e3 * v_est.sd_s:.1f} ms sd "
+                f"(5-95 %: {1e3 * v_est.p5_s:.0f}-{1e3 * v_est.p95_s:.0f} ms; pixel noise "
+                f"{1e3 * v_est.noise_s:.1f} ms); {v_est.n_used} of {v_est.n_frames} frames timed; "
+                f"correlation {v_est.correlation:.3f}"
+            )
+        if rc is not None:
+            r_est = rc.estimate(args.max_rc_lag)
+            print(
+                f"rc: sent -> motion starts {1e3 * r_est.mean_s:.1f} ms mean, {1e3 * r_est.sd_s:.1f} ms sd "
+                f"over {r_est.n_steps} changes; then a {1e3 * r_est.tau_s:.0f} ms lag, gain {r_est.gain:.4g}"
+            )
+    except (OSError, ValueError) as exc:
+        return _error(f"session {args.session}: {exc}", EXIT_VERDICT)
+    if v_est is not None and v_est.correlation < MIN_CORRELATION:
+        return _error(
+            f"the markers follow the predicted ones poorly (correlation {v_est.correlation:.2f} < "
+            f"{MIN_CORRELATION}): check the calibration, the mount and that the markers stayed in view",
+            EXIT_VERDICT,
+        )
+    text = links_text(v_est, r_est, how=f"session {Path(args.session).name}")
+    print(text, end="")
+    if args.out:
+        write_links_file(args.out, text)
+        print(f"written to {args.out}; include it in the rig with `links: {{include: {args.out}}}`")
+    return EXIT_OK
+
+
 def register(cal_sub: argparse._SubParsersAction) -> None:
-    """Add `camera`, `markers` and `check` to the `flightstack calibrate` subcommands."""
+    """Add `camera`, `markers`, `check` and `latency` to the `flightstack calibrate` subcommands."""
     c = cal_sub.add_parser(
         "camera",
         help="camera intrinsics and distortion from pattern views (chessboard, ChArUco, circle grid)",
@@ -372,3 +422,22 @@ def register(cal_sub: argparse._SubParsersAction) -> None:
     _add_pattern_options(k)
     k.add_argument("--max-rms", type=float, default=1.0, help="fail if the sample's pattern RMS exceeds this")
     k.set_defaults(func=cmd_check)
+
+    lat = cal_sub.add_parser(
+        "latency",
+        help="the camera's capture -> decoded latency and rc -> motion from a recorded session",
+        description="Estimate a lab's video and rc latencies from a recorded session (.npz: motion-capture "
+        "poses, decoded frames' markers, rc commands; docs/links.md) and write the links file a rig "
+        "includes with `links: {include: FILE}`.",
+    )
+    lat.add_argument("--session", required=True, help="recorded session (.npz)")
+    lat.add_argument("--out", default=None, help="links file to write (.yaml); default: print only")
+    lat.add_argument("--max-lag", type=float, default=1.0, help="largest latency looked for, s (default 1)")
+    lat.add_argument("--max-rc-lag", type=float, default=0.5, help="largest rc latency looked for, s (0.5)")
+    lat.add_argument(
+        "--window",
+        type=float,
+        default=0.3,
+        help="each frame is timed within the peak ± this, s (default 0.3)",
+    )
+    lat.set_defaults(func=cmd_latency)

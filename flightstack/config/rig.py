@@ -191,6 +191,32 @@ def _rel(path_text: str, base: Path) -> str:
     return str(p if p.is_absolute() else (base / p).resolve())
 
 
+LINKS_FILE_KEYS = frozenset({"links", "measured"})
+"""Top-level keys of a links file (`flightstack calibrate latency` writes one): `links:` the measured
+links, `measured:` how they were measured (kept for the reader, not applied)."""
+
+
+def links_with_include(links: Any, base: Path, rig_path: Path) -> Any:
+    """A rig's `links:` with `include: FILE` (relative to the rig's directory) replaced by the links of
+    FILE's `links:`; a link the rig writes out beside `include` replaces the file's."""
+    if not isinstance(links, dict) or "include" not in links:
+        return copy.deepcopy(links)
+    own = {k: copy.deepcopy(v) for k, v in links.items() if k != "include"}
+    name = links["include"]
+    if not isinstance(name, str) or not name:
+        raise RigError(f"{rig_path}: links.include: a links file's path, got {name!r}")
+    src = read(Path(_rel(name, base)), "links file")
+    unknown = sorted(set(src.data) - LINKS_FILE_KEYS)
+    included = src.data.get("links")
+    if unknown or not isinstance(included, dict) or "include" in included:
+        raise RigError(
+            f"{src.path}: included by {rig_path} (links.include): a links file has `links:` (a mapping, "
+            f"without its own include) and optionally `measured:`"
+            + (f"; unknown key(s): {', '.join(unknown)}" if unknown else "")
+        )
+    return {**copy.deepcopy(included), **own}
+
+
 def compose(experiment: Source, rig: Source) -> dict[str, Any]:
     """The resolved mission document: the experiment, the rig's devices and settings, `rig:` = its name.
 
@@ -206,6 +232,8 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
     for key in ("sim", "safety", "bus", "hardware", "links", "network"):
         if key in r:
             out[key] = copy.deepcopy(r[key])
+    if "links" in r:  # a measured links file is included here: the resolved mission holds its values
+        out["links"] = links_with_include(r["links"], rig.base, rig.path)
     if "emulated" in r:
         out["start_emulators"] = True
     if "emulated" in r and "hardware" not in r:
