@@ -25,6 +25,7 @@ from pydantic import (
 )
 
 from flightstack.config.bus import BusSpec
+from flightstack.config.compensation import CompensationSpec
 from flightstack.config.hardware import HardwareSpec
 from flightstack.config.links import LinksSpec
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
@@ -259,6 +260,7 @@ class Mission(_Strict):
     gain_analysis: GainAnalysisSpec = GainAnalysisSpec()
     sim: SimSpec = SimSpec()
     links: LinksSpec = LinksSpec()  # how late and lossy each link is (flightstack.config.links)
+    compensation: CompensationSpec = CompensationSpec()  # delay-aware observer and command
     safety: SafetySpec = SafetySpec()
     hardware: HardwareSpec | None = None
     network: str = "clean"  # the emulated lab's impairment profile (flightstack.netem.PROFILES)
@@ -330,6 +332,12 @@ class Mission(_Strict):
         if self.k_c_xy_unequal():
             raise ValueError("gains: k_c and k_e must have equal x and y components")
         self._check_sampled_loop()
+        c = self.compensation
+        if c.enabled and self.backend == "tello" and not self.start_emulators and c.response_s is None:
+            raise ValueError(
+                "compensation.response_s: required on hardware (the drone's velocity response time "
+                "constant, s; flightstack calibrate latency measures it)"
+            )
         if self.backend == "sim_lab":
             if self.target.motion != "square":
                 raise ValueError("target.motion: the sim_lab backend drives the robot on the 'square' law")
