@@ -3,10 +3,11 @@
 Off, every agent flies the paper's law. On, each agent
 - uses a camera frame at its capture time (the frame's stamp): the observer's error is measured against
   the estimate and the own pose as they were then, and carried forward to now with the estimate's own
-  motion since and the target's predicted motion (the GP mean used last tick; 0 in mode `none`);
+  motion since and the target's motion over the delay (the estimate's mean velocity over the last
+  second, VELOCITY_WINDOW_S in flightstack.runtime.agent);
 - commands for the state at the time the command takes effect: the own pose `command_delay_s` +
   `response_s` ahead, predicted from the commands already sent through a first-order response, and the
-  estimate carried along with the observer's own motion.
+  estimate carried along with the observer's present input u_e.
 
 With every latency 0 (frames stamped at the tick, command_delay_s = response_s = 0) it is the paper's
 law exactly.
@@ -19,6 +20,9 @@ from typing import Annotated
 from pydantic import Field
 
 from flightstack.config.types import Strict as _Strict
+
+EMULATED_TELLO_RESPONSE_S = 0.1
+"""The emulated Tello's velocity response time constant (s): its rc acts through a first-order lag."""
 
 Latency = Annotated[float, Field(ge=0, le=10.0, allow_inf_nan=False)]
 

@@ -25,12 +25,13 @@ from pydantic import (
 )
 
 from flightstack.config.bus import BusSpec
-from flightstack.config.compensation import CompensationSpec
+from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S, CompensationSpec
 from flightstack.config.hardware import HardwareSpec
 from flightstack.config.links import LinksSpec
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 from flightstack.config.types import Angle, Coordinate, Distance, Finite, Mode, Speed
 from flightstack.config.types import Strict as _Strict
+from flightstack.paper.delay_compensation import Compensation
 from flightstack.paper.fusion import FUSION_RULES
 from flightstack.paper.gain_analysis import (
     MAX_RATE_DT,
@@ -265,6 +266,27 @@ class Mission(_Strict):
     hardware: HardwareSpec | None = None
     network: str = "clean"  # the emulated lab's impairment profile (flightstack.netem.PROFILES)
     _base_dir: Path = PrivateAttr(default=Path("."))
+
+    def delay_compensation(self) -> Compensation | None:
+        """What each agent's delay compensation is told (None: off, the paper's law). Unset latencies
+        come from the rig: the rc link's mean delay, and the simulated (sim.tello) or emulated Tello's
+        response; the ideal rig's drones move as commanded (both 0)."""
+        c = self.compensation
+        if not c.enabled:
+            return None
+        if self.backend == "sim_ideal":
+            rc, response = 0.0, 0.0
+        else:
+            link = self.links.link("rc") if self.backend == "sim_lab" else self.links.emulated("rc")
+            rc = link.latency_s + link.jitter_s / 2
+            response = (
+                self.sim.tello.time_constant_s if self.backend == "sim_lab" else EMULATED_TELLO_RESPONSE_S
+            )
+        return Compensation(
+            rc if c.command_delay_s is None else c.command_delay_s,
+            response if c.response_s is None else c.response_s,
+            c.history_s,
+        )
 
     def resolve(self, relative: str) -> Path:
         """A path from the mission file (calibrations, experts) made absolute against its directory."""
