@@ -12,6 +12,7 @@ Modes: `none` (μ = 0), `local` (own expert only), `dgp` (own + neighbours fused
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -250,12 +251,11 @@ class Agent:
                 n += 1
         rec.neighbours_used = tuple(used)
         hover = self.hold or not rec.own_pose_fresh
-        rec.n_fused = kern.agent_act(
-            T, rec.visible, self._NG, self._NMU, self._NVAR, self._NPRIOR, n, self._mode, self.rule_code,
-            self._g_d, cfg.gains.k_c, cfg.gains.k_e, cfg.gains.k_s, hover,
-        )  # fmt: skip
+        rec.n_fused = self._law(T, n, hover)
         if self._delays is not None:
-            self._delays.act_ahead(self, t, hover)
+            self._delays.estimates.add(t, T[kern.G_BAR_W], T[kern.U_E])
+            if not hover and self._g_wi is not None:
+                self._delays.command_ahead(T, self._g_wi, self._g_wi_t, t, lambda T2: self._law(T2, n, False))
         V = T[kern.V_CMD].copy()
         self.drone.send_body_velocity(V)
         if self._delays is not None:
@@ -268,6 +268,14 @@ class Agent:
         )
         self._u_e_prev, self._t_prev = rec.u_e, t
         return V
+
+    def _law(self, T: np.ndarray, n: int, hover: bool) -> int:
+        """agent_act on the tick buffer T with the first n neighbour messages; how many experts fused."""
+        g = self.cfg.gains
+        return int(kern.agent_act(
+            T, self.last.visible, self._NG, self._NMU, self._NVAR, self._NPRIOR, n, self._mode,
+            self.rule_code, self._g_d, g.k_c, g.k_e, g.k_s, hover,
+        ))  # fmt: skip
 
 
 _ZERO4 = np.zeros(4)
@@ -316,25 +324,21 @@ class _Delays:
         T[kern.E_E, 0], T[kern.E_E, 1], T[kern.E_E, 2], T[kern.E_E, 3] = xi[0], xi[1], xi[2], math.sin(xi[3])
         return True, None
 
-    def act_ahead(self, agent: Agent, t: float, hover: bool) -> None:
-        """After the law at t: keep the estimate and its u_e, and replace (u_c, V) by the law at the
-        state of t + horizon (own pose from the commands sent, estimate moved on with −u_e); u_e stays
-        the one at t."""
-        T = agent._T
-        self.estimates.add(t, T[kern.G_BAR_W], T[kern.U_E])
+    def command_ahead(
+        self, T: np.ndarray, g_wi: np.ndarray, t_g: float, t: float, law: Callable[[np.ndarray], object]
+    ) -> None:
+        """Replace (u_c, V) of the law at t by the law at the state of t + horizon: the own pose from
+        g_wi (measured at t_g) moved by the commands sent, the estimate moved on with −u_e. u_e stays
+        the one at t (the observer is not delayed by the radio). `law` evaluates the law on a buffer."""
         h = self.c.horizon_s
-        if h <= 0.0 or hover or agent._g_wi is None:
+        if h <= 0.0:
             return
-        g_pred = self.commands.predict(agent._g_wi, agent._g_wi_t, t + h)
+        g_pred = self.commands.predict(g_wi, t_g, t + h)
         g_bar_pred = np.empty(4)
         kern.integrate4(T[kern.G_BAR_W], -T[kern.U_E], h, g_bar_pred)
         T2 = T.copy()
         kern.relative4(g_pred, g_bar_pred, T2[kern.G_BAR_I0])
-        cfg, n = agent.cfg, len(agent.last.neighbours_used)
-        kern.agent_act(
-            T2, agent.last.visible, agent._NG, agent._NMU, agent._NVAR, agent._NPRIOR, n, agent._mode,
-            agent.rule_code, agent._g_d, cfg.gains.k_c, cfg.gains.k_e, cfg.gains.k_s, False,
-        )  # fmt: skip
+        law(T2)
         T[kern.U_C], T[kern.V_CMD] = T2[kern.U_C], T2[kern.V_CMD]
 
 
