@@ -11,7 +11,8 @@ what finished; Ctrl-C keeps it):
 - `gains`: k_c = s_c · (13, 13, 13, 7) and k_e = s_e · 8 (k_s = 1) for every s_c, s_e of the scales whose
   sampled loop can fly ((k_max + k_s λ_max(L))·dt < 2; the others are in the table as "not flown", they
   diverge by construction), × links profile `perfect` and `tello` × `compensation.enabled` false/true;
-- `video`: the paper's gains under `tello` with the video link's latency and jitter scaled (× compensation);
+- `video`: the k_c axis (k_e at the paper's) under `tello` with the video link's latency and jitter scaled,
+  × compensation;
 - `hyper`: the paper's gains with `gp.hyperparameters: shared` (perfect, tello; no compensation), for
   the L_μ of "what κ > 0 would take".
 
@@ -86,7 +87,8 @@ class Grid:
 FULL = Grid(
     (0.5, 1.0, 1.5, 2.0, 3.0, 4.0), (0.5, 1.0, 1.5, 2.0, 3.0, 4.0), ("perfect", "tello"), (0.5, 2.0), 5, 80.0
 )
-"""The full study: 270 runs (12 of the 36 gain points fly at dt = 0.05 s), about 35 min on 2 loaded cores."""
+"""The full study: 330 runs (12 of the 36 gain points fly at dt = 0.05 s, 4 of them on the k_c axis that the
+video scales use), about 40 min on 2 loaded cores (docs/latency_study.md)."""
 QUICK = Grid((1.0, 2.0), (1.0,), ("perfect", "tello"), (2.0,), 2, 80.0)
 
 
@@ -146,6 +148,7 @@ def sweep_sets(grid: Grid) -> dict[str, list[str]]:
     if grid.video_scales:
         parts["video"] = [
             *common,
+            "gains=" + ",".join(flow(gains_of(sc, se)) for sc, se in flyable if se == 1.0),
             "links=" + ",".join(flow(links_of("tello", s)) for s in grid.video_scales),
             "compensation.enabled=false,true",
         ]
@@ -224,6 +227,14 @@ class Point:
         vals = [_mode_value(r, mode, key) for r in self.records if succeeded(r)]
         return describe(vals)
 
+    def target_lost(self) -> int:
+        """Runs in which the safety layer saw the target lost (target_lost_hover or _land) in any mode."""
+        n = 0
+        for r in self.records:
+            modes = ((r.get("metrics") or {}).get("modes") or {}).values()
+            n += any(k.startswith("target_lost") for m in modes for k in (m.get("safety_event_counts") or {}))
+        return n
+
     def gain(self, key: str) -> dict[str, Any]:
         vals = []
         for r in self.records:
@@ -253,6 +264,17 @@ def read_records(part_dir: Path) -> list[dict[str, Any]]:
     return out
 
 
+def _order(p: Point) -> tuple[Any, ...]:
+    return (p.part, _latency_order(p.latency), p.compensation, p.kc_scale, p.ke_scale)
+
+
+def _latency_order(latency: str) -> tuple[int, float]:
+    """perfect, then tello by its video scale (tello itself ×1)."""
+    if not latency.startswith("tello"):
+        return (0, 0.0)
+    return (1, float(latency.rsplit("×", 1)[-1]) if "×" in latency else 1.0)
+
+
 def points_of(part: str, records: Sequence[dict[str, Any]]) -> list[Point]:
     """The records of one part grouped into points (by gains, links, compensation, hyperparameters)."""
     points: dict[tuple[Any, ...], Point] = {}
@@ -264,7 +286,7 @@ def points_of(part: str, records: Sequence[dict[str, Any]]) -> list[Point]:
         hyper = str((mission.get("gp") or {}).get("hyperparameters", "per_expert"))
         key = (part, sc, se, lat, comp, hyper)
         points.setdefault(key, Point(part, sc, se, lat, comp, hyper)).records.append(r)
-    return sorted(points.values(), key=lambda p: (p.part, p.latency, p.compensation, p.kc_scale, p.ke_scale))
+    return sorted(points.values(), key=_order)
 
 
 def read_study(out: Path) -> tuple[dict[str, Any], list[Point]]:
@@ -276,15 +298,19 @@ def read_study(out: Path) -> tuple[dict[str, Any], list[Point]]:
             points += points_of(part, read_records(out / part))
     grid = study.get("grid")
     if grid:  # the gain points the sampled loop cannot fly: in the table, not flown
-        have = {(p.kc_scale, p.ke_scale, p.latency, p.compensation) for p in points if p.part == "gains"}
+        have = {(p.part, p.kc_scale, p.ke_scale, p.latency, p.compensation) for p in points}
+        video = [latency_label(links_of("tello", v)) for v in grid.get("video_scales") or []]
         for sc in grid["kc_scales"]:
             for se in grid["ke_scales"]:
-                if rate_dt(sc, se) >= MAX_RATE_DT:
-                    for lat in grid["profiles"]:
-                        for comp in (False, True):
-                            if (sc, se, lat, comp) not in have:
-                                points.append(Point("gains", sc, se, lat, comp))
-        points.sort(key=lambda p: (p.part, p.latency, p.compensation, p.kc_scale, p.ke_scale))
+                if rate_dt(sc, se) < MAX_RATE_DT:
+                    continue
+                where = [("gains", lat) for lat in grid["profiles"]]
+                where += [("video", lat) for lat in video if se == 1.0]
+                for part, lat in where:
+                    for comp in (False, True):
+                        if (part, sc, se, lat, comp) not in have:
+                            points.append(Point(part, sc, se, lat, comp))
+    points.sort(key=_order)
     return study, points
 
 
@@ -313,30 +339,38 @@ def _on(comp: bool) -> str:
 
 def table_md(points: Sequence[Point]) -> str:
     lines = [
-        f"| part | k_c × | k_e × | links | compensation | seeds | class | {MODE} mean position error (m) | "
-        "none (data run) error (m) | κ | L_μ |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        f"| part | k_c × | k_e × | links | compensation | seeds | class | target lost (runs) | "
+        f"{MODE} mean position error (m) | none (data run) error (m) | κ | L_μ |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for p in points:
         part = p.part if p.hyper == "per_expert" else f"{p.part} ({p.hyper})"
         lines.append(
             f"| {part} | {p.kc_scale:g} | {p.ke_scale:g} | {p.latency} | {_on(p.compensation)} | "
-            f"{len(p.records)} | {_cls(p)} | {_ci(p.error())} | {_ci(p.error('none'))} | "
+            f"{len(p.records)} | {_cls(p)} | {p.target_lost() if p.records else '–'} | {_ci(p.error())} | "
+            f"{_ci(p.error('none'))} | "
             f"{_ci(p.gain('kappa'), 1)} | {_ci(p.gain('L_mu'), 1)} |"
         )
     return "\n".join(lines) + "\n"
 
 
+GRIDDED = ("gains", "video")
+"""The parts over gain points (the video part: the k_c axis, k_e at the paper's)."""
+
+
 def conditions(points: Sequence[Point]) -> list[tuple[str, bool]]:
-    return sorted({(p.latency, p.compensation) for p in points if p.part == "gains"})
+    keys = {(p.latency, p.compensation) for p in points if p.part in GRIDDED}
+    return sorted(keys, key=lambda k: (_latency_order(k[0]), k[1]))
 
 
 def boundary(points: Sequence[Point], latency: str, comp: bool) -> dict[str, Any]:
     """The largest converged k_c scale (k_e at the paper's), k_e scale (k_c at the paper's) and the
     converged point with the fastest loop, of one latency and compensation."""
-    mine = [p for p in points if p.part == "gains" and p.latency == latency and p.compensation == comp]
+    mine = [p for p in points if p.part in GRIDDED and p.latency == latency and p.compensation == comp]
 
     def largest(axis: str) -> float | None:
+        if len({getattr(p, axis) for p in mine}) < 2:
+            return None  # not swept along this axis
         other = "ke_scale" if axis == "kc_scale" else "kc_scale"
         ok = [getattr(p, axis) for p in mine if getattr(p, other) == 1.0 and p.verdict()[0] == CONVERGED]
         return max(ok) if ok else None
@@ -356,18 +390,27 @@ def boundary_md(points: Sequence[Point]) -> str:
         b = boundary(points, lat, comp)
         f = b["fastest"]
         fast = "–" if f is None else f"{f.kc_scale:g}, {f.ke_scale:g}; {rate_dt(f.kc_scale, f.ke_scale):.2f}"
-        kc = "none" if b["kc"] is None else f"{b['kc']:g}"
-        ke = "none" if b["ke"] is None else f"{b['ke']:g}"
+        kc = _axis_md(points, lat, comp, "kc_scale", b["kc"])
+        ke = _axis_md(points, lat, comp, "ke_scale", b["ke"])
         lines.append(f"| {lat} | {_on(comp)} | {kc} | {ke} | {fast} |")
     return "\n".join(lines) + "\n"
 
 
-def paper_point(points: Sequence[Point], latency: str, comp: bool, part: str = "gains") -> Point | None:
+def _axis_md(points: Sequence[Point], lat: str, comp: bool, axis: str, value: float | None) -> str:
+    swept = {
+        getattr(p, axis) for p in points if p.part in GRIDDED and p.latency == lat and p.compensation == comp
+    }
+    if len(swept) < 2:
+        return "not swept"
+    return "none" if value is None else f"{value:g}"
+
+
+def paper_point(points: Sequence[Point], latency: str, comp: bool) -> Point | None:
     return next(
         (
             p
             for p in points
-            if p.part == part
+            if p.part in GRIDDED
             and p.latency == latency
             and p.compensation == comp
             and p.kc_scale == 1.0
@@ -383,7 +426,7 @@ def best_stable(points: Sequence[Point], latency: str, comp: bool) -> Point | No
     ok = [
         p
         for p in points
-        if p.part == "gains"
+        if p.part in GRIDDED
         and p.latency == latency
         and p.compensation == comp
         and p.verdict()[0] == CONVERGED
@@ -406,19 +449,6 @@ def errors_md(points: Sequence[Point]) -> str:
             f"| {lat} | {_on(comp)} | {_ci(pp.error()) if pp else '–'} ({pp.verdict()[0] if pp else '–'}) | "
             f"{at} | {_ci(best.error()) if best else '–'} |"
         )
-    video = [p for p in points if p.part == "video"]
-    if video:
-        lines += [
-            "",
-            "At the paper's gains, the video link's latency and jitter scaled (`tello` otherwise):",
-            "",
-        ]
-        lines += [f"| links | compensation | class | {MODE} error (m) | κ |", "|---|---|---|---|---|"]
-        for p in sorted(video, key=lambda p: (p.latency, p.compensation)):
-            lines.append(
-                f"| {p.latency} | {_on(p.compensation)} | {_cls(p)} | {_ci(p.error())} | "
-                f"{_ci(p.gain('kappa'), 1)} |"
-            )
     return "\n".join(lines) + "\n"
 
 
@@ -592,12 +622,17 @@ def write_plot(points: Sequence[Point], path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     conds = conditions(points)
-    video = sorted([p for p in points if p.part == "video"], key=lambda p: p.latency)
-    ncol = len(conds) + (1 if video else 0)
-    fig, axes = plt.subplots(1, max(ncol, 1), figsize=(3.6 * max(ncol, 1), 3.6), squeeze=False)
+    video = [p for p in points if p.part == "video"]
+    n = max(len(conds) + (1 if video else 0), 1)
+    ncol = min(n, 4)
+    nrow = -(-n // ncol)
+    fig, grid = plt.subplots(nrow, ncol, figsize=(3.6 * ncol, 3.4 * nrow), squeeze=False)
+    axes = [a for row in grid for a in row]
+    for ax in axes[n:]:
+        ax.set_visible(False)
     colours = {CONVERGED: "tab:green", "oscillating": "tab:orange", DIVERGED: "tab:red", "failed": "tab:grey"}
-    for ax, (lat, comp) in zip(axes[0], conds, strict=False):
-        mine = [p for p in points if p.part == "gains" and p.latency == lat and p.compensation == comp]
+    for ax, (lat, comp) in zip(axes, conds, strict=False):
+        mine = [p for p in points if p.part in GRIDDED and p.latency == lat and p.compensation == comp]
         for p in mine:
             v = p.verdict()[0]
             ax.scatter(
@@ -625,7 +660,7 @@ def write_plot(points: Sequence[Point], path: Path) -> Path:
         ax.set_title(f"{lat}, compensation {_on(comp)}", fontsize=9)
         ax.grid(True, alpha=0.3)
     if video:
-        ax = axes[0][-1]
+        ax = axes[len(conds)]
         for j, comp in enumerate((False, True)):
             vs = [
                 p

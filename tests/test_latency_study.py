@@ -250,7 +250,7 @@ def test_report_of_a_synthetic_study(tmp_path: Path) -> None:
     not_flown = [p for p in gains if not p.flyable]
     assert {p.kc_scale for p in not_flown} == {4.0} and all(p.verdict()[0] == DIVERGED for p in not_flown)
     b = mod.boundary(points, "tello", False)
-    assert b["kc"] == 1.0 and b["ke"] == 1.0  # k_c × 2 oscillates
+    assert b["kc"] == 1.0 and b["ke"] is None  # k_c × 2 oscillates; k_e was not swept
     assert (
         mod.boundary(points, "tello", True)["kc"] == 2.0
         and mod.boundary(points, "perfect", False)["kc"] == 2.0
@@ -263,6 +263,7 @@ def test_report_of_a_synthetic_study(tmp_path: Path) -> None:
     text = mod.report(tmp_path, True, "cmd", page=page, plot=tmp_path / "plot.png")
     assert "**met**" in text and "not flown (rate·dt" in text and "**oscillating**" in text
     assert "tello, video ×2" in text and "shared" in text and "never (κ does not depend on dt)" in text
+    assert "| tello, video ×2 | off | 1 | not swept |" in text  # its k_c axis: 1 flown, 2 not in the data
     written = page.read_text()
     for key in ("setup", "goal", "boundary", "errors", "kappa", "table"):
         assert f"<!-- latency-study:{key}:start" in written
@@ -293,7 +294,7 @@ def test_study_grids_fly_only_what_the_sampled_loop_carries() -> None:
     assert mod.gains_of(1.0, 1.0) in values  # the paper's gains are flown
     assert "sim.render.model=centres" in sets["gains"] and "compensation.enabled=false,true" in sets["gains"]
     n = sum(mod._runs_of(mod.FULL, p) for p in sets)
-    assert n == 12 * 2 * 2 * mod.FULL.seeds + 2 * 2 * mod.FULL.seeds + 2 * mod.FULL.seeds
+    assert n == (12 * 2 * 2 + 4 * 2 * 2 + 2) * mod.FULL.seeds  # video: the k_c axis, 4 points fly
 
 
 # ------------------------------------------------------------------------------------ system tier
