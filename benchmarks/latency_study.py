@@ -21,6 +21,10 @@ Each run is classified converged / oscillating / diverged from its error envelop
 `--update-docs` writes the generated blocks of docs/latency_study.md and its plot docs/latency_study.png.
 The study is never run in CI (tests/test_latency_study.py checks its machinery on synthetic results and
 one tiny system-tier flight).
+
+A script here, not a CLI command: like network_table.py and sweep_tables.py it is one fixed experiment
+that writes one docs page; what other studies can reuse is in the package (flightstack.sweep runs it,
+flightstack.analysis.stability classifies, flightstack.analysis.kappa_needs computes what κ > 0 takes).
 """
 
 from __future__ import annotations
@@ -798,6 +802,9 @@ def main() -> int:
         print(f"latency study: {n} runs in {len(sweep_sets(grid))} sweeps into {out}", flush=True)
         study = run_study(grid, out, args.jobs, args.timeout)
         print(estimate(study, out, FULL))
+    if not any((out / part / "runs").is_dir() for part in ("gains", "video", "hyper")):
+        print(f"error: {out} holds no study (no gains/, video/ or hyper/ sweep)", file=sys.stderr)
+        return 2
     command = "python benchmarks/latency_study.py --read DIR --update-docs"
     print(report(out, args.update_docs, command))
     return 0
