@@ -262,7 +262,10 @@ def test_report_of_a_synthetic_study(tmp_path: Path) -> None:
     shutil.copy(mod.PAGE, page)
     text = mod.report(tmp_path, True, "cmd", page=page, plot=tmp_path / "plot.png")
     assert "**met**" in text and "not flown (rate·dt" in text and "**oscillating**" in text
-    assert "Gains alone (best stable without compensation, k_c × 1, k_e × 1)" in text and "Compensation alone" in text
+    assert (
+        "Gains alone (best stable without compensation, k_c × 1, k_e × 1)" in text
+        and "Compensation alone" in text
+    )
     assert "tello, video ×2" in text and "shared" in text and "never (κ does not depend on dt)" in text
     assert "| tello, video ×2 | off | 1 | not swept |" in text  # its k_c axis: 1 flown, 2 not in the data
     written = page.read_text()
