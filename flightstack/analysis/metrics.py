@@ -13,6 +13,10 @@ sq_mean_error ≤ mean_sq_error.
 Oscillation (the lab): after a transient of min(TRANSIENT_S, TRANSIENT_FRACTION · run length), per drone,
 the standard deviation over time of the true position error norm ‖p_err(t)‖ and its total variation per
 second Σ_k |‖p_err(t_{k+1})‖ − ‖p_err(t_k)‖| / (t_last − t_first).
+
+Envelope (how the error grows or settles): the largest true position error norm over the drones in each
+consecutive window of ENVELOPE_WINDOW_S from the mode's first tick (flightstack.analysis.stability
+classifies a run from it).
 """
 
 from __future__ import annotations
@@ -82,6 +86,22 @@ def oscillation(
     return pk.std(axis=0), tv, tr
 
 
+ENVELOPE_WINDOW_S = 5.0
+"""Length (s) of the windows of the error envelope."""
+
+
+def error_envelope(t: np.ndarray, pos_err: np.ndarray, window_s: float = ENVELOPE_WINDOW_S) -> list[float]:
+    """Per consecutive window of `window_s` from t[0]: the largest ‖p_err‖ over its ticks and the drones (m).
+
+    t: (N,) tick times (s); pos_err: (N, n) ‖p_err‖ per tick and drone (m). A non-finite value makes its
+    window's entry non-finite (nan propagates through max); an empty window (a gap) is left out."""
+    if t.shape[0] == 0:
+        return []
+    idx = np.floor((t - t[0]) / window_s).astype(np.int64)
+    per_tick = pos_err.max(axis=1) if pos_err.ndim == 2 else pos_err
+    return [float(per_tick[idx == w].max()) for w in np.unique(idx)]
+
+
 ON_THE_FLOOR_M = 0.15
 """A drone whose true height is below this (m) stands on the floor: landed, not outside the fence."""
 
@@ -142,7 +162,9 @@ def mode_metrics(
         out["mean_position_error_per_drone_m"] = {
             str(i): float(np.linalg.norm(rel[:, j, :3], axis=1).mean()) for j, i in enumerate(rec.drone_ids)
         }
-        osc = oscillation(rec.t[:k], np.linalg.norm(rel[:, :, :3], axis=2), transient_s)
+        rel_norm = np.linalg.norm(rel[:, :, :3], axis=2)
+        out["error_envelope"] = {"window_s": ENVELOPE_WINDOW_S, "max_m": error_envelope(rec.t[:k], rel_norm)}
+        osc = oscillation(rec.t[:k], rel_norm, transient_s)
         if osc is not None:
             std, tv, tr = osc
             out["oscillation_transient_s"] = tr
