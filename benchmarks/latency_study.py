@@ -83,31 +83,31 @@ class Grid:
     seeds: int
     duration_s: float
     hyper: bool = True
+    ks_values: tuple[float, ...] = (1.0,)
 
     def record(self) -> dict[str, Any]:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
 
 
-FULL = Grid(
-    (0.5, 1.0, 1.5, 2.0, 3.0, 4.0), (0.5, 1.0, 1.5, 2.0, 3.0, 4.0), ("perfect", "tello"), (0.5, 2.0), 5, 80.0
-)
-"""The full study: 330 runs (12 of the 36 gain points fly at dt = 0.05 s, 4 of them on the k_c axis that the
-video scales use), about 40 min on 2 loaded cores (docs/latency_study.md)."""
+FULL = Grid((0.5, 1.0, 1.5), (0.5, 1.0, 1.5), ("perfect", "tello"), (0.5, 2.0), 4, 80.0, ks_values=(1.0, 4.0))
+"""The full study: the gain scales the sampled loop can fly at dt = 0.05 s (beyond 1.5× few can: 24 of 36
+points of 0.5…4× could not), k_s at the paper's 1 and at 4 (the drone that does not see the target
+follows the other's estimate through k_s alone), 4 seeds; about 45 min on 2 loaded cores."""
 QUICK = Grid((1.0, 2.0), (1.0,), ("perfect", "tello"), (2.0,), 2, 80.0)
 
 
-def gains_of(sc: float, se: float) -> dict[str, Any]:
-    """The mission's `gains` at scales s_c, s_e of the paper's."""
+def gains_of(sc: float, se: float, ks: float = PAPER_KS) -> dict[str, Any]:
+    """The mission's `gains` at scales s_c, s_e of the paper's, and consensus gain k_s."""
     return {
         "k_c": [round(sc * k, 6) for k in PAPER_KC],
         "k_e": [round(se * PAPER_KE, 6)] * 4,
-        "k_s": PAPER_KS,
+        "k_s": ks,
     }
 
 
-def rate_dt(sc: float, se: float) -> float:
+def rate_dt(sc: float, se: float, ks: float = PAPER_KS) -> float:
     """(k_max + k_s λ_max(L))·dt of the scaled gains: the sampled loop flies only below 2."""
-    g = gains_of(sc, se)
+    g = gains_of(sc, se, ks)
     return loop_rate(g["k_c"], g["k_e"], g["k_s"], 2.0) * DT_S
 
 
@@ -140,11 +140,17 @@ def sweep_sets(grid: Grid) -> dict[str, list[str]]:
         f"compare_modes={flow(['none', MODE])}",
         f"duration_s={grid.duration_s:g}",
     ]
-    flyable = [(sc, se) for sc in grid.kc_scales for se in grid.ke_scales if rate_dt(sc, se) < MAX_RATE_DT]
+    flyable = [
+        (sc, se, ks)
+        for sc in grid.kc_scales
+        for se in grid.ke_scales
+        for ks in grid.ks_values
+        if rate_dt(sc, se, ks) < MAX_RATE_DT
+    ]
     parts = {
         "gains": [
             *common,
-            "gains=" + ",".join(flow(gains_of(sc, se)) for sc, se in flyable),
+            "gains=" + ",".join(flow(gains_of(sc, se, ks)) for sc, se, ks in flyable),
             "links=" + ",".join(flow(links_of(p)) for p in grid.profiles),
             "compensation.enabled=false,true",
         ]
@@ -152,7 +158,8 @@ def sweep_sets(grid: Grid) -> dict[str, list[str]]:
     if grid.video_scales:
         parts["video"] = [
             *common,
-            "gains=" + ",".join(flow(gains_of(sc, se)) for sc, se in flyable if se == 1.0),
+            "gains="
+            + ",".join(flow(gains_of(sc, se, ks)) for sc, se, ks in flyable if se == 1.0 and ks == PAPER_KS),
             "links=" + ",".join(flow(links_of("tello", s)) for s in grid.video_scales),
             "compensation.enabled=false,true",
         ]
@@ -213,10 +220,19 @@ class Point:
     compensation: bool
     hyper: str = "per_expert"
     records: list[dict[str, Any]] = field(default_factory=list)
+    k_s: float = PAPER_KS
 
     @property
     def flyable(self) -> bool:
-        return rate_dt(self.kc_scale, self.ke_scale) < MAX_RATE_DT
+        return self.rate_dt < MAX_RATE_DT
+
+    @property
+    def rate_dt(self) -> float:
+        return rate_dt(self.kc_scale, self.ke_scale, self.k_s)
+
+    @property
+    def paper_ks(self) -> bool:
+        return self.k_s == PAPER_KS
 
     def classes(self) -> list[str]:
         return [classify_run(r) for r in self.records]
@@ -253,8 +269,10 @@ def _mode_value(record: dict[str, Any], mode: str, key: str) -> float | None:
     return float(v) if isinstance(v, int | float) and math.isfinite(float(v)) else None
 
 
-def _scales(gains: dict[str, Any]) -> tuple[float, float]:
-    return round(float(gains["k_c"][0]) / PAPER_KC[0], 4), round(float(gains["k_e"][0]) / PAPER_KE, 4)
+def _scales(gains: dict[str, Any]) -> tuple[float, float, float]:
+    """(k_c ×, k_e ×, k_s) of a mission's gains."""
+    sc, se = round(float(gains["k_c"][0]) / PAPER_KC[0], 4), round(float(gains["k_e"][0]) / PAPER_KE, 4)
+    return sc, se, float(gains.get("k_s", PAPER_KS))
 
 
 def read_records(part_dir: Path) -> list[dict[str, Any]]:
@@ -269,7 +287,7 @@ def read_records(part_dir: Path) -> list[dict[str, Any]]:
 
 
 def _order(p: Point) -> tuple[Any, ...]:
-    return (p.part, _latency_order(p.latency), p.compensation, p.kc_scale, p.ke_scale)
+    return (p.part, _latency_order(p.latency), p.compensation, p.k_s, p.kc_scale, p.ke_scale)
 
 
 def _latency_order(latency: str) -> tuple[int, float]:
@@ -284,12 +302,12 @@ def points_of(part: str, records: Sequence[dict[str, Any]]) -> list[Point]:
     points: dict[tuple[Any, ...], Point] = {}
     for r in records:
         mission = r.get("mission") or {}
-        sc, se = _scales(mission.get("gains") or gains_of(1.0, 1.0))
+        sc, se, ks = _scales(mission.get("gains") or gains_of(1.0, 1.0))
         lat = latency_label(mission.get("links") or {"profile": "perfect"})
         comp = bool((mission.get("compensation") or {}).get("enabled", False))
         hyper = str((mission.get("gp") or {}).get("hyperparameters", "per_expert"))
-        key = (part, sc, se, lat, comp, hyper)
-        points.setdefault(key, Point(part, sc, se, lat, comp, hyper)).records.append(r)
+        key = (part, sc, se, ks, lat, comp, hyper)
+        points.setdefault(key, Point(part, sc, se, lat, comp, hyper, k_s=ks)).records.append(r)
     return sorted(points.values(), key=_order)
 
 
@@ -302,18 +320,19 @@ def read_study(out: Path) -> tuple[dict[str, Any], list[Point]]:
             points += points_of(part, read_records(out / part))
     grid = study.get("grid")
     if grid:  # the gain points the sampled loop cannot fly: in the table, not flown
-        have = {(p.part, p.kc_scale, p.ke_scale, p.latency, p.compensation) for p in points}
+        have = {(p.part, p.kc_scale, p.ke_scale, p.k_s, p.latency, p.compensation) for p in points}
         video = [latency_label(links_of("tello", v)) for v in grid.get("video_scales") or []]
         for sc in grid["kc_scales"]:
             for se in grid["ke_scales"]:
-                if rate_dt(sc, se) < MAX_RATE_DT:
-                    continue
-                where = [("gains", lat) for lat in grid["profiles"]]
-                where += [("video", lat) for lat in video if se == 1.0]
-                for part, lat in where:
-                    for comp in (False, True):
-                        if (part, sc, se, lat, comp) not in have:
-                            points.append(Point(part, sc, se, lat, comp))
+                for ks in grid.get("ks_values") or [PAPER_KS]:
+                    if rate_dt(sc, se, ks) < MAX_RATE_DT:
+                        continue
+                    where = [("gains", lat) for lat in grid["profiles"]]
+                    where += [("video", lat) for lat in video if se == 1.0 and ks == PAPER_KS]
+                    for part, lat in where:
+                        for comp in (False, True):
+                            if (part, sc, se, ks, lat, comp) not in have:
+                                points.append(Point(part, sc, se, lat, comp, k_s=ks))
     points.sort(key=_order)
     return study, points
 
@@ -332,7 +351,7 @@ def _ci(d: dict[str, Any], digits: int = 3) -> str:
 def _cls(p: Point) -> str:
     v, fr = p.verdict()
     if not p.flyable:
-        return f"not flown (rate·dt {rate_dt(p.kc_scale, p.ke_scale):.2f} ≥ 2)"
+        return f"not flown (rate·dt {p.rate_dt:.2f} ≥ 2)"
     parts = [f"{c[:4]} {100 * f:.0f} %" for c, f in fr.items() if f > 0]
     return f"**{v}** ({', '.join(parts)})" if v != CONVERGED else f"{v} ({', '.join(parts)})"
 
@@ -343,14 +362,14 @@ def _on(comp: bool) -> str:
 
 def table_md(points: Sequence[Point]) -> str:
     lines = [
-        f"| part | k_c × | k_e × | links | compensation | seeds | class | target lost (runs) | "
+        f"| part | k_c × | k_e × | k_s | links | compensation | seeds | class | target lost (runs) | "
         f"{MODE} mean position error (m) | none (data run) error (m) | κ | L_μ |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for p in points:
         part = p.part if p.hyper == "per_expert" else f"{p.part} ({p.hyper})"
         lines.append(
-            f"| {part} | {p.kc_scale:g} | {p.ke_scale:g} | {p.latency} | {_on(p.compensation)} | "
+            f"| {part} | {p.kc_scale:g} | {p.ke_scale:g} | {p.k_s:g} | {p.latency} | {_on(p.compensation)} | "
             f"{len(p.records)} | {_cls(p)} | {p.target_lost() if p.records else '–'} | {_ci(p.error())} | "
             f"{_ci(p.error('none'))} | "
             f"{_ci(p.gain('kappa'), 1)} | {_ci(p.gain('L_mu'), 1)} |"
@@ -369,8 +388,12 @@ def conditions(points: Sequence[Point]) -> list[tuple[str, bool]]:
 
 def boundary(points: Sequence[Point], latency: str, comp: bool) -> dict[str, Any]:
     """The largest converged k_c scale (k_e at the paper's), k_e scale (k_c at the paper's) and the
-    converged point with the fastest loop, of one latency and compensation."""
-    mine = [p for p in points if p.part in GRIDDED and p.latency == latency and p.compensation == comp]
+    converged point with the fastest loop, of one latency and compensation, at the paper's k_s."""
+    mine = [
+        p
+        for p in points
+        if p.part in GRIDDED and p.latency == latency and p.compensation == comp and p.paper_ks
+    ]
 
     def largest(axis: str) -> float | None:
         if len({getattr(p, axis) for p in mine}) < 2:
@@ -380,7 +403,7 @@ def boundary(points: Sequence[Point], latency: str, comp: bool) -> dict[str, Any
         return max(ok) if ok else None
 
     conv = [p for p in mine if p.verdict()[0] == CONVERGED]
-    fastest = max(conv, key=lambda p: rate_dt(p.kc_scale, p.ke_scale)) if conv else None
+    fastest = max(conv, key=lambda p: p.rate_dt) if conv else None
     return {"kc": largest("kc_scale"), "ke": largest("ke_scale"), "fastest": fastest}
 
 
@@ -393,7 +416,7 @@ def boundary_md(points: Sequence[Point]) -> str:
     for lat, comp in conditions(points):
         b = boundary(points, lat, comp)
         f = b["fastest"]
-        fast = "–" if f is None else f"{f.kc_scale:g}, {f.ke_scale:g}; {rate_dt(f.kc_scale, f.ke_scale):.2f}"
+        fast = "–" if f is None else f"{f.kc_scale:g}, {f.ke_scale:g}; {f.rate_dt:.2f}"
         kc = _axis_md(points, lat, comp, "kc_scale", b["kc"])
         ke = _axis_md(points, lat, comp, "ke_scale", b["ke"])
         lines.append(f"| {lat} | {_on(comp)} | {kc} | {ke} | {fast} |")
@@ -402,7 +425,9 @@ def boundary_md(points: Sequence[Point]) -> str:
 
 def _axis_md(points: Sequence[Point], lat: str, comp: bool, axis: str, value: float | None) -> str:
     swept = {
-        getattr(p, axis) for p in points if p.part in GRIDDED and p.latency == lat and p.compensation == comp
+        getattr(p, axis)
+        for p in points
+        if p.part in GRIDDED and p.latency == lat and p.compensation == comp and p.paper_ks
     }
     if len(swept) < 2:
         return "not swept"
@@ -419,6 +444,7 @@ def paper_point(points: Sequence[Point], latency: str, comp: bool) -> Point | No
             and p.compensation == comp
             and p.kc_scale == 1.0
             and p.ke_scale == 1.0
+            and p.paper_ks
             and p.hyper == "per_expert"
         ),
         None,
@@ -442,13 +468,13 @@ def best_stable(points: Sequence[Point], latency: str, comp: bool) -> Point | No
 def errors_md(points: Sequence[Point]) -> str:
     lines = [
         f"| links | compensation | {MODE} error at the paper's gains (m) | "
-        "best stable gains (k_c ×, k_e ×) | "
+        "best stable gains (k_c ×, k_e ×, k_s) | "
         f"{MODE} error there (m) |",
         "|---|---|---|---|---|",
     ]
     for lat, comp in conditions(points):
         pp, best = paper_point(points, lat, comp), best_stable(points, lat, comp)
-        at = "–" if best is None else f"{best.kc_scale:g}, {best.ke_scale:g}"
+        at = "–" if best is None else f"{best.kc_scale:g}, {best.ke_scale:g}, {best.k_s:g}"
         lines.append(
             f"| {lat} | {_on(comp)} | {_ci(pp.error()) if pp else '–'} ({pp.verdict()[0] if pp else '–'}) | "
             f"{at} | {_ci(best.error()) if best else '–'} |"
@@ -480,6 +506,7 @@ def kappa_md(points: Sequence[Point]) -> str:
                     and not q.compensation
                     and q.kc_scale == 1.0
                     and q.ke_scale == 1.0
+                    and q.paper_ks
                 ),
                 None,
             )
@@ -543,7 +570,8 @@ def goal_md(points: Sequence[Point]) -> str:
     return (
         f"Goal (with compensation, under `tello`, a mean position error ≥ {GOAL_FACTOR:g}× lower than the "
         f"paper's gains without compensation): {verdict}. Paper's gains, compensation off: "
-        f"{_ci(g['base_error'])} m; compensation on, gains k_c × {c.kc_scale:g}, k_e × {c.ke_scale:g} "
+        f"{_ci(g['base_error'])} m; compensation on, gains k_c × {c.kc_scale:g}, k_e × {c.ke_scale:g}, "
+        f"k_s {c.k_s:g} "
         f"({c.verdict()[0]}): {_ci(g['comp_error'])} m; ratio {g['ratio']:.2f} (needs ≥ {GOAL_FACTOR:g})."
         + _shares(points, g)
         + "\n"
@@ -559,7 +587,7 @@ def _shares(points: Sequence[Point], g: dict[str, Any]) -> str:
         ratio = g["base_error"]["mean"] / tuned.error()["mean"]
         out.append(
             f" Gains alone (best stable without compensation, k_c × {tuned.kc_scale:g}, k_e × "
-            f"{tuned.ke_scale:g}): {_ci(tuned.error())} m, ratio {ratio:.2f}."
+            f"{tuned.ke_scale:g}, k_s {tuned.k_s:g}): {_ci(tuned.error())} m, ratio {ratio:.2f}."
         )
     comp = paper_point(points, "tello", True)
     if comp is not None and comp.error()["mean"]:
@@ -573,10 +601,10 @@ def _shares(points: Sequence[Point], g: dict[str, Any]) -> str:
 def identical_compensation(points: Sequence[Point]) -> tuple[int, int]:
     """(pairs, identical): of the points flown with compensation on and off at otherwise the same
     settings, how many gave the same metrics in every seed (the compensation changed nothing)."""
-    by_key = {(p.part, p.kc_scale, p.ke_scale, p.latency, p.hyper, p.compensation): p for p in points}
+    by_key = {(p.part, p.kc_scale, p.ke_scale, p.k_s, p.latency, p.hyper, p.compensation): p for p in points}
     pairs = same = 0
-    for (part, sc, se, lat, hyper, comp), p in by_key.items():
-        q = by_key.get((part, sc, se, lat, hyper, False))
+    for (part, sc, se, ks, lat, hyper, comp), p in by_key.items():
+        q = by_key.get((part, sc, se, ks, lat, hyper, False))
         if not comp or q is None or not p.records or not q.records:
             continue
         pairs += 1
@@ -620,7 +648,8 @@ def setup_md(study: dict[str, Any], points: Sequence[Point], command: str) -> st
         f"{wall / 60:.1f} min of wall time over {len(inv)} invocation(s) with "
         f"{', '.join(str(i.get('jobs')) for i in inv) or '?'} worker(s) on a {os.cpu_count()}-core machine"
         + (f" (load average {min(loads):.1f}–{max(loads):.1f} at the starts)" if loads else "")
-        + f". Gain scales k_c × {grid.get('kc_scales')}, k_e × {grid.get('ke_scales')}; links "
+        + f". Gain scales k_c × {grid.get('kc_scales')}, k_e × {grid.get('ke_scales')}, k_s "
+        f"{grid.get('ks_values', [PAPER_KS])}; links "
         f"{grid.get('profiles')}; video-latency scales {grid.get('video_scales')}. Classes: converged "
         f"when ≥ {100 * STABLE_FRACTION:.0f} % of a point's seeds converged "
         f"(late envelope ≤ {DIVERGED_M:g} m "
@@ -658,7 +687,11 @@ def write_plot(points: Sequence[Point], path: Path) -> Path:
         ax.set_visible(False)
     colours = {CONVERGED: "tab:green", "oscillating": "tab:orange", DIVERGED: "tab:red", "failed": "tab:grey"}
     for ax, (lat, comp) in zip(axes, conds, strict=False):
-        mine = [p for p in points if p.part in GRIDDED and p.latency == lat and p.compensation == comp]
+        mine = [
+            p
+            for p in points
+            if p.part in GRIDDED and p.latency == lat and p.compensation == comp and p.paper_ks
+        ]
         for p in mine:
             v = p.verdict()[0]
             ax.scatter(
@@ -683,7 +716,7 @@ def write_plot(points: Sequence[Point], path: Path) -> Path:
         ax.minorticks_off()
         ax.set_xlabel("k_c × paper")
         ax.set_ylabel("k_e × paper")
-        ax.set_title(f"{lat}, compensation {_on(comp)}", fontsize=9)
+        ax.set_title(f"{lat}, compensation {_on(comp)}, k_s {PAPER_KS:g}", fontsize=9)
         ax.grid(True, alpha=0.3)
     if video:
         ax = axes[len(conds)]
@@ -695,6 +728,7 @@ def write_plot(points: Sequence[Point], path: Path) -> Path:
                 and p.compensation == comp
                 and p.kc_scale == 1.0
                 and p.ke_scale == 1.0
+                and p.paper_ks
                 and p.latency.startswith("tello")
             ]
             xs, ms, lo, hi = [], [], [], []

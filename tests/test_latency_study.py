@@ -170,11 +170,16 @@ def _metrics(err: float, envelope: list[float | None], kappa: float, L_mu: float
 
 
 def _write_part(
-    root: Path, part: str, points: list[tuple[dict[str, Any], list[dict[str, Any]]]], error: str | None = None
+    root: Path,
+    part: str,
+    points: list[tuple[dict[str, Any], list[dict[str, Any]]]],
+    error: str | None = None,
+    first: int = 0,
 ) -> None:
+    """The runs of `points` as a sweep writes them, numbered from `first` (added to what is there)."""
     runs = root / part / "runs"
     runs.mkdir(parents=True, exist_ok=True)
-    for i, (mission, metrics) in enumerate(points):
+    for i, (mission, metrics) in enumerate(points, start=first):
         for seed, m in enumerate(metrics):
             rec = {
                 "id": f"s{seed}-{part}{i}",
@@ -263,7 +268,7 @@ def test_report_of_a_synthetic_study(tmp_path: Path) -> None:
     text = mod.report(tmp_path, True, "cmd", page=page, plot=tmp_path / "plot.png")
     assert "**met**" in text and "not flown (rate·dt" in text and "**oscillating**" in text
     assert (
-        "Gains alone (best stable without compensation, k_c × 1, k_e × 1)" in text
+        "Gains alone (best stable without compensation, k_c × 1, k_e × 1, k_s 1)" in text
         and "Compensation alone" in text
     )
     assert "tello, video ×2" in text and "shared" in text and "never (κ does not depend on dt)" in text
@@ -298,7 +303,8 @@ def test_study_grids_fly_only_what_the_sampled_loop_carries() -> None:
     assert mod.gains_of(1.0, 1.0) in values  # the paper's gains are flown
     assert "sim.render.model=centres" in sets["gains"] and "compensation.enabled=false,true" in sets["gains"]
     n = sum(mod._runs_of(mod.FULL, p) for p in sets)
-    assert n == (12 * 2 * 2 + 4 * 2 * 2 + 2) * mod.FULL.seeds  # video: the k_c axis, 4 points fly
+    # gains: 16 of the 3 × 3 × 2 (k_c, k_e, k_s) points fly; video: the k_c axis at k_s 1, 3 points
+    assert n == (16 * 2 * 2 + 3 * 2 * 2 + 2) * mod.FULL.seeds
 
 
 # ------------------------------------------------------------------------------------ system tier
@@ -325,3 +331,27 @@ def test_a_tiny_study_runs_and_resumes(tmp_path: Path) -> None:
     text = mod.report(tmp_path, False, "cmd")
     assert "latency-study" not in text and (tmp_path / "latency_study.png").exists()
     print(f"tiny study: {first:.0f} s, rerun {study['invocations'][1]['wall_s']:.0f} s")
+
+
+def test_a_consensus_gain_point_is_a_candidate_for_best_not_the_papers(tmp_path: Path) -> None:
+    """A point at k_s = 4 (otherwise the paper's gains) with the lowest error is the best stable point,
+    and the paper's point and the stability boundary stay at the paper's k_s."""
+    mod = _study()
+    _synthetic_study(tmp_path, mod, comp_error=0.08)
+    mission = {
+        "gains": mod.gains_of(1.0, 1.0, 4.0),
+        "links": mod.links_of("tello"),
+        "compensation": {"enabled": True},
+        "gp": {"hyperparameters": "per_expert"},
+    }
+    _write_part(
+        tmp_path, "gains", [(mission, [_metrics(0.03 * (1 + 0.05 * s), FLAT, -44.0, 24.0) for s in range(3)])]
+    )
+    _, points = mod.read_study(tmp_path)
+    best = mod.best_stable(points, "tello", True)
+    assert best is not None and best.k_s == 4.0 and best.error()["mean"] < 0.035
+    paper = mod.paper_point(points, "tello", True)
+    assert paper is not None and paper.k_s == 1.0 and paper.error()["mean"] == pytest.approx(0.084)
+    assert mod.boundary(points, "tello", True)["kc"] == 2.0  # the k_s = 4 point is off the boundary's axes
+    assert mod.goal(points)["met"]  # 0.1 m against 0.03 m
+    assert "| gains | 1 | 1 | 4 | tello | on |" in mod.table_md(points)
