@@ -279,3 +279,25 @@ def test_on_the_simulated_lab_under_tello_links_compensation_calms_the_pursuit()
     print(f"std {std_off:.4f} -> {std_on:.4f} m; drone 1 {d1_off:.4f} -> {d1_on:.4f} m")
     assert on["position_error_std_m"] < 0.6 * off["position_error_std_m"]
     assert d1_on <= 1.05 * d1_off
+
+
+@pytest.mark.system
+def test_the_command_model_knows_the_safety_layers_limits() -> None:
+    """k_c × 1.5 on lab-sim: the safety layer saturates the approach's commands (0.5 m/s); a command
+    model that took the unsaturated commands for flown ones predicted the drone far ahead of where it
+    was, and the compensated pursuit lost the target (0.75 m mean error, landed at 19 s). With the limits
+    it converges like the uncompensated one."""
+    from flightstack.analysis.metrics import mode_metrics
+    from flightstack.config.mission import GainsSpec, load_mission
+    from tests.conftest import fly_mode
+
+    base = load_mission("paper_experiment", {"duration_s": 40.0}, rig="lab-sim")
+    render = base.sim.render.model_copy(update={"model": "centres"})
+    fast = GainsSpec(k_c=[19.5, 19.5, 19.5, 10.5], k_e=[8.0] * 4, k_s=1.0)
+    base = base.model_copy(update={"sim": base.sim.model_copy(update={"render": render}), "gains": fast})
+    on = mode_metrics(fly_mode(_compensated(base), "none"), base)
+    off = mode_metrics(fly_mode(base, "none"), base)
+    e_off, e_on = off["mean_position_error_m"], on["mean_position_error_m"]
+    print(f"k_c x 1.5: mean position error {e_off:.3f} m off, {e_on:.3f} m on")
+    assert on["ticks"] == off["ticks"] == 800  # neither landed early
+    assert on["mean_position_error_m"] < 1.2 * off["mean_position_error_m"]

@@ -36,6 +36,8 @@ from flightstack.paper.fusion import FUSION_RULES
 from flightstack.paper.geometry import Pose
 from flightstack.paper.projection import CameraModel
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity
+from flightstack.safety import SafetyLimits
+from flightstack.safety.rules import saturate
 from flightstack.vision.camera_file import CameraCalibration
 from flightstack.vision.markers import extract_markers, features_from_detection
 
@@ -65,6 +67,7 @@ class AgentConfig:
     calibration: CameraCalibration | None = None  # image cameras: marker colours and intrinsics
     max_frame_age_s: float = math.inf  # a frame older than this (s, vs the tick time) counts as none
     compensation: Compensation | None = None  # None: the paper's law (docs/equations.md §11)
+    command_limits: SafetyLimits | None = None  # what the safety layer lets through (the command model's)
 
 
 @dataclass
@@ -258,8 +261,9 @@ class Agent:
                 self._delays.command_ahead(T, self._g_wi, self._g_wi_t, t, lambda T2: self._law(T2, n, False))
         V = T[kern.V_CMD].copy()
         self.drone.send_body_velocity(V)
-        if self._delays is not None:
-            self._delays.commands.sent(t, V)
+        if self._delays is not None:  # the command as the drone gets it, past the safety layer's limits
+            lim = self.cfg.command_limits
+            self._delays.commands.sent(t, V if lim is None else saturate(V, lim)[0])
         rec.mu_used, rec.u_c, rec.u_e, rec.V_cmd = (
             T[kern.MU_USED].copy(),
             T[kern.U_C].copy(),

@@ -72,6 +72,7 @@ def make_agents(
             else load_calibration(mission.resolve(d.camera.calibration)),
             max_frame_age_s=math.inf if mission.hardware is None else mission.hardware.max_frame_age_s,
             compensation=compensation,
+            command_limits=safety_limits(mission) if mission.safety.enabled else None,
         )
         # ḡ_w,i(0) = g_w0(0) g_e(0)⁻¹; on sim_lab reset at pursuit start from the drone's own pose
         g_bar = compose(g_w0, inverse(d.initial_estimate_error.pose()))
