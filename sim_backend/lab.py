@@ -26,7 +26,8 @@ from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
 from flightstack.events import Event
 from flightstack.hal import DroneState, Frame, StampedPose
-from flightstack.paper.geometry import Pose, integrate_body_velocity, relative
+from flightstack.paper import kernels as kern
+from flightstack.paper.geometry import Pose, relative
 from flightstack.vision.camera_file import CameraCalibration
 
 
@@ -115,6 +116,41 @@ class LateSamples(Generic[T]):
         return self._shown
 
 
+class PoseState:
+    """A simulated body's pose, kept as the vector [x, y, z, θ] (m, rad) the kernels integrate: a Pose
+    object is made only when `pose` is read (the world steps every 5 ms; its pose is read far less often).
+    The numbers are those of integrating Poses (geometry.integrate_body_velocity) step by step."""
+
+    def __init__(self, pose: Pose) -> None:
+        self._g = np.empty(4)
+        self._next = np.empty(4)
+        self._pose: Pose | None = None
+        self.set(pose)
+
+    @property
+    def pose(self) -> Pose:
+        if self._pose is None:
+            g = self._g
+            self._pose = Pose(g[:3].copy(), float(g[3]))
+        return self._pose
+
+    def set(self, pose: Pose) -> None:
+        self._g[:3] = pose.p
+        self._g[3] = pose.theta
+        self._pose = pose
+
+    @property
+    def z(self) -> float:
+        """Height (m)."""
+        return float(self._g[2])
+
+    def integrate(self, V: np.ndarray, dt: float) -> None:
+        """Move with body velocity V (float64 (4,), m/s and rad/s) held for dt seconds."""
+        kern.integrate4(self._g, V, dt, self._next)
+        self._g, self._next = self._next, self._g
+        self._pose = None
+
+
 class TelloSim:
     """A Tello-like drone (hal.Drone). Commands arrive as the integer rc values the real driver sends."""
 
@@ -136,19 +172,29 @@ class TelloSim:
         self.telemetry: LateSamples[DroneState] | None = (
             None if state_link is None or state_link.spec.perfect else LateSamples(state_link)
         )
-        self.pose = pose
+        self._state = PoseState(pose)
         self.p = params
         self.now = clock_now
         self.phase = self.GROUND
         self.battery = params.battery_pct
         self.v = np.zeros(4)  # actual body velocity
         self._v_target = np.zeros(4)
+        self._dv = np.empty(4)
         self._queue: list[tuple[float, int, tuple[int, int, int, int]]] = []  # (arrival, seq, rc)
         self._seq = 0
         self.last_command_t = -math.inf
         self.rc_log: list[tuple[float, tuple[int, int, int, int]]] = []
         self.events: list[Event] = []  # source lab, on the world's virtual clock (s)
         self.connected = False
+
+    @property
+    def pose(self) -> Pose:
+        """The true pose in Σw."""
+        return self._state.pose
+
+    @pose.setter
+    def pose(self, pose: Pose) -> None:
+        self._state.set(pose)
 
     # ---- hal.Drone ------------------------------------------------------------------------------
     def connect(self) -> None:
@@ -189,7 +235,7 @@ class TelloSim:
 
     def _state_now(self) -> DroneState:
         return DroneState(
-            self.battery, float(self.pose.p[2]), self.connected, self.phase == self.FLYING, self.phase
+            self.battery, self._state.z, self.connected, self.phase == self.FLYING, self.phase
         )
 
     def close(self) -> None:
@@ -217,7 +263,9 @@ class TelloSim:
                 self.phase = self.LANDING
         if self.phase == self.FLYING:
             a = 1.0 - math.exp(-dt / self.p.time_constant_s)
-            self.v += a * (self._v_target - self.v)
+            dv = np.subtract(self._v_target, self.v, out=self._dv)  # v += a (v_target − v), in place
+            dv *= a
+            self.v += dv
         elif self.phase == self.TAKING_OFF:
             self.v = np.array([0.0, 0.0, self.p.climb_rate, 0.0])
         elif self.phase == self.LANDING:
@@ -225,9 +273,9 @@ class TelloSim:
         else:
             self.v = np.zeros(4)
         if airborne:
-            self.pose = integrate_body_velocity(self.pose, self.v, dt)
+            self._state.integrate(self.v, dt)
             self.battery = max(0.0, self.battery - self.p.battery_drain_pct_per_s * dt)
-        z = float(self.pose.p[2])
+        z = self._state.z
         if self.phase == self.TAKING_OFF and z >= self.p.takeoff_height_m:
             self.phase = self.FLYING
             self.v = np.zeros(4)
@@ -256,15 +304,25 @@ class ScamperSim:
     timeout counts from the arrival. `stop()` acts at once (as `land` does on the drone)."""
 
     def __init__(self, pose: Pose, params: RobotParams, clock_now, link: LinkDelays | None = None) -> None:
-        self.pose = pose
+        self._state = PoseState(pose)
         self.p = params
         self.now = clock_now
         self.link = None if link is None or link.spec.perfect else link
         self.v = np.zeros(4)
         self._cmd = np.zeros(4)
+        self._dv = np.empty(4)
         self._cmd_t = -math.inf
         self._queue: list[tuple[float, int, np.ndarray]] = []  # (arrival, seq, command) on their way
         self._seq = 0
+
+    @property
+    def pose(self) -> Pose:
+        """The true pose in Σw."""
+        return self._state.pose
+
+    @pose.setter
+    def pose(self, pose: Pose) -> None:
+        self._state.set(pose)
 
     def send_body_velocity(self, V: np.ndarray) -> None:
         V = np.nan_to_num(np.asarray(V, dtype=float))
@@ -288,8 +346,10 @@ class ScamperSim:
             arrival, _, self._cmd = self._queue.pop(0)
             self._cmd_t = arrival
         target = self._cmd if t - self._cmd_t <= self.p.command_timeout_s else np.zeros(4)
-        self.v += (1.0 - math.exp(-dt / self.p.time_constant_s)) * (target - self.v)
-        self.pose = integrate_body_velocity(self.pose, self.v, dt)
+        dv = np.subtract(target, self.v, out=self._dv)  # v += a (target − v), in place
+        dv *= 1.0 - math.exp(-dt / self.p.time_constant_s)
+        self.v += dv
+        self._state.integrate(self.v, dt)
 
 
 @dataclass(frozen=True)
@@ -300,9 +360,37 @@ class MocapParams:
     dropout_prob: float = 0.0  # probability that a body is missing from a frame
 
 
+class NormalStream:
+    """The standard normals of a generator, drawn in blocks and handed out in order: the very numbers
+    (bit for bit) that drawing them one call at a time would give (numpy's Generator draws each normal on
+    its own from the bit stream), for a fraction of the calls' cost. Only for a generator nothing else
+    draws from: it runs ahead of what has been handed out."""
+
+    BLOCK = 4096
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self._block = np.empty(0)
+        self._at = 0
+
+    def take(self, n: int) -> tuple[np.ndarray, int]:
+        """(block, offset): the next n normals are block[offset : offset + n]."""
+        if self._at + n > self._block.size:
+            rest = self._block[self._at :]
+            self._block = np.concatenate((rest, self.rng.standard_normal(max(n, self.BLOCK))))
+            self._at = 0
+        at = self._at
+        self._at += n
+        return self._block, at
+
+
 class MocapSim:
     """Motion capture (hal.PoseSource): truth sampled at rate_hz, Gaussian noise, random dropouts; with
-    a late `link`, each sample becomes visible link.delay() after it was taken (stamped when taken)."""
+    a late `link`, each sample becomes visible link.delay() after it was taken (stamped when taken).
+
+    Without dropouts the noise is drawn in blocks (NormalStream: the same numbers) and, without a late
+    link, a frame's noisy poses are computed only when `latest` asks for them (the world samples at
+    120 Hz, the agents read at 20 Hz)."""
 
     def __init__(
         self,
@@ -317,9 +405,15 @@ class MocapSim:
         self.now = now
         self._pending: deque[tuple[float, str, StampedPose]] = deque()  # (arrival, body, sample)
         self._latest: dict[str, StampedPose] = {}
+        self._noise = NormalStream(rng) if params.dropout_prob <= 0 else None
+        self._unread: tuple[float, dict[str, Pose], np.ndarray, int] | None = None  # the newest frame
         self._next_t = 0.0
         self.frames = 0
         self.dropped = 0
+
+    def due(self, t: float) -> bool:
+        """Whether a frame is taken at time t (s): a sample time has passed."""
+        return t + 1e-12 >= self._next_t
 
     def capture(self, t: float, bodies: dict[str, Pose]) -> None:
         """Called by the world after each step; takes a frame whenever a sample time has passed."""
@@ -327,8 +421,26 @@ class MocapSim:
             return
         self._next_t += 1.0 / self.p.rate_hz * max(1, math.floor((t - self._next_t) * self.p.rate_hz) + 1)
         self.frames += 1
+        if self._noise is None:
+            self._capture_with_dropouts(t, bodies)
+            return
+        z, at = self._noise.take(4 * len(bodies))  # per body: 3 for the position, 1 for the yaw
+        if self.link is None:
+            self._unread = (t, bodies, z, at)
+            return
+        for k, (name, g) in enumerate(bodies.items()):
+            if not self.link.lost():
+                sample = StampedPose(t, self._noisy(g, z, at + 4 * k))
+                self._pending.append((t + self.link.delay(), name, sample))
+
+    def _noisy(self, g: Pose, z: np.ndarray, at: int) -> Pose:
+        """g with the noise of normals z[at : at + 4] (0.0 + σ·z: what Generator.normal(0.0, σ) gives)."""
+        dp = 0.0 + self.p.noise_pos_m * z[at : at + 3]
+        return Pose.make(g.p + dp, g.theta + (0.0 + self.p.noise_yaw_rad * float(z[at + 3])))
+
+    def _capture_with_dropouts(self, t: float, bodies: dict[str, Pose]) -> None:
         for name, g in bodies.items():
-            if self.p.dropout_prob > 0 and self.rng.random() < self.p.dropout_prob:
+            if self.rng.random() < self.p.dropout_prob:
                 self.dropped += 1
                 continue
             noisy = Pose.make(
@@ -341,6 +453,11 @@ class MocapSim:
                 self._pending.append((t + self.link.delay(), name, StampedPose(t, noisy)))
 
     def latest(self, body: str) -> StampedPose | None:
+        if self._unread is not None:
+            t, bodies, z, at = self._unread
+            self._unread = None
+            for k, (name, g) in enumerate(bodies.items()):
+                self._latest[name] = StampedPose(t, self._noisy(g, z, at + 4 * k))
         if self.link is not None and self.now is not None:
             now = self.now()
             keep: deque[tuple[float, str, StampedPose]] = deque()
@@ -490,9 +607,10 @@ class LabWorld:
             while self._times and self._times[0] < t - self._horizon_s:
                 self._times.popleft()
                 self._states.popleft()
-        bodies = {f"drone{i}": d.pose for i, d in self.drones.items()}
-        bodies["target"] = self.robot.pose
-        self.mocap.capture(t, bodies)
+        if self.mocap.due(t):
+            bodies = {f"drone{i}": d.pose for i, d in self.drones.items()}
+            bodies["target"] = self.robot.pose
+            self.mocap.capture(t, bodies)
 
     def target_pose(self) -> Pose:
         return self.robot.pose
