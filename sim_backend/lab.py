@@ -234,9 +234,7 @@ class TelloSim:
         return UNKNOWN_STATE if seen is None else seen[1]
 
     def _state_now(self) -> DroneState:
-        return DroneState(
-            self.battery, self._state.z, self.connected, self.phase == self.FLYING, self.phase
-        )
+        return DroneState(self.battery, self._state.z, self.connected, self.phase == self.FLYING, self.phase)
 
     def close(self) -> None:
         self.land()
