@@ -139,6 +139,10 @@ class PoseState:
         self._g[3] = pose.theta
         self._pose = pose
 
+    def copy_to(self, out: np.ndarray) -> None:
+        """Write [x, y, z, θ] (m, rad) into out (4,)."""
+        out[:] = self._g
+
     @property
     def z(self) -> float:
         """Height (m)."""
@@ -172,7 +176,7 @@ class TelloSim:
         self.telemetry: LateSamples[DroneState] | None = (
             None if state_link is None or state_link.spec.perfect else LateSamples(state_link)
         )
-        self._state = PoseState(pose)
+        self.body = PoseState(pose)
         self.p = params
         self.now = clock_now
         self.phase = self.GROUND
@@ -190,11 +194,11 @@ class TelloSim:
     @property
     def pose(self) -> Pose:
         """The true pose in Σw."""
-        return self._state.pose
+        return self.body.pose
 
     @pose.setter
     def pose(self, pose: Pose) -> None:
-        self._state.set(pose)
+        self.body.set(pose)
 
     # ---- hal.Drone ------------------------------------------------------------------------------
     def connect(self) -> None:
@@ -234,7 +238,7 @@ class TelloSim:
         return UNKNOWN_STATE if seen is None else seen[1]
 
     def _state_now(self) -> DroneState:
-        return DroneState(self.battery, self._state.z, self.connected, self.phase == self.FLYING, self.phase)
+        return DroneState(self.battery, self.body.z, self.connected, self.phase == self.FLYING, self.phase)
 
     def close(self) -> None:
         self.land()
@@ -271,9 +275,9 @@ class TelloSim:
         else:
             self.v = np.zeros(4)
         if airborne:
-            self._state.integrate(self.v, dt)
+            self.body.integrate(self.v, dt)
             self.battery = max(0.0, self.battery - self.p.battery_drain_pct_per_s * dt)
-        z = self._state.z
+        z = self.body.z
         if self.phase == self.TAKING_OFF and z >= self.p.takeoff_height_m:
             self.phase = self.FLYING
             self.v = np.zeros(4)
@@ -302,7 +306,7 @@ class ScamperSim:
     timeout counts from the arrival. `stop()` acts at once (as `land` does on the drone)."""
 
     def __init__(self, pose: Pose, params: RobotParams, clock_now, link: LinkDelays | None = None) -> None:
-        self._state = PoseState(pose)
+        self.body = PoseState(pose)
         self.p = params
         self.now = clock_now
         self.link = None if link is None or link.spec.perfect else link
@@ -316,11 +320,11 @@ class ScamperSim:
     @property
     def pose(self) -> Pose:
         """The true pose in Σw."""
-        return self._state.pose
+        return self.body.pose
 
     @pose.setter
     def pose(self, pose: Pose) -> None:
-        self._state.set(pose)
+        self.body.set(pose)
 
     def send_body_velocity(self, V: np.ndarray) -> None:
         V = np.nan_to_num(np.asarray(V, dtype=float))
@@ -347,7 +351,7 @@ class ScamperSim:
         dv = np.subtract(target, self.v, out=self._dv)  # v += a (target − v), in place
         dv *= 1.0 - math.exp(-dt / self.p.time_constant_s)
         self.v += dv
-        self._state.integrate(self.v, dt)
+        self.body.integrate(self.v, dt)
 
 
 @dataclass(frozen=True)
@@ -404,7 +408,8 @@ class MocapSim:
         self._pending: deque[tuple[float, str, StampedPose]] = deque()  # (arrival, body, sample)
         self._latest: dict[str, StampedPose] = {}
         self._noise = NormalStream(rng) if params.dropout_prob <= 0 else None
-        self._unread: tuple[float, dict[str, Pose], np.ndarray, int] | None = None  # the newest frame
+        # the newest frame, not yet read: (t, bodies, their poses (B, 4), normals, offset)
+        self._unread: tuple[float, tuple[str, ...], np.ndarray, np.ndarray, int] | None = None
         self._next_t = 0.0
         self.frames = 0
         self.dropped = 0
@@ -415,35 +420,43 @@ class MocapSim:
 
     def capture(self, t: float, bodies: dict[str, Pose]) -> None:
         """Called by the world after each step; takes a frame whenever a sample time has passed."""
+        if self.due(t):
+            G = np.array([(g.p[0], g.p[1], g.p[2], g.theta) for g in bodies.values()], dtype=float)
+            self.capture_vectors(t, tuple(bodies), G.reshape(-1, 4))
+
+    def capture_vectors(self, t: float, names: tuple[str, ...], G: np.ndarray) -> None:
+        """`capture` of the bodies `names` at the poses G (B, 4) = [x, y, z, θ] (m, rad) in Σw (G is
+        kept: pass a fresh array)."""
         if t + 1e-12 < self._next_t:
             return
         self._next_t += 1.0 / self.p.rate_hz * max(1, math.floor((t - self._next_t) * self.p.rate_hz) + 1)
         self.frames += 1
         if self._noise is None:
-            self._capture_with_dropouts(t, bodies)
+            self._capture_with_dropouts(t, names, G)
             return
-        z, at = self._noise.take(4 * len(bodies))  # per body: 3 for the position, 1 for the yaw
+        z, at = self._noise.take(4 * len(names))  # per body: 3 for the position, 1 for the yaw
         if self.link is None:
-            self._unread = (t, bodies, z, at)
+            self._unread = (t, names, G, z, at)
             return
-        for k, (name, g) in enumerate(bodies.items()):
+        for k, name in enumerate(names):
             if not self.link.lost():
-                sample = StampedPose(t, self._noisy(g, z, at + 4 * k))
+                sample = StampedPose(t, self._noisy(G[k], z, at + 4 * k))
                 self._pending.append((t + self.link.delay(), name, sample))
 
-    def _noisy(self, g: Pose, z: np.ndarray, at: int) -> Pose:
-        """g with the noise of normals z[at : at + 4] (0.0 + σ·z: what Generator.normal(0.0, σ) gives)."""
+    def _noisy(self, g: np.ndarray, z: np.ndarray, at: int) -> Pose:
+        """Pose g = [x, y, z, θ] with the noise of normals z[at : at + 4] (0.0 + σ·z: what
+        Generator.normal(0.0, σ) gives)."""
         dp = 0.0 + self.p.noise_pos_m * z[at : at + 3]
-        return Pose.make(g.p + dp, g.theta + (0.0 + self.p.noise_yaw_rad * float(z[at + 3])))
+        return Pose.make(g[:3] + dp, float(g[3]) + (0.0 + self.p.noise_yaw_rad * float(z[at + 3])))
 
-    def _capture_with_dropouts(self, t: float, bodies: dict[str, Pose]) -> None:
-        for name, g in bodies.items():
+    def _capture_with_dropouts(self, t: float, names: tuple[str, ...], G: np.ndarray) -> None:
+        for name, g in zip(names, G, strict=True):
             if self.rng.random() < self.p.dropout_prob:
                 self.dropped += 1
                 continue
             noisy = Pose.make(
-                g.p + self.rng.normal(0.0, self.p.noise_pos_m, 3),
-                g.theta + self.rng.normal(0.0, self.p.noise_yaw_rad),
+                g[:3] + self.rng.normal(0.0, self.p.noise_pos_m, 3),
+                float(g[3]) + self.rng.normal(0.0, self.p.noise_yaw_rad),
             )
             if self.link is None:
                 self._latest[name] = StampedPose(t, noisy)
@@ -452,10 +465,10 @@ class MocapSim:
 
     def latest(self, body: str) -> StampedPose | None:
         if self._unread is not None:
-            t, bodies, z, at = self._unread
+            t, names, G, z, at = self._unread
             self._unread = None
-            for k, (name, g) in enumerate(bodies.items()):
-                self._latest[name] = StampedPose(t, self._noisy(g, z, at + 4 * k))
+            for k, name in enumerate(names):
+                self._latest[name] = StampedPose(t, self._noisy(G[k], z, at + 4 * k))
         if self.link is not None and self.now is not None:
             now = self.now()
             keep: deque[tuple[float, str, StampedPose]] = deque()
@@ -579,7 +592,11 @@ class LabWorld:
         self.mocap = mocap
         self._horizon_s = 0.0  # how far back `poses_at` must reach (s); 0: no history kept
         self._times: deque[float] = deque()
-        self._states: deque[tuple[dict[int, Pose], Pose]] = deque()
+        self._history: deque[np.ndarray] = deque()  # the bodies' poses (B, 4) at each of _times
+        # the bodies, as motion capture names them: the drones (drone<id>), then the target
+        self._names = (*(f"drone{i}" for i in drones), "target")
+        self._bodies = (*(d.body for d in drones.values()), robot.body)
+        self._row = {i: k for k, i in enumerate(drones)}  # drone id -> its row in a snapshot
 
     def keep_history(self, horizon_s: float) -> None:
         """Keep at least horizon_s (s) of the drones' and the robot's poses for `poses_at`."""
@@ -590,8 +607,16 @@ class LabWorld:
         k = bisect.bisect_right(self._times, t) - 1
         if k < 0:
             return self.drones[drone_id].pose, self.robot.pose
-        drones, robot = self._states[k]
-        return drones[drone_id], robot
+        G = self._history[k]
+        d = G[self._row[drone_id]]
+        return Pose(d[:3].copy(), float(d[3])), Pose(G[-1, :3].copy(), float(G[-1, 3]))
+
+    def _snapshot(self) -> np.ndarray:
+        """The bodies' poses now, (B, 4) = [x, y, z, θ] per body in the order of `_names` (a new array)."""
+        G = np.empty((len(self._bodies), 4))
+        for k, s in enumerate(self._bodies):
+            s.copy_to(G[k])
+        return G
 
     def step(self, dt: float) -> None:
         t = self.t + dt
@@ -599,16 +624,18 @@ class LabWorld:
         for d in self.drones.values():
             d.step(t, dt)
         self.t = t
-        if self._horizon_s > 0:
+        keep, due = self._horizon_s > 0, self.mocap.due(t)
+        if not (keep or due):
+            return
+        G = self._snapshot()  # shared by the history and motion capture: neither writes to it
+        if keep:
             self._times.append(t)
-            self._states.append(({i: d.pose for i, d in self.drones.items()}, self.robot.pose))
+            self._history.append(G)
             while self._times and self._times[0] < t - self._horizon_s:
                 self._times.popleft()
-                self._states.popleft()
-        if self.mocap.due(t):
-            bodies = {f"drone{i}": d.pose for i, d in self.drones.items()}
-            bodies["target"] = self.robot.pose
-            self.mocap.capture(t, bodies)
+                self._history.popleft()
+        if due:
+            self.mocap.capture_vectors(t, self._names, G)
 
     def target_pose(self) -> Pose:
         return self.robot.pose
