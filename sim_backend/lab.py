@@ -154,6 +154,12 @@ class PoseState:
         self._g, self._next = self._next, self._g
         self._pose = None
 
+    def lag_integrate(self, V: np.ndarray, V_target: np.ndarray, a: float, dt: float) -> None:
+        """V += a (V_target − V) in place (first-order lag, a = 1 − exp(−dt/τ)), then `integrate`(V, dt)."""
+        kern.lag_integrate4(self._g, V, V_target, a, dt, self._next)
+        self._g, self._next = self._next, self._g
+        self._pose = None
+
 
 class TelloSim:
     """A Tello-like drone (hal.Drone). Commands arrive as the integer rc values the real driver sends."""
@@ -183,7 +189,6 @@ class TelloSim:
         self.battery = params.battery_pct
         self.v = np.zeros(4)  # actual body velocity
         self._v_target = np.zeros(4)
-        self._dv = np.empty(4)
         self._queue: list[tuple[float, int, tuple[int, int, int, int]]] = []  # (arrival, seq, rc)
         self._seq = 0
         self.last_command_t = -math.inf
@@ -263,19 +268,18 @@ class TelloSim:
             elif self.battery <= 0.0:
                 self.events.append(Event(t, self.id, "battery_empty", source="lab"))
                 self.phase = self.LANDING
-        if self.phase == self.FLYING:
-            a = 1.0 - math.exp(-dt / self.p.time_constant_s)
-            dv = np.subtract(self._v_target, self.v, out=self._dv)  # v += a (v_target − v), in place
-            dv *= a
-            self.v += dv
-        elif self.phase == self.TAKING_OFF:
-            self.v = np.array([0.0, 0.0, self.p.climb_rate, 0.0])
-        elif self.phase == self.LANDING:
-            self.v = np.array([0.0, 0.0, -self.p.descent_rate, 0.0])
+        if self.phase == self.FLYING:  # v += a (v_target − v), then the pose moves with v
+            self.body.lag_integrate(self.v, self._v_target, 1.0 - math.exp(-dt / self.p.time_constant_s), dt)
         else:
-            self.v = np.zeros(4)
+            if self.phase == self.TAKING_OFF:
+                self.v = np.array([0.0, 0.0, self.p.climb_rate, 0.0])
+            elif self.phase == self.LANDING:
+                self.v = np.array([0.0, 0.0, -self.p.descent_rate, 0.0])
+            else:
+                self.v = np.zeros(4)
+            if airborne:
+                self.body.integrate(self.v, dt)
         if airborne:
-            self.body.integrate(self.v, dt)
             self.battery = max(0.0, self.battery - self.p.battery_drain_pct_per_s * dt)
         z = self.body.z
         if self.phase == self.TAKING_OFF and z >= self.p.takeoff_height_m:
@@ -298,6 +302,10 @@ class RobotParams:
     command_timeout_s: float = 3.0  # stops without a fresh command (ArduPilot Rover behaviour)
 
 
+_STILL = np.zeros(4)
+"""The robot's target velocity without a fresh command (read only)."""
+
+
 class ScamperSim:
     """A holonomic ground robot (hal.GroundRobot) commanded by body velocity [v_x, v_y, 0, ω].
 
@@ -312,7 +320,6 @@ class ScamperSim:
         self.link = None if link is None or link.spec.perfect else link
         self.v = np.zeros(4)
         self._cmd = np.zeros(4)
-        self._dv = np.empty(4)
         self._cmd_t = -math.inf
         self._queue: list[tuple[float, int, np.ndarray]] = []  # (arrival, seq, command) on their way
         self._seq = 0
@@ -347,11 +354,8 @@ class ScamperSim:
         while self._queue and self._queue[0][0] <= t:
             arrival, _, self._cmd = self._queue.pop(0)
             self._cmd_t = arrival
-        target = self._cmd if t - self._cmd_t <= self.p.command_timeout_s else np.zeros(4)
-        dv = np.subtract(target, self.v, out=self._dv)  # v += a (target − v), in place
-        dv *= 1.0 - math.exp(-dt / self.p.time_constant_s)
-        self.v += dv
-        self.body.integrate(self.v, dt)
+        target = self._cmd if t - self._cmd_t <= self.p.command_timeout_s else _STILL
+        self.body.lag_integrate(self.v, target, 1.0 - math.exp(-dt / self.p.time_constant_s), dt)
 
 
 @dataclass(frozen=True)

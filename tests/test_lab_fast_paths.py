@@ -92,3 +92,17 @@ def test_a_pose_integrated_as_a_vector_is_the_pose_integrated_as_poses() -> None
         state.integrate(V, 0.005)
     assert bits(state.pose.p) == bits(g.p) and bits(state.pose.theta) == bits(g.theta)
     assert state.z == g.p[2]
+
+
+def test_a_lagged_step_is_the_numpy_update_then_the_integration() -> None:
+    rng = np.random.default_rng(4)
+    g = Pose.make([0.0, 0.5, 1.0], -2.0)
+    state, V, V_fast = PoseState(g), np.zeros(4), np.zeros(4)
+    for k in range(1000):
+        target = rng.normal(0.0, 1.0, 4)
+        a = 1.0 - math.exp(-0.005 / 0.1)
+        V += a * (target - V)
+        g = integrate_body_velocity(g, V, 0.005)
+        state.lag_integrate(V_fast, target, a, 0.005)
+    assert bits(V_fast) == bits(V)
+    assert bits(state.pose.p) == bits(g.p) and bits(state.pose.theta) == bits(g.theta)
