@@ -98,7 +98,7 @@ def test_a_lagged_step_is_the_numpy_update_then_the_integration() -> None:
     rng = np.random.default_rng(4)
     g = Pose.make([0.0, 0.5, 1.0], -2.0)
     state, V, V_fast = PoseState(g), np.zeros(4), np.zeros(4)
-    for k in range(1000):
+    for _ in range(1000):
         target = rng.normal(0.0, 1.0, 4)
         a = 1.0 - math.exp(-0.005 / 0.1)
         V += a * (target - V)
