@@ -551,13 +551,18 @@ class RenderedCamera:
 
     def _render(self, taken: float, drone: Pose, robot: Pose) -> Frame:
         """The image of the markers seen from `drone` with the robot at `robot`, stamped `taken` (s)."""
-        from flightstack.sim_backend.render import markers_in_camera, render_markers_region
+        from flightstack.sim_backend.render import (
+            marker_centres_in_camera,
+            markers_in_camera,
+            render_markers_region,
+        )
 
         g_i0 = relative(drone, robot)
-        centres_c, normal_c = markers_in_camera(g_i0, self.P0, self.R_ic, self.t_ic)
         if self.centre_noise_px is not None:
+            centres_c = marker_centres_in_camera(g_i0, self.P0, self.R_ic, self.t_ic)
             self.frames += 1
             return Frame(taken, None, self._centres(centres_c, self.centre_noise_px))
+        centres_c, normal_c = markers_in_camera(g_i0, self.P0, self.R_ic, self.t_ic)
         image, _, _, roi = render_markers_region(self.cal, centres_c, normal_c, self.opts, self.rng)
         self.frames += 1
         return Frame(taken, image, None, roi)
@@ -569,12 +574,13 @@ class RenderedCamera:
         from flightstack.sim_backend.render import MIN_IN_VIEW_DEPTH_M
 
         cal, z = self.cal, centres_c[:, 2]
-        if z.min() <= MIN_IN_VIEW_DEPTH_M:
+        z_min = z.min()
+        if z_min <= MIN_IN_VIEW_DEPTH_M:
             return None
         px, _ = cv2.projectPoints(centres_c, _ZERO3, _ZERO3, cal.camera_matrix, cal.dist_coeffs)
         px = px.reshape(-1, 2)
-        r_px = max(cal.fx, cal.fy) * self.opts.marker_radius_m / z
-        lo, hi = px.min(axis=0) - r_px.max(), px.max(axis=0) + r_px.max()
+        r_px = max(cal.fx, cal.fy) * self.opts.marker_radius_m / z_min  # the largest disc's radius (px)
+        lo, hi = px.min(axis=0) - r_px, px.max(axis=0) + r_px
         if lo[0] < 0.5 or lo[1] < 0.5 or hi[0] > cal.width - 1.5 or hi[1] > cal.height - 1.5:
             return None
         xy = centres_c[:, :2] / z[:, None]
