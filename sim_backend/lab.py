@@ -161,6 +161,11 @@ class PoseState:
         self._pose = None
 
 
+def _clip(x: float, limit: float) -> float:
+    """x clipped to [−limit, limit] (np.clip's result for a float)."""
+    return min(max(x, -limit), limit)
+
+
 class TelloSim:
     """A Tello-like drone (hal.Drone). Commands arrive as the integer rc values the real driver sends."""
 
@@ -249,6 +254,21 @@ class TelloSim:
         self.land()
 
     # ---- physics ----------------------------------------------------------------------------------
+    def _flying_step(self, t: float, dt: float) -> bool:
+        """`step` while flying with nothing to change (no auto-land, battery left, above the floor, no
+        telemetry link): the velocity's lag and the pose's step in one kernel call. False (nothing done)
+        otherwise."""
+        p = self.p
+        if t - self.last_command_t > p.auto_land_s or self.battery <= 0.0 or self.telemetry is not None:
+            return False
+        body = self.body
+        body.lag_integrate(self.v, self._v_target, 1.0 - math.exp(-dt / p.time_constant_s), dt)
+        self.battery = max(0.0, self.battery - p.battery_drain_pct_per_s * dt)
+        if body.z < 0.0:
+            pose = body.pose
+            self.pose = Pose(np.array([pose.p[0], pose.p[1], 0.0]), pose.theta)
+        return True
+
     def step(self, t: float, dt: float) -> None:
         """Advance dt seconds ending at t (deliver due commands, first-order response, phases)."""
         while self._queue and self._queue[0][0] <= t:
@@ -257,9 +277,11 @@ class TelloSim:
             sp = math.hypot(v[0], v[1])
             if sp > self.p.max_speed_xy:
                 v[:2] *= self.p.max_speed_xy / sp
-            v[2] = float(np.clip(v[2], -self.p.max_speed_z, self.p.max_speed_z))
-            v[3] = float(np.clip(v[3], -self.p.max_yaw_rate, self.p.max_yaw_rate))
+            v[2] = _clip(float(v[2]), self.p.max_speed_z)
+            v[3] = _clip(float(v[3]), self.p.max_yaw_rate)
             self._v_target = v
+        if self.phase == self.FLYING and self._flying_step(t, dt):
+            return
         airborne = self.phase != self.GROUND
         if self.phase == self.FLYING:
             if t - self.last_command_t > self.p.auto_land_s:
@@ -339,7 +361,7 @@ class ScamperSim:
         if sp > self.p.max_speed:
             V[:2] *= self.p.max_speed / sp
         V[2] = 0.0
-        V[3] = float(np.clip(V[3], -self.p.max_yaw_rate, self.p.max_yaw_rate))
+        V[3] = _clip(float(V[3]), self.p.max_yaw_rate)
         if self.link is None:
             self._cmd, self._cmd_t = V, self.now()
         elif not self.link.lost():
