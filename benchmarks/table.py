@@ -261,11 +261,17 @@ def _lab_rows(r: dict) -> list[tuple[str, str, str, str, str]]:
         for name, s in (("rendered camera", img), ("`sim.render.model: centres`", fast)):
             tgt, ratio, st = _status("lab_sweep_20_s", s["wall_s"])
             e = s["mean_sq_error"]
+            load = ""
+            if "cpu_s" in s:  # CPU time and load: what the wall would be on idle cores
+                load = (
+                    f" (load {s['load_before']:.1f} → {s['load_after']:.1f}); CPU {s['cpu_s']:.0f} s, "
+                    f"{s['cpu_s'] / s['seeds']:.1f} s a run; CPU / {s['jobs']} jobs = {s['idle_wall_s']:.0f} s"
+                )
             rows.append(
                 (
                     f"`flightstack sweep paper_experiment --rig lab-sim --seeds {s['seeds']}`, {name}, "
                     f"{s['jobs']} jobs",
-                    f"{s['wall_s']:.1f} s",
+                    f"{s['wall_s']:.1f} s{load}",
                     "mean_sq_error none / local / dgp: "
                     + " / ".join(f"{e[k]['mean']:.2e}" for k in ("none", "local", "dgp")),
                     ratio,
