@@ -27,6 +27,8 @@ import argparse
 import importlib.util
 import json
 import math
+import os
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -277,14 +279,47 @@ def bench_bus(n: int = 2000) -> dict[str, object]:
 
 
 # ---- report -------------------------------------------------------------------------------------------
+def _commit() -> str:
+    """The checkout's short commit (with "+" when it has uncommitted changes), or "unknown"."""
+    try:
+        rev = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=REPO, check=False).returncode != 0
+        return rev + ("+" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--update-docs", action="store_true", help="rewrite docs/performance.md's bench block")
+    ap.add_argument(
+        "--only",
+        metavar="STAGE[,STAGE]",
+        help="measure only these stages (e.g. lab_run,lab_sweep); the others' numbers are kept from "
+        "benchmarks/results.json, and the table says which rows were measured when",
+    )
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
     results: dict[str, object] = {"machine": machine_info()}
+    only = None if args.only is None else set(args.only.split(","))
+    if only is not None:
+        kept = {k: v for k, v in json.loads(RESULTS.read_text()).items() if k not in only}
+        results = {**kept, "machine": results["machine"]}
+        results["remeasured"] = {
+            "stages": sorted(only),
+            "commit": _commit(),
+            "load": os.getloadavg()[0],
+            "kept_from": kept.get("remeasured", {}).get("kept_from")
+            or (f"commit {kept['commit']}" if "commit" in kept else "an earlier run"),
+        }
+    else:
+        results["commit"] = _commit()
 
     def stage(name: str, fn: Callable[[], object]) -> None:
+        if only is not None and name not in only:
+            return
         t0 = time.perf_counter()
         results[name] = fn()
         print(f"  [{name}: {time.perf_counter() - t0:.1f} s]", file=sys.stderr, flush=True)
@@ -307,7 +342,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"(total {results['total_seconds']:.0f} s; raw numbers in {RESULTS.relative_to(REPO)})")
     RESULTS.write_text(json.dumps(results, indent=2) + "\n")
     if args.update_docs:
-        update_bench_page(markdown_table(rows, results["machine"]))  # type: ignore[arg-type]
+        machine = {**results["machine"], "remeasured": results.get("remeasured")}  # type: ignore[dict-item]
+        update_bench_page(markdown_table(rows, machine))
         print("docs/performance.md: bench block rewritten")
     return 0
 

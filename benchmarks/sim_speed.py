@@ -222,7 +222,9 @@ def bench_lab_run(duration_s: float = 80.0) -> dict[str, dict[str, float]]:
 
 def bench_lab_sweep(seeds: int = 20) -> dict[str, dict[str, object]]:
     """`flightstack sweep paper_experiment --rig lab-sim --seeds 20` on every core, per camera model: wall
-    seconds of the whole command, and each mode's mean_sq_error over the seeds (mean, 95 % CI)."""
+    seconds of the whole command, its CPU seconds (user + sys, workers included: divided by the jobs, the
+    wall it would take on otherwise idle cores, as other work shares the machine), the 1-minute load
+    average before and after, and each mode's mean_sq_error over the seeds (mean, 95 % CI)."""
     import json
 
     jobs = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
@@ -231,16 +233,33 @@ def bench_lab_sweep(seeds: int = 20) -> dict[str, dict[str, object]]:
         with tempfile.TemporaryDirectory() as tmp:
             cmd = [sys.executable, "-m", "flightstack", "sweep", "paper_experiment", "--rig", "lab-sim"]
             cmd += ["--seeds", str(seeds), "--jobs", str(jobs), "--set", f"sim.render.model={model}"]
-            t0 = time.perf_counter()
+            load0, cpu0, t0 = os.getloadavg()[0], _children_cpu_s(), time.perf_counter()
             subprocess.run([*cmd, "--out", f"{tmp}/sweep"], check=True, capture_output=True, timeout=3600)
-            wall = time.perf_counter() - t0
+            wall, cpu, load1 = time.perf_counter() - t0, _children_cpu_s() - cpu0, os.getloadavg()[0]
             summary = json.loads(Path(f"{tmp}/sweep/summary.json").read_text())
         errors = {
             mode: {k: d["mean_sq_error"][k] for k in ("mean", "ci_low", "ci_high")}
             for mode, d in summary["points"][0]["modes"].items()
         }
-        out[model] = {"seeds": seeds, "jobs": jobs, "wall_s": wall, "mean_sq_error": errors}
+        out[model] = {
+            "seeds": seeds,
+            "jobs": jobs,
+            "wall_s": wall,
+            "cpu_s": cpu,  # user + sys of the command and its workers
+            "idle_wall_s": cpu / jobs,  # what the wall would be on `jobs` otherwise idle cores (≈)
+            "load_before": load0,
+            "load_after": load1,
+            "mean_sq_error": errors,
+        }
     return out
+
+
+def _children_cpu_s() -> float:
+    """User + system CPU seconds of this process's finished children (and theirs, once waited for)."""
+    import resource
+
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
 
 
 def bench_sweep(seeds: int = 20) -> dict[str, float]:

@@ -261,11 +261,18 @@ def _lab_rows(r: dict) -> list[tuple[str, str, str, str, str]]:
         for name, s in (("rendered camera", img), ("`sim.render.model: centres`", fast)):
             tgt, ratio, st = _status("lab_sweep_20_s", s["wall_s"])
             e = s["mean_sq_error"]
+            load = ""
+            if "cpu_s" in s:  # CPU time and load: what the wall would be on idle cores
+                load = (
+                    f" (load {s['load_before']:.1f} → {s['load_after']:.1f}); CPU {s['cpu_s']:.0f} s, "
+                    f"{s['cpu_s'] / s['seeds']:.1f} s a run; "
+                    f"CPU / {s['jobs']} jobs = {s['idle_wall_s']:.0f} s"
+                )
             rows.append(
                 (
                     f"`flightstack sweep paper_experiment --rig lab-sim --seeds {s['seeds']}`, {name}, "
                     f"{s['jobs']} jobs",
-                    f"{s['wall_s']:.1f} s",
+                    f"{s['wall_s']:.1f} s{load}",
                     "mean_sq_error none / local / dgp: "
                     + " / ".join(f"{e[k]['mean']:.2e}" for k in ("none", "local", "dgp")),
                     ratio,
@@ -296,6 +303,12 @@ def markdown_table(rows: list[tuple[str, str, str, str, str]], machine: dict) ->
         f"Measured on {machine['cpu_count']} CPUs ({machine['machine']}), Python {machine['python']}, "
         f"numpy {machine['numpy']}; raw numbers in `benchmarks/results.json`."
     )
+    again = machine.get("remeasured")
+    if again:
+        out.append(
+            f"Stages {', '.join(again['stages'])} measured again at commit {again['commit']} "
+            f"(load {again['load']:.1f}; `--only`), the other rows kept from {again['kept_from']}."
+        )
     return "\n".join(out) + "\n"
 
 

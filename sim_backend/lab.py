@@ -26,7 +26,8 @@ from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
 from flightstack.events import Event
 from flightstack.hal import DroneState, Frame, StampedPose
-from flightstack.paper.geometry import Pose, integrate_body_velocity, relative
+from flightstack.paper import kernels as kern
+from flightstack.paper.geometry import Pose, relative
 from flightstack.vision.camera_file import CameraCalibration
 
 
@@ -115,6 +116,56 @@ class LateSamples(Generic[T]):
         return self._shown
 
 
+class PoseState:
+    """A simulated body's pose, kept as the vector [x, y, z, θ] (m, rad) the kernels integrate: a Pose
+    object is made only when `pose` is read (the world steps every 5 ms; its pose is read far less often).
+    The numbers are those of integrating Poses (geometry.integrate_body_velocity) step by step."""
+
+    def __init__(self, pose: Pose) -> None:
+        self._g = np.empty(4)
+        self._next = np.empty(4)
+        self._pose: Pose | None = None
+        self.set(pose)
+
+    @property
+    def pose(self) -> Pose:
+        if self._pose is None:
+            g = self._g
+            self._pose = Pose(g[:3].copy(), float(g[3]))
+        return self._pose
+
+    def set(self, pose: Pose) -> None:
+        self._g[:3] = pose.p
+        self._g[3] = pose.theta
+        self._pose = pose
+
+    def copy_to(self, out: np.ndarray) -> None:
+        """Write [x, y, z, θ] (m, rad) into out (4,)."""
+        out[:] = self._g
+
+    @property
+    def z(self) -> float:
+        """Height (m)."""
+        return float(self._g[2])
+
+    def integrate(self, V: np.ndarray, dt: float) -> None:
+        """Move with body velocity V (float64 (4,), m/s and rad/s) held for dt seconds."""
+        kern.integrate4(self._g, V, dt, self._next)
+        self._g, self._next = self._next, self._g
+        self._pose = None
+
+    def lag_integrate(self, V: np.ndarray, V_target: np.ndarray, a: float, dt: float) -> None:
+        """V += a (V_target − V) in place (first-order lag, a = 1 − exp(−dt/τ)), then `integrate`(V, dt)."""
+        kern.lag_integrate4(self._g, V, V_target, a, dt, self._next)
+        self._g, self._next = self._next, self._g
+        self._pose = None
+
+
+def _clip(x: float, limit: float) -> float:
+    """x clipped to [−limit, limit] (np.clip's result for a float)."""
+    return min(max(x, -limit), limit)
+
+
 class TelloSim:
     """A Tello-like drone (hal.Drone). Commands arrive as the integer rc values the real driver sends."""
 
@@ -136,7 +187,7 @@ class TelloSim:
         self.telemetry: LateSamples[DroneState] | None = (
             None if state_link is None or state_link.spec.perfect else LateSamples(state_link)
         )
-        self.pose = pose
+        self.body = PoseState(pose)
         self.p = params
         self.now = clock_now
         self.phase = self.GROUND
@@ -149,6 +200,15 @@ class TelloSim:
         self.rc_log: list[tuple[float, tuple[int, int, int, int]]] = []
         self.events: list[Event] = []  # source lab, on the world's virtual clock (s)
         self.connected = False
+
+    @property
+    def pose(self) -> Pose:
+        """The true pose in Σw."""
+        return self.body.pose
+
+    @pose.setter
+    def pose(self, pose: Pose) -> None:
+        self.body.set(pose)
 
     # ---- hal.Drone ------------------------------------------------------------------------------
     def connect(self) -> None:
@@ -188,14 +248,27 @@ class TelloSim:
         return UNKNOWN_STATE if seen is None else seen[1]
 
     def _state_now(self) -> DroneState:
-        return DroneState(
-            self.battery, float(self.pose.p[2]), self.connected, self.phase == self.FLYING, self.phase
-        )
+        return DroneState(self.battery, self.body.z, self.connected, self.phase == self.FLYING, self.phase)
 
     def close(self) -> None:
         self.land()
 
     # ---- physics ----------------------------------------------------------------------------------
+    def _flying_step(self, t: float, dt: float) -> bool:
+        """`step` while flying with nothing to change (no auto-land, battery left, above the floor, no
+        telemetry link): the velocity's lag and the pose's step in one kernel call. False (nothing done)
+        otherwise."""
+        p = self.p
+        if t - self.last_command_t > p.auto_land_s or self.battery <= 0.0 or self.telemetry is not None:
+            return False
+        body = self.body
+        body.lag_integrate(self.v, self._v_target, 1.0 - math.exp(-dt / p.time_constant_s), dt)
+        self.battery = max(0.0, self.battery - p.battery_drain_pct_per_s * dt)
+        if body.z < 0.0:
+            pose = body.pose
+            self.pose = Pose(np.array([pose.p[0], pose.p[1], 0.0]), pose.theta)
+        return True
+
     def step(self, t: float, dt: float) -> None:
         """Advance dt seconds ending at t (deliver due commands, first-order response, phases)."""
         while self._queue and self._queue[0][0] <= t:
@@ -204,9 +277,11 @@ class TelloSim:
             sp = math.hypot(v[0], v[1])
             if sp > self.p.max_speed_xy:
                 v[:2] *= self.p.max_speed_xy / sp
-            v[2] = float(np.clip(v[2], -self.p.max_speed_z, self.p.max_speed_z))
-            v[3] = float(np.clip(v[3], -self.p.max_yaw_rate, self.p.max_yaw_rate))
+            v[2] = _clip(float(v[2]), self.p.max_speed_z)
+            v[3] = _clip(float(v[3]), self.p.max_yaw_rate)
             self._v_target = v
+        if self.phase == self.FLYING and self._flying_step(t, dt):
+            return
         airborne = self.phase != self.GROUND
         if self.phase == self.FLYING:
             if t - self.last_command_t > self.p.auto_land_s:
@@ -215,19 +290,20 @@ class TelloSim:
             elif self.battery <= 0.0:
                 self.events.append(Event(t, self.id, "battery_empty", source="lab"))
                 self.phase = self.LANDING
-        if self.phase == self.FLYING:
-            a = 1.0 - math.exp(-dt / self.p.time_constant_s)
-            self.v += a * (self._v_target - self.v)
-        elif self.phase == self.TAKING_OFF:
-            self.v = np.array([0.0, 0.0, self.p.climb_rate, 0.0])
-        elif self.phase == self.LANDING:
-            self.v = np.array([0.0, 0.0, -self.p.descent_rate, 0.0])
+        if self.phase == self.FLYING:  # v += a (v_target − v), then the pose moves with v
+            self.body.lag_integrate(self.v, self._v_target, 1.0 - math.exp(-dt / self.p.time_constant_s), dt)
         else:
-            self.v = np.zeros(4)
+            if self.phase == self.TAKING_OFF:
+                self.v = np.array([0.0, 0.0, self.p.climb_rate, 0.0])
+            elif self.phase == self.LANDING:
+                self.v = np.array([0.0, 0.0, -self.p.descent_rate, 0.0])
+            else:
+                self.v = np.zeros(4)
+            if airborne:
+                self.body.integrate(self.v, dt)
         if airborne:
-            self.pose = integrate_body_velocity(self.pose, self.v, dt)
             self.battery = max(0.0, self.battery - self.p.battery_drain_pct_per_s * dt)
-        z = float(self.pose.p[2])
+        z = self.body.z
         if self.phase == self.TAKING_OFF and z >= self.p.takeoff_height_m:
             self.phase = self.FLYING
             self.v = np.zeros(4)
@@ -248,6 +324,10 @@ class RobotParams:
     command_timeout_s: float = 3.0  # stops without a fresh command (ArduPilot Rover behaviour)
 
 
+_STILL = np.zeros(4)
+"""The robot's target velocity without a fresh command (read only)."""
+
+
 class ScamperSim:
     """A holonomic ground robot (hal.GroundRobot) commanded by body velocity [v_x, v_y, 0, ω].
 
@@ -256,7 +336,7 @@ class ScamperSim:
     timeout counts from the arrival. `stop()` acts at once (as `land` does on the drone)."""
 
     def __init__(self, pose: Pose, params: RobotParams, clock_now, link: LinkDelays | None = None) -> None:
-        self.pose = pose
+        self.body = PoseState(pose)
         self.p = params
         self.now = clock_now
         self.link = None if link is None or link.spec.perfect else link
@@ -266,13 +346,22 @@ class ScamperSim:
         self._queue: list[tuple[float, int, np.ndarray]] = []  # (arrival, seq, command) on their way
         self._seq = 0
 
+    @property
+    def pose(self) -> Pose:
+        """The true pose in Σw."""
+        return self.body.pose
+
+    @pose.setter
+    def pose(self, pose: Pose) -> None:
+        self.body.set(pose)
+
     def send_body_velocity(self, V: np.ndarray) -> None:
         V = np.nan_to_num(np.asarray(V, dtype=float))
         sp = math.hypot(V[0], V[1])
         if sp > self.p.max_speed:
             V[:2] *= self.p.max_speed / sp
         V[2] = 0.0
-        V[3] = float(np.clip(V[3], -self.p.max_yaw_rate, self.p.max_yaw_rate))
+        V[3] = _clip(float(V[3]), self.p.max_yaw_rate)
         if self.link is None:
             self._cmd, self._cmd_t = V, self.now()
         elif not self.link.lost():
@@ -287,9 +376,8 @@ class ScamperSim:
         while self._queue and self._queue[0][0] <= t:
             arrival, _, self._cmd = self._queue.pop(0)
             self._cmd_t = arrival
-        target = self._cmd if t - self._cmd_t <= self.p.command_timeout_s else np.zeros(4)
-        self.v += (1.0 - math.exp(-dt / self.p.time_constant_s)) * (target - self.v)
-        self.pose = integrate_body_velocity(self.pose, self.v, dt)
+        target = self._cmd if t - self._cmd_t <= self.p.command_timeout_s else _STILL
+        self.body.lag_integrate(self.v, target, 1.0 - math.exp(-dt / self.p.time_constant_s), dt)
 
 
 @dataclass(frozen=True)
@@ -300,9 +388,37 @@ class MocapParams:
     dropout_prob: float = 0.0  # probability that a body is missing from a frame
 
 
+class NormalStream:
+    """The standard normals of a generator, drawn in blocks and handed out in order: the very numbers
+    (bit for bit) that drawing them one call at a time would give (numpy's Generator draws each normal on
+    its own from the bit stream), for a fraction of the calls' cost. Only for a generator nothing else
+    draws from: it runs ahead of what has been handed out."""
+
+    BLOCK = 4096
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self._block = np.empty(0)
+        self._at = 0
+
+    def take(self, n: int) -> tuple[np.ndarray, int]:
+        """(block, offset): the next n normals are block[offset : offset + n]."""
+        if self._at + n > self._block.size:
+            rest = self._block[self._at :]
+            self._block = np.concatenate((rest, self.rng.standard_normal(max(n, self.BLOCK))))
+            self._at = 0
+        at = self._at
+        self._at += n
+        return self._block, at
+
+
 class MocapSim:
     """Motion capture (hal.PoseSource): truth sampled at rate_hz, Gaussian noise, random dropouts; with
-    a late `link`, each sample becomes visible link.delay() after it was taken (stamped when taken)."""
+    a late `link`, each sample becomes visible link.delay() after it was taken (stamped when taken).
+
+    Without dropouts the noise is drawn in blocks (NormalStream: the same numbers) and, without a late
+    link, a frame's noisy poses are computed only when `latest` asks for them (the world samples at
+    120 Hz, the agents read at 20 Hz)."""
 
     def __init__(
         self,
@@ -317,23 +433,56 @@ class MocapSim:
         self.now = now
         self._pending: deque[tuple[float, str, StampedPose]] = deque()  # (arrival, body, sample)
         self._latest: dict[str, StampedPose] = {}
+        self._noise = NormalStream(rng) if params.dropout_prob <= 0 else None
+        # the newest frame, not yet read: (t, bodies, their poses (B, 4), normals, offset)
+        self._unread: tuple[float, tuple[str, ...], np.ndarray, np.ndarray, int] | None = None
         self._next_t = 0.0
         self.frames = 0
         self.dropped = 0
 
+    def due(self, t: float) -> bool:
+        """Whether a frame is taken at time t (s): a sample time has passed."""
+        return t + 1e-12 >= self._next_t
+
     def capture(self, t: float, bodies: dict[str, Pose]) -> None:
         """Called by the world after each step; takes a frame whenever a sample time has passed."""
+        if self.due(t):
+            G = np.array([(g.p[0], g.p[1], g.p[2], g.theta) for g in bodies.values()], dtype=float)
+            self.capture_vectors(t, tuple(bodies), G.reshape(-1, 4))
+
+    def capture_vectors(self, t: float, names: tuple[str, ...], G: np.ndarray) -> None:
+        """`capture` of the bodies `names` at the poses G (B, 4) = [x, y, z, θ] (m, rad) in Σw (G is
+        kept: pass a fresh array)."""
         if t + 1e-12 < self._next_t:
             return
         self._next_t += 1.0 / self.p.rate_hz * max(1, math.floor((t - self._next_t) * self.p.rate_hz) + 1)
         self.frames += 1
-        for name, g in bodies.items():
-            if self.p.dropout_prob > 0 and self.rng.random() < self.p.dropout_prob:
+        if self._noise is None:
+            self._capture_with_dropouts(t, names, G)
+            return
+        z, at = self._noise.take(4 * len(names))  # per body: 3 for the position, 1 for the yaw
+        if self.link is None:
+            self._unread = (t, names, G, z, at)
+            return
+        for k, name in enumerate(names):
+            if not self.link.lost():
+                sample = StampedPose(t, self._noisy(G[k], z, at + 4 * k))
+                self._pending.append((t + self.link.delay(), name, sample))
+
+    def _noisy(self, g: np.ndarray, z: np.ndarray, at: int) -> Pose:
+        """Pose g = [x, y, z, θ] with the noise of normals z[at : at + 4] (0.0 + σ·z: what
+        Generator.normal(0.0, σ) gives)."""
+        dp = 0.0 + self.p.noise_pos_m * z[at : at + 3]
+        return Pose.make(g[:3] + dp, float(g[3]) + (0.0 + self.p.noise_yaw_rad * float(z[at + 3])))
+
+    def _capture_with_dropouts(self, t: float, names: tuple[str, ...], G: np.ndarray) -> None:
+        for name, g in zip(names, G, strict=True):
+            if self.rng.random() < self.p.dropout_prob:
                 self.dropped += 1
                 continue
             noisy = Pose.make(
-                g.p + self.rng.normal(0.0, self.p.noise_pos_m, 3),
-                g.theta + self.rng.normal(0.0, self.p.noise_yaw_rad),
+                g[:3] + self.rng.normal(0.0, self.p.noise_pos_m, 3),
+                float(g[3]) + self.rng.normal(0.0, self.p.noise_yaw_rad),
             )
             if self.link is None:
                 self._latest[name] = StampedPose(t, noisy)
@@ -341,6 +490,11 @@ class MocapSim:
                 self._pending.append((t + self.link.delay(), name, StampedPose(t, noisy)))
 
     def latest(self, body: str) -> StampedPose | None:
+        if self._unread is not None:
+            t, names, G, z, at = self._unread
+            self._unread = None
+            for k, name in enumerate(names):
+                self._latest[name] = StampedPose(t, self._noisy(G[k], z, at + 4 * k))
         if self.link is not None and self.now is not None:
             now = self.now()
             keep: deque[tuple[float, str, StampedPose]] = deque()
@@ -419,13 +573,18 @@ class RenderedCamera:
 
     def _render(self, taken: float, drone: Pose, robot: Pose) -> Frame:
         """The image of the markers seen from `drone` with the robot at `robot`, stamped `taken` (s)."""
-        from flightstack.sim_backend.render import markers_in_camera, render_markers_region
+        from flightstack.sim_backend.render import (
+            marker_centres_in_camera,
+            markers_in_camera,
+            render_markers_region,
+        )
 
         g_i0 = relative(drone, robot)
-        centres_c, normal_c = markers_in_camera(g_i0, self.P0, self.R_ic, self.t_ic)
         if self.centre_noise_px is not None:
+            centres_c = marker_centres_in_camera(g_i0, self.P0, self.R_ic, self.t_ic)
             self.frames += 1
             return Frame(taken, None, self._centres(centres_c, self.centre_noise_px))
+        centres_c, normal_c = markers_in_camera(g_i0, self.P0, self.R_ic, self.t_ic)
         image, _, _, roi = render_markers_region(self.cal, centres_c, normal_c, self.opts, self.rng)
         self.frames += 1
         return Frame(taken, image, None, roi)
@@ -437,12 +596,13 @@ class RenderedCamera:
         from flightstack.sim_backend.render import MIN_IN_VIEW_DEPTH_M
 
         cal, z = self.cal, centres_c[:, 2]
-        if z.min() <= MIN_IN_VIEW_DEPTH_M:
+        z_min = z.min()
+        if z_min <= MIN_IN_VIEW_DEPTH_M:
             return None
         px, _ = cv2.projectPoints(centres_c, _ZERO3, _ZERO3, cal.camera_matrix, cal.dist_coeffs)
         px = px.reshape(-1, 2)
-        r_px = max(cal.fx, cal.fy) * self.opts.marker_radius_m / z
-        lo, hi = px.min(axis=0) - r_px.max(), px.max(axis=0) + r_px.max()
+        r_px = max(cal.fx, cal.fy) * self.opts.marker_radius_m / z_min  # the largest disc's radius (px)
+        lo, hi = px.min(axis=0) - r_px, px.max(axis=0) + r_px
         if lo[0] < 0.5 or lo[1] < 0.5 or hi[0] > cal.width - 1.5 or hi[1] > cal.height - 1.5:
             return None
         xy = centres_c[:, :2] / z[:, None]
@@ -464,7 +624,11 @@ class LabWorld:
         self.mocap = mocap
         self._horizon_s = 0.0  # how far back `poses_at` must reach (s); 0: no history kept
         self._times: deque[float] = deque()
-        self._states: deque[tuple[dict[int, Pose], Pose]] = deque()
+        self._history: deque[np.ndarray] = deque()  # the bodies' poses (B, 4) at each of _times
+        # the bodies, as motion capture names them: the drones (drone<id>), then the target
+        self._names = (*(f"drone{i}" for i in drones), "target")
+        self._bodies = (*(d.body for d in drones.values()), robot.body)
+        self._row = {i: k for k, i in enumerate(drones)}  # drone id -> its row in a snapshot
 
     def keep_history(self, horizon_s: float) -> None:
         """Keep at least horizon_s (s) of the drones' and the robot's poses for `poses_at`."""
@@ -475,8 +639,16 @@ class LabWorld:
         k = bisect.bisect_right(self._times, t) - 1
         if k < 0:
             return self.drones[drone_id].pose, self.robot.pose
-        drones, robot = self._states[k]
-        return drones[drone_id], robot
+        G = self._history[k]
+        d = G[self._row[drone_id]]
+        return Pose(d[:3].copy(), float(d[3])), Pose(G[-1, :3].copy(), float(G[-1, 3]))
+
+    def _snapshot(self) -> np.ndarray:
+        """The bodies' poses now, (B, 4) = [x, y, z, θ] per body in the order of `_names` (a new array)."""
+        G = np.empty((len(self._bodies), 4))
+        for k, s in enumerate(self._bodies):
+            s.copy_to(G[k])
+        return G
 
     def step(self, dt: float) -> None:
         t = self.t + dt
@@ -484,15 +656,18 @@ class LabWorld:
         for d in self.drones.values():
             d.step(t, dt)
         self.t = t
-        if self._horizon_s > 0:
+        keep, due = self._horizon_s > 0, self.mocap.due(t)
+        if not (keep or due):
+            return
+        G = self._snapshot()  # shared by the history and motion capture: neither writes to it
+        if keep:
             self._times.append(t)
-            self._states.append(({i: d.pose for i, d in self.drones.items()}, self.robot.pose))
+            self._history.append(G)
             while self._times and self._times[0] < t - self._horizon_s:
                 self._times.popleft()
-                self._states.popleft()
-        bodies = {f"drone{i}": d.pose for i, d in self.drones.items()}
-        bodies["target"] = self.robot.pose
-        self.mocap.capture(t, bodies)
+                self._history.popleft()
+        if due:
+            self.mocap.capture_vectors(t, self._names, G)
 
     def target_pose(self) -> Pose:
         return self.robot.pose

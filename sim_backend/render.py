@@ -310,6 +310,11 @@ def markers_in_camera(
     return centres_c, normals_c
 
 
+def marker_centres_in_camera(g_i0: Pose, P0: np.ndarray, R_ic: np.ndarray, t_ic: np.ndarray) -> np.ndarray:
+    """The centres_c of `markers_in_camera` alone (m, 3), the same numbers."""
+    return ((P0 @ rot_z(g_i0.theta).T + g_i0.p) - t_ic) @ R_ic
+
+
 def render_markers(
     cal: CameraCalibration,
     centres_c: np.ndarray,

@@ -58,7 +58,7 @@ class Pose:
     def make(p: np.ndarray | list[float] | tuple[float, ...], theta: float) -> Pose:
         """Build a pose from any 3-sequence and an angle; validates finiteness."""
         arr = np.array(p, dtype=float).reshape(3)
-        if not (np.all(np.isfinite(arr)) and math.isfinite(theta)):
+        if not (all(map(math.isfinite, arr.tolist())) and math.isfinite(theta)):
             raise ValueError(f"pose must be finite, got p={arr}, theta={theta}")
         return Pose(arr, wrap_angle(float(theta)))
 

@@ -109,6 +109,18 @@ def integrate4(g: np.ndarray, V: np.ndarray, dt: float, out: np.ndarray) -> None
     compose4(g, e, out)
 
 
+@kernel
+def lag_integrate4(
+    g: np.ndarray, V: np.ndarray, V_target: np.ndarray, a: float, dt: float, out: np.ndarray
+) -> None:
+    """One step of dt seconds of a body whose velocity follows V_target with a first-order lag:
+    V += a (V_target − V) in place (a = 1 − exp(−dt/τ)), then out = g exp(V̂ dt) (the simulated lab's
+    drones and robot; out may alias neither g nor V)."""
+    for i in range(4):
+        V[i] += a * (V_target[i] - V[i])
+    integrate4(g, V, dt, out)
+
+
 # ---- projection (paper eq. f, DESIGN §4) ---------------------------------------------------------------
 # cam = [λ, min_depth, R_ic (9, row-major), t_ic (3)]: the camera of flightstack.paper.projection.CameraModel
 @kernel

@@ -51,6 +51,7 @@ def warm_up(loop: bool = False) -> float:
     kern.relative4(g, h, out)
     kern.exp_twist4(V, 0.01, out)
     kern.integrate4(g, V, 0.01, out)
+    kern.lag_integrate4(g, V.copy(), h, 0.1, 0.01, out)
     g_i0 = np.array([0.0, 0.0, 1.5, 0.1])
     pc, f, J = np.zeros((4, 3)), np.zeros(8), np.zeros((8, 4))
     kern.points_in_camera(g_i0, _P0, _CAM, pc)

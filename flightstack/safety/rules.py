@@ -182,7 +182,7 @@ def sanitize(V: object) -> tuple[np.ndarray, str | None]:
         return np.zeros(4), f"not numeric ({type(exc).__name__}: {exc})"
     if arr.size != 4:
         return np.zeros(4), f"expected 4 values [vx, vy, vz, wz], got {arr.size}"
-    if not np.all(np.isfinite(arr)):
+    if not all(map(math.isfinite, arr.tolist())):
         return np.zeros(4), f"non-finite command {arr.tolist()}"
     return arr.copy(), None
 
@@ -277,7 +277,7 @@ def valid_pose(sp: object) -> bool:
         return (
             math.isfinite(float(sp.stamp))  # type: ignore[attr-defined]
             and p.shape == (3,)
-            and bool(np.all(np.isfinite(p)))
+            and all(map(math.isfinite, p.tolist()))
             and math.isfinite(float(pose.theta))
         )
     except (TypeError, ValueError, AttributeError):
