@@ -8,7 +8,10 @@ The flight is the rig's: the hardware backend (the real lab, or the emulated lab
 flight starts on loopback) or the simulated lab on its virtual clock. Frames are timed when they become
 available on this computer: on the hardware backend by their decode time, so the camera driver is told
 explicitly not to subtract the rig's video latency (`stamping_decode_time`); on the simulated lab, which
-stamps a frame with its capture time, when the recorder first sees it.
+stamps a frame with its capture time, when the recorder first sees it. Motion capture is the reference:
+the hardware backend stamps a pose when it is received, so the session's pose times are taken back by
+the rig's `mocap` link (its mean, latency_s + jitter_s / 2: a few ms on a wired OptiTrack, which NatNet
+reports per frame) to the times they were taken; the simulated lab stamps them when taken.
 
 Units: s, m, rad; the motion capture's world Σw; body velocities FLU.
 """
@@ -35,7 +38,7 @@ from flightstack.calibration.latency_record import (
 from flightstack.calibration.latency_session import RcRecord, VideoRecord
 from flightstack.config.links import LinkSpec
 from flightstack.config.mission import Mission
-from flightstack.hal import Frame
+from flightstack.hal import Backend, Frame
 from flightstack.runtime.fleet import Fleet
 from flightstack.runtime.flight import Flight
 from flightstack.runtime.runner import SafePause
@@ -57,7 +60,7 @@ class FlightPlan:
 
     video_s: float = 10.0
     yaw_rate_rad_s: float = 0.5
-    rc_steps: int = 20
+    rc_steps: int = 30
     step_s: float = 0.6
     rc_amplitude_rad_s: float = 0.6
     tolerance_m: float = 0.05
@@ -105,7 +108,10 @@ def one_drone(mission: Mission, drone_id: int | None) -> Mission:
             f"drone {d.id}: the calibration needs a downward camera with a calibration file (it yaws above "
             "the target, which a forward camera would lose)"
         )
-    return mission.model_copy(update={"drones": [d]})
+    regions = mission.gp.regions.model_copy(update={"edges": []})  # one drone, one band (the schema's rule)
+    return mission.model_copy(
+        update={"drones": [d], "gp": mission.gp.model_copy(update={"regions": regions})}
+    )
 
 
 def stamping_decode_time(mission: Mission) -> Mission:
@@ -150,6 +156,8 @@ class CalibrationFlight:
     mission: Mission
     plan: FlightPlan
     say: Callable[[str], None]
+    pose_latency_s: float = 0.0
+    """How late the pose source's stamps are behind the poses' capture (s): subtracted from them."""
     seconds: float = 0.0
 
     def geometry(self) -> tuple[Geometry, CameraCalibration]:
@@ -188,6 +196,8 @@ class CalibrationFlight:
         )
         rc = record_rc(drone, poses, geo.drone_body, clock.now, pause, levels, plan.step_s, station=station)
         self.seconds = clock.now() - t0
+        video.t_pose = video.t_pose - self.pose_latency_s  # when taken (the session's convention)
+        rc.t_yaw = rc.t_yaw - self.pose_latency_s
         return video, rc
 
     def _check_markers(
@@ -218,15 +228,19 @@ def fly_latency_calibration(
     drone_id: int | None = None,
     plan: FlightPlan | None = None,
     say: Callable[[str], None] = print,
+    wrap_backend: Callable[[Backend], Backend] | None = None,
 ) -> tuple[VideoRecord, RcRecord, float, float]:
     """Fly the calibration on the mission's rig: (video part, rc part, the procedure's seconds on the rig's
-    clock, the whole flight's wall seconds with takeoff, landing and the emulated lab's start)."""
+    clock, the whole flight's wall seconds with takeoff, landing and the emulated lab's start).
+    wrap_backend: wraps the backend the flight builds (an observer: the tests' true capture times)."""
     m = one_drone(mission, drone_id)
     if plan is None:
         plan = FlightPlan.within(m.safety.max_yaw_rate if m.safety.enabled else None)
-    proc = CalibrationFlight(m, plan, say)
+    mocap = m.links.link("mocap")
+    pose_latency = 0.0 if m.simulated else mocap.latency_s + mocap.jitter_s / 2  # stamped when received
+    proc = CalibrationFlight(m, plan, say, pose_latency)
     wall0 = time.perf_counter()
-    with Flight(m, None, modes=["none"], say=say) as flight:
+    with Flight(m, None, modes=["none"], say=say, wrap_backend=wrap_backend) as flight:
         flown = flight.mission if flight.mission.simulated else stamping_decode_time(flight.mission)
         video, rc = flight.fly_procedure(proc, mission=flown)
     return video, rc, proc.seconds, time.perf_counter() - wall0
