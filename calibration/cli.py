@@ -359,7 +359,7 @@ def _fly_latency(args: argparse.Namespace) -> int:
     from flightstack.config.mission import MissionError, load_mission
     from flightstack.config.rig import RigError
 
-    overrides = {} if args.links is None else {"links": {"profile": args.links}}
+    overrides: dict[str, object] = {} if args.links is None else {"links": {"profile": args.links}}
     try:
         mission = load_mission(args.experiment, overrides, rig=args.rig)
         one = one_drone(mission, args.drone)
