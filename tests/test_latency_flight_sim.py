@@ -63,3 +63,36 @@ def test_the_flown_calibration_recovers_the_simulated_labs_links() -> None:
     assert abs(1e3 * (v_est.sd_s - truth.std())) <= 10.0, (v_est, truth.std())
     assert r_est.n_steps >= 25 and abs(r_err_ms) <= 10.0, (r_est, r_err_ms)
     assert abs(r_est.tau_s - mission.sim.tello.time_constant_s) <= 0.03, r_est
+
+
+def test_a_procedure_lands_the_drone_whatever_ends_it() -> None:
+    """Flight.fly_procedure takes off, runs the procedure and lands, also when it raises (error, Ctrl-C)."""
+    import pytest
+
+    from flightstack.calibration.latency_flight import one_drone
+    from flightstack.hal import FlightPhase
+    from flightstack.runtime.flight import Flight
+    from flightstack.sim_backend.build_lab import build_lab
+
+    mission = one_drone(load_mission("paper_experiment", rig="lab-sim"), None)
+    for error in (None, RuntimeError("a device failed"), KeyboardInterrupt()):
+        backend = build_lab(mission)
+        heights: list[float] = []
+
+        def hover(
+            f: Any, pause: Any, error: BaseException | None = error, heights: list[float] = heights
+        ) -> str:
+            pause(1.0)
+            heights.append(float(f.backend.truth()[1][1].p[2]))
+            if error is not None:
+                raise error
+            return "done"
+
+        with Flight(mission, None, modes=["none"], backend=backend) as flight:
+            if error is None:
+                assert flight.fly_procedure(hover) == "done"
+            else:
+                with pytest.raises(type(error)):
+                    flight.fly_procedure(hover)
+        assert heights and heights[0] > 0.8, heights  # it flew
+        assert backend.drone(1).state().phase == FlightPhase.GROUND, error  # and it landed
