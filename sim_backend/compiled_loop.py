@@ -64,6 +64,8 @@ def why_not_compiled(f: Fleet) -> str | None:
     ids = [a.cfg.drone_id for a in f.agents]
     if ids != list(backend.world.drones):
         return "agent order differs from the world's drone order"
+    if any(a.cfg.compensation is not None for a in f.agents):
+        return "delay compensation is on"
     mode = Mode(f.mode)
     preds = [a.predictor for a in f.agents]
     if mode.uses_gp and not all(isinstance(p, GPExpert) for p in preds):

@@ -150,6 +150,9 @@ def running_lab(mission: Any, lab_dir: Path) -> Iterator[Any]:
 
     doc = mission_to_dict(mission)
     doc["start_emulators"] = False  # the written mission flies the running emulators
+    comp = mission.delay_compensation()
+    if comp is not None:  # the emulated Tellos' latencies, written out: the written mission is hardware's
+        doc["compensation"] |= {"command_delay_s": comp.command_delay_s, "response_s": comp.response_s}
     starts = {}  # on the ground below where the simulated lab starts them: the same experiment
     for k, d in enumerate(mission.drones):
         above = initial_drone_pose(mission, k)

@@ -315,3 +315,27 @@ def test_ideal_drone_reports_its_world_z_while_flying_and_0_once_landed() -> Non
     assert drone.state().flying and drone.state().height_m == -1.5  # z is the optical axis here
     drone.land()
     assert not drone.state().flying and drone.state().height_m == 0.0
+
+
+def test_set_changes_a_dotted_key_after_the_rig_and_bad_ones_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from flightstack.cli.run import with_sets
+
+    m = load_mission("paper_experiment", rig="lab-sim")
+    changed = with_sets(m, ["compensation.enabled=true", "gains.k_e=[6,6,6,6]", "sim.render.model=centres"])
+    assert changed.compensation.enabled and list(changed.gains.k_e) == [6.0] * 4
+    assert changed.sim.render.model == "centres" and changed.rig == m.rig
+    assert changed.drones == m.drones  # the rest untouched (calibration paths made absolute, same files)
+    for bad, says in [
+        ("compensation.enabled=maybe", "compensation.enabled"),
+        ("compensation.enabld=true", "compensation.enabld: unknown key"),
+        ("gains.k_s=1,4", "one value"),
+        ("gains.k_s", "KEY=V"),
+    ]:
+        code = cli.main(
+            ["run", "paper_experiment", "--rig", "lab-sim", "--set", bad, "--out", str(tmp_path / "x")]
+        )
+        assert code == 2, bad
+        assert says in capsys.readouterr().err, bad
+    assert not (tmp_path / "x").exists()  # nothing flew, nothing written

@@ -141,6 +141,23 @@ def test_an_experiment_refuses_what_belongs_to_the_rig(tmp_path: Path) -> None:
     )
 
 
+def test_compensation_is_the_rigs_and_reaches_the_mission(tmp_path: Path) -> None:
+    """`compensation:` (what the delays are, whether to compensate them) is a rig section."""
+    rig = yaml.safe_load((MISSION_CONFIGS / "rigs" / "lab-sim.yaml").read_text())
+    rig["cameras"] = {k: str((MISSION_CONFIGS / "rigs" / v).resolve()) for k, v in rig["cameras"].items()}
+    rig["compensation"] = {"enabled": True, "response_s": 0.3}
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(rig))
+    c = load_mission(EXPERIMENT, rig=path).delay_compensation()
+    assert c is not None and c.response_s == 0.3 and c.command_delay_s == 0.05  # the rc link's
+    exp = yaml.safe_load(EXPERIMENT.read_text())
+    exp["compensation"] = {"enabled": True}
+    bad = tmp_path / "exp.yaml"
+    bad.write_text(yaml.safe_dump(exp))
+    with pytest.raises(MissionError, match=re.escape("compensation: unknown key (belongs in the rig file)")):
+        load_mission(bad)
+
+
 def test_a_rig_without_a_calibration_for_a_mount_says_which(tmp_path: Path) -> None:
     rig = yaml.safe_load((MISSION_CONFIGS / "rigs" / "lab-sim.yaml").read_text())
     del rig["cameras"]["forward"]

@@ -15,11 +15,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+import yaml
 from tqdm import tqdm
 
 from flightstack.analysis.loop_health import loop_health_line
 from flightstack.config.links import PROFILES
-from flightstack.config.mission import Mission, load_mission
+from flightstack.config.mission import Mission, MissionError, load_mission
 
 if TYPE_CHECKING:
     from flightstack.runtime.flight import Flight, FlightResult
@@ -109,6 +110,25 @@ def _progress_factory(bars: list[tqdm]) -> Callable[[str, int], Callable[[int], 
     return make
 
 
+def with_sets(mission: Mission, sets: list[str]) -> Mission:
+    """The mission with each `--set KEY=VALUE` applied (a dotted key and one YAML value, the sweep's
+    syntax), validated again; MissionError naming the key and the reason."""
+    from flightstack.config.mission import parse_mission
+    from flightstack.runtime.flight import resolved_mission_yaml
+    from flightstack.sweep.plan import SweepError, parse_set, set_path
+
+    doc = yaml.safe_load(resolved_mission_yaml(mission))  # file paths absolute: loads from anywhere
+    for text in sets:
+        try:
+            key, values = parse_set(text)
+            if len(values) != 1:
+                raise SweepError(f"--set {key}: one value per key here (a sweep takes several)")
+            set_path(doc, key, values[0])
+        except SweepError as exc:
+            raise MissionError(str(exc)) from None
+    return parse_mission(doc, f"{mission.name} with --set {' '.join(sets)}")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """`run EXPERIMENT --rig RIG`, `sim MISSION` (simulated rigs only) and `fly MISSION`: load, check the
     run directory, start an emulated lab or preflight and confirm real drones, fly, report."""
@@ -126,6 +146,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.bus is not None and args.bus != mission.bus.kind:
         bus = _bus_override(mission, args.bus)
         mission = load_mission(args.mission, {**overrides, "bus": bus}, rig=args.rig)
+    if getattr(args, "set", None):
+        mission = with_sets(mission, args.set)
     problem = network_problem(mission)
     if problem is not None:
         print(f"error: {problem}; nothing took off", file=sys.stderr)
@@ -402,6 +424,14 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
         default=None,
         help="replace the rig's links with a profile: how late and lossy video, state, rc, motion capture "
         "and the robot are (docs/links.md; applied by the simulated and the emulated lab)",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=None,
+        metavar="KEY=VALUE",
+        help="set a dotted mission key to a YAML value after the rig is composed, e.g. "
+        "compensation.enabled=true or gains.k_s=4 (repeatable; validated like the file)",
     )
     p.add_argument(
         "--mcap",

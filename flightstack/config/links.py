@@ -84,3 +84,9 @@ class LinksSpec(_Strict):
             raise ValueError(f"unknown link {name!r}; known: {', '.join(LINKS)}")
         own: LinkSpec | None = getattr(self, name)
         return own if own is not None else PROFILES[self.profile].get(name, NONE)
+
+    def emulated(self, name: str) -> LinkSpec:
+        """The link `name` as the emulated lab applies it: profile `perfect` changes nothing there (its
+        devices have their own delays, e.g. the emulated Tello's response), links written out do."""
+        own: LinkSpec | None = getattr(self, name)
+        return own if own is not None else (NONE if self.profile == "perfect" else self.link(name))

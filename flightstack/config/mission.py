@@ -25,11 +25,13 @@ from pydantic import (
 )
 
 from flightstack.config.bus import BusSpec
+from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S, CompensationSpec
 from flightstack.config.hardware import HardwareSpec
 from flightstack.config.links import LinksSpec
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 from flightstack.config.types import Angle, Coordinate, Distance, Finite, Mode, Speed
 from flightstack.config.types import Strict as _Strict
+from flightstack.paper.delay_compensation import Compensation
 from flightstack.paper.fusion import FUSION_RULES
 from flightstack.paper.gain_analysis import (
     MAX_RATE_DT,
@@ -259,10 +261,32 @@ class Mission(_Strict):
     gain_analysis: GainAnalysisSpec = GainAnalysisSpec()
     sim: SimSpec = SimSpec()
     links: LinksSpec = LinksSpec()  # how late and lossy each link is (flightstack.config.links)
+    compensation: CompensationSpec = CompensationSpec()  # delay-aware observer and command
     safety: SafetySpec = SafetySpec()
     hardware: HardwareSpec | None = None
     network: str = "clean"  # the emulated lab's impairment profile (flightstack.netem.PROFILES)
     _base_dir: Path = PrivateAttr(default=Path("."))
+
+    def delay_compensation(self) -> Compensation | None:
+        """What each agent's delay compensation is told (None: off, the paper's law). Unset latencies
+        come from the rig: the rc link's mean delay, and the simulated (sim.tello) or emulated Tello's
+        response; the ideal rig's drones move as commanded (both 0)."""
+        c = self.compensation
+        if not c.enabled:
+            return None
+        if self.backend == "sim_ideal":
+            rc, response = 0.0, 0.0
+        else:
+            link = self.links.link("rc") if self.backend == "sim_lab" else self.links.emulated("rc")
+            rc = link.latency_s + link.jitter_s / 2
+            response = (
+                self.sim.tello.time_constant_s if self.backend == "sim_lab" else EMULATED_TELLO_RESPONSE_S
+            )
+        return Compensation(
+            rc if c.command_delay_s is None else c.command_delay_s,
+            response if c.response_s is None else c.response_s,
+            c.history_s,
+        )
 
     def resolve(self, relative: str) -> Path:
         """A path from the mission file (calibrations, experts) made absolute against its directory."""
@@ -330,6 +354,12 @@ class Mission(_Strict):
         if self.k_c_xy_unequal():
             raise ValueError("gains: k_c and k_e must have equal x and y components")
         self._check_sampled_loop()
+        c = self.compensation
+        if c.enabled and self.backend == "tello" and not self.start_emulators and c.response_s is None:
+            raise ValueError(
+                "compensation.response_s: required on hardware (the drone's velocity response time "
+                "constant, s; flightstack calibrate latency measures it)"
+            )
         if self.backend == "sim_lab":
             if self.target.motion != "square":
                 raise ValueError("target.motion: the sim_lab backend drives the robot on the 'square' law")

@@ -46,7 +46,7 @@ EXPERIMENT_DRONE_KEYS = frozenset(
 EXPERIMENT_CAMERA_KEYS = frozenset({"mount", "offset"})
 RIG_KEYS = frozenset(
     {"rig", "description", "backend", "cameras", "drones", "rc_gains", "robot", "sim", "safety", "bus",
-     "hardware", "emulated", "links", "network"}
+     "hardware", "emulated", "links", "network", "compensation"}
 )  # fmt: skip
 """Top-level keys of a rig file."""
 RIG_DRONE_KEYS = frozenset({"id", "camera", "rc_gains"})
@@ -229,7 +229,7 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
     e.pop("rig", None)
     out: dict[str, Any] = {"name": e.pop("name", None), "rig": r["rig"], "backend": r["backend"]}
     out.update(e)
-    for key in ("sim", "safety", "bus", "hardware", "links", "network"):
+    for key in ("sim", "safety", "bus", "hardware", "links", "network", "compensation"):
         if key in r:
             out[key] = copy.deepcopy(r[key])
     if "links" in r:  # a measured links file is included here: the resolved mission holds its values

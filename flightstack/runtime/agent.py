@@ -12,6 +12,7 @@ Modes: `none` (μ = 0), `local` (own expert only), `dgp` (own + neighbours fused
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -23,6 +24,14 @@ from flightstack.config.types import Mode
 from flightstack.hal import Camera, Drone, Frame, PoseSource
 from flightstack.paper import kernels as kern
 from flightstack.paper.control import Gains
+from flightstack.paper.delay_compensation import (
+    CURRENT_S,
+    CommandModel,
+    Compensation,
+    EstimateHistory,
+    PoseHistory,
+    carry_error,
+)
 from flightstack.paper.fusion import FUSION_RULES
 from flightstack.paper.geometry import Pose
 from flightstack.paper.projection import CameraModel
@@ -55,6 +64,7 @@ class AgentConfig:
     stale_after: float
     calibration: CameraCalibration | None = None  # image cameras: marker colours and intrinsics
     max_frame_age_s: float = math.inf  # a frame older than this (s, vs the tick time) counts as none
+    compensation: Compensation | None = None  # None: the paper's law (docs/equations.md §11)
 
 
 @dataclass
@@ -110,6 +120,8 @@ class Agent:
         self._u_e_prev: np.ndarray | None = None
         self._t_prev: float | None = None
         self._g_wi: np.ndarray | None = None  # the own pose g_wi as a vector (last one measured)
+        self._g_wi_t = -math.inf  # when it was measured (s)
+        self._delays = None if cfg.compensation is None else _Delays(cfg.compensation)
         self._P0 = np.ascontiguousarray(cfg.P0, dtype=float)
         self._cam = cfg.camera.packed
         self._g_d = cfg.g_d.as_vector()
@@ -135,6 +147,8 @@ class Agent:
         self._T[kern.G_BAR_W] = g_bar_w.as_vector()
         self._u_e_prev = None
         self._t_prev = None
+        if self._delays is not None:
+            self._delays.estimates.clear()
 
     # ---- phase 1 -------------------------------------------------------------------------------
     def sense_and_publish(self, t: float) -> None:
@@ -142,23 +156,32 @@ class Agent:
         own = self.poses.latest(cfg.body_name)
         fresh = own is not None
         if own is not None:
-            self._g_wi = own.pose.as_vector()
+            self._g_wi, self._g_wi_t = own.pose.as_vector(), own.stamp
+            if self._delays is not None:
+                self._delays.poses.add(own.stamp, self._g_wi)
         elif self._g_wi is None:
             raise RuntimeError(f"no pose for {cfg.body_name}")
         # else a motion-capture dropout: keep the last pose, hover; the safety layer decides beyond that
         frame = self.camera.latest()
         features, rejection = self._features(frame, t)
+        late = None  # a frame captured before the tick, compensated: its capture time (s)
+        if self._delays is not None and features is not None and frame is not None:
+            late, why = self._delays.frame_time(frame.stamp, t)
+            if why is not None:
+                features, rejection, late = None, why, None
         step = self._u_e_prev is not None and self._t_prev is not None and t > self._t_prev
         visible = kern.agent_sense(
             T,
             self._u_e_prev if self._u_e_prev is not None else _ZERO4,
             t - self._t_prev if step and self._t_prev is not None else 0.0,
             self._g_wi,
-            features if features is not None else self._no_features,
-            features is not None,
+            features if features is not None and late is None else self._no_features,
+            features is not None and late is None,
             self._P0,
             self._cam,
         )
+        if late is not None and features is not None and self._delays is not None:
+            visible, rejection = self._delays.sense_late(T, features, late, t, self._P0, self._cam)
         g_bar_w = pose_of(T[kern.G_BAR_W])  # the estimate after the observer step
         x = T[kern.G_BAR_W].copy()
         if self.predictor is not None and cfg.mode != Mode.NONE:
@@ -228,12 +251,15 @@ class Agent:
                 n += 1
         rec.neighbours_used = tuple(used)
         hover = self.hold or not rec.own_pose_fresh
-        rec.n_fused = kern.agent_act(
-            T, rec.visible, self._NG, self._NMU, self._NVAR, self._NPRIOR, n, self._mode, self.rule_code,
-            self._g_d, cfg.gains.k_c, cfg.gains.k_e, cfg.gains.k_s, hover,
-        )  # fmt: skip
+        rec.n_fused = self._law(T, n, hover)
+        if self._delays is not None:
+            self._delays.estimates.add(t, T[kern.G_BAR_W], T[kern.U_E])
+            if not hover and self._g_wi is not None:
+                self._delays.command_ahead(T, self._g_wi, self._g_wi_t, t, lambda T2: self._law(T2, n, False))
         V = T[kern.V_CMD].copy()
         self.drone.send_body_velocity(V)
+        if self._delays is not None:
+            self._delays.commands.sent(t, V)
         rec.mu_used, rec.u_c, rec.u_e, rec.V_cmd = (
             T[kern.MU_USED].copy(),
             T[kern.U_C].copy(),
@@ -243,8 +269,79 @@ class Agent:
         self._u_e_prev, self._t_prev = rec.u_e, t
         return V
 
+    def _law(self, T: np.ndarray, n: int, hover: bool) -> int:
+        """agent_act on the tick buffer T with the first n neighbour messages; how many experts fused."""
+        g = self.cfg.gains
+        return int(kern.agent_act(
+            T, self.last.visible, self._NG, self._NMU, self._NVAR, self._NPRIOR, n, self._mode,
+            self.rule_code, self._g_d, g.k_c, g.k_e, g.k_s, hover,
+        ))  # fmt: skip
+
 
 _ZERO4 = np.zeros(4)
+VELOCITY_WINDOW_S = 1.0
+"""A late frame's error is carried over its delay with the target moving at the estimate's mean velocity
+over this window (s): long against the observer's corrections (1/k_e), so they do not feed back."""
+
+
+class _Delays:
+    """The agent's delay compensation (docs/equations.md §11): its own poses, estimates and commands, and
+    the two steps that use them."""
+
+    def __init__(self, c: Compensation) -> None:
+        self.c = c
+        self.poses = PoseHistory(c.history_s)
+        self.estimates = EstimateHistory(c.history_s)
+        self.commands = CommandModel(c.command_delay_s, c.response_s, c.history_s)
+        self.newest_used = -math.inf  # capture time of the newest frame used (s)
+
+    def frame_time(self, stamp: float, t: float) -> tuple[float | None, str | None]:
+        """(capture time if the frame is late, None if current; why it is not used, or None)."""
+        if stamp < self.newest_used:
+            return None, "frame out of order"
+        self.newest_used = stamp
+        if stamp >= t - CURRENT_S:
+            return None, None
+        if stamp < t - self.c.history_s:
+            return None, "frame too old"
+        return stamp, None
+
+    def sense_late(
+        self, T: np.ndarray, f: np.ndarray, t_c: float, t: float, P0: np.ndarray, cam: np.ndarray
+    ) -> tuple[bool, str | None]:
+        """e_e from features captured at t_c (s), carried to t; T[E_E] written. Returns (v_i, why the
+        frame was not used or None)."""
+        g_wi_c, g_bar_c = self.poses.at(t_c), self.estimates.at(t_c)
+        if g_wi_c is None or g_bar_c is None:  # before the poses and estimates kept (e.g. a reset)
+            return False, "frame too old"
+        g_bar_i0_c = np.empty(4)
+        kern.relative4(g_wi_c, g_bar_c, g_bar_i0_c)
+        xi_c = np.empty(4)
+        if kern.estimation_error(f, g_bar_i0_c, P0, cam, xi_c) != kern.OK:
+            return False, None
+        V0 = self.estimates.mean_velocity(t, VELOCITY_WINDOW_S)
+        xi = carry_error(xi_c, g_bar_c, T[kern.G_BAR_W], V0, t - t_c)
+        T[kern.E_E, 0], T[kern.E_E, 1], T[kern.E_E, 2], T[kern.E_E, 3] = xi[0], xi[1], xi[2], math.sin(xi[3])
+        return True, None
+
+    def command_ahead(
+        self, T: np.ndarray, g_wi: np.ndarray, t_g: float, t: float, law: Callable[[np.ndarray], object]
+    ) -> None:
+        """Replace (u_c, V) of the law at t by the law at the state of t + horizon: the own pose from
+        g_wi (measured at t_g) moved by the commands sent, the estimate moved on with −u_e. u_e stays
+        the one at t (the observer is not delayed by the radio). `law` evaluates the law on a buffer."""
+        h = self.c.horizon_s
+        if h <= 0.0:
+            return
+        g_pred = self.commands.predict(g_wi, t_g, t + h)
+        g_bar_pred = np.empty(4)
+        kern.integrate4(T[kern.G_BAR_W], -T[kern.U_E], h, g_bar_pred)
+        T2 = T.copy()
+        kern.relative4(g_pred, g_bar_pred, T2[kern.G_BAR_I0])
+        law(T2)
+        T[kern.U_C], T[kern.V_CMD] = T2[kern.U_C], T2[kern.V_CMD]
+
+
 MODE_CODES = {
     # Mode -> the kernels' mode code
     Mode.NONE: kern.MODE_NONE,

@@ -50,6 +50,7 @@ def make_agents(
     gains = Gains.make(mission.gains.k_c, mission.gains.k_e, mission.gains.k_s)
     ids = [d.id for d in mission.drones]
     g_w0 = mission.target.initial_pose.pose()
+    compensation = mission.delay_compensation()
     agents = []
     for k, d in enumerate(mission.drones):
         if agent_ids is not None and d.id not in agent_ids:
@@ -70,6 +71,7 @@ def make_agents(
             if d.camera is None or d.camera.calibration is None
             else load_calibration(mission.resolve(d.camera.calibration)),
             max_frame_age_s=math.inf if mission.hardware is None else mission.hardware.max_frame_age_s,
+            compensation=compensation,
         )
         # ḡ_w,i(0) = g_w0(0) g_e(0)⁻¹; on sim_lab reset at pursuit start from the drone's own pose
         g_bar = compose(g_w0, inverse(d.initial_estimate_error.pose()))

@@ -54,8 +54,7 @@ def emulated_links(links: LinksSpec) -> dict[str, LinkSpec]:
     ones left out."""
     out = {}
     for name in EMULATED_LINKS:
-        own: LinkSpec | None = getattr(links, name)
-        spec = own if own is not None else (NONE if links.profile == "perfect" else links.link(name))
+        spec = links.emulated(name)
         if not spec.perfect:
             out[name] = spec
     return out

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S
+
 from .device_links import DeviceLinks
 from .radio import DeviceRadio
 from .tello_faults import ReplyScheduler, TelloFaults
@@ -62,7 +64,7 @@ class TelloEmulatorBase:
         auto_land_s: float = 15.0,
         land_s: float = 0.3,
         takeoff_height_cm: float = 80.0,
-        tau_s: float = 0.1,
+        tau_s: float = EMULATED_TELLO_RESPONSE_S,
         state_hz: float = 10.0,
         gop_size: int = 15,
         pre_sdk_reply: str | None = None,

@@ -1,0 +1,40 @@
+"""The mission's `compensation:` section: delay-aware estimation and control (docs/equations.md §11).
+
+Off, every agent flies the paper's law. On, each agent
+- uses a camera frame at its capture time (the frame's stamp): the observer's error is measured against
+  the estimate and the own pose as they were then, and carried forward to now with the estimate's own
+  motion since and the target's motion over the delay (the estimate's mean velocity over the last
+  second, VELOCITY_WINDOW_S in flightstack.runtime.agent);
+- commands for the state at the time the command takes effect: the own pose `command_delay_s` +
+  `response_s` ahead, predicted from the commands already sent through a first-order response, and the
+  estimate carried along with the observer's present input u_e.
+
+With every latency 0 (frames stamped at the tick, command_delay_s = response_s = 0) it is the paper's
+law exactly.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import Field
+
+from flightstack.config.types import Strict as _Strict
+
+EMULATED_TELLO_RESPONSE_S = 0.1
+"""The emulated Tello's velocity response time constant (s): its rc acts through a first-order lag."""
+
+Latency = Annotated[float, Field(ge=0, le=10.0, allow_inf_nan=False)]
+
+
+class CompensationSpec(_Strict):
+    """`compensation:`. command_delay_s: from sending an rc command to the start of the drone's response
+    (s; None: the rig's rc link mean delay, latency_s + jitter_s/2). response_s: the time constant of the
+    drone's first-order velocity response (s; None: the simulated or emulated Tello's; on hardware it must
+    be given, e.g. from `flightstack calibrate latency`). history_s: how far back own poses and estimates
+    are kept (s); a frame captured earlier is not used and is counted ("frame too old")."""
+
+    enabled: bool = False
+    command_delay_s: Latency | None = None
+    response_s: Latency | None = None
+    history_s: Annotated[float, Field(gt=0, le=10.0, allow_inf_nan=False)] = 1.0
