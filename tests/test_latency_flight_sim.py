@@ -96,3 +96,26 @@ def test_a_procedure_lands_the_drone_whatever_ends_it() -> None:
                     flight.fly_procedure(hover)
         assert heights and heights[0] > 0.8, heights  # it flew
         assert backend.drone(1).state().phase == FlightPhase.GROUND, error  # and it landed
+
+
+def test_the_command_flies_the_simulated_lab_and_refuses_what_it_cannot_fly(
+    tmp_path: Any, capsys: Any
+) -> None:
+    import yaml
+
+    from flightstack.cli.app import main
+
+    out = tmp_path / "links.yaml"
+    assert main(["calibrate", "latency", "--rig", "lab-sim", "--links", "tello", "--out", str(out)]) == 0
+    written = yaml.safe_load(out.read_text())
+    assert 0.33 < written["measured"]["video"]["mean_s"] < 0.37, written
+    assert (tmp_path / "links.session.npz").is_file()
+    # the session re-estimates to the same numbers
+    again = tmp_path / "again.yaml"
+    session = str(tmp_path / "links.session.npz")
+    assert main(["calibrate", "latency", "--session", session, "--out", str(again)]) == 0
+    assert yaml.safe_load(again.read_text())["links"] == written["links"]
+    capsys.readouterr()
+    assert main(["calibrate", "latency"]) == 2  # neither --rig nor --session
+    assert main(["calibrate", "latency", "--rig", "lab-sim", "--drone", "2"]) == 2  # a forward camera
+    assert "downward camera" in capsys.readouterr().err
