@@ -27,6 +27,7 @@ from flightstack.calibration.prompts import (
 )
 from flightstack.calibration.solve import SolveOptions
 from flightstack.calibration.sources import ImageFolderSource, SourceError, TelloSource, VideoFileSource
+from flightstack.config.links import PROFILES
 from flightstack.vision.camera_file import PATTERN_KINDS, CalibrationError, load_calibration
 
 
@@ -320,17 +321,119 @@ trusted (the markers were mostly lost, or the session's calibration or mount is 
 
 
 def cmd_latency(args: argparse.Namespace) -> int:
-    """Estimate the video and rc latencies of a recorded session; print and write the links file."""
-    from flightstack.calibration.latency import DelayEstimate, ResponseEstimate
-    from flightstack.calibration.latency_report import links_text, write_links_file
+    """Estimate the video and rc latencies of a recorded session (--session) or of a calibration flight
+    flown now on a rig (--rig); print and write the links file."""
     from flightstack.calibration.latency_session import load_session
 
+    if (args.session is None) == (args.rig is None):
+        return _error("give either --session FILE (a recorded session) or --rig RIG (fly one now)")
+    if args.rig is not None:
+        return _fly_latency(args)
     try:
         video, rc = load_session(args.session)
     except (OSError, ValueError) as exc:
         return _error(f"session {args.session}: {exc}")
     if video is None and rc is None:
         return _error(f"session {args.session}: neither a video nor an rc part")
+    return _estimate_latency(args, video, rc, f"session {Path(args.session).name}")
+
+
+def _session_path(args: argparse.Namespace) -> Path:
+    """Where a flown session is saved: beside --out (FILE.session.npz), else latency_session_<UTC>.npz."""
+    import datetime
+
+    if args.out:
+        out = Path(args.out)
+        return out.with_name(out.stem + ".session.npz")
+    return Path(f"latency_session_{datetime.datetime.now(datetime.UTC):%Y%m%dT%H%M%SZ}.npz")
+
+
+def _fly_latency(args: argparse.Namespace) -> int:
+    """`--rig`: fly the calibration (calibration.latency_flight), save the session, estimate, write."""
+    from flightstack.calibration.latency_flight import (
+        CalibrationFlightError,
+        fly_latency_calibration,
+        one_drone,
+    )
+    from flightstack.calibration.latency_session import save_session
+    from flightstack.config.mission import MissionError, load_mission
+    from flightstack.config.rig import RigError
+
+    overrides: dict[str, object] = {} if args.links is None else {"links": {"profile": args.links}}
+    try:
+        mission = load_mission(args.experiment, overrides, rig=args.rig)
+        one = one_drone(mission, args.drone)
+        if args.out:
+            _check_links_out(args.out)
+    except (MissionError, RigError, ValueError, OSError) as exc:
+        return _error(str(exc))
+    drone = one.drones[0].id
+    real = not mission.simulated and not mission.start_emulators
+    if real:
+        code = _preflight_and_confirm(one, drone, args.yes)
+        if code:
+            return code
+    session = _session_path(args)
+    say = lambda line: print(line, file=sys.stderr)  # noqa: E731
+    say(f"calibrate latency: drone {drone} on rig {mission.rig} ({mission.backend}); session -> {session}")
+    try:
+        video, rc, flown_s, wall_s = fly_latency_calibration(mission, args.drone, say=say)
+    except KeyboardInterrupt:
+        print("interrupted: landed; nothing written", file=sys.stderr)
+        return 130
+    except CalibrationFlightError as exc:
+        return _error(f"{exc}; landed, nothing written", EXIT_VERDICT)
+    except Exception as exc:  # an abort, the safety layer, a device: the drone has landed (Flight)
+        return _error(f"the calibration flight failed: {type(exc).__name__}: {exc}; landed", EXIT_VERDICT)
+    print(
+        f"flown: {flown_s:.1f} s from takeoff's end to the last step (the rig's clock); {wall_s:.1f} s "
+        "of wall clock in all (with the lab's start, takeoff and landing)"
+    )
+    try:
+        save_session(session, video=video, rc=rc)
+    except OSError as exc:
+        return _error(f"session {session}: cannot write: {exc.strerror or exc}")
+    print(f"session written: {session} (`flightstack calibrate latency --session {session}` re-estimates)")
+    return _estimate_latency(
+        args, video, rc, f"flown on rig {mission.rig}, drone {drone}; session {session.name}"
+    )
+
+
+def _check_links_out(out: str) -> None:
+    path = Path(out)
+    if path.suffix.lower() not in (".yaml", ".yml"):
+        raise ValueError(f"--out {out}: a links file ends in .yaml or .yml")
+    if not path.parent.is_dir():
+        raise ValueError(f"--out {out}: folder {path.parent} does not exist")
+
+
+def _preflight_and_confirm(mission: object, drone: int, yes: bool) -> int:
+    """Real drones: preflight the calibrated drone's devices, then ask; 0 to go on, else the exit code."""
+    from flightstack.drivers.preflight import format_table, run_preflight
+
+    rows = run_preflight(mission, drone_ids=[drone])  # type: ignore[arg-type]
+    print(format_table(rows))
+    if any(r.status == "FAIL" for r in rows):
+        return _error("preflight failed; nothing took off", EXIT_VERDICT)
+    question = f"Drone {drone} will take off, yaw over the still target for about 30 s and land. Area clear?"
+    if yes:
+        return EXIT_OK
+    if not interactive():
+        return _error("this flies a real drone; pass --yes to confirm")
+    if input(f"{question} [y/N] ").strip().lower() not in ("y", "yes"):
+        print("aborted", file=sys.stderr)
+        return EXIT_VERDICT
+    return EXIT_OK
+
+
+def _estimate_latency(args: argparse.Namespace, video: object, rc: object, how: str) -> int:
+    """Estimate both parts (either may be None), print them, write the links file (--out)."""
+    from flightstack.calibration.latency import DelayEstimate, ResponseEstimate
+    from flightstack.calibration.latency_report import links_text, write_links_file
+    from flightstack.calibration.latency_session import RcRecord, VideoRecord
+
+    assert video is None or isinstance(video, VideoRecord)
+    assert rc is None or isinstance(rc, RcRecord)
     v_est: DelayEstimate | None = None
     r_est: ResponseEstimate | None = None
     try:
@@ -349,14 +452,14 @@ def cmd_latency(args: argparse.Namespace) -> int:
                 f"over {r_est.n_steps} changes; then a {1e3 * r_est.tau_s:.0f} ms lag, gain {r_est.gain:.4g}"
             )
     except (OSError, ValueError) as exc:
-        return _error(f"session {args.session}: {exc}", EXIT_VERDICT)
+        return _error(f"{how}: {exc}", EXIT_VERDICT)
     if v_est is not None and v_est.correlation < MIN_CORRELATION:
         return _error(
             f"the markers follow the predicted ones poorly (correlation {v_est.correlation:.2f} < "
             f"{MIN_CORRELATION}): check the calibration, the mount and that the markers stayed in view",
             EXIT_VERDICT,
         )
-    text = links_text(v_est, r_est, how=f"session {Path(args.session).name}")
+    text = links_text(v_est, r_est, how=how)
     print(text, end="")
     if args.out:
         write_links_file(args.out, text)
@@ -425,12 +528,34 @@ def register(cal_sub: argparse._SubParsersAction) -> None:
 
     lat = cal_sub.add_parser(
         "latency",
-        help="the camera's capture -> decoded latency and rc -> motion from a recorded session",
-        description="Estimate a lab's video and rc latencies from a recorded session (.npz: motion-capture "
-        "poses, decoded frames' markers, rc commands; docs/links.md) and write the links file a rig "
-        "includes with `links: {include: FILE}`.",
+        help="the camera's capture -> decoded latency and rc -> motion: fly it on a rig, or from a session",
+        description="Measure a lab's video and rc latencies and write the links file a rig includes with "
+        "`links: {include: FILE}` (docs/calibration.md). --rig RIG flies the calibration now: one drone "
+        "with a downward camera takes off, hovers over the still target, yaws in a known pattern, flies "
+        "yaw-rate steps and lands; the session is saved beside --out. --session FILE re-estimates a "
+        "recorded session (.npz: motion-capture poses, decoded frames' markers, rc commands).",
     )
-    lat.add_argument("--session", required=True, help="recorded session (.npz)")
+    src = lat.add_mutually_exclusive_group()
+    src.add_argument(
+        "--rig", default=None, help="fly the calibration on this rig (a lab file, emulated-lab, lab-sim)"
+    )
+    src.add_argument("--session", default=None, help="recorded session (.npz) to estimate")
+    lat.add_argument(
+        "--experiment",
+        default="paper_experiment",
+        help="experiment that names the drones, their cameras and the target's markers (default "
+        "paper_experiment)",
+    )
+    lat.add_argument(
+        "--drone", type=int, default=None, help="drone id (default: the first with a downward camera)"
+    )
+    lat.add_argument(
+        "--links",
+        default=None,
+        choices=sorted(PROFILES),
+        help="replace the rig's links with a profile (emulated and simulated labs: the links they emulate)",
+    )
+    lat.add_argument("--yes", action="store_true", help="confirm that a real drone may take off")
     lat.add_argument("--out", default=None, help="links file to write (.yaml); default: print only")
     lat.add_argument("--max-lag", type=float, default=1.0, help="largest latency looked for, s (default 1)")
     lat.add_argument("--max-rc-lag", type=float, default=0.5, help="largest rc latency looked for, s (0.5)")

@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import yaml
 
@@ -59,7 +59,7 @@ from flightstack.runtime.backends import AgentSeat, load_named, open_agent_backe
 from flightstack.runtime.fleet import Fleet, assemble_fleet
 from flightstack.runtime.keep_awake import keep_awake
 from flightstack.runtime.resources import check_recording_fits
-from flightstack.runtime.runner import ChunkLoop, run_mode
+from flightstack.runtime.runner import ChunkLoop, SafePause, run_mode, run_procedure
 from flightstack.runtime.taps import TickTap
 
 COMPILED_LOOPS: dict[str, str] = {
@@ -70,6 +70,8 @@ strategy of the flight that flies runs of ticks in one compiled call where the f
 EMULATED_LAB = "flightstack.sim_backend.emulated_lab:running_lab"
 """The `emulated-lab` rig's devices on loopback: (mission, log directory) -> a context manager yielding
 the mission re-pointed at them."""
+
+_R = TypeVar("_R")
 
 ProgressFactory = Callable[[str, int], Callable[[int], None]]
 """(mode, number of ticks) -> a callback told how many ticks were flown since its last call."""
@@ -225,6 +227,28 @@ class Flight:
             wrap_bus=self._wrap_bus,
         ) as fleet:
             return run_mode(fleet, progress, writer=writer, taps=self.taps, plan_loop=self._plan_loop)
+
+    def fly_procedure(
+        self, procedure: Callable[[Fleet, SafePause], _R], mission: Mission | None = None
+    ) -> _R:
+        """Fly `procedure(fleet, pause)` instead of pursuit (runtime.runner.run_procedure: take off, the
+        procedure, land whatever ends it; nothing recorded): a calibration's pattern. mission: the
+        mission the fleet is built from (default `self.mission`, which for the emulated lab is re-pointed
+        at its running devices once the flight is entered: edit that one)."""
+        if self._stack is None:
+            raise RuntimeError("a Flight flies inside `with Flight(...) as flight:`")
+        with assemble_fleet(
+            self.mission if mission is None else mission,
+            Mode.NONE.value,
+            None,
+            backend=self._backend,
+            bus=self._bus,
+            agent_ids=None if self.agent_id is None else [self.agent_id],
+            writer=None,
+            wrap_backend=self._wrap_backend,
+            wrap_bus=self._wrap_bus,
+        ) as fleet:
+            return run_procedure(fleet, procedure)
 
     def fly(self) -> FlightResult:
         """Every mode of `self.modes` (the data run first, then training), then the metrics; with a run

@@ -24,7 +24,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from flightstack.comms.bus import OperatorChannel
 from flightstack.events import Event, RunKind, end_kind
@@ -62,6 +62,7 @@ __all__ = [  # run_mode and its parts here; the fleet's parts re-exported from f
     "make_agents",
     "pursuit_tick",
     "run_mode",
+    "run_procedure",
     "safety_limits",
     "take_off",
 ]
@@ -186,6 +187,72 @@ def run_mode(
             writer.close(rec)
         observers.close(rec)
     return rec if rec.ticks_done == n_ticks and not rec.interrupted else rec.truncated()
+
+
+_R = TypeVar("_R")
+CLOCK_EPS_S = 1e-9
+"""A virtual clock stops within rounding of the time asked for (s): closer than this counts as there."""
+
+
+class EveryoneLandedError(RuntimeError):
+    """The safety layer landed every drone while a procedure flew (a stale pose, the fence, the battery)."""
+
+
+class SafePause:
+    """`pause(seconds)` for a procedure flown instead of pursuit (`run_procedure`): waits on the fleet's
+    clock in steps of at most one control period, and once per period ticks the safety layer and the
+    guardian's heartbeat and obeys the operator's abort, as a pursuit tick does. Raises
+    OperatorAbortError, EveryoneLandedError, or the heartbeat's error; the caller's `finally` lands."""
+
+    def __init__(self, f: Fleet) -> None:
+        self.f = f
+        self._next_tick = f.clock.now()
+
+    def tick_if_due(self) -> None:
+        """The safety tick, the operator's abort and the landed check, when a control period has passed."""
+        f = self.f
+        now = f.clock.now()
+        if now < self._next_tick - CLOCK_EPS_S:
+            return
+        self._next_tick = now + f.loop.dt_s
+        f.ticker.tick()
+        if f.safe and all(s.landed for s in f.safe.values()):
+            raise EveryoneLandedError("the safety layer landed every drone")
+        check_operator(f.bus)
+
+    def __call__(self, seconds: float) -> None:
+        f = self.f
+        end = f.clock.now() + max(0.0, seconds)
+        while True:
+            self.tick_if_due()
+            if f.clock.now() >= end - CLOCK_EPS_S:
+                return
+            f.clock.sleep_until(min(end, self._next_tick))
+
+
+def run_procedure(f: Fleet, procedure: Callable[[Fleet, SafePause], _R]) -> _R:
+    """Fly `procedure(f, pause)` instead of pursuit (a calibration's pattern): take every drone off as
+    `run_mode` does, run it (it commands `f.drones`, the safety-wrapped drones, and waits only through
+    `pause`, which keeps the safety layer, the heartbeat and the operator's abort going), then land every
+    drone whatever ended it (its return, Ctrl-C or a signal, an abort, an exception: re-raised after the
+    landing). Returns what the procedure returned."""
+    signals = signal_guard(f.supervisor)
+    signals.__enter__()
+    reason = "procedure complete"
+    try:
+        take_off(f)
+        return procedure(f, SafePause(f))
+    except KeyboardInterrupt:
+        reason = "interrupted"
+        raise
+    except BaseException as exc:
+        reason = f"exception: {type(exc).__name__}: {exc}"
+        raise
+    finally:
+        if f.supervisor is not None:  # a signal from here on must not interrupt landing or closing
+            f.supervisor.ignore_signals(f"the procedure's end ({reason})")
+        _land_everything(f, reason, f.loop.dt_s)
+        signals.__exit__(None, None, None)
 
 
 def wait_for_poses(f: Fleet) -> None:
