@@ -63,7 +63,8 @@ def links_text(
         f"# A lab's links as measured by `flightstack calibrate latency` on {measured['date']}.\n"
         "# Include it in the rig: `links: {include: THIS_FILE}` (relative to the rig's directory); a link\n"
         "# the rig writes out beside `include` wins. Each link is latency_s + U(0, jitter_s), with the\n"
-        "# measured mean and standard deviation; `measured:` is for the reader (docs/links.md).\n"
+        "# measured mean and standard deviation; `measured:` is for the reader (docs/links.md). For the\n"
+        "# rig's `compensation:`, response_s is measured.rc.tau_s (command_delay_s follows the rc link).\n"
     )
     body = yaml.safe_dump({"links": links, "measured": measured}, sort_keys=False, default_flow_style=None)
     return head + body
