@@ -269,15 +269,16 @@ class Mission(_Strict):
 
     def delay_compensation(self) -> Compensation | None:
         """What each agent's delay compensation is told (None: off, the paper's law). Unset latencies
-        come from the rig: the rc link's mean delay, and the simulated (sim.tello) or emulated Tello's
-        response; the ideal rig's drones move as commanded (both 0)."""
+        come from the rig: the rc link's mean delay (as the emulated lab applies it, on that rig), and the
+        simulated (sim.tello) or emulated Tello's response; the ideal rig's drones move as commanded
+        (both 0). On hardware response_s is required (validation)."""
         c = self.compensation
         if not c.enabled:
             return None
         if self.backend == "sim_ideal":
             rc, response = 0.0, 0.0
         else:
-            link = self.links.link("rc") if self.backend == "sim_lab" else self.links.emulated("rc")
+            link = self.links.emulated("rc") if self.start_emulators else self.links.link("rc")
             rc = link.latency_s + link.jitter_s / 2
             response = (
                 self.sim.tello.time_constant_s if self.backend == "sim_lab" else EMULATED_TELLO_RESPONSE_S
