@@ -150,9 +150,6 @@ def running_lab(mission: Any, lab_dir: Path) -> Iterator[Any]:
 
     doc = mission_to_dict(mission)
     doc["start_emulators"] = False  # the written mission flies the running emulators
-    comp = mission.delay_compensation()
-    if comp is not None:  # the emulated Tellos' latencies, written out: the written mission is hardware's
-        doc["compensation"] |= {"command_delay_s": comp.command_delay_s, "response_s": comp.response_s}
     starts = {}  # on the ground below where the simulated lab starts them: the same experiment
     for k, d in enumerate(mission.drones):
         above = initial_drone_pose(mission, k)
@@ -567,6 +564,12 @@ class EmulatedLab:
             for d in m["drones"]:
                 d["camera"]["mount"] = "down"
         m["start_emulators"] = False  # it flies the emulators running here (`run` must not start its own)
+        if m.get("compensation"):  # the emulated Tellos' latencies written out: hardware needs them given
+            from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S, written_out
+            from flightstack.config.links import LinksSpec
+
+            rc = LinksSpec.model_validate(m.get("links") or {}).emulated("rc")
+            m["compensation"] = written_out(m["compensation"], rc, EMULATED_TELLO_RESPONSE_S)
         m["bus"] = {**m.get("bus", {}), "kind": "inproc", "operator_port": self.operator_port}
         for d in m["drones"]:
             d["camera"]["calibration"] = str(cal_files[int(d["id"])])

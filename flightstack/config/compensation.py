@@ -19,7 +19,9 @@ from typing import Annotated
 
 from pydantic import Field
 
+from flightstack.config.links import LinkSpec
 from flightstack.config.types import Strict as _Strict
+from flightstack.paper.delay_compensation import Compensation
 
 EMULATED_TELLO_RESPONSE_S = 0.1
 """The emulated Tello's velocity response time constant (s): its rc acts through a first-order lag."""
@@ -38,3 +40,23 @@ class CompensationSpec(_Strict):
     command_delay_s: Latency | None = None
     response_s: Latency | None = None
     history_s: Annotated[float, Field(gt=0, le=10.0, allow_inf_nan=False)] = 1.0
+
+
+def told(spec: CompensationSpec, rc: LinkSpec, response_s: float) -> Compensation:
+    """What the compensator is told: the section's latencies, an unset command delay the rc link's mean
+    (latency_s + jitter_s/2), an unset response `response_s` (the rig's drones')."""
+    return Compensation(
+        rc.latency_s + rc.jitter_s / 2 if spec.command_delay_s is None else spec.command_delay_s,
+        response_s if spec.response_s is None else spec.response_s,
+        spec.history_s,
+    )
+
+
+def written_out(section: dict, rc: LinkSpec, response_s: float) -> dict:
+    """A `compensation:` section (as read from YAML) with its unset latencies written out (`told`): for a
+    mission that flies emulated devices as hardware, where hardware needs them given."""
+    spec = CompensationSpec.model_validate(section)
+    if not spec.enabled:
+        return dict(section)
+    c = told(spec, rc, response_s)
+    return {**section, "command_delay_s": c.command_delay_s, "response_s": c.response_s}

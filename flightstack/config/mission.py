@@ -25,9 +25,9 @@ from pydantic import (
 )
 
 from flightstack.config.bus import BusSpec
-from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S, CompensationSpec
+from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S, CompensationSpec, told
 from flightstack.config.hardware import HardwareSpec
-from flightstack.config.links import LinksSpec
+from flightstack.config.links import NONE, LinksSpec
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 from flightstack.config.types import Angle, Coordinate, Distance, Finite, Mode, Speed
 from flightstack.config.types import Strict as _Strict
@@ -276,18 +276,10 @@ class Mission(_Strict):
         if not c.enabled:
             return None
         if self.backend == "sim_ideal":
-            rc, response = 0.0, 0.0
-        else:
-            link = self.links.emulated("rc") if self.start_emulators else self.links.link("rc")
-            rc = link.latency_s + link.jitter_s / 2
-            response = (
-                self.sim.tello.time_constant_s if self.backend == "sim_lab" else EMULATED_TELLO_RESPONSE_S
-            )
-        return Compensation(
-            rc if c.command_delay_s is None else c.command_delay_s,
-            response if c.response_s is None else c.response_s,
-            c.history_s,
-        )
+            return told(c, NONE, 0.0)
+        link = self.links.emulated("rc") if self.start_emulators else self.links.link("rc")
+        sim_lab = self.backend == "sim_lab"
+        return told(c, link, self.sim.tello.time_constant_s if sim_lab else EMULATED_TELLO_RESPONSE_S)
 
     def resolve(self, relative: str) -> Path:
         """A path from the mission file (calibrations, experts) made absolute against its directory."""
