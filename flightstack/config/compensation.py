@@ -1,4 +1,4 @@
-"""The mission's `compensation:` section: delay-aware estimation and control (docs/equations.md §11).
+"""The rig's `compensation:` section: delay-aware estimation and control (docs/equations.md §11).
 
 Off, every agent flies the paper's law. On, each agent
 - uses a camera frame at its capture time (the frame's stamp): the observer's error is measured against
@@ -15,7 +15,7 @@ law exactly.
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from pydantic import Field
 
@@ -52,7 +52,7 @@ def told(spec: CompensationSpec, rc: LinkSpec, response_s: float) -> Compensatio
     )
 
 
-def written_out(section: dict, rc: LinkSpec, response_s: float) -> dict:
+def written_out(section: dict[str, Any], rc: LinkSpec, response_s: float) -> dict[str, Any]:
     """A `compensation:` section (as read from YAML) with its unset latencies written out (`told`): for a
     mission that flies emulated devices as hardware, where hardware needs them given."""
     spec = CompensationSpec.model_validate(section)
