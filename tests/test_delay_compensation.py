@@ -103,6 +103,17 @@ def test_command_model_pure_delay_is_the_commands_shifted() -> None:
     np.testing.assert_allclose(m.predict(g0, 0.1, 0.5), moved(moved(g0, V1, 0.1), V2, 0.2), atol=1e-12)
 
 
+def test_command_model_keeps_a_bounded_history_through_a_long_hover() -> None:
+    """An hour of commands at 20 Hz with no prediction asked (the agent hovers): the model keeps about
+    keep_s + delay_s of them, so the first prediction after it costs what any other does."""
+    m = CommandModel(delay_s=0.05, tau_s=0.1, keep_s=1.0)
+    for k in range(72_000):
+        m.sent(0.05 * k, np.zeros(4))
+    assert len(m) <= 1.05 / 0.05 + 2
+    g = np.array([0.1, 0.2, 1.0, 0.3])
+    np.testing.assert_allclose(m.predict(g, 3600.0, 3600.15), g)  # at rest, all commands 0
+
+
 def test_command_model_against_the_simulated_tello_response() -> None:
     """The first-order response integrated finely (1 ms, as the simulated Tello does at its world step)
     and the model's prediction agree."""

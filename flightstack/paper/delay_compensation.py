@@ -195,10 +195,16 @@ class CommandModel:
         self._t, self._v = -math.inf, np.zeros(4)
 
     def sent(self, t: float, V: np.ndarray) -> None:
-        """The body velocity V (m/s, rad/s) was sent at t (s)."""
+        """The body velocity V (m/s, rad/s) was sent at t (s). The model folds in what acted more than
+        keep_s ago, so that what it keeps stays bounded however long nothing is predicted (a hover)."""
         if self._t == -math.inf:
             self._t = t
         self._sent.append((t + self.delay_s, np.array(V, dtype=float)))
+        self._advance(t - self.keep_s)
+
+    def __len__(self) -> int:
+        """How many commands the model keeps (the one acting at its time and those after it)."""
+        return len(self._sent)
 
     def predict(self, g: np.ndarray, t_g: float, t_end: float) -> np.ndarray:
         """The own pose at t_end (s) from g measured at t_g (s), moved with the model's velocity."""
@@ -228,7 +234,7 @@ class CommandModel:
         for a, b, V in self._segments(self._t, t):
             self._v = self._respond(self._v, V, b - a)[0]
         self._t = t
-        while len(self._sent) > 1 and self._sent[1][0] <= t - self.keep_s:
+        while len(self._sent) > 1 and self._sent[1][0] <= t:  # the first is superseded by time t
             self._sent.popleft()
 
     def _segments(self, t0: float, t1: float) -> list[tuple[float, float, np.ndarray]]:
