@@ -304,14 +304,13 @@ def markers_in_camera(
     in the target's frame; R_ic, t_ic: the camera's mount (columns = Σc axes in the body frame) and its
     offset (m, body frame). The discs lie flat on the target (normal = the target's z axis).
     """
-    R = rot_z(g_i0.theta)
-    centres_c = ((P0 @ R.T + g_i0.p) - t_ic) @ R_ic
-    normals_c = np.tile(R_ic.T @ R @ np.array([0.0, 0.0, 1.0]), (len(P0), 1))
+    centres_c = marker_centres_in_camera(g_i0, P0, R_ic, t_ic)
+    normals_c = np.tile(R_ic.T @ rot_z(g_i0.theta) @ np.array([0.0, 0.0, 1.0]), (len(P0), 1))
     return centres_c, normals_c
 
 
 def marker_centres_in_camera(g_i0: Pose, P0: np.ndarray, R_ic: np.ndarray, t_ic: np.ndarray) -> np.ndarray:
-    """The centres_c of `markers_in_camera` alone (m, 3), the same numbers."""
+    """The centres_c of `markers_in_camera` alone (m, 3): the markers' centres in Σc (metres)."""
     return ((P0 @ rot_z(g_i0.theta).T + g_i0.p) - t_ic) @ R_ic
 
 
