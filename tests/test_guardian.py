@@ -234,7 +234,7 @@ def test_parent_killed_guardian_stops_and_lands_both(tmp_path: Path, two_tellos:
 
 
 def test_parent_stopped_takeover_then_resumed_parent_sends_nothing(
-    tmp_path: Path, two_tellos: list[TelloEmulator]
+    tmp_path: Path, two_tellos: list[TelloEmulator], safety_bound: Bound
 ) -> None:
     emu = two_tellos[0]
     child = Child(tmp_path, [emu], None, "fly")
@@ -247,8 +247,9 @@ def test_parent_stopped_takeover_then_resumed_parent_sends_nothing(
         assert wait_until(lambda: first_after(emu, "land", t_stop) is not None, 2.0)
         t_takeover = first_after(emu, "rc 0 0 0 0", t_stop)
         assert t_takeover is not None
-        print(f"SIGSTOP -> rc 0 0 0 0 from the guardian {t_takeover - t_stop:.3f} s (stall_s 0.5)")
-        assert 0.4 <= t_takeover - t_stop <= 0.5 + 0.15  # stall_s after the last beat
+        assert t_takeover - t_stop >= 0.4  # stall_s after the last beat, not earlier
+        # the bound of the same reaction in the fault table (tests/test_faults_lab.py: flight stopped)
+        safety_bound("SIGSTOP: rc 0 0 0 0 from the guardian", 1000 * (t_takeover - t_stop), 800.0)
         assert wait_until(lambda: emu.phase == "landed", 3.0)
         time.sleep(1.2)  # the stopped child holds the state port: the guardian re-sends blind
         assert "held" in child.guardian_log()
