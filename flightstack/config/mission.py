@@ -25,7 +25,12 @@ from pydantic import (
 )
 
 from flightstack.config.bus import BusSpec
-from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S, CompensationSpec, stand_in_problem, told
+from flightstack.config.compensation import (
+    EMULATED_TELLO_RESPONSE_S,
+    CompensationSpec,
+    stand_in_problem,
+    told,
+)
 from flightstack.config.hardware import HardwareSpec
 from flightstack.config.links import NONE, LinkSpec, LinksSpec
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
@@ -277,7 +282,8 @@ class Mission(_Strict):
             return None
         if self.backend == "sim_ideal":
             return told(c, NONE, 0.0)
-        response_s = self.sim.tello.time_constant_s if self.backend == "sim_lab" else EMULATED_TELLO_RESPONSE_S
+        sim_lab = self.backend == "sim_lab"
+        response_s = self.sim.tello.time_constant_s if sim_lab else EMULATED_TELLO_RESPONSE_S
         return told(c, self._compensated_rc(), response_s)
 
     def _compensated_rc(self) -> LinkSpec:
