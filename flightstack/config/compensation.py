@@ -31,7 +31,8 @@ Latency = Annotated[float, Field(ge=0, le=MAX_DELAY_S, allow_inf_nan=False)]
 
 class CompensationSpec(_Strict):
     """`compensation:`. command_delay_s: from sending an rc command to the start of the drone's response
-    (s; None: the rig's rc link mean delay, latency_s + jitter_s/2). response_s: the time constant of the
+    (s; None: the rig's rc link mean delay, latency_s + jitter_s/2, held to the same MAX_DELAY_S by the
+    mission's validation: `stand_in_problem`). response_s: the time constant of the
     drone's first-order velocity response (s; None: the simulated or emulated Tello's; on hardware it must
     be given, e.g. from `flightstack calibrate latency`). history_s: how far back own poses and estimates
     are kept (s); a frame captured earlier is not used and is counted ("frame too old")."""
