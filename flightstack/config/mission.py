@@ -25,9 +25,14 @@ from pydantic import (
 )
 
 from flightstack.config.bus import BusSpec
-from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S, CompensationSpec, told
+from flightstack.config.compensation import (
+    EMULATED_TELLO_RESPONSE_S,
+    CompensationSpec,
+    stand_in_problem,
+    told,
+)
 from flightstack.config.hardware import HardwareSpec
-from flightstack.config.links import NONE, LinksSpec
+from flightstack.config.links import NONE, LinkSpec, LinksSpec
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 from flightstack.config.types import Angle, Coordinate, Distance, Finite, Mode, Speed
 from flightstack.config.types import Strict as _Strict
@@ -277,9 +282,16 @@ class Mission(_Strict):
             return None
         if self.backend == "sim_ideal":
             return told(c, NONE, 0.0)
-        link = self.links.emulated("rc") if self.start_emulators else self.links.link("rc")
         sim_lab = self.backend == "sim_lab"
-        return told(c, link, self.sim.tello.time_constant_s if sim_lab else EMULATED_TELLO_RESPONSE_S)
+        response_s = self.sim.tello.time_constant_s if sim_lab else EMULATED_TELLO_RESPONSE_S
+        return told(c, self._compensated_rc(), response_s)
+
+    def _compensated_rc(self) -> LinkSpec:
+        """The rc link whose mean delay stands in for an unset compensation.command_delay_s (as the
+        emulated lab applies it, on that rig; none on the ideal rig)."""
+        if self.backend == "sim_ideal":
+            return NONE
+        return self.links.emulated("rc") if self.start_emulators else self.links.link("rc")
 
     def resolve(self, relative: str) -> Path:
         """A path from the mission file (calibrations, experts) made absolute against its directory."""
@@ -348,6 +360,8 @@ class Mission(_Strict):
             raise ValueError("gains: k_c and k_e must have equal x and y components")
         self._check_sampled_loop()
         c = self.compensation
+        if c.enabled and (why := stand_in_problem(c, self._compensated_rc())) is not None:
+            raise ValueError(why)
         if c.enabled and self.backend == "tello" and not self.start_emulators and c.response_s is None:
             raise ValueError(
                 "compensation.response_s: required on hardware (the drone's velocity response time "

@@ -11,7 +11,14 @@ mission clock, twists [v_x, v_y, v_z, ω] in the body frame):
   it: exact, the observer is integrated that way);
 - `carry_error`: an estimation error measured at capture time t_c, carried forward to now;
 - `CommandModel`: the drone's response to the commands already sent (delay, then first order), which
-  predicts the own pose at the time a command takes effect.
+  predicts the own pose at the time a command takes effect;
+- `stamp_refusal`: whether a time that enters them (a frame's or a pose's stamp) may, against the tick's
+  own clock.
+
+Every time stored is finite: a time that is not, or a stamp more than AHEAD_TOLERANCE_S after the tick,
+is refused before it is stored (one sample stamped far ahead would otherwise become the newest and hold
+every later one back as "older"). The delays and so the prediction horizon are bounded by MAX_DELAY_S,
+and a prediction costs O(commands kept) whatever its horizon (MAX_STEPS_PER_SEGMENT).
 """
 
 from __future__ import annotations
@@ -31,6 +38,45 @@ CURRENT_S = 1e-6
 SUBSTEP_S = 0.01
 """The command model integrates the own pose in steps of at most this (s)."""
 
+MAX_STEPS_PER_SEGMENT = 200
+"""Steps of SUBSTEP_S per span of one acting command (2 s: twenty time constants of the simulated and
+emulated Tellos' 0.1 s response); what a longer span has beyond them is one step at the exact mean
+velocity of the response (the velocity has settled on the command by then, so that step is the constant
+twist's exact motion). A prediction then costs O(commands kept), not O(how far ahead it looks). Spans
+up to 2 s, every one of a horizon below 2 s, are stepped exactly as without the bound."""
+
+MAX_DELAY_S = 10.0
+"""Largest command delay and response time constant (s) the compensator is told, and largest history_s:
+the prediction horizon is at most 2 × this. Ten seconds is orders of magnitude beyond a drone's (a
+Tello's rc acts after ~0.05 s through a ~0.1–0.3 s response); a longer one is a wrong setting (the rc
+link's latency standing in for the command delay is held to it at validation, config/mission.py)."""
+
+AHEAD_TOLERANCE_S = 0.1
+"""How far after the tick's time t (s) a sample's stamp may be. Simulated sources stamp at most t; on
+hardware a sample stamped with its receive time (motion capture) or decode time (video) can arrive
+after the tick started and before the tick reads it: by the tick's own run time up to the read,
+milliseconds on the lab's 20 Hz loop, and at most a period or two when the loop overruns. Further
+ahead it is on another clock or forged; one within the tolerance holds the histories back by at most
+this (a sample stamped before it is then "older")."""
+
+FRAME_NOT_FINITE = "frame stamp not finite"
+FRAME_AHEAD = "frame stamp ahead of the tick"
+POSE_NOT_FINITE = "pose stamp not finite"
+POSE_AHEAD = "pose stamp ahead of the tick"
+TIME_NOT_FINITE = "compensation time not finite"
+"""Reasons a time is refused, counted with the recording's rejections (frame, own pose; an estimate's
+or a command's time is the tick's own: only a non-finite one is refused)."""
+
+
+def stamp_refusal(stamp: float, t: float, what: str) -> str | None:
+    """Why a sample of `what` ('frame' or 'pose') stamped `stamp` (s) may not enter at the tick of time t
+    (s, the tick's own clock), or None: not finite, or more than AHEAD_TOLERANCE_S after t."""
+    if not math.isfinite(stamp):
+        return FRAME_NOT_FINITE if what == "frame" else POSE_NOT_FINITE
+    if not stamp <= t + AHEAD_TOLERANCE_S:  # also refuses any stamp against a non-finite t
+        return FRAME_AHEAD if what == "frame" else POSE_AHEAD
+    return None
+
 
 @dataclass(frozen=True)
 class Compensation:
@@ -41,6 +87,14 @@ class Compensation:
     command_delay_s: float
     response_s: float
     history_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name, lo_open in (("command_delay_s", False), ("response_s", False), ("history_s", True)):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and (v > 0 if lo_open else v >= 0) and v <= MAX_DELAY_S):
+                raise ValueError(
+                    f"{name}: {v!r} s; must be finite, {'>' if lo_open else '>='} 0 and <= {MAX_DELAY_S:g} s"
+                )
 
     @property
     def horizon_s(self) -> float:
@@ -61,21 +115,23 @@ class PoseHistory:
         self._t.clear()
         self._g.clear()
 
-    def add(self, t: float, g: np.ndarray) -> None:
+    def add(self, t: float, g: np.ndarray) -> bool:
         """Keep the pose g measured at t (s); a sample not newer than the newest is ignored (the same
-        motion-capture frame read again, or one out of order)."""
-        if self._t and t <= self._t[-1]:
-            return
+        motion-capture frame read again, or one out of order), and so is one at a time not finite.
+        Returns whether it was kept. Whether t is ahead of the tick is the caller's (`stamp_refusal`)."""
+        if not math.isfinite(t) or (self._t and t <= self._t[-1]):
+            return False
         self._t.append(t)
         self._g.append(np.array(g, dtype=float))
         cut = bisect.bisect_left(self._t, t - self.keep_s) - 1  # keep one older than the window
         if cut > 0:
             del self._t[:cut], self._g[:cut]
+        return True
 
     def at(self, t: float) -> np.ndarray | None:
         """The pose at t (s): interpolated between the two samples around it (p linearly, θ along the
-        shorter arc), the newest for t after it; None before the oldest (or with none)."""
-        if not self._t or t < self._t[0]:
+        shorter arc), the newest for t after it; None before the oldest (or with none, or t not finite)."""
+        if not self._t or not math.isfinite(t) or t < self._t[0]:
             return None
         if t >= self._t[-1]:
             return self._g[-1].copy()
@@ -103,9 +159,12 @@ class EstimateHistory:
         self._g.clear()
         self._u.clear()
 
-    def add(self, t: float, g_bar_w: np.ndarray, u_e: np.ndarray) -> None:
-        """The estimate at tick t (s) and the observer input u_e held from t on."""
-        if self._t and t <= self._t[-1]:
+    def add(self, t: float, g_bar_w: np.ndarray, u_e: np.ndarray) -> bool:
+        """The estimate at tick t (s) and the observer input u_e held from t on; it replaces those kept
+        at or after t. A time not finite is not kept (returns False)."""
+        if not math.isfinite(t):
+            return False
+        while self._t and t <= self._t[-1]:
             self._t.pop()
             self._g.pop()
             self._u.pop()
@@ -116,6 +175,7 @@ class EstimateHistory:
             self._t.popleft()
             self._g.popleft()
             self._u.popleft()
+        return True
 
     def mean_velocity(self, t: float, window_s: float) -> np.ndarray:
         """The estimate's mean body velocity over [t − window_s, t] (the window shortened to what is
@@ -131,8 +191,8 @@ class EstimateHistory:
         return log_twist(rel4(g_a, g_t)) / w
 
     def at(self, t: float) -> np.ndarray | None:
-        """ḡ_w,i at t (s), None before the oldest tick kept."""
-        if not self._t or t < self._t[0]:
+        """ḡ_w,i at t (s), None before the oldest tick kept (or t not finite)."""
+        if not self._t or not math.isfinite(t) or t < self._t[0]:
             return None
         i = bisect.bisect_right(self._t, t) - 1
         out = np.empty(4)
@@ -194,20 +254,28 @@ class CommandModel:
         self._sent.clear()
         self._t, self._v = -math.inf, np.zeros(4)
 
-    def sent(self, t: float, V: np.ndarray) -> None:
+    def sent(self, t: float, V: np.ndarray) -> bool:
         """The body velocity V (m/s, rad/s) was sent at t (s). The model folds in what acted more than
-        keep_s ago, so that what it keeps stays bounded however long nothing is predicted (a hover)."""
+        keep_s ago, so that what it keeps stays bounded however long nothing is predicted (a hover).
+        A time not finite is not kept (returns False)."""
+        if not math.isfinite(t):
+            return False
         if self._t == -math.inf:
             self._t = t
         self._sent.append((t + self.delay_s, np.array(V, dtype=float)))
         self._advance(t - self.keep_s)
+        return True
 
     def __len__(self) -> int:
         """How many commands the model keeps (the one acting at its time and those after it)."""
         return len(self._sent)
 
     def predict(self, g: np.ndarray, t_g: float, t_end: float) -> np.ndarray:
-        """The own pose at t_end (s) from g measured at t_g (s), moved with the model's velocity."""
+        """The own pose at t_end (s) from g measured at t_g (s), moved with the model's velocity. Costs
+        O(commands kept) however far ahead t_end is (MAX_STEPS_PER_SEGMENT); ValueError for a time that
+        is not finite."""
+        if not (math.isfinite(t_g) and math.isfinite(t_end)):
+            raise ValueError(f"CommandModel.predict: times must be finite (t_g {t_g!r}, t_end {t_end!r})")
         self._advance(t_g)
         t, v = max(t_g, self._t), self._v.copy()
         pose = np.array(g, dtype=float)
@@ -216,13 +284,27 @@ class CommandModel:
             kern.integrate4(pose, v, t - t_g, nxt)
             pose = nxt
         for a, b, V in self._segments(t, t_end):
-            while a < b - 1e-12:
-                h = min(SUBSTEP_S, b - a)
-                v, mean = self._respond(v, V, h)
-                nxt = np.empty(4)
-                kern.integrate4(pose, mean, h, nxt)
-                pose, a = nxt, a + h
+            pose, v = self._fly(pose, v, V, a, b)
         return pose
+
+    def _fly(
+        self, pose: np.ndarray, v: np.ndarray, V: np.ndarray, a: float, b: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(pose, velocity) at b from those at a under the command V acting over [a, b): steps of
+        SUBSTEP_S, at most MAX_STEPS_PER_SEGMENT of them, then the rest in one step."""
+        end = min(b, a + MAX_STEPS_PER_SEGMENT * SUBSTEP_S)
+        while a < end - 1e-12:
+            h = min(SUBSTEP_S, end - a)
+            v, mean = self._respond(v, V, h)
+            nxt = np.empty(4)
+            kern.integrate4(pose, mean, h, nxt)
+            pose, a = nxt, a + h
+        if a < b - 1e-12:  # a span longer than the steps: its rest at its exact mean velocity
+            v, mean = self._respond(v, V, b - a)
+            nxt = np.empty(4)
+            kern.integrate4(pose, mean, b - a, nxt)
+            pose = nxt
+        return pose, v
 
     def _advance(self, t: float) -> None:
         """The model's velocity brought forward to t; commands acting before it are folded in."""

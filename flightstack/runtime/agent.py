@@ -12,6 +12,7 @@ Modes: `none` (μ = 0), `local` (own expert only), `dgp` (own + neighbours fused
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -21,16 +22,18 @@ import numpy as np
 from flightstack.comms.bus import PredictionBus
 from flightstack.comms.messages import PredictionMessage
 from flightstack.config.types import Mode
-from flightstack.hal import Camera, Drone, Frame, PoseSource
+from flightstack.hal import Camera, Drone, Frame, PoseSource, StampedPose
 from flightstack.paper import kernels as kern
 from flightstack.paper.control import Gains
 from flightstack.paper.delay_compensation import (
     CURRENT_S,
+    TIME_NOT_FINITE,
     CommandModel,
     Compensation,
     EstimateHistory,
     PoseHistory,
     carry_error,
+    stamp_refusal,
 )
 from flightstack.paper.fusion import FUSION_RULES
 from flightstack.paper.geometry import Pose
@@ -86,6 +89,8 @@ class TickRecord:
     n_fused: int = 0
     neighbours_used: tuple[int, ...] = ()  # neighbours whose fresh message entered consensus (and fusion)
     rejection: str | None = None  # why the image gave no features (None: seen, or no image)
+    # samples refused this tick for their time (delay_compensation.stamp_refusal), each counted once
+    dropped: list[str] = field(default_factory=list)
     own_pose_fresh: bool = True  # False: motion capture lost the drone; it hovers (V = 0) this tick
     # ages at use (s, mission clock): t − stamp; a sample that arrived after the tick's start t counts 0
     frame_age: float = math.nan  # the camera frame looked at; NaN: no frame
@@ -124,6 +129,13 @@ class Agent:
         self._t_prev: float | None = None
         self._g_wi: np.ndarray | None = None  # the own pose g_wi as a vector (last one measured)
         self._g_wi_t = -math.inf  # when it was measured (s)
+        # the newest frame and own pose whose stamps were accepted (`_checked`), and per kind the stamp
+        # (its bytes) of the last one refused: read again, it is not counted again
+        self._frame_ok: Frame | None = None
+        self._pose_ok: StampedPose | None = None
+        self._refused: dict[str, bytes] = {}
+        limits = cfg.command_limits
+        self._max_pose_age_s = math.inf if limits is None else limits.pose_timeout
         self._delays = None if cfg.compensation is None else _Delays(cfg.compensation)
         self._P0 = np.ascontiguousarray(cfg.P0, dtype=float)
         self._cam = cfg.camera.packed
@@ -156,7 +168,8 @@ class Agent:
     # ---- phase 1 -------------------------------------------------------------------------------
     def sense_and_publish(self, t: float) -> None:
         cfg, T = self.cfg, self._T
-        own = self.poses.latest(cfg.body_name)
+        dropped: list[str] = []
+        own = self._checked_pose(self.poses.latest(cfg.body_name), t, dropped)
         fresh = own is not None
         if own is not None:
             self._g_wi, self._g_wi_t = own.pose.as_vector(), own.stamp
@@ -165,7 +178,7 @@ class Agent:
         elif self._g_wi is None:
             raise RuntimeError(f"no pose for {cfg.body_name}")
         # else a motion-capture dropout: keep the last pose, hover; the safety layer decides beyond that
-        frame = self.camera.latest()
+        frame = self._checked_frame(self.camera.latest(), t, dropped)
         features, rejection = self._features(frame, t)
         late = None  # a frame captured before the tick, compensated: its capture time (s)
         if self._delays is not None and features is not None and frame is not None:
@@ -200,6 +213,7 @@ class Agent:
             mu_own=mu,
             var_own=var,
             rejection=rejection,
+            dropped=dropped,
             own_pose_fresh=fresh,
             frame_age=math.nan if frame is None else max(0.0, t - frame.stamp),
             pose_age=math.nan if own is None else max(0.0, t - own.stamp),
@@ -209,6 +223,42 @@ class Agent:
         self.bus.publish(
             PredictionMessage(cfg.mission, cfg.drone_id, self.seq, t, rec.visible, x, mu, var, prior)
         )
+
+    def _checked_pose(self, own: StampedPose | None, t: float, dropped: list[str]) -> StampedPose | None:
+        """The own pose to use at the tick of time t (s): `own` if its stamp may enter
+        (delay_compensation.stamp_refusal), else, as if it had not arrived, the last one accepted while it
+        is no older than the safety layer's pose_timeout (then None: a dropout). A refusal is appended
+        to `dropped` once per refused sample."""
+        if own is None:
+            return None
+        why = stamp_refusal(own.stamp, t, "pose")
+        if why is None:
+            self._pose_ok = own
+            self._refused.pop("pose", None)
+            return own
+        self._refuse("pose", own.stamp, why, dropped)
+        last = self._pose_ok
+        return last if last is not None and t - last.stamp <= self._max_pose_age_s else None
+
+    def _checked_frame(self, frame: Frame | None, t: float, dropped: list[str]) -> Frame | None:
+        """The frame to look at at the tick of time t (s): `frame` if its stamp may enter, else, as if it
+        had not arrived, the last one accepted (its age is checked as any frame's: `_features`)."""
+        if frame is None:
+            return None
+        why = stamp_refusal(frame.stamp, t, "frame")
+        if why is None:
+            self._frame_ok = frame
+            self._refused.pop("frame", None)
+            return frame
+        self._refuse("frame", frame.stamp, why, dropped)
+        return self._frame_ok
+
+    def _refuse(self, kind: str, stamp: float, why: str, dropped: list[str]) -> None:
+        """Count a refused sample once: the same stamp read again (the source has nothing newer) is not."""
+        key = struct.pack("<d", stamp)
+        if self._refused.get(kind) != key:
+            self._refused[kind] = key
+            dropped.append(why)
 
     def _features(self, frame: Frame | None, t: float) -> tuple[np.ndarray | None, str | None]:
         """(f (2m,), None) from the frame: given directly (ideal camera) or extracted from the image; or
@@ -256,14 +306,16 @@ class Agent:
         hover = self.hold or not rec.own_pose_fresh
         rec.n_fused = self._law(T, n, hover)
         if self._delays is not None:
-            self._delays.estimates.add(t, T[kern.G_BAR_W], T[kern.U_E])
+            if not self._delays.estimates.add(t, T[kern.G_BAR_W], T[kern.U_E]):
+                rec.dropped.append(TIME_NOT_FINITE)
             if not hover and self._g_wi is not None:
                 self._delays.command_ahead(T, self._g_wi, self._g_wi_t, t, lambda T2: self._law(T2, n, False))
         V = T[kern.V_CMD].copy()
         self.drone.send_body_velocity(V)
         if self._delays is not None:  # the command as the drone gets it, past the safety layer's limits
             lim = self.cfg.command_limits
-            self._delays.commands.sent(t, V if lim is None else saturate(V, lim)[0])
+            if not self._delays.commands.sent(t, V if lim is None else saturate(V, lim)[0]):
+                rec.dropped.append(TIME_NOT_FINITE)
         rec.mu_used, rec.u_c, rec.u_e, rec.V_cmd = (
             T[kern.MU_USED].copy(),
             T[kern.U_C].copy(),
@@ -335,7 +387,7 @@ class _Delays:
         g_wi (measured at t_g) moved by the commands sent, the estimate moved on with −u_e. u_e stays
         the one at t (the observer is not delayed by the radio). `law` evaluates the law on a buffer."""
         h = self.c.horizon_s
-        if h <= 0.0:
+        if h <= 0.0 or not math.isfinite(t):
             return
         g_pred = self.commands.predict(g_wi, t_g, t + h)
         g_bar_pred = np.empty(4)

@@ -56,6 +56,8 @@ class TickBook:
         i, last = agent.cfg.drone_id, agent.last
         if last.rejection:
             self.rejections[i][last.rejection] += 1
+        for why in last.dropped:  # samples refused for their time (agent: stamp_refusal)
+            self.rejections[i][why] += 1
         if not last.own_pose_fresh:
             self.rejections[i]["own pose lost (hovered)"] += 1
         used, prev = set(last.neighbours_used), self.neighbours_used[i]
