@@ -181,6 +181,8 @@ def check_rig(src: Source) -> None:
             for k in dr:
                 if k not in RIG_DRONE_KEYS:
                     problems.append(f"{src.path}: drones.{n}.{k}: unknown key")
+            if "camera" in dr and not isinstance(dr["camera"], str):
+                problems.append(f"{src.path}: drones.{n}.camera: a calibration file's path")
     if problems:
         raise RigError(f"invalid rig ({len(problems)} problem(s)):\n  " + "\n  ".join(problems))
 
@@ -236,14 +238,16 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
         out["links"] = links_with_include(r["links"], rig.base, rig.path)
     if "emulated" in r:
         out["start_emulators"] = True
+    # a `drones:` that is not a list (a number, null) is left for the schema to name, with its line
+    drones = out["drones"] if isinstance(out.get("drones"), list) else []
     if "emulated" in r and "hardware" not in r:
-        ids = [dr.get("id") for dr in out.get("drones", []) if isinstance(dr, dict)]
+        ids = [dr.get("id") for dr in drones if isinstance(dr, dict)]
         out["hardware"] = emulated_hardware([i for i in ids if isinstance(i, int)])
     if "robot" in r and isinstance(out.get("target"), dict):
         out["target"]["robot"] = copy.deepcopy(r["robot"])
     per_drone = {dr["id"]: dr for dr in r.get("drones", [])}
     cams: dict[str, str] = r.get("cameras", {})
-    for dr in out.get("drones", []) if isinstance(out.get("drones"), list) else []:
+    for dr in drones:
         if not isinstance(dr, dict):
             continue
         ident = dr.get("id")
@@ -266,7 +270,7 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
         if rc is not None:
             dr["rc_gains"] = copy.deepcopy(rc)
     if r.get("backend") != "sim_ideal" and any(
-        isinstance(dr, dict) and dr.get("camera") is None for dr in out.get("drones", []) or []
+        isinstance(dr, dict) and dr.get("camera") is None for dr in drones
     ):
         raise RigError(
             f"{rig.path}: rig {r['rig']!r} flies drones with cameras; every drone of {experiment.path} needs "
