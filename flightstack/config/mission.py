@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import re
 import typing
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, cast
@@ -28,6 +29,7 @@ from flightstack.config.bus import BusSpec
 from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S, CompensationSpec, told
 from flightstack.config.hardware import HardwareSpec
 from flightstack.config.links import NONE, LinksSpec
+from flightstack.config.rig import problem_list
 from flightstack.config.rig_rules import safety_off_problem
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 from flightstack.config.types import Angle, Coordinate, Distance, Finite, Mode, Speed
@@ -470,12 +472,18 @@ class Mission(_Strict):
         return laplacian_lambda_max(n, sorted(self._edge_pair_set()))
 
 
+_NAMES_ITS_KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z0-9_]+)*: ")
+
+
 def _format_errors(err: ValidationError, where: Lines | None = None) -> list[str]:
     lines = []
     for e in err.errors():
         path = ".".join(str(p) for p in e["loc"]) or "(top level)"
         msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
         line = line_of(where, e["loc"]) if where else None
+        if not e["loc"] and _NAMES_ITS_KEY.match(msg):  # a mission-wide rule that names its key
+            lines.append(msg + (f" (line {line})" if line else ""))
+            continue
         lines.append(f"{path}: {msg}" + (f" (line {line})" if line else ""))
     return lines
 
@@ -487,10 +495,7 @@ def parse_mission(data: object, source: str = "<mission>", where: Lines | None =
     try:
         return Mission.model_validate(data)
     except ValidationError as err:
-        lines = _format_errors(err, where)
-        raise MissionError(
-            f"{source}: invalid mission ({len(lines)} problem(s)):\n  " + "\n  ".join(lines)
-        ) from None
+        raise MissionError(problem_list(f"{source}: invalid mission", _format_errors(err, where))) from None
 
 
 def load_mission(

@@ -57,6 +57,13 @@ class RigError(ValueError):
     """An experiment or rig file that cannot be used; the message names the file, the key and why."""
 
 
+def problem_list(what: str, problems: list[str]) -> str:
+    """One line `what: problem` for one problem; else `what (N problems):` and one indented line each."""
+    if len(problems) == 1:
+        return f"{what}: {problems[0]}"
+    return f"{what} ({len(problems)} problems):\n  " + "\n  ".join(problems)
+
+
 @dataclass(frozen=True)
 class Source:
     """A parsed YAML document and the file it came from (`path` is None for a built-in name's data)."""
@@ -145,7 +152,7 @@ def check_experiment(src: Source) -> None:
     if rig is not None and not isinstance(rig, str):
         problems.append(f"{src.path}: rig: must be a rig name or a path")
     if problems:
-        raise RigError(f"invalid experiment ({len(problems)} problem(s)):\n  " + "\n  ".join(problems))
+        raise RigError(problem_list("invalid experiment", problems))
 
 
 def check_rig(src: Source) -> None:
@@ -184,7 +191,7 @@ def check_rig(src: Source) -> None:
             if "camera" in dr and not isinstance(dr["camera"], str):
                 problems.append(f"{src.path}: drones.{n}.camera: a calibration file's path")
     if problems:
-        raise RigError(f"invalid rig ({len(problems)} problem(s)):\n  " + "\n  ".join(problems))
+        raise RigError(problem_list("invalid rig", problems))
 
 
 def _rel(path_text: str, base: Path) -> str:
@@ -240,7 +247,7 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
         out["start_emulators"] = True
     # a `drones:` that is not a list (a number, null) is left for the schema to name, with its line
     drones = out["drones"] if isinstance(out.get("drones"), list) else []
-    if "emulated" in r and "hardware" not in r:
+    if "emulated" in r and "hardware" not in r and drones:
         ids = [dr.get("id") for dr in drones if isinstance(dr, dict)]
         out["hardware"] = emulated_hardware([i for i in ids if isinstance(i, int)])
     if "robot" in r and isinstance(out.get("target"), dict):

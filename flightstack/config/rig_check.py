@@ -13,7 +13,7 @@ from pydantic import BaseModel, ValidationError
 from flightstack.config.bus import BusSpec
 from flightstack.config.hardware import HardwareSpec
 from flightstack.config.mission import SafetySpec
-from flightstack.config.rig import RigError, Source
+from flightstack.config.rig import RigError, Source, problem_list
 from flightstack.config.rig_rules import safety_off_problem
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 
@@ -63,7 +63,7 @@ def validate_rig(src: Source) -> dict[str, Any]:
     if off is not None:
         problems.append(f"{src.path}: {off}")
     if problems:
-        raise RigError(f"invalid rig ({len(problems)} problem(s)):\n  " + "\n  ".join(problems))
+        raise RigError(problem_list("invalid rig", problems))
     return {
         "rig": src.data["rig"],
         "backend": backend,

@@ -69,7 +69,8 @@ def loosened(rig: dict[str, Any], now: dict[str, Any]) -> list[str]:
     if not now.get("enabled", True):
         problems.append("safety.enabled: false (the rig flies with safety on)")
     for key in sorted(set(rig) | set(now)):
-        was, new = rig.get(key), now.get(key)
+        was: Any = rig.get(key)
+        new: Any = now.get(key)
         if key == "enabled" or new == was:
             continue
         if key in FENCE:
