@@ -13,10 +13,22 @@ resolved mission, or a value set after the rig was composed (`flightstack run --
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
-if TYPE_CHECKING:
-    from flightstack.config.mission import Mission
+
+class Composed(Protocol):
+    """What the rules read of a composed mission (flightstack.config.mission.Mission, which imports this
+    module)."""
+
+    @property
+    def rig(self) -> str: ...
+    @property
+    def backend(self) -> str: ...
+    @property
+    def start_emulators(self) -> bool: ...
+    @property
+    def safety(self) -> Any: ...  # SafetySpec: `enabled` and the fields of SafetyLimits
+
 
 SAFETY_OFF_BACKEND = "sim_ideal"
 """The one backend whose rig may turn safety off: the paper's ideal, unbounded simulation."""
@@ -89,7 +101,7 @@ def loosened(rig: dict[str, Any], now: dict[str, Any]) -> list[str]:
     return problems
 
 
-def beyond_rig(rig: Mission, now: Mission) -> str | None:
+def beyond_rig(rig: Composed, now: Composed) -> str | None:
     """Why the mission `now` (the mission `rig` with values set after its composition) leaves what its
     rig allows: another rig identity (RIG_IDENTITY) or a looser safety section (`loosened`); None when it
     does not. One line, naming each key."""
