@@ -105,7 +105,7 @@ def _keepalive_too_long(d: dict) -> None:
         (_same_video_port, "hardware: drones: each drone needs its own video_port in station mode"),
         (_bad_ip, "hardware.drones.0.ip"),
         (_unknown_system, "hardware.mocap.system"),
-        (_safety_off, "safety.enabled: must be true on real hardware"),
+        (_safety_off, "safety.enabled: false only on the ideal rig"),
         (_hardware_on_sim, "hardware: only used by backend 'tello'"),
         (_keepalive_too_long, "hardware.drones.0.keepalive_s"),
     ],

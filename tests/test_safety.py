@@ -191,6 +191,12 @@ def within_limits(V: np.ndarray, lim: SafetyLimits = LIM) -> bool:
         {"pose_timeout": 1.0, "pose_land_after": 0.5},
         {"land_battery": 40.0, "min_battery_takeoff": 30.0},
         {"min_battery_takeoff": 120.0},
+        {"max_speed_xy": 1e9},  # beyond a Tello's top speed: limits nothing (MAX_SPEED_MPS)
+        {"max_speed_z": 8.5},
+        {"max_yaw_rate": 7.0},  # beyond one turn a second
+        {"fence_hi": (1e9, 2.0, 2.0)},  # beyond any motion-capture volume (MAX_FENCE_M)
+        {"fence_lo": (-100.0, -2.0, 0.3)},  # the hard fence (+ hard_margin 0.3) reaches -100.3 m
+        {"hard_margin": 1e9},
     ],
 )
 def test_limits_reject_inconsistent_values(kwargs: dict) -> None:

@@ -112,8 +112,11 @@ def _progress_factory(bars: list[tqdm]) -> Callable[[str, int], Callable[[int], 
 
 def with_sets(mission: Mission, sets: list[str]) -> Mission:
     """The mission with each `--set KEY=VALUE` applied (a dotted key and one YAML value, the sweep's
-    syntax), validated again; MissionError naming the key and the reason."""
+    syntax, parsed by the hardened loader), validated again, and held to what its rig allows
+    (flightstack.config.rig_rules: the rig's safety tightened, never loosened); MissionError naming the
+    key and the reason."""
     from flightstack.config.mission import parse_mission
+    from flightstack.config.rig_rules import beyond_rig
     from flightstack.runtime.flight import resolved_mission_yaml
     from flightstack.sweep.plan import SweepError, parse_set, set_path
 
@@ -126,7 +129,12 @@ def with_sets(mission: Mission, sets: list[str]) -> Mission:
             set_path(doc, key, values[0])
         except SweepError as exc:
             raise MissionError(str(exc)) from None
-    return parse_mission(doc, f"{mission.name} with --set {' '.join(sets)}")
+    label = f"{mission.name} with --set {' '.join(sets)}"
+    changed = parse_mission(doc, label)
+    why = beyond_rig(mission, changed)
+    if why is not None:
+        raise MissionError(f"{label}: {why}")
+    return changed
 
 
 def cmd_run(args: argparse.Namespace) -> int:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import re
 import typing
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal, cast
@@ -33,6 +34,8 @@ from flightstack.config.compensation import (
 )
 from flightstack.config.hardware import HardwareSpec
 from flightstack.config.links import NONE, LinkSpec, LinksSpec
+from flightstack.config.rig import problem_list
+from flightstack.config.rig_rules import safety_off_problem
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 from flightstack.config.types import Angle, Coordinate, Distance, Finite, Mode, Speed
 from flightstack.config.types import Strict as _Strict
@@ -330,6 +333,9 @@ class Mission(_Strict):
 
     @model_validator(mode="after")
     def _consistent(self) -> Mission:
+        off = safety_off_problem(self.backend, self.safety.enabled)  # the rig's rule, whatever set the value
+        if off is not None:
+            raise ValueError(off)
         if self.duration_s / self.dt_s > MAX_TICKS:
             raise ValueError(
                 f"duration_s / dt_s: {self.duration_s / self.dt_s:.3g} ticks per mode; at most {MAX_TICKS:g} "
@@ -405,8 +411,6 @@ class Mission(_Strict):
         for d in self.drones:
             if d.camera is None or d.camera.calibration is None:
                 raise ValueError(f"drones: drone {d.id} needs a camera (calibration, mount) on real hardware")
-        if not self.safety.enabled:
-            raise ValueError("safety.enabled: must be true on real hardware")
         z = self.bus.zenoh
         if self.bus.kind == "zenoh" and z is not None and z.security != "mtls":
             raise ValueError(
@@ -482,12 +486,18 @@ class Mission(_Strict):
         return laplacian_lambda_max(n, sorted(self._edge_pair_set()))
 
 
+_NAMES_ITS_KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z0-9_]+)*: ")
+
+
 def _format_errors(err: ValidationError, where: Lines | None = None) -> list[str]:
     lines = []
     for e in err.errors():
         path = ".".join(str(p) for p in e["loc"]) or "(top level)"
         msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
         line = line_of(where, e["loc"]) if where else None
+        if not e["loc"] and _NAMES_ITS_KEY.match(msg):  # a mission-wide rule that names its key
+            lines.append(msg + (f" (line {line})" if line else ""))
+            continue
         lines.append(f"{path}: {msg}" + (f" (line {line})" if line else ""))
     return lines
 
@@ -499,10 +509,7 @@ def parse_mission(data: object, source: str = "<mission>", where: Lines | None =
     try:
         return Mission.model_validate(data)
     except ValidationError as err:
-        lines = _format_errors(err, where)
-        raise MissionError(
-            f"{source}: invalid mission ({len(lines)} problem(s)):\n  " + "\n  ".join(lines)
-        ) from None
+        raise MissionError(problem_list(f"{source}: invalid mission", _format_errors(err, where))) from None
 
 
 def load_mission(

@@ -57,6 +57,13 @@ class RigError(ValueError):
     """An experiment or rig file that cannot be used; the message names the file, the key and why."""
 
 
+def problem_list(what: str, problems: list[str]) -> str:
+    """One line `what: problem` for one problem; else `what (N problems):` and one indented line each."""
+    if len(problems) == 1:
+        return f"{what}: {problems[0]}"
+    return f"{what} ({len(problems)} problems):\n  " + "\n  ".join(problems)
+
+
 @dataclass(frozen=True)
 class Source:
     """A parsed YAML document and the file it came from (`path` is None for a built-in name's data)."""
@@ -145,7 +152,7 @@ def check_experiment(src: Source) -> None:
     if rig is not None and not isinstance(rig, str):
         problems.append(f"{src.path}: rig: must be a rig name or a path")
     if problems:
-        raise RigError(f"invalid experiment ({len(problems)} problem(s)):\n  " + "\n  ".join(problems))
+        raise RigError(problem_list("invalid experiment", problems))
 
 
 def check_rig(src: Source) -> None:
@@ -181,8 +188,10 @@ def check_rig(src: Source) -> None:
             for k in dr:
                 if k not in RIG_DRONE_KEYS:
                     problems.append(f"{src.path}: drones.{n}.{k}: unknown key")
+            if "camera" in dr and not isinstance(dr["camera"], str):
+                problems.append(f"{src.path}: drones.{n}.camera: a calibration file's path")
     if problems:
-        raise RigError(f"invalid rig ({len(problems)} problem(s)):\n  " + "\n  ".join(problems))
+        raise RigError(problem_list("invalid rig", problems))
 
 
 def _rel(path_text: str, base: Path) -> str:
@@ -236,14 +245,16 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
         out["links"] = links_with_include(r["links"], rig.base, rig.path)
     if "emulated" in r:
         out["start_emulators"] = True
-    if "emulated" in r and "hardware" not in r:
-        ids = [dr.get("id") for dr in out.get("drones", []) if isinstance(dr, dict)]
+    # a `drones:` that is not a list (a number, null) is left for the schema to name, with its line
+    drones = out["drones"] if isinstance(out.get("drones"), list) else []
+    if "emulated" in r and "hardware" not in r and drones:
+        ids = [dr.get("id") for dr in drones if isinstance(dr, dict)]
         out["hardware"] = emulated_hardware([i for i in ids if isinstance(i, int)])
     if "robot" in r and isinstance(out.get("target"), dict):
         out["target"]["robot"] = copy.deepcopy(r["robot"])
     per_drone = {dr["id"]: dr for dr in r.get("drones", [])}
     cams: dict[str, str] = r.get("cameras", {})
-    for dr in out.get("drones", []) if isinstance(out.get("drones"), list) else []:
+    for dr in drones:
         if not isinstance(dr, dict):
             continue
         ident = dr.get("id")
@@ -266,7 +277,7 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
         if rc is not None:
             dr["rc_gains"] = copy.deepcopy(rc)
     if r.get("backend") != "sim_ideal" and any(
-        isinstance(dr, dict) and dr.get("camera") is None for dr in out.get("drones", []) or []
+        isinstance(dr, dict) and dr.get("camera") is None for dr in drones
     ):
         raise RigError(
             f"{rig.path}: rig {r['rig']!r} flies drones with cameras; every drone of {experiment.path} needs "

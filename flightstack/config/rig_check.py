@@ -13,7 +13,8 @@ from pydantic import BaseModel, ValidationError
 from flightstack.config.bus import BusSpec
 from flightstack.config.hardware import HardwareSpec
 from flightstack.config.mission import SafetySpec
-from flightstack.config.rig import RigError, Source
+from flightstack.config.rig import RigError, Source, problem_list
+from flightstack.config.rig_rules import safety_off_problem
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 
 SECTIONS: dict[str, type[BaseModel]] = {
@@ -58,10 +59,11 @@ def validate_rig(src: Source) -> dict[str, Any]:
     if backend == "tello" and "hardware" not in src.data and "emulated" not in src.data:
         problems.append(f"{src.path}: hardware: a rig with backend tello needs its devices (or `emulated:`)")
     safety = src.data.get("safety", {})
-    if backend != "sim_ideal" and isinstance(safety, dict) and safety.get("enabled") is False:
-        problems.append(f"{src.path}: safety.enabled: false only on the ideal rig (backend sim_ideal)")
+    off = safety_off_problem(backend, safety.get("enabled") if isinstance(safety, dict) else None)
+    if off is not None:
+        problems.append(f"{src.path}: {off}")
     if problems:
-        raise RigError(f"invalid rig ({len(problems)} problem(s)):\n  " + "\n  ".join(problems))
+        raise RigError(problem_list("invalid rig", problems))
     return {
         "rig": src.data["rig"],
         "backend": backend,

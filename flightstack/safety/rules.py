@@ -25,6 +25,15 @@ EVENT_KINDS: frozenset[str] = frozenset(get_args(SafetyKind))
 
 _AXES = ("x", "y", "z")
 
+MAX_FENCE_M = 100.0
+"""Every corner of the hard fence (the fence grown by `hard_margin`) lies within ±MAX_FENCE_M of Σw's
+origin on each axis (m): no motion-capture volume is larger, so a fence beyond it fences nothing."""
+MAX_SPEED_MPS = 8.0
+"""`max_speed_xy` and `max_speed_z` are at most this (m/s): a Tello's top speed (DJI's specification), so
+a larger limit limits nothing."""
+MAX_YAW_RATE_RPS = 2 * math.pi
+"""`max_yaw_rate` is at most one turn a second (rad/s), faster than a Tello turns."""
+
 
 class SafetyError(RuntimeError):
     """A safety rule refused an operator action (e.g. takeoff on a low battery)."""
@@ -92,6 +101,19 @@ class SafetyLimits:
             )
         if not (math.isfinite(self.hard_margin) and self.hard_margin >= 0.0):
             raise ValueError(f"hard_margin must be finite and >= 0, got {self.hard_margin}")
+        if max(abs(v) for v in self.hard_lo + self.hard_hi) > MAX_FENCE_M:
+            raise ValueError(
+                f"the hard fence (fence_lo, fence_hi grown by hard_margin) must lie within "
+                f"±{MAX_FENCE_M:g} m on every axis (no motion-capture volume is larger), got "
+                f"lo={self.hard_lo}, hi={self.hard_hi}"
+            )
+        for name, most, unit in [
+            ("max_speed_xy", MAX_SPEED_MPS, "m/s, a Tello's top speed"),
+            ("max_speed_z", MAX_SPEED_MPS, "m/s, a Tello's top speed"),
+            ("max_yaw_rate", MAX_YAW_RATE_RPS, "rad/s, one turn a second"),
+        ]:
+            if getattr(self, name) > most:
+                raise ValueError(f"{name} must be at most {most:.4g} ({unit}), got {getattr(self, name)}")
         if self.target_lost_land_after <= self.target_lost_hover_after:
             raise ValueError(
                 f"target_lost_land_after ({self.target_lost_land_after} s) must exceed "

@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from flightstack.config.mission import Mission, MissionError, parse_mission
+from flightstack.config.rig_rules import beyond_rig
+from flightstack.safe_yaml import MAX_DEPTH, LoadError, parse_yaml
 
 KEY_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z0-9_]+)*$")
 RESERVED = {"seed": "set by --seeds (seed = 0 .. N-1)"}
@@ -102,15 +102,16 @@ def parse_set(text: str) -> tuple[str, list[Any]]:
         raise SweepError(f"--set {text!r}: {key!r} is not a dotted key path (e.g. gp.fusion)")
     if key in RESERVED:
         raise SweepError(f"--set {key}: {RESERVED[key]}")
+    if key.count(".") >= MAX_DEPTH:
+        raise SweepError(f"--set {key[:40]}...: a key nested deeper than {MAX_DEPTH} levels")
     values = []
     for token in split_values(rest):
         if not token.strip():
             raise SweepError(f"--set {key}: empty value in {rest!r}")
-        try:
-            values.append(yaml.safe_load(token))
-        except yaml.YAMLError as exc:
-            reason = str(exc).splitlines()[0]
-            raise SweepError(f"--set {key}: {token!r} is not a YAML value ({reason})") from None
+        try:  # the hardened loader of every file: no huge integers, deep nesting, aliases, ...
+            values.append(parse_yaml(token, f"--set {key}")[0])
+        except LoadError as exc:
+            raise SweepError(str(exc)) from None
     return key, values
 
 
@@ -179,13 +180,19 @@ def mission_for(base: dict[str, Any], values: dict[str, Any], seed: int) -> dict
     return doc
 
 
-def check_mission(doc: dict[str, Any], values: dict[str, Any], base_dir: Path) -> Mission:
-    """Validate one grid point's mission (schema and referenced files); SweepError naming the key."""
+def check_mission(
+    doc: dict[str, Any], values: dict[str, Any], base_dir: Path, rig: Mission | None = None
+) -> Mission:
+    """Validate one grid point's mission (schema, what the base mission `rig`'s rig allows:
+    flightstack.config.rig_rules, and referenced files); SweepError naming the key."""
     label = f"--set {point_label(values)}" if values else "the base mission"
     try:
         m = parse_mission(doc, label)
     except MissionError as exc:
         raise SweepError(str(exc)) from None
+    why = None if rig is None else beyond_rig(rig, m)
+    if why is not None:
+        raise SweepError(f"{label}: {why}")
     m._base_dir = base_dir
     files = [
         (f"drones.{i}.camera.calibration", d.camera.calibration) for i, d in enumerate(m.drones) if d.camera
@@ -212,9 +219,10 @@ def build_plan(base: dict[str, Any], grid: list[tuple[str, list[Any]]], seeds: i
         raise SweepError(f"--seeds {seeds}: give at least 1")
     plan = Plan(seeds, grid, canonical(base))
     keys = [k for k, _ in grid]
+    rig = check_mission(plan.base, {}, base_dir)
     for p, combo in enumerate(itertools.product(*(v for _, v in grid))):
         values = canonical(dict(zip(keys, combo, strict=True)))
-        check_mission(mission_for(plan.base, values, 0), values, base_dir)
+        check_mission(mission_for(plan.base, values, 0), values, base_dir, rig)
         plan.points.append(values)
         for s in range(seeds):
             doc = canonical(mission_for(plan.base, values, s))
