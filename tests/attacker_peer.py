@@ -10,7 +10,10 @@ line: {"sent": {forgery: count}, "max_peers": the most peers its session ever sa
 built by hand (struct, json), not with the project's encoders, which refuse to produce most of them.
 With "copy_labels" it also listens to the predictions and puts each forged one with the session label
 (Zenoh attachment, flightstack/comms/identity.py) the real sender of that key used last: on plaintext a
-label is no authentication. Loopback only; stops by itself.
+label is no authentication. With "copy_stream": {"sender": i, "lead": d, "mu": m} it is a second agent
+i: for every prediction the real agent i puts it puts one of its own right after, under the real one's
+label, with seq (real + d) and the real stamp, in-bounds values and μ = (m, m, 0, 0) ("copied stream").
+Loopback only; stops by itself.
 """
 
 from __future__ import annotations
@@ -94,11 +97,38 @@ def main(spec_path: str) -> int:
 
     if spec.get("copy_labels"):
         session.declare_subscriber(f"{spec['prefix']}/{spec['mission']}/pred/*", learn)
+    copy = spec.get("copy_stream")
+    heard: list[tuple[int, float, bytes | None]] = []  # the real sender's (seq, stamp, label), unsent
+    forged: set[int] = set()
+
+    def copy_of(sample: Any) -> None:
+        data = bytes(sample.payload.to_bytes())
+        if len(data) < _HEAD.size:
+            return
+        seq, stamp = _HEAD.unpack_from(data)[4:6]
+        if seq not in forged:  # our own puts come back to us
+            att = sample.attachment
+            heard.append((seq, stamp, None if att is None else bytes(att.to_bytes())))
+
+    if copy:
+        key = f"{spec['prefix']}/{spec['mission']}/pred/{copy['sender']}"
+        session.declare_subscriber(key, copy_of)
     try:
         t_end = time.monotonic() + float(spec["duration_s"])
         k = 0
         while time.monotonic() < t_end:
             max_peers = max(max_peers, len(list(session.info.peers_zid())))
+            while copy and heard:
+                seq, stamp, label = heard.pop(0)
+                forged.add(seq + copy["lead"])
+                data = prediction(
+                    spec["mission"], copy["sender"], seq + copy["lead"], stamp, 0.01, copy["mu"]
+                )
+                session.put(key, data, attachment=label)
+                sent["copied stream"] += 1
+            if copy:
+                time.sleep(0.001)  # the same rate as the real sender: one put per real one
+                continue
             for name, (key, data) in forgeries(spec["mission"], spec["prefix"], k).items():
                 if name in spec["forgeries"]:
                     session.put(key, data, attachment=labels.get(key))

@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 import os
 import re
+import subprocess
+import sys
 import threading
 import time
 from collections import defaultdict
@@ -306,3 +308,75 @@ def test_a_duplicated_agent_is_reported_and_the_run_completes_with_its_recording
     assert dup_code == 1, dup_out
     assert f"flies drone 1 for another session ({found.group(1)})" in dup_out, dup_out
     assert "This process flies nothing" in dup_out and "Traceback" not in dup_out
+
+
+# ---------------------------------------------------------------- a copy under the real label (system)
+COPY_NAME = "copied"
+COPY_DURATION_S = 6.0  # simulated s (600 lock-step ticks)
+FORGED_MU = 9.9  # m/s: in bounds (acceptance.py), 17 times the clean flight's largest fused μ
+
+
+@pytest.mark.system
+def test_a_copy_of_agent_1_under_its_label_is_quarantined_and_the_flight_completes(tmp_path: Path) -> None:
+    """A second process holding agent-1's own certificate (mutual TLS: the ACL lets it publish as drone
+    1) copies the label agent 1 puts on its predictions and, right after each of them, puts one of its own
+    with seq one ahead, the real stamp and μ = 9.9 m/s (tests/attacker_peer.py: copy_stream). Every
+    receiver finds two streams under agent 1's label, quarantines id 1 for the run and names it; agents
+    2 and 3 fly on without it. Measured: the ticks at which a forged μ was in agents 2 and 3's fusion."""
+    from flightstack.comms.certs import files_of
+    from flightstack.comms.factory import tls_settings
+    from tests.conftest import REPO
+
+    mission = served_mission(tmp_path, COPY_DURATION_S, name=COPY_NAME, security="mtls")
+    eps = list(yaml.safe_load(mission.read_text())["bus"]["zenoh"]["endpoints"].values())
+    spec = {
+        "mission": COPY_NAME, "prefix": "flightstack", "period_s": 0.02, "duration_s": 40.0, "forgeries": [],
+        "connect": eps, "tls": dict(tls_settings(files_of(tmp_path / "certs", "agent-1"))),
+        "copy_stream": {"sender": 1, "lead": 1, "mu": FORGED_MU},
+    }  # fmt: skip
+    (tmp_path / "copier.json").write_text(json.dumps(spec))
+    t0 = time.monotonic()
+    copier = None
+    try:
+        with ServedRun(mission, tmp_path) as run:
+            assert run.world_lines.wait_for("present", 60), run.world_lines.rest()
+            copier = subprocess.Popen(
+                [sys.executable, "-m", "tests.attacker_peer", str(tmp_path / "copier.json")],
+                cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            )  # fmt: skip
+            codes, world = run.wait()
+            wout = run.world_lines.rest()
+            aout = {i: run.agent_lines[i].rest() for i in IDS}
+        out, err = copier.communicate(timeout=60)
+    finally:
+        if copier is not None and copier.poll() is None:
+            copier.kill()
+            copier.wait(timeout=10)
+    rep = json.loads(out.strip().splitlines()[-1]) if out.strip() else {"error": err[-2000:]}
+    assert codes == {1: 0, 2: 0, 3: 0} and world == 0, (wout, aout)
+    assert "drones 1: landed, 2: landed, 3: landed" in wout
+    assert rep.get("max_peers", 0) >= 1 and rep["sent"].get("copied stream", 0) >= 100, rep
+    named = re.compile(
+        r"agent-1: two sessions publish under one label \([0-9a-f]+ pid (\d+) on \S+\) as drone 1: "
+    )
+    forged_ticks = {}
+    for i in IDS:
+        summary = json.loads((tmp_path / f"agent{i}" / "summary.json").read_text())
+        reports = [r for r in summary["second_sessions"] if named.match(r)]
+        assert len(reports) == 1, summary["second_sessions"]  # reported once, by name
+        assert named.match(reports[0]).group(1) == str(run.agents[1].pid)  # the label copied  # type: ignore[union-attr]
+        assert f"agent {i}: {reports[0]}" in aout[i]
+        assert summary["bus_dropped"].get("two sessions under one label", 0) >= 50, summary["bus_dropped"]
+        metrics = json.loads((tmp_path / f"agent{i}" / "metrics.json").read_text())
+        assert metrics["recording"]["complete"], metrics["recording"]
+        with np.load(tmp_path / f"agent{i}" / "timeseries_dgp.npz") as z:
+            assert z["t"].shape[0] == round(COPY_DURATION_S / DT)
+            mu = z["mu_used"]
+            forged_ticks[i] = int(np.sum(np.max(np.abs(mu[..., :2]), axis=-1) > FORGED_MU / 2))
+            if i != 1:
+                assert np.all(np.isfinite(z["V_cmd"])) and np.max(np.abs(z["g_wi"][:, :, :3])) < 10.0
+    print(
+        f"copied label: {time.monotonic() - t0:.1f} s wall; copier sent {rep['sent']}; ticks with a forged "
+        f"μ in fusion: {forged_ticks}; reports: {reports[0]}"
+    )
+    assert forged_ticks[2] <= 20 and forged_ticks[3] <= 20, forged_ticks  # before it was found

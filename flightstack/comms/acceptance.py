@@ -19,6 +19,8 @@ larger jumps "seq jump". The restart rule takes a sender back whose seq moved on
 receiver joining a live sender, or a real sender after an accepted forgery): `restart_after` consecutive
 rejected messages whose own seqs increase by at most max_seq_jump each are a restarted sender, and the
 newest of them is accepted (`restarts` counts it); a forger repeating one seq never makes such a run.
+What the refused old seqs say about a second stream under one identity (`max_reorder`, a window of
+max_seq_jump seqs): streams.py.
 Stamps: see freshness.py (time base "stamps": a stamp ahead of the receiver's mission clock is not
 used; "receiver": outliers cannot become the learned offset, and a stamp must be within bounds of it).
 
@@ -53,6 +55,7 @@ class AcceptanceBounds:
     max_angle_rad: float = 1000.0  # θ is not wrapped by the observer; only absurd values are refused
     max_seq_jump: int = 1000  # ≥ the messages a live sender can skip (50 s at 20 Hz)
     restart_after: int = 3  # consecutive consistent rejects that mean the sender restarted
+    max_reorder: int = 16  # a never-seen seq this far behind the newest is late, further a 2nd stream
     stamp_ahead_s: float = 0.5  # time base "stamps": a stamp this far past the mission clock is not used
 
     def __post_init__(self) -> None:
@@ -63,6 +66,8 @@ class AcceptanceBounds:
                 raise ValueError(f"{name} must be positive and finite")
         if self.max_seq_jump < 1 or self.restart_after < 1:
             raise ValueError("max_seq_jump and restart_after must be >= 1")
+        if not 1 <= self.max_reorder <= self.max_seq_jump:
+            raise ValueError("max_reorder must be in [1, max_seq_jump]")
 
     @functools.cached_property
     def packed(self) -> NDArray[np.float64]:

@@ -4,7 +4,8 @@
 receipt time of that message and, in real time, the offset between the sender's clock and the
 receiver's. `InProcBus` and `ZenohBus` feed it the bytes they receive (`accept`) and read through it
 (`latest`); drop reasons are counted in `dropped` ("old or duplicate seq", "stale", "key sender mismatch",
-the reasons of `messages.decode`, plus "stamp ahead" in real time).
+the reasons of `messages.decode`, plus "stamp ahead" in real time). What the old seqs say about a second
+stream under one sender's id is kept in `streams` (streams.py); the bus acts on it (zenoh_bus.py).
 
 Time bases
 ----------
@@ -44,6 +45,7 @@ from typing import Literal
 
 from flightstack.comms.acceptance import AcceptanceBounds, SeqState, restart_run, seq_verdict
 from flightstack.comms.messages import PredictionMessage, decode_checked
+from flightstack.comms.streams import DUPLICATE, StreamWatch, digest
 from flightstack.events import BusKind, Event
 
 TimeBase = Literal["stamps", "receiver"]
@@ -120,6 +122,8 @@ class Freshness:
         self.bounds = bounds or AcceptanceBounds()
         self.runs: dict[int, SeqState] = {}  # per sender: the current run of rejected seqs
         self.restarts: Counter[int] = Counter()  # per sender: sequence restarts accepted
+        # a second stream under a sender's id (streams.py): watched here, acted on by the bus
+        self.streams = StreamWatch(self.bounds.max_seq_jump, self.bounds.max_reorder)
 
     def accept(
         self, data: bytes, key_sender: str | None = None, t_recv: float | None = None
@@ -141,8 +145,15 @@ class Freshness:
             return None
         prev = self.newest.get(msg.sender)
         why = seq_verdict(None if prev is None else prev.seq, msg.seq, self.bounds)
+        dig = digest(data)
+        old = None
+        if prev is not None and msg.seq <= prev.seq:  # old: a duplicate, late, or another stream's
+            old = self.streams.refused_old(msg.sender, msg.seq, dig, prev.seq)
         restart = False
         if why:  # before the clock: a message refused here must not move the sender's offset
+            if old == DUPLICATE:  # the network repeated it: never part of a restart run
+                self.dropped[why] += 1
+                return None
             if not restart_run(self.runs.setdefault(msg.sender, SeqState()), msg.seq, self.bounds):
                 self.dropped[why] += 1
                 return None
@@ -157,6 +168,7 @@ class Freshness:
         if restart:
             self.restarts[msg.sender] += 1  # a restarted sender (or a slot taken before it): resync
         self.runs.pop(msg.sender, None)
+        self.streams.accepted(msg.sender, msg.seq, dig, back=prev is not None and msg.seq < prev.seq)
         self.newest[msg.sender] = msg
         if t_recv is not None:
             self.received[msg.sender] = t_recv
@@ -201,6 +213,7 @@ class Freshness:
         self.newest.pop(sender, None)
         self.clocks.pop(sender, None)
         self.runs.pop(sender, None)
+        self.streams.forget(sender)
 
     def offset(self, sender: int) -> float | None:
         """The learned offset (receiver clock − sender clock, s) of `sender`, None if none yet."""

@@ -18,6 +18,15 @@ wins. On a plaintext bus the label is as forgeable as everything else (anybody c
 there to keep a misconfigured or duplicated process from stalling or steering a run, not to
 authenticate (mutual TLS and the ACL do that, acl.py).
 
+A copied label. Anybody who hears a sender's messages can put its label on their own (on plaintext,
+or holding the sender's own certificate), and then passes this rule. What such a copy cannot avoid is
+the real sender's stream, which goes on beside it: two different payloads under one seq, or the real
+messages refused far behind the copy's (streams.py, watched on the receive path). Once two streams are
+established under one label, nothing says which is genuine: the id is *quarantined* for the rest of the
+run (`quarantine`): every later message for it is dropped and counted ("two sessions under one label"),
+the bus forgets its newest message, so fusion leaves it out and the flight goes on; it is reported once
+by name ("agent-1: two sessions publish under one label …", kind "second session").
+
 When the first session goes away. Its id leaving the bus (`forget`: every session of it is gone)
 clears the owner; the next session to publish claims the id, and its messages pass the sequence and
 restart rules (acceptance.py). While a second session still holds the liveliness token, the first one's
@@ -44,6 +53,7 @@ from flightstack.comms.certs import agent_name
 MAX_LABEL_CHARS = 160
 UNLABELLED = "unlabelled"
 SECOND_SESSION: Final = "second session"  # the drop reason, and the event kind
+TWO_STREAMS: Final = "two sessions under one label"  # the drop reason of a quarantined id
 
 
 def session_label(session: Any) -> str:
@@ -102,6 +112,7 @@ class SessionBook:
         self.claims: dict[int, _Claim] = {}
         self.dropped: Counter[int] = Counter()  # per id: messages of a second session dropped
         self.events: list[SessionEvent] = []
+        self.quarantined: set[int] = set()  # ids two streams spoke for under one label (for the run)
 
     def own(self, sender: int, session: str, t: float) -> None:
         """Claim `sender` for `session` at t (s): a process's own ids, before anybody else is heard."""
@@ -110,7 +121,10 @@ class SessionBook:
     def admit(self, sender: int, session: str, t: float) -> bool:
         """True when a message of `session` for `sender` received at t (s) may go on to the receive
         checks: nobody owns the id yet, or `session` does. False: a second session's, counted in
-        `dropped` and reported once per session (`events`)."""
+        `dropped` and reported once per session (`events`), or any message for a quarantined id."""
+        if sender in self.quarantined:
+            self.dropped[sender] += 1
+            return False
         c = self.claims.get(sender)
         if c is None:
             return True
@@ -126,6 +140,18 @@ class SessionBook:
             self.events.append(SessionEvent(t, sender, SECOND_SESSION, session, c.owner, text))
         self.dropped[sender] += 1
         return False
+
+    def quarantine(self, sender: int, session: str, t: float, why: str) -> None:
+        """Two streams under `session`'s label speak for `sender` (streams.py; why: the evidence): drop
+        every later message for it (`admit` refuses them) for the rest of the run; reported once."""
+        if sender in self.quarantined:
+            return
+        self.quarantined.add(sender)
+        text = (
+            f"{agent_name(sender)}: two sessions publish under one label ({session}) as drone {sender}: "
+            f"{why}; both dropped for the rest of the run"
+        )
+        self.events.append(SessionEvent(t, sender, SECOND_SESSION, session, session, text))
 
     def claim(self, sender: int, session: str, t: float) -> None:
         """After a message of `session` passed every receive check: it owns `sender` if nobody does (a
@@ -155,6 +181,7 @@ class SessionBook:
 __all__ = [
     "MAX_LABEL_CHARS",
     "SECOND_SESSION",
+    "TWO_STREAMS",
     "UNLABELLED",
     "SessionBook",
     "SessionEvent",

@@ -10,8 +10,9 @@ sequence, sender clock; no zenoh call, only a short lock), which keeps the newes
 Not a `RingChannel(1)`: on a wildcard it keeps the newest sample of *any* sender and loses the others; the
 FIFO handler blocks the session when Python is slow. Bad messages are dropped and counted by reason in
 `dropped`, as in `InProcBus`. Messages of a second session publishing as an owned sender are dropped first
-("second session", identity.py) and reported once in `presence_events`. Own agents' messages take the same
-encode → Zenoh → decode path as remote ones.
+("second session", identity.py) and reported once in `presence_events`; so are the messages of a sender
+under whose label two streams publish (streams.py: quarantined for the run, "two sessions under one
+label"). Own agents' messages take the same encode → Zenoh → decode path as remote ones.
 
 QoS: predictions reliable, congestion control DROP in real time and BLOCK when `reliable` (lock-step),
 batched, not express (why and the latency measured: docs/lab_notes.md); control messages express, BLOCK,
@@ -54,6 +55,7 @@ from flightstack.comms.control import (
 from flightstack.comms.freshness import Freshness, OffsetPolicy
 from flightstack.comms.identity import (
     SECOND_SESSION,
+    TWO_STREAMS,
     SessionBook,
     SessionEvent,
     sample_label,
@@ -235,12 +237,13 @@ class ZenohBus:
 
     def _wait_messages(self, missing_now: Callable[[], set[int]], timeout_s: float) -> set[int]:
         """Wait on the condition until missing_now() (called with the lock held) is empty, only holds
-        senders that have left, the bus closes, or timeout_s passes; returns the last missing set."""
+        senders that have left or are quarantined (identity.py), the bus closes, or timeout_s passes;
+        returns the last missing set."""
         deadline = time.monotonic() + max(0.0, timeout_s)
         with self._cond:
             while True:
                 missing = missing_now()
-                if not missing or missing <= self._left or self._closed:
+                if not missing or missing <= self._left | self._sessions.quarantined or self._closed:
                     return missing
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -366,18 +369,24 @@ class ZenohBus:
         label = sample_label(sample)
         t_recv = self._clock()
         ok = key_sender.isascii() and key_sender.isdigit() and len(key_sender) <= 9
-        sender = int(key_sender) if ok else None
+        sender = int(key_sender) if ok else -1  # -1: no sender id in the key
         with self._cond:
-            if sender is not None and sender in self.known:
-                n_events = len(self._sessions.events)
-                if not self._sessions.admit(sender, label, t_recv):
-                    self._dropped[SECOND_SESSION] += 1
-                    self._events.extend(_session_event(e) for e in self._sessions.events[n_events:])
-                    return
+            n_events = len(self._sessions.events)
+            if sender in self.known and not self._sessions.admit(sender, label, t_recv):
+                quarantined = sender in self._sessions.quarantined
+                self._dropped[TWO_STREAMS if quarantined else SECOND_SESSION] += 1
+                self._events.extend(_session_event(e) for e in self._sessions.events[n_events:])
+                return
             msg = self._book.accept(data, key_sender, t_recv)
             if msg is not None:
                 self._sessions.claim(msg.sender, label, t_recv)
-                self._cond.notify_all()
+            why = self._book.streams.found.get(sender)
+            if why is not None and sender not in self._sessions.quarantined:
+                # two streams under this label (streams.py): neither is trusted for the rest of the run
+                self._sessions.quarantine(sender, label, t_recv, why)
+                self._book.newest.pop(sender, None)  # fusion leaves it out from now on
+                self._events.extend(_session_event(e) for e in self._sessions.events[n_events:])
+            self._cond.notify_all()
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         try:
