@@ -329,7 +329,8 @@ def test_a_flight_with_bad_stamps_records_what_the_clean_one_does_but_the_counts
     """paper_experiment on lab-sim under the Tello's links, compensated, 3 s of mode none: frames and own
     poses stamped 1e9, inf and NaN in place of repeats during pursuit. Every array, every event and every
     fact of the recording equals the clean run's, but the rejection counts, which have each bad sample
-    once per drone that read it."""
+    once per drone that read it, and the safety layer's one `pose_error` per drone for the pose stamped
+    ahead of the clock."""
     from flightstack.config.compensation import CompensationSpec
     from flightstack.config.links import LinksSpec
     from flightstack.config.mission import load_mission
@@ -358,7 +359,10 @@ def test_a_flight_with_bad_stamps_records_what_the_clean_one_does_but_the_counts
     assert {k: v for k, v in a.items() if k not in (EVENTS, META)} == {
         k: v for k, v in b.items() if k not in (EVENTS, META)
     }
-    assert _flight_events(flown) == _flight_events(clean)
+    # the safety layer does not take an own pose stamped ahead of the clock either, and says so once
+    ahead = [e for e in _flight_events(flown) if e.get("kind") == "pose_error" and "ahead" in e["detail"]]
+    assert sorted(e["drone"] for e in ahead) == [1, 2], ahead
+    assert [e for e in _flight_events(flown) if e not in ahead] == _flight_events(clean)
     meta_a, meta_b = meta_canonical(flown), meta_canonical(clean)
     rej_a, rej_b = meta_a.pop("vision_rejections"), meta_b.pop("vision_rejections")
     assert meta_a == meta_b

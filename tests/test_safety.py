@@ -549,6 +549,42 @@ def test_pose_source_error_is_logged_and_treated_as_stale() -> None:
     assert r.log.counts()["pose_stale_hover"] == 1
 
 
+@pytest.mark.parametrize("ahead_s", [1e9, 30.0])
+def test_pose_stamped_ahead_of_the_clock_is_not_taken_and_the_drone_still_hovers_and_lands(
+    ahead_s: float,
+) -> None:
+    """A pose stamped ahead of the clock (another clock, or forged) would read as fresh for as long as
+    its stamp is ahead: it is not taken, so the stale-pose rules still run on the last real pose."""
+    r = Rig()  # live pose at t = 0
+    r.clock.t = 0.05
+    r.sd.tick()
+    r.move((0.0, 0.0, 1.0), stamp=r.clock.t + ahead_s)  # from here on the source says "far ahead"
+    V = np.array([0.1, 0.0, 0.0, 0.0])
+    for k in range(2, 60):
+        r.clock.t = k * 0.05
+        r.sd.tick()
+        if r.sd.landed:
+            break
+        r.sd.send_body_velocity(V)
+    hover, land = r.log.of_kind("pose_stale_hover"), r.log.of_kind("pose_stale_land")
+    assert len(hover) == 1 and LIM.pose_timeout < hover[0].t <= LIM.pose_timeout + 0.1
+    assert len(land) == 1 and LIM.pose_land_after < land[0].t <= LIM.pose_land_after + 0.1
+    errors = r.log.of_kind("pose_error")
+    assert len(errors) == 1 and "ahead of the clock" in errors[0].detail
+
+
+def test_pose_stamped_within_the_tolerance_is_taken() -> None:
+    """A motion-capture pose stamped on arrival after the tick read its clock (milliseconds) is live."""
+    r = Rig()
+    for k in range(1, 40):
+        r.clock.t = k * 0.05
+        r.move((0.0, 0.0, 1.0), stamp=r.clock.t + 0.02)
+        r.sd.tick()
+        r.sd.send_body_velocity(np.array([0.1, 0.0, 0.0, 0.0]))
+        np.testing.assert_array_equal(r.last_sent(), [0.1, 0.0, 0.0, 0.0])
+    assert r.log.counts().get("pose_error", 0) == 0 and not r.sd.landed
+
+
 def test_non_finite_pose_is_ignored() -> None:
     r = Rig()
     r.poses.poses[BODY] = Pose(np.array([np.nan, 0.0, 1.0]), 0.0)

@@ -31,6 +31,7 @@ import numpy as np
 
 from flightstack.events import SafetyKind
 from flightstack.hal import Clock, Drone, DroneState, FlightPhase, PoseSource, StampedPose
+from flightstack.paper.delay_compensation import AHEAD_TOLERANCE_S
 from flightstack.paper.geometry import Pose
 from flightstack.safety.jobs import DroneJobs
 from flightstack.safety.rules import (
@@ -407,15 +408,24 @@ class SafeDrone:
             self._event_once(now, "drone_error", f"send_body_velocity raised {type(exc).__name__}: {exc}")
 
     def _read_pose(self, now: float) -> StampedPose | None:
-        """Latest valid pose from the source (remembered), or the last valid one; None if never seen."""
+        """Latest valid pose from the source (remembered), or the last valid one; None if never seen.
+
+        A pose stamped more than AHEAD_TOLERANCE_S after `now` (another clock, or forged) is not taken:
+        remembered, it would read as fresh for as long as its stamp is ahead, and the stale-pose rules
+        would never hover or land the drone (`pose_error`, once per episode)."""
         try:
             sp = self.poses.latest(self.body)
         except Exception as exc:
             self._event_once(now, "pose_error", f"PoseSource.latest raised {type(exc).__name__}: {exc}")
             return self._last_pose
-        self._end("pose_error")
         if valid_pose(sp):
+            assert sp is not None  # valid_pose: a StampedPose
+            if not sp.stamp <= now + AHEAD_TOLERANCE_S:
+                ahead = f"stamped {sp.stamp - now:.3g} s ahead of the clock ({sp.stamp!r} at {now:.3f})"
+                self._event_once(now, "pose_error", f"pose of {self.body!r} {ahead}: not used")
+                return self._last_pose
             self._last_pose = sp
+        self._end("pose_error")
         return self._last_pose
 
     # ---- landing sequence ------------------------------------------------------------------------------
