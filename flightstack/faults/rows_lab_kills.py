@@ -21,6 +21,7 @@ heights in m in the world frame Σw (motion capture's truth, without `mocap_offs
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import signal
@@ -110,22 +111,25 @@ def _watch(lab: EmulatedLab, timeout_s: float) -> float | None:
     return t_disarmed
 
 
-def heights(lab: EmulatedLab, i: int, after: float, before: float) -> list[float]:
-    """Drone i's true heights z (m, Σw) sampled within [after, before] (s)."""
-    return [p[2] for t, j, p in list(lab.truth) if j == i and after <= t <= before]
+def positions(lab: EmulatedLab, i: int, after: float, before: float) -> list[tuple[float, float, float]]:
+    """Drone i's true positions (m, Σw) sampled within [after, before] (s)."""
+    return [p for t, j, p in list(lab.truth) if j == i and after <= t <= before]
 
 
 def _rise(lab: EmulatedLab, t_fault: float, c: Checks, ceiling: float) -> dict[str, Any]:
-    """Per drone: z at the fault, the highest z before it is down (m), when it is down and how (auto-land);
-    a failed check when it went above `ceiling` (the hard fence's, m)."""
+    """Per drone: z at the fault, the highest z before it is down and the largest horizontal distance from
+    where it was at the fault (m), when it is down and how (auto-land);
+        a failed check when it went above `ceiling` (the hard fence's, m)."""
     out: dict[str, Any] = {}
     for i, e in lab.tellos.items():
         t_down = first(phase_times(e, "landed", after=t_fault))
         c.check(t_down is not None, f"drone {i}: not down")
-        before = heights(lab, i, t_fault - 0.2, t_fault)
-        z0 = before[-1] if before else None
-        zs = heights(lab, i, t_fault, t_down if t_down is not None else time.monotonic())
-        z_max = max(zs) if zs else None
+        before = positions(lab, i, t_fault - 0.2, t_fault)
+        p0 = before[-1] if before else None
+        z0 = None if p0 is None else p0[2]
+        ps = positions(lab, i, t_fault, t_down if t_down is not None else time.monotonic())
+        z_max = max(p[2] for p in ps) if ps else None
+        drift = max((math.hypot(p[0] - p0[0], p[1] - p0[1]) for p in ps), default=None) if p0 else None
         c.check(
             z_max is not None and z_max <= ceiling,
             f"drone {i}: up to z {z_max} m before it was down (limit {ceiling:g} m)",
@@ -134,6 +138,7 @@ def _rise(lab: EmulatedLab, t_fault: float, c: Checks, ceiling: float) -> dict[s
             "z_kill_m": None if z0 is None else round(z0, 3),
             "z_max_m": None if z_max is None else round(z_max, 3),
             "rise_m": None if z0 is None or z_max is None else round(z_max - z0, 3),
+            "drift_xy_m": None if drift is None else round(drift, 3),
             "down_ms": ms(None if t_down is None else t_down - t_fault),
             "auto_land": bool(e.landed_by_timeout),
         }
@@ -319,7 +324,7 @@ def _alone(name: str, workdir: Path, when: str, order: str) -> FaultResult:
         f"no drone above the hard fence's ceiling ({ceiling:g} m) before it is down; the robot's own GCS "
         "failsafe holds it"
     )
-    observed = _summary(details, ("z_kill_m", "z_max_m", "rise_m", "down_ms"))
+    observed = _summary(details, ("z_kill_m", "z_max_m", "rise_m", "drift_xy_m", "down_ms"))
     observed += f"; robot failsafe +{details.get('robot_failsafe_ms')} ms (FS_ACTION "
     observed += f"{details.get('robot_failsafe_action')}), speed {details.get('robot_speed')}"
     return lab_result(name, expected, observed, wall0, c, [], [], details, None)
