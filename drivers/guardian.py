@@ -11,7 +11,7 @@ docs/safety.md ("The guardian").
   environment, `GUARDIAN_ENTRY`), so neither the terminal's signals nor `pkill [-f]` by those names reach
   it. The parent writes one JSON line of `GuardianConfig` on its stdin and waits ≤ `ready_timeout_s` for
   its `ready` line. Once the guardian is forked, the parent makes itself the out-of-memory killer's first
-  choice (`OOM_SCORE_ADJ_FLIGHT`); the guardian keeps what it inherited, or less if it may
+  choice (`OOM_SCORE_ADJ_FLIGHT`); the guardian lowers its own as far as it may
   (`OOM_SCORE_ADJ_GUARDIAN`).
 - **Both directions beat.** `heartbeat()` writes one byte per control tick (non-blocking, never raises;
   failures counted); `arm()` starts the stall detection, `arm(False)` pauses it around a known blocking
@@ -71,9 +71,10 @@ never in the guardian's process name or command line (`name_patterns` adds the e
 OOM_SCORE_ADJ_FLIGHT = 1000
 """The flight's /proc/self/oom_score_adj once its guardian runs: the out-of-memory killer's first choice
 (raising it needs no privilege), so that it takes the flight, which its guardian then lands."""
-OOM_SCORE_ADJ_GUARDIAN = -1000
-"""What the guardian asks for itself (never the OOM killer's choice); lowering needs CAP_SYS_RESOURCE, so
-without it the guardian keeps what it inherited from the flight before the flight raised its own."""
+OOM_SCORE_ADJ_GUARDIAN = (-1000, 0)
+"""What the guardian asks for itself, in order: never the OOM killer's choice (needs CAP_SYS_RESOURCE),
+else the neutral 0 (allowed without privilege down to the value the session started with, usually 0),
+so that a flight started with 1000 already does not hand its guardian that."""
 
 
 def set_oom_score_adj(value: int, path: str = "/proc/self/oom_score_adj") -> int | None:

@@ -515,8 +515,8 @@ def main() -> int:
         sys.stdout.flush()
         return EXIT_CONFIG
     log = Log(cfg.log_path)
-    oom = set_oom_score_adj(OOM_SCORE_ADJ_GUARDIAN)
-    log(f"oom_score_adj {'set to ' + str(oom) if oom is not None else 'kept (lowering it needs privilege)'}")
+    oom = next((v for v in OOM_SCORE_ADJ_GUARDIAN if set_oom_score_adj(v) is not None), None)
+    log(f"oom_score_adj {'set to ' + str(oom) if oom is not None else 'kept (it may not be lowered here)'}")
     g = None
     try:
         g = GuardianProcess(cfg, flag, log, beat_fd=1)

@@ -476,7 +476,7 @@ def test_guardian_of_a_venv_named_flightstack_is_out_of_reach_of_names(tmp_path:
             if args[0] == "-f":
                 assert proc.pid in selected, args  # the pattern does select the flight
         assert parent_oom == "1000" and oom_score_adj(proc.pid) == 1000
-        assert oom_score_adj(pid) < 1000
+        assert oom_score_adj(pid) <= 0  # -1000 with CAP_SYS_RESOURCE, else 0, even if it inherited 1000
         assert wait_until(lambda: "watching parent" in (log.read_text() if log.exists() else ""), 5.0)
         assert str((venv / "lib").resolve()) in log.read_text()  # the venv's site-packages, through the link
         if how == "installed":
