@@ -482,10 +482,9 @@ def site_packages() -> list[str]:
 
 
 def package_dir() -> str:
-    """Where this process imported flightstack from (resolved): the checkout (editable) or site-packages."""
-    import flightstack
-
-    return os.path.dirname(os.path.realpath(flightstack.__file__))
+    """Where this process imported its code from (this module's folder, resolved): the checkout's
+    drivers/ (an editable install) or site-packages' flightstack/drivers."""
+    return os.path.dirname(os.path.realpath(__file__))
 
 
 def read_config(timeout_s: float = 10.0) -> str:
