@@ -4,11 +4,15 @@ A process that dies or stops ticking cannot land its drones (a Tello keeps its l
 the guardian, a second small OS process, does. What it covers and what it cannot, measured:
 docs/safety.md ("The guardian").
 
-- **Launch** (`Guardian.start`, before takeoff): own session (`start_new_session=True`), and a command line
-  without the word "flightstack" (`guardian_argv`: the interpreter through a neutral symlink to
-  `sys.prefix`, `-c` BOOTSTRAP, the module from the environment, `GUARDIAN_ENTRY`), so neither the
-  terminal's signals nor `pkill -f flightstack` reach it. The parent writes one JSON line of
-  `GuardianConfig` on its stdin and waits ≤ `ready_timeout_s` for its `ready` line.
+- **Launch** (`Guardian.start`, before takeoff): own session (`start_new_session=True`), and a process name
+  and command line that match none of an operator's patterns for the flight or for Python
+  (`name_patterns`: "python", "python3", "flightstack", the environment's path), from the exec on
+  (`guardian_argv`: `<tmp>/tello-guardian-XXXX/bin/tello-guardian -c BOOTSTRAP`, the module from the
+  environment, `GUARDIAN_ENTRY`), so neither the terminal's signals nor `pkill [-f]` by those names reach
+  it. The parent writes one JSON line of `GuardianConfig` on its stdin and waits ≤ `ready_timeout_s` for
+  its `ready` line. Once the guardian is forked, the parent makes itself the out-of-memory killer's first
+  choice (`OOM_SCORE_ADJ_FLIGHT`); the guardian lowers its own as far as it may
+  (`OOM_SCORE_ADJ_GUARDIAN`).
 - **Both directions beat.** `heartbeat()` writes one byte per control tick (non-blocking, never raises;
   failures counted); `arm()` starts the stall detection, `arm(False)` pauses it around a known blocking
   phase; `finish()` writes "bye". The guardian beats back every `GUARDIAN_BEAT_S`; `Guardian.lost()` says
@@ -32,8 +36,8 @@ import dataclasses
 import json
 import mmap
 import os
+import re
 import select
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -56,9 +60,37 @@ ENTRY_ENV = "GUARDIAN_ENTRY"
 """The environment variable naming the module the guardian runs (`main()`), read by BOOTSTRAP."""
 ENTRY_MODULE = "flightstack.drivers.guardian_process"
 BOOTSTRAP = "import os,sys,importlib;sys.exit(importlib.import_module(os.environ['GUARDIAN_ENTRY']).main())"
-"""The guardian's `-c` code: names no module itself, so that its command line has no "flightstack"."""
-HIDDEN_WORD = "flightstack"
-"""The word an operator's `pkill -f` matches; never in the guardian's command line."""
+"""The guardian's `-c` code: names no module itself, so that its command line matches no NAME_WORDS."""
+GUARDIAN_NAME = "tello-guardian"
+"""The guardian's process name (/proc/PID/comm, ≤ 15 characters) and the name of its interpreter link."""
+NAME_WORDS = ("flightstack", "python")
+"""What an operator's `pkill [-f]` matches for the flight or for Python ("python3" contains "python"):
+never in the guardian's process name or command line (`name_patterns` adds the environment's path)."""
+
+
+OOM_SCORE_ADJ_FLIGHT = 1000
+"""The flight's /proc/self/oom_score_adj once its guardian runs: the out-of-memory killer's first choice
+(raising it needs no privilege), so that it takes the flight, which its guardian then lands."""
+OOM_SCORE_ADJ_GUARDIAN = (-1000, 0)
+"""What the guardian asks for itself, in order: never the OOM killer's choice (needs CAP_SYS_RESOURCE),
+else the neutral 0 (allowed without privilege down to the value the session started with, usually 0),
+so that a flight started with 1000 already does not hand its guardian that."""
+
+
+def set_oom_score_adj(value: int, path: str = "/proc/self/oom_score_adj") -> int | None:
+    """Write `value` to this process's oom_score_adj; the value read back, None where it cannot be set
+    (not Linux, or lowering it without the privilege). Never raises."""
+    try:
+        with open(path, "w", encoding="ascii") as f:
+            f.write(f"{int(value)}\n")
+    except OSError:
+        pass
+    try:
+        with open(path, encoding="ascii") as f:
+            got = int(f.read().strip())
+    except (OSError, ValueError):
+        return None
+    return got if got == int(value) else None
 
 
 class GuardianError(RuntimeError):
@@ -184,48 +216,104 @@ def _neutral_dirs() -> list[str]:
     return [d for d in (tempfile.gettempdir(), "/tmp", "/dev/shm", "/var/tmp", home) if os.path.isdir(d)]
 
 
+def name_patterns(prefix: str = sys.prefix) -> list[str]:
+    """What the guardian's name and command line must never match: NAME_WORDS and the environment's
+    path (`prefix` as given and resolved), the patterns an operator gives `pkill [-f]` for the flight."""
+    out = list(NAME_WORDS)
+    for p in (prefix, os.path.realpath(prefix)):
+        if p and p not in out:
+            out.append(p)
+    return out
+
+
+def matching(text: str, patterns: list[str]) -> list[str]:
+    """The patterns that select `text` as pgrep/pkill would (an extended regex searched anywhere, here also
+    ignoring case), or that `text` contains literally (a path is also tried as plain text)."""
+    hits = []
+    for p in patterns:
+        try:
+            found = re.search(p, text, re.IGNORECASE) is not None
+        except re.error:
+            found = False
+        if found or p.lower() in text.lower():
+            hits.append(p)
+    return hits
+
+
+def _venv_config(executable: str, prefix: str) -> str:
+    """The pyvenv.cfg of the neutral environment: the running environment's own (a virtual environment:
+    same base interpreter, same system-site-packages choice), else one over the interpreter's installation
+    with its site-packages (run outside a virtual environment)."""
+    try:
+        with open(os.path.join(prefix, "pyvenv.cfg"), encoding="utf-8") as f:
+            return f.read()
+    except OSError:
+        home = os.path.dirname(os.path.realpath(executable))
+        return f"home = {home}\ninclude-system-site-packages = true\n"
+
+
+def _make_environment(launch: str, executable: str, prefix: str) -> None:
+    """In `launch`: bin/GUARDIAN_NAME → the real interpreter, pyvenv.cfg, and lib (and sys.platlibdir) →
+    the running environment's, so that the interpreter started through the link finds the same standard
+    library and site-packages (.pth files and editable installs included) as this process."""
+    os.mkdir(os.path.join(launch, "bin"))
+    os.symlink(os.path.realpath(executable), os.path.join(launch, "bin", GUARDIAN_NAME))
+    with open(os.path.join(launch, "pyvenv.cfg"), "w", encoding="utf-8") as f:
+        f.write(_venv_config(executable, prefix))
+    if os.path.isfile(os.path.join(prefix, "pyvenv.cfg")):  # a venv: its own site-packages
+        for lib in sorted({"lib", sys.platlibdir}):
+            if os.path.isdir(os.path.join(prefix, lib)):
+                os.symlink(os.path.join(prefix, lib), os.path.join(launch, lib), target_is_directory=True)
+
+
 def guardian_argv(
     executable: str = sys.executable, prefix: str = sys.prefix, roots: list[str] | None = None
 ) -> tuple[list[str], str]:
     """The guardian's command line and the directory made for it: (argv, launch_dir).
 
-    argv[0] is `<root>/tello-guardian-XXXX/prefix/<executable relative to prefix>`, where `prefix` is a
-    symlink to `prefix` (sys.prefix): Python finds a virtual environment's pyvenv.cfg, and the standard
-    library, from the path it was started by, so the link keeps whatever environment this process runs
-    in, while the word "flightstack" in that environment's path stays out of the command line. Falls back
-    to `executable` itself when it does not lie under `prefix` and is neutral. GuardianError when no
-    neutral command line can be made (every root's path contains the word)."""
-    rel = os.path.relpath(executable, prefix)
+    argv is `<root>/tello-guardian-XXXX/bin/tello-guardian -c BOOTSTRAP`: a link to the real interpreter
+    with a neutral name (the kernel takes the process name, /proc/PID/comm, from the path given to execve,
+    not from what the link points to) inside a small virtual environment (`_make_environment`) that keeps
+    this process's standard library and site-packages. Neither matches `name_patterns(prefix)` from the
+    exec on, before any device is commanded. GuardianError when no root gives such a command line."""
+    patterns = name_patterns(prefix)
+    tried = []
     for root in _neutral_dirs() if roots is None else roots:
-        if HIDDEN_WORD in root.lower():
+        argv = [os.path.join(root, f"{GUARDIAN_NAME}-XXXXXXXX", "bin", GUARDIAN_NAME), "-c", BOOTSTRAP]
+        if matching(" ".join(argv), patterns):
+            tried.append(root)
             continue
-        if rel.startswith(os.pardir) or HIDDEN_WORD in rel.lower():
-            break
         try:
-            launch = tempfile.mkdtemp(prefix="tello-guardian-", dir=root)
-            os.symlink(prefix, os.path.join(launch, "prefix"), target_is_directory=True)
+            launch = tempfile.mkdtemp(prefix=f"{GUARDIAN_NAME}-", dir=root)
         except OSError:
+            tried.append(root)
             continue
-        argv = [os.path.join(launch, "prefix", rel), "-c", BOOTSTRAP]
-        if HIDDEN_WORD not in " ".join(argv).lower():
-            return argv, launch
-        shutil.rmtree(launch, ignore_errors=True)
-    if HIDDEN_WORD not in executable.lower():
-        return [executable, "-c", BOOTSTRAP], ""
+        argv[0] = os.path.join(launch, "bin", GUARDIAN_NAME)
+        try:
+            if matching(" ".join(argv), patterns):
+                raise OSError("the random part matched")
+            _make_environment(launch, executable, prefix)
+        except OSError:
+            remove_launch_dir(launch)
+            tried.append(root)
+            continue
+        return argv, launch
     raise GuardianError(
-        f"no command line without {HIDDEN_WORD!r} for the guardian: {executable} and every temporary "
-        "directory contain it (set TMPDIR to a neutral directory)"
+        f"no neutral command line for the guardian: every temporary directory ({', '.join(tried) or 'none'}) "
+        f"has a path matching one of {patterns} (set TMPDIR to a neutral directory)"
     )
 
 
 def remove_launch_dir(path: str) -> None:
-    """Remove a directory made by guardian_argv (its symlink only; never what the link points to)."""
-    if not path or not os.path.basename(path).startswith("tello-guardian-"):
+    """Remove a directory made by guardian_argv (its links only, never what they point to)."""
+    if not path or not os.path.basename(path).startswith(f"{GUARDIAN_NAME}-"):
         return
-    with contextlib.suppress(OSError):
-        os.unlink(os.path.join(path, "prefix"))
-    with contextlib.suppress(OSError):
-        os.rmdir(path)
+    for entry in (os.path.join("bin", GUARDIAN_NAME), "pyvenv.cfg", "lib", sys.platlibdir):
+        with contextlib.suppress(OSError):
+            os.unlink(os.path.join(path, entry))
+    for d in ("bin", ""):
+        with contextlib.suppress(OSError):
+            os.rmdir(os.path.join(path, d))
 
 
 class Guardian:
@@ -242,6 +330,8 @@ class Guardian:
         self._last_guardian_beat = time.monotonic()
         self._lost: str | None = None
         self._own_flag = False
+        self.oom_score_adj: int | None = None
+        """The parent's oom_score_adj as set by `start` (OOM_SCORE_ADJ_FLIGHT), None if it could not be."""
 
     @property
     def pid(self) -> int:
@@ -275,6 +365,7 @@ class Guardian:
         )
         g = cls(proc, flag, cfg)
         g._own_flag = own
+        g.oom_score_adj = set_oom_score_adj(OOM_SCORE_ADJ_FLIGHT)  # forked: the guardian kept its own
         try:
             os.write(g._fd, cfg.to_json().encode() + b"\n")  # blocking: far below the pipe's capacity
             os.set_blocking(g._fd, False)

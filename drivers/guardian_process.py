@@ -19,6 +19,7 @@ import queue
 import select
 import selectors
 import signal
+import site
 import socket
 import sys
 import threading
@@ -35,12 +36,14 @@ from flightstack.drivers.guardian import (
     EXIT_DONE,
     EXIT_GAVE_UP,
     GUARDIAN_BEAT_S,
+    OOM_SCORE_ADJ_GUARDIAN,
     READY,
     UNARM,
     GuardedTello,
     GuardianConfig,
     TakeoverFlag,
     remove_launch_dir,
+    set_oom_score_adj,
 )
 from flightstack.drivers.tello_phase import PhaseThresholds, PhaseTracker
 from flightstack.drivers.tello_state import StateRejectedError, parse_state
@@ -407,7 +410,8 @@ class GuardianProcess:
         hosts = [t.host for t in c.tellos]
         self.log(
             f"watching parent {c.parent_pid}: Tellos {hosts}, robot {c.robot_url!r}, {c.extra}; "
-            f"python {os.path.realpath(sys.prefix)}; stop on purpose: kill -TERM {os.getpid()}"
+            f"site-packages {site_packages()}; flightstack {package_dir()}; "
+            f"stop on purpose: kill -TERM {os.getpid()}"
         )
         errors = 0
         while True:
@@ -471,6 +475,18 @@ class GuardianProcess:
             self.robot.close()
 
 
+def site_packages() -> list[str]:
+    """The resolved site-packages directories of this interpreter: the environment the guardian runs in
+    (its own prefix is the neutral launch directory, drivers/guardian.guardian_argv)."""
+    return [os.path.realpath(p) for p in site.getsitepackages()]
+
+
+def package_dir() -> str:
+    """Where this process imported its code from (this module's folder, resolved): the checkout's
+    drivers/ (an editable install) or site-packages' flightstack/drivers."""
+    return os.path.dirname(os.path.realpath(__file__))
+
+
 def read_config(timeout_s: float = 10.0) -> str:
     """The config line from stdin, read byte by byte so that the heartbeats after it stay in the pipe."""
     buf = b""
@@ -498,6 +514,8 @@ def main() -> int:
         sys.stdout.flush()
         return EXIT_CONFIG
     log = Log(cfg.log_path)
+    oom = next((v for v in OOM_SCORE_ADJ_GUARDIAN if set_oom_score_adj(v) is not None), None)
+    log(f"oom_score_adj {'set to ' + str(oom) if oom is not None else 'kept (it may not be lowered here)'}")
     g = None
     try:
         g = GuardianProcess(cfg, flag, log, beat_fd=1)

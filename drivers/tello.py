@@ -34,6 +34,7 @@ import numpy as np
 
 from flightstack.drivers.tello_config import (
     DEFAULT_VIDEO_PORT,
+    TELLO_OWN_TIMEOUT_S,
     PreflightCheck,
     TelloCommandError,
     TelloConfig,
@@ -161,6 +162,11 @@ class TelloDriver:
 
     def link_alive(self) -> bool:
         return self.status.link_alive()
+
+    @property
+    def own_timeout_s(self) -> float:
+        """How long the Tello flies its last `rc` on by itself (s; hal.HoldsLastCommand)."""
+        return TELLO_OWN_TIMEOUT_S
 
     def state(self) -> DroneState:
         st, ph = self.status.fields, self.phase

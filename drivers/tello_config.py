@@ -11,6 +11,10 @@ from flightstack.drivers.tello_phase import PhaseThresholds
 from flightstack.drivers.tello_rc import RcGains
 
 DEFAULT_VIDEO_PORT = 11111
+TELLO_OWN_TIMEOUT_S = 15.0
+"""A flying Tello that hears no command datagram for this long lands by itself; until then it flies its
+last `rc` on (s; SDK 2.0/3.0 guides, "Safety Function"; DJITelloPy #141). What is left when no process of
+ours can command it: the safety layer bounds its climb by it (hal.HoldsLastCommand)."""
 
 
 class TelloLinkError(ConnectionError):
@@ -66,10 +70,12 @@ class TelloConfig:
     phase: PhaseThresholds = field(default_factory=PhaseThresholds)
 
     def __post_init__(self) -> None:
-        if not self.keepalive_s < 15.0:
-            raise ValueError("keepalive_s must be below the Tello's 15 s auto-land")
-        if not 0.0 < self.loop_hover_s < self.loop_land_s < 15.0:
-            raise ValueError("need 0 < loop_hover_s < loop_land_s < 15 s (the Tello's own auto-land)")
+        if not self.keepalive_s < TELLO_OWN_TIMEOUT_S:
+            raise ValueError(f"keepalive_s must be below the Tello's {TELLO_OWN_TIMEOUT_S:g} s auto-land")
+        if not 0.0 < self.loop_hover_s < self.loop_land_s < TELLO_OWN_TIMEOUT_S:
+            raise ValueError(
+                f"need 0 < loop_hover_s < loop_land_s < {TELLO_OWN_TIMEOUT_S:g} s (the Tello's own auto-land)"
+            )
         if not (self.land_resend_s > 0.0 and self.land_confirm_s > 0.0 and self.rejoin_s > 0.0):
             raise ValueError("land_resend_s, land_confirm_s and rejoin_s must be > 0")
         if not self.quiet_s >= 0.15:

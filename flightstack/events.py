@@ -26,7 +26,7 @@ SafetyKind = Literal[
     "pose_stale_land", "pose_error", "battery_refuse_takeoff", "pose_refuse_takeoff", "fence_refuse_takeoff",
     "battery_land", "target_lost_land", "link_lost", "drone_error", "command_after_land", "land_failed",
     "landed_by_drone", "emergency_stop", "emergency_stop_failed", "target_lost_hover", "land_all", "signal",
-    "takeoff", "takeoff_failed", "land",
+    "takeoff", "takeoff_failed", "land", "climb_limited",
 ]  # fmt: skip
 RunKind = Literal[
     "end", "end_early", "end_exception", "compiled loop", "lock-step wait timed out", "safety tick", "landed",
@@ -74,6 +74,10 @@ KINDS: Mapping[str, KindInfo] = {
     "saturated": _w("a command beyond the velocity limits, clipped"),
     "invalid_command": _w("a command not finite or of the wrong shape: zero velocity sent"),
     "fence_soft": _w("beyond the soft fence: the outward velocity clipped"),
+    "climb_limited": _w(
+        "an upward velocity that, held for the drone's own command timeout, would cross the fence's ceiling:"
+        " reduced to the distance left over that timeout"
+    ),
     "fence_hard_land": _w("beyond the hard fence: the drone lands"),
     "command_timeout": _w("no command within the timeout: zero velocity"),
     "pose_stale_hover": _w("the drone's pose is stale: it hovers"),

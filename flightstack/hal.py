@@ -75,6 +75,16 @@ class Drone(Protocol):
     def close(self) -> None: ...
 
 
+@runtime_checkable
+class HoldsLastCommand(Protocol):
+    """A drone that flies its last velocity command on by itself until its own timeout ends it (a Tello
+    keeps its last `rc` for `own_timeout_s` = 15 s, then lands): the safety layer bounds its climb so that
+    this last command cannot carry it through the fence's ceiling (flightstack.safety.rules.climb_cap)."""
+
+    @property
+    def own_timeout_s(self) -> float: ...
+
+
 @dataclass(frozen=True)
 class Frame:
     """A camera sample taken at `stamp` (s, mission clock).

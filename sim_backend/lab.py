@@ -23,6 +23,7 @@ import numpy as np
 
 from flightstack.config.links import LinkSpec
 from flightstack.config.mission import CAMERA_MOUNTS
+from flightstack.drivers.tello_config import TELLO_OWN_TIMEOUT_S
 from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
 from flightstack.events import Event
 from flightstack.hal import DroneState, Frame, StampedPose
@@ -46,7 +47,7 @@ class TelloParams:
     descent_rate: float = 0.4  # m/s during landing
     battery_pct: float = 90.0
     battery_drain_pct_per_s: float = 0.12  # ~12 min of flight from full
-    auto_land_s: float = 15.0  # the real Tello lands after 15 s without a command
+    auto_land_s: float = TELLO_OWN_TIMEOUT_S  # the real Tello lands by itself without a command
 
 
 class LinkDelays:
@@ -167,7 +168,8 @@ def _clip(x: float, limit: float) -> float:
 
 
 class TelloSim:
-    """A Tello-like drone (hal.Drone). Commands arrive as the integer rc values the real driver sends."""
+    """A Tello-like drone (hal.Drone, hal.HoldsLastCommand). Commands arrive as the integer rc values the
+    real driver sends."""
 
     GROUND, TAKING_OFF, FLYING, LANDING = "ground", "taking_off", "flying", "landing"
 
@@ -239,6 +241,11 @@ class TelloSim:
         self._seq += 1  # arrivals in order of arrival; a later command can overtake with jitter
         bisect.insort(self._queue, (t + self.rc_link.delay(), self._seq, rc))
         self.last_command_t = t
+
+    @property
+    def own_timeout_s(self) -> float:
+        """How long it flies its last rc on by itself (s; `TelloParams.auto_land_s`)."""
+        return self.p.auto_land_s
 
     def state(self) -> DroneState:
         """The drone's telemetry: the present, or with a state link the newest sample arrived."""

@@ -47,6 +47,7 @@ SYSTEM_MODULES = frozenset(
         "test_emulated_lab",
         "test_faults",
         "test_faults_lab",
+        "test_faults_lab_kills",
         "test_guard",
         "test_guardian",
         "test_hardware_mission",

@@ -40,7 +40,6 @@ LAB_ROWS = [
     "abort_agent_missing",
     "process_killed",
     "agent_stopped",
-    "pkill_pattern",
     "guardian_killed",
 ]
 
@@ -250,17 +249,6 @@ def test_a_stopped_process_is_taken_over_and_muted_after_it_resumes(
         safety_bound(f"flight stopped: drone {i} hover by the guardian", d[f"drone{i}"]["rc0_ms"], 800.0)
         safety_bound(f"flight stopped: drone {i} land by the guardian", d[f"drone{i}"]["land_ms"], 2500.0)
     assert d["exit_code"] not in (0, None)
-
-
-def test_the_operators_pkill_spares_the_guardian(
-    results: dict[str, FaultResult], safety_bound: Bound
-) -> None:
-    d = results["pkill_pattern"].details
-    assert d["guardians_spared"] == 1 and any(" fly " in line for line in d["killed"])
-    assert not any("tello-guardian-" in line for line in d["killed"])
-    for i in (1, 2):
-        safety_bound(f"pkill: drone {i} stopped", d[f"drone{i}"]["stop_ms"], 500.0)
-        safety_bound(f"pkill: drone {i} down", d[f"drone{i}"]["down_ms"], 8000.0)
 
 
 def test_a_killed_guardian_lands_the_flight(results: dict[str, FaultResult], safety_bound: Bound) -> None:

@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
+import site
 import subprocess
 import sys
 import time
@@ -29,6 +31,7 @@ from flightstack.drivers.guardian import (
     BOOTSTRAP,
     EXIT_GAVE_UP,
     GUARDIAN_BEAT_S,
+    GUARDIAN_NAME,
     GUARDIAN_SILENT_S,
     GuardedTello,
     Guardian,
@@ -36,6 +39,8 @@ from flightstack.drivers.guardian import (
     GuardianError,
     TakeoverFlag,
     guardian_argv,
+    matching,
+    name_patterns,
     remove_launch_dir,
 )
 from flightstack.ports import free_udp_port
@@ -349,71 +354,137 @@ def test_stall_only_when_armed_and_heartbeat_never_raises(
         emu.close()
 
 
-def test_guardian_argv_keeps_the_word_out_and_the_environment_in(tmp_path: Path) -> None:
-    """The command line has no "flightstack" even when the environment's path has it; the link leads to
-    that environment's interpreter; no neutral place at all is an error, not a silent exposure."""
+def test_guardian_argv_is_neutral_and_keeps_the_environment(tmp_path: Path) -> None:
+    """The name and command line match no operator pattern even when the environment's path and some
+    temporary directories do; the link leads to the real interpreter, the small environment to the
+    running one's site-packages (a venv) or to the installation's (outside a venv); removing it removes
+    links only; no neutral place at all is an error, not a silent exposure."""
     prefix = tmp_path / "flightstack-venv"
     (prefix / "bin").mkdir(parents=True)
+    (prefix / "lib").mkdir()
+    (prefix / "pyvenv.cfg").write_text("home = /opt/base/bin\ninclude-system-site-packages = false\n")
     exe = prefix / "bin" / "python3"
     exe.write_text("")
     neutral = tmp_path / "neutral"
     neutral.mkdir()
-    argv, launch = guardian_argv(
-        str(exe), str(prefix), roots=[str(tmp_path / "flightstack-tmp"), str(neutral)]
-    )
+    roots = [str(tmp_path / "flightstack-tmp"), str(tmp_path / "python-tmp"), str(prefix), str(neutral)]
+    for r in roots:
+        Path(r).mkdir(exist_ok=True)
+    argv, launch = guardian_argv(str(exe), str(prefix), roots=roots)
     try:
-        assert "flightstack" not in " ".join(argv).lower()
-        assert argv[1:] == ["-c", BOOTSTRAP]
+        assert matching(" ".join(argv), name_patterns(str(prefix))) == []
+        assert argv[1:] == ["-c", BOOTSTRAP] and os.path.basename(argv[0]) == GUARDIAN_NAME
+        assert len(GUARDIAN_NAME) <= 15  # /proc/PID/comm keeps 15 characters
         assert Path(launch).parent == neutral
         assert os.path.realpath(argv[0]) == os.path.realpath(exe)
+        assert (Path(launch) / "pyvenv.cfg").read_text() == (prefix / "pyvenv.cfg").read_text()
+        assert os.path.realpath(Path(launch) / "lib") == os.path.realpath(prefix / "lib")
     finally:
         remove_launch_dir(launch)
-    assert not Path(launch).exists() and exe.exists()  # the link went, never what it points to
-    with pytest.raises(GuardianError, match="flightstack"):
-        guardian_argv(str(exe), str(prefix), roots=[str(tmp_path / "flightstack-tmp")])
-    plain = tmp_path / "plain" / "python3"
-    assert guardian_argv(str(plain), str(prefix), roots=[]) == ([str(plain), "-c", BOOTSTRAP], "")
+    assert not Path(launch).exists() and exe.exists() and (prefix / "lib").is_dir()  # links only
+    with pytest.raises(GuardianError, match="neutral"):
+        guardian_argv(str(exe), str(prefix), roots=roots[:3])
+    plain = tmp_path / "base"  # no pyvenv.cfg: run outside a virtual environment
+    (plain / "bin").mkdir(parents=True)
+    (plain / "bin" / "python3.11").write_text("")
+    argv, launch = guardian_argv(str(plain / "bin" / "python3.11"), str(plain), roots=[str(neutral)])
+    try:
+        cfg = (Path(launch) / "pyvenv.cfg").read_text()
+        assert f"home = {os.path.realpath(plain / 'bin')}" in cfg and "site-packages = true" in cfg
+        assert not (Path(launch) / "lib").exists()
+    finally:
+        remove_launch_dir(launch)
+
+
+def test_name_patterns_search_like_pgrep() -> None:
+    """A pattern selects a text as pgrep does (regex search anywhere) or as plain text (a path)."""
+    pats = name_patterns("/work/x+y/.venv")
+    assert matching("/usr/bin/python3.11 -m flightstack fly", pats) == ["flightstack", "python"]
+    assert matching("/work/x+y/.venv/bin/tool", pats) == ["/work/x+y/.venv"]  # literal: '+' is regex
+    assert matching("/tmp/tello-guardian-ab12/bin/tello-guardian -c " + BOOTSTRAP, pats) == []
+    assert matching("PYTHON", ["python"]) == ["python"]
 
 
 VENV_CHILD = r"""
 import sys, time
 from flightstack.drivers.guardian import Guardian, GuardianConfig
 g = Guardian.start(GuardianConfig(log_path=sys.argv[1]))
-print(g.pid, sys.prefix, flush=True)
+print(g.pid, sys.prefix, g.oom_score_adj, flush=True)
 sys.stdin.readline()
 print(g.finish(), flush=True)
 """
 
 
-def test_guardian_of_a_venv_named_flightstack_survives_pkill_f(tmp_path: Path) -> None:
-    """Started from a virtual environment whose path contains "flightstack", the guardian's command line
-    does not (what `pkill -f flightstack` matches), yet it runs in that environment."""
+def pgrep(*args: str) -> set[int]:
+    out = subprocess.run(["pgrep", *args], capture_output=True, text=True, timeout=10, check=False)
+    return {int(w) for w in out.stdout.split()}
+
+
+def oom_score_adj(pid: int | str) -> int:
+    return int(Path(f"/proc/{pid}/oom_score_adj").read_text())
+
+
+def venv_with_flightstack(tmp_path: Path, how: str) -> Path:
+    """A virtual environment named "flightstack-venv" (no pip) that imports flightstack: "editable" adds
+    this environment's site-packages as a site directory (its editable install's finder included);
+    "installed" holds a plain copy of the package as a wheel installs it (no finder, no link back to the
+    checkout), with this environment's site-packages on its path for the dependencies only."""
     venv = tmp_path / "flightstack-venv"
-    subprocess.run(
-        [sys.executable, "-m", "venv", "--without-pip", "--system-site-packages", str(venv)],
-        check=True,
-        timeout=60,
-    )
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=60)
+    site_dir = venv / "lib" / f"python{sys.version_info[0]}.{sys.version_info[1]}" / "site-packages"
+    ours = [p for p in site.getsitepackages() if Path(p).is_dir()]
+    if how == "editable":
+        (site_dir / "ours.pth").write_text("".join(f"import site; site.addsitedir({p!r})\n" for p in ours))
+        return venv
+    tree = REPO / "build" / "__editable__.flightstack-0.1.0-py3-none-any" / "flightstack"
+    if not tree.is_dir():
+        pytest.skip(f"no installed package tree at {tree}")
+    shutil.copytree(tree, site_dir / "flightstack", symlinks=False)  # the files themselves
+    (site_dir / "ours.pth").write_text("".join(f"{p}\n" for p in ours))  # dependencies only
+    return venv
+
+
+@pytest.mark.skipif(shutil.which("pgrep") is None, reason="no pgrep")
+@pytest.mark.parametrize("how", ["editable", "installed"])
+def test_guardian_of_a_venv_named_flightstack_is_out_of_reach_of_names(tmp_path: Path, how: str) -> None:
+    """Started from a virtual environment whose path contains "flightstack", the guardian's process name
+    and command line match none of `pgrep [-f]` python, python3, flightstack, the venv's path (the real
+    pgrep, as soon as Guardian.start returned), yet it runs in that environment, with the project
+    installed editable or not; its parent made itself the out-of-memory killer's first choice, the
+    guardian did not inherit that."""
+    venv = venv_with_flightstack(tmp_path, how)
     log = tmp_path / "guardian.log"
     proc = subprocess.Popen(
-        [str(venv / "bin" / "python"), "-c", VENV_CHILD, str(log)],
+        [str(venv / "bin" / "python3"), "-c", VENV_CHILD, str(log)],
+        cwd=tmp_path,
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
     )
     try:
         assert proc.stdout is not None and proc.stdin is not None
-        pid_text, child_prefix = proc.stdout.readline().split()
+        pid_text, child_prefix, parent_oom = proc.stdout.readline().split()
+        pid = int(pid_text)
         assert Path(child_prefix).resolve() == venv.resolve()
-        cmdline = Path(f"/proc/{pid_text}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-        print(f"guardian command line: {cmdline}")
-        assert "flightstack" not in cmdline.lower() and "tello-guardian-" in cmdline
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+        comm = Path(f"/proc/{pid}/comm").read_text().strip()
+        print(f"guardian: name {comm!r}, command line {cmdline}")
+        assert comm == GUARDIAN_NAME and f"/{GUARDIAN_NAME}-" in cmdline
+        for args in (("python",), ("python3",), ("-f", "python"), ("-f", "flightstack"), ("-f", str(venv))):
+            selected = pgrep(*args)
+            assert pid not in selected, args
+            if args[0] == "-f":
+                assert proc.pid in selected, args  # the pattern does select the flight
+        assert parent_oom == "1000" and oom_score_adj(proc.pid) == 1000
+        assert oom_score_adj(pid) <= 0  # -1000 with CAP_SYS_RESOURCE, else 0, even if it inherited 1000
         assert wait_until(lambda: "watching parent" in (log.read_text() if log.exists() else ""), 5.0)
-        assert f"python {venv.resolve()}" in log.read_text()  # the venv, reached through the neutral link
+        assert str((venv / "lib").resolve()) in log.read_text()  # the venv's site-packages, through the link
+        if how == "installed":
+            assert f"flightstack {(venv / 'lib').resolve()}" in log.read_text()  # the copy, not the checkout
         proc.stdin.write("\n")
         proc.stdin.flush()
         assert proc.stdout.readline().strip() == "0"
-        launch = cmdline.split("/prefix/")[0]
+        launch = cmdline.split("/bin/")[0]
         assert not Path(launch).exists()
     finally:
         if proc.poll() is None:

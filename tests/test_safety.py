@@ -985,3 +985,61 @@ def test_a_drone_whose_telemetry_shows_it_down_is_not_commanded_again() -> None:
     r.sd.send_body_velocity(np.array([0.1, 0.0, 0.0, 0.0]))
     r.sd.tick()
     assert len(r.inner.sent) == n and "land" not in r.inner.calls
+
+
+# ---- the climb a drone's own timeout allows ---------------------------------------------------------------
+class HoldingDrone(FakeDrone):
+    """A FakeDrone that flies its last command on for own_timeout_s (hal.HoldsLastCommand), like a Tello."""
+
+    own_timeout_s = 15.0
+
+
+def holding_rig(z: float) -> Rig:
+    rig = Rig(p=(0.0, 0.0, z), takeoff=False)
+    rig.inner = HoldingDrone()
+    rig.sd = SafeDrone(1, rig.inner, rig.poses, BODY, rig.clock, LIM, rig.log)
+    rig.sd.takeoff()
+    return rig
+
+
+def test_a_drone_that_holds_its_last_command_climbs_no_faster_than_the_ceiling_allows() -> None:
+    """v_z up is capped to (ceiling − z) / own timeout, once-per-episode event; down, x, y and yaw untouched;
+    at the ceiling no climb at all; a drone without an own timeout is not capped."""
+    rig = holding_rig(1.25)
+    rig.sd.send_body_velocity(np.array([0.1, -0.2, 0.3, 0.5]))
+    cap = (LIM.fence_hi[2] - 1.25) / 15.0
+    assert rig.last_sent() == pytest.approx([0.1, -0.2, cap, 0.5])
+    rig.sd.send_body_velocity(np.array([0.0, 0.0, 0.3, 0.0]))
+    assert rig.kinds().count("climb_limited") == 1
+    rig.sd.send_body_velocity(np.array([0.0, 0.0, -0.3, 0.0]))
+    assert rig.last_sent()[2] == -0.3
+    rig.move((0.0, 0.0, LIM.fence_hi[2] + 0.01))
+    rig.sd.send_body_velocity(np.array([0.0, 0.0, 0.3, 0.0]))
+    assert rig.last_sent()[2] == 0.0 and rig.kinds().count("climb_limited") == 2  # a new episode
+    free = Rig(p=(0.0, 0.0, 1.25))
+    free.sd.send_body_velocity(np.array([0.0, 0.0, 0.3, 0.0]))
+    assert free.last_sent()[2] == 0.3 and "climb_limited" not in free.kinds()
+
+
+@settings(max_examples=200, deadline=None)
+@given(z0=st.floats(LIM.fence_lo[2] - 0.3, LIM.fence_hi[2] + 0.2), v=st.floats(0.0, 5.0))
+def test_the_last_command_held_for_the_whole_timeout_stays_under_the_hard_ceiling(
+    z0: float, v: float
+) -> None:
+    """Worst case of the cap on a Tello: the capped v_z turned into an integer rc (rounded, the driver's
+    velocity_to_rc) and flown for the whole 15 s (a first-order lag only lowers it) ends at most
+    ½ rc unit × 15 s above the soft ceiling, well inside the hard margin."""
+    from flightstack.drivers.tello_config import TELLO_OWN_TIMEOUT_S
+    from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
+
+    rig = holding_rig(z0)
+    rig.sd.send_body_velocity(np.array([0.0, 0.0, v, 0.0]))
+    gains = RcGains()
+    flown = rc_to_velocity(velocity_to_rc(rig.last_sent(), gains), gains)[2]
+    z_end = z0 + max(flown, 0.0) * TELLO_OWN_TIMEOUT_S
+    rounding = 0.5 * gains.z * TELLO_OWN_TIMEOUT_S  # 0.075 m of the 0.3 m margin
+    assert rounding <= 0.5 * LIM.hard_margin
+    if z0 <= LIM.fence_hi[2]:
+        assert z_end <= LIM.fence_hi[2] + rounding + 1e-9
+    else:  # above the ceiling (and below the hard one): no climb at all
+        assert z_end == z0

@@ -43,6 +43,7 @@ ROW_MODULES: list[str] = [
     "flightstack.faults.rows_cli",
     "flightstack.faults.rows_processes",
     "flightstack.faults.rows_lab",
+    "flightstack.faults.rows_lab_kills",
 ]
 """Modules whose `ROWS` make up the table, in this order."""
 

@@ -158,8 +158,10 @@ class FlyProcess:
     the child is killed on exit if still running). Its output goes to RUN_DIR.parent/fly.out / fly.err
     (files: a chatty child never blocks on a full pipe)."""
 
-    def __init__(self, lab: EmulatedLab, run_dir: Path, *extra: str) -> None:
+    def __init__(self, lab: EmulatedLab, run_dir: Path, *extra: str, python: str | None = None) -> None:
+        """python: the interpreter to run it with (None: this one's, sys.executable)."""
         self.lab = lab
+        self.python = python
         self.run_dir = Path(run_dir)
         self.args = (
             "fly",
@@ -181,7 +183,9 @@ class FlyProcess:
         self.run_dir.parent.mkdir(parents=True, exist_ok=True)
         with open(self._out, "wb") as out, open(self._err, "wb") as err:
             self.t_start = time.monotonic()
-            self.proc = subprocess.Popen(cli_command(*self.args), env=cli_env(), stdout=out, stderr=err)
+            cmd = cli_command(*self.args)
+            cmd[0] = self.python or cmd[0]
+            self.proc = subprocess.Popen(cmd, env=cli_env(), stdout=out, stderr=err)
         return self
 
     def __exit__(

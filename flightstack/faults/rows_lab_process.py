@@ -1,10 +1,9 @@
 """The guardian's rows of `flightstack faults`: the process that flies the emulated lab is killed
 (`process_killed`: SIGKILL, as an out-of-memory kill or a crash in native code would) or stopped
 (`agent_stopped`: SIGSTOP, a hang, then SIGCONT), mid-pursuit: nothing of that process can react; its
-guardian process (drivers/guardian.py) must. `pkill_pattern` is the operator's reflex `pkill -9 -f
-flightstack`, applied to this row's own process tree only: the guardian, whose command line never has the
-word, survives it and lands. `guardian_killed` kills the guardian alone: the flight, which watches the
-guardian's heartbeat, lands by itself at once.
+guardian process (drivers/guardian.py) must. `guardian_killed` kills the guardian alone: the flight, which
+watches the guardian's heartbeat, lands by itself at once. Kills by name and of both processes:
+rows_lab_kills.py.
 
 Times are time.monotonic() seconds shared with the emulators, reported in milliseconds in `details`.
 """
@@ -36,13 +35,11 @@ STALL_S = 0.5
 DOWN_WAIT_S = 15.0
 """How long the row waits for the drones to be down after the fault (s; the Tello's own auto-land is 15 s)."""
 STOP_S = 0.5
-"""`pkill_pattern`, `guardian_killed`: `rc 0 0 0 0` or `land` at every drone within this (s)."""
+"""`guardian_killed`: `rc 0 0 0 0` or `land` at every drone within this (s)."""
 DOWN_S = 8.0
 """... and every drone down within this (s): far below the Tello's own 15 s auto-land."""
-PKILL_WORD = "flightstack"
-"""What the operator's `pkill -9 -f flightstack` matches in a command line."""
 GUARDIAN_MARK = "tello-guardian-"
-"""In the guardian's command line (drivers/guardian.guardian_argv): how this row finds it."""
+"""In the guardian's command line (drivers/guardian.guardian_argv): how these rows find it."""
 
 
 def command_line(pid: int) -> str:
@@ -71,21 +68,6 @@ def descendants(root: int) -> list[int]:
         out.append(pid)
         todo.extend(children.get(pid, []))
     return out
-
-
-def pkill_in_tree(word: str, root: int) -> dict[int, str]:
-    """`pkill -9 -f WORD`, limited to the descendants of `root` (never root, never anything outside its
-    tree): SIGKILL every one whose command line contains `word`. The killed {pid: command line}."""
-    killed = {}
-    for pid in descendants(root):
-        line = command_line(pid)
-        if word in line:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                continue
-            killed[pid] = line
-    return killed
 
 
 def guardian_pids(root: int) -> list[int]:
@@ -268,43 +250,6 @@ def _summary(details: dict[str, Any]) -> str:
     )
 
 
-def pkill_pattern(mission_path: Path, workdir: Path) -> FaultResult:
-    """`pkill -9 -f flightstack` (this row's process tree only) 1 s into pursuit of `flightstack fly`."""
-    wall0 = time.perf_counter()
-    root = workdir / "pkill_pattern"
-    c, details = Checks(), {}
-    with EmulatedLab(root, duration_s=30.0) as lab:
-        with FlyProcess(lab, root / "run") as fly:
-            started = lab.wait_for_pursuit(PURSUIT_WAIT_S) is not None
-            c.check(started, "the pursuit never started")
-            t_kill, killed, spared = time.monotonic(), {}, []
-            if started:
-                time.sleep(FAULT_AFTER_S)
-                guardians = guardian_pids(os.getpid())
-                t_kill = time.monotonic()
-                killed = pkill_in_tree(PKILL_WORD, os.getpid())
-                spared = [pid for pid in guardians if pid not in killed]
-            c.check(fly.proc is not None and fly.proc.pid in killed, f"`fly` not among the killed {killed}")
-            c.check(
-                bool(spared), f"no guardian survived the pattern (guardians {guardian_pids(os.getpid())})"
-            )
-            code = fly.wait()
-            _wait_down(lab, DOWN_WAIT_S)
-        time.sleep(0.5)  # the robot's disarm repeats until its heartbeat shows it
-        lab.write_log(root / "emulators.json")
-        c.check(code == -signal.SIGKILL, f"exit {code}")
-        details = _stopped_and_down(lab, t_kill, c) | _robot(lab, c)
-        details["killed"] = sorted(killed.values())
-        details["guardians_spared"] = len(spared)
-    expected = (
-        f"the guardian survives the pattern: rc 0 0 0 0 or land within {STOP_S:g} s at every drone, every "
-        f"drone down within {DOWN_S:g} s, the robot stopped and disarmed"
-    )
-    observed = f"killed {len(details.get('killed', []))} process(es), {details.get('guardians_spared')} "
-    observed += "guardian(s) spared; " + _summary(details)
-    return lab_result("pkill_pattern", expected, observed, wall0, c, [], [], details, None)
-
-
 def guardian_killed(mission_path: Path, workdir: Path) -> FaultResult:
     """SIGKILL to the guardian of `flightstack fly` alone, 1 s into pursuit."""
     wall0 = time.perf_counter()
@@ -346,6 +291,5 @@ def guardian_killed(mission_path: Path, workdir: Path) -> FaultResult:
 ROWS = {
     "process_killed": process_killed,
     "agent_stopped": agent_stopped,
-    "pkill_pattern": pkill_pattern,
     "guardian_killed": guardian_killed,
 }

@@ -30,7 +30,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from flightstack.events import SafetyKind
-from flightstack.hal import Clock, Drone, DroneState, FlightPhase, PoseSource, StampedPose
+from flightstack.hal import Clock, Drone, DroneState, FlightPhase, HoldsLastCommand, PoseSource, StampedPose
 from flightstack.paper.delay_compensation import AHEAD_TOLERANCE_S
 from flightstack.paper.geometry import Pose
 from flightstack.safety.jobs import DroneJobs
@@ -38,6 +38,7 @@ from flightstack.safety.rules import (
     EventLog,
     SafetyError,
     SafetyLimits,
+    climb_cap,
     fence_clip,
     outside_hard_fence,
     outside_soft_fence,
@@ -94,6 +95,11 @@ class SafeDrone:
         self.takeoff_error: str | None = None
         """Why the wrapped drone's takeoff() failed (background jobs), None otherwise."""
         self.inner = drone
+        self.own_timeout_s: float | None = (
+            float(drone.own_timeout_s) if isinstance(drone, HoldsLastCommand) else None
+        )
+        """How long the wrapped drone flies its last command by itself (s; hal.HoldsLastCommand), None:
+        it does not (a simulated drone that stops with its simulation). Bounds the climb (climb_cap)."""
         self.poses = poses
         self.body = body
         self.clock = clock
@@ -222,7 +228,8 @@ class SafeDrone:
         """Send V = [v_x, v_y, v_z, ω_z] (m/s, rad/s, body frame of this drone) through the safety rules.
 
         In order: drop after land; NaN/inf/bad shape -> zeros; saturation; stale pose -> zeros (and land
-        once it is older than pose_land_after); outside the hard fence -> land; outside the soft fence ->
+        once it is older than pose_land_after); outside the hard fence -> land; an upward v_z beyond
+        climb_cap (a drone that flies its last command on by itself) -> reduced; outside the soft fence ->
         outward world components removed. The rules log and never raise; an error of the wrapped drone's
         own send_body_velocity propagates.
         """
@@ -258,6 +265,7 @@ class SafeDrone:
                 return
             if self._check_hard_fence(now, pose):
                 return
+            cmd = self._limit_climb(now, cmd, pose)
             faces = outside_soft_fence(pose.p, self.limits)
             if faces:
                 cmd, clipped = fence_clip(cmd, pose, self.limits)
@@ -373,6 +381,25 @@ class SafeDrone:
         return True
 
     # ---- plumbing --------------------------------------------------------------------------------------
+    def _limit_climb(self, now: float, cmd: np.ndarray, pose: Pose) -> np.ndarray:
+        """cmd with v_z at most climb_cap at the pose's height, for a drone that flies its last command on by
+        itself (own_timeout_s); `climb_limited` once per episode."""
+        if self.own_timeout_s is None:
+            return cmd
+        z = float(pose.p[2])
+        cap = climb_cap(z, self.limits, self.own_timeout_s)
+        if cmd[2] <= cap:
+            self._end("climb_limited")
+            return cmd
+        detail = (
+            f"v_z {cmd[2]:.3f} -> {cap:.3f} m/s at z {z:.2f} m (ceiling {self.limits.fence_hi[2]:g} m, "
+            f"the drone's own timeout {self.own_timeout_s:g} s)"
+        )
+        self._event_once(now, "climb_limited", detail)
+        out = cmd.copy()
+        out[2] = cap
+        return out
+
     def _call(self, fn: Callable[..., _T], *args: Any) -> _T:
         """Call the wrapped drone, remembering which thread is inside it (for signal handlers)."""
         prev = self._inner_thread

@@ -235,6 +235,15 @@ def saturate(V: np.ndarray, limits: SafetyLimits) -> tuple[np.ndarray, bool]:
     return out, changed
 
 
+def climb_cap(z: float, limits: SafetyLimits, own_timeout_s: float) -> float:
+    """The largest upward velocity (m/s; world z, equal to body z) that may be sent to a drone at height z
+    (m, Σw) which keeps flying its last command for `own_timeout_s` (s) once nothing of ours is left to
+    command it: (fence_hi z − z) / own_timeout_s, never below 0. Held that long it ends at the soft
+    fence's ceiling; the hard margin takes what the drone adds (docs/safety.md, "What no process on the
+    laptop can cover")."""
+    return max(0.0, (limits.fence_hi[2] - float(z)) / own_timeout_s)
+
+
 def outside_soft_fence(p: np.ndarray, limits: SafetyLimits) -> list[str]:
     """Faces of the soft fence that the world position p (m, Σw) is beyond, e.g. ['+x', '-z']."""
     faces = []

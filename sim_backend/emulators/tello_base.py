@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S
+from flightstack.drivers.tello_config import TELLO_OWN_TIMEOUT_S
 
 from .device_links import DeviceLinks
 from .radio import DeviceRadio
@@ -61,7 +62,7 @@ class TelloEmulatorBase:
         faults: TelloFaults | None = None,
         video_size: tuple[int, int] = (960, 720),
         *,
-        auto_land_s: float = 15.0,
+        auto_land_s: float = TELLO_OWN_TIMEOUT_S,
         land_s: float = 0.3,
         takeoff_height_cm: float = 80.0,
         tau_s: float = EMULATED_TELLO_RESPONSE_S,
