@@ -195,3 +195,57 @@ def test_a_300_mb_flood_meets_backpressure_and_bounded_memory(
     assert blocked > 0 and sent < flood / 10, (sent, blocked)
     assert counts["backpressure"] >= 1, counts
     assert growth_mb < bound_mb, (growth_mb, bound_mb)
+
+
+def test_connections_beyond_the_bound_are_refused_and_counted() -> None:
+    """With max_connections 2, a third connection open at the same time is closed at once (counted
+    `refused`); once the first two end, a new one is forwarded again."""
+    from flightstack.netem import LinkProfile
+    from flightstack.sim_backend.emulators.tcp_proxy import TcpImpairProxy
+
+    server = socket.create_server(("127.0.0.1", 0))
+    held: list[socket.socket] = []
+
+    def accept() -> None:
+        server.settimeout(0.2)
+        while True:
+            try:
+                c, _ = server.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            held.append(c)
+
+    t = threading.Thread(target=accept, daemon=True)
+    t.start()
+    proxy = TcpImpairProxy(server.getsockname(), LinkProfile(), max_connections=2).start()
+    clients: list[socket.socket] = []
+    try:
+        clients = [socket.create_connection(proxy.address, timeout=5.0) for _ in range(2)]
+        deadline = time.monotonic() + 5.0
+        while proxy.counts()["open"] < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        with socket.create_connection(proxy.address, timeout=5.0) as third:
+            assert third.recv(1) == b""  # closed by the proxy
+        assert proxy.counts()["refused"] == 1
+        for c in clients:
+            c.close()
+        for c in list(held):
+            c.close()
+        while proxy.counts()["open"] and time.monotonic() < deadline:
+            time.sleep(0.01)
+        with socket.create_connection(proxy.address, timeout=5.0) as again:
+            again.sendall(b"x")
+            deadline = time.monotonic() + 5.0
+            while proxy.counts()["connections"] < 3 and time.monotonic() < deadline:
+                time.sleep(0.01)
+        counts = proxy.counts()
+    finally:
+        for c in clients:
+            c.close()
+        proxy.close()
+        server.close()
+        t.join(timeout=2.0)
+    print(f"max_connections 2: {counts}")
+    assert counts["connections"] == 3 and counts["refused"] == 1, counts

@@ -279,7 +279,8 @@ class TcpImpairProxy:
                 continue
             with self._lock:
                 full = len(self._conns) >= self.max_connections
-                self._events["refused" if full else "connections"] += 1
+                if full:
+                    self._events["refused"] += 1
             if full:
                 client.close()
                 continue
@@ -298,6 +299,7 @@ class TcpImpairProxy:
             conn = _Conn(client, upstream, models, self.queue_bytes, self._forget)
             with self._lock:
                 self._conns.add(conn)
+                self._events["connections"] += 1
             conn.start()
             n += 1
 
