@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from flightstack.calibration.camera import EXIT_BAD_INPUT, EXIT_OK, EXIT_VERDICT, CaptureOptions, WizardResult
+from flightstack.calibration.latency import MAX_SEARCH_S
 from flightstack.calibration.patterns import PatternSpec
 from flightstack.calibration.prompts import (
     MissingAnswerError,
@@ -35,6 +36,12 @@ def _error(msg: str, code: int = EXIT_BAD_INPUT) -> int:
     print(f"error: {msg}", file=sys.stderr)
     if code != EXIT_OK:
         print("no calibration file written", file=sys.stderr)
+    return code
+
+
+def _one_line_error(msg: str, code: int = EXIT_BAD_INPUT) -> int:
+    """`calibrate latency`'s errors: one line (it writes a links file, never a calibration file)."""
+    print(f"error: {msg}", file=sys.stderr)
     return code
 
 
@@ -326,15 +333,23 @@ def cmd_latency(args: argparse.Namespace) -> int:
     from flightstack.calibration.latency_session import load_session
 
     if (args.session is None) == (args.rig is None):
-        return _error("give either --session FILE (a recorded session) or --rig RIG (fly one now)")
+        return _one_line_error("give either --session FILE (a recorded session) or --rig RIG (fly one now)")
     if args.rig is not None:
         return _fly_latency(args)
     try:
+        if args.out:
+            _check_links_out(args.out)
         video, rc = load_session(args.session)
     except (OSError, ValueError) as exc:
-        return _error(f"session {args.session}: {exc}")
+        text = str(exc)
+        return _one_line_error(text if text.startswith("--out") else f"session {args.session}: {text}")
     if video is None and rc is None:
-        return _error(f"session {args.session}: neither a video nor an rc part")
+        return _one_line_error(f"session {args.session}: neither a video nor an rc part")
+    if video is not None:
+        try:
+            load_calibration(video.calibration)
+        except (OSError, ValueError) as exc:
+            return _one_line_error(f"session {args.session}: its calibration {video.calibration}: {exc}")
     return _estimate_latency(args, video, rc, f"session {Path(args.session).name}")
 
 
@@ -366,7 +381,7 @@ def _fly_latency(args: argparse.Namespace) -> int:
         if args.out:
             _check_links_out(args.out)
     except (MissionError, RigError, ValueError, OSError) as exc:
-        return _error(str(exc))
+        return _one_line_error(str(exc))
     drone = one.drones[0].id
     real = not mission.simulated and not mission.start_emulators
     if real:
@@ -382,9 +397,10 @@ def _fly_latency(args: argparse.Namespace) -> int:
         print("interrupted: landed; nothing written", file=sys.stderr)
         return 130
     except CalibrationFlightError as exc:
-        return _error(f"{exc}; landed, nothing written", EXIT_VERDICT)
+        return _one_line_error(f"{exc}; landed, nothing written", EXIT_VERDICT)
     except Exception as exc:  # an abort, the safety layer, a device: the drone has landed (Flight)
-        return _error(f"the calibration flight failed: {type(exc).__name__}: {exc}; landed", EXIT_VERDICT)
+        why = f"{type(exc).__name__}: {exc}"
+        return _one_line_error(f"the calibration flight failed: {why}; landed", EXIT_VERDICT)
     print(
         f"flown: {flown_s:.1f} s from takeoff's end to the last step (the rig's clock); {wall_s:.1f} s "
         "of wall clock in all (with the lab's start, takeoff and landing)"
@@ -392,7 +408,7 @@ def _fly_latency(args: argparse.Namespace) -> int:
     try:
         save_session(session, video=video, rc=rc)
     except OSError as exc:
-        return _error(f"session {session}: cannot write: {exc.strerror or exc}")
+        return _one_line_error(f"session {session}: cannot write: {exc.strerror or exc}", EXIT_VERDICT)
     print(f"session written: {session} (`flightstack calibrate latency --session {session}` re-estimates)")
     return _estimate_latency(
         args, video, rc, f"flown on rig {mission.rig}, drone {drone}; session {session.name}"
@@ -414,12 +430,12 @@ def _preflight_and_confirm(mission: object, drone: int, yes: bool) -> int:
     rows = run_preflight(mission, drone_ids=[drone])  # type: ignore[arg-type]
     print(format_table(rows))
     if any(r.status == "FAIL" for r in rows):
-        return _error("preflight failed; nothing took off", EXIT_VERDICT)
+        return _one_line_error("preflight failed; nothing took off", EXIT_VERDICT)
     question = f"Drone {drone} will take off, yaw over the still target for about 30 s and land. Area clear?"
     if yes:
         return EXIT_OK
     if not interactive():
-        return _error("this flies a real drone; pass --yes to confirm")
+        return _one_line_error("this flies a real drone; pass --yes to confirm")
     if input(f"{question} [y/N] ").strip().lower() not in ("y", "yes"):
         print("aborted", file=sys.stderr)
         return EXIT_VERDICT
@@ -452,9 +468,9 @@ def _estimate_latency(args: argparse.Namespace, video: object, rc: object, how: 
                 f"over {r_est.n_steps} changes; then a {1e3 * r_est.tau_s:.0f} ms lag, gain {r_est.gain:.4g}"
             )
     except (OSError, ValueError) as exc:
-        return _error(f"{how}: {exc}", EXIT_VERDICT)
+        return _one_line_error(f"{how}: {exc}", EXIT_VERDICT)
     if v_est is not None and v_est.correlation < MIN_CORRELATION:
-        return _error(
+        return _one_line_error(
             f"the markers follow the predicted ones poorly (correlation {v_est.correlation:.2f} < "
             f"{MIN_CORRELATION}): check the calibration, the mount and that the markers stayed in view",
             EXIT_VERDICT,
@@ -462,9 +478,25 @@ def _estimate_latency(args: argparse.Namespace, video: object, rc: object, how: 
     text = links_text(v_est, r_est, how=how)
     print(text, end="")
     if args.out:
-        write_links_file(args.out, text)
+        try:
+            write_links_file(args.out, text)
+        except OSError as exc:
+            return _one_line_error(f"--out {args.out}: cannot write: {exc.strerror or exc}", EXIT_VERDICT)
         print(f"written to {args.out}; include it in the rig with `links: {{include: {args.out}}}`")
     return EXIT_OK
+
+
+def _search_s(text: str) -> float:
+    """argparse type of --max-lag, --max-rc-lag and --window (calibration.latency.check_search)."""
+    from flightstack.calibration.latency import check_search
+
+    try:
+        return check_search("the value", float(text))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r}: {exc}") from None
+
+
+_UP_TO = f"at most {MAX_SEARCH_S:g} s"
 
 
 def register(cal_sub: argparse._SubParsersAction) -> None:
@@ -557,12 +589,16 @@ def register(cal_sub: argparse._SubParsersAction) -> None:
     )
     lat.add_argument("--yes", action="store_true", help="confirm that a real drone may take off")
     lat.add_argument("--out", default=None, help="links file to write (.yaml); default: print only")
-    lat.add_argument("--max-lag", type=float, default=1.0, help="largest latency looked for, s (default 1)")
-    lat.add_argument("--max-rc-lag", type=float, default=0.5, help="largest rc latency looked for, s (0.5)")
+    lat.add_argument(
+        "--max-lag", type=_search_s, default=1.0, help=f"largest latency looked for, s (default 1; {_UP_TO})"
+    )
+    lat.add_argument(
+        "--max-rc-lag", type=_search_s, default=0.5, help=f"largest rc latency looked for, s (0.5; {_UP_TO})"
+    )
     lat.add_argument(
         "--window",
-        type=float,
+        type=_search_s,
         default=0.3,
-        help="each frame is timed within the peak ± this, s (default 0.3)",
+        help=f"each frame is timed within the peak ± this, s (default 0.3; {_UP_TO})",
     )
     lat.set_defaults(func=cmd_latency)

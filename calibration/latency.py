@@ -29,6 +29,19 @@ AMBIGUOUS = 4.0
 timed: two delays fit it about as well."""
 SEPARATION_S = 0.02
 """How far from the best delay (s) another minimum counts as a second one (closer: the same, noisy)."""
+MAX_SEARCH_S = 5.0
+"""Largest delay (s) the estimators look for, and widest window: a Tello's video is about 0.3-0.5 s late
+and its rc about 0.1-0.2 s; the cost grows with the delays tried (one per ms)."""
+MAX_FIT_CELLS = 50_000_000
+"""Bound on the delays tried × the samples fitted in one pass of estimate_command_delay (400 MB of
+float64): a larger fit is refused with ValueError rather than allocated."""
+
+
+def check_search(name: str, value: float) -> float:
+    """`value` if it is a finite number of seconds in (0, MAX_SEARCH_S], else ValueError naming `name`."""
+    if not (isinstance(value, int | float) and math.isfinite(value) and 0 < value <= MAX_SEARCH_S):
+        raise ValueError(f"{name} must be a number of seconds in (0, {MAX_SEARCH_S:g}], got {value!r}")
+    return float(value)
 
 
 @dataclass(frozen=True)
@@ -88,6 +101,7 @@ def cross_correlation_lag(
     """(lag s, correlation) maximising the normalised cross-correlation of y_obs(t) with y_ref(t − lag)
     over lags in [min_lag_s, max_lag_s] (grid step_s, parabola-refined). t_ref must increase; only
     observations with t_obs − lag inside t_ref for every lag count. ValueError with fewer than 3."""
+    check_search("max_lag_s", max_lag_s)
     t_ref = np.asarray(t_ref, dtype=float)
     t_obs = np.asarray(t_obs, dtype=float)
     yr, yo = _columns(y_ref), _columns(y_obs)
@@ -186,6 +200,8 @@ def estimate_delay(
     this fraction of its median speed are not timed, nor those two delays in the window fit about as well
     (AMBIGUOUS). ValueError when fewer than 3 frames can be timed.
     """
+    check_search("max_lag_s", max_lag_s)
+    check_search("window_s", window_s)
     t_ref = np.asarray(t_ref, dtype=float)
     t_obs = np.asarray(t_obs, dtype=float)
     yr, yo = _columns(y_ref), _columns(y_obs)
@@ -255,17 +271,28 @@ def estimate_command_delay(
     by gain × lag_tau(cmd(t − d)) over d in [0, max_delay_s] and tau in taus_s (default 0..0.5 s); then
     each change of the command is timed alone within d ± window_s on the measurements up to the next
     change. ValueError without changes to time."""
+    check_search("max_delay_s", max_delay_s)
     t_cmd, cmd = np.asarray(t_cmd, float), np.asarray(cmd, float)
     t_meas, angle = np.asarray(t_meas, float), np.asarray(angle, float)
+    if len(t_cmd) < 2 or len(t_meas) < 3:
+        raise ValueError(f"{len(t_cmd)} commands and {len(t_meas)} measurements: need at least 2 and 3")
     taus = np.arange(0.0, 0.5001, 0.01) if taus_s is None else np.asarray(taus_s, float)
     rate = np.diff(angle) / np.diff(t_meas)
     tm = 0.5 * (t_meas[1:] + t_meas[:-1])
     t0 = t_cmd[0]
+    span = max(tm[-1], t_cmd[-1]) - t0
+    if not (math.isfinite(span) and span / step_s <= MAX_FIT_CELLS):
+        raise ValueError(f"the commands and measurements span {span:g} s: more than {MAX_FIT_CELLS:,} steps")
     grid = np.arange(t0, max(tm[-1], t_cmd[-1]) + step_s, step_s)
     u = cmd[np.clip(np.searchsorted(t_cmd, grid, side="right") - 1, 0, len(cmd) - 1)]
     shifts = np.arange(0, round(max_delay_s / step_s) + 1)
     keep = tm - max_delay_s >= t0
     tm, rate = tm[keep], rate[keep]
+    if len(shifts) * len(tm) > MAX_FIT_CELLS:
+        raise ValueError(
+            f"{len(shifts)} delays × {len(tm)} measurements to fit: more than {MAX_FIT_CELLS:,} (shorten the "
+            "session or the largest delay)"
+        )
     idx = np.round((tm - t0) / step_s).astype(int)
     best = (math.inf, 0.0, 0, 0.0)  # (sse, tau, shift, gain)
     for tau in taus:
@@ -301,8 +328,11 @@ def estimate_command_delay(
 
 
 __all__ = [
+    "MAX_FIT_CELLS",
+    "MAX_SEARCH_S",
     "DelayEstimate",
     "ResponseEstimate",
+    "check_search",
     "cross_correlation_lag",
     "estimate_command_delay",
     "estimate_delay",

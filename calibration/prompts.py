@@ -7,6 +7,7 @@ until it converts (the conversion's error is shown and the question repeated).
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Callable
 from typing import TypeVar
@@ -58,8 +59,8 @@ def answer(
 
 def positive_float(text: str) -> float:
     v = float(text)
-    if not v > 0:
-        raise ValueError(f"a positive number is required, got {text!r}")
+    if not (v > 0 and math.isfinite(v)):
+        raise ValueError(f"a finite positive number is required, got {text!r}")
     return v
 
 

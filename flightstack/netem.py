@@ -32,6 +32,7 @@ their sources, and the equivalent `tc netem` commands.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import hashlib
 import math
@@ -44,6 +45,31 @@ LINK_KINDS = ("tello", "video", "mocap", "rover", "bus")
 (wired); the ground robot's MAVLink; the bus between agent processes (TCP)."""
 DUPLICATE_GAP_S = 0.001
 """A duplicate follows its original by this much (s)."""
+
+
+MAX_DELAY_S = 10.0
+"""Largest latency, mean jitter, spike, reordering hold, rate-cap queue and loss step a link may have (s):
+a bufferbloated or satellite link is late by seconds, none by more (docs/network.md, "Bounds")."""
+MIN_RATE_BPS = 1e3
+"""Slowest rate cap (bit/s): below 1 kbit/s a 64 KiB chunk would take minutes."""
+MAX_RATE_BPS = 1e11
+"""Fastest rate cap (bit/s, 100 Gbit/s)."""
+MIN_BLACKOUT_S = 0.01
+"""Shortest blackout (s): shorter is loss, which the Gilbert–Elliott chain models."""
+MIN_BLACKOUT_PERIOD_S = 0.1
+"""Shortest period between blackouts' starts (s): at most 36,000 windows in blackout_windows' hour."""
+MAX_BLACKOUT_PERIOD_S = 86400.0
+"""Latest first blackout and longest period (s, a day)."""
+
+
+def _check_range(field_name: str, value: object, lo: float, hi: float, unit: str) -> None:
+    """ValueError naming `field_name` unless `value` is a finite real number in [lo, hi] (`unit`: "s",
+    "bit/s", or "probability")."""
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    if not (number and isinstance(value, int | float) and math.isfinite(value) and lo <= value <= hi):
+        what = "a probability" if unit == "probability" else "a finite number"
+        unit = f" {unit}" if unit and unit != "probability" else ""
+        raise ValueError(f"{field_name} must be {what} in [{lo:g}, {hi:g}]{unit}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -77,22 +103,20 @@ class LinkProfile:
 
     def __post_init__(self) -> None:
         for name in ("spike_p", "loss_p", "loss_r", "loss_bad", "loss_good", "duplicate", "reorder"):
-            v = getattr(self, name)
-            if not (0.0 <= v <= 1.0):
-                raise ValueError(f"{name} must be a probability in [0, 1], got {v}")
+            _check_range(f"LinkProfile.{name}", getattr(self, name), 0.0, 1.0, "probability")
         for name in ("latency_s", "jitter_s", "reorder_s", "queue_s", "loss_step_s"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0.0):
-                raise ValueError(f"{name} must be finite and >= 0 s, got {v}")
+            _check_range(f"LinkProfile.{name}", getattr(self, name), 0.0, MAX_DELAY_S, "s")
+        if not (isinstance(self.spike_s, tuple) and len(self.spike_s) == 2):
+            raise ValueError(f"LinkProfile.spike_s must be (low, high) in s, got {self.spike_s!r}")
         lo, hi = self.spike_s
-        if not (0.0 <= lo <= hi and math.isfinite(hi)):
-            raise ValueError(f"spike_s must be (low, high) with 0 <= low <= high, got {self.spike_s}")
-        if self.rate_bps is not None and not (math.isfinite(self.rate_bps) and self.rate_bps > 0):
-            raise ValueError(f"rate_bps must be > 0 or None, got {self.rate_bps}")
+        _check_range("LinkProfile.spike_s", lo, 0.0, MAX_DELAY_S, "s")
+        _check_range("LinkProfile.spike_s", hi, lo, MAX_DELAY_S, "s")
+        if self.rate_bps is not None:
+            _check_range("LinkProfile.rate_bps", self.rate_bps, MIN_RATE_BPS, MAX_RATE_BPS, "bit/s")
         if self.loss_p > 0 and self.loss_r == 0:
-            raise ValueError("loss_r = 0 with loss_p > 0 would stay in the bad state forever")
+            raise ValueError("LinkProfile.loss_r = 0 with loss_p > 0 would stay in the bad state forever")
         if self.loss_step_s > 0 and self.loss_p + self.loss_r > 1:
-            raise ValueError("a time-stepped chain needs loss_p + loss_r <= 1")
+            raise ValueError("LinkProfile.loss_p + loss_r must be <= 1 for a time-stepped chain")
 
     def transition(self, bad: bool, steps: float) -> float:
         """Probability of the bad state `steps` steps (≥ 0, fractional allowed) after `bad`: with
@@ -163,8 +187,12 @@ class BlackoutPlan:
     max_s: float
 
     def __post_init__(self) -> None:
-        if not (self.first_s >= 0 and 0 < self.min_s <= self.max_s < self.every_s):
-            raise ValueError(f"need first_s >= 0 and 0 < min_s <= max_s < every_s, got {self}")
+        _check_range("BlackoutPlan.first_s", self.first_s, 0.0, MAX_BLACKOUT_PERIOD_S, "s")
+        _check_range("BlackoutPlan.every_s", self.every_s, MIN_BLACKOUT_PERIOD_S, MAX_BLACKOUT_PERIOD_S, "s")
+        _check_range("BlackoutPlan.min_s", self.min_s, MIN_BLACKOUT_S, self.every_s, "s")
+        _check_range("BlackoutPlan.max_s", self.max_s, self.min_s, self.every_s, "s")
+        if self.max_s >= self.every_s:
+            raise ValueError(f"BlackoutPlan.max_s must be < every_s ({self.every_s:g} s), got {self.max_s:g}")
 
 
 @dataclass(frozen=True)
@@ -270,6 +298,26 @@ def gilbert_elliott_step(prof: LinkProfile, bad: bool, t_prev: float | None, t: 
     return prof.transition(bad, max(0.0, t - t_prev) / prof.loss_step_s)
 
 
+class _Windows:
+    """Blackout windows (start, end) s after `epoch`, merged where they overlap; `end_at(t)` finds the one
+    holding t by bisection (a plan every 0.1 s has 36,000 windows in an hour)."""
+
+    def __init__(self, windows: list[tuple[float, float]], epoch: float) -> None:
+        merged: list[list[float]] = []
+        for a, b in sorted((epoch + a, epoch + b) for a, b in windows if b > a):
+            if merged and a <= merged[-1][1]:
+                merged[-1][1] = max(merged[-1][1], b)
+            else:
+                merged.append([a, b])
+        self.starts = [a for a, _ in merged]
+        self.ends = [b for _, b in merged]
+
+    def end_at(self, t: float) -> float | None:
+        """The end of the window with start <= t < end, or None."""
+        k = bisect.bisect_right(self.starts, t) - 1
+        return self.ends[k] if k >= 0 and t < self.ends[k] else None
+
+
 class LinkModel:
     """The decisions for one direction of one link (module docstring). Not thread-safe: one caller at a
     time (the emulators lock around it). `counts`: "packets", "delivered", "lost" (Gilbert–Elliott),
@@ -293,7 +341,7 @@ class LinkModel:
         self._bad = False
         self._t_prev: float | None = None
         self._epoch = float(epoch)
-        self._blackouts = [(self._epoch + a, self._epoch + b) for a, b in (blackouts or [])]
+        self._blackouts = _Windows(blackouts or [], self._epoch)
         self._busy_until = -math.inf  # when the rate cap has serialised every packet so far
         self._last_due = -math.inf  # the latest in-order delivery time so far
         self.counts: Counter[str] = Counter()
@@ -301,7 +349,7 @@ class LinkModel:
 
     def in_blackout(self, t: float) -> bool:
         """True when t falls in one of the link's blackout windows."""
-        return any(a <= t < b for a, b in self._blackouts)
+        return self._blackouts.end_at(t) is not None
 
     def decide(self, t: float, size: int) -> list[float]:
         """Delivery times (s) of a packet of `size` bytes entering at t: [] lost, one or two (duplicate)."""
@@ -367,7 +415,7 @@ class StreamModel:
         self._rng = link_rng(seed, device, link)
         self._bad = False
         self._t_prev: float | None = None
-        self._blackouts = [(epoch + a, epoch + b) for a, b in (blackouts or [])]
+        self._blackouts = _Windows(blackouts or [], epoch)
         self._busy_until = -math.inf
         self._last_due = -math.inf
         self.counts: Counter[str] = Counter()
@@ -381,10 +429,10 @@ class StreamModel:
         self._bad = u[0] < gilbert_elliott_step(p, self._bad, self._t_prev, t)
         self._t_prev = t
         start = t
-        for a, b in self._blackouts:
-            if a <= t < b:
-                start = b
-                self.counts["held"] += 1
+        end = self._blackouts.end_at(t)
+        if end is not None:
+            start = end
+            self.counts["held"] += 1
         if p.rate_bps is not None:
             start = max(start, self._busy_until) + 8.0 * size / p.rate_bps
             self._busy_until = start

@@ -498,7 +498,7 @@ def test_cli_report_prints_what_it_skipped(
     out, err = capsys.readouterr()
     assert err.splitlines() == [
         "skipped: recording.json: not JSON (Unterminated string starting at: line 1 column 11 (char 10))",
-        "skipped: datasets.npz: not a readable npz (BadZipFile: File is not a zip file)",
+        "skipped: datasets.npz: not a readable npz (not a zip archive: File is not a zip file)",
     ]
     assert "recording INCOMPLETE: unknown: recording.json damaged" in out
 

@@ -32,7 +32,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     from flightstack.recording.files import RunDirError
 
     run = Path(args.run_dir)
-    mission = load_mission(args.mission, rig=args.rig) if args.mission else None
+    mission = load_mission(args.mission) if args.mission else None
     try:
         m, plots, skipped = rebuild_run(run, mission, plots=not args.no_plots)
     except RunDirError as exc:

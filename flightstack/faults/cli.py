@@ -40,8 +40,10 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 
 def cmd_faults(args: argparse.Namespace) -> int:
+    from flightstack.config.mission import load_mission
     from flightstack.faults import format_table, run_faults, write_json
 
+    load_mission(Path(args.mission))  # a bad mission: exit 2 naming it (MissionError), before any row flies
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     if not args.verbose:  # hundreds of injected-fault safety events would bury the table
         logging.getLogger("flightstack.safety").setLevel(logging.ERROR)

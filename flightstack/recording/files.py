@@ -138,22 +138,34 @@ def read_json_object(path: Path) -> dict[str, Any]:
     return doc
 
 
-def read_npz(path: Path) -> dict[str, np.ndarray]:
+def read_npz(path: Path, max_bytes: int | None = None) -> dict[str, np.ndarray]:
     """Every array of the npz file `path` by name (without `.npy`). Each member's header is checked
-    against the member's size before anything is allocated, and no Python object is unpickled.
-    RunDirError when the file cannot be read, is not a zip of .npy arrays, or a member is damaged."""
+    against the member's size before anything is allocated, and no Python object is unpickled;
+    max_bytes: bound on the members' sizes together (uncompressed, from the zip's directory, checked
+    before any is read). RunDirError when the file cannot be read, is not a zip of .npy arrays, a member
+    is damaged or the members exceed max_bytes."""
     path = Path(path)
     out: dict[str, np.ndarray] = {}
     try:
         with zipfile.ZipFile(path) as zf:
-            for info in zf.infolist():
+            infos = zf.infolist()
+            total = sum(info.file_size for info in infos)
+            if max_bytes is not None and total > max_bytes:
+                raise RunDirError(path, f"its arrays hold {total:,} B, more than {max_bytes:,} B")
+            for info in infos:
                 name = info.filename.removesuffix(".npy")
                 if name == info.filename:
                     raise RunDirError(path, f"member {info.filename!r} is not a .npy array")
                 out[name] = _read_npy(path, zf, info)
-    except (OSError, EOFError, zipfile.BadZipFile, zlib.error, lzma.LZMAError, NotImplementedError) as exc:
-        raise RunDirError(path, f"not a readable npz ({type(exc).__name__}: {exc})") from None
-    except RuntimeError as exc:  # zipfile: an encrypted member (a flipped flag bit)
+    except OSError as exc:
+        raise RunDirError(path, f"not a readable npz ({errno_text(exc)})") from None
+    except EOFError:
+        raise RunDirError(path, "not a readable npz (cut short)") from None
+    except zipfile.BadZipFile as exc:
+        raise RunDirError(path, f"not a readable npz (not a zip archive: {exc})") from None
+    except (zlib.error, lzma.LZMAError) as exc:
+        raise RunDirError(path, f"not a readable npz (a damaged member: {exc})") from None
+    except (NotImplementedError, RuntimeError) as exc:  # a compression zipfile lacks; an encrypted member
         raise RunDirError(path, f"not a readable npz ({exc})") from None
     return out
 

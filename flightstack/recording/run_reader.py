@@ -231,6 +231,8 @@ def _from_rows(
 ) -> Recording:
     """A mode's Recording from its row stream (RunDirError when its header is damaged)."""
     meta, rows, dropped = read_row_stream(rows_path)
+    if dropped is not None and len(rows) == 0:
+        raise RunDirError(rows_path, f"no readable row: {dropped.removeprefix('kept the first 0 rows; ')}")
     if dropped is not None:
         skipped.append(f"{rows_path.name}: {dropped}")
     ids = meta.get("drone_ids", st.get("drone_ids", []))

@@ -164,7 +164,7 @@ class Recording:
         k, why = self.ticks_done, None
         for f in ARRAY_FIELDS:
             a = getattr(self, f)[: self.ticks_done]
-            if a.dtype.kind != "f":
+            if a.dtype.kind != "f" or len(a) == 0:
                 continue
             with np.errstate(invalid="ignore"):
                 bad = np.abs(a) > (WALL_T_BOUND if f == "wall_t" else VALUE_BOUND)
