@@ -24,7 +24,6 @@ CONTRACT = {0, 1, 2, 130}
 """The documented exit codes (docs/getting-started.md)."""
 BARE = re.compile(r"\b[A-Z]\w*(Error|Exception|Interrupt|Exit)\b|\bBadZipFile\b|\bStopIteration\b")
 """A Python exception's name where a reason belongs."""
-P36_CONFIG = pytest.mark.xfail(strict=True, reason="fixed on p36-config")
 
 
 def _rc_session() -> RcRecord:
@@ -127,11 +126,6 @@ Case = tuple[str, Callable[[Path], list[str]], int, str]
 """(id, argv from the inputs' directory, exit code, what the error line names)."""
 
 
-def _p36(case: Case) -> object:
-    """A case the p36-config branch fixes: expected to fail here until it is merged (strict)."""
-    return pytest.param(case, marks=P36_CONFIG, id=case[0])
-
-
 def _s(d: Path, name: str) -> list[str]:
     return ["calibrate", "latency", "--session", str(d / name)]
 
@@ -178,29 +172,23 @@ CASES: list[object] = [
         2,
         "garbage.yaml",
     ),
-    _p36(
-        (
-            "run: drones: 3.0 on lab-sim",
-            lambda d: ["run", str(d / "drones_float.yaml"), "--rig", "lab-sim", "--out", str(d / "o")],
-            2,
-            "drones",
-        )
+    (
+        "run: drones: 3.0 on lab-sim",
+        lambda d: ["run", str(d / "drones_float.yaml"), "--rig", "lab-sim", "--out", str(d / "o")],
+        2,
+        "drones",
     ),
-    _p36(
-        (
-            "run: --set a 5,000-digit integer",
-            lambda d: ["run", "paper_sim", "--set", f"target.substeps={BIG}", "--out", str(d / "o")],
-            2,
-            "substeps",
-        )
+    (
+        "run: --set a 5,000-digit integer",
+        lambda d: ["run", "paper_sim", "--set", f"target.substeps={BIG}", "--out", str(d / "o")],
+        2,
+        "substeps",
     ),
-    _p36(
-        (
-            "run: --set 5,000-deep nesting",
-            lambda d: ["run", "paper_sim", "--set", f"target.substeps={DEEP}", "--out", str(d / "o")],
-            2,
-            "substeps",
-        )
+    (
+        "run: --set 5,000-deep nesting",
+        lambda d: ["run", "paper_sim", "--set", f"target.substeps={DEEP}", "--out", str(d / "o")],
+        2,
+        "substeps",
     ),
     # preflight, target, train
     ("preflight: random bytes", lambda d: ["preflight", str(d / "garbage.yaml")], 2, "garbage.yaml"),
