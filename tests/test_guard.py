@@ -216,8 +216,8 @@ def test_guard_lands_a_killed_agents_drone_and_spares_the_live_one(lab: dict[str
         ports = guard_ports(gl)
         l1.find(r"^flying", 10.0)
         l2.find(r"^flying", 10.0)
-        gl.find(r"agent 1: status flying", 5.0)
-        gl.find(r"agent 2: status flying", 5.0)
+        gl.find(r"agent 1: status flying", 15.0)
+        gl.find(r"agent 2: status flying", 15.0)
         time.sleep(0.5)
         assert emus[1].flying and emus[2].flying
         t_kill = time.monotonic()
@@ -259,7 +259,7 @@ def test_guard_ignores_an_agent_that_lands_and_exits_without_a_final_status(lab:
     try:
         ports = guard_ports(gl)
         l1.find(r"^flying", 10.0)
-        gl.find(r"agent 1: status flying", 5.0)
+        gl.find(r"agent 1: status flying", 15.0)
         l1.find(r"^bye", 10.0)
         gl.find(r"agent 1 left: last status flying but [\d.]+ s old", 5.0)
         assert g.wait(timeout=15) == 0, gl.text()  # --duration ends it
@@ -279,7 +279,7 @@ def test_guard_lands_a_stopped_agents_drone_after_the_lease(lab: dict[str, Any])
     try:
         ports = guard_ports(gl)
         l1.find(r"^flying", 10.0)
-        gl.find(r"agent 1: status flying", 5.0)
+        gl.find(r"agent 1: status flying", 15.0)
         time.sleep(0.3)
         t_stop = time.monotonic()
         a1.send_signal(signal.SIGSTOP)

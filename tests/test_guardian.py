@@ -511,7 +511,9 @@ def test_parent_sees_its_guardian_killed_or_hung(tmp_path: Path) -> None:
             print(f"{sig.name} to the guardian -> parent sees it lost after {1e3 * dt:.0f} ms: {g.lost()}")
             assert dt <= bound
             if sig == signal.SIGSTOP:
-                assert dt >= GUARDIAN_SILENT_S - GUARDIAN_BEAT_S - 0.05 and "silent" in (g.lost() or "")
+                # not before the silence rule: its last beat came up to one period before the stop, plus
+                # the beat thread's own scheduling (measured 0.8500 s against 0.85 on a loaded CI run)
+                assert dt >= GUARDIAN_SILENT_S - GUARDIAN_BEAT_S - 0.1 and "silent" in (g.lost() or "")
             else:  # its neutral launch directory does not outlive it
                 assert g.cfg.launch_dir and not Path(g.cfg.launch_dir).exists()
         finally:
