@@ -225,18 +225,14 @@ class Agent:
         )
 
     def _checked_pose(self, own: StampedPose | None, t: float, dropped: list[str]) -> StampedPose | None:
-        """The own pose to use at the tick of time t (s): `own` if its stamp may enter
-        (delay_compensation.stamp_refusal), else, as if it had not arrived, the last one accepted while it
-        is no older than the safety layer's pose_timeout (then None: a dropout). A refusal is appended
-        to `dropped` once per refused sample."""
+        """The own pose to use at the tick of time t (s): `own` if its stamp may enter (`_admitted`), else,
+        as if it had not arrived, the last one accepted while it is no older than the safety layer's
+        pose_timeout (then None: a dropout)."""
         if own is None:
             return None
-        why = stamp_refusal(own.stamp, t, "pose")
-        if why is None:
+        if self._admitted("pose", own.stamp, t, dropped):
             self._pose_ok = own
-            self._refused.pop("pose", None)
             return own
-        self._refuse("pose", own.stamp, why, dropped)
         last = self._pose_ok
         return last if last is not None and t - last.stamp <= self._max_pose_age_s else None
 
@@ -245,20 +241,24 @@ class Agent:
         had not arrived, the last one accepted (its age is checked as any frame's: `_features`)."""
         if frame is None:
             return None
-        why = stamp_refusal(frame.stamp, t, "frame")
-        if why is None:
+        if self._admitted("frame", frame.stamp, t, dropped):
             self._frame_ok = frame
-            self._refused.pop("frame", None)
             return frame
-        self._refuse("frame", frame.stamp, why, dropped)
         return self._frame_ok
 
-    def _refuse(self, kind: str, stamp: float, why: str, dropped: list[str]) -> None:
-        """Count a refused sample once: the same stamp read again (the source has nothing newer) is not."""
+    def _admitted(self, kind: str, stamp: float, t: float, dropped: list[str]) -> bool:
+        """Whether a sample of `kind` stamped `stamp` (s) may enter at the tick of time t (s)
+        (delay_compensation.stamp_refusal). A refusal is appended to `dropped` once per refused sample:
+        the same stamp read again (the source has nothing newer) is not counted again."""
+        why = stamp_refusal(stamp, t, kind)
+        if why is None:
+            self._refused.pop(kind, None)
+            return True
         key = struct.pack("<d", stamp)
         if self._refused.get(kind) != key:
             self._refused[kind] = key
             dropped.append(why)
+        return False
 
     def _features(self, frame: Frame | None, t: float) -> tuple[np.ndarray | None, str | None]:
         """(f (2m,), None) from the frame: given directly (ideal camera) or extracted from the image; or

@@ -31,7 +31,7 @@ import numpy as np
 
 from flightstack.events import SafetyKind
 from flightstack.hal import Clock, Drone, DroneState, FlightPhase, HoldsLastCommand, PoseSource, StampedPose
-from flightstack.paper.delay_compensation import AHEAD_TOLERANCE_S
+from flightstack.paper.delay_compensation import stamp_refusal
 from flightstack.paper.geometry import Pose
 from flightstack.safety.jobs import DroneJobs
 from flightstack.safety.rules import (
@@ -437,9 +437,9 @@ class SafeDrone:
     def _read_pose(self, now: float) -> StampedPose | None:
         """Latest valid pose from the source (remembered), or the last valid one; None if never seen.
 
-        A pose stamped more than AHEAD_TOLERANCE_S after `now` (another clock, or forged) is not taken:
-        remembered, it would read as fresh for as long as its stamp is ahead, and the stale-pose rules
-        would never hover or land the drone (`pose_error`, once per episode)."""
+        A pose stamped ahead of `now` (delay_compensation.stamp_refusal: another clock, or forged) is not
+        taken: remembered, it would read as fresh for as long as its stamp is ahead, and the stale-pose
+        rules would never hover or land the drone (`pose_error`, once per episode)."""
         try:
             sp = self.poses.latest(self.body)
         except Exception as exc:
@@ -447,7 +447,7 @@ class SafeDrone:
             return self._last_pose
         if valid_pose(sp):
             assert sp is not None  # valid_pose: a StampedPose
-            if not sp.stamp <= now + AHEAD_TOLERANCE_S:
+            if stamp_refusal(sp.stamp, now, "pose") is not None:  # finite (valid_pose): ahead of now
                 ahead = f"stamped {sp.stamp - now:.3g} s ahead of the clock ({sp.stamp!r} at {now:.3f})"
                 self._event_once(now, "pose_error", f"pose of {self.body!r} {ahead}: not used")
                 return self._last_pose
