@@ -44,7 +44,7 @@ REPO = Path(__file__).resolve().parents[1]
 IPS = {1: "127.0.0.8", 2: "127.0.0.9"}
 
 AGENT = r"""
-import dataclasses, json, sys, threading, time
+import dataclasses, json, os, sys, threading, time
 from flightstack.drivers.hardware import tello_config
 from flightstack.drivers.tello import TelloDriver
 from flightstack.comms.factory import make_bus
@@ -81,6 +81,8 @@ while time.monotonic() < deadline:
         t_fly = now
         say("flying", now)
     if a["hold_s"] is not None and t_fly is not None and now - t_fly > a["hold_s"]:
+        break
+    if a["release"] is not None and t_fly is not None and os.path.exists(a["release"]):
         break
     time.sleep(0.02)
 drv.land()
@@ -188,7 +190,7 @@ def lab(tmp_path: Path) -> Iterator[dict[str, Any]]:
 
 def agent(lab: dict[str, Any], i: int, **kw: Any) -> tuple[subprocess.Popen[str], Lines]:
     a = {"id": i, "mission": str(lab["mission"]), "state_port": lab["ports"][i], "max_s": 20.0}
-    a |= {"hold_s": None, "final_status": True, "linger_s": 0.0} | kw
+    a |= {"hold_s": None, "release": None, "final_status": True, "linger_s": 0.0} | kw
     return start("-c", AGENT, json.dumps(a))
 
 
@@ -254,12 +256,14 @@ def test_guard_lands_a_killed_agents_drone_and_spares_the_live_one(lab: dict[str
 def test_guard_ignores_an_agent_that_lands_and_exits_without_a_final_status(lab: dict[str, Any]) -> None:
     """As the runner does today: statuses stop when the landing starts; the token goes seconds later."""
     emus = lab["emus"]
-    a1, l1 = agent(lab, 1, hold_s=1.0, final_status=False, linger_s=2.5)
-    g, gl = guard(lab, "--duration", "9")
+    release = lab["mission"].parent / "release-agent-1"
+    a1, l1 = agent(lab, 1, release=str(release), final_status=False, linger_s=2.5)
+    g, gl = guard(lab, "--duration", "14")
     try:
         ports = guard_ports(gl)
         l1.find(r"^flying", 10.0)
         gl.find(r"agent 1: status flying", 15.0)
+        release.touch()  # lands only once guard has seen it fly (a loaded machine may start guard late)
         l1.find(r"^bye", 10.0)
         gl.find(r"agent 1 left: last status flying but [\d.]+ s old", 5.0)
         assert g.wait(timeout=15) == 0, gl.text()  # --duration ends it
