@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import pytest
@@ -132,11 +133,17 @@ def pytest_configure(config: pytest.Config) -> None:
         config.option.loadscopereorder = False
 
 
-@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups and before `-m` deselects
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Every test is in exactly one tier: `system` (listed module or explicit marker) or `unit`; a module's
-    tests share one xdist group, and the device modules' tests all share one."""
+    tests share one xdist group, and the device modules' tests all share one. Every test of a module that
+    bounds a reaction's time (a test using `safety_bound`) is also `timing`: .ci/run runs the system tier's
+    timing modules after the others, on fewer workers, so that no CPU-bound simulation runs beside them
+    (whole modules, so that a module-scoped fixture such as a fault table's flights runs once)."""
+    timed = {item.path for item in items if SAFETY_BOUND_FIXTURE in getattr(item, "fixturenames", ())}
     for item in items:
+        if item.path in timed:
+            item.add_marker(pytest.mark.timing)
         if item.path.stem in SYSTEM_MODULES or item.get_closest_marker("system") is not None:
             item.add_marker(pytest.mark.system)
         else:
@@ -154,6 +161,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 # behaviour, not speed; speed lives in benchmarks/ and in the fault table's measured columns.
 Bound = Callable[..., None]
 """The type of the `safety_bound` fixture."""
+SAFETY_BOUND_FIXTURE = "safety_bound"
+"""The fixture's name (a test that requests it is a timing test)."""
 SAFETY_BOUND = "safety_bound"
 """The user_properties key of a recorded bound: (what, measured, bound, unit)."""
 
@@ -188,6 +197,15 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
 
 
 MISSIONS = REPO / "mission_configs"
+
+
+def skip_or_fail_in_ci(reason: str) -> NoReturn:
+    """Skip the test for a missing optional input (a package, a recording in ../shared) with `reason`
+    saying how to provide it; under CI=true, where CI provides every input, fail instead, so that CI never
+    passes by skipping."""
+    if os.environ.get("CI") == "true":
+        pytest.fail(f"{reason} (CI=true: CI must provide it)", pytrace=False)
+    pytest.skip(reason, allow_module_level=True)
 
 finite = st.floats(-5.0, 5.0, allow_nan=False, allow_infinity=False)
 angles = st.floats(-3.14159, 3.14159, allow_nan=False, allow_infinity=False)

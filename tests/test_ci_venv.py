@@ -25,6 +25,7 @@ def _purelib(python: Path) -> Path:
 def test_child_venv_sees_the_parent_venv(tmp_path: Path) -> None:
     base = Path(sysconfig.get_config_var("BINDIR")) / "python3"  # the interpreter a venv is made from
     parent = tmp_path / "parent"
+    # venv: the parent environment itself, made from the base interpreter
     subprocess.run([str(base), "-m", "venv", "--without-pip", str(parent)], check=True, timeout=120)
     site = _purelib(parent / "bin" / "python")
     (site / "probe_in_parent.py").write_text("WHERE = 'parent venv'\n")
@@ -55,6 +56,7 @@ def test_child_venv_sees_the_parent_venv(tmp_path: Path) -> None:
     # a plain --system-site-packages venv made from the same python3 would not see the parent's packages
     plain = tmp_path / "plain"
     subprocess.run(
+        # venv: the blind venv venv-here exists to avoid, built to show that it is blind
         [str(parent / "bin" / "python"), "-m", "venv", "--without-pip", "--system-site-packages", str(plain)],
         check=True,
         env=env,

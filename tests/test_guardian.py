@@ -17,7 +17,6 @@ import json
 import os
 import shutil
 import signal
-import site
 import subprocess
 import sys
 import time
@@ -47,6 +46,7 @@ from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
 from flightstack.sim_backend.emulators.tello import TelloEmulator, wait_until
 from tests.conftest import Bound
+from tests.venvs import bare_venv, site_packages, this_environments_site_dirs, venv_seeing_this_environment
 
 REPO = Path(__file__).resolve().parents[1]
 ARM_DISARM = 400  # MAV_CMD_COMPONENT_ARM_DISARM
@@ -214,7 +214,9 @@ def wait_guardian_exit(child: Child, timeout: float = 10.0) -> str:
     return child.guardian_log()
 
 
-def test_parent_killed_guardian_stops_and_lands_both(tmp_path: Path, two_tellos: list[TelloEmulator]) -> None:
+def test_parent_killed_guardian_stops_and_lands_both(
+    tmp_path: Path, two_tellos: list[TelloEmulator], safety_bound: Bound
+) -> None:
     child = Child(tmp_path, two_tellos, None, "fly")
     try:
         child.wait_line("flying", timeout=15.0)
@@ -229,8 +231,12 @@ def test_parent_killed_guardian_stops_and_lands_both(tmp_path: Path, two_tellos:
             t_rc, t_land = first_after(emu, "rc 0 0 0 0", t_kill), first_after(emu, "land", t_kill)
             assert t_rc is not None and t_land is not None
             print(f"{emu.ip}: kill -> rc 0 0 0 0 {t_rc - t_kill:.3f} s, kill -> land {t_land - t_kill:.3f} s")
-            assert t_rc - t_kill <= 0.5
-            assert t_land - t_kill <= 2.0
+            safety_bound(
+                f"{emu.ip}: rc 0 0 0 0 from the guardian after the flight's kill", 1e3 * (t_rc - t_kill), 500
+            )
+            safety_bound(
+                f"{emu.ip}: land from the guardian after the flight's kill", 1e3 * (t_land - t_kill), 2000
+            )
             guardian_ports = {a[1] for t, _, a in emu.senders if t > t_kill}
             assert guardian_ports and not guardian_ports & ports  # from the guardian's own socket
         assert all(wait_until(lambda e=e: e.phase == "landed", 3.0) for e in two_tellos)
@@ -430,22 +436,20 @@ def oom_score_adj(pid: int | str) -> int:
 
 
 def venv_with_flightstack(tmp_path: Path, how: str) -> Path:
-    """A virtual environment named "flightstack-venv" (no pip) that imports flightstack: "editable" adds
-    this environment's site-packages as a site directory (its editable install's finder included);
-    "installed" holds a plain copy of the package as a wheel installs it (no finder, no link back to the
-    checkout), with this environment's site-packages on its path for the dependencies only."""
+    """A virtual environment named "flightstack-venv" (no pip) that imports flightstack: "editable" sees this
+    environment (its editable install's finder included: tests/venvs.py); "installed" holds a plain copy of
+    the package as a wheel installs it (no finder, no link back to the checkout), with this environment's
+    site-packages on its path for the dependencies only."""
     venv = tmp_path / "flightstack-venv"
-    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=60)
-    site_dir = venv / "lib" / f"python{sys.version_info[0]}.{sys.version_info[1]}" / "site-packages"
-    ours = [p for p in site.getsitepackages() if Path(p).is_dir()]
     if how == "editable":
-        (site_dir / "ours.pth").write_text("".join(f"import site; site.addsitedir({p!r})\n" for p in ours))
-        return venv
-    tree = REPO / "build" / "__editable__.flightstack-0.1.0-py3-none-any" / "flightstack"
-    if not tree.is_dir():
-        pytest.skip(f"no installed package tree at {tree}")
-    shutil.copytree(tree, site_dir / "flightstack", symlinks=False)  # the files themselves
-    (site_dir / "ours.pth").write_text("".join(f"{p}\n" for p in ours))  # dependencies only
+        return venv_seeing_this_environment(venv)
+    pattern = "__editable__.flightstack-*-py3-none-any/flightstack"  # an older version's tree may remain
+    trees = sorted((REPO / "build").glob(pattern), key=lambda t: t.stat().st_mtime)  # the newest install's
+    if not trees:
+        pytest.skip(f"no installed package tree under {REPO / 'build'} (made by `pip install -e .`)")
+    bare_venv(venv)
+    shutil.copytree(trees[-1], site_packages(venv) / "flightstack", symlinks=False)  # the files themselves
+    (site_packages(venv) / "ours.pth").write_text("".join(f"{p}\n" for p in this_environments_site_dirs()))
     return venv
 
 

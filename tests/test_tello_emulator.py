@@ -39,10 +39,14 @@ from flightstack.sim_backend.emulators.tello import (
     read_frame_index,
     wait_until,
 )
+from tests.conftest import skip_or_fail_in_ci
 
-djitellopy = pytest.importorskip("djitellopy")
-from djitellopy import tello as tello_module  # noqa: E402
-from djitellopy.tello import Tello, TelloException  # noqa: E402
+try:
+    import djitellopy  # noqa: F401  # the reference client (its opencv-python clashes with the headless one)
+except ModuleNotFoundError:
+    skip_or_fail_in_ci('no djitellopy: `python3 -m pip install --no-deps "djitellopy==2.5.0"` (.ci/run does)')
+from djitellopy import tello as tello_module
+from djitellopy.tello import Tello, TelloException
 
 RESPONSE_TIMEOUT_S = 2  # must be an int for djitellopy
 STATE_RE = re.compile(
