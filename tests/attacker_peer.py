@@ -12,7 +12,8 @@ With "copy_labels" it also listens to the predictions and puts each forged one w
 (Zenoh attachment, flightstack/comms/identity.py) the real sender of that key used last: on plaintext a
 label is no authentication. With "copy_stream": {"sender": i, "lead": d, "mu": m} it is a second agent
 i: for every prediction the real agent i puts it puts one of its own right after, under the real one's
-label, with seq (real + d) and the real stamp, in-bounds values and μ = (m, m, 0, 0) ("copied stream").
+label, with seq (real + d) and the real stamp, in-bounds values and μ = (m, m, 0, 0) ("copied stream"),
+once it is connected to "min_peers" peers (default 0: at once).
 Loopback only; stops by itself.
 """
 
@@ -88,6 +89,7 @@ def main(spec_path: str) -> int:
         conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
     sent: Counter[str] = Counter()
     max_peers = 0
+    fewest_peers = 1 << 30  # while copying
     session = zenoh.open(conf)
     labels: dict[str, bytes] = {}  # pred key -> the attachment its real sender put last
 
@@ -117,7 +119,14 @@ def main(spec_path: str) -> int:
         t_end = time.monotonic() + float(spec["duration_s"])
         k = 0
         while time.monotonic() < t_end:
-            max_peers = max(max_peers, len(list(session.info.peers_zid())))
+            peers = len(list(session.info.peers_zid()))
+            max_peers = max(max_peers, peers)
+            if copy and sent["copied stream"]:
+                fewest_peers = min(fewest_peers, peers)
+            if copy and not sent["copied stream"] and peers < int(copy.get("min_peers", 0)):
+                heard.clear()  # not yet connected to every receiver (a loaded machine connects late)
+                time.sleep(0.01)
+                continue
             while copy and heard:
                 seq, stamp, label = heard.pop(0)
                 forged.add(seq + copy["lead"])
@@ -138,7 +147,10 @@ def main(spec_path: str) -> int:
             time.sleep(float(spec["period_s"]))
     finally:
         session.close()
-    print(json.dumps({"sent": dict(sent), "max_peers": max_peers}), flush=True)
+    report: dict[str, Any] = {"sent": dict(sent), "max_peers": max_peers}
+    if copy:
+        report["fewest_peers_while_copying"] = fewest_peers if sent["copied stream"] else 0
+    print(json.dumps(report), flush=True)
     return 0
 
 

@@ -207,6 +207,7 @@ def skip_or_fail_in_ci(reason: str) -> NoReturn:
         pytest.fail(f"{reason} (CI=true: CI must provide it)", pytrace=False)
     pytest.skip(reason, allow_module_level=True)
 
+
 finite = st.floats(-5.0, 5.0, allow_nan=False, allow_infinity=False)
 angles = st.floats(-3.14159, 3.14159, allow_nan=False, allow_infinity=False)
 

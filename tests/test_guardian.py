@@ -106,7 +106,7 @@ if a["mode"] == "finish":
         time.sleep(0.02)
     if robot is not None:
         robot.close()
-    say("finished", g.finish())
+    say("finished", g.finish(timeout_s=10.0))  # a loaded machine may take seconds to run its exit
 if t_taken is not None:  # one send straight to the channel: the flag, not the phase, must hold it back
     for d in drones:
         d.link.chan.send("rc 0 0 30 0")
