@@ -269,7 +269,7 @@ def test_guard_ignores_an_agent_that_lands_and_exits_without_a_final_status(lab:
         release.touch()  # lands only once guard has seen it fly (a loaded machine may start guard late)
         l1.find(r"^bye", 10.0)
         gl.find(r"agent 1 left: last status flying but [\d.]+ s old", 5.0)
-        assert g.wait(timeout=15) == 0, gl.text()  # --duration ends it
+        assert g.wait(timeout=30) == 0, gl.text()  # --duration ends it
         assert from_port(emus[1], ports[1]) == []
         assert emus[1].phase == "landed"
         assert "guard ends: takeovers none; departures not in flight 1" in gl.text()
@@ -303,7 +303,7 @@ def test_guard_lands_a_stopped_agents_drone_after_the_lease(lab: dict[str, Any],
         # the stopped agent holds the state port: no telemetry, guard re-sends until --give-up
         m = gl.find(r"drone 1: takeover ended \(gave up\) ([\d.]+) s after agent 1 vanished, (\d+) send", 8.0)
         assert 3 <= int(m[2]) <= 6
-        assert g.wait(timeout=15) == 0, gl.text()
+        assert g.wait(timeout=30) == 0, gl.text()
     finally:
         for p in (a1, g):
             stop(p)

@@ -273,7 +273,7 @@ GP_SHORT = [  # paper_sim for 1 s: every drone's band is crossed, 3 samples each
 NO_GP = ["--set", "duration_s=0.2", "--set", "compare_modes=[none,oracle]"]
 
 
-def _sweep(out: Path, *args: str, timeout: float = 50) -> subprocess.CompletedProcess:
+def _sweep(out: Path, *args: str, timeout: float = 150) -> subprocess.CompletedProcess:
     return run_cli("sweep", "paper_sim", "--out", str(out), *args, timeout=timeout)
 
 
