@@ -1,7 +1,11 @@
-"""MkDocs hook: the parts of the manual that a command or a constant already states, rendered at build time.
+"""The parts of the manual that a command or a constant already states: rendered into the pages, and again
+when the site is built (an MkDocs hook).
 
-A page asks for one with a marker line `<!-- generated: NAME -->`; `on_page_markdown` replaces the marker
-with the rendering of NAME from the installed package, so the site never holds a copy that can drift:
+A page holds one as a block between the lines `<!-- generated: NAME -->` and `<!-- /generated: NAME -->`.
+The committed block is what a reader sees on a code host; `python3 docs/hooks/generated.py --update`
+rewrites every block from the installed package, and `tests/test_generated_pages.py` (unit tier) fails
+when one is stale. At build time `on_page_markdown` renders each block afresh, so the site is always the
+installed version's. The blocks:
 
 - `cli`: every subcommand of `flightstack.cli.app.build_parser()`, its usage and its options;
 - `run-files`: `flightstack.recording.files.RUN_FILES`, `REQUIRED_FILES` and `OPTIONAL_FILES`;
@@ -12,8 +16,7 @@ with the rendering of NAME from the installed package, so the site never holds a
 - `import-contract`: the layers of `tests/import_contract.toml`, top first, with what each may import and
   the contract's named exceptions and reserved names (tests/import_contract.py checks the code against it).
 
-On GitHub the marker is an invisible comment; the page's prose says where the list comes from. An unknown
-NAME fails the build.
+An unknown NAME, or a block without its closing line, fails the build and the update.
 """
 
 from __future__ import annotations
@@ -28,7 +31,9 @@ from typing import Any
 
 import yaml
 
-MARKER = re.compile(r"^<!-- generated: ([a-z-]+) -->$", re.MULTILINE)
+OPEN = re.compile(r"^<!-- generated: ([a-z-]+) -->$", re.MULTILINE)
+BLOCK = re.compile(r"^<!-- generated: ([a-z-]+) -->\n(.*?)^<!-- /generated: \1 -->$", re.MULTILINE | re.DOTALL)
+DOCS = Path(__file__).resolve().parents[1]
 WIDTH = 100
 
 
@@ -73,11 +78,24 @@ def _option_rows(parser: argparse.ArgumentParser) -> list[str]:
             name = fmt._metavar_formatter(action, action.dest)(1)[0]
         help_text = fmt._expand_help(action) if action.help else ""
         default = action.default
-        shown = "" if default in (None, False, argparse.SUPPRESS) or action.nargs == 0 else f"`{default}`"
+        shown = "" if default in (None, False, argparse.SUPPRESS) or action.nargs == 0 else f"`{_default(default)}`"
         if action.choices is not None and not isinstance(action.choices, dict) and action.metavar:
             help_text += f" (one of: {', '.join(map(str, action.choices))})"
         rows.append(f"| `{_cell(name)}` | {_cell(help_text)} | {shown} |")
     return rows
+
+
+def _default(value: object) -> object:
+    """A default as a reader's checkout names it: a file of the package's data relative to its folder
+    (`mission_configs/paper_experiment.yaml`), not this machine's absolute path."""
+    if isinstance(value, (str, Path)) and Path(value).is_absolute():
+        from flightstack import mission_configs
+
+        data = Path(list(mission_configs.__path__)[0]).resolve()
+        path = Path(value).resolve()
+        if path.is_relative_to(data):
+            return f"mission_configs/{path.relative_to(data).as_posix()}"
+    return value
 
 
 def _command_section(path: list[str], help_line: str, parser: argparse.ArgumentParser, level: int) -> str:
@@ -239,11 +257,51 @@ RENDERERS: dict[str, Callable[[], str]] = {
 }
 
 
-def on_page_markdown(markdown: str, page: Any, config: Any, files: Any) -> str:
+def render_blocks(markdown: str, where: str) -> str:
+    """The page with every generated block rendered anew (ValueError: an unknown name, an unclosed block)."""
+
     def replace(match: re.Match[str]) -> str:
         name = match.group(1)
         if name not in RENDERERS:
-            raise ValueError(f"{page.file.src_path}: unknown generated block {name!r}")
-        return RENDERERS[name]()
+            raise ValueError(f"{where}: unknown generated block {name!r}")
+        body = RENDERERS[name]().strip("\n")
+        return f"<!-- generated: {name} -->\n\n{body}\n\n<!-- /generated: {name} -->"
 
-    return MARKER.sub(replace, markdown)
+    rendered = BLOCK.sub(replace, markdown)
+    opened, closed = len(OPEN.findall(markdown)), len(BLOCK.findall(markdown))
+    if opened != closed:
+        raise ValueError(f"{where}: a `<!-- generated: NAME -->` line without its `<!-- /generated: NAME -->`")
+    return rendered
+
+
+def pages_with_blocks(docs: Path = DOCS) -> list[Path]:
+    """The manual's pages that hold a generated block."""
+    return [p for p in sorted(docs.rglob("*.md")) if OPEN.search(p.read_text(encoding="utf-8"))]
+
+
+def on_page_markdown(markdown: str, page: Any, config: Any, files: Any) -> str:
+    return render_blocks(markdown, page.file.src_path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`--update`: rewrite the stale blocks of docs/; `--check`: list them and exit 1 if any."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0] if __doc__ else None)
+    parser.add_argument("--update", action="store_true", help="rewrite the stale blocks (default: --check)")
+    args = parser.parse_args(argv)
+    stale = []
+    for page in pages_with_blocks():
+        text = page.read_text(encoding="utf-8")
+        fresh = render_blocks(text, str(page.relative_to(DOCS.parent)))
+        if fresh != text:
+            stale.append(page.relative_to(DOCS.parent))
+            if args.update:
+                page.write_text(fresh, encoding="utf-8")
+    for path in stale:
+        print(f"{'updated' if args.update else 'stale'}: {path}")
+    return 1 if stale and not args.update else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
