@@ -28,7 +28,8 @@ def test_citation_file_is_valid_cff_1_2_0() -> None:
     assert schema["$id"] == "https://citation-file-format.github.io/1.2.0/schema.json"
     data = _citation()
     assert data["cff-version"] == "1.2.0"
-    jsonschema.validate(data, schema, cls=jsonschema.Draft7Validator, format_checker=jsonschema.FormatChecker())
+    checker = jsonschema.FormatChecker()
+    jsonschema.validate(data, schema, cls=jsonschema.Draft7Validator, format_checker=checker)
 
 
 def test_the_validation_rejects_an_invalid_citation() -> None:

@@ -32,7 +32,9 @@ from typing import Any
 import yaml
 
 OPEN = re.compile(r"^<!-- generated: ([a-z-]+) -->$", re.MULTILINE)
-BLOCK = re.compile(r"^<!-- generated: ([a-z-]+) -->\n(.*?)^<!-- /generated: \1 -->$", re.MULTILINE | re.DOTALL)
+BLOCK = re.compile(
+    r"^<!-- generated: ([a-z-]+) -->\n(.*?)^<!-- /generated: \1 -->$", re.MULTILINE | re.DOTALL
+)
 DOCS = Path(__file__).resolve().parents[1]
 WIDTH = 100
 
@@ -78,7 +80,8 @@ def _option_rows(parser: argparse.ArgumentParser) -> list[str]:
             name = fmt._metavar_formatter(action, action.dest)(1)[0]
         help_text = fmt._expand_help(action) if action.help else ""
         default = action.default
-        shown = "" if default in (None, False, argparse.SUPPRESS) or action.nargs == 0 else f"`{_default(default)}`"
+        hidden = default in (None, False, argparse.SUPPRESS) or action.nargs == 0
+        shown = "" if hidden else f"`{_default(default)}`"
         if action.choices is not None and not isinstance(action.choices, dict) and action.metavar:
             help_text += f" (one of: {', '.join(map(str, action.choices))})"
         rows.append(f"| `{_cell(name)}` | {_cell(help_text)} | {shown} |")
@@ -91,7 +94,7 @@ def _default(value: object) -> object:
     if isinstance(value, (str, Path)) and Path(value).is_absolute():
         from flightstack import mission_configs
 
-        data = Path(list(mission_configs.__path__)[0]).resolve()
+        data = Path(next(iter(mission_configs.__path__))).resolve()
         path = Path(value).resolve()
         if path.is_relative_to(data):
             return f"mission_configs/{path.relative_to(data).as_posix()}"
@@ -270,7 +273,7 @@ def render_blocks(markdown: str, where: str) -> str:
     rendered = BLOCK.sub(replace, markdown)
     opened, closed = len(OPEN.findall(markdown)), len(BLOCK.findall(markdown))
     if opened != closed:
-        raise ValueError(f"{where}: a `<!-- generated: NAME -->` line without its `<!-- /generated: NAME -->`")
+        raise ValueError(f"{where}: a `<!-- generated: NAME -->` line without its closing line")
     return rendered
 
 
