@@ -15,10 +15,11 @@ from typing import get_args
 
 import numpy as np
 
-from flightstack.events import Event, SafetyKind
+from flightstack.events import KINDS, Event, SafetyKind
 from flightstack.paper.geometry import Pose
 
-_logger = logging.getLogger(__name__)
+_logger = logging.getLogger("flightstack.safety")
+_LOG_LEVELS = {"INFO": logging.INFO, "WARNING": logging.WARNING, "ERROR": logging.ERROR}
 
 EVENT_KINDS: frozenset[str] = frozenset(get_args(SafetyKind))
 """The kinds a safety event may have (flightstack.events.KINDS says what each means)."""
@@ -152,7 +153,8 @@ EVENT_KINDS; the name stays for readability at the call sites."""
 
 
 class EventLog:
-    """Append-only, thread-safe list of SafetyEvent (also echoed to the `flightstack.safety` logger).
+    """Append-only, thread-safe list of SafetyEvent (also echoed to the `flightstack.safety` logger, at the
+    kind's severity in flightstack.events.KINDS).
 
     Uses a re-entrant lock so that a signal handler running on the main thread may log while the main
     thread is itself inside `append`.
@@ -169,7 +171,8 @@ class EventLog:
         with self._lock:
             self._events.append(event)
         who = "mission" if event.drone is None else f"drone {event.drone}"
-        _logger.warning("t=%.3f %s %s: %s", event.t, who, event.kind, event.detail)
+        level = _LOG_LEVELS[KINDS[event.kind].severity]
+        _logger.log(level, "t=%.3f %s %s: %s", event.t, who, event.kind, event.detail)
 
     def record(self, t: float, drone: int | None, kind: SafetyKind, detail: str) -> SafetyEvent:
         """Build, append and return an event."""
