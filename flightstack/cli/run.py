@@ -380,7 +380,8 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
     setattr(duration, "min_duration", MinimumDurations())  # noqa: B010 (argparse reads vars(action))
     duration.help = (
         "override duration_s (seconds, > 0); a run with a GP mode must be long enough to train the experts: "
-        "at least %(min_duration)s (a shorter one is refused before takeoff, naming its minimum)"
+        "at least %(min_duration)s, predicted from the target's path (the estimates' transient may need "
+        "more; a shorter one is refused before takeoff, naming its minimum)"
     )
     p.add_argument(
         "--modes",
