@@ -268,3 +268,15 @@ def severity(ev: Mapping[str, Any]) -> Severity:
     declared here (a recording from another version)."""
     kind = kind_of(ev)
     return "WARNING" if kind is None else KINDS[kind].severity
+
+
+LOG_LEVELS: Mapping[Severity, int] = {"INFO": 20, "WARNING": 30, "ERROR": 40}
+"""A severity as a `logging` level (logging.INFO, WARNING, ERROR): how a component that logs its events
+as they happen (the safety layer, the Tello driver) logs each kind; the console shows the level
+(docs/logs.md, "What a run prints")."""
+
+
+def log_level(kind: str) -> int:
+    """The `logging` level of an event of `kind` (its KINDS severity; WARNING for an undeclared one)."""
+    info = KINDS.get(kind)
+    return LOG_LEVELS["WARNING" if info is None else info.severity]

@@ -15,11 +15,10 @@ from typing import get_args
 
 import numpy as np
 
-from flightstack.events import KINDS, Event, SafetyKind
+from flightstack.events import Event, SafetyKind, log_level
 from flightstack.paper.geometry import Pose
 
 _logger = logging.getLogger("flightstack.safety")
-_LOG_LEVELS = {"INFO": logging.INFO, "WARNING": logging.WARNING, "ERROR": logging.ERROR}
 
 EVENT_KINDS: frozenset[str] = frozenset(get_args(SafetyKind))
 """The kinds a safety event may have (flightstack.events.KINDS says what each means)."""
@@ -171,8 +170,7 @@ class EventLog:
         with self._lock:
             self._events.append(event)
         who = "mission" if event.drone is None else f"drone {event.drone}"
-        level = _LOG_LEVELS[KINDS[event.kind].severity]
-        _logger.log(level, "t=%.3f %s %s: %s", event.t, who, event.kind, event.detail)
+        _logger.log(log_level(event.kind), "t=%.3f %s %s: %s", event.t, who, event.kind, event.detail)
 
     def record(self, t: float, drone: int | None, kind: SafetyKind, detail: str) -> SafetyEvent:
         """Build, append and return an event."""
