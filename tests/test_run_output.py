@@ -11,6 +11,7 @@ import pytest
 from flightstack.cli import app as cli
 from flightstack.cli.summary import LEVELS, metric_lines, with_level
 from flightstack.config.mission import load_mission
+from flightstack.learning.training import minimum_duration, training_shortfall
 
 GAIN_DOC = "docs/paper-comparison.md#gain-analysis"
 
@@ -82,3 +83,14 @@ def test_run_and_report_print_the_same_metric_lines(
     assert ran[: len(shared)] == shared
     assert all(ln.lstrip().startswith("speed ") for ln in ran[len(shared) :])
     assert any("gain condition: kappa" in ln for ln in shared) and shared[-1] == "  recording complete"
+
+
+def test_run_help_names_each_experiments_minimum_duration(capsys: pytest.CaptureFixture[str]) -> None:
+    """The minimum --duration in `run --help` is computed by the one function the refusal uses."""
+    with pytest.raises(SystemExit):
+        cli.main(["run", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    least = minimum_duration(load_mission("paper_sim"))
+    assert least is not None and f"at least {least:g} s for paper_sim" in text
+    short = training_shortfall(load_mission("paper_sim", {"duration_s": least - 1.0}))
+    assert short is not None and f"fly at least {least:g} s" in short

@@ -376,12 +376,10 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
         "plots of an earlier run); every other file is kept",
     )
     duration = p.add_argument("--duration", type=seconds, default=None)
-    # set after add_argument: argparse checks a help string there, which would compute the minimum each time
-    setattr(duration, "min_duration", MinimumDurations())  # noqa: B010 (argparse reads vars(action))
-    duration.help = (
+    duration.help = DurationHelp(  # set after add_argument: argparse would format (compute) it there
         "override duration_s (seconds, > 0); a run with a GP mode must be long enough to train the experts: "
-        "at least %(min_duration)s, predicted from the target's path (the estimates' transient may need "
-        "more; a shorter one is refused before takeoff, naming its minimum)"
+        f"at least {DurationHelp.MINIMUM}, predicted from the target's path (the estimates' transient may "
+        "need more; a shorter one is refused before takeoff, naming its minimum)"
     )
     p.add_argument(
         "--modes",
@@ -429,12 +427,15 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
     add_viewer_argument(p)
 
 
-class MinimumDurations:
-    """The shortest --duration that trains the GP experts of each built-in experiment, as text, computed
-    when a help text is formatted (flightstack.learning.training.minimum_duration; about 1 s), never when
-    the parser is built."""
+class DurationHelp(str):
+    """--duration's help text, which names the shortest duration that trains the GP experts of each built-in
+    experiment (flightstack.learning.training.minimum_duration; about 1 s to compute). It is computed only
+    when argparse formats the help (`help % params`); shell completion, which shows a help text without a
+    `%` as it is, never waits for it."""
 
-    def __str__(self) -> str:
+    MINIMUM = "the minimum of its experiment"
+
+    def __mod__(self, params: object) -> str:
         from flightstack.config.rig import BUILTIN_EXPERIMENTS
         from flightstack.learning.training import minimum_duration
 
@@ -442,7 +443,7 @@ class MinimumDurations:
         for name in BUILTIN_EXPERIMENTS:
             least = minimum_duration(load_mission(name))
             parts.append(f"{least:g} s for {name}" if least is not None else f"none for {name}")
-        return ", ".join(parts)
+        return str(self).replace(self.MINIMUM, ", ".join(parts))
 
 
 def add_network_argument(p: argparse.ArgumentParser) -> None:
