@@ -207,7 +207,9 @@ class Guard:
             except Exception as exc:  # the watch must outlive any bug (logged at the 1st, every 100th)
                 self.summary.errors += 1
                 if self.summary.errors == 1 or self.summary.errors % 100 == 0:
-                    self.log(f"error #{self.summary.errors} in the watch: {type(exc).__name__}: {exc}")
+                    self.log(
+                        f"error #{self.summary.errors} in the watch: {type(exc).__name__}: {exc}", "error"
+                    )
             if now >= t_end:
                 if not self.active:
                     break
@@ -272,7 +274,7 @@ class Guard:
             why = f"agent {i}'s token vanished in flight (last status flying, {age:.2f} s old)"
             self.active[i] = Takeover(i, t, why)
             self.landers[i].take_over(time.monotonic(), why)
-            self.log(f"LANDING {self._describe(i)}: rc 0 0 0 0 + land sent, re-sent until down")
+            self.log(f"LANDING {self._describe(i)}: rc 0 0 0 0 + land sent, re-sent until down", "warning")
             self.summary.takeovers.append(self.active[i])
             return
         if flying is None:
@@ -300,7 +302,7 @@ class Guard:
         """Log the takeovers cut short by Ctrl-C (what was sent stands: a Tello executes `land` at once)."""
         now = time.monotonic()
         for i in list(self.active):
-            self.log(f"drone {i}: interrupted while landing it; land was sent, not seen down")
+            self.log(f"drone {i}: interrupted while landing it; land was sent, not seen down", "warning")
             self._end(i, "interrupted", now, reopen=False)
 
     def close(self) -> None:

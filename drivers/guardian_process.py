@@ -55,8 +55,10 @@ FORCE_DISARM = 21196.0  # MAV_CMD_COMPONENT_ARM_DISARM param2: disarm regardless
 
 
 class Log:
-    """Lines `<name> <pid> t=<monotonic s> <text>` to `stream` (None: stderr) and an optional file, from a
-    writer thread (`flightstack guard` uses it with name "guard" and stdout)."""
+    """Lines `<level>: <name> <pid> t=<monotonic s> <text>` to `stream` (None: stderr) and an optional file,
+    from a writer thread (`flightstack guard` uses it with name "guard" and stdout). The level is the
+    console's (`info`, `warning`, `error`: docs/logs.md, "What a run prints"): `warning` when the process
+    acts on the drones or something failed that it works around, `error` when it gives up."""
 
     def __init__(self, path: str | None, name: str = "guardian", stream: TextIO | None = None) -> None:
         self._q: queue.Queue[str | None] = queue.Queue()
@@ -71,8 +73,8 @@ class Log:
         self._thread = threading.Thread(target=self._run, name="guardian-log", daemon=True)
         self._thread.start()
 
-    def __call__(self, text: str) -> None:
-        self._q.put(f"{self._name} {os.getpid()} t={time.monotonic():.3f} {text}\n")
+    def __call__(self, text: str, level: str = "info") -> None:
+        self._q.put(f"{level}: {self._name} {os.getpid()} t={time.monotonic():.3f} {text}\n")
 
     def _run(self) -> None:
         while (line := self._q.get()) is not None:
@@ -142,7 +144,7 @@ class Robot:
             return
         if self.sends >= self.cfg.robot_sends:
             self.done = True
-            self.log(f"robot: no HEARTBEAT showed it disarmed after {self.sends} sends: giving up")
+            self.log(f"robot: no HEARTBEAT showed it disarmed after {self.sends} sends: giving up", "error")
             return
         self.last_send_t = now
         if self.conn is None and not self._open():
@@ -164,10 +166,12 @@ class Robot:
                 0, 0, 0, 0, 0,
             )  # fmt: skip
         except Exception as exc:
-            self.log(f"robot: send failed: {type(exc).__name__}: {exc}")
+            self.log(f"robot: send failed: {type(exc).__name__}: {exc}", "warning")
         self.sends += 1
         self.first_send_t = self.first_send_t if self.first_send_t is not None else now
-        self.log(f"robot: zero velocity, forced disarm, HOLD sent to {sysid}/{comp} (send {self.sends})")
+        self.log(
+            f"robot: zero velocity, forced disarm, HOLD sent to {sysid}/{comp} (send {self.sends})", "warning"
+        )
 
     def _open(self) -> bool:
         try:
@@ -180,7 +184,7 @@ class Robot:
             self.log(f"robot: connection {self.cfg.robot_url!r} open")
             return True
         except Exception as exc:
-            self.log(f"robot: cannot open {self.cfg.robot_url!r}: {type(exc).__name__}: {exc}")
+            self.log(f"robot: cannot open {self.cfg.robot_url!r}: {type(exc).__name__}: {exc}", "error")
             self.conn = None
             return False
 
@@ -191,7 +195,7 @@ class Robot:
             try:
                 msg = self.conn.recv_match(type="HEARTBEAT", blocking=False)
             except Exception as exc:
-                self.log(f"robot: receive error {type(exc).__name__}: {exc}")
+                self.log(f"robot: receive error {type(exc).__name__}: {exc}", "warning")
                 return
             if msg is None:
                 return
@@ -277,7 +281,7 @@ class GuardianProcess:
             return
         except OSError as exc:
             data = b""
-            self.log(f"pipe read error: {exc}")
+            self.log(f"pipe read error: {exc}", "warning")
         if not data:
             self.sel.unregister(0)
             if not self.bye and self.takeover_t is None:
@@ -304,10 +308,10 @@ class GuardianProcess:
             if self.flag is not None:
                 self.flag.set()
         except Exception as exc:  # the drones come first
-            self.log(f"cannot set the takeover flag: {exc}")
+            self.log(f"cannot set the takeover flag: {exc}", "error")
         self.send_all(now, first=True)
         flag = "flag set, " if self.flag is not None else ""
-        self.log(f"TAKEOVER: {why}; {flag}rc 0 0 0 0 and land sent to {len(self.drones)} Tello(s)")
+        self.log(f"TAKEOVER: {why}; {flag}rc 0 0 0 0 and land sent to {len(self.drones)} Tello(s)", "warning")
         if self.robot is not None:
             self.robot.step(now)
 
@@ -323,13 +327,16 @@ class GuardianProcess:
                 self.send(d, "land")
                 d.last_send_t, d.sends = now, d.sends + 1
                 if not first:
-                    self.log(f"{d.spec.host}: rc 0 0 0 0 + land re-sent ({d.sends}, {self.telemetry(d)})")
+                    self.log(
+                        f"{d.spec.host}: rc 0 0 0 0 + land re-sent ({d.sends}, {self.telemetry(d)})",
+                        "warning",
+                    )
 
     def send(self, d: Drone, text: str) -> None:
         try:
             self.cmd_socks[d.spec.bind_ip].sendto(text.encode("ascii"), (d.spec.host, d.spec.control_port))
         except OSError as exc:
-            self.log(f"{d.spec.host}: sending {text!r} failed: {exc}")
+            self.log(f"{d.spec.host}: sending {text!r} failed: {exc}", "warning")
 
     def telemetry(self, d: Drone) -> str:
         s = d.tracker.latest
@@ -351,7 +358,9 @@ class GuardianProcess:
                 if key not in self.held_logged:
                     self.held_logged.add(key)
                     held = "held (by the stopped parent?)" if exc.errno == errno.EADDRINUSE else str(exc)
-                    self.log(f"state port {key[0] or '*'}:{key[1]} {held}; re-sending without telemetry")
+                    self.log(
+                        f"state port {key[0] or '*'}:{key[1]} {held}; re-sending without telemetry", "warning"
+                    )
                 continue
             s.setblocking(False)
             self.state_socks[key] = s
@@ -367,7 +376,7 @@ class GuardianProcess:
             except BlockingIOError:
                 return
             except OSError as exc:
-                self.log(f"state port {key[1]}: {exc}")
+                self.log(f"state port {key[1]}: {exc}", "warning")
                 return
             for d in self.drones:
                 if d.spec.host == addr[0] and (d.spec.bind_ip, d.spec.state_port) == key:
@@ -401,7 +410,10 @@ class GuardianProcess:
             return EXIT_DONE
         if now - self.takeover_t > self.cfg.give_up_s:
             up = [d.spec.host for d in self.drones if d.down_t is None]
-            self.log(f"giving up after {self.cfg.give_up_s:g} s; not seen down: {up} (the Tello auto-lands)")
+            self.log(
+                f"giving up after {self.cfg.give_up_s:g} s; not seen down: {up} (the Tello auto-lands)",
+                "error",
+            )
             return EXIT_GAVE_UP
         return None
 
@@ -420,7 +432,7 @@ class GuardianProcess:
             except Exception as exc:  # the watch must outlive any bug (logged at the 1st, then every 100th)
                 errors += 1
                 if errors == 1 or errors % 100 == 0:
-                    self.log(f"error #{errors} in the loop: {type(exc).__name__}: {exc}")
+                    self.log(f"error #{errors} in the loop: {type(exc).__name__}: {exc}", "error")
                 time.sleep(TICK_S)
                 continue
             if code is not None:
@@ -529,13 +541,13 @@ def main() -> int:
         os.set_blocking(1, False)  # from now on stdout carries only the heartbeat
         code = g.run()
     except Exception as exc:
-        log(f"error: {type(exc).__name__}: {exc}")
+        log(f"{type(exc).__name__}: {exc}", "error")
         code = EXIT_CONFIG if g is None else EXIT_GAVE_UP
     finally:
         if g is not None:
             g.close()
         remove_launch_dir(cfg.launch_dir)
-    log(f"exit {code}")
+    log(f"exit {code}", "info" if code == 0 else "warning")
     log.close()
     return code
 

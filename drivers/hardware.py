@@ -252,7 +252,7 @@ class HardwareBackend:
         for i, drv in self.drones.items():
             if drv.state().phase != FlightPhase.GROUND:  # taking off, airborne, landing or unknown
                 if self._seen_down(i):  # its telemetry is silent, but motion capture shows it down
-                    LOG.warning("drone %s: on the floor by motion capture; no land sent while closing", i)
+                    LOG.info("drone %s: on the floor by motion capture; no land sent while closing", i)
                     continue
                 try:
                     drv.land()

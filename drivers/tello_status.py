@@ -16,7 +16,7 @@ from collections import Counter
 
 from flightstack.drivers.tello_phase import PhaseThresholds, PhaseTracker
 from flightstack.drivers.tello_state import TelloTelemetry
-from flightstack.events import Event, TelloKind
+from flightstack.events import Event, TelloKind, log_level
 from flightstack.hal import FlightPhase
 
 LOG = logging.getLogger("flightstack.tello")
@@ -33,7 +33,7 @@ class DriverEvents:
     def add(self, kind: TelloKind, detail: str = "") -> None:
         self.events.append(Event(time.monotonic(), None, kind, detail, source="tello", clock="monotonic"))
         del self.events[:-1000]
-        LOG.warning("tello %s %s %s", self.host, kind, detail)
+        LOG.log(log_level(kind), "tello %s %s %s", self.host, kind, detail)
 
 
 class DriverStatus:

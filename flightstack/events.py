@@ -96,11 +96,11 @@ KINDS: Mapping[str, KindInfo] = {
     "emergency_stop": _w("motors stopped on request"),
     "emergency_stop_failed": _e("the emergency stop raised"),
     "target_lost_hover": _w("the target unseen: every drone hovers"),
-    "land_all": _w("the supervisor lands every drone (detail: why)"),
+    "land_all": _i("the supervisor lands every drone (detail: why; a fault that caused it is its own event)"),
     "signal": _w("a signal (Ctrl-C, SIGTERM) and what the supervisor does with it"),
-    "takeoff": _w("takeoff accepted and sent"),
+    "takeoff": _i("takeoff accepted and sent"),
     "takeoff_failed": _e("takeoff raised or did not lift the drone"),
-    "land": _w("land sent (detail: why)"),
+    "land": _i("land sent (detail: why; a fault that caused it is its own event)"),
     # the runner (flightstack.runtime; source "run", mission clock; facts: the record's other fields)
     "end": _i('the mode ended as planned ("mission complete")'),
     "end_early": _w("the mode ended early: every drone landed by safety, interrupted, aborted or diverged"),
@@ -268,3 +268,15 @@ def severity(ev: Mapping[str, Any]) -> Severity:
     declared here (a recording from another version)."""
     kind = kind_of(ev)
     return "WARNING" if kind is None else KINDS[kind].severity
+
+
+LOG_LEVELS: Mapping[Severity, int] = {"INFO": 20, "WARNING": 30, "ERROR": 40}
+"""A severity as a `logging` level (logging.INFO, WARNING, ERROR): how a component that logs its events
+as they happen (the safety layer, the Tello driver) logs each kind; the console shows the level
+(docs/logs.md, "What a run prints")."""
+
+
+def log_level(kind: str) -> int:
+    """The `logging` level of an event of `kind` (its KINDS severity; WARNING for an undeclared one)."""
+    info = KINDS.get(kind)
+    return LOG_LEVELS["WARNING" if info is None else info.severity]

@@ -497,8 +497,9 @@ def test_cli_report_prints_what_it_skipped(
     assert cli.main(["report", str(run), "--no-plots"]) == 0
     out, err = capsys.readouterr()
     assert err.splitlines() == [
-        "skipped: recording.json: not JSON (Unterminated string starting at: line 1 column 11 (char 10))",
-        "skipped: datasets.npz: not a readable npz (not a zip archive: File is not a zip file)",
+        "warning: skipped: recording.json: not JSON "
+        "(Unterminated string starting at: line 1 column 11 (char 10))",
+        "warning: skipped: datasets.npz: not a readable npz (not a zip archive: File is not a zip file)",
     ]
     assert "recording INCOMPLETE: unknown: recording.json damaged" in out
 

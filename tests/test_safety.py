@@ -466,6 +466,26 @@ def test_command_watchdog_hovers_every_tick_and_logs_once_per_episode() -> None:
     np.testing.assert_array_equal(r.last_sent(), np.zeros(4))
 
 
+def test_the_takeoff_climb_is_no_silence_of_the_loop_but_still_gets_zero_velocity() -> None:
+    """While its telemetry shows the takeoff climb no command is due (the drone ignores rc): zero velocity
+    is sent as before, but `command_timeout` (a dead loop) counts only from the climb's end."""
+    r = Rig()
+    r.inner.phase = "taking_off"
+    for t in (0.6, 1.5, 2.95):
+        r.clock.t = t
+        r.sd.tick()
+    assert len(r.inner.sent) == 3 and all(not v.any() for v in r.inner.sent)
+    assert r.log.of_kind("command_timeout") == []
+    r.inner.phase = "flying"  # up at 2.95 s: the loop has command_timeout (0.5 s) to speak
+    r.clock.t = 3.4
+    r.sd.tick()
+    assert r.log.of_kind("command_timeout") == [] and len(r.inner.sent) == 4
+    r.clock.t = 3.5
+    r.sd.tick()
+    (ev,) = r.log.of_kind("command_timeout")
+    assert ev.t == 3.5 and ev.detail.startswith("no command for 0.550 s")
+
+
 def test_tick_before_takeoff_or_first_command_does_nothing() -> None:
     r = Rig(takeoff=False)
     r.clock.t = 10.0

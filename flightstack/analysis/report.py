@@ -152,7 +152,7 @@ def rebuild_run(
         if (run_dir / out).exists() and not (run_dir / out).is_file():
             raise RunDirError(run_dir / out, "not a file, so it cannot be rebuilt")
     if mission is None:
-        mission = _run_mission(run_dir / MISSION_FILE)
+        mission = run_mission(run_dir)
     contents = read_run(run_dir, mission)
     recs, skipped = contents.recordings, list(contents.skipped)
     if not recs:
@@ -183,9 +183,10 @@ def rebuild_run(
     return metrics, paths, skipped
 
 
-def _run_mission(path: Path) -> Mission:
-    """The run's mission_resolved.yaml (its files need not exist here); RunDirError when it is missing
-    or does not load."""
+def run_mission(run_dir: Path) -> Mission:
+    """The mission of a run directory, its mission_resolved.yaml (its files need not exist here);
+    RunDirError when it is missing or does not load."""
+    path = Path(run_dir) / MISSION_FILE
     if not path.exists():
         raise RunDirError(path, "not found (pass --mission)")
     try:

@@ -27,26 +27,25 @@ def cmd_report(args: argparse.Namespace) -> int:
     """Rebuild metrics.json and the plots of a run directory from its recording (also one cut short by
     a kill, a crash or a full disk: then from the row streams); exit 2 with one line `error: <file>:
     <what>` when a file it needs is missing or damaged (recording.files.REQUIRED_FILES); a damaged
-    optional file is skipped with a line `skipped: <file>: <what>` on stderr."""
-    from flightstack.analysis.report import rebuild_run
+    optional file is skipped with a line `warning: skipped: <file>: <what>` on stderr. Prints the same
+    metric lines as `run` (flightstack.cli.summary.metric_lines)."""
+    from flightstack.analysis.report import rebuild_run, run_mission
+    from flightstack.cli.summary import metric_lines, say
     from flightstack.recording.files import RunDirError
 
     run = Path(args.run_dir)
     mission = load_mission(args.mission) if args.mission else None
     try:
         m, plots, skipped = rebuild_run(run, mission, plots=not args.no_plots)
+        mission = mission or run_mission(run)
     except RunDirError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     for line in skipped:
-        print(f"skipped: {line}", file=sys.stderr)
+        say("warning", f"skipped: {line}")
     print(f"run directory: {run}")
-    for mode, mm in m["modes"].items():
-        err = f"   ({mm['error']})" if mm.get("error") else ""
-        mse = mm.get("mean_sq_error", float("nan"))
-        print(f"  {mode:7s} {mm.get('ticks', 0):7d} ticks   mean_sq_error = {mse:.3e}{err}")
-    rs = m["recording"]
-    print(f"  recording {'complete' if rs['complete'] else 'INCOMPLETE: ' + str(rs['reason'])}")
+    for line in metric_lines(m, mission):
+        print(line)
     print(f"  rebuilt metrics.json{''.join(f', {p.name}' for p in plots)}")
     return 0
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import logging
 import math
 import re
 import sys
@@ -18,7 +17,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import yaml
 from tqdm import tqdm
 
-from flightstack.analysis.loop_health import loop_health_line
+from flightstack.cli.summary import console_logging, metric_lines, say, with_level
 from flightstack.config.links import PROFILES
 from flightstack.config.mission import Mission, MissionError, load_mission
 
@@ -82,7 +81,7 @@ def clear_for_run(out: Path, force: bool) -> None:
 
     removed = clear_run_files(out)
     if removed:
-        print(f"--force: removed {len(removed)} files of an earlier run from {out}", file=sys.stderr)
+        say("info", f"--force: removed {len(removed)} files of an earlier run from {out}")
 
 
 def _progress_factory(bars: list[tqdm]) -> Callable[[str, int], Callable[[int], None]]:
@@ -140,7 +139,7 @@ def with_sets(mission: Mission, sets: list[str]) -> Mission:
 def cmd_run(args: argparse.Namespace) -> int:
     """`run EXPERIMENT --rig RIG`, `sim MISSION` (simulated rigs only) and `fly MISSION`: load, check the
     run directory, start an emulated lab or preflight and confirm real drones, fly, report."""
-    logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")  # safety events, live
+    console_logging()  # the safety events as they happen, each with its level
     overrides: dict[str, object] = {}
     if args.duration is not None:
         overrides["duration_s"] = args.duration
@@ -192,7 +191,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"error: {problem}; nothing took off", file=sys.stderr)
         return 2
     if args.out is None:
-        print(f"run directory: {out} (--out DIR chooses another)", file=sys.stderr)
+        say("info", f"run directory: {out} (--out DIR chooses another)")
     real = not mission.simulated and not mission.start_emulators
     if real:
         code = _confirm_and_preflight(args, mission)
@@ -246,46 +245,16 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
         return 2
     m = res.metrics
     print(f"run directory: {out}")
-    for mode, mm in m["modes"].items():
-        line = f"  {mode:7s} mean_sq_error = {mm.get('mean_sq_error', float('nan')):.3e}"
-        line += f"   sq_mean_error = {mm.get('sq_mean_error', float('nan')):.3e}"
-        if "mean_position_error_m" in mm:
-            seen = ", ".join(f"{i}: {100 * f:.0f} %" for i, f in mm["visible_fraction"].items())
-            line += f"   mean position error {mm['mean_position_error_m']:.3f} m   target seen {seen}"
-        if mm.get("max_fence_excursion_m"):
-            line += f"   OUTSIDE FENCE by {mm['max_fence_excursion_m']:.3f} m"
+    for line in metric_lines(m, flight.mission):
         print(line)
-        health = mm.get("loop_health")
-        if health and health["real_time"]:  # a simulated clock's wall period only says how fast it ran
-            verdict = "kept dt" if health["keeps_dt"] else "DID NOT keep dt"
-            print(f"          loop {verdict}: {loop_health_line(health)}")
-    if "paper" in m:  # the paper's "squared mean of e" beside the same quantity here (docs: paper comparison)
-        print("  the paper's squared mean of e (Sec. 5) beside ours (sq_mean_error):")
-        for mode, v in m["paper"]["modes"].items():
-            print(f"    {mode:10s} ours {v['ours']:9.2e}   paper {v['paper']:9.2e}")
-        for name, v in m["paper"]["ratios"].items():
-            print(f"    {name:10s} ours {v['ours']:9.2f}   paper {v['paper']:9.2f}")
-    if "mean_sq_error" in m.get("ratios", {}):
-        cols = "   ".join(f"{k} {v:.2f}" for k, v in m["ratios"]["mean_sq_error"].items())
-        print(f"  ratios of mean_sq_error (the paper reports none): {cols}")
-    gc = m["gain_condition"]
-    if gc.get("evaluated", True):
-        verdict = "satisfied" if gc["satisfied"] else "NOT satisfied"
-        print(
-            f"  gain condition: kappa = {gc['kappa']:.3f} ({verdict}), L_mu = {gc['L_mu']:.3f}, "
-            f"lambda_H = {gc['lambda_H']:.3f}"
-        )
-    else:
-        print(f"  gain condition: not evaluated ({gc.get('reason') or 'no GP expert'})")
-    print(f"  safety events: {len(m['safety_events'])} (events.jsonl)")
     for line in speed_lines(m, time.perf_counter() - t_cmd0):
         print(line)
     rec_status = m["recording"]
     if not rec_status["complete"]:
-        print(f"error: recording incomplete: {rec_status['reason']}", file=sys.stderr)
+        say("error", f"recording incomplete: {rec_status['reason']}")
     exported = _export_mcap(args, flight.mission, out)
     if res.interrupted:
-        print("interrupted: every drone landed, partial recording written", file=sys.stderr)
+        say("warning", "interrupted: every drone landed, partial recording written")
         return 130
     if res.error:
         print(f"error: {res.error}; every drone landed, partial recording written", file=sys.stderr)
@@ -338,8 +307,8 @@ def speed_lines(m: dict[str, Any], command_s: float) -> list[str]:
 
 
 def to_stderr(line: str) -> None:
-    """A status line of the flight (Flight's `say`), on stderr."""
-    print(line, file=sys.stderr)
+    """A status line of the flight (Flight's `say`), on stderr with its level (`info` unless it has one)."""
+    print(with_level(line), file=sys.stderr)
 
 
 def _bus_override(mission: Mission, kind: str) -> dict[str, object]:
@@ -406,7 +375,12 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
         help="reuse a non-empty --out: first remove the files a run writes there (recordings, metrics, "
         "plots of an earlier run); every other file is kept",
     )
-    p.add_argument("--duration", type=seconds, default=None, help="override duration_s (seconds, > 0)")
+    duration = p.add_argument("--duration", type=seconds, default=None)
+    duration.help = DurationHelp(  # set after add_argument: argparse would format (compute) it there
+        "override duration_s (seconds, > 0); a run with a GP mode must be long enough to train the experts: "
+        f"at least {DurationHelp.MINIMUM}, predicted from the target's path (the estimates' transient may "
+        "need more; a shorter one is refused before takeoff, naming its minimum)"
+    )
     p.add_argument(
         "--modes",
         type=mode_list,
@@ -451,6 +425,25 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
     from flightstack.cli.view import add_viewer_argument
 
     add_viewer_argument(p)
+
+
+class DurationHelp(str):
+    """--duration's help text, which names the shortest duration that trains the GP experts of each built-in
+    experiment (flightstack.learning.training.minimum_duration; about 1 s to compute). It is computed only
+    when argparse formats the help (`help % params`); shell completion, which shows a help text without a
+    `%` as it is, never waits for it."""
+
+    MINIMUM = "the minimum of its experiment"
+
+    def __mod__(self, params: object) -> str:
+        from flightstack.config.rig import BUILTIN_EXPERIMENTS
+        from flightstack.learning.training import minimum_duration
+
+        parts = []
+        for name in BUILTIN_EXPERIMENTS:
+            least = minimum_duration(load_mission(name))
+            parts.append(f"{least:g} s for {name}" if least is not None else f"none for {name}")
+        return str(self).replace(self.MINIMUM, ", ".join(parts))
 
 
 def add_network_argument(p: argparse.ArgumentParser) -> None:

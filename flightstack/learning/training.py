@@ -102,7 +102,6 @@ def training_shortfall(mission: Mission) -> str | None:
     if mission.gp.experts_file is not None or not any(Mode(m).uses_gp for m in mission.compare_modes):
         return None
     need = mission.gp.samples_per_region
-    dt = mission.dt_s
     n = mission.n_ticks
     counts = [int(inside.sum()) for inside in _ticks_in_bands(mission, predicted_target_path(mission, n))]
     short = [k for k, c in enumerate(counts) if c < need]
@@ -117,16 +116,37 @@ def training_shortfall(mission: Mission) -> str | None:
         f"predicted path ({mission.target.motion}) leaves too few ticks in an expert band ({where}; "
         f"gp.samples_per_region = {need} needed in each)"
     )
-    horizon = min(max(10.0 * mission.duration_s, SHORTFALL_HORIZON_S), SHORTFALL_MAX_TICKS * dt)
-    needed = _ticks_to_fill(mission, predicted_target_path(mission, max(n, round(horizon / dt))), need)
-    if needed is None:
+    horizon = _horizon(mission)
+    least = minimum_duration(mission)
+    if least is None:
         longer = f"the path does not fill every band within {horizon:g} s: move gp.regions.edges"
     else:
-        longer = f"fly at least {math.ceil(needed * dt * 10) / 10:g} s (--duration, or duration_s)"
+        longer = f"fly at least {least:g} s (--duration, or duration_s)"
     return (
         f"{what}; {longer}, lower gp.samples_per_region, or train the experts once "
         "(`flightstack train`) and set gp.experts_file"
     )
+
+
+def minimum_duration(mission: Mission) -> float | None:
+    """The shortest duration_s (s, rounded up to 0.1 s) whose data run puts gp.samples_per_region ticks of
+    the target's predicted path in every expert band (what training_shortfall asks for); None when the
+    path does not fill every band within the search horizon (SHORTFALL_HORIZON_S, or ten durations)."""
+    dt = mission.dt_s
+    most = max(mission.n_ticks, round(_horizon(mission) / dt))
+    n = min(most, max(1, round(1.0 / dt)))  # a path of 1 s, then twice as long until it fills the bands
+    while (
+        needed := _ticks_to_fill(mission, predicted_target_path(mission, n), mission.gp.samples_per_region)
+    ) is None:
+        if n >= most:
+            return None
+        n = min(most, 2 * n)
+    return math.ceil(needed * dt * 10) / 10
+
+
+def _horizon(mission: Mission) -> float:
+    """How far ahead (s) minimum_duration searches."""
+    return min(max(10.0 * mission.duration_s, SHORTFALL_HORIZON_S), SHORTFALL_MAX_TICKS * mission.dt_s)
 
 
 def _ticks_to_fill(mission: Mission, path: np.ndarray, need: int) -> int | None:

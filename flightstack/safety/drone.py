@@ -111,6 +111,7 @@ class SafeDrone:
         now = clock.now()
         self._active_since = now
         self._last_command_t = now
+        self._climbing_t = -math.inf  # the last tick its telemetry showed the takeoff climb (mission s)
         self._last_pose: StampedPose | None = None
         self._floor_armed = False
         self._link_seen = False  # the drone reported link_alive since its activation
@@ -312,6 +313,8 @@ class SafeDrone:
                     self._event(now, "landed_by_drone", "telemetry shows the drone on the ground")
                     self._phase = _Phase.LANDED
                     return
+                if st.phase == FlightPhase.TAKING_OFF:  # climbing by itself: it ignores rc, none is due
+                    self._climbing_t = now
                 if link_alive:
                     self._link_seen = True
                 elif self._link_seen:  # up since takeoff, now down (a link never up is not "lost")
@@ -325,9 +328,11 @@ class SafeDrone:
                         now, "battery_land", f"battery {battery:.1f} % < {self.limits.land_battery:.1f} %"
                     )
                     return
-            silent = now - self._last_command_t
-            if silent > self.limits.command_timeout:  # every tick: a driver reads silence as a dead loop
-                self._event_once(now, "command_timeout", f"no command for {silent:.3f} s: zero velocity")
+            if now - self._last_command_t > self.limits.command_timeout:  # every tick: a driver reads
+                # silence as a dead loop. A fault only once the climb is over: the event counts from then
+                silent = now - max(self._last_command_t, self._climbing_t)
+                if silent > self.limits.command_timeout:
+                    self._event_once(now, "command_timeout", f"no command for {silent:.3f} s: zero velocity")
                 self._send_quietly(now, np.zeros(4))
 
     # ---- internals -------------------------------------------------------------------------------------
@@ -343,6 +348,7 @@ class SafeDrone:
         self._episodes.clear()
         self._active_since = now
         self._last_command_t = now
+        self._climbing_t = -math.inf
         self._floor_armed = False
         self._link_seen = False
 

@@ -15,10 +15,10 @@ from typing import get_args
 
 import numpy as np
 
-from flightstack.events import Event, SafetyKind
+from flightstack.events import Event, SafetyKind, log_level
 from flightstack.paper.geometry import Pose
 
-_logger = logging.getLogger(__name__)
+_logger = logging.getLogger("flightstack.safety")
 
 EVENT_KINDS: frozenset[str] = frozenset(get_args(SafetyKind))
 """The kinds a safety event may have (flightstack.events.KINDS says what each means)."""
@@ -152,7 +152,8 @@ EVENT_KINDS; the name stays for readability at the call sites."""
 
 
 class EventLog:
-    """Append-only, thread-safe list of SafetyEvent (also echoed to the `flightstack.safety` logger).
+    """Append-only, thread-safe list of SafetyEvent (also echoed to the `flightstack.safety` logger, at the
+    kind's severity in flightstack.events.KINDS).
 
     Uses a re-entrant lock so that a signal handler running on the main thread may log while the main
     thread is itself inside `append`.
@@ -169,7 +170,7 @@ class EventLog:
         with self._lock:
             self._events.append(event)
         who = "mission" if event.drone is None else f"drone {event.drone}"
-        _logger.warning("t=%.3f %s %s: %s", event.t, who, event.kind, event.detail)
+        _logger.log(log_level(event.kind), "t=%.3f %s %s: %s", event.t, who, event.kind, event.detail)
 
     def record(self, t: float, drone: int | None, kind: SafetyKind, detail: str) -> SafetyEvent:
         """Build, append and return an event."""
