@@ -21,6 +21,7 @@ from tqdm import tqdm
 from flightstack.analysis.loop_health import loop_health_line
 from flightstack.config.links import PROFILES
 from flightstack.config.mission import Mission, MissionError, load_mission
+from flightstack.threads import ThreadLimits
 
 if TYPE_CHECKING:
     from flightstack.runtime.flight import Flight, FlightResult
@@ -280,6 +281,8 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
     print(f"  safety events: {len(m['safety_events'])} (events.jsonl)")
     for line in speed_lines(m, time.perf_counter() - t_cmd0):
         print(line)
+    if m.get("threads"):  # what the flight ran with (flightstack.threads), as metrics.json has it
+        print(f"  {ThreadLimits(**m['threads']).line()}")
     rec_status = m["recording"]
     if not rec_status["complete"]:
         print(f"error: recording incomplete: {rec_status['reason']}", file=sys.stderr)

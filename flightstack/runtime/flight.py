@@ -28,6 +28,7 @@ from typing import Any, TypeVar
 
 import yaml
 
+from flightstack import threads
 from flightstack.analysis.metrics import build_metrics
 from flightstack.comms.bus import Bus
 from flightstack.config.mission import Mission, MissionError, mission_to_dict
@@ -286,6 +287,7 @@ class Flight:
             interrupted=res.interrupted,
             error=res.error,
         )
+        res.metrics["threads"] = threads.in_effect().as_dict()  # the pools this flight ran with
         if self.writer is not None:
             try:
                 res.metrics = _write_results(self.writer, res)
