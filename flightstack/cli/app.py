@@ -510,7 +510,9 @@ def build_parser(selected: Iterable[str] | None = None) -> argparse.ArgumentPars
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--version", action=_Version, help="show the installed version and exit")
-    action = p.add_subparsers(dest="command", required=True, metavar="COMMAND", help=argparse.SUPPRESS)
+    action = p.add_subparsers(
+        dest="command", required=True, metavar="COMMAND", help=argparse.SUPPRESS, prog="flightstack"
+    )
     sub = _Subcommands(action)
     wanted = set(_BY_NAME) if selected is None else set(selected) & set(_BY_NAME)
     for adder in dict.fromkeys(c.adder for c in COMMANDS if c.name in wanted):  # each adder once, in order
