@@ -479,14 +479,14 @@ class _Subcommands:
         if isinstance(existing, argparse.ArgumentParser):
             return existing
         kwargs.setdefault("help", _BY_NAME[name].help)
-        return self._action.add_parser(name, **kwargs)  # type: ignore[no-any-return]
+        return self._action.add_parser(name, **kwargs)
 
 
 def _adder(adder: Callable[[Any], object] | str) -> Callable[[Any], object]:
     if callable(adder):
         return adder
     module, _, function = adder.partition(":")
-    return getattr(importlib.import_module(module), function)  # type: ignore[no-any-return]
+    return getattr(importlib.import_module(module), function)
 
 
 def command_listing() -> str:
