@@ -328,6 +328,7 @@ def main(argv: list[str] | None = None) -> int:
     stage("agent_tick", lambda: sim_speed.bench_ticks(PAPER_SIM, SCALING))
     stage("shared_kernel", lambda: sim_speed.shared_kernel_accuracy(PAPER_SIM))
     stage("paper_sim", lambda: sim_speed.bench_paper_sim(PAPER_SIM))
+    stage("whole_process", sim_speed.bench_whole_process)
     stage("drones", lambda: sim_speed.bench_drones(PAPER_SIM, SCALING))
     stage("sweep", sim_speed.bench_sweep)
     stage("lab_run", sim_speed.bench_lab_run)

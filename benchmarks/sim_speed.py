@@ -8,6 +8,8 @@
 * The paper simulation's flown modes (none, local, dgp; 40 s each) in the compiled loop, and the whole
   `flightstack run paper_sim` command (kernel cache load, training, gain analysis, files and plots) in a
   subprocess; simulation speed against drones (3, 11, 31; mode dgp).
+* The whole `flightstack run paper_sim` process, warm, five times as the machine is and five times beside
+  two CPU-bound processes: wall and CPU seconds.
 * A 20-seed sweep of the paper simulation (`flightstack sweep paper_sim --seeds 20`, 3 modes each) on
   every core of this machine.
 * The simulated lab (`paper_experiment --rig lab-sim`): one run's flown modes in sim s per wall s, and a
@@ -175,6 +177,51 @@ def bench_paper_sim(paper: Path) -> dict[str, object]:
         "command_s": command,
         "command_sim_per_wall": sim / command,
     }
+
+
+def _whole_run(out: str) -> tuple[float, float]:
+    """One `flightstack run paper_sim` process: (wall s, CPU s = user + sys of the process)."""
+    import resource
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    cmd = [sys.executable, "-m", "flightstack", "run", "paper_sim", "--out", out, "--force", "--no-progress"]
+    subprocess.run(cmd, check=True, capture_output=True, timeout=600)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def bench_whole_process(repeats: int = 5) -> dict[str, dict[str, object]]:
+    """The whole `flightstack run paper_sim` process (start, imports, flight, files, plots, exit), warm:
+    `repeats` runs as the machine is ("quiet"), then `repeats` beside two CPU-bound processes ("loaded");
+    each: the runs' wall and CPU seconds (user + sys), their medians, the 1-minute load average before and
+    after. On a shared machine "quiet" is what the other jobs leave: the load says how quiet it was."""
+    out: dict[str, dict[str, object]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        _whole_run(f"{tmp}/run")  # warm: the kernels' cache and the file system
+        for case in ("quiet", "loaded"):
+            hogs = []
+            if case == "loaded":
+                hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(2)]
+                time.sleep(2.0)
+            try:
+                load0 = os.getloadavg()[0]
+                runs = [_whole_run(f"{tmp}/run") for _ in range(repeats)]
+                load1 = os.getloadavg()[0]
+            finally:
+                for h in hogs:
+                    h.kill()
+                    h.wait()
+            walls, cpus = [w for w, _ in runs], [c for _, c in runs]
+            out[case] = {
+                "wall_s": walls,
+                "cpu_s": cpus,
+                "median_wall_s": float(np.median(walls)),
+                "median_cpu_s": float(np.median(cpus)),
+                "load": [load0, load1],
+            }
+    return out
 
 
 def bench_drones(

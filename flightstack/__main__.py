@@ -1,6 +1,6 @@
 # PYTHON_ARGCOMPLETE_OK
 """`python -m flightstack ...` runs the operator CLI."""
 
-from flightstack.cli.app import main
+from flightstack.cli import main
 
 raise SystemExit(main())

@@ -1,26 +1,26 @@
 # PYTHON_ARGCOMPLETE_OK
-"""Operator command line (`flightstack -h`): sim, fly, report, preflight, target, world, agent, abort, ..."""
+"""Operator command line (`flightstack -h`): the commands grouped by what an operator does (COMMANDS).
+
+Only the command being run (or completed) is built with its options, and only its modules are imported:
+`flightstack --help` and a completion of a command's name import none of numpy, numba, scipy, matplotlib,
+cv2 or zenoh (tests/test_cli_help.py). `build_parser()` without arguments builds every command."""
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import signal
 import sys
 import time
-from importlib.metadata import PackageNotFoundError, version
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import argcomplete
 
-from flightstack.cli.run import (
-    _confirm,
-    add_run_arguments,
-    cmd_run,
-    seconds,
-)
-from flightstack.config.mission import MissionError, load_mission
-from flightstack.config.rig import RigError
+from flightstack import threads
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -31,6 +31,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     metric lines as `run` (flightstack.cli.summary.metric_lines)."""
     from flightstack.analysis.report import rebuild_run, run_mission
     from flightstack.cli.summary import metric_lines, say
+    from flightstack.config.mission import load_mission
     from flightstack.recording.files import RunDirError
 
     run = Path(args.run_dir)
@@ -52,6 +53,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def cmd_preflight(args: argparse.Namespace) -> int:
     """Check every device and file of a hardware mission; exit 1 on any FAIL (drivers/preflight.py)."""
+    from flightstack.config.mission import load_mission
     from flightstack.drivers.preflight import format_table, run_preflight
 
     mission = load_mission(args.mission, check_files=False, rig=args.rig)
@@ -69,6 +71,8 @@ def cmd_preflight(args: argparse.Namespace) -> int:
 
 def cmd_target(args: argparse.Namespace) -> int:
     """Drive the real robot on the mission's square law from its motion-capture pose (drivers/target_run)."""
+    from flightstack.cli.run import _confirm
+    from flightstack.config.mission import load_mission
     from flightstack.drivers.guardian import Guardian, GuardianConfig
     from flightstack.drivers.hardware import body_names, mocap_config, scamper_config
     from flightstack.drivers.mocap import MocapPoseSource
@@ -146,6 +150,7 @@ def mocap_wait(mocap: object, body: str, timeout_s: float) -> object | None:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    from flightstack.config.mission import load_mission
     from flightstack.learning.training import collect_datasets, save_experts, train_experts
     from flightstack.recording.timeseries import Recording
 
@@ -225,31 +230,42 @@ def cmd_calibrate_drone(args: argparse.Namespace) -> int:
         guardian.finish()
 
 
+def version(name: str) -> str:
+    """importlib.metadata.version, imported when asked (it costs `--help` tens of ms)."""
+    from importlib.metadata import version as dist_version
+
+    return dist_version(name)
+
+
 def package_version() -> str:
     """The installed distribution's version (pyproject.toml), or "unknown" when flightstack runs from a
     checkout that was never installed (no distribution metadata)."""
+    from importlib.metadata import PackageNotFoundError
+
     try:
         return version("flightstack")
     except PackageNotFoundError:
         return "unknown"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="flightstack", description=__doc__)
-    p.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
-    sub = p.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("run", help="fly an experiment on a rig (ideal, lab-sim, emulated-lab, a lab file)")
+def _add_run(sub: Any) -> None:
+    from flightstack.cli.run import add_run_arguments, cmd_run
+
+    r = sub.add_parser("run")
     add_run_arguments(r, "experiment: a built-in name (paper_sim, paper_experiment) or a YAML file")
     r.add_argument("--yes", action="store_true", help="confirm that real drones may take off")
     r.set_defaults(func=cmd_run)
-    s = sub.add_parser("sim", help="run an experiment on a simulated rig (refuses real drones)")
+    s = sub.add_parser("sim")
     add_run_arguments(s, "experiment or mission YAML file (see mission_configs/)")
     s.set_defaults(func=cmd_run)
-    f = sub.add_parser("fly", help="fly an experiment on real hardware: preflight, confirm, fly")
+    f = sub.add_parser("fly")
     add_run_arguments(f, "experiment (with --rig LAB.yaml) or mission YAML file")
     f.add_argument("--yes", action="store_true", help="confirm that the drones may take off")
     f.set_defaults(func=cmd_run)
-    pf = sub.add_parser("preflight", help="check every device of a hardware mission (pass/fail table)")
+
+
+def _add_preflight(sub: Any) -> None:
+    pf = sub.add_parser("preflight")
     pf.add_argument("mission")
     pf.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     pf.add_argument("--deadline", type=float, default=9.0, help="bound on the whole check (s)")
@@ -258,20 +274,34 @@ def build_parser() -> argparse.ArgumentParser:
         "--id", type=int, action="append", help="check only this drone (repeatable; access-point mode)"
     )
     pf.set_defaults(func=cmd_preflight)
-    tg = sub.add_parser("target", help="drive the real ground robot on the square law (motion capture)")
+
+
+def _add_target(sub: Any) -> None:
+    from flightstack.cli.run import seconds
+
+    tg = sub.add_parser("target")
     tg.add_argument("mission", help="mission YAML file with hardware.mocap and hardware.target")
     tg.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     tg.add_argument("--laps", type=float, default=1.0, help="laps of the square (default 1)")
     tg.add_argument("--duration", type=seconds, default=None, help="seconds instead of laps")
     tg.add_argument("--yes", action="store_true", help="confirm that the robot may move")
     tg.set_defaults(func=cmd_target)
-    t = sub.add_parser("train", help="fit GP experts on a recorded run (data collection without GP)")
+
+
+def _add_train(sub: Any) -> None:
+    t = sub.add_parser("train")
     t.add_argument("run_dir", help="run directory written by `flightstack sim`")
     t.add_argument("--out", required=True, help="experts file to write (.npz)")
     t.add_argument("--mission", default=None, help="mission file (default: RUN_DIR/mission_resolved.yaml)")
     t.add_argument("--from-mode", default="none", help="which recorded mode to learn from (default: none)")
     t.set_defaults(func=cmd_train)
-    cal = sub.add_parser("calibrate", help="calibration tools")
+
+
+def _add_calibrate(sub: Any) -> None:
+    from flightstack.calibration.cli import register as register_calibration
+    from flightstack.cli.run import seconds
+
+    cal = sub.add_parser("calibrate")
     cal_sub = cal.add_subparsers(dest="what", required=True)
     cd = cal_sub.add_parser("drone", help="identify a Tello's rc-unit -> velocity gains and time constants")
     cd.add_argument("--ip", required=True, help="the drone's IP address (station mode)")
@@ -282,41 +312,223 @@ def build_parser() -> argparse.ArgumentParser:
     cd.add_argument("--out", required=True, help="YAML file to write")
     cd.add_argument("--yes", action="store_true", help="confirm that the drone may take off")
     cd.set_defaults(func=cmd_calibrate_drone)
-    from flightstack.calibration.cli import register as register_calibration
-
     register_calibration(cal_sub)
-    from flightstack.cli.certs import register as register_certs
-    from flightstack.cli.export import register as register_export
-    from flightstack.cli.generate import register as register_generate
-    from flightstack.cli.network import register as register_network
-    from flightstack.cli.sweep import register as register_sweep
-    from flightstack.cli.view import register as register_view
-    from flightstack.faults.cli import register as register_faults
 
-    register_network(sub)
-    register_faults(sub)
-    register_certs(sub)
-    register_sweep(sub)
-    register_generate(sub)
-    register_export(sub)
-    register_view(sub)
-    rp = sub.add_parser(
-        "report", help="rebuild metrics.json and the plots of a run directory (also one cut short by a kill)"
-    )
+
+def _add_report(sub: Any) -> None:
+    rp = sub.add_parser("report")
     rp.add_argument("run_dir", help="run directory written by `flightstack sim`/`fly`/`agent`")
     rp.add_argument("--mission", default=None, help="mission file (default: RUN_DIR/mission_resolved.yaml)")
     rp.add_argument("--no-plots", action="store_true", help="metrics.json only")
     rp.set_defaults(func=cmd_report)
-    from flightstack.cli.validate import register as register_validate
 
-    register_validate(sub)
-    from flightstack.cli.completion import register as register_completion
 
-    register_completion(sub)
-    from flightstack.cli.bench_loop import register as register_bench_loop
+class _Version(argparse.Action):
+    """`--version`: argparse's version action, with the version read only when asked."""
 
-    register_bench_loop(sub)
+    def __init__(self, option_strings: list[str], dest: str, help: str | None = None) -> None:
+        super().__init__(
+            option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, nargs=0, help=help
+        )
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        parser._print_message(f"{parser.prog} {package_version()}\n", sys.stdout)
+        parser.exit()
+
+
+@dataclass(frozen=True)
+class Command:
+    """A top-level command: its group in `flightstack --help`, its one-line help, and what adds it with
+    its options (a function of this module, or "module:function" imported only when it is needed; one
+    adder may add several commands)."""
+
+    group: str
+    name: str
+    help: str
+    adder: Callable[[Any], object] | str
+
+
+GROUPS = ("simulate", "analyse", "hardware", "bus", "shell")
+START_HERE = (
+    "start here: flightstack run paper_sim   (the paper's simulation, a few seconds, into a run directory;\n"
+    "            `flightstack COMMAND -h` shows a command's options)"
+)
+COMMANDS = (
+    Command(
+        "simulate", "run", "fly an experiment on a rig (ideal, lab-sim, emulated-lab, a lab file)", _add_run
+    ),
+    Command("simulate", "sim", "run an experiment on a simulated rig (refuses real drones)", _add_run),
+    Command(
+        "simulate",
+        "sweep",
+        "run an experiment over seeds x a grid of overrides, with statistics",
+        "flightstack.cli.sweep:register",
+    ),
+    Command(
+        "simulate",
+        "faults",
+        "fly the simulated mission under each fault and print what the system did",
+        "flightstack.faults.cli:register",
+    ),
+    Command(
+        "simulate",
+        "generate-mission",
+        "write the paper's simulation for N drones (scaling experiments)",
+        "flightstack.cli.generate:register",
+    ),
+    Command(
+        "simulate",
+        "validate",
+        "check an experiment (on its rig), a rig or lab file, or a mission",
+        "flightstack.cli.validate:register",
+    ),
+    Command(
+        "analyse",
+        "report",
+        "rebuild metrics.json and the plots of a run directory (also one cut short by a kill)",
+        _add_report,
+    ),
+    Command(
+        "analyse",
+        "view",
+        "show a run directory in the Rerun 3-D viewer (poses, estimates, cameras, GP, errors, events)",
+        "flightstack.cli.view:register",
+    ),
+    Command(
+        "analyse",
+        "export",
+        "export a run directory as an MCAP file (Foxglove, PlotJuggler)",
+        "flightstack.cli.export:register",
+    ),
+    Command("analyse", "train", "fit GP experts on a recorded run (data collection without GP)", _add_train),
+    Command("hardware", "fly", "fly an experiment on real hardware: preflight, confirm, fly", _add_run),
+    Command(
+        "hardware", "preflight", "check every device of a hardware mission (pass/fail table)", _add_preflight
+    ),
+    Command(
+        "hardware", "target", "drive the real ground robot on the square law (motion capture)", _add_target
+    ),
+    Command(
+        "hardware",
+        "calibrate",
+        "calibration tools (cameras, markers, a Tello's gains, latency)",
+        _add_calibrate,
+    ),
+    Command(
+        "hardware",
+        "bench-loop",
+        "does this computer keep the mission's dt while decoding every drone's video? (emulated lab)",
+        "flightstack.cli.bench_loop:register",
+    ),
+    Command(
+        "bus",
+        "world",
+        "serve a simulated mission's world to agent processes over Zenoh",
+        "flightstack.cli.network:register",
+    ),
+    Command(
+        "bus",
+        "agent",
+        "run one agent (its drone, camera, pose) talking to the others over Zenoh",
+        "flightstack.cli.network:register",
+    ),
+    Command(
+        "bus",
+        "abort",
+        "make every agent of a mission land at once; exit 1 naming any that did not ack",
+        "flightstack.cli.network:register",
+    ),
+    Command(
+        "bus",
+        "status",
+        "live table of every agent: liveliness, message age, battery, ...",
+        "flightstack.cli.network:register",
+    ),
+    Command(
+        "bus",
+        "guard",
+        "land the Tello of any agent that vanishes from the bus in flight (station topology only)",
+        "flightstack.cli.network:register",
+    ),
+    Command(
+        "bus",
+        "certs",
+        "create the mission CA and a certificate for each participant",
+        "flightstack.cli.certs:register",
+    ),
+    Command(
+        "shell",
+        "completion",
+        'print shell code for tab completion (eval "$(flightstack completion bash)")',
+        "flightstack.cli.completion:register",
+    ),
+)
+_BY_NAME = {c.name: c for c in COMMANDS}
+
+
+class _Subcommands:
+    """The subparsers action as the adders see it: `add_parser(name)` gets the command's help from
+    COMMANDS (its one place); a name added already (by an adder of several commands) is not added again."""
+
+    def __init__(self, action: argparse._SubParsersAction) -> None:
+        self._action = action
+
+    def add_parser(self, name: str, **kwargs: Any) -> argparse.ArgumentParser:
+        existing = self._action.choices.get(name)
+        if isinstance(existing, argparse.ArgumentParser):
+            return existing
+        kwargs.setdefault("help", _BY_NAME[name].help)
+        return self._action.add_parser(name, **kwargs)
+
+
+def _adder(adder: Callable[[Any], object] | str) -> Callable[[Any], object]:
+    if callable(adder):
+        return adder
+    module, _, function = adder.partition(":")
+    return getattr(importlib.import_module(module), function)
+
+
+def command_listing() -> str:
+    """The commands by group, for `flightstack --help`."""
+    width = max(len(c.name) for c in COMMANDS)
+    lines = [START_HERE, ""]
+    for group in GROUPS:
+        lines.append(f"{group}:")
+        lines += [f"  {c.name:{width}s}  {c.help}" for c in COMMANDS if c.group == group]
+    return "\n".join(lines)
+
+
+def build_parser(selected: Iterable[str] | None = None) -> argparse.ArgumentParser:
+    """The parser of `flightstack`: every command with its options (selected None), or only the
+    `selected` ones (the others by name, so that `--help`, an unknown name and the completion of a name
+    work without importing their modules)."""
+    p = argparse.ArgumentParser(
+        prog="flightstack",
+        usage="flightstack [-h] [--version] COMMAND ...",
+        description=command_listing(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--version", action=_Version, help="show the installed version and exit")
+    action = p.add_subparsers(
+        dest="command", required=True, metavar="COMMAND", help=argparse.SUPPRESS, prog="flightstack"
+    )
+    sub = _Subcommands(action)
+    wanted = set(_BY_NAME) if selected is None else set(selected) & set(_BY_NAME)
+    for adder in dict.fromkeys(c.adder for c in COMMANDS if c.name in wanted):  # each adder once, in order
+        _adder(adder)(sub)
+    for c in COMMANDS:
+        sub.add_parser(c.name)  # the rest by name only (skipped where an adder added it)
     return p
+
+
+def selected_commands(argv: list[str]) -> set[str]:
+    """The commands named in `argv` or, for a completion request, in the shell's line (COMP_LINE)."""
+    words = list(argv)
+    if "_ARGCOMPLETE" in os.environ:
+        line = os.environ.get("COMP_LINE", "")
+        point = os.environ.get("COMP_POINT", "")
+        words = line[: int(point)].split() if point.isdigit() else line.split()
+    return set(words) & set(_BY_NAME)
 
 
 def _sigterm_as_interrupt(signum: int, frame: object) -> None:
@@ -325,7 +537,11 @@ def _sigterm_as_interrupt(signum: int, frame: object) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point. SIGTERM is handled like Ctrl-C: drones land, the recording is written, exit 130."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    threads.apply(
+        threads.limits_for(1)
+    )  # before a command's modules load BLAS or numba (flightstack.threads)
+    parser = build_parser(selected_commands(argv))
     # a tab-completion request (the shell code of `flightstack completion`) is answered here, then exits
     argcomplete.autocomplete(parser)
     args = parser.parse_args(argv)
@@ -335,13 +551,16 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         return int(args.func(args))
-    except (MissionError, RigError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # a device that cannot be reached, a file that cannot be written, ...
+        from flightstack.config.mission import MissionError
+        from flightstack.config.rig import RigError
+
+        if isinstance(exc, (MissionError, RigError)):
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         if os.environ.get("FLIGHTSTACK_DEBUG"):
             raise
         hint = "FLIGHTSTACK_DEBUG=1 shows the traceback"

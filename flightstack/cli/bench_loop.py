@@ -79,7 +79,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     b = sub.add_parser(
         "bench-loop",
-        help="does this computer keep the mission's dt while decoding every drone's video? (emulated lab)",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

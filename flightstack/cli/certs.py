@@ -62,7 +62,7 @@ def cmd_certs(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    c = sub.add_parser("certs", help="create the mission CA and a certificate for each participant")
+    c = sub.add_parser("certs")
     c.add_argument("mission")
     c.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     c.add_argument("--out", required=True, help="directory for the CA and the participants' keys (new files)")

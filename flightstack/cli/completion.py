@@ -29,7 +29,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add `completion` to the top-level subcommands."""
     c = sub.add_parser(
         "completion",
-        help='print shell code for tab completion (eval "$(flightstack completion bash)")',
         description='Shell completion: eval "$(flightstack completion bash)" in ~/.bashrc; the same with zsh '
         "in ~/.zshrc (after compinit); `flightstack completion fish | source` in fish's config.fish.",
     )

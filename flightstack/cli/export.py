@@ -18,7 +18,7 @@ from flightstack.cli.run import mode_list
 
 def register(sub: Any) -> None:
     """Add the `export` subcommand to the CLI's subparsers."""
-    p = sub.add_parser("export", help="export a run directory as an MCAP file (Foxglove, PlotJuggler)")
+    p = sub.add_parser("export")
     p.add_argument("run_dir", help="run directory written by `flightstack run`/`sim`/`fly`/`agent`")
     p.add_argument("--mcap", required=True, metavar="FILE", help="MCAP file to write (e.g. run.mcap)")
     p.add_argument(

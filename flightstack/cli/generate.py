@@ -102,9 +102,7 @@ def cmd_generate_mission(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    g = sub.add_parser(
-        "generate-mission", help="write the paper's simulation for N drones (scaling experiments)"
-    )
+    g = sub.add_parser("generate-mission")
     g.add_argument("--drones", type=_drones, required=True, help=f"number of drones (2..{MAX_DRONES})")
     g.add_argument(
         "--graph", choices=GRAPHS, default="complete", help="communication graph (default complete)"

@@ -265,13 +265,11 @@ def cmd_guard(args: argparse.Namespace) -> int:
 
 
 def register(sub: Any) -> None:
-    w = sub.add_parser("world", help="serve a simulated mission's world to agent processes over Zenoh")
+    w = sub.add_parser("world")
     w.add_argument("mission")
     w.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     w.set_defaults(func=cmd_world)
-    a = sub.add_parser(
-        "agent", help="run one agent (its drone, camera, pose) talking to the others over Zenoh"
-    )
+    a = sub.add_parser("agent")
     a.add_argument("mission")
     a.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     a.add_argument("--id", type=int, required=True, help="the drone id this process flies")
@@ -292,9 +290,7 @@ def register(sub: Any) -> None:
 
     add_viewer_argument(a)
     a.set_defaults(func=cmd_agent)
-    ab = sub.add_parser(
-        "abort", help="make every agent of a mission land at once; exit 1 naming any that did not ack"
-    )
+    ab = sub.add_parser("abort")
     ab.add_argument("mission")
     ab.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     ab.add_argument("--reason", default="operator abort")
@@ -307,7 +303,7 @@ def register(sub: Any) -> None:
         help="how long to wait for every agent's acknowledgement after sending (s)",
     )
     ab.set_defaults(func=cmd_abort)
-    st = sub.add_parser("status", help="live table of every agent: liveliness, message age, battery, ...")
+    st = sub.add_parser("status")
     st.add_argument("mission")
     st.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     st.add_argument("--once", action="store_true", help="print one table when every agent reported, exit")
@@ -316,7 +312,6 @@ def register(sub: Any) -> None:
     st.set_defaults(func=cmd_status)
     gd = sub.add_parser(
         "guard",
-        help="land the Tello of any agent that vanishes from the bus in flight (station topology only)",
     )
     gd.add_argument("mission")
     gd.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")

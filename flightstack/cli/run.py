@@ -20,6 +20,7 @@ from tqdm import tqdm
 from flightstack.cli.summary import console_logging, metric_lines, say, with_level
 from flightstack.config.links import PROFILES
 from flightstack.config.mission import Mission, MissionError, load_mission
+from flightstack.threads import ThreadLimits
 
 if TYPE_CHECKING:
     from flightstack.runtime.flight import Flight, FlightResult
@@ -249,6 +250,8 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
         print(line)
     for line in speed_lines(m, time.perf_counter() - t_cmd0):
         print(line)
+    if m.get("threads"):  # what the flight ran with (flightstack.threads), as metrics.json has it
+        print(f"  {ThreadLimits(**m['threads']).line()}")
     rec_status = m["recording"]
     if not rec_status["complete"]:
         say("error", f"recording incomplete: {rec_status['reason']}")

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import functools
 import importlib.util
-import os
 import platform
 import sys
 import time
@@ -21,6 +20,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from flightstack import threads
 from flightstack.sweep.plan import SweepError
 
 if TYPE_CHECKING:
@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 
 def register(sub: Any) -> None:
     """Add the `sweep` subcommand to the CLI's subparsers."""
-    p = sub.add_parser("sweep", help="run an experiment over seeds x a grid of overrides, with statistics")
+    p = sub.add_parser("sweep")
     p.add_argument(
         "experiment", help="experiment: a built-in name (paper_sim, paper_experiment) or a YAML file"
     )
@@ -47,7 +47,11 @@ def register(sub: Any) -> None:
         "repeatable: the grid is the cartesian product",
     )
     p.add_argument(
-        "--jobs", type=_positive_int, default=None, metavar="J", help="worker processes (default: CPU count)"
+        "--jobs",
+        type=_positive_int,
+        default=None,
+        metavar="J",
+        help="worker processes (default: the CPUs this process may use)",
     )
     p.add_argument(
         "--scheduler",
@@ -141,12 +145,14 @@ def _sweep(args: argparse.Namespace) -> int:
         raise SweepError(f"--out {out}: cannot create it: {exc.strerror or exc}") from None
     done = load_finished(out, plan.combinations)
     todo = [c for c in plan.combinations if c.id not in done]
-    jobs = args.jobs or os.cpu_count() or 1
+    jobs = args.jobs or threads.usable_cpus()
+    limits = threads.apply(threads.limits_for(jobs))  # the run's rule, for `jobs` flights at once
     started, wall0 = time.time(), time.perf_counter()
     record: dict[str, Any] = {
         "command": ["flightstack", "sweep", *_argv(args)],
         "arguments": {k: v for k, v in vars(args).items() if k not in ("func", "command")},
         "versions": versions(),
+        "threads": limits.as_dict(),
         "experiment": args.experiment,
         "rig": base_mission.rig,
         "plan": plan.record(),
@@ -192,7 +198,7 @@ def _sweep(args: argparse.Namespace) -> int:
         keep = (out / RUNS_DIR).resolve() if args.keep_runs else None  # workers may have another cwd
         try:
             with open_executor(min(jobs, len(todo)), args.scheduler) as (ex, how, in_flight):
-                print(f"running on {how}", flush=True)
+                print(f"running on {how}; {limits.line()}", flush=True)
                 job = functools.partial(job_of, base_dir=base_dir, keep_dir=keep)
                 interrupted = run_all(ex, todo, job, on_result, on_failure, in_flight)
         except KeyboardInterrupt:

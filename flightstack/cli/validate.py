@@ -121,7 +121,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add `validate` to the top-level subcommands."""
-    v = sub.add_parser("validate", help="check an experiment (on its rig), a rig or lab file, or a mission")
+    v = sub.add_parser("validate")
     v.add_argument("mission", help="experiment name or file, rig or lab file, or resolved mission")
     v.add_argument("--rig", default=None, help="validate the experiment on this rig")
     v.add_argument(

@@ -127,7 +127,6 @@ def open_live_viewer(spec: str | None, mission: Mission, out: Path, modes: list[
 def register(sub: Any) -> None:
     v = sub.add_parser(
         "view",
-        help="show a run directory in the Rerun 3-D viewer (poses, estimates, cameras, GP, errors, events)",
         description="Rebuild a Rerun recording from RUN_DIR (every mode on one `mission_time` timeline, "
         "under /<mode>/) and spawn a viewer, connect to one, or save an .rrd. Without a choice: spawn "
         f"when there is a display, else write RUN_DIR/{REPLAY_FILE}. "

@@ -20,7 +20,6 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "faults",
-        help="fly the simulated mission under each fault and print what the system did",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

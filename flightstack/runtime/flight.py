@@ -28,6 +28,7 @@ from typing import Any, TypeVar
 
 import yaml
 
+from flightstack import threads
 from flightstack.analysis.metrics import build_metrics
 from flightstack.comms.bus import Bus
 from flightstack.config.mission import Mission, MissionError, mission_to_dict
@@ -286,6 +287,7 @@ class Flight:
             interrupted=res.interrupted,
             error=res.error,
         )
+        res.metrics["threads"] = threads.in_effect().as_dict()  # the pools this flight ran with
         if self.writer is not None:
             try:
                 res.metrics = _write_results(self.writer, res)
@@ -310,7 +312,7 @@ class Flight:
     def _train(self, rec: Recording, res: FlightResult) -> bool:
         """Datasets from the data run and one expert per drone (written at once, so that a run killed
         later still has them for `report`); False (res.error set) when the data cannot train them."""
-        mission, t0 = self.mission, time.perf_counter()
+        mission, t0, cpu0 = self.mission, time.perf_counter(), time.process_time()
         try:
             res.datasets = collect_datasets(mission, rec, mission.seed)
         except ValueError as exc:  # too little data in a region: say so, keep the `none` run
@@ -321,6 +323,7 @@ class Flight:
             _write_training(self.writer, res)
         res.gp_info = {
             "train_seconds": time.perf_counter() - t0,
+            "train_cpu_seconds": time.process_time() - cpu0,  # every thread's: BLAS's spinning shows here
             "experts": {
                 str(i): {
                     "samples": int(ex.X.shape[0]),

@@ -45,13 +45,14 @@ def run_combination(job: dict[str, Any]) -> dict[str, Any]:
     """In a worker: validate the job's mission, fly it (flightstack.runtime.flight), return its metrics
     (JSON-safe).
 
-    BLAS runs single-threaded in the worker (threadpoolctl). SIGINT interrupts the run (workers of the
-    local pool ignore it between runs); the result then says `interrupted` and is not kept. With
+    The worker's thread pools follow the one rule (flightstack.threads: one BLAS and one numba thread a
+    flight), applied here too, since a Dask worker inherits nothing from the sweep's process. SIGINT
+    interrupts the run (workers of the local pool ignore it between runs); the result then says
+    `interrupted` and is not kept. With
     `keep_dir` the run's full directory is written there (no plots).
     Safety events are not logged (40 runs' takeoffs and landings would bury the progress lines); they are
     in the metrics (`safety_events`, `safety_event_counts`)."""
-    from threadpoolctl import threadpool_limits
-
+    from flightstack import threads
     from flightstack.config.mission import parse_mission
     from flightstack.runtime.flight import Flight, write_run_dir
 
@@ -62,9 +63,8 @@ def run_combination(job: dict[str, Any]) -> dict[str, Any]:
     try:
         mission = parse_mission(job["mission"], f"sweep run {job['id']}")
         mission._base_dir = Path(job["base_dir"])
-        # one BLAS thread per run: the sweep's parallelism is its workers; J workers × the cores' BLAS
-        # threads oversubscribe the machine (measured: GP training 0.17 s alone, 15 s in 2 workers)
-        with threadpool_limits(limits=1), Flight(mission) as flight:
+        threads.apply(threads.limits_for(1))
+        with Flight(mission) as flight:
             res = flight.fly()
         if job.get("keep_dir") and not res.interrupted:
             write_run_dir(Path(job["keep_dir"]), mission, res)
