@@ -25,9 +25,9 @@ MEMORY_FRACTION = 0.5
 """The recordings may take at most this fraction of the available memory."""
 MEMINFO = Path("/proc/meminfo")
 NPZ_WRITE_BYTES_PER_S = 12.5e6
-"""Bytes of in-memory recording per second that the final npz is assumed to be compressed and written at:
-a quarter of the 50 MB/s measured on the 2-core CI machine (paper_sim, 20 MB in 0.40 s), for a loaded
-computer and a slower disk."""
+"""Bytes of in-memory recording per second that the final npz is assumed to be written at: a quarter of
+the 50 MB/s measured on the 2-core CI machine when the npz was still deflated (paper_sim, 20 MB in 0.40 s;
+stored, it writes faster), for a loaded computer and a slower disk."""
 MAX_MODE_RECORDING_BYTES = int(CLOSE_TIMEOUT_S * NPZ_WRITE_BYTES_PER_S)
 """At most this many bytes of recording per mode (750 MB: scaling_31, the largest shipped, is 195 MB)."""
 
