@@ -29,7 +29,8 @@ def test_status_then_abort_lands_everyone(tmp_path: Path) -> None:
         world, wlines, agents = run.world, run.world_lines, run.agents
         assert wlines.wait_for("tick 200", 60), wlines.rest()
         status = subprocess.run(
-            [sys.executable, "-m", "flightstack.cli.app", "status", str(mission), "--once"],
+            # --once returns once every agent is heard; a loaded machine may need more than the default 3 s
+            [sys.executable, "-m", "flightstack.cli.app", "status", str(mission), "--once", "--wait", "15"],
             cwd=REPO,
             capture_output=True,
             text=True,

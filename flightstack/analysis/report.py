@@ -140,8 +140,8 @@ def rebuild_run(
     """Rebuild metrics.json (atomically) and, if `plots`, the plots of a run directory from its
     recording: the final npz files, or the row streams of a run cut short by a kill, a crash or a full
     disk (flightstack.recording.run_reader.read_run). mission: default RUN_DIR/mission_resolved.yaml.
-    The GP facts and the run's wall time are kept from an earlier metrics.json when there is one (the
-    sum of the modes' wall time otherwise). Returns (metrics, plot paths, skipped: `<file>: <what>` for
+    The GP facts, the run's wall time (else the sum of the modes') and its thread limits are kept from an
+    earlier metrics.json when there is one. Returns (metrics, plot paths, skipped: `<file>: <what>` for
     each damaged optional file or row stream tail left out, files.OPTIONAL_FILES). RunDirError (naming
     the file) when the directory, its mission or a mode's recording is missing or damaged
     (files.REQUIRED_FILES)."""
@@ -177,6 +177,8 @@ def rebuild_run(
     metrics = build_metrics(
         mission, recs, experts, old.get("gp") or {}, float(wall), interrupted=interrupted, error=error
     )
+    if _thread_limits(old.get("threads")):
+        metrics["threads"] = old["threads"]  # what the flight's process ran with: not in the recording
     metrics["recording"] = contents.status
     atomic_write_json(run_dir / METRICS_FILE, metrics)
     paths = write_plots(run_dir, mission, recs, datasets) if plots else []
@@ -193,6 +195,16 @@ def run_mission(run_dir: Path) -> Mission:
         return load_mission(path, check_files=False)
     except (OSError, ValueError) as exc:  # MissionError is a ValueError
         raise RunDirError(path, f"does not load ({str(exc).removeprefix(f'{path}: ')})") from None
+
+
+def _thread_limits(value: object) -> bool:
+    """`value` is a metrics.json `threads` entry (flightstack.threads.ThreadLimits.as_dict): four counts."""
+    keys = {"cpus", "workers", "blas", "numba"}
+    return (
+        isinstance(value, dict)
+        and set(value) == keys
+        and all(type(v) is int and 0 <= v <= 1 << 20 for v in value.values())
+    )
 
 
 def _old_metrics(path: Path, skipped: list[str]) -> dict[str, Any]:
