@@ -3,6 +3,7 @@ message with its level, and a figure that can look like a failure explained unde
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -70,13 +71,16 @@ def test_a_message_keeps_its_level_or_gets_info() -> None:
 def test_run_and_report_print_the_same_metric_lines(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """One run directory: `report` prints exactly the lines `run` printed, up to run's speed lines (the
-    command's, not the run's) and report's list of rebuilt files."""
+    """One run directory: `report` prints exactly the lines `run` printed, up to run's speed and threads
+    lines (the command's, not the run's) and report's list of rebuilt files; the rebuilt metrics.json keeps
+    the run's thread limits."""
     out = tmp_path / "run"
     argv = ["run", "paper_experiment", "--rig", "ideal", "--duration", "12", "--out", str(out)]
     assert cli.main([*argv, "--no-progress"]) == 0
     ran = capsys.readouterr().out.splitlines()
+    threads = json.loads((out / "metrics.json").read_text())["threads"]
     assert cli.main(["report", str(out), "--no-plots"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["threads"] == threads  # kept by the rebuild
     reported = capsys.readouterr().out.splitlines()
     assert reported[-1] == "  rebuilt metrics.json"
     shared = reported[:-1]
