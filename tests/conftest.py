@@ -73,13 +73,14 @@ SYSTEM_MODULES = frozenset(
 )
 
 
-# The system tier runs on three workers (`-n 3 --dist loadgroup`, pytest-xdist; docs/getting-started.md):
-# most of its time is spent waiting on real-time flights, not computing. The modules that drive the
-# device emulators and drivers directly (some at the real Tello's fixed ports, in their own network
-# namespaces or on addresses a module owns) run one after the other in one group, as without xdist; the
-# emulated-lab fault table, whose emulators bind only free ports, is a group of its own beside them;
-# every other module (simulations, Zenoh agents on picked ports, sweeps, fuzzing) is a group of its own, so
-# that a module-scoped fixture runs once.
+# The system tier runs in two parts (.ci/run; docs/getting-started.md): its `timing` modules (below) one
+# test at a time, the rest on three workers (`-n 3 --dist loadgroup`, pytest-xdist), where most of the time
+# is spent waiting on real-time flights, not computing. The groups below matter on workers. The modules
+# that drive the device emulators and drivers directly (some at the real Tello's fixed ports, in their own
+# network namespaces or on addresses a module owns) run one after the other in one group, as without
+# xdist; the emulated-lab fault tables, whose emulators bind only free ports, are a group of their own
+# beside them; every other module (simulations, Zenoh agents on picked ports, sweeps, fuzzing) is a group
+# of its own, so that a module-scoped fixture runs once.
 # A new module that binds a fixed port or address joins DEVICE_MODULES.
 DEVICE_MODULES = frozenset(
     {
@@ -117,7 +118,8 @@ FIRST_GROUPS = (
     "test_attacker",
     "test_ci_venv",
 )
-"""The groups handed out first (measured: about 370, 55, 330, 75, 50 and 5 s). xdist gives each of the three
+"""The groups handed out first when the whole system tier runs on workers (measured then: about 370, 55, 330,
+75, 50 and 5 s; the two fault tables are `timing` and run apart in .ci/run). xdist gives each of the three
 workers one group, then a second at once: the device group, the longest but one, goes third so that the
 group queued behind it is the shortest; the rest follow in collection order as workers free up."""
 
