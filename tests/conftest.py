@@ -201,6 +201,21 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
 MISSIONS = REPO / "mission_configs"
 
 
+def completion_env(line: str, out: Path) -> dict[str, str]:
+    """This environment plus argcomplete's request to complete `line` (cursor at its end), answered into
+    the file `out` instead of file descriptor 8."""
+    env = {
+        **os.environ,
+        "_ARGCOMPLETE": "1",
+        "COMP_LINE": line,
+        "COMP_POINT": str(len(line)),
+        "_ARGCOMPLETE_IFS": "\n",
+        "_ARGCOMPLETE_STDOUT_FILENAME": str(out),
+    }
+    env.pop("_ARGCOMPLETE_SHELL", None)
+    return env
+
+
 def skip_or_fail_in_ci(reason: str) -> NoReturn:
     """Skip the test for a missing optional input (a package, a recording in ../shared) with `reason`
     saying how to provide it; under CI=true, where CI provides every input, fail instead, so that CI never

@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import os
 import subprocess
 import sys
 from importlib.metadata import PackageNotFoundError
@@ -25,7 +24,7 @@ from flightstack.cli.app import build_parser, main
 from flightstack.cli.validate import id_ranges
 from flightstack.config.mission import load_mission, mission_to_dict
 from flightstack.config.rig import resolved_document
-from tests.conftest import MISSIONS
+from tests.conftest import MISSIONS, completion_env
 
 
 def _subcommands(parser: argparse.ArgumentParser) -> list[str]:
@@ -118,15 +117,7 @@ def test_the_console_script_answers_a_completion_request(tmp_path: Path) -> None
     """The process the shell code starts: main() answers from argcomplete's environment variables (here
     written to a file instead of fd 8) and exits 0 without running a subcommand."""
     out = tmp_path / "completions"
-    env = {
-        **os.environ,
-        "_ARGCOMPLETE": "1",
-        "COMP_LINE": "flightstack s",
-        "COMP_POINT": str(len("flightstack s")),
-        "_ARGCOMPLETE_IFS": "\n",
-        "_ARGCOMPLETE_STDOUT_FILENAME": str(out),
-    }
-    env.pop("_ARGCOMPLETE_SHELL", None)
+    env = completion_env("flightstack s", out)
     r = subprocess.run(
         [sys.executable, "-m", "flightstack"],
         capture_output=True,

@@ -5,7 +5,6 @@ help lists every command once, grouped by what an operator does, under a "start 
 from __future__ import annotations
 
 import argparse
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from flightstack.cli.app import COMMANDS, GROUPS, build_parser, selected_commands
+from tests.conftest import completion_env
 
 HEAVY = ("numpy", "numba", "scipy", "matplotlib", "cv2", "zenoh")
 
@@ -45,15 +45,7 @@ def test_help_imports_none_of_the_heavy_packages(tmp_path: Path) -> None:
 
 def test_completing_a_command_name_imports_none_of_the_heavy_packages(tmp_path: Path) -> None:
     out = tmp_path / "completions"
-    env = {
-        **os.environ,
-        "_ARGCOMPLETE": "1",
-        "COMP_LINE": "flightstack s",
-        "COMP_POINT": str(len("flightstack s")),
-        "_ARGCOMPLETE_IFS": "\n",
-        "_ARGCOMPLETE_STDOUT_FILENAME": str(out),
-    }
-    env.pop("_ARGCOMPLETE_SHELL", None)
+    env = completion_env("flightstack s", out)
     names, _ = _imported([], tmp_path, env)
     assert not names & set(HEAVY), sorted(names & set(HEAVY))
     assert sorted(out.read_text().split("\n")) == ["sim", "status", "sweep"]
