@@ -38,7 +38,9 @@ def test_status_then_abort_lands_everyone(tmp_path: Path) -> None:
         )
         t0 = time.monotonic()
         abort = subprocess.run(
-            [sys.executable, "-m", "flightstack.cli.app", "abort", str(mission)],
+            # the abort is published at once; --timeout bounds only the wait for acknowledgements, which a
+            # fresh operator session on a loaded machine may need more than the default 2 s to connect for
+            [sys.executable, "-m", "flightstack.cli.app", "abort", str(mission), "--timeout", "10"],
             cwd=REPO,
             capture_output=True,
             text=True,
