@@ -19,7 +19,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from flightstack.drivers.tello import TelloConfig, TelloDriver
-from flightstack.drivers.tello_rc import RcGains
+from flightstack.drivers.tello.rc import RcGains
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.tello import TelloEmulator
 

@@ -130,7 +130,7 @@ class TelloSource:
 
     def frames(self) -> Iterator[SourceFrame]:
         from flightstack.drivers.tello import TelloConfig, TelloDriver
-        from flightstack.drivers.tello_camera import TelloCamera
+        from flightstack.drivers.tello.camera import TelloCamera
 
         try:
             driver = TelloDriver(

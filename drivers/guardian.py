@@ -98,7 +98,7 @@ class GuardianError(RuntimeError):
 
 
 class TelloLike(Protocol):
-    """What the guardian needs of a flightstack.drivers.tello_config.TelloConfig (read-only)."""
+    """What the guardian needs of a flightstack.drivers.tello.config.TelloConfig (read-only)."""
 
     @property
     def host(self) -> str: ...

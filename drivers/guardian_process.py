@@ -45,8 +45,8 @@ from flightstack.drivers.guardian import (
     remove_launch_dir,
     set_oom_score_adj,
 )
-from flightstack.drivers.tello_phase import PhaseThresholds, PhaseTracker
-from flightstack.drivers.tello_state import StateRejectedError, parse_state
+from flightstack.drivers.tello.phase import PhaseThresholds, PhaseTracker
+from flightstack.drivers.tello.state import StateRejectedError, parse_state
 
 TICK_S = 0.02  # longest select() wait (s)
 BIND_RETRY_S = 0.2  # retry binding a held state port this often (s)

@@ -28,8 +28,8 @@ from flightstack.drivers.guardian import Guardian, GuardianConfig
 from flightstack.drivers.mocap import MocapConfig, MocapPoseSource
 from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
 from flightstack.drivers.tello import TelloConfig, TelloDriver
-from flightstack.drivers.tello_camera import TelloCamera
-from flightstack.drivers.tello_rc import RcGains
+from flightstack.drivers.tello.camera import TelloCamera
+from flightstack.drivers.tello.rc import RcGains
 from flightstack.hal import FlightPhase, StampedPose
 from flightstack.paper.geometry import Pose
 
@@ -71,7 +71,7 @@ def tello_config(mission: Mission, drone_id: int) -> TelloConfig:
         TelloConfig,
         hw,
         rename={"ip": "host"},
-        skip={"id", "frame_timeout_s"},  # the drone's key; the camera's (flightstack.drivers.tello_camera)
+        skip={"id", "frame_timeout_s"},  # the drone's key; the camera's (flightstack.drivers.tello.camera)
         state_port=mission.hardware.state_port,
         rc_gains=RcGains(**spec.rc_gains.model_dump()),
         min_battery_pct=mission.safety.min_battery_takeoff,

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from flightstack.drivers.tello_link import ERROR_PAUSE_S, ErrorLog
+from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog
 from flightstack.events import Event, MocapKind
 from flightstack.hal import StampedPose
 from flightstack.paper.geometry import Pose

@@ -46,7 +46,7 @@ from flightstack.config.mission import Mission
 
 if TYPE_CHECKING:
     from flightstack.drivers.scamper_link import ScamperConfig
-    from flightstack.drivers.tello_camera import TelloCamera
+    from flightstack.drivers.tello.camera import TelloCamera
 
 Status = Literal["PASS", "WARN", "FAIL"]
 BODY_WAIT_S = 1.0  # after connecting, how long motion capture gets to report every body (s)
@@ -187,7 +187,7 @@ def check_gains(mission: Mission) -> CheckRow:
 def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> list[CheckRow]:
     from flightstack.drivers.hardware import tello_config
     from flightstack.drivers.tello import TelloDriver
-    from flightstack.drivers.tello_camera import TelloCamera
+    from flightstack.drivers.tello.camera import TelloCamera
 
     assert mission.hardware is not None
     cfg = tello_config(mission, drone_id)

@@ -50,7 +50,7 @@ from flightstack.drivers.scamper_link import (
     is_vehicle_heartbeat,
     probe_heartbeat,
 )
-from flightstack.drivers.tello_link import MutedCheck
+from flightstack.drivers.tello.link import MutedCheck
 from flightstack.events import Event, ScamperKind
 
 __all__ = [

@@ -36,7 +36,7 @@ from typing import Any, Literal
 import numpy as np
 from pymavlink import mavutil
 
-from flightstack.drivers.tello_link import ERROR_PAUSE_S, ErrorLog, MutedCheck, evaluate_mute
+from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog, MutedCheck, evaluate_mute
 
 mavlink = mavutil.mavlink
 LOG = logging.getLogger("flightstack.scamper")
@@ -183,7 +183,7 @@ class ScamperLink:
 
     # ------------------------------------------------------------------ sending (any thread)
     def is_muted(self) -> bool:
-        """The mute check, evaluated now (flightstack.drivers.tello_link.evaluate_mute)."""
+        """The mute check, evaluated now (flightstack.drivers.tello.link.evaluate_mute)."""
         return evaluate_mute(self.muted, self.errors)
 
     def send(self, fn: str, *args: Any) -> SendResult:

@@ -9,7 +9,7 @@ from flightstack.comms.delayed_bus import DelayedBus
 from flightstack.config.derive import derive
 from flightstack.config.links import LINKS
 from flightstack.config.mission import Mission
-from flightstack.drivers.tello_rc import RcGains
+from flightstack.drivers.tello.rc import RcGains
 from flightstack.paper.geometry import Pose
 from flightstack.sim_backend.build import initial_drone_pose
 from flightstack.sim_backend.ideal import VirtualClock

@@ -13,7 +13,7 @@ when a lab starts. Without the optional packages av, motioncapture and pymavlink
 
 Cameras: with an experiment (`flightstack run EXP --rig emulated-lab`) every drone's camera renders what it
 sees of the flight through its mount's calibration, at 30 fps, in a child process per drone
-(`emulators/tello_video_process.py`; the lab publishes the rover's pose to them every 10 ms); the fault
+(`emulators/tello/video_process.py`; the lab publishes the rover's pose to them every 10 ms); the fault
 table keeps a fixed view of the markers (`marker_image`), rendered in the emulators' own threads.
 
 Addresses (all 127.0.0.0/8): the Tellos own 127.0.0.6 and 127.0.0.7 (`config.rig.emulated_tello_ip`), each
@@ -106,7 +106,7 @@ def load_emulators() -> SimpleNamespace:
     from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
     from flightstack.sim_backend.emulators.natnet import NatNetEmulator
     from flightstack.sim_backend.emulators.tello import TelloEmulator
-    from flightstack.sim_backend.emulators.tello_video_process import SharedTarget, VideoProcess
+    from flightstack.sim_backend.emulators.tello.video_process import SharedTarget, VideoProcess
 
     return SimpleNamespace(
         TelloEmulator=TelloEmulator,
@@ -412,7 +412,7 @@ class EmulatedLab:
 
     def _video_path(self, i: int) -> Any:
         """How drone i's live camera frames leave it: the video link, then its radio (VideoPath)."""
-        from flightstack.sim_backend.emulators.tello_video_process import VideoPath
+        from flightstack.sim_backend.emulators.tello.video_process import VideoPath
 
         video = self.link_specs.get("video")
         radio = self.radios.get(f"tello{i}")
@@ -466,7 +466,7 @@ class EmulatedLab:
         """What drone i's live camera sees: its calibration on its mount, the experiment's markers (the
         render's marker radius; no pixel noise: the H.264 encoding makes its own), its start pose."""
         from flightstack.config.mission import CAMERA_MOUNTS
-        from flightstack.sim_backend.emulators.tello_view import CameraSpec
+        from flightstack.sim_backend.emulators.tello.view import CameraSpec
         from flightstack.vision.camera_file import load_calibration
 
         doc = self._experiment or {}
@@ -527,7 +527,7 @@ class EmulatedLab:
     def _drone_pose(self, i: int) -> tuple[Any, tuple[float, float, float, float]]:
         """Drone i's mocap pose: the emulator flies (x forward, y right, z up) cm, yaw clockwise deg, from
         its start; the world is FLU (y left, yaw counter-clockwise); plus `mocap_offset[i]`."""
-        from flightstack.sim_backend.emulators.tello_view import drone_world_pose
+        from flightstack.sim_backend.emulators.tello.view import drone_world_pose
 
         emu = self.tellos[i]
         (x0, y0, z0), yaw0 = self.starts[i]

@@ -23,8 +23,8 @@ import numpy as np
 
 from flightstack.config.links import LinkSpec
 from flightstack.config.mission import CAMERA_MOUNTS
-from flightstack.drivers.tello_config import TELLO_OWN_TIMEOUT_S
-from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
+from flightstack.drivers.tello.config import TELLO_OWN_TIMEOUT_S
+from flightstack.drivers.tello.rc import RcGains, rc_to_velocity, velocity_to_rc
 from flightstack.events import Event
 from flightstack.hal import DroneState, Frame, StampedPose
 from flightstack.paper import kernels as kern

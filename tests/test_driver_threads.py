@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from flightstack.drivers.mocap import MocapConfig, MocapPoseSource
-from flightstack.drivers.tello_link import CommandChannel
+from flightstack.drivers.tello.link import CommandChannel
 from flightstack.faults.rows_lab_drivers import FaultySocket
 from tests.conftest import tello_config
 
@@ -63,7 +63,7 @@ def tello() -> Iterator[Any]:
 
 def tello_driver(emu: Any) -> Any:
     from flightstack.drivers.tello import TelloDriver
-    from flightstack.drivers.tello_rc import RcGains
+    from flightstack.drivers.tello.rc import RcGains
 
     return TelloDriver(tello_config(emu, link_timeout_s=0.5, keepalive_s=1.0, rc_gains=RcGains()))
 
@@ -71,7 +71,7 @@ def tello_driver(emu: Any) -> Any:
 def test_tello_state_receiver_survives_socket_and_parse_errors(
     tello: Any, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import flightstack.drivers.tello_link as tello_link
+    import flightstack.drivers.tello.link as tello_link
 
     caplog.set_level(logging.WARNING, "flightstack.tello")
     d = tello_driver(tello)
@@ -124,7 +124,7 @@ def test_tello_command_channel_and_monitor_survive_errors(
         # the reader still files replies: a query is answered
         assert d.query("battery?", parse_int_reply) is not None
         assert chan._thread.is_alive() and chan.counts["thread_error"] == 6
-        # drivers/tello.py's monitor: errors raised in a step are counted, and it still watches the link
+        # the monitor (drivers/tello/watchdog.py): errors raised in a step are counted; it still watches
         real_step, boom = d.watchdog.step, [0]
 
         def step(now: float) -> None:
@@ -151,7 +151,7 @@ def test_tello_command_channel_and_monitor_survive_errors(
 def test_tello_video_reader_survives_socket_and_decoder_errors(
     tello: Any, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from flightstack.drivers.tello_camera import TelloCamera
+    from flightstack.drivers.tello.camera import TelloCamera
 
     caplog.set_level(logging.WARNING, "flightstack.tello")
     d = tello_driver(tello)

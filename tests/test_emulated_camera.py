@@ -25,11 +25,11 @@ pytest.importorskip("motioncapture")
 pytest.importorskip("pymavlink")
 
 from flightstack.config.mission import CAMERA_MOUNTS, load_mission
-from flightstack.drivers.tello_camera import VideoReceiver
+from flightstack.drivers.tello.camera import VideoReceiver
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.tello import TelloEmulator, read_frame_index, wait_until
-from flightstack.sim_backend.emulators.tello_video_process import SharedTarget, VideoProcess
-from flightstack.sim_backend.emulators.tello_view import CameraSpec
+from flightstack.sim_backend.emulators.tello.video_process import SharedTarget, VideoProcess
+from flightstack.sim_backend.emulators.tello.view import CameraSpec
 from flightstack.vision.camera_file import load_calibration
 from flightstack.vision.markers import extract_markers
 from tests.conftest import MISSIONS, Bound
@@ -141,7 +141,7 @@ def test_the_paper_experiment_flies_closed_loop_on_the_emulated_lab(tmp_path: Pa
 
 ORPHAN_SCRIPT = """
 import os, sys
-from flightstack.sim_backend.emulators.tello_video_process import SharedTarget, VideoProcess
+from flightstack.sim_backend.emulators.tello.video_process import SharedTarget, VideoProcess
 from tests.test_emulated_camera import down_camera
 cam = VideoProcess(down_camera(), "127.0.0.12", ("127.0.0.1", int(sys.argv[1])), SharedTarget())
 cam.start()

@@ -27,13 +27,13 @@ import pytest
 pytest.importorskip("av")
 
 from flightstack.config.links import LinkSpec
-from flightstack.drivers.tello_camera import VideoReceiver
+from flightstack.drivers.tello.camera import VideoReceiver
 from flightstack.netem import BlackoutPlan, NetworkProfile
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.device_links import DeviceLinks
 from flightstack.sim_backend.emulators.radio import DeviceRadio
 from flightstack.sim_backend.emulators.tello import TelloEmulator, read_frame_index, wait_until
-from flightstack.sim_backend.emulators.tello_video_process import SharedTarget, VideoPath, VideoProcess
+from flightstack.sim_backend.emulators.tello.video_process import SharedTarget, VideoPath, VideoProcess
 from tests.conftest import Bound
 from tests.test_emulated_camera import down_camera
 

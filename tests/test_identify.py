@@ -1,4 +1,4 @@
-"""drivers/identify.py: the step fit on synthetic data, the state-stream velocity source, and a full
+"""drivers/tello/identify.py: the step fit on synthetic data, the state-stream velocity source, and a full
 identification against the loopback Tello emulator through TelloDriver.
 
 The emulator owns 127.0.0.5 (the driver tests use 127.0.0.3/.4, the emulator's own tests 127.0.0.2).
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import yaml
 
-import flightstack.drivers.identify as ident
+import flightstack.drivers.tello.identify as ident
 from flightstack.config.mission import RcGainsSpec
-from flightstack.drivers.identify import (
+from flightstack.drivers.tello.identify import (
     StepFit,
     first_order_step,
     fit_first_order_step,
@@ -26,7 +26,7 @@ from flightstack.drivers.identify import (
     save_identification,
     state_velocity_source,
 )
-from flightstack.drivers.tello_rc import RcGains
+from flightstack.drivers.tello.rc import RcGains
 
 
 # ------------------------------------------------------------------------------------- synthetic fits
@@ -186,7 +186,7 @@ def test_identify_against_the_emulator() -> None:
             t0 = time.monotonic()
             # rc 60 rather than the default 40: the state rounds positions to 1 cm and yaw to 1°, and a
             # larger step has more counts per 0.1 s packet; in a Monte Carlo of this pipeline the τ error
-            # passes 50 % in ~0.7 % of axes at rc 40 and in none of 300 at rc 60 (drivers/identify.py).
+            # passes 50 % in ~0.7 % of axes at rc 40 and in none of 300 at rc 60 (drivers/tello/identify.py).
             fits = identify(d, ("x", "y", "z", "yaw"), rc_amplitude=60, duration_s=1.5)
             print(f"identify: {time.monotonic() - t0:.1f} s (8 steps of 0.5 + 1.5 + 0.5 s, plus the fits)")
             # every step went out on the right rc slot with the right sign, forward then back

@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from flightstack.config.links import LinkSpec
-from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
+from flightstack.drivers.tello.rc import RcGains, rc_to_velocity, velocity_to_rc
 from flightstack.paper.geometry import Pose
 from flightstack.paper.target_law import SquareLaw
 from flightstack.sim_backend.lab import (

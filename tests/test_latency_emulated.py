@@ -26,12 +26,12 @@ pytest.importorskip("av")
 from flightstack.calibration.latency_session import RcRecord, VideoRecord, save_session
 from flightstack.cli.app import main
 from flightstack.config.links import LinkSpec
-from flightstack.drivers.tello_camera import VideoReceiver
+from flightstack.drivers.tello.camera import VideoReceiver
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.device_links import DeviceLinks
 from flightstack.sim_backend.emulators.tello import TelloEmulator, read_frame_index, wait_until
-from flightstack.sim_backend.emulators.tello_video_process import SharedTarget, VideoPath, VideoProcess
-from flightstack.sim_backend.emulators.tello_view import drone_world_pose
+from flightstack.sim_backend.emulators.tello.video_process import SharedTarget, VideoPath, VideoProcess
+from flightstack.sim_backend.emulators.tello.view import drone_world_pose
 from flightstack.vision.camera_file import load_calibration
 from flightstack.vision.markers import extract_markers
 from tests.conftest import Bound

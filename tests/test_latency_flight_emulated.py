@@ -30,7 +30,7 @@ pytest.importorskip("pymavlink")
 
 from flightstack.calibration.latency_flight import fly_latency_calibration, one_drone
 from flightstack.config.mission import load_mission, mission_to_dict
-from flightstack.drivers.tello_rc import RcGains, velocity_to_rc
+from flightstack.drivers.tello.rc import RcGains, velocity_to_rc
 from flightstack.hal import Frame
 from flightstack.sim_backend.build import initial_drone_pose
 from flightstack.sim_backend.emulated_lab import DRONE_STARTS, EmulatedLab

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flightstack.drivers.tello_camera import VideoReceiver
+from flightstack.drivers.tello.camera import VideoReceiver
 from flightstack.netem import PROFILES, BlackoutPlan, LinkProfile, NetworkProfile
 from flightstack.ports import free_tcp_port, free_udp_port
 from flightstack.sim_backend.emulators.radio import DeviceRadio

@@ -1049,8 +1049,8 @@ def test_the_last_command_held_for_the_whole_timeout_stays_under_the_hard_ceilin
     """Worst case of the cap on a Tello: the capped v_z turned into an integer rc (rounded, the driver's
     velocity_to_rc) and flown for the whole 15 s (a first-order lag only lowers it) ends at most
     ½ rc unit × 15 s above the soft ceiling, well inside the hard margin."""
-    from flightstack.drivers.tello_config import TELLO_OWN_TIMEOUT_S
-    from flightstack.drivers.tello_rc import RcGains, rc_to_velocity, velocity_to_rc
+    from flightstack.drivers.tello.config import TELLO_OWN_TIMEOUT_S
+    from flightstack.drivers.tello.rc import RcGains, rc_to_velocity, velocity_to_rc
 
     rig = holding_rig(z0)
     rig.sd.send_body_velocity(np.array([0.0, 0.0, v, 0.0]))

@@ -1,4 +1,4 @@
-"""drivers/tello.py against the loopback Tello emulator (sim_backend/emulators/tello.py), on 127.0.0.x only.
+"""drivers/tello/ against the loopback Tello emulator (sim_backend/emulators/tello/), on 127.0.0.x only.
 
 Every scenario of issue 14 is flown through the emulator with one of its real-firmware fault switches,
 and judged at the emulator: nothing sent that the drone rejected or ignored in its phase
@@ -22,8 +22,8 @@ pytest.importorskip("av")
 
 from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.drivers.tello import TelloCommandError, TelloConfig, TelloDriver, TelloLinkError
-from flightstack.drivers.tello_camera import TelloCamera
-from flightstack.drivers.tello_rc import velocity_to_rc
+from flightstack.drivers.tello.camera import TelloCamera
+from flightstack.drivers.tello.rc import velocity_to_rc
 from flightstack.hal import FlightPhase
 from flightstack.paper.geometry import Pose, rot_z
 from flightstack.ports import free_udp_port

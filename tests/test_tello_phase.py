@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from flightstack.drivers.tello_phase import PhaseTracker
-from flightstack.drivers.tello_state import StateRejectedError, TelloTelemetry, parse_state
+from flightstack.drivers.tello.phase import PhaseTracker
+from flightstack.drivers.tello.state import StateRejectedError, TelloTelemetry, parse_state
 from flightstack.hal import FlightPhase
 
 LINE = "mid:-1;x:0;y:0;z:0;mpry:0,0,0;pitch:0;roll:0;yaw:0;vgx:0;vgy:0;vgz:{vgz};templ:60;temph:63;"

@@ -1,4 +1,4 @@
-"""The Tello video stream check (flightstack.drivers.tello_video_check) on a real x264 stream cut into
+"""The Tello video stream check (flightstack.drivers.tello.video_check) on a real x264 stream cut into
 Tello datagrams: which access units it calls damaged after each kind of loss, and when it resyncs."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from flightstack.drivers.tello_video_check import TELLO_DATAGRAM_BYTES, StreamCheck, split_nals
+from flightstack.drivers.tello.video_check import TELLO_DATAGRAM_BYTES, StreamCheck, split_nals
 
 pytestmark = pytest.mark.unit
 av = pytest.importorskip("av")

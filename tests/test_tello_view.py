@@ -1,4 +1,4 @@
-"""What an emulated Tello's camera sees (sim_backend/emulators/tello_view.py): the markers rendered from the
+"""What an emulated Tello's camera sees (sim_backend/emulators/tello/view.py): the markers rendered from the
 drone's and the target's poses through the calibration, each mount with its own calibration."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 
 from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.paper.geometry import Pose
-from flightstack.sim_backend.emulators.tello_view import CameraSpec, CameraView, drone_world_pose
+from flightstack.sim_backend.emulators.tello.view import CameraSpec, CameraView, drone_world_pose
 from flightstack.vision.camera_file import load_calibration
 from flightstack.vision.markers import extract_markers
 from tests.conftest import MISSIONS

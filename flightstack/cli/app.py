@@ -179,10 +179,10 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate_drone(args: argparse.Namespace) -> int:
-    """Fly rc steps on one Tello and fit rc-unit → m/s gains and time constants (drivers/identify.py)."""
+    """Fly rc steps on one Tello; fit rc-unit → m/s gains and time constants (drivers/tello/identify.py)."""
     from flightstack.drivers.guardian import Guardian, GuardianConfig
-    from flightstack.drivers.identify import fits_to_rc_gains, identify, save_identification
     from flightstack.drivers.tello import TelloConfig, TelloDriver
+    from flightstack.drivers.tello.identify import fits_to_rc_gains, identify, save_identification
 
     if not args.yes:
         if not sys.stdin.isatty():

@@ -4,14 +4,14 @@ Written against the Tello SDK 2.0 and 3.0 user guides (Tello EDU firmware 02.05.
 SDK 2.0 firmware lacks `port`, `downvision` and the other SDK-3.0-only commands). Video: drivers/
 tello_camera.py (own UDP receiver and PyAV decoder).
 
-`TelloDriver` owns its parts, each given only what it uses: `link` (drivers/tello_link.py: own command
-socket, place on the shared state port), `status` and its events (drivers/tello_status.py: telemetry,
-phase from drivers/tello_phase.py, the flags that decide what may be sent), `exchange` (drivers/
-tello_exchange.py: blocking command and reply), `sticks` (drivers/tello_sticks.py: `rc`, hover,
-`emergency`), `flight` (drivers/tello_flight.py: takeoff and land), `rejoin` (drivers/tello_rejoin.py:
-`command` again while the state stream is silent) and `watchdog` (drivers/tello_watchdog.py: link
+`TelloDriver` owns its parts, each given only what it uses: `link` (drivers/tello/link.py: own command
+socket, place on the shared state port), `status` and its events (drivers/tello/status.py: telemetry,
+phase from drivers/tello/phase.py, the flags that decide what may be sent), `exchange` (drivers/
+tello_exchange.py: blocking command and reply), `sticks` (drivers/tello/sticks.py: `rc`, hover,
+`emergency`), `flight` (drivers/tello/flight.py: takeoff and land), `rejoin` (drivers/tello/rejoin.py:
+`command` again while the state stream is silent) and `watchdog` (drivers/tello/watchdog.py: link
 freshness, loop watchdog). This module wires them, adds `connect`, `close` and
-`preflight`, and is the import path (settings, errors and reply parsers: drivers/tello_config.py).
+`preflight`, and is the import path (settings, errors and reply parsers: drivers/tello/config.py).
 
 Principles (telemetry decides, replies are advisory, nothing the drone would reject in its phase, never
 blocking the control loop, the loop watchdog, lands re-sent until telemetry shows the descent, link loss
@@ -32,7 +32,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from flightstack.drivers.tello_config import (
+from flightstack.drivers.tello.config import (
     DEFAULT_VIDEO_PORT,
     TELLO_OWN_TIMEOUT_S,
     PreflightCheck,
@@ -43,14 +43,14 @@ from flightstack.drivers.tello_config import (
     parse_sdk,
     parse_serial,
 )
-from flightstack.drivers.tello_exchange import CommandExchange
-from flightstack.drivers.tello_flight import FlightPhases
-from flightstack.drivers.tello_link import TelloLink
-from flightstack.drivers.tello_preflight import tello_preflight
-from flightstack.drivers.tello_rejoin import SdkRejoin
-from flightstack.drivers.tello_status import DriverEvents, DriverStatus
-from flightstack.drivers.tello_sticks import Sticks
-from flightstack.drivers.tello_watchdog import Watchdog
+from flightstack.drivers.tello.exchange import CommandExchange
+from flightstack.drivers.tello.flight import FlightPhases
+from flightstack.drivers.tello.link import TelloLink
+from flightstack.drivers.tello.preflight import tello_preflight
+from flightstack.drivers.tello.rejoin import SdkRejoin
+from flightstack.drivers.tello.status import DriverEvents, DriverStatus
+from flightstack.drivers.tello.sticks import Sticks
+from flightstack.drivers.tello.watchdog import Watchdog
 from flightstack.events import Event
 from flightstack.hal import DroneState, FlightPhase
 
@@ -133,15 +133,15 @@ class TelloDriver:
         self.link.close()
 
     def takeoff(self) -> None:
-        """Take off and return once airborne and done (drivers/tello_flight.py)."""
+        """Take off and return once airborne and done (drivers/tello/flight.py)."""
         self.flight.takeoff()
 
     def land(self) -> None:
-        """Land and return once down with the motors off (drivers/tello_flight.py)."""
+        """Land and return once down with the motors off (drivers/tello/flight.py)."""
         self.flight.land()
 
     def send_body_velocity(self, V: np.ndarray) -> None:
-        """V = [v_x, v_y, v_z, ω] (m/s, rad/s, FLU body) as `rc`; never blocks (drivers/tello_sticks.py)."""
+        """V = [v_x, v_y, v_z, ω] (m/s, rad/s, FLU body) as `rc`; never blocks (drivers/tello/sticks.py)."""
         self.sticks.send_body_velocity(V)
 
     def send_rc(self, rc: tuple[int, int, int, int]) -> None:

@@ -11,7 +11,7 @@ else (`reader_error`, after which the decoder is rebuilt); each is counted in `T
 (plus `thread_error` for the thread's own failures) and logged at the first and every 100th occurrence.
 A frame decoded after a lost or reordered datagram, up to the next intact keyframe, is damaged (smeared
 by the decoder's concealment): it is dropped, never published, and counted (`damaged`; how losses are
-found: flightstack.drivers.tello_video_check). The last clean frame stays the latest, so its age grows and
+found: flightstack.drivers.tello.video_check). The last clean frame stays the latest, so its age grows and
 the agent's frame-age rule (`max_frame_age_s`) sees the gap.
 
 A per-drone `video_port` (`port` command) and the downward camera need SDK 3.0: `start()` refuses them on
@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 
 from flightstack.drivers.tello import DEFAULT_VIDEO_PORT, TelloCommandError, TelloDriver
-from flightstack.drivers.tello_link import ERROR_PAUSE_S, ErrorLog
-from flightstack.drivers.tello_video_check import StreamCheck
+from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog
+from flightstack.drivers.tello.video_check import StreamCheck
 from flightstack.hal import Frame
 
 LOG = logging.getLogger("flightstack.tello")

@@ -4,7 +4,7 @@ A frame source is ``frame_source(t, emu) -> image`` (``t`` = stream time ``n / f
 seconds; image HxWx3 uint8 RGB, or HxW grey, of size ``emu.video_size = (width, height)`` in pixels).  The
 default source draws a square moving on a circle and stamps the frame index as a row of black/white
 blocks, so a test can match every decoded frame with the frame that was rendered.  Encoding and sending
-are in ``tello_video``; re-exported by ``tello.py``.
+are in ``video``; re-exported by ``tello.py``.
 """
 
 from __future__ import annotations

@@ -1,15 +1,15 @@
 """The Tello emulator's video stream: render, H.264-encode and send frames over UDP.
 
 After ``streamon`` the video thread renders ``frame_source(t, emu)`` (``t`` = stream time ``n / fps`` s of
-frame ``n``; frames of ``video_size = (width, height)`` pixels, see ``tello_frames``), encodes it with
+frame ``n``; frames of ``video_size = (width, height)`` pixels, see ``frames``), encodes it with
 libx264 (ultrafast, zerolatency, repeat-headers, ``gop_size`` frames between keyframes) and sends the raw
 Annex-B byte stream in datagrams of at most ``MAX_VIDEO_DATAGRAM`` bytes to ``(client_ip, video_port)``.
 A new ``streamon`` restarts the encoder (a new stream epoch); a late thread skips frames rather than
 bursting. Every frame sent is logged with its capture time (``video_capture_log``: index, the
 time.monotonic() s at which its content was taken, the time it was sent). With ``use_remote_video`` the
-video is made elsewhere (``tello_video_process``: the emulated lab's cameras that render the flight, in a
+video is made elsewhere (``video_process``: the emulated lab's cameras that render the flight, in a
 child process) and this thread only feeds it the stream state and the true pose. `TelloVideoStream` is one
-layer of ``TelloEmulator`` (``tello_emulator``); ``make_encoder``, ``frame_datagrams`` and ``send_frame``
+layer of ``TelloEmulator`` (``emulator``); ``make_encoder``, ``frame_datagrams`` and ``send_frame``
 are shared with the child process. With the rig's video link (``links``, device_links) each frame leaves
 late as a whole, or is lost; its send time is then when it was due to leave.
 """
@@ -24,7 +24,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from .tello_base import TelloEmulatorBase
+from .base import TelloEmulatorBase
 
 MAX_VIDEO_DATAGRAM = 1460
 """Largest video datagram payload, like the real drone."""

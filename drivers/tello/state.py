@@ -35,7 +35,7 @@ _OPTIONAL: dict[str, tuple[float, float]] = {
     "pitch": (-180.0, 180.0),
     "roll": (-180.0, 180.0),
     "yaw": (-180.0, 180.0),
-    "x": (-1e5, 1e5),  # cm; mission-pad coordinates on a real drone (drivers/identify.py)
+    "x": (-1e5, 1e5),  # cm; mission-pad coordinates on a real drone (drivers/tello/identify.py)
     "y": (-1e5, 1e5),
     "z": (-1e5, 1e5),
 }

@@ -1,10 +1,10 @@
 """The Tello driver's stick commands: `rc` (body velocity or raw sticks), hover and `emergency`.
 
 `send_body_velocity` maps V = [v_x, v_y, v_z, ω] in the drone's FLU body frame (m/s, rad/s) to `rc a b c d`
-(drivers/tello_rc.py; -100..100 each) and sends it as one non-blocking datagram, only while the drone is
+(drivers/tello/rc.py; -100..100 each) and sends it as one non-blocking datagram, only while the drone is
 airborne, no blocking command is running and no land is pending (otherwise counted in
 `counts["rc_suppressed"]`; a drone landing by itself is `landing`, so it gets no rc); every call tells the
-loop watchdog (drivers/tello_watchdog.py) that the control loop is alive.
+loop watchdog (drivers/tello/watchdog.py) that the control loop is alive.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import time
 
 import numpy as np
 
-from flightstack.drivers.tello_link import TelloLink
-from flightstack.drivers.tello_rc import RcGains, velocity_to_rc
-from flightstack.drivers.tello_status import DriverEvents, DriverStatus
+from flightstack.drivers.tello.link import TelloLink
+from flightstack.drivers.tello.rc import RcGains, velocity_to_rc
+from flightstack.drivers.tello.status import DriverEvents, DriverStatus
 from flightstack.events import TelloKind
 from flightstack.hal import FlightPhase
 

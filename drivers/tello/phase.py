@@ -5,7 +5,7 @@ phase; telemetry does. The driver tells the tracker what it sent (`takeoff_sent`
 `emergency_sent`) and feeds it every state packet (`observe`); the tracker moves between the phases of
 `flightstack.hal.FlightPhase` only when the telemetry shows it.
 
-Signals (units as the drone sends them, see drivers/tello_state.py):
+Signals (units as the drone sends them, see drivers/tello/state.py):
 - **motors running**: the motor-on time `time` (whole seconds) changed less than `motor_quiet_s` ago. It
   rises by one every second while the motors turn, so 1.5 s without a change means the motors are off.
 - **near the ground**: `h` ≤ `ground_h_cm` (h is relative to the takeoff point).
@@ -43,7 +43,7 @@ import itertools
 from collections import deque
 from dataclasses import dataclass
 
-from flightstack.drivers.tello_state import TelloTelemetry
+from flightstack.drivers.tello.state import TelloTelemetry
 from flightstack.hal import FlightPhase
 
 

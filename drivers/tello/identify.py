@@ -6,10 +6,10 @@ first-order step response with dead time (`fit_first_order_step`)
     v(t) = gain · u · (1 − exp(−(t − t_step − delay) / τ))   for t > t_step + delay,   0 before,
 
 and `identify` repeats this forward and back on every axis and averages the two fits. `fits_to_rc_gains`
-turns the result into the `RcGains` of flightstack.drivers.tello_rc and `save_identification` writes it as
+turns the result into the `RcGains` of flightstack.drivers.tello.rc and `save_identification` writes it as
 YAML.
 
-Axes and signs (body FLU frame, as in flightstack.drivers.tello_rc): "x" forward (rc b), "y" left (−rc a),
+Axes and signs (body FLU frame, as in flightstack.drivers.tello.rc): "x" forward (rc b), "y" left (−rc a),
 "z" up (rc c), "yaw" counter-clockwise seen from above (−rc d); the identified gains are positive, m/s
 (x, y, z) or rad/s (yaw) per rc unit. Time: monotonic seconds (time.monotonic).
 
@@ -19,8 +19,8 @@ fields are integers in dm/s, so a speed that is not a multiple of 10 cm/s is bia
 (35 cm/s reads 3 dm/s) and the transient often hides τ; there is no yaw-rate field at all. Differenced
 integer positions are coarse per sample (±10 cm/s at 10 Hz) but unbiased (the rounding errors telescope),
 so `identify` fits them with `differenced=True` (residuals weighted through their running sum). The
-measurements behind this: docs/lab_notes.md ("drivers/identify.py"); `state_velocity_source(driver, axis,
-field="vg")` gives the vg* alternative for comparison.
+measurements behind this: docs/lab_notes.md ("drivers/tello/identify.py");
+`state_velocity_source(driver, axis, field="vg")` gives the vg* alternative for comparison.
 
 Frames of the state stream (assumption, the emulator's convention): x forward and y right in the
 horizontal frame of the takeoff heading, z up, yaw clockwise in degrees; the horizontal velocity is rotated
@@ -42,7 +42,7 @@ import numpy as np
 import yaml
 from scipy.optimize import least_squares
 
-from flightstack.drivers.tello_rc import RC_LIMIT, RcGains
+from flightstack.drivers.tello.rc import RC_LIMIT, RcGains
 
 AXES: tuple[str, ...] = ("x", "y", "z", "yaw")
 """The identifiable axes: x forward, y left, z up (m/s), yaw counter-clockwise (rad/s); body FLU frame."""
@@ -433,8 +433,8 @@ def save_identification(path: str | Path, fits: Mapping[str, StepFit], drone_hos
         "samples": {a: int(f.samples) for a, f in fits.items()},
     }
     header = (
-        "# Tello velocity identification (drivers/identify.py): rc_gains in m/s (xy, z) and rad/s (yaw)\n"
-        "# per rc unit; axes x forward, y left, z up, yaw counter-clockwise (body FLU);\n"
+        "# Tello velocity identification (drivers/tello/identify.py): rc_gains in m/s (xy, z)\n"
+        "# and rad/s (yaw) per rc unit; axes x forward, y left, z up, yaw counter-clockwise (body FLU);\n"
         "# tau_s, delay_s in s; rms_residual in m/s (rad/s for yaw).\n"
     )
     Path(path).write_text(header + yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")

@@ -1,7 +1,7 @@
 """The Tello driver's monitor thread: link freshness and the control-loop watchdog.
 
 Every 0.02 s: no state packet for `link_timeout_s` (s) → link lost (`link_lost` / `link_restored` events), and
-while it is lost `command` at most every `rejoin_s` (drivers/tello_rejoin.py: a drone that rebooted streams
+while it is lost `command` at most every `rejoin_s` (drivers/tello/rejoin.py: a drone that rebooted streams
 again only after it); while airborne with no blocking command and no land pending, a control loop silent for
 `loop_hover_s` (s) gets `rc 0 0 0 0` once, and after `loop_land_s` (s) the driver lands by itself on its own
 thread. The thread survives any error (counted, logged).
@@ -13,11 +13,11 @@ import threading
 import time
 from collections.abc import Callable
 
-from flightstack.drivers.tello_config import TelloConfig
-from flightstack.drivers.tello_link import ErrorLog
-from flightstack.drivers.tello_rejoin import SdkRejoin
-from flightstack.drivers.tello_status import LOG, DriverEvents, DriverStatus
-from flightstack.drivers.tello_sticks import HOVER, Sticks
+from flightstack.drivers.tello.config import TelloConfig
+from flightstack.drivers.tello.link import ErrorLog
+from flightstack.drivers.tello.rejoin import SdkRejoin
+from flightstack.drivers.tello.status import LOG, DriverEvents, DriverStatus
+from flightstack.drivers.tello.sticks import HOVER, Sticks
 from flightstack.hal import FlightPhase
 
 

@@ -11,7 +11,7 @@ process. Here:
   the driver has an exchange open (`open_exchange`); any other reply is discarded and counted. Sending
   never blocks (a full socket buffer or a network error is counted and reported, not raised into a loop).
 - `StateReceiver`: binds the state port (8890 on real drones) once per process, parses each datagram
-  strictly (drivers/tello_state.py) and hands it to the driver registered for its source IP. Datagrams
+  strictly (drivers/tello/state.py) and hands it to the driver registered for its source IP. Datagrams
   from any other address, and malformed ones, are dropped and counted by reason. The thread survives
   every error.
 
@@ -35,7 +35,7 @@ from collections import Counter, deque
 from collections.abc import Callable
 from typing import ClassVar
 
-from flightstack.drivers.tello_state import StateRejectedError, TelloTelemetry, parse_state
+from flightstack.drivers.tello.state import StateRejectedError, TelloTelemetry, parse_state
 
 LOG = logging.getLogger("flightstack.tello")
 MAX_REPLY_BYTES = 256

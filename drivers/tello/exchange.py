@@ -14,9 +14,9 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from flightstack.drivers.tello_config import TelloCommandError, TelloConfig
-from flightstack.drivers.tello_link import TelloLink
-from flightstack.drivers.tello_status import DriverEvents, DriverStatus
+from flightstack.drivers.tello.config import TelloCommandError, TelloConfig
+from flightstack.drivers.tello.link import TelloLink
+from flightstack.drivers.tello.status import DriverEvents, DriverStatus
 
 RC_REPLIES = ("error not joystick",)  # firmware answers to rc, never another command's answer
 

@@ -1,4 +1,4 @@
-"""The Tello driver's settings, errors and reply parsers (drivers/tello.py uses them; SDK 2.0/3.0 guides).
+"""The Tello driver's settings, errors and reply parsers (used by drivers/tello/driver.py; SDK 2.0/3.0).
 
 Times in seconds, temperature in °C, ports UDP.
 """
@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from flightstack.drivers.tello_phase import PhaseThresholds
-from flightstack.drivers.tello_rc import RcGains
+from flightstack.drivers.tello.phase import PhaseThresholds
+from flightstack.drivers.tello.rc import RcGains
 
 DEFAULT_VIDEO_PORT = 11111
 TELLO_OWN_TIMEOUT_S = 15.0
@@ -61,7 +61,7 @@ class TelloConfig:
     dji-sdk/Tello-Python #88): 5 cm show within 0.2 s of the descent's start."""
     rejoin_s: float = 1.0
     """While the state stream is silent, `command` at most this often (s): a drone that rebooted streams
-    again only after it (drivers/tello_rejoin.py)."""
+    again only after it (drivers/tello/rejoin.py)."""
     quiet_s: float = 0.15
     min_battery_pct: float = 30.0
     max_temperature_c: float = 85.0

@@ -14,8 +14,8 @@ import threading
 import time
 from collections import Counter
 
-from flightstack.drivers.tello_phase import PhaseThresholds, PhaseTracker
-from flightstack.drivers.tello_state import TelloTelemetry
+from flightstack.drivers.tello.phase import PhaseThresholds, PhaseTracker
+from flightstack.drivers.tello.state import TelloTelemetry
 from flightstack.events import Event, TelloKind, log_level
 from flightstack.hal import FlightPhase
 
@@ -57,7 +57,7 @@ class DriverStatus:
     def observe(self, s: TelloTelemetry) -> None:
         """State receiver thread: one validated packet."""
         with self.lock:
-            self.fields = dict(s.fields)  # a new dict per packet (drivers/identify.py relies on it)
+            self.fields = dict(s.fields)  # a new dict per packet (drivers/tello/identify.py relies on it)
             self.last_state_t = s.t
             for change in self.tracker.observe(s):
                 self._events.add("phase", change)

@@ -1,7 +1,7 @@
 """`TelloEmulator`: the loopback UDP Tello, assembled from its layers, with its lifecycle (start/close).
 
-Layers: ``tello_base`` (configuration, logs, state, reply queue), ``tello_physics`` (motion model,
-phases, battery, state stream), ``tello_commands`` (text protocol), ``tello_video`` (H.264 stream).  This
+Layers: ``base`` (configuration, logs, state, reply queue), ``physics`` (motion model,
+phases, battery, state stream), ``commands`` (text protocol), ``video`` (H.264 stream).  This
 module binds the sockets (IPv4 loopback only) and runs the command, reply, simulation and video threads
 (daemons with bounded waits, joined by ``close()``).  Import it from ``tello.py``, whose docstring
 describes the protocol and the emulated behaviour.
@@ -15,8 +15,8 @@ import threading
 import time
 from types import TracebackType
 
-from .tello_commands import TelloCommands
-from .tello_video import TelloVideoStream
+from .commands import TelloCommands
+from .video import TelloVideoStream
 
 LOG = logging.getLogger(f"{__package__}.tello")  # the public module's logger, as before the split
 

@@ -9,36 +9,36 @@ datagrams of at most 1460 bytes to ``video_port`` (11111). ``djitellopy`` routes
 source IP only, hence one loopback IP per emulated drone (127.0.0.2, 127.0.0.3, ...). All traffic stays
 on 127.0.0.0/8; all threads are daemons with bounded waits (<= 0.1 s), joined by ``close()``.
 
-The behaviour per command, with the user reports it is based on, is described in ``tello_commands``; the
-phases, motion model, battery and state stream in ``tello_physics``; the fault switches in
-``tello_faults``. Sources: *DJITelloPy #N* = https://github.com/damiafuentes/DJITelloPy/issues/N,
+The behaviour per command, with the user reports it is based on, is described in ``commands``; the
+phases, motion model, battery and state stream in ``physics``; the fault switches in
+``faults``. Sources: *DJITelloPy #N* = https://github.com/damiafuentes/DJITelloPy/issues/N,
 *Tello-Python #N* = https://github.com/dji-sdk/Tello-Python/issues/N, the SDK 2.0 and SDK 3.0 user guides
-(URLs in ``tello_faults``).
+(URLs in ``faults``).
 
-Layout: this module is the import path; ``tello_emulator`` (``TelloEmulator``: sockets, threads,
-start/close) is built from ``tello_base`` (configuration, logs, reply queue), ``tello_physics``,
-``tello_commands`` and ``tello_video`` (H.264 stream), with ``tello_frames`` (frame sources, frame-index
-bar code) and ``tello_net`` (loopback helpers).
+Layout: this module is the import path; ``emulator`` (``TelloEmulator``: sockets, threads,
+start/close) is built from ``base`` (configuration, logs, reply queue), ``physics``,
+``commands`` and ``video`` (H.264 stream), with ``frames`` (frame sources, frame-index
+bar code) and ``net`` (loopback helpers).
 """
 
 from __future__ import annotations
 
 from flightstack.ports import free_udp_port
 
-from .tello_commands import text_of as text_of
-from .tello_emulator import TelloEmulator
-from .tello_faults import SDK3_ONLY_COMMANDS, ReplyScheduler, TelloFaults
-from .tello_faults import has_sdk3 as has_sdk3
-from .tello_frames import INDEX_BITS as INDEX_BITS
-from .tello_frames import (
+from .commands import text_of as text_of
+from .emulator import TelloEmulator
+from .faults import SDK3_ONLY_COMMANDS, ReplyScheduler, TelloFaults
+from .faults import has_sdk3 as has_sdk3
+from .frames import INDEX_BITS as INDEX_BITS
+from .frames import (
     FrameSource,
     default_frame_source,
     read_frame_index,
     stamp_frame_index,
 )
-from .tello_frames import default_square as default_square
-from .tello_net import is_loopback, wait_until
-from .tello_video import MAX_VIDEO_DATAGRAM as MAX_VIDEO_DATAGRAM
+from .frames import default_square as default_square
+from .net import is_loopback, wait_until
+from .video import MAX_VIDEO_DATAGRAM as MAX_VIDEO_DATAGRAM
 
 __all__ = [
     "SDK3_ONLY_COMMANDS",

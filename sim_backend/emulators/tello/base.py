@@ -5,9 +5,9 @@ durations in s, heights in cm), the public logs every layer appends to (``comman
 ``rc_history``, ``phase_log``, ``refused``, ``replies_sent``, ``errors``, ``rejected``, ...; times are
 ``time.monotonic()`` seconds), the ground-truth state (position in cm in the world frame ``x`` forward at
 takeoff heading, ``y`` right, ``z`` up; yaw in degrees clockwise; velocities in cm/s) and the FIFO reply
-queue (``ReplyScheduler`` of ``tello_faults``).  Layers on top: ``tello_physics`` (motion model, phases,
-battery, state stream), ``tello_commands`` (the text protocol), ``tello_video`` (the H.264 stream);
-``tello_emulator`` assembles them.  Protocol and behaviour: the docstring of ``tello.py``.
+queue (``ReplyScheduler`` of ``faults``).  Layers on top: ``physics`` (motion model, phases,
+battery, state stream), ``commands`` (the text protocol), ``video`` (the H.264 stream);
+``emulator`` assembles them.  Protocol and behaviour: the docstring of ``tello.py``.
 """
 
 from __future__ import annotations
@@ -21,13 +21,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S
-from flightstack.drivers.tello_config import TELLO_OWN_TIMEOUT_S
+from flightstack.drivers.tello.config import TELLO_OWN_TIMEOUT_S
 
-from .device_links import DeviceLinks
-from .radio import DeviceRadio
-from .tello_faults import ReplyScheduler, TelloFaults
-from .tello_frames import FrameSource, default_frame_source
-from .tello_net import require_loopback
+from ..device_links import DeviceLinks
+from ..radio import DeviceRadio
+from .faults import ReplyScheduler, TelloFaults
+from .frames import FrameSource, default_frame_source
+from .net import require_loopback
 
 
 @dataclass

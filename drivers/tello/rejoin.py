@@ -6,7 +6,7 @@ restarted drone your PC controls it"; SMerrony/tellodesk#3: status no longer upd
 following a battery change). Without `command` its landing can never be confirmed. So while the driver's
 link is lost, `SdkRejoin.step` sends `command` at most every `rejoin_s` (s; 1 s by default): a drone still
 in SDK mode answers `ok` (discarded: no exchange waits for it) and nothing else changes. Called by the
-monitor thread (drivers/tello_watchdog.py); never while a blocking exchange other than a land runs (its
+monitor thread (drivers/tello/watchdog.py); never while a blocking exchange other than a land runs (its
 `ok` could pass for another command's answer). Times: time.monotonic() s.
 """
 
@@ -15,8 +15,8 @@ from __future__ import annotations
 import math
 import threading
 
-from flightstack.drivers.tello_link import TelloLink
-from flightstack.drivers.tello_status import DriverEvents
+from flightstack.drivers.tello.link import TelloLink
+from flightstack.drivers.tello.status import DriverEvents
 
 
 class SdkRejoin:

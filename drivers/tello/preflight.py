@@ -8,12 +8,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Protocol
 
-from flightstack.drivers.tello_config import PreflightCheck, TelloConfig, parse_int_reply
+from flightstack.drivers.tello.config import PreflightCheck, TelloConfig, parse_int_reply
 from flightstack.hal import FlightPhase
 
 
 class PreflightTarget(Protocol):
-    """What the checks read of a connected Tello driver (drivers/tello.py's `TelloDriver`)."""
+    """What the checks read of a connected Tello driver (drivers/tello/driver.py's `TelloDriver`)."""
 
     @property
     def cfg(self) -> TelloConfig: ...

@@ -4,8 +4,8 @@
 at that height (or telemetry alone at `takeoff_timeout_s`, s); `land()` once it shows the drone down with
 the motors off, re-sending `rc 0 0 0 0` + `land` at once when telemetry returns after a lost link, and
 every `land_resend_s` (s) while telemetry is silent or shows neither a descent nor the ground. Heights in
-cm as sent by the drone. Each holds the command exchange (drivers/tello_exchange.py) for its whole length;
-the rules on every failure: drivers/tello.py.
+cm as sent by the drone. Each holds the command exchange (drivers/tello/exchange.py) for its whole length;
+the rules on every failure: drivers/tello/driver.py.
 """
 
 from __future__ import annotations
@@ -13,11 +13,11 @@ from __future__ import annotations
 import time
 from typing import Literal
 
-from flightstack.drivers.tello_config import TelloCommandError, TelloConfig, TelloLinkError
-from flightstack.drivers.tello_exchange import CommandExchange
-from flightstack.drivers.tello_link import TelloLink
-from flightstack.drivers.tello_status import DriverEvents, DriverStatus
-from flightstack.drivers.tello_sticks import Sticks
+from flightstack.drivers.tello.config import TelloCommandError, TelloConfig, TelloLinkError
+from flightstack.drivers.tello.exchange import CommandExchange
+from flightstack.drivers.tello.link import TelloLink
+from flightstack.drivers.tello.status import DriverEvents, DriverStatus
+from flightstack.drivers.tello.sticks import Sticks
 from flightstack.events import TelloKind
 from flightstack.hal import FlightPhase
 

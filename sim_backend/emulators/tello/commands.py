@@ -1,6 +1,6 @@
 """The Tello emulator's command protocol: receive text datagrams, run them, queue the replies.
 
-`TelloCommands` is one layer of ``TelloEmulator`` (``tello_emulator``). The real drone's behaviour is partly
+`TelloCommands` is one layer of ``TelloEmulator`` (``emulator``). The real drone's behaviour is partly
 undocumented; a choice no report backs is marked *unverified*, and clients may rely only on ``ok`` versus
 not ``ok`` (error texts differ between firmwares). Sources are abbreviated as in ``tello.py``.
 
@@ -51,10 +51,10 @@ from __future__ import annotations
 import logging
 import time
 
-from .tello_base import DeferredReply
-from .tello_faults import SDK3_ONLY_COMMANDS, has_sdk3
-from .tello_net import is_loopback
-from .tello_physics import TelloPhysics, wrap_deg
+from .base import DeferredReply
+from .faults import SDK3_ONLY_COMMANDS, has_sdk3
+from .net import is_loopback
+from .physics import TelloPhysics, wrap_deg
 
 LOG = logging.getLogger(f"{__package__}.tello")  # the public module's logger, as before the split
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import time
 
-from .tello_base import TelloEmulatorBase
+from .base import TelloEmulatorBase
 
 
 class TelloPhysics(TelloEmulatorBase):

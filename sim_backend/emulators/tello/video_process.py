@@ -50,10 +50,10 @@ import numpy as np
 
 from flightstack.netem import NetworkProfile
 
-from .device_links import LINK_COUNTERS
-from .radio import COUNTERS
-from .tello_base import TelloEmulatorBase
-from .tello_view import CameraSpec
+from ..device_links import LINK_COUNTERS
+from ..radio import COUNTERS
+from .base import TelloEmulatorBase
+from .view import CameraSpec
 
 RING = 1 << 15
 """Capture records kept in shared memory (18 min at 30 fps); `sync` copies them out every 10 ms."""
@@ -300,11 +300,11 @@ def _run(a: ChildArgs) -> None:
     from flightstack.config.links import LinkSpec
     from flightstack.paper.geometry import Pose
 
-    from .device_links import DeviceLinks
-    from .radio import DeviceRadio
-    from .tello_frames import stamp_frame_index
-    from .tello_video import frame_datagrams, make_encoder
-    from .tello_view import CameraView, drone_world_pose
+    from ..device_links import DeviceLinks
+    from ..radio import DeviceRadio
+    from .frames import stamp_frame_index
+    from .video import frame_datagrams, make_encoder
+    from .view import CameraView, drone_world_pose
 
     spec, ip, dest, fps, gop_size, path = a.spec, a.ip, a.dest, a.fps, a.gop_size, a.path
     ctrl_raw, target_raw, stats_raw, parent = a.ctrl_raw, a.target_raw, a.stats_raw, a.parent
