@@ -340,20 +340,38 @@ def test_slow_climb_takeoff_returns_only_when_airborne(emu: TelloEmulator) -> No
         d.close()
 
 
-def test_land_requested_during_takeoff_waits_for_airborne(emu: TelloEmulator) -> None:
+def test_land_requested_during_takeoff_is_sent_at_once_and_again_once_it_hovers(emu: TelloEmulator) -> None:
+    """land() during a takeoff abandons the takeoff and sends `land` at once; a Tello busy taking off
+    refuses it (`error Not joystick`), so it goes out again once telemetry shows the drone holding its
+    height after the climb (after `rc 0 0 0 0`); the velocity asked for during the climb never goes out."""
     emu.faults.takeoff_s = 2.0
     d = TelloDriver(config(emu))
+    errors: list[BaseException] = []
+
+    def takeoff() -> None:
+        try:
+            d.takeoff()
+        except TelloCommandError as exc:
+            errors.append(exc)
+
     try:
         d.connect()
-        th = threading.Thread(target=d.takeoff, daemon=True)
+        th = threading.Thread(target=takeoff, daemon=True)
         th.start()
         assert wait_until(lambda: emu.phase == "takeoff", 1.0)
         d.send_body_velocity(np.array([0.3, 0, 0, 0]))  # suppressed: the drone ignores rc while climbing
-        d.land()  # waits until airborne, then lands
+        t0 = time.monotonic()
+        d.land()
         th.join(5.0)
+        lands = [t for t, text in emu.commands if text == "land"]
+        print(f"first land {lands[0] - t0:.3f} s after land(); {len(lands)} sent")
+        assert lands[0] - t0 < 1.0
+        assert len(errors) == 1 and "abandoned" in str(errors[0]), errors
         agree(d, emu)
-        assert emu.phase == "landed" and not emu.rc_history
-        assert_clean(d, emu)
+        assert emu.phase == "landed" and all(rc == (0, 0, 0, 0) for _, rc in emu.rc_history)  # hover only
+        assert any("holding its height" in e.detail for e in d.events if e.kind == "resend"), d.events
+        assert [r for r in emu.refused if r[2] != "land"] == [], emu.refused  # only the busy land
+        assert not emu.landed_by_timeout and emu.errors == []
     finally:
         d.close()
 

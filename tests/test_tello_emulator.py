@@ -602,7 +602,7 @@ def test_takeoff_rc_motion_and_land(rig: Rig) -> None:
     received = [values for _, values in emu.rc_history[n0:]]
     assert all(values == (0, 50, 20, 0) for values in received)
     assert all(type(v) is int for values in received for v in values)
-    assert wait_until(lambda: tello.get_speed_x() == 5 and tello.get_speed_z() == 2, 1.0)
+    assert wait_until(lambda: tello.get_speed_x() == 5 and tello.get_speed_z() == -2, 1.0)  # vgz down
     assert tello.get_speed_y() == 0
     x, _, z = emu.position_cm
     assert x > 25 and z > 90

@@ -1,7 +1,8 @@
 """The Tello state parser and the telemetry phase tracker, on synthetic state streams (no sockets).
 
-Streams are written the way the SDK documents the fields: h in cm relative to the takeoff point,
-vgz in dm/s, `time` = whole seconds of motor-on time, one packet per 0.1 s.
+Streams are written the way the SDK documents the fields: h in cm relative to the takeoff point, vgz in dm/s
+positive DOWN (as a real Tello sends it: docs/drivers.md, "What a real Tello sends"), `time` = whole seconds
+of motor-on time, one packet per 0.1 s.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ def stream(tracker: PhaseTracker, t0: float, t1: float, h, motor0: float, motors
     for k in range(n):
         t = t0 + 0.1 * k
         m = motor0 + (t - t0 if motors_on else 0.0)
-        events += tracker.observe(packet(t, h(t), m, vgz=(h(t + 0.1) - h(t)) / 0.1 / 10))
+        events += tracker.observe(packet(t, h(t), m, vgz=-(h(t + 0.1) - h(t)) / 0.1 / 10))
     return events
 
 

@@ -49,16 +49,15 @@ class TelloConfig:
     loop_hover_s: float = 0.5
     loop_land_s: float = 2.0
     land_resend_s: float = 0.5
-    """During a land, `rc 0 0 0 0` + `land` this often (s) while telemetry is silent, or shows neither a
-    descent nor the ground (after `land_confirm_s`, or at once when the link returns). The driver sends no
+    """During a land, `rc 0 0 0 0` + `land` this often (s) while telemetry is silent. The driver sends no
     rc on every tick during a land: whether a stick command cancels a Tello's landing is not documented,
     so a hover goes out only right before each land."""
-    land_confirm_s: float = 0.5
-    """A land that telemetry does not show as a descent (h more than half of the phase's `descent_cm` below
-    its highest of the last 0.5 s) or the ground this long (s) after it was sent is sent again (with
-    `rc 0 0 0 0` first), then every `land_resend_s`: a lost land, or one lost with its hover on a one-way
-    outage, leaves the drone on its last rc. A Tello descends at ~50 cm/s when landing (80 cm in 1.7 s,
-    dji-sdk/Tello-Python #88): 5 cm show within 0.2 s of the descent's start."""
+    land_confirm_s: float = 1.5
+    """A land is sent again (with `rc 0 0 0 0` first) only when, this long (s) after the last one, telemetry
+    proves the drone holding its height (drivers/tello/phase.py `holding_after_land`): a lost land, or
+    one lost with its hover on a one-way outage, leaves the drone on its last rc. A real Tello's descent
+    shows 0.76 s after its `land` (vgz 1 dm/s, h one 10 cm step; 3 dm/s at 1.07 s) in the recorded
+    flight (docs/drivers.md, "What a real Tello sends"): 1.5 s leaves it twice that."""
     rejoin_s: float = 1.0
     """While the state stream is silent, `command` at most this often (s): a drone that rebooted streams
     again only after it (drivers/tello/rejoin.py)."""

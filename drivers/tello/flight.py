@@ -1,11 +1,12 @@
 """The Tello driver's takeoff and land, confirmed by telemetry (replies are advisory).
 
-`takeoff()` returns once the state stream shows the drone airborne at a stable height and it answered `ok`
-at that height (or telemetry alone at `takeoff_timeout_s`, s); `land()` once it shows the drone down with
-the motors off, re-sending `rc 0 0 0 0` + `land` at once when telemetry returns after a lost link, and
-every `land_resend_s` (s) while telemetry is silent or shows neither a descent nor the ground. Heights in
-cm as sent by the drone. Each holds the command exchange (drivers/tello/exchange.py) for its whole length;
-the rules on every failure: drivers/tello/driver.py.
+`takeoff()` returns once the drone answered `ok` while its telemetry made that plausible (climbed, motors
+running, off the ground), or by telemetry alone at `takeoff_timeout_s` (s) once the climb is over; `land()`
+sends `land` at once, whatever the phase, and returns once telemetry shows the drone down with the motors off,
+re-sending `rc 0 0 0 0` + `land` when telemetry returns after a lost link, every `land_resend_s` (s) while it
+is silent, and when it proves the drone holding its height `land_confirm_s` after the last land. Heights in cm
+as sent by the drone. Each holds the command exchange (drivers/tello/exchange.py) for its whole length; the
+rules on every failure: drivers/tello/driver.py.
 """
 
 from __future__ import annotations
@@ -20,6 +21,10 @@ from flightstack.drivers.tello.status import DriverEvents, DriverStatus
 from flightstack.drivers.tello.sticks import Sticks
 from flightstack.events import TelloKind
 from flightstack.hal import FlightPhase
+
+OK_GRACE_S = 1.0
+"""How long (s) an `ok` to takeoff waits for telemetry to make it plausible: with a quarter of the state
+lines lost the latest one can be 0.3-0.5 s old, and the takeoff's own climb shows within 2 s."""
 
 
 class FlightPhases:
@@ -40,15 +45,17 @@ class FlightPhases:
     def takeoff(self) -> None:
         """Take off; return once the drone is airborne and done with its takeoff.
 
-        Done = telemetry shows it airborne at a stable height AND it answered `ok` while at that height
-        (an `ok` at the ground is someone else's: not trusted). A Tello stabilises at height for seconds
-        before its `ok` and ignores rc until then, and telemetry cannot tell that from a finished takeoff;
-        so if the `ok` is lost, telemetry alone decides at takeoff_timeout_s (20 s), while `battery?`
-        probes (answered in every phase) keep the drone from its 15 s auto-land.
+        Done = the drone answered `ok` while its telemetry made that answer plausible (the takeoff has
+        climbed to `airborne_h_cm` by h or tof, the motors run, it is not near the ground: an `ok` at the
+        ground is someone else's, not trusted). A real Tello climbs in ~3 s, then holds for seconds more
+        before its `ok` (8.7 s after the command in a recorded flight) and ignores rc until then; its h
+        drifts meanwhile (70 → 40 cm at 1 m up), so no single height decides. If the `ok` is lost,
+        telemetry alone decides at takeoff_timeout_s (20 s) once the climb is over, while `battery?` probes
+        (answered in every phase) keep the drone from its 15 s auto-land.
 
         TelloCommandError when the drone refuses (an error answer and no motor start), when two sends
-        show no effect, or when it is not airborne and stable within takeoff_timeout_s (it may still be
-        climbing: land() then waits for the climb to end)."""
+        show no effect, when it is not airborne within takeoff_timeout_s (land() then lands it whatever
+        it is doing), or when land() is called meanwhile (the takeoff is abandoned for the land)."""
         cfg = self.cfg
         st, tracker = self._status, self._status.tracker
         if st.phase is FlightPhase.AIRBORNE:
@@ -62,22 +69,34 @@ class FlightPhases:
             try:
                 st.land_requested = False
                 self._send_takeoff()
-                sends, replies, ok_at_height, t_probe = 1, [], False, t0
+                sends, replies, answered, t_probe = 1, [], False, t0
+                ok_t: float | None = None  # an `ok` telemetry has not yet made plausible (s)
                 while True:
                     now = time.monotonic()
                     if (r := self._exchange.next_reply()) is not None:
                         replies.append(r)
-                        ok_at_height |= self._ok_at_height(r)
+                        if r.lower() == "ok":
+                            ok_t = now
+                    if ok_t is not None and not answered:
+                        answered, ok_t = self._takeoff_answer(ok_t, now)
                     with st.lock:
                         ph = tracker.phase
-                        stable = st.link_alive() and tracker.airborne_stable(now)
-                        if ph is FlightPhase.TAKING_OFF and stable and (ok_at_height or now >= deadline):
+                        alive = st.link_alive()
+                        over = alive and tracker.climb_over(now)
+                        if (
+                            ph is FlightPhase.TAKING_OFF
+                            and alive
+                            and (answered or (over and now >= deadline))
+                        ):
                             tracker.confirm_airborne(now)
                             ph = FlightPhase.AIRBORNE
+                        abandoned = st.land_requested
                     if ph is FlightPhase.AIRBORNE:
                         self._report_outcome("takeoff", [r for r in replies if not r.isdigit()], now - t0)
                         st.last_rc_t = st.last_loop_t = now  # the loop watchdog counts from here
                         return
+                    if abandoned:
+                        raise TelloCommandError(f"Tello {cfg.host}: takeoff abandoned: land requested")
                     if ph is FlightPhase.GROUND:  # no motor start within no_effect_s
                         refused = [r for r in replies if r.lower().startswith(("error", "unknown", "out"))]
                         if refused or sends >= 2:
@@ -91,7 +110,7 @@ class FlightPhases:
                             f"Tello {cfg.host}: not airborne within {cfg.takeoff_timeout_s:.0f} s "
                             f"(phase {ph.value}, replies {replies})"
                         )
-                    if stable and now - t_probe > cfg.keepalive_s:  # waiting for the ok: no auto-land
+                    if over and now - t_probe > cfg.keepalive_s:  # waiting for the ok: no auto-land
                         assert self._link.chan is not None
                         self._link.chan.send("battery?")
                         t_probe = now
@@ -99,16 +118,25 @@ class FlightPhases:
             finally:
                 tracker.hold_takeoff = False
 
-    def _ok_at_height(self, reply: str) -> bool:
-        """An `ok` counts as the takeoff's answer only when the drone is at height when it arrives."""
-        if reply.lower() != "ok":
-            return False
-        s = self._status.tracker.latest
-        if s is not None and s.h_cm >= self.cfg.phase.airborne_h_cm:
-            return True
+    def _takeoff_answer(self, ok_t: float, now: float) -> tuple[bool, float | None]:
+        """Is the `ok` received at `ok_t` the takeoff's answer? (answered, the ok still pending or None).
+
+        Yes once telemetry makes it plausible (PhaseTracker.takeoff_answer_plausible); telemetry may lag
+        the reply on a lossy stream, so the ok waits up to `ok_grace_s` for it, then is not trusted."""
+        with self._status.lock:
+            tracker = self._status.tracker
+            if tracker.takeoff_answer_plausible(now):
+                return True, None
+            if now - ok_t < OK_GRACE_S:
+                return False, ok_t
+            s = tracker.latest
+            seen = "no telemetry" if s is None else f"h {s.h_cm:.0f} cm, tof {s.tof_cm:.0f} cm"
+            climbed = "climbed" if tracker.climbed() else "not climbed"
+            motors = "motors running" if tracker.motors_running(now) else "motors off"
         self._events.counts["reply_not_trusted"] += 1
-        self._events.add("reply_not_trusted", f"'ok' during takeoff at h {s.h_cm if s else '?'} cm")
-        return False
+        why = f"'ok' during takeoff, {OK_GRACE_S:g} s later still at {seen} ({climbed}, {motors})"
+        self._events.add("reply_not_trusted", why)
+        return False, None
 
     def _send_takeoff(self) -> None:
         assert self._link.chan is not None
@@ -127,37 +155,32 @@ class FlightPhases:
             )
 
     def land(self) -> None:
-        """Land; return once telemetry shows the drone down with the motors off (no-op on the ground).
+        """Land; return once telemetry shows the drone down with the motors off (no-op on the ground with
+        the motors off).
 
-        A drone still taking off is landed as soon as it is airborne. Whatever the replies say, `rc 0 0 0 0`
-        + `land` go out again (a lost land leaves a Tello on its last rc): at once when telemetry returns
-        after a lost link; every `land_resend_s` while it is silent; and every `land_resend_s` while it
-        shows neither a descent nor the ground, from `land_confirm_s` after the first land. A drone that
-        lands by itself (phase landing) gets a land only if its descent stops. TelloCommandError after
-        land_timeout_s (takeoff_timeout_s more if climbing)."""
+        `land` goes out at once, whatever phase the driver believes (a takeoff under way is abandoned for
+        it), after `rc 0 0 0 0` (a Tello keeps its last rc). It is sent again, with `rc 0 0 0 0` first: at
+        once when telemetry returns after a lost link; every `land_resend_s` while telemetry is silent; and,
+        from `land_confirm_s` after the last land, whenever telemetry proves the drone holding its height
+        (phase.PhaseTracker.holding_after_land): a lossy stream, a slow start of the descent or a drift of
+        h is no reason to send it again (a Tello busy landing answers `error`). TelloCommandError after
+        land_timeout_s."""
         cfg, st = self.cfg, self._status
         tracker = st.tracker
-        if st.phase is FlightPhase.GROUND:
-            return
-        if st.phase is FlightPhase.UNKNOWN:
-            raise TelloLinkError(f"Tello {cfg.host}: no telemetry yet; land not sent")
+        with st.lock:
+            if st.phase is FlightPhase.GROUND and not tracker.motors_running(time.monotonic()):
+                return
+            if st.phase is FlightPhase.UNKNOWN:
+                raise TelloLinkError(f"Tello {cfg.host}: no telemetry yet; land not sent")
+            st.land_requested = True  # a takeoff() under way gives the exchange up for this land
         self._sticks.hover_now()  # a Tello keeps its last rc: stop it before the quiet window and the land
-        t0 = time.monotonic()
         with self._exchange.session():
             st.land_requested = True
-            climb_end = t0 + cfg.takeoff_timeout_s
-            while st.phase is FlightPhase.TAKING_OFF:
-                if time.monotonic() > climb_end:
-                    raise TelloCommandError(f"Tello {cfg.host}: still taking off; land not sent")
-                time.sleep(0.01)
-            if st.phase is FlightPhase.GROUND:
-                return
             t1 = time.monotonic()
             deadline, replies = t1 + cfg.land_timeout_s, []
-            t_sent, wait = t1, cfg.land_confirm_s
             silent = not st.link_alive()
-            if st.phase is FlightPhase.AIRBORNE:
-                self._send_land(hover_first=silent)
+            self._send_land(hover_first=silent)  # with telemetry, hover_now went out above when it was flying
+            t_sent = t1
             while True:
                 now = time.monotonic()
                 if (r := self._exchange.next_reply()) is not None:
@@ -165,7 +188,7 @@ class FlightPhases:
                 with st.lock:
                     ph, alive = tracker.phase, st.link_alive()
                     low = tracker.near_ground()
-                    settling = low or tracker.descending(now, tracker.th.descent_cm / 2)
+                    holding = tracker.holding_after_land(now)
                 if ph is FlightPhase.GROUND:
                     self._report_outcome("land", replies, now - t1)
                     return
@@ -178,12 +201,12 @@ class FlightPhases:
                     silent = False
                     if not low:
                         why = "telemetry back after a lost link"
-                elif not settling and now - t_sent >= wait:
-                    why = f"telemetry shows no descent {now - t_sent:.2f} s after the last land"
+                elif holding and now - t_sent >= cfg.land_confirm_s:
+                    why = f"telemetry shows the drone holding its height {now - t_sent:.2f} s after the land"
                 if why:
                     self._events.add("resend", f"land: {why}: rc 0 0 0 0 and land again (replies {replies})")
                     self._send_land(hover_first=True)
-                    t_sent, wait = now, cfg.land_resend_s
+                    t_sent = now
                 if now > deadline:
                     raise TelloCommandError(
                         f"Tello {cfg.host}: not down within {cfg.land_timeout_s:.0f} s "

@@ -215,8 +215,9 @@ class _StateVelocity:
         return self._sample
 
     def _from_vg(self, st: Mapping[str, Any], yaw_deg: float) -> float:
-        # vg* in dm/s, horizontal frame of the takeoff heading (x forward, y right), z up
-        wx, wy, wz = 0.1 * float(st["vgx"]), 0.1 * float(st["vgy"]), 0.1 * float(st["vgz"])
+        # vg* in dm/s, horizontal frame of the takeoff heading (x forward, y right); vgz positive DOWN on a
+        # real Tello (docs/drivers.md, "What a real Tello sends"), so z up is -vgz
+        wx, wy, wz = 0.1 * float(st["vgx"]), 0.1 * float(st["vgy"]), -0.1 * float(st["vgz"])
         return self._body(wx, wy, wz, yaw_deg)
 
     def _from_position(self, st: Mapping[str, Any], now: float, yaw_raw: float) -> None:

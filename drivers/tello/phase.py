@@ -5,31 +5,40 @@ phase; telemetry does. The driver tells the tracker what it sent (`takeoff_sent`
 `emergency_sent`) and feeds it every state packet (`observe`); the tracker moves between the phases of
 `flightstack.hal.FlightPhase` only when the telemetry shows it.
 
-Signals (units as the drone sends them, see drivers/tello/state.py):
+Signals (units as the drone sends them, see drivers/tello/state.py; every threshold's source: docs/drivers.md,
+"What a real Tello sends"):
 - **motors running**: the motor-on time `time` (whole seconds) changed less than `motor_quiet_s` ago. It
   rises by one every second while the motors turn, so 1.5 s without a change means the motors are off.
-- **near the ground**: `h` ≤ `ground_h_cm` (h is relative to the takeoff point).
+- **height evidence**: `h` (relative to the takeoff point, in 10 cm steps, and drifting: a real Tello's
+  read 40 cm while it hovered ~1 m up) and the floor height from `tof` (the downward sensor: `tof` minus
+  its ground reading `tof_floor_cm`; it measures the surface below, so a table or an edge changes it;
+  6553 = out of range, not used). A sample is **near the ground** when the floor height (h when tof is out
+  of range) is at most `ground_h_cm`; the takeoff **has climbed** once h or the floor height reached
+  `airborne_h_cm` since the takeoff began.
 - **descending**: the latest h is more than `descent_cm` (10 cm) below the highest of the last
   `descent_window_s` (0.5 s); a **sustained descent** also has each of the last `descent_samples` (3)
-  samples lower than the one before (not one step of the readout: a firmware reporting h in 10 cm steps,
-  a hover flickering 80/90 cm, a drone passing over an object).
+  samples moving down at `descent_vgz_dm_s` (3 dm/s) or more by `vgz` (positive DOWN on a real Tello) —
+  not one step of the readout, a hover's drift (|vgz| ≤ 2 dm/s in the recording), or an object passed over.
 - **descent commanded**: the last `rc` the driver sent had a negative throttle, or one with a negative
   throttle went out within `uncommanded_after_s` (1 s: the drone's velocity lags the stick).
-- **airborne and stable**: over the last `stable_window_s` (1 s, ≥ 3 samples), every sample has
-  h ≥ `airborne_h_cm` (50 cm) and |vgz| ≤ `stable_vgz_dm_s` (1 dm/s), h varied by at most
-  `stable_range_cm` (10 cm: one step, should a firmware report h in 10 cm steps) and the least-squares
-  slope of h is at most `stable_slope_cm_s` (3 cm/s). A takeoff climbs to ~80 cm and the Tello answers
-  `ok` once it hovers; a drone still climbing, even slowly (7 cm/s), is not stable.
+- **climb over**: over the last `stable_window_s` (1 s, ≥ 3 samples) the takeoff has climbed, no sample is
+  near the ground or climbing (vgz < −`stable_vgz_dm_s`, i.e. up faster than 1 dm/s), and the
+  least-squares slope of h is at most `stable_slope_cm_s` (3 cm/s) upwards (a drone still climbing, even
+  slowly at 7 cm/s, is in its takeoff; h drifting down is not a climb).
+- **holding after a land**: over the last `stuck_window_s` (1 s) at least `stuck_samples` (5) samples, the
+  motors running, none near the ground, none moving down (vgz < `descent_vgz_dm_s`), neither h nor the floor
+  height fallen by more than `descent_cm`: the only evidence on which a land is sent again while the state
+  stream is alive (a lossy stream proves nothing either way).
 
 Transitions (every one is returned as an event text by `observe`):
 - UNKNOWN → GROUND (first sample near the ground) or AIRBORNE (first sample in the air).
 - GROUND → TAKING_OFF when takeoff was sent, or when the motors run and h rises (not commanded by us).
-- TAKING_OFF → AIRBORNE when airborne and stable (while the driver holds a takeoff, only when it confirms:
+- TAKING_OFF → AIRBORNE when the climb is over (while the driver holds a takeoff, only when it confirms:
   see `hold_takeoff`); → GROUND when, `no_effect_s` after the takeoff was sent,
   the motors do not run and the drone is near the ground (the takeoff was refused or never arrived).
-- AIRBORNE → LANDING when land was sent, or on a sustained descent with no descent commanded (`self_landing`:
-  the drone's own low-battery landing or 15 s auto-land, during which a Tello ignores rc); → GROUND when
-  near the ground with the motors off (someone else's land).
+- AIRBORNE or TAKING_OFF → LANDING when land was sent; AIRBORNE → LANDING on a sustained descent with no
+  descent commanded (`self_landing`: the drone's own low-battery landing or 15 s auto-land, during which a
+  Tello ignores rc); → GROUND when near the ground with the motors off (someone else's land).
 - LANDING → GROUND when near the ground with the motors off; → AIRBORNE when, `no_effect_s` after the land
   was sent, the motors run and h has not dropped by `descent_cm` (the land was lost or refused); a
   landing of its own → AIRBORNE when h holds still above the ground for `descent_window_s` with the
@@ -39,7 +48,6 @@ Transitions (every one is returned as an event text by `observe`):
 
 from __future__ import annotations
 
-import itertools
 from collections import deque
 from dataclasses import dataclass
 
@@ -53,6 +61,8 @@ class PhaseThresholds:
 
     ground_h_cm: float = 20.0
     airborne_h_cm: float = 50.0
+    tof_floor_cm: float = 10.0
+    tof_out_of_range_cm: float = 6553.0
     stable_window_s: float = 1.0
     stable_range_cm: float = 10.0
     stable_slope_cm_s: float = 3.0
@@ -62,6 +72,9 @@ class PhaseThresholds:
     descent_cm: float = 10.0
     descent_window_s: float = 0.5
     descent_samples: int = 3
+    descent_vgz_dm_s: float = 3.0
+    stuck_window_s: float = 1.0
+    stuck_samples: int = 5
     uncommanded_after_s: float = 1.0
 
 
@@ -76,6 +89,7 @@ class PhaseTracker:
         self._motor_value: float | None = None
         self._motor_changed_t = -float("inf")
         self._takeoff_sent_t: float | None = None
+        self._climb_peak_cm = -float("inf")  # highest height evidence since the takeoff began
         self._land_sent_t: float | None = None
         self._land_h0 = 0.0
         self._min_h_since_land = float("inf")
@@ -93,14 +107,18 @@ class PhaseTracker:
     def takeoff_sent(self, t: float) -> None:
         self._takeoff_sent_t = t
         self._last_throttle = 0  # a Tello takes off with its sticks centred
+        # its motors may run from now on, before `time` first rises (+1.05 s in the recorded flight):
+        # "motors off" needs motor_quiet_s without a change from here
+        self._motor_changed_t = max(self._motor_changed_t, t)
         if self.phase is FlightPhase.GROUND:
             self._set(FlightPhase.TAKING_OFF, t)
+            self._climb_peak_cm = -float("inf")
 
     def land_sent(self, t: float) -> None:
         self._land_sent_t = t
         self._land_h0 = self.latest.h_cm if self.latest is not None else 0.0
         self._min_h_since_land = self._land_h0
-        if self.phase is FlightPhase.AIRBORNE:
+        if self.phase in (FlightPhase.AIRBORNE, FlightPhase.TAKING_OFF):
             self._set(FlightPhase.LANDING, t)
 
     def rc_sent(self, t: float, throttle: int) -> None:
@@ -121,15 +139,36 @@ class PhaseTracker:
     def motors_running(self, t: float) -> bool:
         return t - self._motor_changed_t < self.th.motor_quiet_s
 
+    def floor_cm(self, s: TelloTelemetry) -> float | None:
+        """Height above the surface below from `tof` (cm), None when out of range."""
+        if s.tof_cm >= self.th.tof_out_of_range_cm:
+            return None
+        return s.tof_cm - self.th.tof_floor_cm
+
+    def height_evidence_cm(self, s: TelloTelemetry) -> float:
+        """The higher of h and the floor height (cm): h drifts, tof under-reads over objects."""
+        floor = self.floor_cm(s)
+        return s.h_cm if floor is None else max(s.h_cm, floor)
+
+    def low(self, s: TelloTelemetry) -> bool:
+        """This sample is near the ground: the floor height (h when tof is out of range) at most
+        `ground_h_cm`. tof first: h drifts by a metre in a flight, tof reads its ground value at rest."""
+        floor = self.floor_cm(s)
+        return (s.h_cm if floor is None else floor) <= self.th.ground_h_cm
+
     def down(self, t: float) -> bool:
         """Near the ground with the motors off."""
         s = self.latest
-        return s is not None and s.h_cm <= self.th.ground_h_cm and not self.motors_running(t)
+        return s is not None and self.low(s) and not self.motors_running(t)
 
     def near_ground(self) -> bool:
         """The latest sample is near the ground (motors on or off)."""
         s = self.latest
-        return s is not None and s.h_cm <= self.th.ground_h_cm
+        return s is not None and self.low(s)
+
+    def climbed(self) -> bool:
+        """The takeoff under way has reached `airborne_h_cm` by h or by the floor height."""
+        return self._climb_peak_cm >= self.th.airborne_h_cm
 
     def descending(self, t: float, drop_cm: float | None = None) -> bool:
         """h fell by more than `drop_cm` (default `descent_cm`) within the last `descent_window_s` before
@@ -139,14 +178,14 @@ class PhaseTracker:
         return len(w) >= 2 and max(w) - w[-1] > drop
 
     def sustained_descent(self, t: float) -> bool:
-        """`descending`, and each of the last `descent_samples` samples lower than the one before."""
+        """`descending`, and each of the last `descent_samples` samples moving down at `descent_vgz_dm_s`."""
         th = self.th
-        w = [s.h_cm for s in self._window if s.t >= t - th.descent_window_s]
+        w = [s for s in self._window if s.t >= t - th.descent_window_s]
         tail = w[-max(2, th.descent_samples) :]
         return (
             self.descending(t)
             and len(tail) >= max(2, th.descent_samples)
-            and all(b < a for a, b in itertools.pairwise(tail))
+            and all(s.vgz_dm_s >= th.descent_vgz_dm_s for s in tail)
         )
 
     def descent_commanded(self, t: float) -> bool:
@@ -161,21 +200,50 @@ class PhaseTracker:
         hs = [s.h_cm for s in w]
         return min(hs) > th.ground_h_cm and max(hs) - min(hs) <= th.stable_range_cm and self.motors_running(t)
 
-    def airborne_stable(self, t: float) -> bool:
+    def climb_over(self, t: float) -> bool:
+        """The takeoff has climbed and, over the last `stable_window_s`, neither climbs nor is near the
+        ground (see the module docstring)."""
         th = self.th
         w = [s for s in self._window if s.t >= t - th.stable_window_s]
-        if len(w) < 3 or w[-1].t - w[0].t < 0.8 * th.stable_window_s:
+        if not self.climbed() or len(w) < 3 or w[-1].t - w[0].t < 0.8 * th.stable_window_s:
             return False
         hs = [s.h_cm for s in w]
         ts = [s.t for s in w]
         tm, hm = sum(ts) / len(ts), sum(hs) / len(hs)
         slope = sum((a - tm) * (b - hm) for a, b in zip(ts, hs, strict=True)) / sum((a - tm) ** 2 for a in ts)
         return (
-            min(hs) >= th.airborne_h_cm
-            and max(hs) - min(hs) <= th.stable_range_cm
-            and abs(slope) <= th.stable_slope_cm_s
-            and all(abs(s.vgz_dm_s) <= th.stable_vgz_dm_s for s in w)
+            slope <= th.stable_slope_cm_s
+            and not any(self.low(s) for s in w)
+            and all(s.vgz_dm_s >= -th.stable_vgz_dm_s for s in w)
         )
+
+    def takeoff_answer_plausible(self, t: float) -> bool:
+        """An `ok` now can be the takeoff's: the takeoff has climbed, the motors run, the drone is not near
+        the ground (an `ok` at the ground is someone else's)."""
+        s = self.latest
+        return (
+            self.phase is FlightPhase.TAKING_OFF
+            and self.climbed()
+            and self.motors_running(t)
+            and s is not None
+            and not self.low(s)
+        )
+
+    def holding_after_land(self, t: float) -> bool:
+        """Telemetry proves the drone holding its height (see the module docstring): the one reason to send
+        a land again while the state stream is alive."""
+        th = self.th
+        w = [s for s in self._window if s.t >= t - th.stuck_window_s]
+        if len(w) < th.stuck_samples or w[-1].t - w[0].t < 0.6 * th.stuck_window_s:
+            return False
+        if not self.motors_running(t) or any(self.low(s) or s.vgz_dm_s >= th.descent_vgz_dm_s for s in w):
+            return False
+        hs = [s.h_cm for s in w]
+        floors = [f for s in w if (f := self.floor_cm(s)) is not None]
+        fell = max(hs) - hs[-1] > th.descent_cm or (
+            len(floors) >= 2 and max(floors) - floors[-1] > th.descent_cm
+        )
+        return not fell
 
     # ---- telemetry -----------------------------------------------------------------------------------
     def observe(self, s: TelloTelemetry) -> list[str]:
@@ -189,6 +257,8 @@ class PhaseTracker:
         while self._window and self._window[0].t < t - 2.0 * self.th.stable_window_s:
             self._window.popleft()
         self._min_h_since_land = min(self._min_h_since_land, s.h_cm)
+        if self.phase is FlightPhase.TAKING_OFF:
+            self._climb_peak_cm = max(self._climb_peak_cm, self.height_evidence_cm(s))
         before = self.phase
         self._step(t, s)
         if self.phase is before:
@@ -200,17 +270,18 @@ class PhaseTracker:
     def _step(self, t: float, s: TelloTelemetry) -> None:
         th, P = self.th, FlightPhase
         if self.phase is P.UNKNOWN:
-            self._set(P.GROUND if s.h_cm <= th.ground_h_cm else P.AIRBORNE, t)
+            self._set(P.GROUND if self.low(s) else P.AIRBORNE, t)
         elif self.phase is P.GROUND:
-            if s.h_cm > th.ground_h_cm and self.motors_running(t):
+            if not self.low(s) and self.motors_running(t):
                 self._set(P.TAKING_OFF, t)
+                self._climb_peak_cm = self.height_evidence_cm(s)
         elif self.phase is P.TAKING_OFF:
-            if self.airborne_stable(t) and not self.hold_takeoff:
+            if self.climb_over(t) and not self.hold_takeoff:
                 self._set(P.AIRBORNE, t)
             elif (
                 self._takeoff_sent_t is not None
                 and t - self._takeoff_sent_t > th.no_effect_s
-                and s.h_cm <= th.ground_h_cm
+                and self.low(s)
                 and not self.motors_running(t)
             ):
                 self._set(P.GROUND, t)

@@ -170,7 +170,8 @@ class TelloPhysics(TelloEmulatorBase):
     def _state_string(self) -> str:
         with self._lock:
             x, y, z = (round(float(v)) for v in self._pos)
-            vgx, vgy, vgz = (round(float(v) / 10.0) for v in self._vel_world)
+            vgx, vgy, vgz_up = (round(float(v) / 10.0) for v in self._vel_world)
+            vgz = -vgz_up  # positive DOWN, as a real Tello sends it (docs/drivers.md)
             h = max(0, z)
             acc = self._acc_body / 981.0 * 1000.0
             return (
