@@ -271,7 +271,10 @@ def test_fly_a_short_mission_on_the_emulated_lab(lab: Lab, capsys: pytest.Captur
     assert 0 < health["compute_s"]["p50"] < health["period_s"]["p50"]
     assert health["overruns"] == int((rec["loop_period"][1:] > health["overrun_above_s"]).sum())
     assert health["frame_age_s"]["n"] == 120 and 0 <= health["frame_age_s"]["p50"] < 0.5  # 320x240 video
-    assert health["pose_age_s"]["n"] == 120 and 0 <= health["pose_age_s"]["max"] <= 0.1  # mocap stale bound
+    # a tick whose own pose is older than pose_timeout uses none (that drone hovers): on a loaded machine
+    # the mocap thread can miss one; the pose used is never older than the bound
+    print(f"ticks with a fresh own pose: {health['pose_age_s']['n']} of 120")
+    assert health["pose_age_s"]["n"] >= 117 and 0 <= health["pose_age_s"]["max"] <= 0.1  # mocap stale bound
     assert (out_dir / "loop_health.png").stat().st_size > 10_000
     assert "loop kept dt" in out or "loop DID NOT keep dt" in out, out
     assert "x real time" not in out  # a wall-clock run has no simulation speed to report
@@ -329,9 +332,11 @@ def test_fly_with_motion_capture_frames_stopping(lab: Lab, capsys: pytest.Captur
     m["compare_modes"] = ["none"]
     lab.mission.write_text(yaml.safe_dump(m))
 
+    rc_before = len(lab.tellos[1].rc_history)  # the lab serves every test of this module
+
     def stop_frames() -> None:
         deadline = time.monotonic() + 30
-        while len(lab.tellos[1].rc_history) < 20 and time.monotonic() < deadline:
+        while len(lab.tellos[1].rc_history) < rc_before + 20 and time.monotonic() < deadline:
             time.sleep(0.02)
         lab.natnet.faults.drop_frames = True
 
