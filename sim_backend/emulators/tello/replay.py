@@ -15,7 +15,9 @@ The rules (times: the recording's s, `time.monotonic()` s on the wire):
   next recorded command) at their recorded delays (+ `reply_delay_extra_s`), unmodified, to its sender.
   So `land` while the recording is still at `forward 50` jumps to the recorded landing; `land` before the
   recorded takeoff matches nothing (it may not skip a phase command). Commands skipped by such a jump get
-  no reply. A reply once due is sent even if a later command arrives first.
+  no reply. A jump (a match past the next unserved command) also cancels the replies not yet sent
+  (`counts["replies_cancelled"]`): `land` 1 s into the climb gets the landing's `ok`, never the takeoff's,
+  recorded 8.7 s after it; otherwise a reply once due is sent even when the next command comes first.
 - **Unrecorded commands.** A datagram that matches no such command (`rc`, `battery?`, `sdk?`, `sn?`,
   `streamon`, a command already served and sent again, ...) gets no reply and changes nothing
   (`counts["unmatched"]`; listed in `received`).
@@ -58,6 +60,7 @@ from types import TracebackType
 from typing import Literal
 
 from flightstack.drivers.tello.traffic import TelloSession
+from flightstack.drivers.tello.video_check import TELLO_DATAGRAM_BYTES
 
 from .net import is_loopback, require_loopback
 
@@ -251,6 +254,9 @@ class TelloReplayer:
     def _serve(self, k: int, now: float, sender: tuple[str, int]) -> None:
         """Command `k` arrived at `now` (held lock): shift the clock, move the cursor, queue its replies."""
         t_cmd = self.commands[k][0]
+        if k > self.served:  # a jump: the skipped segments' replies go with them
+            self.counts["replies_cancelled"] += len(self._replies_due)
+            self._replies_due.clear()
         self.served = k + 1
         self._offset = now - t_cmd
         self._cursor = bisect.bisect_left(self._line_t, t_cmd)
@@ -370,4 +376,35 @@ class TelloReplayer:
             self.counts["replies" if s.kind == "reply" else f"state_{s.origin}"] += 1
 
 
-__all__ = ["PHASE_COMMANDS", "Received", "Sent", "TelloReplayer"]
+def access_units(annexb: bytes) -> list[bytes]:
+    """An Annex-B H.264 byte stream cut into access units (each with its start codes), as a Tello sends
+    them: a unit starts at an SPS, PPS, SEI or access unit delimiter, or at a picture's first slice
+    (first_mb_in_slice 0: the first bit after the NAL header is 1), once the unit has a slice. Bytes
+    before the first start code are dropped."""
+    starts, i = [], annexb.find(b"\x00\x00\x01")
+    while i >= 0:
+        starts.append(i - 1 if i > 0 and annexb[i - 1] == 0 else i)  # a 4-byte start code's leading zero
+        i = annexb.find(b"\x00\x00\x01", i + 3)
+    units: list[bytes] = []
+    begin, has_slice = None, False
+    for k, s in enumerate(starts):
+        head = annexb.find(b"\x00\x00\x01", s) + 3
+        kind = annexb[head] & 0x1F if head < len(annexb) else 0
+        first_slice = kind in (1, 5) and head + 1 < len(annexb) and annexb[head + 1] & 0x80
+        if begin is not None and has_slice and (kind in (6, 7, 8, 9) or first_slice):
+            units.append(annexb[begin:s])
+            begin, has_slice = None, False
+        if begin is None:
+            begin = s
+        has_slice = has_slice or kind in (1, 5)
+        if k == len(starts) - 1:
+            units.append(annexb[begin:])
+    return units
+
+
+def video_datagrams(unit: bytes, size: int = TELLO_DATAGRAM_BYTES) -> list[bytes]:
+    """One access unit in the Tello's datagrams: `size` bytes each but the last (video_check's framing)."""
+    return [unit[k : k + size] for k in range(0, len(unit), size)]
+
+
+__all__ = ["PHASE_COMMANDS", "Received", "Sent", "TelloReplayer", "access_units", "video_datagrams"]
