@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from flightstack.drivers.tello import TelloConfig, TelloDriver
+from flightstack.drivers.tello import TelloCommandError, TelloConfig, TelloDriver
 from flightstack.drivers.tello.traffic import TelloSession, read_xg590_db
 from flightstack.drivers.tello.video_check import split_nals
 from flightstack.hal import FlightPhase
@@ -30,6 +30,7 @@ from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.tello.replay import (
     TelloReplayer,
     access_units,
+    motor_time_on,
     video_datagrams,
 )
 from tests.conftest import REPO, Bound, skip_or_fail_in_ci
@@ -95,6 +96,11 @@ def t_cmd(session: TelloSession, text: str) -> float:
     rec = session.first("sent", text)
     assert rec is not None, text
     return rec.t
+
+
+def motor_time(line: bytes) -> int:
+    """The `time` field (motor-on s) of a state line."""
+    return int(line.split(b";time:")[1].split(b";")[0])
 
 
 def t_reply(session: TelloSession, command: str) -> float:
@@ -236,6 +242,36 @@ def test_land_jumps_to_recorded_landing(flight: TelloSession, client: Client, af
         assert synthesised == [] and len(client.lines) == end
 
 
+def test_flight_plays_on_then_hovers_until_land(flight: TelloSession, client: Client) -> None:
+    """After the takeoff's `ok` and no further command the recorded flight goes on (forward, left, back,
+    right: their lines, not their replies) up to the recorded `land`, then the drone hovers on its last
+    line, motor `time` counting on, until `land` comes; then the recorded landing."""
+    t_land = t_cmd(flight, "land")
+    with TelloReplayer(flight, IP, state_port=client.state_port) as rep:
+        client.send(rep, "command")
+        client.send(rep, "takeoff")
+        client.pump(t_land - t_cmd(flight, "takeoff") + 2.5)
+        t_takeoff = t_cmd(flight, "takeoff")
+        states = [x for x in rep.sent if x.kind == "state"]
+        hover = [x for x in states if x.origin == "synthesised" and x.rec_t > t_takeoff]
+        flown = [x for x in states if x.origin == "recorded" and x.rec_t >= t_takeoff]
+        client.send(rep, "land")
+        client.pump(1.0)
+    assert [x.data for x in flown] == [line for t, line in rep.lines if t_takeoff <= t < t_land]
+    last = flown[-1]
+    assert len(hover) >= 15 and {x.rec_t for x in hover} == {last.rec_t}
+    times = [motor_time(x.data) for x in hover]
+    print(
+        f"{len(flown)} recorded lines to the land, then {len(hover)} repeats, time {times[0]}..{times[-1]} s"
+    )
+    assert times == sorted(times) and times[-1] >= times[0] + 1
+    t0 = motor_time(last.data)
+    assert all(x.data == motor_time_on(last.data, n - t0) for x, n in zip(hover, times, strict=True))
+    assert [r for _, r in client.replies] == [b"ok", b"ok"]  # command, takeoff; not the manoeuvres'
+    landing = [x for x in rep.sent if x.kind == "state" and x.t > rep.received[-1].t]
+    assert landing and landing[0].origin == "recorded" and landing[0].rec_t >= t_land
+
+
 def test_drop_state_is_seeded(flight: TelloSession, client: Client) -> None:
     """drop_state=0.25 drops about a quarter of the state datagrams, the same ones for the same seed."""
 
@@ -260,6 +296,14 @@ def test_refuses_other_addresses(flight: TelloSession) -> None:
 
 
 # ------------------------------------------------------------------------------ the real driver on it
+DRIVER_PENDING = pytest.mark.xfail(
+    strict=True,
+    reason="the driver's takeoff rules before issue 38 part 2: 'ok' at h 40 cm not trusted, takeoff() "
+    "raises 'not airborne within 20 s', land() waits for the climb; delete this mark with that change",
+)
+
+
+@DRIVER_PENDING
 @pytest.mark.parametrize(
     "replay",
     [{}, {"reply_delay_extra_s": 0.1}, {"drop_state": 0.25, "seed": 38}],
@@ -268,8 +312,8 @@ def test_refuses_other_addresses(flight: TelloSession) -> None:
 def test_driver_takes_off_and_lands_on_recorded_flight(
     flight: TelloSession, safety_bound: Bound, replay: dict[str, float]
 ) -> None:
-    """TelloDriver (its default thresholds) on the recorded flight: `takeoff()` returns, `land()` sends
-    `land` within 1 s of being called and only once, and the driver ends on the ground."""
+    """TelloDriver (its default thresholds) on the recorded flight: `takeoff()` returns; `land()`, called
+    whatever takeoff() did, sends `land` within 1 s and only once, and the driver ends on the ground."""
     with TelloReplayer(flight, IP, state_port=free_udp_port(), **replay) as rep:  # type: ignore[arg-type]
         cfg = TelloConfig(
             host=rep.ip,
@@ -280,23 +324,33 @@ def test_driver_takes_off_and_lands_on_recorded_flight(
             command_timeout_s=1.0,
         )
         d = TelloDriver(cfg)
+        failed: dict[str, str] = {}
         try:
             d.connect()
             t0 = time.monotonic()
-            d.takeoff()
+            try:
+                d.takeoff()
+            except TelloCommandError as exc:
+                failed["takeoff"] = str(exc)
             took = time.monotonic() - t0
             t_call = time.monotonic()
-            d.land()
+            try:
+                d.land()
+            except TelloCommandError as exc:
+                failed["land"] = str(exc)
+            landed_in = time.monotonic() - t_call
         finally:
             d.close()
-            events = [f"{e.kind}: {e.detail}" for e in d.events[-8:]]
-    lands = [r.t for r in rep.received if r.text.strip() == "land"]
+    events = [f"{e.kind}: {e.detail}" for e in d.events if e.kind not in ("state", "phase")][-10:]
+    lands = [round(r.t - t_call, 2) for r in rep.received if r.text.strip() == "land" and r.t >= t_call]
     print(
-        f"takeoff() returned after {took:.2f} s; lands at {[round(t - t_call, 2) for t in lands]} s; {events}"
+        f"{replay}: takeoff() after {took:.2f} s, land() after {landed_in:.2f} s, failed {failed}; "
+        f"land sent at {lands} s; {dict(rep.counts)}; events {events}"
     )
-    assert lands, events
-    safety_bound("land sent after land() was called, replayed real flight", (lands[0] - t_call) * 1000, 1000)
-    assert len(lands) == 1, (lands, events)
+    assert "takeoff" not in failed, failed
+    assert lands, (failed, events)
+    safety_bound("land sent after land() was called, replayed real flight", lands[0] * 1000, 1000)
+    assert len(lands) == 1 and "land" not in failed, (lands, failed, events)
     assert d.phase is FlightPhase.GROUND
 
 
@@ -379,3 +433,11 @@ def test_dump_without_idr_publishes_nothing(request: pytest.FixtureRequest, name
     print(name, len(units), {k: v for k, v in c.items() if v})
     assert c["frames"] == 0 and c["damaged_units"] == len(units)
     assert c["alive"] and c["reader_error"] == 0 and c["datagrams"] == c["sent"]
+
+
+def test_hover_repeats_count_motor_time_on() -> None:
+    """While the replayer holds a flying drone before `land`, its repeats' `time` (motor-on s) counts on
+    in whole seconds; every other byte is the recorded line's."""
+    line = b"pitch:0;roll:0;yaw:-26;h:40;bat:33;time:66;agx:11.00;\r\n"
+    assert motor_time_on(line, 2.7) == line.replace(b"time:66;", b"time:68;")
+    assert motor_time_on(line, 0.9) == line and motor_time_on(b"h:40;", 5.0) == b"h:40;"

@@ -25,7 +25,9 @@ The rules (times: the recording's s, `time.monotonic()` s on the wire):
   not send (a drone does not pause: a flight goes on as recorded) up to the recorded time of the next
   phase command not yet served. There the replayer *holds*: it repeats the last line it passed, at the
   recording's median state interval, until that command (or another matching one) arrives: the drone on
-  the ground before `takeoff`, hovering before `land` (the recording's own manoeuvres play first). From
+  the ground before `takeoff`, hovering before `land` (the recording's own manoeuvres play first; while
+  hovering, the repeats' motor `time` field counts on in whole seconds, as a flying Tello's does, every
+  other byte as recorded; on the ground it stays, as the motors are off). From
   the start, lines play from the first record (a recording's lines before its `command`: the drone was
   already streaming) and hold at the first phase command. The recorded landing is never played without a
   `land` (a real Tello would land by itself after 15 s without a command; a replay does not invent that).
@@ -50,6 +52,7 @@ import bisect
 import logging
 import math
 import random
+import re
 import socket
 import statistics
 import threading
@@ -70,6 +73,7 @@ PHASE_COMMANDS = frozenset({"takeoff", "land", "emergency"})
 MAX_DATAGRAM_BYTES = 2048
 WAIT_S = 0.05  # the longest a thread waits before it looks at the stop flag again (s)
 AfterEnd = Literal["repeat", "silence"]
+_MOTOR_TIME = re.compile(rb"(^|;)time:(\d{1,6});")
 
 
 @dataclass(frozen=True)
@@ -159,6 +163,7 @@ class TelloReplayer:
         self._cursor = 0  # the next recorded line
         self._limit_t = self._phase_limit(0)  # lines play up to (not including) this recorded time
         self._last: tuple[float, bytes] | None = None  # the last line passed (sent or dropped)
+        self._airborne = False  # the last phase command served was `takeoff`
         self._hold_next = 0.0  # monotonic time of the next synthesised line (while holding)
         self._replies_due: list[tuple[float, str, tuple[str, int], float]] = []  # (due, text, addr, rec_t)
         self._stop = threading.Event()
@@ -264,6 +269,8 @@ class TelloReplayer:
         self._hold_next = now + self.hold_interval_s
         if self._norm[k] == "command":
             self.client_ip = sender[0]
+        if self._norm[k] in PHASE_COMMANDS:
+            self._airborne = self._norm[k] == "takeoff"
         for delay, reply in self.replies[k]:
             due = now + delay + self.reply_delay_extra_s
             self._replies_due.append((due, reply, sender, t_cmd + delay))
@@ -338,6 +345,8 @@ class TelloReplayer:
                 self._hold_next = now
             while self._hold_next <= now:
                 t_rec, line = self._last  # type: ignore[misc]  # _holding() checked it
+                if self._airborne:  # motors run on: their `time` counts on, as a hovering Tello's
+                    line = motor_time_on(line, self._hold_next - (t_rec + self._offset))
                 out.append(self._state(Sent(now, "state", line, "synthesised", t_rec), dest))
                 self._hold_next += self.hold_interval_s
         return out
@@ -376,6 +385,15 @@ class TelloReplayer:
             self.counts["replies" if s.kind == "reply" else f"state_{s.origin}"] += 1
 
 
+def motor_time_on(line: bytes, elapsed_s: float) -> bytes:
+    """`line` with its `time` field (motor-on s) advanced by the whole seconds of `elapsed_s`; unchanged
+    without a readable field."""
+    m = _MOTOR_TIME.search(line)
+    if m is None or elapsed_s < 1.0:
+        return line
+    return line[: m.start(2)] + str(int(m.group(2)) + int(elapsed_s)).encode() + line[m.end(2) :]
+
+
 def access_units(annexb: bytes) -> list[bytes]:
     """An Annex-B H.264 byte stream cut into access units (each with its start codes), as a Tello sends
     them: a unit starts at an SPS, PPS, SEI or access unit delimiter, or at a picture's first slice
@@ -407,4 +425,12 @@ def video_datagrams(unit: bytes, size: int = TELLO_DATAGRAM_BYTES) -> list[bytes
     return [unit[k : k + size] for k in range(0, len(unit), size)]
 
 
-__all__ = ["PHASE_COMMANDS", "Received", "Sent", "TelloReplayer", "access_units", "video_datagrams"]
+__all__ = [
+    "PHASE_COMMANDS",
+    "Received",
+    "Sent",
+    "TelloReplayer",
+    "access_units",
+    "motor_time_on",
+    "video_datagrams",
+]
