@@ -25,12 +25,14 @@ The rules (times: the recording's s, `time.monotonic()` s on the wire):
   not send (a drone does not pause: a flight goes on as recorded) up to the recorded time of the next
   phase command not yet served. There the replayer *holds*: it repeats the last line it passed, at the
   recording's median state interval, until that command (or another matching one) arrives: the drone on
-  the ground before `takeoff`, hovering before `land` (the recording's own manoeuvres play first; while
-  hovering, the repeats' motor `time` field counts on in whole seconds, as a flying Tello's does, every
-  other byte as recorded; on the ground it stays, as the motors are off). From
-  the start, lines play from the first record (a recording's lines before its `command`: the drone was
-  already streaming) and hold at the first phase command. The recorded landing is never played without a
-  `land` (a real Tello would land by itself after 15 s without a command; a replay does not invent that).
+  the ground before `takeoff`, hovering before `land` (the recording's own manoeuvres play first). While
+  hovering, the repeats' `time` field (motor-on s) counts on in whole seconds, as a flying Tello's does,
+  every other byte as recorded; on the ground it stays (the SDK guide calls `time` motor time; the xg590
+  flight has one ground line, so it cannot show whether `time` counts on the ground, and its README reads
+  the 49 s there as time since power-on). From the start, lines play from the first record (a recording's
+  lines before its `command`: the drone was already streaming) and hold at the first phase command. The
+  recorded landing is never played without a `land` (a real Tello would land by itself after 15 s without
+  a command; a replay does not invent that).
 - **After the last recorded line** (past the last phase command): `after_end="repeat"` (default: a landed
   Tello goes on streaming its state; silence would read as a lost link) repeats the last line at the
   median interval; `"silence"` sends nothing more.
@@ -39,11 +41,13 @@ The rules (times: the recording's s, `time.monotonic()` s on the wire):
   counted apart: `counts["state_recorded"]`, `counts["state_synthesised"]`.
 - **Test options.** `reply_delay_extra_s` delays every reply further (s, ≥ 0); `drop_state` drops that
   fraction of state datagrams, recorded and synthesised alike, drawn from `random.Random(seed)`
-  (`counts["state_dropped_recorded"]`, `counts["state_dropped_synthesised"]`; not in `sent`).
+  (`counts["state_dropped_recorded"]`, `counts["state_dropped_synthesised"]`; not in `sent`; `drops`
+  lists every draw in order).
 
 The state destination ip is `client_ip` until a `command` is served, then that command's sender ip (a
 Tello streams to whoever sent `command`). Video records ("video", lengths only) are not served. Threads
 (receive, send) are daemons with bounded waits (≤ 0.05 s), joined by `close()`; a context manager.
+`access_units` and `video_datagrams` cut a recorded H.264 dump into the datagrams a Tello sends.
 """
 
 from __future__ import annotations
@@ -102,7 +106,8 @@ class Received:
 class TelloReplayer:
     """A recorded `TelloSession` served over loopback UDP (the rules: module docstring).
 
-    Public, append-only logs (take `list(...)` for a snapshot): `sent`, `received`, `errors`; `counts`.
+    Public, append-only logs (take `list(...)` for a snapshot): `sent`, `received`, `drops`, `errors`;
+    `counts`.
     `commands` are the recorded commands `(t, text)`; `served` is how many of them are behind the replay."""
 
     def __init__(
@@ -157,6 +162,8 @@ class TelloReplayer:
         self.received: list[Received] = []
         self.errors: list[str] = []
         self.counts: Counter[str] = Counter()
+        self.drops: list[bool] = []
+        """With drop_state: one entry per state datagram due, in order, True when it was dropped."""
         self._cond = threading.Condition()
         self.served = 0
         self._offset = 0.0  # monotonic = recorded t + offset
@@ -363,7 +370,11 @@ class TelloReplayer:
 
     def _state(self, s: Sent, dest: tuple[str, int]) -> tuple[Sent, tuple[str, int] | None]:
         """A state datagram, or its drop (`drop_state`), counted by origin (held lock)."""
-        if self.drop_state and self._rng.random() < self.drop_state:
+        if not self.drop_state:
+            return s, dest
+        drop = self._rng.random() < self.drop_state
+        self.drops.append(drop)
+        if drop:
             self.counts[f"state_dropped_{s.origin}"] += 1
             return s, None
         return s, dest
