@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 
 from flightstack.drivers.tello import TelloCommandError, TelloConfig, TelloDriver
-from flightstack.drivers.tello.traffic import TelloSession, read_xg590_db
+from flightstack.drivers.tello.traffic import TelloSession, TrafficWriter, read_traffic, read_xg590_db
 from flightstack.drivers.tello.video_check import split_nals
 from flightstack.hal import FlightPhase
 from flightstack.ports import free_udp_port
@@ -294,6 +294,37 @@ def test_refuses_other_addresses(flight: TelloSession) -> None:
     for kw in ({"ip": "192.168.10.1"}, {"client_ip": "10.0.0.2"}, {"drop_state": 1.0}):
         with pytest.raises(ValueError):
             TelloReplayer(flight, **kw)  # type: ignore[arg-type]
+
+
+def test_replays_a_flight_own_traffic_file(tmp_path: Path, client: Client) -> None:
+    """A TrafficWriter file (what every flight records) is served the same way: `takeoff` answered at
+    its recorded 0.5 s, its state lines as written (this case needs no recording)."""
+    w = TrafficWriter(tmp_path / "tello.jsonl", IP)
+    lines = [
+        b"mid:-1;h:%d;tof:%d;time:%d;\r\n" % (h, h + 10, 3 + k // 10) for k, h in enumerate(range(0, 40, 2))
+    ]
+    w.sent(100.0, "command")
+    w.reply(100.02, "ok")
+    w.state(100.05, lines[0])
+    w.sent(100.1, "takeoff")
+    for k, line in enumerate(lines[1:]):  # in time order, as a flight writes them
+        w.state(100.15 + 0.1 * k, line)
+        if k == 4:
+            w.reply(100.6, "ok")
+    w.sent(102.2, "land")
+    w.reply(102.4, "ok")
+    w.close()
+    session = read_traffic(w.path)
+    assert not session.dropped and len(session.records) == 26
+    with TelloReplayer(session, IP, state_port=client.state_port) as rep:
+        client.send(rep, "command")
+        client.pump(0.3)
+        sent = client.send(rep, "takeoff")
+        client.pump(2.3)
+    assert [r for _, r in client.replies] == [b"ok", b"ok"]
+    assert 0.5 <= client.replies[1][0] - sent <= 0.5 + TIME_TOL_S
+    got = [line for t, line in client.lines if t > sent]
+    assert got[: len(lines) - 1] == lines[1:] and set(got[len(lines) - 1 :]) == {lines[-1]}  # then hovers
 
 
 # ------------------------------------------------------------------------------ the real driver on it
