@@ -27,6 +27,8 @@ settings.register_profile(
 settings.load_profile("flightstack")
 
 REPO = Path(__file__).resolve().parents[1]
+PEERS = REPO.parent / "shared" / "data" / "peers"
+"""Real device recordings, read in place (../shared/data/peers/ beside the checkout; never copied in)."""
 
 # Test tiers (pyproject.toml registers the markers; docs/getting-started.md). `pytest -m unit` is the fast
 # tier for development (pure functions, in-process simulations, no emulators, no child processes but the one

@@ -17,9 +17,9 @@ from flightstack.drivers.tello.phase import PhaseTracker
 from flightstack.drivers.tello.state import TelloTelemetry, parse_state
 from flightstack.drivers.tello.traffic import TelloSession, read_xg590_db
 from flightstack.hal import FlightPhase
-from tests.conftest import REPO, skip_or_fail_in_ci
+from tests.conftest import PEERS, skip_or_fail_in_ci
 
-FLIGHT = REPO.parent / "shared" / "data" / "peers" / "tello" / "xg590_Tello_flight_log_20201018_052457.db"
+FLIGHT = PEERS / "tello" / "xg590_Tello_flight_log_20201018_052457.db"
 
 
 @pytest.fixture(scope="module")

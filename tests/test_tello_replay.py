@@ -34,12 +34,10 @@ from flightstack.sim_backend.emulators.tello.replay import (
     motor_time_on,
     video_datagrams,
 )
-from tests.conftest import REPO, Bound, skip_or_fail_in_ci
+from tests.conftest import PEERS, Bound, skip_or_fail_in_ci
 
 pytestmark = pytest.mark.system  # loopback sockets and threads, real-time replays
 
-PEERS = REPO.parent / "shared" / "data" / "peers"
-"""The real recordings, read in place (../shared/data/peers/ from the project root)."""
 TELLO = PEERS / "tello"
 FLIGHT = "xg590_Tello_flight_log_20201018_052457.db"
 IP = "127.0.0.38"  # the replayed drone (its own address: the driver routes state by source ip)
@@ -328,14 +326,6 @@ def test_replays_a_flight_own_traffic_file(tmp_path: Path, client: Client) -> No
 
 
 # ------------------------------------------------------------------------------ the real driver on it
-DRIVER_PENDING = pytest.mark.xfail(
-    strict=True,
-    reason="the driver's takeoff rules before issue 38 part 2: 'ok' at h 40 cm not trusted, takeoff() "
-    "raises 'not airborne within 20 s', land() waits for the climb; delete this mark with that change",
-)
-
-
-@DRIVER_PENDING
 @pytest.mark.parametrize(
     "replay",
     [{}, {"reply_delay_extra_s": 0.1}, {"drop_state": 0.25, "seed": 38}],
