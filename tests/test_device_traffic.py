@@ -3,6 +3,7 @@
 - The driver against the Tello emulator: the traffic file holds every command that left the computer
   (the emulator received each), every reply and state datagram (also the ones the parser rejects), the
   video datagrams as counted by the receiver, and nothing that a muted driver did not send.
+- A recording process killed (SIGKILL) leaves a file that reads back up to its last flush.
 - An emulated-lab flight (`flightstack run paper_experiment --rig emulated-lab`): its run directory holds
   each drone's traffic (`devices/tello-<id>_<mode>.jsonl`) with plausible counts, and served by the
   replayer (sim_backend/emulators/tello/replay.py) to a fresh TelloDriver with the flight's settings, the
@@ -16,6 +17,8 @@ from __future__ import annotations
 
 import dataclasses
 import socket
+import subprocess
+import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -184,3 +187,38 @@ def test_a_recorded_emulated_lab_flight_replays_its_takeoff_and_landing(lab_run:
         assert received.count(command) == [r.text for r in s.of("sent")].count(command), received
     assert replay["takeoff"] < flight["takeoff"] + 1.0, (replay, flight)
     assert flight["touchdown"] <= replay["land"] < flight["touchdown"] + 3.0, (replay, flight)
+
+
+KILLED_WRITER = """
+import sys, time
+from flightstack.drivers.tello.traffic import TrafficWriter
+w = TrafficWriter(sys.argv[1], "127.0.0.8")
+print("ready", flush=True)
+while True:
+    w.state(time.monotonic(), b"h:50;tof:60;bat:80;time:3;\\r\\n")
+    time.sleep(0.001)
+"""
+
+
+def test_a_killed_flight_leaves_its_traffic_up_to_the_last_flush(tmp_path: Path) -> None:
+    """SIGKILL a process recording ~1000 state lines/s (nothing is closed): the file reads back, its last
+    line cut short or not, and holds every record older than the flush period (0.25 s) plus a margin for
+    a loaded machine (0.5 s)."""
+    path = tmp_path / "t.jsonl"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", KILLED_WRITER, str(path)], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+        time.sleep(1.5)
+        t_kill = time.monotonic()
+        proc.kill()
+        proc.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    s = read_traffic(path)
+    lost_s = t_kill - s.records[-1].t
+    print(f"killed: {len(s.records)} records on file, the last {lost_s * 1e3:.0f} ms before the kill lost")
+    assert set(s.dropped) <= {"not_json_object"} and sum(s.dropped.values()) <= 1
+    assert len(s.records) > 300 and lost_s < 0.75

@@ -1,27 +1,13 @@
 """A Tello's raw device traffic: what was sent to it and what it sent, with the times they were seen.
 
 One format for two uses: every flight on real Tellos (or the emulated lab) writes it, one `TrafficWriter`
-per drone and connection, into its run directory (`devices/`, docs/logs.md), and the replayer
-(sim_backend/emulators/tello/replay.py) serves it back to a driver, as it serves the real recordings in
-`../shared/data/peers/tello/` (`read_xg590_db`: the SQLite flight log of xg590/Tello-Python).
+per drone and connection, into its run directory (`devices/`), and the replayer (sim_backend/emulators/
+tello/replay.py) serves it back to a driver, as it serves the real recordings in `../shared/data/peers/
+tello/` (`read_xg590_db`: the SQLite flight log of xg590/Tello-Python).
 
-File: JSON Lines, UTF-8. The first line is the header
-    {"format": "flightstack-tello-traffic", "version": 1, "drone": "<ip>", "clock": "monotonic"}
-and every further line one record
-    {"t": <s>, "kind": "sent" | "reply" | "state", "text": "<the datagram as text>"}
-    {"t": <s>, "kind": "video", "bytes": <datagram length>}
-`t` is time.monotonic() of the recording computer (s) when the datagram was sent ("sent") or received
-(the others). "sent" is a command that left the computer (a muted or failed send is not recorded);
-"reply" any datagram that arrived on the command socket; "state" a state datagram from the drone (also
-one the driver's parser rejected). Texts are the datagrams as they crossed the wire, undecoded bytes as
-U+FFFD, at most `MAX_TEXT_CHARS` (a state line keeps its trailing "\\r\\n"); video datagrams are
-recorded by length and time only (the pictures are in the run's recording, not here). Lines are in time
-order, but for records of different threads up to `MAX_BACKSTEP_S` apart.
-
-Reading trusts nothing: a line that is not a JSON object of the shape above (the last one, cut short by a
-kill, too), a non-finite `t` or one more than `MAX_BACKSTEP_S` before an earlier record's, a text longer
-than `MAX_TEXT_CHARS` is skipped and counted by reason (`TelloSession.dropped`); a file without the header
-or larger than `MAX_FILE_BYTES` raises TrafficFormatError naming the file.
+The format (JSON Lines: a header line, then one record per datagram, `t` in time.monotonic() s), what each
+kind of record holds, what a reader skips and refuses, and the writer's crash guarantees are described in
+docs/logs.md, "Device traffic" (the one place; FORMAT, VERSION and the limits below are its constants).
 """
 
 from __future__ import annotations
