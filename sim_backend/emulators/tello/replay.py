@@ -15,7 +15,9 @@ The rules (times: the recording's s, `time.monotonic()` s on the wire):
   next recorded command) at their recorded delays (+ `reply_delay_extra_s`), unmodified, to its sender.
   So `land` while the recording is still at `forward 50` jumps to the recorded landing; `land` before the
   recorded takeoff matches nothing (it may not skip a phase command). Commands skipped by such a jump get
-  no reply. A reply once due is sent even if a later command arrives first.
+  no reply. A jump (a match past the next unserved command) also cancels the replies not yet sent
+  (`counts["replies_cancelled"]`): `land` 1 s into the climb gets the landing's `ok`, never the takeoff's,
+  recorded 8.7 s after it; otherwise a reply once due is sent even when the next command comes first.
 - **Unrecorded commands.** A datagram that matches no such command (`rc`, `battery?`, `sdk?`, `sn?`,
   `streamon`, a command already served and sent again, ...) gets no reply and changes nothing
   (`counts["unmatched"]`; listed in `received`).
@@ -23,10 +25,14 @@ The rules (times: the recording's s, `time.monotonic()` s on the wire):
   not send (a drone does not pause: a flight goes on as recorded) up to the recorded time of the next
   phase command not yet served. There the replayer *holds*: it repeats the last line it passed, at the
   recording's median state interval, until that command (or another matching one) arrives: the drone on
-  the ground before `takeoff`, hovering before `land` (the recording's own manoeuvres play first). From
-  the start, lines play from the first record (a recording's lines before its `command`: the drone was
-  already streaming) and hold at the first phase command. The recorded landing is never played without a
-  `land` (a real Tello would land by itself after 15 s without a command; a replay does not invent that).
+  the ground before `takeoff`, hovering before `land` (the recording's own manoeuvres play first). While
+  hovering, the repeats' `time` field (motor-on s) counts on in whole seconds, as a flying Tello's does,
+  every other byte as recorded; on the ground it stays (the SDK guide calls `time` motor time; the xg590
+  flight has one ground line, so it cannot show whether `time` counts on the ground, and its README reads
+  the 49 s there as time since power-on). From the start, lines play from the first record (a recording's
+  lines before its `command`: the drone was already streaming) and hold at the first phase command. The
+  recorded landing is never played without a `land` (a real Tello would land by itself after 15 s without
+  a command; a replay does not invent that).
 - **After the last recorded line** (past the last phase command): `after_end="repeat"` (default: a landed
   Tello goes on streaming its state; silence would read as a lost link) repeats the last line at the
   median interval; `"silence"` sends nothing more.
@@ -35,11 +41,13 @@ The rules (times: the recording's s, `time.monotonic()` s on the wire):
   counted apart: `counts["state_recorded"]`, `counts["state_synthesised"]`.
 - **Test options.** `reply_delay_extra_s` delays every reply further (s, ≥ 0); `drop_state` drops that
   fraction of state datagrams, recorded and synthesised alike, drawn from `random.Random(seed)`
-  (`counts["state_dropped_recorded"]`, `counts["state_dropped_synthesised"]`; not in `sent`).
+  (`counts["state_dropped_recorded"]`, `counts["state_dropped_synthesised"]`; not in `sent`; `drops`
+  lists every draw in order).
 
 The state destination ip is `client_ip` until a `command` is served, then that command's sender ip (a
 Tello streams to whoever sent `command`). Video records ("video", lengths only) are not served. Threads
 (receive, send) are daemons with bounded waits (≤ 0.05 s), joined by `close()`; a context manager.
+`access_units` and `video_datagrams` cut a recorded H.264 dump into the datagrams a Tello sends.
 """
 
 from __future__ import annotations
@@ -48,6 +56,7 @@ import bisect
 import logging
 import math
 import random
+import re
 import socket
 import statistics
 import threading
@@ -58,6 +67,7 @@ from types import TracebackType
 from typing import Literal
 
 from flightstack.drivers.tello.traffic import TelloSession
+from flightstack.drivers.tello.video_check import TELLO_DATAGRAM_BYTES
 
 from .net import is_loopback, require_loopback
 
@@ -67,6 +77,7 @@ PHASE_COMMANDS = frozenset({"takeoff", "land", "emergency"})
 MAX_DATAGRAM_BYTES = 2048
 WAIT_S = 0.05  # the longest a thread waits before it looks at the stop flag again (s)
 AfterEnd = Literal["repeat", "silence"]
+_MOTOR_TIME = re.compile(rb"(^|;)time:(\d{1,6});")
 
 
 @dataclass(frozen=True)
@@ -95,7 +106,8 @@ class Received:
 class TelloReplayer:
     """A recorded `TelloSession` served over loopback UDP (the rules: module docstring).
 
-    Public, append-only logs (take `list(...)` for a snapshot): `sent`, `received`, `errors`; `counts`.
+    Public, append-only logs (take `list(...)` for a snapshot): `sent`, `received`, `drops`, `errors`;
+    `counts`.
     `commands` are the recorded commands `(t, text)`; `served` is how many of them are behind the replay."""
 
     def __init__(
@@ -150,12 +162,15 @@ class TelloReplayer:
         self.received: list[Received] = []
         self.errors: list[str] = []
         self.counts: Counter[str] = Counter()
+        self.drops: list[bool] = []
+        """With drop_state: one entry per state datagram due, in order, True when it was dropped."""
         self._cond = threading.Condition()
         self.served = 0
         self._offset = 0.0  # monotonic = recorded t + offset
         self._cursor = 0  # the next recorded line
         self._limit_t = self._phase_limit(0)  # lines play up to (not including) this recorded time
         self._last: tuple[float, bytes] | None = None  # the last line passed (sent or dropped)
+        self._airborne = False  # the last phase command served was `takeoff`
         self._hold_next = 0.0  # monotonic time of the next synthesised line (while holding)
         self._replies_due: list[tuple[float, str, tuple[str, int], float]] = []  # (due, text, addr, rec_t)
         self._stop = threading.Event()
@@ -251,6 +266,9 @@ class TelloReplayer:
     def _serve(self, k: int, now: float, sender: tuple[str, int]) -> None:
         """Command `k` arrived at `now` (held lock): shift the clock, move the cursor, queue its replies."""
         t_cmd = self.commands[k][0]
+        if k > self.served:  # a jump: the skipped segments' replies go with them
+            self.counts["replies_cancelled"] += len(self._replies_due)
+            self._replies_due.clear()
         self.served = k + 1
         self._offset = now - t_cmd
         self._cursor = bisect.bisect_left(self._line_t, t_cmd)
@@ -258,6 +276,8 @@ class TelloReplayer:
         self._hold_next = now + self.hold_interval_s
         if self._norm[k] == "command":
             self.client_ip = sender[0]
+        if self._norm[k] in PHASE_COMMANDS:
+            self._airborne = self._norm[k] == "takeoff"
         for delay, reply in self.replies[k]:
             due = now + delay + self.reply_delay_extra_s
             self._replies_due.append((due, reply, sender, t_cmd + delay))
@@ -332,6 +352,8 @@ class TelloReplayer:
                 self._hold_next = now
             while self._hold_next <= now:
                 t_rec, line = self._last  # type: ignore[misc]  # _holding() checked it
+                if self._airborne:  # motors run on: their `time` counts on, as a hovering Tello's
+                    line = motor_time_on(line, self._hold_next - (t_rec + self._offset))
                 out.append(self._state(Sent(now, "state", line, "synthesised", t_rec), dest))
                 self._hold_next += self.hold_interval_s
         return out
@@ -348,7 +370,11 @@ class TelloReplayer:
 
     def _state(self, s: Sent, dest: tuple[str, int]) -> tuple[Sent, tuple[str, int] | None]:
         """A state datagram, or its drop (`drop_state`), counted by origin (held lock)."""
-        if self.drop_state and self._rng.random() < self.drop_state:
+        if not self.drop_state:
+            return s, dest
+        drop = self._rng.random() < self.drop_state
+        self.drops.append(drop)
+        if drop:
             self.counts[f"state_dropped_{s.origin}"] += 1
             return s, None
         return s, dest
@@ -370,4 +396,52 @@ class TelloReplayer:
             self.counts["replies" if s.kind == "reply" else f"state_{s.origin}"] += 1
 
 
-__all__ = ["PHASE_COMMANDS", "Received", "Sent", "TelloReplayer"]
+def motor_time_on(line: bytes, elapsed_s: float) -> bytes:
+    """`line` with its `time` field (motor-on s) advanced by the whole seconds of `elapsed_s`; unchanged
+    without a readable field."""
+    m = _MOTOR_TIME.search(line)
+    if m is None or elapsed_s < 1.0:
+        return line
+    return line[: m.start(2)] + str(int(m.group(2)) + int(elapsed_s)).encode() + line[m.end(2) :]
+
+
+def access_units(annexb: bytes) -> list[bytes]:
+    """An Annex-B H.264 byte stream cut into access units (each with its start codes), as a Tello sends
+    them: a unit starts at an SPS, PPS, SEI or access unit delimiter, or at a picture's first slice
+    (first_mb_in_slice 0: the first bit after the NAL header is 1), once the unit has a slice. Bytes
+    before the first start code are dropped."""
+    starts, i = [], annexb.find(b"\x00\x00\x01")
+    while i >= 0:
+        starts.append(i - 1 if i > 0 and annexb[i - 1] == 0 else i)  # a 4-byte start code's leading zero
+        i = annexb.find(b"\x00\x00\x01", i + 3)
+    units: list[bytes] = []
+    begin, has_slice = None, False
+    for k, s in enumerate(starts):
+        head = annexb.find(b"\x00\x00\x01", s) + 3
+        kind = annexb[head] & 0x1F if head < len(annexb) else 0
+        first_slice = kind in (1, 5) and head + 1 < len(annexb) and annexb[head + 1] & 0x80
+        if begin is not None and has_slice and (kind in (6, 7, 8, 9) or first_slice):
+            units.append(annexb[begin:s])
+            begin, has_slice = None, False
+        if begin is None:
+            begin = s
+        has_slice = has_slice or kind in (1, 5)
+        if k == len(starts) - 1:
+            units.append(annexb[begin:])
+    return units
+
+
+def video_datagrams(unit: bytes, size: int = TELLO_DATAGRAM_BYTES) -> list[bytes]:
+    """One access unit in the Tello's datagrams: `size` bytes each but the last (video_check's framing)."""
+    return [unit[k : k + size] for k in range(0, len(unit), size)]
+
+
+__all__ = [
+    "PHASE_COMMANDS",
+    "Received",
+    "Sent",
+    "TelloReplayer",
+    "access_units",
+    "motor_time_on",
+    "video_datagrams",
+]
