@@ -10,6 +10,11 @@ Clock: the wall clock `time.monotonic()` (seconds), which is also the time base 
 
 Bodies: flightstack names the motion-capture bodies `drone<ID>` and `target`; `hardware.mocap.bodies`
 maps them to the names used in the motion-capture software.
+
+Raw traffic: given `devices` (the run directory's, flightstack.recording.files.DeviceFiles), every Tello's
+commands, replies, state lines and video datagram timing are recorded from before `connect` to after
+`close` (drivers/tello/traffic.py), so that a flight can be replayed to the driver. The guardian process's
+own datagrams (after a takeover) are not among them: it logs what it sends to guardian.log.
 """
 
 from __future__ import annotations
@@ -30,8 +35,10 @@ from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
 from flightstack.drivers.tello import TelloConfig, TelloDriver
 from flightstack.drivers.tello.camera import TelloCamera
 from flightstack.drivers.tello.rc import RcGains
+from flightstack.drivers.tello.traffic import TrafficWriter
 from flightstack.hal import FlightPhase, StampedPose
 from flightstack.paper.geometry import Pose
+from flightstack.recording.files import DeviceFiles
 
 if TYPE_CHECKING:
     from flightstack.runtime.backends import AgentSeat
@@ -124,7 +131,11 @@ class HardwareBackend:
     simulated = False
 
     def __init__(
-        self, mission: Mission, drone_ids: list[int] | None = None, guardian_log: str | None = None
+        self,
+        mission: Mission,
+        drone_ids: list[int] | None = None,
+        guardian_log: str | None = None,
+        devices: DeviceFiles | None = None,
     ) -> None:
         """drone_ids: the drones this process flies (`flightstack agent --id N`); the robot is then left
         to `flightstack target` (None: every drone, and the robot when hardware.target is set).
@@ -132,7 +143,8 @@ class HardwareBackend:
         A guardian process (drivers/guardian.py) is started before any device is connected: if this
         process dies or its control loop stops beating (`heartbeat()`, every tick, armed at the first
         one) it hovers and lands these drones and stops and disarms the robot from its own sockets, and
-        mutes this process's drivers for good. guardian_log: a file for its log (default: none)."""
+        mutes this process's drivers for good. guardian_log: a file for its log (default: none).
+        devices: where each Tello's raw traffic is recorded (module docstring; None: nowhere)."""
         if mission.hardware is None:
             raise ValueError("backend 'tello' needs the mission's hardware section")
         self.mission = mission
@@ -146,6 +158,8 @@ class HardwareBackend:
         self.poses = NamedPoseSource(self.mocap, self.names)
         self.drones: dict[int, TelloDriver] = {}
         self.cameras: dict[int, TelloCamera] = {}
+        self.devices = devices
+        self.traffic: dict[int, TrafficWriter] = {}
         sc = scamper_config(mission) if drone_ids is None else None
         self.robot: ScamperDriver | None = None if sc is None else ScamperDriver(sc)
         self._last_truth: dict[str, Pose] = {}
@@ -172,7 +186,10 @@ class HardwareBackend:
         for d in self.mission.drones:
             if d.id not in self.drone_ids:
                 continue
-            drv = TelloDriver(tello_config(self.mission, d.id))
+            cfg = tello_config(self.mission, d.id)
+            if self.devices is not None:
+                self.traffic[d.id] = TrafficWriter(self.devices.tello(d.id), cfg.host)
+            drv = TelloDriver(cfg, self.traffic.get(d.id))
             self.drones[d.id] = drv
             if self.guardian is not None:
                 drv.set_muted(self.guardian.taken_over)
@@ -267,6 +284,7 @@ class HardwareBackend:
         if self.robot is not None:
             with contextlib.suppress(Exception):
                 self.robot.close()
+        self._close_traffic()
         self.mocap.close()
         if self.guardian is not None:
             code = self.guardian.finish()
@@ -274,9 +292,21 @@ class HardwareBackend:
                 LOG.error("the guardian is still landing after a takeover; it exits when the drones are down")
             self.guardian = None
 
+    def _close_traffic(self) -> None:
+        """Close the raw-traffic files (after the drivers and cameras: nothing more arrives); a recording
+        that failed or was cut short is logged (the flight went on without it)."""
+        for i, w in self.traffic.items():
+            w.close()
+            if w.errors:
+                LOG.warning(
+                    "drone %s: raw traffic %s: %d records written; incomplete: %s",
+                    i, w.path, w.written, ", ".join(f"{k} {n}" for k, n in sorted(w.errors.items())),
+                )  # fmt: skip
+        self.traffic = {}
 
-def build_tello(mission: Mission) -> HardwareBackend:
-    return HardwareBackend(mission)
+
+def build_tello(mission: Mission, devices: DeviceFiles | None = None) -> HardwareBackend:
+    return HardwareBackend(mission, devices=devices)
 
 
 @contextlib.contextmanager
@@ -285,7 +315,9 @@ def agent_backend(mission: Mission, seat: AgentSeat) -> Iterator[HardwareBackend
     `seat.guardian_log`), motion capture and, where the mission has one, the robot. The run lands and
     closes it (`close()`); if the agent fails before the run takes it over (e.g. keeping the computer
     awake fails), it is closed here so that no armed robot or running guardian is left behind."""
-    backend = HardwareBackend(mission, drone_ids=[seat.drone_id], guardian_log=seat.guardian_log)
+    backend = HardwareBackend(
+        mission, drone_ids=[seat.drone_id], guardian_log=seat.guardian_log, devices=seat.devices
+    )
     try:
         yield backend
     except BaseException:

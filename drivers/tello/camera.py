@@ -31,6 +31,7 @@ import numpy as np
 
 from flightstack.drivers.tello import DEFAULT_VIDEO_PORT, TelloCommandError, TelloDriver
 from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog
+from flightstack.drivers.tello.traffic import TrafficWriter
 from flightstack.drivers.tello.video_check import StreamCheck
 from flightstack.hal import Frame
 
@@ -57,11 +58,19 @@ class VideoReceiver:
     Raises OSError when the port cannot be bound, ImportError without PyAV.
     """
 
-    def __init__(self, port: int, bind_ip: str = "", counts: Counter[str] | None = None) -> None:
+    def __init__(
+        self,
+        port: int,
+        bind_ip: str = "",
+        counts: Counter[str] | None = None,
+        traffic: TrafficWriter | None = None,
+    ) -> None:
+        """traffic: where each datagram's length and receive time are recorded (drivers/tello/traffic.py)."""
         import av  # lazy: only hardware and its tests need PyAV
 
         self._av: Any = av
         self.port = port
+        self.traffic = traffic
         self.counts: Counter[str] = Counter() if counts is None else counts
         self.errors = ErrorLog(self.counts, f"tello video receiver UDP {port}", LOG)
         self._sock: Any = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -121,6 +130,8 @@ class VideoReceiver:
                 self.errors.record("recv_error", exc)
                 self._stop.wait(ERROR_PAUSE_S)
             return
+        if self.traffic is not None:
+            self.traffic.video(time.monotonic(), len(data))
         self.counts["datagrams"] += 1
         self._decode(data)
 
@@ -196,7 +207,7 @@ class TelloCamera:
             )
         port = d.cfg.video_port
         try:  # bound before streamon, so that the first keyframe is not lost
-            rx = VideoReceiver(port, "", self.counts)
+            rx = VideoReceiver(port, "", self.counts, d.traffic)
         except (OSError, ImportError) as exc:
             raise TelloCommandError(f"video on UDP {port}: {exc}") from exc
         try:

@@ -50,6 +50,7 @@ from flightstack.drivers.tello.preflight import tello_preflight
 from flightstack.drivers.tello.rejoin import SdkRejoin
 from flightstack.drivers.tello.status import DriverEvents, DriverStatus
 from flightstack.drivers.tello.sticks import Sticks
+from flightstack.drivers.tello.traffic import TrafficWriter
 from flightstack.drivers.tello.watchdog import Watchdog
 from flightstack.events import Event
 from flightstack.hal import DroneState, FlightPhase
@@ -71,14 +72,16 @@ class TelloDriver:
     """hal.Drone for one Tello (see the module docstring for the behaviour on every failure).
 
     `events` (source tello, time.monotonic() s) and `counts` are the driver's log; `sdk_version` and
-    `serial` are read by `connect`."""
+    `serial` are read by `connect`. `traffic` (optional): where the link and the camera record the drone's
+    raw traffic (drivers/tello/traffic.py; the caller closes it after `close()`)."""
 
-    def __init__(self, cfg: TelloConfig) -> None:
+    def __init__(self, cfg: TelloConfig, traffic: TrafficWriter | None = None) -> None:
         self.cfg = cfg
+        self.traffic = traffic
         self._log = DriverEvents(cfg.host)
         self.events: list[Event] = self._log.events
         self.counts: Counter[str] = self._log.counts
-        self.link = TelloLink(cfg.host, cfg.control_port, cfg.state_port, cfg.bind_ip)
+        self.link = TelloLink(cfg.host, cfg.control_port, cfg.state_port, cfg.bind_ip, traffic)
         self.status = DriverStatus(cfg.phase, cfg.link_timeout_s, self._log)
         self.exchange = CommandExchange(cfg, self.link, self.status, self._log)
         self.sticks = Sticks(cfg.rc_gains, self.link, self.status, self._log)

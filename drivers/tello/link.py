@@ -20,6 +20,13 @@ each is counted in the owner's `counts` (its own key, e.g. `recv_error`, plus `t
 with its reason at the first and then every `ErrorLog.log_every`-th occurrence (no log flood), and the
 thread goes on after a short pause (≤ 0.05 s, so that a persistent error cannot spin a core).
 
+Raw traffic (`traffic`, a drivers/tello/traffic.py TrafficWriter, optional): every datagram that crossed
+the wire, as it crossed it, with its time: a command when its send succeeded ("sent", stamped just before
+the send), every datagram on the command socket ("reply", also one too long or nobody waited for), every
+state datagram from the drone's address ("state", also one the parser rejects). A muted or failed send did
+not leave the computer and is not recorded (it is counted: `counts["muted"]`, `counts["send_error"]`).
+Handing a record over is a deque append (TrafficWriter): it never blocks a thread.
+
 Mute (guardian takeover): `CommandChannel(muted=fn)` or `chan.muted = fn`; while `fn()` returns True,
 `send()` sends nothing, returns False and counts `counts["muted"]`. `fn` is called synchronously right
 before every send; a `fn` that raises is counted (`muted_check_error`) and does not mute.
@@ -36,6 +43,7 @@ from collections.abc import Callable
 from typing import ClassVar
 
 from flightstack.drivers.tello.state import StateRejectedError, TelloTelemetry, parse_state
+from flightstack.drivers.tello.traffic import TrafficWriter
 
 LOG = logging.getLogger("flightstack.tello")
 MAX_REPLY_BYTES = 256
@@ -95,12 +103,21 @@ def evaluate_mute(check: MutedCheck | None, errors: ErrorLog) -> bool:
 class CommandChannel:
     """Commands to one drone and its replies, each reply stamped with time.monotonic() (s)."""
 
-    def __init__(self, host: str, port: int, bind_ip: str = "", muted: MutedCheck | None = None) -> None:
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        bind_ip: str = "",
+        muted: MutedCheck | None = None,
+        traffic: TrafficWriter | None = None,
+    ) -> None:
         """Connect a UDP socket to (host, port) from (bind_ip, any port) and start the reply reader.
 
-        muted: the guardian's takeover check (module docstring); settable later as `self.muted`."""
+        muted: the guardian's takeover check (module docstring); settable later as `self.muted`.
+        traffic: where every command sent and datagram received is recorded (module docstring)."""
         self.host, self.port = host, port
         self.muted = muted
+        self.traffic = traffic
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind((bind_ip, 0))
         self._sock.connect((host, port))
@@ -122,12 +139,15 @@ class CommandChannel:
             verb = text.split(" ")[0]
             self.errors.record("muted", f"{verb!r} not sent: another process took over", thread=False)
             return False
+        t = time.monotonic()
         try:
             self._sock.send(text.encode("ascii"), socket.MSG_DONTWAIT)
         except (OSError, ValueError) as exc:  # ValueError: non-ASCII text or a closed socket
             self.errors.record("send_error", f"sending {text.split(' ')[0]!r}: {exc}", thread=False)
             return False
         self.counts["sent"] += 1
+        if self.traffic is not None:
+            self.traffic.sent(t, text)
         return True
 
     def _is_muted(self) -> bool:
@@ -186,6 +206,8 @@ class CommandChannel:
                 self._stop.wait(ERROR_PAUSE_S)
             return
         t = time.monotonic()
+        if self.traffic is not None:
+            self.traffic.reply(t, data)
         if len(data) > MAX_REPLY_BYTES:
             self.counts["reply_too_long"] += 1
             return
@@ -210,9 +232,15 @@ class StateReceiver:
 
     @classmethod
     def acquire(
-        cls, host: str, callback: StateCallback, port: int = 8890, bind_ip: str = ""
+        cls,
+        host: str,
+        callback: StateCallback,
+        port: int = 8890,
+        bind_ip: str = "",
+        traffic: TrafficWriter | None = None,
     ) -> StateReceiver:
         """Register `callback` for state datagrams from `host`; binds (bind_ip, port) on first use.
+        traffic: where every state datagram from `host` is recorded, as received (module docstring).
 
         Raises OSError naming the port when it cannot be bound (another program holds it)."""
         key = (bind_ip, port)
@@ -221,7 +249,7 @@ class StateReceiver:
             if rx is None:
                 rx = cls(bind_ip, port)
                 cls._instances[key] = rx
-            rx._register(host, callback)
+            rx._register(host, callback, traffic)
             return rx
 
     def release(self, host: str) -> None:
@@ -229,6 +257,7 @@ class StateReceiver:
         with self._instances_lock:
             with self._lock:
                 self._callbacks.pop(host, None)
+                self._traffic.pop(host, None)
                 if self._callbacks:
                     return
             self._instances.pop((self.bind_ip, self.port), None)
@@ -249,6 +278,7 @@ class StateReceiver:
         self._sock.settimeout(0.1)
         self._lock = threading.Lock()
         self._callbacks: dict[str, StateCallback] = {}
+        self._traffic: dict[str, TrafficWriter] = {}
         self.dropped: Counter[str] = Counter()  # datagrams dropped, by reason
         self.counts: Counter[str] = Counter()  # "delivered" datagrams; thread errors (ErrorLog)
         self.errors = ErrorLog(self.counts, f"tello state receiver {bind_ip or '*'}:{port}")
@@ -256,9 +286,13 @@ class StateReceiver:
         self._thread = threading.Thread(target=self._loop, name=f"tello-state-{port}", daemon=True)
         self._thread.start()
 
-    def _register(self, host: str, callback: StateCallback) -> None:
+    def _register(self, host: str, callback: StateCallback, traffic: TrafficWriter | None) -> None:
         with self._lock:
             self._callbacks[host] = callback
+            if traffic is None:
+                self._traffic.pop(host, None)
+            else:
+                self._traffic[host] = traffic
 
     def _loop(self) -> None:
         """State thread: survives every error (counted in `counts`, logged without flooding)."""
@@ -283,6 +317,9 @@ class StateReceiver:
         t = time.monotonic()
         with self._lock:
             cb = self._callbacks.get(addr[0])
+            traffic = self._traffic.get(addr[0])
+        if traffic is not None:
+            traffic.state(t, data)
         if cb is None:
             self.dropped["unknown_sender"] += 1
             return
@@ -306,16 +343,27 @@ class TelloLink:
     `chan` stays set after `close()` (a closed channel counts what is still sent); `rx` is None when
     closed. The mute check (module docstring) is read through `is_muted`, before every send."""
 
-    def __init__(self, host: str, control_port: int, state_port: int = 8890, bind_ip: str = "") -> None:
+    def __init__(
+        self,
+        host: str,
+        control_port: int,
+        state_port: int = 8890,
+        bind_ip: str = "",
+        traffic: TrafficWriter | None = None,
+    ) -> None:
+        """traffic: where this drone's raw traffic is recorded (module docstring); None: nowhere."""
         self.host, self.control_port, self.state_port, self.bind_ip = host, control_port, state_port, bind_ip
+        self.traffic = traffic
         self.chan: CommandChannel | None = None
         self.rx: StateReceiver | None = None
         self._muted: MutedCheck | None = None
 
     def open(self, on_state: StateCallback) -> None:
         """Register `on_state` for this drone's state packets, then open the command channel (OSError)."""
-        self.rx = StateReceiver.acquire(self.host, on_state, self.state_port, self.bind_ip)
-        self.chan = CommandChannel(self.host, self.control_port, self.bind_ip, muted=self.is_muted)
+        self.rx = StateReceiver.acquire(self.host, on_state, self.state_port, self.bind_ip, self.traffic)
+        self.chan = CommandChannel(
+            self.host, self.control_port, self.bind_ip, muted=self.is_muted, traffic=self.traffic
+        )
 
     def close(self) -> None:
         if self.rx is not None:

@@ -1,22 +1,13 @@
 """A Tello's raw device traffic: what was sent to it and what it sent, with the times they were seen.
 
-One format for two uses: every flight writes it (a `TrafficWriter` per drone, in the run directory), and
-the replayer (sim_backend/emulators/tello/replay.py) serves it back to a driver, as it serves the real
-recordings in `../shared/data/peers/tello/` (`read_xg590_db`: the SQLite flight log of xg590/Tello-Python).
+One format for two uses: every flight on real Tellos (or the emulated lab) writes it, one `TrafficWriter`
+per drone and connection, into its run directory (`devices/`), and the replayer (sim_backend/emulators/
+tello/replay.py) serves it back to a driver, as it serves the real recordings in `../shared/data/peers/
+tello/` (`read_xg590_db`: the SQLite flight log of xg590/Tello-Python).
 
-File: JSON Lines, UTF-8. The first line is the header
-    {"format": "flightstack-tello-traffic", "version": 1, "drone": "<ip>", "clock": "monotonic"}
-and every further line one record
-    {"t": <s>, "kind": "sent" | "reply" | "state", "text": "<the datagram as text>"}
-    {"t": <s>, "kind": "video", "bytes": <datagram length>}
-`t` is time.monotonic() of the recording computer (s) when the datagram was sent ("sent") or received
-(the others); "state" text is the state line as received (with its trailing "\\r\\n"); video datagrams are
-recorded by length and time only (the pictures are in the recording's frames, not here).
-
-Reading trusts nothing: a line that is not a JSON object of the shape above, a non-finite or decreasing
-`t` beyond `MAX_BACKSTEP_S`, a text longer than `MAX_TEXT_CHARS` is skipped and counted by reason
-(`TelloSession.dropped`); a file without the header or larger than `MAX_FILE_BYTES` raises
-TrafficFormatError naming the file.
+The format (JSON Lines: a header line, then one record per datagram, `t` in time.monotonic() s), what each
+kind of record holds, what a reader skips and refuses, and the writer's crash guarantees are described in
+docs/logs.md, "Device traffic" (the one place; FORMAT, VERSION and the limits below are its constants).
 """
 
 from __future__ import annotations
@@ -24,18 +15,29 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import os
 import sqlite3
 import threading
-from collections import Counter
+import time
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Literal
+
+from flightstack.recording.files import FSYNC_PERIOD_S
 
 FORMAT = "flightstack-tello-traffic"
 VERSION = 1
 MAX_TEXT_CHARS = 512  # a state line is ~150-250 characters, a reply or command less
 MAX_FILE_BYTES = 512 * 1024 * 1024
-MAX_BACKSTEP_S = 0.05  # records of different threads reach the writer slightly out of order
+MAX_BACKSTEP_S = 1.0
+"""A record may come this much (s) before the one above it: the writer sorts each batch, but a thread that
+stamped a datagram and then waited for the GIL may hand it over after the next batch was written."""
+FLUSH_PERIOD_S = 0.25
+"""The writer thread writes and flushes the records handed over at least this often (s)."""
+MAX_PENDING = 100_000
+"""Records handed over and not yet written beyond which further ones are dropped (counted): ~100 s of a
+Tello's video datagrams; a writer thread this far behind has a disk that does not keep up."""
 
 Kind = Literal["sent", "reply", "state", "video"]
 KINDS: tuple[Kind, ...] = ("sent", "reply", "state", "video")
@@ -171,78 +173,167 @@ def read_xg590_db(path: str | Path) -> TelloSession:
 
 
 class TrafficWriter:
-    """Appends one drone's traffic to a JSON Lines file (thread-safe; callable from the link's threads).
+    """Records one drone's traffic into a JSON Lines file, from any thread, without ever blocking it.
 
-    Writing never raises into a caller: an OSError (disk full, file gone) is counted in `errors` and the
-    writer stops writing (`failed`); `max_bytes` (default 64 MiB, ~4 h of a Tello's state and commands) ends
-    the file likewise, counted as `truncated`. Lines are flushed every `flush_every` records and on
-    close, so a killed flight leaves every line up to the last flush."""
+    The link's threads hand each datagram over with `sent`, `reply`, `state` or `video` (a deque append,
+    ~1 µs: no formatting, no lock, no system call in the caller); the writer's own daemon thread formats
+    the records, sorts each batch by time, writes it and flushes it to the OS every `flush_period_s`
+    (FLUSH_PERIOD_S), and fsyncs at most every FSYNC_PERIOD_S and at `close()`.
+
+    Crash guarantees: a killed process (SIGKILL, a crash) leaves every record handed over more than
+    `flush_period_s` (plus one batch's write) before it; an OS crash or power loss every record handed over
+    more than FSYNC_PERIOD_S before it. The last line may be cut short: `read_traffic` skips it (counted).
+
+    Never raises into a caller: an OSError (disk full, file gone) is counted in `errors` and ends the
+    recording (`failed`); `max_bytes` (default 64 MiB, ~4 h of a Tello's state and commands, ~1 h with its
+    video timing) ends the file (`errors["truncated"]` counts the records left out), as does a writer thread
+    that falls `MAX_PENDING` records behind (`errors["overflow"]`). `written` counts the records on file."""
 
     def __init__(
-        self, path: str | Path, drone: str, max_bytes: int = 64 * 1024 * 1024, flush_every: int = 20
+        self,
+        path: str | Path,
+        drone: str,
+        max_bytes: int = 64 * 1024 * 1024,
+        flush_period_s: float = FLUSH_PERIOD_S,
     ):
         self.path = Path(path)
-        self.max_bytes, self.flush_every = max_bytes, max(1, flush_every)
+        self.max_bytes, self.flush_period_s = max_bytes, max(0.01, float(flush_period_s))
         self.errors: Counter[str] = Counter()
         self.written = 0
         self.failed = False
-        self._lock = threading.Lock()
+        self._pending: deque[tuple[float, Kind, str | bytes | int]] = deque()
         self._bytes = 0
         self._f: IO[str] | None = None
+        self._stop = threading.Event()
+        self._closed = False
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._f = self.path.open("w", encoding="utf-8")
-            self._write({"format": FORMAT, "version": VERSION, "drone": drone, "clock": "monotonic"})
+            self._write_line({"format": FORMAT, "version": VERSION, "drone": drone, "clock": "monotonic"})
             self._f.flush()
         except OSError as exc:
             self._fail(exc)
+        self._thread = threading.Thread(target=self._loop, name=f"tello-traffic-{drone}", daemon=True)
+        if self._f is not None:
+            self._thread.start()
 
+    # ---- from the link's threads: hand over, nothing else ------------------------------------------------
     def sent(self, t: float, text: str) -> None:
-        self._add({"t": t, "kind": "sent", "text": text[:MAX_TEXT_CHARS]})
+        """A command datagram sent at `t` (time.monotonic() s)."""
+        self._put(t, "sent", text)
 
-    def reply(self, t: float, text: str) -> None:
-        self._add({"t": t, "kind": "reply", "text": text[:MAX_TEXT_CHARS]})
+    def reply(self, t: float, data: bytes | str) -> None:
+        """A datagram received on the command socket at `t` (s), as received."""
+        self._put(t, "reply", data)
 
     def state(self, t: float, data: bytes) -> None:
-        self._add({"t": t, "kind": "state", "text": data[:MAX_TEXT_CHARS].decode("ascii", "replace")})
+        """A state datagram received at `t` (s), as received (also one the parser rejects)."""
+        self._put(t, "state", data)
 
     def video(self, t: float, nbytes: int) -> None:
-        self._add({"t": t, "kind": "video", "bytes": int(nbytes)})
+        """A video datagram of `nbytes` received at `t` (s)."""
+        self._put(t, "video", nbytes)
 
+    def _put(self, t: float, kind: Kind, payload: str | bytes | int) -> None:
+        if self._closed:
+            return
+        if len(self._pending) >= MAX_PENDING:
+            self.errors["overflow"] += 1  # rare path; a count off by one under a race is acceptable
+            return
+        self._pending.append((t, kind, payload))  # deque.append is atomic: no lock
+
+    # ---- the writer thread -------------------------------------------------------------------------------
     def close(self) -> None:
-        with self._lock:
-            if self._f is not None:
-                try:
-                    self._f.close()
-                except OSError as exc:
-                    self.errors[type(exc).__name__] += 1
-                self._f = None
-
-    def _add(self, obj: dict[str, object]) -> None:
-        with self._lock:
-            if self._f is None:
-                return
-            if self._bytes >= self.max_bytes:
-                self.errors["truncated"] += 1
-                return
+        """Write what is pending, fsync and close (idempotent; joins the writer thread, ≤ 2 s)."""
+        self._closed = True
+        self._stop.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+        if self._thread.is_alive():  # a stuck disk: leave the file to the thread, count it
+            self.errors["close_timeout"] += 1
+            return
+        self._drain()
+        if self._f is not None:
             try:
-                self._write(obj)
-                self.written += 1
-                if self.written % self.flush_every == 0:
-                    self._f.flush()
+                self._f.flush()
+                os.fsync(self._f.fileno())
+                self._f.close()
+            except OSError as exc:
+                self.errors[type(exc).__name__] += 1
+            self._f = None
+
+    def __enter__(self) -> TrafficWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _loop(self) -> None:
+        """Every flush_period_s: write and flush the pending records; fsync every FSYNC_PERIOD_S."""
+        last_fsync = time.monotonic()
+        while not self._stop.wait(self.flush_period_s):
+            try:
+                self._drain()
+                f = self._f
+                if f is None:
+                    return
+                f.flush()
+                if time.monotonic() - last_fsync >= FSYNC_PERIOD_S:
+                    os.fsync(f.fileno())
+                    last_fsync = time.monotonic()
             except OSError as exc:
                 self._fail(exc)
+                return
+            except Exception as exc:  # a bug here must not end the thread silently: count and stop
+                self.errors[f"writer_{type(exc).__name__}"] += 1
+                self._fail(None)
+                return
 
-    def _write(self, obj: dict[str, object]) -> None:
+    def _drain(self) -> None:
+        """Write every pending record, each batch in time order (threads hand records over slightly out
+        of order). OSError ends the recording."""
+        batch = []
+        while self._pending:
+            batch.append(self._pending.popleft())
+        if not batch or self._f is None:
+            return
+        batch.sort(key=lambda r: r[0])
+        try:
+            lines = []
+            for t, kind, payload in batch:
+                if self._bytes >= self.max_bytes:
+                    self.errors["truncated"] += 1
+                    continue
+                lines.append(_line(t, kind, payload))
+                self._bytes += len(lines[-1])
+            self._f.write("".join(lines))
+            self.written += len(lines)
+        except OSError as exc:
+            self._fail(exc)
+
+    def _write_line(self, obj: dict[str, object]) -> None:
         assert self._f is not None
         line = json.dumps(obj, separators=(",", ":")) + "\n"
         self._f.write(line)
         self._bytes += len(line)
 
-    def _fail(self, exc: OSError) -> None:
-        self.errors[type(exc).__name__] += 1
+    def _fail(self, exc: OSError | None) -> None:
+        if exc is not None:
+            self.errors[type(exc).__name__] += 1
         self.failed = True
+        self._closed = True
+        self._pending.clear()
         if self._f is not None:
             with contextlib.suppress(OSError):
                 self._f.close()
             self._f = None
+
+
+def _line(t: float, kind: Kind, payload: str | bytes | int) -> str:
+    """One record's line (the module docstring's shape)."""
+    if kind == "video":
+        return f'{{"t":{float(t)!r},"kind":"video","bytes":{int(payload)}}}\n'
+    if isinstance(payload, bytes | bytearray):
+        payload = bytes(payload[:MAX_TEXT_CHARS]).decode("ascii", "replace")
+    text = json.dumps(str(payload)[:MAX_TEXT_CHARS])
+    return f'{{"t":{float(t)!r},"kind":"{kind}","text":{text}}}\n'

@@ -15,6 +15,7 @@ import shutil
 import zipfile
 import zlib
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +63,9 @@ REPLAY_FILE = "run.rrd"
 """`flightstack view` without --spawn/--connect/--save on a machine without a display writes it here."""
 LIVE_FILE = "live.rrd"
 """`--viewer` on a machine without a display writes the live Rerun recording here."""
+DEVICES_DIR = "devices"
+"""The raw traffic of a flight's real (or emulated) devices: one file per device and connection
+(`DeviceFiles`); simulated rigs have no devices and write none."""
 PROBE_PREFIX = ".flightstack-write-probe-"
 
 RUN_FILES: tuple[str, ...] = (
@@ -77,6 +81,7 @@ RUN_FILES: tuple[str, ...] = (
     AGENT_SUMMARY_FILE,
     GUARDIAN_LOG,
     EMULATED_LAB_DIR,
+    DEVICES_DIR,
     REPLAY_FILE,
     LIVE_FILE,
 )
@@ -106,6 +111,20 @@ MAX_JSON_BYTES = 64_000_000
 """Bound on a JSON file of a run directory (B); recording.json and metrics.json are a few kB."""
 NPZ_KINDS = frozenset("biufcUS")
 """numpy dtype kinds an npz of a run directory may hold (no Python objects: nothing is unpickled)."""
+
+
+@dataclass(frozen=True)
+class DeviceFiles:
+    """Where a backend of real devices records their raw traffic: `<out>/devices/`, one file per device
+    for each connection, named by `session`: the mode flown on it (a flight connects its devices anew for
+    every mode), or for an agent process, which connects once, its modes joined by "+"."""
+
+    out: Path
+    session: str
+
+    def tello(self, drone_id: int) -> Path:
+        """Drone `drone_id`'s traffic (format: flightstack.drivers.tello.traffic)."""
+        return Path(self.out) / DEVICES_DIR / f"tello-{drone_id}_{self.session}.jsonl"
 
 
 class RunDirError(ValueError):

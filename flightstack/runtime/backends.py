@@ -2,7 +2,9 @@
 drivers/ (they sit above it), so the simulator runs without hardware libraries and the hardware runs
 without the simulator. Each entry is "module:attribute".
 
-- `REGISTRY`: mission `backend:` -> the builder of the whole fleet in one process: `build_backend(mission)`.
+- `REGISTRY`: mission `backend:` -> the builder of the whole fleet in one process: `build_backend(mission)`;
+  a builder of real (or emulated) devices, not `mission.simulated`, also takes `devices` (where their raw
+  traffic is recorded: flightstack.recording.files.DeviceFiles).
 - `AGENT_REGISTRY`: one drone in an agent process (`flightstack agent`): `open_agent_backend(mission,
   seat)`, a context manager that releases what the agent opened (the link to the served world) after
   the run; the run itself lands through `Backend.close()` as in one process.
@@ -21,6 +23,7 @@ from typing import TYPE_CHECKING, Any, cast
 if TYPE_CHECKING:
     from flightstack.config.mission import Mission
     from flightstack.hal import Backend
+    from flightstack.recording.files import DeviceFiles
 
 REGISTRY: dict[str, str] = {
     "sim_ideal": "flightstack.sim_backend.build:build_ideal",
@@ -38,11 +41,13 @@ AGENT_REGISTRY: dict[str, str] = {
 @dataclass(frozen=True)
 class AgentSeat:
     """What an agent process hands its backend: the drone it flies, its Zenoh session (`ZenohBus.session`;
-    the served world is reached through it), and the file its guardian logs to (hardware)."""
+    the served world is reached through it), the file its guardian logs to and where its devices' raw
+    traffic is recorded (hardware; None: nowhere)."""
 
     drone_id: int
     session: Any
     guardian_log: str
+    devices: DeviceFiles | None = None
 
 
 def load_named(target: str) -> Callable[..., Any]:
@@ -64,9 +69,13 @@ def _resolve(registry: dict[str, str], mission: Mission) -> Callable[..., Any]:
     return load_named(target)
 
 
-def build_backend(mission: Mission) -> Backend:
-    """Build the backend the mission names; ValueError for an unknown name."""
-    return cast("Backend", _resolve(REGISTRY, mission)(mission))
+def build_backend(mission: Mission, devices: DeviceFiles | None = None) -> Backend:
+    """Build the backend the mission names; ValueError for an unknown name. devices: where a backend of
+    real devices records their raw traffic (ignored by a simulated one: it has no device traffic)."""
+    builder = _resolve(REGISTRY, mission)
+    if devices is None or mission.simulated:
+        return cast("Backend", builder(mission))
+    return cast("Backend", builder(mission, devices=devices))
 
 
 @contextlib.contextmanager

@@ -26,6 +26,7 @@ from flightstack.hal import Backend, Clock, Drone
 from flightstack.paper.control import Gains
 from flightstack.paper.geometry import compose, inverse
 from flightstack.paper.kernels_warmup import warm_up
+from flightstack.recording.files import DeviceFiles
 from flightstack.runtime.agent import Agent, AgentConfig, Predictor
 from flightstack.runtime.backends import build_backend
 from flightstack.runtime.phases import TargetDriver
@@ -257,12 +258,14 @@ def assemble_fleet(
     writer: Any,
     wrap_backend: Callable[[Backend], Backend] | None = None,
     wrap_bus: Callable[[Bus], Bus] | None = None,
+    devices: DeviceFiles | None = None,
 ) -> Iterator[Fleet]:
     """Build the fleet (bus first: a bus that cannot open must not leave a connected, armed backend
     behind); on failure close what was opened and re-raise. The bus built here is closed on exit; a bus
     or backend passed in belongs to the caller (the backend is closed by landing). A bus built here goes
     through the backend's bus link (DelaysBus: the simulated lab's), then wrap_bus; wrap_backend and
-    wrap_bus wrap what is built here (the fault table's injectors)."""
+    wrap_bus wrap what is built here (the fault table's injectors). devices: where a backend built here
+    records its devices' raw traffic (real devices only)."""
     ids = [d.id for d in mission.drones] if agent_ids is None else list(agent_ids)
     # compile (or load) the tick's kernels before any device is opened: a compile mid-flight holds the GIL
     warm_up(loop=mission.backend == "sim_ideal")
@@ -274,7 +277,7 @@ def assemble_fleet(
     try:
         built = backend
         if backend is None:
-            backend = built = build_backend(mission)
+            backend = built = build_backend(mission, devices)
             if wrap_backend is not None:
                 try:
                     backend = wrap_backend(backend)

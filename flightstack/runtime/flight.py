@@ -51,6 +51,7 @@ from flightstack.recording.files import (
     EXPERTS_FILE,
     GUARDIAN_LOG,
     MISSION_FILE,
+    DeviceFiles,
     check_out_dir,
 )
 from flightstack.recording.run_dir import RunWriter
@@ -204,7 +205,8 @@ class Flight:
         bus = make_bus(self.mission, str(self.agent_id), {self.agent_id})
         stack.callback(bus.close)
         log = str((self.out or Path(tempfile.gettempdir())) / GUARDIAN_LOG)
-        seat = AgentSeat(self.agent_id, bus.session if isinstance(bus, ZenohBus) else None, log)
+        session = bus.session if isinstance(bus, ZenohBus) else None
+        seat = AgentSeat(self.agent_id, session, log, self._device_files("+".join(self.modes)))
         self._bus = bus
         self._backend = stack.enter_context(open_agent_backend(self.mission, seat))
 
@@ -226,8 +228,14 @@ class Flight:
             writer=writer,
             wrap_backend=self._wrap_backend,
             wrap_bus=self._wrap_bus,
+            devices=self._device_files(mode),
         ) as fleet:
             return run_mode(fleet, progress, writer=writer, taps=self.taps, plan_loop=self._plan_loop)
+
+    def _device_files(self, session: str) -> DeviceFiles | None:
+        """Where the devices' raw traffic of one connection (`session`: see DeviceFiles) is recorded: in
+        the run directory, when there is one."""
+        return None if self.out is None else DeviceFiles(self.out, session)
 
     def fly_procedure(
         self, procedure: Callable[[Fleet, SafePause], _R], mission: Mission | None = None
@@ -248,6 +256,7 @@ class Flight:
             writer=None,
             wrap_backend=self._wrap_backend,
             wrap_bus=self._wrap_bus,
+            devices=self._device_files("procedure"),
         ) as fleet:
             return run_procedure(fleet, procedure)
 
