@@ -7,7 +7,8 @@ refuses any other address, and datagrams from any other sender are dropped (`cou
 
 The rules (times: the recording's s, `time.monotonic()` s on the wire):
 
-- **Segments.** The recording is cut at every recorded command ("sent" record). A datagram whose text
+- **Segments.** The recording is cut at every recorded command ("sent" record) but `rc` (a flight's own
+  recording holds one per control tick: `is_stick_command`). A datagram whose text
   (stripped, case-insensitive) equals the next recorded command not yet served, or a later one up to and
   including the next recorded *phase command* (`takeoff`, `land`, `emergency`), is that command: the
   replay clock is shifted so that the command's recorded time maps to now, the state lines from that time
@@ -144,15 +145,19 @@ class TelloReplayer:
             raise ValueError(f"{session.source}: no state lines to replay")
         self.lines: list[tuple[float, bytes]] = [(r.t, r.text.encode("utf-8")) for r in states]
         self._line_t = [t for t, _ in self.lines]
-        self.commands: list[tuple[float, str]] = [(r.t, r.text) for r in session.of("sent")]
-        self._norm = [text.strip().lower() for _, text in self.commands]
-        self.replies: list[list[tuple[float, str]]] = [[] for _ in self.commands]
-        """Per recorded command: its recorded replies as (delay after the command s, text)."""
-        cmd_t = [t for t, _ in self.commands]
+        sent = session.of("sent")
+        sent_t = [r.t for r in sent]
+        replies_of: list[list[tuple[float, str]]] = [[] for _ in sent]
         for r in session.of("reply"):
-            k = bisect.bisect_right(cmd_t, r.t) - 1
+            k = bisect.bisect_right(sent_t, r.t) - 1
             if k >= 0:
-                self.replies[k].append((r.t - cmd_t[k], r.text))
+                replies_of[k].append((r.t - sent_t[k], r.text))
+        keep = [k for k, r in enumerate(sent) if not is_stick_command(r.text)]
+        self.commands: list[tuple[float, str]] = [(sent[k].t, sent[k].text) for k in keep]
+        """The recorded commands that cut segments: every "sent" record but `rc` (see is_stick_command)."""
+        self._norm = [text.strip().lower() for _, text in self.commands]
+        self.replies: list[list[tuple[float, str]]] = [replies_of[k] for k in keep]
+        """Per recorded command: its recorded replies as (delay after the command s, text)."""
         gaps = [b - a for a, b in zip(self._line_t, self._line_t[1:], strict=False) if b > a]
         self.hold_interval_s = statistics.median(gaps) if gaps else 0.1
         """The interval of synthesised lines: the recording's median state interval (s)."""
@@ -396,6 +401,13 @@ class TelloReplayer:
             self.counts["replies" if s.kind == "reply" else f"state_{s.origin}"] += 1
 
 
+def is_stick_command(text: str) -> bool:
+    """`rc a b c d`: a flight's own recording holds one every control tick. It neither cuts a segment nor is
+    matched (a driver's `rc 0 0 0 0` would jump the replay to a recorded hover); a firmware's answers to
+    rc (`error Not joystick`, which some send) are not served."""
+    return text.strip().lower().startswith("rc ")
+
+
 def motor_time_on(line: bytes, elapsed_s: float) -> bytes:
     """`line` with its `time` field (motor-on s) advanced by the whole seconds of `elapsed_s`; unchanged
     without a readable field."""
@@ -442,6 +454,7 @@ __all__ = [
     "Sent",
     "TelloReplayer",
     "access_units",
+    "is_stick_command",
     "motor_time_on",
     "video_datagrams",
 ]
