@@ -129,10 +129,10 @@ def test_state_source_differences_rotates_and_unwraps(monkeypatch: pytest.Monkey
     syaw()
     _packet(tello, clock, 20.1, yaw=-179)
     assert syaw()[1] == pytest.approx(-math.radians(30.0))
-    # vg fields: dm/s in the takeoff frame, stamped at arrival
+    # vg fields: dm/s, stamped at arrival; vgz positive down (a real Tello climbing reads vgz −4)
     svz = state_velocity_source(driver, "z", field="vg")
     _packet(tello, clock, 30.0, vgz=-4)
-    assert svz() == (30.0, pytest.approx(-0.4))
+    assert svz() == (30.0, pytest.approx(0.4))
     with pytest.raises(ValueError, match="no yaw-rate field"):
         state_velocity_source(driver, "yaw", field="vg")
     with pytest.raises(ValueError, match="unknown axis"):
