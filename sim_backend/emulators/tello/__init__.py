@@ -7,7 +7,8 @@ strings at ``state_hz`` (10 Hz) from the emulator's IP to ``(client_ip, state_po
 after ``streamon``, H.264 Annex-B video (libx264 ultrafast, zerolatency, repeat-headers, a keyframe
 every ``gop_size`` frames: 67 by default, the recorded bound) in datagrams of at most 1460 bytes to
 ``video_port`` (11111). ``djitellopy`` routes replies and state by source IP only, hence one loopback IP
-per emulated drone (127.0.0.2, 127.0.0.3, ...). All traffic stays on 127.0.0.0/8; all threads are daemons with bounded waits (<= 0.1 s), joined by ``close()``.
+per emulated drone (127.0.0.2, 127.0.0.3, ...). All traffic stays on 127.0.0.0/8; all threads are
+daemons with bounded waits (<= 0.1 s), joined by ``close()``.
 
 The behaviour per command, with the user reports it is based on, is described in ``commands``; the
 phases, motion model, battery and state stream in ``physics``; the fault switches in
