@@ -9,8 +9,8 @@ docs/drivers.md, "What the Tello emulator takes from real Tellos", tabulates the
   +0.94 s, h 70 from +2.83 s, then hovering).
 * H.264 keyframes are at least ``KEYFRAME_INTERVAL_FRAMES`` apart (devconx: its first dump has an IDR
   and 59 P frames with no second IDR; the second dump's ``frame_num`` runs 7 … 66 with no IDR, so its
-  last frame is 66 reference frames after its IDR (``log2_max_frame_num`` 8: no wrap) — 67 frames, 2.2 s
-  at 30 fps, without a keyframe).
+  last frame is 66 reference frames after its IDR (``log2_max_frame_num`` 8; a wrap at 256 would only
+  make it longer) — 67 frames, 2.2 s at 30 fps, without a keyframe).
 * ``vgz`` is positive **down** (dm/s): xg590 reads −1, −4, −6, −8, −8, −8, −7, −7, −5 during the climb and
   +3 … +6 during the landing. ``vgx``/``vgy`` are in the frame of yaw 0 (x along yaw 0, y to its right),
   not the body frame: at yaw −26°, ``forward 50`` read vgx +3, vgy −1 and ``left 50`` vgx −1, vgy −3.
