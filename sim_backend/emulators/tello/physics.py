@@ -106,9 +106,8 @@ class TelloPhysics(TelloEmulatorBase):
             self._drain += dt * (self.DRAIN_FLYING_PCT_S if self.flying else self.DRAIN_IDLE_PCT_S)
             if self.flying:
                 self._motor_s += dt
-            z_before = float(self._pos[2])
-            if self.flying:
                 self._h_drift += self.h_drift_cm_s * dt
+            z_before = float(self._pos[2])
             if self._phase == "takeoff":  # climb at the normal rate, then hover (stabilise) until the ok
                 elapsed = now - self._phase_t0
                 climb_s = max(min(self._phase_s - self.takeoff_hover_s, self.TAKEOFF_CLIMB_S), 1e-3)
@@ -170,6 +169,7 @@ class TelloPhysics(TelloEmulatorBase):
                 self.streaming = False
                 self._first_client = None
             self._motor_s = 0.0  # the motor-on time counts from power-on
+            self._h_drift = 0.0  # so does the height estimate (unverified)
             self._last_cmd_t = now
             self.power_log.append((now, "off" if off else "boot"))
 
