@@ -36,6 +36,10 @@ FLIGHT = PEERS / "xg590_Tello_flight_log_20201018_052457.db"
 H264 = PEERS / "devconx_test.h264"
 
 
+StateLog = list[tuple[float, dict[str, int]]]
+"""(s after a reference time, the integer fields h, tof, vgx, vgy, vgz, yaw) of state lines."""
+
+
 def _need(path: Path) -> Path:
     if not path.is_file():
         skip_or_fail_in_ci(f"{path} is missing: the recordings of real Tellos live in ../shared/data/peers/")
@@ -51,7 +55,7 @@ def flight() -> TelloSession:
     return read_xg590_db(_need(FLIGHT))
 
 
-def _recorded_states(flight: TelloSession) -> list[tuple[float, dict[str, int]]]:
+def _recorded_states(flight: TelloSession) -> StateLog:
     """(s after `takeoff`, the integer fields) of every recorded state line."""
     sent = flight.first("sent", "takeoff")
     assert sent is not None
@@ -138,7 +142,7 @@ def states() -> Iterator[tuple[socket.socket, socket.socket]]:
         yield cli, rx
 
 
-def _drain(rx: socket.socket, t0: float, into: list[tuple[float, dict[str, int]]]) -> None:
+def _drain(rx: socket.socket, t0: float, into: StateLog) -> None:
     while True:
         try:
             data = rx.recv(2048)
@@ -148,7 +152,7 @@ def _drain(rx: socket.socket, t0: float, into: list[tuple[float, dict[str, int]]
         into.append((time.monotonic() - t0, {k: int(f[k]) for k in ("h", "tof", "vgx", "vgy", "vgz", "yaw")}))
 
 
-def _collect(rx: socket.socket, t0: float, into: list[tuple[float, dict[str, int]]], seconds: float) -> None:
+def _collect(rx: socket.socket, t0: float, into: StateLog, seconds: float) -> None:
     """Collect state for `seconds`, each line stamped when it arrives (s after t0)."""
     t_end = time.monotonic() + seconds
     while time.monotonic() < t_end:
@@ -156,7 +160,9 @@ def _collect(rx: socket.socket, t0: float, into: list[tuple[float, dict[str, int
         time.sleep(0.005)
 
 
-def _ask(cli: socket.socket, emu: TelloEmulator, text: str, rx: socket.socket, t0: float, log: list) -> tuple:
+def _ask(
+    cli: socket.socket, emu: TelloEmulator, text: str, rx: socket.socket, t0: float, log: StateLog
+) -> tuple[str, float]:
     """Send `text`, wait up to 12 s for its reply while collecting state; (reply, s after t0)."""
     cli.sendto(text.encode(), emu.address)
     deadline = time.monotonic() + 12.0
@@ -176,7 +182,7 @@ def test_a_recorded_takeoff_climb_hover_and_landing(flight: TelloSession, states
     height above the floor + 10 cm (10 on the ground), vgx/vgy in the frame of yaw 0 as recorded."""
     cli, rx = states
     recorded = _recorded_ok_delay(flight)
-    log: list[tuple[float, dict[str, int]]] = []
+    log: StateLog = []
     with TelloEmulator("127.0.0.41", state_port=rx.getsockname()[1], video_port=free_udp_port()) as emu:
         t0 = time.monotonic() + 0.3  # times from the takeoff, sent then
         assert _ask(cli, emu, "command", rx, t0, log)[0] == "ok"
@@ -218,7 +224,7 @@ def test_tof_follows_the_surface_and_reads_6553_out_of_range(states: Any) -> Non
     """tof over a surface 50 cm lower beyond x = 60 cm (a table's edge, as the recording flew over one),
     and 6553 above the sensor's range; h, relative to the takeoff point, does not see the edge."""
     cli, rx = states
-    log: list[tuple[float, dict[str, int]]] = []
+    log: StateLog = []
 
     def table(x: float, _y: float) -> float:
         return 0.0 if x < 60.0 else -50.0
