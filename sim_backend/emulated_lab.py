@@ -44,6 +44,7 @@ import yaml
 
 from flightstack.config.rig import MISSION_CONFIGS, emulated_tello_ip
 from flightstack.ports import free_udp_port
+from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
 
 if TYPE_CHECKING:
     from flightstack.config.links import LinksSpec
@@ -68,8 +69,9 @@ VIDEO_FPS = 15.0
 """Rate of the fixed marker view (frames/s)."""
 LIVE_VIDEO_FPS = 30.0
 """Rate of the cameras that render the flight (frames/s): the Tello's; each at its calibration's size."""
-TAKEOFF_S = 0.3
-"""The emulated Tellos' takeoff (s): a fast climb (a real one takes about 3.9 s, Tello-Python #88)."""
+TAKEOFF_S = FAST_TAKEOFF_S
+"""The emulated Tellos' takeoff (s): a fast climb, not the recorded 8.7 s (the emulator's default,
+sim_backend/emulators/tello/recorded.py), which would add 8.4 s to every takeoff of every lab flight."""
 TAKEOFF_HOVER_S = 1.0
 """With a late state link or an impaired network, each emulated Tello hovers this long at height before
 its takeoff `ok` (s),
@@ -395,7 +397,7 @@ class EmulatedLab:
 
     def _tello_links(self, i: int) -> dict[str, Any]:
         """TelloEmulator keyword arguments of drone i's radio, links and state rate."""
-        kw: dict[str, Any] = {}
+        kw: dict[str, Any] = {"takeoff_s": TAKEOFF_S}
         name = f"tello{i}"
         if name in self.radios:
             kw["radio"] = self.radios[name]

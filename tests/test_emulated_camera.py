@@ -27,7 +27,12 @@ pytest.importorskip("pymavlink")
 from flightstack.config.mission import CAMERA_MOUNTS, load_mission
 from flightstack.drivers.tello.camera import VideoReceiver
 from flightstack.ports import free_udp_port
-from flightstack.sim_backend.emulators.tello import TelloEmulator, read_frame_index, wait_until
+from flightstack.sim_backend.emulators.tello import (
+    FAST_TAKEOFF_S,
+    TelloEmulator,
+    read_frame_index,
+    wait_until,
+)
 from flightstack.sim_backend.emulators.tello.video_process import SharedTarget, VideoProcess
 from flightstack.sim_backend.emulators.tello.view import CameraSpec
 from flightstack.vision.camera_file import load_calibration
@@ -69,7 +74,14 @@ def test_the_emulated_camera_follows_the_flight_and_records_capture_times(safety
     target.write(0.15, 0.0, 0.0)  # 0.15 m ahead of the drone's start
     port = free_udp_port()
     cam = VideoProcess(down_camera(), IP, ("127.0.0.1", port), target, fps=30.0)
-    emu = TelloEmulator(IP, state_port=free_udp_port(), video_port=port, video_size=cam.size, fps=30.0)
+    emu = TelloEmulator(  # the camera, not the takeoff: the recorded 8.7 s would add 8.4 s
+        IP,
+        state_port=free_udp_port(),
+        video_port=port,
+        video_size=cam.size,
+        fps=30.0,
+        takeoff_s=FAST_TAKEOFF_S,
+    )
     emu.use_remote_video(cam)
     rx = VideoReceiver(port, "127.0.0.1")
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

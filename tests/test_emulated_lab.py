@@ -30,7 +30,7 @@ from flightstack.paper.geometry import Pose, compose
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
 from flightstack.sim_backend.emulators.natnet import NatNetEmulator
-from flightstack.sim_backend.emulators.tello import TelloEmulator
+from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator
 from flightstack.vision.camera_file import load_calibration
 from tests.conftest import MISSIONS
 from tests.test_tello_driver import marker_frame
@@ -126,6 +126,7 @@ def lab(tmp_path: Path) -> Iterator[Lab]:
             video_port=free_udp_port(),
             frame_source=marker_frame,
             video_size=(320, 240),
+            takeoff_s=FAST_TAKEOFF_S,  # a pursuit, not a takeoff test: the recorded 8.7 s would add 8.4 s
         )
         for i, ip in ((1, "127.0.0.6"), (2, "127.0.0.7"))
     }

@@ -137,7 +137,11 @@ def test_live_camera_frames_arrive_as_late_as_the_video_link_says(safety_bound: 
     target.write(0.1, 0.0, 0.0)
     port = free_udp_port()
     path = VideoPath(seed=2, drone=1, link=link.model_dump())
-    cam = VideoProcess(down_camera(), IP_CAMERA, ("127.0.0.1", port), target, fps=30.0, path=path)
+    # a keyframe every 15 frames, not the recorded 67: this measures frame ages and needs > 60 decoded
+    # frames in 4 s; with 67 a 2 % frame loss left 55 of 120 decoded (each loss spoils the rest of its GOP)
+    cam = VideoProcess(
+        down_camera(), IP_CAMERA, ("127.0.0.1", port), target, fps=30.0, gop_size=15, path=path
+    )
     emu = TelloEmulator(IP_CAMERA, state_port=free_udp_port(), video_port=port, video_size=cam.size)
     emu.use_remote_video(cam)  # not started: the test feeds the camera itself
     rx = VideoReceiver(port, "127.0.0.1")

@@ -36,7 +36,7 @@ from flightstack.drivers.guard import Guard
 from flightstack.drivers.guardian_process import Log
 from flightstack.events import Event
 from flightstack.ports import free_udp_port
-from flightstack.sim_backend.emulators.tello import TelloEmulator, wait_until
+from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator, wait_until
 from tests.conftest import Bound, secured_bus
 from tests.conftest import status_payload as status
 
@@ -180,7 +180,15 @@ def write_mission(tmp: Path, emus: dict[int, TelloEmulator], state_port: int) ->
 def lab(tmp_path: Path) -> Iterator[dict[str, Any]]:
     """Two emulated Tellos (.8 sends state to the mission's state port, .9 to its own) and the mission."""
     ports = {1: free_udp_port(), 2: free_udp_port()}
-    emus = {i: TelloEmulator(IPS[i], state_port=ports[i], video_port=free_udp_port()).start() for i in IPS}
+    emus = {
+        i: TelloEmulator(
+            IPS[i],
+            state_port=ports[i],
+            video_port=free_udp_port(),
+            takeoff_s=FAST_TAKEOFF_S,  # not about takeoff
+        ).start()
+        for i in IPS
+    }
     try:
         yield {"emus": emus, "ports": ports, "mission": write_mission(tmp_path, emus, ports[1])}
     finally:

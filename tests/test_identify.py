@@ -129,8 +129,7 @@ def test_state_source_differences_rotates_and_unwraps(monkeypatch: pytest.Monkey
     syaw()
     _packet(tello, clock, 20.1, yaw=-179)
     assert syaw()[1] == pytest.approx(-math.radians(30.0))
-    # vg fields: dm/s in the takeoff frame, stamped at arrival; vgz positive down (a real Tello's climb
-    # reads -1 ... -8 dm/s), so a climb at 0.4 m/s is vgz -4 and z velocity +0.4 m/s
+    # vg fields: dm/s, stamped at arrival; vgz positive down (a real Tello climbing reads vgz −4)
     svz = state_velocity_source(driver, "z", field="vg")
     _packet(tello, clock, 30.0, vgz=-4)
     assert svz() == (30.0, pytest.approx(0.4))

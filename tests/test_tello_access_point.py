@@ -28,9 +28,15 @@ def child() -> None:
     import numpy as np
 
     from flightstack.drivers.tello import TelloConfig, TelloDriver
-    from flightstack.sim_backend.emulators.tello import TelloEmulator
+    from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator
 
-    emu = TelloEmulator("127.0.0.2", port=8889, state_port=8890, video_port=11111).start()
+    emu = TelloEmulator(
+        "127.0.0.2",
+        port=8889,
+        state_port=8890,
+        video_port=11111,
+        takeoff_s=FAST_TAKEOFF_S,  # about the ports
+    ).start()
     d = TelloDriver(TelloConfig(host="127.0.0.2", connect_timeout_s=3.0))
     out: dict[str, object] = {}
     try:

@@ -33,6 +33,7 @@ import pytest
 
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.tello import (
+    FAST_TAKEOFF_S,
     TelloEmulator,
     TelloFaults,
     default_square,
@@ -51,7 +52,7 @@ from djitellopy.tello import Tello, TelloException
 RESPONSE_TIMEOUT_S = 2  # must be an int for djitellopy
 STATE_RE = re.compile(
     r"^mid:-1;x:-?\d+;y:-?\d+;z:-?\d+;mpry:0,0,0;pitch:-?\d+;roll:-?\d+;yaw:-?\d+;vgx:-?\d+;vgy:-?\d+;"
-    r"vgz:-?\d+;templ:\d+;temph:\d+;tof:\d+;h:\d+;bat:\d+;baro:-?\d+\.\d+;time:\d+;agx:-?\d+\.\d+;"
+    r"vgz:-?\d+;templ:\d+;temph:\d+;tof:\d+;h:-?\d+;bat:\d+;baro:-?\d+\.\d+;time:\d+;agx:-?\d+\.\d+;"
     r"agy:-?\d+\.\d+;agz:-?\d+\.\d+;\r\n$"
 )
 
@@ -184,7 +185,9 @@ def test_raw_one_way_links_power_loss_and_own_landing() -> None:
         cli.settimeout(0.3)
         state_rx.bind(("127.0.0.1", 0))
         state_rx.settimeout(0.3)
-        with TelloEmulator("127.0.1.5", state_port=state_rx.getsockname()[1], land_s=1.0) as emu:
+        with TelloEmulator(
+            "127.0.1.5", state_port=state_rx.getsockname()[1], land_s=1.0, takeoff_s=FAST_TAKEOFF_S
+        ) as emu:
 
             def ask(text: str, timeout: float = 1.0) -> str:
                 cli.settimeout(timeout)
@@ -417,7 +420,7 @@ def test_lost_replies_to_command_and_takeoff_still_take_off() -> None:
         _no_reply(cli, 0.6)
         assert emu.phase == "flying"
         assert _phases(emu) == ["landed", "takeoff", "flying"]
-        assert wait_until(lambda: _state(state_rx)["h"] == "80", 1.0)
+        assert wait_until(lambda: _state(state_rx)["tof"] == "90", 1.0)
         assert emu.replies_sent == [] and emu.refused == []
 
         emu.faults.lost_replies = set()
@@ -436,7 +439,7 @@ def test_slow_takeoff_climbs_then_hovers_until_its_ok() -> None:
         emu.faults.takeoff_s = 1.6
         t0 = time.monotonic()
         cli.sendto(b"takeoff", emu.address)
-        assert wait_until(lambda: _state(state_rx)["h"] == "80", 1.0)
+        assert wait_until(lambda: _state(state_rx)["tof"] == "90", 1.0)
         assert emu.phase == "takeoff"  # at 80 cm, before the ok
         assert _ask(cli, emu, "battery?") == "87"  # read commands are answered during the takeoff
         assert _ask(cli, emu, "land") == "error Not joystick"  # busy
@@ -495,7 +498,7 @@ def test_land_when_landed_answers_motor_stop_and_emergency_stops_the_motors() ->
         _no_reply(cli, 0.3)
         assert emu.phase == "landed" and emu.position_cm[2] == 0.0
         assert emu.phase_log[-1] == (emu.commands[-1][0], "landed")  # at the moment it was received
-        assert wait_until(lambda: _state(state_rx)["h"] == "0", 0.5)
+        assert wait_until(lambda: _state(state_rx)["tof"] == "10", 0.5)
         motor_s = _state(state_rx)["time"]
         time.sleep(1.1)
         assert _state(state_rx)["time"] == motor_s == "1"
@@ -582,13 +585,13 @@ def test_read_commands(rig: Rig) -> None:
 
 
 def test_takeoff_rc_motion_and_land(rig: Rig) -> None:
-    """rc values arrive as ints, velocities/height integrate, state reflects them, land brings h to 0."""
+    """rc values arrive as ints, velocities/height integrate, state reflects them, land brings tof to 10."""
     tello, emu = rig.tello, rig.emu
     t0 = time.monotonic()
     tello.takeoff()
     assert time.monotonic() - t0 >= emu.takeoff_s
     assert emu.phase == "flying"
-    assert wait_until(lambda: tello.get_height() == 80, 1.0)
+    assert wait_until(lambda: tello.get_distance_tof() == 90, 1.0)  # 80 cm (h drifts: recorded.py)
 
     with pytest.raises(TypeError):
         tello.send_rc_control(0, 50.0, 0, 0)  # type: ignore[arg-type]  # djitellopy enforces int
@@ -602,11 +605,12 @@ def test_takeoff_rc_motion_and_land(rig: Rig) -> None:
     received = [values for _, values in emu.rc_history[n0:]]
     assert all(values == (0, 50, 20, 0) for values in received)
     assert all(type(v) is int for values in received for v in values)
-    assert wait_until(lambda: tello.get_speed_x() == 5 and tello.get_speed_z() == -2, 1.0)  # vgz down
+    # climbing at 20 cm/s reads vgz −2: positive down, as a real Tello (recorded.py)
+    assert wait_until(lambda: tello.get_speed_x() == 5 and tello.get_speed_z() == -2, 1.0)
     assert tello.get_speed_y() == 0
     x, _, z = emu.position_cm
     assert x > 25 and z > 90
-    assert abs(tello.get_height() - z) <= 4
+    assert abs(tello.get_distance_tof() - 10 - z) <= 4
     assert abs(tello.get_mission_pad_distance_x() - x) <= 7  # x carries the ground truth (cm)
 
     t_start = time.monotonic()
@@ -626,7 +630,7 @@ def test_takeoff_rc_motion_and_land(rig: Rig) -> None:
 
     tello.land()
     assert not emu.flying
-    assert wait_until(lambda: tello.get_height() == 0, 1.0)
+    assert wait_until(lambda: tello.get_distance_tof() == 10, 1.0)  # on the floor
     assert not emu.landed_by_timeout
 
 
@@ -791,7 +795,7 @@ def test_auto_land_and_two_drone_routing(rig: Rig) -> None:
         assert emu2.flying and not rig.emu.flying
         assert wait_until(lambda: emu2.landed_by_timeout and not emu2.flying, 3.0)
         assert time.monotonic() - t_takeoff >= 1.0
-        assert wait_until(lambda: tello2.get_height() == 0, 1.0)
+        assert wait_until(lambda: tello2.get_distance_tof() == 10, 1.0)
 
         tello2.takeoff()  # keepalive (any command) postpones the auto-land
         assert not emu2.landed_by_timeout

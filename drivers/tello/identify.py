@@ -22,10 +22,13 @@ so `identify` fits them with `differenced=True` (residuals weighted through thei
 measurements behind this: docs/lab_notes.md ("drivers/tello/identify.py");
 `state_velocity_source(driver, axis, field="vg")` gives the vg* alternative for comparison.
 
-Frames of the state stream (assumption, the emulator's convention): x forward and y right in the
-horizontal frame of the takeoff heading, z up, yaw clockwise in degrees; the horizontal velocity is rotated
-into the body frame with the reported yaw. On a real Tello x/y/z are mission-pad coordinates, so hardware
-identification needs an external `velocity_source` (e.g. motion capture).
+Frames of the state stream: vgx/vgy in the horizontal frame of yaw 0 (x along yaw 0, y to its right), vgz
+positive **down**, yaw clockwise in degrees, as a recorded real flight shows them
+(sim_backend/emulators/tello/recorded.py: vgz −8 dm/s during the climb; at yaw −26° `forward 50` read
+vgx +3, vgy −1); the horizontal velocity is rotated into the body frame with the reported yaw. x/y/z
+(the position source) follow the emulator's convention: x, y as vgx, vgy, z up. On a real Tello x/y/z
+are mission-pad coordinates, so hardware identification needs an external `velocity_source` (e.g.
+motion capture).
 """
 
 from __future__ import annotations
@@ -215,8 +218,7 @@ class _StateVelocity:
         return self._sample
 
     def _from_vg(self, st: Mapping[str, Any], yaw_deg: float) -> float:
-        # vg* in dm/s, horizontal frame of the takeoff heading (x forward, y right); vgz positive DOWN on a
-        # real Tello (docs/drivers.md, "What a real Tello sends"), so z up is -vgz
+        # vg* in dm/s: x, y in the frame of yaw 0 (y right of x), vgz positive down (module docstring)
         wx, wy, wz = 0.1 * float(st["vgx"]), 0.1 * float(st["vgy"]), -0.1 * float(st["vgz"])
         return self._body(wx, wy, wz, yaw_deg)
 
@@ -254,7 +256,8 @@ def state_velocity_source(
 
     field="position" (default): differences of x/y/z (cm) and unwrapped yaw (deg) between consecutive
     packets, stamped at the middle of their arrival times; the first packet gives no sample.
-    field="vg": the vgx/vgy/vgz fields (integer dm/s) stamped at arrival; x, y, z only (no yaw rate field).
+    field="vg": the vgx/vgy/vgz fields (integer dm/s, vgz positive down) stamped at arrival; x, y, z only
+    (no yaw rate field).
     Both rotate horizontal velocities into the body frame with the reported yaw (module docstring).
     Units: m/s, or rad/s counter-clockwise for yaw.
     """

@@ -7,7 +7,9 @@ a value that is not a finite number within physical bounds is rejected with a re
 and counts it). Unknown extra fields are ignored (firmwares differ).
 
 Units as sent by the drone: heights and distances in cm (`h` relative to the takeoff point, `tof` from
-the downward time-of-flight sensor), velocities `vgx/vgy/vgz` in dm/s, `time` = motor-on time in whole
+the downward time-of-flight sensor: distance to the surface below + 10 cm), velocities `vgx/vgy/vgz` in
+dm/s with `vgz` positive **down** and vgx/vgy in the frame of yaw 0 (a recorded real flight:
+sim_backend/emulators/tello/recorded.py), `time` = motor-on time in whole
 seconds (rises while the motors run), `bat` in percent, temperatures in °C, `baro` in m.
 """
 
@@ -22,7 +24,7 @@ MAX_STATE_BYTES = 512  # a real state line is ~150–250 bytes
 _REQUIRED: dict[str, tuple[float, float]] = {
     "h": (-1000.0, 3000.0),  # cm; negative when below the takeoff point
     "tof": (0.0, 10000.0),  # cm; 6553 is reported when out of range on some firmwares
-    "vgz": (-100.0, 100.0),  # dm/s
+    "vgz": (-100.0, 100.0),  # dm/s, positive down
     "time": (0.0, 1e7),  # s
     "bat": (0.0, 100.0),  # %
 }
@@ -56,7 +58,7 @@ class TelloTelemetry:
     t: float
     h_cm: float
     tof_cm: float
-    vgz_dm_s: float
+    vgz_dm_s: float  # positive down
     motor_s: float
     bat_pct: float
     temph_c: float | None

@@ -28,6 +28,11 @@ from ..radio import DeviceRadio
 from .faults import ReplyScheduler, TelloFaults
 from .frames import FrameSource, default_frame_source
 from .net import require_loopback
+from .recorded import H_DRIFT_CM_S, KEYFRAME_INTERVAL_FRAMES, TAKEOFF_OK_S, TOF_MAX_CM, Surface, flat_floor
+
+FAST_TAKEOFF_S = 0.3
+"""A takeoff for tests and rigs that are not about the takeoff (s): the recorded ``TAKEOFF_OK_S`` (8.7 s,
+the default) would add 8.4 s to each of their takeoffs. Pass it as ``takeoff_s`` explicitly."""
 
 
 @dataclass
@@ -43,7 +48,7 @@ class TelloEmulatorBase:
 
     TAKEOFF_CLIMB_S = 2.0
     """Time of the climb to ``takeoff_height_cm`` when the takeoff lasts longer (it then hovers until
-    ``ok``)."""
+    ``ok``); xg590 (``recorded``): liftoff at +0.94 s, h 70 at +2.83 s."""
     MIN_TAKEOFF_BATTERY = 10
     DRAIN_FLYING_PCT_S = 0.12
     DRAIN_IDLE_PCT_S = 0.01
@@ -58,7 +63,7 @@ class TelloEmulatorBase:
         video_port: int = 11111,
         frame_source: FrameSource | None = None,
         fps: float = 30.0,
-        takeoff_s: float = 0.3,
+        takeoff_s: float = TAKEOFF_OK_S,
         faults: TelloFaults | None = None,
         video_size: tuple[int, int] = (960, 720),
         *,
@@ -67,12 +72,15 @@ class TelloEmulatorBase:
         takeoff_height_cm: float = 80.0,
         tau_s: float = EMULATED_TELLO_RESPONSE_S,
         state_hz: float = 10.0,
-        gop_size: int = 15,
+        gop_size: int = KEYFRAME_INTERVAL_FRAMES,
         pre_sdk_reply: str | None = None,
         reply_port_latch: bool = False,
         radio: DeviceRadio | None = None,
         links: DeviceLinks | None = None,
         takeoff_hover_s: float = 0.0,
+        h_drift_cm_s: float = H_DRIFT_CM_S,
+        surface: Surface = flat_floor,
+        tof_max_cm: float = TOF_MAX_CM,
     ) -> None:
         """Configure the emulator; nothing is bound or started before :meth:`start`.
 
@@ -84,7 +92,8 @@ class TelloEmulatorBase:
             video_port: client port receiving the H.264 stream (djitellopy: ``Tello(vs_udp=...)``).
             frame_source: ``f(t, emu) -> image``; defaults to :func:`default_frame_source`.
             fps: video frame rate.
-            takeoff_s: duration of the takeoff (the ``ok`` comes at its end).
+            takeoff_s: duration of the takeoff (the ``ok`` comes at its end); default the recorded
+                ``recorded.TAKEOFF_OK_S`` (8.7 s), ``FAST_TAKEOFF_S`` for tests not about the takeoff.
             takeoff_hover_s: the last part of the takeoff spent hovering at height before the ``ok``
                 (a real Tello stabilises at height for seconds before it answers; 0: the climb lasts
                 the whole takeoff, up to ``TAKEOFF_CLIMB_S``).
@@ -95,7 +104,14 @@ class TelloEmulatorBase:
             takeoff_height_cm: height reached by ``takeoff``.
             tau_s: time constant of the first-order velocity response to ``rc``.
             state_hz: state packet rate.
-            gop_size: H.264 keyframe interval in frames.
+            gop_size: H.264 keyframe interval in frames (default the recorded bound,
+                ``recorded.KEYFRAME_INTERVAL_FRAMES``: after a lost datagram the picture is spoilt until
+                the next keyframe, 2.2 s at 30 fps).
+            h_drift_cm_s: drift of the reported ``h`` while the motors run (cm/s, from each takeoff;
+                default the recorded ``recorded.H_DRIFT_CM_S``; 0 turns it off).
+            surface: height (cm) of the surface below a world point ``(x, y)`` (cm), what ``tof``
+                measures to (``recorded.Surface``; default the flat takeoff floor).
+            tof_max_cm: range of the downward distance sensor (cm); beyond it ``tof`` reads 6553.
             pre_sdk_reply: reply to commands sent before ``command`` (None = ignore them, the default).
             reply_port_latch: Tello EDU: every reply goes to the sender of the first ``command``.
             radio: the drone's impaired radio (``radio.DeviceRadio`` with links ``command`` (in),
@@ -127,6 +143,11 @@ class TelloEmulatorBase:
         self.tau_s = float(tau_s)
         self.state_hz = float(state_hz)
         self.gop_size = int(gop_size)
+        if self.gop_size < 1:
+            raise ValueError(f"gop_size must be at least 1, got {gop_size}")
+        self.h_drift_cm_s = float(h_drift_cm_s)
+        self.surface = surface
+        self.tof_max_cm = float(tof_max_cm)
         self.pre_sdk_reply = pre_sdk_reply
         self.reply_port_latch = reply_port_latch
         self._first_client: tuple[str, int] | None = None  # sender of the first ``command``
@@ -192,6 +213,7 @@ class TelloEmulatorBase:
         self._vel_world = np.zeros(3)  # [cm/s]
         self._acc_body = np.zeros(3)  # [cm/s^2]
         self._motor_s = 0.0
+        self._h_drift = 0.0  # cm added to the true height in the reported h (recorded.H_DRIFT_CM_S)
         self._drain = 0.0
         self._bat_setpoint = self.faults.battery_pct
         self._last_cmd_t = time.monotonic()

@@ -8,8 +8,9 @@ not ``ok`` (error texts differ between firmwares). Sources are abbreviated as in
   ``commands`` and ``refused`` (as ``"ignored"``), not acted on and not answered (``pre_sdk_reply``).
 * **Firmware**: SDK 3.0 by default; with ``faults.sdk_version = "20"`` the SDK-3.0-only verbs
   (``SDK3_ONLY_COMMANDS``) answer ``unknown command: <verb>`` (DJITelloPy #92, #107, #111, #138).
-* **Takeoff** answers ``ok`` after ``takeoff_s`` (0.3 s for fast tests; a real one ~3.9 s, Tello-Python
-  #88) or ``faults.takeoff_s`` (slow takeoff, DJITelloPy #31); ``error battery low`` below
+* **Takeoff** answers ``ok`` after ``takeoff_s`` (default the recorded 8.70 s, ``recorded.TAKEOFF_OK_S``;
+  ``FAST_TAKEOFF_S`` = 0.3 s for tests not about takeoff; Tello-Python #88 logs one of ~3.9 s) or
+  ``faults.takeoff_s`` (slow takeoff, DJITelloPy #31); ``error battery low`` below
   ``MIN_TAKEOFF_BATTERY`` % (real drones: ``error`` or ``error Motor stop``, DJITelloPy #15, #60); ``error``
   while flying (*unverified*). **Land** takes ``land_s`` (real ~1.7 s, Tello-Python #88); ``land`` while
   landed answers ``error Motor stop`` (DJITelloPy #126, #15; RoboMaster-SDK ``TelloStatus``).
@@ -35,7 +36,8 @@ not ``ok`` (error texts differ between firmwares). Sources are abbreviated as in
   ``faults.lost_replies`` drops given verbs' replies, ``faults.duplicate_reply_after_s`` re-sends each later.
 * Read replies have the real drone's formats (``height?`` -> ``"80dm"``, ``temp?`` -> ``"60~63"``,
   ``time?`` -> ``"0s"``, ``speed?`` -> ``"100.0"``, ``tof?`` -> ``"900mm"``, which djitellopy's ``query_*``
-  fail to ``int()``-parse). ``port <state> <video>`` re-targets the streams; ``downvision 1`` only flips
+  fail to ``int()``-parse); ``height?`` and ``tof?`` answer the state line's ``h`` and ``tof``
+  (*unverified*). ``port <state> <video>`` re-targets the streams; ``downvision 1`` only flips
   ``emu.downvision`` (same video size: one encoder per stream).
 * **Several controllers** (e.g. the guardian of drivers/guardian.py): in SDK mode commands from any source
   port run and each sender is logged in ``senders``; replies go to the sender (DJITelloPy #143), or with
@@ -195,6 +197,7 @@ class TelloCommands(TelloPhysics):
             if self._battery_locked() < self.MIN_TAKEOFF_BATTERY:
                 return "error battery low"
             self._rc[:] = 0.0
+            self._h_drift = 0.0  # h is relative to the takeoff point: its drift starts at each takeoff
             duration = self.faults.takeoff_s
             self._start_phase("takeoff", now, self.takeoff_s if duration is None else float(duration))
             self.landed_by_timeout = False
@@ -280,16 +283,16 @@ class TelloCommands(TelloPhysics):
         return "ok"
 
     def _read(self, verb: str) -> str:
-        h = max(0, round(float(self._pos[2])))
+        h = max(0, round(float(self._pos[2])))  # the true height (baro?)
         values = {
             "battery?": str(self._battery_locked()),
             "speed?": f"{self.speed_setting:.1f}",
             "time?": f"{int(self._motor_s)}s",
-            "height?": f"{round(h / 10)}dm",
+            "height?": f"{self._reported_h() // 10}dm",
             "temp?": "60~63",
             "attitude?": f"pitch:0;roll:0;yaw:{round(wrap_deg(self._yaw))};",
             "baro?": f"{12.3 + h / 100:.2f}",
-            "tof?": f"{(h + 10) * 10}mm",
+            "tof?": f"{self._reported_tof() * 10}mm",
             "acceleration?": "agx:0.00;agy:0.00;agz:-1000.00;",
             "wifi?": "90",
             "sdk?": str(self.faults.sdk_version),

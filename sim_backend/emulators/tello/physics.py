@@ -13,6 +13,9 @@ mode, motor-on time 0. The battery drains from the set-point ``faults.battery_pc
 steps every ``TICK_S`` s and sends the state string (``mid:-1;x:..;...;agz:..;\\r\\n``; ``vgx/vgy/vgz`` in
 dm/s, ``h``/``tof`` in cm, ``x/y/z`` the integrated position in cm where a real drone reports mission-pad
 coordinates, ``time`` = motor-on s, ``bat`` in %) at ``state_hz`` to ``(client_ip, state_port)`` in SDK mode.
+What the state reports of height and velocity follows the recordings of real Tellos (``recorded``): ``vgz``
+positive down, ``vgx``/``vgy`` in the frame of yaw 0; ``h`` in 10 cm steps, drifting at ``h_drift_cm_s``
+from each takeoff; ``tof`` the height above ``surface`` plus 10 cm, 6553 beyond ``tof_max_cm``.
 `TelloPhysics` is one layer of ``TelloEmulator``.
 """
 
@@ -22,6 +25,7 @@ import math
 import time
 
 from .base import TelloEmulatorBase
+from .recorded import reported_h, reported_tof, reported_vg
 
 
 class TelloPhysics(TelloEmulatorBase):
@@ -102,6 +106,7 @@ class TelloPhysics(TelloEmulatorBase):
             self._drain += dt * (self.DRAIN_FLYING_PCT_S if self.flying else self.DRAIN_IDLE_PCT_S)
             if self.flying:
                 self._motor_s += dt
+                self._h_drift += self.h_drift_cm_s * dt
             z_before = float(self._pos[2])
             if self._phase == "takeoff":  # climb at the normal rate, then hover (stabilise) until the ok
                 elapsed = now - self._phase_t0
@@ -164,20 +169,30 @@ class TelloPhysics(TelloEmulatorBase):
                 self.streaming = False
                 self._first_client = None
             self._motor_s = 0.0  # the motor-on time counts from power-on
+            self._h_drift = 0.0  # so does the height estimate (unverified)
             self._last_cmd_t = now
             self.power_log.append((now, "off" if off else "boot"))
+
+    def _reported_h(self) -> int:
+        """The ``h`` a real Tello would report now (cm; ``recorded.reported_h``)."""
+        return reported_h(float(self._pos[2]), self._h_drift)
+
+    def _reported_tof(self) -> int:
+        """The ``tof`` a real Tello would report now (cm; ``recorded.reported_tof``)."""
+        below = float(self.surface(float(self._pos[0]), float(self._pos[1])))
+        return reported_tof(float(self._pos[2]) - below, self.tof_max_cm)
 
     def _state_string(self) -> str:
         with self._lock:
             x, y, z = (round(float(v)) for v in self._pos)
-            vgx, vgy, vgz_up = (round(float(v) / 10.0) for v in self._vel_world)
-            vgz = -vgz_up  # positive DOWN, as a real Tello sends it (docs/drivers.md)
-            h = max(0, z)
+            vx, vy, vz = (float(v) for v in self._vel_world)
+            vgx, vgy, vgz = reported_vg((vx, vy, vz))
+            h, tof = self._reported_h(), self._reported_tof()
             acc = self._acc_body / 981.0 * 1000.0
             return (
                 f"mid:-1;x:{x};y:{y};z:{z};mpry:0,0,0;pitch:0;roll:0;yaw:{round(wrap_deg(self._yaw))};"
-                f"vgx:{vgx};vgy:{vgy};vgz:{vgz};templ:60;temph:63;tof:{h + 10};h:{h};"
-                f"bat:{self._battery_locked()};baro:{12.3 + h / 100:.2f};time:{int(self._motor_s)};"
+                f"vgx:{vgx};vgy:{vgy};vgz:{vgz};templ:60;temph:63;tof:{tof};h:{h};"
+                f"bat:{self._battery_locked()};baro:{12.3 + z / 100:.2f};time:{int(self._motor_s)};"
                 f"agx:{acc[1]:.2f};agy:{acc[0]:.2f};agz:{acc[2] - 1000.0:.2f};\r\n"
             )
 

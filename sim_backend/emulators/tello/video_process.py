@@ -53,6 +53,7 @@ from flightstack.netem import NetworkProfile
 from ..device_links import LINK_COUNTERS
 from ..radio import COUNTERS
 from .base import TelloEmulatorBase
+from .recorded import KEYFRAME_INTERVAL_FRAMES
 from .view import CameraSpec
 
 RING = 1 << 15
@@ -135,7 +136,8 @@ class VideoProcess:
     """Parent side of one emulated camera (a `RemoteVideo`, see the module docstring).
 
     spec: what the camera sees; ip: the drone's loopback address (the video's source); dest: (client ip,
-    video port); fps: frames/s; gop_size: frames between keyframes; target: the shared target pose;
+    video port); fps: frames/s; gop_size: frames between keyframes (default the recorded bound,
+    `recorded.KEYFRAME_INTERVAL_FRAMES`); target: the shared target pose;
     path: the video link and radio the frames pass (default: none).
     """
 
@@ -147,7 +149,7 @@ class VideoProcess:
         target: SharedTarget,
         *,
         fps: float = 30.0,
-        gop_size: int = 15,
+        gop_size: int = KEYFRAME_INTERVAL_FRAMES,
         path: VideoPath | None = None,
     ) -> None:
         ctx = multiprocessing.get_context("spawn")
