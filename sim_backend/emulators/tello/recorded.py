@@ -3,7 +3,7 @@
 Sources: ``xg590`` = the flight log ``../shared/data/peers/tello/xg590_Tello_flight_log_20201018_052457.db``
 of an original Tello (216 state lines at 10 Hz, times from the ``takeoff`` command); ``devconx`` = the raw
 H.264 dump ``../shared/data/peers/tello/devconx_test.h264`` (provenance: ``../shared/data/peers/README.md``;
-docs/drivers.md, "What the Tello emulator takes from real Tellos", tabulates them):
+docs/drivers.md, "What a real Tello sends", tabulates them):
 
 * the ``ok`` to ``takeoff`` arrives ``TAKEOFF_OK_S`` after the command (xg590: +8.70 s; liftoff at
   +0.94 s, h 70 from +2.83 s, then hovering).
