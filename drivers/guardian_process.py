@@ -104,10 +104,13 @@ class Drone:
     last_send_t: float = -math.inf
     sends: int = 0
     down_t: float | None = None
-    low_since: float | None = None  # fresh telemetry has shown h ≤ ground_h_cm since then
+    low_since: float | None = (
+        None  # fresh telemetry has shown it near the ground since then (PhaseTracker.low)
+    )
 
     def is_down(self, now: float) -> bool:
-        """h ≤ ground_h_cm and the motor-on time frozen for motor_quiet_s, over ≥ that long of telemetry."""
+        """Near the ground (PhaseTracker.low: tof, else h) and the motor-on time frozen for motor_quiet_s,
+        over ≥ that long of telemetry."""
         quiet = self.tracker.th.motor_quiet_s
         seen_long = self.first_t is not None and now - self.first_t >= quiet + 0.25
         return seen_long and self.tracker.down(now)
@@ -318,7 +321,7 @@ class GuardianProcess:
     def send_all(self, now: float, first: bool = False) -> None:
         for d in self.drones:
             s = d.tracker.latest
-            low = s is not None and now - s.t <= 0.5 and s.h_cm <= self.cfg.ground_h_cm
+            low = s is not None and now - s.t <= 0.5 and d.tracker.low(s)  # tof first: h drifts in flight
             d.low_since = (d.low_since or now) if low else None
             if d.low_since is not None and now - d.low_since < self.cfg.motor_quiet_s + 1.0:
                 continue  # fresh telemetry shows it at the ground: give its motors time to stop
