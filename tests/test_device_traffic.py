@@ -31,6 +31,8 @@ from flightstack.config.mission import load_mission
 from flightstack.drivers.hardware import tello_config as mission_tello_config
 from flightstack.drivers.tello import TelloDriver
 from flightstack.drivers.tello.camera import TelloCamera
+from flightstack.drivers.tello.phase import PhaseTracker
+from flightstack.drivers.tello.state import parse_state
 from flightstack.drivers.tello.traffic import TelloSession, TrafficWriter, read_traffic
 from flightstack.hal import FlightPhase
 from flightstack.ports import free_udp_port
@@ -136,11 +138,13 @@ def test_an_emulated_lab_run_directory_holds_each_drones_raw_traffic(lab_run: Pa
 def flight_times(s: TelloSession) -> dict[str, float]:
     """What the flight's traffic shows (s after the command was sent): "takeoff", at most how long its
     takeoff() took (to the first `rc`: the driver sends none before takeoff() returns); "touchdown", when
-    the state lines first showed the drone down (h 0) after `land`."""
+    the state lines first showed the drone near the ground after `land` (PhaseTracker.low: by tof, as h
+    drifts)."""
     takeoff, land = s.first("sent", "takeoff"), s.first("sent", "land")
     assert takeoff is not None and land is not None
     first_rc = next(r.t for r in s.of("sent") if r.t > takeoff.t and r.text.startswith("rc "))
-    down = next(r.t for r in s.of("state") if r.t > land.t and ";h:0;" in r.text)
+    low = PhaseTracker().low
+    down = next(r.t for r in s.of("state") if r.t > land.t and low(parse_state(r.text.encode(), r.t)))
     return {"takeoff": first_rc - takeoff.t, "touchdown": down - land.t}
 
 

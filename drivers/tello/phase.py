@@ -26,9 +26,9 @@ Signals (units as the drone sends them, see drivers/tello/state.py; every thresh
   least-squares slope of h is at most `stable_slope_cm_s` (3 cm/s) upwards (a drone still climbing, even
   slowly at 7 cm/s, is in its takeoff; h drifting down is not a climb).
 - **holding after a land**: over the last `stuck_window_s` (1 s) at least `stuck_samples` (5) samples, the
-  motors running, none near the ground, none moving down (vgz < `descent_vgz_dm_s`), neither h nor the floor
-  height fallen by more than `descent_cm`: the only evidence on which a land is sent again while the state
-  stream is alive (a lossy stream proves nothing either way).
+  motors running, none near the ground, none moving up or down at `descent_vgz_dm_s` or more by vgz, neither
+  h nor the floor height fallen or risen by more than `descent_cm`: the only evidence on which a land is
+  sent again while the state stream is alive (a lossy stream proves nothing either way).
 
 Transitions (every one is returned as an event text by `observe`):
 - UNKNOWN → GROUND (first sample near the ground) or AIRBORNE (first sample in the air).
@@ -236,14 +236,14 @@ class PhaseTracker:
         w = [s for s in self._window if s.t >= t - th.stuck_window_s]
         if len(w) < th.stuck_samples or w[-1].t - w[0].t < 0.6 * th.stuck_window_s:
             return False
-        if not self.motors_running(t) or any(self.low(s) or s.vgz_dm_s >= th.descent_vgz_dm_s for s in w):
+        if not self.motors_running(t) or any(
+            self.low(s) or abs(s.vgz_dm_s) >= th.descent_vgz_dm_s for s in w
+        ):
             return False
-        hs = [s.h_cm for s in w]
-        floors = [f for s in w if (f := self.floor_cm(s)) is not None]
-        fell = max(hs) - hs[-1] > th.descent_cm or (
-            len(floors) >= 2 and max(floors) - floors[-1] > th.descent_cm
-        )
-        return not fell
+        for series in ([s.h_cm for s in w], [f for s in w if (f := self.floor_cm(s)) is not None]):
+            if len(series) >= 2 and max(series[-1] - min(series), max(series) - series[-1]) > th.descent_cm:
+                return False  # falling, or still climbing (a land during the takeoff waits for its end)
+        return True
 
     # ---- telemetry -----------------------------------------------------------------------------------
     def observe(self, s: TelloTelemetry) -> list[str]:
