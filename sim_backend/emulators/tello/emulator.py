@@ -10,12 +10,12 @@ describes the protocol and the emulated behaviour.
 from __future__ import annotations
 
 import logging
-import socket
 import threading
 import time
 from types import TracebackType
 
 from .commands import TelloCommands
+from .net import bind_drone_sockets
 from .video import TelloVideoStream
 
 LOG = logging.getLogger(f"{__package__}.tello")  # the public module's logger, as before the split
@@ -58,16 +58,7 @@ class TelloEmulator(TelloCommands, TelloVideoStream):
         """Bind the sockets and start the command, reply, simulation and video threads."""
         if self._started:
             raise RuntimeError("emulator already started")
-        cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            cmd.bind((self.ip, self._port))
-            cmd.settimeout(0.1)
-            tx.bind((self.ip, 0))
-        except OSError:
-            cmd.close()
-            tx.close()
-            raise
+        cmd, tx = bind_drone_sockets(self.ip, self._port, 0.1)
         host, port = cmd.getsockname()[:2]
         if self.radio is not None:  # every datagram in and out passes the drone's radio links
             cmd = self.radio.socket(cmd, send=lambda _addr: "reply", recv="command")  # type: ignore[assignment]

@@ -7,6 +7,7 @@ addresses, find a free UDP port and poll a condition.  Times in seconds (``time.
 from __future__ import annotations
 
 import ipaddress
+import socket
 import time
 from collections.abc import Callable
 
@@ -34,3 +35,20 @@ def wait_until(predicate: Callable[[], bool], timeout: float, interval: float = 
         if time.monotonic() >= deadline:
             return bool(predicate())
         time.sleep(interval)
+
+
+def bind_drone_sockets(ip: str, port: int, timeout_s: float) -> tuple[socket.socket, socket.socket]:
+    """A Tello's two UDP sockets on `ip`: the command socket on `port` (0: the OS picks; receives with
+    `timeout_s`, replies from it) and the sending socket (state, video) on a free port. Both closed on
+    an OSError, which is raised."""
+    cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        cmd.bind((ip, port))
+        cmd.settimeout(timeout_s)
+        tx.bind((ip, 0))
+    except OSError:
+        cmd.close()
+        tx.close()
+        raise
+    return cmd, tx

@@ -70,7 +70,7 @@ from typing import Literal
 from flightstack.drivers.tello.traffic import TelloSession
 from flightstack.drivers.tello.video_check import TELLO_DATAGRAM_BYTES
 
-from .net import is_loopback, require_loopback
+from .net import bind_drone_sockets, is_loopback, require_loopback
 
 LOG = logging.getLogger(__name__)
 PHASE_COMMANDS = frozenset({"takeoff", "land", "emergency"})
@@ -199,16 +199,7 @@ class TelloReplayer:
         """Bind the command and state sockets on `ip` and start the replay (the first record is now)."""
         if self._started:
             raise RuntimeError("replayer already started")
-        cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            cmd.bind((self.ip, self._port))
-            cmd.settimeout(WAIT_S)
-            tx.bind((self.ip, 0))
-        except OSError:
-            cmd.close()
-            tx.close()
-            raise
+        cmd, tx = bind_drone_sockets(self.ip, self._port, WAIT_S)
         host, port = cmd.getsockname()[:2]
         self._cmd_sock, self._tx_sock, self._bound = cmd, tx, (str(host), int(port))
         self._started = True
