@@ -171,6 +171,7 @@ def test_abort_during_takeoff(results: dict[str, FaultResult], safety_bound: Bou
     assert d["abort_exit_code"] == 0 and sorted(d["ack_ms"]) == ["1", "2"]
     safety_bound("abort: drone 1 land", d["drone1_after_abort"]["land_ms"], 500.0)
     safety_bound("abort: drone 1 hover", d["drone1_after_abort"]["rc0_ms"], 500.0)
+    safety_bound("abort: drone 2 land while it takes off", d["drone2_first_land_after_abort_ms"], 500.0)
     assert d["drone2_takeoff_done_after_abort_ms"] > 1000.0  # the abort came during its takeoff
     safety_bound(
         "abort: drone 2 land after its takeoff ended", d["drone2_after_its_takeoff"]["land_ms"], 500.0

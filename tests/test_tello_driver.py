@@ -346,10 +346,10 @@ def test_slow_climb_takeoff_returns_only_when_airborne(emu: TelloEmulator) -> No
         d.close()
 
 
-def test_land_requested_during_takeoff_is_sent_at_once_and_again_once_it_hovers(emu: TelloEmulator) -> None:
+def test_land_requested_during_takeoff_is_sent_at_once_and_again_on_its_ok(emu: TelloEmulator) -> None:
     """land() during a takeoff abandons the takeoff and sends `land` at once; a Tello busy taking off
-    refuses it (`error Not joystick`), so it goes out again once telemetry shows the drone holding its
-    height after the climb (after `rc 0 0 0 0`); the velocity asked for during the climb never goes out."""
+    refuses it (`error Not joystick`), so it goes out again (after `rc 0 0 0 0`) on the takeoff's `ok`;
+    nothing the busy drone ignores but that land; the velocity asked for during the climb never goes out."""
     emu.faults.takeoff_s = 2.0
     d = TelloDriver(config(emu))
     errors: list[BaseException] = []
@@ -375,7 +375,7 @@ def test_land_requested_during_takeoff_is_sent_at_once_and_again_once_it_hovers(
         assert len(errors) == 1 and "abandoned" in str(errors[0]), errors
         agree(d, emu)
         assert emu.phase == "landed" and all(rc == (0, 0, 0, 0) for _, rc in emu.rc_history)  # hover only
-        assert any("holding its height" in e.detail for e in d.events if e.kind == "resend"), d.events
+        assert any("its takeoff ended" in e.detail for e in d.events if e.kind == "resend"), d.events
         assert [r for r in emu.refused if r[2] != "land"] == [], emu.refused  # only the busy land
         assert not emu.landed_by_timeout and emu.errors == []
     finally:

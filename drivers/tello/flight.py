@@ -158,13 +158,14 @@ class FlightPhases:
         """Land; return once telemetry shows the drone down with the motors off (no-op on the ground with
         the motors off).
 
-        `land` goes out at once, whatever phase the driver believes (a takeoff under way is abandoned for
-        it), after `rc 0 0 0 0` (a Tello keeps its last rc). It is sent again, with `rc 0 0 0 0` first: at
-        once when telemetry returns after a lost link; every `land_resend_s` while telemetry is silent; and,
-        from `land_confirm_s` after the last land, whenever telemetry proves the drone holding its height
-        (phase.PhaseTracker.holding_after_land): a lossy stream, a slow start of the descent or a drift of
-        h is no reason to send it again (a Tello busy landing answers `error`). TelloCommandError after
-        land_timeout_s."""
+        `land` goes out at once, whatever phase the driver believes (a takeoff under way is abandoned for it),
+        after `rc 0 0 0 0` (a Tello keeps its last rc) unless the drone is still taking off. A drone busy in
+        its takeoff refuses it and gets the land again the moment an `ok` comes (its takeoff's). It is sent
+        again, with `rc 0 0 0 0` first: at once when telemetry returns after a lost link; every
+        `land_resend_s` while telemetry is silent; and, from `land_confirm_s` after the last land, whenever
+        telemetry proves the drone holding its height (phase.PhaseTracker.holding_after_land): a lossy stream,
+        a slow start of the descent or a drift of h is no reason to send it again (a Tello busy landing
+        answers `error`). TelloCommandError after land_timeout_s."""
         cfg, st = self.cfg, self._status
         tracker = st.tracker
         with st.lock:
@@ -173,6 +174,7 @@ class FlightPhases:
             if st.phase is FlightPhase.UNKNOWN:
                 raise TelloLinkError(f"Tello {cfg.host}: no telemetry yet; land not sent")
             st.land_requested = True  # a takeoff() under way gives the exchange up for this land
+            in_takeoff = st.phase is FlightPhase.TAKING_OFF  # the drone may refuse the land until its `ok`
         self._sticks.hover_now()  # a Tello keeps its last rc: stop it before the quiet window and the land
         with self._exchange.session():
             st.land_requested = True
@@ -183,8 +185,15 @@ class FlightPhases:
             t_sent = t1
             while True:
                 now = time.monotonic()
+                why = ""
                 if (r := self._exchange.next_reply()) is not None:
                     replies.append(r)
+                    # a drone busy in its takeoff refuses the land (its `error Not joystick` reads as an
+                    # answer to rc); its takeoff's `ok` says it takes one now. An `ok` that was the land's
+                    # own costs one more land, which a landing Tello refuses.
+                    if in_takeoff and r.lower() == "ok":
+                        in_takeoff = False
+                        why = "an ok while it was taking off: its takeoff ended"
                 with st.lock:
                     ph, alive = tracker.phase, st.link_alive()
                     low = tracker.near_ground()
@@ -192,20 +201,12 @@ class FlightPhases:
                 if ph is FlightPhase.GROUND:
                     self._report_outcome("land", replies, now - t1)
                     return
-                why = ""
-                if not alive:
-                    silent = True
-                    if now - t_sent > cfg.land_resend_s:
-                        why = "telemetry silent"
-                elif silent:
-                    silent = False
-                    if not low:
-                        why = "telemetry back after a lost link"
-                elif holding and now - t_sent >= cfg.land_confirm_s:
-                    why = f"telemetry shows the drone holding its height {now - t_sent:.2f} s after the land"
-                if why:
-                    self._events.add("resend", f"land: {why}: rc 0 0 0 0 and land again (replies {replies})")
-                    self._send_land(hover_first=True)
+                why = why or self._land_lost(now - t_sent, alive, silent, low, holding)
+                silent = not alive
+                if why:  # no rc to a drone still in its takeoff: it ignores rc, and its sticks are centred
+                    hover = "" if in_takeoff else "rc 0 0 0 0 and "
+                    self._events.add("resend", f"land: {why}: {hover}land again (replies {replies})")
+                    self._send_land(hover_first=not in_takeoff)
                     t_sent = now
                 if now > deadline:
                     raise TelloCommandError(
@@ -213,6 +214,19 @@ class FlightPhases:
                         f"(phase {ph.value}, replies {replies})"
                     )
                 time.sleep(0.01)
+
+    def _land_lost(self, since_s: float, alive: bool, silent: bool, low: bool, holding: bool) -> str:
+        """Why the last land (sent `since_s` s ago) may be lost ("" if no reason): telemetry silent for
+        `land_resend_s`, back after a lost link (the drone not near the ground), or proving the drone
+        holding its height `land_confirm_s` after it."""
+        cfg = self.cfg
+        if not alive:
+            return "telemetry silent" if since_s > cfg.land_resend_s else ""
+        if silent:
+            return "" if low else "telemetry back after a lost link"
+        if holding and since_s >= cfg.land_confirm_s:
+            return f"telemetry shows the drone holding its height {since_s:.2f} s after the land"
+        return ""
 
     def _send_land(self, hover_first: bool = False) -> None:
         """`land` (after `rc 0 0 0 0` when asked: with telemetry silent, the hover may not have arrived)."""
