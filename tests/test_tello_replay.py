@@ -173,12 +173,13 @@ def test_takeoff_segment_as_recorded(flight: TelloSession, client: Client, extra
         client.pump(TAKEOFF_OK_S + extra_s + 0.5)
     assert t_reply(flight, "takeoff") == pytest.approx(TAKEOFF_OK_S, abs=0.005)
     assert [r for _, r in client.replies] == [b"ok", b"ok"]
-    t_in = rep.received[1].t  # when the replayer took `takeoff`
-    ok = [x.t - t_in for x in rep.sent if x.kind == "reply" and x.t >= t_in]
+    t_in, k_in = rep.received[1].t, rep.received[1].matched  # when the replayer took `takeoff`
+    assert k_in is not None
+    ok = [x.t - t_in for x in rep.sent if x.kind == "reply" and x.served > k_in]
     print(f"takeoff ok after {ok[0]:.3f} s (recorded {TAKEOFF_OK_S} s + {extra_s} s)")
     assert len(ok) == 1 and 0 <= ok[0] - (t_reply(flight, "takeoff") + extra_s) <= TIME_TOL_S
     assert [line for _, line in client.lines] == [x.data for x in rep.sent if x.kind == "state"]  # no loss
-    after = [x for x in rep.sent if x.kind == "state" and x.t >= t_in]
+    after = [x for x in rep.sent if x.kind == "state" and x.served > k_in]  # decided after it: no race
     recorded = [(t - t_takeoff, line) for t, line in rep.lines if t >= t_takeoff]
     assert all(x.origin == "recorded" for x in after)
     assert [x.data for x in after] == [line for _, line in recorded[: len(after)]]
@@ -267,7 +268,9 @@ def test_flight_plays_on_then_hovers_until_land(flight: TelloSession, client: Cl
     t0 = motor_time(last.data)
     assert all(x.data == motor_time_on(last.data, n - t0) for x, n in zip(hover, times, strict=True))
     assert [r for _, r in client.replies] == [b"ok", b"ok"]  # command, takeoff; not the manoeuvres'
-    landing = [x for x in rep.sent if x.kind == "state" and x.t > rep.received[-1].t]
+    k_land = rep.received[-1].matched
+    assert k_land is not None and rep.commands[k_land][1].strip().lower() == "land"
+    landing = [x for x in rep.sent if x.kind == "state" and x.served > k_land]
     assert landing and landing[0].origin == "recorded" and landing[0].rec_t >= t_land
 
 

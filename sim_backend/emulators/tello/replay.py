@@ -84,13 +84,16 @@ _MOTOR_TIME = re.compile(rb"(^|;)time:(\d{1,6});")
 @dataclass(frozen=True)
 class Sent:
     """One datagram the replayer sent: monotonic time `t` (s), "state" or "reply", its bytes, its origin
-    ("recorded" | "synthesised") and `rec_t`, the recorded time of the record it comes from (s)."""
+    ("recorded" | "synthesised"), `rec_t`, the recorded time of the record it comes from (s), and `served`,
+    how many recorded commands had been served when it was decided (a datagram decided before a command
+    can leave just after it: compare `served`, not times)."""
 
     t: float
     kind: Literal["state", "reply"]
     data: bytes
     origin: Literal["recorded", "synthesised"]
     rec_t: float
+    served: int = 0
 
 
 @dataclass(frozen=True)
@@ -333,7 +336,7 @@ class TelloReplayer:
         out: list[tuple[Sent, tuple[str, int] | None]] = []
         while self._replies_due and self._replies_due[0][0] <= now:
             _, text, addr, rec_t = self._replies_due.pop(0)
-            out.append((Sent(now, "reply", text.encode("utf-8"), "recorded", rec_t), addr))
+            out.append((Sent(now, "reply", text.encode("utf-8"), "recorded", rec_t, self.served), addr))
         dest = (self.client_ip, self.state_port)
         while self._cursor < len(self.lines):
             t_rec, line = self.lines[self._cursor]
@@ -342,7 +345,7 @@ class TelloReplayer:
             self._cursor += 1
             self._last = (t_rec, line)
             self._hold_next = t_rec + self._offset + self.hold_interval_s
-            out.append(self._state(Sent(now, "state", line, "recorded", t_rec), dest))
+            out.append(self._state(Sent(now, "state", line, "recorded", t_rec, self.served), dest))
         if self._holding():
             if self._hold_next < now - self.hold_interval_s:  # a hold that starts now, not a catch-up
                 self._hold_next = now
@@ -350,7 +353,7 @@ class TelloReplayer:
                 t_rec, line = self._last  # type: ignore[misc]  # _holding() checked it
                 if self._airborne:  # motors run on: their `time` counts on, as a hovering Tello's
                     line = motor_time_on(line, self._hold_next - (t_rec + self._offset))
-                out.append(self._state(Sent(now, "state", line, "synthesised", t_rec), dest))
+                out.append(self._state(Sent(now, "state", line, "synthesised", t_rec, self.served), dest))
                 self._hold_next += self.hold_interval_s
         return out
 
@@ -388,7 +391,7 @@ class TelloReplayer:
                 self.errors.append(f"send {s.kind} to {dest}: {exc}")
             return
         with self._cond:
-            self.sent.append(Sent(time.monotonic(), s.kind, s.data, s.origin, s.rec_t))
+            self.sent.append(Sent(time.monotonic(), s.kind, s.data, s.origin, s.rec_t, s.served))
             self.counts["replies" if s.kind == "reply" else f"state_{s.origin}"] += 1
 
 
