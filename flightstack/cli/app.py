@@ -552,7 +552,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        print("warning: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # a device that cannot be reached, a file that cannot be written, ...
         from flightstack.config.mission import MissionError

@@ -247,7 +247,7 @@ def _finish(
         f"{missing} missing); summary: {out / 'summary.csv'}, {out / 'summary.json'}"
     )
     if interrupted:
-        print("interrupted: finished runs kept; rerun the same command to resume", file=sys.stderr)
+        print("warning: interrupted: finished runs kept; rerun the same command to resume", file=sys.stderr)
         return 130
     return 1 if bad or missing or failed else 0
 
