@@ -32,8 +32,7 @@ PEERS = REPO.parent / "shared" / "data" / "peers"
 
 # Test tiers (pyproject.toml registers the markers; docs/getting-started.md). `pytest -m unit` is the fast
 # tier for development (pure functions, in-process simulations, no emulators, no child processes but the one
-# that flies the fingerprinted runs in a pinned numeric environment, test_fingerprints, and the plot process
-# of a simulated run that draws plots, flightstack/analysis/plot_process.py); `system` runs the
+# that flies the fingerprinted runs in a pinned numeric environment, test_fingerprints); `system` runs the
 # loopback emulators, agent processes, the fault tables and the CLI end to end. CI runs both. A module is
 # `system` when it is listed here; a single slow test elsewhere carries @pytest.mark.system itself.
 SYSTEM_MODULES = frozenset(

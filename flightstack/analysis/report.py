@@ -137,34 +137,27 @@ def plot_error_norms(path: Path, recs: dict[str, Recording], which: str) -> None
 
 
 def write_plots(
-    out: Path,
-    mission: Mission,
-    recs: dict[str, Recording],
-    data: list[ExpertData],
-    only: set[str] | None = None,
+    out: Path, mission: Mission, recs: dict[str, Recording], data: list[ExpertData]
 ) -> list[Path]:
     """trajectory.png, error_ec.png, error_ee.png and, when ticks were timed, loop_health.png
-    (flightstack.recording.files.PLOTS; `only`: these of them) in `out` (recordings without ticks are
-    left out; no plot without any tick); returns the paths written."""
+    (flightstack.recording.files.PLOTS) in `out`
+    (recordings without ticks are left out; no plot without any tick); returns the paths written."""
     out.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
     recs = {m: r for m, r in recs.items() if r.ticks_done > 0}
     if not recs:
         return paths
-    wanted = set(PLOTS) if only is None else only
-    if "trajectory" in wanted:
-        ref = recs.get("none") or next(iter(recs.values()))
-        p = out / PLOTS["trajectory"]
-        plot_trajectory(p, mission, ref, data, show_drones=mission.backend != "sim_ideal")
-        paths.append(p)
+    ref = recs.get("none") or next(iter(recs.values()))
+    p = out / PLOTS["trajectory"]
+    plot_trajectory(p, mission, ref, data, show_drones=mission.backend != "sim_ideal")
+    paths.append(p)
     shown = {m: r for m, r in recs.items() if m in mission.compare_modes}
     for which in ("c", "e"):
-        if f"e_{which}" in wanted:
-            p = out / PLOTS[f"e_{which}"]
-            plot_error_norms(p, shown, which)
-            paths.append(p)
+        p = out / PLOTS[f"e_{which}"]
+        plot_error_norms(p, shown, which)
+        paths.append(p)
     p = out / PLOTS["loop_health"]
-    if "loop_health" in wanted and plot_loop_health(p, recs, mission.dt_s):
+    if plot_loop_health(p, recs, mission.dt_s):
         paths.append(p)
     return paths
 

@@ -30,7 +30,6 @@ import yaml
 
 from flightstack import threads
 from flightstack.analysis.metrics import build_metrics
-from flightstack.analysis.plot_process import PlotProcess
 from flightstack.comms.bus import Bus
 from flightstack.config.mission import Mission, MissionError, mission_to_dict
 from flightstack.config.types import Mode
@@ -52,7 +51,6 @@ from flightstack.recording.files import (
     EXPERTS_FILE,
     GUARDIAN_LOG,
     MISSION_FILE,
-    PLOTS,
     DeviceFiles,
     check_out_dir,
 )
@@ -147,8 +145,6 @@ class Flight:
         self._backend, self._bus = backend, bus
         self._wrap_backend, self._wrap_bus = wrap_backend, wrap_bus
         self._stack: contextlib.ExitStack | None = None
-        self._plotter: PlotProcess | None = None
-        self._early_plots: set[str] = set()  # asked of the plot process before the end
         self._plan_loop = compiled_loop_planner(mission) if compiled else None
 
     @property
@@ -178,10 +174,6 @@ class Flight:
             if self.out is not None:
                 self.writer = stack.enter_context(_open_run_dir(self.out))
                 self.writer.write_file(MISSION_FILE, resolved_mission_yaml(self.mission))  # for `report`
-                # matplotlib loads in a process of its own while the modes fly; a real-time loop
-                # (hardware, the emulated lab) gets no such neighbour: its plots are drawn after landing
-                if self.plots and self.mission.simulated:
-                    self._plotter = stack.enter_context(PlotProcess())
             if self.agent_id is not None:
                 self._open_seat(stack)
         except BaseException:
@@ -291,10 +283,8 @@ class Flight:
                 if rec.interrupted or rec.error:
                     res.interrupted, res.error = rec.interrupted, rec.error
                     break
-                if mode == Mode.NONE and needs_training:
-                    if not self._train(rec, res):
-                        break
-                    self._plot_trajectory_now(rec)
+                if mode == Mode.NONE and needs_training and not self._train(rec, res):
+                    break
         except KeyboardInterrupt:  # between modes, in training, or while a mode's fleet was assembled
             res.interrupted = True  # (run_mode lands and records a Ctrl-C once its fleet flies)
         res.metrics = build_metrics(
@@ -383,35 +373,13 @@ class Flight:
         """Other processes that spoke as one of this flight's drones on the bus (one line each)."""
         return list(getattr(self._bus, "session_reports", []))
 
-    def _plot_trajectory_now(self, rec: Recording) -> None:
-        """The trajectory plot needs only the data run and the training data: the plot process draws it
-        while the other modes fly (both on disk first)."""
-        if self._plotter is None or self.writer is None or self.out is None:
-            return
-        self.writer.record(rec)  # a no-op when its mode writer wrote it already
-        if self.writer.drain():
-            self._plotter.request(self.out, ["trajectory"], [rec.mode])
-            self._early_plots.add("trajectory")
-
     def _draw_plots(self, res: FlightResult) -> None:
-        """The run's plots, by the plot process where it can (from the files on disk), the rest here; a
-        write error (a full disk) is said, not raised: `report` redraws them."""
-        assert self.out is not None and self.writer is not None
-        drawn: set[str] = set()
-        if self._plotter is not None:
-            if self.writer.drain():
-                modes = [m for m, r in res.recordings.items() if r.ticks_done > 0]
-                self._plotter.request(self.out, sorted(set(PLOTS) - self._early_plots), modes)
-                drawn = self._plotter.finish()
-            else:
-                self._plotter.problem = "the recording was not on disk in time"
-            if self._plotter.problem is None:
-                return  # every plot asked for was drawn (loop_health only when ticks were timed)
-            self.say(f"note: {self._plotter.problem}; the plots are drawn in the flight's process")
+        """The run's plots; a write error (a full disk) is said, not raised: `report` redraws them."""
         from flightstack.analysis.report import write_plots
 
+        assert self.out is not None
         try:
-            write_plots(self.out, self.mission, res.recordings, res.datasets, only=set(PLOTS) - drawn)
+            write_plots(self.out, self.mission, res.recordings, res.datasets)
         except OSError as exc:
             self.say(f"warning: plots not written ({exc}); `flightstack report {self.out}` redraws them")
 
