@@ -378,11 +378,13 @@ class NatNetEmulator:
 
 
 # ---- command responder (child process) -------------------------------------------------------------------
-def _responder_main(host: str, port: int, server_info_hex: str) -> int:
+def _responder_main(host: str, port: int, server_info_hex: str, report: bool = False) -> int:
     """Answer NAT_CONNECT / NAT_REQUEST_MODELDEF on host:port; controlled by lines on stdin.
 
     stdin lines: "M <hex>" new model-definition packet, "S 1"/"S 0" silent on/off, "Q" quit; EOF quits.
-    Prints "PORT <n>" once bound. Exits after RESPONDER_MAX_LIFETIME_S in any case.
+    Prints "PORT <n>" once bound; with `report`, also "<message id> <sender ip> <sender port>" for every
+    request answered (the replayer streams to the sender of NAT_CONNECT). Exits after
+    RESPONDER_MAX_LIFETIME_S in any case.
     """
     server_info = bytes.fromhex(server_info_hex)
     modeldef = model_def_packet([])
@@ -423,12 +425,18 @@ def _responder_main(host: str, port: int, server_info_hex: str) -> int:
                         sock.sendto(server_info, addr)
                     elif msg == NAT_REQUEST_MODELDEF:
                         sock.sendto(modeldef, addr)
+                    else:
+                        continue
+                    if report:
+                        sys.stdout.write(f"{msg} {addr[0]} {addr[1]}\n")
+                        sys.stdout.flush()
         return 0
     finally:
         sock.close()
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 5 and sys.argv[1] == "--responder":
-        sys.exit(_responder_main(sys.argv[2], int(sys.argv[3]), sys.argv[4]))
-    sys.exit("usage: natnet.py --responder HOST PORT SERVER_INFO_HEX")
+    if len(sys.argv) in (5, 6) and sys.argv[1] == "--responder":
+        report = sys.argv[5:] == ["--report"]
+        sys.exit(_responder_main(sys.argv[2], int(sys.argv[3]), sys.argv[4], report))
+    sys.exit("usage: natnet.py --responder HOST PORT SERVER_INFO_HEX [--report]")
