@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import select
 import socket
 import struct
 import subprocess
@@ -383,31 +382,11 @@ class NatNetReplayer:
         return bytes(info)
 
     def _report_loop(self) -> None:
-        """Read the responder's "<message id> <ip> <port>" lines: who connected, when the model
-        definitions went out."""
-        proc = self._proc
-        assert proc is not None and proc.stdout is not None
-        fd, buf = proc.stdout.fileno(), b""
-        while not self._stop.is_set():
-            ready, _, _ = select.select([fd], [], [], WAIT_S)
-            if not ready:
-                continue
-            try:
-                chunk = os.read(fd, 4096)
-            except (OSError, ValueError):
-                return
-            if not chunk:
-                return
-            buf += chunk
-            while b"\n" in buf:
-                line, buf = buf.split(b"\n", 1)
-                self._report(line.decode("ascii", errors="replace").split())
+        """Who connected, when the model definitions went out (the responder's report lines)."""
+        assert self._proc is not None
+        natnet.report_loop(self._proc, self._stop, self._report)
 
-    def _report(self, words: list[str]) -> None:
-        if len(words) != 3 or not words[0].isdigit() or not words[2].isdigit():
-            self.errors.append(f"responder said {' '.join(words)!r}")
-            return
-        msg, ip, port = int(words[0]), words[1], int(words[2])
+    def _report(self, msg: int, ip: str, port: int) -> None:
         if not is_loopback(ip):
             self.counts["rejected_client"] += 1
             return
