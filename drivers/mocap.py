@@ -55,8 +55,35 @@ NATNET_COMMAND_PORT = 1510  # OptiTrack NatNet command port (UDP)
 TCP_PORTS = {"vicon": 801, "qualisys": 22222, "vrpn": 3883}
 
 
-def probe_server(system: str, settings: dict[str, str], timeout_s: float) -> None:
+@dataclass(frozen=True)
+class NatNetServerInfo:
+    """What a NatNet server says of itself in its NAT_SERVERINFO reply (a NAT_CONNECT's answer): the
+    application's name, its NatNet version, its data port and whether it streams multicast (and to which
+    group). Motive's "Transmission Type" setting decides `multicast`."""
+
+    app: str
+    natnet_version: tuple[int, int, int, int]
+    data_port: int
+    multicast: bool
+    group: str
+
+    @staticmethod
+    def parse(packet: bytes) -> NatNetServerInfo | None:
+        """The reply's fields; None unless it is a NAT_SERVERINFO (message 1) of at least 283 bytes."""
+        import struct
+
+        if len(packet) < 283 or packet[:2] != b"\x01\x00":
+            return None
+        name = packet[4:260].split(b"\0", 1)[0].decode("utf-8", errors="replace")
+        v = packet[264:268]
+        port, multicast = struct.unpack_from("<H?", packet, 276)
+        group = ".".join(str(b) for b in packet[279:283])
+        return NatNetServerInfo(name, (v[0], v[1], v[2], v[3]), port, bool(multicast), group)
+
+
+def probe_server(system: str, settings: dict[str, str], timeout_s: float) -> NatNetServerInfo | None:
     """Check that the server answers before `motioncapture.connect` is called; MocapError otherwise.
+    OptiTrack: returns what its reply says (None if the reply is not a server info).
 
     Why: libmotioncapture's optitrack connect() waits for the server's reply with no timeout and without
     releasing Python's GIL, so a silent server would freeze the whole process (every driver thread, the
@@ -68,7 +95,7 @@ def probe_server(system: str, settings: dict[str, str], timeout_s: float) -> Non
     import struct
 
     if system == "mock":
-        return
+        return None
     host = settings.get("hostname", "")
     if not host:
         raise MocapError(f"{system}: settings.hostname is required")
@@ -78,18 +105,19 @@ def probe_server(system: str, settings: dict[str, str], timeout_s: float) -> Non
             sock.settimeout(timeout_s)
             try:
                 sock.sendto(struct.pack("<HH", 0, 0), (host, port))  # NAT_CONNECT, empty payload
-                sock.recvfrom(65535)
+                reply, _ = sock.recvfrom(65535)
             except OSError as exc:
                 raise MocapError(
                     f"no OptiTrack NatNet server answered at {host}:{port} within {timeout_s:g} s ({exc})"
                 ) from None
-        return
+        return NatNetServerInfo.parse(reply)
     if system in TCP_PORTS:
         h, _, p = host.rpartition(":") if ":" in host else (host, "", str(TCP_PORTS[system]))
         try:
             socket.create_connection((h, int(p)), timeout=timeout_s).close()
         except OSError as exc:
             raise MocapError(f"no {system} server at {h}:{p} within {timeout_s:g} s ({exc})") from None
+    return None
 
 
 @dataclass(frozen=True)
@@ -139,6 +167,7 @@ class _Body:
     pose: Pose
     tilt: float
     stamp: float
+    raw: tuple[tuple[float, float, float], tuple[float, float, float, float]]  # position m, (w, x, y, z)
     present: bool = True
     refused: bool = False
     receipts: deque[float] = field(default_factory=deque)
@@ -173,6 +202,7 @@ class MocapPoseSource:
         self._frames = 0
         self._last_frame: float | None = None
         self._reader_error: str | None = None  # the last error of the reader thread (kept after recovery)
+        self.server_info: NatNetServerInfo | None = None  # OptiTrack: the server's reply to the probe
         self._failing = False  # the reader's last attempt failed
         self.events: list[Event] = []  # source mocap; detail: the body's name
         self.counts: Counter[str] = Counter()
@@ -189,7 +219,7 @@ class MocapPoseSource:
             raise MocapError("MocapPoseSource.start() called twice")
         connect = self._connect
         if connect is None:
-            probe_server(self.cfg.system, self.cfg.settings, self.cfg.connect_timeout_s)
+            self.server_info = probe_server(self.cfg.system, self.cfg.settings, self.cfg.connect_timeout_s)
             try:
                 connect = importlib.import_module("motioncapture").connect
             except ImportError as exc:
@@ -235,6 +265,15 @@ class MocapPoseSource:
             if b is None or b.refused or now - b.stamp > self.cfg.stale_after_s:
                 return None
             return StampedPose(b.stamp, b.pose)
+
+    def sample(
+        self, body: str
+    ) -> tuple[tuple[float, float, float], tuple[float, float, float, float]] | None:
+        """The newest sample of `body` as the system gave it, even if stale or refused: (position (3,) m,
+        quaternion (w, x, y, z)) in the system's own frame; None if never seen."""
+        with self._lock:
+            b = self._bodies.get(body)
+            return None if b is None else b.raw
 
     def tilt(self, body: str) -> float | None:
         """Tilt (rad, body z vs world z) of the newest sample of `body`, even if stale; None if never seen."""
@@ -343,15 +382,20 @@ class MocapPoseSource:
                     continue
                 seen.add(name)
                 refused = tilt > self.cfg.max_tilt_rad
+                p = rb.position
+                raw = (
+                    (float(p[0]), float(p[1]), float(p[2])),
+                    (float(rot.w), float(rot.x), float(rot.y), float(rot.z)),
+                )
                 b = self._bodies.get(name)
                 if b is None:
-                    b = self._bodies[name] = _Body(pose, tilt, t, refused=False)
+                    b = self._bodies[name] = _Body(pose, tilt, t, raw, refused=False)
                     self._event("body_found", name)
                 elif not b.present:
                     self._event("body_regained", name)
                 if refused != b.refused:
                     self._event("tilt_refused" if refused else "tilt_ok", name)
-                b.pose, b.tilt, b.stamp, b.present, b.refused = pose, tilt, t, True, refused
+                b.pose, b.tilt, b.stamp, b.present, b.refused, b.raw = pose, tilt, t, True, refused, raw
                 b.receipts.append(t)
             for name, b in self._bodies.items():
                 if b.present and name not in seen:

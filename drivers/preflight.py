@@ -23,8 +23,11 @@ The checks (how an operator uses them: docs/real-lab.md):
   the calibration.
 - topology: the drones checked from this computer must not share an address or video port
   (access-point mode: `--id N` on each drone's computer).
-- mocap: the server answers; every body (drones, target) is tracked, level (tilt limit) and, for the
-  drones, inside the fence's x/y box (the target too: the drones follow it).
+- mocap: the server answers; it streams multicast, or at least frames arrive (Motive's unicast frames
+  never reach libmotioncapture 1.1); no body shows a Y-up sign (`y_up_signs`: one FAIL naming Motive's
+  Up Axis setting); no streamed body is missing from the model definitions read at connect; every body
+  (drones, target) is tracked, level (tilt limit) and inside the fence's x/y box (the target too: the
+  drones follow it).
 - robot: a HEARTBEAT within heartbeat_timeout_s (mode and armed state reported); its own GCS failsafe
   (ArduPilot parameters read over MAVLink, judged by drivers/scamper_failsafe.py): FAIL unless it is on,
   holds the robot, acts within 5 s of our last heartbeat and watches our system id.
@@ -241,6 +244,52 @@ def _check_camera(mission: Mission, drone_id: int, dev: str, cam: TelloCamera) -
             cam.stop()
 
 
+UP_AXIS_FIX = (
+    "Motive streams Y up (its default): set its streaming setting Up Axis to Z Axis (Motive 2: Data "
+    "Streaming pane, Advanced Network Settings; Motive 3: Settings > Streaming), then run preflight again"
+)
+UNKNOWN_BODY_FIX = (
+    "define the rigid body in Motive before `fly` starts, or reconnect (model definitions are read once, "
+    "at connect)"
+)
+UNICAST_FIX = (
+    "Motive streams unicast (Transmission Type = Unicast), whose frames libmotioncapture 1.1 cannot "
+    "receive: set Transmission Type to Multicast"
+)
+LEVEL_AT_PREFLIGHT_RAD = math.radians(10.0)  # bodies stand level at preflight; more is a Y-up sign
+Y_AXIS_UP_COS = math.cos(math.radians(20.0))  # a body y axis this close to Motive's y: yawed about y
+BELOW_FLOOR_M = 0.1  # a body this far below the floor (z) is not where z is up
+
+
+def y_up_signs(
+    label: str, position: tuple[float, ...], quat_wxyz: tuple[float, ...], drone: bool, landed_height: float
+) -> list[str]:
+    """What in one body's newest sample says the stream is Y-up (empty: nothing), for a body standing
+    for preflight. position: m in the stream's frame; quat_wxyz: its orientation there.
+
+    Signs: (1) level about Motive's y axis but tilted from z by more than LEVEL_AT_PREFLIGHT_RAD (a level
+    body yawed in a Y-up world: its y axis stays vertical, its z axis turns with the yaw); (2) more than
+    BELOW_FLOOR_M below the floor z = 0; (3) a drone higher than `landed_height` (m) above the floor: a
+    drone stands on the floor for preflight (the drone rows check its own telemetry says so). A level
+    Y-up body yawed within 10° of Motive's x axis, standing within [-0.1 m, landed_height] of Motive's
+    x-y plane, shows none of them: no frame alone can tell it from a Z-up body."""
+    w, x, y, z = quat_wxyz
+    n = math.sqrt(w * w + x * x + y * y + z * z) or 1.0
+    w, x, y, z = w / n, x / n, y / n, z / n
+    r11 = 1.0 - 2.0 * (x * x + z * z)  # body y axis · Motive's y
+    r22 = 1.0 - 2.0 * (x * x + y * y)  # body z axis · Motive's z
+    tilt = math.acos(max(-1.0, min(1.0, r22)))
+    signs = []
+    if tilt > LEVEL_AT_PREFLIGHT_RAD and r11 >= Y_AXIS_UP_COS:
+        signs.append(f"{label} is level about y but tilted {math.degrees(tilt):.0f}° from z")
+    height = float(position[2])
+    if height < -BELOW_FLOOR_M:
+        signs.append(f"{label} is {-height:.2f} m below the floor (z)")
+    elif drone and height > landed_height:
+        signs.append(f"{label} stands {height:.2f} m above the floor (z)")
+    return signs
+
+
 def check_mocap(mission: Mission) -> list[CheckRow]:
     from flightstack.drivers.hardware import body_names, mocap_config
     from flightstack.drivers.mocap import MocapPoseSource
@@ -253,12 +302,43 @@ def check_mocap(mission: Mission) -> list[CheckRow]:
             src.start()
         except Exception as exc:
             return [_row(dev, "server", False, str(exc))]
-        rows = [_row(dev, "server", True, f"connected ({cfg.settings or 'no settings'})")]
+        info = src.server_info
+        about = (
+            ""
+            if info is None
+            else (
+                f", {info.app} NatNet {'.'.join(map(str, info.natnet_version))}, "
+                + (
+                    f"multicast {info.group}:{info.data_port}"
+                    if info.multicast
+                    else f"unicast data port {info.data_port}"
+                )
+            )
+        )
+        rows = [_row(dev, "server", True, f"connected ({cfg.settings or 'no settings'}{about})")]
         names = body_names(mission)
         deadline = time.monotonic() + BODY_WAIT_S
         while time.monotonic() < deadline and not all(src.latest(n) for n in names.values()):
             time.sleep(0.02)
+        if info is not None and not info.multicast and src.stats()["frames"] == 0:
+            return [
+                *rows,
+                _row(dev, "transmission", False, f"no frame within {BODY_WAIT_S:g} s: {UNICAST_FIX}"),
+            ]
         s = mission.safety
+        signs = []
+        for ours, theirs in names.items():
+            sample = src.sample(theirs)
+            if sample is not None:
+                label = ours if ours == theirs else f"{ours} = {theirs}"
+                signs += y_up_signs(label, sample[0], sample[1], ours != "target", s.landed_height)
+        if signs:
+            return [*rows, _row(dev, "up axis", False, f"{'; '.join(signs)}: {UP_AXIS_FIX}")]
+        if src.sample("") is not None:  # libmotioncapture names a body missing from the model definitions ''
+            p = src.sample("")[0]  # type: ignore[index]
+            where = f"at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m"
+            rows.append(_row(dev, "bodies", False, f"a body {where} is not in Motive's model definitions: "
+                             f"{UNKNOWN_BODY_FIX}"))  # fmt: skip
         for ours, theirs in names.items():
             sp = src.latest(theirs)
             label = ours if ours == theirs else f"{ours} = {theirs}"
