@@ -59,7 +59,9 @@ def distance_to_square(p: np.ndarray, side: float) -> float:
 
 
 def test_closed_loop_square_lap() -> None:
-    rover = MavlinkRoverEmulator()
+    rover = MavlinkRoverEmulator(
+        requires_position_estimate=False
+    )  # until the driver streams vision positions
     natnet = NatNetEmulator(rate_hz=MOCAP_HZ)
     src: MocapPoseSource | None = None
     drv: ScamperDriver | None = None
