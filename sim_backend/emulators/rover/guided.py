@@ -17,8 +17,6 @@ from dataclasses import dataclass
 
 from pymavlink import mavutil
 
-from flightstack.paper.geometry import wrap_angle
-
 mavlink = mavutil.mavlink
 POS_IGNORE = 1 | 2  # Rover/defines.h MAVLINK_SET_POS_TYPE_MASK_*: x, y
 VEL_IGNORE = 8 | 16  # vx, vy
@@ -29,6 +27,15 @@ FRAMES = (
     mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED, mavlink.MAV_FRAME_BODY_NED,
     mavlink.MAV_FRAME_BODY_OFFSET_NED,
 )  # fmt: skip
+
+
+def wrap_angle(theta: float) -> float:
+    """θ (rad) wrapped to (−π, π] as geometry.wrap_angle, in plain Python: that one is a numba kernel whose
+    first call compiles for about a second, which stalled the emulator's loop (and its EKF clock)."""
+    r = math.remainder(theta, 2.0 * math.pi)
+    return math.pi if r == -math.pi else r
+
+
 BODY_FRAMES = (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED)
 # GCS_MAVLINK_Rover::send_acc_ignore_must_be_set_message
 ACC_TEXT = "Ignoring SET_POSITION_TARGET_LOCAL_NED; set ACC_IGNORE in mask"
