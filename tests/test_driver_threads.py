@@ -312,7 +312,9 @@ def rover() -> Iterator[Any]:
     pytest.importorskip("pymavlink")
     from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
 
-    emu = MavlinkRoverEmulator(heartbeat_hz=10.0)
+    emu = MavlinkRoverEmulator(
+        heartbeat_hz=10.0, requires_position_estimate=False
+    )  # until the driver streams vision positions
     try:
         yield emu
     finally:

@@ -44,7 +44,9 @@ def wait_for(pred: Callable[[], bool], timeout: float, step: float = 0.01) -> bo
 
 @contextmanager
 def rover(params: RoverParams | None = None) -> Iterator[MavlinkRoverEmulator]:
-    emu = MavlinkRoverEmulator(heartbeat_hz=10.0, params=params)
+    emu = MavlinkRoverEmulator(
+        heartbeat_hz=10.0, params=params, requires_position_estimate=False
+    )  # until the driver streams vision positions
     try:
         yield emu
     finally:
