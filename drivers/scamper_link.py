@@ -56,7 +56,7 @@ _GCS_HEARTBEAT = (mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mav
 
 SendResult = Literal["sent", "muted", "failed", "closed"]
 MessageHandler = Callable[[Any, float], None]  # (message or None, time.monotonic() s)
-Tick = tuple[float, Callable[[], None]]  # (period s, what scamper-tx calls every period)
+Tick = tuple[float, Callable[[], object]]  # (period s, what scamper-tx calls every period)
 
 
 class ScamperError(RuntimeError):

@@ -2,12 +2,9 @@
 confirmed by GPS_GLOBAL_ORIGIN), the motion-capture pose as VISION_POSITION_ESTIMATE, both again after a
 reboot; and the raw .tlog of the link.
 
-The vehicle here is `SpecRover`, a responder written from the MAVLink specification and ArduPilot's
-source (not from the driver), because the project's emulator does not answer GPS_GLOBAL_ORIGIN yet
-(branch p39-emu adds it): `GCS_MAVLINK::set_ekf_origin` (libraries/GCS_MAVLink/GCS_Common.cpp) takes an
-origin only while none is set and then sends GPS_GLOBAL_ORIGIN; MAV_CMD_REQUEST_MESSAGE(49) is answered
-with it when there is one; Rover refuses GUIDED without a position estimate (`Mode::requires_position`,
-Rover/mode.h) with MAV_RESULT_FAILED. The .tlog test runs against the current emulator
+The vehicle here is `SpecRover` (flightstack/faults/spec_rover.py), written from the MAVLink specification
+and ArduPilot's source (not from the driver), because the project's emulator does not answer
+GPS_GLOBAL_ORIGIN yet (branch p39-emu adds it). The .tlog test runs against the current emulator
 (sim_backend/emulators/mavlink_rover.py) as the acceptance asks: it needs p39-emu's emulator (which
 reports the origin) to pass — marked below.
 """
@@ -18,7 +15,6 @@ import math
 import shutil
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -31,95 +27,14 @@ pytest.importorskip("pymavlink")
 from pymavlink import mavutil
 
 from flightstack.drivers.scamper import ScamperCommandError, ScamperConfig, ScamperDriver
+from flightstack.faults.spec_rover import HOLD, SpecRover
 from flightstack.hal import StampedPose
 from flightstack.paper.geometry import Pose
 
 mavlink = mavutil.mavlink
 pytestmark = pytest.mark.system
 
-GUIDED, HOLD = 15, 4
 TYPES = "HEARTBEAT,SET_POSITION_TARGET_LOCAL_NED,COMMAND_ACK"
-
-
-class SpecRover:
-    """A minimal ArduPilot Rover on loopback: heartbeat 10 Hz, SYSTEM_TIME, origin, modes, arming."""
-
-    def __init__(self, answer_origin: bool = True) -> None:
-        self.conn = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=1, source_component=1)
-        self.port = self.conn.port.getsockname()[1]
-        self.answer_origin = answer_origin
-        self.lock = threading.Lock()
-        self.origin: tuple[int, int, int] | None = None
-        self.origin_sets = 0
-        self.vision: list[tuple[float, object]] = []  # (receive time.monotonic(), message)
-        self.mode, self.armed = HOLD, False
-        self.boot_t0 = time.monotonic()
-        self.refused: list[int] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True, name="spec-rover")
-        self._thread.start()
-
-    def reboot(self) -> None:
-        with self.lock:
-            self.origin, self.mode, self.armed, self.boot_t0 = None, HOLD, False, time.monotonic()
-
-    def _send(self, fn: str, *args: object) -> None:
-        if self.conn.clients:  # udpin: the ground station is known once it sent something
-            getattr(self.conn.mav, fn)(*args)
-
-    def _run(self) -> None:
-        next_hb = 0.0
-        while not self._stop.is_set():
-            now = time.monotonic()
-            if now >= next_hb:
-                next_hb = now + 0.1
-                with self.lock:
-                    base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (128 if self.armed else 0)
-                    mode, boot_ms = self.mode, int((now - self.boot_t0) * 1000)
-                self._send(
-                    "heartbeat_send", mavlink.MAV_TYPE_GROUND_ROVER, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                    base, mode, mavlink.MAV_STATE_ACTIVE,
-                )  # fmt: skip
-                self._send("system_time_send", 0, boot_ms)
-            msg = self.conn.recv_match(blocking=True, timeout=0.02)
-            if msg is not None:
-                with self.lock:
-                    self._handle(msg, time.monotonic())
-
-    def _send_origin(self) -> None:
-        if self.origin is not None and self.answer_origin:
-            self._send("gps_global_origin_send", *self.origin, 0)
-
-    def _handle(self, msg: object, now: float) -> None:
-        t = msg.get_type()  # type: ignore[attr-defined]
-        if t == "SET_GPS_GLOBAL_ORIGIN":
-            self.origin_sets += 1
-            if self.origin is None:  # set_ekf_origin: only while none is set, then MSG_ORIGIN
-                self.origin = (msg.latitude, msg.longitude, msg.altitude)  # type: ignore[attr-defined]
-                self._send_origin()
-        elif t == "VISION_POSITION_ESTIMATE":
-            self.vision.append((now, msg))
-        elif t == "COMMAND_LONG":
-            cmd = msg.command  # type: ignore[attr-defined]
-            result = mavlink.MAV_RESULT_ACCEPTED
-            if cmd == mavlink.MAV_CMD_REQUEST_MESSAGE and int(msg.param1) == 49:  # type: ignore[attr-defined]
-                self._send_origin()
-            elif cmd == mavlink.MAV_CMD_DO_SET_MODE:
-                want = int(msg.param2)  # type: ignore[attr-defined]
-                fresh = bool(self.vision) and now - self.vision[-1][0] < 0.3
-                if want == GUIDED and not (fresh and self.origin is not None):
-                    result = mavlink.MAV_RESULT_FAILED
-                    self.refused.append(want)
-                else:
-                    self.mode = want
-            elif cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-                self.armed = msg.param1 > 0.5  # type: ignore[attr-defined]
-            self._send("command_ack_send", cmd, result)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        self.conn.close()
 
 
 class MovingPose:
@@ -295,3 +210,42 @@ def _tlog_run(url: str, tmp_path: Path) -> None:
         stamps.append(m._timestamp)
     assert stamps and t_start - 0.01 <= min(stamps) and max(stamps) <= t_end + 0.01
     assert all(math.isfinite(s) for s in stamps)
+
+
+def _preflight(rover: SpecRover) -> dict[str, tuple[str, str]]:
+    from flightstack.drivers.preflight import robot_rows
+
+    rows = robot_rows(_cfg(rover.port))
+    return {r.check: (r.status, r.detail) for r in rows}
+
+
+def test_preflight_passes_a_rover_set_up_as_docs_say(rover: SpecRover) -> None:
+    rows = _preflight(rover)
+    print(rows)
+    for check in ("heartbeat", "GCS failsafe", "external navigation", "GUIDED timeout", "kinematics"):
+        assert rows[check][0] == "PASS", (check, rows[check])
+    assert rows["EKF origin"][0] == "PASS" and rows["kinematics"][1].startswith("differential")
+    assert rover.mode == HOLD and not rover.armed  # nothing moved, nothing armed
+
+
+def test_preflight_refuses_default_sources_in_one_line() -> None:
+    from flightstack.faults.spec_rover import ARDUPILOT_DEFAULTS
+
+    r = SpecRover(params=ARDUPILOT_DEFAULTS)
+    try:
+        status, detail = _preflight(r)["external navigation"]
+    finally:
+        r.close()
+    print(detail)
+    assert status == "FAIL" and "\n" not in detail
+    assert detail.startswith("no external position source: set on the vehicle EK3_SRC1_POSXY 6 (now 3)")
+
+
+def test_preflight_refuses_a_vehicle_without_origin() -> None:
+    r = SpecRover(answer_origin=False)
+    try:
+        status, detail = _preflight(r)["EKF origin"]
+    finally:
+        r.close()
+    print(detail)
+    assert status == "FAIL" and detail.startswith("no EKF origin") and "\n" not in detail
