@@ -31,6 +31,7 @@ from flightstack.drivers.scamper import (
 from flightstack.hal import GroundRobot
 from flightstack.sim_backend.emulators.mavlink_rover import HOLD, MavlinkRoverEmulator
 from tests.conftest import Bound
+from tests.robot_pose import still_pose
 
 mavlink = mavutil.mavlink
 SET_MODE = mavlink.MAV_CMD_DO_SET_MODE  # 176
@@ -56,7 +57,7 @@ def emu() -> Iterator[MavlinkRoverEmulator]:
 
 def make_driver(emu: MavlinkRoverEmulator, **kw: float) -> ScamperDriver:
     cfg = ScamperConfig(url=emu.url, heartbeat_timeout_s=kw.pop("heartbeat_timeout_s", 3.0), **kw)
-    return ScamperDriver(cfg)
+    return ScamperDriver(cfg, pose_source=still_pose())
 
 
 def kinds(drv: ScamperDriver) -> list[str]:
