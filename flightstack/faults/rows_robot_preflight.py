@@ -13,10 +13,7 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 
-from flightstack.drivers.preflight import robot_rows
-from flightstack.drivers.scamper_link import ScamperConfig
 from flightstack.faults.result import Checks, FaultResult, FaultRow
-from flightstack.faults.spec_rover import ARDUPILOT_DEFAULTS, HOLD, LAB_SETTINGS, SpecRover
 
 NAV_LINE = "no external position source: set on the vehicle "
 ORIGIN_LINE = "no EKF origin: "
@@ -25,6 +22,10 @@ ORIGIN_LINE = "no EKF origin: "
 def _row(
     name: str, expected: str, check: str, starts: str, params: Mapping[str, float], origin: bool
 ) -> FaultResult:
+    from flightstack.drivers.preflight import robot_rows  # pymavlink (extra scamper): only when run
+    from flightstack.drivers.scamper_link import ScamperConfig
+    from flightstack.faults.spec_rover import HOLD, SpecRover
+
     wall0 = time.perf_counter()
     rover = SpecRover(answer_origin=origin, params=params)
     c, crash = Checks(), Checks()
@@ -59,6 +60,8 @@ def _row(
 
 def robot_no_origin(mission_path: Path, workdir: Path) -> FaultResult:
     """The robot never reports an EKF origin (no GPS_GLOBAL_ORIGIN after SET_GPS_GLOBAL_ORIGIN)."""
+    from flightstack.faults.spec_rover import LAB_SETTINGS
+
     expected = (
         f"preflight's `EKF origin` row FAILs in one line starting {ORIGIN_LINE!r}; nothing armed or moved"
     )
@@ -67,6 +70,8 @@ def robot_no_origin(mission_path: Path, workdir: Path) -> FaultResult:
 
 def robot_no_extnav(mission_path: Path, workdir: Path) -> FaultResult:
     """The robot keeps ArduPilot's default position and yaw sources (GPS, compass; VISO_TYPE 0)."""
+    from flightstack.faults.spec_rover import ARDUPILOT_DEFAULTS, LAB_SETTINGS
+
     params = {
         **LAB_SETTINGS,
         **{k: ARDUPILOT_DEFAULTS[k] for k in ("EK3_SRC1_POSXY", "EK3_SRC1_YAW", "VISO_TYPE")},
