@@ -31,10 +31,11 @@ class TlogWriter:
     """Appends MAVLink messages to a .tlog file from any thread (module docstring)."""
 
     def __init__(self, path: str | Path) -> None:
-        """Create (truncate) `path` and its directory; OSError when it cannot be opened."""
+        """Open `path` for appending (a reconnect of the same driver adds to it; records are
+        self-delimiting), creating it and its directory; OSError when it cannot be opened."""
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(self.path, "wb")  # noqa: SIM115 (closed by close(), written by the thread)
+        self._f = open(self.path, "ab")  # noqa: SIM115 (closed by close(), written by the thread)
         self._lock = threading.Lock()
         self._pending: deque[bytes] = deque()
         self._stop = threading.Event()
