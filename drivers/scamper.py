@@ -20,8 +20,10 @@ its disarm.
 
 What ArduPilot needs to move indoors (drivers/scamper_nav.py has the frames, clock and sources): from
 the first heartbeat on, ``scamper-tx`` sets the EKF origin (SET_GPS_GLOBAL_ORIGIN, msg 48, the configured
-lab origin) and asks for it back (MAV_CMD_REQUEST_MESSAGE for GPS_GLOBAL_ORIGIN, msg 49) every
-``ORIGIN_RETRY_S`` until the vehicle reports it; and it streams the robot's own motion-capture pose
+lab origin) every ``ORIGIN_RETRY_S`` until the vehicle reports it (GPS_GLOBAL_ORIGIN, msg 49, which
+ArduPilot sends when it takes a new origin), from the second try on asking for it too
+(MAV_CMD_REQUEST_MESSAGE: a vehicle that had an origin already ignores ours and only answers that);
+and it streams the robot's own motion-capture pose
 (``pose_source``) as VISION_POSITION_ESTIMATE (msg 102) at ``vision_hz``, never a pose older than
 ``vision_max_age_s``. ``connect()`` goes on to GUIDED only once the origin is confirmed and
 ``VISION_LEAD_SAMPLES`` poses were sent (each wait bounded by ``origin_timeout_s``). A vehicle seen
@@ -407,16 +409,20 @@ class ScamperDriver:
         self._origin_tick()
 
     def _origin_tick(self) -> None:
-        """scamper-tx, every ORIGIN_RETRY_S: while unconfirmed, set the origin and ask for it back."""
+        """scamper-tx, every ORIGIN_RETRY_S: while unconfirmed, set the origin; from the second time on also
+        ask for it back (MAV_CMD_REQUEST_MESSAGE 49)."""
         link = self._link
         with self._lock:
             if link is None or self._last_hb is None or self._origin_state.confirmed:
                 return
             target = self._target
+        with self._lock:
+            retry = self._origin_state.sends > 0
         if link.send_origin(target, self.origin) == "sent":
             with self._lock:
                 self._origin_state.sends += 1
-        link.request_message(target, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+        if retry:  # ArduPilot answers a new origin by itself (set_ekf_origin); one it had already, only asked
+            link.request_message(target, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
 
     def _vision_tick(self) -> None:
         """scamper-tx, at vision_hz: the robot's newest fresh pose as VISION_POSITION_ESTIMATE."""
