@@ -13,7 +13,8 @@ maps them to the names used in the motion-capture software.
 
 Raw traffic: given `devices` (the run directory's, flightstack.recording.files.DeviceFiles), every Tello's
 commands, replies, state lines and video datagram timing are recorded from before `connect` to after
-`close` (drivers/tello/traffic.py), so that a flight can be replayed to the driver. The guardian process's
+`close` (drivers/tello/traffic.py), so that a flight can be replayed to the driver; the robot's MAVLink
+link, both directions, goes to a pymavlink .tlog (drivers/scamper_tlog.py). The guardian process's
 own datagrams (after a takeover) are not among them: it logs what it sends to guardian.log.
 """
 
@@ -161,7 +162,10 @@ class HardwareBackend:
         self.devices = devices
         self.traffic: dict[int, TrafficWriter] = {}
         sc = scamper_config(mission) if drone_ids is None else None
-        self.robot: ScamperDriver | None = None if sc is None else ScamperDriver(sc)
+        self.robot: ScamperDriver | None = None
+        if sc is not None:  # its own motion-capture pose goes to its autopilot (external navigation)
+            tlog = None if devices is None else devices.scamper()
+            self.robot = ScamperDriver(sc, pose_source=lambda: self.poses.latest("target"), tlog_path=tlog)
         self._last_truth: dict[str, Pose] = {}
         self.guardian: Guardian | None = None
         self._armed = False

@@ -2,7 +2,8 @@
 
 Each device is checked in its own thread, all at once, with the mission's own bounded timeouts; the
 whole run is bounded by `deadline_s`, and a device that has not answered by then is a FAIL naming it.
-Nothing takes off, nothing moves: the robot is only listened to (HEARTBEAT), never armed; a Tello gets
+Nothing takes off, nothing moves: the robot is listened to (HEARTBEAT), its parameters read and its EKF
+origin set to the lab origin (which moves nothing), never armed, its mode never changed; a Tello gets
 `command`, `streamon`/`streamoff` and read-only queries.
 
 Rows: (device, check, status, detail) with status PASS, WARN (flyable, but look) or FAIL (do not fly).
@@ -30,7 +31,11 @@ The checks (how an operator uses them: docs/real-lab.md):
   drones follow it).
 - robot: a HEARTBEAT within heartbeat_timeout_s (mode and armed state reported); its own GCS failsafe
   (ArduPilot parameters read over MAVLink, judged by drivers/scamper_failsafe.py): FAIL unless it is on,
-  holds the robot, acts within 5 s of our last heartbeat and watches our system id.
+  holds the robot, acts within 5 s of our last heartbeat and watches our system id; external
+  navigation (drivers/scamper_vehicle.py): FAIL unless AHRS_EKF_TYPE 3, EK3_SRC1_POSXY 6, EK3_SRC1_YAW 6,
+  VISO_TYPE 1; EKF origin: FAIL unless the vehicle reports GPS_GLOBAL_ORIGIN after SET_GPS_GLOBAL_ORIGIN;
+  GUIDED timeout: FAIL unless GUID_TIMEOUT is within [5 set-point periods, 3 s]; kinematics (FRAME_CLASS,
+  FRAME_TYPE, SERVOn_FUNCTION): reported, WARN when unknown.
 """
 
 from __future__ import annotations
@@ -49,6 +54,8 @@ from flightstack.config.mission import Mission
 
 if TYPE_CHECKING:
     from flightstack.drivers.scamper_link import ScamperConfig
+    from flightstack.drivers.scamper_nav import LabOrigin
+    from flightstack.drivers.scamper_params import OriginProbe
     from flightstack.drivers.tello.camera import TelloCamera
 
 Status = Literal["PASS", "WARN", "FAIL"]
@@ -374,22 +381,53 @@ def check_robot(mission: Mission) -> list[CheckRow]:
 
 
 def robot_rows(cfg: ScamperConfig) -> list[CheckRow]:
-    """The robot's HEARTBEAT, and its own GCS failsafe read from its parameters (nothing armed or set)."""
+    """The robot's HEARTBEAT, its GCS failsafe, its external-navigation sources, its EKF origin (set to
+    the configured lab origin and read back: nothing moves, nothing is armed), its GUIDED timeout and its
+    kinematics, from its parameters (drivers/scamper_failsafe.py, drivers/scamper_vehicle.py). Every
+    FAIL is one line saying what to set on the vehicle."""
+    from flightstack.drivers import scamper_failsafe as fs
+    from flightstack.drivers import scamper_vehicle as sv
     from flightstack.drivers.guardian import GuardianConfig
-    from flightstack.drivers.scamper_failsafe import PARAMETERS, enough, judge_gcs_failsafe
-    from flightstack.drivers.scamper_params import probe_parameters
+    from flightstack.drivers.scamper_nav import LabOrigin
+    from flightstack.drivers.scamper_params import probe_vehicle
 
     dev = f"robot ({cfg.url})"
-    try:
-        hb, read = probe_parameters(cfg, PARAMETERS, enough=enough)
+    names = (*fs.PARAMETERS, *sv.PARAMETERS)
+    try:  # a read never ends early: the servo functions answer only as far as the vehicle has them
+        probe = probe_vehicle(cfg, names)
     except Exception as exc:
         return [_row(dev, "heartbeat", False, str(exc))]
+    hb, values = probe.heartbeat, probe.params.values
     ours = {"flightstack": cfg.source_system, "guardian": GuardianConfig().robot_source[0]}
-    verdict = judge_gcs_failsafe(read.values, ours)
-    return [
+    verdict = fs.judge_gcs_failsafe(values, ours)
+    rows = [
         _row(dev, "heartbeat", True, f"mode {hb.custom_mode}, {'ARMED' if hb.armed else 'disarmed'}"),
         CheckRow(dev, "GCS failsafe", verdict.status, verdict.detail),
     ]
+    for check, v in (
+        ("external navigation", sv.judge_external_nav(values)),
+        ("GUIDED timeout", sv.judge_guided_timeout(values, cfg.stream_hz)),
+        ("kinematics", sv.judge_kinematics(values)),
+    ):
+        rows.append(CheckRow(dev, check, v.status, v.detail))
+    origin = LabOrigin(cfg.origin_lat_deg, cfg.origin_lon_deg, cfg.origin_alt_m)
+    rows.append(_origin_row(dev, probe.origin, origin))
+    return rows
+
+
+def _origin_row(dev: str, probe: OriginProbe, origin: LabOrigin) -> CheckRow:
+    if probe.reported is None:
+        why = (
+            f"no EKF origin: no GPS_GLOBAL_ORIGIN after {probe.sends} SET_GPS_GLOBAL_ORIGIN in "
+            f"{probe.elapsed_s:.1f} s; the vehicle drops every set-point without one (check that it takes "
+            "MAVLink from this computer and that EK3_SRC1_POSXY is 6)"
+        )
+        return _row(dev, "EKF origin", False, why)
+    lat, lon, alt = probe.reported
+    where = f"lat {lat / 1e7:.7f}, lon {lon / 1e7:.7f}, alt {alt / 1000:.2f} m"
+    if not origin.matches(lat, lon, alt):
+        where += " (not the configured lab origin: the vehicle had one already; it keeps it until reboot)"
+    return _row(dev, "EKF origin", True, where)
 
 
 # ---- all of it ---------------------------------------------------------------------------------------

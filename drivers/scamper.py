@@ -18,6 +18,22 @@ Neither ends on an error. The driver never fights a mode change or disarm by the
 must win). While muted (guardian takeover, ``set_muted(fn)``) nothing is written and ``close()`` skips
 its disarm.
 
+What ArduPilot needs to move indoors (drivers/scamper_nav.py has the frames, clock and sources): from
+the first heartbeat on, ``scamper-tx`` sets the EKF origin (SET_GPS_GLOBAL_ORIGIN, msg 48, the configured
+lab origin) every ``ORIGIN_RETRY_S`` until the vehicle reports it (GPS_GLOBAL_ORIGIN, msg 49, which
+ArduPilot sends when it takes a new origin), from the second try on asking for it too
+(MAV_CMD_REQUEST_MESSAGE: a vehicle that had an origin already ignores ours and only answers that);
+and it streams the robot's own motion-capture pose
+(``pose_source``) as VISION_POSITION_ESTIMATE (msg 102) at ``vision_hz``, never a pose older than
+``vision_max_age_s``. ``connect()`` goes on to GUIDED only once the origin is confirmed and
+``VISION_LEAD_SAMPLES`` poses were sent (each wait bounded by ``origin_timeout_s``). A vehicle seen
+to reboot (SYSTEM_TIME's ``time_boot_ms`` going back) or coming back after a heartbeat gap longer than
+``link_timeout_s`` has forgotten its origin: it is set and confirmed again (event
+``origin_forgotten``; ``RobotState.ready`` is False meanwhile).
+
+Raw log: given ``tlog_path``, every message received from and written to the robot goes to a pymavlink
+.tlog there (drivers/scamper_tlog.py), from connect to close.
+
 Frames and units: ``V = [v_x, v_y, v_z, ω]`` in the flightstack body frame FLU (m/s, rad/s
 counter-clockwise seen from above); MAVLink's body frame is FRD with yaw rate clockwise, so the driver
 sends ``vx = v_x, vy = -v_y, yaw_rate = -ω``; ``v_z`` is ignored. A non-omni rover cannot move sideways
@@ -32,6 +48,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -50,8 +67,11 @@ from flightstack.drivers.scamper_link import (
     is_vehicle_heartbeat,
     probe_heartbeat,
 )
+from flightstack.drivers.scamper_nav import LabOrigin, OriginState, VisionStream
+from flightstack.drivers.scamper_tlog import TlogWriter
 from flightstack.drivers.tello.link import MutedCheck
 from flightstack.events import Event, ScamperKind
+from flightstack.hal import StampedPose
 
 __all__ = [
     "GCS_HEARTBEAT_PERIOD_S",
@@ -71,6 +91,10 @@ __all__ = [
 mavlink = mavutil.mavlink
 
 DEFAULT_HEARTBEAT_PERIOD_S = 1.0  # ArduPilot's HEARTBEAT rate, assumed until measured
+ORIGIN_RETRY_S = 1.0  # SET_GPS_GLOBAL_ORIGIN + REQUEST_MESSAGE(49) again this often until confirmed (s)
+BOOT_BACKSTEP_MS = 200  # SYSTEM_TIME.time_boot_ms going back more than this: the vehicle rebooted
+VISION_LEAD_SAMPLES = 10  # poses sent before GUIDED is asked for (0.5 s at 20 Hz): the EKF needs them first
+PoseSource = Callable[[], StampedPose | None]  # the robot's own motion-capture pose, time.monotonic() stamp
 _PENDING_RESULTS = (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_IN_PROGRESS)
 
 
@@ -82,6 +106,7 @@ class RobotState:
     armed: bool | None
     age_s: float  # since that heartbeat (s); inf before the first one
     link_alive: bool
+    origin_confirmed: bool = False  # the vehicle reported its EKF origin since it (re)booted
 
     @property
     def mode_name(self) -> str:
@@ -89,8 +114,13 @@ class RobotState:
 
     @property
     def ready(self) -> bool:
-        """Heartbeat is live and shows GUIDED and armed: set-points are being obeyed."""
-        return self.link_alive and self.custom_mode == ROVER_GUIDED_MODE and bool(self.armed)
+        """Heartbeat is live, shows GUIDED and armed, and the EKF has its origin: set-points are obeyed."""
+        return (
+            self.link_alive
+            and self.custom_mode == ROVER_GUIDED_MODE
+            and bool(self.armed)
+            and self.origin_confirmed
+        )
 
 
 def mode_name(custom_mode: int | None) -> str:
@@ -110,14 +140,33 @@ class ScamperDriver:
     ``events`` is a list of ``(t, kind, detail)`` with ``t`` from ``time.monotonic()`` (s) and ``kind`` one
     of ``connected``, ``link_lost``, ``link_restored``, ``no_command_needed``, ``command_resent``,
     ``ack_lost_confirmed_by_heartbeat``, ``ack_contradicted_by_heartbeat``, ``mode_changed``,
-    ``disarmed_by_robot``, ``armed_by_robot``, ``disarm_failed``, ``disarm_skipped_muted``.  ``resends``
-    counts COMMAND_LONG re-sends; ``counts`` the link's sends and errors (drivers/scamper_link.py: "sent",
-    "muted", "send_error", "recv_error", "rx_error", "tx_error", "thread_error", "muted_check_error").
+    ``disarmed_by_robot``, ``armed_by_robot``, ``disarm_failed``, ``disarm_skipped_muted``,
+    ``origin_confirmed``, ``origin_forgotten``.  ``resends`` counts COMMAND_LONG re-sends; ``counts`` the
+    link's sends and errors (drivers/scamper_link.py: "sent", "muted", "send_error", "recv_error",
+    "rx_error", "tx_error", "thread_error", "muted_check_error"), the messages sent by kind
+    ("setpoint_sent", "vision_sent", "origin_sent") and the poses not sent by reason ("vision_stale",
+    "vision_no pose", "vision_not new", "vision_not finite").
     """
 
-    def __init__(self, config: ScamperConfig | None = None, muted: MutedCheck | None = None) -> None:
-        """muted: the guardian's takeover check (module docstring); also settable by `set_muted`."""
+    def __init__(
+        self,
+        config: ScamperConfig | None = None,
+        muted: MutedCheck | None = None,
+        pose_source: PoseSource | None = None,
+        tlog_path: str | Path | None = None,
+    ) -> None:
+        """muted: the guardian's takeover check (module docstring); also settable by `set_muted`.
+        pose_source: the robot's motion-capture pose (None: no VISION_POSITION_ESTIMATE is sent; a real
+        Rover then refuses GUIDED). tlog_path: the raw .tlog of the link (None: none)."""
         self.config = config or ScamperConfig()
+        self.pose_source = pose_source
+        self.tlog_path = None if tlog_path is None else Path(tlog_path)
+        self.tlog: TlogWriter | None = None
+        cfg = self.config
+        self.origin = LabOrigin(cfg.origin_lat_deg, cfg.origin_lon_deg, cfg.origin_alt_m)
+        self._origin_state = OriginState()
+        self._vision = VisionStream(self.config.vision_max_age_s)
+        self._boot_ms: int | None = None  # the vehicle's last SYSTEM_TIME.time_boot_ms
         self.events: list[Event] = []  # source scamper, time.monotonic() s
         self.resends = 0  # COMMAND_LONG re-sends (no ACK and no heartbeat change in time)
         self.counts: Counter[str] = Counter()
@@ -150,8 +199,22 @@ class ScamperDriver:
         with self._lock:  # a reconnect learns the robot's state afresh
             self._last_hb = self._hb_mode = self._hb_armed = self._hb_period = None
             self._arm_sent = False
-        self._link = ScamperLink(cfg, self.counts, self._muted)
-        self._link.start(self._on_message, self._stream_tick)
+            self._origin_state = OriginState()
+            self._vision = VisionStream(cfg.vision_max_age_s)
+            self._boot_ms = None
+        if self.tlog_path is not None and self.tlog is None:
+            self.tlog = TlogWriter(self.tlog_path)
+        try:
+            self._link = ScamperLink(cfg, self.counts, self._muted, self.tlog)
+        except BaseException:
+            self._close_tlog()
+            raise
+        self._link.start(
+            self._on_message,
+            self._stream_tick,
+            (1.0 / cfg.vision_hz, self._vision_tick),
+            (ORIGIN_RETRY_S, self._origin_tick),
+        )
         try:
             deadline = time.monotonic() + cfg.heartbeat_timeout_s
             with self._lock:
@@ -162,6 +225,9 @@ class ScamperDriver:
                             f"no HEARTBEAT from Scamper at {cfg.url!r} within {cfg.heartbeat_timeout_s:g} s"
                         )
                     self._cv.wait(timeout=min(remaining, 0.05))
+            self._wake_origin()
+            self._wait_origin()
+            self._wait_vision()
             self._ensure(
                 "set GUIDED",
                 mavlink.MAV_CMD_DO_SET_MODE,
@@ -232,7 +298,14 @@ class ScamperDriver:
         """The robot's mode, armed flag and heartbeat age, as its last HEARTBEAT reported them."""
         with self._lock:
             age = math.inf if self._last_hb is None else time.monotonic() - self._last_hb
-            return RobotState(self._hb_mode, self._hb_armed, age, self._link_alive)
+            return RobotState(
+                self._hb_mode, self._hb_armed, age, self._link_alive, self._origin_state.confirmed
+            )
+
+    @property
+    def vision_reset_counter(self) -> int:
+        """VISION_POSITION_ESTIMATE's reset_counter now (drivers/scamper_nav.py `VisionStream`)."""
+        return self._vision.reset_counter
 
     @property
     def setpoint_ned(self) -> np.ndarray:
@@ -288,6 +361,88 @@ class ScamperDriver:
             link.close()  # joins scamper-rx: a HEARTBEAT it was handling cannot revive the link after this
         with self._lock:
             self._link_alive = False
+        self._close_tlog()
+
+    def _close_tlog(self) -> None:
+        tlog, self.tlog = self.tlog, None
+        if tlog is not None:
+            tlog.close()
+
+    # ------------------------------------------------------------------ origin and external navigation
+    def _wait_origin(self) -> None:
+        """Block until the vehicle reported its EKF origin; ScamperCommandError after origin_timeout_s."""
+        cfg = self.config
+        deadline = time.monotonic() + cfg.origin_timeout_s
+        with self._lock:
+            while not self._origin_state.confirmed:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0.0:
+                    raise ScamperCommandError(
+                        f"EKF origin not confirmed by Scamper at {cfg.url!r} "
+                        f"within {cfg.origin_timeout_s:g} s "
+                        f"({self._origin_state.sends} SET_GPS_GLOBAL_ORIGIN sent, no GPS_GLOBAL_ORIGIN "
+                        "back): ArduPilot drops every set-point without an origin"
+                    )
+                self._cv.wait(timeout=min(remaining, 0.05))
+
+    def _wait_vision(self) -> None:
+        """Block until VISION_LEAD_SAMPLES poses were sent (no pose source: return at once; a real Rover
+        then refuses GUIDED); ScamperCommandError after origin_timeout_s more."""
+        cfg = self.config
+        if self.pose_source is None:
+            return
+        deadline = time.monotonic() + cfg.origin_timeout_s
+        while self.counts["vision_sent"] < VISION_LEAD_SAMPLES:
+            if time.monotonic() >= deadline:
+                why = {
+                    k.removeprefix("vision_"): n for k, n in self.counts.items() if k.startswith("vision_")
+                }
+                raise ScamperCommandError(
+                    f"no fresh motion-capture pose of the robot to send to Scamper at {cfg.url!r} within "
+                    f"{cfg.origin_timeout_s:g} s ({why}): ArduPilot refuses GUIDED without a position "
+                    "estimate"
+                )
+            time.sleep(0.02)
+
+    def _wake_origin(self) -> None:
+        """Send the origin now rather than at the next tick (connect, after the first heartbeat)."""
+        self._origin_tick()
+
+    def _origin_tick(self) -> None:
+        """scamper-tx, every ORIGIN_RETRY_S: while unconfirmed, set the origin; from the second time on also
+        ask for it back (MAV_CMD_REQUEST_MESSAGE 49)."""
+        link = self._link
+        with self._lock:
+            if link is None or self._last_hb is None or self._origin_state.confirmed:
+                return
+            target = self._target
+        with self._lock:
+            retry = self._origin_state.sends > 0
+        if link.send_origin(target, self.origin) == "sent":
+            with self._lock:
+                self._origin_state.sends += 1
+        if retry:  # ArduPilot answers a new origin by itself (set_ekf_origin); one it had already, only asked
+            link.request_message(target, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+
+    def _vision_tick(self) -> None:
+        """scamper-tx, at vision_hz: the robot's newest fresh pose as VISION_POSITION_ESTIMATE."""
+        link, source = self._link, self.pose_source
+        if link is None or source is None:
+            return
+        with self._lock:
+            if self._last_hb is None:
+                return
+        sample, why = self._vision.next(source(), time.monotonic())
+        if sample is None:
+            self.counts[f"vision_{why}"] += 1
+            return
+        link.send_vision(sample)
+
+    def _forget_origin(self, why: str) -> None:
+        """The vehicle lost its origin (reboot, gap): set it again; caller holds the lock."""
+        if self._origin_state.confirmed or self._origin_state.sends:
+            self._event("origin_forgotten", why)
+        self._origin_state.forget()
 
     def _send_setpoint(self, sp: np.ndarray) -> None:
         """Send the set-point sp (body NED) now, from the caller's thread (never raises)."""
@@ -427,7 +582,10 @@ class ScamperDriver:
                     self._hb_period = dt if self._hb_period is None else 0.7 * self._hb_period + 0.3 * dt
             self._observe(int(msg.custom_mode), bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED))
             self._hb_seq += 1
+            gap = None if self._last_hb is None else now - self._last_hb
             self._last_hb = now
+            if gap is not None and gap > self.config.link_timeout_s:
+                self._forget_origin(f"no HEARTBEAT for {gap:.1f} s: the robot may have rebooted")
             if not self._link_alive:
                 self._link_alive = True
                 if self._streaming:
@@ -436,6 +594,37 @@ class ScamperDriver:
         elif mtype == "COMMAND_ACK":
             self._ack_log.append((int(msg.command), int(msg.result)))
             self._cv.notify_all()
+        elif (msg.get_srcSystem(), msg.get_srcComponent()) != self._target or self._last_hb is None:
+            return  # only the robot's own messages, once its heartbeat chose it
+        elif mtype == "GPS_GLOBAL_ORIGIN":
+            self._on_origin(msg)
+        elif mtype == "SYSTEM_TIME":
+            boot = int(msg.time_boot_ms)
+            if self._boot_ms is not None and boot + BOOT_BACKSTEP_MS < self._boot_ms:
+                self._forget_origin(f"time_boot_ms went back from {self._boot_ms} to {boot}: rebooted")
+            self._boot_ms = boot
+
+    def _on_origin(self, msg: Any) -> None:
+        """GPS_GLOBAL_ORIGIN from the robot: its EKF has an origin (ours, or one it had already, which
+        ArduPilot keeps until reboot: set_ekf_origin); caller holds the lock."""
+        try:
+            reported = (int(msg.latitude), int(msg.longitude), int(msg.altitude))
+        except (AttributeError, TypeError, ValueError):
+            self.counts["origin_malformed"] += 1
+            return
+        if abs(reported[0]) > 900_000_000 or abs(reported[1]) > 1_800_000_000:
+            self.counts["origin_malformed"] += 1
+            return
+        first = not self._origin_state.confirmed
+        self._origin_state.confirmed, self._origin_state.reported = True, reported
+        if first:
+            same = self.origin.matches(*reported)
+            lat, lon, alt = reported[0] / 1e7, reported[1] / 1e7, reported[2] / 1000.0
+            detail = f"lat {lat:.7f}, lon {lon:.7f}, alt {alt:.3f} m"
+            if not same:
+                detail += " (not the configured lab origin: the vehicle had one already; kept until reboot)"
+            self._event("origin_confirmed", detail)
+        self._cv.notify_all()
 
     def _observe(self, mode: int, armed: bool) -> None:
         """Record the robot's reported state; while streaming, a change not made by us is an event."""

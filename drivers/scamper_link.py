@@ -24,6 +24,7 @@ before each write, from whichever thread sends; while it returns True nothing is
 from __future__ import annotations
 
 import contextlib
+import inspect
 import logging
 import math
 import threading
@@ -36,6 +37,8 @@ from typing import Any, Literal
 import numpy as np
 from pymavlink import mavutil
 
+from flightstack.drivers.scamper_nav import POSE_UNKNOWN_COVARIANCE, LabOrigin, VisionSample
+from flightstack.drivers.scamper_tlog import TlogWriter
 from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog, MutedCheck, evaluate_mute
 
 mavlink = mavutil.mavlink
@@ -53,6 +56,7 @@ _GCS_HEARTBEAT = (mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mav
 
 SendResult = Literal["sent", "muted", "failed", "closed"]
 MessageHandler = Callable[[Any, float], None]  # (message or None, time.monotonic() s)
+Tick = tuple[float, Callable[[], object]]  # (period s, what scamper-tx calls every period)
 
 
 class ScamperError(RuntimeError):
@@ -79,14 +83,25 @@ class ScamperConfig:
     source_system: int = 255  # our MAVLink system id (GCS convention)
     source_component: int = 190  # MAV_COMP_ID_MISSIONPLANNER
     command_sends: int = 3  # max sends of one COMMAND_LONG that gets neither ACK nor heartbeat change
+    # the EKF origin (drivers/scamper_nav.py; docs/drivers.md "Ground robot"): WGS84 degrees, m above MSL
+    origin_lat_deg: float = 52.0
+    origin_lon_deg: float = 4.0
+    origin_alt_m: float = 0.0
+    origin_timeout_s: float = 5.0  # connect(): max wait for the vehicle to report the origin
+    vision_hz: float = 20.0  # VISION_POSITION_ESTIMATE rate (ArduPilot asks >= 4 Hz)
+    vision_max_age_s: float = 0.2  # a motion-capture pose older than this is not sent
 
     def __post_init__(self) -> None:
-        for name in ("heartbeat_timeout_s", "ack_timeout_s", "stream_hz", "link_timeout_s"):
+        names = ("heartbeat_timeout_s", "ack_timeout_s", "stream_hz", "link_timeout_s", "origin_timeout_s")
+        for name in (*names, "vision_hz", "vision_max_age_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"ScamperConfig.{name} must be finite and > 0, got {value}")
         if self.stream_hz < 1.0:
             raise ValueError(f"ScamperConfig.stream_hz must be >= 1 Hz, got {self.stream_hz}")
+        if self.vision_hz < 4.0:
+            raise ValueError(f"ScamperConfig.vision_hz must be >= 4 Hz (ArduPilot), got {self.vision_hz}")
+        LabOrigin(self.origin_lat_deg, self.origin_lon_deg, self.origin_alt_m)  # ValueError if not WGS84
         if self.command_sends < 1:
             raise ValueError(f"ScamperConfig.command_sends must be >= 1, got {self.command_sends}")
 
@@ -103,8 +118,15 @@ def is_vehicle_heartbeat(msg: Any) -> bool:
 class ScamperLink:
     """The pymavlink connection of one driver, its send path (mute, error accounting) and its threads."""
 
-    def __init__(self, config: ScamperConfig, counts: Counter[str], muted: MutedCheck | None = None) -> None:
-        """Open ``config.url`` (pymavlink); counts: the driver's counters; muted: see the module docstring."""
+    def __init__(
+        self,
+        config: ScamperConfig,
+        counts: Counter[str],
+        muted: MutedCheck | None = None,
+        tlog: TlogWriter | None = None,
+    ) -> None:
+        """Open ``config.url`` (pymavlink); counts: the driver's counters; muted: see the module docstring;
+        tlog: where every message received and written is logged (drivers/scamper_tlog.py), or None."""
         self.config = config
         self.muted = muted
         self.counts = counts
@@ -117,14 +139,23 @@ class ScamperLink:
         self._t0 = time.monotonic()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self.tlog = tlog
+        if tlog is not None:  # called by pymavlink after each successful write, under our send lock
+            self.conn.mav.set_send_callback(self._log_sent)
 
     # ------------------------------------------------------------------ threads
-    def start(self, on_message: MessageHandler, on_stream_tick: Callable[[], None]) -> None:
+    def start(self, on_message: MessageHandler, on_stream_tick: Callable[[], None], *ticks: Tick) -> None:
         """Start ``scamper-rx`` (every message, or None after ≤ 20 ms of silence, to on_message) and
-        ``scamper-tx`` (GCS HEARTBEAT at 1 Hz, on_stream_tick at ``stream_hz``)."""
+        ``scamper-tx`` (GCS HEARTBEAT at 1 Hz, on_stream_tick at ``stream_hz``, each further tick at its
+        own period)."""
+        every: list[Tick] = [
+            (GCS_HEARTBEAT_PERIOD_S, self.send_heartbeat),
+            (1.0 / self.config.stream_hz, on_stream_tick),
+            *ticks,
+        ]
         self._threads = [
             threading.Thread(target=self._rx_loop, args=(on_message,), name="scamper-rx", daemon=True),
-            threading.Thread(target=self._tx_loop, args=(on_stream_tick,), name="scamper-tx", daemon=True),
+            threading.Thread(target=self._tx_loop, args=(every,), name="scamper-tx", daemon=True),
         ]
         for th in self._threads:
             th.start()
@@ -155,31 +186,30 @@ class ScamperLink:
                     break
                 self.errors.record("recv_error", exc)
                 self._stop.wait(ERROR_PAUSE_S)
+            if msg is not None and self.tlog is not None and msg.get_type() != "BAD_DATA":
+                self.tlog.record(msg.get_msgbuf())
             try:
                 on_message(msg, time.monotonic())
             except Exception as exc:
                 self.errors.record("rx_error", exc)
                 self._stop.wait(ERROR_PAUSE_S)
 
-    def _tx_loop(self, on_stream_tick: Callable[[], None]) -> None:
-        """Sender thread: GCS heartbeat and set-point stream; survives every error."""
-        period = 1.0 / self.config.stream_hz
-        next_hb = next_sp = time.monotonic()
+    def _tx_loop(self, every: list[Tick]) -> None:
+        """Sender thread: calls each tick at its period (GCS heartbeat, set-point, ...); survives errors."""
+        due = [time.monotonic()] * len(every)
         while True:
-            now = time.monotonic()
-            if self._stop.wait(max(0.0, min(next_hb, next_sp) - now)):
+            if self._stop.wait(max(0.0, min(due) - time.monotonic())):
                 break
-            now = time.monotonic()
-            try:
-                if now >= next_hb:
-                    next_hb = now + GCS_HEARTBEAT_PERIOD_S
-                    self.send_heartbeat()
-                if now >= next_sp:
-                    next_sp = now + period
-                    on_stream_tick()
-            except Exception as exc:
-                self.errors.record("tx_error", exc)
-                self._stop.wait(ERROR_PAUSE_S)
+            for i, (period, fn) in enumerate(every):
+                now = time.monotonic()
+                if now < due[i]:
+                    continue
+                due[i] = now + period
+                try:
+                    fn()
+                except Exception as exc:
+                    self.errors.record("tx_error", exc)
+                    self._stop.wait(ERROR_PAUSE_S)
 
     # ------------------------------------------------------------------ sending (any thread)
     def is_muted(self) -> bool:
@@ -203,6 +233,11 @@ class ScamperLink:
         self.counts["sent"] += 1
         return "sent"
 
+    def _log_sent(self, mavmsg: Any) -> None:
+        """pymavlink's send callback: the bytes just written go to the tlog."""
+        if self.tlog is not None:
+            self.tlog.record(mavmsg.get_msgbuf())
+
     def send_heartbeat(self) -> SendResult:
         """The GCS HEARTBEAT (ArduPilot's GCS failsafe watches it)."""
         return self.send("heartbeat_send", *_GCS_HEARTBEAT)
@@ -211,10 +246,42 @@ class ScamperLink:
         """SET_POSITION_TARGET_LOCAL_NED, body NED velocity sp = [vx m/s, vy right m/s, yaw rate cw rad/s]."""
         t_ms = int((time.monotonic() - self._t0) * 1000.0) & 0xFFFFFFFF
         vx, vy, r = (float(x) for x in sp)
-        return self.send(
+        result = self.send(
             "set_position_target_local_ned_send",
             t_ms, target[0], target[1], mavlink.MAV_FRAME_BODY_NED, TYPE_MASK_VEL_YAWRATE,
             0.0, 0.0, 0.0, vx, vy, 0.0, 0.0, 0.0, 0.0, 0.0, r,
+        )  # fmt: skip
+        if result == "sent":
+            self.counts["setpoint_sent"] += 1
+        return result
+
+    def send_vision(self, v: VisionSample) -> SendResult:
+        """VISION_POSITION_ESTIMATE (msg 102): NED m, rad, usec on time.monotonic() (scamper_nav).
+
+        covariance and reset_counter are MAVLink 2 extensions: pymavlink's MAVLink 1 dialects (the
+        default until the vehicle speaks MAVLink 2) lack reset_counter, and a MAVLink 1 frame carries
+        neither (ArduPilot then reads zeros: its VISO_*_M_NSE noise, no reset)."""
+        args: list[Any] = [v.usec, v.x, v.y, v.z, v.roll, v.pitch, v.yaw, list(POSE_UNKNOWN_COVARIANCE)]
+        if "reset_counter" in inspect.signature(self.conn.mav.vision_position_estimate_send).parameters:
+            args.append(v.reset_counter)
+        result = self.send("vision_position_estimate_send", *args)
+        if result == "sent":
+            self.counts["vision_sent"] += 1
+        return result
+
+    def send_origin(self, target: tuple[int, int], origin: LabOrigin) -> SendResult:
+        """SET_GPS_GLOBAL_ORIGIN (msg 48) with the lab origin, time_usec 0 (unknown)."""
+        lat, lon, alt = origin.as_mavlink()
+        result = self.send("set_gps_global_origin_send", target[0], lat, lon, alt, 0)
+        if result == "sent":
+            self.counts["origin_sent"] += 1
+        return result
+
+    def request_message(self, target: tuple[int, int], msg_id: int) -> SendResult:
+        """MAV_CMD_REQUEST_MESSAGE (512) for message `msg_id` (MAVLink common.xml; GCS_MAVLINK handles it)."""
+        return self.send(
+            "command_long_send", target[0], target[1], mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+            float(msg_id), 0, 0, 0, 0, 0, 0,
         )  # fmt: skip
 
     def send_command(

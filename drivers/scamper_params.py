@@ -39,6 +39,7 @@ from flightstack.drivers.scamper_link import (
     send_gcs_heartbeat,
     wait_vehicle_heartbeat,
 )
+from flightstack.drivers.scamper_nav import LabOrigin
 
 mavlink = mavutil.mavlink
 
@@ -184,6 +185,76 @@ def probe_parameters(
     try:
         probe, target = wait_vehicle_heartbeat(conn, config)
         return probe, read_parameters(conn, target, names, enough=enough, **kw)
+    finally:
+        with contextlib.suppress(OSError):
+            conn.close()
+
+
+@dataclass(frozen=True)
+class OriginProbe:
+    """What the vehicle said of its EKF origin: GPS_GLOBAL_ORIGIN (degE7, degE7, mm) or None."""
+
+    reported: tuple[int, int, int] | None
+    sends: int  # SET_GPS_GLOBAL_ORIGIN sent
+    elapsed_s: float
+
+
+ORIGIN_PROBE_S = 2.0  # preflight's wait for GPS_GLOBAL_ORIGIN (s)
+ORIGIN_RESEND_S = 0.5
+
+
+def confirm_origin(conn: Any, target: tuple[int, int], origin: LabOrigin, timeout_s: float) -> OriginProbe:
+    """Set the EKF origin (SET_GPS_GLOBAL_ORIGIN: ArduPilot takes it only while it has none,
+    ``GCS_MAVLINK::set_ekf_origin``; nothing moves) and ask for it back (MAV_CMD_REQUEST_MESSAGE 49) every
+    ORIGIN_RESEND_S until a GPS_GLOBAL_ORIGIN from `target` arrives or `timeout_s` passed; never raises for
+    the network."""
+    t0 = time.monotonic()
+    lat, lon, alt = origin.as_mavlink()
+    sends, next_send = 0, t0
+    while (now := time.monotonic()) - t0 < timeout_s:
+        if now >= next_send:
+            next_send = now + ORIGIN_RESEND_S
+            with contextlib.suppress(OSError):
+                conn.mav.set_gps_global_origin_send(target[0], lat, lon, alt, 0)
+                sends += 1
+                conn.mav.command_long_send(
+                    target[0], target[1], mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+                    float(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN), 0, 0, 0, 0, 0, 0,
+                )  # fmt: skip
+        try:
+            msg = conn.recv_match(type="GPS_GLOBAL_ORIGIN", blocking=True, timeout=RX_WAIT_S)
+        except (OSError, ValueError):
+            msg = None
+        if msg is not None and (msg.get_srcSystem(), msg.get_srcComponent()) == target:
+            reported = (int(msg.latitude), int(msg.longitude), int(msg.altitude))
+            return OriginProbe(reported, sends, time.monotonic() - t0)
+    return OriginProbe(None, sends, time.monotonic() - t0)
+
+
+@dataclass(frozen=True)
+class VehicleProbe:
+    """`probe_vehicle`'s answer: heartbeat, parameters, origin."""
+
+    heartbeat: HeartbeatProbe
+    params: ParamRead
+    origin: OriginProbe
+
+
+def probe_vehicle(
+    config: ScamperConfig,
+    names: Sequence[str],
+    *,
+    enough: Enough | None = None,
+    origin_timeout_s: float = ORIGIN_PROBE_S,
+) -> VehicleProbe:
+    """`probe_parameters`, then `confirm_origin` with the configured lab origin, on one connection
+    (nothing armed, no mode changed); raises ScamperLinkError when no heartbeat comes in time."""
+    conn = open_connection(config)
+    try:
+        probe, target = wait_vehicle_heartbeat(conn, config)
+        read = read_parameters(conn, target, names, enough=enough)
+        origin = LabOrigin(config.origin_lat_deg, config.origin_lon_deg, config.origin_alt_m)
+        return VehicleProbe(probe, read, confirm_origin(conn, target, origin, origin_timeout_s))
     finally:
         with contextlib.suppress(OSError):
             conn.close()

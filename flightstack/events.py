@@ -44,7 +44,8 @@ MocapKind = Literal["reader_join_timeout", "reader_error", "reader_recovered", "
 ScamperKind = Literal[
     "connected", "disarm_skipped_muted", "disarm_failed", "no_command_needed",
     "ack_lost_confirmed_by_heartbeat", "ack_contradicted_by_heartbeat", "command_resent", "link_lost",
-    "link_restored", "mode_changed", "disarmed_by_robot", "armed_by_robot",
+    "link_restored", "mode_changed", "disarmed_by_robot", "armed_by_robot", "origin_confirmed",
+    "origin_forgotten",
 ]  # fmt: skip
 LabKind = Literal["auto_land_no_command", "battery_empty"]
 WorldKind = Literal["lockstep_timeout", "second session", "agent_left"]
@@ -156,6 +157,8 @@ KINDS: Mapping[str, KindInfo] = {
     "mode_changed": _w("the robot changed mode without this driver"),
     "disarmed_by_robot": _w("the robot disarmed itself"),
     "armed_by_robot": _w("the robot armed again by itself"),
+    "origin_confirmed": _i("the robot reported its EKF origin (GPS_GLOBAL_ORIGIN) after the driver set it"),
+    "origin_forgotten": _w("the robot rebooted or came back after a gap: its EKF origin is set again"),
     # the simulated lab's drone model (sim_backend/lab.py; source "lab", mission clock)
     "auto_land_no_command": _w("no command too long: the modelled drone lands by itself"),
     "battery_empty": _w("the modelled battery is empty: the drone lands"),

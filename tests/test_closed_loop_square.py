@@ -82,7 +82,8 @@ def test_closed_loop_square_lap() -> None:
             )
         )
         src.start()
-        drv = ScamperDriver(ScamperConfig(url=rover.url, heartbeat_timeout_s=3.0, stream_hz=20.0))
+        cfg = ScamperConfig(url=rover.url, heartbeat_timeout_s=3.0, stream_hz=20.0)
+        drv = ScamperDriver(cfg, pose_source=lambda: src.latest("target"))
         drv.connect()
 
         res = drive_square(drv, src, LAW, LAW.lap_time, rate_hz=CONTROL_HZ, link_alive=drv.link_alive)

@@ -323,8 +323,10 @@ def rover() -> Iterator[Any]:
 
 def scamper(emu: Any) -> Any:
     from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
+    from tests.robot_pose import still_pose
 
-    return ScamperDriver(ScamperConfig(url=emu.url, heartbeat_timeout_s=3.0, ack_timeout_s=0.5))
+    cfg = ScamperConfig(url=emu.url, heartbeat_timeout_s=3.0, ack_timeout_s=0.5)
+    return ScamperDriver(cfg, pose_source=still_pose())
 
 
 def test_scamper_threads_survive_send_receive_and_handler_errors(
@@ -427,7 +429,10 @@ def test_scamper_mute_set_before_connect_and_lifted(rover: Any) -> None:
     from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
 
     flag = [False]
-    drv = ScamperDriver(ScamperConfig(url=rover.url, heartbeat_timeout_s=3.0), muted=lambda: flag[0])
+    from tests.robot_pose import still_pose
+
+    cfg = ScamperConfig(url=rover.url, heartbeat_timeout_s=3.0)
+    drv = ScamperDriver(cfg, muted=lambda: flag[0], pose_source=still_pose())
     drv.connect()
     try:
         flag[0] = True

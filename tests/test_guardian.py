@@ -70,8 +70,11 @@ for d in drones:
     d.connect()
 robot = None
 if a["robot"]:
+    from flightstack.hal import StampedPose
+    from flightstack.paper.geometry import Pose
+    still = Pose.make([0.0, 0.0, 0.0], 0.0)  # the robot's motion-capture pose (tests/robot_pose.py)
     robot = ScamperDriver(ScamperConfig(url=a["robot"], heartbeat_timeout_s=3.0, ack_timeout_s=0.5),
-                          muted=g.taken_over)
+                          muted=g.taken_over, pose_source=lambda: StampedPose(time.monotonic(), still))
     robot.connect()
 g.arm()
 ups = [threading.Thread(target=d.takeoff, daemon=True) for d in drones]

@@ -31,6 +31,7 @@ from flightstack.drivers.scamper import (
 from flightstack.hal import GroundRobot
 from flightstack.sim_backend.emulators.mavlink_rover import HOLD, MavlinkRoverEmulator
 from tests.conftest import Bound
+from tests.robot_pose import still_pose
 
 mavlink = mavutil.mavlink
 SET_MODE = mavlink.MAV_CMD_DO_SET_MODE  # 176
@@ -58,11 +59,23 @@ def emu() -> Iterator[MavlinkRoverEmulator]:
 
 def make_driver(emu: MavlinkRoverEmulator, **kw: float) -> ScamperDriver:
     cfg = ScamperConfig(url=emu.url, heartbeat_timeout_s=kw.pop("heartbeat_timeout_s", 3.0), **kw)
-    return ScamperDriver(cfg)
+    return ScamperDriver(cfg, pose_source=still_pose())
+
+
+ORIGIN_KINDS = (
+    "origin_confirmed",
+    "origin_forgotten",
+)  # the origin's own events: tests/test_scamper_extnav.py
 
 
 def kinds(drv: ScamperDriver) -> list[str]:
-    return [e.kind for e in drv.events]
+    """The driver's events but the EKF origin's."""
+    return [e.kind for e in drv.events if e.kind not in ORIGIN_KINDS]
+
+
+def mode_arm_commands(emu: MavlinkRoverEmulator) -> list[tuple[int, float, int]]:
+    """The COMMAND_LONGs the emulator got but the driver's REQUEST_MESSAGE for the EKF origin."""
+    return [c for c in emu.commands if c[0] != mavlink.MAV_CMD_REQUEST_MESSAGE]
 
 
 def details(drv: ScamperDriver, kind: str) -> list[str]:
@@ -71,7 +84,7 @@ def details(drv: ScamperDriver, kind: str) -> list[str]:
 
 def sent(emu: MavlinkRoverEmulator, command: int, param: float | None = None) -> int:
     """How many times the emulator received `command` (with that param, if given)."""
-    return sum(c == command and (param is None or p == param) for c, p, _ in emu.commands)
+    return sum(c == command and (param is None or p == param) for c, p, _ in mode_arm_commands(emu))
 
 
 def test_connect_sets_guided_and_arms_at_ardupilots_1hz_heartbeat() -> None:
@@ -86,7 +99,7 @@ def test_connect_sets_guided_and_arms_at_ardupilots_1hz_heartbeat() -> None:
         t_connect = time.monotonic() - t0
         try:
             assert emu.mode == ROVER_GUIDED_MODE and emu.armed
-            assert emu.commands == [(SET_MODE, 15.0, ACCEPTED), (ARM_DISARM, 1.0, ACCEPTED)]
+            assert mode_arm_commands(emu) == [(SET_MODE, 15.0, ACCEPTED), (ARM_DISARM, 1.0, ACCEPTED)]
             assert drv.link_alive()
             st = drv.robot_state()
             assert st.custom_mode == ROVER_GUIDED_MODE and st.armed and st.ready and st.age_s < 1.5
@@ -94,7 +107,7 @@ def test_connect_sets_guided_and_arms_at_ardupilots_1hz_heartbeat() -> None:
             assert t_connect < 3.0  # two changes, each confirmed by a heartbeat <= 1 s after its ACK
         finally:
             drv.close()
-        assert not emu.armed and emu.commands[-1] == (ARM_DISARM, 0.0, ACCEPTED)  # close() disarms
+        assert not emu.armed and mode_arm_commands(emu)[-1] == (ARM_DISARM, 0.0, ACCEPTED)  # close() disarms
         assert kinds(drv) == ["connected"]
         drv.close()  # idempotent
 
@@ -286,7 +299,7 @@ def test_duplicate_acks_are_harmless(emu: MavlinkRoverEmulator) -> None:
     assert wait_for(lambda: emu.velocity[0] == pytest.approx(0.2), 1.0)
     drv.close()
     assert emu.acks_sent == [(SET_MODE, ACCEPTED)] * 2 + [(ARM_DISARM, ACCEPTED)] * 4
-    assert [c for c, _, _ in emu.commands] == [SET_MODE, ARM_DISARM, ARM_DISARM]  # each sent once
+    assert [c for c, _, _ in mode_arm_commands(emu)] == [SET_MODE, ARM_DISARM, ARM_DISARM]  # each sent once
     assert not emu.armed and emu.velocity == (0.0, 0.0, 0.0)
     assert kinds(drv) == ["connected"]
 
@@ -334,10 +347,10 @@ def test_already_guided_and_armed_sends_nothing(emu: MavlinkRoverEmulator) -> No
     emu.pilot_override(mode=ROVER_GUIDED_MODE, armed=True)
     drv = make_driver(emu)
     drv.connect()
-    assert emu.commands == []
+    assert mode_arm_commands(emu) == []
     assert kinds(drv) == ["no_command_needed", "no_command_needed", "connected"]
     drv.close()
-    assert emu.commands == [(ARM_DISARM, 0.0, ACCEPTED)] and not emu.armed
+    assert mode_arm_commands(emu) == [(ARM_DISARM, 0.0, ACCEPTED)] and not emu.armed
 
 
 def test_robot_leaving_guided_mid_run_is_reported(emu: MavlinkRoverEmulator) -> None:
@@ -391,5 +404,5 @@ def test_companion_alone_is_no_robot(emu: MavlinkRoverEmulator) -> None:
     drv = ScamperDriver(cfg)
     with pytest.raises(ScamperLinkError):
         drv.connect()
-    assert emu.commands == []
+    assert mode_arm_commands(emu) == []
     drv.close()

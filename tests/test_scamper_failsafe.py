@@ -26,6 +26,7 @@ from flightstack.sim_backend.emulators.mavlink_rover import (
     MavlinkRoverEmulator,
     RoverParams,
 )
+from tests.robot_pose import still_pose
 
 pytestmark = pytest.mark.system
 mavlink = mavutil.mavlink
@@ -61,9 +62,19 @@ def config(emu: MavlinkRoverEmulator) -> ScamperConfig:
 def test_preflight_passes_the_lab_settings_and_changes_nothing() -> None:
     with rover() as emu:
         rows = robot_rows(config(emu))
-        assert [(r.check, r.status) for r in rows] == [("heartbeat", "PASS"), ("GCS failsafe", "PASS")], rows
+        assert [(r.check, r.status) for r in rows[:2]] == [("heartbeat", "PASS"), ("GCS failsafe", "PASS")], (
+            rows
+        )
         assert "FS_ACTION 2 (Hold)" in rows[1].detail and "SYSID_MYGCS 255 = our system id" in rows[1].detail
-        assert emu.mode == HOLD and not emu.armed and emu.commands == []  # only read, nothing set
+        # the rows of drivers/scamper_vehicle.py and the origin: tests/test_scamper_extnav.py
+        assert [r.check for r in rows[2:]] == [
+            "external navigation",
+            "GUIDED timeout",
+            "kinematics",
+            "EKF origin",
+        ]
+        assert emu.mode == HOLD and not emu.armed  # read, and the origin asked for: nothing armed or moded
+        assert {c for c, _, _ in emu.commands} <= {mavlink.MAV_CMD_REQUEST_MESSAGE}, emu.commands
 
 
 def test_preflight_reads_newer_firmware_names() -> None:
@@ -248,7 +259,7 @@ def test_failsafe_rtl_drives_home() -> None:
 def test_the_driver_streaming_normally_never_trips_it_and_a_muted_one_does() -> None:
     """ScamperDriver's 1 Hz heartbeats keep a 2 + 1 s failsafe quiet; muted (guardian takeover), it acts."""
     with rover(RoverParams(**FAST)) as emu:
-        drv = ScamperDriver(config(emu))
+        drv = ScamperDriver(config(emu), pose_source=still_pose())
         muted = False
         drv.set_muted(lambda: muted)
         drv.connect()

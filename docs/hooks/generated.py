@@ -175,6 +175,7 @@ WHERE = {
     "rows_cli": "simulated lab, through the CLI",
     "rows_processes": "agent processes (Zenoh)",
     "rows_lab_bus": "Zenoh on loopback",
+    "rows_robot_preflight": "preflight, a MAVLink-spec rover on loopback",
 }
 """Where a row flies, by its module (the other modules fly the emulated lab)."""
 CONSTANT = re.compile(r"\b[A-Z][A-Z0-9_]{2,}\b")

@@ -95,8 +95,8 @@ def cmd_target(args: argparse.Namespace) -> int:
     sc = scamper_config(mission)
     assert sc is not None
     mocap = MocapPoseSource(mocap_config(mission))
-    robot = ScamperDriver(sc)
     body = body_names(mission)["target"]
+    robot = ScamperDriver(sc, pose_source=lambda: mocap.latest(body))
     # if this process dies or stalls, the guardian stops and disarms the robot (drivers/guardian.py)
     guardian = Guardian.start(GuardianConfig.for_devices([], sc.url))
     robot.set_muted(guardian.taken_over)

@@ -58,13 +58,21 @@ class MocapHardwareSpec(_Strict):
 
 
 class TargetHardwareSpec(_Strict):
-    """The ground robot over MAVLink (`drivers/scamper.py`); `url` is a pymavlink connection string."""
+    """The ground robot over MAVLink (`drivers/scamper.py`); `url` is a pymavlink connection string.
+    `origin_*`: the EKF origin the driver sets (WGS84 degrees, m above MSL; docs/drivers.md "Ground
+    robot"); `vision_hz`, `vision_max_age_s`: the motion-capture pose sent as external navigation."""
 
     url: str = Field(min_length=1)
     heartbeat_timeout_s: Positive = 5.0
     ack_timeout_s: Positive = 2.0
     stream_hz: Annotated[float, Field(ge=1, le=100)] = 10.0
     link_timeout_s: Positive = 3.0
+    origin_lat_deg: Annotated[float, Field(ge=-90, le=90)] = 52.0
+    origin_lon_deg: Annotated[float, Field(ge=-180, le=180)] = 4.0
+    origin_alt_m: Annotated[float, Field(ge=-1000, le=10000)] = 0.0
+    origin_timeout_s: Positive = 5.0
+    vision_hz: Annotated[float, Field(ge=4, le=50)] = 20.0
+    vision_max_age_s: Annotated[float, Field(gt=0, le=1)] = 0.2
 
 
 class HardwareSpec(_Strict):

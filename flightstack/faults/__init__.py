@@ -44,6 +44,7 @@ ROW_MODULES: list[str] = [
     "flightstack.faults.rows_processes",
     "flightstack.faults.rows_lab",
     "flightstack.faults.rows_lab_kills",
+    "flightstack.faults.rows_robot_preflight",
 ]
 """Modules whose `ROWS` make up the table, in this order."""
 

@@ -126,6 +126,10 @@ class DeviceFiles:
         """Drone `drone_id`'s traffic (format: flightstack.drivers.tello.traffic)."""
         return Path(self.out) / DEVICES_DIR / f"tello-{drone_id}_{self.session}.jsonl"
 
+    def scamper(self) -> Path:
+        """The ground robot's MAVLink link, both directions (pymavlink .tlog: drivers/scamper_tlog.py)."""
+        return Path(self.out) / DEVICES_DIR / f"scamper_{self.session}.tlog"
+
 
 class RunDirError(ValueError):
     """A file of a run directory is missing or damaged: `path` names it, `what` says what is wrong (one
