@@ -149,7 +149,10 @@ class ScamperLink:
         ``scamper-tx`` (GCS HEARTBEAT at 1 Hz, on_stream_tick at ``stream_hz``, each further tick at its
         own period)."""
         every: list[Tick] = [
-            (GCS_HEARTBEAT_PERIOD_S, self.send_heartbeat),
+            (
+                GCS_HEARTBEAT_PERIOD_S,
+                lambda: self.send_heartbeat(),
+            ),  # late-bound: a replaced one takes effect
             (1.0 / self.config.stream_hz, on_stream_tick),
             *ticks,
         ]

@@ -338,7 +338,6 @@ class EmulatedLab:
             heartbeat_hz=5.0,
             radio=self.radios.get("rover"),
             links=self.links.get("rover"),
-            requires_position_estimate=False,  # until the driver streams vision positions
         )
         self.natnet.set_pose_provider("scamper", self._rover_pose)
         for name, i in bodies.items():

@@ -65,9 +65,7 @@ def distance_to_square(p: np.ndarray, side: float) -> float:
     "passes again with a target law the rover can follow",
 )
 def test_closed_loop_square_lap() -> None:
-    rover = MavlinkRoverEmulator(
-        requires_position_estimate=False
-    )  # until the driver streams vision positions
+    rover = MavlinkRoverEmulator()
     natnet = NatNetEmulator(rate_hz=MOCAP_HZ)
     src: MocapPoseSource | None = None
     drv: ScamperDriver | None = None

@@ -138,9 +138,7 @@ def lab(tmp_path: Path) -> Iterator[Lab]:
         },
         rate_hz=100.0,
     )
-    rover = MavlinkRoverEmulator(
-        heartbeat_hz=5.0, requires_position_estimate=False
-    )  # until the driver streams vision positions
+    rover = MavlinkRoverEmulator(heartbeat_hz=5.0)
     natnet.set_pose_provider("scamper", lambda: rover_mocap_pose(rover))  # the robot is where the rover is
     for i, body in ((1, "tello_a"), (2, "tello_b")):  # each drone is where its emulator flies it
         natnet.set_pose_provider(body, lambda e=tellos[i], s=DRONE_STARTS[i]: tello_mocap_pose(e, s))

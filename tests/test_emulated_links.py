@@ -261,9 +261,7 @@ def test_the_rover_acts_on_mavlink_commands_late_by_its_robot_link() -> None:
     from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
 
     links = DeviceLinks({"robot": LinkSpec(latency_s=0.1, jitter_s=0.02)}, 0, 0, "rover")
-    rover = MavlinkRoverEmulator(
-        heartbeat_hz=5.0, links=links, requires_position_estimate=False
-    )  # until the driver streams vision positions
+    rover = MavlinkRoverEmulator(heartbeat_hz=5.0, links=links)
     gcs = mavutil.mavlink_connection(rover.url, source_system=255, source_component=190)
     sent: dict[int, float] = {}
     try:

@@ -306,9 +306,7 @@ def test_normal_finish_guardian_exits_and_sends_nothing(
 def test_parent_killed_guardian_stops_and_disarms_robot(
     tmp_path: Path, two_tellos: list[TelloEmulator]
 ) -> None:
-    with MavlinkRoverEmulator(
-        heartbeat_hz=5.0, requires_position_estimate=False
-    ) as rover:  # until the driver streams vision positions
+    with MavlinkRoverEmulator(heartbeat_hz=5.0) as rover:
         child = Child(tmp_path, two_tellos[:1], rover.url, "fly")
         try:
             child.wait_line("flying", timeout=15.0)

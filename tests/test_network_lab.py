@@ -216,9 +216,7 @@ def test_natnet_and_rover_receive_what_their_radios_decided() -> None:
     )
 
     rover_radio = DeviceRadio(crowded, 0, "rover", {"uplink": "rover", "downlink": "rover"})
-    rover = MavlinkRoverEmulator(
-        heartbeat_hz=20.0, radio=rover_radio, requires_position_estimate=False
-    )  # until the driver streams vision positions
+    rover = MavlinkRoverEmulator(heartbeat_hz=20.0, radio=rover_radio)
     client = mavutil.mavlink_connection(rover.url, source_system=255)
     try:
         heard, t_end = 0, time.monotonic() + 2.0

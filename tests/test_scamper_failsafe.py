@@ -45,9 +45,9 @@ def wait_for(pred: Callable[[], bool], timeout: float, step: float = 0.01) -> bo
 
 @contextmanager
 def rover(params: RoverParams | None = None) -> Iterator[MavlinkRoverEmulator]:
-    emu = MavlinkRoverEmulator(
-        heartbeat_hz=10.0, params=params, requires_position_estimate=False
-    )  # until the driver streams vision positions
+    # the GCS failsafe alone: the bare ground station below sends no position estimate, so the emulator's
+    # EKF rule (no GUIDED, and a hold 1 s after the last pose) is off; tests/test_rover_ardupilot.py has it
+    emu = MavlinkRoverEmulator(heartbeat_hz=10.0, params=params, requires_position_estimate=False)
     try:
         yield emu
     finally:
