@@ -345,7 +345,7 @@ def _build(
         supervisor=supervisor,
         drones=drones,
         agents=agents,
-        target=TargetDriver(mission.target, backend) if mission.target.motion == "square" else None,
+        target=TargetDriver(mission.target_law(), backend) if mission.target.motion == "square" else None,
         ticker=SafetyTickTimer(safe, backend.heartbeat),
         status=StatusPublisher(bus, mode),
         g_d=np.array([a.cfg.g_d.as_vector() for a in agents]),

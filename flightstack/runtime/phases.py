@@ -8,9 +8,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from flightstack.config.mission import TargetSpec
 from flightstack.hal import Backend, Clock, FlightPhase
-from flightstack.paper.target_law import SquareLaw
+from flightstack.paper.target_law import TargetLaw
 
 TAKEOFF_TIMEOUT_S = 25.0  # > the Tello driver's own 20 s bound, so its outcome is collected first
 LAND_TIMEOUT_S = 20.0  # > the Tello's own 15 s auto-land, so a drone that lost its link is seen down
@@ -18,11 +17,10 @@ POSE_WAIT_S = 3.0  # before takeoff: how long a drone's motion-capture pose may 
 
 
 class TargetDriver:
-    """Drives the ground robot on the paper's square law from its motion-capture pose (sim_lab)."""
+    """Drives the ground robot on its square law (Mission.target_law) from its motion-capture pose."""
 
-    def __init__(self, target: TargetSpec, backend: Backend) -> None:
-        sq = target.square
-        self.law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, target.initial_pose.theta)
+    def __init__(self, law: TargetLaw, backend: Backend) -> None:
+        self.law = law
         self.robot = backend.target()
         self.poses = backend.pose_source()
 
