@@ -293,6 +293,8 @@ def take_off(f: Fleet) -> None:
     for d in drones.values():
         d.connect()
     wait_for_poses(f)
+    if f.target is not None:  # the robot must move as commanded before anything flies (motion_check)
+        f.target.check_moves(clock, f.loop.dt_s, f.ticker.tick)
     for d in drones.values():  # on real drones each returns at once: they climb together
         d.takeoff()
 
