@@ -6,14 +6,11 @@ Times in seconds on the backend's clock (virtual in simulation, so a wait integr
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable
 
 from flightstack.hal import Backend, Clock, FlightPhase
 from flightstack.paper.target_law import TargetLaw
-from flightstack.runtime.motion_check import check_robot_moves
-
-_log = logging.getLogger(__name__)
+from flightstack.runtime.motion_check import MotionCheck, check_robot_moves
 
 TAKEOFF_TIMEOUT_S = 25.0  # > the Tello driver's own 20 s bound, so its outcome is collected first
 LAND_TIMEOUT_S = 20.0  # > the Tello's own 15 s auto-land, so a drone that lost its link is seen down
@@ -37,19 +34,15 @@ class TargetDriver:
         self.poses = backend.pose_source()
         self.fence_xy = fence_xy
 
-    def check_moves(self, clock: Clock, step_s: float, each: Callable[[], None] | None = None) -> None:
+    def check_moves(
+        self, clock: Clock, step_s: float, each: Callable[[], None] | None = None
+    ) -> MotionCheck | None:
         """The motion check before takeoff (motion_check.check_robot_moves) when this driver has a robot
-        and a fence to check it in; raises RuntimeError (one line) when the robot did not move as
-        commanded."""
+        and a fence to check it in (None when not checked); raises RuntimeError (one line) when the robot
+        did not move as commanded."""
         if self.robot is None or self.fence_xy is None:
-            return
-        res = check_robot_moves(self.robot, self.poses, clock, step_s, *self.fence_xy, each)
-        _log.info(
-            "robot motion check passed: commanded %+.3f m, moved %+.3f m along, %+.3f m sideways",
-            res.commanded_m,
-            res.along_m,
-            res.across_m,
-        )
+            return None
+        return check_robot_moves(self.robot, self.poses, clock, step_s, *self.fence_xy, each)
 
     def tick(self, t_mission: float) -> None:
         own = self.poses.latest("target")

@@ -294,7 +294,19 @@ def take_off(f: Fleet) -> None:
         d.connect()
     wait_for_poses(f)
     if f.target is not None:  # the robot must move as commanded before anything flies (motion_check)
-        f.target.check_moves(clock, f.loop.dt_s, f.ticker.tick)
+        try:
+            moved = f.target.check_moves(clock, f.loop.dt_s, f.ticker.tick)
+        except RuntimeError as exc:
+            f.log.record(clock.now(), None, "robot_refuse_takeoff", str(exc))
+            raise
+        if moved is not None:
+            f.log.record(
+                clock.now(),
+                None,
+                "robot_moved",
+                f"nudged {moved.commanded_m:+.3f} m: {moved.along_m:+.3f} m along, {moved.across_m:+.3f} m "
+                "sideways",
+            )
     for d in drones.values():  # on real drones each returns at once: they climb together
         d.takeoff()
 
