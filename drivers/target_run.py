@@ -106,7 +106,7 @@ def drive_square(
 
 def lap_summary(res: TargetRunResult, law: TargetLaw) -> str:
     laps = res.duration_s / law.lap_time
-    expected = law.speed * res.duration_s
+    expected = law.distance(res.duration_s)
     err = 100.0 * (res.path_length_m - expected) / expected if expected > 0 else math.nan
     return (
         f"{laps:.2f} laps in {res.duration_s:.1f} s: path {res.path_length_m:.3f} m measured, "

@@ -35,9 +35,16 @@ def test_lap_length_mean_speed_and_corner_rounding_closed_forms(R: float) -> Non
     closed = 4.0 - (8.0 - 2.0 * math.pi) * R
     assert law.path_length == pytest.approx(closed, abs=1e-12)
     assert length == pytest.approx(closed, abs=1e-6)  # the sampled path's length: chords of the arcs
-    assert law.path_length / law.lap_time == pytest.approx(0.1, abs=1e-12)  # mean speed
+    assert law.distance(law.lap_time) == pytest.approx(closed, abs=1e-12)
+    assert law.distance(2.5 * law.lap_time) == pytest.approx(2 * closed + law.distance(0.5 * law.lap_time))
+    moving = law.lap_time - law.turning_time  # the time it moves: the mean speed then is the paper's
+    assert law.path_length / moving == pytest.approx(0.1, abs=1e-12)
+    speeds = {round(s.v, 12) for s in law.segments} - {0.0}
+    assert speeds == {0.1}  # every segment that moves, at 0.1 m/s
     if R == 0.0:
-        assert law.lap_time == pytest.approx(40.0)  # the paper's lap time
+        assert law.lap_time == pytest.approx(40.0 + 2 * math.pi / 0.5)  # + four turns in place at 0.5 rad/s
+    else:
+        assert law.turning_time == 0.0 and law.lap_time == pytest.approx(closed / 0.1)
     # one rotation per lap, the path closes, it stays on or inside the square
     heading = np.unwrap(path[:, 2])
     assert heading[-1] - heading[0] == pytest.approx(2 * math.pi, abs=1e-9)
@@ -85,8 +92,8 @@ def test_a_unicycle_driven_by_the_commands_tracks_the_reference(R: float) -> Non
     exact = _track(law, tau=0.0)
     lagged = _track(law, tau=0.2)  # the simulated lab's robot: 0.2 s first-order response
     print(f"R {R} m: max tracking error {exact * 1000:.1f} mm exact, {lagged * 1000:.1f} mm with a 0.2 s lag")
-    assert exact < 0.01  # measured 6.1 mm (R = 0: the 20 Hz hold at the corners), 1.0 mm (R = 0.2)
-    assert lagged < 0.04  # measured 27 mm (R = 0: stopping from 0.146 m/s behind a lag), 15 mm (R = 0.2)
+    assert exact < 0.01  # measured 4.7 mm (R = 0: the 20 Hz hold at the corners), 1.0 mm (R = 0.2)
+    assert lagged < 0.04  # measured 21 mm (R = 0: stopping from 0.1 m/s behind a lag), 15 mm (R = 0.2)
 
 
 def test_the_paper_law_is_refused_for_a_non_holonomic_robot() -> None:

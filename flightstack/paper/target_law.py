@@ -44,6 +44,10 @@ class SquareLaw:
     def lap_time(self) -> float:
         return 4.0 * self.side / self.speed
 
+    def distance(self, t: float) -> float:
+        """Path length (m) of the reference over [0, t] (s): speed · t."""
+        return self.speed * t
+
     def reference(self, t: float) -> tuple[Pose, np.ndarray]:
         """(g_d(t), world velocity [ẋ, ẏ, 0, ω_d]) of the reference at time t (s)."""
         h = self.side / 2.0
@@ -104,13 +108,16 @@ class UnicycleSquareLaw:
     that commands only forward speed and turn rate.
 
     Reference path, heading along the path (θ_d = direction of travel, so one rotation per lap):
-    - `differential` (turn_radius = 0): the four sides from the corner (−side/2, −side/2), each followed by
-      a turn in place of π/2 at `turn_rate` (rad/s). The lap keeps the paper's lap time 4·side/speed, so the
-      straights are driven at v_s = side / (side/speed − (π/2)/turn_rate) and the mean speed over a lap
-      (path length / lap time) is `speed`. Path length per lap: 4·side.
+    - `differential` (turn_radius = 0): the four sides from the corner (−side/2, −side/2), driven at
+      `speed` (the paper's "moves at 0.1 m/s"), each followed by a turn in place of π/2 at `turn_rate`
+      (rad/s). Path length per lap 4·side; lap time 4·side/speed + 2π/turn_rate (52.6 s for the paper's
+      square at 0.5 rad/s): the turns add their time, so the mean speed over the time it moves is `speed`
+      and over the whole lap 4·side / lap time (0.076 m/s). Keeping the paper's 40 s lap instead would
+      drive the sides at 0.146 m/s, half as fast again as the paper's robot.
     - `ackermann` (turn_radius = R > 0): each corner rounded by the quarter circle of radius R tangent to
       both sides, driven at `speed` throughout. Path length per lap 4·side − (8 − 2π)·R, lap time
-      length/speed; the path passes R(√2 − 1) ≤ R inside each corner. Starts at (−side/2 + R, −side/2).
+      length/speed (the mean speed is `speed`); the path passes R(√2 − 1) ≤ R inside each corner. Starts
+      at (−side/2 + R, −side/2).
 
     Tracking law (Kanayama, Kimura, Miyazaki, Noguchi, "A stable tracking control method for an autonomous
     mobile robot", IEEE ICRA 1990, eq. (4)), with the error e = [e_x, e_y, e_θ] of the reference pose
@@ -136,10 +143,8 @@ class UnicycleSquareLaw:
             raise ValueError(
                 f"turn radius {self.turn_radius:g} m: must lie in [0, side/2 = {self.side / 2:g}] m"
             )
-        if self.turn_radius == 0.0 and not (math.pi / 2.0) / self.turn_rate < self.side / self.speed:
-            raise ValueError(
-                f"turning in place at {self.turn_rate:g} rad/s takes longer than a side at {self.speed:g} m/s"
-            )
+        if not self.turn_rate > 0.0:
+            raise ValueError(f"turn rate {self.turn_rate:g} rad/s: must be > 0")
 
     @property
     def path_length(self) -> float:
@@ -147,9 +152,14 @@ class UnicycleSquareLaw:
         return 4.0 * self.side - (8.0 - 2.0 * math.pi) * self.turn_radius
 
     @property
+    def turning_time(self) -> float:
+        """Seconds per lap spent turning in place: 2π/turn_rate (differential), 0 (ackermann)."""
+        return 2.0 * math.pi / self.turn_rate if self.turn_radius == 0.0 else 0.0
+
+    @property
     def lap_time(self) -> float:
-        """Seconds per lap: path_length / speed (4·side/speed, the paper's, with corners turned in place)."""
-        return self.path_length / self.speed
+        """Seconds per lap: path_length / speed + turning_time."""
+        return self.path_length / self.speed + self.turning_time
 
     @property
     def segments(self) -> tuple[_Segment, ...]:
@@ -165,10 +175,8 @@ class UnicycleSquareLaw:
         t, th = 0.0, 0.0
         x, y = -h + R, -h
         if R == 0.0:
-            t_turn = (math.pi / 2.0) / self.turn_rate
-            v_s = self.side / (self.side / self.speed - t_turn)
-            straight = (self.side / v_s, v_s, 0.0)
-            corner = (t_turn, 0.0, self.turn_rate)
+            straight = (self.side / self.speed, self.speed, 0.0)
+            corner = ((math.pi / 2.0) / self.turn_rate, 0.0, self.turn_rate)
         else:
             straight = ((self.side - 2.0 * R) / self.speed, self.speed, 0.0)
             corner = ((math.pi / 2.0) * R / self.speed, self.speed, self.speed / R)
@@ -193,6 +201,13 @@ class UnicycleSquareLaw:
                 break
         x, y, th = seg.at(min(max(tl - seg.t0, 0.0), seg.duration))
         return x, y, th + 2.0 * math.pi * laps, seg.v, seg.w
+
+    def distance(self, t: float) -> float:
+        """Path length (m) of the reference over [0, t] (s), t ≥ 0."""
+        laps = math.floor(t / self.lap_time)
+        tl = t - laps * self.lap_time
+        done = sum(s.v * min(max(tl - s.t0, 0.0), s.duration) for s in self.segments)
+        return laps * self.path_length + done
 
     def reference(self, t: float) -> tuple[Pose, np.ndarray]:
         """(g_d(t), world velocity [ẋ, ẏ, 0, ω_d]) of the reference at time t (s)."""
