@@ -1,7 +1,9 @@
 """`flightstack target MISSION`: drive the real ground robot on the paper's square law from motion capture.
 
 This is the paper's own set-up (Sec. 6): the robot's body velocity is computed on a computer from its
-motion-capture pose by eq. (scamper_vel) (`flightstack.paper.target_law.SquareLaw`) and sent over MAVLink.
+motion-capture pose by the mission's square law (`Mission.target_law`) and sent over MAVLink. On a
+non-holonomic robot (every ArduPilot Rover: a velocity set-point never moves it sideways) that is the
+unicycle law (`flightstack.paper.target_law.UnicycleSquareLaw`): forward speed v_x and yaw rate, v_y = 0.
 It runs on its own (a separate terminal or computer) while the drones fly their mission, or from a
 mission whose `hardware.target` is set.
 
@@ -19,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flightstack.hal import GroundRobot, PoseSource
-from flightstack.paper.target_law import SquareLaw
+from flightstack.paper.target_law import TargetLaw
 
 
 @dataclass
@@ -38,7 +40,7 @@ class TargetRunResult:
 def drive_square(
     robot: GroundRobot,
     poses: PoseSource,
-    law: SquareLaw,
+    law: TargetLaw,
     duration_s: float,
     body: str = "target",
     rate_hz: float = 20.0,
@@ -102,9 +104,9 @@ def drive_square(
     return res
 
 
-def lap_summary(res: TargetRunResult, law: SquareLaw) -> str:
+def lap_summary(res: TargetRunResult, law: TargetLaw) -> str:
     laps = res.duration_s / law.lap_time
-    expected = law.speed * res.duration_s
+    expected = law.distance(res.duration_s)
     err = 100.0 * (res.path_length_m - expected) / expected if expected > 0 else math.nan
     return (
         f"{laps:.2f} laps in {res.duration_s:.1f} s: path {res.path_length_m:.3f} m measured, "

@@ -26,7 +26,7 @@ SafetyKind = Literal[
     "pose_stale_land", "pose_error", "battery_refuse_takeoff", "pose_refuse_takeoff", "fence_refuse_takeoff",
     "battery_land", "target_lost_land", "link_lost", "drone_error", "command_after_land", "land_failed",
     "landed_by_drone", "emergency_stop", "emergency_stop_failed", "target_lost_hover", "land_all", "signal",
-    "takeoff", "takeoff_failed", "land", "climb_limited",
+    "takeoff", "takeoff_failed", "land", "climb_limited", "robot_moved", "robot_refuse_takeoff",
 ]  # fmt: skip
 RunKind = Literal[
     "end", "end_early", "end_exception", "compiled loop", "lock-step wait timed out", "safety tick", "landed",
@@ -87,6 +87,10 @@ KINDS: Mapping[str, KindInfo] = {
     "battery_refuse_takeoff": _w("takeoff refused: battery too low"),
     "pose_refuse_takeoff": _w("takeoff refused: no fresh pose"),
     "fence_refuse_takeoff": _w("takeoff refused: the drone stands beyond the hard fence"),
+    "robot_moved": _i(
+        "the ground robot, nudged before takeoff, moved as commanded (flightstack.runtime.motion_check)"
+    ),
+    "robot_refuse_takeoff": _w("takeoff refused: the ground robot did not move as commanded when nudged"),
     "battery_land": _w("battery below the landing level: the drone lands"),
     "target_lost_land": _w("the target unseen too long: every drone lands"),
     "link_lost": _w("the link to the device is lost (the safety layer: hover and land)"),

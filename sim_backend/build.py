@@ -1,7 +1,8 @@
 """Builds the ideal simulation backend (the `ideal` rig, backend sim_ideal) from a validated mission.
 
 The target follows the experiment's law inside the world: the paper simulation's Duffing-like field, or
-the paper experiment's square law (eq. scamper_vel) evaluated on the target's exact pose and the world's
+the paper experiment's square law (eq. scamper_vel, or the unicycle law for a non-holonomic robot: the
+rig's robot.kinematics) evaluated on the target's exact pose and the world's
 time. Each drone's exact camera uses the same camera model as its observer: the normalised image plane
 with the experiment's mount and offset when it names a camera, else the focal length of `camera:`.
 """
@@ -12,7 +13,6 @@ import numpy as np
 
 from flightstack.config.mission import Mission
 from flightstack.paper.geometry import Pose, compose, inverse
-from flightstack.paper.target_law import SquareLaw
 from flightstack.paper.target_motion import DuffingField, DuffingParams
 from flightstack.sim_backend.ideal import IdealSimBackend
 from flightstack.sim_backend.world import World
@@ -36,8 +36,7 @@ def build_ideal(mission: Mission) -> IdealSimBackend:
         prm = DuffingParams(**mission.target.duffing.model_dump())
         world.target_field = DuffingField(prm)  # a class, not a lambda: the compiled loop reads its prm
     else:  # the square law, on the world's clock (the reference starts at t = 0)
-        sq = mission.target.square
-        law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, mission.target.initial_pose.theta)
+        law = mission.target_law()  # the paper's (omni) or the unicycle law (Mission.target_law)
         world.target_field = lambda g: law.command(world.t, g)
     P0 = np.array(mission.target.feature_points, dtype=float)
     cams = {d.id: mission.camera_model(k) for k, d in enumerate(mission.drones)}

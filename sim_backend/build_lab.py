@@ -65,7 +65,14 @@ class LabSimBackend:
         self.links = links
         robot = ScamperSim(
             g_w0,
-            derive(RobotParams, r, rename={"max_speed_mps": "max_speed"}),
+            derive(
+                RobotParams,
+                r,
+                rename={"max_speed_mps": "max_speed"},
+                skip={"kinematics", "min_turn_radius_m"},
+                kinematics=mission.robot_kinematics(),
+                min_turn_radius_m=r.min_turn_radius_m or 0.0,
+            ),
             clock_now,
             links.get("robot", 0),
         )

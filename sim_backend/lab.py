@@ -329,6 +329,8 @@ class RobotParams:
     max_speed: float = 0.5  # m/s
     max_yaw_rate: float = 1.0  # rad/s
     command_timeout_s: float = 3.0  # stops without a fresh command (ArduPilot Rover behaviour)
+    kinematics: str = "omni"  # flightstack.paper.target_law.KINEMATICS
+    min_turn_radius_m: float = 0.0  # m, ackermann only
 
 
 _STILL = np.zeros(4)
@@ -336,7 +338,13 @@ _STILL = np.zeros(4)
 
 
 class ScamperSim:
-    """A holonomic ground robot (hal.GroundRobot) commanded by body velocity [v_x, v_y, 0, ω].
+    """A ground robot (hal.GroundRobot) commanded by body velocity [v_x, v_y, 0, ω].
+
+    `omni`: it follows [v_x, v_y, ω] (speed clamped). `differential`/`ackermann` (params.kinematics): it
+    never moves sideways; a set-point is taken as ArduPilot Rover takes one with velocity and yaw rate
+    (`GCS_MAVLINK_Rover::handle_set_position_target_local_ned`, Rover/GCS_MAVLink_Rover.cpp): forward
+    speed sign(v_x)·|(v_x, v_y)| at turn rate ω; an Ackermann robot's turn rate is further limited to
+    |v| / min_turn_radius_m (it cannot turn tighter, nor in place).
 
     With a `link` (the rig's `robot` link, not perfect) each command is acted on link.delay() s after it
     was sent, in order of arrival (jitter may let a later one overtake), or never when lost; the command
@@ -364,11 +372,15 @@ class ScamperSim:
 
     def send_body_velocity(self, V: np.ndarray) -> None:
         V = np.nan_to_num(np.asarray(V, dtype=float))
+        if self.p.kinematics != "omni":
+            V[0], V[1] = math.copysign(math.hypot(V[0], V[1]), V[0]), 0.0
         sp = math.hypot(V[0], V[1])
         if sp > self.p.max_speed:
             V[:2] *= self.p.max_speed / sp
         V[2] = 0.0
         V[3] = _clip(float(V[3]), self.p.max_yaw_rate)
+        if self.p.kinematics == "ackermann":
+            V[3] = _clip(float(V[3]), abs(float(V[0])) / self.p.min_turn_radius_m)
         if self.link is None:
             self._cmd, self._cmd_t = V, self.now()
         elif not self.link.lost():

@@ -78,14 +78,13 @@ def cmd_target(args: argparse.Namespace) -> int:
     from flightstack.drivers.mocap import MocapPoseSource
     from flightstack.drivers.scamper import ScamperDriver
     from flightstack.drivers.target_run import drive_square, lap_summary
-    from flightstack.paper.target_law import SquareLaw
 
     mission = load_mission(args.mission, check_files=False, rig=args.rig)
     if mission.hardware is None or mission.hardware.target is None:
         print(f"error: {args.mission}: hardware.target: no robot to drive (set its url)", file=sys.stderr)
         return 2
     sq = mission.target.square
-    law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, mission.target.initial_pose.theta)
+    law = mission.target_law()
     duration = args.duration if args.duration is not None else args.laps * law.lap_time
     if not _confirm(
         f"The robot will drive {duration:.0f} s on the {sq.side_m:g} m square. Area clear?", args.yes

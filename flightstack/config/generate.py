@@ -50,6 +50,7 @@ from typing import Any, Literal
 
 from flightstack.config.mission import MAX_DRONES, Mission, TargetSpec, load_mission, parse_mission
 from flightstack.config.rig import RigError, Source, builtin_path, compose, find, kind_of, read
+from flightstack.paper.target_law import TargetLaw
 
 MAX_K_DT = 0.62
 """Bound on (k_max + k_s λ_max(L)) · dt, the fastest error mode per control period (paper_sim.yaml)."""
@@ -105,18 +106,18 @@ def mission_lambda_max(m: Mission) -> float:
 
 
 def target_path_range(
-    target: TargetSpec, duration_s: float, dt_s: float, axis: str = "x"
+    target: TargetSpec, duration_s: float, dt_s: float, axis: str = "x", law: TargetLaw | None = None
 ) -> tuple[float, float]:
     """(min, max) of the target's world position along `axis` ('x' or 'y'; m) over duration_s seconds at
     dt_s: the ideal world's target (sim_backend/world.py, World.step; sim_backend/build.py): the law's body
-    velocity held over each of `substeps` sub-periods, integrated with the exact exponential."""
+    velocity held over each of `substeps` sub-periods, integrated with the exact exponential. `law`: the
+    square law (Mission.target_law), required when target.motion is `square`."""
     from flightstack.paper.geometry import integrate_body_velocity
-    from flightstack.paper.target_law import SquareLaw
     from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity
 
     prm = DuffingParams(**target.duffing.model_dump())
-    sq = target.square
-    law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, target.initial_pose.theta)
+    if target.motion == "square" and law is None:
+        raise ValueError("target_path_range: a square target needs its law (Mission.target_law)")
     g = target.initial_pose.pose()
     k = 0 if axis == "x" else 1
     lo = hi = float(g.p[k])
@@ -124,7 +125,7 @@ def target_path_range(
     for tick in range(round(duration_s / dt_s)):
         t = tick * dt_s  # the world's clock at the start of the tick (the square law reads it)
         for _ in range(target.substeps):
-            V = duffing_body_velocity(g, prm) if target.motion == "duffing" else law.command(t, g)
+            V = duffing_body_velocity(g, prm) if law is None else law.command(t, g)
             g = integrate_body_velocity(g, V, h)
         v = float(g.p[k])
         lo, hi = min(lo, v), max(hi, v)
@@ -248,7 +249,8 @@ def generate(
         ks, k_dt, reduced = ks_ok, (k_max + ks_ok * lam) * dt, True
 
     axis = bm.gp.regions.axis
-    path_range = target_path_range(bm.target, bm.duration_s, bm.dt_s, axis)
+    law = bm.target_law() if bm.target.motion == "square" else None
+    path_range = target_path_range(bm.target, bm.duration_s, bm.dt_s, axis, law)
     if band_range_m is None:
         lo, hi = _round_step(path_range[0]), _round_step(path_range[1])
     else:

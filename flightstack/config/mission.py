@@ -49,6 +49,7 @@ from flightstack.paper.gain_analysis import (
 )
 from flightstack.paper.geometry import Pose
 from flightstack.paper.projection import CameraModel
+from flightstack.paper.target_law import TargetLaw, square_law
 from flightstack.safe_yaml import Lines, line_of
 from flightstack.safety import SafetyLimits
 
@@ -99,11 +100,16 @@ class DuffingSpec(_Strict):
 
 
 class SquareSpec(_Strict):
-    """The paper's experiment law (eq. scamper_vel): a square lap with one rotation per lap."""
+    """The paper's experiment: a square lap with one rotation per lap (flightstack.paper.target_law).
+    `law`: `paper` (eq. scamper_vel, commands sideways velocity: an `omni` robot only), `unicycle` (heading
+    along the path, forward speed and turn rate: any robot); unset: the one the rig's robot can follow
+    (`paper` for an omni robot, the ideal rig's, else `unicycle`: `Mission.target_law_name`). `gain`
+    (1/s) is the paper law's."""
 
     side_m: Distance = 1.0
     speed_mps: Speed = 0.1
     gain: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.05  # 1/s
+    law: Literal["paper", "unicycle"] | None = None
 
 
 class TargetSpec(_Strict):
@@ -275,6 +281,65 @@ class Mission(_Strict):
     network: str = "clean"  # the emulated lab's impairment profile (flightstack.netem.PROFILES)
     _base_dir: Path = PrivateAttr(default=Path("."))
 
+    def robot_kinematics(self) -> str:
+        """The ground robot's kinematics (flightstack.paper.target_law.KINEMATICS): the rig's
+        `robot.kinematics`, else `omni` on the ideal rig (the paper's idealised target, which the
+        Duffing-like field and eq. scamper_vel move sideways) and `differential` on every other rig (an
+        ArduPilot Rover never moves sideways on a velocity set-point; docs/drivers.md)."""
+        k = self.target.robot.kinematics
+        if k is not None:
+            return k
+        return "omni" if self.backend == "sim_ideal" else "differential"
+
+    def target_law_name(self) -> str:
+        """The square law the robot is driven on (target.square.law; unset: `paper` for an omni robot,
+        `unicycle` for any other)."""
+        law = self.target.square.law
+        if law is not None:
+            return law
+        return "paper" if self.robot_kinematics() == "omni" else "unicycle"
+
+    def target_law(self) -> TargetLaw:
+        """The square law of target.square for this rig's robot (flightstack.paper.target_law)."""
+        sq, r = self.target.square, self.target.robot
+        return square_law(
+            self.target_law_name(),
+            self.robot_kinematics(),
+            sq.side_m,
+            sq.speed_mps,
+            sq.gain,
+            self.target.initial_pose.theta,
+            r.min_turn_radius_m or 0.0,
+        )
+
+    def _check_robot(self) -> None:
+        """The robot's kinematics and its law: the law must be one the robot can follow (ValueError naming
+        the key)."""
+        r, kin = self.target.robot, self.robot_kinematics()
+        if kin == "ackermann" and r.min_turn_radius_m is None:
+            raise ValueError("target.robot.min_turn_radius_m: required for kinematics 'ackermann' (m)")
+        if kin != "ackermann" and r.min_turn_radius_m is not None:
+            raise ValueError(
+                f"target.robot.min_turn_radius_m: only for kinematics 'ackermann' (this: {kin!r})"
+            )
+        if self.target.motion == "duffing" and kin != "omni":
+            raise ValueError(
+                f"target.motion: the Duffing-like field moves the target sideways, which a {kin} robot "
+                "(target.robot.kinematics) cannot follow; it needs an omni target (the ideal rig)"
+            )
+        if self.target.motion != "square":
+            return
+        if kin != "omni" and self.target.square.law == "paper":
+            raise ValueError(
+                "target.square.law: 'paper' (eq. scamper_vel) commands sideways body velocity, which a "
+                f"{kin} robot (target.robot.kinematics) cannot follow: use 'unicycle'"
+            )
+        try:
+            self.target_law()
+        except ValueError as exc:
+            key = "target.robot.min_turn_radius_m" if kin == "ackermann" else "target.square"
+            raise ValueError(f"{key}: {exc}") from None
+
     def delay_compensation(self) -> Compensation | None:
         """What each agent's delay compensation is told (None: off, the paper's law). Unset latencies
         come from the rig: the rc link's mean delay (as the emulated lab applies it, on that rig), and the
@@ -365,6 +430,7 @@ class Mission(_Strict):
         if self.k_c_xy_unequal():
             raise ValueError("gains: k_c and k_e must have equal x and y components")
         self._check_sampled_loop()
+        self._check_robot()
         c = self.compensation
         if c.enabled and (why := stand_in_problem(c, self._compensated_rc())) is not None:
             raise ValueError(why)

@@ -13,8 +13,14 @@ from flightstack.config.types import Strict as _Strict
 
 
 class RobotSpec(_Strict):
-    """Simulated ground robot (sim_lab only)."""
+    """The ground robot (the rig's `robot:`). `kinematics` and `min_turn_radius_m` are the robot's on every
+    rig (flightstack.paper.target_law.KINEMATICS: `omni`, `differential`, `ackermann`; unset: `omni` on the
+    ideal rig, the paper's idealised target, else `differential`: `Mission.robot_kinematics`);
+    `min_turn_radius_m` (m) is required for, and only for, `ackermann`. The rest is the simulated robot's
+    (sim_lab only)."""
 
+    kinematics: Literal["omni", "differential", "ackermann"] | None = None
+    min_turn_radius_m: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] | None = None
     time_constant_s: Seconds = 0.2
     max_speed_mps: Speed = 0.5
     max_yaw_rate: YawRate = 1.0

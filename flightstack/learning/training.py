@@ -20,7 +20,6 @@ from flightstack.config.types import Mode
 from flightstack.paper import kernels as kern
 from flightstack.paper.gp import GPExpert, GPHyperparameters
 from flightstack.paper.gp_shared_fit import fit_shared_hyperparameters
-from flightstack.paper.target_law import SquareLaw
 from flightstack.paper.target_motion import DuffingParams
 from flightstack.recording.files import RunDirError, read_npz
 from flightstack.recording.timeseries import Recording
@@ -53,14 +52,14 @@ def predicted_target_path(mission: Mission, n_ticks: int | None = None) -> np.nd
 
     duffing: the field integrated from target.initial_pose in steps of dt_s, re-evaluated target.substeps
     times per step (kernels.world_advance: the ideal rig's own world step, compiled; no drones);
-    square: SquareLaw's reference path (the robot starts on it and its law tracks it)."""
+    square: the reference path of its law (Mission.target_law; the robot starts on it and its law tracks
+    it)."""
     dt = mission.dt_s
     n = mission.n_ticks if n_ticks is None else int(n_ticks)
     tgt = mission.target
     path = np.empty((n, 4))
     if tgt.motion == "square":
-        sq = tgt.square
-        law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, tgt.initial_pose.theta)
+        law = mission.target_law()
         for k in range(n):
             path[k] = law.reference(k * dt)[0].as_vector()
         return path

@@ -246,6 +246,16 @@ class Fleet:
     everyone: frozenset[int]  # every drone of the mission, own ones too (the lock-step wait's senders)
 
 
+def _nudge_fence(mission: Mission) -> tuple[tuple[float, float], tuple[float, float]] | None:
+    """The fence's xy box (m) in which the robot is nudged before takeoff on a rig whose robot is a
+    device (backend `tello`: the real and the emulated lab; flightstack.runtime.motion_check); None on the
+    simulated rigs, which do not nudge it."""
+    if mission.backend != "tello":
+        return None
+    lo, hi = mission.safety.fence_lo, mission.safety.fence_hi
+    return (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1]))
+
+
 @contextlib.contextmanager
 def assemble_fleet(
     mission: Mission,
@@ -345,7 +355,9 @@ def _build(
         supervisor=supervisor,
         drones=drones,
         agents=agents,
-        target=TargetDriver(mission.target, backend) if mission.target.motion == "square" else None,
+        target=TargetDriver(mission.target_law(), backend, _nudge_fence(mission))
+        if mission.target.motion == "square"
+        else None,
         ticker=SafetyTickTimer(safe, backend.heartbeat),
         status=StatusPublisher(bus, mode),
         g_d=np.array([a.cfg.g_d.as_vector() for a in agents]),

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from flightstack.config.mission import TargetSpec
 from flightstack.hal import Backend, Clock, FlightPhase
-from flightstack.paper.target_law import SquareLaw
+from flightstack.paper.target_law import TargetLaw
+from flightstack.runtime.motion_check import MotionCheck, check_robot_moves
 
 TAKEOFF_TIMEOUT_S = 25.0  # > the Tello driver's own 20 s bound, so its outcome is collected first
 LAND_TIMEOUT_S = 20.0  # > the Tello's own 15 s auto-land, so a drone that lost its link is seen down
@@ -18,13 +18,31 @@ POSE_WAIT_S = 3.0  # before takeoff: how long a drone's motion-capture pose may 
 
 
 class TargetDriver:
-    """Drives the ground robot on the paper's square law from its motion-capture pose (sim_lab)."""
+    """Drives the ground robot on its square law (Mission.target_law) from its motion-capture pose.
 
-    def __init__(self, target: TargetSpec, backend: Backend) -> None:
-        sq = target.square
-        self.law = SquareLaw(sq.side_m, sq.speed_mps, sq.gain, target.initial_pose.theta)
+    fence_xy: ((x_lo, y_lo), (x_hi, y_hi)) of the fence (m) when the robot's motion is checked before
+    takeoff (flightstack.runtime.motion_check; the rigs with a robot device), None when it is not."""
+
+    def __init__(
+        self,
+        law: TargetLaw,
+        backend: Backend,
+        fence_xy: tuple[tuple[float, float], tuple[float, float]] | None = None,
+    ) -> None:
+        self.law = law
         self.robot = backend.target()
         self.poses = backend.pose_source()
+        self.fence_xy = fence_xy
+
+    def check_moves(
+        self, clock: Clock, step_s: float, each: Callable[[], None] | None = None
+    ) -> MotionCheck | None:
+        """The motion check before takeoff (motion_check.check_robot_moves) when this driver has a robot
+        and a fence to check it in (None when not checked); raises RuntimeError (one line) when the robot
+        did not move as commanded."""
+        if self.robot is None or self.fence_xy is None:
+            return None
+        return check_robot_moves(self.robot, self.poses, clock, step_s, *self.fence_xy, each)
 
     def tick(self, t_mission: float) -> None:
         own = self.poses.latest("target")

@@ -293,6 +293,20 @@ def take_off(f: Fleet) -> None:
     for d in drones.values():
         d.connect()
     wait_for_poses(f)
+    if f.target is not None:  # the robot must move as commanded before anything flies (motion_check)
+        try:
+            moved = f.target.check_moves(clock, f.loop.dt_s, f.ticker.tick)
+        except RuntimeError as exc:
+            f.log.record(clock.now(), None, "robot_refuse_takeoff", str(exc))
+            raise
+        if moved is not None:
+            f.log.record(
+                clock.now(),
+                None,
+                "robot_moved",
+                f"nudged {moved.commanded_m:+.3f} m: {moved.along_m:+.3f} m along, {moved.across_m:+.3f} m "
+                "sideways",
+            )
     for d in drones.values():  # on real drones each returns at once: they climb together
         d.takeoff()
 

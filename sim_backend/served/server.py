@@ -260,7 +260,7 @@ class WorldServer:
             raise RuntimeError(f"agents {sorted(missing)} did not join within {self.z.start_timeout_s:g} s")
         self._wait_cmds(-1, self.z.start_timeout_s)  # every agent subscribed to its ticks
         self.log(f"serving {m.name}: agents {self.ids} present")
-        target = TargetDriver(m.target, self.backend) if m.target.motion == "square" else None
+        target = TargetDriver(m.target_law(), self.backend) if m.target.motion == "square" else None
         t_target0: float | None = None
         dt = m.dt_s
         max_ticks = round((m.duration_s + TAKEOFF_TIMEOUT_S + 2 * LAND_TIMEOUT_S) / dt)

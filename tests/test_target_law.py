@@ -1,0 +1,206 @@
+"""The square law a non-holonomic robot can follow (flightstack.paper.target_law.UnicycleSquareLaw), the
+rig's robot kinematics that chooses it (Mission.robot_kinematics / target_law), the simulated lab's robot
+that drives as the rig says (sim_backend/lab.py ScamperSim), against closed forms."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flightstack.cli.app import main
+from flightstack.config.mission import load_mission
+from flightstack.paper.geometry import Pose
+from flightstack.paper.target_law import SquareLaw, UnicycleSquareLaw, square_law
+from flightstack.sim_backend.lab import RobotParams, ScamperSim
+
+RADII = (0.0, 0.05, 0.2, 0.5)
+"""Turn radii (m): 0 = corners turned in place (differential), else rounded (ackermann); 0.5 = side/2."""
+
+
+def _lap(law: UnicycleSquareLaw, n: int = 40_000) -> np.ndarray:
+    """[x, y, θ] of the reference at n + 1 times evenly over one lap."""
+    return np.array(
+        [[*law.reference(t)[0].p[:2], law.reference(t)[0].theta] for t in np.linspace(0, law.lap_time, n + 1)]
+    )
+
+
+@pytest.mark.parametrize("R", RADII)
+def test_lap_length_mean_speed_and_corner_rounding_closed_forms(R: float) -> None:
+    law = UnicycleSquareLaw(side=1.0, speed=0.1, turn_radius=R)
+    path = _lap(law)
+    length = float(np.sum(np.hypot(*np.diff(path[:, :2], axis=0).T)))
+    closed = 4.0 - (8.0 - 2.0 * math.pi) * R
+    assert law.path_length == pytest.approx(closed, abs=1e-12)
+    assert length == pytest.approx(closed, abs=1e-6)  # the sampled path's length: chords of the arcs
+    assert law.distance(law.lap_time) == pytest.approx(closed, abs=1e-12)
+    assert law.distance(2.5 * law.lap_time) == pytest.approx(2 * closed + law.distance(0.5 * law.lap_time))
+    moving = law.lap_time - law.turning_time  # the time it moves: the mean speed then is the paper's
+    assert law.path_length / moving == pytest.approx(0.1, abs=1e-12)
+    speeds = {round(s.v, 12) for s in law.segments} - {0.0}
+    assert speeds == {0.1}  # every segment that moves, at 0.1 m/s
+    if R == 0.0:
+        assert law.lap_time == pytest.approx(40.0 + 2 * math.pi / 0.5)  # + four turns in place at 0.5 rad/s
+    else:
+        assert law.turning_time == 0.0 and law.lap_time == pytest.approx(closed / 0.1)
+    # one rotation per lap, the path closes, it stays on or inside the square
+    heading = np.unwrap(path[:, 2])
+    assert heading[-1] - heading[0] == pytest.approx(2 * math.pi, abs=1e-9)
+    assert np.allclose(path[-1, :2], path[0, :2], atol=1e-9)
+    assert np.max(np.abs(path[:, :2])) <= 0.5 + 1e-12
+    # each corner is rounded by R(√2 − 1) ≤ R: the path's nearest point to the square's corner
+    for cx, cy in ((0.5, -0.5), (0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5)):
+        gap = float(np.min(np.hypot(path[:, 0] - cx, path[:, 1] - cy)))
+        assert gap == pytest.approx(R * (math.sqrt(2) - 1), abs=2e-5)
+        assert gap <= R + 1e-9
+
+
+@pytest.mark.parametrize("R", RADII)
+def test_heading_along_the_path_and_no_sideways_command(R: float) -> None:
+    law = UnicycleSquareLaw(turn_radius=R)
+    for t in np.linspace(0.0, 2 * law.lap_time, 997):
+        g, v = law.reference(float(t))
+        speed = math.hypot(v[0], v[1])
+        if speed > 0:  # the reference moves where it heads
+            assert math.atan2(v[1], v[0]) == pytest.approx(math.remainder(g.theta, 2 * math.pi), abs=1e-9)
+        off = Pose.make([g.p[0] + 0.03, g.p[1] - 0.02, 0.0], g.theta + 0.2)
+        assert law.command(float(t), off)[1] == 0.0  # never a sideways velocity
+
+
+def _track(law: UnicycleSquareLaw, tau: float, dt: float = 0.05, sub: int = 10, laps: int = 2) -> float:
+    """Max distance (m) of a unicycle driven by the law's commands (held dt s, first-order lag τ s) from
+    the reference, over `laps` laps from the reference's start pose."""
+    g = law.reference(0.0)[0]
+    x, y, th, v, w, worst = float(g.p[0]), float(g.p[1]), g.theta, 0.0, 0.0, 0.0
+    h = dt / sub
+    a = 1.0 if tau == 0 else 1.0 - math.exp(-h / tau)
+    for k in range(round(laps * law.lap_time / dt)):
+        V = law.command(k * dt, Pose.make([x, y, 0.0], th))
+        for _ in range(sub):
+            v, w = v + a * (V[0] - v), w + a * (V[3] - w)
+            x, y, th = x + v * math.cos(th) * h, y + v * math.sin(th) * h, th + w * h
+        ref = law.reference((k + 1) * dt)[0]
+        worst = max(worst, math.hypot(x - ref.p[0], y - ref.p[1]))
+    return worst
+
+
+@pytest.mark.parametrize("R", (0.0, 0.2))
+def test_a_unicycle_driven_by_the_commands_tracks_the_reference(R: float) -> None:
+    law = UnicycleSquareLaw(turn_radius=R)
+    exact = _track(law, tau=0.0)
+    lagged = _track(law, tau=0.2)  # the simulated lab's robot: 0.2 s first-order response
+    print(f"R {R} m: max tracking error {exact * 1000:.1f} mm exact, {lagged * 1000:.1f} mm with a 0.2 s lag")
+    assert exact < 0.01  # measured 4.7 mm (R = 0: the 20 Hz hold at the corners), 1.0 mm (R = 0.2)
+    assert lagged < 0.04  # measured 21 mm (R = 0: stopping from 0.1 m/s behind a lag), 15 mm (R = 0.2)
+
+
+def test_the_paper_law_is_refused_for_a_non_holonomic_robot() -> None:
+    assert isinstance(square_law("paper", "omni", 1.0, 0.1, 0.05, 0.0, 0.0), SquareLaw)
+    assert square_law("unicycle", "ackermann", 1.0, 0.1, 0.05, 0.0, 0.2).turn_radius == 0.2
+    assert square_law("unicycle", "differential", 1.0, 0.1, 0.05, 0.0, 0.0).turn_radius == 0.0
+    for kin in ("differential", "ackermann"):
+        with pytest.raises(ValueError, match="sideways"):
+            square_law("paper", kin, 1.0, 0.1, 0.05, 0.0, 0.2)
+    with pytest.raises(ValueError, match="side/2"):
+        UnicycleSquareLaw(turn_radius=0.6)
+
+
+@pytest.mark.parametrize(
+    ("rig", "kinematics", "law"),
+    [
+        ("ideal", "omni", "paper"),
+        ("lab-sim", "differential", "unicycle"),
+        ("emulated-lab", "differential", "unicycle"),
+    ],
+)
+def test_each_rig_states_its_robot_and_the_law_follows(rig: str, kinematics: str, law: str) -> None:
+    m = load_mission("paper_experiment", rig=rig)
+    assert (m.robot_kinematics(), m.target_law_name()) == (kinematics, law)
+    assert load_mission("paper_sim").robot_kinematics() == "omni"  # the Duffing-like field: the ideal rig
+
+
+@pytest.mark.parametrize(
+    ("sets", "key"),
+    [
+        (["target.square.law=paper"], "target.square.law"),
+        (["target.robot.kinematics=diagonal"], "target.robot.kinematics"),
+        (["target.robot.kinematics=ackermann"], "target.robot.min_turn_radius_m"),
+        (
+            ["target.robot.kinematics=ackermann", "target.robot.min_turn_radius_m=0.8"],
+            "target.robot.min_turn_radius_m",
+        ),
+        (["target.robot.min_turn_radius_m=0.2"], "target.robot.min_turn_radius_m"),
+    ],
+)
+def test_invalid_kinematics_or_law_exits_2_naming_the_key(
+    sets: list[str], key: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["run", "paper_experiment", "--rig", "lab-sim", "--duration", "1", "--out", str(tmp_path / "r")]
+    for s in sets:
+        argv += ["--set", s]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("error:") and key in err, err
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_rig_file_with_a_bad_robot_kinematics_exits_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rig = tmp_path / "rig.yaml"
+    rig.write_text("rig: mine\nbackend: sim_ideal\nrobot: {kinematics: tracked}\n")
+    assert main(["validate", str(rig)]) == 2
+    err = capsys.readouterr().err
+    assert "robot.kinematics" in err and "Traceback" not in err, err
+
+
+def _drive(kinematics: str, V: list[float], seconds: float, radius: float = 0.0) -> Pose:
+    t = [0.0]
+    r = ScamperSim(
+        Pose.make([0, 0, 0], 0.0),
+        RobotParams(time_constant_s=0.05, kinematics=kinematics, min_turn_radius_m=radius),
+        lambda: t[0],
+    )
+    dt = 0.005
+    for _ in range(round(seconds / dt)):
+        r.send_body_velocity(np.array(V, dtype=float))
+        t[0] += dt
+        r.step(t[0], dt)
+    return r.pose
+
+
+def test_the_simulated_robot_drives_as_its_kinematics_says() -> None:
+    # differential, as ArduPilot Rover takes velocity + yaw rate: speed sign(v_x)·|(v_x, v_y)|, never sideways
+    g = _drive("differential", [0.0, 0.2, 0.0, 0.0], 1.5)
+    assert g.p[0] == pytest.approx(0.2 * (1.5 - 0.05), abs=2e-3) and abs(g.p[1]) < 1e-12
+    g = _drive("differential", [-0.1, 0.2, 0.0, 0.0], 1.0)
+    assert g.p[0] == pytest.approx(-math.hypot(0.1, 0.2) * (1.0 - 0.05), abs=2e-3) and abs(g.p[1]) < 1e-12
+    g = _drive("omni", [0.0, 0.2, 0.0, 0.0], 1.5)  # the ideal, holonomic robot moves sideways
+    assert g.p[1] == pytest.approx(0.2 * (1.5 - 0.05), abs=2e-3)
+    # ackermann: no turn in place; a turn no tighter than its radius
+    g = _drive("ackermann", [0.0, 0.0, 0.0, 0.5], 1.0, radius=0.3)
+    assert g.theta == 0.0
+    g = _drive("ackermann", [0.1, 0.0, 0.0, 1.0], 3 * math.pi, radius=0.3)  # ω ≤ v/R: a circle of R
+    assert math.hypot(g.p[0], g.p[1] - 0.3) == pytest.approx(0.3, abs=0.01)
+
+
+@pytest.mark.parametrize(("kinematics", "R"), [("differential", 0.0), ("ackermann", 0.2)])
+def test_the_simulated_lab_robot_tracks_its_law(kinematics: str, R: float) -> None:
+    """The simulated lab's robot (0.2 s lag, its speed and yaw-rate limits, its kinematics) on the law it is
+    given, commanded at 20 Hz from its exact pose, over a lap: within 5 cm of the reference."""
+    law = UnicycleSquareLaw(turn_radius=R)
+    t = [0.0]
+    r = ScamperSim(
+        law.reference(0.0)[0], RobotParams(kinematics=kinematics, min_turn_radius_m=R), lambda: t[0]
+    )
+    dt, worst = 0.005, 0.0
+    for k in range(round(law.lap_time / dt)):
+        if k % 10 == 0:
+            r.send_body_velocity(law.command(t[0], r.pose))
+        t[0] += dt
+        r.step(t[0], dt)
+        worst = max(worst, float(np.hypot(*(r.pose.p[:2] - law.reference(t[0])[0].p[:2]))))
+    print(f"{kinematics}: max tracking error over a lap {worst * 1000:.1f} mm")
+    assert worst < 0.05
