@@ -224,26 +224,19 @@ def test_fly_runs_preflight_then_refuses_without_confirmation(
     assert not (lab.mission.parent / "run").exists()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the square law streams a sideways velocity, which ArduPilot Rover adds to its forward speed "
-    "(GCS_MAVLINK_Rover::handle_set_position_target_local_ned): the quarter lap ended at (0.11, -0.11), not "
-    "(0.5, -0.5); passes again with a target law the rover can follow",
-)
 def test_target_command_drives_a_quarter_lap(lab: Lab, capsys: pytest.CaptureFixture[str]) -> None:
-    """`flightstack target` closes the loop rover → NatNet → square law → MAVLink, then disarms."""
+    """`flightstack target` closes the loop rover → NatNet → square law → MAVLink, then disarms: the rig's
+    robot is differential, so the law is the unicycle square (one side, then a turn in place)."""
     m = yaml.safe_load(lab.mission.read_text())
-    m["target"]["square"] = {"side_m": 1.0, "speed_mps": 0.5, "gain": 0.25}  # the paper's law, 5x faster
+    m["target"]["square"] = {"side_m": 1.0, "speed_mps": 0.3}  # the lab's law, 3x faster on its sides
     lab.mission.write_text(yaml.safe_dump(m))
     code = main(["target", str(lab.mission), "--laps", "0.25", "--yes"])
     out = capsys.readouterr().out
     assert code == 0, out
     assert "ended by duration" in out
     x, y = (float(v) for v in rover_mocap_pose(lab.rover)[0][:2])
-    assert abs(x - 0.5) < 0.06 and abs(y + 0.5) < 0.06, (
-        x,
-        y,
-    )  # one side of the square: (-0.5,-0.5) → (0.5,-0.5)
+    print(f"quarter lap ended at ({x:.3f}, {y:.3f}) m")
+    assert abs(x - 0.5) < 0.05 and abs(y + 0.5) < 0.05  # one side of the square: (-0.5,-0.5) → (0.5,-0.5)
     assert not lab.rover.armed  # stopped and disarmed on exit
 
 
