@@ -418,20 +418,7 @@ class NatNetEmulator:
             self._sent_modeldef, self._sent_silent = modeldef, silent
 
     def _stop_responder(self) -> None:
-        proc = self._proc
-        if proc is None:
-            return
-        with contextlib.suppress(OSError, ValueError):
-            if proc.stdin is not None:
-                proc.stdin.write(b"Q\n")
-                proc.stdin.close()
-        try:
-            proc.wait(timeout=1.0)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=1.0)
-        if proc.stdout is not None:
-            proc.stdout.close()
+        stop_responder(self._proc)
 
     def _frame_bodies(self) -> list[tuple[int, Vec3, QuatWXYZ, bool]]:
         lost, omit = set(self.faults.lost_bodies), self.faults.lost_omit
@@ -509,6 +496,24 @@ def report_loop(
 
 
 # ---- command responder (child process) -------------------------------------------------------------------
+def stop_responder(proc: subprocess.Popen[bytes] | None, close_output: bool = True) -> None:
+    """Stop a responder process (`Q` on its stdin, killed after 1 s) and, if `close_output`, close its
+    output (False: a thread still reads it to its end); None: nothing."""
+    if proc is None:
+        return
+    with contextlib.suppress(OSError, ValueError):
+        if proc.stdin is not None:
+            proc.stdin.write(b"Q\n")
+            proc.stdin.close()
+    try:
+        proc.wait(timeout=1.0)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=1.0)
+    if close_output and proc.stdout is not None:
+        proc.stdout.close()
+
+
 def _responder_main(host: str, port: int, server_info_hex: str, report: bool = False) -> int:
     """Answer NAT_CONNECT / NAT_REQUEST_MODELDEF on host:port; controlled by lines on stdin.
 

@@ -35,7 +35,6 @@ and recorded offset it was decided from, its destination); `counts`: "frames", "
 
 from __future__ import annotations
 
-import contextlib
 import os
 import socket
 import struct
@@ -282,7 +281,7 @@ class NatNetReplayer:
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
-        self._stop_responder()  # its stdout closes: the report thread ends
+        self._stop_responder()  # the responder exits: its output ends, and with it the report thread
         deadline = time.monotonic() + 1.0
         for thread in self._threads:
             thread.join(timeout=max(0.0, deadline - time.monotonic()))
@@ -401,18 +400,7 @@ class NatNetReplayer:
             self._cond.notify_all()
 
     def _stop_responder(self) -> None:
-        proc = self._proc
-        if proc is None:
-            return
-        with contextlib.suppress(OSError, ValueError):
-            if proc.stdin is not None:
-                proc.stdin.write(b"Q\n")
-                proc.stdin.close()
-        try:
-            proc.wait(timeout=1.0)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=1.0)
+        natnet.stop_responder(self._proc, close_output=False)  # closed once the report thread ends
 
 
 __all__ = ["NatNetRecording", "NatNetReplayer", "Sent", "read_packets", "read_pcapng", "udp_payloads"]
