@@ -115,8 +115,9 @@ def lab_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_an_emulated_lab_run_directory_holds_each_drones_raw_traffic(lab_run: Path) -> None:
     files = sorted(p.name for p in (lab_run / DEVICES_DIR).iterdir())
-    assert files == ["tello-1_none.jsonl", "tello-2_none.jsonl"]
-    for name in files:
+    assert files == ["scamper_none.tlog", "tello-1_none.jsonl", "tello-2_none.jsonl"]  # and the robot's link
+    assert (lab_run / DEVICES_DIR / "scamper_none.tlog").stat().st_size > 0
+    for name in files[1:]:  # the Tellos' (the .tlog: tests/test_scamper_extnav.py reads it with mavlogdump)
         s = read_traffic(lab_run / DEVICES_DIR / name)
         n = kinds(s)
         video = s.of("video")
