@@ -6,8 +6,6 @@ libmotioncapture 1.1). Loopback only; multicast through the loopback interface w
 from __future__ import annotations
 
 import math
-import socket
-import threading
 import time
 from typing import Any
 
@@ -17,7 +15,7 @@ import pytest
 from flightstack.drivers.mocap import MocapConfig, MocapPoseSource, quaternion_to_planar
 from flightstack.sim_backend.emulators.natnet import NatNetEmulator, frame_packet, model_def_packet, y_up
 from tests.conftest import skip_or_fail_in_ci
-from tests.test_natnet_replay import stop_natnetsdk, wait_for
+from tests.test_natnet_replay import close_source, stop_natnetsdk, wait_for
 
 pytestmark = pytest.mark.system  # emulator threads and a responder process
 
@@ -35,17 +33,6 @@ def natnetsdk() -> Any:
     client = NatNetClient()
     client.set_print_level(0)
     return client
-
-
-def close_source(src: MocapPoseSource, port: int) -> None:
-    """Close `src`, waking a reader that waits in waitForNextFrame with empty datagrams to its port."""
-    closer = threading.Thread(target=src.close, args=(3.0,))
-    closer.start()
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        while closer.is_alive():
-            s.sendto(b"", ("127.0.0.1", port))
-            closer.join(0.02)
-    assert not src.stats()["reader_alive"]
 
 
 @pytest.mark.parametrize("version", [V30, V41], ids=["3.0", "4.1"])

@@ -106,13 +106,18 @@ def closing() -> Iterator[list[tuple[MocapPoseSource, int]]]:
     sources: list[tuple[MocapPoseSource, int]] = []
     yield sources
     for src, port in sources:
-        closer = threading.Thread(target=src.close, args=(3.0,))
-        closer.start()
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            while closer.is_alive():
-                s.sendto(b"\0\0\0\0", ("127.0.0.1", port))
-                closer.join(0.02)
-        assert not src.stats()["reader_alive"]
+        close_source(src, port)
+
+
+def close_source(src: MocapPoseSource, port: int) -> None:
+    """Close `src`, waking a reader that waits in waitForNextFrame with 4-byte datagrams to its port."""
+    closer = threading.Thread(target=src.close, args=(3.0,))
+    closer.start()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        while closer.is_alive():
+            s.sendto(b"\0\0\0\0", ("127.0.0.1", port))
+            closer.join(0.02)
+    assert not src.stats()["reader_alive"]
 
 
 def expected_bodies(rec: NatNetRecording, frame: Frame) -> dict[str, tuple[np.ndarray, np.ndarray]]:

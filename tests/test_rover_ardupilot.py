@@ -30,7 +30,7 @@ from flightstack.sim_backend.emulators.mavlink_rover import (
     MavlinkRoverEmulator,
     RoverParams,
 )
-from tests.conftest import skip_or_fail_in_ci
+from tests.conftest import eventually, skip_or_fail_in_ci
 
 pytestmark = pytest.mark.system
 mavlink = mavutil.mavlink
@@ -40,15 +40,6 @@ MASK_WITH_ACCEL = 1511 & ~(64 | 128)  # accelerations not ignored
 FAILED, ACCEPTED = mavlink.MAV_RESULT_FAILED, mavlink.MAV_RESULT_ACCEPTED
 SLACK_S = 1.5  # scheduling allowance on a loaded 2-core machine (s)
 LAB_ORIGIN = (515_000_000, -1_000_000, 50_000)  # lat, lon (degE7), alt (mm): any valid place
-
-
-def wait_for(pred: Callable[[], bool], timeout: float, step: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(step)
-    return pred()
 
 
 class Gcs:
@@ -128,7 +119,7 @@ class Gcs:
         """Origin, motion capture, GUIDED, armed: what ArduPilot needs before a set-point moves it."""
         self.heartbeat_once()
         assert self.set_origin() is not None
-        assert wait_for(self.emu.position_ok, 2.0)
+        assert eventually(self.emu.position_ok, 2.0)
         assert self.set_mode(GUIDED) == ACCEPTED and self.arm() == ACCEPTED
 
     def heartbeat_once(self) -> None:
@@ -246,7 +237,7 @@ def test_turning_in_place_needs_skid_steering(steering: str) -> None:
 # ---- the position estimate and the EKF origin ---------------------------------------------------------
 def test_no_origin_no_motion(emu: MavlinkRoverEmulator, gcs: Gcs) -> None:
     gcs.heartbeat_once()
-    assert wait_for(emu.position_ok, 2.0)
+    assert eventually(emu.position_ok, 2.0)
     assert gcs.set_mode(GUIDED) == ACCEPTED and gcs.arm() == ACCEPTED  # motion capture: a position
     gcs.stream(1.0, 0.2, 0.0, 0.0)
     assert emu.pose_ned() == (0.0, 0.0, 0.0) and emu.velocity == (0.0, 0.0, 0.0)
@@ -417,7 +408,7 @@ def test_mavproxy_sets_a_parameter_and_acro(emu: MavlinkRoverEmulator, gcs: Gcs,
         assert seen("parameters", 20.0), "".join(out)  # "Received 34 parameters"
         proc.stdin.write("param set FS_TIMEOUT 2\nmode ACRO\n")
         proc.stdin.flush()
-        assert wait_for(lambda: emu.param("FS_TIMEOUT") == 2.0 and emu.mode == ACRO, 10.0)
+        assert eventually(lambda: emu.param("FS_TIMEOUT") == 2.0 and emu.mode == ACRO, 10.0)
         assert seen("DO_SET_MODE: ACCEPTED", 5.0), "".join(out)
         proc.stdin.write("param show FS_TIMEOUT\n")
         proc.stdin.flush()

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -30,22 +30,13 @@ from flightstack.drivers.scamper import (
 )
 from flightstack.hal import GroundRobot
 from flightstack.sim_backend.emulators.mavlink_rover import HOLD, MavlinkRoverEmulator
-from tests.conftest import Bound
+from tests.conftest import Bound, eventually
 from tests.robot_pose import still_pose
 
 mavlink = mavutil.mavlink
 SET_MODE = mavlink.MAV_CMD_DO_SET_MODE  # 176
 ARM_DISARM = mavlink.MAV_CMD_COMPONENT_ARM_DISARM  # 400
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
-
-
-def wait_for(pred: Callable[[], bool], timeout: float, step: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(step)
-    return pred()
 
 
 @pytest.fixture
@@ -117,7 +108,7 @@ def test_body_velocity_signs_and_motion(safety_bound: Bound, emu: MavlinkRoverEm
         safety_bound(
             "send_body_velocity returns (never blocks the loop)", 1e3 * (time.monotonic() - t0), 50.0
         )
-        assert wait_for(lambda: emu.velocity != (0.0, 0.0, 0.0), 1.0)
+        assert eventually(lambda: emu.velocity != (0.0, 0.0, 0.0), 1.0)
         n0 = len(emu.setpoint_records())
         time.sleep(1.0)
         recs = emu.setpoint_records()
@@ -142,7 +133,7 @@ def test_body_velocity_signs_and_motion(safety_bound: Bound, emu: MavlinkRoverEm
         assert pose.p[0] > 0.15 and pose.p[1] > 0.02
 
         drv.stop()
-        assert wait_for(lambda: emu.velocity == (0.0, 0.0, 0.0), 0.5)
+        assert eventually(lambda: emu.velocity == (0.0, 0.0, 0.0), 0.5)
         p_stop = emu.pose_flu()
         time.sleep(0.3)
         assert np.allclose(emu.pose_flu().p, p_stop.p) and emu.velocity == (0.0, 0.0, 0.0)
@@ -172,11 +163,11 @@ def test_rover_holds_by_itself_when_its_companion_dies(emu: MavlinkRoverEmulator
     drv = make_driver(emu, ack_timeout_s=0.5)
     drv.connect()
     drv.send_body_velocity(np.array([0.3, 0.0, 0.0, 0.0]))
-    assert wait_for(lambda: emu.velocity[0] == pytest.approx(0.3), 1.0)
+    assert eventually(lambda: emu.velocity[0] == pytest.approx(0.3), 1.0)
     # Simulate a dead companion computer: the I/O thread and socket vanish without a zero set-point.
     drv._shutdown()
     t_stop = time.monotonic()
-    assert wait_for(lambda: emu.velocity == (0.0, 0.0, 0.0), 4.0)
+    assert eventually(lambda: emu.velocity == (0.0, 0.0, 0.0), 4.0)
     dt = time.monotonic() - t_stop
     print(f"rover stopped {dt:.2f} s after its companion died")
     assert 0.7 < dt < 2.5 and emu.mode == HOLD and emu.armed and not emu.stopped_by_timeout
@@ -210,10 +201,10 @@ def test_link_loss_and_restore(emu: MavlinkRoverEmulator) -> None:
     drv.connect()
     try:
         emu.faults.no_heartbeat = True
-        assert wait_for(lambda: not drv.link_alive(), 2.5)
+        assert eventually(lambda: not drv.link_alive(), 2.5)
         assert [e.kind for e in drv.events][-1] == "link_lost"
         emu.faults.no_heartbeat = False
-        assert wait_for(drv.link_alive, 1.5)
+        assert eventually(drv.link_alive, 1.5)
         assert [e.kind for e in drv.events][-1] == "link_restored"
     finally:
         drv.close()
@@ -295,7 +286,7 @@ def test_duplicate_acks_are_harmless(emu: MavlinkRoverEmulator) -> None:
     drv = make_driver(emu, ack_timeout_s=0.5)
     drv.connect()
     drv.send_body_velocity(np.array([0.2, 0.0, 0.0, 0.0]))
-    assert wait_for(lambda: emu.velocity[0] == pytest.approx(0.2), 1.0)
+    assert eventually(lambda: emu.velocity[0] == pytest.approx(0.2), 1.0)
     drv.close()
     assert emu.acks_sent == [(SET_MODE, ACCEPTED)] * 2 + [(ARM_DISARM, ACCEPTED)] * 4
     assert [c for c, _, _ in mode_arm_commands(emu)] == [SET_MODE, ARM_DISARM, ARM_DISARM]  # each sent once
@@ -357,9 +348,9 @@ def test_robot_leaving_guided_mid_run_is_reported(emu: MavlinkRoverEmulator) -> 
     drv.connect()
     try:
         drv.send_body_velocity(np.array([0.2, 0.0, 0.0, 0.3]))
-        assert wait_for(lambda: emu.velocity != (0.0, 0.0, 0.0), 1.0)
+        assert eventually(lambda: emu.velocity != (0.0, 0.0, 0.0), 1.0)
         emu.pilot_override(mode=HOLD)  # an RC mode switch / failsafe
-        assert wait_for(lambda: "mode_changed" in kinds(drv), 1.0)
+        assert eventually(lambda: "mode_changed" in kinds(drv), 1.0)
         st = drv.robot_state()
         assert st.custom_mode == HOLD and st.mode_name == "HOLD" and st.armed and not st.ready
         assert "GUIDED -> HOLD" in details(drv, "mode_changed")[0]
@@ -370,7 +361,7 @@ def test_robot_leaving_guided_mid_run_is_reported(emu: MavlinkRoverEmulator) -> 
         assert emu.mode == HOLD and emu.velocity == (0.0, 0.0, 0.0)  # the driver did not fight the switch
         assert kinds(drv).count("mode_changed") == 1  # once, not once per heartbeat
         emu.pilot_override(armed=False)
-        assert wait_for(lambda: "disarmed_by_robot" in kinds(drv), 1.0)
+        assert eventually(lambda: "disarmed_by_robot" in kinds(drv), 1.0)
         assert drv.robot_state().armed is False
         time.sleep(0.3)
         assert kinds(drv).count("disarmed_by_robot") == 1
@@ -387,7 +378,7 @@ def test_companion_heartbeats_are_not_the_robot(emu: MavlinkRoverEmulator) -> No
         time.sleep(0.5)
         assert drv.robot_state().ready and "mode_changed" not in kinds(drv)
         emu.faults.no_heartbeat = True  # the autopilot falls silent, the companion does not
-        assert wait_for(lambda: not drv.link_alive(), 1.5)
+        assert eventually(lambda: not drv.link_alive(), 1.5)
     finally:
         drv.close()
     # the disarm was ACCEPTED (and applied) but no heartbeat confirmed it: reported, not trusted

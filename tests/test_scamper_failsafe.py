@@ -5,7 +5,7 @@ does when the ground station's heartbeats stop (sim_backend/emulators/mavlink_ro
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -26,21 +26,13 @@ from flightstack.sim_backend.emulators.mavlink_rover import (
     MavlinkRoverEmulator,
     RoverParams,
 )
+from tests.conftest import eventually
 from tests.robot_pose import still_pose
 
 pytestmark = pytest.mark.system
 mavlink = mavutil.mavlink
 SLACK_S = 1.5  # scheduling allowance on a loaded 2-core machine (s)
 FAST = {"fs_gcs_timeout_s": 2.0, "fs_timeout_s": 1.0}  # a 3 s failsafe keeps the tests short
-
-
-def wait_for(pred: Callable[[], bool], timeout: float, step: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(step)
-    return pred()
 
 
 @contextmanager
@@ -150,7 +142,7 @@ class BareGcs:
         self.heartbeat()
         for cmd, p1, p2 in ((mavlink.MAV_CMD_DO_SET_MODE, 1, ROVER_GUIDED_MODE), (400, 1, 0)):
             self.conn.mav.command_long_send(1, 1, cmd, 0, p1, p2, 0, 0, 0, 0, 0)
-        assert wait_for(lambda: self.emu.mode == GUIDED and self.emu.armed, 2.0)
+        assert eventually(lambda: self.emu.mode == GUIDED and self.emu.armed, 2.0)
 
     def drive(self, seconds: float, vx: float, heartbeats: bool) -> None:
         """Stream vx (m/s) at 10 Hz for `seconds`, with 1 Hz heartbeats or none."""
@@ -232,7 +224,7 @@ def test_failsafe_action_nothing_keeps_driving() -> None:
             gcs.guided_and_armed()
             gcs.drive(1.5, 0.5, heartbeats=True)
             gcs.drive(3.0, 0.5, heartbeats=False)
-            assert wait_for(lambda: emu.failsafe_t is not None, SLACK_S)  # it triggered ...
+            assert eventually(lambda: emu.failsafe_t is not None, SLACK_S)  # it triggered ...
             gcs.drive(0.5, 0.5, heartbeats=False)
             assert (
                 emu.failsafe_action == 0 and emu.mode == GUIDED and emu.velocity[0] == 0.5
@@ -248,10 +240,10 @@ def test_failsafe_rtl_drives_home() -> None:
             gcs.guided_and_armed()
             gcs.drive(1.5, 0.5, heartbeats=True)
             time.sleep(3.0)
-            assert wait_for(lambda: emu.mode == RTL, SLACK_S)
+            assert eventually(lambda: emu.mode == RTL, SLACK_S)
             x0 = emu.pose_ned()[0]
             assert x0 > 0.3 and emu.velocity[0] > 0.0  # away from home, driving back
-            assert wait_for(lambda: emu.pose_ned()[0] < x0 - 0.1, 2.0)
+            assert eventually(lambda: emu.pose_ned()[0] < x0 - 0.1, 2.0)
         finally:
             gcs.close()
 
@@ -269,7 +261,7 @@ def test_the_driver_streaming_normally_never_trips_it_and_a_muted_one_does() -> 
             assert emu.failsafe_t is None and emu.mode == GUIDED and emu.velocity[0] == pytest.approx(0.3)
             muted = True
             t_mute = time.monotonic()
-            assert wait_for(lambda: emu.mode == HOLD, 3.0 + 1.0 + SLACK_S)
+            assert eventually(lambda: emu.mode == HOLD, 3.0 + 1.0 + SLACK_S)
             assert emu.failsafe_t is not None and emu.failsafe_t - t_mute <= 3.0 + 1.0 + SLACK_S
         finally:
             muted = False
