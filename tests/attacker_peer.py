@@ -13,7 +13,10 @@ With "copy_labels" it also listens to the predictions and puts each forged one w
 label is no authentication. With "copy_stream": {"sender": i, "lead": d, "mu": m} it is a second agent
 i: for every prediction the real agent i puts it puts one of its own right after, under the real one's
 label, with seq (real + d) and the real stamp, in-bounds values and μ = (m, m, 0, 0) ("copied stream"),
-once it is connected to "min_peers" peers (default 0: at once).
+once it has seen the liveliness token of every agent in "await" (default []: at once). A token is
+declared after its agent's subscribers (flightstack/comms/zenoh_bus.py) and peers do not relay for each
+other, so seeing agent j's token means j's subscribers are known here and every copy is routed to j;
+a peer count alone does not say that.
 Loopback only; stops by itself.
 """
 
@@ -101,6 +104,9 @@ def main(spec_path: str) -> int:
         session.declare_subscriber(f"{spec['prefix']}/{spec['mission']}/pred/*", learn)
     copy = spec.get("copy_stream")
     heard: list[tuple[int, float, bytes | None]] = []  # the real sender's (seq, stamp, label), unsent
+    tokens: set[str] = set()  # agent ids whose liveliness token this session has seen
+    t_open = time.monotonic()
+    t_copying: float | None = None  # s after open when every awaited token was seen
     forged: set[int] = set()
 
     def copy_of(sample: Any) -> None:
@@ -112,9 +118,16 @@ def main(spec_path: str) -> int:
             att = sample.attachment
             heard.append((seq, stamp, None if att is None else bytes(att.to_bytes())))
 
+    def alive(sample: Any) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            tokens.add(str(sample.key_expr).rsplit("/", 1)[-1])
+
     if copy:
         key = f"{spec['prefix']}/{spec['mission']}/pred/{copy['sender']}"
         session.declare_subscriber(key, copy_of)
+        awaited = {str(i) for i in copy.get("await", [])}
+        alive_keys = f"{spec['prefix']}/{spec['mission']}/alive/*"
+        session.liveliness().declare_subscriber(alive_keys, alive, history=True)
     try:
         t_end = time.monotonic() + float(spec["duration_s"])
         k = 0
@@ -123,10 +136,12 @@ def main(spec_path: str) -> int:
             max_peers = max(max_peers, peers)
             if copy and sent["copied stream"]:
                 fewest_peers = min(fewest_peers, peers)
-            if copy and not sent["copied stream"] and peers < int(copy.get("min_peers", 0)):
-                heard.clear()  # not yet connected to every receiver (a loaded machine connects late)
-                time.sleep(0.01)
-                continue
+            if copy and t_copying is None:
+                if not awaited <= tokens:
+                    heard.clear()  # not every receiver known yet (a loaded machine connects late)
+                    time.sleep(0.01)
+                    continue
+                t_copying = time.monotonic() - t_open
             while copy and heard:
                 seq, stamp, label = heard.pop(0)
                 forged.add(seq + copy["lead"])
@@ -150,6 +165,8 @@ def main(spec_path: str) -> int:
     report: dict[str, Any] = {"sent": dict(sent), "max_peers": max_peers}
     if copy:
         report["fewest_peers_while_copying"] = fewest_peers if sent["copied stream"] else 0
+        report["tokens_seen"] = sorted(tokens)
+        report["copying_after_s"] = t_copying
     print(json.dumps(report), flush=True)
     return 0
 

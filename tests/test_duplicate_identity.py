@@ -332,7 +332,7 @@ def test_a_copy_of_agent_1_under_its_label_is_quarantined_and_the_flight_complet
     spec = {
         "mission": COPY_NAME, "prefix": "flightstack", "period_s": 0.02, "duration_s": 40.0, "forgeries": [],
         "connect": eps, "tls": dict(tls_settings(files_of(tmp_path / "certs", "agent-1"))),
-        "copy_stream": {"sender": 1, "lead": 1, "mu": FORGED_MU, "min_peers": len(eps)},
+        "copy_stream": {"sender": 1, "lead": 1, "mu": FORGED_MU, "await": IDS},
     }  # fmt: skip
     (tmp_path / "copier.json").write_text(json.dumps(spec))
     t0 = time.monotonic()
@@ -363,7 +363,7 @@ def test_a_copy_of_agent_1_under_its_label_is_quarantined_and_the_flight_complet
     for i in IDS:
         summary = json.loads((tmp_path / f"agent{i}" / "summary.json").read_text())
         reports = [r for r in summary["second_sessions"] if named.match(r)]
-        assert len(reports) == 1, (i, summary["second_sessions"], summary["bus_dropped"], rep)  # by name
+        assert len(reports) == 1, (i, summary["second_sessions"], summary["bus_dropped"], rep, aout[i])
         assert named.match(reports[0]).group(1) == str(run.agents[1].pid)  # the label copied  # type: ignore[union-attr]
         assert f"agent {i}: {reports[0]}" in aout[i]
         assert summary["bus_dropped"].get("two sessions under one label", 0) >= 50, summary["bus_dropped"]
