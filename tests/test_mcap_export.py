@@ -1,31 +1,32 @@
-"""`flightstack export RUN_DIR --mcap FILE` (flightstack.recording.mcap_export), read back with
-the mcap library: the topics and their schemas, one message per tick, times in order on the mission
-clock, values equal to the recording (NaN as null), events as foxglove.Log with their level, the CLI's
-exit codes, and the shipped Foxglove schemas."""
+"""`flightstack export RUN_DIR --mcap FILE` (flightstack.recording.mcap_export) and the typed messages
+both MCAP writers share (mcap_schema, mcap_writer), read back with the mcap package and protobuf classes
+built from the file's own schemas (tests/mcap_read.py): topics and schemas, one message per tick and
+drone, times on the mission clock, every value equal to the recording (NaN included), events as
+foxglove.Log with their level, the CLI's exit codes; and the vectorised encoder against the protobuf
+library's."""
 
 from __future__ import annotations
 
 import json
 import math
-from collections import defaultdict
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 import yaml
-from mcap.reader import make_reader
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from flightstack.cli import app as cli
 from flightstack.config.rig import resolved_document
-from flightstack.recording.mcap_export import CLOCK_FIELDS, POSE_FIELDS, export_mcap
-from flightstack.recording.mcap_messages import FOXGLOVE_SCHEMAS, LOG_ERROR, LOG_INFO, LOG_WARNING
+from flightstack.recording import mcap_schema
+from flightstack.recording.mcap_export import export_mcap
+from flightstack.recording.mcap_writer import TF_PERIOD_S
 from flightstack.recording.run_reader import load_run
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
 from tests.conftest import random_recording
+from tests.mcap_read import McapContents, assert_mcap_holds, read_mcap
 
-SCHEMA_DIR = resources.files("flightstack.recording") / "schemas" / "foxglove"
 IDS = (1, 2)
 N = 40
 WALL0 = 1_700_000_000.25
@@ -58,6 +59,7 @@ EVENTS = [
     {"t": 0.9, "event": "NOT LANDED", "drone": 2, "height_m": 0.4},
     {"t": 0.95, "event": "end", "reason": "exception: RuntimeError: boom"},
 ]
+LOG_INFO, LOG_WARNING, LOG_ERROR = 2, 3, 4  # foxglove.LogLevel (its protobuf enum values)
 LEVELS = [LOG_INFO, LOG_WARNING, LOG_INFO, LOG_INFO, LOG_ERROR, LOG_ERROR, LOG_ERROR]
 
 
@@ -85,196 +87,142 @@ def fake_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return run
 
 
-def _read(path: Path) -> dict[str, Any]:
-    """Every message of an MCAP file: per topic [(log_time, publish_time, decoded JSON)], the schema
-    name and encodings per topic, the file order of (topic, log_time), attachments and metadata."""
-    by_topic: dict[str, list[tuple[int, int, Any]]] = defaultdict(list)
-    schemas: dict[str, tuple[str, str, str]] = {}
-    order: list[tuple[str, int]] = []
+@pytest.fixture(scope="module")
+def fake_mcap(fake_run: Path) -> tuple[Any, McapContents]:
+    out = fake_run.parent / "fake.mcap"
+    return export_mcap(fake_run, out), read_mcap(out)
 
-    def strict(c: str) -> None:
-        raise AssertionError(f"not valid JSON: {c}")
 
-    with open(path, "rb") as fh:
-        reader = make_reader(fh)
-        for schema, channel, msg in reader.iter_messages(log_time_order=False):
-            assert schema is not None
-            by_topic[channel.topic].append(
-                (msg.log_time, msg.publish_time, json.loads(msg.data, parse_constant=strict))
-            )
-            schemas[channel.topic] = (schema.name, schema.encoding, channel.message_encoding)
-            order.append((channel.topic, msg.log_time))
-        attachments = {a.name: a.data for a in reader.iter_attachments()}
-        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+def _topics(mode: str, ids: list[int]) -> dict[str, str]:
     return {
-        "topics": by_topic,
-        "schemas": schemas,
-        "order": order,
-        "attachments": attachments,
-        "meta": metadata,
+        f"/{mode}/tick": "flightstack.Tick",
+        **{f"/{mode}/drone{i}": "flightstack.DroneState" for i in ids},
+        f"/{mode}/tf": "foxglove.FrameTransforms",
+        f"/{mode}/events": "foxglove.Log",
     }
 
 
-@pytest.fixture(scope="module")
-def fake_mcap(fake_run: Path) -> tuple[Any, dict[str, Any]]:
-    out = fake_run.parent / "fake.mcap"
-    return export_mcap(fake_run, out), _read(out)
+def _log(m: Any) -> dict[str, Any]:
+    """The event JSON at the end of a foxglove.Log's text."""
+    return json.loads(m.message.split("  ", 1)[1])
 
 
-def _expected_topics(mode: str, ids: list[int], rec: Recording) -> dict[str, str]:
-    """Topic -> schema name of a mode, from ARRAY_FIELDS at run time."""
-    exp = {f"/{mode}/clock": "flightstack.clock", f"/{mode}/events": "foxglove.Log"}
-    for entity in ["target", *(f"drone{i}" for i in ids), *(f"drone{i}/estimate" for i in ids)]:
-        exp[f"/{mode}/{entity}/tf"] = "foxglove.FrameTransform"
-        exp[f"/{mode}/{entity}/pose"] = "foxglove.PoseInFrame"
-    for f in ARRAY_FIELDS:
-        if f in POSE_FIELDS or f in CLOCK_FIELDS:
-            continue
-        a = getattr(rec, f)
-        per_drone = a.ndim >= 2 and a.shape[1] == len(ids)
-        for topic in [f"/{mode}/drone{i}/{f}" for i in ids] if per_drone else [f"/{mode}/{f}"]:
-            exp[topic] = f"flightstack.{f}"
-    return exp
-
-
-def test_shipped_foxglove_schemas_parse_and_carry_their_license() -> None:
-    names = sorted(p.name for p in SCHEMA_DIR.iterdir())
-    assert {f"{n}.json" for n in FOXGLOVE_SCHEMAS} <= set(names)
-    for name in names:
-        if name.endswith(".json"):
-            doc = json.loads((SCHEMA_DIR / name).read_text(encoding="utf-8"))
-            assert doc["title"] == f"foxglove.{name[: -len('.json')]}"
-            assert doc["type"] == "object" and "timestamp" in doc["properties"]
-    assert "MIT License" in (SCHEMA_DIR / "LICENSE").read_text(encoding="utf-8")
-    readme = (SCHEMA_DIR / "README.md").read_text(encoding="utf-8")
-    assert "foxglove/foxglove-sdk" in readme and "86ab07b03a1086055eaba38941f31fa7702af005" in readme
-
-
-def test_topics_schemas_and_one_message_per_tick(
-    fake_run: Path, fake_mcap: tuple[Any, dict[str, Any]]
-) -> None:
+def test_topics_schemas_and_one_message_per_tick_and_drone(fake_run: Path, fake_mcap: Any) -> None:
     summary, got = fake_mcap
     recs = load_run(fake_run)
-    expected: dict[str, str] = {}
-    for mode, rec in recs.items():
-        expected |= _expected_topics(mode, rec.drone_ids, rec)
-    assert {t: s[0] for t, s in got["schemas"].items()} == expected
-    assert summary.schemas == expected
-    assert all(s[1:] == ("jsonschema", "json") for s in got["schemas"].values())
-    for topic, msgs in got["topics"].items():
-        want = len(recs[topic.split("/")[1]].events) if topic.endswith("/events") else N
+    expected = _topics("none", list(IDS)) | _topics("dgp", list(IDS))
+    assert {t: s[0] for t, s in got.schemas.items()} == expected
+    assert all(s[1:] == ("protobuf", "protobuf") for s in got.schemas.values())
+    for topic, msgs in got.topics.items():
+        mode = topic.split("/")[1]
+        want = len(recs[mode].events) if topic.endswith("/events") else N  # 20 Hz: a transform per tick
         assert len(msgs) == want == summary.topics[topic], topic
-    per_drone = [t for t in expected if t.startswith("/none/drone") and t.endswith("/e_c")]
-    assert sum(len(got["topics"][t]) for t in per_drone) == N * len(IDS)  # ticks x drones
-    assert summary.messages == len(got["order"])
-    assert summary.mode_ticks == {"dgp": N, "none": N}
+    assert summary.messages == got.messages and summary.mode_ticks == {"dgp": N, "none": N}
+    assert got.attachments["metrics.json"] == b'{"modes": {}}\n'
+    meta = got.metadata["flightstack"]
+    assert json.loads(meta["time_base_s"]) == {"none": WALL0, "dgp": 0.0} and meta["modes"] == ",".join(recs)
 
 
-def test_times_on_the_mission_clock_monotonic_per_topic_and_in_file_order(
-    fake_run: Path, fake_mcap: tuple[Any, dict[str, Any]]
-) -> None:
+def test_every_value_equals_the_recording_nan_included(fake_run: Path, fake_mcap: Any) -> None:
     _, got = fake_mcap
     recs = load_run(fake_run)
-    times = [t for _, t in got["order"]]
-    assert times == sorted(times)  # written in time order across topics
-    for topic, msgs in got["topics"].items():
-        log = [m[0] for m in msgs]
-        assert log == sorted(log), topic
-        assert all(lt == pt for lt, pt, _ in msgs), topic
-    base_none = float(recs["none"].wall_t[0]) - float(recs["none"].t[0])
-    clock = got["topics"]["/none/clock"]
-    assert [m[0] for m in clock] == [int((base_none + t) * 1e9) for t in recs["none"].t]
-    assert [m[2]["t"] for m in clock] == recs["none"].t.tolist()
-    assert [m[0] for m in got["topics"]["/dgp/clock"]] == [
-        int(t * 1e9) for t in recs["dgp"].t
-    ]  # wall_t 0: base 0
-    tf = got["topics"]["/none/drone1/tf"][5]
-    assert tf[2]["timestamp"]["sec"] * 1_000_000_000 + tf[2]["timestamp"]["nsec"] == tf[0]
-    assert json.loads(got["meta"]["flightstack"]["time_base_s"]) == {"none": base_none, "dgp": 0.0}
-    assert got["attachments"]["metrics.json"] == b'{"modes": {}}\n'
+    assert_mcap_holds(recs, got)
+    nan_tick = got.topics["/none/drone2"][3][1]
+    assert math.isnan(nan_tick.e_c[3]) and nan_tick.e_c[0] == recs["none"].e_c[3, 1, 0]
 
 
-def _check_values(rec: Recording, mode: str, topics: dict[str, list[tuple[int, int, Any]]]) -> None:
-    """Poses, e_c and every loop-health array present equal the recording (NaN as null)."""
-
-    def same(x: Any, v: float) -> bool:
-        return x is None if not math.isfinite(v) else x == v
-
-    for j, i in enumerate(rec.drone_ids):
-        for entity, a in (
-            (f"drone{i}", rec.g_wi[:, j]),
-            (f"drone{i}/estimate", rec.g_bar_w[:, j]),
-            ("target", rec.g_w0),
-        ):
-            for k, (_, _, m) in enumerate(topics[f"/{mode}/{entity}/tf"]):
-                x, y, z, th = a[k].tolist()
-                assert m["translation"] == {"x": x, "y": y, "z": z}
-                assert m["rotation"] == {"x": 0.0, "y": 0.0, "z": math.sin(th / 2), "w": math.cos(th / 2)}
-                assert (m["parent_frame_id"], m["child_frame_id"]) == ("world", f"{mode}/{entity}")
-            for k, (_, _, m) in enumerate(topics[f"/{mode}/{entity}/pose"]):
-                assert m["frame_id"] == "world"
-                assert list(m["pose"]["position"].values()) == a[k, :3].tolist()
-        for k, (_, _, m) in enumerate(topics[f"/{mode}/drone{i}/e_c"]):
-            assert list(m) == ["x", "y", "z", "theta"]
-            assert all(same(x, v) for x, v in zip(m.values(), rec.e_c[k, j].tolist(), strict=True)), (k, m)
-        for f in ("frame_age", "pose_age"):
-            if f in ARRAY_FIELDS:
-                vals = [m["value"] for _, _, m in topics[f"/{mode}/drone{i}/{f}"]]
-                assert all(same(x, v) for x, v in zip(vals, getattr(rec, f)[:, j].tolist(), strict=True))
-    for f in ("loop_period", "loop_compute"):
-        if f in ARRAY_FIELDS:
-            vals = [m["value"] for _, _, m in topics[f"/{mode}/{f}"]]
-            assert all(same(x, v) for x, v in zip(vals, getattr(rec, f).tolist(), strict=True))
-    visible = [m["value"] for _, _, m in topics[f"/{mode}/drone{rec.drone_ids[0]}/visible"]]
-    assert visible == rec.visible[:, 0].tolist()
-
-
-def test_values_equal_the_recording_and_nan_is_null(
-    fake_run: Path, fake_mcap: tuple[Any, dict[str, Any]]
-) -> None:
+def test_events_are_foxglove_logs_with_levels_at_their_mission_time(fake_mcap: Any) -> None:
     _, got = fake_mcap
-    recs = load_run(fake_run)
-    for mode, rec in recs.items():
-        _check_values(rec, mode, got["topics"])
-    nan_tick = got["topics"]["/none/drone2/e_c"][3][2]
-    assert nan_tick["theta"] is None and nan_tick["x"] == recs["none"].e_c[3, 1, 0]
+    logs = got.topics["/none/events"]
+    assert [_log(m) for _, m in logs] == [{**ev, "mode": "none"} for ev in EVENTS]  # file order
+    assert [m.level for _, m in logs] == LEVELS
+    assert [m.name for _, m in logs] == [ev.get("source", "flightstack") for ev in EVENTS]
+    when = [lt for lt, _ in logs]
+    assert when[1] == int((WALL0 + 0.5) * 1e9) and when[2] == int((WALL0 + 0.2) * 1e9)
+    assert when[3] == when[2]  # no t: the time of the event before it in the file
+    assert when[4] == when[3]  # a monotonic stamp is not on the mission clock: likewise
+    assert all(m.timestamp.seconds * 10**9 + m.timestamp.nanos == lt for lt, m in logs)
+    assert [m.level for _, m in got.topics["/dgp/events"]] == [LOG_INFO]
 
 
-def test_events_are_foxglove_logs_with_levels_in_time_order(fake_mcap: tuple[Any, dict[str, Any]]) -> None:
-    _, got = fake_mcap
-    logs = got["topics"]["/none/events"]
-    base = WALL0
-    by_text = {json.loads(m["message"].split("  ", 1)[1])["event"] + str(m["level"]): m for _, _, m in logs}
-    assert len(by_text) == len(EVENTS)
-    for ev, level in zip(EVENTS, LEVELS, strict=True):
-        m = by_text[f"{ev['event']}{level}"]
-        assert json.loads(m["message"].split("  ", 1)[1]) == {**ev, "mode": "none"}
-        assert m["name"] == ev.get("source", "flightstack") and m["file"] == "" and m["line"] == 0
-    when = {json.loads(m["message"].split("  ", 1)[1])["event"] + str(m["level"]): lt for lt, _, m in logs}
-    assert when["landed2"] == int((base + 0.2) * 1e9)  # sorted before the safety event at 0.5 s
-    assert when["safety3"] == int((base + 0.5) * 1e9)
-    assert when["bus presence2"] == when["landed2"]  # no t: the time of the event before it in the file
-    assert when["mocap4"] == when["landed2"]  # a monotonic stamp is not on the mission clock: likewise
-    assert [m[2]["level"] for m in got["topics"]["/dgp/events"]] == [LOG_INFO]
+def test_transforms_are_thinned_to_their_period_on_a_fast_recording(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    rec = random_recording("none", [1], 200, 3)
+    rec.t[:] = np.arange(200) * 0.002  # 500 Hz
+    rec.wall_t[:] = 0.0  # log time = mission time
+    rec.save(run / "timeseries_none.npz")
+    export_mcap(run, tmp_path / "o.mcap")
+    got = read_mcap(tmp_path / "o.mcap")
+    stamps = [m.transforms[0].timestamp for _, m in got.topics["/none/tf"]]
+    tf_t = np.array([s.seconds + s.nanos / 1e9 for s in stamps])
+    assert len(got.topics["/none/tick"]) == 200
+    assert len(tf_t) == math.ceil(200 * 0.002 / TF_PERIOD_S - 1e-9)
+    assert np.all(np.diff(tf_t) >= TF_PERIOD_S - 1e-6)
+    assert_mcap_holds(load_run(run), got)
 
 
 def test_modes_pick_a_subset_in_their_order(fake_run: Path, tmp_path: Path) -> None:
     summary = export_mcap(fake_run, tmp_path / "dgp.mcap", modes=["dgp"])
-    got = _read(tmp_path / "dgp.mcap")
-    assert summary.modes == ["dgp"] and {t.split("/")[1] for t in got["topics"]} == {"dgp"}
+    got = read_mcap(tmp_path / "dgp.mcap")
+    assert summary.modes == ["dgp"] and {t.split("/")[1] for t in got.topics} == {"dgp"}
 
 
-def test_foxglove_messages_validate_against_the_shipped_schemas(
-    fake_mcap: tuple[Any, dict[str, Any]],
-) -> None:
-    import jsonschema  # a dev dependency (pyproject.toml)
+def _classes() -> dict[str, Any]:
+    pool = descriptor_pool.DescriptorPool()
+    for fd in descriptor_pb2.FileDescriptorSet.FromString(mcap_schema.file_descriptor_set()).file:
+        pool.Add(fd)
+    names = (mcap_schema.TICK, mcap_schema.DRONE)
+    return {n: message_factory.GetMessageClass(pool.FindMessageTypeByName(n)) for n in names}
 
-    _, got = fake_mcap
-    for topic, (name, _, _) in got["schemas"].items():
-        if name.startswith("foxglove."):
-            schema = json.loads((SCHEMA_DIR / f"{name.split('.')[1]}.json").read_text(encoding="utf-8"))
-            for _, _, m in got["topics"][topic][:5]:
-                jsonschema.validate(m, schema)
+
+def _columns(fields: tuple[str, ...], n: int) -> dict[str, np.ndarray]:
+    """Every field of a schema for n messages of drone 4, every value nonzero."""
+    rec = random_recording("none", [4], n, 11)
+    cols: dict[str, np.ndarray] = {"drone": np.full(n, 4)}
+    for f in fields:
+        if f == "drone":
+            continue
+        a = np.asarray(getattr(rec, f))
+        a = a[:, 0] if mcap_schema.per_drone(f) else a
+        cols[f] = np.where(a == 0, 1, a) if a.dtype.kind != "b" else np.ones(n, dtype=bool)
+    return cols
+
+
+def test_the_vectorised_encoder_writes_what_the_protobuf_library_writes() -> None:
+    """Every field nonzero (proto3 leaves zeros out): byte for byte the library's SerializeToString;
+    with zeros, NaN and ±inf: the library decodes every value back."""
+    cls = _classes()
+    n = 50
+    schemas = ((mcap_schema.TICK, mcap_schema.TICK_FIELDS), (mcap_schema.DRONE, mcap_schema.DRONE_FIELDS))
+    for schema, fields in schemas:
+        cols = _columns(fields, n)
+        msgs = mcap_schema.encode(schema, cols)
+        assert msgs.shape == (n, mcap_schema.message_size(schema))
+        for k in (0, n - 1):
+            ref = cls[schema]()
+            for f in fields:
+                v = np.asarray(cols[f])[k]
+                if v.ndim:
+                    getattr(ref, f).extend(v.tolist())
+                else:
+                    setattr(ref, f, v.item())
+            assert ref.SerializeToString() == msgs[k].tobytes(), (schema, k)
+    cols = _columns(mcap_schema.DRONE_FIELDS, 2)
+    cols["V_cmd"][0] = [0.0, np.nan, np.inf, -np.inf]
+    cols["visible"][0], cols["n_fused"][0], cols["t"][0] = False, -3, 0.0
+    m = cls[mcap_schema.DRONE].FromString(mcap_schema.encode(mcap_schema.DRONE, cols)[0].tobytes())
+    assert m.V_cmd[0] == 0.0 and math.isnan(m.V_cmd[1]) and list(m.V_cmd)[2:] == [np.inf, -np.inf]
+    assert (m.visible, m.n_fused, m.t, m.drone) == (False, -3, 0.0, 4)
+
+
+def test_the_schema_follows_the_recordings_arrays() -> None:
+    """A field added to timeseries.ARRAY_LAYOUT is written without a change to the schema's code."""
+    tick, drone = _classes().values()
+    assert [f.name for f in tick.DESCRIPTOR.fields] == list(mcap_schema.TICK_FIELDS)
+    assert [f.name for f in drone.DESCRIPTOR.fields] == list(mcap_schema.DRONE_FIELDS)
+    assert set(mcap_schema.TICK_FIELDS) | set(mcap_schema.DRONE_FIELDS) == {*ARRAY_FIELDS, "drone"}
+    assert set(mcap_schema.FIELD_DOCS) == {*ARRAY_FIELDS, "drone"}
 
 
 def test_cli_refuses_to_overwrite_unless_force_and_names_a_bad_run_dir(
@@ -287,7 +235,7 @@ def test_cli_refuses_to_overwrite_unless_force_and_names_a_bad_run_dir(
     assert cli.main(["export", str(fake_run), "--mcap", str(out), "--force", "--modes", "none"]) == 0
     printed = capsys.readouterr().out
     assert "topics" in printed and "messages" in printed and "/none/" in printed
-    assert {t.split("/")[1] for t in _read(out)["topics"]} == {"none"}
+    assert {t.split("/")[1] for t in read_mcap(out).topics} == {"none"}
     missing = tmp_path / "nothing here"
     assert cli.main(["export", str(missing), "--mcap", str(tmp_path / "a.mcap")]) == 2
     assert str(missing) in capsys.readouterr().err
@@ -307,17 +255,14 @@ def test_a_real_short_run_exports_its_recording(tmp_path: Path) -> None:
     run, out = tmp_path / "run", tmp_path / "run.mcap"
     assert cli.main(["sim", str(tmp_path / "m.yaml"), "--out", str(run), "--no-progress"]) == 0
     assert cli.main(["export", str(run), "--mcap", str(out)]) == 0
-    rec = load_run(run)["none"]
-    got = _read(out)
-    assert {t: s[0] for t, s in got["schemas"].items()} == _expected_topics("none", rec.drone_ids, rec)
-    assert len(got["topics"]["/none/drone1/e_c"]) == rec.ticks_done > 0
-    _check_values(rec, "none", got["topics"])
-    levels = {
-        json.loads(m["message"].split("  ", 1)[1])["event"]: m["level"]
-        for _, _, m in got["topics"]["/none/events"]
-    }
+    recs = load_run(run)
+    got = read_mcap(out)
+    assert {t: s[0] for t, s in got.schemas.items()} == _topics("none", recs["none"].drone_ids)
+    assert recs["none"].ticks_done == 25
+    assert_mcap_holds(recs, got)
+    levels = {_log(m)["event"]: m.level for _, m in got.topics["/none/events"]}
     assert levels["end"] == LOG_INFO and levels["landed"] == LOG_INFO
-    assert {"metrics.json", "mission_resolved.yaml"} <= set(got["attachments"])
+    assert {"metrics.json", "mission_resolved.yaml"} <= set(got.attachments)
 
 
 def test_a_recording_without_ticks_exports_its_events(tmp_path: Path) -> None:
@@ -328,9 +273,9 @@ def test_a_recording_without_ticks_exports_its_events(tmp_path: Path) -> None:
         json.dumps({"t": 0.0, "event": "end", "reason": "interrupted", "mode": "none"})
     )
     summary = export_mcap(run, tmp_path / "o.mcap")
-    got = _read(tmp_path / "o.mcap")
+    got = read_mcap(tmp_path / "o.mcap")
     assert summary.mode_ticks == {"none": 0} and summary.messages == 1
-    assert [m[2]["level"] for m in got["topics"]["/none/events"]] == [LOG_WARNING]
+    assert [m.level for _, m in got.topics["/none/events"]] == [LOG_WARNING]
 
 
 def test_run_writes_mcap_after_the_landing_and_refuses_an_existing_file_before_flying(
@@ -342,11 +287,10 @@ def test_run_writes_mcap_after_the_landing_and_refuses_an_existing_file_before_f
     argv = ["run", "paper_sim", "--modes", "none", "--duration", "0.1", "--no-progress"]
     assert cli.main([*argv, "--out", str(out), "--mcap", str(mcap_file)]) == 0
     assert "MCAP: " in capsys.readouterr().out
-    got = _read(mcap_file)
-    rec = load_run(out)["none"]
-    assert len(got["topics"]["/none/target/pose"]) == rec.ticks_done == 50
-    poses = [m["pose"]["position"] for _, _, m in got["topics"]["/none/drone1/pose"]]
-    np.testing.assert_array_equal([[p["x"], p["y"], p["z"]] for p in poses], rec.g_wi[:, 0, :3])
+    got = read_mcap(mcap_file)
+    recs = load_run(out)
+    assert recs["none"].ticks_done == 50
+    assert_mcap_holds(recs, got)
     other = tmp_path / "other"
     assert cli.main([*argv, "--out", str(other), "--mcap", str(mcap_file)]) == 2
     assert "exists (--force replaces it); nothing took off" in capsys.readouterr().err

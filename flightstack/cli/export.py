@@ -1,6 +1,6 @@
 """`flightstack export RUN_DIR --mcap FILE [--modes a,b] [--force]`: a run directory as one MCAP file for
-Foxglove and PlotJuggler (flightstack.recording.mcap_export: topics `/<mode>/...`, mission-clock time
-base, NaN written as null).
+Foxglove and PlotJuggler (flightstack.recording.mcap_export: the live MCAP's topics `/<mode>/...`, typed
+protobuf messages, mission-clock time base), for run directories written without the live MCAP.
 
 Exit codes: 0 written (a damaged optional file skipped: a line `skipped: <file>: <what>` on stderr); 2
 bad input (no such run directory, no recording in it, a damaged recording, an unknown mode, FILE exists
@@ -59,5 +59,5 @@ def cmd_export(args: argparse.Namespace) -> int:
     for mode in s.modes:
         topics = f"/{mode}/..."
         print(f"  {topics:14s} {s.mode_ticks[mode]:7d} ticks   {s.mode_seconds[mode]:8.2f} s mission clock")
-    print(f"  time line {s.duration_s:.2f} s (log time = each mode's mission clock from its first wall time)")
+    print("  log time: each mode's mission clock from its first wall time (docs/logs.md)")
     return 0

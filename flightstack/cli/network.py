@@ -81,7 +81,8 @@ def cmd_agent(args: argparse.Namespace) -> int:
         return 2
     try:
         clear_for_run(out, args.force)
-        flight = Flight(mission, out, taps=[tap] if tap is not None else (), **flight_args)
+        taps = [tap] if tap is not None else []
+        flight = Flight(mission, out, taps=taps, live_mcap=args.live_mcap, **flight_args)
         res = fly_or_say(flight)
     finally:
         if tap is not None:
@@ -286,8 +287,10 @@ def register(sub: Any) -> None:
         action="store_true",
         help="reuse a non-empty --out: first remove the files a run writes there; every other file is kept",
     )
+    from flightstack.cli.run import add_live_mcap_argument
     from flightstack.cli.view import add_viewer_argument
 
+    add_live_mcap_argument(a)
     add_viewer_argument(a)
     a.set_defaults(func=cmd_agent)
     ab = sub.add_parser("abort")

@@ -233,6 +233,7 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
         taps=[tap] if tap is not None else (),
         progress=_progress_factory(bars) if want_progress(args.progress) else None,
         plots=True,
+        live_mcap=args.live_mcap,
         say=to_stderr,
     )
     try:
@@ -425,9 +426,22 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
         help="also write the run as MCAP (Foxglove, PlotJuggler) after the landing, from the recording; "
         "the same file as `flightstack export RUN_DIR --mcap FILE`",
     )
+    add_live_mcap_argument(p)
     from flightstack.cli.view import add_viewer_argument
 
     add_viewer_argument(p)
+
+
+def add_live_mcap_argument(p: argparse.ArgumentParser) -> None:
+    """--live-mcap / --no-live-mcap (default on): recording.mcap in the run directory, written as the run
+    goes by a companion process (flightstack.recording.mcap_live)."""
+    p.add_argument(
+        "--live-mcap",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="write recording.mcap (Foxglove, PlotJuggler) into the run directory as the run goes, from a "
+        "companion process (default: on; docs/logs.md)",
+    )
 
 
 class DurationHelp(str):

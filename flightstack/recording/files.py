@@ -63,6 +63,8 @@ REPLAY_FILE = "run.rrd"
 """`flightstack view` without --spawn/--connect/--save on a machine without a display writes it here."""
 LIVE_FILE = "live.rrd"
 """`--viewer` on a machine without a display writes the live Rerun recording here."""
+LIVE_MCAP_FILE = "recording.mcap"
+"""The run as MCAP, written as it goes (flightstack.recording.mcap_live)."""
 DEVICES_DIR = "devices"
 """The raw traffic of a flight's real (or emulated) devices: one file per device and connection
 (`DeviceFiles`); simulated rigs have no devices and write none."""
@@ -84,6 +86,7 @@ RUN_FILES: tuple[str, ...] = (
     DEVICES_DIR,
     REPLAY_FILE,
     LIVE_FILE,
+    LIVE_MCAP_FILE,
 )
 """Every name (fnmatch pattern) a run of `run`/`sim`/`fly`/`agent` writes in its run directory: the one
 list `--out` is checked against and `--force` removes (`run_files`). A writer of a new file adds it here

@@ -66,6 +66,7 @@ from flightstack.recording.files import (
     event_line,
     fsync_dir,
 )
+from flightstack.recording.mcap_live import LiveMcap
 from flightstack.recording.rows import MAGIC, STREAM_FIELDS, RowLayout, read_rows
 from flightstack.recording.run_reader import load_run, read_events, read_state, recording_status
 from flightstack.recording.timeseries import Recording
@@ -113,7 +114,8 @@ class RunWriter:
     then on no method raises for a write error of the recording: it stops the recording instead
     (`status()`). Thread-safe. Starting a run truncates events.jsonl, rewrites recording.json and
     removes metrics.json and the row streams of an earlier run in this directory; a mode's npz is
-    removed when that mode starts (and written again when it ends)."""
+    removed when that mode starts (and written again when it ends). live_mcap: a follower process writes
+    recording.mcap as the run goes (mcap_live.py); `close` waits for it to finish the file."""
 
     def __init__(
         self,
@@ -121,6 +123,7 @@ class RunWriter:
         *,
         block_period_s: float = BLOCK_PERIOD_S,
         block_max_rows: int = BLOCK_MAX_ROWS,
+        live_mcap: bool = False,
     ) -> None:
         self.out = Path(out_dir)
         self.block_period_s = block_period_s
@@ -145,6 +148,12 @@ class RunWriter:
         self._closed = False
         self._thread = threading.Thread(target=self._work, name="flightstack-recorder", daemon=True)
         self._thread.start()
+        self.live_mcap: LiveMcap | None = None
+        if live_mcap:  # after the stale files are gone: the follower reads only this run's
+            try:
+                self.live_mcap = LiveMcap(self.out)
+            except OSError as exc:
+                _log.error("the live MCAP was not started: %s (the flight goes on)", exc)
 
     # ---- the API ---------------------------------------------------------------------------------
     def mode(self, mode: str, ids: list[int], n_ticks: int) -> ModeWriter:
@@ -246,6 +255,10 @@ class RunWriter:
             self._closed = True
         self._queue.put(None)
         self._thread.join(timeout=1.0)
+        if self.live_mcap is not None:  # every file is final: the follower reads the rest and closes
+            report = self.live_mcap.finish()
+            if report.get("error"):
+                _log.error("live MCAP %s: %s", self.live_mcap.out, report["error"])
 
     def __enter__(self) -> RunWriter:
         return self

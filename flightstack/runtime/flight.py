@@ -111,7 +111,8 @@ class Flight:
     per mode. wrap_backend, wrap_bus: applied to what is built (the fault table's injectors). taps:
     observers of every tick (runtime.taps). progress: per-mode progress callbacks. compiled: use the
     rig's compiled loop where it has one (False: every tick through the Agents, the reference path).
-    plots: draw the run's plots into `out` at the end. say: where status lines go (the CLI: stderr)."""
+    plots: draw the run's plots into `out` at the end. live_mcap: `out`/recording.mcap written as the
+    run goes (flightstack.recording.mcap_live). say: where status lines go (the CLI: stderr)."""
 
     def __init__(
         self,
@@ -128,9 +129,11 @@ class Flight:
         progress: ProgressFactory | None = None,
         compiled: bool = True,
         plots: bool = False,
+        live_mcap: bool = False,
         say: Callable[[str], None] = quiet,
     ) -> None:
         self.mission = mission
+        self.live_mcap = live_mcap
         self.out = None if out is None else Path(out)
         self.agent_id = agent_id
         self.modes = _with_data_run(mission, list(mission.compare_modes if modes is None else modes))
@@ -172,7 +175,7 @@ class Flight:
                     stack.enter_context(keep_awake(f"flightstack: mission {self.mission.name} in flight"))
                 )
             if self.out is not None:
-                self.writer = stack.enter_context(_open_run_dir(self.out))
+                self.writer = stack.enter_context(_open_run_dir(self.out, self.live_mcap))
                 self.writer.write_file(MISSION_FILE, resolved_mission_yaml(self.mission))  # for `report`
             if self.agent_id is not None:
                 self._open_seat(stack)
@@ -409,14 +412,15 @@ def _check_agent(mission: Mission, agent_id: int, modes: list[str]) -> None:
 
 
 @contextlib.contextmanager
-def _open_run_dir(out: Path) -> Any:
+def _open_run_dir(out: Path, live_mcap: bool = False) -> Any:
     """The run directory's writer, after checking (before anything takes off) that `out` is writable
-    and has flightstack.recording.files.MIN_FREE_BYTES free; NotFlownError naming the problem."""
+    and has flightstack.recording.files.MIN_FREE_BYTES free; NotFlownError naming the problem.
+    live_mcap: recording.mcap written as the run goes (flightstack.recording.mcap_live)."""
     problem = check_out_dir(out)
     if problem is not None:
         raise NotFlownError(f"--out {out}: {problem}")
     try:
-        writer = RunWriter(out)
+        writer = RunWriter(out, live_mcap=live_mcap)
     except OSError as exc:
         raise NotFlownError(f"--out {out}: cannot start the recording: {exc.strerror or exc}") from None
     with writer:

@@ -1,0 +1,320 @@
+"""The run's MCAP (`recording.mcap` in the run directory), written as the flight goes by a companion
+process that follows the run directory: `python -m flightstack.recording.mcap_live RUN_DIR OUT`.
+
+Why a process: the flight's own process must not spend its cores, or its GIL, on encoding and compressing
+(a 40 s paper_sim run is 245 000 messages, about 1.6 s of CPU), and a writer that fails or hangs must not
+touch the control loop. The follower reads what the run directory already holds as it is written
+(run_dir.py): each mode's row stream `timeseries_<mode>.rows` (complete rows only, checked by `_seq`;
+e_c and e_e computed from the poses and the mission's desired poses, as `load_run` does), the final
+`timeseries_<mode>.npz` of a mode written whole, and events.jsonl; it only reads modes that recording.json
+names (this run's), so the files of an earlier run in the directory are never mixed in. It writes through
+mcap_writer.RunMcap (the topics and the time base are described there) and closes the open chunk every
+FLUSH_PERIOD_S.
+
+Its stdin is a pipe from the flight's process: end of file (the run directory closed, or the flight's
+process gone, by any signal) makes it read everything left, attach metrics.json, recording.json and the
+mission, write the MCAP's summary and exit; it prints one JSON line ({"messages", "topics", "ticks",
+"error"}). It ignores SIGINT (Ctrl-C lands the drones; the file is finished after) and runs in its own
+session, so that a kill of the flight's process group leaves it to finish the file. Killed itself
+(SIGKILL), the file it leaves reads up to its last complete chunk: at most CHUNK_BYTES (uncompressed) or
+FLUSH_PERIOD_S of wall time lost, plus the rows it had not polled yet (POLL_S).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from flightstack.recording.files import EVENTS_FILE, LIVE_MCAP_FILE, ROWS_SUFFIX, STATE_FILE, RunDirError
+from flightstack.recording.rows import MAGIC, MAX_HEADER_BYTES, RowLayout, _layout
+from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
+
+_log = logging.getLogger(__name__)
+
+POLL_S = 0.2
+"""How often (s) the follower reads the run directory."""
+FLUSH_PERIOD_S = 1.0
+"""Wall time (s) after which the follower closes its open chunk: what a kill of the follower can lose."""
+FINISH_TIMEOUT_S = 60.0
+"""How long (s) closing a run waits for the follower to finish the file (it keeps going after)."""
+MAX_EVENT_LINE = 1 << 20
+"""Bound on one events.jsonl line (B); a longer one is skipped and counted."""
+
+
+class _RowTail:
+    """The complete rows of a growing row stream, read as they appear (an open descriptor keeps reading
+    the stream after the recorder removes it at the mode's end)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.fh: IO[bytes] | None = None
+        self.layout: RowLayout | None = None
+        self.read_rows = 0
+        self._buf = b""
+
+    def read(self) -> np.ndarray | None:
+        """The rows that appeared since the last call (None: none yet). RunDirError for a damaged header."""
+        if self.fh is None:
+            try:
+                self.fh = open(self.path, "rb")  # noqa: SIM115 (kept open: the stream may be removed)
+            except FileNotFoundError:
+                return None
+        self._buf += self.fh.read()
+        if self.layout is None:
+            head = len(MAGIC) + 4
+            if len(self._buf) < head:
+                return None
+            if self._buf[: len(MAGIC)] != MAGIC:
+                raise RunDirError(self.path, "not a flightstack row stream (no FSROWS1 magic)")
+            n = int.from_bytes(self._buf[len(MAGIC) : head], "little")
+            if n > MAX_HEADER_BYTES:
+                raise RunDirError(self.path, f"header length {n} B: more than {MAX_HEADER_BYTES} B")
+            if len(self._buf) < head + n:
+                return None
+            self.layout = _layout(self.path, self._buf[head : head + n])
+            self._buf = self._buf[head + n :]
+        size = self.layout.dtype.itemsize
+        count = len(self._buf) // size
+        if count == 0:
+            return None
+        rows = np.frombuffer(self._buf[: count * size], dtype=self.layout.dtype)
+        ok = rows["_seq"] == np.arange(self.read_rows + 1, self.read_rows + count + 1)
+        good = count if ok.all() else int(np.argmin(ok))  # a block still being written: wait for it
+        self._buf = self._buf[good * size :]
+        self.read_rows += good
+        return rows[:good].copy() if good else None
+
+    def close(self) -> None:
+        if self.fh is not None:
+            self.fh.close()
+            self.fh = None
+
+
+class RunFollower:
+    """Copies a run directory into a RunMcap as it is written (module docstring): `poll` often, `finish`
+    once. `skipped`: what was left out and why (counted)."""
+
+    def __init__(self, run_dir: Path, out: Path) -> None:
+        from flightstack.recording.mcap_writer import RunMcap
+
+        self.run_dir = run_dir
+        self.mcap = RunMcap(out)
+        self.tails: dict[str, _RowTail] = {}
+        self.done: set[str] = set()  # modes whose every row is in the MCAP
+        self.ticks: Counter[str] = Counter()
+        self.skipped: Counter[str] = Counter()
+        self._ids: dict[str, list[int]] = {}
+        self._g_d: dict[int, np.ndarray] | None = None  # desired pose per drone id (the mission's)
+        self._mission_read = False
+        self._events_at = 0
+        self._event_buf = b""
+        self._event_mode: str | None = None
+        self._last_flush = time.monotonic()
+
+    # ---- the run's facts ------------------------------------------------------------------------------
+    def _modes(self) -> dict[str, dict[str, Any]]:
+        try:
+            doc = json.loads((self.run_dir / STATE_FILE).read_text())
+        except (OSError, ValueError):
+            return {}  # not written yet, or being replaced: next poll
+        modes = doc.get("modes") if isinstance(doc, dict) else None
+        return {str(k): v for k, v in modes.items() if isinstance(v, dict)} if isinstance(modes, dict) else {}
+
+    def _desired(self, ids: list[int]) -> np.ndarray | None:
+        """The drones' desired poses g_d (n, 4) from the run's mission (None: no mission file)."""
+        if not self._mission_read:
+            from flightstack.recording.run_reader import resolved_mission
+
+            self._mission_read = True
+            mission, _ = resolved_mission(self.run_dir)
+            if mission is not None:
+                self._g_d = {d.id: d.desired_pose.pose().as_vector() for d in mission.drones}
+        g_d = self._g_d
+        if g_d is None or not all(i in g_d for i in ids):
+            return None
+        return np.array([g_d[i] for i in ids], dtype=float).reshape(len(ids), 4)
+
+    # ---- copying ----------------------------------------------------------------------------------------
+    def _write_rows(self, mode: str, ids: list[int], columns: dict[str, np.ndarray]) -> None:
+        rec = Recording.from_columns(mode, ids, columns)
+        if "e_c" not in columns:  # a row stream: derived here as load_run does
+            g_d = self._desired(ids)
+            if g_d is None:
+                self.skipped["e_c, e_e: no mission file to compute them from (written as zeros)"] += 1
+            else:
+                rec.fill_true_errors(g_d)
+        self.mcap.ticks(mode, ids, {f: getattr(rec, f) for f in ARRAY_FIELDS})
+        self.ticks[mode] += len(rec.t)
+
+    def _poll_mode(self, mode: str, state: dict[str, Any], final: bool) -> None:
+        if mode in self.done:
+            return
+        tail = self.tails.setdefault(mode, _RowTail(self.run_dir / f"timeseries_{mode}{ROWS_SUFFIX}"))
+        rows = tail.read()
+        if rows is not None and tail.layout is not None:
+            ids = [int(i) for i in tail.layout.meta.get("drone_ids", state.get("drone_ids", []))]
+            self._ids[mode] = ids
+            names = rows.dtype.names or ()
+            self._write_rows(mode, ids, {f: rows[f] for f in ARRAY_FIELDS if f in names})
+        closed = state.get("state") == "closed"
+        if closed and state.get("final"):
+            npz = self.run_dir / str(state["final"])
+            have = self.ticks[mode]
+            rec = Recording.load(npz) if have < int(state.get("ticks_done", have)) else None
+            if rec is not None and rec.ticks_done > have:  # a mode written whole, or rows never seen
+                rec = rec.truncated()
+                self._write_rows(mode, rec.drone_ids, {f: getattr(rec, f)[have:] for f in ARRAY_FIELDS})
+            self.done.add(mode)
+            tail.close()
+        elif closed and final:
+            self.done.add(mode)  # cut short: its row stream is all there is
+            tail.close()
+
+    def _poll_events(self) -> None:
+        path = self.run_dir / EVENTS_FILE
+        try:
+            with open(path, "rb") as fh:
+                fh.seek(self._events_at)
+                data = fh.read()
+        except FileNotFoundError:
+            return
+        self._events_at += len(data)
+        self._event_buf += data
+        *lines, self._event_buf = self._event_buf.split(b"\n")
+        if len(self._event_buf) > MAX_EVENT_LINE:
+            self.skipped["an events.jsonl line longer than 1 MiB"] += 1
+            self._event_buf = b""
+        for line in lines:
+            if not line.strip():
+                continue
+            try:
+                ev = json.loads(line)
+            except (ValueError, RecursionError):
+                self.skipped["an events.jsonl line that is not JSON"] += 1
+                continue
+            if not isinstance(ev, dict):
+                self.skipped["an events.jsonl line that is not an object"] += 1
+                continue
+            if isinstance(ev.get("mode"), str):
+                self._event_mode = ev["mode"]
+            if self._event_mode is None:
+                self.skipped["an event before any mode"] += 1
+                continue
+            self.mcap.events(self._event_mode, [ev])
+
+    def poll(self, final: bool = False) -> None:
+        """Copy what appeared since the last poll; final: the run is over (read every row left)."""
+        for mode, state in self._modes().items():
+            try:
+                self._poll_mode(mode, state, final)
+            except (RunDirError, ValueError, OSError) as exc:
+                self.skipped[f"timeseries_{mode}: {exc}"] += 1
+                self.done.add(mode)
+        self._poll_events()
+        if time.monotonic() - self._last_flush >= FLUSH_PERIOD_S:
+            self.mcap.flush()
+            self._last_flush = time.monotonic()
+
+    def finish(self) -> dict[str, Any]:
+        """Read everything left, attach the run's files, close the MCAP; what was written."""
+        from flightstack.recording.mcap_export import attach_run_files
+
+        error = None
+        try:
+            self.poll(final=True)
+            attach_run_files(self.mcap, self.run_dir, self.mcap.first_ns or 0)
+        except Exception as exc:  # the file is still closed below: what was written stays readable
+            error = f"{type(exc).__name__}: {exc}"
+        finally:
+            for tail in self.tails.values():
+                tail.close()
+            self.mcap.close()
+        return {
+            "messages": sum(self.mcap.counts.values()),
+            "topics": len(self.mcap.counts),
+            "ticks": dict(self.ticks),
+            "skipped": dict(self.skipped),
+            "error": error,
+        }
+
+
+def follow(run_dir: Path, out: Path, stop_fd: int) -> dict[str, Any]:
+    """Follow `run_dir` into `out` until `stop_fd` reads end of file (or SIGTERM); then finish."""
+    stopping = False
+
+    def on_term(signum: int, frame: object) -> None:
+        nonlocal stopping
+        stopping = True
+
+    signal.signal(signal.SIGTERM, on_term)
+    follower = RunFollower(run_dir, out)
+    while not stopping:
+        try:
+            ready, _, _ = select.select([stop_fd], [], [], POLL_S)
+        except InterruptedError:
+            ready = []
+        if ready and not os.read(stop_fd, 4096):
+            break
+        follower.poll()
+    return follower.finish()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 2:
+        print("usage: python -m flightstack.recording.mcap_live RUN_DIR OUT", file=sys.stderr)
+        return 2
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        report = follow(Path(args[0]), Path(args[1]), sys.stdin.fileno())
+    except Exception as exc:  # e.g. OUT cannot be created: said on one line
+        print(json.dumps({"error": f"{type(exc).__name__}: {exc}"}), flush=True)
+        return 1
+    print(json.dumps(report), flush=True)
+    return 0 if report["error"] is None else 1
+
+
+class LiveMcap:
+    """The follower process of a run directory, started by RunWriter(live_mcap=True)."""
+
+    def __init__(self, run_dir: Path, out: Path | None = None) -> None:
+        self.out = out or run_dir / LIVE_MCAP_FILE
+        self.report: dict[str, Any] | None = None
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "flightstack.recording.mcap_live", str(run_dir), str(self.out)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            start_new_session=True,
+        )
+
+    def finish(self, timeout_s: float = FINISH_TIMEOUT_S) -> dict[str, Any]:
+        """Tell the follower the run is over and wait for its report (≤ timeout_s; after that it is left
+        to finish on its own and the report says so). Never raises."""
+        if self.report is not None:
+            return self.report
+        try:
+            out, err = self.proc.communicate(input=b"", timeout=timeout_s)  # closes its stdin: end of file
+            lines = out.decode(errors="replace").strip().splitlines()
+            report = json.loads(lines[-1]) if lines else {"error": err.decode(errors="replace")[-500:]}
+        except subprocess.TimeoutExpired:
+            report = {"error": f"still writing after {timeout_s:g} s (left to finish)"}
+        except Exception as exc:
+            report = {"error": f"{type(exc).__name__}: {exc}"}
+        self.report = report
+        return report
+
+
+if __name__ == "__main__":
+    sys.exit(main())

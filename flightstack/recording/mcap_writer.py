@@ -1,0 +1,287 @@
+"""A run as one MCAP file for Foxglove and PlotJuggler, written with foxglove-sdk's MCAP writer
+(`RunMcap`); the live writer (mcap_live.py) and `flightstack export --mcap` (mcap_export.py) both feed it.
+
+**Topics**, per flown mode (each under its own prefix, so one file compares the modes), drone ids i:
+
+- `/<mode>/tick` (`flightstack.Tick`, protobuf): every tick's per-tick arrays (t, wall_t, the loop's
+  timing, the target's pose g_w0);
+- `/<mode>/drone<i>` (`flightstack.DroneState`, protobuf): every tick, drone i's arrays (its pose, its
+  estimate of the target, e_c, e_e, u_e, mu_used, var_own, V_cmd, ...; mcap_schema.py);
+- `/<mode>/tf` (`foxglove.FrameTransforms`): world (Σw) → `<mode>/target`, `<mode>/drone<i>` and
+  `<mode>/drone<i>/estimate`, at most every TF_PERIOD_S of mission time (for the 3D panel; every value
+  is in the two topics above at full rate);
+- `/<mode>/events` (`foxglove.Log`): the mode's events, level ERROR for failures, WARNING for safety
+  events, INFO for the rest; the text ends with the event's JSON.
+
+Poses are [x, y, z, θ] in Σw (m, rad; yaw only); a transform's rotation is (0, 0, sin θ/2, cos θ/2).
+
+**Time base: the mission clock.** A tick at mission time t (s) is logged at int((base + t) · 1e9) ns, base =
+the mode's first wall_t − its first t when that wall_t is nonzero and finite, else 0: a simulated run
+keeps its real spacing (wall time would squeeze it); on hardware the two clocks advance together. An event
+is at base + its t when t is on the mission clock, else at the time of the event before it (the mode's
+first tick for the first). Within a topic times never decrease.
+
+**Chunks**: zstd-compressed, at most CHUNK_BYTES uncompressed; `flush` closes the open chunk (the live
+writer does every mcap_live.FLUSH_PERIOD_S), so a killed writer loses at most the chunk it had open.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import foxglove
+import numpy as np
+from foxglove.channels import FrameTransformsChannel, LogChannel
+from foxglove.mcap import MCAPWriteOptions
+from foxglove.messages import FrameTransform, FrameTransforms, Log, LogLevel, Quaternion, Timestamp, Vector3
+
+from flightstack.events import mission_time, severity
+from flightstack.recording.files import json_safe
+from flightstack.recording.mcap_schema import (
+    DRONE,
+    DRONE_FIELDS,
+    TICK,
+    TICK_FIELDS,
+    encode,
+    file_descriptor_set,
+    per_drone,
+)
+
+CHUNK_BYTES = 1 << 20
+"""Target uncompressed size of a chunk (B); a killed writer loses at most one."""
+TF_PERIOD_S = 0.02
+"""Least mission time (s) between two /<mode>/tf messages (50 Hz)."""
+WORLD_FRAME = "world"
+"""Parent frame of every transform: the world frame Σw."""
+_LEVELS = {"ERROR": LogLevel.Error, "WARNING": LogLevel.Warning, "INFO": LogLevel.Info}
+
+
+def time_base(t0: float, wall0: float) -> float:
+    """Seconds added to the mission clock for log times: wall0 − t0 when wall0 is finite and nonzero."""
+    return wall0 - t0 if math.isfinite(wall0) and wall0 != 0.0 and math.isfinite(t0) else 0.0
+
+
+def to_ns(base: float, t: np.ndarray | float) -> np.ndarray:
+    """Log times (ns, int64, at least 0) of mission times t (s)."""
+    return np.maximum(0, ((base + np.asarray(t, dtype=float)) * 1e9).astype(np.int64))
+
+
+def event_level(ev: Mapping[str, Any]) -> LogLevel:
+    """The Foxglove log level of an event: its flightstack.events.severity."""
+    return _LEVELS[severity(dict(ev))]
+
+
+def event_text(ev: Mapping[str, Any]) -> str:
+    """One line for a log viewer: `event[ drone i][: kind][ - detail or reason]  {the event's JSON}`."""
+    head = str(ev.get("event", "event"))
+    if ev.get("drone") is not None:
+        head += f" drone {ev['drone']}"
+    if ev.get("kind"):
+        head += f": {ev['kind']}"
+    tail = ev.get("detail") or ev.get("reason")
+    if tail:
+        head += f" - {tail}"
+    return f"{head}  {json.dumps(json_safe(dict(ev)), allow_nan=False)}"
+
+
+def library() -> str:
+    """flightstack's and foxglove-sdk's versions (the MCAP's metadata)."""
+    try:
+        ours = metadata.version("flightstack")
+    except metadata.PackageNotFoundError:  # a checkout that was never installed
+        ours = "unknown"
+    return f"flightstack {ours}; foxglove-sdk {metadata.version('foxglove-sdk')}"
+
+
+class _Mode:
+    """One mode's channels, time base and cursors."""
+
+    def __init__(self, ctx: foxglove.Context, schemas: Mapping[str, foxglove.Schema], mode: str) -> None:
+        self.mode = mode
+        self.ctx = ctx
+        self.drone_schema = schemas[DRONE]
+        self.tick = foxglove.Channel(
+            f"/{mode}/tick", schema=schemas[TICK], message_encoding="protobuf", context=ctx
+        )
+        self.drones: dict[int, foxglove.Channel] = {}
+        self.tf = FrameTransformsChannel(f"/{mode}/tf", context=ctx)
+        self.log = LogChannel(f"/{mode}/events", context=ctx)
+        self.base: float | None = None
+        self.last_ns = 0  # the newest tick's log time
+        self.next_tf = -math.inf  # mission time of the next transform
+        self.event_ns: int | None = None  # the previous event's log time
+        self.pending: list[Mapping[str, Any]] = []  # events before the first tick
+
+    def drone(self, i: int) -> foxglove.Channel:
+        if i not in self.drones:
+            self.drones[i] = foxglove.Channel(
+                f"/{self.mode}/drone{i}",
+                schema=self.drone_schema,
+                message_encoding="protobuf",
+                context=self.ctx,
+            )
+        return self.drones[i]
+
+
+class RunMcap:
+    """An MCAP file being written (module docstring): `ticks` for each block of ticks of a mode, in order,
+    `events` for its events, then `close`. `counts`: messages written per topic. Not thread-safe."""
+
+    def __init__(self, path: Path | str, *, chunk_bytes: int = CHUNK_BYTES) -> None:
+        self.path = Path(path)
+        self.ctx = foxglove.Context()
+        options = MCAPWriteOptions(chunk_size=chunk_bytes, compression_threads=0, compression_level=1)
+        self._writer = foxglove.open_mcap(
+            self.path, allow_overwrite=True, context=self.ctx, writer_options=options
+        )
+        self._schema_data = file_descriptor_set()
+        self._schemas = {
+            TICK: foxglove.Schema(name=TICK, encoding="protobuf", data=self._schema_data),
+            DRONE: foxglove.Schema(name=DRONE, encoding="protobuf", data=self._schema_data),
+        }
+        self.modes: dict[str, _Mode] = {}
+        self.counts: Counter[str] = Counter()
+        self.span: dict[str, tuple[float, float]] = {}  # mode -> (first t, last t) written (s)
+        self.first_ns: int | None = None  # the earliest tick's log time
+        self.closed = False
+
+    def _mode(self, mode: str) -> _Mode:
+        if mode not in self.modes:
+            self.modes[mode] = _Mode(self.ctx, self._schemas, mode)
+        return self.modes[mode]
+
+    def ticks(self, mode: str, drone_ids: list[int], cols: Mapping[str, np.ndarray]) -> None:
+        """N further ticks of `mode` (in order, after those written): every array of the recording
+        (timeseries.ARRAY_FIELDS, N rows each; per-drone arrays (N, n, ...) in drone_ids' order)."""
+        m = self._mode(mode)
+        t = np.asarray(cols["t"], dtype=float)
+        n = len(t)
+        if n == 0:
+            return
+        if m.base is None:
+            m.base = time_base(float(t[0]), float(np.asarray(cols["wall_t"], dtype=float)[0]))
+            self.span[mode] = (float(t[0]), float(t[0]))
+            m.event_ns = int(to_ns(m.base, float(t[0])))
+        ns = np.maximum.accumulate(np.maximum(to_ns(m.base, t), m.last_ns))
+        m.last_ns = int(ns[-1])
+        self.first_ns = int(ns[0]) if self.first_ns is None else min(self.first_ns, int(ns[0]))
+        self.span[mode] = (self.span[mode][0], float(t[-1]))
+        self._log_rows(m.tick, encode(TICK, {f: cols[f] for f in TICK_FIELDS}), ns)
+        for j, i in enumerate(drone_ids):
+            one = {f: np.asarray(cols[f])[:, j] for f in DRONE_FIELDS if f not in ("t", "drone")}
+            one.update(t=t, drone=np.full(n, i, dtype=np.uint32))
+            self._log_rows(m.drone(i), encode(DRONE, one), ns)
+        self._transforms(m, drone_ids, cols, t, ns)
+        if m.pending:
+            pending, m.pending = m.pending, []
+            self.events(mode, pending)
+
+    def _log_rows(self, channel: foxglove.Channel, msgs: np.ndarray, ns: np.ndarray) -> None:
+        data = msgs.tobytes()
+        size = msgs.shape[1]
+        log = channel.log
+        for k, when in enumerate(ns.tolist()):
+            log(data[k * size : (k + 1) * size], log_time=when)
+        self.counts[channel.topic()] += len(ns)
+
+    def _transforms(
+        self, m: _Mode, ids: list[int], cols: Mapping[str, np.ndarray], t: np.ndarray, ns: np.ndarray
+    ) -> None:
+        g_w0, g_wi, g_bar = (np.asarray(cols[f], dtype=float) for f in ("g_w0", "g_wi", "g_bar_w"))
+        for k in range(len(t)):
+            if t[k] < m.next_tf:
+                continue
+            m.next_tf = t[k] + TF_PERIOD_S
+            sec, nsec = divmod(int(ns[k]), 1_000_000_000)
+            stamp = Timestamp(sec, nsec)
+            frames = [(f"{m.mode}/target", g_w0[k])]
+            for j, i in enumerate(ids):
+                frames += [(f"{m.mode}/drone{i}", g_wi[k, j]), (f"{m.mode}/drone{i}/estimate", g_bar[k, j])]
+            tfs = [
+                FrameTransform(
+                    timestamp=stamp,
+                    parent_frame_id=WORLD_FRAME,
+                    child_frame_id=child,
+                    translation=Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                    rotation=Quaternion(z=math.sin(p[3] / 2), w=math.cos(p[3] / 2)),
+                )
+                for child, p in frames
+            ]
+            m.tf.log(FrameTransforms(transforms=tfs), log_time=int(ns[k]))
+            self.counts[m.tf.topic()] += 1
+
+    def events(self, mode: str, evs: Sequence[Mapping[str, Any]]) -> None:
+        """Events of `mode` in file order; held until the mode's first tick fixes its time base (or
+        `close`, which writes them at base 0)."""
+        m = self._mode(mode)
+        if m.base is None:
+            m.pending.extend(evs)
+            return
+        for ev in evs:
+            t = mission_time(dict(ev))
+            when = int(to_ns(m.base, t)) if t is not None else (m.event_ns or 0)
+            m.event_ns = when
+            sec, nsec = divmod(when, 1_000_000_000)
+            msg = Log(
+                timestamp=Timestamp(sec, nsec),
+                level=event_level(ev),
+                message=event_text(ev),
+                name=str(ev.get("source") or "flightstack"),
+            )
+            m.log.log(msg, log_time=when)
+            self.counts[m.log.topic()] += 1
+
+    def attach(self, name: str, media_type: str, data: bytes, when_ns: int = 0) -> None:
+        self._writer.attach(
+            log_time=when_ns, create_time=when_ns, name=name, media_type=media_type, data=data
+        )
+
+    def metadata(self, name: str, values: Mapping[str, str]) -> None:
+        self._writer.write_metadata(name, dict(values))
+
+    def flush(self) -> None:
+        """Close the open chunk and write it to the file."""
+        self._writer.flush()
+
+    def close(self) -> None:
+        """Write held events, the metadata record `flightstack` (modes, drones, time bases) and the
+        summary; idempotent."""
+        if self.closed:
+            return
+        for mode, m in self.modes.items():
+            if m.base is None and m.pending:
+                m.base, m.event_ns = 0.0, 0
+                pending, m.pending = m.pending, []
+                self.events(mode, pending)
+        bases = {mode: m.base for mode, m in self.modes.items()}
+        self.metadata(
+            "flightstack",
+            {
+                "modes": ",".join(self.modes),
+                "time_base_s": json.dumps(bases),
+                "drone_ids": json.dumps({mode: sorted(m.drones) for mode, m in self.modes.items()}),
+                "time": "log_time = int((base + t) * 1e9) ns; t: mission clock (s); base: time_base_s[mode]",
+                "library": library(),
+            },
+        )
+        self._writer.close()
+        self.closed = True
+
+
+__all__ = [
+    "CHUNK_BYTES",
+    "TF_PERIOD_S",
+    "WORLD_FRAME",
+    "RunMcap",
+    "event_level",
+    "event_text",
+    "per_drone",
+    "time_base",
+    "to_ns",
+]

@@ -1,0 +1,150 @@
+"""The live MCAP (flightstack.recording.mcap_live): written while the run goes, every value equal to the
+run's own recording, and what a kill leaves: the flight's process killed, the follower finishes the file;
+both killed, the file reads up to its last complete chunk. Runs tests/live_run_writer.py (a run directory
+written tick by tick at 500 Hz) and reads the file as a user's tool would (tests/mcap_read.py)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from flightstack.cli import app as cli
+from flightstack.recording.files import LIVE_MCAP_FILE
+from flightstack.recording.mcap_live import FLUSH_PERIOD_S, POLL_S
+from flightstack.recording.mcap_writer import CHUNK_BYTES
+from flightstack.recording.rows import read_rows
+from flightstack.recording.run_reader import load_run, resolved_mission
+from tests.conftest import REPO, eventually
+from tests.mcap_read import assert_mcap_holds, read_mcap, read_mcap_stream
+
+RATE_HZ = 500.0
+pytestmark = pytest.mark.system
+
+
+def _start(out: Path, n: int) -> tuple[subprocess.Popen[str], int]:
+    """The writer process and its follower's pid."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tests.live_run_writer", str(out), str(n), str(RATE_HZ)],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert proc.stdout is not None
+    line = proc.stdout.readline()
+    assert line.startswith("follower "), (line, proc.stderr.read() if proc.stderr else "")
+    return proc, int(line.split()[1])
+
+
+def _rows_at_least(proc: subprocess.Popen[str], k: int) -> None:
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        if line.startswith("rows ") and int(line.split()[1]) >= k:
+            return
+    raise AssertionError(f"the writer ended before {k} rows")
+
+
+def _alive(pid: int) -> bool:
+    """pid runs (a zombie that nobody reaps, e.g. under a container's init, has ended)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def _ticks(path: Path) -> int:
+    return len(read_mcap_stream(path).topics.get("/none/tick", []))
+
+
+def test_written_during_the_run_and_equal_to_the_recording(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    n = 5000  # 10 s
+    proc, follower = _start(out, n)
+    try:
+        assert eventually(lambda: _ticks(out / LIVE_MCAP_FILE) > 0 or proc.poll() is not None, 60.0)
+        seen = _ticks(out / LIVE_MCAP_FILE)
+        assert proc.poll() is None and seen > 0, seen  # readable while the writer is still writing
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, stderr
+    assert '"error": null' in stdout.splitlines()[-1], stdout
+    mission, _ = resolved_mission(out)
+    got = read_mcap(out / LIVE_MCAP_FILE)
+    recs = load_run(out, mission)
+    assert recs["none"].ticks_done == n
+    assert_mcap_holds(recs, got)
+    assert {"metrics.json", "recording.json", "mission_resolved.yaml"} <= set(got.attachments)
+    assert not _alive(follower)
+    print(f"live MCAP: {seen} of {n} ticks readable while the run went on")
+
+
+def test_a_killed_flight_leaves_a_finished_file(tmp_path: Path) -> None:
+    """SIGKILL of the flight's process: the follower reads end of file on its pipe, copies every row the
+    row stream has and writes the summary; the file reads with its indexes."""
+    out = tmp_path / "run"
+    proc, follower = _start(out, 60_000)
+    try:
+        _rows_at_least(proc, 1500)
+        proc.kill()
+        proc.wait(timeout=10)
+        t0 = time.monotonic()
+        assert eventually(lambda: not _alive(follower), 60.0), "the follower did not finish"
+        finished = time.monotonic() - t0
+    finally:
+        proc.kill()
+    _, rows = read_rows(out / "timeseries_none.rows")
+    mission, _ = resolved_mission(out)
+    recs = load_run(out, mission)
+    got = read_mcap(out / LIVE_MCAP_FILE)  # complete: summary and indexes
+    assert recs["none"].ticks_done == len(rows) >= 1000
+    assert_mcap_holds(recs, got)
+    print(f"flight killed at {len(rows)} rows: the follower finished the file in {finished:.2f} s")
+
+
+def test_a_killed_follower_loses_at_most_its_open_chunk(tmp_path: Path) -> None:
+    """SIGKILL of the flight and its follower at once: the file reads front to back up to its last
+    complete chunk; what is lost is at most the open chunk (≤ FLUSH_PERIOD_S of wall time) and the rows not
+    polled yet (POLL_S), and what was read equals the recording."""
+    out = tmp_path / "run"
+    proc, follower = _start(out, 60_000)
+    try:  # once the follower has caught up (its start, imports included, takes seconds on a busy machine)
+        assert eventually(lambda: _ticks(out / LIVE_MCAP_FILE) >= 1000, 90.0)
+        os.kill(follower, signal.SIGKILL)
+        proc.kill()
+        proc.wait(timeout=10)
+    finally:
+        proc.kill()
+    _, rows = read_rows(out / "timeseries_none.rows")
+    got = read_mcap_stream(out / LIVE_MCAP_FILE)
+    assert got.error is not None  # cut short: no summary
+    mission, _ = resolved_mission(out)
+    rec = load_run(out, mission)["none"]
+    have = len(got.topics["/none/tick"])
+    lost_s = (len(rows) - have) / RATE_HZ
+    print(
+        f"follower killed at {len(rows)} rows on disk: {have} ticks readable, {lost_s:.2f} s lost "
+        f"(bound {FLUSH_PERIOD_S + POLL_S:.1f} s + scheduling; chunks of at most {CHUNK_BYTES} B)"
+    )
+    assert have > 0 and lost_s <= FLUSH_PERIOD_S + POLL_S + 2.0, (have, len(rows))  # 2 s: a loaded machine
+    # a chunk may end inside a block (its ticks written before its drones): compare the whole ticks
+    whole = min(len(got.topics[t]) for t in ["/none/tick", *(f"/none/drone{i}" for i in rec.drone_ids)])
+    for t in ["/none/tick", *(f"/none/drone{i}" for i in rec.drone_ids)]:
+        got.topics[t] = got.topics[t][:whole]
+    last = got.topics["/none/tick"][-1][0]
+    got.topics["/none/tf"] = [m for m in got.topics["/none/tf"] if m[0] <= last]
+    rec.ticks_done = whole
+    assert_mcap_holds({"none": rec.truncated()}, got)
+
+
+def test_run_writes_the_live_mcap_unless_told_not_to(tmp_path: Path) -> None:
+    argv = ["run", "paper_sim", "--modes", "none", "--duration", "0.1", "--no-progress"]
+    assert cli.main([*argv, "--out", str(tmp_path / "a")]) == 0
+    mission, _ = resolved_mission(tmp_path / "a")
+    assert_mcap_holds(load_run(tmp_path / "a", mission), read_mcap(tmp_path / "a" / LIVE_MCAP_FILE))
+    assert cli.main([*argv, "--out", str(tmp_path / "b"), "--no-live-mcap"]) == 0
+    assert not (tmp_path / "b" / LIVE_MCAP_FILE).exists()
