@@ -43,7 +43,9 @@ def test_encodings_are_ones_zenoh_reads_back() -> None:
         assert enc.startswith(octet + ";") and zenoh.Encoding(enc) != zenoh.Encoding.APPLICATION_OCTET_STREAM
 
 
-def _message(mission: str, sender: int, seq: int, visible: bool, rng: np.random.Generator) -> PredictionMessage:
+def _message(
+    mission: str, sender: int, seq: int, visible: bool, rng: np.random.Generator
+) -> PredictionMessage:
     body = np.concatenate(
         [rng.normal(size=4), rng.normal(size=4), rng.uniform(1e-6, 2.0, 4), rng.uniform(0.5, 3.0, 4)]
     )
@@ -73,7 +75,8 @@ def test_a_prediction_decodes_with_the_page_alone(mission: str) -> None:
 
 def test_the_pages_example_decoder_runs() -> None:
     """The page's `decode_prediction` example, executed as printed, on a produced message."""
-    code = next(b for b in re.findall(r"```python\n(.*?)```", TEXT, re.DOTALL) if "def decode_prediction" in b)
+    blocks = re.findall(r"```python\n(.*?)```", TEXT, re.DOTALL)
+    code = next(b for b in blocks if "def decode_prediction" in b)
     scope: dict[str, Any] = {}
     exec(compile(code, str(PAGE), "exec"), scope)
     msg = _message("paper_sim", 3, 41, True, np.random.default_rng(0))

@@ -72,7 +72,8 @@ def test_an_independent_subscriber_sees_each_keys_encoding(tmp_path: Path) -> No
     try:
         with ServedRun(mission, tmp_path) as run:
             base = "flightstack/wire_check"
-            wanted = {f"{base}/{k}/{i}" for i in IDS for k in ("pred", "control/status", "world/tick", "world/cmd")}
+            kinds = ("pred", "control/status", "world/tick", "world/cmd")
+            wanted = {f"{base}/{k}/{i}" for i in IDS for k in kinds}
             deadline = time.monotonic() + 150  # agents start slowly on a loaded machine
             while not wanted <= listener.keys() and time.monotonic() < deadline and run.world.poll() is None:
                 time.sleep(0.2)

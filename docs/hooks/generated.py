@@ -16,6 +16,7 @@ installed version's. The blocks:
 - `wire-keys`, `wire-prediction`, `wire-control`, `wire-world`: the bus's key expressions
   (`flightstack.comms.wire.CHANNELS`), the prediction message's bytes (`flightstack.comms.messages`), the
   operator channel's JSON (`flightstack.comms.control`) and the served world's messages;
+- `csv-columns`: the per-run CSV's columns and rules (`flightstack.recording.csv_table`);
 - `import-contract`: the layers of `tests/import_contract.toml`, top first, with what each may import and
   the contract's named exceptions and reserved names (tests/import_contract.py checks the code against it).
 
@@ -291,13 +292,12 @@ def render_wire_prediction() -> str:
     done = ""
     for (count, code), (name, holds) in zip(codes, msg.HEAD_FIELDS, strict=True):
         fmt = f"{order}{count}{code}"
-        rows.append(
-            f"| {struct.calcsize(order + done)} | {struct.calcsize(fmt)} | `{fmt}` | `{name}` | {_cell(holds)} |"
-        )
+        offset, size = struct.calcsize(order + done), struct.calcsize(fmt)
+        rows.append(f"| {offset} | {size} | `{fmt}` | `{name}` | {_cell(holds)} |")
         done += count + code
     head = msg.HEAD.size
     rows.append(f"| {head} | L | UTF-8 | `mission` | {_cell('the mission name (L bytes, no terminator)')} |")
-    (count, code), = _FORMAT.findall(msg.BODY.format[1:])
+    ((count, code),) = _FORMAT.findall(msg.BODY.format[1:])
     one = f"{msg.BODY.format[0]}{code}"
     if int(count) != len(msg.BODY_FIELDS):
         raise ValueError("messages.BODY_FIELDS does not name every value of messages.BODY")
@@ -340,7 +340,8 @@ def render_wire_control() -> str:
         (control.ABORT_ACK, control.AckReport),
     )
     for kind, cls in kinds:
-        out += [f"`\"kind\": \"{kind}\"`: `payload` holds ({cls.__name__}) {_first_paragraph(cls.__doc__)}", ""]
+        what = _first_paragraph(cls.__doc__)
+        out += [f'`"kind": "{kind}"`: `payload` holds ({cls.__name__}) {what}', ""]
         out += ["| field | JSON type |", "|---|---|"]
         for f in dataclasses.fields(cls):
             if f.type not in _JSON_TYPES:
@@ -363,8 +364,8 @@ def render_wire_world() -> str:
         "|---|---|---|---|",
         f"| 0 | {n} | `{wm._LEN.format}` | L: the JSON header's length (bytes, at most {wm.MAX_HEADER}) |",
         f"| {n} | L | UTF-8 | the JSON header (one object, no NaN or Infinity) |",
-        f"| {n} + L | H·W·3 | uint8 | a tick's camera image, RGB, row-major, when its `frame.image` is [H, W]; "
-        "else nothing |",
+        f"| {n} + L | H·W·3 | uint8 | a tick's camera image, RGB, row-major, when its `frame.image` is "
+        "[H, W]; else nothing |",
     ]
     state = wm.TickState(87.0, 1.0, True, True, "flying")
     truth = wm.Truth((0.0, 0.0, 0.0, 0.0), (0.5, 0.0, 1.0, 3.14159))
@@ -381,6 +382,23 @@ def render_wire_world() -> str:
     return "\n".join(rows) + "\n"
 
 
+# ---- the per-run CSV ------------------------------------------------------------------------------------
+def render_csv_columns() -> str:
+    """The CSV's columns (flightstack.recording.csv_table.COLUMNS) and its row and number rules."""
+    from flightstack.recording import csv_table as ct
+
+    lines = ["| column | unit | holds |", "|---|---|---|"]
+    lines += [f"| `{c.name}` | {c.unit} | {_cell(c.meaning)} |" for c in ct.COLUMNS]
+    lines += [
+        "",
+        f"Rows: tick 0 and every `stride`-th tick after it, stride = max(1, ⌊{ct.CSV_PERIOD_S:g} s / dt⌋), "
+        f"raised until a file holds at most {ct.MAX_ROWS:,} rows; one row per drone of each such tick. "
+        f"Reals are rounded to {ct.DECIMALS} decimals (trailing zeros dropped), integers written as such; a "
+        "value that is not finite is an empty field.",
+    ]
+    return "\n".join(lines) + "\n"
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "cli": render_cli,
     "run-files": render_run_files,
@@ -391,6 +409,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "wire-prediction": render_wire_prediction,
     "wire-control": render_wire_control,
     "wire-world": render_wire_world,
+    "csv-columns": render_csv_columns,
 }
 
 
