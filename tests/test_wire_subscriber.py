@@ -2,7 +2,8 @@
 of a served run (`flightstack world` + three `flightstack agent` processes on loopback, then `flightstack
 abort`): it hears every key docs/wire-format.md lists and no other, each with the encoding the page
 names (JSON on control/status, binary on pred/*), and decodes the predictions it heard with nothing but the
-page's byte table, equal to the project's decoding."""
+page's byte table, equal to the project's decoding. And a peer that declares no encoding (an older
+version) is still heard."""
 
 from __future__ import annotations
 
@@ -115,3 +116,43 @@ def test_an_independent_subscriber_sees_each_keys_encoding(tmp_path: Path) -> No
             n += 1
     assert n >= 3 * 10
     print(f"{n} predictions heard decoded from the page alone")
+
+
+def test_a_peer_that_declares_no_encoding_is_still_heard() -> None:
+    """An older peer puts without an encoding (zenoh/bytes): its prediction and its status are accepted as
+    before (receivers never look at the encoding)."""
+    import numpy as np
+
+    from flightstack.comms.control import STATUS, encode_control
+    from flightstack.comms.factory import free_loopback_endpoints
+    from flightstack.comms.messages import PredictionMessage, encode
+    from flightstack.comms.zenoh_bus import ZenohBus, ZenohBusConfig
+
+    (ep,) = free_loopback_endpoints(1)
+    bus = ZenohBus(ZenohBusConfig("wire_old", {0}, {0, 1}, [ep], []))
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([ep]))
+    old = zenoh.open(conf)
+    try:
+        status = {"drone": 1, "mode": "dgp", "t": 1.0, "tick": 100, "battery_pct": 90.0, "flying": True,
+                  "link_alive": True, "visible": True, "n_fused": 2, "pose_fresh": True, "rejection": None,
+                  "dropped": {}}  # fmt: skip
+        heard: list[Any] = []
+        deadline = time.monotonic() + 30
+        seq = 0
+        while time.monotonic() < deadline and not (bus.delivered and heard):
+            msg = PredictionMessage.of_body("wire_old", 1, seq, 0.01 * seq, True, np.ones(16))
+            old.put("flightstack/wire_old/pred/1", encode(msg), attachment=b"old peer")
+            old.put("flightstack/wire_old/control/status/1", encode_control("wire_old", STATUS, status, [1]))
+            seq += 1
+            time.sleep(0.1)
+            heard += [e for e in bus.control_events() if e.kind == STATUS]
+        assert bus.delivered > 0 and heard, (bus.dropped, seq)
+        assert heard[0].payload == status
+        assert sum(bus.dropped.values()) == 0, bus.dropped
+        print(f"heard after {seq} puts without an encoding")
+    finally:
+        old.close()
+        bus.close()
