@@ -40,11 +40,12 @@ from flightstack.runtime.flight import resolved_mission_yaml
 from tests.conftest import MISSIONS, random_recording
 
 NPZ = "timeseries_none.npz"
+CSV = "timeseries_none.csv"  # written beside the final npz
 ROWS = "timeseries_dgp.rows"
 DGP_NPZ = "timeseries_dgp.npz"
 N_TICKS = 60
 NAMES = frozenset(
-    [NPZ, ROWS, STATE_FILE, EVENTS_FILE, METRICS_FILE, MISSION_FILE, DATASETS_FILE, EXPERTS_FILE]
+    [NPZ, CSV, ROWS, STATE_FILE, EVENTS_FILE, METRICS_FILE, MISSION_FILE, DATASETS_FILE, EXPERTS_FILE]
 )
 """The files of the small run directory (`_make_run`)."""
 

@@ -13,6 +13,10 @@ installed version's. The blocks:
   and its meaning;
 - `fault-rows`: the rows of `flightstack.faults.FAULTS`, in table order, with the fault each injects
   (the row function's docstring) and the reaction documented for it in `fault_reactions.yml`;
+- `wire-keys`, `wire-prediction`, `wire-control`, `wire-world`: the bus's key expressions
+  (`flightstack.comms.wire.CHANNELS`), the prediction message's bytes (`flightstack.comms.messages`), the
+  operator channel's JSON (`flightstack.comms.control`) and the served world's messages;
+- `csv-columns`: the per-run CSV's columns and rules (`flightstack.recording.csv_table`);
 - `import-contract`: the layers of `tests/import_contract.toml`, top first, with what each may import and
   the contract's named exceptions and reserved names (tests/import_contract.py checks the code against it).
 
@@ -252,12 +256,160 @@ def render_import_contract() -> str:
     )
 
 
+# ---- the bus's wire format ------------------------------------------------------------------------------
+def render_wire_keys() -> str:
+    """Every key expression of flightstack.comms.wire.CHANNELS: publisher, subscribers, payload, the Zenoh
+    encoding its publisher declares and the attachment."""
+    from flightstack.comms import wire
+
+    lines = [
+        "| key expression | publisher | subscribers | payload | Zenoh encoding on publish | attachment |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c in wire.CHANNELS:
+        enc = "none (liveliness token)" if c.encoding is None else f"`{c.encoding}`"
+        lines.append(
+            f"| `{c.pattern}` | {_cell(c.publisher)} | {_cell(c.subscribers)} | {_cell(c.payload)} | {enc} | "
+            f"{_cell(c.attachment)} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+_FORMAT = re.compile(r"(\d*)([a-zA-Z?])")
+
+
+def render_wire_prediction() -> str:
+    """The prediction message's bytes: flightstack.comms.messages.HEAD / HEAD_FIELDS, the mission name,
+    BODY / BODY_FIELDS; offsets computed from the struct formats (L: the mission name's length)."""
+    import struct
+
+    from flightstack.comms import messages as msg
+
+    order, codes = msg.HEAD.format[0], _FORMAT.findall(msg.HEAD.format[1:])
+    if len(codes) != len(msg.HEAD_FIELDS):
+        raise ValueError("messages.HEAD_FIELDS does not name every field of messages.HEAD")
+    rows = ["| offset (bytes) | size | struct format | field | holds |", "|---|---|---|---|---|"]
+    done = ""
+    for (count, code), (name, holds) in zip(codes, msg.HEAD_FIELDS, strict=True):
+        fmt = f"{order}{count}{code}"
+        offset, size = struct.calcsize(order + done), struct.calcsize(fmt)
+        rows.append(f"| {offset} | {size} | `{fmt}` | `{name}` | {_cell(holds)} |")
+        done += count + code
+    head = msg.HEAD.size
+    rows.append(f"| {head} | L | UTF-8 | `mission` | {_cell('the mission name (L bytes, no terminator)')} |")
+    ((count, code),) = _FORMAT.findall(msg.BODY.format[1:])
+    one = f"{msg.BODY.format[0]}{code}"
+    if int(count) != len(msg.BODY_FIELDS):
+        raise ValueError("messages.BODY_FIELDS does not name every value of messages.BODY")
+    size = struct.calcsize(one)
+    for k, (name, holds) in enumerate(msg.BODY_FIELDS):
+        offset = f"{head} + L" + (f" + {k * size}" if k else "")
+        rows.append(f"| {offset} | {size} | `{one}` | `{name}` | {_cell(holds)} |")
+    total = f"{head} + L + {msg.BODY.size}"
+    return "\n".join(rows) + f"\n\nA message is exactly {total} bytes.\n"
+
+
+_JSON_TYPES = {
+    "str": "string",
+    "int": "integer",
+    "float": "number",
+    "bool": "true or false",
+    "str | None": "string or null",
+    "tuple[int, ...]": "array of integers",
+    "tuple[tuple[str, int], ...]": "object: string → integer",
+}
+
+
+def render_wire_control() -> str:
+    """The operator channel's JSON: an example of the envelope (control.encode_control), then each kind's
+    payload fields (the typed views' dataclass fields, their JSON types) and its docstring."""
+    import dataclasses
+    import json
+
+    from flightstack.comms import control
+
+    example = {"drone": 1, "mode": "dgp", "t": 12.5, "tick": 1250, "battery_pct": 87.0, "flying": True,
+               "link_alive": True, "visible": True, "n_fused": 3, "pose_fresh": True, "rejection": None,
+               "dropped": {"stale": 2}}  # fmt: skip
+    envelope = json.loads(control.encode_control("lab", control.STATUS, example, [1]))
+    out = ["A status of drone 1 of mission `lab`, as `encode_control` writes it:", "", "```json"]
+    out += [json.dumps(envelope, indent=2, ensure_ascii=False), "```", ""]
+    kinds = (
+        (control.ABORT, control.AbortRequest),
+        (control.STATUS, control.StatusReport),
+        (control.ABORT_ACK, control.AckReport),
+    )
+    for kind, cls in kinds:
+        what = _first_paragraph(cls.__doc__)
+        out += [f'`"kind": "{kind}"`: `payload` holds ({cls.__name__}) {what}', ""]
+        out += ["| field | JSON type |", "|---|---|"]
+        for f in dataclasses.fields(cls):
+            if f.type not in _JSON_TYPES:
+                raise ValueError(f"{cls.__name__}.{f.name}: no JSON type for {f.type!r}")
+            out.append(f"| `{f.name}` | {_JSON_TYPES[str(f.type)]} |")
+        out.append("")
+    return "\n".join(out)
+
+
+def render_wire_world() -> str:
+    """The served world's framing (sim_backend/served/messages.py `_LEN`) and an example tick and command
+    header, as `encode_tick` and `encode_cmd` write them."""
+    import json
+
+    from flightstack.sim_backend.served import messages as wm
+
+    n = wm._LEN.size
+    rows = [
+        "| offset (bytes) | size | struct format | holds |",
+        "|---|---|---|---|",
+        f"| 0 | {n} | `{wm._LEN.format}` | L: the JSON header's length (bytes, at most {wm.MAX_HEADER}) |",
+        f"| {n} | L | UTF-8 | the JSON header (one object, no NaN or Infinity) |",
+        f"| {n} + L | H·W·3 | uint8 | a tick's camera image, RGB, row-major, when its `frame.image` is "
+        "[H, W]; else nothing |",
+    ]
+    state = wm.TickState(87.0, 1.0, True, True, "flying")
+    truth = wm.Truth((0.0, 0.0, 0.0, 0.0), (0.5, 0.0, 1.0, 3.14159))
+    poses = {"drone1": (2.49, 0.5, 0.0, 1.0, 3.14159), "target": (2.49, 0.0, 0.0, 0.0, 0.0)}
+    frame = wm.FrameHead(2.48, (0.125, -0.03, 0.15, -0.025), None)
+    tick = wm.make_tick(250, 2.5, state, poses, truth, frame)
+    cmd = wm.WorldCmd(250, (wm.DroneCall(wm.VELOCITY_CALL, (0.1, 0.0, -0.05, 0.2)),))
+    if wm.decode_tick(wm.encode_tick(tick))[0] != tick or wm.decode_cmd(wm.encode_cmd(cmd))[0] != cmd:
+        raise ValueError("the served world's example messages do not decode to themselves")
+    for what, data in (("tick 250 of drone 1", wm.encode_tick(tick)), ("its command", wm.encode_cmd(cmd))):
+        (length,) = wm._LEN.unpack_from(data)
+        head = json.loads(data[n : n + length])
+        rows += ["", f"The header of {what} (L = {length}):", "", "```json", json.dumps(head), "```"]
+    return "\n".join(rows) + "\n"
+
+
+# ---- the per-run CSV ------------------------------------------------------------------------------------
+def render_csv_columns() -> str:
+    """The CSV's columns (flightstack.recording.csv_table.COLUMNS) and its row and number rules."""
+    from flightstack.recording import csv_table as ct
+
+    lines = ["| column | unit | holds |", "|---|---|---|"]
+    lines += [f"| `{c.name}` | {c.unit} | {_cell(c.meaning)} |" for c in ct.COLUMNS]
+    lines += [
+        "",
+        f"Rows: tick 0 and every `stride`-th tick after it, stride = max(1, ⌊{ct.CSV_PERIOD_S:g} s / dt⌋), "
+        f"raised until a file holds at most {ct.MAX_ROWS:,} rows; one row per drone of each such tick. "
+        f"Reals are rounded to {ct.DECIMALS} decimals (trailing zeros dropped), integers written as such; a "
+        "value that is not finite is an empty field.",
+    ]
+    return "\n".join(lines) + "\n"
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "cli": render_cli,
     "run-files": render_run_files,
     "event-kinds": render_event_kinds,
     "fault-rows": render_fault_rows,
     "import-contract": render_import_contract,
+    "wire-keys": render_wire_keys,
+    "wire-prediction": render_wire_prediction,
+    "wire-control": render_wire_control,
+    "wire-world": render_wire_world,
+    "csv-columns": render_csv_columns,
 }
 
 

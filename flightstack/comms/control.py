@@ -12,7 +12,7 @@ Acknowledgement payload (ABORT_ACK): {"abort_id": str | null, "drones": [int, ..
 "host": str}; sent by every process hosting agents as soon as its bus receives an abort, before the
 runner acts on it (the runner lands at its next check).
 
-Status payload (STATUS, flightstack/runtime/runner.py StatusPublisher, about twice a second per agent):
+Status payload (STATUS, flightstack/runtime/fleet.py StatusPublisher, about twice a second per agent):
 exactly
 the fields of `StatusReport`.
 
@@ -223,7 +223,7 @@ class AckReport:
 
 @dataclass(frozen=True)
 class StatusReport:
-    """One agent's status (flightstack/runtime/runner.py StatusPublisher): its drone, the mode flown, mission
+    """One agent's status (flightstack/runtime/fleet.py StatusPublisher): its drone, the mode flown, mission
     time t (s) and tick, battery (%), flying and telemetry link, whether it saw the target, how many
     experts it fused, whether its own motion-capture pose is fresh, the last vision rejection (None: none)
     and its bus's drop counts by reason."""

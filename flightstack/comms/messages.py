@@ -1,6 +1,7 @@
 """The prediction message agents exchange every tick (DESIGN §6), fixed binary layout, strict decoding.
 
-Layout (little endian), schema version 1:
+Layout (little endian), schema version 1 (the byte table: `HEAD`, `HEAD_FIELDS`, `BODY`, `BODY_FIELDS`;
+docs/wire-format.md is generated from them):
     magic "FSPM" | version u8 | flags u8 (bit 0: visible) | sender u16 | seq u32 | stamp f64 (s) |
     mission name length u8 | mission name (UTF-8, ≤ 64 bytes) |
     ḡ_w,i = x, y, z (m), θ (rad) | μ (4) | var (4) | prior_var (4)            (16 × f64)
@@ -31,8 +32,39 @@ from flightstack.paper import kernels as kern
 MAGIC = b"FSPM"
 SCHEMA_VERSION = 1
 MAX_MISSION_NAME = 64
-_HEAD = struct.Struct("<4sBBHIdB")
-_BODY = struct.Struct("<16d")  # the layout of the body; packed and read as one float64 array
+HEAD = struct.Struct("<4sBBHIdB")
+"""The header (21 bytes, little endian); then the mission name (name_len bytes), then BODY."""
+BODY = struct.Struct("<16d")
+"""The body: 16 little-endian float64 (packed and read as one float64 array)."""
+HEAD_FIELDS: tuple[tuple[str, str], ...] = (
+    ("magic", 'the 4 ASCII bytes "FSPM"'),
+    ("version", "schema version, SCHEMA_VERSION (1)"),
+    ("flags", "bit 0: the sender sees the target (visible); the other bits are 0"),
+    ("sender", "the sender's drone id; equals the {i} of the key pred/{i}"),
+    ("seq", "the sender's message count, + 1 per message, from 0 when its process starts"),
+    ("stamp", "the sender's mission time of the tick (s)"),
+    ("name_len", "L: the mission name's length (bytes, at most MAX_MISSION_NAME = 64)"),
+)
+"""HEAD's fields in order: (name, what it holds, with units)."""
+BODY_FIELDS: tuple[tuple[str, str], ...] = (
+    ("g_bar_w.x", "the sender's estimate ḡ_w,i of the target pose in the world frame Σw: x (m)"),
+    ("g_bar_w.y", "ḡ_w,i: y (m)"),
+    ("g_bar_w.z", "ḡ_w,i: z (m)"),
+    ("g_bar_w.theta", "ḡ_w,i: yaw θ about the world's z axis (rad)"),
+    ("mu.v_x", "μ: the sender's GP mean of the target's body velocity at ḡ_w,i, target frame: v_x (m/s)"),
+    ("mu.v_y", "μ: v_y (m/s)"),
+    ("mu.v_z", "μ: v_z (m/s)"),
+    ("mu.omega", "μ: yaw rate ω (rad/s)"),
+    ("var.v_x", "the GP's predictive variance of v_x ((m/s)²), > 0"),
+    ("var.v_y", "variance of v_y ((m/s)²)"),
+    ("var.v_z", "variance of v_z ((m/s)²)"),
+    ("var.omega", "variance of ω ((rad/s)²)"),
+    ("prior_var.v_x", "the GP's prior variance σ_f² of v_x ((m/s)²; BCM/rBCM fusion), > 0"),
+    ("prior_var.v_y", "σ_f² of v_y ((m/s)²)"),
+    ("prior_var.v_z", "σ_f² of v_z ((m/s)²)"),
+    ("prior_var.omega", "σ_f² of ω ((rad/s)²)"),
+)
+"""BODY's 16 values in order (FIELDS × 4 components): (name, what it holds, with units and frame)."""
 _LE_F64 = np.dtype("<f8")
 _NATIVE_LE = sys.byteorder == "little"
 _BYTES_LIKE = (bytes, bytearray, memoryview)
@@ -114,7 +146,7 @@ def encode(msg: PredictionMessage) -> bytes:
         reason = REASONS[kern.message_check(body, _NO_BOUNDS)]  # the wire checks only (no bounds)
     if reason or body is None:
         raise ValueError(f"refusing to encode invalid message: {reason}")
-    head = _HEAD.pack(
+    head = HEAD.pack(
         MAGIC, SCHEMA_VERSION, 1 if msg.visible else 0, msg.sender, msg.seq, msg.stamp, len(name)
     )
     return head + name + (body.tobytes() if _NATIVE_LE else body.astype(_LE_F64).tobytes())
@@ -140,9 +172,9 @@ def _flatten(msg: PredictionMessage) -> tuple[np.ndarray | None, str | None]:
 
 def sender_of(data: bytes) -> int | None:
     """The sender id a message's header names (None when it has no readable header); nothing checked."""
-    if not isinstance(data, _BYTES_LIKE) or len(data) < _HEAD.size:
+    if not isinstance(data, _BYTES_LIKE) or len(data) < HEAD.size:
         return None
-    magic, _version, _flags, sender, *_ = _HEAD.unpack_from(bytes(data[: _HEAD.size]), 0)
+    magic, _version, _flags, sender, *_ = HEAD.unpack_from(bytes(data[: HEAD.size]), 0)
     return int(sender) if magic == MAGIC else None
 
 
@@ -172,9 +204,9 @@ def decode_checked(
         if not isinstance(data, _BYTES_LIKE):
             return None, "not bytes", None
         data = bytes(data)
-        if len(data) < _HEAD.size:
+        if len(data) < HEAD.size:
             return None, "truncated header", None
-        magic, version, flags, sender, seq, stamp, name_len = _HEAD.unpack_from(data, 0)
+        magic, version, flags, sender, seq, stamp, name_len = HEAD.unpack_from(data, 0)
         if magic != MAGIC:
             return None, "bad magic", None
         if version != SCHEMA_VERSION:
@@ -183,11 +215,11 @@ def decode_checked(
             return None, "unknown flag bits", None
         if name_len > MAX_MISSION_NAME:
             return None, "mission name too long", None
-        end_name = _HEAD.size + name_len
-        if len(data) != end_name + _BODY.size:
+        end_name = HEAD.size + name_len
+        if len(data) != end_name + BODY.size:
             return None, "wrong length", None
         try:
-            name = data[_HEAD.size : end_name].decode("utf-8")
+            name = data[HEAD.size : end_name].decode("utf-8")
         except UnicodeDecodeError:
             return None, "mission name not UTF-8", None
         if name != mission:

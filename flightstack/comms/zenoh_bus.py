@@ -3,7 +3,9 @@
 Key layout (one mission = one key space; `prefix` defaults to "flightstack"):
     {prefix}/{mission}/pred/{sender}     PredictionMessage bytes (messages.encode), one key per sender
     {prefix}/{mission}/alive/{sender}    liveliness token, one per agent hosted by a process
-    {prefix}/{mission}/control           operator channel, UTF-8 JSON (flightstack/comms/control.py)
+    {prefix}/{mission}/control/...       operator channel, UTF-8 JSON (flightstack/comms/control.py)
+Every key, its payload and the Zenoh encoding its publisher declares: flightstack/comms/wire.py
+(docs/wire-format.md). Receivers ignore the encoding (an older peer sends none).
 
 Receiving. One callback subscriber on `pred/*` hands the bytes to `freshness.Freshness.accept` (decode,
 sequence, sender clock; no zenoh call, only a short lock), which keeps the newest valid message per sender.
@@ -62,6 +64,7 @@ from flightstack.comms.identity import (
     session_label,
 )
 from flightstack.comms.messages import MAGIC, PredictionMessage, encode
+from flightstack.comms.wire import CONTROL_ENCODING, PRED_ENCODING
 from flightstack.comms.zenoh_config import ZenohBusConfig, zenoh_config
 from flightstack.events import Event
 
@@ -300,6 +303,7 @@ class ZenohBus:
         if pub is None:
             pub = self._session.declare_publisher(
                 key,
+                encoding=zenoh.Encoding(CONTROL_ENCODING),
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 priority=zenoh.Priority.INTERACTIVE_HIGH,
                 express=True,
@@ -336,6 +340,7 @@ class ZenohBus:
         if pub is None:
             pub = self._session.declare_publisher(
                 self.cfg.pred_key(key_sender),
+                encoding=zenoh.Encoding(PRED_ENCODING),
                 # lock-step (simulated clock): every message is awaited, so none may be dropped (BLOCK);
                 # real time: the newest wins and a late one is worthless (DROP)
                 congestion_control=zenoh.CongestionControl.BLOCK

@@ -73,6 +73,7 @@ PROBE_PREFIX = ".flightstack-write-probe-"
 RUN_FILES: tuple[str, ...] = (
     f"timeseries_*{ROWS_SUFFIX}",
     "timeseries_*.npz",
+    "timeseries_*.csv",
     EVENTS_FILE,
     STATE_FILE,
     METRICS_FILE,

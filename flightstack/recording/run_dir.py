@@ -21,6 +21,8 @@ copies the new rows, about every BLOCK_PERIOD_S):
 - `timeseries_<mode>.npz` at the end of the mode; `recording.json` (state, completeness, reason, per-mode
   progress) when a mode starts or ends; `metrics.json` through `write_metrics`: each tmp + fsync +
   os.replace, so a full disk never leaves a half-written file.
+- `timeseries_<mode>.csv` after the npz: the main time series for pandas or a spreadsheet
+  (flightstack/recording/csv_table.py); a failure to write it is logged, the recording stays complete.
 - `events.jsonl`: one JSON object per line, one write(2) each (it survives a kill once written), fsync'ed
   at most every FSYNC_PERIOD_S and at close. Non-finite floats are written as null.
 
@@ -48,6 +50,7 @@ from pathlib import Path
 from typing import Any
 
 from flightstack.events import Event
+from flightstack.recording.csv_table import csv_name, write_csv
 from flightstack.recording.files import (
     BLOCK_MAX_ROWS,
     BLOCK_PERIOD_S,
@@ -474,6 +477,7 @@ class ModeWriter:
         must not pass for this run's; recording.json names the mode."""
         self.npz_path.unlink(missing_ok=True)
         self.rows_path.unlink(missing_ok=True)
+        (self.run.out / csv_name(self.mode)).unlink(missing_ok=True)
         self.run._write_state()
 
     def _open_stream(self) -> None:
@@ -570,3 +574,14 @@ class ModeWriter:
                 self.rows_path.unlink(missing_ok=True)
         run._mode_state(self.mode, **state)
         run._write_state_quietly()
+        if final is not None and state.get("final"):
+            self._write_csv(final)
+
+    def _write_csv(self, final: Recording) -> None:
+        """In the writer thread, after the final npz: timeseries_<mode>.csv (csv_table.py). A failure is
+        logged, not a failure of the recording (the npz holds every value; `export --csv` remakes it)."""
+        path = self.run.out / csv_name(self.mode)
+        try:
+            write_csv(path, [final])
+        except Exception as exc:
+            _log.error("%s not written: %s", path.name, errno_text(exc) if isinstance(exc, OSError) else exc)

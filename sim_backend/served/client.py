@@ -36,6 +36,7 @@ import numpy as np
 import zenoh
 
 from flightstack.comms.identity import UNLABELLED, sample_label, session_label
+from flightstack.comms.wire import WORLD_CMD_ENCODING
 from flightstack.hal import DroneState, Frame, StampedPose
 from flightstack.paper.geometry import Pose
 from flightstack.sim_backend.served import messages as wm
@@ -114,6 +115,7 @@ class _Link:
         # the world waits for every cmd: never drop one under congestion (a lost cmd stalls a whole tick)
         self._pub = session.declare_publisher(
             wm.cmd_key(prefix, mission, drone_id),
+            encoding=zenoh.Encoding(WORLD_CMD_ENCODING),
             congestion_control=zenoh.CongestionControl.BLOCK,
             priority=zenoh.Priority.INTERACTIVE_HIGH,
         )

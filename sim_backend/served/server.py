@@ -33,6 +33,7 @@ import zenoh
 
 from flightstack.comms.factory import make_bus
 from flightstack.comms.identity import SECOND_SESSION, UNLABELLED, SessionBook, sample_label
+from flightstack.comms.wire import WORLD_TICK_ENCODING
 from flightstack.config.mission import Mission
 from flightstack.events import Event
 from flightstack.hal import FlightPhase
@@ -104,6 +105,7 @@ class WorldServer:
         self._pubs = {
             i: session.declare_publisher(
                 wm.tick_key(prefix, name, i),
+                encoding=zenoh.Encoding(WORLD_TICK_ENCODING),
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 priority=zenoh.Priority.INTERACTIVE_HIGH,
             )
