@@ -302,6 +302,16 @@ class ScamperDriver:
                 self._hb_mode, self._hb_armed, age, self._link_alive, self._origin_state.confirmed
             )
 
+    def state_line(self) -> str:
+        """What the robot's own telemetry said last (flightstack.hal.ReportsState): its heartbeat, and the
+        newest change of mode or arming it made on its own (a failsafe's HOLD, an RC switch)."""
+        with self._lock:
+            text = self._state_text(time.monotonic())
+            own = [
+                e for e in self.events if e.kind in ("mode_changed", "disarmed_by_robot", "armed_by_robot")
+            ]
+        return text if not own else f"{text}; last change by the robot: {own[-1].detail}"
+
     @property
     def vision_reset_counter(self) -> int:
         """VISION_POSITION_ESTIMATE's reset_counter now (drivers/scamper_nav.py `VisionStream`)."""

@@ -137,6 +137,14 @@ class GroundRobot(Protocol):
 
 
 @runtime_checkable
+class ReportsState(Protocol):
+    """A device that says in one line what its own telemetry last reported (the robot: its heartbeat's
+    mode, armed flag and age, and what it changed on its own), for messages about what it did."""
+
+    def state_line(self) -> str: ...
+
+
+@runtime_checkable
 class Backend(Protocol):
     """Builds the hardware (or simulated) devices of a mission and owns the clock.
 

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from flightstack.hal import StampedPose
+from flightstack.hal import ReportsState, StampedPose
 from flightstack.paper.geometry import Pose
 from flightstack.runtime import motion_check as mc
 from flightstack.sim_backend.lab import RobotParams, ScamperSim
@@ -86,6 +86,24 @@ def test_a_robot_that_does_not_move_stops_the_mission_with_one_line() -> None:
     msg = str(err.value)
     assert "did not move as commanded" in msg and "+0.000 m along" in msg and "\n" not in msg
     assert robot.stops >= 1
+
+
+class HeldRobot(Recorder):
+    """A robot whose own telemetry says a failsafe put it in HOLD (drivers/scamper.py's state_line)."""
+
+    def state_line(self) -> str:
+        return "heartbeat shows HOLD (4), armed (0.10 s old); last change by the robot: GUIDED -> HOLD"
+
+
+def test_a_robot_that_reports_its_own_state_is_quoted_in_the_refusal() -> None:
+    """Why it did not move is the robot's to say (its heartbeat's mode), not the check's to guess."""
+    assert isinstance(HeldRobot(None), ReportsState) and not isinstance(Recorder(None), ReportsState)
+    _, world = _run(Pose.make([0.0, 0.0, 0.0], 0.0), moving=False)
+    with pytest.raises(RuntimeError) as err:
+        mc.check_robot_moves(HeldRobot(None), world, world, 0.05, *FENCE)
+    msg = str(err.value)
+    assert "+0.000 m along" in msg and "\n" not in msg
+    assert "(the robot's own report: heartbeat shows HOLD (4), armed" in msg and "GUIDED -> HOLD)" in msg
 
 
 @pytest.mark.parametrize(

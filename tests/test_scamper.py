@@ -354,6 +354,9 @@ def test_robot_leaving_guided_mid_run_is_reported(emu: MavlinkRoverEmulator) -> 
         st = drv.robot_state()
         assert st.custom_mode == HOLD and st.mode_name == "HOLD" and st.armed and not st.ready
         assert "GUIDED -> HOLD" in details(drv, "mode_changed")[0]
+        line = drv.state_line()  # what the motion check quotes when the robot did not move
+        assert line.startswith("heartbeat shows HOLD (4), armed") and "last change by the robot" in line
+        assert "GUIDED -> HOLD" in line
         n0 = len(emu.setpoint_records())
         time.sleep(0.5)
         recs = emu.setpoint_records()[n0:]

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flightstack.hal import Clock, GroundRobot, PoseSource
+from flightstack.hal import Clock, GroundRobot, PoseSource, ReportsState
 
 NUDGE_SPEED_MPS = 0.05
 """Forward speed of the nudge (m/s; the issue's bound is 0.1)."""
@@ -111,6 +111,8 @@ def check_robot_moves(
     c, s = math.cos(th0), math.sin(th0)
     result = MotionCheck(sign * NUDGE_SPEED_MPS * NUDGE_S, c * dx + s * dy, -s * dx + c * dy)
     if (why := result.problem) is not None:
+        if isinstance(robot, ReportsState):  # what the robot itself says it did (its heartbeat's mode)
+            why += f" (the robot's own report: {robot.state_line()})"
         raise RuntimeError(why)
     return result
 
