@@ -15,6 +15,7 @@ from flightstack.recording.files import LIVE_FILE, REPLAY_FILE
 
 if TYPE_CHECKING:
     from flightstack.config.mission import Mission
+    from flightstack.viewer.foxglove_live import FoxgloveTap
     from flightstack.viewer.live import RerunTap
 
 
@@ -88,19 +89,20 @@ def add_viewer_argument(p: argparse.ArgumentParser) -> None:
         const=AUTO,
         default=None,
         type=viewer_spec,
-        metavar="spawn|connect[:ADDR]|save:FILE.rrd",
+        metavar="spawn|connect[:ADDR]|save:FILE.rrd|foxglove[:PORT]",
         help="watch the flight live in the Rerun 3-D viewer (needs `pip install 'flightstack[viewer]'`): "
         "spawn a viewer, connect to one (default 127.0.0.1:9876) or save an .rrd; without a value, spawn "
         f"when there is a display, else save RUN_DIR/{LIVE_FILE} (then put --viewer last, or write "
-        "--viewer=auto)",
+        "--viewer=auto); foxglove[:PORT]: serve it to Foxglove over WebSocket on 127.0.0.1 (default port "
+        "8765; docs/logs.md)",
     )
 
 
 def viewer_problem(spec: str | None) -> str | None:
     """Why `--viewer` cannot work here (rerun-sdk missing, with the install hint), checked before anything
     takes off; None when it can (or was not asked for)."""
-    if spec is None:
-        return None
+    if spec is None or spec.startswith("foxglove"):
+        return None  # foxglove-sdk is a dependency
     from flightstack.viewer.rerun_import import ViewerUnavailable, load_rerun
 
     try:
@@ -110,11 +112,24 @@ def viewer_problem(spec: str | None) -> str | None:
     return None
 
 
-def open_live_viewer(spec: str | None, mission: Mission, out: Path, modes: list[str]) -> RerunTap | None:
+def open_live_viewer(
+    spec: str | None, mission: Mission, out: Path, modes: list[str]
+) -> RerunTap | FoxgloveTap | None:
     """The live tap of `--viewer` (None without it), its recording named after the mission and `out`;
-    prints where it goes. The caller passes it to the runner and calls `finish()` at the end."""
+    prints where it goes. The caller passes it to the runner and calls `finish()` at the end. OSError
+    when a Foxglove port cannot be served."""
     if spec is None:
         return None
+    from flightstack.viewer.foxglove_live import FoxgloveTap, foxglove_port
+
+    port = foxglove_port(spec)
+    if port is not None:
+        try:
+            fox = FoxgloveTap(port, name=f"{mission.name} ({out.name}, live)")
+        except Exception as exc:  # foxglove's own error: the port is taken, ...
+            raise OSError(f"foxglove on 127.0.0.1:{port}: {exc}") from None
+        print(f"viewer: live at {fox.describe()}", file=sys.stderr)
+        return fox
     from flightstack.viewer.live import RerunTap
     from flightstack.viewer.sinks import resolve
 

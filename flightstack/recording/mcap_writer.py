@@ -129,27 +129,23 @@ class _Mode:
         return self.drones[i]
 
 
-class RunMcap:
-    """An MCAP file being written (module docstring): `ticks` for each block of ticks of a mode, in order,
-    `events` for its events, then `close`. `counts`: messages written per topic. Not thread-safe."""
+class RunChannels:
+    """The run's topics on a foxglove Context (module docstring), logged to whatever sinks the context has
+    (an MCAP file: RunMcap; the live WebSocket view: flightstack.viewer.foxglove_live): `ticks` for each
+    block of ticks of a mode, in order, `events` for its events. `counts`: messages logged per topic.
+    Not thread-safe."""
 
-    def __init__(self, path: Path | str, *, chunk_bytes: int = CHUNK_BYTES) -> None:
-        self.path = Path(path)
-        self.ctx = foxglove.Context()
-        options = MCAPWriteOptions(chunk_size=chunk_bytes, compression_threads=0, compression_level=1)
-        self._writer = foxglove.open_mcap(
-            self.path, allow_overwrite=True, context=self.ctx, writer_options=options
-        )
-        self._schema_data = file_descriptor_set()
+    def __init__(self, ctx: foxglove.Context) -> None:
+        self.ctx = ctx
+        data = file_descriptor_set()
         self._schemas = {
-            TICK: foxglove.Schema(name=TICK, encoding="protobuf", data=self._schema_data),
-            DRONE: foxglove.Schema(name=DRONE, encoding="protobuf", data=self._schema_data),
+            TICK: foxglove.Schema(name=TICK, encoding="protobuf", data=data),
+            DRONE: foxglove.Schema(name=DRONE, encoding="protobuf", data=data),
         }
         self.modes: dict[str, _Mode] = {}
         self.counts: Counter[str] = Counter()
         self.span: dict[str, tuple[float, float]] = {}  # mode -> (first t, last t) written (s)
         self.first_ns: int | None = None  # the earliest tick's log time
-        self.closed = False
 
     def _mode(self, mode: str) -> _Mode:
         if mode not in self.modes:
@@ -237,6 +233,46 @@ class RunMcap:
             m.log.log(msg, log_time=when)
             self.counts[m.log.topic()] += 1
 
+    def release_held_events(self) -> dict[str, _Mode]:
+        """Log the events held for a mode that never had a tick (at base 0); the modes."""
+        for mode, m in self.modes.items():
+            if m.base is None and m.pending:
+                m.base, m.event_ns = 0.0, 0
+                pending, m.pending = m.pending, []
+                self.events(mode, pending)
+        return self.modes
+
+
+class RunMcap:
+    """An MCAP file being written (module docstring): `ticks` for each block of ticks of a mode, in order,
+    `events` for its events, then `close`. `channels.counts`: messages written per topic. Not thread-safe."""
+
+    def __init__(self, path: Path | str, *, chunk_bytes: int = CHUNK_BYTES) -> None:
+        self.path = Path(path)
+        ctx = foxglove.Context()
+        options = MCAPWriteOptions(chunk_size=chunk_bytes, compression_threads=0, compression_level=1)
+        self._writer = foxglove.open_mcap(
+            self.path, allow_overwrite=True, context=ctx, writer_options=options
+        )
+        self.channels = RunChannels(ctx)
+        self.closed = False
+
+    def ticks(self, mode: str, drone_ids: list[int], cols: Mapping[str, np.ndarray]) -> None:
+        """RunChannels.ticks."""
+        self.channels.ticks(mode, drone_ids, cols)
+
+    def events(self, mode: str, evs: Sequence[Mapping[str, Any]]) -> None:
+        """RunChannels.events."""
+        self.channels.events(mode, evs)
+
+    @property
+    def counts(self) -> Counter[str]:
+        return self.channels.counts
+
+    @property
+    def first_ns(self) -> int | None:
+        return self.channels.first_ns
+
     def attach(self, name: str, media_type: str, data: bytes, when_ns: int = 0) -> None:
         self._writer.attach(
             log_time=when_ns, create_time=when_ns, name=name, media_type=media_type, data=data
@@ -254,18 +290,14 @@ class RunMcap:
         summary; idempotent."""
         if self.closed:
             return
-        for mode, m in self.modes.items():
-            if m.base is None and m.pending:
-                m.base, m.event_ns = 0.0, 0
-                pending, m.pending = m.pending, []
-                self.events(mode, pending)
-        bases = {mode: m.base for mode, m in self.modes.items()}
+        modes = self.channels.release_held_events()
+        bases = {mode: m.base for mode, m in modes.items()}
         self.metadata(
             "flightstack",
             {
-                "modes": ",".join(self.modes),
+                "modes": ",".join(modes),
                 "time_base_s": json.dumps(bases),
-                "drone_ids": json.dumps({mode: sorted(m.drones) for mode, m in self.modes.items()}),
+                "drone_ids": json.dumps({mode: sorted(m.drones) for mode, m in modes.items()}),
                 "time": "log_time = int((base + t) * 1e9) ns; t: mission clock (s); base: time_base_s[mode]",
                 "library": library(),
             },
@@ -278,6 +310,7 @@ __all__ = [
     "CHUNK_BYTES",
     "TF_PERIOD_S",
     "WORLD_FRAME",
+    "RunChannels",
     "RunMcap",
     "event_level",
     "event_text",

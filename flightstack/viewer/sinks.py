@@ -75,13 +75,21 @@ def unreachable(sink: Sink, timeout_s: float = 2.0) -> str | None:
 
 
 def viewer_spec(text: str) -> str:
-    """argparse type of --viewer: spawn | connect | connect:ADDR | save:FILE.rrd (auto when empty)."""
+    """argparse type of --viewer: spawn | connect | connect:ADDR | save:FILE.rrd (auto when empty) for
+    Rerun, foxglove | foxglove:PORT for Foxglove's live WebSocket view (viewer/foxglove_live.py)."""
     text = text.strip()
-    if text in ("", AUTO, "spawn", "connect") or text.startswith("connect:"):
+    if text in ("", AUTO, "spawn", "connect", "foxglove") or text.startswith("connect:"):
         return text or AUTO
+    if text.startswith("foxglove:"):
+        port = text.partition(":")[2].strip()
+        if port.isdigit() and 0 < int(port) < 65536:
+            return text
+        raise argparse.ArgumentTypeError(f"{text!r}: foxglove:PORT needs a port in 1..65535")
     if text.startswith("save:") and text[5:].strip():
         return text
-    raise argparse.ArgumentTypeError(f"{text!r}: use spawn, connect[:HOST:PORT] or save:FILE.rrd")
+    raise argparse.ArgumentTypeError(
+        f"{text!r}: use spawn, connect[:HOST:PORT], save:FILE.rrd (Rerun) or foxglove[:PORT] (Foxglove)"
+    )
 
 
 def resolve(spec: str, default_file: Path) -> Sink:

@@ -1,0 +1,139 @@
+"""`--viewer foxglove[:PORT]`: the flight served live over Foxglove's WebSocket protocol (foxglove-sdk's
+server), on loopback by default, with the topics and typed messages of the run's MCAP
+(flightstack.recording.mcap_writer), so one Foxglove layout opens both (docs/logs.md).
+
+The control tick only copies its newest row, at most LIVE_RATE_HZ times per second of wall time, into a
+bounded queue (QUEUE_TICKS; a full queue drops the row and counts it in `dropped`); a thread encodes and
+publishes it. e_c and e_e are derived there from the poses and the fleet's desired poses, as the recording
+derives them at the end. A client that connects late sees the flight from then on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import threading
+import time
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
+
+if TYPE_CHECKING:
+    from flightstack.runtime.fleet import Fleet
+
+_log = logging.getLogger(__name__)
+
+DEFAULT_PORT = 8765
+"""Foxglove's default WebSocket port."""
+LIVE_RATE_HZ = 30.0
+"""Ticks published per second of wall time (the newest one each time)."""
+QUEUE_TICKS = 64
+"""Rows waiting for the publishing thread beyond which new ones are dropped (counted)."""
+FINISH_TIMEOUT_S = 5.0
+"""How long `finish` waits for the publishing thread (s)."""
+
+_Item = tuple[str, list[int], np.ndarray, dict[str, np.ndarray], list[Mapping[str, Any]]]
+
+
+class FoxgloveTap:
+    """A runtime.taps.TickTap serving the flight live (module docstring); `finish` stops the server."""
+
+    def __init__(self, port: int = DEFAULT_PORT, host: str = "127.0.0.1", name: str = "flightstack") -> None:
+        import foxglove
+
+        from flightstack.recording.mcap_writer import RunChannels
+
+        self.ctx = foxglove.Context()
+        self.server = foxglove.start_server(name=name, host=host, port=port, context=self.ctx)
+        self.port = self.server.port
+        self.host = host
+        self.channels = RunChannels(self.ctx)
+        self.dropped = 0
+        self.published = 0
+        self._queue: queue.Queue[_Item | None] = queue.Queue(maxsize=QUEUE_TICKS)
+        self._mode = ""
+        self._ids: list[int] = []
+        self._g_d = np.zeros((0, 4))
+        self._last = -np.inf
+        self._events = 0
+        self._thread = threading.Thread(target=self._work, name="flightstack-foxglove", daemon=True)
+        self._thread.start()
+
+    def describe(self) -> str:
+        return f"ws://{self.host}:{self.port} (Foxglove: Open connection, Foxglove WebSocket)"
+
+    # ---- runtime.taps.TickTap ------------------------------------------------------------------------
+    def start(self, f: Fleet, rec: Recording) -> None:
+        self._mode, self._ids = rec.mode, list(rec.drone_ids)
+        self._g_d = np.asarray(f.g_d, dtype=float).reshape(len(self._ids), 4)
+        self._last, self._events = -np.inf, 0
+
+    def on_tick(self, f: Fleet, rec: Recording, k_end: int) -> None:
+        now = time.monotonic()
+        if k_end <= 0 or now - self._last < 1.0 / LIVE_RATE_HZ:
+            return
+        self._last = now
+        row = {name: np.array(getattr(rec, name)[k_end - 1 : k_end]) for name in ARRAY_FIELDS}
+        self._put(rec, row)
+
+    def close(self, rec: Recording) -> None:
+        k = rec.ticks_done
+        row = {name: np.array(getattr(rec, name)[k - 1 : k]) for name in ARRAY_FIELDS} if k else {}
+        self._put(rec, row)
+
+    def _put(self, rec: Recording, row: dict[str, np.ndarray]) -> None:
+        events: list[Mapping[str, Any]] = list(rec.events[self._events :])
+        self._events += len(events)
+        try:
+            self._queue.put_nowait((self._mode, self._ids, self._g_d, row, events))
+        except queue.Full:
+            self.dropped += 1
+
+    # ---- the publishing thread ------------------------------------------------------------------------
+    def _work(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            try:
+                self._publish(*item)
+            except Exception:  # a viewer's fault never reaches the flight
+                _log.exception("foxglove live view: a row was not published")
+
+    def _publish(
+        self,
+        mode: str,
+        ids: list[int],
+        g_d: np.ndarray,
+        row: dict[str, np.ndarray],
+        events: Sequence[Mapping[str, Any]],
+    ) -> None:
+        if row:
+            rec = Recording.from_columns(mode, ids, row)
+            rec.fill_true_errors(g_d)
+            self.channels.ticks(mode, ids, {name: getattr(rec, name) for name in ARRAY_FIELDS})
+            self.published += 1
+        if events:
+            self.channels.events(mode, list(events))
+
+    def finish(self) -> None:
+        """Publish what is queued (≤ FINISH_TIMEOUT_S), then stop the server."""
+        with contextlib.suppress(queue.Full):
+            self._queue.put(None, timeout=FINISH_TIMEOUT_S)
+        self._thread.join(timeout=FINISH_TIMEOUT_S)
+        self.server.stop()
+
+
+def foxglove_port(spec: str) -> int | None:
+    """The port of a `--viewer foxglove[:PORT]` value; None for any other viewer."""
+    if spec != "foxglove" and not spec.startswith("foxglove:"):
+        return None
+    text = spec.partition(":")[2].strip()
+    return DEFAULT_PORT if not text else int(text)
+
+
+__all__ = ["DEFAULT_PORT", "LIVE_RATE_HZ", "QUEUE_TICKS", "FoxgloveTap", "foxglove_port"]
