@@ -88,6 +88,10 @@ def main(spec_path: str) -> int:
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("connect/endpoints", json.dumps(spec["connect"]))
+    # it only connects out: no listener, no gossip, so that no agent connects back to it at the same time
+    # (with both links racing, an agent's declarations were lost: the copier never saw agent 2's token)
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("scouting/gossip/enabled", "false")
     for key, value in (spec.get("tls") or {}).items():
         conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
     sent: Counter[str] = Counter()

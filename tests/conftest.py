@@ -281,6 +281,10 @@ def interrupt_cli_sim(
         buf, deadline = "", time.monotonic() + 60
         while "mode none" not in buf and time.monotonic() < deadline and proc.poll() is None:
             buf += proc.stderr.read(1) if proc.stderr else ""
+        # the bar appears at the mode's start, before takeoff: wait for its first recorded rows (on a
+        # loaded machine the takeoff alone outlasted run_seconds, and the interrupt found nothing to keep)
+        rows = out / "timeseries_none.rows"
+        eventually(lambda: (rows.exists() and rows.stat().st_size > 4096) or proc.poll() is not None, 60.0)
         time.sleep(run_seconds)
         proc.send_signal(signal.SIGINT)
         _, stderr = proc.communicate(timeout=60)

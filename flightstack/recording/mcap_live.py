@@ -14,14 +14,16 @@ FLUSH_PERIOD_S.
 Its stdin is a pipe from the flight's process: end of file (the run directory closed, or the flight's
 process gone, by any signal) makes it read everything left, attach metrics.json, recording.json and the
 mission, write the MCAP's summary and exit; it prints one JSON line ({"messages", "topics", "ticks",
-"error"}). It ignores SIGINT (Ctrl-C lands the drones; the file is finished after) and runs in its own
-session, so that a kill of the flight's process group leaves it to finish the file. Killed itself
-(SIGKILL), the file it leaves reads up to its last complete chunk: at most CHUNK_BYTES (uncompressed) or
-FLUSH_PERIOD_S of wall time lost, plus the rows it had not polled yet (POLL_S).
+"error"}). It ignores SIGINT (Ctrl-C lands the drones; the file is finished after), runs in its own
+session, so that a kill of the flight's process group leaves it to finish the file, and at nice +10, so
+that on a busy machine it never takes a core from the flight (it catches up once the flight is done).
+Killed itself (SIGKILL), the file it leaves reads up to its last complete chunk: at most CHUNK_BYTES
+(uncompressed) or FLUSH_PERIOD_S of wall time lost, plus the rows it had not polled yet (POLL_S).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -48,6 +50,8 @@ FLUSH_PERIOD_S = 1.0
 """Wall time (s) after which the follower closes its open chunk: what a kill of the follower can lose."""
 FINISH_TIMEOUT_S = 60.0
 """How long (s) closing a run waits for the follower to finish the file (it keeps going after)."""
+NICENESS = 10
+"""The follower's nice increment: on a busy machine the flight's processes get the cores first."""
 MAX_EVENT_LINE = 1 << 20
 """Bound on one events.jsonl line (B); a longer one is skipped and counted."""
 
@@ -276,6 +280,8 @@ def main(argv: list[str] | None = None) -> int:
         print("usage: python -m flightstack.recording.mcap_live RUN_DIR OUT", file=sys.stderr)
         return 2
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with contextlib.suppress(OSError):
+        os.nice(NICENESS)  # a background writer: never the flight's competitor for a core
     try:
         report = follow(Path(args[0]), Path(args[1]), sys.stdin.fileno())
     except Exception as exc:  # e.g. OUT cannot be created: said on one line
