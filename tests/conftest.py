@@ -328,6 +328,15 @@ def status_payload(drone: int, flying: bool = True, **changes: object) -> dict:
     }
 
 
+def process_running(pid: int) -> bool:
+    """pid exists and is not a zombie (a process nobody reaps, e.g. under a container's init, has ended)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
 def eventually(pred: Callable[[], bool], timeout_s: float = 10.0) -> bool:
     """True as soon as pred() is (polled every 5 ms), else pred() after timeout_s seconds."""
     deadline = time.monotonic() + timeout_s

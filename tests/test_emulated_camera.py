@@ -37,7 +37,7 @@ from flightstack.sim_backend.emulators.tello.video_process import SharedTarget, 
 from flightstack.sim_backend.emulators.tello.view import CameraSpec
 from flightstack.vision.camera_file import load_calibration
 from flightstack.vision.markers import extract_markers
-from tests.conftest import MISSIONS, Bound
+from tests.conftest import MISSIONS, Bound, process_running
 
 IP = "127.0.0.12"
 CAL = MISSIONS / "cameras" / "tello_down_sim.yaml"
@@ -163,15 +163,6 @@ os._exit(0)  # the parent dies without closing anything
 """
 
 
-def running(pid: int) -> bool:
-    """pid exists and is not a zombie."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
-
-
 def test_a_camera_process_exits_when_its_parent_dies(safety_bound: Bound) -> None:
     proc = subprocess.Popen(
         [sys.executable, "-c", ORPHAN_SCRIPT, str(free_udp_port())],
@@ -182,7 +173,7 @@ def test_a_camera_process_exits_when_its_parent_dies(safety_bound: Bound) -> Non
         pid = int(proc.stdout.readline().split()[0])  # the child's pid, once it is ready
         assert proc.wait(timeout=30) == 0
         t0 = time.monotonic()
-        assert wait_until(lambda: not running(pid), 5.0), f"camera process {pid} outlived its parent"
+        assert wait_until(lambda: not process_running(pid), 5.0), f"camera process {pid} outlived its parent"
         # an emulator's camera child, not a drone's reaction: it polls its parent; 1.3-1.7 s measured with
         # the system tier's three workers and a CPU-bound process on 2 cores, ~0.1 s alone
         safety_bound("orphaned camera process exits after", 1e3 * (time.monotonic() - t0), 3000.0)

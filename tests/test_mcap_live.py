@@ -20,7 +20,7 @@ from flightstack.recording.mcap_live import FLUSH_PERIOD_S, POLL_S
 from flightstack.recording.mcap_writer import CHUNK_BYTES
 from flightstack.recording.rows import read_rows
 from flightstack.recording.run_reader import load_run, resolved_mission
-from tests.conftest import REPO, eventually
+from tests.conftest import REPO, eventually, process_running
 from tests.mcap_read import assert_mcap_holds, read_mcap, read_mcap_stream
 
 RATE_HZ = 500.0
@@ -47,15 +47,6 @@ def _rows_at_least(proc: subprocess.Popen[str], k: int) -> None:
     raise AssertionError(f"the writer ended before {k} rows")
 
 
-def _alive(pid: int) -> bool:
-    """pid runs (a zombie that nobody reaps, e.g. under a container's init, has ended)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
-
-
 def _ticks(path: Path) -> int:
     return len(read_mcap_stream(path).topics.get("/none/tick", []))
 
@@ -79,7 +70,7 @@ def test_written_during_the_run_and_equal_to_the_recording(tmp_path: Path) -> No
     assert recs["none"].ticks_done == n
     assert_mcap_holds(recs, got)
     assert {"metrics.json", "recording.json", "mission_resolved.yaml"} <= set(got.attachments)
-    assert not _alive(follower)
+    assert not process_running(follower)
     print(f"live MCAP: {seen} of {n} ticks readable while the run went on")
 
 
@@ -93,7 +84,7 @@ def test_a_killed_flight_leaves_a_finished_file(tmp_path: Path) -> None:
         proc.kill()
         proc.wait(timeout=10)
         t0 = time.monotonic()
-        assert eventually(lambda: not _alive(follower), 60.0), "the follower did not finish"
+        assert eventually(lambda: not process_running(follower), 60.0), "the follower did not finish"
         finished = time.monotonic() - t0
     finally:
         proc.kill()
