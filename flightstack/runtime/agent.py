@@ -165,6 +165,13 @@ class Agent:
         if self._delays is not None:
             self._delays.estimates.clear()
 
+    def seed_own_pose(self, own: StampedPose) -> None:
+        """The own pose measured at pursuit start (the runner's, after takeoff) as the last one seen: a
+        motion-capture dropout at the first tick is then a dropout like any other (keep it, hover; the
+        safety layer decides beyond pose_timeout), not a missing pose that ends the mission."""
+        self._g_wi, self._g_wi_t = own.pose.as_vector(), own.stamp
+        self._pose_ok = own
+
     # ---- phase 1 -------------------------------------------------------------------------------
     def sense_and_publish(self, t: float) -> None:
         cfg, T = self.cfg, self._T

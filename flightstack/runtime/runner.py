@@ -328,6 +328,7 @@ def take_off(f: Fleet) -> None:
             if own is None:
                 raise RuntimeError(f"no motion-capture pose for {a.cfg.body_name} at pursuit start")
             a.reset_estimate(compose(own.pose, a.cfg.g_d))
+            a.seed_own_pose(own)
 
 
 def pursuit_tick(f: Fleet, t: float, t_pursuit: float, rec: Recording) -> str | None:
