@@ -124,6 +124,7 @@ class RunFollower:
         self._events_at = 0
         self._event_buf = b""
         self._event_mode: str | None = None
+        self._early: list[dict[str, Any]] = []  # events before any mode was named
         self._last_flush = time.monotonic()
 
     # ---- the run's facts ------------------------------------------------------------------------------
@@ -212,14 +213,18 @@ class RunFollower:
                 continue
             if isinstance(ev.get("mode"), str):
                 self._event_mode = ev["mode"]
-            if self._event_mode is None:
-                self.skipped["an event before any mode"] += 1
+            if self._event_mode is None:  # before any mode: the first mode's, as read_run has it
+                self._early.append(ev)
                 continue
             self.mcap.events(self._event_mode, [ev])
 
     def poll(self, final: bool = False) -> None:
         """Copy what appeared since the last poll; final: the run is over (read every row left)."""
-        for mode, state in self._modes().items():
+        modes = self._modes()
+        if self._early and (first := self._event_mode or next(iter(modes), None)) is not None:
+            early, self._early = self._early, []
+            self.mcap.events(first, early)
+        for mode, state in modes.items():
             try:
                 self._poll_mode(mode, state, final)
             except (RunDirError, ValueError, OSError) as exc:
@@ -244,6 +249,8 @@ class RunFollower:
             for tail in self.tails.values():
                 tail.close()
             self.mcap.close()
+        if self._early:
+            self.skipped["events of a run that flew no mode"] += len(self._early)
         return {
             "messages": sum(self.mcap.counts.values()),
             "topics": len(self.mcap.counts),
