@@ -54,6 +54,7 @@ FS_OPTION_ACTIVE_IN_HOLD = 1  # FS_OPTIONS bit 0
 # times out position aiding only after posRetryTimeNoVel_ms, 7 s, so the emulator is the stricter).
 POSITION_TIMEOUT_S = 1.0
 VISION_TYPES = ("VISION_POSITION_ESTIMATE", "ODOMETRY", "ATT_POS_MOCAP")
+MAX_DRAIN = 200  # messages handled per pass of the loop (a bound on one pass's work)
 
 
 class MavlinkRoverEmulator(Telemetry):
@@ -257,16 +258,16 @@ class MavlinkRoverEmulator(Telemetry):
         next_hb = next_fs = last
         while not self._stop.is_set():
             try:
-                msg = self._conn.recv_match(blocking=True, timeout=0.02)
+                msgs = self._received()
             except OSError:
                 if self._stop.is_set():
                     break
-                msg = None
+                msgs = []
             now = time.monotonic()
             with self._lock:
                 self._integrate(now - last)
                 last = now
-                if msg is not None:
+                for msg in msgs:
                     self._handle(msg, now)
                 self._flush_acks(now)
                 self._guided_timeout(now)
@@ -280,6 +281,21 @@ class MavlinkRoverEmulator(Telemetry):
             if now >= next_hb:
                 next_hb = now + self.heartbeat_period_s
                 self._send_heartbeat()
+
+    def _received(self) -> list[Any]:
+        """Every message waiting (at most MAX_DRAIN), the first waited for up to 20 ms. All of them are
+        handled before the timeouts are checked: a vehicle's autopilot reads its link as messages come,
+        so messages that queued while this thread was not scheduled (a busy test machine) count as
+        received in time; checking a timeout after only the oldest of them tripped a false EKF failsafe
+        (the newest pose estimate still queued) that a real Rover would not have had."""
+        msg = self._conn.recv_match(blocking=True, timeout=0.02)
+        msgs = []
+        while msg is not None and len(msgs) < MAX_DRAIN:
+            msgs.append(msg)
+            msg = self._conn.recv_match(blocking=False)
+        if msg is not None:
+            msgs.append(msg)
+        return msgs
 
     # ------------------------------------------------------------------ motion (caller holds the lock)
     def _steering(self) -> Steering:
