@@ -259,6 +259,41 @@ def test_the_origin_is_set_once_and_reported(emu: MavlinkRoverEmulator, gcs: Gcs
     assert m is not None and (m.latitude, m.longitude, m.altitude) == LAB_ORIGIN
 
 
+def test_a_starved_emulator_reads_every_queued_message_before_its_timeouts(
+    emu: MavlinkRoverEmulator, gcs: Gcs, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The emulator's thread is not scheduled for 1.5 s (a busy test machine) right after a set-point
+    arrived, while the pose estimates keep coming at 20 Hz: a real Rover reads them as they come and has
+    no EKF failsafe; the emulator, reading one message per pass, had handled the set-point, checked the
+    1 s position timeout with the estimates still queued, and held the robot (HOLD, "EKF failsafe")."""
+    gcs.ready()
+    gcs.stream(0.3, 0.05, 0.0, 0.0)
+    real = emu._conn.recv_match
+    starved = threading.Event()
+
+    def recv_match(*args: Any, **kwargs: Any) -> Any:
+        if not starved.is_set() and threading.current_thread() is emu._thread:
+            starved.set()
+            target = (0, 0, 0, 0.05, 0.0, 0, 0, 0, 0, 0, 0.0)
+            gcs.send(
+                "set_position_target_local_ned",
+                0,
+                1,
+                1,
+                mavlink.MAV_FRAME_BODY_NED,
+                MASK_VEL_YAWRATE,
+                *target,
+            )
+            time.sleep(1.5)  # descheduled: the link keeps delivering
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(emu._conn, "recv_match", recv_match)
+    assert eventually(starved.is_set, 2.0)
+    gcs.stream(2.0, 0.05, 0.0, 0.0)
+    assert emu.mode == GUIDED, emu.statustexts
+    assert not [t for t in emu.statustexts if "EKF failsafe" in t[2]], emu.statustexts
+
+
 def test_no_position_estimate_no_guided_and_no_motion(emu: MavlinkRoverEmulator) -> None:
     gcs = Gcs(emu, mocap=False)
     try:
