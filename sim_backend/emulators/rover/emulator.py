@@ -262,7 +262,7 @@ class MavlinkRoverEmulator(Telemetry):
             except OSError:
                 if self._stop.is_set():
                     break
-                msgs = []
+                msgs: list[Any] = []
             now = time.monotonic()
             with self._lock:
                 self._integrate(now - last)
@@ -289,7 +289,7 @@ class MavlinkRoverEmulator(Telemetry):
         received in time; checking a timeout after only the oldest of them tripped a false EKF failsafe
         (the newest pose estimate still queued) that a real Rover would not have had."""
         msg = self._conn.recv_match(blocking=True, timeout=0.02)
-        msgs = []
+        msgs: list[Any] = []
         while msg is not None and len(msgs) < MAX_DRAIN:
             msgs.append(msg)
             msg = self._conn.recv_match(blocking=False)
