@@ -262,7 +262,7 @@ class MavlinkRoverEmulator(Telemetry):
             except OSError:
                 if self._stop.is_set():
                     break
-                msgs: list[Any] = []
+                msgs = []
             now = time.monotonic()
             with self._lock:
                 self._integrate(now - last)
