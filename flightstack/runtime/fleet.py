@@ -250,8 +250,8 @@ def _nudge_fence(mission: Mission) -> tuple[tuple[float, float], tuple[float, fl
     """The fence's xy box (m) in which the robot is nudged before takeoff on a rig whose robot is a
     device (backend `tello`: the real lab; flightstack.runtime.motion_check); None on the simulated rigs,
     which do not nudge it, and on the emulated lab, where the check saw its robot not move (0.000 m) in CI
-    runs under parallel load: the rover emulator, starved, tripped a false EKF failsafe (fixed in
-    emulators/rover/emulator.py `_received`; off here until runs under load confirm it)."""
+    runs under parallel load: the driver's 20 Hz pose stream to the robot lapsed for 1.1 s and the robot
+    held in an EKF failsafe (its .tlog); off here until that stream holds under load."""
     if mission.backend != "tello" or mission.start_emulators:
         return None
     lo, hi = mission.safety.fence_lo, mission.safety.fence_hi
