@@ -268,9 +268,13 @@ def test_fly_a_short_mission_on_the_emulated_lab(lab: Lab, capsys: pytest.Captur
     assert health["real_time"] and health["dt_s"] == 0.05
     assert health["period_s"]["n"] == 59 and health["compute_s"]["n"] == 60
     assert health["period_s"]["p50"] > 0.045  # sleeps until start + dt: never much less than dt
-    assert 0 < health["compute_s"]["p50"] < health["period_s"]["p50"]
+    # each period holds the previous tick's compute (the loop overruns on a loaded machine, then period ≈ compute)
+    assert health["compute_s"]["p50"] > 0
+    assert np.all(rec["loop_period"][1:] >= rec["loop_compute"][:-1] - 1e-3)
     assert health["overruns"] == int((rec["loop_period"][1:] > health["overrun_above_s"]).sum())
-    assert health["frame_age_s"]["n"] == 120 and 0 <= health["frame_age_s"]["p50"] < 0.5  # 320x240 video
+    # a tick without a decoded frame yet uses none (the camera thread can miss one on a loaded machine)
+    print(f"ticks with a frame: {health['frame_age_s']['n']} of 120")
+    assert health["frame_age_s"]["n"] >= 117 and 0 <= health["frame_age_s"]["p50"] < 0.5  # 320x240 video
     # a tick whose own pose is older than pose_timeout uses none (that drone hovers): on a loaded machine
     # the mocap thread can miss one; the pose used is never older than the bound
     print(f"ticks with a fresh own pose: {health['pose_age_s']['n']} of 120")

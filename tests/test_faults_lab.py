@@ -35,6 +35,7 @@ LAB_ROWS = [
     "sighup",
     "double_sigint",
     "disk_full",
+    "robot_not_moving",
     "clock_skew",
     "abort_during_takeoff",
     "abort_agent_missing",
@@ -155,6 +156,12 @@ def test_disk_full_stops_the_recording_not_the_flight(results: dict[str, FaultRe
     d = results["disk_full"].details
     assert d["ticks_flown"] == 100 and 0 <= d["ticks_written"] < 100
     assert d["recording"]["complete"] is False and "No space left" in d["recording"]["reason"]
+
+
+def test_a_robot_that_does_not_move_stops_the_mission_before_takeoff(results: dict[str, FaultResult]) -> None:
+    d = results["robot_not_moving"].details
+    assert d["takeoffs_sent"] == {"1": 0, "2": 0} or d["takeoffs_sent"] == {1: 0, 2: 0}
+    assert d["robot_moved_m"] < 0.005
 
 
 def test_skewed_clocks_fuse_and_go_stale_alike(results: dict[str, FaultResult]) -> None:

@@ -406,6 +406,7 @@ ROWS: dict[str, FaultRow] = {
     "sighup": rows_lab_cli.sighup,
     "double_sigint": rows_lab_cli.double_sigint,
     "disk_full": rows_lab_drivers.disk_full,
+    "robot_not_moving": rows_lab_drivers.robot_not_moving,
     "clock_skew": rows_lab_bus.clock_skew,
     "abort_during_takeoff": rows_lab_cli.abort_during_takeoff,
     "abort_agent_missing": rows_lab_bus.abort_agent_missing,

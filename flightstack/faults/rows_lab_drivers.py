@@ -1,6 +1,7 @@
 """The rows of `flightstack faults` that break the devices' I/O under a flight of the emulated
-lab in this process: socket errors in every driver thread (`driver_thread_error`) and a full disk under
-the recorder (`disk_full`). FaultRows (mission file, work directory) -> FaultResult, listed in
+lab in this process: socket errors in every driver thread (`driver_thread_error`), a full disk under
+the recorder (`disk_full`), and a ground robot that does not move when nudged before takeoff
+(`robot_not_moving`). FaultRows (mission file, work directory) -> FaultResult, listed in
 rows_lab.ROWS; reaction times in `details` (ms), times time.monotonic() s.
 """
 
@@ -13,6 +14,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from flightstack.faults.lab_flight import (
     emulator_errors,
@@ -27,7 +30,7 @@ from flightstack.faults.lab_flight import (
 )
 from flightstack.faults.result import Checks, FaultResult
 from flightstack.recording import run_dir as recorder
-from flightstack.sim_backend.emulated_lab import EmulatedLab, max_gap, ms, rc_times
+from flightstack.sim_backend.emulated_lab import EmulatedLab, command_times, max_gap, ms, rc_times
 
 
 # ---- driver_thread_error -----------------------------------------------------------------------------------
@@ -303,3 +306,50 @@ def _rec_end(rec: Any) -> str | None:
     """The reason of the Recording's `end` event (None without one)."""
     ends = [e for e in rec.events if e.get("event") == "end"]
     return str(ends[0]["reason"]) if ends else None
+
+
+# ---- robot_not_moving --------------------------------------------------------------------------------------
+def robot_not_moving(mission_path: Path, workdir: Path) -> FaultResult:
+    """The robot's set-points never reach it (ScamperDriver.send_body_velocity dropped): it does not move
+    when nudged before takeoff."""
+    from flightstack.drivers.scamper import ScamperDriver
+
+    wall0 = time.perf_counter()
+    name = "robot_not_moving"
+    root = workdir / name
+    with (
+        EmulatedLab(root, duration_s=3.0) as lab,
+        patched(ScamperDriver, "send_body_velocity", lambda self, V: None),
+    ):
+        x0 = lab.rover.pose_flu().p[:2].copy() if lab.rover is not None else None
+        run = fly_inprocess(lab, root / "run")
+        x1 = lab.rover.pose_flu().p[:2].copy() if lab.rover is not None else None
+        lab.write_log(root / "emulators.json")
+        c = Checks()
+        rec = run.rec
+        error = "" if rec is None else str(rec.error or "")
+        c.check("did not move as commanded" in error and "\n" not in error, f"run error {error!r}")
+        kinds = [e.get("kind") for e in (rec.events if rec is not None else []) if e.get("event") == "safety"]
+        c.check(kinds.count("robot_refuse_takeoff") == 1, f"safety events {kinds}: one robot_refuse_takeoff")
+        c.check("takeoff" not in kinds, f"a takeoff was accepted: {kinds}")
+        sent = {i: len(command_times(e, "takeoff")) for i, e in lab.tellos.items()}
+        c.check(not any(sent.values()), f"takeoff datagrams at the drones: {sent}")
+        moved = float(np.hypot(*(x1 - x0))) if x0 is not None and x1 is not None else float("nan")
+        c.check(moved < 0.005, f"the robot moved {moved:.3f} m (emulator)")
+        emulator_errors(lab, c)
+        observed = (
+            f"nothing took off (takeoff datagrams {sent}); the robot moved {moved * 1000:.1f} mm; run error: "
+            f"{error}"
+        )
+        return run_result(
+            name,
+            "the mission stops before takeoff with one line (`robot_refuse_takeoff`): nudged 0.05 m, the "
+            "robot did not move as commanded; no takeoff sent",
+            observed,
+            wall0,
+            run,
+            c,
+            judge_lab_safety(lab, run),
+            [],
+            {"robot_moved_m": moved, "takeoffs_sent": sent},
+        )

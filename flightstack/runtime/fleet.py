@@ -248,11 +248,9 @@ class Fleet:
 
 def _nudge_fence(mission: Mission) -> tuple[tuple[float, float], tuple[float, float]] | None:
     """The fence's xy box (m) in which the robot is nudged before takeoff on a rig whose robot is a
-    device (backend `tello`: the real lab; flightstack.runtime.motion_check); None on the simulated rigs,
-    which do not nudge it, and on the emulated lab, where the check saw its robot not move (0.000 m) in CI
-    runs under parallel load: the driver's 20 Hz pose stream to the robot lapsed for 1.1 s and the robot
-    held in an EKF failsafe (its .tlog); off here until that stream holds under load."""
-    if mission.backend != "tello" or mission.start_emulators:
+    device (backend `tello`: the real and the emulated lab; flightstack.runtime.motion_check); None on the
+    simulated rigs, which do not nudge it."""
+    if mission.backend != "tello":
         return None
     lo, hi = mission.safety.fence_lo, mission.safety.fence_hi
     return (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1]))
@@ -289,6 +287,13 @@ def assemble_fleet(
     try:
         built = backend
         if backend is None:
+            if not mission.simulated:
+                # a full collection holds the GIL for every thread (0.16-0.20 s over ~194 000 objects in a
+                # test's process, quiet): run it while no device is open, where it cannot starve a driver's
+                # stream (run with the robot connected, it lapsed the robot's pose feed, whose loss holds the
+                # robot after 1 s, for 1.1 s on a loaded CI machine)
+                gc.collect()
+                gc.freeze()
             backend = built = build_backend(mission, devices)
             if wrap_backend is not None:
                 try:
@@ -342,8 +347,8 @@ def _build(
     agents = make_agents(mission, mode, backend, drones, bus, predictors, ids)
     if not mission.simulated:
         # what exists now lives for the whole flight: out of the collector's way, so that a full collection
-        # mid-flight walks only what the flight allocates (its pause stays far below the loop watchdog's)
-        gc.collect()
+        # mid-flight walks only what the flight allocates (its pause stays far below the loop watchdog's).
+        # No collection first: the devices are streaming by now (see assemble_fleet); freeze itself is O(1)
         gc.freeze()
     return Fleet(
         loop=LoopSpec.of(mission),
