@@ -8,8 +8,13 @@ ardupilot.org/dev/docs/mavlink-nongps-position-estimation.html):
   EKF3's.
 * ``EK3_SRC1_POSXY`` and ``EK3_SRC1_YAW`` 6 = ExternalNav (``AP_NavEKF_Source::SourceXY::EXTNAV``,
   ``SourceYaw::EXTNAV``, libraries/AP_NavEKF/AP_NavEKF_Source.h): the EKF takes position and yaw from
-  VISION_POSITION_ESTIMATE.  ``EK3_SRC1_POSZ`` 6 or 1 (baro) and ``EK3_SRC1_VELXY`` 0 (the driver sends
-  no velocity) are recommended, not checked.
+  VISION_POSITION_ESTIMATE.
+* ``EK3_SRC1_POSZ`` 1 (Baro, ArduPilot's default) or 6, ``EK3_SRC1_VELXY`` and ``EK3_SRC1_VELZ`` 0 (None:
+  the driver sends no velocity) or 6 (`NAV_ALLOWED`). ``AP_NavEKF_Source::pre_arm_check``
+  (libraries/AP_NavEKF/AP_NavEKF_Source.cpp) refuses to arm with POSZ 0 ("Check EK3_SRC1_POSZ") and with
+  any source on GPS (3; VELXY's and VELZ's default) when the vehicle has no GPS ("EK3 sources require
+  GPS"); indoors a GPS that has one gives no fix, and one that finds a fix near a window would fight the
+  motion capture, so GPS is refused either way.
 * ``VISO_TYPE`` 1 = MAVLink (``AP_VisualOdom::var_info``, libraries/AP_VisualOdom/AP_VisualOdom.cpp);
   with 0 ``AP_VisualOdom::handle_pose_estimate`` ignores every VISION_POSITION_ESTIMATE.
 * ``GUID_TIMEOUT`` (s, default 3, range 0.1–5; Rover/Parameters.cpp): ``ModeGuided::update``
@@ -37,6 +42,12 @@ Kinematics = Literal["differential", "ackermann", "omni", "boat", "unknown"]
 
 NAV_NEEDED: dict[str, int] = {"AHRS_EKF_TYPE": 3, "EK3_SRC1_POSXY": 6, "EK3_SRC1_YAW": 6, "VISO_TYPE": 1}
 """What the vehicle must be set to for the driver's VISION_POSITION_ESTIMATE to be its position (above)."""
+NAV_ALLOWED: dict[str, tuple[int, ...]] = {
+    "EK3_SRC1_POSZ": (1, 6),
+    "EK3_SRC1_VELXY": (0, 6),
+    "EK3_SRC1_VELZ": (0, 6),
+}
+"""The other EKF3 sources indoors: the values it may keep, the first the one to set (above)."""
 GUID_TIMEOUT = "GUID_TIMEOUT"
 MAX_GUIDED_TIMEOUT_S = 3.0
 MIN_GUIDED_SETPOINTS = 5
@@ -44,7 +55,7 @@ FRAME_CLASS, FRAME_TYPE = "FRAME_CLASS", "FRAME_TYPE"
 SERVO_FUNCTIONS = tuple(f"SERVO{i}_FUNCTION" for i in range(1, 17))
 SKID_LEFT, SKID_RIGHT, GROUND_STEERING = 73, 74, 26  # SRV_Channel::k_throttleLeft / Right / k_steering
 OMNI_FRAME_TYPES = {1: "Omni3", 2: "OmniX", 3: "OmniPlus", 4: "Omni3Mecanum"}
-PARAMETERS = (*NAV_NEEDED, GUID_TIMEOUT, FRAME_CLASS, FRAME_TYPE, *SERVO_FUNCTIONS)
+PARAMETERS = (*NAV_NEEDED, *NAV_ALLOWED, GUID_TIMEOUT, FRAME_CLASS, FRAME_TYPE, *SERVO_FUNCTIONS)
 """What preflight reads for these rules (besides the GCS failsafe's: drivers/scamper_failsafe.py)."""
 KINEMATICS_SOURCE = (
     "FRAME_CLASS/FRAME_TYPE (Rover/Parameters.cpp) and SERVOn_FUNCTION 73+74 skid steering "
@@ -69,15 +80,17 @@ def _int(v: float | None) -> int | None:
 
 
 def judge_external_nav(values: Mapping[str, float]) -> Verdict:
-    """FAIL, naming everything to set, unless every NAV_NEEDED parameter has its value."""
+    """FAIL, naming everything to set, unless every NAV_NEEDED parameter has its value and every NAV_ALLOWED
+    one an allowed value."""
+    wanted = {name: (want,) for name, want in NAV_NEEDED.items()} | NAV_ALLOWED
     wrong = []
-    for name, want in NAV_NEEDED.items():
+    for name, allowed in wanted.items():
         have = values.get(name)
-        if _int(have) != want:
-            wrong.append(f"{name} {want} (now {_fmt(have)})")
+        if _int(have) not in allowed:
+            wrong.append(f"{name} {allowed[0]} (now {_fmt(have)})")
     if wrong:
         return Verdict("FAIL", "no external position source: set on the vehicle " + ", ".join(wrong))
-    return Verdict("PASS", ", ".join(f"{n} {v}" for n, v in NAV_NEEDED.items()))
+    return Verdict("PASS", ", ".join(f"{n} {_fmt(values.get(n))}" for n in wanted))
 
 
 def judge_guided_timeout(values: Mapping[str, float], stream_hz: float) -> Verdict:

@@ -268,7 +268,7 @@ def test_fly_a_short_mission_on_the_emulated_lab(lab: Lab, capsys: pytest.Captur
     assert health["real_time"] and health["dt_s"] == 0.05
     assert health["period_s"]["n"] == 59 and health["compute_s"]["n"] == 60
     assert health["period_s"]["p50"] > 0.045  # sleeps until start + dt: never much less than dt
-    # each period holds the previous tick's compute (the loop overruns on a loaded machine, then period ≈ compute)
+    # each period holds the previous tick's compute (a loop overrunning on a loaded machine: period ≈ compute)
     assert health["compute_s"]["p50"] > 0
     assert np.all(rec["loop_period"][1:] >= rec["loop_compute"][:-1] - 1e-3)
     assert health["overruns"] == int((rec["loop_period"][1:] > health["overrun_above_s"]).sum())

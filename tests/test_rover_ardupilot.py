@@ -311,6 +311,28 @@ def test_no_position_estimate_no_guided_and_no_motion(emu: MavlinkRoverEmulator)
         gcs.close()
 
 
+@pytest.mark.parametrize(("name", "value", "refusal"), [
+    ("EK3_SRC1_VELXY", 3.0, "PreArm: AHRS: EK3 sources require GPS"),  # ArduPilot's default, no GPS fitted
+    ("EK3_SRC1_VELZ", 3.0, "PreArm: AHRS: EK3 sources require GPS"),
+    ("EK3_SRC1_POSZ", 0.0, "PreArm: AHRS: Check EK3_SRC1_POSZ"),
+])  # fmt: skip
+def test_ekf_sources_that_need_a_gps_refuse_arming(
+    emu: MavlinkRoverEmulator, gcs: Gcs, name: str, value: float, refusal: str
+) -> None:
+    """AP_NavEKF_Source::pre_arm_check: with motion capture and an origin, a source left on GPS (or POSZ None)
+    refuses arming in GUIDED; set back to the lab's value, the same vehicle arms."""
+    gcs.heartbeat_once()
+    assert gcs.set_origin() is not None and eventually(emu.position_ok, 2.0)
+    lab_value = emu.param(name)
+    gcs.send("param_set", 1, 1, name.encode(), value, mavlink.MAV_PARAM_TYPE_INT8)
+    assert gcs.recv("PARAM_VALUE", lambda m: m.param_id == name) is not None
+    assert gcs.set_mode(GUIDED) == ACCEPTED and gcs.arm() == FAILED and not emu.armed
+    assert gcs.text(refusal) is not None
+    gcs.send("param_set", 1, 1, name.encode(), lab_value, mavlink.MAV_PARAM_TYPE_INT8)
+    assert gcs.recv("PARAM_VALUE", lambda m: m.param_id == name) is not None
+    assert gcs.arm() == ACCEPTED and emu.armed
+
+
 def test_losing_motion_capture_while_driving_holds(emu: MavlinkRoverEmulator, gcs: Gcs) -> None:
     """The estimate is dropped 1 s after the last VISION_POSITION_ESTIMATE; then the EKF failsafe: HOLD."""
     gcs.ready()

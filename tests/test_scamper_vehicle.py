@@ -67,7 +67,28 @@ def test_external_nav_rule_names_every_parameter_to_set_in_one_line() -> None:
     for part in ("EK3_SRC1_POSXY 6 (now 3)", "EK3_SRC1_YAW 6 (now 1)", "VISO_TYPE 1 (now unread)"):
         assert part in v.detail
     assert "AHRS_EKF_TYPE" not in v.detail
-    assert sv.judge_external_nav(dict(sv.NAV_NEEDED)).status == "PASS"
+    lab = {**sv.NAV_NEEDED, "EK3_SRC1_POSZ": 1, "EK3_SRC1_VELXY": 0, "EK3_SRC1_VELZ": 0}
+    assert sv.judge_external_nav(lab).status == "PASS"
+    extnav_everywhere = {**lab, "EK3_SRC1_POSZ": 6, "EK3_SRC1_VELXY": 6, "EK3_SRC1_VELZ": 6}
+    assert sv.judge_external_nav(extnav_everywhere).status == "PASS"
+
+
+@pytest.mark.parametrize(("name", "value", "part"), [
+    ("EK3_SRC1_VELXY", 3, "EK3_SRC1_VELXY 0 (now 3)"),  # ArduPilot's default: GPS
+    ("EK3_SRC1_VELZ", 3, "EK3_SRC1_VELZ 0 (now 3)"),
+    ("EK3_SRC1_POSZ", 0, "EK3_SRC1_POSZ 1 (now 0)"),  # None: "Check EK3_SRC1_POSZ" at arming
+    ("EK3_SRC1_POSZ", 3, "EK3_SRC1_POSZ 1 (now 3)"),
+    ("EK3_SRC1_VELZ", None, "EK3_SRC1_VELZ 0 (now unread)"),
+])  # fmt: skip
+def test_external_nav_rule_refuses_the_other_sources_on_gps(name: str, value: int | None, part: str) -> None:
+    """AP_NavEKF_Source::pre_arm_check: a source on GPS needs a GPS; indoors it is refused either way."""
+    values: dict[str, float] = {**sv.NAV_NEEDED, "EK3_SRC1_POSZ": 1, "EK3_SRC1_VELXY": 0, "EK3_SRC1_VELZ": 0}
+    if value is None:
+        del values[name]
+    else:
+        values[name] = value
+    v = sv.judge_external_nav(values)
+    assert v.status == "FAIL" and part in v.detail and v.detail.count("(now") == 1, v.detail
 
 
 def test_guided_timeout_rule() -> None:

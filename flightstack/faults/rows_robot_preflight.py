@@ -69,12 +69,12 @@ def robot_no_origin(mission_path: Path, workdir: Path) -> FaultResult:
 
 
 def robot_no_extnav(mission_path: Path, workdir: Path) -> FaultResult:
-    """The robot keeps ArduPilot's default position and yaw sources (GPS, compass; VISO_TYPE 0)."""
+    """The robot keeps ArduPilot's default EKF sources (GPS, compass, baro; VISO_TYPE 0)."""
     from flightstack.faults.spec_rover import ARDUPILOT_DEFAULTS, LAB_SETTINGS
 
     params = {
         **LAB_SETTINGS,
-        **{k: ARDUPILOT_DEFAULTS[k] for k in ("EK3_SRC1_POSXY", "EK3_SRC1_YAW", "VISO_TYPE")},
+        **{k: ARDUPILOT_DEFAULTS[k] for k in ARDUPILOT_DEFAULTS if k.startswith(("EK3_SRC1_", "VISO_"))},
     }
     expected = (
         f"preflight's `external navigation` row FAILs in one line starting {NAV_LINE!r} naming each parameter"

@@ -25,13 +25,14 @@ mavlink = mavutil.mavlink
 GUIDED, HOLD = 15, 4
 ARDUPILOT_DEFAULTS: dict[str, float] = {
     "AHRS_EKF_TYPE": 3, "EK3_SRC1_POSXY": 3, "EK3_SRC1_YAW": 1, "VISO_TYPE": 0, "GUID_TIMEOUT": 3.0,
+    "EK3_SRC1_POSZ": 1, "EK3_SRC1_VELXY": 3, "EK3_SRC1_VELZ": 3,
     "FRAME_CLASS": 1, "FRAME_TYPE": 0, "SERVO1_FUNCTION": 26, "SERVO3_FUNCTION": 70,
     "FS_GCS_ENABLE": 0, "FS_ACTION": 2, "FS_TIMEOUT": 1.5, "FS_GCS_TIMEOUT": 5, "SYSID_MYGCS": 255,
 }  # fmt: skip
 """ArduPilot Rover's defaults of what preflight reads (Rover/Parameters.cpp and the libraries')."""
 LAB_SETTINGS: dict[str, float] = {
     **ARDUPILOT_DEFAULTS,
-    "EK3_SRC1_POSXY": 6, "EK3_SRC1_YAW": 6, "VISO_TYPE": 1,
+    "EK3_SRC1_POSXY": 6, "EK3_SRC1_YAW": 6, "VISO_TYPE": 1, "EK3_SRC1_VELXY": 0, "EK3_SRC1_VELZ": 0,
     "SERVO1_FUNCTION": 73, "SERVO3_FUNCTION": 74,
     "FS_GCS_ENABLE": 1, "FS_ACTION": 2, "FS_TIMEOUT": 1, "FS_GCS_TIMEOUT": 3,
 }  # fmt: skip

@@ -437,6 +437,12 @@ class MavlinkRoverEmulator(Telemetry):
             if not traits.allows_arming:
                 self._text("CRITICAL", "PreArm: Mode not armable")
                 return int(mavlink.MAV_RESULT_FAILED)
+            # AP_Arming_Rover::gps_checks, only for a mode that needs a position: the AHRS (EKF3's source
+            # check first, NavEKF3::pre_arm_check), then the position estimate
+            refusal = self.store.ekf_sources_refusal() if wants else None
+            if refusal is not None:
+                self._text("CRITICAL", f"PreArm: AHRS: {refusal}")
+                return int(mavlink.MAV_RESULT_FAILED)
             if wants and not self._position_ok(time.monotonic()):
                 self._text("CRITICAL", "PreArm: Need Position Estimate")
                 return int(mavlink.MAV_RESULT_FAILED)

@@ -18,6 +18,7 @@ OLD_FIRMWARE_GCS_TIMEOUT_S = 2.0  # the fixed GCS timeout of firmware without FS
 SKID_FUNCTIONS = (73, 74)  # ThrottleLeft, ThrottleRight
 ACKERMANN_FUNCTIONS = (26, 70)  # GroundSteering, Throttle
 EXTERNAL_NAV = 6  # EK3_SRCn_POSXY / _YAW: ExternalNav
+GPS_SOURCE = 3  # EK3_SRCn_POSXY / _VELXY / _POSZ / _VELZ: GPS
 
 
 @dataclass(frozen=True)
@@ -100,6 +101,7 @@ class RoverParams:
             ("EK3_SRC1_POSXY", float(self.ek3_src1_posxy), I8),
             ("EK3_SRC1_VELXY", 0.0, I8),
             ("EK3_SRC1_POSZ", 1.0, I8),
+            ("EK3_SRC1_VELZ", 0.0, I8),
             ("EK3_SRC1_YAW", float(self.ek3_src1_yaw), I8),
             ("VISO_TYPE", float(self.viso_type), I8),
             ("GPS_TYPE", 0.0, I8),
@@ -168,6 +170,17 @@ class ParamStore:
         """AP_MotorsUGV::have_skid_steering: throttle-left and throttle-right outputs are assigned."""
         functions = {self.get("SERVO1_FUNCTION", 0.0), self.get("SERVO3_FUNCTION", 0.0)}
         return functions == {float(f) for f in SKID_FUNCTIONS}
+
+    def ekf_sources_refusal(self) -> str | None:
+        """AP_NavEKF_Source::pre_arm_check (libraries/AP_NavEKF/AP_NavEKF_Source.cpp), what this vehicle
+        can fail of it: POSZ None is invalid, and a source on GPS (3) needs a GPS, which GPS_TYPE 0 has not;
+        the message ArduPilot reports, or None."""
+        if self.get("EK3_SRC1_POSZ", 1.0) == 0.0:
+            return "Check EK3_SRC1_POSZ"
+        sources = ("EK3_SRC1_POSXY", "EK3_SRC1_VELXY", "EK3_SRC1_POSZ", "EK3_SRC1_VELZ")
+        if any(self.get(n, 0.0) == GPS_SOURCE for n in sources) and self.get("GPS_TYPE", 0.0) == 0.0:
+            return "EK3 sources require GPS"
+        return None
 
     @property
     def external_nav(self) -> bool:
