@@ -24,9 +24,11 @@ simply go stale (`latest()` None) while it fails.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
 import math
+import sys
 import threading
 import time
 from collections import Counter, deque
@@ -36,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from flightstack.drivers.native_output import native_stdout
 from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog
 from flightstack.events import Event, MocapKind
 from flightstack.hal import StampedPose
@@ -227,8 +230,16 @@ class MocapPoseSource:
         self._thread = threading.Thread(
             target=self._run, args=(connect,), name=f"mocap-{self.cfg.system}", daemon=True
         )
-        self._thread.start()
-        if not self._connected.wait(self.cfg.connect_timeout_s):
+        # the library's own lines while it connects ("Using unicast from server …") get a level and a name
+        capture: contextlib.AbstractContextManager[list[str]] = (
+            native_stdout() if self._connect is None else contextlib.nullcontext([])
+        )
+        with capture as said:
+            self._thread.start()
+            connected = self._connected.wait(self.cfg.connect_timeout_s)
+        for line in said:
+            print(f"info: mocap {self.cfg.system} (libmotioncapture): {line}", file=sys.stderr)
+        if not connected:
             self._stop.set()
             raise MocapError(
                 f"no {self.cfg.system} server answered within {self.cfg.connect_timeout_s:g} s "

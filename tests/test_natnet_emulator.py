@@ -112,6 +112,19 @@ def test_poses_match_emulator(emu: NatNetEmulator) -> None:
     assert emu.frames_sent > 0 and not emu.provider_errors
 
 
+def test_the_clients_own_connect_line_carries_a_level(
+    emu: NatNetEmulator, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """libmotioncapture's C++ prints "Using unicast from server …" on fd 1 while it connects: the console
+    gets it on stderr as an `info:` line naming the system, stdout stays the run's data."""
+    with make_source(emu) as src:
+        assert wait_for(lambda: src.latest("cf1") is not None)
+    out, err = capfd.readouterr()
+    assert "Using unicast" not in out, out
+    said = [ln for ln in err.splitlines() if "Using unicast from server" in ln]
+    assert said and all(ln.startswith("info: mocap optitrack (libmotioncapture): ") for ln in said), err
+
+
 @pytest.mark.parametrize("omit", [False, True], ids=["untracked", "omitted"])
 def test_lost_body_goes_stale_and_returns(safety_bound: Bound, emu: NatNetEmulator, omit: bool) -> None:
     emu.faults.lost_omit = omit
