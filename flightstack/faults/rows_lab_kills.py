@@ -153,12 +153,16 @@ def _ceiling(lab: EmulatedLab) -> float:
 
 
 def _robot_alone(lab: EmulatedLab, t_fault: float) -> dict[str, Any]:
-    """What the robot's own GCS failsafe did once nobody sent it a heartbeat (ms after the fault)."""
+    """What the robot's own failsafes did once nobody sent it a heartbeat or a pose (ms after the fault).
+    The pose feed stops with the flight's process, so the EKF failsafe holds the robot after 1 s; ArduPilot's
+    GCS failsafe then does not act in HOLD (`Rover::failsafe_trigger`, FS_OPTIONS bit 0 unset)."""
     rover = lab.rover
     t_fs = rover.failsafe_t
+    t_ekf = next((t for t, _, text in rover.statustexts if text == "EKF failsafe" and t >= t_fault), None)
     return {
         "robot_failsafe_ms": ms(None if t_fs is None else t_fs - t_fault),
         "robot_failsafe_action": rover.failsafe_action,
+        "robot_ekf_failsafe_ms": ms(None if t_ekf is None else t_ekf - t_fault),
         "robot_mode": rover.mode,
         "robot_armed": bool(rover.armed),
         "robot_speed": max(abs(v) for v in rover.velocity),
@@ -321,12 +325,13 @@ def _alone(name: str, workdir: Path, when: str, order: str) -> FaultResult:
     what = "stopped guardian, flight killed" if order == "stopped" else "flight and guardian killed"
     expected = (
         f"{what} ({when}): nothing of ours is left, the drones fly their last rc until their own auto-land; "
-        f"no drone above the hard fence's ceiling ({ceiling:g} m) before it is down; the robot's own GCS "
-        "failsafe holds it"
+        f"no drone above the hard fence's ceiling ({ceiling:g} m) before it is down; the robot's own "
+        "failsafes hold it (EKF: its pose feed stopped; else GCS: its heartbeat stopped)"
     )
     observed = _summary(details, ("z_kill_m", "z_max_m", "rise_m", "drift_xy_m", "down_ms"))
-    observed += f"; robot failsafe +{details.get('robot_failsafe_ms')} ms (FS_ACTION "
-    observed += f"{details.get('robot_failsafe_action')}), speed {details.get('robot_speed')}"
+    observed += f"; robot EKF failsafe +{details.get('robot_ekf_failsafe_ms')} ms, GCS failsafe "
+    observed += f"+{details.get('robot_failsafe_ms')} ms (FS_ACTION {details.get('robot_failsafe_action')}), "
+    observed += f"mode {details.get('robot_mode')}, speed {details.get('robot_speed')}"
     return lab_result(name, expected, observed, wall0, c, [], [], details, None)
 
 
