@@ -27,6 +27,7 @@ SafetyKind = Literal[
     "battery_land", "target_lost_land", "link_lost", "drone_error", "command_after_land", "land_failed",
     "landed_by_drone", "emergency_stop", "emergency_stop_failed", "target_lost_hover", "land_all", "signal",
     "takeoff", "takeoff_failed", "land", "climb_limited", "robot_moved", "robot_refuse_takeoff",
+    "robot_law_start",
 ]  # fmt: skip
 RunKind = Literal[
     "end", "end_early", "end_exception", "compiled loop", "lock-step wait timed out", "safety tick", "landed",
@@ -90,7 +91,13 @@ KINDS: Mapping[str, KindInfo] = {
     "robot_moved": _i(
         "the ground robot, nudged before takeoff, moved as commanded (flightstack.runtime.motion_check)"
     ),
-    "robot_refuse_takeoff": _w("takeoff refused: the ground robot did not move as commanded when nudged"),
+    "robot_refuse_takeoff": _w(
+        "takeoff refused: the ground robot did not move as commanded when nudged, or stands off its path"
+    ),
+    "robot_law_start": _i(
+        "the ground robot's law starts at the lap time where the robot stands (a device stays where the last "
+        "mode left it; flightstack.paper.target_law.start_phase)"
+    ),
     "battery_land": _w("battery below the landing level: the drone lands"),
     "target_lost_land": _w("the target unseen too long: every drone lands"),
     "link_lost": _w("the link to the device is lost (the safety layer: hover and land)"),

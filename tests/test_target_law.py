@@ -12,8 +12,10 @@ import pytest
 
 from flightstack.cli.app import main
 from flightstack.config.mission import load_mission
+from flightstack.hal import StampedPose
 from flightstack.paper.geometry import Pose
-from flightstack.paper.target_law import SquareLaw, UnicycleSquareLaw, square_law
+from flightstack.paper.target_law import SquareLaw, UnicycleSquareLaw, square_law, start_phase
+from flightstack.runtime.phases import TargetDriver
 from flightstack.sim_backend.lab import RobotParams, ScamperSim
 
 RADII = (0.0, 0.05, 0.2, 0.5)
@@ -204,3 +206,87 @@ def test_the_simulated_lab_robot_tracks_its_law(kinematics: str, R: float) -> No
         worst = max(worst, float(np.hypot(*(r.pose.p[:2] - law.reference(t[0])[0].p[:2]))))
     print(f"{kinematics}: max tracking error over a lap {worst * 1000:.1f} mm")
     assert worst < 0.05
+
+
+# ---- where a robot that stayed put starts its law ---------------------------------------------------------
+LAWS_TO_PHASE = [UnicycleSquareLaw(), UnicycleSquareLaw(turn_radius=0.2), SquareLaw()]
+
+
+@pytest.mark.parametrize("law", LAWS_TO_PHASE, ids=["differential", "ackermann", "paper"])
+def test_start_phase_finds_the_lap_time_of_a_pose_on_the_path(law: UnicycleSquareLaw | SquareLaw) -> None:
+    """A robot standing at the reference's pose of lap time t (sides, turns in place, arcs) is found at t
+    (within the 0.02 s sampling), or at a lap time whose reference pose is the same."""
+    for t in np.linspace(0.0, law.lap_time, 97, endpoint=False):
+        g = law.reference(float(t))[0]
+        t0, dist, dth = start_phase(law, g)
+        g0 = law.reference(t0)[0]
+        assert dist < 0.1 * 0.02 + 1e-9 and abs(dth) < 0.5 * 0.02 + 1e-9, (t, t0, dist, dth)
+        assert np.hypot(*(g0.p[:2] - g.p[:2])) == pytest.approx(dist, abs=1e-12)
+        assert 0.0 <= t0 < law.lap_time
+
+
+def test_start_phase_tells_a_turn_in_place_apart_by_heading_and_measures_the_distance() -> None:
+    law = UnicycleSquareLaw()  # corner (0.5, -0.5): the turn from heading 0 to π/2 at 0.5 rad/s after 10 s
+    _, _, d0 = start_phase(law, Pose.make([0.5, -0.5, 0.0], 0.0))
+    t_mid, dist, _ = start_phase(law, Pose.make([0.5, -0.5, 0.0], math.pi / 4))
+    assert t_mid == pytest.approx(10.0 + (math.pi / 4) / 0.5, abs=0.02) and dist < 1e-9 and abs(d0) < 1e-9
+    t_side, dist, dth = start_phase(law, Pose.make([0.0, -0.62, 0.0], 0.0))  # 0.12 m outside the first side
+    assert t_side == pytest.approx(5.0, abs=0.02) and dist == pytest.approx(0.12, abs=1e-9) and dth == 0.0
+
+
+class _Lab:
+    """A backend for TargetDriver: the robot (ScamperSim) and its motion-capture pose."""
+
+    def __init__(self, robot: ScamperSim) -> None:
+        self.robot = robot
+
+    def target(self) -> ScamperSim:
+        return self.robot
+
+    def pose_source(self) -> _Lab:
+        return self
+
+    def latest(self, body: str) -> StampedPose | None:
+        return StampedPose(0.0, self.robot.pose) if body == "target" else None
+
+
+def _track_from(law: UnicycleSquareLaw, g0: Pose, start_where_it_is: bool, seconds: float = 30.0) -> float:
+    """Largest distance (m) of the robot from its reference, driven by TargetDriver from g0 at 20 Hz."""
+    t = [0.0]
+    robot = ScamperSim(g0, RobotParams(kinematics="differential"), lambda: t[0])
+    drive = TargetDriver(law, _Lab(robot), fence_xy=((-2.0, -2.0), (2.0, 2.0)))  # type: ignore[arg-type]
+    if start_where_it_is:
+        assert drive.start_where_it_is() is not None
+    dt, worst = 0.005, 0.0
+    for k in range(round(seconds / dt)):
+        if k % 10 == 0:
+            drive.tick(t[0])
+        t[0] += dt
+        robot.step(t[0], dt)
+        ref = law.reference(drive.t0 + t[0])[0]
+        worst = max(worst, float(np.hypot(*(robot.pose.p[:2] - ref.p[:2]))))
+    return worst
+
+
+def test_a_robot_left_mid_lap_by_the_last_mode_starts_its_law_where_it_stands() -> None:
+    """The next mode on a rig whose robot is a device: the robot stands where the last one left it (80 s
+    into a 52.6 s lap). Started there, it tracks within 5 cm; started at the lap's start, as every mode
+    did, its reference is 1.3 m away and the robot is driven across the square to catch it."""
+    law = UnicycleSquareLaw()
+    g_end = law.reference(80.0)[0]
+    here = _track_from(law, g_end, start_where_it_is=True)
+    old = _track_from(law, g_end, start_where_it_is=False)
+    print(
+        f"tracking error from the last mode's end: {here * 1000:.1f} mm; with the law restarted: {old:.2f} m"
+    )
+    assert here < 0.05 and old > 0.5
+
+
+def test_a_robot_off_its_path_refuses_the_start_in_one_line() -> None:
+    law = UnicycleSquareLaw()
+    robot = ScamperSim(Pose.make([0.0, 0.0, 0.0], 0.0), RobotParams(), lambda: 0.0)  # the square's centre
+    drive = TargetDriver(law, _Lab(robot), fence_xy=((-2.0, -2.0), (2.0, 2.0)))  # type: ignore[arg-type]
+    with pytest.raises(RuntimeError, match=r"stands 0\.50 m from its square's path") as err:
+        drive.start_where_it_is()
+    assert "\n" not in str(err.value) and "(-0.50, -0.50) m facing +0.00 rad" in str(err.value)
+    assert TargetDriver(law, _Lab(robot)).start_where_it_is() is None  # a simulated rig: reset every mode

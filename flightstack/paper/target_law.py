@@ -228,6 +228,26 @@ class UnicycleSquareLaw:
 
 TargetLaw = SquareLaw | UnicycleSquareLaw
 
+HEADING_WEIGHT_M_PER_RAD = 0.1
+"""How much a heading error counts against a position error when `start_phase` looks for the robot on its
+path (m per rad): enough to tell the ends of a turn in place apart, small beside a side's length."""
+
+
+def start_phase(law: TargetLaw, g_w0: Pose, step_s: float = 0.02) -> tuple[float, float, float]:
+    """Where on its lap the robot at g_w0 is: (t0, distance, heading error), t0 ∈ [0, lap_time) (s) the lap
+    time whose reference pose g_d(t0) is nearest (|p − p_d|² + (HEADING_WEIGHT_M_PER_RAD · Δθ)², sampled every
+    step_s s), the distance |p − p_d| (m, in the plane) and the wrapped heading error θ − θ_d (rad) there.
+
+    A robot that is a device stays where the last mode left it: its next mode's law starts at t0, not at
+    the lap's start, so that the reference does not jump away from it (flightstack.runtime.phases)."""
+    T = law.lap_time
+    ts = np.arange(0.0, T, step_s)
+    ref = np.array([law.reference(float(t))[0].as_vector() for t in ts])  # (n, 4): x, y, z, θ
+    d_xy = np.hypot(ref[:, 0] - float(g_w0.p[0]), ref[:, 1] - float(g_w0.p[1]))
+    d_th = np.array([wrap_angle(g_w0.theta - th) for th in ref[:, 3]])
+    k = int(np.argmin(d_xy**2 + (HEADING_WEIGHT_M_PER_RAD * d_th) ** 2))
+    return float(ts[k]), float(d_xy[k]), float(d_th[k])
+
 
 def square_law(
     law: str,

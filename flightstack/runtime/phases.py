@@ -9,12 +9,13 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from flightstack.hal import Backend, Clock, FlightPhase
-from flightstack.paper.target_law import TargetLaw
+from flightstack.paper.target_law import TargetLaw, start_phase
 from flightstack.runtime.motion_check import MotionCheck, check_robot_moves
 
 TAKEOFF_TIMEOUT_S = 25.0  # > the Tello driver's own 20 s bound, so its outcome is collected first
 LAND_TIMEOUT_S = 20.0  # > the Tello's own 15 s auto-land, so a drone that lost its link is seen down
 POSE_WAIT_S = 3.0  # before takeoff: how long a drone's motion-capture pose may take to be fresh
+MAX_OFF_PATH_M = 0.2  # before takeoff: how far the robot may stand from its law's path (m, in the plane)
 
 
 class TargetDriver:
@@ -33,6 +34,29 @@ class TargetDriver:
         self.robot = backend.target()
         self.poses = backend.pose_source()
         self.fence_xy = fence_xy
+        self.t0 = 0.0  # s: the lap time at which the law starts (`start_where_it_is`)
+
+    def start_where_it_is(self) -> tuple[float, float, float] | None:
+        """On a rig whose robot is a device (the rigs whose robot is nudged), the robot stands where the last
+        mode left it, not at the lap's start: start the law at the lap time where it is
+        (target_law.start_phase) and return (t0 s, distance m, heading error rad); None when not such a rig.
+        Raises RuntimeError (one line) when the robot stands farther than MAX_OFF_PATH_M from the path or
+        has no pose."""
+        if self.robot is None or self.fence_xy is None:
+            return None
+        own = self.poses.latest("target")
+        if own is None:
+            raise RuntimeError("the ground robot has no motion-capture pose: its law cannot start")
+        t0, dist, dth = start_phase(self.law, own.pose)
+        if dist > MAX_OFF_PATH_M:
+            ref = self.law.reference(0.0)[0]
+            raise RuntimeError(
+                f"the ground robot stands {dist:.2f} m from its square's path (at most "
+                f"{MAX_OFF_PATH_M:g} m): place it on the path, e.g. at its start ({ref.p[0]:+.2f}, "
+                f"{ref.p[1]:+.2f}) m facing {ref.theta:+.2f} rad, or drive it there (`flightstack target`)"
+            )
+        self.t0 = t0
+        return t0, dist, dth
 
     def check_moves(
         self, clock: Clock, step_s: float, each: Callable[[], None] | None = None
@@ -48,7 +72,7 @@ class TargetDriver:
         own = self.poses.latest("target")
         if own is None or self.robot is None:
             return
-        self.robot.send_body_velocity(self.law.command(t_mission, own.pose))
+        self.robot.send_body_velocity(self.law.command(self.t0 + t_mission, own.pose))
 
     def stop(self) -> None:
         if self.robot is not None:

@@ -307,6 +307,17 @@ def take_off(f: Fleet) -> None:
                 f"nudged {moved.commanded_m:+.3f} m: {moved.along_m:+.3f} m along, {moved.across_m:+.3f} m "
                 "sideways",
             )
+        try:  # a robot that is a device starts its law where it stands (the last mode left it there)
+            phase = f.target.start_where_it_is()
+        except RuntimeError as exc:
+            f.log.record(clock.now(), None, "robot_refuse_takeoff", str(exc))
+            raise
+        if phase is not None:
+            t0, dist, dth = phase
+            where = f"{dist:.3f} m and {dth:+.3f} rad from the path"
+            f.log.record(
+                clock.now(), None, "robot_law_start", f"the law starts at lap time {t0:.2f} s ({where})"
+            )
     for d in drones.values():  # on real drones each returns at once: they climb together
         d.takeoff()
 
