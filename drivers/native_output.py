@@ -4,7 +4,9 @@ prints"). libmotioncapture's C++ writes "Using unicast from server …" with std
 
 The capture is at file-descriptor level (fd 1 onto a temporary file, C stdio flushed before it is put
 back): a Python `print` in another thread during the window is kept and handed back with the rest, not
-lost. Keep the window short: it is one connect, bounded by its timeout.
+lost. Keep the window short: it is one connect, bounded by its timeout. One capture at a time in the
+process: a second one while the first is open captures nothing (its output goes to fd 1 as it would
+without), since two threads swapping fd 1 could leave it on a closed file.
 """
 
 from __future__ import annotations
@@ -14,9 +16,11 @@ import ctypes
 import os
 import sys
 import tempfile
+import threading
 from collections.abc import Iterator
 
 STDOUT_FD = 1
+_ONE_AT_A_TIME = threading.Lock()
 
 
 def _flush_c_stdio() -> None:
@@ -31,16 +35,29 @@ def native_stdout() -> Iterator[list[str]]:
     (also when the block raises). Without a usable fd 1 (closed, or not a real descriptor) it captures
     nothing and redirects nothing."""
     lines: list[str] = []
+    if not _ONE_AT_A_TIME.acquire(blocking=False):
+        yield lines
+        return
+    try:
+        with _redirected(lines):
+            yield lines
+    finally:
+        _ONE_AT_A_TIME.release()
+
+
+@contextlib.contextmanager
+def _redirected(lines: list[str]) -> Iterator[None]:
+    """fd 1 onto a temporary file for the block; its lines appended to `lines` on exit."""
     try:
         sys.stdout.flush()
         saved = os.dup(STDOUT_FD)
     except (OSError, ValueError, AttributeError):
-        yield lines
+        yield
         return
     with tempfile.TemporaryFile() as tmp:
         os.dup2(tmp.fileno(), STDOUT_FD)
         try:
-            yield lines
+            yield
         finally:
             with contextlib.suppress(OSError, ValueError):
                 sys.stdout.flush()

@@ -34,3 +34,14 @@ def test_fd_1_is_put_back_when_the_block_raises(capfd: pytest.CaptureFixture[str
     assert lines == ["said before failing"]
     os.write(1, b"after\n")
     assert capfd.readouterr().out == "after\n"
+
+
+def test_a_second_capture_while_one_is_open_captures_nothing(capfd: pytest.CaptureFixture[str]) -> None:
+    """Two captures swapping fd 1 could leave it on a closed file: the second one lets its output through."""
+    with native_stdout() as outer:
+        with native_stdout() as inner:
+            os.write(1, b"during both\n")
+        os.write(1, b"after the inner\n")
+    assert inner == [] and outer == ["during both", "after the inner"]
+    os.write(1, b"after\n")
+    assert capfd.readouterr().out == "after\n"
