@@ -28,6 +28,7 @@ from flightstack.cli.app import main
 from flightstack.comms.certs import create_mission_certs, participants
 from flightstack.paper.geometry import Pose, compose
 from flightstack.ports import free_udp_port
+from flightstack.safety.rules import SafetyLimits
 from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
 from flightstack.sim_backend.emulators.natnet import NatNetEmulator
 from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator
@@ -276,9 +277,12 @@ def test_fly_a_short_mission_on_the_emulated_lab(lab: Lab, capsys: pytest.Captur
     print(f"ticks with a frame: {health['frame_age_s']['n']} of 120")
     assert health["frame_age_s"]["n"] >= 117 and 0 <= health["frame_age_s"]["p50"] < 0.5  # 320x240 video
     # a tick whose own pose is older than pose_timeout uses none (that drone hovers): on a loaded machine
-    # the mocap thread can miss one; the pose used is never older than the bound
-    print(f"ticks with a fresh own pose: {health['pose_age_s']['n']} of 120")
-    assert health["pose_age_s"]["n"] >= 117 and 0 <= health["pose_age_s"]["max"] <= 0.1  # mocap stale bound
+    # the mocap thread can miss one. Motion capture hands out no pose older than 0.1 s when read; at the
+    # tick's time, or as the last admitted pose while a newer stamp is refused, the pose used may be older
+    # (0.109 s seen in a fresh-clone run): never past pose_timeout
+    ages = health["pose_age_s"]
+    print(f"ticks with a fresh own pose: {ages['n']} of 120, oldest {ages['max']:.3f} s")
+    assert ages["n"] >= 117 and 0 <= ages["max"] <= SafetyLimits().pose_timeout
     assert (out_dir / "loop_health.png").stat().st_size > 10_000
     assert "loop kept dt" in out or "loop DID NOT keep dt" in out, out
     assert "x real time" not in out  # a wall-clock run has no simulation speed to report
