@@ -36,6 +36,30 @@ def test_wrap_angle_is_bit_equal_to_math_remainder():
     assert np.all((got > -math.pi) & (got <= math.pi))
 
 
+def test_geometry_wrap_angle_is_the_kernels_code_without_the_compiler():
+    """geometry.wrap_angle runs kernels.wrap_angle's Python code: bit-equal to the compiled kernel, and a
+    process that only builds poses never dispatches (so never starts numba's compiler)."""
+    import subprocess
+    import sys
+
+    from flightstack.paper.geometry import wrap_angle
+
+    rng = np.random.default_rng(3)
+    edge = [math.pi, -math.pi, 2 * math.pi, -3 * math.pi, 0.0, -0.0, np.nextafter(-math.pi, 0.0), 1e15]
+    vals = np.concatenate([rng.uniform(-50, 50, 5000), rng.uniform(-1e9, 1e9, 5000), edge])
+    got = np.array([wrap_angle(float(v)) for v in vals])
+    assert np.array_equal(got, np.array([kern.wrap_angle(float(v)) for v in vals]))
+    probe = (
+        "from flightstack.paper import kernels as kern\n"
+        "from flightstack.paper.geometry import Pose\n"
+        "Pose.make([1.0, 2.0, 0.5], 7.0); Pose.from_vector([0.0, 0.0, 1.0, -4.0])\n"
+        "print(len(kern.wrap_angle.signatures))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "0"
+
+
 def test_solve4_against_numpy_and_singular():
     rng = np.random.default_rng(2)
     for _ in range(200):

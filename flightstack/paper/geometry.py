@@ -26,9 +26,15 @@ from flightstack.paper import kernels as kern
 TWO_PI = 2.0 * math.pi
 
 
+_wrap_angle = kern.wrap_angle.py_func
+"""kernels.wrap_angle's own Python code, run by the interpreter: the same operations, so the same bits,
+without the compiled dispatch, whose first call in a process starts numba's compiler (about 1 s of CPU). A
+process that only builds poses (the MCAP follower reading a mission) then never starts it."""
+
+
 def wrap_angle(theta: float) -> float:
     """Wrap an angle in radians to (-π, π] (kernels.wrap_angle: equal to math.remainder(θ, 2π), −π → π)."""
-    return float(kern.wrap_angle(float(theta)))
+    return float(_wrap_angle(float(theta)))
 
 
 def rot_z(theta: float) -> np.ndarray:

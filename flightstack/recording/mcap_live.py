@@ -39,7 +39,7 @@ from typing import IO, Any
 import numpy as np
 
 from flightstack.recording.files import EVENTS_FILE, LIVE_MCAP_FILE, ROWS_SUFFIX, STATE_FILE, RunDirError
-from flightstack.recording.rows import MAGIC, MAX_HEADER_BYTES, RowLayout, _layout
+from flightstack.recording.rows import RowLayout, parse_header
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
 
 _log = logging.getLogger(__name__)
@@ -76,18 +76,11 @@ class _RowTail:
                 return None
         self._buf += self.fh.read()
         if self.layout is None:
-            head = len(MAGIC) + 4
-            if len(self._buf) < head:
+            parsed = parse_header(self.path, self._buf)
+            if parsed is None:
                 return None
-            if self._buf[: len(MAGIC)] != MAGIC:
-                raise RunDirError(self.path, "not a flightstack row stream (no FSROWS1 magic)")
-            n = int.from_bytes(self._buf[len(MAGIC) : head], "little")
-            if n > MAX_HEADER_BYTES:
-                raise RunDirError(self.path, f"header length {n} B: more than {MAX_HEADER_BYTES} B")
-            if len(self._buf) < head + n:
-                return None
-            self.layout = _layout(self.path, self._buf[head : head + n])
-            self._buf = self._buf[head + n :]
+            self.layout, start = parsed
+            self._buf = self._buf[start:]
         size = self.layout.dtype.itemsize
         count = len(self._buf) // size
         if count == 0:

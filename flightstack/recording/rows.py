@@ -24,6 +24,8 @@ MAGIC = b"FSROWS1\n"
 MAX_HEADER_BYTES = 1 << 20
 """Bound on a row stream's header (B): the writer's is about 2 kB (header length read from a file is
 checked against it, and against the file's size, before it is read)."""
+HEAD_BYTES = len(MAGIC) + 4
+"""MAGIC and the uint32 (little-endian) length of the header JSON that follows it."""
 MAX_ROW_BYTES = 1 << 20
 """Bound on one row (B): about 1 kB for 3 drones."""
 STREAM_FIELDS = tuple(f for f in ARRAY_FIELDS if f not in ("e_c", "e_e"))
@@ -91,22 +93,18 @@ def read_row_stream(path: Path) -> tuple[dict[str, Any], np.ndarray, str | None]
     try:
         with open(path, "rb") as fh:
             size = os.fstat(fh.fileno()).st_size
-            head = fh.read(len(MAGIC) + 4)
-            if len(head) < len(MAGIC) + 4 or head[: len(MAGIC)] != MAGIC:
-                raise RunDirError(path, "not a flightstack row stream (no FSROWS1 magic)")
-            (n,) = struct.unpack("<I", head[len(MAGIC) :])
-            if n > min(MAX_HEADER_BYTES, size - len(head)):
-                raise RunDirError(
-                    path, f"header length {n} B: more than the file ({size} B) or {MAX_HEADER_BYTES} B"
-                )
-            layout = _layout(path, fh.read(n))
-            count = (size - len(head) - n) // layout.dtype.itemsize
+            parsed = parse_header(path, fh.read(HEAD_BYTES + MAX_HEADER_BYTES), size)
+            if parsed is None:  # shorter than its size a moment ago
+                raise RunDirError(path, "the file was cut while it was read")
+            layout, start = parsed
+            fh.seek(start)
+            count = (size - start) // layout.dtype.itemsize
             rows = np.fromfile(fh, dtype=layout.dtype, count=count)
     except OSError as exc:
         raise RunDirError(path, errno_text(exc)) from None
     ok = rows["_seq"] == np.arange(1, len(rows) + 1)
     good = len(rows) if ok.all() else int(np.argmin(ok))
-    partial = (size - len(head) - n) % layout.dtype.itemsize
+    partial = (size - start) % layout.dtype.itemsize
     dropped = None
     if good < count or partial:
         dropped = f"kept the first {good} rows; dropped " + " and ".join(
@@ -114,6 +112,29 @@ def read_row_stream(path: Path) -> tuple[dict[str, Any], np.ndarray, str | None]
             + [f"a partial row of {partial} B"] * bool(partial)
         )
     return layout.meta, rows[:good], dropped
+
+
+def parse_header(path: Path, data: bytes, file_size: int | None = None) -> tuple[RowLayout, int] | None:
+    """(layout, bytes before the first row) from `data`, the start of a row stream. file_size: the whole
+    file's size when `data` holds all of its start there is; None for a stream still being written, whose
+    header not yet all there gives None. RunDirError naming the file for a damaged header: the magic, a
+    length at most MAX_HEADER_BYTES (and the file), JSON of the documented shape, numeric columns and a row
+    at most MAX_ROW_BYTES are checked before anything is allocated from it."""
+    whole = file_size is not None
+    if data[: len(MAGIC)] != MAGIC[: len(data)] or (whole and len(data) < HEAD_BYTES):
+        raise RunDirError(path, "not a flightstack row stream (no FSROWS1 magic)")
+    if len(data) < HEAD_BYTES:
+        return None
+    (n,) = struct.unpack_from("<I", data, len(MAGIC))
+    if file_size is not None and n > min(MAX_HEADER_BYTES, file_size - HEAD_BYTES):
+        raise RunDirError(
+            path, f"header length {n} B: more than the file ({file_size} B) or {MAX_HEADER_BYTES} B"
+        )
+    if n > MAX_HEADER_BYTES:
+        raise RunDirError(path, f"header length {n} B: more than {MAX_HEADER_BYTES} B")
+    if len(data) < HEAD_BYTES + n:
+        return None
+    return _layout(path, data[HEAD_BYTES : HEAD_BYTES + n]), HEAD_BYTES + n
 
 
 def _layout(path: Path, body: bytes) -> RowLayout:
