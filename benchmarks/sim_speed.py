@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import subprocess
@@ -179,44 +180,56 @@ def bench_paper_sim(paper: Path) -> dict[str, object]:
     }
 
 
-def _whole_run(out: str) -> tuple[float, float]:
-    """One `flightstack run paper_sim` process: (wall s, CPU s = user + sys of the process)."""
+def _whole_run(out: str, *flags: str) -> tuple[float, float, float]:
+    """One `flightstack run paper_sim` process: (wall s, CPU s = user + sys of the process and its children,
+    GP training's wall s as the run's metrics.json reports it)."""
     import resource
 
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     cmd = [sys.executable, "-m", "flightstack", "run", "paper_sim", "--out", out, "--force", "--no-progress"]
-    subprocess.run(cmd, check=True, capture_output=True, timeout=600)
+    subprocess.run([*cmd, *flags], check=True, capture_output=True, timeout=600)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    train = json.loads((Path(out) / "metrics.json").read_text())["gp"]["train_seconds"]
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), float(train)
 
 
-def bench_whole_process(repeats: int = 5) -> dict[str, dict[str, object]]:
-    """The whole `flightstack run paper_sim` process (start, imports, flight, files, plots, exit), warm:
-    `repeats` runs as the machine is ("quiet"), then `repeats` beside two CPU-bound processes ("loaded");
-    each: the runs' wall and CPU seconds (user + sys), their medians, the 1-minute load average before and
-    after. On a shared machine "quiet" is what the other jobs leave: the load says how quiet it was."""
+WHOLE_CASES = (
+    ("quiet", (), 0),
+    ("quiet_no_live_mcap", ("--no-live-mcap",), 0),
+    ("loaded", (), 2),
+)
+"""The whole-process cases: (name, extra `run` flags, CPU-bound processes beside it)."""
+
+
+def bench_whole_process(repeats: int = 5, loaded_repeats: int = 10) -> dict[str, dict[str, object]]:
+    """The whole `flightstack run paper_sim` process (start, imports, flight, files, plots, the live MCAP's
+    follower finishing, exit), warm, for each of WHOLE_CASES: `repeats` runs (`loaded_repeats` beside two
+    CPU-bound processes); each: the runs' wall and CPU seconds (the follower's included), GP training's wall
+    seconds per run, their medians, the 1-minute load average before and after. On a shared machine "quiet"
+    is what the other jobs leave: the load says how quiet it was."""
     out: dict[str, dict[str, object]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         _whole_run(f"{tmp}/run")  # warm: the kernels' cache and the file system
-        for case in ("quiet", "loaded"):
-            hogs = []
-            if case == "loaded":
-                hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(2)]
+        for case, flags, n_hogs in WHOLE_CASES:
+            hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(n_hogs)]
+            if hogs:
                 time.sleep(2.0)
             try:
                 load0 = os.getloadavg()[0]
-                runs = [_whole_run(f"{tmp}/run") for _ in range(repeats)]
+                runs = [_whole_run(f"{tmp}/run", *flags) for _ in range(loaded_repeats if hogs else repeats)]
                 load1 = os.getloadavg()[0]
             finally:
                 for h in hogs:
                     h.kill()
                     h.wait()
-            walls, cpus = [w for w, _ in runs], [c for _, c in runs]
+            walls, cpus, trains = ([r[k] for r in runs] for k in range(3))
             out[case] = {
+                "flags": list(flags),
                 "wall_s": walls,
                 "cpu_s": cpus,
+                "train_s": trains,
                 "median_wall_s": float(np.median(walls)),
                 "median_cpu_s": float(np.median(cpus)),
                 "load": [load0, load1],
