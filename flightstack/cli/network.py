@@ -198,9 +198,14 @@ def cmd_status(args: argparse.Namespace) -> int:
                 if report is not None and report.drone in ids:
                     statuses[report.drone] = (report, ev.time)
             now = time.monotonic()
-            # --once: every status, and a prediction of every agent (a live sender is heard after a
-            # short run of consecutive messages: acceptance.py's first-seq rule), or the wait is over
-            heard = all(i in statuses and bus.message_age(i) is not None for i in ids)  # type: ignore[attr-defined]
+            # --once: every agent's status, a prediction (a live sender is heard after a short run of
+            # consecutive messages: acceptance.py's first-seq rule) and its liveliness token (answered by
+            # a query of its own, which may come after both), or the wait is over
+            alive = bus.alive()  # type: ignore[attr-defined]
+            heard = all(
+                i in statuses and bus.message_age(i) is not None and i in alive  # type: ignore[attr-defined]
+                for i in ids
+            )
             done = now >= t_end or (args.once and heard)
             if done or not args.once:
                 ages = {i: bus.message_age(i) for i in ids}  # type: ignore[attr-defined]
