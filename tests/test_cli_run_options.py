@@ -252,7 +252,8 @@ def test_a_ctrl_c_while_a_mode_is_assembled_still_writes_an_interrupted_run(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A SIGINT can arrive before the runner's handlers are in place (the kernels loading on a busy
-    computer): the flight ends as interrupted and metrics.json says so."""
+    computer): the flight ends as interrupted and metrics.json says so, and the mode's recording is closed
+    (no tick, its end event), so that the recording is complete with what there is."""
     calls: list[str] = []
 
     def interrupted(*args: Any, **kwargs: Any) -> Any:
@@ -267,6 +268,11 @@ def test_a_ctrl_c_while_a_mode_is_assembled_still_writes_an_interrupted_run(
     assert code == 130 and calls == ["none"]
     m = json.loads((out / "metrics.json").read_text())
     assert m["interrupted"] is True and m["modes"] == {}
+    assert m["recording"]["complete"] is True, m["recording"]
+    state = json.loads((out / "recording.json").read_text())["modes"]["none"]
+    assert state["state"] == "closed" and state["ticks_done"] == 0, state
+    ends = [json.loads(x) for x in (out / "events.jsonl").read_text().splitlines() if '"end"' in x]
+    assert [(e["mode"], e["reason"], e["before_takeoff"]) for e in ends] == [("none", "interrupted", True)]
 
 
 def test_cli_refuses_a_run_too_short_to_train_before_flying(

@@ -207,7 +207,12 @@ def test_bench_loop_measures_the_emulated_lab_and_its_exit_code_is_its_verdict(t
     (out,) = (tmp_path / "runs").iterdir()
     assert r.returncode in (0, 1), r.stderr[-3000:]
     assert (out / "metrics.json").is_file(), (r.returncode, r.stdout[-1000:], r.stderr[-3000:])
-    health = json.loads((out / "metrics.json").read_text())["modes"]["none"]["loop_health"]
+    metrics = json.loads((out / "metrics.json").read_text())
+    mode = metrics["modes"].get("none", {})
+    # no tick flown (seen once in a run beside two CPU-bound processes): say why, in full
+    why = {k: mode.get(k) for k in ("ticks", "error", "interrupted")}, metrics.get("error"), r.returncode
+    assert "loop_health" in mode, (why, r.stdout[-1000:], r.stderr[-4000:])
+    health = mode["loop_health"]
     ticks = round(2.0 / health["dt_s"])
     assert health["real_time"] and health["period_s"]["n"] == ticks - 1 and health["compute_s"]["n"] == ticks
     assert health["frame_age_s"]["n"] > 0 and health["pose_age_s"]["n"] == 2 * ticks

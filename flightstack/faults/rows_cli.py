@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -28,8 +29,16 @@ from flightstack.safety import outside_hard_fence
 
 CLI_TIMEOUT_S = 60.0
 SIGINT_AFTER_S = 1.5
-"""Wall seconds between the first progress bar of `flightstack sim` and SIGINT (the drones are then in
-pursuit: takeoff takes 2 s of simulated time, about 0.3 s of wall time)."""
+"""Wall seconds between the first tick counted on `flightstack sim`'s progress bar and SIGINT (the drones
+are then in pursuit: takeoff takes 2 s of simulated time, about 0.3 s of wall time)."""
+_BAR_COUNT = re.compile(r"mode none\s*:[^|\r\n]*\|[^|\r\n]*\|\s*([\d.]+)([kMG]?)/")
+"""The tick count of a `mode none` progress bar line (tqdm: `mode none  :  1%|▏  | 150/12.0k [...]`)."""
+
+
+def bar_ticks(text: str) -> float:
+    """The largest tick count the `mode none` progress bars in `text` show (0 if none does)."""
+    scale = {"": 1.0, "k": 1e3, "M": 1e6, "G": 1e9}
+    return max((float(n) * scale[u] for n, u in _BAR_COUNT.findall(text)), default=0.0)
 
 
 def cli_command(*args: str) -> list[str]:
@@ -122,10 +131,11 @@ def malformed_mission(mission_path: Path, workdir: Path) -> FaultResult:
 
 # ---- SIGINT mid-flight -------------------------------------------------------------------------------------
 def interrupt_sim(mission_path: Path, out: Path, after_s: float = SIGINT_AFTER_S) -> tuple[int | None, str]:
-    """Start `flightstack sim MISSION --out OUT --duration 600`, wait for its first progress bar, let it fly
-    `after_s` wall seconds, send SIGINT; (exit code or None if it had to be killed, stderr)."""
+    """Start `flightstack sim MISSION --out OUT --duration 600`, wait until its progress bar counts a tick
+    (the bar is drawn before the fleet is assembled, which a busy computer can take seconds for), let it
+    fly `after_s` wall seconds, send SIGINT; (exit code or None if it had to be killed, stderr)."""
     proc = subprocess.Popen(
-        # --progress: its stderr is a pipe, and the first bar is the sign that the drones fly
+        # --progress: its stderr is a pipe, and a bar that counts ticks is the sign that the drones fly
         cli_command("sim", str(mission_path), "--out", str(out), "--duration", "600", "--progress"),
         env=cli_env(),
         stdout=subprocess.PIPE,
@@ -135,8 +145,11 @@ def interrupt_sim(mission_path: Path, out: Path, after_s: float = SIGINT_AFTER_S
     buf = ""
     try:
         deadline = time.monotonic() + CLI_TIMEOUT_S
-        while "mode none" not in buf and time.monotonic() < deadline and proc.poll() is None:
-            buf += proc.stderr.read(1) if proc.stderr else ""
+        counted = False
+        while not counted and time.monotonic() < deadline and proc.poll() is None:
+            ch = proc.stderr.read(1) if proc.stderr else ""
+            buf += ch
+            counted = ch == "]" and bar_ticks(buf[-400:]) > 0  # tqdm ends each bar with "]"
         time.sleep(after_s)
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=CLI_TIMEOUT_S)

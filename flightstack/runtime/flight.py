@@ -33,6 +33,7 @@ from flightstack.analysis.metrics import build_metrics
 from flightstack.comms.bus import Bus
 from flightstack.config.mission import Mission, MissionError, mission_to_dict
 from flightstack.config.types import Mode
+from flightstack.events import Event, end_kind
 from flightstack.hal import Backend
 from flightstack.learning.training import (
     ExpertData,
@@ -221,19 +222,24 @@ class Flight:
             raise RuntimeError("a Flight flies inside `with Flight(...) as flight:`")
         writer = None if self.writer is None else self.writer.mode(mode, self.ids, self.n_ticks)
         progress = None if self.progress is None else self.progress(mode, self.n_ticks)
-        with assemble_fleet(
-            self.mission,
-            mode,
-            predictors,
-            backend=self._backend,
-            bus=self._bus,
-            agent_ids=None if self.agent_id is None else [self.agent_id],
-            writer=writer,
-            wrap_backend=self._wrap_backend,
-            wrap_bus=self._wrap_bus,
-            devices=self._device_files(mode),
-        ) as fleet:
-            return run_mode(fleet, progress, writer=writer, taps=self.taps, plan_loop=self._plan_loop)
+        try:
+            with assemble_fleet(
+                self.mission,
+                mode,
+                predictors,
+                backend=self._backend,
+                bus=self._bus,
+                agent_ids=None if self.agent_id is None else [self.agent_id],
+                writer=writer,
+                wrap_backend=self._wrap_backend,
+                wrap_bus=self._wrap_bus,
+                devices=self._device_files(mode),
+            ) as fleet:
+                return run_mode(fleet, progress, writer=writer, taps=self.taps, plan_loop=self._plan_loop)
+        except BaseException as exc:
+            if writer is not None and not writer.closed:  # stopped before run_mode took over the mode
+                _close_unflown(writer, mode, self.ids, self.n_ticks, exc)
+            raise
 
     def _device_files(self, session: str) -> DeviceFiles | None:
         """Where the devices' raw traffic of one connection (`session`: see DeviceFiles) is recorded: in
@@ -385,6 +391,19 @@ class Flight:
             write_plots(self.out, self.mission, res.recordings, res.datasets)
         except OSError as exc:
             self.say(f"warning: plots not written ({exc}); `flightstack report {self.out}` redraws them")
+
+
+def _close_unflown(writer: Any, mode: str, ids: list[int], n_ticks: int, exc: BaseException) -> None:
+    """Close the recording of a mode that stopped before its fleet flew (a Ctrl-C or an error while the
+    fleet was assembled, e.g. the kernels loading on a busy computer): no tick, interrupted or with the
+    error, and its end event, so that the run's recording is complete with what there is."""
+    rec = Recording.empty(mode, ids, n_ticks)
+    rec.interrupted = isinstance(exc, KeyboardInterrupt)
+    reason = "interrupted" if rec.interrupted else f"exception: {type(exc).__name__}: {exc}"
+    rec.error = None if rec.interrupted else reason.removeprefix("exception: ")
+    facts = {"reason": reason, "before_takeoff": True}
+    rec.events.append(Event(0.0, None, end_kind(reason), facts=facts).record(mode))
+    writer.close(rec)
 
 
 def _with_data_run(mission: Mission, modes: list[str]) -> list[str]:
