@@ -6,6 +6,7 @@ written tick by tick at 500 Hz) and reads the file as a user's tool would (tests
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -16,7 +17,7 @@ import pytest
 
 from flightstack.cli import app as cli
 from flightstack.recording.files import LIVE_MCAP_FILE
-from flightstack.recording.mcap_live import FLUSH_PERIOD_S, POLL_S
+from flightstack.recording.mcap_live import AUTOGROUP, FLUSH_PERIOD_S, NICENESS, POLL_S
 from flightstack.recording.mcap_writer import CHUNK_BYTES
 from flightstack.recording.rows import read_rows
 from flightstack.recording.run_reader import load_run, resolved_mission
@@ -76,6 +77,46 @@ def test_written_during_the_run_and_equal_to_the_recording(tmp_path: Path) -> No
     assert {"metrics.json", "recording.json", "mission_resolved.yaml"} <= set(got.attachments)
     assert not process_running(follower)
     print(f"live MCAP: {seen} of {n} ticks readable while the run went on")
+
+
+def _priority(pid: int) -> tuple[int, str]:
+    """(nice value, the autogroup line "/autogroup-N nice K") of a running process."""
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    nice = int(stat[stat.rindex(")") + 2 :].split()[16])  # field 19 of proc(5), after "pid (comm) "
+    return nice, Path(f"/proc/{pid}/autogroup").read_text().strip()
+
+
+@pytest.mark.skipif(
+    not AUTOGROUP.exists(), reason="this kernel has no autogroup scheduling (/proc/self/autogroup)"
+)
+def test_the_follower_yields_the_cores_to_the_flight(tmp_path: Path) -> None:
+    """nice +10 for the follower and for its session's autogroup (it is alone in its session): under
+    autogroup scheduling its own nice alone would count only within that session."""
+    proc, follower = _start(tmp_path / "run", 1500)
+    try:
+        assert eventually(lambda: _priority(follower)[0] == NICENESS or proc.poll() is not None, 60.0)
+        nice, group = _priority(follower)
+        mine = _priority(os.getpid())
+        proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert nice == NICENESS and group.endswith(f" nice {NICENESS}"), (nice, group)
+    assert group.split()[0] != mine[1].split()[0], (group, mine)  # its own group, not the flight's
+    # once the flight is over it finishes at a fair share: the group back to nice 0, without privilege
+    probe = (
+        "from pathlib import Path; from flightstack.recording import mcap_live as m\n"
+        "m.lower_priority(); a = Path('/proc/self/autogroup').read_text().split()[-1]\n"
+        "ok = m.set_group_nice(0); print(a, ok, Path('/proc/self/autogroup').read_text().split()[-1])"
+    )
+    # as root: with no capability left (setpriv), as an unprivileged user's process would be
+    drop = ["setpriv", "--bounding-set=-all", "--inh-caps=-all"] if os.getuid() == 0 else []
+    if drop and shutil.which("setpriv") is None:
+        pytest.skip("running as root without setpriv: cannot drop the capabilities to check the last step")
+    r = subprocess.run(
+        [*drop, sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, cwd=REPO,
+        start_new_session=True,
+    )  # fmt: skip
+    assert r.stdout.split() == [str(NICENESS), "True", "0"], (r.stdout, r.stderr[-2000:])
 
 
 def test_a_killed_flight_leaves_a_finished_file(tmp_path: Path) -> None:

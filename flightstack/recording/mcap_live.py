@@ -18,12 +18,14 @@ mission, write the MCAP's summary and exit; it prints one JSON line ({"messages"
 session, so that a kill of the flight's process group leaves it to finish the file.
 
 Its CPU follows the rows it copies, about 30 µs per tick of 3 drones (paper_sim: 1.8 s for 60 000 ticks,
-plus about 1 s of imports): at a real flight's rates (20–50 Hz) that is well under 1 % of a core. It runs
-at nice +10, which orders it after the flight only where the kernel schedules processes one by one: with
-autogroup scheduling (Linux's `sched_autogroup_enabled`, on by default on many distributions) a session is
-scheduled as a group and a nice value counts only within its own, so it then competes with the flight as
-one more session. That matters only for CPU-bound simulations, where it is the follower's ~3 s of CPU
-beside the flight's; measured in docs/performance.md.
+plus about 1 s of imports): at a real flight's rates (20–50 Hz) that is well under 1 % of a core. It
+lowers its priority (`lower_priority`) so that on a busy machine the flight gets the cores first and the
+follower catches up once the flight is done: nice +10, and the same nice on its session's autogroup.
+Where Linux schedules by session (`sched_autogroup_enabled`, on by default on many distributions) a
+process's nice counts only within its session, and the follower is alone in its own; without the second
+step it competed with the flight as one more session (measured: docs/performance.md). At end of file the
+flight is over and its command waits for the file: the follower sets its group back to nice 0 (allowed
+without privilege, unlike a process's own nice) to finish at a fair share of a busy machine.
 Killed itself (SIGKILL), the file it leaves reads up to its last complete chunk: at most CHUNK_BYTES
 (uncompressed) or FLUSH_PERIOD_S of wall time lost, plus the rows it had not polled yet (POLL_S).
 """
@@ -58,7 +60,9 @@ FLUSH_PERIOD_S = 1.0
 FINISH_TIMEOUT_S = 60.0
 """How long (s) closing a run waits for the follower to finish the file (it keeps going after)."""
 NICENESS = 10
-"""The follower's nice increment (see the module docstring for where it counts)."""
+"""The follower's nice increment, and its session's autogroup nice (module docstring)."""
+AUTOGROUP = Path("/proc/self/autogroup")
+"""Linux's scheduling group of this process's session (absent without CONFIG_SCHED_AUTOGROUP)."""
 MAX_EVENT_LINE = 1 << 20
 """Bound on one events.jsonl line (B); a longer one is skipped and counted."""
 
@@ -278,7 +282,39 @@ def follow(run_dir: Path, out: Path, stop_fd: int) -> dict[str, Any]:
         if ready and not os.read(stop_fd, 4096):
             break
         follower.poll()
+    set_group_nice(0)  # the flight is over: nothing left to yield to (module docstring)
     return follower.finish()
+
+
+def lower_priority(nice: int = NICENESS, autogroup: Path = AUTOGROUP) -> list[str]:
+    """Yield the cores to the flight (module docstring): nice +`nice` for this process, and `nice` for its
+    session's autogroup where the kernel has one and this process leads its session (raising it needs no
+    privilege); what was set."""
+    done = []
+    with contextlib.suppress(OSError):
+        os.nice(nice)
+        done.append(f"nice +{nice}")
+    if set_group_nice(nice, autogroup):
+        done.append(f"autogroup nice {nice}")
+    return done
+
+
+def set_group_nice(nice: int, autogroup: Path = AUTOGROUP) -> bool:
+    """Set the nice value of this process's session's autogroup (any value ≥ 0 needs no privilege), only
+    when this process leads its session (LiveMcap starts it so; run by hand from a shell it would renice
+    the shell's whole session). The kernel takes one change per 0.1 s from unprivileged processes (EAGAIN):
+    retried a few times. False where there is no autogroup, or it was not changed."""
+    if os.getsid(0) != os.getpid():
+        return False
+    for _ in range(5):
+        try:
+            autogroup.write_text(f"{nice}\n")
+            return True
+        except BlockingIOError:
+            time.sleep(0.11)
+        except OSError:
+            return False
+    return False
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -287,8 +323,7 @@ def main(argv: list[str] | None = None) -> int:
         print("usage: python -m flightstack.recording.mcap_live RUN_DIR OUT", file=sys.stderr)
         return 2
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    with contextlib.suppress(OSError):
-        os.nice(NICENESS)  # a background writer (module docstring: where this counts)
+    lower_priority()
     try:
         report = follow(Path(args[0]), Path(args[1]), sys.stdin.fileno())
     except Exception as exc:  # e.g. OUT cannot be created: said on one line
