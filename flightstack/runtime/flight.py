@@ -223,23 +223,35 @@ class Flight:
         writer = None if self.writer is None else self.writer.mode(mode, self.ids, self.n_ticks)
         progress = None if self.progress is None else self.progress(mode, self.n_ticks)
         try:
-            with assemble_fleet(
-                self.mission,
-                mode,
-                predictors,
-                backend=self._backend,
-                bus=self._bus,
-                agent_ids=None if self.agent_id is None else [self.agent_id],
-                writer=writer,
-                wrap_backend=self._wrap_backend,
-                wrap_bus=self._wrap_bus,
-                devices=self._device_files(mode),
-            ) as fleet:
+            with self._assemble(self.mission, mode, predictors, writer, mode) as fleet:
                 return run_mode(fleet, progress, writer=writer, taps=self.taps, plan_loop=self._plan_loop)
         except BaseException as exc:
             if writer is not None and not writer.closed:  # stopped before run_mode took over the mode
                 _close_unflown(writer, mode, self.ids, self.n_ticks, exc)
             raise
+
+    def _assemble(
+        self,
+        mission: Mission,
+        mode: str,
+        predictors: Mapping[int, Predictor] | None,
+        writer: Any,
+        session: str,
+    ) -> contextlib.AbstractContextManager[Fleet]:
+        """This flight's fleet for one mode or procedure: its backend, bus, agents and fault wrappers,
+        the devices' traffic recorded under `session` (see DeviceFiles)."""
+        return assemble_fleet(
+            mission,
+            mode,
+            predictors,
+            backend=self._backend,
+            bus=self._bus,
+            agent_ids=None if self.agent_id is None else [self.agent_id],
+            writer=writer,
+            wrap_backend=self._wrap_backend,
+            wrap_bus=self._wrap_bus,
+            devices=self._device_files(session),
+        )
 
     def _device_files(self, session: str) -> DeviceFiles | None:
         """Where the devices' raw traffic of one connection (`session`: see DeviceFiles) is recorded: in
@@ -255,17 +267,8 @@ class Flight:
         at its running devices once the flight is entered: edit that one)."""
         if self._stack is None:
             raise RuntimeError("a Flight flies inside `with Flight(...) as flight:`")
-        with assemble_fleet(
-            self.mission if mission is None else mission,
-            Mode.NONE.value,
-            None,
-            backend=self._backend,
-            bus=self._bus,
-            agent_ids=None if self.agent_id is None else [self.agent_id],
-            writer=None,
-            wrap_backend=self._wrap_backend,
-            wrap_bus=self._wrap_bus,
-            devices=self._device_files("procedure"),
+        with self._assemble(
+            self.mission if mission is None else mission, Mode.NONE.value, None, None, "procedure"
         ) as fleet:
             return run_procedure(fleet, procedure)
 
