@@ -25,6 +25,7 @@ from flightstack.learning.training import bands, predicted_target_path, training
 from flightstack.paper.geometry import Pose
 from flightstack.paper.target_motion import DuffingField, DuffingParams
 from flightstack.recording.files import PLOTS, RUN_FILES, is_run_file, run_files
+from flightstack.recording.run_reader import read_run, resolved_mission
 from flightstack.runtime.flight import Flight
 from flightstack.sim_backend.ideal import IdealDrone
 from flightstack.sim_backend.world import World
@@ -273,6 +274,29 @@ def test_a_ctrl_c_while_a_mode_is_assembled_still_writes_an_interrupted_run(
     assert state["state"] == "closed" and state["ticks_done"] == 0, state
     ends = [json.loads(x) for x in (out / "events.jsonl").read_text().splitlines() if '"end"' in x]
     assert [(e["mode"], e["reason"], e["before_takeoff"]) for e in ends] == [("none", "interrupted", True)]
+
+
+def test_a_mode_that_fails_while_landing_keeps_its_flown_rows(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An exception after the mode has flown (here in finish_recording, after the landing): the error ends
+    the run, and the recording is still closed with every flown tick, never as an unflown mode."""
+
+    def broken(*args: Any, **kwargs: Any) -> None:
+        raise RuntimeError("broken after the landing")
+
+    monkeypatch.setattr("flightstack.runtime.runner.finish_recording", broken)
+    out = tmp_path / "run"
+    code = cli.main(
+        ["sim", "paper_sim", "--duration", "1", "--modes", "none", "--out", str(out), "--no-progress"]
+    )
+    assert code != 0
+    mission, _ = resolved_mission(out)
+    state = json.loads((out / "recording.json").read_text())["modes"]["none"]
+    assert state["state"] == "closed" and state["final"] == "timeseries_none.npz", state
+    recs = read_run(out, mission).recordings
+    assert recs["none"].ticks_done == round(1.0 / mission.dt_s), recs["none"].ticks_done
+    assert not any(e.get("before_takeoff") for e in recs["none"].events), recs["none"].events
 
 
 def test_cli_refuses_a_run_too_short_to_train_before_flying(

@@ -222,11 +222,14 @@ class Flight:
             raise RuntimeError("a Flight flies inside `with Flight(...) as flight:`")
         writer = None if self.writer is None else self.writer.mode(mode, self.ids, self.n_ticks)
         progress = None if self.progress is None else self.progress(mode, self.n_ticks)
+        flying = False  # run_mode has the mode: it closes the recording itself (flown rows and all)
         try:
             with self._assemble(self.mission, mode, predictors, writer, mode) as fleet:
+                flying = True
                 return run_mode(fleet, progress, writer=writer, taps=self.taps, plan_loop=self._plan_loop)
         except BaseException as exc:
-            if writer is not None and not writer.closed:  # stopped before run_mode took over the mode
+            # stopped while the fleet was assembled; after that a recording left open keeps its row stream
+            if not flying and writer is not None and not writer.closed:
                 _close_unflown(writer, mode, self.ids, self.n_ticks, exc)
             raise
 

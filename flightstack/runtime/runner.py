@@ -172,20 +172,26 @@ def run_mode(
         rec.error = f"{type(exc).__name__}: {exc}"
         reason = f"exception: {rec.error}"
     finally:
-        if f.supervisor is not None:  # a signal from here on must not interrupt landing or closing
-            f.supervisor.ignore_signals(f"the run's end ({reason})")
-        end = Event(f.clock.now(), None, end_kind(reason), facts={"reason": reason})
-        rec.events.append(end.record(mode))
-        if writer is not None:
-            writer.event(rec.events[-1])
-        _land_everything(f, reason, dt)
-        with contextlib.suppress(Exception):  # `status` and `guard` see the drones down before we leave
-            f.status.maybe_publish(f.clock.now(), rec.ticks_done, f.agents, force=True)
-        signals.__exit__(None, None, None)
-        finish_recording(f, rec, book, time.perf_counter() - wall0)
-        if writer is not None:
-            writer.close(rec)
-        observers.close(rec)
+        # the recording is closed with every flown tick even if landing or its facts fail (or a second
+        # Ctrl-C comes where no supervisor guards the signals): the error still propagates
+        try:
+            if f.supervisor is not None:  # a signal from here on must not interrupt landing or closing
+                f.supervisor.ignore_signals(f"the run's end ({reason})")
+            end = Event(f.clock.now(), None, end_kind(reason), facts={"reason": reason})
+            rec.events.append(end.record(mode))
+            if writer is not None:
+                writer.event(rec.events[-1])
+            _land_everything(f, reason, dt)
+            with contextlib.suppress(Exception):  # `status` and `guard` see the drones down before we leave
+                f.status.maybe_publish(f.clock.now(), rec.ticks_done, f.agents, force=True)
+        finally:
+            signals.__exit__(None, None, None)
+            try:
+                finish_recording(f, rec, book, time.perf_counter() - wall0)
+            finally:
+                if writer is not None:
+                    writer.close(rec)
+                observers.close(rec)
     return rec if rec.ticks_done == n_ticks and not rec.interrupted else rec.truncated()
 
 
