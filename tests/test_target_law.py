@@ -13,8 +13,14 @@ import pytest
 from flightstack.cli.app import main
 from flightstack.config.mission import load_mission
 from flightstack.hal import StampedPose
-from flightstack.paper.geometry import Pose
-from flightstack.paper.target_law import SquareLaw, UnicycleSquareLaw, square_law, start_phase
+from flightstack.paper.geometry import Pose, wrap_angle
+from flightstack.paper.target_law import (
+    HEADING_WEIGHT_M_PER_RAD,
+    SquareLaw,
+    UnicycleSquareLaw,
+    square_law,
+    start_phase,
+)
 from flightstack.runtime.phases import TargetDriver
 from flightstack.sim_backend.lab import RobotParams, ScamperSim
 
@@ -232,6 +238,24 @@ def test_start_phase_tells_a_turn_in_place_apart_by_heading_and_measures_the_dis
     assert t_mid == pytest.approx(10.0 + (math.pi / 4) / 0.5, abs=0.02) and dist < 1e-9 and abs(d0) < 1e-9
     t_side, dist, dth = start_phase(law, Pose.make([0.0, -0.62, 0.0], 0.0))  # 0.12 m outside the first side
     assert t_side == pytest.approx(5.0, abs=0.02) and dist == pytest.approx(0.12, abs=1e-9) and dth == 0.0
+
+
+@pytest.mark.parametrize("law", [UnicycleSquareLaw(), UnicycleSquareLaw(turn_radius=0.2), SquareLaw()])
+def test_start_phase_finds_what_a_search_of_every_sample_finds(law: UnicycleSquareLaw | SquareLaw) -> None:
+    """The coarse-then-fine search against the plain one over every 20 ms sample of the lap: the same
+    smallest cost, at poses on, beside and across the path with any heading."""
+    step = 0.02
+    ts = np.arange(0.0, law.lap_time, step)
+    ref = np.array([law.reference(float(t))[0].as_vector() for t in ts])
+    rng = np.random.default_rng(11)
+    for _ in range(60):
+        g = Pose.make([*rng.uniform(-0.8, 0.8, 2), 0.0], float(rng.uniform(-math.pi, math.pi)))
+        d_th = np.array([wrap_angle(g.theta - th) for th in ref[:, 3]])
+        cost = np.hypot(ref[:, 0] - g.p[0], ref[:, 1] - g.p[1]) ** 2 + (HEADING_WEIGHT_M_PER_RAD * d_th) ** 2
+        t0, dist, dth = start_phase(law, g, step)
+        k = round(t0 / step)
+        assert cost[k] == pytest.approx(cost.min(), rel=1e-9, abs=1e-12), (g, t0, ts[int(np.argmin(cost))])
+        assert dist**2 + (HEADING_WEIGHT_M_PER_RAD * dth) ** 2 == pytest.approx(cost[k], rel=1e-9, abs=1e-12)
 
 
 class _Lab:
