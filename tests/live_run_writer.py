@@ -4,7 +4,8 @@
 
 Three drones of paper_sim, random values (tests.conftest.random_recording) with e_c and e_e derived from
 the mission's desired poses (as every flight's are), wall_t the real clock. Prints `follower <pid>` once
-the follower runs, `rows <k>` every 100 ticks, then `closed <the follower's report as JSON>`."""
+the follower runs, `rows <k>` every 100 ticks, then `closed <the follower's report as JSON>`. A file named
+`stop` beside OUT ends the run early, at the next multiple of 100 ticks (`stopped <k>` is printed first)."""
 
 from __future__ import annotations
 
@@ -37,14 +38,19 @@ def main(out: Path, n: int, rate_hz: float) -> int:
     assert writer.live_mcap is not None
     print(f"follower {writer.live_mcap.proc.pid}", flush=True)
     w = writer.mode("none", ids, n)
+    stop = out.parent / "stop"
     t0 = time.monotonic()
     for k in range(n):
         w.append(rec, k + 1)
         if (k + 1) % 100 == 0:
             print(f"rows {k + 1}", flush=True)
+            if stop.exists() and k + 1 < n:
+                rec.ticks_done = k + 1
+                print(f"stopped {k + 1}", flush=True)
+                break
         time.sleep(max(0.0, t0 + (k + 1) / rate_hz - time.monotonic()))
     w.close(rec)
-    writer.write_metrics({"ticks": n})
+    writer.write_metrics({"ticks": rec.ticks_done})
     writer.close()
     print(f"closed {json.dumps(writer.live_mcap.report)}", flush=True)
     return 0

@@ -57,26 +57,31 @@ def _ticks(path: Path) -> int:
 
 
 def test_written_during_the_run_and_equal_to_the_recording(tmp_path: Path) -> None:
+    """Readable while the run goes on, then equal to the run's recording. The run is stopped once ticks are
+    readable: the follower yields the cores to the flight, so on a loaded machine its first chunk may take
+    tens of seconds (up to 240 s of run here)."""
     out = tmp_path / "run"
-    n = 5000  # 10 s
+    n = 120_000  # 240 s at most
     proc, follower = _start(out, n)
     try:
-        assert eventually(lambda: _ticks(out / LIVE_MCAP_FILE) > 0 or proc.poll() is not None, 60.0)
+        assert eventually(lambda: _ticks(out / LIVE_MCAP_FILE) > 0 or proc.poll() is not None, 300.0)
         seen = _ticks(out / LIVE_MCAP_FILE)
         assert proc.poll() is None and seen > 0, seen  # readable while the writer is still writing
-        stdout, stderr = proc.communicate(timeout=120)
+        (tmp_path / "stop").touch()
+        stdout, stderr = proc.communicate(timeout=300)
     finally:
         proc.kill()
     assert proc.returncode == 0, stderr
     assert '"error": null' in stdout.splitlines()[-1], stdout
+    (stopped,) = [int(x.split()[1]) for x in stdout.splitlines() if x.startswith("stopped ")]
     mission, _ = resolved_mission(out)
     got = read_mcap(out / LIVE_MCAP_FILE)
     recs = load_run(out, mission)
-    assert recs["none"].ticks_done == n
+    assert recs["none"].ticks_done == stopped >= seen
     assert_mcap_holds(recs, got)
     assert {"metrics.json", "recording.json", "mission_resolved.yaml"} <= set(got.attachments)
     assert not process_running(follower)
-    print(f"live MCAP: {seen} of {n} ticks readable while the run went on")
+    print(f"live MCAP: {seen} of {stopped} ticks readable while the run went on")
 
 
 def _priority(pid: int) -> tuple[int, str]:
