@@ -327,7 +327,9 @@ def test_unanswered_command_fails_after_bounded_resends(emu: MavlinkRoverEmulato
         drv.connect()
     dt = time.monotonic() - t0
     assert 0.6 < dt < 1.6  # 3 sends 0.2 s apart, then 0.2 s + 2 heartbeat periods
-    assert emu.dropped_commands == [SET_MODE] * 3 and drv.resends == 2
+    # on a loaded machine the EKF origin's echo can take ORIGIN_RETRY_S: its REQUEST_MESSAGE is dropped too
+    others = [c for c in emu.dropped_commands if c != mavlink.MAV_CMD_REQUEST_MESSAGE]
+    assert others == [SET_MODE] * 3 and drv.resends == 2, emu.dropped_commands
     assert emu.mode == HOLD and not emu.armed
     drv.close()
 
