@@ -286,17 +286,13 @@ def follow(run_dir: Path, out: Path, stop_fd: int) -> dict[str, Any]:
     return follower.finish()
 
 
-def lower_priority(nice: int = NICENESS, autogroup: Path = AUTOGROUP) -> list[str]:
+def lower_priority(nice: int = NICENESS, autogroup: Path = AUTOGROUP) -> None:
     """Yield the cores to the flight (module docstring): nice +`nice` for this process, and `nice` for its
     session's autogroup where the kernel has one and this process leads its session (raising it needs no
-    privilege); what was set."""
-    done = []
+    privilege)."""
     with contextlib.suppress(OSError):
         os.nice(nice)
-        done.append(f"nice +{nice}")
-    if set_group_nice(nice, autogroup):
-        done.append(f"autogroup nice {nice}")
-    return done
+    set_group_nice(nice, autogroup)
 
 
 def set_group_nice(nice: int, autogroup: Path = AUTOGROUP) -> bool:
