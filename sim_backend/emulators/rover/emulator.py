@@ -518,11 +518,11 @@ class MavlinkRoverEmulator(Telemetry):
         """Dispatch one received message; caller holds the lock."""
         mtype = msg.get_type()
         if mtype in ("SET_MODE", "COMMAND_LONG") and self.faults.drop_commands > 0:
-            self.faults.drop_commands -= 1
-            self._s.dropped.append(
-                mavlink.MAVLINK_MSG_ID_SET_MODE if mtype == "SET_MODE" else int(msg.command)
-            )
-            return
+            cid = mavlink.MAVLINK_MSG_ID_SET_MODE if mtype == "SET_MODE" else int(msg.command)
+            if not self.faults.drop_command_ids or cid in self.faults.drop_command_ids:
+                self.faults.drop_commands -= 1
+                self._s.dropped.append(cid)
+                return
         if mtype == "HEARTBEAT":
             self.gcs_heartbeats.append(now)
             if self.store.is_gcs(int(msg.get_srcSystem())):

@@ -20,7 +20,9 @@ class RoverFaults:
     - ``ack_accepted_but_ignored`` (command ids): ACCEPTED but not applied
       (github.com/ArduPilot/ardupilot/issues/1385; github.com/PX4/PX4-Autopilot/issues/26034).
     - ``drop_commands``: the next N COMMAND_LONG / SET_MODE are lost on the way in (counted in
-      ``dropped_commands``), so the sender must re-send (github.com/mavlink/mavlink/issues/2198).
+      ``dropped_commands``), so the sender must re-send (github.com/mavlink/mavlink/issues/2198);
+      ``drop_command_ids``, when not empty, limits that loss to those command ids (a SET_MODE message
+      counts as ``MAVLINK_MSG_ID_SET_MODE``) so that a test picks which command is lost.
     - ``companion_heartbeat``: a companion computer (component 191, ``MAV_TYPE_ONBOARD_CONTROLLER``,
       ``MAV_AUTOPILOT_INVALID``, mode 0, disarmed) also beats, just before the autopilot, even with
       ``no_heartbeat`` (github.com/mavlink/MAVSDK/pull/516, github.com/ArduPilot/pymavlink/pull/87).
@@ -35,6 +37,7 @@ class RoverFaults:
     ack_delay_s: float = 0.0
     ack_accepted_but_ignored: set[int] = field(default_factory=set)  # ACCEPTED, but nothing happens
     drop_commands: int = 0  # the next N COMMAND_LONG / SET_MODE never arrive
+    drop_command_ids: set[int] = field(default_factory=set)  # empty: any command counts for drop_commands
     companion_heartbeat: bool = False
     drop_param_replies: int = 0  # the next N PARAM_VALUE are lost on the way out
     duplicate_param_replies: bool = False  # every PARAM_VALUE is sent twice
