@@ -116,12 +116,10 @@ def plot_loop_health(path: Path, recs: dict[str, Recording], dt: float) -> bool:
     timed = {m: r for m, r in recs.items() if np.isfinite(r.loop_period[: r.ticks_done]).any()}
     if not timed:
         return False
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(len(timed), 2, figsize=(11, 3.2 * len(timed)), squeeze=False)
+    fig = Figure(figsize=(11, 3.2 * len(timed)))
+    axes = fig.subplots(len(timed), 2, squeeze=False)
     for row, (mode, rec) in enumerate(timed.items()):
         k = rec.ticks_done
         t = rec.t[:k] - rec.t[0]
@@ -146,5 +144,4 @@ def plot_loop_health(path: Path, recs: dict[str, Recording], dt: float) -> bool:
         ax.set_xlabel("time since the first tick [s]")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return True
