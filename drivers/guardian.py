@@ -12,7 +12,7 @@ docs/safety.md ("The guardian").
   it. The parent writes one JSON line of `GuardianConfig` on its stdin and waits ≤ `ready_timeout_s` for
   its `ready` line. Once the guardian is forked, the parent makes itself the out-of-memory killer's first
   choice (`OOM_SCORE_ADJ_FLIGHT`); the guardian lowers its own as far as it may
-  (`OOM_SCORE_ADJ_GUARDIAN`).
+  (`OOM_SCORE_ADJ_GUARDIAN`) and raises its CPU priority where permitted (`GUARDIAN_NICE`).
 - **Both directions beat.** `heartbeat()` writes one byte per control tick (non-blocking, never raises;
   failures counted); `arm()` starts the stall detection, `arm(False)` pauses it around a known blocking
   phase; `finish()` writes "bye". The guardian beats back every `GUARDIAN_BEAT_S`; `Guardian.lost()` says
@@ -75,6 +75,10 @@ OOM_SCORE_ADJ_GUARDIAN = (-1000, 0)
 """What the guardian asks for itself, in order: never the OOM killer's choice (needs CAP_SYS_RESOURCE),
 else the neutral 0 (allowed without privilege down to the value the session started with, usually 0),
 so that a flight started with 1000 already does not hand its guardian that."""
+GUARDIAN_NICE = -10
+"""The guardian's nice and its session's autogroup nice, where permitted (root or CAP_SYS_NICE): the safety
+net runs before the work it guards, so that a loaded computer does not silence its beat past
+GUARDIAN_SILENT_S (which lands the flight). Without the privilege both stay as they were (0)."""
 
 
 def set_oom_score_adj(value: int, path: str = "/proc/self/oom_score_adj") -> int | None:

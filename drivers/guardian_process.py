@@ -36,6 +36,7 @@ from flightstack.drivers.guardian import (
     EXIT_DONE,
     EXIT_GAVE_UP,
     GUARDIAN_BEAT_S,
+    GUARDIAN_NICE,
     OOM_SCORE_ADJ_GUARDIAN,
     READY,
     UNARM,
@@ -47,6 +48,7 @@ from flightstack.drivers.guardian import (
 )
 from flightstack.drivers.tello.phase import PhaseThresholds, PhaseTracker
 from flightstack.drivers.tello.state import StateRejectedError, parse_state
+from flightstack.scheduling import set_group_nice, set_nice
 
 TICK_S = 0.02  # longest select() wait (s)
 BIND_RETRY_S = 0.2  # retry binding a held state port this often (s)
@@ -531,6 +533,12 @@ def main() -> int:
     log = Log(cfg.log_path)
     oom = next((v for v in OOM_SCORE_ADJ_GUARDIAN if set_oom_score_adj(v) is not None), None)
     log(f"oom_score_adj {'set to ' + str(oom) if oom is not None else 'kept (it may not be lowered here)'}")
+    raised = set_nice(GUARDIAN_NICE), set_group_nice(GUARDIAN_NICE)
+    log(
+        f"CPU priority: nice {os.getpriority(os.PRIO_PROCESS, 0)}, its session's group "
+        f"{GUARDIAN_NICE if raised[1] else 'unchanged'}"
+        + ("" if all(raised) else " (raising them needs CAP_SYS_NICE; some kernels have no groups)")
+    )
     g = None
     try:
         g = GuardianProcess(cfg, flag, log, beat_fd=1)

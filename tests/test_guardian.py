@@ -31,6 +31,7 @@ from flightstack.drivers.guardian import (
     EXIT_GAVE_UP,
     GUARDIAN_BEAT_S,
     GUARDIAN_NAME,
+    GUARDIAN_NICE,
     GUARDIAN_SILENT_S,
     GuardedTello,
     Guardian,
@@ -429,6 +430,36 @@ print(g.pid, sys.prefix, g.oom_score_adj, flush=True)
 sys.stdin.readline()
 print(g.finish(), flush=True)
 """
+
+
+def test_guardian_raises_its_cpu_priority_where_permitted(tmp_path: Path) -> None:
+    """The guardian runs before the work it guards: with the privilege (root or CAP_SYS_NICE, as in CI) its
+    nice and its session's autogroup nice are GUARDIAN_NICE; without it both stay, and its log says why."""
+    log = tmp_path / "guardian.log"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", VENV_CHILD, str(log)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None and proc.stdin is not None
+        pid = int(proc.stdout.readline().split()[0])
+        assert wait_until(lambda: "CPU priority" in (log.read_text() if log.exists() else ""), 5.0)
+        nice = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[16])  # field 19
+        group = Path(f"/proc/{pid}/autogroup")
+        group_nice = int(group.read_text().split()[-1]) if group.exists() else None
+        line = next(x for x in log.read_text().splitlines() if "CPU priority" in x)
+        print(f"guardian nice {nice}, autogroup nice {group_nice}: {line}")
+        if os.geteuid() == 0:
+            assert nice == GUARDIAN_NICE
+            assert group_nice in (GUARDIAN_NICE, None)  # None: a kernel without autogroup scheduling
+        else:
+            assert nice == os.getpriority(os.PRIO_PROCESS, 0) and "needs CAP_SYS_NICE" in line
+        proc.stdin.write("\n")
+        proc.stdin.flush()
+        assert proc.stdout.readline().strip() == "0"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=5)
 
 
 def pgrep(*args: str) -> set[int]:

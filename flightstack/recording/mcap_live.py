@@ -50,6 +50,7 @@ import numpy as np
 from flightstack.recording.files import EVENTS_FILE, LIVE_MCAP_FILE, ROWS_SUFFIX, STATE_FILE, RunDirError
 from flightstack.recording.rows import RowLayout, parse_header
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
+from flightstack.scheduling import AUTOGROUP, set_group_nice
 
 _log = logging.getLogger(__name__)
 
@@ -61,8 +62,6 @@ FINISH_TIMEOUT_S = 60.0
 """How long (s) closing a run waits for the follower to finish the file (it keeps going after)."""
 NICENESS = 10
 """The follower's nice increment, and its session's autogroup nice (module docstring)."""
-AUTOGROUP = Path("/proc/self/autogroup")
-"""Linux's scheduling group of this process's session (absent without CONFIG_SCHED_AUTOGROUP)."""
 MAX_EVENT_LINE = 1 << 20
 """Bound on one events.jsonl line (B); a longer one is skipped and counted."""
 
@@ -293,24 +292,6 @@ def lower_priority(nice: int = NICENESS, autogroup: Path = AUTOGROUP) -> None:
     with contextlib.suppress(OSError):
         os.nice(nice)
     set_group_nice(nice, autogroup)
-
-
-def set_group_nice(nice: int, autogroup: Path = AUTOGROUP) -> bool:
-    """Set the nice value of this process's session's autogroup (any value ≥ 0 needs no privilege), only
-    when this process leads its session (LiveMcap starts it so; run by hand from a shell it would renice
-    the shell's whole session). The kernel takes one change per 0.1 s from unprivileged processes (EAGAIN):
-    retried a few times. False where there is no autogroup, or it was not changed."""
-    if os.getsid(0) != os.getpid():
-        return False
-    for _ in range(5):
-        try:
-            autogroup.write_text(f"{nice}\n")
-            return True
-        except BlockingIOError:
-            time.sleep(0.11)
-        except OSError:
-            return False
-    return False
 
 
 def main(argv: list[str] | None = None) -> int:
