@@ -533,11 +533,11 @@ def main() -> int:
     log = Log(cfg.log_path)
     oom = next((v for v in OOM_SCORE_ADJ_GUARDIAN if set_oom_score_adj(v) is not None), None)
     log(f"oom_score_adj {'set to ' + str(oom) if oom is not None else 'kept (it may not be lowered here)'}")
-    raised = set_nice(GUARDIAN_NICE), set_group_nice(GUARDIAN_NICE)
+    nice_set, group_set = set_nice(GUARDIAN_NICE), set_group_nice(GUARDIAN_NICE)
     log(
         f"CPU priority: nice {os.getpriority(os.PRIO_PROCESS, 0)}, its session's group "
-        f"{GUARDIAN_NICE if raised[1] else 'unchanged'}"
-        + ("" if all(raised) else " (raising them needs CAP_SYS_NICE; some kernels have no groups)")
+        f"{GUARDIAN_NICE if group_set else 'unchanged'}"
+        + ("" if nice_set and group_set else " (raising them needs CAP_SYS_NICE; some kernels have no group)")
     )
     g = None
     try:

@@ -37,11 +37,11 @@ MODE_STYLE = {
 }
 DRONE_COLOURS = ("tab:red", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive")
 PLOT_POINTS = 2000
+"""Most points a plotted line keeps (`envelope`, `thinned`): a 40 s run at 500 Hz has 20 000 a line, which
+cost most of the plots' time and are more than a 7-inch figure at 120 dpi (840 px) can show."""
 MARGINS = {"left": 0.12, "right": 0.97, "bottom": 0.12, "top": 0.92}
 """Fixed margins of a plot (fractions of the figure), wide enough for its tick labels and titles: the
 layout pass of `tight_layout` measured every text once more and cost about a third of the plots' time."""
-"""Most points a plotted line keeps (`envelope`, `thinned`): a 40 s run at 500 Hz has 20 000 a line, which
-cost most of the plots' time and are more than a 7-inch figure at 120 dpi (840 px) can show."""
 
 
 def envelope(t: np.ndarray, y: np.ndarray, max_points: int = PLOT_POINTS) -> tuple[np.ndarray, np.ndarray]:
