@@ -87,9 +87,18 @@ def read_mcap_stream(path: Path) -> McapContents:
     return out
 
 
-def _value(msg: Any, f: Any) -> Any:
-    v = getattr(msg, f.name)
-    return list(v) if f.is_repeated else v
+def _fields(msg: Any) -> list[tuple[str, bool]]:
+    """A message's fields as (name, repeated), read from its descriptor's proto form: the Python
+    descriptor's own API differs across the protobuf releases the bound admits (`label` is gone in 7,
+    `is_repeated` came in 6.31)."""
+    proto = descriptor_pb2.DescriptorProto()
+    msg.DESCRIPTOR.CopyToProto(proto)
+    return [(f.name, f.label == f.LABEL_REPEATED) for f in proto.field]
+
+
+def _value(msg: Any, name: str, repeated: bool) -> Any:
+    v = getattr(msg, name)
+    return list(v) if repeated else v
 
 
 def _same(got: Any, want: Any) -> bool:
@@ -109,23 +118,23 @@ def assert_mcap_holds(recs: Mapping[str, Any], got: McapContents) -> None:
         base = wall0 - t0 if wall0 != 0.0 and np.isfinite(wall0) else 0.0
         want_ns = np.maximum(0, ((base + rec.t[:k]) * 1e9).astype(np.int64))
         assert [lt for lt, _ in ticks] == want_ns.tolist(), mode
-        for f in ticks[0][1].DESCRIPTOR.fields if ticks else []:
-            col = np.array([_value(m, f) for _, m in ticks])
-            want = np.asarray(getattr(rec, f.name))[:k]
-            assert _same(col.reshape(want.shape), want), (mode, f.name)
+        for name, repeated in _fields(ticks[0][1]) if ticks else []:
+            col = np.array([_value(m, name, repeated) for _, m in ticks])
+            want = np.asarray(getattr(rec, name))[:k]
+            assert _same(col.reshape(want.shape), want), (mode, name)
         for j, i in enumerate(rec.drone_ids):
             msgs = got.topics[f"/{mode}/drone{i}"]
             assert len(msgs) == k and [lt for lt, _ in msgs] == want_ns.tolist(), (mode, i)
-            for f in msgs[0][1].DESCRIPTOR.fields if msgs else []:
-                col = np.array([_value(m, f) for _, m in msgs])
-                if f.name == "drone":
+            for name, repeated in _fields(msgs[0][1]) if msgs else []:
+                col = np.array([_value(m, name, repeated) for _, m in msgs])
+                if name == "drone":
                     assert set(col.tolist()) == {i}
                     continue
-                if f.name == "t":
+                if name == "t":
                     assert _same(col, rec.t[:k]), (mode, i)
                     continue
-                want = np.asarray(getattr(rec, f.name))[:k, j]
-                assert _same(col.reshape(want.shape), want), (mode, i, f.name)
+                want = np.asarray(getattr(rec, name))[:k, j]
+                assert _same(col.reshape(want.shape), want), (mode, i, name)
         by_ns = dict(zip(want_ns.tolist(), range(k), strict=False))
         for lt, m in got.topics[f"/{mode}/tf"]:
             kk = by_ns[lt]
