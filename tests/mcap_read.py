@@ -93,6 +93,7 @@ def _fields(msg: Any) -> list[tuple[str, bool]]:
     `is_repeated` came in 6.31)."""
     proto = descriptor_pb2.DescriptorProto()
     msg.DESCRIPTOR.CopyToProto(proto)
+    assert [f.name for f in proto.field] == [f.name for f in msg.DESCRIPTOR.fields], proto
     return [(f.name, f.label == f.LABEL_REPEATED) for f in proto.field]
 
 
