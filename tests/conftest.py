@@ -75,20 +75,19 @@ SYSTEM_MODULES = frozenset(
 )
 
 
-# The system tier runs in two parts (.ci/run; docs/getting-started.md): its `timing` modules (below) one
-# test at a time, the rest on three workers (`-n 3 --dist loadgroup`, pytest-xdist), where most of the time
+# The system tier runs in two parts (.ci/run; docs/getting-started.md): its `timing` tests (is_timing, below)
+# one at a time, the rest on four workers (`-n 4 --dist loadgroup`, pytest-xdist), where most of the time
 # is spent waiting on real-time flights, not computing. The groups below matter on workers. The modules
 # that drive the device emulators and drivers directly (some at the real Tello's fixed ports, in their own
 # network namespaces or on addresses a module owns) run one after the other in one group, as without
-# xdist; the emulated-lab fault tables, whose emulators bind only free ports, are a group of their own
-# beside them; every other module (simulations, Zenoh agents on picked ports, sweeps, fuzzing) is a group
-# of its own, so that a module-scoped fixture runs once.
+# xdist; every other module (simulations, Zenoh agents on picked ports, sweeps, fuzzing) is a group of its
+# own, so that a module-scoped fixture runs once. A module split between the two parts has no
+# module-scoped fixture that its worker tests share with its timing tests (test_tello_replay's autouse
+# summary only prints), so nothing runs twice.
 # A new module that binds a fixed port or address joins DEVICE_MODULES.
 DEVICE_MODULES = frozenset(
     {
-        "test_closed_loop_square",
         "test_driver_threads",
-        "test_emulated_lab",
         "test_emulated_links",
         "test_guard",
         "test_guardian",
@@ -97,9 +96,6 @@ DEVICE_MODULES = frozenset(
         "test_keep_awake",
         "test_mocap",
         "test_natnet_emulator",
-        "test_rigs",
-        "test_scamper",
-        "test_scamper_failsafe",
         "test_tello_access_point",
         "test_tello_driver",
         "test_tello_emulator",
@@ -113,17 +109,27 @@ FAULT_FLIGHT_MODULES = frozenset({"test_faults_lab", "test_faults_lab_kills"})
 guardian and the emulators) never run beside each other and load the other timing tests twice over."""
 
 FIRST_GROUPS = (
-    "emulated-lab-faults",
-    "test_faults",
     "loopback-devices",
-    "test_lab_sim",
-    "test_attacker",
+    "test_emulated_lab",
+    "test_tello_replay",
+    "test_scamper_failsafe",
     "test_ci_venv",
+    "test_duplicate_identity",
+    "test_attacker",
+    "test_latency_flight_emulated",
 )
-"""The groups handed out first when the whole system tier runs on workers (measured then: about 370, 55, 330,
-75, 50 and 5 s; the two fault tables are `timing` and run apart in .ci/run). xdist gives each of the three
-workers one group, then a second at once: the device group, the longest but one, goes third so that the
-group queued behind it is the shortest; the rest follow in collection order as workers free up."""
+"""The groups handed out first to the worker tier's four workers (.ci/run), longest first as measured on
+2026-12-06 on 2 idle cores with three workers (about 215, 80, 75, 60, 8, 60, 45 and 40 s). xdist's
+loadgroup gives each worker one group in this order, then a second at once: the device group, the
+longest, is paired with the shortest; the rest follow in collection order as workers free up."""
+
+
+def is_timing(item: pytest.Item) -> bool:
+    """A test that bounds a safety reaction's wall-clock time (it requests `safety_bound`), or a row of a
+    fault table flown on the emulated lab (its module fixture flies every row once, so the whole module
+    goes together): .ci/run runs these one at a time, at a raised CPU priority, nothing else of the suite
+    CPU-heavy beside them. Every other test, in whatever module, runs on the workers."""
+    return SAFETY_BOUND_FIXTURE in getattr(item, "fixturenames", ()) or item.path.stem in FAULT_FLIGHT_MODULES
 
 
 def _xdist_group(item: pytest.Item) -> str:
@@ -144,10 +150,11 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     bounds a reaction's time (a test using `safety_bound`) is also `timing`: .ci/run runs the system tier's
     timing modules after the others, on fewer workers, so that no CPU-bound simulation runs beside them
     (whole modules, so that a module-scoped fixture such as a fault table's flights runs once)."""
-    timed = {item.path for item in items if SAFETY_BOUND_FIXTURE in getattr(item, "fixturenames", ())}
     for item in items:
-        if item.path in timed:
+        if is_timing(item):
             item.add_marker(pytest.mark.timing)
+        if item.path.stem in FAULT_FLIGHT_MODULES:
+            item.add_marker(pytest.mark.fault_table)
         if item.path.stem in SYSTEM_MODULES or item.get_closest_marker("system") is not None:
             item.add_marker(pytest.mark.system)
         else:

@@ -283,10 +283,15 @@ def test_the_rover_acts_on_mavlink_commands_late_by_its_robot_link() -> None:
 
 
 def test_motion_capture_frames_leave_late_by_the_mocap_link() -> None:
-    """mocap link 100 ms + U(0, 10 ms) at 100 Hz: every frame reaches the client's data port about 100 ms
-    after the time it carries (its timestamp counts from the emulator's start, which ends just before
+    """mocap link 100 ms + U(0, 10 ms) at 100 Hz: no frame reaches the client's data port earlier than 100
+    ms after the time it carries (its timestamp counts from the emulator's start, which ends just before
     `t_started`: the delays measured against it are at most the true ones, by the frame thread's start,
-    20 ms allowed), in order, and the spread of those delays is the jitter's (+ 15 ms)."""
+    20 ms allowed), frames arrive in order, the link's own delays average 100 + 5 ms, and the earliest
+    tenth of the frames arrive within the jitter (+ 15 ms): the link adds its delay and no more.
+
+    What the emulator promises is a lower bound and the link's decisions; how much later than its due
+    time a datagram is read depends on the machine's load (beside other tests on a busy 2-core machine
+    the spread of arrival delays reached 43 ms), so the spread is checked on the earliest frames only."""
     from flightstack.sim_backend.emulators.natnet import NatNetEmulator
 
     links = DeviceLinks({"mocap": LinkSpec(latency_s=0.1, jitter_s=0.01)}, 0, 0, "natnet")
@@ -310,8 +315,14 @@ def test_motion_capture_frames_leave_late_by_the_mocap_link() -> None:
     frames = [f for f, _, _ in got]
     assert len(frames) > 100 and frames == sorted(frames)
     late = np.array([t - ts - t_started for _, ts, t in got])
-    print(f"mocap frames {1e3 * late.min():.1f}-{1e3 * late.max():.1f} ms after their timestamp")
-    assert late.min() >= 0.1 - 0.02 and late.max() - late.min() <= 0.01 + 0.015, (late.min(), late.max())
+    decided = links.counts()["mocap"]
+    print(
+        f"mocap frames {1e3 * late.min():.1f}-{1e3 * late.max():.1f} ms after their timestamp "
+        f"(10th percentile {1e3 * np.percentile(late, 10):.1f} ms); the link's delays {decided}"
+    )
+    assert late.min() >= 0.1 - 0.02, late.min()
+    assert decided["lost"] == 0 and abs(decided["delay_mean_ms"] - 105.0) <= 1.5, decided
+    assert np.percentile(late, 10) - late.min() <= 0.01 + 0.015, (late.min(), np.percentile(late, 10))
 
 
 def test_a_takeoff_with_a_hover_reaches_its_height_before_its_ok() -> None:

@@ -42,6 +42,8 @@ pytestmark = pytest.mark.system
 IP_CAMERA = "127.0.0.131"
 HEIGHT_CM = 90.0
 FREQS_HZ = (0.37, 0.83, 1.31)
+FRAMES = 150  # decoded frames the camera's estimate is made from (8 s at 19 fps)
+FRAMES_WITHIN_S = 40.0  # bound on collecting them: 3.75 fps, far below any machine's camera process
 
 
 def yaw_deg(t: float) -> float:
@@ -93,8 +95,10 @@ def test_the_camera_latency_is_recovered_within_10_ms(safety_bound: Bound, tmp_p
         cam.wait_ready()
         feeder.start()
         assert rx.wait_first_frame(10.0), emu.errors
-        last, t_end = 0, time.monotonic() + 8.0
-        while time.monotonic() < t_end:
+        # until FRAMES frames are decoded (the estimate's promise needs a sample, not a rate: the camera
+        # process renders 12-30 fps by the machine's load), bounded by FRAMES_WITHIN_S
+        last, t_end = 0, time.monotonic() + FRAMES_WITHIN_S
+        while len(frames) < FRAMES and time.monotonic() < t_end:
             item = rx.latest()
             if item is not None and item[0] != last:
                 last = item[0]
@@ -142,7 +146,8 @@ def test_the_camera_latency_is_recovered_within_10_ms(safety_bound: Bound, tmp_p
         f"({truth.size} frames, {len(frames) - truth.size} without a record); estimate {est}, link {link}; "
         f"error {error_ms:+.1f} ms; solved in {solve_ms:.0f} ms"
     )
-    assert truth.size > 0.9 * len(frames) and truth.size > 100, (truth.size, len(frames))
+    assert len(frames) == FRAMES, f"{len(frames)} frames decoded in {FRAMES_WITHIN_S:g} s"
+    assert truth.size > 0.9 * len(frames), (truth.size, len(frames))
     assert est["frames_timed"] > 0.5 * len(frames), est
     assert abs(error_ms) <= 10.0, error_ms
     assert abs(1e3 * (est["sd_s"] - truth.std())) <= 10.0, (est, truth.std())
