@@ -15,8 +15,6 @@ from flightstack.paper import kernels as kern
 from flightstack.paper.delay_compensation import CommandModel, EstimateHistory, PoseHistory, carry_error
 from flightstack.paper.projection import CameraModel, measure_vector
 
-pytestmark = pytest.mark.unit
-
 P0 = np.array([[0.1, 0.1, 0.15], [-0.1, 0.1, 0.15], [-0.1, -0.1, 0.15], [0.1, -0.1, 0.15]])
 DOWN = CameraModel(focal_length=1.0, R_ic=Rotation.from_euler("x", 180, degrees=True).as_matrix())
 
