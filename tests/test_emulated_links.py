@@ -17,6 +17,7 @@ Loopback only: the emulators own 127.0.0.61 and 127.0.0.62 with free ports.
 from __future__ import annotations
 
 import contextlib
+import math
 import socket
 import threading
 import time
@@ -43,6 +44,28 @@ IP, IP_CAMERA = "127.0.0.61", "127.0.0.62"
 TELLO_LINKS = {"command": "tello", "reply": "tello", "state": "tello", "video": "video"}
 
 
+def assert_late_by_the_link(
+    late: np.ndarray, spec: LinkSpec, decided: dict[str, float], floor_s: float, extra_s: float = 0.0
+) -> None:
+    """What an emulated link promises whatever the machine's load, for samples `late` (s) after they were
+    sent: none arrives earlier than `floor_s` (the latency, less what the test's own clock misses); the
+    link's own delays (`decided`, its counters) average latency + jitter / 2; and the earliest tenth
+    arrives within a tenth of the jitter of the latency (+ 15 ms of scheduling + `extra_s`, a receiver's
+    poll), so the emulator adds nothing of its own. How much later than its due time a sample is read
+    depends on the load (beside other tests on a busy 2-core machine the spread of a 10 ms jitter reached
+    43 ms), so the largest delay is printed, not asserted."""
+    mean_ms = 1e3 * (spec.latency_s + spec.jitter_s / 2)
+    sd_of_mean_ms = 1e3 * spec.jitter_s / math.sqrt(12 * max(decided["delivered"], 1))
+    tenth = float(np.percentile(late, 10))
+    print(
+        f"{1e3 * late.min():.1f}-{1e3 * late.max():.1f} ms late (10th percentile {1e3 * tenth:.1f} ms, "
+        f"median {1e3 * np.median(late):.1f} ms); the link decided {decided}"
+    )
+    assert late.min() >= floor_s, late.min()
+    assert abs(decided["delay_mean_ms"] - mean_ms) <= 4 * sd_of_mean_ms + 0.5, (decided, mean_ms)
+    assert tenth <= spec.latency_s + 0.1 * spec.jitter_s + 0.015 + extra_s, tenth
+
+
 def _udp(timeout: float = 0.2) -> socket.socket:
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     s.bind(("127.0.0.1", 0))
@@ -51,8 +74,9 @@ def _udp(timeout: float = 0.2) -> socket.socket:
 
 
 def test_the_tello_acts_on_each_command_late_by_its_rc_link() -> None:
-    """rc link 150 ms + U(0, 30 ms), 10 % lost: every rc the emulator recorded arrived 150-180 ms (+ 15 ms
-    of scheduling) after the client sent it; the lost ones are in `uplink_lost`, never in `rc_history`."""
+    """rc link 150 ms + U(0, 30 ms), 10 % lost: every rc the emulator recorded arrived 150-180 ms after the
+    client sent it, as `assert_late_by_the_link` checks it under load; the lost ones are in `uplink_lost`,
+    never in `rc_history`."""
     spec = LinkSpec(latency_s=0.15, jitter_s=0.03, loss=0.1)
     links = DeviceLinks({"rc": spec}, 3, 1, "tello1")
     emu = TelloEmulator(IP, state_port=free_udp_port(), video_port=free_udp_port(), links=links)
@@ -80,19 +104,18 @@ def test_the_tello_acts_on_each_command_late_by_its_rc_link() -> None:
         lost = lost_rc()
         assert set(acted) | lost == set(sent) and not set(acted) & lost
         late = np.array([acted[k] - sent[k] for k in acted])
-        print(
-            f"rc acted on {1e3 * late.min():.1f}-{1e3 * late.max():.1f} ms late (median "
-            f"{1e3 * np.median(late):.1f}), {len(lost)} of 60 lost"
-        )
-        assert late.min() >= 0.15 and late.max() <= 0.18 + 0.015, late
+        print(f"rc acted on, {len(lost)} of 60 lost: ", end="")
+        assert_late_by_the_link(late, spec, links.counts()["rc"], floor_s=spec.latency_s)
         assert 1 <= len(lost) <= 15
         assert links.counts()["rc"]["lost"] >= len(lost)
 
 
 def test_samples_sent_through_a_link_leave_late_and_in_order() -> None:
-    """A state-like stream at 50 Hz through 100 ms + U(0, 60 ms): every datagram arrives 100-160 ms (+ 15
-    ms) after it was sent, or earlier when a newer one pushed it out, and never out of order."""
-    links = DeviceLinks({"state": LinkSpec(latency_s=0.1, jitter_s=0.06)}, 1, 1, "tello1")
+    """A state-like stream at 50 Hz through 100 ms + U(0, 60 ms): every datagram arrives, never out of order,
+    at the median at least 100 ms after it was sent (earlier only when a newer one pushed it out), and
+    late by the link as `assert_late_by_the_link` checks it under load."""
+    spec = LinkSpec(latency_s=0.1, jitter_s=0.06)
+    links = DeviceLinks({"state": spec}, 1, 1, "tello1")
     with _udp() as rx, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
         tx = links.socket(raw, send=lambda _a: "state")
         sent: dict[int, float] = {}
@@ -115,8 +138,9 @@ def test_samples_sent_through_a_link_leave_late_and_in_order() -> None:
     order = [k for k, _ in got]
     assert order == sorted(order) and len(order) == 50
     late = np.array([t - sent[k] for k, t in got])
-    print(f"stream through 100 ms + U(0, 60 ms): {1e3 * late.min():.1f}-{1e3 * late.max():.1f} ms late")
-    assert late.max() <= 0.16 + 0.015 and np.median(late) >= 0.1, late
+    print("stream through 100 ms + U(0, 60 ms): ", end="")
+    assert_late_by_the_link(late, spec, links.counts()["state"], floor_s=0.0)
+    assert np.median(late) >= 0.1, late
 
 
 def _stream_state(emu: TelloEmulator, stop: threading.Event) -> None:
@@ -255,12 +279,13 @@ def test_a_blackout_silences_live_video_with_the_drones_state(safety_bound: Boun
 
 def test_the_rover_acts_on_mavlink_commands_late_by_its_robot_link() -> None:
     """robot link 100 ms + U(0, 20 ms): every setpoint the rover recorded came 100-120 ms (+ its 20 ms
-    receive poll and scheduling) after the ground station sent it."""
+    receive poll) after the ground station sent it, as `assert_late_by_the_link` checks it under load."""
     from pymavlink import mavutil
 
     from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
 
-    links = DeviceLinks({"robot": LinkSpec(latency_s=0.1, jitter_s=0.02)}, 0, 0, "rover")
+    spec = LinkSpec(latency_s=0.1, jitter_s=0.02)
+    links = DeviceLinks({"robot": spec}, 0, 0, "rover")
     rover = MavlinkRoverEmulator(heartbeat_hz=5.0, links=links)
     gcs = mavutil.mavlink_connection(rover.url, source_system=255, source_component=190)
     sent: dict[int, float] = {}
@@ -274,27 +299,24 @@ def test_the_rover_acts_on_mavlink_commands_late_by_its_robot_link() -> None:
             time.sleep(0.02)
         assert wait_until(lambda: len(rover.setpoint_records()) >= 30, 3.0)
         acted = {round(100 * r.vx): r.t for r in rover.setpoint_records()}
+        decided = links.counts()["robot"]
     finally:
         gcs.close()
         rover.close()
     late = np.array([acted[k] - sent[k] for k in sent])
-    print(f"rover setpoints acted on {1e3 * late.min():.1f}-{1e3 * late.max():.1f} ms late")
-    assert late.min() >= 0.1 and late.max() <= 0.12 + 0.04, late
+    print("rover setpoints acted on ", end="")
+    assert_late_by_the_link(late, spec, decided, floor_s=spec.latency_s, extra_s=0.02)
 
 
 def test_motion_capture_frames_leave_late_by_the_mocap_link() -> None:
-    """mocap link 100 ms + U(0, 10 ms) at 100 Hz: no frame reaches the client's data port earlier than 100
-    ms after the time it carries (its timestamp counts from the emulator's start, which ends just before
-    `t_started`: the delays measured against it are at most the true ones, by the frame thread's start,
-    20 ms allowed), frames arrive in order, the link's own delays average 100 + 5 ms, and the earliest
-    tenth of the frames arrive within the jitter (+ 15 ms): the link adds its delay and no more.
-
-    What the emulator promises is a lower bound and the link's decisions; how much later than its due
-    time a datagram is read depends on the machine's load (beside other tests on a busy 2-core machine
-    the spread of arrival delays reached 43 ms), so the spread is checked on the earliest frames only."""
+    """mocap link 100 ms + U(0, 10 ms) at 100 Hz: frames arrive in order, late by the link after the time
+    they carry as `assert_late_by_the_link` checks it under load (their timestamp counts from the
+    emulator's start, which ends just before `t_started`: the delays measured against it are at most the
+    true ones, by the frame thread's start, 20 ms allowed)."""
     from flightstack.sim_backend.emulators.natnet import NatNetEmulator
 
-    links = DeviceLinks({"mocap": LinkSpec(latency_s=0.1, jitter_s=0.01)}, 0, 0, "natnet")
+    spec = LinkSpec(latency_s=0.1, jitter_s=0.01)
+    links = DeviceLinks({"mocap": spec}, 0, 0, "natnet")
     natnet = NatNetEmulator({"body": ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))}, links=links)
     got: list[tuple[int, float, float]] = []  # (frame, its timestamp s, arrival)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
@@ -316,13 +338,9 @@ def test_motion_capture_frames_leave_late_by_the_mocap_link() -> None:
     assert len(frames) > 100 and frames == sorted(frames)
     late = np.array([t - ts - t_started for _, ts, t in got])
     decided = links.counts()["mocap"]
-    print(
-        f"mocap frames {1e3 * late.min():.1f}-{1e3 * late.max():.1f} ms after their timestamp "
-        f"(10th percentile {1e3 * np.percentile(late, 10):.1f} ms); the link's delays {decided}"
-    )
-    assert late.min() >= 0.1 - 0.02, late.min()
-    assert decided["lost"] == 0 and abs(decided["delay_mean_ms"] - 105.0) <= 1.5, decided
-    assert np.percentile(late, 10) - late.min() <= 0.01 + 0.015, (late.min(), np.percentile(late, 10))
+    print("mocap frames after their timestamp: ", end="")
+    assert decided["lost"] == 0, decided
+    assert_late_by_the_link(late, spec, decided, floor_s=spec.latency_s - 0.02)
 
 
 def test_a_takeoff_with_a_hover_reaches_its_height_before_its_ok() -> None:
