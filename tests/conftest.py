@@ -146,10 +146,10 @@ def pytest_configure(config: pytest.Config) -> None:
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups and before `-m` deselects
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Every test is in exactly one tier: `system` (listed module or explicit marker) or `unit`; a module's
-    tests share one xdist group, and the device modules' tests all share one. Every test of a module that
-    bounds a reaction's time (a test using `safety_bound`) is also `timing`: .ci/run runs the system tier's
-    timing modules after the others, on fewer workers, so that no CPU-bound simulation runs beside them
-    (whole modules, so that a module-scoped fixture such as a fault table's flights runs once)."""
+    tests share one xdist group, and the device modules' tests all share one. A test that bounds a
+    reaction's time, or a fault table's row, is also `timing` (is_timing), and a fault table's row also
+    `fault_table`: .ci/run runs those one at a time, apart from the worker tests, the fault tables last
+    with nothing beside them."""
     for item in items:
         if is_timing(item):
             item.add_marker(pytest.mark.timing)
