@@ -8,6 +8,7 @@ velocities are expressed in the body frame of the robot they command.
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -94,17 +95,50 @@ class Frame:
     when the target is not (fully) visible.
     `roi` (x0, y0, x1, y1), pixels, end exclusive: a simulated camera's promise that no pixel of `image`
     outside it shows a marker (flightstack.vision.markers.extract_markers' `roi`); None: no promise.
+    `damaged`, `since_loss`: what a camera whose frames come over a lossy stream knows of this frame's
+    integrity (the Tello's H.264: drivers/tello/camera.py); a detection from any frame is checked against
+    a prediction before it is used (flightstack.vision.gate).
     """
 
     stamp: float
     image: np.ndarray | None
     features: np.ndarray | None
     roi: tuple[int, int, int, int] | None = None
+    damaged: bool = False
+    """Decoded through a detected loss of its stream (concealed by the decoder) and no intact keyframe
+    since: it may be smeared. False is no proof: a lost middle datagram of a frame is not detectable."""
+    since_loss: int | None = None
+    """Frames decoded since the stream's last detected loss (0: this frame's own); None: no loss found
+    since the stream (re)started."""
+    truth_px: np.ndarray | None = None
+    """Simulated cameras only: the true pixels (m, 2) of the target's feature points in this frame, in
+    the distorted image, for measuring the detector (never used by the loop); None: unknown."""
 
 
 @runtime_checkable
 class Camera(Protocol):
     def latest(self) -> Frame | None: ...
+
+
+FrameTruth = Callable[[np.ndarray], "np.ndarray | None"]
+"""Given a decoded image of an emulated camera, the true pixels (m, 2) of the target's feature points in
+it (Frame.truth_px), or None when it cannot tell."""
+_FRAME_TRUTH: dict[tuple[str, int], FrameTruth] = {}
+
+
+def register_frame_truth(host: str, video_port: int, truth: FrameTruth | None) -> None:
+    """An emulated camera that streams from `host` to UDP `video_port` says how to know the truth of its
+    frames (None: forget it). Measurement only: a camera driver attaches it to its frames' `truth_px`,
+    the loop never uses it, and a real lab registers nothing."""
+    if truth is None:
+        _FRAME_TRUTH.pop((host, int(video_port)), None)
+    else:
+        _FRAME_TRUTH[(host, int(video_port))] = truth
+
+
+def frame_truth(host: str, video_port: int) -> FrameTruth | None:
+    """What `register_frame_truth` registered for (host, video_port), or None."""
+    return _FRAME_TRUTH.get((host, int(video_port)))
 
 
 @runtime_checkable

@@ -43,6 +43,7 @@ import numpy as np
 import yaml
 
 from flightstack.config.rig import MISSION_CONFIGS, emulated_tello_ip
+from flightstack.hal import FrameTruth, register_frame_truth
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
 
@@ -306,6 +307,7 @@ class EmulatedLab:
                 self.tellos[i] = emu.TelloEmulator(ip, **kw)
                 self.tellos[i].use_remote_video(cam)
                 self.cameras[i] = cam
+                register_frame_truth(ip, port, _truth_of(cam))
         else:
             image = marker_image()
             empty = np.full_like(image, 96)  # a grey floor without markers
@@ -498,8 +500,9 @@ class EmulatedLab:
             self._publisher.join(timeout=1.0)
         for e in self.tellos.values():
             e.close()
-        for cam in self.cameras.values():
+        for i, cam in self.cameras.items():
             cam.close()
+            register_frame_truth(self.ips[i], cam.dest[1], None)
         if self.natnet is not None:
             self.natnet.close()
         if self.rover is not None:
@@ -721,6 +724,19 @@ def max_gap(times: Iterable[float], t0: float, t1: float) -> float:
 def ms(seconds: float | None) -> float | None:
     """Seconds as milliseconds rounded to 0.1 ms (None stays None, for faults.json)."""
     return None if seconds is None or not math.isfinite(seconds) else round(1e3 * seconds, 1)
+
+
+def _truth_of(cam: Any) -> FrameTruth:
+    """How to know the truth of a live camera's decoded frame: its bar-coded frame index (tello_frames)
+    looked up in the camera's capture records (VideoProcess.truth_px); None when the index is not there
+    (a bar code smeared by a loss reads as another index: the truth is then another frame's, off by that
+    frame's motion)."""
+    from flightstack.sim_backend.emulators.tello.frames import read_frame_index
+
+    def truth(img: np.ndarray) -> np.ndarray | None:
+        return cam.truth_px.get(read_frame_index(img))
+
+    return truth
 
 
 __all__ = [

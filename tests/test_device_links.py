@@ -11,12 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flightstack.config.links import LinkSpec, LinksSpec
+from flightstack.config.links import PROFILES, LinkSpec, LinksSpec
 from flightstack.config.mission import load_mission
 from flightstack.sim_backend.emulators.device_links import DeviceLinks, LinkStage, emulated_links
 from flightstack.sim_backend.emulators.radio import DelayLine
 
-TELLO_VIDEO = LinkSpec(latency_s=0.3, jitter_s=0.1, rate_hz=30.0, loss=0.02)
+TELLO_VIDEO = PROFILES["tello"]["video"]
+LOSSY = LinkSpec(latency_s=0.3, jitter_s=0.1, rate_hz=30.0, loss=0.02)
+"""A link losing whole samples (2 %), late as the Tello's video."""
 
 
 def test_perfect_applies_nothing_and_a_written_link_or_another_profile_applies_as_written() -> None:
@@ -44,12 +46,12 @@ def _decisions(stage: LinkStage, n: int) -> list[float | None]:
 
 
 def test_the_same_seed_device_and_link_give_the_same_decisions() -> None:
-    a = _decisions(LinkStage(TELLO_VIDEO, 7, "video", 1), 500)
-    b = _decisions(LinkStage(TELLO_VIDEO, 7, "video", 1), 500)
+    a = _decisions(LinkStage(LOSSY, 7, "video", 1), 500)
+    b = _decisions(LinkStage(LOSSY, 7, "video", 1), 500)
     assert a == b
-    assert a != _decisions(LinkStage(TELLO_VIDEO, 7, "video", 2), 500)  # another drone
-    assert a != _decisions(LinkStage(TELLO_VIDEO, 8, "video", 1), 500)  # another seed
-    assert a != _decisions(LinkStage(TELLO_VIDEO, 7, "state", 1), 500)  # another link
+    assert a != _decisions(LinkStage(LOSSY, 7, "video", 2), 500)  # another drone
+    assert a != _decisions(LinkStage(LOSSY, 8, "video", 1), 500)  # another seed
+    assert a != _decisions(LinkStage(LOSSY, 7, "state", 1), 500)  # another link
 
 
 def test_the_emulated_lab_decides_as_the_simulated_lab_for_the_same_seed() -> None:
@@ -71,9 +73,46 @@ def test_the_emulated_lab_decides_as_the_simulated_lab_for_the_same_seed() -> No
             assert due - 10.0 == pytest.approx(sim.delay(), abs=1e-12)
 
 
+def test_the_tello_video_loses_datagrams_in_bursts_not_frames() -> None:
+    """The `tello` profile's video: no frame lost whole; 0.2 % of the datagrams lost in bursts of 3 on
+    average (the simple Gilbert chain, one step per datagram), the same decisions for the same seed and
+    drone, others for another drone."""
+    assert TELLO_VIDEO.loss == 0 and TELLO_VIDEO.datagram_loss == 0.002 and TELLO_VIDEO.datagram_burst == 3.0
+
+    def kept(drone: int, n: int) -> np.ndarray:
+        stage = LinkStage(TELLO_VIDEO, 11, "video", drone)
+        out = np.array([stage.keeps(k / 270.0, 1460) for k in range(n)])
+        row = stage.row()
+        assert row["datagrams"] == n and row["datagrams_lost"] == (~out).sum() and row["samples"] == 0
+        return out
+
+    n = 400_000
+    a = kept(1, n)
+    assert np.array_equal(a, kept(1, n)) and not np.array_equal(a, kept(2, n))
+    lost = ~a
+    starts = lost[1:] & ~lost[:-1]
+    bursts = int(starts.sum()) + int(lost[0])
+    mean_burst = lost.sum() / bursts
+    # bursts are geometric with mean 3: about n·0.002/3 = 267 of them; their count is Poisson-like, the
+    # lost fraction then within 5 sigma of the count's spread (each burst worth ~3 datagrams)
+    sigma_bursts = np.sqrt(n * 0.002 / 3.0)
+    assert abs(bursts - n * 0.002 / 3.0) < 5 * sigma_bursts, bursts
+    assert 2.3 < mean_burst < 3.9, mean_burst  # geometric(1/3): sd ≈ 2.45 / sqrt(267) ≈ 0.15 per burst
+    assert abs(lost.mean() - 0.002) < 5 * 3.0 * sigma_bursts / n * 1.5, lost.mean()
+
+
+def test_datagram_loss_is_the_video_links_alone() -> None:
+    """A datagram loss on a link other than video is refused with the reason (the others are one sample
+    per datagram: their `loss` says it)."""
+    with pytest.raises(ValueError, match=r"state\.datagram_loss: only the video link"):
+        LinksSpec(state=LinkSpec(datagram_loss=0.01))
+    video = LinksSpec(video=LinkSpec(datagram_loss=0.01, datagram_burst=2.0)).link("video")
+    assert video.datagram_burst == 2.0
+
+
 def test_delays_and_losses_follow_the_link() -> None:
     """latency_s + U(0, jitter_s) late, `loss` of the samples lost (binomial bounds, 5 sigma)."""
-    stage = LinkStage(TELLO_VIDEO, 0, "video", 1)
+    stage = LinkStage(LOSSY, 0, "video", 1)
     n = 20000
     got = _decisions(stage, n)
     delays = np.array([d for d in got if d is not None])

@@ -9,10 +9,16 @@ of any error accounting. Here the thread survives every error: a socket error (`
 decoder rejects (`decode_error`, routine on a lossy stream: the next keyframe resynchronises), or anything
 else (`reader_error`, after which the decoder is rebuilt); each is counted in `TelloCamera.counts`
 (plus `thread_error` for the thread's own failures) and logged at the first and every 100th occurrence.
-A frame decoded after a lost or reordered datagram, up to the next intact keyframe, is damaged (smeared
-by the decoder's concealment): it is dropped, never published, and counted (`damaged`; how losses are
-found: flightstack.drivers.tello.video_check). The last clean frame stays the latest, so its age grows and
-the agent's frame-age rule (`max_frame_age_s`) sees the gap.
+A frame decoded after a lost or reordered datagram, up to the next intact keyframe, is damaged: the
+decoder conceals what is missing (FFmpeg copies it from the frame before), so parts of it may be smeared.
+It is published all the same, tagged (`DecodedFrame.damaged`, and `since_loss`, the frames since the
+loss was found: how losses are found is flightstack.drivers.tello.video_check) and counted
+("concealed"): with a real Tello's keyframe interval (67 frames, 2.2 s) dropping them left the drones
+blind for seconds after every lost datagram, while most of a concealed frame is right (docs/drivers.md,
+"Video through loss"). Whether a detection in it is right is decided downstream against a prediction
+from outside the image (flightstack.vision.gate), for clean frames too: a lost middle datagram is not
+detectable here. Before the stream's first intact keyframe nothing is published ("unsynced"): there is
+no picture to conceal from.
 
 A per-drone `video_port` (`port` command) and the downward camera need SDK 3.0: `start()` refuses them on
 older firmware before sending anything.
@@ -25,7 +31,7 @@ import socket
 import threading
 import time
 from collections import Counter
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -33,28 +39,39 @@ from flightstack.drivers.tello import DEFAULT_VIDEO_PORT, TelloCommandError, Tel
 from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog
 from flightstack.drivers.tello.traffic import TrafficWriter
 from flightstack.drivers.tello.video_check import StreamCheck
-from flightstack.hal import Frame
+from flightstack.hal import Frame, frame_truth
 
 LOG = logging.getLogger("flightstack.tello")
 SETUP_ATTEMPTS = 4
 """Tries of each video set-up command (`port`, `downvision 1`, `streamon`; all idempotent): on a lossy
 Wi-Fi (2 % loss in bursts of 2 both ways) two tries of one command failed in a few % of start-ups."""
 STREAM_COUNT_KEYS = (
-    "datagrams", "frames", "damaged", "decode_error", "recv_error", "reader_error", "thread_error",
-    "lost_head", "lost_tail", "frame_gap", "damaged_units", "resync", "framing_off",
+    "datagrams", "frames", "concealed", "unsynced", "decode_error", "recv_error", "reader_error",
+    "thread_error", "lost_head", "lost_tail", "frame_gap", "damaged_units", "resync", "framing_off",
 )  # fmt: skip
 """The receiver's counters (VideoReceiver), in the order a report lists them."""
 RECV_BUFFER_BYTES = 4 << 20  # socket receive buffer asked for (the OS may grant less): a keyframe burst
 MAX_DATAGRAM_BYTES = 65536
 
 
+class DecodedFrame(NamedTuple):
+    """One published frame: its sequence number (1, 2, …), decode time (time.monotonic() s), H × W × 3
+    RGB uint8 image, and what the stream check knows of it (hal.Frame's `damaged`, `since_loss`)."""
+
+    seq: int
+    t_decoded: float
+    image: np.ndarray
+    damaged: bool
+    since_loss: int | None
+
+
 class VideoReceiver:
     """H.264 over UDP on (bind_ip, port) → the latest decoded RGB frame, in one daemon thread.
 
-    `latest()` gives (sequence number, decode time in time.monotonic() s, H × W × 3 RGB uint8 image).
-    `counts`: "datagrams", "frames" (published), "damaged" (decoded from a damaged stream, dropped),
-    "decode_error", "recv_error", "reader_error", "thread_error", and tello_video_check's ("lost_head",
-    "lost_tail", "frame_gap", "damaged_units", "resync", "framing_off").
+    `latest()` gives the newest DecodedFrame. `counts`: "datagrams", "frames" (published), "concealed"
+    (published frames decoded through a detected loss), "unsynced" (decoded before the first intact
+    keyframe, not published), "decode_error", "recv_error", "reader_error", "thread_error", and
+    tello_video_check's ("lost_head", "lost_tail", "frame_gap", "damaged_units", "resync", "framing_off").
     Raises OSError when the port cannot be bound, ImportError without PyAV.
     """
 
@@ -84,14 +101,14 @@ class VideoReceiver:
         self._codec: Any = None
         self._check = StreamCheck(self.counts)
         self._lock = threading.Lock()
-        self._latest: tuple[int, float, np.ndarray] | None = None
+        self._latest: DecodedFrame | None = None
         self._first = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name=f"tello-video-{port}", daemon=True)
         self._thread.start()
 
-    def latest(self) -> tuple[int, float, np.ndarray] | None:
-        """(sequence number, decode time s, RGB image) of the newest decoded frame, or None before one."""
+    def latest(self) -> DecodedFrame | None:
+        """The newest published frame, or None before one."""
         with self._lock:
             return self._latest
 
@@ -136,9 +153,8 @@ class VideoReceiver:
         self._decode(data)
 
     def _decode(self, data: bytes) -> None:
-        """Feed one datagram to the H.264 parser; publish every frame it completes from an intact stream
-        (tello_video_check: a frame after a loss, up to the next intact keyframe, is dropped and counted
-        "damaged")."""
+        """Feed one datagram to the H.264 parser; publish every frame it completes once the stream is
+        synchronised, tagged with what tello_video_check found (module docstring)."""
         av = self._av
         if self._codec is None:
             self._codec = av.CodecContext.create("h264", "r")
@@ -147,25 +163,26 @@ class VideoReceiver:
         check = self._check
         check.datagram(data)
         for packet in self._codec.parse(data):
-            intact = check.access_unit(bytes(packet))
+            check.access_unit(bytes(packet))
             try:
                 frames = self._codec.decode(packet)
-            except av.error.FFmpegError as exc:  # lost datagrams, no keyframe yet: wait for the next one
+            except av.error.FFmpegError as exc:  # lost datagrams, no keyframe yet: no frame from this one
                 self.errors.record("decode_error", exc, thread=False)
                 check.mark_damaged()
                 continue
             for frame in frames:
                 if frame.is_corrupt:
                     check.mark_damaged()
-                if not intact or frame.is_corrupt:
-                    self.counts["damaged"] += 1
+                if not check.synced:
+                    self.counts["unsynced"] += 1
                     continue
                 img = frame.to_ndarray(format="rgb24")
                 t = time.monotonic()
                 with self._lock:
-                    seq = 1 if self._latest is None else self._latest[0] + 1
-                    self._latest = (seq, t, img)
+                    seq = 1 if self._latest is None else self._latest.seq + 1
+                    self._latest = DecodedFrame(seq, t, img, check.damaged, check.since_loss)
                 self.counts["frames"] += 1
+                self.counts["concealed"] += check.damaged
                 self._first.set()
 
 
@@ -191,6 +208,7 @@ class TelloCamera:
         self.counts: Counter[str] = Counter()
         self._rx: VideoReceiver | None = None
         self._last_seq = 0
+        self._truth_px: np.ndarray | None = None  # the newest frame's, from an emulated camera
         self.frames_seen = 0
 
     def start(self) -> None:
@@ -231,11 +249,15 @@ class TelloCamera:
         item = None if rx is None else rx.latest()
         if item is None:
             return None
-        seq, t_decoded, img = item
-        if seq != self._last_seq:
-            self._last_seq = seq
+        if item.seq != self._last_seq:
+            self._last_seq = item.seq
             self.frames_seen += 1
-        return Frame(t_decoded - self.latency_s, img, None)
+            truth = frame_truth(self.driver.cfg.host, self.driver.cfg.video_port)
+            self._truth_px = None if truth is None else truth(item.image)
+        stamp = item.t_decoded - self.latency_s
+        return Frame(
+            stamp, item.image, None, damaged=item.damaged, since_loss=item.since_loss, truth_px=self._truth_px
+        )
 
     def stream_counts(self) -> dict[str, int]:
         """hal.StreamCounting: the receiver's counts so far (STREAM_COUNT_KEYS, zeros too) and
@@ -249,11 +271,11 @@ class TelloCamera:
             self._rx.close()
             self._rx = None
             c = self.counts
-            if c["damaged"] or c["lost_head"] or c["lost_tail"] or c["frame_gap"]:  # the stream's losses
+            if c["concealed"] or c["lost_head"] or c["lost_tail"] or c["frame_gap"]:  # the stream's losses
                 LOG.warning(
-                    "tello %s video: %d frames used, %d damaged frames dropped (lost head %d, tail %d, "
-                    "frame gaps %d, decode errors %d, resyncs %d)",
-                    self.driver.cfg.host, c["frames"], c["damaged"], c["lost_head"], c["lost_tail"],
+                    "tello %s video: %d frames published, %d of them concealed after a loss (lost head %d, "
+                    "tail %d, frame gaps %d, decode errors %d, resyncs %d)",
+                    self.driver.cfg.host, c["frames"], c["concealed"], c["lost_head"], c["lost_tail"],
                     c["frame_gap"], c["decode_error"], c["resync"],
                 )  # fmt: skip
             try:

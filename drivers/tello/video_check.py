@@ -17,9 +17,14 @@ dji-sdk/Tello-Python#86). `StreamCheck` finds a loss three ways:
   the SPS) must follow the previous reference picture's; a jump means whole frames were lost;
 * the decoder (`mark_damaged`): a decode error or a frame the decoder flags corrupt.
 
-From a loss until the next IDR access unit that arrives intact, every access unit is damaged; the
-receiver drops their frames and counts them. A stream is damaged until its first IDR. Counters (in the
-receiver's `counts`): "lost_head", "lost_tail", "frame_gap", "damaged_units", "resync".
+From a loss until the next IDR access unit that arrives intact, every access unit is damaged: the
+decoder conceals what is missing, so its frames may be smeared (the receiver publishes them tagged
+`damaged`, with the frames since the loss, `since_loss`: what a real Tello's stream does is measured in
+docs/drivers.md, "Video through loss"). A stream is unsynchronised until its first intact IDR (`synced`):
+nothing before it is a picture. A lost *middle* datagram (a full-length one between two full-length
+ones) breaks no framing rule and often no decoder check: such a frame passes as intact, which is why a
+detection is checked against a prediction however its frame is tagged (flightstack.vision.gate).
+Counters (in the receiver's `counts`): "lost_head", "lost_tail", "frame_gap", "damaged_units", "resync".
 Pure: bytes in, verdicts out (no I/O, no decoder).
 """
 
@@ -110,7 +115,10 @@ class StreamCheck:
         self.counts = counts
         self.datagram_bytes = datagram_bytes
         self.damaged = True  # until the first intact IDR
+        self.synced = False  # an intact IDR has arrived: the stream's frames are pictures
+        self.since_loss: int | None = None  # access units since the last detected loss (0: this one's)
         self._loss = False  # a loss seen since the last access unit
+        self._syncing = False  # the current access unit is the one that synchronised the stream
         self._prev_len: int | None = None
         self._framing_on = True
         self._judged = 0
@@ -143,7 +151,7 @@ class StreamCheck:
     def access_unit(self, au: bytes) -> bool:
         """Judge one access unit from the parser; True when its frame may be used (intact stream)."""
         loss, self._loss = self._loss, False
-        idr = False
+        idr, self._syncing = False, False
         for nal in split_nals(au):
             if not nal:
                 continue
@@ -156,9 +164,11 @@ class StreamCheck:
         if idr and not loss:
             if self.damaged:
                 self.counts["resync"] += 1
-            self.damaged = False
+            self._syncing = not self.synced
+            self.damaged, self.synced = False, True
         elif loss:
             self.damaged = True
+        self._count_since(loss)
         if self.damaged:
             self.counts["damaged_units"] += 1
         return not self.damaged
@@ -188,9 +198,19 @@ class StreamCheck:
             self._prev_ref_num = frame_num
         return gap
 
+    def _count_since(self, loss: bool) -> None:
+        if loss:
+            self.since_loss = 0
+        elif self.since_loss is not None:
+            self.since_loss += 1
+
     def mark_damaged(self) -> None:
-        """The decoder failed on, or flagged, the stream: damaged until the next intact IDR."""
+        """The decoder failed on, or flagged, the current access unit: a loss in it, damaged until the
+        next intact IDR."""
         self.damaged = True
+        self.since_loss = 0
+        if self._syncing:  # the keyframe that was to synchronise the stream did not decode
+            self.synced = self._syncing = False
 
 
 __all__ = ["TELLO_DATAGRAM_BYTES", "StreamCheck", "split_nals", "sps_frame_num_bits"]

@@ -148,6 +148,7 @@ def mode_metrics(
         "error": rec.error,
         "vision_rejections": rec.vision_rejections,
         **({"video_counts": rec.video_counts} if rec.video_counts else {}),
+        **({"vision_gate": rec.vision_gate} if rec.vision_gate else {}),
         # did this computer keep dt (hardware, emulated lab); on a simulated clock only how fast it ran
         "loop_health": loop_health(
             rec,

@@ -78,6 +78,7 @@ _KINDS = {"b": "b", "i": "iu", "f": "fiu"}
 
 META_FIELDS = (
     "ticks_done", "bus_dropped", "wall_seconds", "interrupted", "error", "vision_rejections", "video_counts",
+    "vision_gate",
 )  # fmt: skip
 """The scalar facts of a Recording besides its arrays and events (JSON-able; see `Recording.meta`)."""
 
@@ -117,6 +118,9 @@ class Recording:
     video_counts: dict[str, dict[str, int]] = field(default_factory=dict)
     """Per drone, what its camera's stream did in this mode (hal.StreamCounting); empty when no camera
     counts a stream (every simulated rig), and then not written: `meta()` omits it."""
+    vision_gate: dict[str, dict[str, int]] = field(default_factory=dict)
+    """Per drone whose camera gives images, the detection gate's counts (runtime.tick_record.count_gate);
+    empty on the ideal camera, and then not written."""
 
     @staticmethod
     def empty(mode: str, ids: list[int], n_ticks: int) -> Recording:
@@ -190,6 +194,10 @@ class Recording:
             out["video_counts"] = {
                 str(i): {str(k): int(v) for k, v in c.items()} for i, c in self.video_counts.items()
             }
+        if self.vision_gate:
+            out["vision_gate"] = {
+                str(i): {str(k): int(v) for k, v in c.items()} for i, c in self.vision_gate.items()
+            }
         return out
 
     @staticmethod
@@ -217,9 +225,10 @@ class Recording:
             return "bus_dropped: not a map of counts"
         if not isinstance(rejections, dict) or not all(counts(c) for c in rejections.values()):
             return "vision_rejections: not a map of counts per drone"
-        video = meta.get("video_counts", {})
-        if not isinstance(video, dict) or not all(counts(c) for c in video.values()):
-            return "video_counts: not a map of counts per drone"
+        for name in ("video_counts", "vision_gate"):
+            per_drone = meta.get(name, {})
+            if not isinstance(per_drone, dict) or not all(counts(c) for c in per_drone.values()):
+                return f"{name}: not a map of counts per drone"
         return None
 
     def apply_meta(self, meta: Mapping[str, Any]) -> None:

@@ -42,6 +42,7 @@ from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity
 from flightstack.safety import SafetyLimits
 from flightstack.safety.rules import saturate
 from flightstack.vision.camera_file import CameraCalibration
+from flightstack.vision.gate import OFF_PREDICTION, DetectionGate, GateSpec
 from flightstack.vision.markers import extract_markers, features_from_detection
 
 UNINFORMATIVE_VAR = np.ones(4)
@@ -71,6 +72,7 @@ class AgentConfig:
     max_frame_age_s: float = math.inf  # a frame older than this (s, vs the tick time) counts as none
     compensation: Compensation | None = None  # None: the paper's law (docs/equations.md §11)
     command_limits: SafetyLimits | None = None  # what the safety layer lets through (the command model's)
+    gate: GateSpec | None = None  # image detections checked against a prediction (vision.gate); None: not
 
 
 @dataclass
@@ -95,6 +97,12 @@ class TickRecord:
     # ages at use (s, mission clock): t − stamp; a sample that arrived after the tick's start t counts 0
     frame_age: float = math.nan  # the camera frame looked at; NaN: no frame
     pose_age: float = math.nan  # the own pose used; NaN: none this tick (dropout)
+    # the detection gate (flightstack.vision.gate), for a tick whose image gave all the markers
+    coasted: bool = False  # the detection was off its prediction: the observer coasted on its estimate
+    frame_damaged: bool = False  # the frame looked at was decoded through a detected stream loss
+    gate_residual_px: float = math.nan  # the marker farthest from its prediction (px); NaN: not gated
+    gate_px: float = math.nan  # the gate it was held to (px)
+    detection_error_px: float = math.nan  # farthest marker from the truth (simulated cameras only; px)
 
 
 class Agent:
@@ -151,6 +159,12 @@ class Agent:
         # it had no image, or the image was rejected (a viewer draws them over the frame)
         self.markers_px: np.ndarray | None = None
         self.hold = False  # set by the safety supervisor: hover instead of pursuing
+        cal = cfg.calibration
+        self.gate = (
+            None
+            if cfg.gate is None or cal is None
+            else DetectionGate(cfg.gate, cal.fx, cfg.camera.focal_length)
+        )
 
     @property
     def g_bar_w(self) -> Pose:
@@ -164,6 +178,8 @@ class Agent:
         self._t_prev = None
         if self._delays is not None:
             self._delays.estimates.clear()
+        if self.gate is not None:  # the new estimate has predicted nothing yet
+            self.gate.reset()
 
     def seed_own_pose(self, own: StampedPose) -> None:
         """The own pose measured at pursuit start (the runner's, after takeoff) as the last one seen: a
@@ -187,6 +203,9 @@ class Agent:
         # else a motion-capture dropout: keep the last pose, hover; the safety layer decides beyond that
         frame = self._checked_frame(self.camera.latest(), t, dropped)
         features, rejection = self._features(frame, t)
+        gated = _Gated()
+        if features is not None and frame is not None and frame.features is None:
+            features, rejection, gated = self._gated(features, rejection, frame)
         late = None  # a frame captured before the tick, compensated: its capture time (s)
         if self._delays is not None and features is not None and frame is not None:
             late, why = self._delays.frame_time(frame.stamp, t)
@@ -224,6 +243,11 @@ class Agent:
             own_pose_fresh=fresh,
             frame_age=math.nan if frame is None else max(0.0, t - frame.stamp),
             pose_age=math.nan if own is None else max(0.0, t - own.stamp),
+            coasted=gated.coasted,
+            frame_damaged=frame is not None and frame.damaged,
+            gate_residual_px=gated.residual_px,
+            gate_px=gated.gate_px,
+            detection_error_px=gated.error_px,
         )
         self.last = rec
         self.seq += 1
@@ -287,6 +311,34 @@ class Agent:
         seen = features_from_detection(det, self.cfg.camera.focal_length)
         return (None if seen is None else np.array(seen, dtype=float).reshape(-1)), det.reason
 
+    def _gated(
+        self, features: np.ndarray, rejection: str | None, frame: Frame
+    ) -> tuple[np.ndarray | None, str | None, _Gated]:
+        """The image's features through the detection gate (flightstack.vision.gate): (features or None,
+        the rejection, what the gate saw). The prediction is for the frame's capture time when the agent
+        keeps its poses and estimates (delay compensation), else for the tick (the observer's own
+        assumption about the frame)."""
+        out = _Gated(error_px=_truth_error(self.markers_px, frame.truth_px))
+        if self.gate is None or self._g_wi is None:
+            return features, rejection, out
+        g_wi, g_bar = self._g_wi, self._T[kern.G_BAR_W]
+        if self._delays is not None:
+            g_c, g_bar_c = self._delays.poses.at(frame.stamp), self._delays.estimates.at(frame.stamp)
+            if g_c is not None and g_bar_c is not None:
+                g_wi, g_bar = g_c, g_bar_c
+        rel, pc = np.empty(4), np.empty_like(self._P0)
+        kern.relative4(g_wi, g_bar, rel)
+        kern.points_in_camera(rel, self._P0, self._cam, pc)
+        f_pred = np.empty(2 * len(self._P0))
+        if not kern.measure(rel, self._P0, self._cam, f_pred):  # the estimate puts the target out of view
+            return features, rejection, out
+        verdict = self.gate.check(features, f_pred, float(pc[:, 2].mean()), frame.stamp)
+        out.residual_px, out.gate_px = verdict.residual_px, verdict.gate_px
+        if verdict.accepted:
+            return features, rejection, out
+        out.coasted = True
+        return None, OFF_PREDICTION, out
+
     # ---- phase 2 -------------------------------------------------------------------------------
     def fuse_control_act(self, t: float) -> np.ndarray:
         cfg, rec, T = self.cfg, self.last, self._T
@@ -342,6 +394,26 @@ class Agent:
 
 
 _ZERO4 = np.zeros(4)
+
+
+@dataclass
+class _Gated:
+    """What the detection gate saw in one tick (TickRecord's fields of the same names)."""
+
+    coasted: bool = False
+    residual_px: float = math.nan
+    gate_px: float = math.nan
+    error_px: float = math.nan
+
+
+def _truth_error(pixels: np.ndarray | None, truth: np.ndarray | None) -> float:
+    """The detected marker farthest from its true pixel (px); NaN without both or with another count."""
+    if pixels is None or truth is None or np.shape(pixels) != np.shape(truth):
+        return math.nan
+    d = np.asarray(pixels, dtype=float) - np.asarray(truth, dtype=float)
+    return float(np.sqrt((d * d).sum(axis=1)).max())
+
+
 VELOCITY_WINDOW_S = 1.0
 """A late frame's error is carried over its delay with the target moving at the estimate's mean velocity
 over this window (s): long against the observer's corrections (1/k_e), so they do not feed back."""

@@ -33,6 +33,7 @@ from flightstack.runtime.phases import TargetDriver
 from flightstack.safety import EventLog, SafeDrone, SafetyLimits
 from flightstack.safety.supervisor import MissionSupervisor
 from flightstack.vision.camera_file import load_calibration
+from flightstack.vision.gate import DEFAULT_NOISE_PX, GateSpec
 
 _log = logging.getLogger(__name__)
 
@@ -56,6 +57,9 @@ def make_agents(
     for k, d in enumerate(mission.drones):
         if agent_ids is not None and d.id not in agent_ids:
             continue
+        cal = None
+        if d.camera is not None and d.camera.calibration is not None:
+            cal = load_calibration(mission.resolve(d.camera.calibration))
         cfg = AgentConfig(
             mission=mission.name,
             drone_id=d.id,
@@ -68,12 +72,11 @@ def make_agents(
             fusion_rule=mission.gp.fusion,
             neighbour_ids=tuple(ids[j] for j in mission.neighbours(k)),
             stale_after=mission.bus.stale_after_s,
-            calibration=None
-            if d.camera is None or d.camera.calibration is None
-            else load_calibration(mission.resolve(d.camera.calibration)),
+            calibration=cal,
             max_frame_age_s=math.inf if mission.hardware is None else mission.hardware.max_frame_age_s,
             compensation=compensation,
             command_limits=safety_limits(mission) if mission.safety.enabled else None,
+            gate=None if cal is None else GateSpec(noise_px=cal.rms_px or DEFAULT_NOISE_PX),
         )
         # ḡ_w,i(0) = g_w0(0) g_e(0)⁻¹; on sim_lab reset at pursuit start from the drone's own pose
         g_bar = compose(g_w0, inverse(d.initial_estimate_error.pose()))

@@ -395,6 +395,7 @@ def finish_recording(f: Fleet, rec: Recording, book: TickBook, wall_seconds: flo
     rec.bus_dropped = dict(f.bus.dropped)
     rec.events.extend(p.record(mode) for p in f.bus.presence_events)  # detail of a second session: the report
     rec.vision_rejections = book.vision_rejections()
+    rec.vision_gate = book.vision_gate()
     rec.video_counts = {
         i: {k: v - book.video_at_start.get(i, {}).get(k, 0) for k, v in c.items()}
         for i, c in stream_counts(f).items()

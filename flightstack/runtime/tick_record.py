@@ -3,11 +3,13 @@
 `AGENT_FIELDS` names, for every per-drone array of `Recording`, the attribute of the agent's
 `TickRecord` it copies (a `Pose` is stored as its vector (x, y, z, θ) in the world frame, m and rad).
 `record_tick` writes one row from it plus the truth; `TickBook` keeps the per-drone facts that are
-counted or reported as events rather than stored per tick (vision rejections, neighbour changes).
+counted or reported as events rather than stored per tick (vision rejections, the detection gate's
+verdicts, neighbour changes).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -46,6 +48,7 @@ class TickBook:
     rejections: dict[int, Counter[str]] = field(default_factory=dict)
     neighbours_used: dict[int, set[int]] = field(default_factory=dict)
     video_at_start: dict[str, dict[str, int]] = field(default_factory=dict)
+    gate: dict[int, Counter[str]] = field(default_factory=dict)
 
     @classmethod
     def of(cls, mode: str, ids: list[int]) -> TickBook:
@@ -60,6 +63,8 @@ class TickBook:
             self.rejections[i][why] += 1
         if not last.own_pose_fresh:
             self.rejections[i]["own pose lost (hovered)"] += 1
+        if not math.isnan(last.gate_residual_px):
+            count_gate(self.gate.setdefault(i, Counter()), last)
         used, prev = set(last.neighbours_used), self.neighbours_used[i]
         if used != prev:  # a neighbour left or rejoined fusion/consensus
             change = {"dropped": sorted(prev - used), "added": sorted(used - prev)}
@@ -68,6 +73,38 @@ class TickBook:
 
     def vision_rejections(self) -> dict[str, dict[str, int]]:
         return {str(i): dict(c) for i, c in self.rejections.items() if c}
+
+    def vision_gate(self) -> dict[str, dict[str, int]]:
+        """Per drone with a gated camera, count_gate's counts."""
+        return {str(i): dict(c) for i, c in self.gate.items() if c}
+
+
+GATE_COUNTS = (
+    "detections", "accepted", "rejected", "from_damaged", "accepted_damaged", "truth_known", "within_3px",
+    "within_3px_accepted", "accepted_over_3px", "accepted_over_10px", "accepted_damaged_over_3px",
+    "accepted_damaged_over_10px",
+)  # fmt: skip
+"""What count_gate counts, per tick whose image gave every marker (a frame looked at twice counts twice)."""
+
+
+def count_gate(c: Counter[str], last: TickRecord) -> None:
+    """Count one gated detection (GATE_COUNTS): its verdict, whether its frame was damaged and, where the
+    camera knows the truth (simulated cameras), how far its farthest marker was from it (3 and 10 px)."""
+    damaged, accepted, err = last.frame_damaged, not last.coasted, last.detection_error_px
+    c["detections"] += 1
+    c["accepted" if accepted else "rejected"] += 1
+    c["from_damaged"] += damaged
+    c["accepted_damaged"] += damaged and accepted
+    if math.isnan(err):
+        return
+    c["truth_known"] += 1
+    c["within_3px"] += err <= 3.0
+    c["within_3px_accepted"] += err <= 3.0 and accepted
+    if accepted:
+        c["accepted_over_3px"] += err > 3.0
+        c["accepted_over_10px"] += err > 10.0
+        c["accepted_damaged_over_3px"] += damaged and err > 3.0
+        c["accepted_damaged_over_10px"] += damaged and err > 10.0
 
 
 def record_tick(

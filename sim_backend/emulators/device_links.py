@@ -19,7 +19,10 @@ and is lost with probability `loss`. The emulated lab applies them in its emulat
   when due, in order of due time (a later command can overtake an earlier one, as in the simulated lab);
   the caller's timeout is honoured.
 * A video frame is decided as a whole: `DeviceLinks.decide("video", t_capture)` gives its due time (None:
-  lost) and the camera schedules its datagrams (`send_at`).
+  lost) and the camera schedules its datagrams (`send_at`); each datagram of a frame that leaves is then
+  kept or lost by itself (`keeps`: the link's `datagram_loss` in bursts of `datagram_burst`, a
+  flightstack.netem Gilbert chain stepped once per datagram, seeded by the mission's seed, the device and
+  the link), so that a loss damages a frame as on a real Tello instead of removing it.
 
 `emulated_links(links)`: the links the emulated lab applies. Profile `perfect` is what the emulated lab
 did before links were modelled: nothing late (its rc 50 ms is the simulated lab's command-to-effect
@@ -40,13 +43,15 @@ from typing import Any
 import numpy as np
 
 from flightstack.config.links import LINKS, NONE, LinkSpec, LinksSpec
+from flightstack.netem import LinkModel, LinkProfile
 
 from .radio import Address, DelayLine, HeldDatagrams, Sender
 
 EMULATED_LINKS = ("video", "state", "rc", "mocap", "robot")
 """The links the emulators apply (the bus is between agent processes, not a device's)."""
-LINK_COUNTERS = ("samples", "lost", "delivered")
-"""The counters every stage reports, 0 included (plus delay_mean_ms of the delivered samples)."""
+LINK_COUNTERS = ("samples", "lost", "delivered", "datagrams", "datagrams_lost")
+"""The counters every stage reports, 0 included (plus delay_mean_ms of the delivered samples); the
+datagram pair counts only with a datagram loss (LinkStage.keeps)."""
 
 
 def emulated_links(links: LinksSpec) -> dict[str, LinkSpec]:
@@ -72,6 +77,21 @@ class LinkStage:
         self._lock = threading.Lock()
         self.counts: Counter[str] = Counter()
         self.delay_sum_s = 0.0
+        self._datagrams = None
+        if spec.datagram_loss > 0:
+            prof = LinkProfile.bursty(spec.datagram_loss, spec.datagram_burst)
+            self._datagrams = LinkModel(prof, seed, f"device{device}", f"{link}-datagrams")
+
+    def keeps(self, t: float, size: int) -> bool:
+        """Whether one datagram (`size` bytes, sent at t s) of a sample that left survives the link's
+        datagram loss (always, without one)."""
+        if self._datagrams is None:
+            return True
+        with self._lock:
+            self.counts["datagrams"] += 1
+            kept = bool(self._datagrams.decide(t, size))
+            self.counts["datagrams_lost"] += not kept
+            return kept
 
     @property
     def late(self) -> bool:
@@ -133,6 +153,11 @@ class DeviceLinks:
         """When a sample of `link` produced at t is due (t when the link is not applied; None: lost)."""
         stage = self.stages.get(link)
         return t if stage is None else stage.decide(t)
+
+    def keeps(self, link: str, t: float, size: int) -> bool:
+        """Whether a datagram of `link` sent at t survives its datagram loss (LinkStage.keeps)."""
+        stage = self.stages.get(link)
+        return True if stage is None else stage.keeps(t, size)
 
     def send_at(self, due: float, sock: Sender, data: bytes, addr: Address, link: str) -> None:
         """Send `data` by `sock` at `due`, in order with `link`'s other samples (at once when the link

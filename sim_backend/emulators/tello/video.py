@@ -11,7 +11,8 @@ video is made elsewhere (``video_process``: the emulated lab's cameras that rend
 child process) and this thread only feeds it the stream state and the true pose. `TelloVideoStream` is one
 layer of ``TelloEmulator`` (``emulator``); ``make_encoder``, ``frame_datagrams`` and ``send_frame``
 are shared with the child process. With the rig's video link (``links``, device_links) each frame leaves
-late as a whole, or is lost; its send time is then when it was due to leave.
+late as a whole, or is lost, and each datagram of a frame that leaves may be lost by itself (the link's
+`datagram_loss`); its send time is then when it was due to leave.
 """
 
 from __future__ import annotations
@@ -120,6 +121,8 @@ class TelloVideoStream(TelloEmulatorBase):
             if due is None:
                 return
             for d in datagrams:
+                if not links.keeps("video", t_capture, len(d)):  # a datagram lost: the frame is damaged
+                    continue
                 with contextlib.suppress(OSError):
                     links.send_at(due, sock, d, dest, "video")
             self.video_bytes_sent += sum(len(d) for d in datagrams)

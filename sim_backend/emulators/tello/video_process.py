@@ -13,7 +13,8 @@ loopback ip to (client_ip, video_port) with the emulator's own `make_encoder`/`s
 
 The way out (`VideoPath`): with the rig's video link (device_links) each frame, rendered and encoded
 when taken, leaves the drone latency_s + U(0, jitter_s) after its capture time, or never (lost as a
-whole); a newer frame pushes older ones out ahead of it, so the stream stays in order. Then its
+whole), and each of its datagrams may be lost by itself (the link's `datagram_loss`: a damaged frame);
+a newer frame pushes older ones out ahead of it, so the stream stays in order. Then its
 datagrams pass the drone's radio (flightstack.netem: the video link seeded by (seed, "tello<id>",
 "video"), with the same blackout windows and epoch as the parent's DeviceRadio of that drone, so that a
 blackout silences video with commands and state). Both are sent at their due times by one delay line
@@ -58,6 +59,10 @@ from .view import CameraSpec
 
 RING = 1 << 15
 """Capture records kept in shared memory (18 min at 30 fps); `sync` copies them out every 10 ms."""
+TRUTH_KEPT = 4096
+"""Frames whose true feature pixels `VideoProcess.truth_px` keeps (2.3 min at 30 fps)."""
+_RECORD = 4
+"""A ring record's doubles before the true pixels: index, t_capture, t_sent, bytes."""
 START_TIMEOUT_S = 20.0
 """How long `start()` waits for the child to be ready (imports of numpy, OpenCV and PyAV) (s)."""
 
@@ -66,7 +71,8 @@ _ON, _EPOCH, _DOWN, _X, _Y, _Z, _YAW, _T = range(1, 9)
 _CTRL_N = 9
 _STOP = _CTRL_N
 # stats block (child writes): counters, the video link's row (LINK_COUNTERS, delay_mean_ms), the radio's
-# video link row (COUNTERS, delay_mean_ms), then the ring of (index, t_capture, t_sent, bytes)
+# video link row (COUNTERS, delay_mean_ms), then the ring of (index, t_capture, t_sent, bytes, the m
+# feature points' true pixels u0, v0, u1, v1, ...)
 _READY, _FRAMES, _BYTES, _INDEX, _RECORDS = range(5)
 _LINK_ROW = (*LINK_COUNTERS, "delay_mean_ms")
 _RADIO_ROW = (*COUNTERS, "delay_mean_ms")
@@ -156,7 +162,10 @@ class VideoProcess:
         self.path = path or VideoPath()
         self.spec, self.ip, self.dest, self.fps, self.gop_size = spec, ip, dest, float(fps), int(gop_size)
         self._ctrl_raw = ctx.RawArray(ctypes.c_double, _CTRL_N + 1)
-        self._stats_raw = ctx.RawArray(ctypes.c_double, _STATS_HEAD + 4 * RING)
+        self._width = _RECORD + 2 * len(spec.feature_points)  # one ring record's doubles
+        self._stats_raw = ctx.RawArray(ctypes.c_double, _STATS_HEAD + self._width * RING)
+        self.truth_px: dict[int, np.ndarray] = {}
+        """Frame index -> the feature points' true pixels (m, 2) in that frame (the newest TRUTH_KEPT)."""
         self.ctrl = SeqBlock(self._ctrl_raw, _CTRL_N - 1)
         self._stats = f64(self._stats_raw)
         self._errors_rx, errors_tx = ctx.Pipe(duplex=False)
@@ -221,11 +230,15 @@ class VideoProcess:
         st = self._stats
         n = int(st[_RECORDS])
         if n > self._read:
-            ring = st[_STATS_HEAD:].reshape(RING, 4)
+            ring = st[_STATS_HEAD:].reshape(RING, self._width)
             for k in range(max(self._read, n - RING), n):
-                index, t_cap, t_sent, _ = ring[k % RING]
-                emu.video_log.append((int(index), float(t_sent)))
-                emu.video_capture_log.append((int(index), float(t_cap), float(t_sent)))
+                rec = ring[k % RING]
+                index, t_cap, t_sent = int(rec[0]), float(rec[1]), float(rec[2])
+                emu.video_log.append((index, t_sent))
+                emu.video_capture_log.append((index, t_cap, t_sent))
+                self.truth_px[index] = rec[_RECORD:].reshape(-1, 2).copy()
+            while len(self.truth_px) > TRUTH_KEPT:
+                del self.truth_px[next(iter(self.truth_px))]
             self._read = n
         emu.video_frames_sent = int(st[_FRAMES])
         emu.video_bytes_sent = int(st[_BYTES])
@@ -314,7 +327,7 @@ def _run(a: ChildArgs) -> None:
     stop = f64(ctrl_raw)
     target = SeqBlock(target_raw, 4)
     st = f64(stats_raw)
-    ring = st[_STATS_HEAD:].reshape(RING, 4)
+    ring = st[_STATS_HEAD:].reshape(RING, _RECORD + 2 * len(spec.feature_points))
     view = CameraView(spec)
     view.image(Pose.make([0.0, 0.0, 1.0], 0.0), Pose.make([0.0, 0.0, 0.0], 0.0))  # warm the renderer's caches
     raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -328,7 +341,7 @@ def _run(a: ChildArgs) -> None:
     specs = {} if path.link is None else {"video": LinkSpec(**path.link)}
     line = None if radio is None else radio.delay_line  # the link's stage before the radio's, one thread
     links = DeviceLinks(specs, path.seed, path.drone, f"camera-{ip}", line)
-    leaving: list[list[float]] = []  # [index, t_capture, due, bytes] of frames that have not left yet
+    leaving: list[list[float]] = []  # [index, t_capture, due, bytes, truth...] of frames not left yet
     period = 1.0 / fps
     encoder: Any = None
     epoch, index, t0 = -1.0, 0, 0.0
@@ -384,6 +397,7 @@ def _run(a: ChildArgs) -> None:
             else:
                 g_w0 = Pose.make([tg[0], tg[1], 0.0], tg[2])
             img = view.image(g_wi, g_w0)
+            truth = view.true_pixels(g_wi, g_w0).reshape(-1).tolist()
             stamp_frame_index(img, index)
             datagrams = frame_datagrams(encoder, img, index)
             t_capture = float(c[_T - 1])
@@ -393,12 +407,15 @@ def _run(a: ChildArgs) -> None:
             if leaves is None:  # the link lost the whole frame
                 continue
             for d in datagrams:
+                if not links.keeps("video", t_capture, len(d)):  # one datagram lost: a damaged frame
+                    continue
                 with contextlib.suppress(OSError):  # nobody listening yet is fine
                     links.send_at(leaves, sock, d, dest, "video")
             leaves = max(leaves, time.monotonic())
             for rec in leaving:  # a newer frame pushes the older ones out ahead of it (radio.DelayLine)
                 rec[2] = min(rec[2], leaves)
-            leaving.append([float(index - 1), t_capture, leaves, float(sum(len(d) for d in datagrams))])
+            size = float(sum(len(d) for d in datagrams))
+            leaving.append([float(index - 1), t_capture, leaves, size, *truth])
         report(time.monotonic())
     finally:
         links.close()
