@@ -65,14 +65,14 @@ def results_file(links: str) -> Path:
 PAGE = DOCS / "network.md"
 
 
-def fly(profile: str, links: str, duration_s: float, out: Path) -> tuple[int, float]:
-    """One run of paper_experiment on the emulated lab under network `profile` and links `links`: (exit
-    code, wall s)."""
+def fly(profile: str, links: str, duration_s: float, out: Path, seed: int | None = None) -> tuple[int, float]:
+    """One run of paper_experiment on the emulated lab under network `profile` and links `links` (seed:
+    the experiment's when None): (exit code, wall s)."""
     t0 = time.monotonic()
     cmd = [
         sys.executable, "-m", "flightstack", "run", "paper_experiment", "--rig", "emulated-lab",
         "--network", profile, "--links", links, "--duration", str(duration_s), "--out", str(out),
-        "--no-progress",
+        "--no-progress", *([] if seed is None else ["--set", f"seed={seed}"]),
     ]  # fmt: skip
     with open(out.parent / f"{profile}.log", "w") as log:
         r = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, timeout=40 * duration_s + 600)
@@ -173,7 +173,8 @@ def summarise(profile: str, run: Path, code: int | None, wall_s: float) -> dict[
             "n_failsafe_events": len(failsafe),
             "frames_published": total("frames"),
             "frames_seen": total("frames_seen"),
-            "frames_damaged": total("damaged"),
+            "frames_concealed": total("concealed"),
+            "gate": _gate_totals(m.get("vision_gate") or {}),
             "resyncs": total("resync"),
             "stale_frame_ticks": stale,
             "frame_age_p50_s": fa.get("p50"),
@@ -193,6 +194,23 @@ def summarise(profile: str, run: Path, code: int | None, wall_s: float) -> dict[
     }  # fmt: skip
 
 
+def _gate_totals(per_drone: dict[str, dict[str, int]]) -> dict[str, int]:
+    """The detection gate's counts (runtime.tick_record.GATE_COUNTS) summed over the drones."""
+    out: dict[str, int] = {}
+    for c in per_drone.values():
+        for k, v in c.items():
+            out[k] = out.get(k, 0) + int(v)
+    return out
+
+
+def _gate_cell(g: dict[str, int]) -> str:
+    """accepted / rejected; accepted from damaged frames more than 3 / 10 px from the truth."""
+    if not g:
+        return "–"
+    return (f"{g.get('accepted', 0)} / {g.get('rejected', 0)}; {g.get('accepted_damaged_over_3px', 0)} / "
+            f"{g.get('accepted_damaged_over_10px', 0)} of {g.get('accepted_damaged', 0)}")  # fmt: skip
+
+
 def _ms(v: float | None) -> str:
     return "–" if v is None else f"{1e3 * v:.0f}"
 
@@ -204,9 +222,10 @@ def markdown(results: list[dict[str, Any]], duration_s: float, links: str) -> st
         f"({time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores; one seed per profile).",
         "",
         "| profile | mode | keeps dt (overruns) | false failsafe events | frames published / seen / "
-        "damaged / resyncs | stale-frame ticks | frame age p50 / p99 (ms) | mean position error (m) | "
-        "dgp / local |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "concealed / resyncs | stale-frame ticks | detections accepted / rejected; accepted from damaged "
+        "frames > 3 / > 10 px off | frame age p50 / p99 (ms) | mean position error (m) | seen (drone 1) "
+        "| dgp / local |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         for mode, row in r["modes"].items():
@@ -219,14 +238,17 @@ def markdown(results: list[dict[str, Any]], duration_s: float, links: str) -> st
                 false = str(row["n_failsafe_events"]) + (
                     f" ({', '.join(row['failsafe_events'])})" if row["failsafe_events"] else ""
                 )
-            frames = (f"{row['frames_published']} / {row['frames_seen']} / {row['frames_damaged']} / "
+            frames = (f"{row['frames_published']} / {row['frames_seen']} / {row['frames_concealed']} / "
                       f"{row['resyncs']}")  # fmt: skip
+            seen = (row.get("visible_fraction") or {}).get("1")
             err = row["mean_position_error_m"]
             ratio = r["dgp_over_local"] if mode == "dgp" and r["dgp_over_local"] is not None else None
             lines.append(
                 f"| {r['profile']} | {mode} | {keeps} | {false} | {frames} | {row['stale_frame_ticks']} | "
-                f"{_ms(row['frame_age_p50_s'])} / {_ms(row['frame_age_p99_s'])} | "
-                f"{'–' if err is None else f'{err:.3f}'} | {'' if ratio is None else f'{ratio:.2f}'} |"
+                f"{_gate_cell(row['gate'])} | {_ms(row['frame_age_p50_s'])} / "
+                f"{_ms(row['frame_age_p99_s'])} | {'–' if err is None else f'{err:.3f}'} | "
+                f"{'–' if seen is None else f'{100 * seen:.1f} %'} | "
+                f"{'' if ratio is None else f'{ratio:.2f}'} |"
             )
     for r in results:
         if r["run_error"] or r["exit_code"]:
@@ -254,6 +276,7 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=30.0, help="s of pursuit per mode")
     ap.add_argument("--links", choices=("perfect", "tello"), default="tello", help="the rig's links profile")
     ap.add_argument("--out", type=Path, default=None, help="keep the run directories here")
+    ap.add_argument("--seed", type=int, default=None, help="the experiment's seed (default: its own)")
     ap.add_argument("--update-docs", action="store_true")
     ap.add_argument(
         "--read", type=Path, default=None, help="tabulate the run directories of an earlier --out DIR again"
@@ -274,7 +297,7 @@ def main() -> int:
                 continue
             code, wall = None, float("nan")  # the exit code was not kept; metrics.json says the error
         else:
-            code, wall = fly(p, args.links, args.duration, root / p)
+            code, wall = fly(p, args.links, args.duration, root / p, args.seed)
         r = summarise(p, root / p, code, wall)
         results.append(r)
         print(f"{p}: exit {code}, {wall:.0f} s; " + "; ".join(

@@ -596,6 +596,7 @@ class RenderedCamera:
             marker_centres_in_camera,
             markers_in_camera,
             render_markers_region,
+            true_pixels,
         )
 
         g_i0 = relative(drone, robot)
@@ -606,7 +607,7 @@ class RenderedCamera:
         centres_c, normal_c = markers_in_camera(g_i0, self.P0, self.R_ic, self.t_ic)
         image, _, _, roi = render_markers_region(self.cal, centres_c, normal_c, self.opts, self.rng)
         self.frames += 1
-        return Frame(taken, image, None, roi)
+        return Frame(taken, image, None, roi, truth_px=true_pixels(self.cal, centres_c))
 
     def _centres(self, centres_c: np.ndarray, noise_px: float) -> np.ndarray | None:
         """(2m,) noisy normalised centres of the markers at centres_c (m, 3) in Σc, or None (centres_only)."""

@@ -504,3 +504,15 @@ def render_markers_region(
                 np.clip(patch, 0, 255, out=patch)
                 image[y0:y1, x0:x1] = patch
     return image, true_px, in_view, roi
+
+
+def true_pixels(cal: CameraCalibration, points_c: np.ndarray) -> np.ndarray:
+    """(m, 2) where the points points_c (m, 3) of Σc (metres) lie in the image of `cal` (its intrinsics
+    and distortion, pixels, OpenCV convention); NaN for a point on or behind the camera plane. The truth
+    a rendered frame carries (hal.Frame.truth_px)."""
+    zero = np.zeros(3)
+    pts = np.ascontiguousarray(points_c, dtype=float).reshape(-1, 1, 3)
+    px, _ = cv2.projectPoints(pts, zero, zero, cal.camera_matrix, cal.dist_coeffs)
+    out = px.reshape(-1, 2).astype(float)
+    out[np.asarray(points_c)[:, 2] <= 1e-3] = np.nan
+    return out

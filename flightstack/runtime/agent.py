@@ -315,17 +315,24 @@ class Agent:
         self, features: np.ndarray, rejection: str | None, frame: Frame
     ) -> tuple[np.ndarray | None, str | None, _Gated]:
         """The image's features through the detection gate (flightstack.vision.gate): (features or None,
-        the rejection, what the gate saw). The prediction is for the frame's capture time when the agent
-        keeps its poses and estimates (delay compensation), else for the tick (the observer's own
-        assumption about the frame)."""
+        the rejection, what the gate saw). The prediction is for the frame's capture time: from the
+        agent's pose and estimate histories when it keeps them (delay compensation), else from the own
+        pose last measured and the estimate moved on to the frame's time by the observer's own
+        prediction step."""
         out = _Gated(error_px=_truth_error(self.markers_px, frame.truth_px))
         if self.gate is None or self._g_wi is None:
             return features, rejection, out
         g_wi, g_bar = self._g_wi, self._T[kern.G_BAR_W]
+        g_c = g_bar_c = None
         if self._delays is not None:
             g_c, g_bar_c = self._delays.poses.at(frame.stamp), self._delays.estimates.at(frame.stamp)
-            if g_c is not None and g_bar_c is not None:
-                g_wi, g_bar = g_c, g_bar_c
+        if g_c is not None and g_bar_c is not None:
+            g_wi, g_bar = g_c, g_bar_c
+        elif self._u_e_prev is not None and self._t_prev is not None:  # the estimate moved on to the frame
+            g_bar = np.empty(4)  # as the observer's own prediction step moves it (−u_e held)
+            kern.integrate4(
+                self._T[kern.G_BAR_W], -self._u_e_prev, max(0.0, frame.stamp - self._t_prev), g_bar
+            )
         rel, pc = np.empty(4), np.empty_like(self._P0)
         kern.relative4(g_wi, g_bar, rel)
         kern.points_in_camera(rel, self._P0, self._cam, pc)

@@ -164,6 +164,7 @@ class VideoProcess:
         self._ctrl_raw = ctx.RawArray(ctypes.c_double, _CTRL_N + 1)
         self._width = _RECORD + 2 * len(spec.feature_points)  # one ring record's doubles
         self._stats_raw = ctx.RawArray(ctypes.c_double, _STATS_HEAD + self._width * RING)
+        self._epoch = -1  # the stream epoch last published
         self.truth_px: dict[int, np.ndarray] = {}
         """Frame index -> the feature points' true pixels (m, 2) in that frame (the newest TRUTH_KEPT)."""
         self.ctrl = SeqBlock(self._ctrl_raw, _CTRL_N - 1)
@@ -223,6 +224,9 @@ class VideoProcess:
     ) -> None:
         """The stream state and the drone's true pose (its own frame), taken now."""
         x, y, z = position_cm
+        if epoch != self._epoch:  # a new stream counts its frames from 0 again: the old truth is another's
+            self._epoch = epoch
+            self.truth_px.clear()
         self.ctrl.write([float(on), float(epoch), float(downvision), x, y, z, yaw_deg, time.monotonic()])
 
     def sync(self, emu: TelloEmulatorBase) -> None:

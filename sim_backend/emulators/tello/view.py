@@ -83,20 +83,12 @@ class CameraView:
         return img
 
     def true_pixels(self, g_wi: Pose, g_w0: Pose) -> np.ndarray:
-        """(m, 2) where the target's feature points lie in `image(g_wi, g_w0)`: projected through the
-        calibration's intrinsics and distortion (pixels, OpenCV convention); NaN for a point behind the
-        camera."""
-        import cv2
+        """(m, 2) where the target's feature points lie in `image(g_wi, g_w0)` (render.true_pixels)."""
+        from flightstack.sim_backend.render import marker_centres_in_camera, true_pixels
 
-        from flightstack.sim_backend.render import marker_centres_in_camera
-
-        pc = marker_centres_in_camera(relative(g_wi, g_w0), self.P0, self.R_ic, self.t_ic)
-        cal = self.cal
-        zero = np.zeros(3)
-        px, _ = cv2.projectPoints(pc.reshape(-1, 1, 3), zero, zero, cal.camera_matrix, cal.dist_coeffs)
-        out = px.reshape(-1, 2).astype(float)
-        out[pc[:, 2] <= 1e-3] = np.nan
-        return out
+        return true_pixels(
+            self.cal, marker_centres_in_camera(relative(g_wi, g_w0), self.P0, self.R_ic, self.t_ic)
+        )
 
 
 __all__ = ["CameraSpec", "CameraView", "drone_world_pose"]
