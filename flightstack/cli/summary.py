@@ -95,6 +95,10 @@ def metric_lines(m: Mapping[str, Any], mission: Mission | None) -> list[str]:
             notes = _seen_notes(seen, mission)
             lines += notes
             blind_noted = bool(notes)
+        gate = {i: c for i, c in (mm.get("vision_gate") or {}).items() if c.get("rejected")}
+        if gate:  # detections off their prediction: the observer coasted (docs/equations.md §12)
+            shown = ", ".join(f"{i}: {c['rejected']} of {c.get('detections', 0)}" for i, c in gate.items())
+            lines.append(f"          detections off their prediction (the observer coasted): {shown}")
         health = mm.get("loop_health")
         if health and health.get("real_time"):  # a simulated clock's wall period only says how fast it ran
             verdict = "kept dt" if health["keeps_dt"] else "DID NOT keep dt"
