@@ -167,7 +167,8 @@ def record_video(
                 g_wi.append(_pose_row(d))
                 g_w0.append(_pose_row(g))
             frame = camera.latest()
-            if frame is not None and frame.stamp > last_frame:
+            # a frame concealed after a stream loss is left out: parts of it may be an older frame's
+            if frame is not None and frame.stamp > last_frame and not frame.damaged:
                 last_frame = frame.stamp
                 px = find(frame)
                 t_frames.append(frame_time(frame, t))
