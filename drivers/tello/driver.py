@@ -51,6 +51,7 @@ from flightstack.drivers.tello.rejoin import SdkRejoin
 from flightstack.drivers.tello.status import DriverEvents, DriverStatus
 from flightstack.drivers.tello.sticks import Sticks
 from flightstack.drivers.tello.traffic import TrafficWriter
+from flightstack.drivers.tello.video_settings import SettingOutcome, send_video_settings
 from flightstack.drivers.tello.watchdog import Watchdog
 from flightstack.events import Event
 from flightstack.hal import DroneState, FlightPhase
@@ -71,9 +72,10 @@ __all__ = [
 class TelloDriver:
     """hal.Drone for one Tello (see the module docstring for the behaviour on every failure).
 
-    `events` (source tello, time.monotonic() s) and `counts` are the driver's log; `sdk_version` and
-    `serial` are read by `connect`. `traffic` (optional): where the link and the camera record the drone's
-    raw traffic (drivers/tello/traffic.py; the caller closes it after `close()`)."""
+    `events` (source tello, time.monotonic() s) and `counts` are the driver's log; `sdk_version`,
+    `serial` and `video_outcomes` (the SDK 3.0 video settings' answers) are read by `connect`. `traffic`
+    (optional): where the link and the camera record the drone's raw traffic (drivers/tello/traffic.py;
+    the caller closes it after `close()`)."""
 
     def __init__(self, cfg: TelloConfig, traffic: TrafficWriter | None = None) -> None:
         self.cfg = cfg
@@ -90,10 +92,12 @@ class TelloDriver:
         self.watchdog = Watchdog(cfg, self.status, self._log, self.sticks, self.rejoin, land=self.land)
         self.sdk_version: str | None = None
         self.serial: str | None = None
+        self.video_outcomes: tuple[SettingOutcome, ...] = ()
 
     # ---- hal.Drone ----------------------------------------------------------------------------------
     def connect(self) -> None:
-        """SDK mode, confirmed by the state stream, within connect_timeout_s; then `sdk?` and `sn?`.
+        """SDK mode, confirmed by the state stream, within connect_timeout_s; then `sdk?`, `sn?` and the
+        SDK 3.0 video settings (drivers/tello/video_settings.py: their answers in `video_outcomes`).
 
         Idempotent (a connected driver returns at once). TelloLinkError names the drone's address."""
         if self.watchdog.running():
@@ -128,6 +132,7 @@ class TelloDriver:
         st.link_up = True
         self.sdk_version = self.query("sdk?", parse_sdk)
         self.serial = self.query("sn?", parse_serial)
+        self.video_outcomes = send_video_settings(cfg, self.sdk_version, self.exchange, self._log)
         self.watchdog.start()
 
     def close(self) -> None:
