@@ -10,8 +10,9 @@ phase from drivers/tello/phase.py, the flags that decide what may be sent), `exc
 tello_exchange.py: blocking command and reply), `sticks` (drivers/tello/sticks.py: `rc`, hover,
 `emergency`), `flight` (drivers/tello/flight.py: takeoff and land), `rejoin` (drivers/tello/rejoin.py:
 `command` again while the state stream is silent) and `watchdog` (drivers/tello/watchdog.py: link
-freshness, loop watchdog). This module wires them, adds `connect`, `close` and
-`preflight`, and is the import path (settings, errors and reply parsers: drivers/tello/config.py).
+freshness, loop watchdog). This module wires them, adds `connect` (with the lab file's SDK 3.0 video
+settings: drivers/tello/video_settings.py), `close` and `preflight`, and is the import path (settings,
+errors and reply parsers: drivers/tello/config.py).
 
 Principles (telemetry decides, replies are advisory, nothing the drone would reject in its phase, never
 blocking the control loop, the loop watchdog, lands re-sent until telemetry shows the descent, link loss
