@@ -71,7 +71,8 @@ class NamedPoseSource:
 
 
 def tello_config(mission: Mission, drone_id: int) -> TelloConfig:
-    """The driver settings of drone `drone_id` from `hardware.drones` and the drone's rc gains and camera."""
+    """The driver settings of drone `drone_id` from `hardware.drones` (and `hardware.video`) and the
+    drone's rc gains and camera."""
     assert mission.hardware is not None
     hw = mission.hardware.drone(drone_id)
     spec = next(d for d in mission.drones if d.id == drone_id)
@@ -79,8 +80,10 @@ def tello_config(mission: Mission, drone_id: int) -> TelloConfig:
         TelloConfig,
         hw,
         rename={"ip": "host"},
-        skip={"id", "frame_timeout_s"},  # the drone's key; the camera's (flightstack.drivers.tello.camera)
+        # the drone's key; the camera's (flightstack.drivers.tello.camera); merged with the lab's below
+        skip={"id", "frame_timeout_s", "video"},
         state_port=mission.hardware.state_port,
+        video_settings=mission.hardware.video_settings(drone_id),
         rc_gains=RcGains(**spec.rc_gains.model_dump()),
         min_battery_pct=mission.safety.min_battery_takeoff,
         downward_camera=spec.camera is not None and spec.camera.mount == "down",

@@ -4,7 +4,7 @@ Each device is checked in its own thread, all at once, with the mission's own bo
 whole run is bounded by `deadline_s`, and a device that has not answered by then is a FAIL naming it.
 Nothing takes off, nothing moves: the robot is listened to (HEARTBEAT), its parameters read and its EKF
 origin set to the lab origin (which moves nothing), never armed, its mode never changed; a Tello gets
-`command`, `streamon`/`streamoff` and read-only queries.
+`command`, the lab file's SDK 3.0 video settings, `streamon`/`streamoff` and read-only queries.
 
 Rows: (device, check, status, detail) with status PASS, WARN (flyable, but look) or FAIL (do not fly).
 The checks (how an operator uses them: docs/real-lab.md):
@@ -19,9 +19,10 @@ The checks (how an operator uses them: docs/real-lab.md):
   gains that violate it. Without trained experts, L_μ = 0 gives an upper bound of κ.
 - drone N: reachable (SDK mode, confirmed by its state stream), battery ≥ safety.min_battery_takeoff,
   temperature, on the ground (flight phase from telemetry), firmware (SDK version and serial; FAIL when
-  the mission needs SDK 3.0 — a per-drone video port or the downward camera — and the drone has less),
-  Wi-Fi signal (`wifi?`, WARN when weak or unanswered); its camera streams and the frame size matches
-  the calibration.
+  the mission needs SDK 3.0 — a per-drone video port, the downward camera or video settings — and the
+  drone has less), each SDK 3.0 video setting of the lab file (`hardware.video`; FAIL unless the drone
+  answered `ok` at connect, naming the key, the drone, its reply and the fix), Wi-Fi signal (`wifi?`,
+  WARN when weak or unanswered); its camera streams and the frame size matches the calibration.
 - topology: the drones checked from this computer must not share an address or video port
   (access-point mode: `--id N` on each drone's computer).
 - mocap: the server answers; it streams multicast, or at least frames arrive (Motive's unicast frames
@@ -198,6 +199,7 @@ def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> li
     from flightstack.drivers.hardware import tello_config
     from flightstack.drivers.tello import TelloDriver
     from flightstack.drivers.tello.camera import TelloCamera
+    from flightstack.drivers.tello.video_settings import unconfirmed
 
     assert mission.hardware is not None
     cfg = tello_config(mission, drone_id)
@@ -211,7 +213,9 @@ def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> li
             return [_row(dev, "reachable", False, str(exc))]
         rows.append(_row(dev, "reachable", True, f"SDK mode, state stream at {cfg.host}:{cfg.control_port}"))
         rows += [_row(dev, c.name, c.ok, c.detail, warn=c.warn) for c in drv.preflight()]
-        if with_camera:
+        if with_camera and unconfirmed(cfg, drv.video_outcomes):  # its video rows above say why
+            rows.append(_row(dev, "camera", False, "not started: a video setting was not confirmed"))
+        elif with_camera:
             rows.append(_check_camera(mission, drone_id, dev, TelloCamera(drv, cfg.command_timeout_s + 2.0)))
     finally:
         drv.close()

@@ -146,6 +146,67 @@ def test_the_emulated_camera_follows_the_flight_and_records_capture_times(safety
     assert not Path(f"/proc/{cam.process.pid}").exists() or cam.process.exitcode is not None
 
 
+def test_the_camera_process_streams_at_the_sdk30_settings_it_was_sent() -> None:
+    """The forward camera (960 × 720 calibration) after `setresolution low`, `setfps middle`: decoded at
+    648 × 478, 15 frames/s, every frame's index (bar code) on record; `downvision 1` brings the camera's
+    own size back (the resolution is the forward camera's)."""
+    front = MISSIONS / "cameras" / "tello_front_sim.yaml"
+    spec = CameraSpec(
+        calibration=load_calibration(front).to_dict(),
+        R_ic=tuple(tuple(r) for r in CAMERA_MOUNTS["forward"].tolist()),
+        t_ic=(0.0, 0.0, 0.0),
+        feature_points=P0,
+        start=(0.0, 0.0, 1.0, 0.0),
+    )
+    port = free_udp_port()
+    cam = VideoProcess(spec, IP, ("127.0.0.1", port), SharedTarget(), fps=30.0)
+    emu = TelloEmulator(IP, state_port=free_udp_port(), video_port=port, video_size=cam.size, fps=30.0)
+    emu.use_remote_video(cam)
+    rx = VideoReceiver(port, "127.0.0.1")
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(1.0)
+
+    def ask(text: str) -> str:
+        sock.sendto(text.encode(), emu.address)
+        return sock.recv(1024).decode()
+
+    def decoded(shape: tuple[int, ...], timeout_s: float = 5.0) -> np.ndarray:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            item = rx.latest()
+            if item is not None and item[2].shape == shape:
+                return item[2]
+            time.sleep(0.01)
+        raise AssertionError(f"no frame of {shape} decoded; last {None if item is None else item[2].shape}")
+
+    try:
+        cam.start()
+        cam.wait_ready()
+        emu.start()
+        assert [ask(t) for t in ("command", "setresolution low", "setfps middle", "setbitrate 2")] == [
+            "ok"
+        ] * 4
+        assert ask("streamon") == "ok"
+        assert rx.wait_first_frame(10.0), emu.errors
+        img = decoded((478, 648, 3))
+        n0, t0 = emu.video_frames_sent, time.monotonic()
+        time.sleep(2.0)
+        rate = (emu.video_frames_sent - n0) / (time.monotonic() - t0)
+        assert 12.0 <= rate <= 15.5, rate
+        records = {i for i, _, _ in list(emu.video_capture_log)}
+        assert read_frame_index(decoded((478, 648, 3))) in records
+        assert read_frame_index(img) in records
+        assert ask("downvision 1") == "ok"
+        decoded((720, 960, 3))  # a new stream at the camera's own size
+        assert not emu.errors, emu.errors
+    finally:
+        sock.close()
+        rx.close()
+        emu.close()
+        cam.close()
+
+
 def test_the_paper_experiment_flies_closed_loop_on_the_emulated_lab(tmp_path: Path) -> None:
     """Mode `none`, 12 s: the drone placed to see the target sees it most of the time and stays near its
     place; the simulated lab's mean position error on this experiment is about 0.09 m (docs)."""

@@ -213,6 +213,32 @@ def test_body_outside_fence_and_uncalibrated_camera_fail(
     assert "never measured" in out
 
 
+def test_a_video_setting_the_firmware_refuses_fails_preflight_in_one_line(
+    lab: Lab, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The lab file asks `setfps high` of every drone; drone 2's firmware does not know it (DJITelloPy #144,
+    #219): one FAIL line names the key, the drone, its reply and the fix; drone 1 confirmed it."""
+    m = yaml.safe_load(lab.mission.read_text())
+    m["hardware"]["video"] = {"fps": "high"}
+    lab.mission.write_text(yaml.safe_dump(m, sort_keys=False))
+    lab.tellos[2].faults.unknown_commands = {"setfps"}
+    code, out, _ = run_preflight(lab.mission, capsys)
+    assert code == 1, out
+    lines = out.splitlines()
+    rows = [ln for ln in lines if " video fps " in ln]
+    assert len(rows) == 2, out  # one row per drone
+    ok, bad = rows
+    assert ok.startswith("drone 1 (127.0.0.6)") and "  PASS  " in ok and "`setfps high` confirmed (ok)" in ok
+    assert bad.startswith("drone 2 (127.0.0.7)") and "  FAIL  " in bad
+    assert bad.endswith(
+        "hardware.video.fps (`setfps high`): Tello 127.0.0.7 answered 'unknown command: setfps'; remove the "
+        "key or update the firmware (the SDK 3.0 video settings need a Tello EDU or Talent)"
+    )
+    failing = [ln for ln in lines if "  FAIL  " in ln]
+    assert failing == [bad, *[ln for ln in failing if "camera" in ln and "not started" in ln]], out
+    assert lab.tellos[1].fps == 30.0 and "streamon" not in lab.tellos[2].command_texts()
+
+
 def test_fly_runs_preflight_then_refuses_without_confirmation(
     lab: Lab, capsys: pytest.CaptureFixture[str]
 ) -> None:

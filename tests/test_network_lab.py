@@ -149,53 +149,59 @@ def _fly_lossy_video(
     return dict(rx.counts), [(img, damaged) for _, img, damaged in published.values()], dark
 
 
-def _worst_block_error(frames: list[np.ndarray]) -> float:
-    """The largest mean per-pixel difference, in any 8×8 block, of a published frame from its rendering."""
-    worst = 0.0
+def _block_errors(frames: list[np.ndarray]) -> np.ndarray:
+    """Per published frame, the largest mean per-pixel difference, in any 8×8 block, from its rendering."""
+    out = []
     for img in frames:
         expected = _textured(read_frame_index(img) / 30.0, None).astype(float)
         err = np.abs(img.astype(float) - expected).mean(axis=2)
         blocks = err[: 240 // 8 * 8, : 320 // 8 * 8].reshape(30, 8, 40, 8).mean(axis=(1, 3))
-        worst = max(worst, float(blocks.max()))
-    return worst
+        out.append(float(blocks.max()))
+    return np.array(out)
+
+
+def _intact(errors: np.ndarray) -> float:
+    """The fraction of frames within 40 grey levels of their rendering in every 8×8 block."""
+    return float((errors < 40.0).mean()) if errors.size else 1.0
 
 
 def test_video_is_published_through_burst_loss_tagged_and_resyncs(safety_bound) -> None:
     """The receiver through loss: frames keep coming after each loss, concealed ones tagged `damaged`
-    until an intact keyframe resynchronises the stream; a frame tagged clean matches its rendering (8×8
-    blocks within 40 grey levels; a lost middle datagram, which no check sees, may still pass: the gate
-    downstream is for those). A keyframe every 15 frames (0.5 s): several resyncs in the run; the
-    recorded 67 is flown in the next test."""
+    until an intact keyframe resynchronises the stream; the frames tagged clean are intact but for the
+    few a loss no check sees spoils (a lost middle datagram, or a tail and the next head lost together:
+    the gate downstream is for those), at most 10 %. A keyframe every 15 frames (0.5 s): several resyncs
+    in the run; the recorded 67 is flown in the next test."""
     counts, frames, dark = _fly_lossy_video(15, 4.5)
     assert counts["concealed"] > 0 and counts["resync"] >= 2, counts
     clean = [img for img, damaged in frames if not damaged]
-    # 4.5 s at 30 fps: 135 frames less the blackout's 15, the frames lost whole (a 320×240 frame is one
-    # or two datagrams) and those the decoder could not decode
+    # 4.5 s at 30 fps: 135 frames less the blackout's 15, the frames lost whole and those the decoder
+    # could not decode
     assert len(frames) >= 80 and len(clean) >= 60, (len(frames), len(clean), counts)
-    worst = _worst_block_error(clean)
-    assert worst < 40.0, f"a frame tagged clean differs from its rendering by {worst:.0f} per pixel (8×8)"
+    intact = _intact(_block_errors(clean))
+    assert intact >= 0.9, f"only {100 * intact:.0f} % of the frames tagged clean match their rendering"
     assert dark < float("inf"), "the stream froze after the blackout"
     safety_bound("first frame after a 0.5 s video blackout", 1e3 * dark, 1500.0)
-    print(f"video: {len(frames)} frames published ({len(clean)} clean), counts {counts}, worst {worst:.1f}")
+    print(f"video: {len(frames)} frames published ({len(clean)} tagged clean, {100 * intact:.1f} % intact), "
+          f"counts {counts}")  # fmt: skip
 
 
 def test_video_with_the_recorded_keyframe_interval_keeps_coming_after_a_loss() -> None:
     """The same loss with the emulator's default keyframe interval (67 frames, 2.2 s: the recorded bound,
     sim_backend/emulators/tello/recorded.py): the picture no longer goes dark for seconds after a loss
-    (the frames between the loss and the next keyframe are published, tagged), and the frames tagged
-    clean match their rendering."""
+    (the frames between the loss and the next keyframe are published, tagged), and at least 90 % of the
+    frames tagged clean match their rendering."""
     counts, frames, dark = _fly_lossy_video(KEYFRAME_INTERVAL_FRAMES, 9.0)
-    clean = [img for img, damaged in frames if not damaged]
-    concealed = [img for img, damaged in frames if damaged]
+    clean = _block_errors([img for img, damaged in frames if not damaged])
+    concealed = _block_errors([img for img, damaged in frames if damaged])
     print(
         f"video (keyframe every {KEYFRAME_INTERVAL_FRAMES} frames): {len(frames)} of ~270 frames published "
-        f"({len(concealed)} concealed), counts {counts}, first frame {dark:.2f} s after the blackout, "
-        f"worst block error: clean {_worst_block_error(clean):.1f}, "
-        f"concealed {_worst_block_error(concealed):.1f}"
+        f"({concealed.size} concealed), counts {counts}, first frame {dark:.2f} s after the blackout; intact "
+        f"(8×8 blocks within 40): tagged clean {100 * _intact(clean):.1f} %, concealed "
+        f"{100 * _intact(concealed):.1f} %"
     )
     assert counts["concealed"] > 0 and counts["resync"] >= 2, counts
     assert len(frames) >= 200, (len(frames), counts)  # 9 s at 30 fps less the 0.5 s blackout and losses
-    assert _worst_block_error(clean) < 40.0
+    assert _intact(clean) >= 0.9
     assert dark < 0.5, f"first frame {dark:.2f} s after the blackout: the stream waited for a keyframe"
 
 

@@ -22,6 +22,7 @@ import pytest
 pytest.importorskip("av")
 
 from flightstack.config.mission import CAMERA_MOUNTS
+from flightstack.config.tello_video import VideoSetting
 from flightstack.drivers.tello import TelloCommandError, TelloConfig, TelloDriver, TelloLinkError
 from flightstack.drivers.tello.camera import TelloCamera
 from flightstack.drivers.tello.rc import velocity_to_rc
@@ -445,5 +446,117 @@ def test_sdk20_with_default_video_port_passes(emu: TelloEmulator) -> None:
     try:
         d.connect()
         assert {c.name: c for c in d.preflight()}["firmware"].ok
+    finally:
+        d.close()
+
+
+# ---- the SDK 3.0 video settings of a lab file (flightstack/config/tello_video.py) --------------------------
+SETTINGS = (
+    VideoSetting("hardware.video.resolution", "setresolution low"),
+    VideoSetting("hardware.drones[id 1].video.fps", "setfps middle"),
+    VideoSetting("hardware.video.bitrate", "setbitrate 1"),
+)
+NOISE = [np.random.default_rng(k).integers(0, 256, (720, 960, 3), dtype=np.uint8) for k in range(8)]
+
+
+def noise_frame(t: float, emu: TelloEmulator) -> np.ndarray:
+    """A 960 × 720 picture no encoder can compress (one of 8 noise images, a new one every frame)."""
+    return NOISE[round(t * emu.fps) % len(NOISE)]
+
+
+def test_video_settings_are_sent_at_connect_and_change_the_stream() -> None:
+    emu = make_emulator(frame_source=noise_frame, fps=30.0, video_size=(960, 720))
+    emu.start()
+    d = TelloDriver(config(emu, video_settings=SETTINGS))
+    cam = TelloCamera(d, frame_timeout_s=10.0)
+    try:
+        d.connect()
+        checks = {c.name: c for c in d.preflight()}
+        assert [checks[f"video {k}"].detail for k in ("resolution", "fps", "bitrate")] == [
+            "`setresolution low` confirmed (ok)",
+            "`setfps middle` confirmed (ok)",
+            "`setbitrate 1` confirmed (ok)",
+        ]
+        assert all(c.ok for c in checks.values()), checks
+        assert [e.detail for e in d.events if e.kind == "video_setting"] == [s.command for s in SETTINGS]
+        assert (emu.resolution, emu.fps, emu.bitrate_mbps) == ("low", 15.0, 1)
+        cam.start()
+        texts = emu.command_texts()
+        sent = [texts.index(s.command) for s in SETTINGS]  # after `command`, `sdk?`; before `streamon`
+        assert texts.index("sdk?") < sent[0] < sent[1] < sent[2] < texts.index("streamon"), texts
+        time.sleep(1.0)  # past the first keyframe
+        n0, b0, t0 = emu.video_frames_sent, emu.video_bytes_sent, time.monotonic()
+        shapes = set()
+        while time.monotonic() < t0 + 3.0:
+            f = cam.latest()
+            if f is not None and f.image is not None:
+                shapes.add(f.image.shape)
+            time.sleep(0.02)
+        frames, dt = emu.video_frames_sent - n0, time.monotonic() - t0
+        mbps = 8e-6 * (emu.video_bytes_sent - b0) / frames * emu.fps  # at the stream's rate: skips aside
+        print(f"stream: {frames / dt:.1f} frames/s, {mbps:.2f} Mbit/s, decoded {shapes}")
+        assert shapes == {(478, 648, 3)}  # 480P as a real Tello EDU decodes (DJITelloPy #213)
+        assert 12.0 <= frames / dt <= 15.5, frames / dt  # setfps middle: 15 /s (a loaded machine skips some)
+        assert 0.4 <= mbps <= 2.0, mbps  # setbitrate 1: 1 Mbit/s (this noise at 30 fps, 720P: 81 Mbit/s)
+        cam.stop()
+        assert_clean(d, emu)
+    finally:
+        cam.stop()
+        d.close()
+        emu.close()
+
+
+def test_a_refused_or_unanswered_video_setting_fails_preflight_and_camera(emu: TelloEmulator) -> None:
+    """A firmware that does not know `setfps` (DJITelloPy #144, #219) and a `setbitrate` whose answers
+    are all lost: preflight FAILs one line each naming the key, the drone, its reply and the fix, and no
+    video is started."""
+    emu.faults.unknown_commands = {"setfps"}
+    emu.faults.lost_replies = {"setbitrate"}
+    settings = (VideoSetting("hardware.video.fps", "setfps high"), SETTINGS[2])
+    d = TelloDriver(config(emu, video_settings=settings, command_timeout_s=0.3))
+    try:
+        d.connect()
+        assert emu.fps == 30.0 and emu.bitrate_mbps == 1  # refused: not applied; unanswered: applied
+        checks = {c.name: c for c in d.preflight()}
+        fix = "remove the key or update the firmware (the SDK 3.0 video settings need a Tello EDU or Talent)"
+        assert not checks["video fps"].ok and checks["video fps"].detail == (
+            f"hardware.video.fps (`setfps high`): Tello {emu.ip} answered 'unknown command: setfps'; {fix}"
+        )
+        assert not checks["video bitrate"].ok and checks["video bitrate"].detail == (
+            f"hardware.video.bitrate (`setbitrate 1`): Tello {emu.ip} did not answer (4 tries); {fix}"
+        )
+        assert checks["firmware"].ok  # SDK 3.0: the firmware's version is not the reason
+        texts = emu.command_texts()
+        assert texts.count("setbitrate 1") == 4 and texts.count("setfps high") == 1
+        with pytest.raises(TelloCommandError, match=r"hardware\.video\.fps .*hardware\.video\.bitrate"):
+            TelloCamera(d).start()
+        assert "streamon" not in emu.command_texts()
+        assert [(text, reply) for _, _, text, reply in emu.refused] == [
+            ("setfps high", "unknown command: setfps")
+        ]
+        assert [e.kind for e in d.events if e.kind.startswith("video")] == ["video_setting_refused"] * 2
+    finally:
+        d.close()
+
+
+def test_sdk20_firmware_gets_no_video_settings(emu: TelloEmulator) -> None:
+    """Refused before sending, as `port` and `downvision` are: preflight names the settings, nothing of
+    them reaches the drone, the camera does not start."""
+    emu.faults.sdk_version = "20"
+    d = TelloDriver(config(emu, video_port=11111, video_settings=SETTINGS))
+    try:
+        d.connect()
+        checks = {c.name: c for c in d.preflight()}
+        fw = checks["firmware"]
+        assert not fw.ok and "SDK 2.0" in fw.detail
+        assert "video settings (`setresolution low`, `setfps middle`, `setbitrate 1`)" in fw.detail
+        assert not checks["video fps"].ok and checks["video fps"].detail.startswith(
+            f"hardware.drones[id 1].video.fps (`setfps middle`): not sent to Tello {emu.ip}: it reports "
+            "SDK 2.0, and SDK 3.0 is needed; remove the key or update the firmware"
+        )
+        with pytest.raises(TelloCommandError, match=r"SDK 2\.0.*video settings.*needs SDK 3\.0"):
+            TelloCamera(d).start()
+        assert not any(t.startswith(("set", "streamon")) for t in emu.command_texts()), emu.command_texts()
+        assert_clean(d, emu)
     finally:
         d.close()

@@ -5,7 +5,7 @@ the first time a ``Tello`` is constructed; the fixture points both at picked fre
 to the sender's port and streams its state to the port it is told), so the tests never hold 8889/8890 on
 every address and can run beside other emulators (each on its own address at 8889).  The emulated drone
 lives on 127.0.0.2; a second one (swarm routing) on 127.0.1.3 and raw-socket emulators on 127.0.1.4/5, so that
-other test modules may use 127.0.0.3+ in the same process; the fault-switch tests use 127.0.1.6-14.  Every
+other test modules may use 127.0.0.3+ in the same process; the fault-switch tests use 127.0.1.6-15.  Every
 datagram stays on 127.0.0.0/8.
 
 djitellopy quirks these tests rely on (verified against djitellopy 2.5.0):
@@ -535,12 +535,44 @@ def test_sdk20_firmware_answers_unknown_command_to_sdk30_verbs() -> None:
         for command in [*sdk30, "reboot"]:
             assert _ask(cli, emu, command) == f"unknown command: {command.split()[0]}"
         assert (emu.state_port, emu.video_port) == ports and not emu.downvision and emu.sdk_mode
+        assert (emu.fps, emu.bitrate_mbps, emu.resolution) == (30.0, 0, None)  # the video settings too
         assert _refusals(emu) == [
             ("landed", command, f"unknown command: {command.split()[0]}") for command in [*sdk30, "reboot"]
         ]
         emu.faults.sdk_version = "30"
         assert _ask(cli, emu, "downvision 1") == "ok" and emu.downvision
         assert len(emu.refused) == len(sdk30) + 1
+
+
+def test_sdk30_video_settings_are_answered_kept_and_set_the_stream_format() -> None:
+    """``setfps``, ``setresolution``, ``setbitrate`` with the SDK 3.0 guide's arguments answer ``ok`` and
+    set the stream's format (the forward camera's size only); any other argument answers ``error`` and
+    changes nothing; ``faults.unknown_commands`` makes an SDK 3.0 firmware not know a verb."""
+    with _raw_emu("127.0.1.15", video_size=(320, 240)) as (emu, cli, _):
+        assert _ask(cli, emu, "command") == "ok"
+        assert emu.stream_format() == (30.0, (320, 240), None)  # nothing received: the constructor's
+        for bad in (
+            "setfps 30",
+            "setfps",
+            "setresolution 720p",
+            "setbitrate 6",
+            "setbitrate -1",
+            "setbitrate x",
+        ):
+            assert _ask(cli, emu, bad) == "error", bad
+        assert emu.stream_format() == (30.0, (320, 240), None)
+        assert [text for _, text, _ in _refusals(emu)][-1] == "setbitrate x"
+        for good in ("setfps low", "setresolution high", "setbitrate 5"):
+            assert _ask(cli, emu, good) == "ok", good
+        assert emu.stream_format() == (5.0, (960, 720), 5_000_000)
+        assert _ask(cli, emu, "setresolution low") == "ok" and _ask(cli, emu, "setbitrate 0") == "ok"
+        assert _ask(cli, emu, "setfps middle") == "ok"
+        assert emu.stream_format() == (15.0, (648, 478), None)
+        assert _ask(cli, emu, "downvision 1") == "ok"
+        assert emu.stream_format() == (15.0, (320, 240), None)  # the downward picture keeps its own size
+        emu.faults.unknown_commands = {"setbitrate"}
+        assert _ask(cli, emu, "setbitrate 2") == "unknown command: setbitrate" and emu.bitrate_mbps == 0
+        assert _refusals(emu)[-1] == ("landed", "setbitrate 2", "unknown command: setbitrate")
 
 
 def test_phase_log_and_auto_land() -> None:

@@ -20,8 +20,9 @@ downstream against a prediction from outside the image (flightstack.vision.gate)
 a lost middle datagram is not detectable here. Before the stream's first intact keyframe nothing is
 published ("unsynced"): there is no picture to conceal from.
 
-A per-drone `video_port` (`port` command) and the downward camera need SDK 3.0: `start()` refuses them on
-older firmware before sending anything.
+A per-drone `video_port` (`port` command), the downward camera and the lab file's video settings need SDK
+3.0: `start()` refuses them on older firmware before sending anything, and refuses to stream when a video
+setting sent at connect was not confirmed (drivers/tello/video_settings.py).
 """
 
 from __future__ import annotations
@@ -36,15 +37,14 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from flightstack.drivers.tello import DEFAULT_VIDEO_PORT, TelloCommandError, TelloDriver
+from flightstack.drivers.tello.config import SDK3_FIX, SETUP_ATTEMPTS
 from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog
 from flightstack.drivers.tello.traffic import TrafficWriter
 from flightstack.drivers.tello.video_check import StreamCheck
+from flightstack.drivers.tello.video_settings import unconfirmed
 from flightstack.hal import Frame, frame_truth
 
 LOG = logging.getLogger("flightstack.tello")
-SETUP_ATTEMPTS = 4
-"""Tries of each video set-up command (`port`, `downvision 1`, `streamon`; all idempotent): on a lossy
-Wi-Fi (2 % loss in bursts of 2 both ways) two tries of one command failed in a few % of start-ups."""
 STREAM_COUNT_KEYS = (
     "datagrams", "frames", "concealed", "unsynced", "decode_error", "recv_error", "reader_error",
     "thread_error", "lost_head", "lost_tail", "frame_gap", "damaged_units", "resync", "framing_off",
@@ -214,15 +214,18 @@ class TelloCamera:
     def start(self) -> None:
         """Open the video port, select port and camera, `streamon`, wait for the first decoded frame.
 
-        TelloCommandError names what failed. Needs SDK 3.0 for a per-drone video port or the downward
-        camera: refused before sending."""
+        TelloCommandError names what failed. Needs SDK 3.0 for a per-drone video port, the downward camera
+        or video settings: refused before sending; and every video setting confirmed at connect."""
         d = self.driver
         need = d.cfg.sdk3_features
         if need and (d.sdk_version is None or float(d.sdk_version) < 3.0):
             raise TelloCommandError(
                 f"Tello {d.cfg.host} reports SDK {d.sdk_version or 'unknown'}; {', '.join(need)} needs "
-                "SDK 3.0 (fly in access-point mode with the default video port instead)"
+                f"SDK 3.0: {SDK3_FIX}"
             )
+        refused = unconfirmed(d.cfg, d.video_outcomes)
+        if refused:  # the lab file's video settings, sent at connect: no video without them
+            raise TelloCommandError("; ".join(refused))
         port = d.cfg.video_port
         try:  # bound before streamon, so that the first keyframe is not lost
             rx = VideoReceiver(port, "", self.counts, d.traffic)

@@ -7,14 +7,26 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from flightstack.config.tello_video import VideoSetting
 from flightstack.drivers.tello.phase import PhaseThresholds
 from flightstack.drivers.tello.rc import RcGains
 
 DEFAULT_VIDEO_PORT = 11111
+SETUP_ATTEMPTS = 4
+"""Tries of each video set-up command (the SDK 3.0 video settings, `port`, `downvision 1`, `streamon`; all
+idempotent): on a lossy Wi-Fi (2 % loss in bursts of 2 both ways) two tries of one command failed in a
+few % of start-ups."""
 TELLO_OWN_TIMEOUT_S = 15.0
 """A flying Tello that hears no command datagram for this long lands by itself; until then it flies its
 last `rc` on (s; SDK 2.0/3.0 guides, "Safety Function"; DJITelloPy #141). What is left when no process of
 ours can command it: the safety layer bounds its climb by it (hal.HoldsLastCommand)."""
+
+
+SDK3_FIX = (
+    "update the firmware (SDK 3.0: a Tello EDU or Talent), or fly without them (access-point mode with "
+    "the default video port, the forward camera, no `video:` keys in the lab file)"
+)
+"""What to do when a mission needs SDK 3.0 features the drone's firmware lacks (`sdk3_features`)."""
 
 
 class TelloLinkError(ConnectionError):
@@ -66,6 +78,9 @@ class TelloConfig:
     max_temperature_c: float = 85.0
     min_wifi_snr: float = 20.0
     downward_camera: bool = False
+    video_settings: tuple[VideoSetting, ...] = ()
+    """SDK 3.0 video settings (`setfps`, `setresolution`, `setbitrate`) sent and confirmed at connect
+    (drivers/tello/video_settings.py)."""
     phase: PhaseThresholds = field(default_factory=PhaseThresholds)
 
     def __post_init__(self) -> None:
@@ -88,6 +103,8 @@ class TelloConfig:
             need.append(f"per-drone video port {self.video_port} (`port`)")
         if self.downward_camera:
             need.append("downward camera (`downvision`)")
+        if self.video_settings:
+            need.append(f"video settings ({', '.join(f'`{v.command}`' for v in self.video_settings)})")
         return need
 
 

@@ -10,8 +10,9 @@ phase from drivers/tello/phase.py, the flags that decide what may be sent), `exc
 tello_exchange.py: blocking command and reply), `sticks` (drivers/tello/sticks.py: `rc`, hover,
 `emergency`), `flight` (drivers/tello/flight.py: takeoff and land), `rejoin` (drivers/tello/rejoin.py:
 `command` again while the state stream is silent) and `watchdog` (drivers/tello/watchdog.py: link
-freshness, loop watchdog). This module wires them, adds `connect`, `close` and
-`preflight`, and is the import path (settings, errors and reply parsers: drivers/tello/config.py).
+freshness, loop watchdog). This module wires them, adds `connect` (with the lab file's SDK 3.0 video
+settings: drivers/tello/video_settings.py), `close` and `preflight`, and is the import path (settings,
+errors and reply parsers: drivers/tello/config.py).
 
 Principles (telemetry decides, replies are advisory, nothing the drone would reject in its phase, never
 blocking the control loop, the loop watchdog, lands re-sent until telemetry shows the descent, link loss
@@ -51,6 +52,7 @@ from flightstack.drivers.tello.rejoin import SdkRejoin
 from flightstack.drivers.tello.status import DriverEvents, DriverStatus
 from flightstack.drivers.tello.sticks import Sticks
 from flightstack.drivers.tello.traffic import TrafficWriter
+from flightstack.drivers.tello.video_settings import SettingOutcome, send_video_settings
 from flightstack.drivers.tello.watchdog import Watchdog
 from flightstack.events import Event
 from flightstack.hal import DroneState, FlightPhase
@@ -71,9 +73,10 @@ __all__ = [
 class TelloDriver:
     """hal.Drone for one Tello (see the module docstring for the behaviour on every failure).
 
-    `events` (source tello, time.monotonic() s) and `counts` are the driver's log; `sdk_version` and
-    `serial` are read by `connect`. `traffic` (optional): where the link and the camera record the drone's
-    raw traffic (drivers/tello/traffic.py; the caller closes it after `close()`)."""
+    `events` (source tello, time.monotonic() s) and `counts` are the driver's log; `sdk_version`,
+    `serial` and `video_outcomes` (the SDK 3.0 video settings' answers) are read by `connect`. `traffic`
+    (optional): where the link and the camera record the drone's raw traffic (drivers/tello/traffic.py;
+    the caller closes it after `close()`)."""
 
     def __init__(self, cfg: TelloConfig, traffic: TrafficWriter | None = None) -> None:
         self.cfg = cfg
@@ -90,10 +93,12 @@ class TelloDriver:
         self.watchdog = Watchdog(cfg, self.status, self._log, self.sticks, self.rejoin, land=self.land)
         self.sdk_version: str | None = None
         self.serial: str | None = None
+        self.video_outcomes: tuple[SettingOutcome, ...] = ()
 
     # ---- hal.Drone ----------------------------------------------------------------------------------
     def connect(self) -> None:
-        """SDK mode, confirmed by the state stream, within connect_timeout_s; then `sdk?` and `sn?`.
+        """SDK mode, confirmed by the state stream, within connect_timeout_s; then `sdk?`, `sn?` and the
+        SDK 3.0 video settings (drivers/tello/video_settings.py: their answers in `video_outcomes`).
 
         Idempotent (a connected driver returns at once). TelloLinkError names the drone's address."""
         if self.watchdog.running():
@@ -128,6 +133,7 @@ class TelloDriver:
         st.link_up = True
         self.sdk_version = self.query("sdk?", parse_sdk)
         self.serial = self.query("sn?", parse_serial)
+        self.video_outcomes = send_video_settings(cfg, self.sdk_version, self.exchange, self._log)
         self.watchdog.start()
 
     def close(self) -> None:

@@ -90,17 +90,23 @@ class CommandExchange:
                     self._events.add("reply_rejected", f"{command!r} got {r!r}")
             return None
 
+    def answer(self, command: str, timeout: float, attempts: int = 2) -> str | None:
+        """The first answer to `command` within `timeout` s, sent again (up to `attempts` tries in all)
+        while none comes; None when every try went unanswered."""
+        for _ in range(attempts):
+            reply = self.request(command, timeout, accept=lambda r: True)
+            if reply is not None:
+                return reply
+        return None
+
     def control(self, command: str, timeout: float, attempts: int = 2) -> None:
         """A command with no telemetry effect (`streamon`, `port`, …): an `ok` within `timeout` s, retried
         once when no answer came; TelloCommandError on an error answer or silence."""
-        for _ in range(attempts):
-            reply = self.request(command, timeout, accept=lambda r: True)
-            if reply is None:
-                continue
-            if reply.lower() == "ok":
-                return
+        reply = self.answer(command, timeout, attempts)
+        if reply is None:
+            raise TelloCommandError(f"Tello {self._cfg.host}: {command!r} got no answer ({attempts} tries)")
+        if reply.lower() != "ok":
             raise TelloCommandError(f"Tello {self._cfg.host}: {command!r} answered {reply!r}")
-        raise TelloCommandError(f"Tello {self._cfg.host}: {command!r} got no answer ({attempts} tries)")
 
     def query(self, command: str, parse: Callable[[str], str | None], attempts: int = 2) -> str | None:
         """A read command (`sdk?`, `sn?`, `wifi?`): the first reply `parse` accepts, or None."""

@@ -8,7 +8,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Protocol
 
-from flightstack.drivers.tello.config import PreflightCheck, TelloConfig, parse_int_reply
+from flightstack.drivers.tello.config import SDK3_FIX, PreflightCheck, TelloConfig, parse_int_reply
+from flightstack.drivers.tello.video_settings import SettingOutcome, outcomes_of
 from flightstack.hal import FlightPhase
 
 
@@ -27,6 +28,9 @@ class PreflightTarget(Protocol):
     @property
     def phase(self) -> FlightPhase: ...
 
+    @property
+    def video_outcomes(self) -> tuple[SettingOutcome, ...]: ...
+
     def current_state(self) -> dict[str, float]: ...
 
     def link_alive(self) -> bool: ...
@@ -35,7 +39,8 @@ class PreflightTarget(Protocol):
 
 
 def tello_preflight(driver: PreflightTarget) -> list[PreflightCheck]:
-    """Battery, temperature, state stream, on the ground, SDK version and serial, Wi-Fi signal."""
+    """Battery, temperature, state stream, on the ground, SDK version and serial, the lab file's SDK 3.0
+    video settings, Wi-Fi signal."""
     st, cfg = driver.current_state(), driver.cfg
     bat, temp = st.get("bat"), st.get("temph")
     checks = [
@@ -57,6 +62,7 @@ def tello_preflight(driver: PreflightTarget) -> list[PreflightCheck]:
         PreflightCheck("on the ground", ph is FlightPhase.GROUND, f"phase {ph.value}, h {st.get('h')} cm")
     )
     checks.append(sdk_check(driver))
+    checks += video_checks(driver)
     snr = driver.query("wifi?", parse_int_reply)
     checks.append(
         PreflightCheck(
@@ -79,5 +85,19 @@ def sdk_check(driver: PreflightTarget) -> PreflightCheck:
         ok = not need or float(sdk) >= 3.0
         detail = f"SDK {sdk}, serial {sn}"
     if not ok:
-        detail += f"; this mission needs SDK 3.0 for {', '.join(need)}: use access-point mode"
+        detail += f"; this mission needs SDK 3.0 for {', '.join(need)}: {SDK3_FIX}"
     return PreflightCheck("firmware", ok, detail)
+
+
+def video_checks(driver: PreflightTarget) -> list[PreflightCheck]:
+    """One check per SDK 3.0 video setting of the lab file: FAIL unless the drone answered `ok` at connect
+    (the line names the key, the drone, its reply and the fix); none when the lab file sets none."""
+    host = driver.cfg.host
+    return [
+        PreflightCheck(
+            f"video {o.setting.key.rsplit('.', 1)[-1]}",
+            o.ok,
+            f"`{o.setting.command}` confirmed (ok)" if o.ok else o.refusal(host),
+        )
+        for o in outcomes_of(driver.cfg, driver.video_outcomes)
+    ]

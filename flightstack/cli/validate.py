@@ -78,7 +78,12 @@ def mission_summary(m: Mission) -> list[str]:
     if hw is not None:
         robot = f"robot at {hw.target.url}" if hw.target is not None else "no robot driven (target: null)"
         lines.append(f"hardware ({hw.topology}): mocap {hw.mocap.system}; {robot}")
-        tellos = ", ".join(f"{d.id} at {d.ip}:{d.control_port} (video {d.video_port})" for d in hw.drones)
+        tellos = ", ".join(
+            f"{d.id} at {d.ip}:{d.control_port} (video {d.video_port}"
+            + "".join(f", `{v.command}`" for v in hw.video_settings(d.id))
+            + ")"
+            for d in hw.drones
+        )
         lines.append(f"    tellos {tellos}")
     return lines
 

@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
+from flightstack.config.tello_video import TelloVideoSpec, VideoSetting, video_settings
 from flightstack.config.types import Positive
 from flightstack.config.types import Strict as _Strict
 
@@ -19,7 +20,8 @@ class TelloHardwareSpec(_Strict):
     router's lease in station mode). Ports: 8889 (commands) on a real drone; `video_port` is where it
     streams on this computer (station mode with several drones: one port each, needs SDK 3.0).
     `loop_hover_s`/`loop_land_s`: the driver's loop watchdog: a control loop silent this long (s) makes
-    the drone hover, then land by itself (docs/safety.md)."""
+    the drone hover, then land by itself (docs/safety.md). `video`: this drone's SDK 3.0 video settings,
+    over the lab's `hardware.video` key by key (flightstack.config.tello_video)."""
 
     id: int = Field(ge=0, lt=2**16)
     ip: str = Field(pattern=r"^\d{1,3}\.\d{1,3}\.\d{1,3}\.\d{1,3}$")
@@ -33,6 +35,7 @@ class TelloHardwareSpec(_Strict):
     loop_land_s: Annotated[float, Field(gt=0, lt=15)] = 2.0
     max_temperature_c: Positive = 85.0
     frame_timeout_s: Positive = 5.0
+    video: TelloVideoSpec | None = None
 
     @model_validator(mode="after")
     def _loop_watchdog_order(self) -> TelloHardwareSpec:
@@ -85,7 +88,8 @@ class HardwareSpec(_Strict):
     over Zenoh on another interface; works with SDK 2.0 and the default video port. `station` — every
     Tello joins the lab Wi-Fi, one process may fly them all; several drones' video needs per-drone ports,
     which need SDK 3.0 (preflight checks). `state_port`: the local UDP port the drones' state streams
-    arrive at (8890 on real Tellos; the tests use a free one)."""
+    arrive at (8890 on real Tellos; the tests use a free one). `video`: SDK 3.0 video settings of every
+    drone (`setfps`, `setresolution`, `setbitrate`; flightstack.config.tello_video), sent at connect."""
 
     topology: Literal["access_point", "station"] = "access_point"
     state_port: int = Field(default=8890, ge=1, le=65535)
@@ -93,6 +97,7 @@ class HardwareSpec(_Strict):
     mocap: MocapHardwareSpec
     target: TargetHardwareSpec | None = None
     max_frame_age_s: Positive = 0.5
+    video: TelloVideoSpec | None = None
 
     @model_validator(mode="after")
     def _unique(self) -> HardwareSpec:
@@ -121,6 +126,10 @@ class HardwareSpec(_Strict):
 
     def drone(self, drone_id: int) -> TelloHardwareSpec:
         return next(d for d in self.drones if d.id == drone_id)
+
+    def video_settings(self, drone_id: int) -> tuple[VideoSetting, ...]:
+        """The SDK 3.0 video settings of drone `drone_id`: its own `video` keys over the lab's."""
+        return video_settings(self.video, self.drone(drone_id).video, drone_id)
 
     def body(self, name: str) -> str:
         """The motion-capture name of flightstack body `name` (`drone<ID>` or `target`)."""

@@ -91,14 +91,15 @@ class TelloEmulatorBase:
             client_ip: loopback address of the client (state and video destination).
             video_port: client port receiving the H.264 stream (djitellopy: ``Tello(vs_udp=...)``).
             frame_source: ``f(t, emu) -> image``; defaults to :func:`default_frame_source`.
-            fps: video frame rate.
+            fps: video frame rate (frames/s; ``setfps`` changes it).
             takeoff_s: duration of the takeoff (the ``ok`` comes at its end); default the recorded
                 ``recorded.TAKEOFF_OK_S`` (8.7 s), ``FAST_TAKEOFF_S`` for tests not about the takeoff.
             takeoff_hover_s: the last part of the takeoff spent hovering at height before the ``ok``
                 (a real Tello stabilises at height for seconds before it answers; 0: the climb lasts
                 the whole takeoff, up to ``TAKEOFF_CLIMB_S``).
             faults: fault switches (a fresh :class:`TelloFaults` when None).
-            video_size: ``(width, height)`` of every frame, even numbers; one size per emulator.
+            video_size: ``(width, height)`` of every frame the camera renders, even numbers; one size per
+                emulator (the stream carries it at the ``setresolution`` size once one is received).
             auto_land_s: land by itself after this long without any command while flying (real: 15 s).
             land_s: duration of the landing (the ``ok`` comes at its end).
             takeoff_height_cm: height reached by ``takeoff``.
@@ -199,6 +200,10 @@ class TelloEmulatorBase:
         self.sdk_mode = False
         self.streaming = False
         self.downvision = False
+        self.resolution: str | None = None
+        """The ``setresolution`` argument received (None: none; the stream keeps ``video_size``)."""
+        self.bitrate_mbps = 0
+        """The ``setbitrate`` argument received: a target of n Mbit/s; 0 (auto): libx264's own choice."""
         self.landed_by_timeout = False
         self.speed_setting = 100.0
         self._phase = "landed"  # landed | takeoff | flying | landing

@@ -39,6 +39,12 @@ not ``ok`` (error texts differ between firmwares). Sources are abbreviated as in
   fail to ``int()``-parse); ``height?`` and ``tof?`` answer the state line's ``h`` and ``tof``
   (*unverified*). ``port <state> <video>`` re-targets the streams; ``downvision 1`` only flips
   ``emu.downvision`` (same video size: one encoder per stream).
+* **Video settings** (SDK 3.0, ``flightstack.config.tello_video``): ``setfps high|middle|low`` sets ``fps``
+  (30, 15, 5 frames/s), ``setresolution high|low`` the forward stream's size (960 × 720, 648 × 478;
+  ``resolution``), ``setbitrate 0..5`` the encoder's target (``bitrate_mbps``: n Mbit/s, 0 auto: libx264's
+  own rate control); the stream takes them from its next frame, with a new encoder. Another argument
+  answers ``error`` (*unverified*); SDK 2.0 firmware answers ``unknown command: setfps`` (DJITelloPy #144,
+  #219), and so does any firmware for a verb in ``faults.unknown_commands``.
 * **Several controllers** (e.g. the guardian of drivers/guardian.py): in SDK mode commands from any source
   port run and each sender is logged in ``senders``; replies go to the sender (DJITelloPy #143), or with
   ``reply_port_latch=True`` (Tello EDU) to the address of the first ``command`` (DJITelloPy PR #163, #168;
@@ -53,6 +59,8 @@ from __future__ import annotations
 import logging
 import time
 
+from flightstack.config.tello_video import FPS_ARGS, VERBS, parse_argument
+
 from .base import DeferredReply
 from .faults import SDK3_ONLY_COMMANDS, has_sdk3
 from .net import is_loopback
@@ -60,9 +68,8 @@ from .physics import TelloPhysics, wrap_deg
 
 LOG = logging.getLogger(f"{__package__}.tello")  # the public module's logger, as before the split
 
-_READ_ONLY_OK = frozenset(
-    {"keepalive", "mon", "moff", "mdirection", "setbitrate", "setresolution", "setfps", "wifi", "ap", "EXT"}
-)
+_READ_ONLY_OK = frozenset({"keepalive", "mon", "moff", "mdirection", "wifi", "ap", "EXT"})
+_VIDEO_VERBS = frozenset(VERBS.values())  # setfps, setresolution, setbitrate
 _MOVES = {"up": (0, 0, 1), "down": (0, 0, -1), "left": (0, -1, 0), "right": (0, 1, 0)}
 _MOVES |= {"forward": (1, 0, 0), "back": (-1, 0, 0)}
 
@@ -123,7 +130,9 @@ class TelloCommands(TelloPhysics):
                     self._reply(reply, reply_addr, now, delay)
                 return
             self._last_cmd_t = now
-            if verb in SDK3_ONLY_COMMANDS and not has_sdk3(faults.sdk_version):
+            if verb in faults.unknown_commands or (
+                verb in SDK3_ONLY_COMMANDS and not has_sdk3(faults.sdk_version)
+            ):
                 answer: str | None = f"unknown command: {verb}"
             elif verb == "rc":
                 answer = self._rc_command(args, now, phase)
@@ -241,6 +250,8 @@ class TelloCommands(TelloPhysics):
                 return "out of range"
             self.speed_setting = speed
             return "ok"
+        if verb in _VIDEO_VERBS:
+            return self._video_setting(verb, args)
         if verb in ("motoron", "motoroff"):
             return "ok" if self._phase == "landed" else "error"
         if verb in _READ_ONLY_OK:
@@ -248,6 +259,21 @@ class TelloCommands(TelloPhysics):
         if verb in _MOVES or verb in ("cw", "ccw", "go", "curve", "jump", "flip", "stop"):
             return self._move(verb, args)
         return f"unknown command: {verb}"
+
+    def _video_setting(self, verb: str, args: list[str]) -> str:
+        """``setfps``, ``setresolution`` or ``setbitrate`` (SDK 3.0): kept, and applied by the video stream
+        from its next frame (``video.TelloVideoStream.stream_format``); an argument the SDK 3.0 guide does
+        not list answers ``error`` (*unverified*: no report of the real answer)."""
+        arg = parse_argument(verb, args[0]) if len(args) == 1 else None
+        if isinstance(arg, int) and verb == "setbitrate":
+            self.bitrate_mbps = arg
+        elif isinstance(arg, str) and verb == "setfps":
+            self.fps = FPS_ARGS[arg]
+        elif isinstance(arg, str) and verb == "setresolution":
+            self.resolution = arg
+        else:
+            return "error"
+        return "ok"
 
     def _move(self, verb: str, args: list[str]) -> str:
         if self._phase in ("takeoff", "landing"):

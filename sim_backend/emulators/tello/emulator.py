@@ -37,7 +37,8 @@ class TelloEmulator(TelloCommands, TelloVideoStream):
     phase transition), ``refused`` (``(time, phase at receipt, text, reply or "ignored")`` of every command
     the drone did not carry out), ``replies_sent`` (``(time, text, "normal" | "duplicate")`` of every reply
     sent), ``uplink_lost`` / ``downlink_lost`` (datagrams a link or power fault lost), ``power_log``,
-    ``flying``, ``phase``, ``downvision``, ``streaming``, ``sdk_mode``, ``landed_by_timeout``,
+    ``flying``, ``phase``, ``downvision``, ``streaming``, ``sdk_mode``, ``fps``, ``resolution``,
+    ``bitrate_mbps`` (the SDK 3.0 video settings in force), ``landed_by_timeout``,
     ``landed_by_battery``, ``state_packets_sent``, ``state_packets_lost``, ``video_frames_sent``,
     ``errors``, ``rejected``.  Lists are only appended to;
     take ``list(emu.commands)`` for a snapshot. With the rig's rc link (``links``) a datagram is recorded

@@ -149,6 +149,11 @@ class TelloFaults:
     during its own landing the drone "will ignore any further commands until it has landed but is still
     sending through status updates"). The threshold is *unverified* (no published number; the emulator refuses
     takeoff below ``MIN_TAKEOFF_BATTERY`` = 10 %, so the two agree); None disables the self-landing."""
+    unknown_commands: set[str] = field(default_factory=set)
+    """Verbs this firmware does not know, whatever its ``sdk?`` says: answered ``unknown command: <verb>``
+    and not carried out (recorded in ``emu.refused``). DJITelloPy #144: ``unknown command: setresolution``
+    from a Tello whose app called its firmware up to date; DJITelloPy #219: ``unknown command: setbitrate``
+    from a Tello (Boost Combo) with updated firmware."""
     sdk_version: str = "30"
     """The answer to ``sdk?``.  Below ``"30"`` (e.g. ``"20"``, Tello/Tello EDU on SDK 2.0 firmware) every verb
     in :data:`SDK3_ONLY_COMMANDS` (``port``, ``downvision``, ``setfps``, ``setbitrate``, ``setresolution``,

@@ -6,7 +6,9 @@ interpreter lock.
 emulator's video thread publishes the stream state (`streamon`, its epoch, `downvision`, the `no_video`
 fault) and its true pose (its own frame: cm, yaw clockwise in degrees) every 10 ms into a shared-memory
 block; `SharedTarget` carries the target's (the rover's) pose in Σw (m, rad), written by the emulated lab
-at 100 Hz and read by every camera. The child (`spawn` start method: no inherited threads or locks)
+at 100 Hz and read by every camera; `configure` gives the stream's format (the SDK 3.0 settings the
+emulator received: frame rate, size, bit rate; the picture is scaled to the size), which the child takes
+with a new encoder. The child (`spawn` start method: no inherited threads or locks)
 paces frames at `fps` from its `streamon`, reads both poses, renders (`tello_view.CameraView`), stamps the
 frame index as a bar code (`tello_frames.stamp_frame_index`), encodes and sends from the drone's
 loopback ip to (client_ip, video_port) with the emulator's own `make_encoder`/`send_frame`.
@@ -55,6 +57,7 @@ from ..device_links import LINK_COUNTERS
 from ..radio import COUNTERS
 from .base import TelloEmulatorBase
 from .recorded import KEYFRAME_INTERVAL_FRAMES
+from .video import StreamFormat
 from .view import CameraSpec
 
 RING = 1 << 15
@@ -79,6 +82,8 @@ _RADIO_ROW = (*COUNTERS, "delay_mean_ms")
 _LINK = 5
 _RADIO = _LINK + len(_LINK_ROW)
 _STATS_HEAD = _RADIO + len(_RADIO_ROW)
+# format block (parent writes on a change of the SDK 3.0 settings): fps, width, height, bit rate (0: none)
+_FORMAT_N = 4
 
 
 def f64(raw: Any) -> np.ndarray:
@@ -162,6 +167,8 @@ class VideoProcess:
         self.path = path or VideoPath()
         self.spec, self.ip, self.dest, self.fps, self.gop_size = spec, ip, dest, float(fps), int(gop_size)
         self._ctrl_raw = ctx.RawArray(ctypes.c_double, _CTRL_N + 1)
+        self._format_raw = ctx.RawArray(ctypes.c_double, _FORMAT_N + 1)
+        self.format = SeqBlock(self._format_raw, _FORMAT_N)
         self._width = _RECORD + 2 * len(spec.feature_points)  # one ring record's doubles
         self._stats_raw = ctx.RawArray(ctypes.c_double, _STATS_HEAD + self._width * RING)
         self._epoch = -1  # the stream epoch last published
@@ -188,6 +195,7 @@ class VideoProcess:
                     errors_tx,
                     os.getpid(),
                     self.path,
+                    self._format_raw,
                 ),
             ),
             name=f"tello-camera-{ip}",
@@ -228,6 +236,12 @@ class VideoProcess:
             self._epoch = epoch
             self.truth_px.clear()
         self.ctrl.write([float(on), float(epoch), float(downvision), x, y, z, yaw_deg, time.monotonic()])
+
+    def configure(self, fmt: StreamFormat) -> None:
+        """The stream's format from now on (frames/s, (width, height) px, bit/s or None: the SDK 3.0
+        settings the emulator received: video.TelloVideoStream.stream_format)."""
+        fps, (width, height), bit_rate = fmt
+        self.format.write([fps, width, height, 0.0 if bit_rate is None else bit_rate])
 
     def sync(self, emu: TelloEmulatorBase) -> None:
         """Copy the child's counters, new capture records and errors into the emulator's logs."""
@@ -289,7 +303,8 @@ class VideoProcess:
 class ChildArgs:
     """What the camera's child process is started with: the camera, its addresses (the drone's ip; the
     client's (ip, port)), rate (frames/s) and keyframe interval (frames), the shared blocks (control,
-    target, stats), the error pipe's sending end, the parent's pid and the frames' way out."""
+    target, stats), the error pipe's sending end, the parent's pid, the frames' way out and the stream's
+    format block (`VideoProcess.configure`: the SDK 3.0 settings, over `fps` and the camera's size)."""
 
     spec: CameraSpec
     ip: str
@@ -302,6 +317,7 @@ class ChildArgs:
     errors: Connection
     parent: int
     path: VideoPath
+    format_raw: Any
 
 
 def _child_main(a: ChildArgs) -> None:
@@ -322,12 +338,13 @@ def _run(a: ChildArgs) -> None:
     from ..device_links import DeviceLinks
     from ..radio import DeviceRadio
     from .frames import stamp_frame_index
-    from .video import frame_datagrams, make_encoder
+    from .video import frame_datagrams, make_encoder, scaled, scaled_pixels
     from .view import CameraView, drone_world_pose
 
     spec, ip, dest, fps, gop_size, path = a.spec, a.ip, a.dest, a.fps, a.gop_size, a.path
     ctrl_raw, target_raw, stats_raw, parent = a.ctrl_raw, a.target_raw, a.stats_raw, a.parent
     ctrl = SeqBlock(ctrl_raw, _CTRL_N - 1)
+    formats = SeqBlock(a.format_raw, _FORMAT_N)
     stop = f64(ctrl_raw)
     target = SeqBlock(target_raw, 4)
     st = f64(stats_raw)
@@ -349,6 +366,8 @@ def _run(a: ChildArgs) -> None:
     period = 1.0 / fps
     encoder: Any = None
     epoch, index, t0 = -1.0, 0, 0.0
+    fmt: StreamFormat = (fps, spec.size, None)  # until `configure`
+    size = spec.size
     st[_READY] = 1.0
 
     def report(now: float) -> None:
@@ -381,9 +400,12 @@ def _run(a: ChildArgs) -> None:
                 encoder = None
                 time.sleep(0.01)
                 continue
-            if encoder is None or c[_EPOCH - 1] != epoch:
-                encoder = make_encoder(spec.size, fps, gop_size)
-                epoch, index, t0 = c[_EPOCH - 1], 0, time.monotonic()
+            f = formats.read()  # None until configured, or torn: the last good format stays
+            now_fmt = fmt if f is None else (float(f[0]), (int(f[1]), int(f[2])), int(f[3]) or None)
+            if encoder is None or c[_EPOCH - 1] != epoch or now_fmt != fmt:  # a new setting: a new stream
+                fmt = now_fmt
+                encoder = make_encoder(fmt[1], fmt[0], gop_size, fmt[2])
+                epoch, index, t0, period, size = c[_EPOCH - 1], 0, time.monotonic(), 1.0 / fmt[0], fmt[1]
             now = time.monotonic()
             due = t0 + index * period
             if due > now:
@@ -400,8 +422,8 @@ def _run(a: ChildArgs) -> None:
                 g_w0 = Pose.make([0.0, 0.0, -1e3], 0.0)  # no target yet: far below the floor, unseen
             else:
                 g_w0 = Pose.make([tg[0], tg[1], 0.0], tg[2])
-            img = view.image(g_wi, g_w0)
-            truth = view.true_pixels(g_wi, g_w0).reshape(-1).tolist()
+            img = scaled(view.image(g_wi, g_w0), size)
+            truth = scaled_pixels(view.true_pixels(g_wi, g_w0), spec.size, size).reshape(-1).tolist()
             stamp_frame_index(img, index)
             datagrams = frame_datagrams(encoder, img, index)
             t_capture = float(c[_T - 1])
@@ -418,8 +440,8 @@ def _run(a: ChildArgs) -> None:
             leaves = max(leaves, time.monotonic())
             for rec in leaving:  # a newer frame pushes the older ones out ahead of it (radio.DelayLine)
                 rec[2] = min(rec[2], leaves)
-            size = float(sum(len(d) for d in datagrams))
-            leaving.append([float(index - 1), t_capture, leaves, size, *truth])
+            nbytes = float(sum(len(d) for d in datagrams))
+            leaving.append([float(index - 1), t_capture, leaves, nbytes, *truth])
         report(time.monotonic())
     finally:
         links.close()
