@@ -190,8 +190,9 @@ def run_camera_wizard(
 
 
 def write_calibration(cal: CameraCalibration, out: str | Path) -> list[str]:
-    """Write `cal` to `out` (YAML, or JSON for *.json) atomically. Marker colours of an existing valid
-    calibration file of the same image size at `out` are kept; returns notes about what was kept."""
+    """Write `cal` to `out` (YAML, or JSON for *.json) atomically. What an existing valid calibration file
+    of the same image size at `out` says about the target and the stream (its marker colours or fiducial,
+    its image kind and stream layout) is kept; returns notes about what was kept."""
     out = Path(out)
     notes: list[str] = []
     if out.exists():
@@ -199,8 +200,21 @@ def write_calibration(cal: CameraCalibration, out: str | Path) -> list[str]:
             old = load_calibration(out)
         except CalibrationError:
             old = None
-        if old is not None and old.markers and (old.width, old.height) == (cal.width, cal.height):
-            cal = CameraCalibration(**{**cal.__dict__, "markers": old.markers})
-            notes.append(f"kept the {len(old.markers)} marker colour(s) already in {out}")
+        if old is not None and (old.width, old.height) == (cal.width, cal.height):
+            kept = {
+                "markers": old.markers,
+                "fiducial": old.fiducial,
+                "image": old.image,
+                "stream": old.stream,
+            }
+            cal = CameraCalibration(**{**cal.__dict__, **kept})
+            if old.markers:
+                notes.append(f"kept the {len(old.markers)} marker colour(s) already in {out}")
+            if old.fiducial is not None:
+                notes.append(
+                    f"kept the fiducial (ArUco {old.fiducial.dictionary} id {old.fiducial.id}) in {out}"
+                )
+            if old.image != "colour" or old.stream is not None:
+                notes.append(f"kept the image kind ({old.image}) and stream layout already in {out}")
     cal.save(out)
     return notes

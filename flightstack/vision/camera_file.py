@@ -1,4 +1,4 @@
-"""The camera calibration file: intrinsics, lens distortion and the target's marker colours.
+"""The camera calibration file: intrinsics, lens distortion, image kind, what the camera finds on the target.
 
 One YAML file per camera (written by `flightstack calibrate`, read by missions and the sim renderer):
 
@@ -16,11 +16,29 @@ One YAML file per camera (written by `flightstack calibrate`, read by missions a
       square_m: 0.0195           # square side, or circle spacing (metres)
     views:                       # optional: the views used, with their reprojection RMS (pixels)
       - {name: left01.jpg, error_px: 0.41}
-    markers:                     # one entry per target feature point, in the order of p0^j
+    image: colour                # colour (default: RGB frames) | grey (one channel: the Tello EDU's
+                                 # downward IR camera)
+    stream:                      # optional: the decoded frame when the picture is only part of it
+      width: 320                 # the frame as the stream delivers it (pixels)
+      height: 720
+      picture: [0, 0, 320, 240]  # x, y, width, height (pixels) of the picture in it: the crop the driver
+                                 # takes; width and height are the calibration's
+    markers:                     # EITHER colour discs: one entry per target feature point, in p0^j order
       - name: red
         hsv_lo: [170, 120, 80]   # OpenCV HSV: H in 0..179, S and V in 0..255
         hsv_hi: [8, 255, 255]    # hue wraps around when hsv_lo[0] > hsv_hi[0]
         rgb: [220, 30, 30]       # the colour the simulator paints (optional)
+    fiducial:                    # OR one ArUco marker whose four corners are the feature points (m = 4)
+      dictionary: DICT_4X4_50    # an OpenCV predefined ArUco dictionary
+      id: 0                      # the marker's id in it
+      side_m: 0.2                # side of the marker, outer edge of its black border (metres)
+      corners: [1, 0, 3, 2]      # corners[j]: the ArUco corner (0 top-left, 1 top-right, 2 bottom-right,
+                                 # 3 bottom-left of the printed marker, upright) that is feature point j
+      quiet_zone_m: 0.05         # white margin around the marker on the board (metres; default side / 4)
+
+A camera declares colour `markers` or a `fiducial`, not both; a grey camera cannot tell colour discs apart,
+so `image: grey` with `markers` is refused (use a `fiducial`). How the fiducial's corners must match the
+experiment's feature points: flightstack.vision.fiducial.placement_problem.
 
 Pixel coordinates follow OpenCV: u to the right, v down, origin at the centre of the top-left pixel. The
 principal point (cx, cy) must lie in the image: −0.5 ≤ cx ≤ width − 0.5, −0.5 ≤ cy ≤ height − 0.5.
@@ -65,6 +83,45 @@ class MarkerColour:
         return self.hsv_lo[0] > self.hsv_hi[0]
 
 
+IMAGE_KINDS = ("colour", "grey")
+"""What a camera's frames hold: `colour` (H × W × 3 RGB uint8) or `grey` (H × W uint8)."""
+FIDUCIAL_CORNERS = 4
+"""Feature points of a fiducial: its four corners (the paper's m = 4)."""
+DEFAULT_QUIET_ZONE = 0.25
+"""A fiducial's default quiet zone, as a fraction of its side (white margin on each side of the marker)."""
+
+
+@dataclass(frozen=True)
+class StreamLayout:
+    """Where the picture lies in the frame the camera's stream delivers (pixels, OpenCV convention).
+
+    width, height: the decoded frame's size; x, y: the picture's top-left pixel in it; the picture's size is
+    the calibration's width × height (the crop `flightstack.drivers.tello.camera.TelloCamera` takes).
+    """
+
+    width: int
+    height: int
+    x: int
+    y: int
+
+
+@dataclass(frozen=True)
+class Fiducial:
+    """One OpenCV ArUco marker on the target; its four corners are the feature points.
+
+    dictionary: the name of an OpenCV predefined dictionary (cv2.aruco.DICT_*); id: the marker's id in it;
+    side_m: the marker's side, the outer edge of its black border (m); corners[j]: the ArUco corner (0
+    top-left, 1 top-right, 2 bottom-right, 3 bottom-left of the upright printed marker, OpenCV's order)
+    that is feature point j; quiet_zone_m: the white margin around it on the board (m).
+    """
+
+    dictionary: str
+    id: int
+    side_m: float
+    corners: tuple[int, int, int, int]
+    quiet_zone_m: float
+
+
 @dataclass(frozen=True)
 class CameraCalibration:
     width: int
@@ -79,6 +136,28 @@ class CameraCalibration:
     pattern: dict[str, object] | None = None
     #: optional: (view name, reprojection RMS in px) of every view the intrinsics were fitted to
     views: tuple[tuple[str, float], ...] = ()
+    #: what the frames hold: "colour" (RGB) or "grey" (IMAGE_KINDS)
+    image: str = "colour"
+    #: where the picture lies in the streamed frame; None: the frame is the picture
+    stream: StreamLayout | None = None
+    #: the target's ArUco marker (its corners are the feature points); None: colour `markers` or nothing
+    fiducial: Fiducial | None = None
+
+    @property
+    def grey(self) -> bool:
+        """True when the camera's frames are grey (H × W), False for RGB (H × W × 3)."""
+        return self.image == "grey"
+
+    @property
+    def feature_count(self) -> int:
+        """How many feature points the camera finds on the target: 4 for a fiducial, else one per marker."""
+        return FIDUCIAL_CORNERS if self.fiducial is not None else len(self.markers)
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height) in pixels of the frame the stream delivers (the picture's without `stream`)."""
+        s = self.stream
+        return (self.width, self.height) if s is None else (s.width, s.height)
 
     @property
     def fx(self) -> float:
@@ -120,6 +199,9 @@ class CameraCalibration:
                 if self.views
                 else {}
             ),
+            **({"image": self.image} if self.image != "colour" else {}),
+            **({"stream": _stream_dict(self.stream, self)} if self.stream is not None else {}),
+            **({"fiducial": _fiducial_dict(self.fiducial)} if self.fiducial is not None else {}),
         }
 
     def save(self, path: str | Path) -> None:
@@ -140,6 +222,20 @@ class CameraCalibration:
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
+
+
+def _stream_dict(s: StreamLayout, cal: CameraCalibration) -> dict[str, object]:
+    return {"width": s.width, "height": s.height, "picture": [s.x, s.y, cal.width, cal.height]}
+
+
+def _fiducial_dict(f: Fiducial) -> dict[str, object]:
+    return {
+        "dictionary": f.dictionary,
+        "id": f.id,
+        "side_m": f.side_m,
+        "corners": list(f.corners),
+        "quiet_zone_m": f.quiet_zone_m,
+    }
 
 
 def _triple(v: object, key: str, hi: int) -> tuple[int, int, int]:
@@ -165,6 +261,9 @@ def calibration_from_dict(d: object, source: str = "<calibration>") -> CameraCal
         "markers",
         "pattern",
         "views",
+        "image",
+        "stream",
+        "fiducial",
     }
     for k in d:
         if k not in known:
@@ -206,6 +305,20 @@ def calibration_from_dict(d: object, source: str = "<calibration>") -> CameraCal
             raise CalibrationError(f"{source}: {key}: hue must be in 0..179 (OpenCV HSV)")
         rgb = _triple(m["rgb"], f"{key}.rgb", 255) if m.get("rgb") is not None else None
         markers.append(MarkerColour(str(m.get("name", f"marker{j}")), lo, hi, rgb))
+    image = d.get("image", "colour")
+    if image not in IMAGE_KINDS:
+        raise CalibrationError(f"{source}: image: one of {', '.join(IMAGE_KINDS)} required, got {image!r}")
+    fiducial = _fiducial(d.get("fiducial"), source)
+    if fiducial is not None and markers:
+        raise CalibrationError(
+            f"{source}: markers: a camera finds either colour markers or a fiducial; remove `markers:` "
+            "or `fiducial:`"
+        )
+    if image == "grey" and markers:
+        raise CalibrationError(
+            f"{source}: markers: a grey camera (image: grey) cannot tell colour markers apart; declare the "
+            "target's ArUco `fiducial:` instead (docs/calibration.md#the-fiducial)"
+        )
     rms = d.get("rms_px")
     if rms is not None and not (
         isinstance(rms, int | float) and not isinstance(rms, bool) and math.isfinite(rms) and rms >= 0
@@ -222,7 +335,78 @@ def calibration_from_dict(d: object, source: str = "<calibration>") -> CameraCal
         str(d.get("date", "")),
         _pattern(d.get("pattern"), source),
         _views(d.get("views"), source),
+        str(image),
+        _stream(d.get("stream"), w, h, source),
+        fiducial,
     )
+
+
+def _count(v: object) -> bool:
+    """A non-negative integer (not a bool)."""
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+
+def _stream(s: object, w: int, h: int, source: str) -> StreamLayout | None:
+    """Validate the optional `stream` mapping {width, height, picture: [x, y, w, h]} (pixels)."""
+    if s is None:
+        return None
+    if not isinstance(s, dict) or set(s) != {"width", "height", "picture"}:
+        raise CalibrationError(f"{source}: stream: expected keys width, height, picture (pixels)")
+    fw, fh, pic = s["width"], s["height"], s["picture"]
+    if not (_count(fw) and _count(fh) and 0 < fw <= MAX_IMAGE_PX and 0 < fh <= MAX_IMAGE_PX):
+        raise CalibrationError(
+            f"{source}: stream.width/height: integers in 1..{MAX_IMAGE_PX} (pixels) required"
+        )
+    if not (isinstance(pic, list) and len(pic) == 4 and all(_count(v) for v in pic)):
+        raise CalibrationError(f"{source}: stream.picture: [x, y, width, height], 4 integers >= 0 (pixels)")
+    x, y, pw, ph = (int(v) for v in pic)
+    if (pw, ph) != (w, h):
+        raise CalibrationError(
+            f"{source}: stream.picture: the picture is {pw}x{ph} but the calibration is for {w}x{h}; "
+            "its width and height must be the calibration's"
+        )
+    if x + pw > fw or y + ph > fh:
+        raise CalibrationError(
+            f"{source}: stream.picture: [{x}, {y}, {pw}, {ph}] does not fit in the {fw}x{fh} frame"
+        )
+    return StreamLayout(int(fw), int(fh), x, y)
+
+
+def _fiducial(f: object, source: str) -> Fiducial | None:
+    """Validate the optional `fiducial` mapping (see the module docstring)."""
+    if f is None:
+        return None
+    required, optional = {"dictionary", "id", "side_m", "corners"}, {"quiet_zone_m"}
+    if not isinstance(f, dict) or not required <= set(f) or set(f) - required - optional:
+        raise CalibrationError(
+            f"{source}: fiducial: expected keys dictionary, id, side_m, corners[, quiet_zone_m]"
+        )
+    import cv2  # lazy: the dictionary names are OpenCV's
+
+    name = f["dictionary"]
+    ident = getattr(cv2.aruco, name, None) if isinstance(name, str) and name.startswith("DICT_") else None
+    if not isinstance(ident, int):
+        raise CalibrationError(
+            f"{source}: fiducial.dictionary: the name of an OpenCV ArUco dictionary such as DICT_4X4_50 "
+            f"required, got {name!r}"
+        )
+    size = cv2.aruco.getPredefinedDictionary(ident).bytesList.shape[0]
+    if not (_count(f["id"]) and f["id"] < size):
+        raise CalibrationError(f"{source}: fiducial.id: an integer in 0..{size - 1} ({name}) required")
+    if not _positive(f["side_m"]):
+        raise CalibrationError(f"{source}: fiducial.side_m: positive number (metres) required")
+    corners = f["corners"]
+    if not (isinstance(corners, list) and sorted(corners) == list(range(FIDUCIAL_CORNERS))):
+        raise CalibrationError(
+            f"{source}: fiducial.corners: the ArUco corners 0, 1, 2, 3 in the order of the feature points "
+            f"(each once) required, got {corners!r}"
+        )
+    side = float(f["side_m"])
+    quiet = f.get("quiet_zone_m", DEFAULT_QUIET_ZONE * side)
+    if not _positive(quiet):
+        raise CalibrationError(f"{source}: fiducial.quiet_zone_m: positive number (metres) required")
+    c0, c1, c2, c3 = (int(c) for c in corners)
+    return Fiducial(name, int(f["id"]), side, (c0, c1, c2, c3), float(quiet))
 
 
 PATTERN_KINDS = ("chessboard", "charuco", "acircles")
