@@ -59,7 +59,8 @@ _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-1
 
 @dataclass(frozen=True)
 class MarkerDetection:
-    """Result of extract_markers for one frame; either all m markers or a rejection with its reason.
+    """Result of extract_markers (or of detect_fiducial) for one frame; either all m markers or a rejection
+    with its reason.
 
     pixels: (m, 2) sub-pixel centres (u, v) in the distorted image (pixels), in cal.markers order; None if
         rejected.
@@ -67,7 +68,8 @@ class MarkerDetection:
         (dimensionless), same order; None if rejected.
     reason: why the frame was rejected (names the marker), None if accepted.
     areas: (m,) coverage-weighted blob areas in px (Σ weights / weight of a fully covered pixel, ≈ the
-        projected disc area, edge pixels counted fractionally); None if rejected.
+        projected disc area, edge pixels counted fractionally); None if rejected, and for a fiducial's
+        corners (flightstack.vision.fiducial), which have no area.
     """
 
     pixels: np.ndarray | None
@@ -330,13 +332,18 @@ def extract_markers(
     implausible = _implausible(pixels, areas, cal.markers, max_area_ratio, min_spacing)
     if implausible is not None:
         return MarkerDetection.rejected(implausible)
-    normalized = cv2.undistortPoints(
-        pixels.reshape(-1, 1, 2),
+    return MarkerDetection(pixels, normalise(pixels, cal), None, areas)
+
+
+def normalise(pixels: np.ndarray, cal: CameraCalibration) -> np.ndarray:
+    """Undistorted normalised coordinates (x/z, y/z) in Σc, (m, 2), of pixels (m, 2) in the distorted image
+    (cv2.undistortPoints with the calibration's K and distortion, iterated to 1e-12)."""
+    return cv2.undistortPoints(
+        np.asarray(pixels, dtype=float).reshape(-1, 1, 2),
         np.asarray(cal.camera_matrix, dtype=float),
         np.asarray(cal.dist_coeffs, dtype=float),
         criteria=_UNDISTORT_CRITERIA,
-    ).reshape(m, 2)
-    return MarkerDetection(pixels, normalized, None, areas)
+    ).reshape(-1, 2)
 
 
 def _implausible(
