@@ -108,6 +108,7 @@ class LabSimBackend:
             noise_std=sim.render.noise_std,
             blur_px=sim.render.blur_px,
             region=sim.render.region,
+            floor=sim.render.floor,
         )
         self.calibrations = {}
         self._cams = {}

@@ -530,7 +530,8 @@ MOUNTS = CAMERA_MOUNTS
 
 
 class RenderedCamera:
-    """hal.Camera that renders the target's markers as seen by a drone's camera (image only).
+    """hal.Camera that renders the target's markers (or its fiducial, over the floor the render options
+    name) as seen by a drone's camera (image only; grey for a grey camera).
 
     Without a video link (or a perfect one) every call renders the present. With one, frames are taken
     at k / rate_hz, each rendered from the world as it was then (LabWorld.history) and stamped with that
@@ -562,9 +563,10 @@ class RenderedCamera:
     def centres_only(self, noise_px: float) -> None:
         """Give frames without an image: the markers' exact normalised centres (the lab's λ = 1 image
         features) plus Gaussian noise of noise_px pixels (divided by fx, fy), or no features unless every
-        disc lies inside the image (its projected centre ± its radius in pixels, at least 1 pixel from
-        the border, each centre at least 0.05 m in front). Much cheaper than rendering and extraction;
-        results differ from theirs within the measurement noise (docs/performance.md)."""
+        disc lies inside the image (its projected centre ± its radius in pixels, a fiducial's corners ±
+        its quiet zone, at least 1 pixel from the border, each centre at least 0.05 m in front). Much
+        cheaper than rendering and extraction; results differ from theirs within the measurement noise
+        (docs/performance.md)."""
         self.centre_noise_px = noise_px
 
     def delay_frames(self, link: LinkDelays, rate_hz: float) -> None:
@@ -592,6 +594,7 @@ class RenderedCamera:
 
     def _render(self, taken: float, drone: Pose, robot: Pose) -> Frame:
         """The image of the markers seen from `drone` with the robot at `robot`, stamped `taken` (s)."""
+        from flightstack.sim_backend.floor import floor_view
         from flightstack.sim_backend.render import (
             marker_centres_in_camera,
             markers_in_camera,
@@ -605,7 +608,8 @@ class RenderedCamera:
             self.frames += 1
             return Frame(taken, None, self._centres(centres_c, self.centre_noise_px))
         centres_c, normal_c = markers_in_camera(g_i0, self.P0, self.R_ic, self.t_ic)
-        image, _, _, roi = render_markers_region(self.cal, centres_c, normal_c, self.opts, self.rng)
+        floor = floor_view(drone, self.R_ic, self.t_ic) if self.opts.floor != "plain" else None
+        image, _, _, roi = render_markers_region(self.cal, centres_c, normal_c, self.opts, self.rng, floor)
         self.frames += 1
         return Frame(taken, image, None, roi, truth_px=true_pixels(self.cal, centres_c))
 
@@ -621,7 +625,9 @@ class RenderedCamera:
             return None
         px, _ = cv2.projectPoints(centres_c, _ZERO3, _ZERO3, cal.camera_matrix, cal.dist_coeffs)
         px = px.reshape(-1, 2)
-        r_px = max(cal.fx, cal.fy) * self.opts.marker_radius_m / z_min  # the largest disc's radius (px)
+        # how far the target's print reaches beyond its points: a disc's radius, a fiducial's quiet zone
+        reach_m = self.opts.marker_radius_m if cal.fiducial is None else cal.fiducial.quiet_zone_m
+        r_px = max(cal.fx, cal.fy) * reach_m / z_min  # (px)
         lo, hi = px.min(axis=0) - r_px, px.max(axis=0) + r_px
         if lo[0] < 0.5 or lo[1] < 0.5 or hi[0] > cal.width - 1.5 or hi[1] > cal.height - 1.5:
             return None

@@ -1,4 +1,4 @@
-"""The simulated camera image: the target's coloured disc markers seen through a calibrated lens.
+"""The simulated camera image: the target's coloured discs or its ArUco fiducial, through a calibrated lens.
 
 Frames and units: marker centres and normals are given in the physical camera frame Σc (metres; z = optical
 axis, x right, y down, as in OpenCV and flightstack.paper.projection). Pixel coordinates follow OpenCV: u to
@@ -17,10 +17,21 @@ Polygons that leave the field of view are clipped in 3-D against a near plane an
 normalised image plane against a rectangle slightly larger than the image before distortion is
 applied: OpenCV's polynomial distortion folds back far outside the field of view (k1 < 0), and without
 the clip a disc 77° off-axis (x/z = 4.2, k1 = −0.05) would be painted inside the image.
+
+A calibration with a `fiducial` gets its ArUco board instead (flightstack.vision.fiducial): the marker's
+black and white cells and its white quiet zone on the plane of the four feature points (its corners, in
+the calibration's corner order). Each pixel of the board's box is sampled `supersample`² times at
+sub-pixel centres; a sample's ray (its undistorted normalised coordinates, interpolated from the
+calibration's per-pixel ones) meets the board's plane through a homography, and the sample takes the
+colour of the cell it lands in; the samples are area-averaged (cv2.INTER_AREA), as the discs' masks are.
+A grey camera (`image: grey`) is rendered as one channel (H × W). The floor is plain
+(`RenderOptions.background_rgb`) or, with `floor="tiles"` and the camera's pose given, the tiled pattern
+of flightstack.sim_backend.floor.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -28,7 +39,8 @@ import cv2
 import numpy as np
 
 from flightstack.paper.geometry import Pose, rot_z
-from flightstack.vision.camera_file import CameraCalibration
+from flightstack.sim_backend.floor import FloorView, floor_image, grey_range
+from flightstack.vision.camera_file import CameraCalibration, Fiducial
 
 #: Discs closer than this to the camera plane (metres along z) are clipped away.
 NEAR_PLANE_M = 1e-3
@@ -48,6 +60,13 @@ _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-1
 
 #: Where the simulated camera adds its pixel noise (RenderOptions.region).
 REGIONS = ("full", "markers")
+#: What the floor shows (RenderOptions.floor): one grey, or flightstack.sim_backend.floor's tiles.
+FLOORS = ("plain", "tiles")
+#: Grey levels of a printed matte fiducial board's white paper and black cells as the camera sees them.
+BOARD_WHITE = 225
+BOARD_BLACK = 25
+#: Points per edge of a fiducial board's outline (its edges bend under lens distortion).
+_BOARD_EDGE_POINTS = 32
 #: Pixels by which the noisy rectangle of region "markers" extends beyond the painted markers: more than
 #: marker extraction's window around a blob (flightstack.vision.markers: dilation 3 + ring 2, + 1 when
 #: it searches a frame shrunk by 2, + 1 for the shrunk pixel's size).
@@ -64,6 +83,8 @@ class RenderOptions:
     blur_px: motion-blur length in pixels along blur_dir_rad (0 = none).
     blur_dir_rad: blur direction in the image, radians from the +u axis towards +v.
     supersample: anti-aliasing factor (samples per pixel per axis).
+    floor: "plain" (background_rgb) or "tiles" (flightstack.sim_backend.floor; needs the camera's pose,
+        `render_markers_region`'s floor argument, else the floor is plain).
     region: where the pixel noise is added. "full": every pixel. "markers": only in the rectangle
         around the painted markers (grown by ROI_MARGIN_PX and the blur), with exactly the random
         numbers the full frame would have drawn there (the generator is advanced past the rest); the
@@ -78,10 +99,13 @@ class RenderOptions:
     blur_dir_rad: float = 0.0
     supersample: int = 4
     region: str = "full"
+    floor: str = "plain"
 
     def __post_init__(self) -> None:
         if self.region not in REGIONS:
             raise ValueError(f"region must be one of {', '.join(REGIONS)}, got {self.region!r}")
+        if self.floor not in FLOORS:
+            raise ValueError(f"floor must be one of {', '.join(FLOORS)}, got {self.floor!r}")
         if not (self.marker_radius_m > 0 and math.isfinite(self.marker_radius_m)):
             raise ValueError(f"marker_radius_m must be > 0, got {self.marker_radius_m}")
         if not (self.noise_std >= 0 and self.blur_px >= 0):
@@ -280,19 +304,88 @@ def _noise_span(rng: np.random.Generator, n: int, e0: int, e1: int, std: float) 
 _QUIET_CACHE: dict[tuple[object, ...], bool] = {}
 
 
-def _noise_never_fires(cal: CameraCalibration, background: tuple[int, int, int], amplitude: int) -> bool:
-    """Whether no background pixel with noise of at most `amplitude` grey levels per channel is inside any
-    marker's colour box (flightstack.vision.markers.fires): checked on every such pixel, cached."""
-    key = (tuple(cal.markers), background, amplitude)
+def _noise_never_fires(
+    cal: CameraCalibration, backgrounds: tuple[tuple[int, int, int], ...], amplitude: int
+) -> bool:
+    """Whether no background pixel (any of `backgrounds`, RGB) with noise of at most `amplitude` grey levels
+    per channel is inside any marker's colour box (flightstack.vision.markers.fires): checked on every
+    such pixel, cached."""
+    key = (tuple(cal.markers), backgrounds, amplitude)
     quiet = _QUIET_CACHE.get(key)
     if quiet is None:
         from flightstack.vision.markers import fires
 
         d = np.arange(-amplitude, amplitude + 1)
-        grid = np.stack(np.meshgrid(d, d, d, indexing="ij"), axis=-1).reshape(-1, 3) + np.array(background)
+        cube = np.stack(np.meshgrid(d, d, d, indexing="ij"), axis=-1).reshape(-1, 3)
+        grid = (cube[None, :, :] + np.array(backgrounds)[:, None, :]).reshape(-1, 3)
         quiet = not fires(np.clip(grid, 0, 255).astype(np.uint8), cal)
         _QUIET_CACHE[key] = quiet
     return quiet
+
+
+@dataclass(frozen=True)
+class NormalisedGrid:
+    """The undistorted normalised coordinates (x/z, y/z) in Σc of a calibration's pixel centres, float32.
+
+    padded: (H + 2, W + 2, 2), of every pixel centre from −1 to W (columns) and −1 to H (rows): entry
+    [i + 1, j + 1] is pixel (row i, column j); pixels: (H, W, 2), the image's own (a contiguous copy);
+    bounds: (x_min, x_max, y_min, y_max) of `pixels`.
+    """
+
+    padded: np.ndarray
+    pixels: np.ndarray
+    bounds: tuple[float, float, float, float]
+
+
+_GRID_CACHE: dict[tuple[object, ...], NormalisedGrid] = {}
+
+
+def normalised_grid(cal: CameraCalibration) -> NormalisedGrid:
+    """The calibration's NormalisedGrid, computed once (cv2.undistortPoints, iterated to 1e-12); read-only."""
+    K = np.asarray(cal.camera_matrix, dtype=float)
+    dist = np.asarray(cal.dist_coeffs, dtype=float).reshape(-1)
+    key = (cal.width, cal.height, K.tobytes(), dist.tobytes())
+    grid = _GRID_CACHE.get(key)
+    if grid is None:
+        us, vs = np.meshgrid(
+            np.arange(-1, cal.width + 1, dtype=float), np.arange(-1, cal.height + 1, dtype=float)
+        )
+        px = np.stack([us, vs], axis=-1).reshape(-1, 1, 2)
+        xy = cv2.undistortPoints(px, K, dist, criteria=_UNDISTORT_CRITERIA).reshape((*us.shape, 2))
+        padded = np.ascontiguousarray(xy, dtype=np.float32)
+        pixels = np.ascontiguousarray(padded[1:-1, 1:-1])
+        padded.setflags(write=False)
+        pixels.setflags(write=False)
+        x, y = pixels[:, :, 0], pixels[:, :, 1]
+        grid = NormalisedGrid(
+            padded, pixels, (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
+        )
+        if len(_GRID_CACHE) >= 8:
+            _GRID_CACHE.clear()
+        _GRID_CACHE[key] = grid
+    return grid
+
+
+def _background(
+    cal: CameraCalibration, opts: RenderOptions, floor: FloorView | None
+) -> tuple[np.ndarray, tuple[tuple[int, int, int], ...]]:
+    """The frame before anything is painted on it, (H, W) grey or (H, W, 3) RGB uint8, and the RGB colours
+    it can hold (for the `markers` region's promise)."""
+    W, H = int(cal.width), int(cal.height)
+    if opts.floor == "tiles" and floor is not None:
+        grid = normalised_grid(cal)
+        grey = floor_image(grid.pixels, floor, grid.bounds)
+        lo, hi = grey_range()
+        colours = tuple((g, g, g) for g in range(max(0, lo), min(255, hi) + 1))
+        image = grey if cal.grey else np.ascontiguousarray(np.repeat(grey[:, :, None], 3, axis=2))
+        return image, colours
+    if cal.grey:
+        r, g, b = opts.background_rgb
+        level = round(0.299 * r + 0.587 * g + 0.114 * b)
+        return np.full((H, W), level, dtype=np.uint8), ((level, level, level),)
+    row = np.tile(np.asarray(opts.background_rgb, dtype=np.uint8), W)
+    image = np.ascontiguousarray(np.broadcast_to(row, (H, 3 * W))).reshape(H, W, 3)
+    return image, (tuple(int(c) for c in opts.background_rgb),)  # type: ignore[return-value]
 
 
 def markers_in_camera(
@@ -320,9 +413,10 @@ def render_markers(
     normals_c: np.ndarray | None,
     opts: RenderOptions,
     rng: np.random.Generator | None = None,
+    floor: FloorView | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(image, true_px, in_view) of `render_markers_region` (its documentation)."""
-    image, true_px, in_view, _ = render_markers_region(cal, centres_c, normals_c, opts, rng)
+    image, true_px, in_view, _ = render_markers_region(cal, centres_c, normals_c, opts, rng, floor)
     return image, true_px, in_view
 
 
@@ -332,44 +426,167 @@ def render_markers_region(
     normals_c: np.ndarray | None,
     opts: RenderOptions,
     rng: np.random.Generator | None = None,
+    floor: FloorView | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int, int] | None]:
-    """Paint the m disc markers into a simulated camera frame.
+    """Paint the target's disc markers, or its fiducial board, into a simulated camera frame.
 
-    centres_c: (m, 3) marker centres in the camera frame Σc (metres), in the order of cal.markers.
+    centres_c: (m, 3) the feature points in the camera frame Σc (metres), in the calibration's order: the
+        disc centres (cal.markers), or the fiducial's corners (m = 4, cal.fiducial.corners).
     normals_c: (m, 3) disc normals in Σc (any length, either sign), or None: each disc faces the camera
-        (normal along the line of sight to its centre).
-    opts: radius, background, blur, noise, supersampling.
+        (normal along the line of sight to its centre). Unused for a fiducial (its corners span its plane).
+    opts: radius, background, floor, blur, noise, supersampling.
     rng: source of the pixel noise (only used when opts.noise_std > 0; None: a fresh default_rng()).
+    floor: the camera's pose over the floor (flightstack.sim_backend.floor.floor_view), for opts.floor
+        "tiles"; None: a plain floor.
 
     Returns
-        image: (H, W, 3) uint8 RGB.
-        true_px: (m, 2) ground truth, cv2.projectPoints of each centre with K and the distortion
-            (pixels, OpenCV convention); NaN for a centre on or behind the camera plane (z ≤ 0).
-        in_view: (m,) bool, the centre is in front of the camera (z > 0.05 m) AND the whole disc is
-            inside the image without reaching its outermost row/column of pixels (every outline point
-            in [½, W − 3/2] × [½, H − 3/2]), so an unblurred in-view marker never touches the border.
+        image: (H, W, 3) uint8 RGB, or (H, W) uint8 for a grey camera (cal.grey).
+        true_px: (m, 2) ground truth, cv2.projectPoints of each centre (corner) with K and the distortion
+            (pixels, OpenCV convention); NaN for a point on or behind the camera plane (z ≤ 0).
+        in_view: (m,) bool, the point is in front of the camera (z > 0.05 m) AND the whole disc (the
+            whole board with its quiet zone) is inside the image without reaching its outermost
+            row/column of pixels (every outline point in [½, W − 3/2] × [½, H − 3/2]), so an unblurred
+            in-view marker never touches the border.
         roi: with opts.region "markers", the rectangle (x0, y0, x1, y1) (pixels, end exclusive; empty
-            when nothing was painted) outside which the frame is the background, which no marker's
-            colour box accepts, with or without the noise (flightstack.vision.markers.extract_markers'
-            `roi`); None with region "full" or when that cannot be promised (then the whole frame is
-            noisy, as with "full").
+            when nothing was painted) outside which the frame shows no marker: for discs, only floor,
+            which no marker's colour box accepts, with or without the noise
+            (flightstack.vision.markers.extract_markers' `roi`); for a fiducial, the board and its quiet
+            zone lie inside it, ROI_MARGIN_PX from its edges (its detector searches the whole frame). None
+            with region "full" or when that cannot be promised (then the whole frame is noisy, as with
+            "full").
 
-    Markers are drawn far to near (painter's order by centre depth); discs behind the camera are not
-    drawn, discs partly outside the image are drawn clipped. Raises ValueError when the shapes do not
-    match the calibration's markers or a marker has no `rgb` paint colour.
+    Discs are drawn far to near (painter's order by centre depth); discs behind the camera are not drawn,
+    discs partly outside the image are drawn clipped; so is the board. Raises ValueError when the shapes
+    do not match the calibration's feature points or a marker has no `rgb` paint colour.
     """
-    markers = cal.markers
-    m = len(markers)
+    m = cal.feature_count
     centres = np.asarray(centres_c, dtype=float)
     if centres.shape != (m, 3):
         raise ValueError(
-            f"centres_c: expected shape ({m}, 3) for {m} calibration markers, got {centres.shape}"
+            f"centres_c: expected shape ({m}, 3) for {m} calibration feature points, got {centres.shape}"
         )
     if not np.all(np.isfinite(centres)):
         raise ValueError("centres_c must be finite")
+    W, H = int(cal.width), int(cal.height)
+    K = np.asarray(cal.camera_matrix, dtype=float)
+    dist = np.asarray(cal.dist_coeffs, dtype=float).reshape(-1)
+    image, backgrounds = _background(cal, opts, floor)
+
+    true_px = np.full((m, 2), np.nan)
+    front = centres[:, 2] > 0.0
+    if front.any():
+        px, _ = cv2.projectPoints(centres[front], np.zeros(3), np.zeros(3), K, dist)
+        true_px[front] = px.reshape(-1, 2)
+    if cal.fiducial is not None:
+        in_view, boxes = _paint_board(image, cal, centres, opts)
+    else:
+        in_view, boxes = _paint_discs(image, cal, centres, normals_c, opts)
+
+    grow = ROI_MARGIN_PX
+    if opts.blur_px > 0.0 and boxes:
+        kern = _line_kernel(opts.blur_px, opts.blur_dir_rad)
+        image = _blur_boxes(image, kern, boxes)
+        grow += kern.shape[0] // 2
+    roi: tuple[int, int, int, int] | None = None
+    if opts.region == "markers":
+        amplitude = int(np.abs(_noise_table(opts.noise_std)).max()) if opts.noise_std > 0.0 else 0
+        if cal.fiducial is not None or _noise_never_fires(cal, backgrounds, amplitude):
+            if boxes:
+                b = np.array(boxes)
+                roi = (
+                    max(0, int(b[:, 0].min()) - grow),
+                    max(0, int(b[:, 1].min()) - grow),
+                    min(W, int(b[:, 2].max()) + grow),
+                    min(H, int(b[:, 3].max()) + grow),
+                )
+            else:
+                roi = (0, 0, 0, 0)
+    if opts.noise_std > 0.0:
+        gen = rng if rng is not None else np.random.default_rng()
+        if roi is None:
+            noisy = _gaussian_noise_int16(gen, image.size, opts.noise_std).reshape(image.shape)
+            noisy += image
+            np.clip(noisy, 0, 255, out=noisy)
+            image = noisy.astype(np.uint8)
+        else:  # the rows of the rectangle drawn, the rest of the frame's draws skipped
+            x0, y0, x1, y1 = roi
+            y1 = max(y0, y1)
+            ch = 1 if image.ndim == 2 else 3
+            band = _noise_span(gen, image.size, y0 * W * ch, y1 * W * ch, opts.noise_std)
+            if x1 > x0 and y1 > y0:
+                view = image.reshape(H, W, ch)
+                patch = band.reshape(y1 - y0, W, ch)[:, x0:x1] + view[y0:y1, x0:x1]
+                np.clip(patch, 0, 255, out=patch)
+                view[y0:y1, x0:x1] = patch
+    return image, true_px, in_view, roi
+
+
+def _project_outline(
+    P: np.ndarray, cal: CameraCalibration, rect: tuple[float, float, float, float]
+) -> tuple[np.ndarray | None, bool]:
+    """The pixels (n, 2) of the closed 3-D outline P (n, 3) in Σc, clipped against the near plane and the
+    normalised rectangle `rect` (x0, x1, y0, y1) before distortion, and whether it was clipped; None when
+    nothing of it is left or the distortion gives non-finite pixels."""
+    rx0, rx1, ry0, ry1 = rect
+    clipped = False
+    if P[:, 2].min() < NEAR_PLANE_M:
+        P = _clip_polygon(P, P[:, 2] - NEAR_PLANE_M)
+        clipped = True
+        if len(P) < 3:
+            return None, clipped
+    xy = P[:, :2] / P[:, 2:3]
+    for axis, bound, sign in ((0, rx0, 1.0), (0, rx1, -1.0), (1, ry0, 1.0), (1, ry1, -1.0)):
+        vals = sign * (xy[:, axis] - bound)
+        if vals.min() < 0.0:
+            xy = _clip_polygon(xy, vals)
+            clipped = True
+            if len(xy) < 3:
+                break
+    if len(xy) < 3:
+        return None, clipped
+    if clipped:  # straight clip edges must stay straight-ish after distortion
+        xy = _densify(xy, 0.01 * max(rx1 - rx0, ry1 - ry0))
+    poly = _distort(xy, cal)
+    if not np.all(np.isfinite(poly)):
+        return None, clipped
+    return poly, clipped
+
+
+def _pixel_box(poly: np.ndarray, W: int, H: int) -> tuple[int, int, int, int] | None:
+    """The pixel box (x0, y0, x1, y1), end exclusive, that can receive any coverage from the polygon
+    (pixel k covers [k − ½, k + ½]); None when it is empty."""
+    lo = poly.min(axis=0)
+    hi = poly.max(axis=0)
+    bx0 = max(0, math.floor(lo[0] + 0.5))
+    by0 = max(0, math.floor(lo[1] + 0.5))
+    bx1 = min(W, math.floor(hi[0] + 0.5) + 1)
+    by1 = min(H, math.floor(hi[1] + 0.5) + 1)
+    if bx1 <= bx0 or by1 <= by0:
+        return None
+    return bx0, by0, bx1, by1
+
+
+def _inside(poly: np.ndarray, W: int, H: int) -> bool:
+    """Every outline point in [½, W − 3/2] × [½, H − 3/2] (pixels)."""
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    return bool(lo[0] >= 0.5 and lo[1] >= 0.5 and hi[0] <= W - 1.5 and hi[1] <= H - 1.5)
+
+
+def _paint_discs(
+    image: np.ndarray,
+    cal: CameraCalibration,
+    centres: np.ndarray,
+    normals_c: np.ndarray | None,
+    opts: RenderOptions,
+) -> tuple[np.ndarray, list[tuple[int, int, int, int]]]:
+    """Paint the colour discs into the RGB `image` in place: (in_view (m,), the painted pixel boxes)."""
+    markers = cal.markers
+    m = len(markers)
     missing = [mk.name for mk in markers if mk.rgb is None]
     if missing:
         raise ValueError(f"markers without an rgb paint colour: {', '.join(missing)}")
+    if m and image.ndim != 3:
+        raise ValueError("colour markers need a colour camera (the calibration's image is grey)")
     if normals_c is None:
         normals = -centres
     else:
@@ -382,23 +599,11 @@ def render_markers_region(
             "normals_c must be finite and non-zero (and centres_c non-zero when normals_c is None)"
         )
     normals = normals / norms[:, None]
-
     W, H = int(cal.width), int(cal.height)
-    K = np.asarray(cal.camera_matrix, dtype=float)
-    dist = np.asarray(cal.dist_coeffs, dtype=float).reshape(-1)
-    row = np.tile(np.asarray(opts.background_rgb, dtype=np.uint8), W)
-    image = np.ascontiguousarray(np.broadcast_to(row, (H, 3 * W))).reshape(H, W, 3)
-
-    true_px = np.full((m, 2), np.nan)
-    front = centres[:, 2] > 0.0
-    if front.any():
-        px, _ = cv2.projectPoints(centres[front], np.zeros(3), np.zeros(3), K, dist)
-        true_px[front] = px.reshape(-1, 2)
     in_view = np.zeros(m, dtype=bool)
     boxes: list[tuple[int, int, int, int]] = []
-
     s = opts.supersample
-    rx0, rx1, ry0, ry1 = _normalised_clip_rect(cal)
+    rect = _normalised_clip_rect(cal)
     r = opts.marker_radius_m
     for j in np.argsort(-centres[:, 2], kind="stable"):  # far first
         c = centres[j]
@@ -411,38 +616,15 @@ def render_markers_region(
         phi = np.arange(n_pts) * dphi
         e1, e2 = _disc_basis(normals[j])
         P = c + r_eq * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
-        clipped = False
-        if P[:, 2].min() < NEAR_PLANE_M:
-            P = _clip_polygon(P, P[:, 2] - NEAR_PLANE_M)
-            clipped = True
-            if len(P) < 3:
-                continue
-        xy = P[:, :2] / P[:, 2:3]
-        for axis, bound, sign in ((0, rx0, 1.0), (0, rx1, -1.0), (1, ry0, 1.0), (1, ry1, -1.0)):
-            vals = sign * (xy[:, axis] - bound)
-            if vals.min() < 0.0:
-                xy = _clip_polygon(xy, vals)
-                clipped = True
-                if len(xy) < 3:
-                    break
-        if len(xy) < 3:
+        poly, clipped = _project_outline(P, cal, rect)
+        if poly is None:
             continue
-        if clipped:  # straight clip edges must stay straight-ish after distortion
-            xy = _densify(xy, 0.01 * max(rx1 - rx0, ry1 - ry0))
-        poly = _distort(xy, cal)
-        if not np.all(np.isfinite(poly)):
-            continue
-        lo = poly.min(axis=0)
-        hi = poly.max(axis=0)
         if not clipped and c[2] > MIN_IN_VIEW_DEPTH_M:
-            in_view[j] = bool(lo[0] >= 0.5 and lo[1] >= 0.5 and hi[0] <= W - 1.5 and hi[1] <= H - 1.5)
-        # pixel box that can receive any coverage (pixel k covers [k − ½, k + ½])
-        bx0 = max(0, math.floor(lo[0] + 0.5))
-        by0 = max(0, math.floor(lo[1] + 0.5))
-        bx1 = min(W, math.floor(hi[0] + 0.5) + 1)
-        by1 = min(H, math.floor(hi[1] + 0.5) + 1)
-        if bx1 <= bx0 or by1 <= by0:
+            in_view[j] = _inside(poly, W, H)
+        pbox = _pixel_box(poly, W, H)
+        if pbox is None:
             continue
+        bx0, by0, bx1, by1 = pbox
         # supersampling factor, lowered for a disc so near that its box would need a huge mask (its edge
         # pixels are then a negligible part of its area)
         ss = min(s, max(1, math.isqrt(_MAX_MASK_SAMPLES // ((bx1 - bx0) * (by1 - by0)))))
@@ -467,43 +649,99 @@ def render_markers_region(
         box = image[by0:by1, bx0:bx1].astype(np.float32)
         box += alpha[:, :, None] * (np.asarray(markers[j].rgb, dtype=np.float32) - box)
         image[by0:by1, bx0:bx1] = np.clip(box + 0.5, 0.0, 255.0).astype(np.uint8)
-        boxes.append((bx0, by0, bx1, by1))
+        boxes.append(pbox)
+    return in_view, boxes
 
-    grow = ROI_MARGIN_PX
-    if opts.blur_px > 0.0 and boxes:
-        kern = _line_kernel(opts.blur_px, opts.blur_dir_rad)
-        image = _blur_boxes(image, kern, boxes)
-        grow += kern.shape[0] // 2
-    roi: tuple[int, int, int, int] | None = None
-    if opts.region == "markers":
-        amplitude = int(np.abs(_noise_table(opts.noise_std)).max()) if opts.noise_std > 0.0 else 0
-        if _noise_never_fires(cal, opts.background_rgb, amplitude):
-            if boxes:
-                b = np.array(boxes)
-                roi = (
-                    max(0, int(b[:, 0].min()) - grow),
-                    max(0, int(b[:, 1].min()) - grow),
-                    min(W, int(b[:, 2].max()) + grow),
-                    min(H, int(b[:, 3].max()) + grow),
-                )
-            else:
-                roi = (0, 0, 0, 0)
-    if opts.noise_std > 0.0:
-        gen = rng if rng is not None else np.random.default_rng()
-        if roi is None:
-            noisy = _gaussian_noise_int16(gen, image.size, opts.noise_std).reshape(image.shape)
-            noisy += image
-            np.clip(noisy, 0, 255, out=noisy)
-            image = noisy.astype(np.uint8)
-        else:  # the rows of the rectangle drawn, the rest of the frame's draws skipped
-            x0, y0, x1, y1 = roi
-            y1 = max(y0, y1)
-            band = _noise_span(gen, image.size, y0 * W * 3, y1 * W * 3, opts.noise_std)
-            if x1 > x0 and y1 > y0:
-                patch = band.reshape(y1 - y0, W, 3)[:, x0:x1] + image[y0:y1, x0:x1]
-                np.clip(patch, 0, 255, out=patch)
-                image[y0:y1, x0:x1] = patch
-    return image, true_px, in_view, roi
+
+_BOARD_TEXELS_PER_CELL = 16
+"""Resolution of the board's texture (texels per marker cell): the cells' edges fall on texel edges."""
+_MAX_BOARD_SAMPLES = 1 << 18
+"""The board's supersampling is lowered towards 2 × 2 a pixel to keep its samples at most this many (a board
+250 px wide, a forward camera's at 0.85 m, gets 2 × 2; its cells are then 25 px); below 2 × 2 only for a
+box so large that its mask would exceed _MAX_MASK_SAMPLES (its edges alias then)."""
+
+
+@functools.lru_cache(maxsize=8)
+def _board_texture(fid: Fiducial) -> tuple[np.ndarray, int, int]:
+    """(texture, quiet zone in texels, texels per cell): the board as (N, N, 2) float32 texels holding
+    (grey level, 1), BOARD_WHITE paper around the marker's cells (BOARD_BLACK / BOARD_WHITE)."""
+    from flightstack.vision.fiducial import marker_cells
+
+    k = _BOARD_TEXELS_PER_CELL
+    cells = marker_cells(fid)
+    n = cells.shape[0]
+    quiet = round(fid.quiet_zone_m / fid.side_m * n * k)
+    grey = np.where(cells > 127, np.float32(BOARD_WHITE), np.float32(BOARD_BLACK))
+    tex = np.full((n * k + 2 * quiet, n * k + 2 * quiet, 2), 1.0, dtype=np.float32)
+    tex[:, :, 0] = BOARD_WHITE
+    tex[quiet : quiet + n * k, quiet : quiet + n * k, 0] = np.kron(grey, np.ones((k, k), dtype=np.float32))
+    tex.setflags(write=False)
+    return tex, quiet, k * n
+
+
+def _paint_board(
+    image: np.ndarray, cal: CameraCalibration, corners: np.ndarray, opts: RenderOptions
+) -> tuple[np.ndarray, list[tuple[int, int, int, int]]]:
+    """Paint the fiducial board (marker and quiet zone) whose marker corners are `corners` (4, 3) (Σc, m;
+    feature-point order) into `image` in place: (in_view (4,), [its pixel box] or [])."""
+    from flightstack.vision.fiducial import corner_points
+
+    fid = cal.fiducial
+    assert fid is not None
+    W, H = int(cal.width), int(cal.height)
+    A = corner_points(fid, corners)  # row k: ArUco corner k (0 top-left, clockwise)
+    e_u, e_v = A[1] - A[0], A[3] - A[0]  # along the top edge, down the left edge
+    tex, quiet, per_unit = _board_texture(fid)
+    lo_, hi_ = -quiet / per_unit, 1.0 + quiet / per_unit  # the board's extent in (u, v)
+    t = np.linspace(0.0, 1.0, _BOARD_EDGE_POINTS, endpoint=False)
+    span = hi_ - lo_
+    uv = np.concatenate(
+        [
+            np.c_[lo_ + span * t, np.full_like(t, lo_)],
+            np.c_[np.full_like(t, hi_), lo_ + span * t],
+            np.c_[hi_ - span * t, np.full_like(t, hi_)],
+            np.c_[np.full_like(t, lo_), hi_ - span * t],
+        ]
+    )
+    outline = A[0] + uv[:, :1] * e_u + uv[:, 1:] * e_v
+    poly, clipped = _project_outline(outline, cal, _normalised_clip_rect(cal))
+    in_view = np.zeros(4, dtype=bool)
+    if poly is None:
+        return in_view, []
+    if not clipped and corners[:, 2].min() > MIN_IN_VIEW_DEPTH_M:
+        in_view[:] = _inside(poly, W, H)
+    pbox = _pixel_box(poly, W, H)
+    if pbox is None:
+        return in_view, []
+    bx0, by0, bx1, by1 = pbox
+    bw, bh = bx1 - bx0, by1 - by0
+    ss = min(opts.supersample, max(2, math.isqrt(_MAX_BOARD_SAMPLES // (bw * bh))))
+    ss = min(ss, max(1, math.isqrt(_MAX_MASK_SAMPLES // (bw * bh))))
+    # the box's sub-samples: cv2.resize (INTER_LINEAR, half-pixel centres) of the padded grid's pixels
+    # bx0 − 1 .. bx1 puts sample d at bx0 − 1 + (d + ½)/ss − ½; dropping ss on each side leaves pixel k's
+    # ss samples at k − ½ + (i + ½)/ss
+    padded = normalised_grid(cal).padded[by0 : by1 + 2, bx0 : bx1 + 2]
+    samples = cv2.resize(padded, ((bw + 2) * ss, (bh + 2) * ss), interpolation=cv2.INTER_LINEAR)
+    samples = np.ascontiguousarray(samples[ss:-ss, ss:-ss])
+    # (x, y, 1) ∝ M (u, v, 1) with M = [e_u | e_v | A0]; texel t = quiet + u · per_unit − ½ (cv2.remap's
+    # nearest texel j covers t ∈ (j − ½, j + ½], so texel j covers u ∈ [(j − quiet)/per_unit, … + 1/per_unit))
+    M = np.column_stack([e_u, e_v, A[0]])
+    to_texel = np.array([[per_unit, 0.0, quiet - 0.5], [0.0, per_unit, quiet - 0.5], [0.0, 0.0, 1.0]])
+    G = to_texel @ np.linalg.inv(M)
+    texels = cv2.perspectiveTransform(samples, G)
+    sampled = cv2.remap(tex, texels, None, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    if outline[:, 2].min() <= NEAR_PLANE_M:  # rays that meet the board's plane behind the camera see nothing
+        depth = cv2.transform(samples, np.linalg.inv(M)[2:, :2].astype(np.float32)).reshape(samples.shape[:2])
+        sampled[depth + np.float32(np.linalg.inv(M)[2, 2]) <= 0.0] = 0.0
+    if ss > 1:
+        sampled = cv2.resize(sampled, (bw, bh), interpolation=cv2.INTER_AREA)
+    value, cover = sampled[:, :, 0] * sampled[:, :, 1], sampled[:, :, 1]
+    box = image[by0:by1, bx0:bx1].astype(np.float32)
+    if box.ndim == 3:
+        cover, value = cover[:, :, None], value[:, :, None]
+    box = box * (1.0 - cover) + value
+    image[by0:by1, bx0:bx1] = np.clip(box + 0.5, 0.0, 255.0).astype(np.uint8)
+    return in_view, [pbox]
 
 
 def true_pixels(cal: CameraCalibration, points_c: np.ndarray) -> np.ndarray:
