@@ -364,8 +364,8 @@ def render_wire_world() -> str:
         "|---|---|---|---|",
         f"| 0 | {n} | `{wm._LEN.format}` | L: the JSON header's length (bytes, at most {wm.MAX_HEADER}) |",
         f"| {n} | L | UTF-8 | the JSON header (one object, no NaN or Infinity) |",
-        f"| {n} + L | H·W·3 | uint8 | a tick's camera image, RGB, row-major, when its `frame.image` is "
-        "[H, W]; else nothing |",
+        f"| {n} + L | H·W·3 (H·W) | uint8 | a tick's camera image, RGB (grey), row-major, when its "
+        "`frame.image` is [H, W] ([H, W, 1]: a grey camera's); else nothing |",
     ]
     state = wm.TickState(87.0, 1.0, True, True, "flying")
     truth = wm.Truth((0.0, 0.0, 0.0, 0.0), (0.5, 0.0, 1.0, 3.14159))

@@ -4,14 +4,16 @@ Keys (same key space as the prediction bus):
     {prefix}/{mission}/world/tick/{id}   world → agent `id`: what its sensors see at tick k
     {prefix}/{mission}/world/cmd/{id}    agent `id` → world: what it did to its drone during tick k
 
-Layout: u32 little-endian length L | L bytes of UTF-8 JSON header | optional raw image bytes (H×W×3 RGB
-uint8, row-major) when the header's frame has an `image` shape. JSON keeps floats exact (Python writes
-the shortest repr that reads back identically), so a served simulation is as deterministic as a local one.
+Layout: u32 little-endian length L | L bytes of UTF-8 JSON header | optional raw image bytes (H×W×3 RGB,
+or H×W grey, uint8, row-major) when the header's frame has an `image` shape. JSON keeps floats exact
+(Python writes the shortest repr that reads back identically), so a served simulation is as deterministic
+as a local one.
 
 Tick header: {"v": 1, "k": tick, "t": mission time (s), "state": {battery_pct, height_m, link_alive,
 flying, phase}, "poses": {body: [stamp, x, y, z, θ]} (motion capture of the agent's own body and the
 target, absent when stale), "truth": {"target": [x, y, z, θ], "drone": [x, y, z, θ]} (sim only, for
-recordings), "frame": null or {"stamp", "features": [2m] or null, "image": [H, W] or null}}.
+recordings), "frame": null or {"stamp", "features": [2m] or null, "image": [H, W] (RGB), [H, W, 1] (grey)
+or null}}.
 Cmd header: {"v": 1, "k": tick, "calls": [[name, args...], ...]}: the hal.Drone calls of this tick in
 order (connect, takeoff, land, emergency_stop, close: no argument; send_body_velocity: one argument
 [v_x, v_y, v_z, ω] in m/s and rad/s). k = -1 is the agent's hello (it is subscribed to its ticks).
@@ -29,8 +31,8 @@ reach a consumer: only typed values do). Bounds (a value outside is refused):
   |x|, |y|, |z| ≤ MAX_COORD_M m and |θ| ≤ MAX_ANGLE_RAD rad; truth: target and drone [x, y, z, θ], same
   bounds;
 - frame: null, or stamp; features null or an even number (≤ MAX_FEATURES) of finite numbers; image
-  null or [H, W] with 1 ≤ H, W ≤ MAX_IMAGE_SIDE px, and then exactly H·W·3 trailing bytes (none without
-  an image);
+  null or [H, W] (or [H, W, 1], a grey camera's) with 1 ≤ H, W ≤ MAX_IMAGE_SIDE px, and then exactly
+  H·W·3 (H·W) trailing bytes (none without an image);
 - calls: at most MAX_CALLS, each a known name with exactly its arity; a body velocity is 4 finite numbers
   with |(v_x, v_y, v_z)| ≤ MAX_SPEED_MPS m/s and |ω| ≤ MAX_YAW_RATE rad/s: what a Tello can fly (its
   fastest mode is ~8 m/s; the paper's control commands ≤ 1 m/s). `saturate_velocity` brings any command
@@ -106,12 +108,12 @@ class Truth:
 
 @dataclass(frozen=True)
 class FrameHead:
-    """A camera sample: its stamp (s), features (2m,) or None, image shape (H, W) px or None (the
-    image itself travels as the message's trailing bytes)."""
+    """A camera sample: its stamp (s), features (2m,) or None, image shape (H, W) px (RGB), (H, W, 1) (grey)
+    or None (the image itself travels as the message's trailing bytes)."""
 
     stamp: float
     features: tuple[float, ...] | None
-    image_shape: tuple[int, int] | None
+    image_shape: tuple[int, int] | tuple[int, int, int] | None
 
 
 @dataclass(frozen=True)
@@ -193,7 +195,7 @@ def pack(header: dict[str, Any], image: np.ndarray | None = None) -> bytes:
 
 
 def encode_tick(tick: WorldTick, image: np.ndarray | None = None) -> bytes:
-    """The wire form of `tick` with `image` (H×W×3 uint8, the shape tick.frame.image_shape says)."""
+    """The wire form of `tick` with `image` (H×W×3 or H×W uint8, the shape tick.frame.image_shape says)."""
     return pack(tick.header(), image)
 
 
@@ -297,18 +299,22 @@ def _features(f: object) -> tuple[float, ...] | None:
     return _reals(f, (_MAX_FLOAT,) * len(f))
 
 
-def _shape(s: object) -> tuple[int, int] | None:
-    if not (isinstance(s, list) and len(s) == 2):
+def _shape(s: object) -> tuple[int, int] | tuple[int, int, int] | None:
+    """[H, W] (RGB) or [H, W, 1] (grey), else None."""
+    if not (isinstance(s, list) and (len(s) == 2 or (len(s) == 3 and _int(s[2], 1, 1) == 1))):
         return None
     h, w = _int(s[0], 1, MAX_IMAGE_SIDE), _int(s[1], 1, MAX_IMAGE_SIDE)
-    return None if h is None or w is None else (h, w)
+    if h is None or w is None:
+        return None
+    return (h, w) if len(s) == 2 else (h, w, 1)
 
 
 _MISSING = object()
 
 
 def decode_tick(data: bytes) -> tuple[WorldTick | None, np.ndarray | None, str | None]:
-    """(tick, image (H×W×3 uint8, read-only) or None, None) or (None, None, reason). Never raises."""
+    """(tick, image (H×W×3 or, grey, H×W uint8, read-only) or None, None) or (None, None, reason). Never
+    raises."""
     header, tail, reason = unpack(data)
     if header is None:
         return None, None, reason
@@ -340,9 +346,13 @@ def decode_tick(data: bytes) -> tuple[WorldTick | None, np.ndarray | None, str |
             return None, None, "bad image"
         frame = FrameHead(stamp, feats, shape)
     shape = None if frame is None else frame.image_shape
-    if len(tail) != (0 if shape is None else shape[0] * shape[1] * 3):
+    channels = 0 if shape is None else 3 if len(shape) == 2 else 1
+    if len(tail) != (0 if shape is None else shape[0] * shape[1] * channels):
         return None, None, "bad image"
-    image = None if shape is None else np.frombuffer(tail, dtype=np.uint8).reshape(shape[0], shape[1], 3)
+    image = None
+    if shape is not None:
+        flat = np.frombuffer(tail, dtype=np.uint8)
+        image = flat.reshape(shape[0], shape[1], 3) if channels == 3 else flat.reshape(shape[0], shape[1])
     return WorldTick(k, t, state, MappingProxyType(poses), truth, frame), image, None
 
 

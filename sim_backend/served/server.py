@@ -70,7 +70,11 @@ def _frame(frame: Any) -> tuple[wm.FrameHead | None, Any]:
     head = wm.FrameHead(
         float(frame.stamp),
         None if frame.features is None else tuple(float(x) for x in frame.features),
-        None if image is None else (int(image.shape[0]), int(image.shape[1])),
+        None
+        if image is None
+        else (int(image.shape[0]), int(image.shape[1]))
+        if image.ndim == 3
+        else (int(image.shape[0]), int(image.shape[1]), 1),
     )
     return head, image
 
