@@ -40,6 +40,7 @@ from flightstack.drivers.tello.traffic import TrafficWriter
 from flightstack.hal import FlightPhase, StampedPose
 from flightstack.paper.geometry import Pose
 from flightstack.recording.files import DeviceFiles
+from flightstack.vision.camera_file import load_calibration
 
 if TYPE_CHECKING:
     from flightstack.runtime.backends import AgentSeat
@@ -205,7 +206,10 @@ class HardwareBackend:
             # jitter_s / 2 (config.links; measured on the emulated lab: docs/links.md)
             video = self.mission.links.link("video")
             video_latency_s = video.latency_s + video.jitter_s / 2
-            cam = TelloCamera(drv, self.mission.hardware.drone(d.id).frame_timeout_s, video_latency_s)
+            cal = None  # frames cut to the calibrated picture (the EDU's downward stream: vision.picture)
+            if d.camera is not None and d.camera.calibration is not None:
+                cal = load_calibration(self.mission.resolve(d.camera.calibration))
+            cam = TelloCamera(drv, self.mission.hardware.drone(d.id).frame_timeout_s, video_latency_s, cal)
             self.cameras[d.id] = cam
             cam.start()
         if self.robot is not None:

@@ -470,7 +470,8 @@ class EmulatedLab:
 
     def camera_spec(self, i: int) -> Any:
         """What drone i's live camera sees: its calibration on its mount, the experiment's markers (the
-        render's marker radius; no pixel noise: the H.264 encoding makes its own), its start pose."""
+        render's marker radius; no pixel noise: the H.264 encoding makes its own), the render's floor
+        (`sim.render.floor`), its start pose."""
         from flightstack.config.mission import CAMERA_MOUNTS
         from flightstack.sim_backend.emulators.tello.view import CameraSpec
         from flightstack.vision.camera_file import load_calibration
@@ -481,7 +482,8 @@ class EmulatedLab:
         p0 = (doc.get("target") or {}).get("feature_points") or [
             [0.1, 0.1, 0.15], [-0.1, 0.1, 0.15], [-0.1, -0.1, 0.15], [0.1, -0.1, 0.15]
         ]  # fmt: skip
-        radius = ((doc.get("sim") or {}).get("render") or {}).get("marker_radius_m", 0.03)
+        render = (doc.get("sim") or {}).get("render") or {}
+        radius = render.get("marker_radius_m", 0.03)
         (x, y, z), yaw = self.starts[i]
         return CameraSpec(
             calibration=load_calibration(self.calibration_path(i)).to_dict(),
@@ -491,6 +493,7 @@ class EmulatedLab:
             start=(float(x), float(y), float(z), float(yaw)),
             marker_radius_m=float(radius),
             seed=int(doc.get("seed", 0)) * 100 + i,
+            floor=str(render.get("floor", "plain")),
         )
 
     def close(self) -> None:
@@ -730,11 +733,15 @@ def _truth_of(cam: Any) -> FrameTruth:
     """How to know the truth of a live camera's decoded frame: its bar-coded frame index (tello_frames)
     looked up in the camera's capture records (VideoProcess.truth_px); None when the index is not there
     (a bar code smeared by a loss reads as another index: the truth is then another frame's, off by that
-    frame's motion)."""
+    frame's motion). In the EDU's downward layout the code is below the picture (tello_view.index_area)."""
     from flightstack.sim_backend.emulators.tello.frames import read_frame_index
+    from flightstack.sim_backend.emulators.tello.view import index_area
+    from flightstack.vision.camera_file import calibration_from_dict
+
+    cal = calibration_from_dict(cam.spec.calibration, "emulated camera")
 
     def truth(img: np.ndarray) -> np.ndarray | None:
-        return cam.truth_px.get(read_frame_index(img))
+        return cam.truth_px.get(read_frame_index(index_area(cal, img)))
 
     return truth
 

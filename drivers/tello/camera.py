@@ -43,6 +43,8 @@ from flightstack.drivers.tello.traffic import TrafficWriter
 from flightstack.drivers.tello.video_check import StreamCheck
 from flightstack.drivers.tello.video_settings import unconfirmed
 from flightstack.hal import Frame, frame_truth
+from flightstack.vision.camera_file import CameraCalibration
+from flightstack.vision.picture import picture
 
 LOG = logging.getLogger("flightstack.tello")
 STREAM_COUNT_KEYS = (
@@ -191,24 +193,36 @@ class TelloCamera:
 
     Frames are RGB uint8, each stamped with its estimated capture time: the time.monotonic() (s) at which
     it was decoded minus `latency_s` (the configured capture → decode latency; 0 by default, so the stamp
-    is the decode time). The emulated lab records every frame's true capture time beside it
-    (TelloEmulator.video_capture_log), so the estimate can be checked. `frames_seen` counts the distinct
+    is the decode time). With a `calibration`, each frame is cut to the calibrated picture and converted to
+    its image kind (flightstack.vision.picture: the Tello EDU's downward stream is a 320 × 720 frame whose
+    top 320 × 240 are the grey picture, as its `stream` says), once per decoded frame. The emulated lab
+    records every frame's true capture time beside it (TelloEmulator.video_capture_log), so the estimate
+    can be checked. `frames_seen` counts the distinct
     frames returned by `latest()`; `counts` holds the receiver's counters (module docstring), kept across
     restarts.
     """
 
-    def __init__(self, driver: TelloDriver, frame_timeout_s: float = 10.0, latency_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        driver: TelloDriver,
+        frame_timeout_s: float = 10.0,
+        latency_s: float = 0.0,
+        calibration: CameraCalibration | None = None,
+    ) -> None:
         """frame_timeout_s: how long `start()` waits for the first decoded frame (s); latency_s: subtracted
-        from the decode time to stamp a frame (s, ≥ 0)."""
+        from the decode time to stamp a frame (s, ≥ 0); calibration: the camera's, whose picture `latest`
+        gives (None: the decoded frame as it is)."""
         if not (latency_s >= 0.0 and latency_s < 10.0):
             raise ValueError(f"latency_s must be in [0, 10) s, got {latency_s}")
         self.driver = driver
         self.frame_timeout_s = frame_timeout_s
         self.latency_s = float(latency_s)
         self.counts: Counter[str] = Counter()
+        self.calibration = calibration
         self._rx: VideoReceiver | None = None
         self._last_seq = 0
         self._truth_px: np.ndarray | None = None  # the newest frame's, from an emulated camera
+        self._picture: np.ndarray | None = None  # the picture of the frame numbered _last_seq
         self.frames_seen = 0
 
     def start(self) -> None:
@@ -245,7 +259,7 @@ class TelloCamera:
         except BaseException:
             rx.close()
             raise
-        self._rx, self._last_seq = rx, 0
+        self._rx, self._last_seq, self._picture = rx, 0, None
 
     def latest(self) -> Frame | None:
         rx = self._rx
@@ -256,10 +270,19 @@ class TelloCamera:
             self._last_seq = item.seq
             self.frames_seen += 1
             truth = frame_truth(self.driver.cfg.host, self.driver.cfg.video_port)
-            self._truth_px = None if truth is None else truth(item.image)
+            self._truth_px = None if truth is None else truth(item.image)  # read from the whole frame
+            self._picture = None
+        if self._picture is None:
+            cal = self.calibration
+            self._picture = item.image if cal is None else picture(item.image, cal)
         stamp = item.t_decoded - self.latency_s
         return Frame(
-            stamp, item.image, None, damaged=item.damaged, since_loss=item.since_loss, truth_px=self._truth_px
+            stamp,
+            self._picture,
+            None,
+            damaged=item.damaged,
+            since_loss=item.since_loss,
+            truth_px=self._truth_px,
         )
 
     def stream_counts(self) -> dict[str, int]:

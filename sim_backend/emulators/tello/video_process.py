@@ -9,9 +9,12 @@ block; `SharedTarget` carries the target's (the rover's) pose in Σw (m, rad), w
 at 100 Hz and read by every camera; `configure` gives the stream's format (the SDK 3.0 settings the
 emulator received: frame rate, size, bit rate; the picture is scaled to the size), which the child takes
 with a new encoder. The child (`spawn` start method: no inherited threads or locks)
-paces frames at `fps` from its `streamon`, reads both poses, renders (`tello_view.CameraView`), stamps the
-frame index as a bar code (`tello_frames.stamp_frame_index`), encodes and sends from the drone's
-loopback ip to (client_ip, video_port) with the emulator's own `make_encoder`/`send_frame`.
+paces frames at `fps` from its `streamon`, reads both poses, renders (`tello_view.CameraView.frame`: the
+Tello EDU's downward layout while `downvision` is on and the calibration declares one, at the layout's
+size, its encoder rebuilt when the camera is switched), stamps the frame index as a bar code
+(`tello_frames.stamp_frame_index`, below the picture in that layout: `tello_view.index_area`), encodes and
+sends from the drone's loopback ip to (client_ip, video_port) with the emulator's own
+`make_encoder`/`send_frame`.
 
 The way out (`VideoPath`): with the rig's video link (device_links) each frame, rendered and encoded
 when taken, leaves the drone latency_s + U(0, jitter_s) after its capture time, or never (lost as a
@@ -339,7 +342,7 @@ def _run(a: ChildArgs) -> None:
     from ..radio import DeviceRadio
     from .frames import stamp_frame_index
     from .video import frame_datagrams, make_encoder, scaled, scaled_pixels
-    from .view import CameraView, drone_world_pose
+    from .view import CameraView, drone_world_pose, index_area
 
     spec, ip, dest, fps, gop_size, path = a.spec, a.ip, a.dest, a.fps, a.gop_size, a.path
     ctrl_raw, target_raw, stats_raw, parent = a.ctrl_raw, a.target_raw, a.stats_raw, a.parent
@@ -402,10 +405,16 @@ def _run(a: ChildArgs) -> None:
                 continue
             f = formats.read()  # None until configured, or torn: the last good format stays
             now_fmt = fmt if f is None else (float(f[0]), (int(f[1]), int(f[2])), int(f[3]) or None)
+            down = bool(c[_DOWN - 1])
+            laid_out = down and view.cal.stream is not None  # the EDU's downward layout (view.py)
+            want = spec.stream_size(True) if laid_out else now_fmt[1]
             if encoder is None or c[_EPOCH - 1] != epoch or now_fmt != fmt:  # a new setting: a new stream
                 fmt = now_fmt
-                encoder = make_encoder(fmt[1], fmt[0], gop_size, fmt[2])
-                epoch, index, t0, period, size = c[_EPOCH - 1], 0, time.monotonic(), 1.0 / fmt[0], fmt[1]
+                encoder = make_encoder(want, fmt[0], gop_size, fmt[2])
+                epoch, index, t0, period, size = c[_EPOCH - 1], 0, time.monotonic(), 1.0 / fmt[0], want
+            elif want != size:  # the camera was switched mid-stream (`downvision`): a new size, a keyframe
+                encoder = make_encoder(want, fmt[0], gop_size, fmt[2])
+                size = want
             now = time.monotonic()
             due = t0 + index * period
             if due > now:
@@ -422,9 +431,13 @@ def _run(a: ChildArgs) -> None:
                 g_w0 = Pose.make([0.0, 0.0, -1e3], 0.0)  # no target yet: far below the floor, unseen
             else:
                 g_w0 = Pose.make([tg[0], tg[1], 0.0], tg[2])
-            img = scaled(view.image(g_wi, g_w0), size)
-            truth = scaled_pixels(view.true_pixels(g_wi, g_w0), spec.size, size).reshape(-1).tolist()
-            stamp_frame_index(img, index)
+            if laid_out:  # the picture at its place in the layout; its truth in the picture's pixels
+                img = view.frame(g_wi, g_w0, True)
+                truth = view.true_pixels(g_wi, g_w0).reshape(-1).tolist()
+            else:
+                img = scaled(view.frame(g_wi, g_w0, False), size)
+                truth = scaled_pixels(view.true_pixels(g_wi, g_w0), spec.size, size).reshape(-1).tolist()
+            stamp_frame_index(index_area(view.cal, img), index)
             datagrams = frame_datagrams(encoder, img, index)
             t_capture = float(c[_T - 1])
             leaves = links.decide("video", t_capture)

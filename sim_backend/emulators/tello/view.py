@@ -5,8 +5,16 @@ its own frame (x forward at takeoff heading, y right, z up, cm; yaw clockwise in
 pose in Σw: `drone_world_pose` converts (the emulated lab's motion capture uses it too). `CameraView`
 renders one camera: the drone's pose and the target's pose in Σw → the target in the drone's body frame
 (FLU) → the markers in the camera frame through the mount (`markers_in_camera`) → the project's renderer
-(`render_markers`) with the calibration's intrinsics and distortion. Everything here is picklable data
-and pure functions, so a child process can build the view from a `CameraSpec`.
+(`render_markers`) with the calibration's intrinsics and distortion, over the floor the spec names. Everything
+here is picklable data and pure functions, so a child process can build the view from a `CameraSpec`.
+
+What the stream carries (`CameraView.frame`): the picture, as RGB (a grey camera's grey in all three
+channels), or, for a calibration with a `stream` layout while the downward camera is selected (`downvision
+1`), the Tello EDU's downward layout: a frame of the layout's size with the grey picture at `stream.picture`
+and grey noise elsewhere. Users report the EDU's downward stream as 320 × 720 frames, the picture on top and
+what looks like noise below it (DJITelloPy #213: "(720, 320, 3)"; #140: "useless green parts at the
+bottom"); what the bottom holds is unknown, so it is modelled as noise whose amount makes the stream as
+large as the forward camera's (DOWN_NOISE_STD; the downward bitrate itself is unmeasured).
 """
 
 from __future__ import annotations
@@ -18,6 +26,15 @@ from typing import Any
 import numpy as np
 
 from flightstack.paper.geometry import Pose, compose, relative
+from flightstack.vision.camera_file import CameraCalibration
+
+DOWN_NOISE_MEAN = 128
+"""Mean grey level of the noise outside the picture of a downward layout (0..255)."""
+DOWN_NOISE_STD = 4.0
+"""Standard deviation (grey levels) of that noise, i.i.d. per pixel and frame: measured with the emulator's
+encoder (libx264 ultrafast, zerolatency, 30 fps, a 320 × 720 frame, the picture a plain floor): 9.6
+datagrams (13.2 kB) per P frame, 3.2 Mbit/s, like the forward camera's ≈ 9 datagrams and 3 Mbit/s measured
+on a real Tello's dump (docs/drivers.md). 8 grey levels gave 21 datagrams, 0 gave 1."""
 
 
 @dataclass(frozen=True)
@@ -28,7 +45,7 @@ class CameraSpec:
     video size). R_ic: 3×3 mount (columns = camera axes in the body frame FLU); t_ic: offset (m, body).
     feature_points: (m, 3) marker centres in the target's frame (m), in the calibration's marker order.
     start: the drone's start (x, y, z m, yaw rad) in Σw. marker_radius_m, noise_std (grey levels),
-    blur_px: the renderer's options; seed: the pixel noise's generator.
+    blur_px, floor ("plain" or "tiles"): the renderer's options; seed: the pixel noise's generator.
     """
 
     calibration: dict[str, Any]
@@ -40,11 +57,20 @@ class CameraSpec:
     noise_std: float = 0.0
     blur_px: float = 0.0
     seed: int = 0
+    floor: str = "plain"
 
     @property
     def size(self) -> tuple[int, int]:
-        """(width, height) in pixels of the calibration, hence of the video."""
+        """(width, height) in pixels of the calibration: the picture's."""
         return int(self.calibration["width"]), int(self.calibration["height"])
+
+    def stream_size(self, downvision: bool) -> tuple[int, int]:
+        """(width, height) in pixels of the frames sent: the calibration's `stream` layout while the downward
+        camera is selected, else the picture's (`size`)."""
+        layout = self.calibration.get("stream")
+        if downvision and layout is not None:
+            return int(layout["width"]), int(layout["height"])
+        return self.size
 
 
 def drone_world_pose(
@@ -58,7 +84,8 @@ def drone_world_pose(
 
 
 class CameraView:
-    """Renders what one camera sees: `image(g_wi, g_w0)` → H × W × 3 uint8 RGB."""
+    """Renders what one camera sees: `image(g_wi, g_w0)` → the picture (H × W × 3 RGB, or H × W grey for a
+    grey camera, uint8); `frame(g_wi, g_w0, downvision)` → the frame the stream carries (RGB)."""
 
     def __init__(self, spec: CameraSpec) -> None:
         from flightstack.sim_backend.render import RenderOptions
@@ -70,16 +97,22 @@ class CameraView:
         self.t_ic = np.array(spec.t_ic, dtype=float)
         self.P0 = np.array(spec.feature_points, dtype=float)
         self.opts = RenderOptions(
-            marker_radius_m=spec.marker_radius_m, noise_std=spec.noise_std, blur_px=spec.blur_px
+            marker_radius_m=spec.marker_radius_m,
+            noise_std=spec.noise_std,
+            blur_px=spec.blur_px,
+            floor=spec.floor,
         )
         self.rng = np.random.default_rng(spec.seed)
+        self.noise_rng = np.random.default_rng((spec.seed, 1))  # the downward layout's noise
 
     def image(self, g_wi: Pose, g_w0: Pose) -> np.ndarray:
-        """The frame of a drone at g_wi looking at the target at g_w0 (both in Σw)."""
+        """The picture of a drone at g_wi looking at the target at g_w0 (both in Σw)."""
+        from flightstack.sim_backend.floor import floor_view
         from flightstack.sim_backend.render import markers_in_camera, render_markers
 
         centres_c, normals_c = markers_in_camera(relative(g_wi, g_w0), self.P0, self.R_ic, self.t_ic)
-        img, _, _ = render_markers(self.cal, centres_c, normals_c, self.opts, self.rng)
+        floor = floor_view(g_wi, self.R_ic, self.t_ic) if self.opts.floor != "plain" else None
+        img, _, _ = render_markers(self.cal, centres_c, normals_c, self.opts, self.rng, floor)
         return img
 
     def true_pixels(self, g_wi: Pose, g_w0: Pose) -> np.ndarray:
@@ -90,5 +123,36 @@ class CameraView:
             self.cal, marker_centres_in_camera(relative(g_wi, g_w0), self.P0, self.R_ic, self.t_ic)
         )
 
+    def frame(self, g_wi: Pose, g_w0: Pose, downvision: bool) -> np.ndarray:
+        """The frame the stream carries: H × W × 3 uint8 RGB of `spec.stream_size(downvision)` (the module
+        docstring): the picture, laid out as the EDU's downward stream when it applies."""
+        pic = self.image(g_wi, g_w0)
+        layout = self.cal.stream
+        if not downvision or layout is None:
+            return pic if pic.ndim == 3 else np.ascontiguousarray(np.repeat(pic[:, :, None], 3, axis=2))
+        noise = self.noise_rng.standard_normal((layout.height, layout.width), dtype=np.float32)
+        out = np.clip(noise * np.float32(DOWN_NOISE_STD) + np.float32(DOWN_NOISE_MEAN + 0.5), 0, 255)
+        canvas = np.repeat(out.astype(np.uint8)[:, :, None], 3, axis=2)
+        where = canvas[layout.y : layout.y + self.cal.height, layout.x : layout.x + self.cal.width]
+        where[...] = pic if pic.ndim == 3 else pic[:, :, None]
+        return canvas
 
-__all__ = ["CameraSpec", "CameraView", "drone_world_pose"]
+    def stamp_area(self, frame: np.ndarray) -> np.ndarray:
+        """`index_area` of this camera's `frame`."""
+        return index_area(self.cal, frame)
+
+
+def index_area(cal: CameraCalibration, frame: np.ndarray) -> np.ndarray:
+    """The part of a frame of camera `cal` (a view) that holds the frame index's bar code
+    (tello_frames.stamp_frame_index, read_frame_index): in a frame of the calibration's stream layout, the
+    noise below the picture (or above it), so that the code covers none of the picture; else the frame."""
+    layout = cal.stream
+    if layout is None or frame.shape[:2] != (layout.height, layout.width):
+        return frame
+    below = layout.y + cal.height
+    if layout.height - below >= cal.height // 4:
+        return frame[below:]
+    return frame[: layout.y] if layout.y >= cal.height // 4 else frame
+
+
+__all__ = ["CameraSpec", "CameraView", "drone_world_pose", "index_area"]
