@@ -43,7 +43,7 @@ from flightstack.runtime.fleet import Fleet
 from flightstack.runtime.flight import Flight
 from flightstack.runtime.runner import SafePause
 from flightstack.vision.camera_file import CameraCalibration, load_calibration
-from flightstack.vision.markers import extract_markers
+from flightstack.vision.detect import detect_markers
 
 
 class CalibrationFlightError(RuntimeError):
@@ -136,7 +136,7 @@ def marker_finder(cal: CameraCalibration) -> Callable[[Frame], np.ndarray | None
 
     def find(frame: Frame) -> np.ndarray | None:
         if frame.image is not None:
-            det = extract_markers(frame.image, cal, roi=frame.roi)
+            det = detect_markers(frame.image, cal, roi=frame.roi)
             return det.pixels if det.ok else None
         if frame.features is None:
             return None

@@ -90,11 +90,13 @@ class HoldsLastCommand(Protocol):
 class Frame:
     """A camera sample taken at `stamp` (s, mission clock).
 
-    Either `image` (H × W × 3, RGB uint8) from a real or rendered camera, or `features` (2m,) in the
+    Either `image` (H × W × 3, RGB uint8; H × W grey uint8 from a grey camera, its calibration's
+    `image: grey`) from a real or rendered camera, cut to the calibrated picture, or `features` (2m,) in the
     paper's image-plane units (the ideal camera of the paper's simulation), or both; `features` is None
     when the target is not (fully) visible.
     `roi` (x0, y0, x1, y1), pixels, end exclusive: a simulated camera's promise that no pixel of `image`
-    outside it shows a marker (flightstack.vision.markers.extract_markers' `roi`); None: no promise.
+    outside it shows a marker (flightstack.vision.markers.extract_markers' `roi`; a fiducial's board lies
+    inside it); None: no promise.
     `damaged`, `since_loss`: what a camera whose frames come over a lossy stream knows of this frame's
     integrity (the Tello's H.264: drivers/tello/camera.py); a detection from any frame is checked against
     a prediction before it is used (flightstack.vision.gate).

@@ -42,8 +42,9 @@ from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity
 from flightstack.safety import SafetyLimits
 from flightstack.safety.rules import saturate
 from flightstack.vision.camera_file import CameraCalibration
+from flightstack.vision.detect import detect_markers
 from flightstack.vision.gate import OFF_PREDICTION, DetectionGate, GateSpec
-from flightstack.vision.markers import extract_markers, features_from_detection
+from flightstack.vision.markers import features_from_detection
 
 UNINFORMATIVE_VAR = np.ones(4)
 
@@ -306,7 +307,7 @@ class Agent:
             return f, None
         if frame.image is None or self.cfg.calibration is None:
             return None, None
-        det = extract_markers(frame.image, self.cfg.calibration, roi=frame.roi)
+        det = detect_markers(frame.image, self.cfg.calibration, roi=frame.roi)
         self.markers_px = det.pixels
         seen = features_from_detection(det, self.cfg.camera.focal_length)
         return (None if seen is None else np.array(seen, dtype=float).reshape(-1)), det.reason
