@@ -58,6 +58,7 @@ if TYPE_CHECKING:
     from flightstack.drivers.scamper_nav import LabOrigin
     from flightstack.drivers.scamper_params import OriginProbe
     from flightstack.drivers.tello.camera import TelloCamera
+    from flightstack.vision.camera_file import CameraCalibration
 
 Status = Literal["PASS", "WARN", "FAIL"]
 BODY_WAIT_S = 1.0  # after connecting, how long motion capture gets to report every body (s)
@@ -109,7 +110,15 @@ def check_files(mission: Mission) -> list[CheckRow]:
             rows.append(_row(dev, "camera calibration", False, why))
         else:
             rows.append(_row(dev, "camera calibration", True, f"{path.name}: RMS {cal.rms_px:.2f} px"))
-        if not cal.markers:
+        if cal.fiducial is not None:
+            from flightstack.vision.fiducial import placement_problem
+
+            fid = cal.fiducial
+            misplaced = placement_problem(fid, np.array(mission.target.feature_points, dtype=float))
+            what = f"ArUco {fid.dictionary} id {fid.id}, side {fid.side_m:g} m"
+            detail = what if misplaced is None else f"{path.name}: {misplaced}"
+            rows.append(_row(dev, "fiducial", misplaced is None, detail))
+        elif not cal.markers:
             rows.append(
                 _row(dev, "marker colours", False, f"{path.name}: no markers; run `calibrate markers`")
             )
@@ -216,10 +225,25 @@ def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> li
         if with_camera and unconfirmed(cfg, drv.video_outcomes):  # its video rows above say why
             rows.append(_row(dev, "camera", False, "not started: a video setting was not confirmed"))
         elif with_camera:
-            rows.append(_check_camera(mission, drone_id, dev, TelloCamera(drv, cfg.command_timeout_s + 2.0)))
+            cam = TelloCamera(drv, cfg.command_timeout_s + 2.0, calibration=_calibration(mission, drone_id))
+            rows.append(_check_camera(mission, drone_id, dev, cam))
     finally:
         drv.close()
     return rows
+
+
+def _calibration(mission: Mission, drone_id: int) -> CameraCalibration | None:
+    """Drone drone_id's camera calibration, or None when it has none or it cannot be read (check_files
+    reports why)."""
+    from flightstack.vision.camera_file import CalibrationError, load_calibration
+
+    spec = next(d for d in mission.drones if d.id == drone_id)
+    if spec.camera is None or spec.camera.calibration is None:
+        return None
+    try:
+        return load_calibration(mission.resolve(spec.camera.calibration))
+    except (CalibrationError, OSError):
+        return None
 
 
 def _check_camera(mission: Mission, drone_id: int, dev: str, cam: TelloCamera) -> CheckRow:
@@ -244,8 +268,16 @@ def _check_camera(mission: Mission, drone_id: int, dev: str, cam: TelloCamera) -
             with contextlib.suppress(Exception):
                 cal = load_calibration(path)
                 if (cal.width, cal.height) != (w, h):
+                    stream = (
+                        ""
+                        if cal.stream is None
+                        else f" (its picture cut from {cal.stream.width}x{cal.stream.height})"
+                    )
                     return _row(
-                        dev, "camera", False, f"{detail}, but the calibration is {cal.width}x{cal.height}"
+                        dev,
+                        "camera",
+                        False,
+                        f"{detail}, but the calibration is {cal.width}x{cal.height}{stream}",
                     )
         return _row(dev, "camera", True, detail)
     except Exception as exc:

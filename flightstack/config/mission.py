@@ -614,11 +614,17 @@ def load_mission(
         cal = m.resolve(d.camera.calibration)
         if not cal.is_file():
             raise MissionError(f"{label}: drones.{k}.camera.calibration: file not found: {cal}")
-        if cal not in checked:  # parsed and checked (intrinsics, image size) once per file
+        if cal not in checked:  # parsed and checked (intrinsics, image size, fiducial) once per file
             try:
-                load_calibration(cal)
+                fid = load_calibration(cal).fiducial
             except CalibrationError as exc:
                 raise MissionError(f"{label}: drones.{k}.camera.calibration: {exc}") from None
+            if fid is not None:  # its corners must be the target's feature points
+                from flightstack.vision.fiducial import placement_problem
+
+                why = placement_problem(fid, np.array(m.target.feature_points, dtype=float))
+                if why is not None:
+                    raise MissionError(f"{label}: drones.{k}.camera.calibration: {cal}: fiducial: {why}")
             checked.add(cal)
     if m.gp.experts_file is not None and not m.resolve(m.gp.experts_file).is_file():
         raise MissionError(f"{label}: gp.experts_file: file not found: {m.resolve(m.gp.experts_file)}")
