@@ -29,7 +29,12 @@ from flightstack.calibration.prompts import (
 from flightstack.calibration.solve import SolveOptions
 from flightstack.calibration.sources import ImageFolderSource, SourceError, TelloSource, VideoFileSource
 from flightstack.config.links import PROFILES
-from flightstack.vision.camera_file import PATTERN_KINDS, CalibrationError, load_calibration
+from flightstack.vision.camera_file import (
+    PATTERN_KINDS,
+    CalibrationError,
+    CameraCalibration,
+    load_calibration,
+)
 
 
 def _error(msg: str, code: int = EXIT_BAD_INPUT) -> int:
@@ -217,12 +222,22 @@ def _sample_frames(args: argparse.Namespace, limit: int) -> list[tuple[str, np.n
 
 
 def cmd_markers(args: argparse.Namespace) -> int:
-    """Pick the markers' HSV thresholds from regions of sample frames and save them to a calibration."""
+    """Pick the markers' HSV thresholds from regions of sample frames and save them to a calibration; for a
+    calibration with a fiducial, write its printable board and check that sample frames show it."""
     from flightstack.calibration.markers import MarkerPickError, Region, pick_markers
 
     try:
         cal_path = answer(args.calibration, "--calibration", "Calibration file to add the markers to", str)
         base = load_calibration(cal_path)
+    except (MissingAnswerError, CalibrationError, ValueError) as exc:
+        return _error(str(exc))
+    if base.fiducial is not None:
+        return _fiducial(args, base)
+    if args.board is not None:
+        return _error(
+            f"--board: {cal_path} declares no fiducial; add a `fiducial:` (docs/calibration.md#the-fiducial)"
+        )
+    try:
         frames = _sample_frames(args, args.max_samples)
         if not frames:
             raise SourceError("the source delivered no frames")
@@ -260,7 +275,6 @@ def cmd_markers(args: argparse.Namespace) -> int:
     for mk in res.markers:
         print(f"  {mk.name}: hsv_lo {list(mk.hsv_lo)}, hsv_hi {list(mk.hsv_hi)}, rgb {list(mk.rgb or ())}")
     print(f"verified: {res.message}")
-    from flightstack.vision.camera_file import CameraCalibration
 
     new = CameraCalibration(**{**base.__dict__, "markers": res.markers})
     try:
@@ -268,6 +282,69 @@ def cmd_markers(args: argparse.Namespace) -> int:
     except OSError as exc:
         return _error(f"--out {out}: cannot write: {exc.strerror or exc}")
     print(f"written: {out}")
+    return EXIT_OK
+
+
+def _fiducial(args: argparse.Namespace, cal: CameraCalibration) -> int:
+    """`calibrate markers` for a calibration with a fiducial: --board writes the printable board; a source
+    (--images, --video) is checked: every sample, cut to the calibrated picture, must show the marker."""
+    from flightstack.calibration.board import write_board
+    from flightstack.vision.detect import detect_markers
+    from flightstack.vision.picture import picture
+
+    fid = cal.fiducial
+    assert fid is not None
+    if args.marker:
+        return _error(
+            "--marker picks colour markers; this calibration declares a fiducial (use --board, --images)"
+        )
+    has_source = bool(args.images or args.video)
+    if args.board is None and not has_source:
+        return _error(
+            "a fiducial's calibration needs --board FILE (.png, .pdf) and/or --images DIR or --video FILE"
+        )
+    print(
+        f"calibrate markers: fiducial ArUco {fid.dictionary} id {fid.id}, side {fid.side_m:g} m, quiet zone "
+        f"{fid.quiet_zone_m:g} m, corners {list(fid.corners)}"
+    )
+    if args.board is not None:
+        try:
+            w, h = write_board(fid, args.board, args.dpi)
+        except (OSError, ValueError) as exc:
+            return _error(f"--board {args.board}: {exc}")
+        print(
+            f"board written: {args.board} ({w}x{h} px at {args.dpi:g} dpi; print at 100 %, check its 100 mm "
+            "scale bar)"
+        )
+    if not has_source:
+        return EXIT_OK
+    try:
+        frames = _sample_frames(args, args.max_samples)
+        if not frames:
+            raise SourceError("the source delivered no frames")
+        found = []
+        for name, img in frames:
+            pic = picture(img, cal)
+            if pic.shape[:2] != (cal.height, cal.width):
+                raise ValueError(
+                    f"sample {name} is {img.shape[1]}x{img.shape[0]} but the calibration is for "
+                    f"{cal.width}x{cal.height}"
+                    + ("" if cal.stream is None else f" in {cal.stream.width}x{cal.stream.height}")
+                )
+            found.append((name, detect_markers(pic, cal)))
+    except (SourceError, ValueError) as exc:
+        return _error(str(exc))
+    for name, det in found:
+        if det.ok and det.pixels is not None:
+            corners = " ".join(f"({u:.1f}, {v:.1f})" for u, v in det.pixels)
+            print(f"  {name}: found, feature points at {corners} px")
+        else:
+            print(f"  {name}: {det.reason}")
+    n_ok = sum(det.ok for _, det in found)
+    if n_ok < len(found):
+        print(f"error: the fiducial was found in {n_ok} of {len(found)} samples", file=sys.stderr)
+        return EXIT_VERDICT
+    print(f"verified: the fiducial found in all {len(found)} samples")
     return EXIT_OK
 
 
@@ -534,8 +611,10 @@ def register(cal_sub: argparse._SubParsersAction) -> None:
 
     m = cal_sub.add_parser(
         "markers",
-        help="HSV thresholds of the target's colour markers from regions of sample frames",
-        description="Pick marker thresholds from pixel boxes X,Y,W,H in sample frame FRAME (default 0).",
+        help="the target's markers: colour thresholds from sample frames, or a fiducial's board and check",
+        description="Pick marker thresholds from pixel boxes X,Y,W,H in sample frame FRAME (default 0). "
+        "For a calibration that declares a fiducial: --board writes it to print, --images/--video check "
+        "that every sample shows it.",
     )
     m.add_argument("--calibration", default=None, help="camera calibration file to add the markers to")
     _add_source_options(m, tello=False)
@@ -548,6 +627,15 @@ def register(cal_sub: argparse._SubParsersAction) -> None:
     )
     m.add_argument("--max-samples", type=int, default=50, help="use at most this many sample frames")
     m.add_argument("--out", default=None, help="file to write (default: overwrite --calibration)")
+    m.add_argument(
+        "--board",
+        default=None,
+        metavar="FILE",
+        help="a fiducial's calibration: write its printable board (.png or .pdf) at its true size",
+    )
+    m.add_argument(
+        "--dpi", type=float, default=300.0, help="the board's resolution, dots per inch (default 300)"
+    )
     m.set_defaults(func=cmd_markers)
 
     k = cal_sub.add_parser("check", help="load a calibration and report the undistortion of a sample image")
