@@ -255,3 +255,64 @@ def test_a_camera_process_exits_when_its_parent_dies(safety_bound: Bound) -> Non
         proc.wait()
         if proc.stdout is not None:
             proc.stdout.close()
+
+
+def test_the_edu_downward_stream_is_sent_in_its_layout_and_cut_by_the_driver() -> None:
+    """The drivers against the emulated EDU: `downvision 1` selects the grey downward camera, whose 320 × 720
+    frames (picture on top, noise below) the receiver decodes and TelloCamera cuts to the calibrated grey
+    320 × 240 picture; the fiducial's corners in it are within 1 px of the truth (H.264 between)."""
+    import cv2
+
+    from flightstack.drivers.tello import TelloDriver
+    from flightstack.drivers.tello.camera import TelloCamera
+    from flightstack.vision.detect import detect_markers
+    from tests.conftest import tello_config
+
+    cal = load_calibration(MISSIONS / "cameras" / "tello_down_edu_sim.yaml")
+    spec = CameraSpec(
+        calibration=cal.to_dict(),
+        R_ic=tuple(tuple(r) for r in CAMERA_MOUNTS["down"].tolist()),
+        t_ic=(0.0, 0.0, 0.0),
+        feature_points=P0,
+        start=(0.0, 0.0, 0.95, 0.0),  # on the ground, the camera 0.95 m up: no takeoff needed
+        floor="tiles",
+    )
+    target = SharedTarget()
+    target.write(0.04, -0.03, 0.4)
+    port = free_udp_port()
+    cam = VideoProcess(spec, IP, ("127.0.0.1", port), target, fps=30.0)
+    emu = TelloEmulator(IP, state_port=free_udp_port(), video_port=port, video_size=cam.size, fps=30.0)
+    emu.use_remote_video(cam)
+    drv = None
+    camera = None
+    try:
+        cam.start()
+        cam.wait_ready()
+        emu.start()
+        drv = TelloDriver(tello_config(emu, downward_camera=True))
+        camera = TelloCamera(drv, frame_timeout_s=10.0, calibration=cal)
+        drv.connect()
+        camera.start()
+        assert emu.downvision
+        rx = camera._rx
+        assert rx is not None and (raw := rx.latest()) is not None and raw[2].shape == (720, 320, 3)
+        time.sleep(0.5)  # past the first keyframe's encoder warm-up
+        frame = camera.latest()
+        assert frame is not None and frame.image is not None and frame.image.shape == (240, 320)
+        det = detect_markers(frame.image, cal)
+        assert det.ok, det.reason
+        c, s = np.cos(0.4), np.sin(0.4)
+        world = np.array(P0) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T + [0.04, -0.03, 0.0]
+        corners_c = (world - [0.0, 0.0, 0.95]) @ CAMERA_MOUNTS["down"]
+        truth, _ = cv2.projectPoints(corners_c, np.zeros(3), np.zeros(3), cal.camera_matrix, cal.dist_coeffs)
+        error = np.linalg.norm(det.pixels - truth.reshape(4, 2), axis=1).max()
+        print(f"EDU downward frame through H.264: corner error {error:.3f} px")
+        assert error < 1.0, error
+        assert not emu.errors
+    finally:
+        if camera is not None:
+            camera.stop()
+        if drv is not None:
+            drv.close()
+        emu.close()
+        cam.close()
