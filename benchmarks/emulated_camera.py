@@ -1,7 +1,7 @@
 """CPU per emulated camera stream: render + encode (the camera's child process) and decode (the driver's
 receiver in this process), at 30 fps, for each simulated calibration (docs/performance.md).
 
-    python benchmarks/emulated_camera.py [--seconds 10]
+    python benchmarks/emulated_camera.py [--seconds 10] [--floor plain|tiles]
 
 A Tello emulator on 127.0.0.13 flies nothing: it hovers 0.85 m above the target after `takeoff`, so every
 frame shows the four markers. CPU is measured as CPU seconds per wall second (1.0 = one core): the child's
@@ -37,8 +37,9 @@ def cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def measure(cal_file: str, seconds: float) -> dict[str, float]:
-    """CPU (cores) of one stream of `cal_file` over `seconds` of streaming."""
+def measure(cal_file: str, seconds: float, floor: str = "plain") -> dict[str, float]:
+    """CPU (cores) of one stream of `cal_file` over `seconds` of streaming, the floor `floor`; a calibration
+    with a stream layout (the EDU's downward camera) streams with `downvision 1`."""
     target = SharedTarget()
     target.write(0.0, 0.0, 0.0)
     port = free_udp_port()
@@ -48,7 +49,9 @@ def measure(cal_file: str, seconds: float) -> dict[str, float]:
         t_ic=(0.0, 0.0, 0.0),
         feature_points=P0,
         start=(0.0, 0.0, 0.0, 0.0),
+        floor=floor,
     )
+    down = spec.calibration.get("stream") is not None
     cam = VideoProcess(spec, IP, ("127.0.0.1", port), target, fps=30.0)
     emu = TelloEmulator(IP, state_port=free_udp_port(), video_port=port, video_size=cam.size, fps=30.0)
     emu.use_remote_video(cam)
@@ -58,7 +61,7 @@ def measure(cal_file: str, seconds: float) -> dict[str, float]:
         cam.start()
         cam.wait_ready()
         emu.start()
-        for text in ("command", "takeoff", "streamon"):
+        for text in ("command", *(("downvision 1",) if down else ()), "takeoff", "streamon"):
             sock.sendto(text.encode(), emu.address)
         assert rx.wait_first_frame(10.0), emu.errors
         wait_until(lambda: emu.phase == "flying", 5.0)
@@ -76,17 +79,18 @@ def measure(cal_file: str, seconds: float) -> dict[str, float]:
         rx.close()
         emu.close()
         cam.close()
-    w, h = spec.size
+    w, h = spec.stream_size(down)
     return {"width": w, "height": h, "fps_decoded": fps, "render_encode": child, "decode": parent}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--floor", choices=("plain", "tiles"), default="plain")
     args = ap.parse_args()
     out = {}
-    for cal in ("tello_down_sim.yaml", "tello_front_sim.yaml"):
-        r = measure(cal, args.seconds)
+    for cal in ("tello_down_sim.yaml", "tello_down_edu_sim.yaml", "tello_front_sim.yaml"):
+        r = measure(cal, args.seconds, args.floor)
         out[cal] = r
         print(
             f"{r['width']}x{r['height']} at {r['fps_decoded']:.1f} fps decoded: render+encode "
