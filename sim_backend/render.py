@@ -329,13 +329,21 @@ class NormalisedGrid:
 
     padded: (H + 2, W + 2, 2), of every pixel centre from −1 to W (columns) and −1 to H (rows): entry
     [i + 1, j + 1] is pixel (row i, column j); pixels: (H, W, 2), the image's own (a contiguous copy);
-    bounds: (x_min, x_max, y_min, y_max) of `pixels`.
+    bounds: (x_min, x_max, y_min, y_max) of `pixels`; coarse: (H/2, W/2, 2) for an image of even size
+    at least FLOOR_COARSE_PX, at pixels (2i + ½, 2j + ½), where cv2.resize (INTER_LINEAR) by 2 puts the
+    centres of its samples; else None.
     """
 
     padded: np.ndarray
     pixels: np.ndarray
     bounds: tuple[float, float, float, float]
+    coarse: np.ndarray | None = None
 
+
+FLOOR_COARSE_PX = 640 * 480
+"""A frame of at least this many pixels (and of even size) has its floor sampled on every second pixel and
+interpolated (cv2.resize, bilinear): the floor's finest detail is about 1 cm, a forward camera 960 × 720 px
+wide sees 1 cm over 7 px at 1 m; the downward 320 × 240 camera samples every pixel."""
 
 _GRID_CACHE: dict[tuple[object, ...], NormalisedGrid] = {}
 
@@ -357,8 +365,16 @@ def normalised_grid(cal: CameraCalibration) -> NormalisedGrid:
         padded.setflags(write=False)
         pixels.setflags(write=False)
         x, y = pixels[:, :, 0], pixels[:, :, 1]
+        coarse = None
+        W, H = cal.width, cal.height
+        if W * H >= FLOOR_COARSE_PX and W % 2 == 0 and H % 2 == 0:
+            cu, cv = np.meshgrid(np.arange(W // 2) * 2.0 + 0.5, np.arange(H // 2) * 2.0 + 0.5)
+            cpx = np.stack([cu, cv], axis=-1).reshape(-1, 1, 2)
+            cxy = cv2.undistortPoints(cpx, K, dist, criteria=_UNDISTORT_CRITERIA).reshape((*cu.shape, 2))
+            coarse = np.ascontiguousarray(cxy, dtype=np.float32)
+            coarse.setflags(write=False)
         grid = NormalisedGrid(
-            padded, pixels, (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
+            padded, pixels, (float(x.min()), float(x.max()), float(y.min()), float(y.max())), coarse
         )
         if len(_GRID_CACHE) >= 8:
             _GRID_CACHE.clear()
@@ -374,7 +390,12 @@ def _background(
     W, H = int(cal.width), int(cal.height)
     if opts.floor == "tiles" and floor is not None:
         grid = normalised_grid(cal)
-        grey = floor_image(grid.pixels, floor, grid.bounds)
+        if grid.coarse is None:
+            grey = floor_image(grid.pixels, floor, grid.bounds)
+        else:
+            grey = cv2.resize(
+                floor_image(grid.coarse, floor, grid.bounds), (W, H), interpolation=cv2.INTER_LINEAR
+            )
         lo, hi = grey_range()
         colours = tuple((g, g, g) for g in range(max(0, lo), min(255, hi) + 1))
         image = grey if cal.grey else np.ascontiguousarray(np.repeat(grey[:, :, None], 3, axis=2))
