@@ -298,10 +298,11 @@ def _fiducial(args: argparse.Namespace, cal: CameraCalibration) -> int:
         return _error(
             "--marker picks colour markers; this calibration declares a fiducial (use --board, --images)"
         )
-    has_source = bool(args.images or args.video)
+    has_source = bool(args.images or args.video or args.tello)
     if args.board is None and not has_source:
         return _error(
-            "a fiducial's calibration needs --board FILE (.png, .pdf) and/or --images DIR or --video FILE"
+            "a fiducial's calibration needs --board FILE (.png, .pdf) and/or --images DIR, --video FILE "
+            "or --tello IP"
         )
     print(
         f"calibrate markers: fiducial ArUco {fid.dictionary} id {fid.id}, side {fid.side_m:g} m, quiet zone "
@@ -617,7 +618,7 @@ def register(cal_sub: argparse._SubParsersAction) -> None:
         "that every sample shows it.",
     )
     m.add_argument("--calibration", default=None, help="camera calibration file to add the markers to")
-    _add_source_options(m, tello=False)
+    _add_source_options(m, tello=True)
     m.add_argument(
         "--marker",
         action="append",
