@@ -193,7 +193,9 @@ def refine_by_edges(
     if reach < 1.0:
         return None
     offsets = np.arange(-reach, reach + 1e-9, EDGE_STEP_PX)
-    image = grey.astype(np.float32)
+    lo = np.maximum(np.floor(quad.min(axis=0) - reach - 2.0), 0).astype(int)  # the profiles' window
+    hi = np.minimum(np.ceil(quad.max(axis=0) + reach + 3.0), (W, H)).astype(int)
+    image = grey[lo[1] : hi[1], lo[0] : hi[0]].astype(np.float32)
     lines = []
     for k in range(4):
         a, b = quad[k], quad[(k + 1) % 4]
@@ -209,7 +211,7 @@ def refine_by_edges(
         keep = inside.all(axis=1)
         if keep.sum() < 5:
             return None
-        pts = pts[keep].astype(np.float32)
+        pts = (pts[keep] - lo).astype(np.float32)
         prof = cv2.remap(image, pts[..., 0], pts[..., 1], cv2.INTER_LINEAR).astype(float)
         m = max(1, round(0.5 / EDGE_STEP_PX))
         lo_level, hi_level = prof[:, :m].mean(axis=1), prof[:, -m:].mean(axis=1)
@@ -222,8 +224,8 @@ def refine_by_edges(
         edge = base[keep][ok] + (offsets[-1] - area)[:, None] * normal
         xy = normalise(edge, cal)
         mean = xy.mean(axis=0)
-        _, _, vt = np.linalg.svd(xy - mean)
-        n_line = vt[1]  # the line: n_line · p = n_line · mean
+        _, vecs = np.linalg.eigh(np.cov((xy - mean).T))
+        n_line = vecs[:, 0]  # the least-spread direction: the line is n_line · p = n_line · mean
         lines.append((n_line, float(n_line @ mean)))
     corners_n = np.empty((4, 2))
     for k in range(4):  # corner k is where side k − 1 (into it) meets side k (out of it)
