@@ -335,7 +335,8 @@ class RerunTap:
         logger.events(job.events, t_default)
         for i, stamp, img, px in job.images:
             self.stream.set_time(layout.TIMELINE, duration=stamp)
-            enc = self.rr.Image(img, color_model="RGB").compress(jpeg_quality=layout.JPEG_QUALITY)
+            model = "RGB" if img.ndim == 3 else "L"  # a grey camera's frames are H x W
+            enc = self.rr.Image(img, color_model=model).compress(jpeg_quality=layout.JPEG_QUALITY)
             self.stream.log(layout.image(job.mode, i), enc)
             if px is None:  # nothing detected in this frame: no stale markers over it
                 self.stream.log(layout.markers(job.mode, i), self.rr.Clear(recursive=False))
