@@ -286,13 +286,23 @@ def test_picture_cuts_the_stream_layout_and_makes_it_grey() -> None:
 
 
 class Receiver:
-    """What VideoReceiver.latest gives: (sequence number, decode time s, the decoded RGB frame)."""
+    """What VideoReceiver.latest gives: the newest decoded frame (one, clean)."""
 
     def __init__(self, frame: np.ndarray) -> None:
         self.frame = frame
 
-    def latest(self) -> tuple[int, float, np.ndarray]:
-        return (1, 10.0, self.frame)
+    def latest(self) -> object:
+        from flightstack.drivers.tello.camera import DecodedFrame
+
+        return DecodedFrame(1, 10.0, self.frame, False, None)
+
+
+class Driver:
+    """What TelloCamera.latest reads of its driver: the drone's address (no emulated truth registered)."""
+
+    class cfg:  # noqa: N801
+        host = "127.0.0.99"
+        video_port = 1
 
 
 def test_a_downward_frame_in_the_edu_layout_is_cut_by_the_driver_and_its_corners_found() -> None:
@@ -311,7 +321,7 @@ def test_a_downward_frame_in_the_edu_layout_is_cut_by_the_driver_and_its_corners
         assert abs(below.mean() - DOWN_NOISE_MEAN) < 1.0 and abs(below.std() - DOWN_NOISE_STD) < 0.3
         assert np.array_equal(frame[:, :, 0], frame[:, :, 1])  # a grey picture in all three channels
 
-        cam = TelloCamera(driver=None, calibration=EDU)  # type: ignore[arg-type]
+        cam = TelloCamera(driver=Driver(), calibration=EDU)  # type: ignore[arg-type]
         cam._rx = Receiver(frame)  # type: ignore[assignment]
         got = cam.latest()
         assert got is not None and got.image is not None and got.image.shape == (240, 320)
@@ -334,7 +344,7 @@ def test_the_stamp_goes_below_the_picture() -> None:
     drone, target = views(1, seed=3)[0]
     frame = view.frame(drone, target, downvision=True)
     before = frame[:240].copy()
-    area = view.stamp_area(frame, True)
+    area = view.stamp_area(frame)
     stamp_frame_index(area, 1234)
     assert np.array_equal(frame[:240], before) and read_frame_index(frame[240:]) == 1234
 
