@@ -35,10 +35,11 @@ DOWN_NOISE_POOL = 8
 references only the frame before: ultrafast, one reference frame), so the stream's size is that of fresh
 noise at a fraction of the cost of drawing it."""
 DOWN_NOISE_STD = 4.0
-"""Standard deviation (grey levels) of that noise, i.i.d. per pixel: measured with the emulator's
-encoder (libx264 ultrafast, zerolatency, 30 fps, a 320 × 720 frame, the picture a plain floor): 9.6
-datagrams (13.2 kB) per P frame, 3.2 Mbit/s, like the forward camera's ≈ 9 datagrams and 3 Mbit/s measured
-on a real Tello's dump (docs/drivers.md). 8 grey levels gave 21 datagrams, 0 gave 1."""
+"""Standard deviation (grey levels) of that noise, i.i.d. per pixel: measured with the emulator's encoder
+(make_encoder: libx264 ultrafast, zerolatency, the Tello's 3 Mbit/s ceiling; 30 fps, a 320 × 720 frame,
+the picture on the tiled floor): 8.0 datagrams (11 kB) a frame, 2.65 Mbit/s, like the forward camera's
+≈ 9 datagrams and 3 Mbit/s measured on a real Tello's dump (docs/drivers.md); without the ceiling 9.6
+datagrams, and 21 with 8 grey levels, 1 with none."""
 
 
 @dataclass(frozen=True)
