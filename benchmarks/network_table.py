@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -69,10 +70,19 @@ def fly(profile: str, links: str, duration_s: float, out: Path, seed: int | None
     """One run of paper_experiment on the emulated lab under network `profile` and links `links` (seed:
     the experiment's when None): (exit code, wall s)."""
     t0 = time.monotonic()
+    experiment = "paper_experiment"
+    if seed is not None:  # `run` takes no seed (a sweep's): the experiment's file with its seed replaced
+        text = (REPO / "mission_configs" / "paper_experiment.yaml").read_text()
+        seeded = re.sub(r"(?m)^seed: \d+", f"seed: {int(seed)}", text, count=1)
+        if seeded == text and seed != 0:
+            raise RuntimeError("paper_experiment.yaml has no top-level `seed:` line to replace")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        experiment = str(out.parent / f"paper_experiment_seed{seed}.yaml")
+        Path(experiment).write_text(seeded)
     cmd = [
-        sys.executable, "-m", "flightstack", "run", "paper_experiment", "--rig", "emulated-lab",
+        sys.executable, "-m", "flightstack", "run", experiment, "--rig", "emulated-lab",
         "--network", profile, "--links", links, "--duration", str(duration_s), "--out", str(out),
-        "--no-progress", *([] if seed is None else ["--set", f"seed={seed}"]),
+        "--no-progress",
     ]  # fmt: skip
     with open(out.parent / f"{profile}.log", "w") as log:
         r = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, timeout=40 * duration_s + 600)
