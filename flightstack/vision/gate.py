@@ -7,25 +7,32 @@ moves all the markers of a frame together, so their own geometry does not show i
 datagram is not even detectable in the stream (drivers/tello/video_check.py). So no frame is trusted by
 its tag alone: the prediction is the target's feature points p0^j seen from the drone's own pose g_wi
 (motion capture) under the observer's estimate ḡ_w, both for the frame's capture time, projected as the
-paper's measurement f̄ = f(g_wi⁻¹ ḡ_w) (flightstack.paper.projection). A detection f is accepted when
+paper's measurement f̄ = f(g_wi⁻¹ ḡ_w) (flightstack.paper.projection), shifted by the offset b by which
+the recent accepted detections lay beside it. A detection f is accepted when (pixels)
 
-    r = max_j ‖f^j − f̄^j‖ · fx/λ  ≤  gate = n_σ · sqrt(σ_cal² + σ_track² + (s·max(0, τ − τ₀))²)   (px)
+    d^j = (f^j − f̄^j) · fx/λ,    r = max_j ‖d^j − b‖  ≤  gate = n_σ · sqrt(σ_cal² + σ_track² + (s·τ')²),
+    τ' = max(0, τ − τ₀)
 
-* r: the marker farthest from its prediction, in pixels at the image centre (f in the paper's image-plane
+* d^j: marker j's offset from its prediction, in pixels at the image centre (f in the paper's image-plane
   units λ·(x/z, y/z); fx the calibration's focal length in pixels; the lens distortion is left out, a few
-  % of r at the image's corners);
+  % at the image's corners);
+* b: the mean offset of the markers of the recent accepted detections (an exponential window of
+  TRACK_WINDOW detections): the estimate's systematic lag behind a moving target, which shifts all the
+  markers alike and changes slowly (and on a real drone its tilt, which the paper's 4-DOF pose does not
+  carry). Taking it out leaves what the estimate cannot explain; a concealed frame's ghost, which jumps
+  all the markers together from one frame to the next, is then seen against the detector's noise rather
+  than against the lag (in a pursuit without GP the lag alone was 3–5 px, wider than many ghosts);
 * σ_cal: the calibration's reprojection RMS (`rms_px`; DEFAULT_NOISE_PX for a simulated camera without
   one): the detector's own noise;
-* σ_track: the RMS per axis of the residuals of the recent accepted detections (an exponential window of
-  TRACK_WINDOW detections): how well the estimate predicts the markers while it tracks (the observer's lag
-  behind a moving target, and on a real drone its tilt, which the paper's 4-DOF pose does not carry);
-* s·max(0, τ − τ₀): how far the estimate may have drifted since the last accepted detection, τ s of
+* σ_track: the RMS per axis of d^j − b over the recent accepted detections (same window): how well the
+  shifted prediction predicts;
+* s·τ': how far the estimate may have drifted since the last accepted detection, τ s of
   capture time ago, beyond the usual spacing of detections τ₀ (GateSpec.grace_s, 0.1 s: three frames at
   30 fps, two ticks at 20 Hz), whose prediction error σ_track already measures: s = v_drift · fx / z̄
   px/s, z̄ the predicted mean depth of the points (m), v_drift the target speed the estimate may have
-  missed (m/s, GateSpec.drift_mps). Before the first accepted detection τ = ∞: the first detection is
-  taken (the estimate is then only a guess from the desired pose), and the gate narrows as σ_track
-  learns the tracking residual;
+  missed (m/s, GateSpec.drift_mps). The first TRACK_WINDOW detections after a (re)start are taken (the
+  estimate is then only a guess from the desired pose, converging; the gate learns b and σ_track from
+  them) and judged from then on;
 * n_σ = 4 (GateSpec.sigmas): with Gaussian pixel noise of σ per axis a marker's distance exceeds 4σ with
   probability e^(−8) ≈ 3.4e-4, the largest of m = 4 with ≈ 1.3e-3.
 
@@ -88,15 +95,17 @@ class DetectionGate:
         self.reset()
 
     def reset(self) -> None:
+        self._bias = np.zeros(2)  # b (px)
         self._track_var = 0.0  # σ_track² (px² per axis)
         self._t_accepted = -math.inf  # capture time of the last accepted detection (s)
+        self._learned = 0  # accepted detections since the (re)start
         self.accepted = 0
         self.rejected = 0
 
     def gate_px(self, t_capture: float, depth_m: float) -> float:
         """The gate (px) for a frame captured at t_capture (s) whose points lie depth_m ahead (m)."""
         tau = t_capture - self._t_accepted
-        if not math.isfinite(tau):
+        if self._learned < TRACK_WINDOW or not math.isfinite(tau):
             return math.inf
         s = self.spec.drift_mps * self.fx_px / max(depth_m, 1e-3)
         drift = s * max(tau - self.spec.grace_s, 0.0)
@@ -106,17 +115,19 @@ class DetectionGate:
         """Judge features f against their prediction f_pred (both (2m,), image-plane units) for a frame
         captured at t_capture (s) with its points depth_m ahead (m)."""
         d = (np.asarray(f, dtype=float) - np.asarray(f_pred, dtype=float)).reshape(-1, 2) * self.px_per_unit
-        dist2 = (d * d).sum(axis=1)
+        first = self._learned == 0
+        dev = d - (d.mean(axis=0) if first else self._bias)
+        dist2 = (dev * dev).sum(axis=1)
         r = math.sqrt(float(dist2.max()))
         gate = self.gate_px(t_capture, depth_m)
         if not (r <= gate):  # NaN too
             self.rejected += 1
             return GateVerdict(False, r, gate)
         self.accepted += 1
-        a = 1.0 / TRACK_WINDOW
-        per_axis = float(dist2.mean()) / 2.0
-        first = not math.isfinite(self._t_accepted)
-        self._track_var = per_axis if first else (1 - a) * self._track_var + a * per_axis
+        a = 1.0 if first else 1.0 / TRACK_WINDOW
+        self._track_var = (1 - a) * self._track_var + a * float(dist2.mean()) / 2.0
+        self._bias = (1 - a) * self._bias + a * d.mean(axis=0)
+        self._learned += 1
         self._t_accepted = max(self._t_accepted, t_capture)
         return GateVerdict(True, r, gate)
 
