@@ -30,7 +30,10 @@ the recent accepted detections lay beside it. A detection f is accepted when (pi
   capture time ago, beyond the usual spacing of detections τ₀ (GateSpec.grace_s, 0.1 s: three frames at
   30 fps, two ticks at 20 Hz), whose prediction error σ_track already measures: s = v_drift · fx / z̄
   px/s, z̄ the predicted mean depth of the points (m), v_drift the target speed the estimate may have
-  missed (m/s, GateSpec.drift_mps). The first TRACK_WINDOW detections after a (re)start are taken (the
+  missed (m/s, GateSpec.drift_mps). Not for a frame tagged damaged: concealment can hold a ghost in
+  place for every frame up to the next keyframe (2.2 s on a Tello), so a gate that widened while the
+  observer coasts would end up taking it; only a frame not known to be damaged may move the estimate
+  beyond what it predicts. The first TRACK_WINDOW detections after a (re)start are taken (the
   estimate is then only a guess from the desired pose, converging; the gate learns b and σ_track from
   them) and judged from then on;
 * n_σ = 4 (GateSpec.sigmas): with Gaussian pixel noise of σ per axis a marker's distance exceeds 4σ with
@@ -102,24 +105,28 @@ class DetectionGate:
         self.accepted = 0
         self.rejected = 0
 
-    def gate_px(self, t_capture: float, depth_m: float) -> float:
-        """The gate (px) for a frame captured at t_capture (s) whose points lie depth_m ahead (m)."""
+    def gate_px(self, t_capture: float, depth_m: float, damaged: bool = False) -> float:
+        """The gate (px) for a frame captured at t_capture (s) whose points lie depth_m ahead (m); a
+        `damaged` frame's gate does not widen with τ (module docstring)."""
         tau = t_capture - self._t_accepted
         if self._learned < TRACK_WINDOW or not math.isfinite(tau):
             return math.inf
         s = self.spec.drift_mps * self.fx_px / max(depth_m, 1e-3)
-        drift = s * max(tau - self.spec.grace_s, 0.0)
+        drift = 0.0 if damaged else s * max(tau - self.spec.grace_s, 0.0)
         return self.spec.sigmas * math.sqrt(self.spec.noise_px**2 + self._track_var + drift * drift)
 
-    def check(self, f: np.ndarray, f_pred: np.ndarray, depth_m: float, t_capture: float) -> GateVerdict:
+    def check(
+        self, f: np.ndarray, f_pred: np.ndarray, depth_m: float, t_capture: float, damaged: bool = False
+    ) -> GateVerdict:
         """Judge features f against their prediction f_pred (both (2m,), image-plane units) for a frame
-        captured at t_capture (s) with its points depth_m ahead (m)."""
+        captured at t_capture (s) with its points depth_m ahead (m); `damaged`: the frame was decoded
+        through a detected loss (hal.Frame.damaged)."""
         d = (np.asarray(f, dtype=float) - np.asarray(f_pred, dtype=float)).reshape(-1, 2) * self.px_per_unit
         first = self._learned == 0
         dev = d - (d.mean(axis=0) if first else self._bias)
         dist2 = (dev * dev).sum(axis=1)
         r = math.sqrt(float(dist2.max()))
-        gate = self.gate_px(t_capture, depth_m)
+        gate = self.gate_px(t_capture, depth_m, damaged)
         if not (r <= gate):  # NaN too
             self.rejected += 1
             return GateVerdict(False, r, gate)
