@@ -84,6 +84,22 @@ def test_a_ghost_beside_a_lagging_estimate_is_rejected_then_taken_once_the_estim
     assert (gate.accepted, gate.rejected) == (4 * TRACK_WINDOW + 1, 2)
 
 
+def test_a_damaged_frame_never_widens_the_gate() -> None:
+    """A ghost in frames tagged damaged stays rejected however long the observer coasts (concealment can
+    hold it up to the next keyframe); the same offset from a frame tagged clean is taken once the gate
+    has widened; a damaged frame at the prediction is taken at once."""
+    gate = DetectionGate(GateSpec(), FX, 1.0)
+    f = measure(G_I0, P0, CAM)
+    t = _learn(gate, f, np.zeros(2), 0.0, noise_px=0.3)
+    ghost = f + np.tile([10.0 / FX, 0.0], 4)
+    for k in range(1, 60):  # 3 s of damaged frames at 20 Hz
+        assert not gate.check(ghost, f, 0.85, t + 0.05 * k, damaged=True).accepted
+    assert gate.check(f, f, 0.85, t + 3.0, damaged=True).accepted
+    t += 3.0
+    assert not gate.check(ghost, f, 0.85, t + 0.05).accepted  # clean, but the gate has not widened yet
+    assert gate.check(ghost, f, 0.85, t + 1.0).accepted
+
+
 def test_false_rejections_under_the_detectors_noise_are_rare() -> None:
     """20,000 detections at 20 Hz with Gaussian noise of σ_cal per axis on every marker: the gate learns
     σ_track ≈ σ_cal (the scatter about b, itself a mean of noise) and rejects at most the 4σ tail of the
