@@ -729,19 +729,33 @@ def ms(seconds: float | None) -> float | None:
     return None if seconds is None or not math.isfinite(seconds) else round(1e3 * seconds, 1)
 
 
+TRUTH_INDEX_STEP = 8
+"""Largest step (frames) between the bar-coded indices of two frames decoded one after the other that
+`_truth_of` believes: more is a bar code concealment smeared, not frames lost on the way."""
+
+
 def _truth_of(cam: Any) -> FrameTruth:
     """How to know the truth of a live camera's decoded frame: its bar-coded frame index (tello_frames)
-    looked up in the camera's capture records (VideoProcess.truth_px); None when the index is not there
-    (a bar code smeared by a loss reads as another index: the truth is then another frame's, off by that
-    frame's motion). In the EDU's downward layout the code is below the picture (tello_view.index_area)."""
+    looked up in the camera's capture records (VideoProcess.truth_px). None when it cannot be trusted:
+    the index is not there, or it does not follow the previous frame's by 1 to TRUTH_INDEX_STEP (a bar
+    code concealed after a loss reads as an older frame's index, or as noise: the truth would then be
+    another frame's, and a detection would be judged against a place the target never was). In the
+    EDU's downward layout the code is below the picture (tello_view.index_area), in the noise that fills
+    most of the stream's datagrams."""
     from flightstack.sim_backend.emulators.tello.frames import read_frame_index
     from flightstack.sim_backend.emulators.tello.view import index_area
     from flightstack.vision.camera_file import calibration_from_dict
 
     cal = calibration_from_dict(cam.spec.calibration, "emulated camera")
+    last: list[int] = []  # the previous frame's index, once there is one
 
     def truth(img: np.ndarray) -> np.ndarray | None:
-        return cam.truth_px.get(read_frame_index(index_area(cal, img)))
+        index = read_frame_index(index_area(cal, img))
+        follows = not last or 0 < index - last[0] <= TRUTH_INDEX_STEP
+        if last and index - last[0] < -TRUTH_INDEX_STEP:  # a new stream counts from 0 again
+            follows = index < TRUTH_INDEX_STEP
+        last[:] = [index]
+        return cam.truth_px.get(index) if follows else None
 
     return truth
 
