@@ -35,21 +35,28 @@ from flightstack.hal import Frame
 from flightstack.sim_backend.build import initial_drone_pose
 from flightstack.sim_backend.emulated_lab import DRONE_STARTS, EmulatedLab
 from flightstack.sim_backend.emulators.tello import TelloEmulator, read_frame_index
+from flightstack.sim_backend.emulators.tello.view import index_area
 from tests.conftest import MISSIONS, Bound, run_cli
 
 pytestmark = pytest.mark.system
 
 
 class TappedCamera:
-    """The backend's camera, noting each new frame's bar-coded index by its stamp (its decode time)."""
+    """The backend's camera, noting each new frame's bar-coded index by its stamp (its decode time), read
+    from the whole decoded frame (TelloCamera.last_decoded: the EDU's downward stream carries the code in
+    the noise below the picture, which `latest` cuts off)."""
 
     def __init__(self, inner: Any, seen: dict[float, int]) -> None:
         self.inner, self.seen = inner, seen
 
     def latest(self) -> Frame | None:
         f = self.inner.latest()
-        if f is not None and f.stamp not in self.seen and f.image is not None:
-            self.seen[f.stamp] = read_frame_index(f.image)
+        whole = self.inner.last_decoded
+        if f is not None and f.stamp not in self.seen and whole is not None:
+            cal = self.inner.calibration
+            self.seen[f.stamp] = read_frame_index(
+                whole.image if cal is None else index_area(cal, whole.image)
+            )
         return f
 
     def __getattr__(self, name: str) -> Any:

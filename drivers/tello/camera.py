@@ -223,6 +223,7 @@ class TelloCamera:
         self._last_seq = 0
         self._truth_px: np.ndarray | None = None  # the newest frame's, from an emulated camera
         self._picture: np.ndarray | None = None  # the picture of the frame numbered _last_seq
+        self._last_decoded: DecodedFrame | None = None  # that frame, whole
         self.frames_seen = 0
 
     def start(self) -> None:
@@ -267,7 +268,7 @@ class TelloCamera:
         if item is None:
             return None
         if item.seq != self._last_seq:
-            self._last_seq = item.seq
+            self._last_seq, self._last_decoded = item.seq, item
             self.frames_seen += 1
             truth = frame_truth(self.driver.cfg.host, self.driver.cfg.video_port)
             self._truth_px = None if truth is None else truth(item.image)  # read from the whole frame
@@ -284,6 +285,13 @@ class TelloCamera:
             since_loss=item.since_loss,
             truth_px=self._truth_px,
         )
+
+    @property
+    def last_decoded(self) -> DecodedFrame | None:
+        """The decoded frame, whole (before the cut to the calibrated picture), that `latest` last made
+        its picture from; None before one. For tools that measure the stream itself (a frame's bar-coded
+        index on the emulated lab), never for the loop."""
+        return None if self._rx is None or self._last_seq == 0 else self._last_decoded
 
     def stream_counts(self) -> dict[str, int]:
         """hal.StreamCounting: the receiver's counts so far (STREAM_COUNT_KEYS, zeros too) and
