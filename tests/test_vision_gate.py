@@ -38,17 +38,17 @@ def _learn(
 
 
 def test_the_gate_is_the_closed_form() -> None:
-    """After the warm-up the offset b shared by the markers is the estimate's lag (here 5 px, (3, 4)): a
+    """After the warm-up the offset shared by the markers is the estimate's lag (here 5 px, (3, 4)): a
     detection at it has residual 0, one 2 px beside it 2 px, and the gate is
-    n_σ·sqrt(σ_cal² + σ_track² + (v·fx/z·max(0, τ − τ₀))²) (σ_track 0: no scatter learned)."""
-    spec = GateSpec(sigmas=4.0, drift_mps=0.2, noise_px=0.7, grace_s=0.1)
+    n_σ·sqrt(σ_cal² + σ_track²) + (v·fx/z̄ + ω·ρ̄)·τ (σ_track 0: no scatter learned)."""
+    spec = GateSpec(sigmas=4.0, drift_mps=0.2, drift_radps=0.5, noise_px=0.7)
     gate = DetectionGate(spec, FX, 1.0)
     assert gate.gate_px(1.0, 0.8) == math.inf
     f = measure(G_I0, P0, CAM)
     t = _learn(gate, f, np.array([3.0, 4.0]), 1.0)
     for tau in (0.0, 0.05, 0.4):
-        want = 4.0 * math.sqrt(0.7**2 + (0.2 * FX / 0.8 * max(0.0, tau - 0.1)) ** 2)
-        assert gate.gate_px(t + tau, 0.8) == pytest.approx(want, rel=1e-9)
+        want = 4.0 * 0.7 + (0.2 * FX / 0.8 + 0.5 * 40.0) * tau
+        assert gate.gate_px(t + tau, 0.8, 40.0) == pytest.approx(want, rel=1e-9)
     v = gate.check(f + np.tile([3.0 / FX, 4.0 / FX], 4), f, 0.8, t + 0.05)
     assert v.accepted and v.residual_px == pytest.approx(0.0, abs=1e-9)
     v = gate.check(f + np.tile([5.0 / FX, 4.0 / FX], 4), f, 0.8, t + 0.1)
@@ -60,9 +60,9 @@ def test_a_ghost_beside_a_lagging_estimate_is_rejected_then_taken_once_the_estim
 ):
     """The estimate lags by 6 px (all markers alike) with 0.3 px of noise: those detections pass; a
     concealed frame's ghost 8 px further (14 px off the prediction, 8 px off the lag) is rejected.
-    Coasting widens the gate by the drift the estimate may have missed, so the same offset is taken once
-    τ is long enough (no lock-out); a rejection teaches the gate nothing."""
-    spec = GateSpec(sigmas=4.0, drift_mps=0.1, noise_px=0.5)
+    Coasting widens the gate by the drift the estimate may have missed, s = v·fx/z̄ + ω·ρ̄ px/s, so the
+    same offset is taken once τ is long enough (no lock-out); a rejection teaches the gate nothing."""
+    spec = GateSpec(sigmas=4.0, drift_mps=0.1, drift_radps=0.5, noise_px=0.5)
     gate = DetectionGate(spec, FX, 1.0)
     f = measure(G_I0, P0, CAM)
     lag = np.array([6.0, 0.0])
@@ -73,31 +73,90 @@ def test_a_ghost_beside_a_lagging_estimate_is_rejected_then_taken_once_the_estim
         assert gate.check(f + np.tile(lag / FX, 4) + rng.normal(0, 0.3 / FX, 8), f, 0.85, t).accepted
     ghost = f + np.tile((lag + np.array([8.0, 0.0])) / FX, 4)
     v = gate.check(ghost, f, 0.85, t + 0.05)
-    assert not v.accepted and v.residual_px == pytest.approx(8.0, abs=0.3) and v.gate_px < 3.0
-    before = gate.gate_px(t + 0.05, 0.85)
-    base = (gate.gate_px(t, 0.85) / 4.0) ** 2  # σ_cal² + σ_track² (τ ≤ τ₀)
-    tau_open = 0.1 + math.sqrt((v.residual_px / 4.0) ** 2 - base) / (0.1 * FX / 0.85)
-    assert 0.12 < tau_open < 0.25, tau_open
+    spread = float(np.linalg.norm((f.reshape(-1, 2) - f.reshape(-1, 2).mean(axis=0)) * FX, axis=1).mean())
+    s = 0.1 * FX / 0.85 + 0.5 * spread
+    noise = v.gate_px - s * 0.05
+    assert not v.accepted and v.residual_px == pytest.approx(8.0, abs=0.3) and noise < 3.0
+    tau_open = (v.residual_px - noise) / s
+    assert 0.08 < tau_open < 0.25, tau_open
     assert not gate.check(ghost, f, 0.85, t + 0.9 * tau_open).accepted
-    assert gate.gate_px(t + 0.05, 0.85) == pytest.approx(before)  # rejections changed nothing
+    assert gate.check(ghost, f, 0.85, t + 0.05 + 1e-6).gate_px == pytest.approx(v.gate_px, abs=1e-3)
     assert gate.check(ghost, f, 0.85, t + 1.1 * tau_open).accepted
-    assert (gate.accepted, gate.rejected) == (4 * TRACK_WINDOW + 1, 2)
+    assert (gate.accepted, gate.rejected) == (4 * TRACK_WINDOW + 1, 3)
 
 
-def test_a_damaged_frame_never_widens_the_gate() -> None:
-    """A ghost in frames tagged damaged stays rejected however long the observer coasts (concealment can
-    hold it up to the next keyframe); the same offset from a frame tagged clean is taken once the gate
-    has widened; a damaged frame at the prediction is taken at once."""
-    gate = DetectionGate(GateSpec(), FX, 1.0)
+def test_a_turning_target_is_followed_and_a_ghost_during_the_turn_rejected() -> None:
+    """The target turns: the lag grows at 43 px/s (Δv ≈ 0.14 m/s at a corner of paper_experiment's square,
+    fx/z̄ ≈ 306 px/m) for 1 s, 30 frames/s, 0.3 px of noise. The offset's rate is tracked: every frame of the
+    turn is taken and, once the rate is learnt, predicted to within the noise (without the rate the
+    residual stays 3 px behind the ramp). A ghost 6 px beside the ramp is still rejected."""
+    gate = DetectionGate(GateSpec(noise_px=0.5), FX, 1.0)
     f = measure(G_I0, P0, CAM)
     t = _learn(gate, f, np.zeros(2), 0.0, noise_px=0.3)
+    rng = np.random.default_rng(5)
+    lag = np.zeros(2)
+    residuals = []
+    for k in range(1, 31):
+        lag = np.array([43.0 * k / 30.0, 0.0])
+        v = gate.check(f + np.tile(lag / FX, 4) + rng.normal(0, 0.3 / FX, 8), f, 0.85, t + k / 30.0)
+        residuals.append(v.residual_px)
+        assert v.accepted, (k, v)
+    print(f"residual during the turn: max {max(residuals):.2f} px, last {residuals[-1]:.2f} px")
+    assert residuals[-1] < 1.5  # the rate learnt: the ramp is predicted
+    t += 1.0
+    ghost = f + np.tile((lag + np.array([43.0 / 30.0 + 6.0, 0.0])) / FX, 4)
+    assert not gate.check(ghost, f, 0.85, t + 1 / 30.0).accepted
+
+
+def test_a_target_turning_in_place_is_followed() -> None:
+    """The robot turns in place at 0.5 rad/s for 1.5 s (paper_experiment's unicycle square turns at each
+    corner) while the estimate stays put: the markers, 43 px from their centre, rotate by 21 px/s in
+    opposite directions, which no common shift explains. The lag's rotation is tracked: every frame is
+    taken, and by the end the rotation is predicted to within the noise."""
+    gate = DetectionGate(GateSpec(noise_px=0.5), FX, 1.0)
+    f = measure(G_I0, P0, CAM)
+    t = _learn(gate, f, np.zeros(2), 0.0, noise_px=0.3)
+    rng = np.random.default_rng(6)
+    residuals = []
+    for k in range(1, 46):
+        turned = measure(Pose.make(G_I0.p, 0.3 + 0.5 * k / 30.0), P0, CAM)
+        v = gate.check(turned + rng.normal(0, 0.3 / FX, 8), f, 0.85, t + k / 30.0)
+        residuals.append(v.residual_px)
+        assert v.accepted, (k, v)
+    print(f"residual during the turn: max {max(residuals):.2f} px, last {residuals[-1]:.2f} px")
+    assert residuals[-1] < 1.5
+
+
+def test_the_warm_up_lasts_while_the_estimate_converges() -> None:
+    """At the start the estimate converges: the lag shrinks at 80 px/s, faster than the drift bound s
+    (≈ 52 px/s here). The gate stays open (every detection taken, gate ∞) past TRACK_WINDOW detections
+    while it does, and judges once the lag has settled."""
+    gate = DetectionGate(GateSpec(), FX, 1.0)
+    f = measure(G_I0, P0, CAM)
+    t = 0.0
+    for k in range(2 * TRACK_WINDOW):  # 1 s converging: 80 → 0 px
+        lag = np.array([80.0 - 4.0 * k, 0.0])
+        v = gate.check(f + np.tile(lag / FX, 4), f, 0.85, t)
+        assert v.accepted and v.gate_px == math.inf, k
+        t += 0.05
+    for _ in range(TRACK_WINDOW):  # converged: the rate decays, the gate closes
+        t += 0.05
+        v = gate.check(f, f, 0.85, t)
+        assert v.accepted
+    assert math.isfinite(v.gate_px)
+    assert not gate.check(f + np.tile([30.0 / FX, 0.0], 4), f, 0.85, t + 0.05).accepted  # judged now
+
+
+def test_a_frame_judged_again_is_judged_once() -> None:
+    """The loop reads the camera's newest frame every tick; when no newer frame came, the same frame (its
+    capture time) gets the same verdict and is counted once."""
+    gate = DetectionGate(GateSpec(), FX, 1.0)
+    f = measure(G_I0, P0, CAM)
+    t = _learn(gate, f, np.zeros(2), 0.0)
     ghost = f + np.tile([10.0 / FX, 0.0], 4)
-    for k in range(1, 60):  # 3 s of damaged frames at 20 Hz
-        assert not gate.check(ghost, f, 0.85, t + 0.05 * k, damaged=True).accepted
-    assert gate.check(f, f, 0.85, t + 3.0, damaged=True).accepted
-    t += 3.0
-    assert not gate.check(ghost, f, 0.85, t + 0.05).accepted  # clean, but the gate has not widened yet
-    assert gate.check(ghost, f, 0.85, t + 1.0).accepted
+    first = gate.check(ghost, f, 0.85, t + 0.05)
+    assert gate.check(ghost, f, 0.85, t + 0.05) == first and not first.accepted
+    assert (gate.accepted, gate.rejected) == (TRACK_WINDOW, 1)
 
 
 def test_false_rejections_under_the_detectors_noise_are_rare() -> None:
@@ -135,7 +194,13 @@ def test_the_residual_is_in_pixels_of_the_calibrated_image() -> None:
 
 
 def test_settings_out_of_range_are_refused() -> None:
-    for bad in ({"sigmas": 0.0}, {"drift_mps": -1.0}, {"noise_px": 0.0}, {"sigmas": math.inf}):
+    for bad in (
+        {"sigmas": 0.0},
+        {"drift_mps": -1.0},
+        {"drift_radps": -0.1},
+        {"noise_px": 0.0},
+        {"sigmas": math.inf},
+    ):
         with pytest.raises(ValueError):
             GateSpec(**bad)  # type: ignore[arg-type]
     with pytest.raises(ValueError):

@@ -340,7 +340,7 @@ class Agent:
         f_pred = np.empty(2 * len(self._P0))
         if not kern.measure(rel, self._P0, self._cam, f_pred):  # the estimate puts the target out of view
             return features, rejection, out
-        verdict = self.gate.check(features, f_pred, float(pc[:, 2].mean()), frame.stamp, frame.damaged)
+        verdict = self.gate.check(features, f_pred, float(pc[:, 2].mean()), frame.stamp)
         out.residual_px, out.gate_px = verdict.residual_px, verdict.gate_px
         if verdict.accepted:
             return features, rejection, out
