@@ -102,7 +102,6 @@ class Drone:
 
     spec: GuardedTello
     tracker: PhaseTracker
-    first_t: float | None = None  # first state packet seen by the guardian
     last_send_t: float = -math.inf
     sends: int = 0
     down_t: float | None = None
@@ -111,11 +110,10 @@ class Drone:
     )
 
     def is_down(self, now: float) -> bool:
-        """Near the ground (PhaseTracker.low: tof, else h) and the motor-on time frozen for motor_quiet_s,
-        over ≥ that long of telemetry."""
-        quiet = self.tracker.th.motor_quiet_s
-        seen_long = self.first_t is not None and now - self.first_t >= quiet + 0.25
-        return seen_long and self.tracker.down(now)
+        """On the ground: the motor-on time frozen over motor_quiet_s of fresh telemetry (PhaseTracker.down:
+        whatever tof and h read, a drone on a raised surface too)."""
+        s = self.tracker.latest
+        return s is not None and now - s.t <= 0.5 and self.tracker.down(now)
 
 
 @dataclass
@@ -314,11 +312,20 @@ class GuardianProcess:
                 self.flag.set()
         except Exception as exc:  # the drones come first
             self.log(f"cannot set the takeover flag: {exc}", "error")
+        self.mark_down(now)
         self.send_all(now, first=True)
         flag = "flag set, " if self.flag is not None else ""
         self.log(f"TAKEOVER: {why}; {flag}rc 0 0 0 0 and land sent to {len(self.drones)} Tello(s)", "warning")
         if self.robot is not None:
             self.robot.step(now)
+
+    def mark_down(self, now: float) -> None:
+        """Note every drone fresh telemetry shows on the ground: nothing is sent to it any more (a land to a
+        drone whose motors are off is refused at best)."""
+        for d in self.drones:
+            if d.down_t is None and d.is_down(now):
+                d.down_t = now
+                self.log(f"{d.spec.host}: down ({self.telemetry(d)}); no more sends to it")
 
     def send_all(self, now: float, first: bool = False) -> None:
         for d in self.drones:
@@ -389,7 +396,6 @@ class GuardianProcess:
                         d.tracker.observe(parse_state(data, now))
                     except StateRejectedError:
                         continue
-                    d.first_t = now if d.first_t is None else d.first_t
 
     def drain_replies(self, ip: str) -> None:
         for _ in range(64):
@@ -403,10 +409,7 @@ class GuardianProcess:
         """One takeover tick; the exit code once finished, else None."""
         assert self.takeover_t is not None
         self.bind_state_ports(now)
-        for d in self.drones:
-            if d.down_t is None and d.is_down(now):
-                d.down_t = now
-                self.log(f"{d.spec.host}: down ({self.telemetry(d)}); no more sends to it")
+        self.mark_down(now)
         self.send_all(now)
         if self.robot is not None:
             self.robot.step(now)

@@ -120,11 +120,17 @@ for d in drones:
 """
 
 
-def start_emulator(ip: str, state_port: int) -> TelloEmulator:
-    """An EDU-like emulated Tello whose state goes to 127.0.0.1:state_port."""
+def start_emulator(ip: str, state_port: int, raised_cm: float = 0.0) -> TelloEmulator:
+    """An EDU-like emulated Tello whose state goes to 127.0.0.1:state_port; resting `raised_cm` above the
+    surface its tof sees (a real Tello on a box reads tof 31 cm at rest: raised_cm 21)."""
     return TelloEmulator(
-        ip, state_port=state_port, video_port=free_udp_port(), reply_port_latch=True, takeoff_s=FAST_TAKEOFF_S
-    ).start()  # the guardian's takeover, not the takeoff: the recorded 8.7 s would add 8.4 s
+        ip,
+        state_port=state_port,
+        video_port=free_udp_port(),
+        reply_port_latch=True,
+        takeoff_s=FAST_TAKEOFF_S,  # the guardian's takeover, not the takeoff: the recorded 8.7 s adds 8.4 s
+        surface=lambda x, y: -raised_cm,
+    ).start()
 
 
 class Child:
@@ -287,21 +293,27 @@ def test_parent_stopped_takeover_then_resumed_parent_sends_nothing(
         child.stop()
 
 
+@pytest.mark.parametrize("raised_cm", [0.0, 21.0], ids=["floor", "raised-surface"])
 def test_normal_finish_guardian_exits_and_sends_nothing(
-    tmp_path: Path, two_tellos: list[TelloEmulator]
+    tmp_path: Path, state_port: int, raised_cm: float
 ) -> None:
+    """A normal flight: the guardian beside it sends nothing, also with both drones on a raised surface
+    (tof 31 cm at rest), and the drones refuse nothing."""
+    two_tellos = [start_emulator(f"127.0.0.{k}", state_port, raised_cm) for k in (41, 42)]
     child = Child(tmp_path, two_tellos, None, "finish")
     try:
         assert child.wait_line("finished", timeout=18.0) == ["0"]
         assert child.proc.wait(timeout=5) == 0
         for emu in two_tellos:
-            assert emu.phase == "landed"
+            assert emu.phase == "landed" and emu.refused == [], emu.refused
             assert {a[1] for _, _, a in emu.senders} == {child_port(emu)}  # nothing from the guardian
         log = wait_guardian_exit(child, 2.0)
         assert "bye" in log and "exit 0" in log and "TAKEOVER" not in log
         assert not TakeoverFlag(child.flag_path).is_set()
     finally:
         child.stop()
+        for e in two_tellos:
+            e.close()
 
 
 def test_parent_killed_guardian_stops_and_disarms_robot(

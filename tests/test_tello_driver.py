@@ -413,6 +413,66 @@ def test_error_reply_to_takeoff_is_a_refusal_when_nothing_moves(emu: TelloEmulat
         d.close()
 
 
+RAISED_CM = 21.0
+"""How far the resting drone's tof reads above its floor value: a real Tello on a raised surface (a box, a
+carpet, a landing pad) reads tof 31 cm on the ground, not 10 (issue 49)."""
+
+
+def test_a_drone_on_a_raised_surface_is_on_the_ground() -> None:
+    """tof 31 at rest: connect says GROUND (the motor time held, whatever tof reads), preflight passes, the
+    loop watchdog sends no land to the grounded drone, takeoff() sends takeoff and returns only after the
+    climb, and the flight lands normally; the emulator refused nothing."""
+    emu = make_emulator(surface=lambda x, y: -RAISED_CM)
+    emu.start()
+    d = TelloDriver(config(emu, loop_hover_s=0.3, loop_land_s=0.5))
+    try:
+        t0 = time.monotonic()
+        d.connect()
+        print(f"connect: {time.monotonic() - t0:.2f} s, tof {d.status.tracker.latest.tof_cm:.0f} cm")
+        assert d.status.tracker.latest.tof_cm == 10 + RAISED_CM
+        assert d.phase is FlightPhase.GROUND, d.events[-5:]
+        checks = {c.name: c for c in d.preflight()}
+        assert all(c.ok for c in checks.values()), [c for c in checks.values() if not c.ok]
+        time.sleep(1.0)  # the loop is silent: on the ground, the watchdog has nothing to land
+        assert "land" not in emu.command_texts()
+        t0 = time.monotonic()
+        d.takeoff()
+        assert emu.command_texts().count("takeoff") == 1
+        assert emu.phase == "flying" and d.phase is FlightPhase.AIRBORNE
+        print(f"takeoff returned after {time.monotonic() - t0:.2f} s")
+        d.land()
+        assert emu.phase == "landed" and d.phase is FlightPhase.GROUND
+        assert emu.command_texts().count("land") == 1
+        assert_clean(d, emu)
+    finally:
+        d.close()
+        emu.close()
+
+
+def test_land_while_the_drone_lands_by_itself_sends_no_land() -> None:
+    """The drone lands of its own accord (the emulator's auto-land: no command for auto_land_s; a 2.5 s
+    descent from its takeoff height, as a real one takes ~2 s): the driver calls it its own landing after
+    self_land_s of descent, and a land() called then sends neither rc nor land (the drone would refuse them,
+    and at touchdown reach a drone whose motors stopped); it returns once the motors are off."""
+    emu = make_emulator(auto_land_s=1.0, land_s=2.5)
+    emu.start()
+    d = TelloDriver(config(emu, loop_hover_s=10.0, loop_land_s=14.0))
+    try:
+        d.connect()
+        d.takeoff()
+        n_rc = len(emu.rc_history)
+        assert wait_until(lambda: d.status.tracker.self_landing, 5.0), d.events[-5:]
+        assert emu.phase == "landing"
+        d.land()
+        assert d.phase is FlightPhase.GROUND and emu.phase == "landed"
+        assert "land" not in emu.command_texts() and len(emu.rc_history) == n_rc
+        assert any(e.kind == "resend" and "landing by itself" in e.detail for e in d.events)
+        assert emu.refused == [], emu.refused
+    finally:
+        d.close()
+        emu.close()
+
+
 def test_land_on_the_ground_sends_nothing(emu: TelloEmulator) -> None:
     d = TelloDriver(config(emu))
     try:

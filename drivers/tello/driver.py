@@ -134,7 +134,18 @@ class TelloDriver:
         self.sdk_version = self.query("sdk?", parse_sdk)
         self.serial = self.query("sn?", parse_serial)
         self.video_outcomes = send_video_settings(cfg, self.sdk_version, self.exchange, self._log)
+        self._await_phase()
         self.watchdog.start()
+
+    def _await_phase(self) -> None:
+        """Wait (at most motor_quiet_s and a little) for telemetry to tell ground from air: a drone at rest
+        where `tof` reads above the ground threshold is on the ground once its motor time has held still
+        that long (drivers/tello/phase.py). Returns with the phase still UNKNOWN when it did not (a
+        takeoff() then refuses, a land() goes out)."""
+        st = self.status
+        deadline = time.monotonic() + st.tracker.th.motor_quiet_s + 0.5
+        while st.phase is FlightPhase.UNKNOWN and time.monotonic() < deadline:
+            time.sleep(0.02)
 
     def close(self) -> None:
         """Stop the monitor and the sockets; does NOT land (the supervisor lands before closing)."""

@@ -161,9 +161,11 @@ class FlightPhases:
         the motors off).
 
         `land` goes out at once, whatever phase the driver believes (a takeoff under way is abandoned for it),
-        after `rc 0 0 0 0` (a Tello keeps its last rc) unless the drone is still taking off. A drone busy in
-        its takeoff refuses it and gets the land again the moment an `ok` comes (its takeoff's). It is sent
-        again, with `rc 0 0 0 0` first: at once when telemetry returns after a lost link; every
+        after `rc 0 0 0 0` (a Tello keeps its last rc) unless the drone is still taking off; not while the
+        drone lands by itself (PhaseTracker.self_landing: it refuses rc and land, and near touchdown the land
+        would reach a drone whose motors have stopped), unless that landing stops or holds its height. A drone
+        busy in its takeoff refuses it and gets the land again the moment an `ok` comes (its takeoff's). It is
+        sent again, with `rc 0 0 0 0` first: at once when telemetry returns after a lost link; every
         `land_resend_s` while telemetry is silent; and, from `land_confirm_s` after the last land, whenever
         telemetry proves the drone holding its height (phase.PhaseTracker.holding_after_land): a lossy stream,
         a slow start of the descent or a drift of h is no reason to send it again (a Tello busy landing
@@ -177,13 +179,20 @@ class FlightPhases:
                 raise TelloLinkError(f"Tello {cfg.host}: no telemetry yet; land not sent")
             st.land_requested = True  # a takeoff() under way gives the exchange up for this land
             in_takeoff = st.phase is FlightPhase.TAKING_OFF  # the drone may refuse the land until its `ok`
-        self._sticks.hover_now()  # a Tello keeps its last rc: stop it before the quiet window and the land
+            # landing by itself, it ignores rc and refuses land, and near touchdown a land reaches a drone
+            # whose motors have stopped: none is sent unless telemetry shows it holding its height
+            own = st.phase is FlightPhase.LANDING and tracker.self_landing
+        if not own:
+            self._sticks.hover_now()  # a Tello keeps its last rc: stop it before the quiet window, the land
         with self._exchange.session():
             st.land_requested = True
             t1 = time.monotonic()
             deadline, replies = t1 + cfg.land_timeout_s, []
             silent = not st.link_alive()
-            self._send_land(hover_first=silent)  # with telemetry, hover_now went out above when it was flying
+            if own:
+                self._events.add("resend", "land: not sent: the drone is landing by itself")
+            else:  # with telemetry, hover_now went out above when it was flying
+                self._send_land(hover_first=silent)
             t_sent = t1
             while True:
                 now = time.monotonic()
@@ -200,9 +209,12 @@ class FlightPhases:
                     ph, alive = tracker.phase, st.link_alive()
                     low = tracker.near_ground()
                     holding = tracker.holding_after_land(now)
+                    flies_on = own and ph is FlightPhase.AIRBORNE  # its descent was no landing after all
                 if ph is FlightPhase.GROUND:
                     self._report_outcome("land", replies, now - t1)
                     return
+                if flies_on:
+                    own, why = False, "the drone's own landing stopped: it flies on"
                 why = why or self._land_lost(now - t_sent, alive, silent, low, holding)
                 silent = not alive
                 if why:  # no rc to a drone still in its takeoff: it ignores rc, and its sticks are centred

@@ -9,6 +9,11 @@ Signals (units as the drone sends them, see drivers/tello/state.py; every thresh
 "What a real Tello sends"):
 - **motors running**: the motor-on time `time` (whole seconds) changed less than `motor_quiet_s` ago. It
   rises by one every second while the motors turn, so 1.5 s without a change means the motors are off.
+  **Motors off** needs that much telemetry: `motor_quiet_s` of samples (since the first, or since a
+  takeoff was sent) without a change. A Tello cannot fly with its motors off, so *on the ground* is decided
+  by the motors alone: whatever is under the drone. A height cannot decide it: a real Tello resting on a
+  raised surface (a box, a carpet, a landing pad) reads `tof` 31 cm, not its floor value 10, and `h` is
+  relative to the takeoff point and drifts.
 - **height evidence**: `h` (relative to the takeoff point, in 10 cm steps, and drifting: a real Tello's
   read 40 cm while it hovered ~1 m up) and the floor height from `tof` (the downward sensor: `tof` minus
   its ground reading `tof_floor_cm`; it measures the surface below, so a table or an edge changes it;
@@ -16,9 +21,13 @@ Signals (units as the drone sends them, see drivers/tello/state.py; every thresh
   of range) is at most `ground_h_cm`; the takeoff **has climbed** once h or the floor height reached
   `airborne_h_cm` since the takeoff began.
 - **descending**: the latest h is more than `descent_cm` (10 cm) below the highest of the last
-  `descent_window_s` (0.5 s); a **sustained descent** also has each of the last `descent_samples` (3)
-  samples moving down at `descent_vgz_dm_s` (3 dm/s) or more by `vgz` (positive DOWN on a real Tello) —
-  not one step of the readout, a hover's drift (|vgz| ≤ 2 dm/s in the recording), or an object passed over.
+  `descent_window_s` (0.5 s). **Its own landing**: over the last `self_land_s` (1 s, at least
+  `descent_samples` samples) every sample moving down at `descent_vgz_dm_s` (3 dm/s) or more by `vgz`
+  (positive DOWN on a real Tello) and h fallen by more than `descent_cm` — not one step of the readout, a
+  hover's drift (|vgz| ≤ 2 dm/s in the recording), an object passed over, or an ordinary descent: over
+  real flights the descents the driver did not command lasted 0.1–0.8 s and then flew on (issue 49), while
+  a Tello's own landing goes on to the ground (the recorded land: 2.1 s from the descent's start to
+  touchdown). A landing shorter than `self_land_s` (from below ~0.5 m) is seen when the motors stop.
 - **descent commanded**: the last `rc` the driver sent had a negative throttle, or one with a negative
   throttle went out within `uncommanded_after_s` (1 s: the drone's velocity lags the stick).
 - **climb over**: over the last `stable_window_s` (1 s, ≥ 3 samples) the takeoff has climbed, no sample is
@@ -31,15 +40,18 @@ Signals (units as the drone sends them, see drivers/tello/state.py; every thresh
   sent again while the state stream is alive (a lossy stream proves nothing either way).
 
 Transitions (every one is returned as an event text by `observe`):
-- UNKNOWN → GROUND (first sample near the ground) or AIRBORNE (first sample in the air).
+- UNKNOWN → GROUND at the first sample near the ground, or once the motors are off; → AIRBORNE once the
+  motors run (the motor time changed) away from the ground. A drone at rest where `tof` reads above the
+  ground threshold stays UNKNOWN for `motor_quiet_s` (the driver's connect waits for it).
 - GROUND → TAKING_OFF when takeoff was sent, or when the motors run and h rises (not commanded by us).
 - TAKING_OFF → AIRBORNE when the climb is over (while the driver holds a takeoff, only when it confirms:
-  see `hold_takeoff`); → GROUND when, `no_effect_s` after the takeoff was sent,
-  the motors do not run and the drone is near the ground (the takeoff was refused or never arrived).
-- AIRBORNE or TAKING_OFF → LANDING when land was sent; AIRBORNE → LANDING on a sustained descent with no
-  descent commanded (`self_landing`: the drone's own low-battery landing or 15 s auto-land, during which a
-  Tello ignores rc); → GROUND when near the ground with the motors off (someone else's land).
-- LANDING → GROUND when near the ground with the motors off; → AIRBORNE when, `no_effect_s` after the land
+  see `hold_takeoff`); → GROUND when, `no_effect_s` after the takeoff was sent, the motors are off (the
+  takeoff was refused or never arrived).
+- AIRBORNE or TAKING_OFF → LANDING when land was sent; AIRBORNE → LANDING on its own landing with no
+  descent commanded (`self_landing`: the drone's low-battery landing or 15 s auto-land, during which a
+  Tello ignores rc), or at once when the drone says so (`error Auto land`: `landing_by_itself`);
+  → GROUND when the motors are off (someone else's land).
+- LANDING → GROUND when the motors are off; → AIRBORNE when, `no_effect_s` after the land
   was sent, the motors run and h has not dropped by `descent_cm` (the land was lost or refused); a
   landing of its own → AIRBORNE when h holds still above the ground for `descent_window_s` with the
   motors running (it was no landing).
@@ -73,6 +85,7 @@ class PhaseThresholds:
     descent_window_s: float = 0.5
     descent_samples: int = 3
     descent_vgz_dm_s: float = 3.0
+    self_land_s: float = 1.0
     stuck_window_s: float = 1.0
     stuck_samples: int = 5
     uncommanded_after_s: float = 1.0
@@ -88,6 +101,7 @@ class PhaseTracker:
         self._window: deque[TelloTelemetry] = deque()
         self._motor_value: float | None = None
         self._motor_changed_t = -float("inf")
+        self._first_t: float | None = None  # the first sample's time: motors off needs telemetry
         self._takeoff_sent_t: float | None = None
         self._climb_peak_cm = -float("inf")  # highest height evidence since the takeoff began
         self._land_sent_t: float | None = None
@@ -130,6 +144,13 @@ class PhaseTracker:
     def emergency_sent(self, t: float) -> None:
         self._set(FlightPhase.GROUND, t)
 
+    def landing_by_itself(self, t: float) -> None:
+        """The drone lands of its own accord (its descent, its `error Auto land`): LANDING, self_landing."""
+        if self.phase in (FlightPhase.AIRBORNE, FlightPhase.TAKING_OFF):
+            self.self_landing = True
+            self._land_sent_t = None
+            self._set(FlightPhase.LANDING, t)
+
     def confirm_airborne(self, t: float) -> None:
         """The driver's decision that a held takeoff is over (see `hold_takeoff`)."""
         if self.phase is FlightPhase.TAKING_OFF:
@@ -138,6 +159,14 @@ class PhaseTracker:
     # ---- signals -------------------------------------------------------------------------------------
     def motors_running(self, t: float) -> bool:
         return t - self._motor_changed_t < self.th.motor_quiet_s
+
+    def motors_off(self, t: float) -> bool:
+        """The motor time has not changed over `motor_quiet_s` of telemetry (since the first sample, the
+        last change or a takeoff sent): the motors are off, so the drone is on the ground."""
+        return (
+            self._first_t is not None
+            and t - max(self._motor_changed_t, self._first_t) >= self.th.motor_quiet_s
+        )
 
     def floor_cm(self, s: TelloTelemetry) -> float | None:
         """Height above the surface below from `tof` (cm), None when out of range."""
@@ -157,9 +186,8 @@ class PhaseTracker:
         return (s.h_cm if floor is None else floor) <= self.th.ground_h_cm
 
     def down(self, t: float) -> bool:
-        """Near the ground with the motors off."""
-        s = self.latest
-        return s is not None and self.low(s) and not self.motors_running(t)
+        """On the ground: the motors off (`motors_off`), whatever the height reads."""
+        return self.latest is not None and self.motors_off(t)
 
     def near_ground(self) -> bool:
         """The latest sample is near the ground (motors on or off)."""
@@ -177,28 +205,33 @@ class PhaseTracker:
         drop = self.th.descent_cm if drop_cm is None else drop_cm
         return len(w) >= 2 and max(w) - w[-1] > drop
 
-    def sustained_descent(self, t: float) -> bool:
-        """`descending`, and each of the last `descent_samples` samples moving down at `descent_vgz_dm_s`."""
+    def own_landing(self, t: float) -> bool:
+        """A descent that has lasted `self_land_s` at `descent_vgz_dm_s` or more (module docstring)."""
         th = self.th
-        w = [s for s in self._window if s.t >= t - th.descent_window_s]
-        tail = w[-max(2, th.descent_samples) :]
-        return (
-            self.descending(t)
-            and len(tail) >= max(2, th.descent_samples)
-            and all(s.vgz_dm_s >= th.descent_vgz_dm_s for s in tail)
-        )
+        w = [s for s in self._window if s.t >= t - th.self_land_s]
+        if len(w) < max(2, th.descent_samples) or w[-1].t - w[0].t < 0.8 * th.self_land_s:
+            return False
+        hs = [s.h_cm for s in w]
+        return max(hs) - hs[-1] > th.descent_cm and all(s.vgz_dm_s >= th.descent_vgz_dm_s for s in w)
 
     def descent_commanded(self, t: float) -> bool:
         return self._last_throttle < 0 or t - self._down_cmd_t <= self.th.uncommanded_after_s
 
     def holding_height(self, t: float) -> bool:
-        """h still (within `stable_range_cm`) above the ground over `descent_window_s`, motors running."""
+        """h still (within `stable_range_cm`, vgz below `descent_vgz_dm_s`) above the ground over
+        `descent_window_s`, motors running."""
         th = self.th
         w = [s for s in self._window if s.t >= t - th.descent_window_s]
         if len(w) < 3 or w[-1].t - w[0].t < 0.8 * th.descent_window_s:
             return False
         hs = [s.h_cm for s in w]
-        return min(hs) > th.ground_h_cm and max(hs) - min(hs) <= th.stable_range_cm and self.motors_running(t)
+        still = all(abs(s.vgz_dm_s) < th.descent_vgz_dm_s for s in w)  # h moves in 10 cm steps: vgz too
+        return (
+            still
+            and min(hs) > th.ground_h_cm
+            and max(hs) - min(hs) <= th.stable_range_cm
+            and self.motors_running(t)
+        )
 
     def climb_over(self, t: float) -> bool:
         """The takeoff has climbed and, over the last `stable_window_s`, neither climbs nor is near the
@@ -252,6 +285,7 @@ class PhaseTracker:
         if self._motor_value is not None and s.motor_s != self._motor_value:
             self._motor_changed_t = t
         self._motor_value = s.motor_s
+        self._first_t = t if self._first_t is None else self._first_t
         self.latest = s
         self._window.append(s)
         while self._window and self._window[0].t < t - 2.0 * self.th.stable_window_s:
@@ -270,7 +304,10 @@ class PhaseTracker:
     def _step(self, t: float, s: TelloTelemetry) -> None:
         th, P = self.th, FlightPhase
         if self.phase is P.UNKNOWN:
-            self._set(P.GROUND if self.low(s) else P.AIRBORNE, t)
+            if self.low(s) or self.motors_off(t):
+                self._set(P.GROUND, t)
+            elif self.motors_running(t):
+                self._set(P.AIRBORNE, t)
         elif self.phase is P.GROUND:
             if not self.low(s) and self.motors_running(t):
                 self._set(P.TAKING_OFF, t)
@@ -281,17 +318,14 @@ class PhaseTracker:
             elif (
                 self._takeoff_sent_t is not None
                 and t - self._takeoff_sent_t > th.no_effect_s
-                and self.low(s)
-                and not self.motors_running(t)
+                and self.motors_off(t)
             ):
                 self._set(P.GROUND, t)
         elif self.phase is P.AIRBORNE:
             if self.down(t):
                 self._set(P.GROUND, t)
-            elif self.sustained_descent(t) and not self.descent_commanded(t):
-                self.self_landing = True
-                self._land_sent_t = None
-                self._set(P.LANDING, t)
+            elif self.own_landing(t) and not self.descent_commanded(t):
+                self.landing_by_itself(t)
         elif self.phase is P.LANDING:
             if self.down(t):
                 self._set(P.GROUND, t)
