@@ -25,9 +25,9 @@ SafetyKind = Literal[
     "saturated", "invalid_command", "fence_soft", "fence_hard_land", "command_timeout", "pose_stale_hover",
     "pose_stale_land", "pose_error", "battery_refuse_takeoff", "pose_refuse_takeoff", "fence_refuse_takeoff",
     "battery_land", "target_lost_land", "link_lost", "drone_error", "command_after_land", "land_failed",
-    "landed_by_drone", "emergency_stop", "emergency_stop_failed", "target_lost_hover", "land_all", "signal",
-    "takeoff", "takeoff_failed", "land", "climb_limited", "robot_moved", "robot_refuse_takeoff",
-    "robot_law_start",
+    "landed_by_drone", "landing_by_drone", "emergency_stop", "emergency_stop_failed", "target_lost_hover",
+    "land_all", "signal", "takeoff", "takeoff_failed", "land", "climb_limited", "robot_moved",
+    "robot_refuse_takeoff", "robot_law_start",
 ]  # fmt: skip
 RunKind = Literal[
     "end", "end_early", "end_exception", "compiled loop", "lock-step wait timed out", "safety tick", "landed",
@@ -106,6 +106,10 @@ KINDS: Mapping[str, KindInfo] = {
     "command_after_land": _w("a command after landing, dropped"),
     "land_failed": _e("land() raised or did not bring the drone down"),
     "landed_by_drone": _w("telemetry shows the drone on the ground without a land from us"),
+    "landing_by_drone": _w(
+        "the drone lands of its own accord (its `error Auto land`, or a descent its driver calls its own "
+        "landing): no more commands; landed_by_drone follows at touchdown unless the landing was confirmed"
+    ),
     "emergency_stop": _w("motors stopped on request"),
     "emergency_stop_failed": _e("the emergency stop raised"),
     "target_lost_hover": _w("the target unseen: every drone hovers"),

@@ -1007,6 +1007,23 @@ def test_a_drone_whose_telemetry_shows_it_down_is_not_commanded_again() -> None:
     assert len(r.inner.sent) == n and "land" not in r.inner.calls
 
 
+def test_a_drone_landing_by_itself_is_commanded_no_more_and_its_landing_awaited() -> None:
+    """Its driver reports it landing by itself (its `error Auto land`, its own descent): the supervisor
+    records landing_by_drone at once, no velocity reaches it any more, and its land job (which sends
+    nothing to a drone landing by itself: drivers/tello/flight.py) waits for the touchdown."""
+    r = Rig()
+    r.sd.send_body_velocity(np.array([0.1, 0.0, 0.0, 0.0]))
+    r.sd.tick()  # link seen, airborne
+    r.inner.phase = "landing"
+    r.clock.t += 0.05
+    r.sd.tick()
+    assert "landing_by_drone" in r.kinds() and "land" in r.inner.calls
+    n = len(r.inner.sent)
+    r.sd.send_body_velocity(np.array([0.1, 0.0, 0.0, 0.0]))
+    r.sd.tick()
+    assert len(r.inner.sent) == n
+
+
 # ---- the climb a drone's own timeout allows ---------------------------------------------------------------
 class HoldingDrone(FakeDrone):
     """A FakeDrone that flies its last command on for own_timeout_s (hal.HoldsLastCommand), like a Tello."""

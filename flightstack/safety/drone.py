@@ -313,6 +313,12 @@ class SafeDrone:
                     self._event(now, "landed_by_drone", "telemetry shows the drone on the ground")
                     self._phase = _Phase.LANDED
                     return
+                if link_alive and st.phase == FlightPhase.LANDING and self._link_seen:
+                    # landing by itself (its auto-land, a low battery, `error Auto land`): it ignores rc, and
+                    # its land is under way; the land job waits for the touchdown and sends nothing
+                    self._event(now, "landing_by_drone", "the drone's driver reports it landing by itself")
+                    self._do_land(now, "landing_by_drone")
+                    return
                 if st.phase == FlightPhase.TAKING_OFF:  # climbing by itself: it ignores rc, none is due
                     self._climbing_t = now
                 if link_alive:
