@@ -36,6 +36,7 @@ LAB_ROWS = [
     "double_sigint",
     "disk_full",
     "robot_not_moving",
+    "auto_land_in_flight",
     "clock_skew",
     "abort_during_takeoff",
     "abort_agent_missing",

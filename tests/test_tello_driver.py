@@ -473,6 +473,38 @@ def test_land_while_the_drone_lands_by_itself_sends_no_land() -> None:
         emu.close()
 
 
+def test_an_unsolicited_error_auto_land_stops_the_sticks_at_once() -> None:
+    """In flight, the loop sending rc at 20 Hz, the drone decides to land (low battery) and says `error Auto
+    land` unprompted (faults.auto_land_notice, assumed): the driver records it (error_unanswered) and is in
+    phase landing from that instant; no rc reaches the drone after it, and the drone refuses nothing. An
+    `error …` that answers nothing else is an event too."""
+    emu = make_emulator(land_s=2.0)
+    emu.faults.auto_land_notice = True
+    emu.start()
+    d = TelloDriver(config(emu))
+    try:
+        d.connect()
+        d.takeoff()
+        t_end = time.monotonic() + 4.0
+        emu.faults.battery_pct = 5  # below self_land_battery_pct: it lands by itself
+        while time.monotonic() < t_end and emu.phase != "landed":
+            d.send_body_velocity(np.array([0.1, 0.0, 0.0, 0.0]))
+            time.sleep(0.05)
+        notices = [e for e in d.events if e.kind == "error_unanswered"]
+        assert len(notices) == 1 and "Auto land" in notices[0].detail, notices
+        assert "flying -> landing" in notices[0].detail
+        late = [t for t, _ in emu.rc_history if t > notices[0].t]
+        assert late == [], late
+        assert emu.landed_by_battery and emu.refused == [], emu.refused
+        assert wait_until(lambda: d.phase is FlightPhase.GROUND, 3.0)
+        assert d.link.chan is not None
+        emu.send_unprompted("error Unknown")  # answers nothing: an event naming it
+        assert wait_until(lambda: any("'error Unknown'" in e.detail for e in d.events), 1.0)
+    finally:
+        d.close()
+        emu.close()
+
+
 def test_land_on_the_ground_sends_nothing(emu: TelloEmulator) -> None:
     d = TelloDriver(config(emu))
     try:

@@ -46,7 +46,7 @@ from flightstack.drivers.tello.config import (
 )
 from flightstack.drivers.tello.exchange import CommandExchange
 from flightstack.drivers.tello.flight import FlightPhases
-from flightstack.drivers.tello.link import TelloLink
+from flightstack.drivers.tello.link import TelloLink, is_notice
 from flightstack.drivers.tello.preflight import tello_preflight
 from flightstack.drivers.tello.rejoin import SdkRejoin
 from flightstack.drivers.tello.status import DriverEvents, DriverStatus
@@ -105,7 +105,7 @@ class TelloDriver:
             return
         cfg, st = self.cfg, self.status
         try:
-            self.link.open(st.observe)
+            self.link.open(st.observe, self._on_drone_error)
         except OSError as exc:
             self.close()
             raise TelloLinkError(f"Tello at {cfg.host}: {exc}") from exc
@@ -136,6 +136,20 @@ class TelloDriver:
         self.video_outcomes = send_video_settings(cfg, self.sdk_version, self.exchange, self._log)
         self._await_phase()
         self.watchdog.start()
+
+    def _on_drone_error(self, t: float, text: str) -> None:
+        """An `error …` that answers no command (link.CommandChannel.on_error, on its reader thread): an event
+        naming it. `error Auto land` means the drone lands by itself: phase `landing` first (no rc goes out
+        from then on: sticks.Sticks), then the event."""
+        if not is_notice(text):
+            self._log.add("error_unanswered", f"{text!r} answers no command")
+            return
+        with self.status.lock:
+            before = self.status.tracker.phase
+            self.status.tracker.landing_by_itself(t)
+            after = self.status.tracker.phase
+        moved = f" ({before.value} -> {after.value})" if after is not before else ""
+        self._log.add("error_unanswered", f"{text!r}: the drone lands by itself{moved}")
 
     def _await_phase(self) -> None:
         """Wait (at most motor_quiet_s and a little) for telemetry to tell ground from air: a drone at rest

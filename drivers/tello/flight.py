@@ -210,6 +210,11 @@ class FlightPhases:
                     low = tracker.near_ground()
                     holding = tracker.holding_after_land(now)
                     flies_on = own and ph is FlightPhase.AIRBORNE  # its descent was no landing after all
+                if ph is FlightPhase.GROUND and own:  # no land went out: it landed by itself
+                    self._events.add(
+                        "land_confirmed", f"by telemetry after {now - t1:.2f} s: it landed by itself"
+                    )
+                    return
                 if ph is FlightPhase.GROUND:
                     self._report_outcome("land", replies, now - t1)
                     return
@@ -221,6 +226,7 @@ class FlightPhases:
                     hover = "" if in_takeoff else "rc 0 0 0 0 and "
                     self._events.add("resend", f"land: {why}: {hover}land again (replies {replies})")
                     self._send_land(hover_first=not in_takeoff)
+                    own = False
                     t_sent = now
                 if now > deadline:
                     raise TelloCommandError(

@@ -8,7 +8,10 @@ process. Here:
 
 - `CommandChannel`: a UDP socket `connect()`ed to the drone's (ip, port), so the kernel delivers only that
   drone's datagrams; a reader thread stamps every reply with its receive time. Replies are kept only while
-  the driver has an exchange open (`open_exchange`); any other reply is discarded and counted. Sending
+  the driver has an exchange open (`open_exchange`); any other reply is discarded and counted. The
+  drone's own notices (`error Auto land`, sent around a landing it decided on, whatever was asked) are
+  never kept as a reply; they and every `error …` that arrives while no exchange is open (it answers
+  nothing) go to `on_error(t, text)` (the driver's), called on the reader thread outside every lock. Sending
   never blocks (a full socket buffer or a network error is counted and reported, not raised into a loop).
 - `StateReceiver`: binds the state port (8890 on real drones) once per process, parses each datagram
   strictly (drivers/tello/state.py) and hands it to the driver registered for its source IP. Datagrams
@@ -49,6 +52,16 @@ LOG = logging.getLogger("flightstack.tello")
 MAX_REPLY_BYTES = 256
 ERROR_PAUSE_S = 0.05  # a thread pauses this long (s) after an error before it goes on
 MutedCheck = Callable[[], bool]
+ErrorCallback = Callable[[float, str], None]
+NOTICES = ("error auto land",)
+"""Replies a Tello sends of its own accord, never an answer (lower case, prefixes): `error Auto land`
+around a landing it decided on (seen in a real console transcript against a `battery?` poll right after
+`land`; docs/drivers.md)."""
+
+
+def is_notice(text: str) -> bool:
+    """A reply that is the drone's own notice (NOTICES), not an answer to any command."""
+    return text.lower().startswith(NOTICES)
 
 
 class ErrorLog:
@@ -110,6 +123,7 @@ class CommandChannel:
         bind_ip: str = "",
         muted: MutedCheck | None = None,
         traffic: TrafficWriter | None = None,
+        on_error: ErrorCallback | None = None,
     ) -> None:
         """Connect a UDP socket to (host, port) from (bind_ip, any port) and start the reply reader.
 
@@ -118,6 +132,7 @@ class CommandChannel:
         self.host, self.port = host, port
         self.muted = muted
         self.traffic = traffic
+        self.on_error = on_error
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind((bind_ip, 0))
         self._sock.connect((host, port))
@@ -212,13 +227,22 @@ class CommandChannel:
             self.counts["reply_too_long"] += 1
             return
         text = data.decode("ascii", errors="replace").strip()
+        notice = is_notice(text)
         with self._lock:
             self.last_rx_t = t
             self.counts["received"] += 1
-            if self._open:
+            unanswered = notice or not self._open
+            if notice:
+                self.counts["notice"] += 1
+            elif self._open:
                 self._replies.append((t, text))
             else:
                 self._discard((t, text))
+        if unanswered and text.lower().startswith("error") and self.on_error is not None:
+            try:
+                self.on_error(t, text)
+            except Exception as exc:  # the driver's: counted, never the reader's end
+                self.errors.record("on_error_error", exc)
 
 
 StateCallback = Callable[[TelloTelemetry], None]
@@ -358,11 +382,17 @@ class TelloLink:
         self.rx: StateReceiver | None = None
         self._muted: MutedCheck | None = None
 
-    def open(self, on_state: StateCallback) -> None:
-        """Register `on_state` for this drone's state packets, then open the command channel (OSError)."""
+    def open(self, on_state: StateCallback, on_error: ErrorCallback | None = None) -> None:
+        """Register `on_state` for this drone's state packets, then open the command channel (OSError)
+        with `on_error` for the `error …` replies that answer nothing (CommandChannel)."""
         self.rx = StateReceiver.acquire(self.host, on_state, self.state_port, self.bind_ip, self.traffic)
         self.chan = CommandChannel(
-            self.host, self.control_port, self.bind_ip, muted=self.is_muted, traffic=self.traffic
+            self.host,
+            self.control_port,
+            self.bind_ip,
+            muted=self.is_muted,
+            traffic=self.traffic,
+            on_error=on_error,
         )
 
     def close(self) -> None:

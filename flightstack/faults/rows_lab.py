@@ -407,6 +407,7 @@ ROWS: dict[str, FaultRow] = {
     "double_sigint": rows_lab_cli.double_sigint,
     "disk_full": rows_lab_drivers.disk_full,
     "robot_not_moving": rows_lab_drivers.robot_not_moving,
+    "auto_land_in_flight": rows_lab_drivers.auto_land_in_flight,
     "clock_skew": rows_lab_bus.clock_skew,
     "abort_during_takeoff": rows_lab_cli.abort_during_takeoff,
     "abort_agent_missing": rows_lab_bus.abort_agent_missing,

@@ -353,3 +353,76 @@ def robot_not_moving(mission_path: Path, workdir: Path) -> FaultResult:
             [],
             {"robot_moved_m": moved, "takeoffs_sent": sent},
         )
+
+
+# ---- auto_land_in_flight -----------------------------------------------------------------------------------
+def auto_land_in_flight(mission_path: Path, workdir: Path) -> FaultResult:
+    """1 s into pursuit drone 1 begins a landing of its own and says `error Auto land` unprompted
+    (TelloFaults.self_land_now, auto_land_notice: the notice's trigger is assumed, docs/drivers.md)."""
+    wall0 = time.perf_counter()
+    name = "auto_land_in_flight"
+    root = workdir / name
+    marks: dict[str, float] = {}
+    held: dict[str, Any] = {}
+
+    with EmulatedLab(root, duration_s=6.0) as lab:
+        emu1 = lab.tellos[1]
+
+        def land_by_itself() -> None:
+            emu1.faults.auto_land_notice = True
+            emu1.faults.self_land_now = True
+
+        def inject(backend: Any) -> None:
+            held["driver"] = backend.drones[1]
+            wait_then(lab, marks, land_by_itself)
+
+        run = fly_inprocess(lab, root / "run", injector=inject)
+        lab.write_log(root / "emulators.json")
+        c = Checks()
+        t_fault = marks.get("fault")
+        c.check(t_fault is not None, "the pursuit never started: nothing injected")
+        t_own = next((t for t, ph in emu1.phase_log if ph == "landing" and t_fault and t >= t_fault), None)
+        c.check(emu1.landed_by_itself and t_own is not None, "drone 1 never began a landing of its own")
+        driver = held.get("driver")
+        notices = [e for e in (driver.events if driver is not None else []) if e.kind == "error_unanswered"]
+        c.check(
+            len(notices) == 1 and "Auto land" in notices[0].detail, f"driver 1 error_unanswered {notices}"
+        )
+        t_notice = notices[0].t if notices else None
+        late = rc_times(emu1, after=t_notice + 0.01) if t_notice is not None else []
+        c.check(not late, f"{len(late)} rc reached drone 1 after its notice was recorded")
+        events = list(run.rec.events) if run.rec is not None else run.events()
+        safety = [(e.get("kind"), e.get("drone")) for e in events if e.get("event") == "safety"]
+        c.check(("landing_by_drone", 1) in safety, f"no landing_by_drone for drone 1 in {safety}")
+        after = (t_own or 0.0) + 0.5
+        moving = len(rc_times(lab.tellos[2], after=after, nonzero=True))
+        c.check(moving > 10, f"drone 2: {moving} non-zero rc after drone 1 began to land (it flies on)")
+        emulator_errors(lab, c)
+        details = {
+            "notice_after_own_landing_ms": ms(sub(t_notice, t_own)),
+            "rc_to_drone_1_after_notice": len(late),
+            "drone_2_nonzero_rc_after": moving,
+            "safety_events": [k for k, _ in safety],
+        }
+        observed = (
+            f"drone 1 began its own landing +{ms(sub(t_own, t_fault))} ms after the fault; the driver "
+            f"recorded {[e.detail for e in notices]} +{details['notice_after_own_landing_ms']} ms after it; "
+            f"rc to drone 1 after that: {len(late)}; drone 2 kept flying ({moving} non-zero rc); safety "
+            f"events {details['safety_events']}"
+        )
+        expected = (
+            "the driver records `error Auto land` (error_unanswered) and sends drone 1 no rc from then on; "
+            "the safety layer records landing_by_drone and waits for its touchdown; drone 2 flies on until "
+            "the target-lost rules act"
+        )
+        return run_result(
+            name,
+            expected,
+            observed,
+            wall0,
+            run,
+            c,
+            judge_lab_safety(lab, run),
+            judge_lab_recording(run),
+            details,
+        )

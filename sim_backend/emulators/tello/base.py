@@ -152,6 +152,7 @@ class TelloEmulatorBase:
         self.pre_sdk_reply = pre_sdk_reply
         self.reply_port_latch = reply_port_latch
         self._first_client: tuple[str, int] | None = None  # sender of the first ``command``
+        self._last_client: tuple[str, int] | None = None  # sender of the last datagram
         self.faults = faults if faults is not None else TelloFaults()
         self.radio = radio
         self.links = links
@@ -187,6 +188,8 @@ class TelloEmulatorBase:
         """``(time.monotonic(), "off" | "boot")`` of every power loss and boot (``faults.powered_off``)."""
         self.landed_by_battery = False
         """True once the drone began a landing of its own on low battery (until the next takeoff)."""
+        self.landed_by_itself = False
+        """True once the drone began a landing of its own on ``faults.self_land_now`` (until a takeoff)."""
         self.state_packets_sent = 0
         self.last_state = ""
         self.video_frames_sent = 0
@@ -238,6 +241,13 @@ class TelloEmulatorBase:
         return self.faults.downlink_down or self.faults.powered_off
 
     # ---------------------------------------------------------------------------------------------- replies
+    def send_unprompted(self, text: str) -> None:
+        """Send `text` to the client now, answering nothing (a test's injection of what a drone may send of
+        its own accord, e.g. ``error Auto land``; ``faults.auto_land_notice`` sends that one itself)."""
+        to = self._first_client if self.reply_port_latch and self._first_client else self._last_client
+        if to is not None:
+            self._reply(text, to, time.monotonic(), 0.0)
+
     def _reply(self, text: str, addr: tuple[str, int] | None, now: float, delay: float) -> None:
         """Queue ``text`` for ``addr`` (None = lost) at ``now + delay``, FIFO; plus any duplicate."""
         self._replies.schedule(text, addr, now, delay, self.faults.duplicate_reply_after_s)

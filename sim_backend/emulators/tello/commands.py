@@ -121,6 +121,7 @@ class TelloCommands(TelloPhysics):
             delay = float(faults.reply_delay_s)
             if verb == "command" and self._first_client is None:
                 self._first_client = addr
+            self._last_client = addr
             to = self._first_client if self.reply_port_latch and self._first_client else addr
             reply_addr = None if faults.silent or verb in faults.lost_replies else to
             if not self.sdk_mode and verb != "command":
@@ -188,7 +189,8 @@ class TelloCommands(TelloPhysics):
 
     def _busy_reply(self) -> str:
         """Reply to a command that needs a settled drone while it takes off or lands."""
-        auto = (self.landed_by_timeout or self.landed_by_battery) and self._phase == "landing"
+        own = self.landed_by_timeout or self.landed_by_battery or self.landed_by_itself
+        auto = own and self._phase == "landing"
         return "error Auto land" if auto else "error Not joystick"
 
     def _execute(self, verb: str, args: list[str], now: float) -> str | None:
@@ -210,7 +212,7 @@ class TelloCommands(TelloPhysics):
             duration = self.faults.takeoff_s
             self._start_phase("takeoff", now, self.takeoff_s if duration is None else float(duration))
             self.landed_by_timeout = False
-            self.landed_by_battery = False
+            self.landed_by_battery = self.landed_by_itself = False
             return None
         if verb == "land":
             if self._phase == "landed":

@@ -141,6 +141,15 @@ class TelloFaults:
     drone your PC controls it"; SMerrony/tellodesk#3: status no longer updated after reconnecting following a
     battery change, https://github.com/SMerrony/tellodesk/issues/3). Each boot is logged in
     ``emu.power_log``."""
+    auto_land_notice: bool = False
+    """When the drone starts a landing of its own (``auto_land_s`` without a command, or
+    ``self_land_battery_pct``), it also sends ``error Auto land`` to its client unprompted. Source: a real
+    Tello answered ``error Auto land`` against a ``battery?`` poll right after ``land`` (a console transcript,
+    issue 49); that it sends one *unprompted*, and when, is **assumed**."""
+    self_land_now: bool = False
+    """Set: the drone begins a landing of its own at its next step while flying (what a low battery, an
+    overheat or its 15 s timeout make a real Tello do, without their cause; ``landed_by_itself``), then the
+    switch clears. rc is refused until it is down, as in every landing of its own."""
     self_land_battery_pct: int | None = 10
     """While flying with the battery below this (%), the drone lands by itself (``landed_by_battery``): rc is
     ignored (recorded in ``refused``) and ``takeoff``/``land``/moves answer ``error Auto land`` until it is

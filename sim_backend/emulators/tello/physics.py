@@ -134,12 +134,21 @@ class TelloPhysics(TelloEmulatorBase):
                     self.landed_by_timeout = True
                     self._rc[:] = 0.0
                     self._start_phase("landing", now, self.land_s)
+                    self._own_landing_notice(now)
+                    return
+                if self.faults.self_land_now:
+                    self.faults.self_land_now = False
+                    self.landed_by_itself = True
+                    self._rc[:] = 0.0
+                    self._start_phase("landing", now, self.land_s)
+                    self._own_landing_notice(now)
                     return
                 low = self.faults.self_land_battery_pct
                 if low is not None and self._battery_locked() < low:
                     self.landed_by_battery = True
                     self._rc[:] = 0.0
                     self._start_phase("landing", now, self.land_s)
+                    self._own_landing_notice(now)
                     return
                 alpha = 1.0 - math.exp(-dt / max(self.tau_s, 1e-6))
                 previous = self._vel_body[:3].copy()
@@ -154,6 +163,13 @@ class TelloPhysics(TelloEmulatorBase):
                     self._vel_world[2] = 0.0
                 self._yaw = wrap_deg(self._yaw + yaw_rate * dt)
 
+    def _own_landing_notice(self, now: float) -> None:
+        """``error Auto land`` to the client, unprompted, as the drone starts a landing of its own
+        (``faults.auto_land_notice``: assumed)."""
+        to = self._first_client if self.reply_port_latch and self._first_client else self._last_client
+        if self.faults.auto_land_notice and to is not None:
+            self._reply("error Auto land", to, now, float(self.faults.reply_delay_s))
+
     def _power(self, now: float) -> None:
         """Act on ``faults.powered_off`` once per change: a power loss (it falls), or a boot."""
         off = bool(self.faults.powered_off)
@@ -167,7 +183,7 @@ class TelloPhysics(TelloEmulatorBase):
                 self._deferred = None
                 self.sdk_mode = False
                 self.streaming = False
-                self._first_client = None
+                self._first_client = self._last_client = None
             self._motor_s = 0.0  # the motor-on time counts from power-on
             self._h_drift = 0.0  # so does the height estimate (unverified)
             self._last_cmd_t = now
