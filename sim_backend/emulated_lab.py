@@ -46,6 +46,7 @@ from flightstack.config.rig import MISSION_CONFIGS, emulated_tello_ip
 from flightstack.hal import FrameTruth, register_frame_truth
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
+from flightstack.sim_backend.emulators.tello.recorded import LAND_OK_S, LAND_TOUCHDOWN_S, TAKEOFF_OK_S
 
 if TYPE_CHECKING:
     from flightstack.config.links import LinksSpec
@@ -71,8 +72,11 @@ VIDEO_FPS = 15.0
 LIVE_VIDEO_FPS = 30.0
 """Rate of the cameras that render the flight (frames/s): the Tello's; each at its calibration's size."""
 TAKEOFF_S = FAST_TAKEOFF_S
-"""The emulated Tellos' takeoff (s): a fast climb, not the recorded 8.7 s (the emulator's default,
-sim_backend/emulators/tello/recorded.py), which would add 8.4 s to every takeoff of every lab flight."""
+"""The emulated Tellos' takeoff (s) on perfect links: a fast climb, not the recorded 8.7 s (the emulator's
+default, sim_backend/emulators/tello/recorded.py), which would add 8.4 s to every takeoff of every lab
+flight. With the Tello's own links (`--links tello`) the emulated Tellos take off and land as the
+recording did: the takeoff's `ok` at TAKEOFF_OK_S, the touchdown LAND_TOUCHDOWN_S and the land's `ok`
+LAND_OK_S after the command."""
 TAKEOFF_HOVER_S = 1.0
 """With a late state link or an impaired network, each emulated Tello hovers this long at height before
 its takeoff `ok` (s),
@@ -410,8 +414,10 @@ class EmulatedLab:
         state = self.link_spec("state")
         if state.rate_hz is not None:
             kw["state_hz"] = state.rate_hz
-        if not state.perfect or not self.network.clean:  # late or lost telemetry: the takeoff's `ok`
-            # must not beat the climb's state (the radio delays and loses state datagrams too)
+        if not state.perfect:  # the Tello's own links (`--links tello`): its recorded takeoff and landing
+            kw.update(takeoff_s=TAKEOFF_OK_S, land_s=LAND_TOUCHDOWN_S, land_ok_s=LAND_OK_S)
+        elif not self.network.clean:  # late or lost telemetry: the takeoff's `ok` must not beat the
+            # climb's state (the radio delays and loses state datagrams too)
             kw["takeoff_s"] = TAKEOFF_S + TAKEOFF_HOVER_S
             kw["takeoff_hover_s"] = TAKEOFF_HOVER_S
         return kw

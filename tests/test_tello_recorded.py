@@ -25,6 +25,8 @@ from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulato
 from flightstack.sim_backend.emulators.tello.recorded import (
     H_STEP_CM,
     KEYFRAME_INTERVAL_FRAMES,
+    LAND_OK_S,
+    LAND_TOUCHDOWN_S,
     TAKEOFF_OK_S,
     TOF_GROUND_CM,
     TOF_OUT_OF_RANGE,
@@ -81,6 +83,14 @@ def test_the_recording_shows_what_the_emulator_follows(flight: TelloSession) -> 
     climb = [s["vgz"] for t, s in states if 0.0 < t < 2.0 and s["vgz"] != 0]
     assert climb == [-1, -4, -6, -8, -8, -8, -7, -7, -5, -4, -3, -1, -1]  # h rose: vgz positive down
     assert _recorded_ok_delay(flight) == pytest.approx(TAKEOFF_OK_S, abs=0.01)
+    land = flight.first("sent", "land")
+    assert land is not None
+    land_ok = next(r.t for r in flight.of("reply") if r.t > land.t) - land.t
+    t_land = land.t - flight.first("sent", "takeoff").t  # type: ignore[union-attr]
+    touchdown = next(t for t, s in states if t > t_land and s["tof"] == TOF_GROUND_CM) - t_land
+    assert land_ok == pytest.approx(LAND_OK_S, abs=0.01) and touchdown == pytest.approx(
+        LAND_TOUCHDOWN_S, abs=0.05
+    )
     ground = [s["tof"] for t, s in states if t < 0.5]
     assert ground and set(ground) == {TOF_GROUND_CM}
     assert all(s["tof"] != TOF_OUT_OF_RANGE for _, s in states)  # 6553 comes from users' reports
@@ -196,9 +206,15 @@ def test_a_recorded_takeoff_climb_hover_and_landing(flight: TelloSession, states
         _collect(rx, t0, log, 1.0)
         cli.sendto(b"rc 0 0 0 0", emu.address)
         t_land = time.monotonic() - t0
-        assert _ask(cli, emu, "land", rx, t0, log)[0] == "ok"
+        emu.land_s, emu.land_ok_s = LAND_TOUCHDOWN_S, LAND_OK_S  # as the emulated lab's `--links tello`
+        reply, t_land_ok = _ask(cli, emu, "land", rx, t0, log)
+        assert reply == "ok"
+        t_down = next(t for t, ph in emu.phase_log if ph == "landed" and t > t0 + t_land) - t0
         _collect(rx, t0, log, 0.5)
         assert emu.errors == []
+    print(f"land: touchdown after {t_down - t_land:.2f} s, ok after {t_land_ok - t_land:.2f} s")
+    assert t_down - t_land == pytest.approx(LAND_TOUCHDOWN_S, abs=0.2)
+    assert t_land_ok - t_land == pytest.approx(LAND_OK_S, abs=0.2)
     print(f"takeoff ok after {t_ok:.2f} s (recorded {recorded:.2f} s), true height then {truth_at_ok:.0f} cm")
     assert t_ok == pytest.approx(recorded, abs=0.2)
     assert all(s["h"] % H_STEP_CM == 0 for _, s in log)
@@ -215,7 +231,7 @@ def test_a_recorded_takeoff_climb_hover_and_landing(flight: TelloSession, states
     assert 15 <= drift <= 45, drift  # h reads low: −3.5 cm/s over ~8 s, floored to 10 cm
     fwd = [(s["vgx"], s["vgy"]) for t, s in log if t_fwd + 0.6 < t < t_fwd + 1.0]
     assert fwd and set(fwd) == {(3, -1)}, fwd  # the recording's forward 50 at yaw −26°
-    after = [s for t, s in log if t > t_land + 0.5]
+    after = [s for t, s in log if t > t_down + 0.1]
     assert after and all(s["tof"] == TOF_GROUND_CM and s["h"] < 0 for s in after)  # landed, h drifted
 
 

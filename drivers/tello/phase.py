@@ -27,7 +27,10 @@ Signals (units as the drone sends them, see drivers/tello/state.py; every thresh
   hover's drift (|vgz| ≤ 2 dm/s in the recording), an object passed over, or an ordinary descent: over
   real flights the descents the driver did not command lasted 0.1–0.8 s and then flew on (issue 49), while
   a Tello's own landing goes on to the ground (the recorded land: 2.1 s from the descent's start to
-  touchdown). A landing shorter than `self_land_s` (from below ~0.5 m) is seen when the motors stop.
+  touchdown). With the battery at or below `low_battery_pct` (15 %), where a Tello lands by itself, the
+  descent has a reason and the quick rule holds: h fallen by more than `descent_cm` within
+  `descent_window_s` and the last `descent_samples` samples moving down that fast. A landing shorter than
+  that (from below ~0.5 m) is seen when the motors stop.
 - **descent commanded**: the last `rc` the driver sent had a negative throttle, or one with a negative
   throttle went out within `uncommanded_after_s` (1 s: the drone's velocity lags the stick).
 - **climb over**: over the last `stable_window_s` (1 s, ≥ 3 samples) the takeoff has climbed, no sample is
@@ -86,6 +89,7 @@ class PhaseThresholds:
     descent_samples: int = 3
     descent_vgz_dm_s: float = 3.0
     self_land_s: float = 1.0
+    low_battery_pct: float = 15.0
     stuck_window_s: float = 1.0
     stuck_samples: int = 5
     uncommanded_after_s: float = 1.0
@@ -206,8 +210,18 @@ class PhaseTracker:
         return len(w) >= 2 and max(w) - w[-1] > drop
 
     def own_landing(self, t: float) -> bool:
-        """A descent that has lasted `self_land_s` at `descent_vgz_dm_s` or more (module docstring)."""
+        """A descent that has lasted `self_land_s`, every sample of it moving down at `descent_vgz_dm_s` or
+        more; with the battery at or below `low_battery_pct`, `descending` with the last `descent_samples`
+        samples moving down that fast (module docstring)."""
         th = self.th
+        latest = self.latest
+        if latest is not None and latest.bat_pct <= th.low_battery_pct:
+            tail = [s for s in self._window if s.t >= t - th.descent_window_s][-max(2, th.descent_samples) :]
+            return (
+                self.descending(t)
+                and len(tail) >= max(2, th.descent_samples)
+                and all(s.vgz_dm_s >= th.descent_vgz_dm_s for s in tail)
+            )
         w = [s for s in self._window if s.t >= t - th.self_land_s]
         if len(w) < max(2, th.descent_samples) or w[-1].t - w[0].t < 0.8 * th.self_land_s:
             return False

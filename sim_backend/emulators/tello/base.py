@@ -69,6 +69,7 @@ class TelloEmulatorBase:
         *,
         auto_land_s: float = TELLO_OWN_TIMEOUT_S,
         land_s: float = 0.3,
+        land_ok_s: float | None = None,
         takeoff_height_cm: float = 80.0,
         tau_s: float = EMULATED_TELLO_RESPONSE_S,
         state_hz: float = 10.0,
@@ -101,7 +102,9 @@ class TelloEmulatorBase:
             video_size: ``(width, height)`` of every frame the camera renders, even numbers; one size per
                 emulator (the stream carries it at the ``setresolution`` size once one is received).
             auto_land_s: land by itself after this long without any command while flying (real: 15 s).
-            land_s: duration of the landing (the ``ok`` comes at its end).
+            land_s: duration of the landing (the motors stop at its end).
+            land_ok_s: from ``land`` to its ``ok`` (s; at least land_s; None: at the touchdown). A real
+                Tello answers 1.4 s after it touched down (``recorded.LAND_OK_S``).
             takeoff_height_cm: height reached by ``takeoff``.
             tau_s: time constant of the first-order velocity response to ``rc``.
             state_hz: state packet rate.
@@ -139,6 +142,7 @@ class TelloEmulatorBase:
         self.takeoff_s = float(takeoff_s)
         self.takeoff_hover_s = max(0.0, float(takeoff_hover_s))
         self.land_s = float(land_s)
+        self.land_ok_s = self.land_s if land_ok_s is None else max(self.land_s, float(land_ok_s))
         self.auto_land_s = float(auto_land_s)
         self.takeoff_height_cm = float(takeoff_height_cm)
         self.tau_s = float(tau_s)

@@ -97,8 +97,9 @@ class TelloPhysics(TelloEmulatorBase):
 
     def _finish_phase(self, now: float) -> None:
         deferred, self._deferred = self._deferred, None
-        if deferred is not None:
-            self._reply("ok", deferred.addr, now, deferred.delay_s)
+        if deferred is not None:  # a land's ok comes land_ok_s after the command, after the touchdown
+            late = self.land_ok_s - self._phase_s if self._phase == "landed" else 0.0
+            self._reply("ok", deferred.addr, now, deferred.delay_s + max(0.0, late))
 
     def _step(self, now: float, dt: float) -> None:
         with self._lock:

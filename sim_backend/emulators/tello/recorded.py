@@ -43,6 +43,12 @@ from collections.abc import Callable
 
 TAKEOFF_OK_S = 8.70
 """Delay (s) of the ``ok`` to ``takeoff`` (xg590)."""
+LAND_TOUCHDOWN_S = 2.83
+"""From ``land`` to the touchdown (s): xg590 sent ``land`` at +17.37 s, its descent showed from +18.13 s and
+``tof`` read its ground value from +20.2 s."""
+LAND_OK_S = 4.23
+"""From ``land`` to its ``ok`` (s): xg590 +21.60 s, 1.4 s after the touchdown; real transcripts show
+3.7–4.2 s (issue 49)."""
 KEYFRAME_INTERVAL_FRAMES = 67
 """Frames from one H.264 IDR to the next, at least (devconx; the real interval may be longer)."""
 H_STEP_CM = 10
