@@ -8,8 +8,10 @@ process. Here:
 
 - `CommandChannel`: a UDP socket `connect()`ed to the drone's (ip, port), so the kernel delivers only that
   drone's datagrams; a reader thread stamps every reply with its receive time. Replies are kept only while
-  the driver has an exchange open (`open_exchange`); any other reply is discarded and counted. Sending
-  never blocks (a full socket buffer or a network error is counted and reported, not raised into a loop).
+  the driver has an exchange open (`open_exchange`); any other reply is discarded and counted. Every
+  request sent and every reply discarded is noted in its `ledger` (drivers/tello/replies.py: which request
+  a reply answers). Sending never blocks (a full socket buffer or a network error is counted and reported,
+  not raised into a loop).
 - `StateReceiver`: binds the state port (8890 on real drones) once per process, parses each datagram
   strictly (drivers/tello/state.py) and hands it to the driver registered for its source IP. Datagrams
   from any other address, and malformed ones, are dropped and counted by reason. The thread survives
@@ -42,6 +44,7 @@ from collections import Counter, deque
 from collections.abc import Callable
 from typing import ClassVar
 
+from flightstack.drivers.tello.replies import ReplyLedger
 from flightstack.drivers.tello.state import StateRejectedError, TelloTelemetry, parse_state
 from flightstack.drivers.tello.traffic import TrafficWriter
 
@@ -125,6 +128,7 @@ class CommandChannel:
         self._lock = threading.Lock()
         self._open = False
         self._replies: deque[tuple[float, str]] = deque(maxlen=32)
+        self.ledger = ReplyLedger()  # the requests still owed a reply
         self.last_rx_t = -float("inf")
         self.counts: Counter[str] = Counter()
         self.errors = ErrorLog(self.counts, f"tello {host} command channel")
@@ -146,6 +150,7 @@ class CommandChannel:
             self.errors.record("send_error", f"sending {text.split(' ')[0]!r}: {exc}", thread=False)
             return False
         self.counts["sent"] += 1
+        self.ledger.sent(t, text)
         if self.traffic is not None:
             self.traffic.sent(t, text)
         return True
@@ -181,6 +186,8 @@ class CommandChannel:
         self._sock.close()
 
     def _discard(self, item: tuple[float, str]) -> None:
+        """A reply nobody waited for: counted, kept in `discarded`, given to the request it answers."""
+        self.ledger.place(*item)
         self.counts["reply_discarded"] += 1
         self.discarded.append(item)
         del self.discarded[:-200]
