@@ -38,7 +38,7 @@ BusKind = Literal["joined", "left", "second session", "offset learning", "offset
 TelloKind = Literal[
     "phase", "link_lost", "link_restored", "loop_lost_land", "loop_silent_hover", "resend",
     "reply_not_trusted", "takeoff_confirmed", "land_confirmed", "reply_lost_confirmed",
-    "error_reply_but_effect", "emergency", "rc_suppressed", "replies_discarded", "reply_rejected", "rejoin",
+    "error_reply_but_effect", "emergency", "rc_suppressed", "replies_discarded", "stray_reply", "rejoin",
     "video_setting", "video_setting_refused", "error_unanswered",
 ]  # fmt: skip
 MocapKind = Literal["reader_join_timeout", "reader_error", "reader_recovered", "bad_sample", "body_found",
@@ -150,7 +150,10 @@ KINDS: Mapping[str, KindInfo] = {
     "emergency": _w("emergency: motors off"),
     "rc_suppressed": _i("stick commands not sent (detail: why)"),
     "replies_discarded": _i("stale replies dropped before a command"),
-    "reply_rejected": _w("a reply that does not answer the command"),
+    "stray_reply": _w(
+        "a reply that answers no command waiting for it: a keep-alive's `ok`, a late one (the first of each"
+        " kind ok/error/value; then counted: stray_reply_<kind>)"
+    ),
     "rejoin": _w("state stream silent: 'command' sent again at a bounded rate (a rebooted drone needs it)"),
     "video_setting": _i("an SDK 3.0 video setting of the lab file confirmed at connect (detail: command)"),
     "video_setting_refused": _w("an SDK 3.0 video setting the drone refused or never answered (no video)"),

@@ -118,10 +118,14 @@ class PreflightCheck:
     warn: bool = False
 
 
+SDK_VERSIONS = {"13": "1.3", "20": "2.0", "30": "3.0"}
+"""The `sdk?` answers of the SDK versions that exist (the 1.3, 2.0 and 3.0 user guides), as read. Any other
+value (`70`, `59`: a battery or Wi-Fi reading crossed into its place) is no version."""
+
+
 def parse_sdk(reply: str) -> str | None:
-    """`sdk?` reply ("20", "30") → "2.0", "3.0"; None for anything else."""
-    r = reply.strip()
-    return f"{r[0]}.{r[1:]}" if r.isdigit() and 2 <= len(r) <= 3 else None
+    """`sdk?` reply ("20", "30") → "2.0", "3.0" (`SDK_VERSIONS`); None for anything else."""
+    return SDK_VERSIONS.get(reply.strip())
 
 
 def parse_serial(reply: str) -> str | None:

@@ -17,6 +17,7 @@ from typing import Literal
 from flightstack.drivers.tello.config import TelloCommandError, TelloConfig, TelloLinkError
 from flightstack.drivers.tello.exchange import CommandExchange
 from flightstack.drivers.tello.link import TelloLink
+from flightstack.drivers.tello.replies import is_command_answer
 from flightstack.drivers.tello.status import DriverEvents, DriverStatus
 from flightstack.drivers.tello.sticks import Sticks
 from flightstack.events import TelloKind
@@ -75,8 +76,8 @@ class FlightPhases:
                 ok_t: float | None = None  # an `ok` telemetry has not yet made plausible (s)
                 while True:
                     now = time.monotonic()
-                    if (r := self._exchange.next_reply()) is not None:
-                        replies.append(r)
+                    if (r := self._exchange.next_answer("takeoff", is_command_answer)) is not None:
+                        replies.append(r)  # not a keep-alive's, nor a late one to an earlier request
                         if r.lower() == "ok":
                             ok_t = now
                     if ok_t is not None and not answered:
@@ -94,7 +95,7 @@ class FlightPhases:
                             ph = FlightPhase.AIRBORNE
                         abandoned = st.land_requested
                     if ph is FlightPhase.AIRBORNE:
-                        self._report_outcome("takeoff", [r for r in replies if not r.isdigit()], now - t0)
+                        self._report_outcome("takeoff", replies, now - t0)
                         st.last_rc_t = st.last_loop_t = now  # the loop watchdog counts from here
                         return
                     if abandoned:

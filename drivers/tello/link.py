@@ -8,11 +8,13 @@ process. Here:
 
 - `CommandChannel`: a UDP socket `connect()`ed to the drone's (ip, port), so the kernel delivers only that
   drone's datagrams; a reader thread stamps every reply with its receive time. Replies are kept only while
-  the driver has an exchange open (`open_exchange`); any other reply is discarded and counted. The
-  drone's own notices (`error Auto land`, sent around a landing it decided on, whatever was asked) are
-  never kept as a reply; they and every `error …` that arrives while no exchange is open (it answers
-  nothing) go to `on_error(t, text)` (the driver's), called on the reader thread outside every lock. Sending
-  never blocks (a full socket buffer or a network error is counted and reported, not raised into a loop).
+  the driver has an exchange open (`open_exchange`); any other reply is discarded and counted. Every
+  request sent and every reply discarded is noted in its `ledger` (drivers/tello/replies.py: which request
+  a reply answers). The drone's own notices (`error Auto land`, sent around a landing it decided on,
+  whatever was asked) are never kept as a reply; they and every `error …` that arrives while no exchange
+  is open and answers no request the ledger owes go to `on_error(t, text)` (the driver's), called on the
+  reader thread outside every lock. Sending never blocks (a full socket buffer or a network error is
+  counted and reported, not raised into a loop).
 - `StateReceiver`: binds the state port (8890 on real drones) once per process, parses each datagram
   strictly (drivers/tello/state.py) and hands it to the driver registered for its source IP. Datagrams
   from any other address, and malformed ones, are dropped and counted by reason. The thread survives
@@ -45,6 +47,7 @@ from collections import Counter, deque
 from collections.abc import Callable
 from typing import ClassVar
 
+from flightstack.drivers.tello.replies import ReplyLedger
 from flightstack.drivers.tello.state import StateRejectedError, TelloTelemetry, parse_state
 from flightstack.drivers.tello.traffic import TrafficWriter
 
@@ -140,6 +143,7 @@ class CommandChannel:
         self._lock = threading.Lock()
         self._open = False
         self._replies: deque[tuple[float, str]] = deque(maxlen=32)
+        self.ledger = ReplyLedger()  # the requests still owed a reply
         self.last_rx_t = -float("inf")
         self.counts: Counter[str] = Counter()
         self.errors = ErrorLog(self.counts, f"tello {host} command channel")
@@ -161,6 +165,7 @@ class CommandChannel:
             self.errors.record("send_error", f"sending {text.split(' ')[0]!r}: {exc}", thread=False)
             return False
         self.counts["sent"] += 1
+        self.ledger.sent(t, text)
         if self.traffic is not None:
             self.traffic.sent(t, text)
         return True
@@ -195,10 +200,14 @@ class CommandChannel:
         self._thread.join(timeout=1.0)
         self._sock.close()
 
-    def _discard(self, item: tuple[float, str]) -> None:
+    def _discard(self, item: tuple[float, str]) -> bool:
+        """A reply nobody waited for: counted, kept in `discarded`, given to the request it answers.
+        Returns whether it answers one."""
+        answers = self.ledger.place(*item) is not None
         self.counts["reply_discarded"] += 1
         self.discarded.append(item)
         del self.discarded[:-200]
+        return answers
 
     def _read_loop(self) -> None:
         """Reply reader thread: survives every error (counted, logged without flooding)."""
@@ -231,13 +240,13 @@ class CommandChannel:
         with self._lock:
             self.last_rx_t = t
             self.counts["received"] += 1
-            unanswered = notice or not self._open
+            unanswered = notice
             if notice:
                 self.counts["notice"] += 1
             elif self._open:
                 self._replies.append((t, text))
             else:
-                self._discard((t, text))
+                unanswered = not self._discard((t, text))
         if unanswered and text.lower().startswith("error") and self.on_error is not None:
             try:
                 self.on_error(t, text)

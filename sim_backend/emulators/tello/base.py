@@ -179,7 +179,7 @@ class TelloEmulatorBase:
         succeeded."""
         self._replies = ReplyScheduler(self._lock, self.errors, blocked=self.downlink_blocked)
         self.replies_sent: list[tuple[float, str, str]] = self._replies.sent
-        """``(time.monotonic(), reply text, "normal" | "duplicate")`` of every reply datagram sent
+        """``(time.monotonic(), reply text, "normal" | "duplicate" | "stray")`` of every reply datagram sent
         (recorded just before it leaves the socket)."""
         self.downlink_lost: list[tuple[float, str, str]] = self._replies.lost
         """Replies lost because the downlink was down or the drone off (``faults.downlink_down``,

@@ -33,7 +33,8 @@ not ``ok`` (error texts differ between firmwares). Sources are abbreviated as in
 * **``refused``** holds ``(time, phase at receipt, text, reply or "ignored")`` for every command not
   carried out, also when its reply was lost; successful commands never appear there.
 * **Replies** are FIFO (``reply_delay_s`` holds back later ones) and logged in ``replies_sent``;
-  ``faults.lost_replies`` drops given verbs' replies, ``faults.duplicate_reply_after_s`` re-sends each later.
+  ``faults.lost_replies`` drops given verbs' replies, ``faults.duplicate_reply_after_s`` re-sends each later,
+  ``faults.stray_replies`` sends a given verb a stray reply ahead of its own (*assumed* trigger).
 * Read replies have the real drone's formats (``height?`` -> ``"80dm"``, ``temp?`` -> ``"60~63"``,
   ``time?`` -> ``"0s"``, ``speed?`` -> ``"100.0"``, ``tof?`` -> ``"900mm"``, which djitellopy's ``query_*``
   fail to ``int()``-parse); ``height?`` and ``tof?`` answer the state line's ``h`` and ``tof``
@@ -131,6 +132,9 @@ class TelloCommands(TelloPhysics):
                     self._reply(reply, reply_addr, now, delay)
                 return
             self._last_cmd_t = now
+            stray = faults.stray_replies.get(verb)
+            if stray is not None and not faults.silent:
+                self._replies.schedule_stray(stray, to, now)
             if verb in faults.unknown_commands or (
                 verb in SDK3_ONLY_COMMANDS and not has_sdk3(faults.sdk_version)
             ):

@@ -67,8 +67,8 @@ class TelloFaults:
 
     Unless stated otherwise a switch is read when a command is received.  The defaults describe a healthy
     Tello EDU with SDK 3.0 firmware on a clean link.  To restore the defaults, copy the attributes of a fresh
-    ``TelloFaults()`` (``lost_replies`` has a ``default_factory``: its ``dataclasses.Field.default`` is
-    ``MISSING``).
+    ``TelloFaults()`` (``lost_replies``, ``stray_replies`` and ``unknown_commands`` have a
+    ``default_factory``: their ``dataclasses.Field.default`` is ``MISSING``).
     """
 
     silent: bool = False
@@ -103,6 +103,14 @@ class TelloFaults:
     loss. And some commands have relatively serious packet loss"; DJITelloPy #2 and #31: ``takeoff`` timed out
     in the client while the drone took off; DJITelloPy #167: the drone sent ``ok`` (seen in Wireshark) that
     the client never got; akshayvernekar/telloArduino#4: the reply to ``command`` "is sometimes lost"."""
+    stray_replies: dict[str, str] = field(default_factory=dict)
+    """Verb → a stray reply the drone sends the moment it receives that verb, ahead of the verb's own answer
+    (which still follows, with ``reply_delay_s``, unless ``lost_replies`` names the verb: the stray then
+    takes its place).  Outside the FIFO order of normal replies, like a duplicate; logged as ``"stray"`` in
+    ``emu.replies_sent``.  Real transcripts of Tello flights show replies against the wrong request
+    (``battery?`` answered ``ok``, ``forward 139`` answered ``70``), seen from the client; whether the drone
+    or the client crossed them is unknown.  The trigger (a reply sent on receipt of a given verb) is
+    *assumed*: no recording here shows when a stray comes."""
     takeoff_s: float | None = None
     """When set, overrides the emulator's ``takeoff_s`` (read when ``takeoff`` is received): a slow takeoff.
 
@@ -175,10 +183,10 @@ class ReplyScheduler:
 
     Normal replies leave in the order they were queued (FIFO, like the drone's single command interpreter): a
     reply is never sent before one queued earlier, so a reply delayed by ``reply_delay_s`` holds back later
-    normal replies.  Duplicates (``duplicate_reply_after_s``) are outside that order: they neither wait for
-    nor hold back normal replies.  Every datagram sent is appended to :attr:`sent` as
-    ``(time.monotonic(), text, "normal" | "duplicate")`` immediately before it leaves the socket (a failed
-    send is also reported in the emulator's ``errors``).
+    normal replies.  Duplicates (``duplicate_reply_after_s``) and strays (``stray_replies``) are outside that
+    order: they neither wait for nor hold back normal replies.  Every datagram sent is appended to
+    :attr:`sent` as ``(time.monotonic(), text, "normal" | "duplicate" | "stray")`` immediately before it
+    leaves the socket (a failed send is also reported in the emulator's ``errors``).
     """
 
     def __init__(
@@ -210,6 +218,12 @@ class ReplyScheduler:
             if duplicate_after is not None:
                 dup_due = due + max(0.0, float(duplicate_after))
                 heapq.heappush(self._heap, (dup_due, next(self._seq), text, addr, "duplicate"))
+            self.cond.notify_all()
+
+    def schedule_stray(self, text: str, addr: tuple[str, int], now: float) -> None:
+        """Queue ``text`` for ``addr`` at ``now``, outside the FIFO order of normal replies (a stray)."""
+        with self.cond:
+            heapq.heappush(self._heap, (now, next(self._seq), text, addr, "stray"))
             self.cond.notify_all()
 
     def wake(self) -> None:
