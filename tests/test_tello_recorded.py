@@ -2,8 +2,9 @@
 
 Each test reads the recording in place (../shared/data/peers/tello/, provenance in its README) and
 compares what the emulator sends with what the real drone sent: the `vgz` sign during a climb and the
-frame of `vgx`/`vgy`, `h` in 10 cm steps, `tof` over a flat floor and on the ground, the takeoff `ok`
-delay, the H.264 keyframe interval. Without the recordings the tests skip (CI=true: they fail).
+frame of `vgx`/`vgy`, `h` in 10 cm steps drifting by at most 70 cm, `tof` over a flat floor and on the
+ground, the takeoff `ok` delay, the H.264 keyframe interval. Without the recordings the tests skip
+(CI=true: they fail).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from flightstack.drivers.tello.video_check import _Bits, split_nals, sps_frame_n
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator
 from flightstack.sim_backend.emulators.tello.recorded import (
+    H_DRIFT_MAX_CM,
     H_STEP_CM,
     KEYFRAME_INTERVAL_FRAMES,
     TAKEOFF_OK_S,
@@ -86,6 +88,10 @@ def test_the_recording_shows_what_the_emulator_follows(flight: TelloSession) -> 
     assert all(s["tof"] != TOF_OUT_OF_RANGE for _, s in states)  # 6553 comes from users' reports
     fwd = [(s["vgx"], s["vgy"]) for t, s in states if 9.2 < t < 9.5]  # `forward 50` at yaw −26°
     assert {s["yaw"] for _, s in states} <= set(range(-30, -23)) and fwd and set(fwd) == {(3, -1)}
+    # h's drift does not grow on: hovering over the flat floor, and at rest after landing, at most 70 cm
+    low = [s["h"] - (s["tof"] - TOF_GROUND_CM) for t, s in states if 9.1 < t < 11.65 or 16.95 < t < 18.05]
+    rest = {s["h"] - (s["tof"] - TOF_GROUND_CM) for t, s in states if t > 20.5}
+    assert len(low) == 36 and (min(low), max(low)) == (-H_DRIFT_MAX_CM, -65) and rest == {-H_DRIFT_MAX_CM}
 
 
 def test_the_h264_keyframe_interval_is_at_least_the_recorded_bound() -> None:
