@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from flightstack.drivers.tello.state import parse_state
 from flightstack.drivers.tello.traffic import TelloSession, read_xg590_db
 from flightstack.drivers.tello.video_check import _Bits, split_nals, sps_frame_num_bits
 from flightstack.ports import free_udp_port
@@ -134,6 +135,27 @@ def test_the_h264_keyframe_interval_is_at_least_the_recorded_bound() -> None:
 
 
 # -------------------------------------------------------------------------------------- the emulator
+def test_400_s_of_emulated_flight_with_the_recorded_drift_stay_plausible() -> None:
+    """Issue 49: the unbounded ramp had h below −1000 cm after about 300 s of emulated flight, and every
+    state line was then rejected. 400 s of the emulator's flight in simulated time (its simulation step,
+    0.1 s, called directly: no sockets, no wall clock): every state line parses with no implausible value,
+    and h reads at most the recorded 70 cm plus one 10 cm step below the true height."""
+    emu = TelloEmulator("127.0.0.40", takeoff_s=FAST_TAKEOFF_S, auto_land_s=1e9)  # not started
+    assert emu._execute("takeoff", [], 0.0) is None  # the ok deferred to the takeoff's end
+    low_cm = []
+    for k in range(1, 4001):
+        now = 0.1 * k
+        emu._step(now, 0.1)
+        sample = parse_state(emu._state_string().encode("ascii"), now)
+        assert sample.implausible == (), (now, sample.fields)
+        low_cm.append(emu.position_cm[2] - sample.h_cm)
+    print(
+        f"after {emu._motor_s:.0f} s of flight: h reads {low_cm[-1]:.0f} cm low (at most {max(low_cm):.0f})"
+    )
+    assert emu.phase == "flying" and emu._motor_s == pytest.approx(400.0, abs=0.2)
+    assert max(low_cm) <= H_DRIFT_MAX_CM + H_STEP_CM and low_cm[-1] >= H_DRIFT_MAX_CM
+
+
 @pytest.fixture
 def states() -> Iterator[tuple[socket.socket, socket.socket]]:
     """(command socket, non-blocking state socket) on 127.0.0.1."""
