@@ -39,7 +39,7 @@ TelloKind = Literal[
     "phase", "link_lost", "link_restored", "loop_lost_land", "loop_silent_hover", "resend",
     "reply_not_trusted", "takeoff_confirmed", "land_confirmed", "reply_lost_confirmed",
     "error_reply_but_effect", "emergency", "rc_suppressed", "replies_discarded", "stray_reply", "rejoin",
-    "video_setting", "video_setting_refused", "error_unanswered",
+    "video_setting", "video_setting_refused", "error_unanswered", "state_implausible", "state_rejected_run",
 ]  # fmt: skip
 MocapKind = Literal["reader_join_timeout", "reader_error", "reader_recovered", "bad_sample", "body_found",
                     "body_regained", "tilt_refused", "tilt_ok", "body_lost"]  # fmt: skip
@@ -159,6 +159,14 @@ KINDS: Mapping[str, KindInfo] = {
     "video_setting_refused": _w("an SDK 3.0 video setting the drone refused or never answered (no video)"),
     "error_unanswered": _w(
         "an `error …` from the drone that answers no command (its text); `error Auto land`: it lands itself"
+    ),
+    "state_implausible": _w(
+        "a state value outside its physical bounds, used as sent (detail: field=value and the bounds; once"
+        " per field until a line carries it within them again)"
+    ),
+    "state_rejected_run": _w(
+        "the drone's state datagrams all rejected for the link timeout (detail: how many, over how long, the"
+        " reasons); the link is lost, not silent"
     ),
     # the motion-capture source (drivers/mocap.py; source "mocap", monotonic clock; detail: the body)
     "reader_join_timeout": _w("the reader thread did not stop in time"),

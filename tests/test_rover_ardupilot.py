@@ -333,6 +333,18 @@ def test_ekf_sources_that_need_a_gps_refuse_arming(
     assert gcs.arm() == ACCEPTED and emu.armed
 
 
+def test_an_injected_arm_or_disarm_refusal_answers_failed(emu: MavlinkRoverEmulator, gcs: Gcs) -> None:
+    """The fault switches reject_arm / reject_disarm answer as ArduPilot answers an arm or disarm that fails:
+    FAILED (4), not DENIED (2) (GCS_MAVLINK::handle_command_component_arm_disarm), and change nothing."""
+    gcs.ready()
+    emu.faults.reject_disarm = True
+    assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0) == FAILED == 4 and emu.armed
+    emu.faults.reject_disarm = False
+    assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0) == ACCEPTED and not emu.armed
+    emu.faults.reject_arm = True
+    assert gcs.arm() == FAILED and not emu.armed
+
+
 def test_losing_motion_capture_while_driving_holds(emu: MavlinkRoverEmulator, gcs: Gcs) -> None:
     """The estimate is dropped 1 s after the last VISION_POSITION_ESTIMATE; then the EKF failsafe: HOLD."""
     gcs.ready()

@@ -151,7 +151,7 @@ def test_close_zeroes_even_if_disarm_rejected(emu: MavlinkRoverEmulator) -> None
     drv.send_body_velocity(np.array([0.2, 0.0, 0.0, 0.0]))
     time.sleep(0.3)
     drv.close()
-    assert any("DENIED" in d for d in details(drv, "disarm_failed"))
+    assert any("FAILED" in d for d in details(drv, "disarm_failed"))
     assert emu.armed and emu.velocity == (0.0, 0.0, 0.0)
 
 
@@ -186,11 +186,11 @@ def test_no_heartbeat_raises_link_error_naming_url(emu: MavlinkRoverEmulator) ->
 
 def test_reject_arm_raises_command_error_fast(emu: MavlinkRoverEmulator) -> None:
     emu.faults.reject_arm = True
-    drv = make_driver(emu)  # ack_timeout_s 2 s: an explicit DENIED must not wait for it
+    drv = make_driver(emu)  # ack_timeout_s 2 s: an explicit FAILED must not wait for it
     t0 = time.monotonic()
-    with pytest.raises(ScamperCommandError, match=r"arm \(MAV_CMD_COMPONENT_ARM_DISARM\).*DENIED.*disarmed"):
+    with pytest.raises(ScamperCommandError, match=r"arm \(MAV_CMD_COMPONENT_ARM_DISARM\).*FAILED.*disarmed"):
         drv.connect()
-    assert time.monotonic() - t0 < 2.0  # on the DENIED, not after the 2 s ack timeout
+    assert time.monotonic() - t0 < 2.0  # on the FAILED, not after the 2 s ack timeout
     assert not emu.armed and emu.mode == ROVER_GUIDED_MODE
     assert sent(emu, ARM_DISARM) == 1  # not re-sent, and no disarm: the heartbeat shows disarmed
     drv.close()

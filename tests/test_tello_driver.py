@@ -11,6 +11,7 @@ do not need UDP 8889/8890 (djitellopy, used by other tests for its own client, b
 
 from __future__ import annotations
 
+import re
 import socket
 import threading
 import time
@@ -30,6 +31,7 @@ from flightstack.hal import FlightPhase
 from flightstack.paper.geometry import Pose, rot_z
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator, wait_until
+from flightstack.sim_backend.emulators.tello.recorded import H_DRIFT_CM_S, H_DRIFT_MAX_CM
 from flightstack.sim_backend.render import RenderOptions, render_markers
 from flightstack.vision.camera_file import load_calibration
 from flightstack.vision.markers import extract_markers
@@ -209,6 +211,97 @@ def test_bad_and_foreign_state_datagrams_are_dropped_and_counted(emu: TelloEmula
         time.sleep(0.3)
         assert d.state().link_alive and d.phase.value == "ground"  # the stranger's 5 m did not count
         assert d.state().battery_pct == emu.battery
+    finally:
+        d.close()
+
+
+def hover_for(d: TelloDriver, seconds: float) -> list[tuple[float, bool]]:
+    """The loop's zero velocity every 0.05 s for `seconds`; (h in cm, link alive) at each tick."""
+    seen = []
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        d.send_body_velocity(np.zeros(4))
+        seen.append((d.current_state()["h"], d.state().link_alive))
+        time.sleep(0.05)
+    return seen
+
+
+def test_h_drifting_down_to_minus_3000_cm_keeps_the_link_and_is_flagged_once() -> None:
+    """Issue 49: state lines whose h ran below −1000 cm were all rejected, the link went silent and land()
+    sent 30 lands. Here the emulator's h drifts at −20 m/s to −3000 cm (true height 80 cm): every line
+    parses, the link never drops, `state_implausible` names h once, and one land brings the drone down."""
+    with make_emulator(h_drift_cm_s=-2000.0, h_drift_max_cm=3080.0) as emu:
+        d = TelloDriver(config(emu))
+        try:
+            d.connect()
+            d.takeoff()
+            seen = hover_for(d, 2.5)
+            d.land()
+        finally:
+            d.close()
+    lowest = min(h for h, _ in seen)
+    flagged = [e.detail for e in d.events if e.kind == "state_implausible"]
+    print(
+        f"h down to {lowest:.0f} cm; state_implausible: {flagged}; dropped {d.link.rx and d.link.rx.dropped}"
+    )
+    assert lowest == -3000 and all(alive for _, alive in seen)
+    assert len(flagged) == 1 and flagged[0].startswith("h=-") and "outside [-1000, 3000]" in flagged[0]
+    assert not [e for e in d.events if e.kind in ("link_lost", "state_rejected_run")]
+    assert d.counts["state_implausible"] > 10  # every such line counted, one event
+    assert emu.command_texts().count("land") == 1
+    assert_clean(d, emu)
+
+
+def test_400_s_of_the_recorded_h_drift_keep_the_link_quiet() -> None:
+    """The recorded drift (−3.5 cm/s) over 400 s, compressed 200-fold into 2 s of flight: the emulator
+    holds it at the recorded 70 cm (recorded.H_DRIFT_MAX_CM), so h never leaves its plausible bounds, the
+    link stays up and nothing is flagged (before: h passed −1000 cm after ~290 s and the link went silent)."""
+    with make_emulator(h_drift_cm_s=200 * H_DRIFT_CM_S) as emu:
+        d = TelloDriver(config(emu))
+        try:
+            d.connect()
+            d.takeoff()
+            seen = hover_for(d, 2.0)
+            d.land()
+        finally:
+            d.close()
+    print(f"h {min(h for h, _ in seen):.0f} … {max(h for h, _ in seen):.0f} cm at a true 80 cm")
+    assert seen[-1][0] == 80 - H_DRIFT_MAX_CM  # hovering at 80 cm, h 70 cm low
+    assert min(h for h, _ in seen) >= -H_DRIFT_MAX_CM and all(alive for _, alive in seen)
+    assert not [e for e in d.events if e.kind in ("link_lost", "state_implausible", "state_rejected_run")]
+    assert emu.command_texts().count("land") == 1
+    assert_clean(d, emu)
+
+
+def test_a_run_of_rejected_state_lines_is_an_event_and_the_link_loss_says_why(emu: TelloEmulator) -> None:
+    """The drone keeps sending, but nothing it sends parses (here `h:nan`) for longer than the link timeout
+    (0.5 s in these tests): one `state_rejected_run` with the reason counts per run, and the `link_lost`
+    it causes names the rejected datagrams instead of calling the drone silent."""
+    d = TelloDriver(config(emu))
+
+    def garbage(seconds: float) -> None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as drone:
+            drone.bind((emu.ip, 0))  # the drone's address: its datagrams, rejected by the parser
+            t_end = time.monotonic() + seconds
+            while time.monotonic() < t_end:
+                drone.sendto(b"h:nan;tof:10;vgz:0;time:0;bat:50;", ("127.0.0.1", emu.state_port))
+                time.sleep(0.05)
+
+    try:
+        d.connect()
+        for run in (1, 2):
+            emu.faults.drop_state = True
+            garbage(1.2)
+            runs = [e.detail for e in d.events if e.kind == "state_rejected_run"]
+            lost = [e.detail for e in d.events if e.kind == "link_lost"]
+            assert len(runs) == run and len(lost) == run, (runs, lost)
+            span = re.search(r"over ([0-9.]+) s", runs[-1])
+            assert span is not None and 0.5 <= float(span.group(1)) < 1.2, runs
+            assert "none valid (not_finite " in runs[-1], runs
+            assert lost[-1].startswith("no valid state packet for") and "not_finite" in lost[-1], lost
+            emu.faults.drop_state = False
+            assert wait_until(lambda: d.state().link_alive, 2.0)
+        print(f"runs: {runs}; link_lost: {lost}")
     finally:
         d.close()
 

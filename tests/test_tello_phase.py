@@ -7,6 +7,8 @@ of motor-on time, one packet per 0.1 s.
 
 from __future__ import annotations
 
+import math
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -46,8 +48,9 @@ def test_parser_reads_the_documented_fields() -> None:
         (b"\xff\xfe", "not_ascii"),
         (b"h:80;" * 200, "too_long"),
         (b"h:80;tof:90;vgz:0;bat:50;", "missing_field"),
-        (b"h:nan;tof:90;vgz:0;time:1;bat:50;", "out_of_bounds"),
-        (b"h:80;tof:90;vgz:0;time:1;bat:150;", "out_of_bounds"),
+        (b"h:nan;tof:90;vgz:0;time:1;bat:50;", "not_finite"),
+        (b"h:80;tof:90;vgz:0;time:1;bat:inf;", "not_finite"),
+        (b"h:-1e999;tof:90;vgz:0;time:1;bat:50;", "not_finite"),  # a number beyond float: -inf
         (b"h:eighty;tof:90;vgz:0;time:1;bat:50;", "bad_number"),
         (b"h80;tof:90;", "malformed"),
         (b"h:80;\x01tof:90;", "not_printable"),
@@ -59,13 +62,35 @@ def test_parser_rejects_with_a_reason(data: bytes, reason: str) -> None:
     assert err.value.reason == reason
 
 
+@pytest.mark.parametrize(
+    ("line", "implausible"),
+    [
+        ("h:-3000;tof:10;vgz:0;time:1;bat:50;", ("h",)),  # a real h drifts: far below the takeoff point
+        ("h:80;tof:90;vgz:0;time:1;bat:150;", ("bat",)),
+        ("h:4000;tof:-5;vgz:120;time:1;bat:50;yaw:200;", ("h", "tof", "vgz", "yaw")),
+        ("h:-1000;tof:0;vgz:100;time:0;bat:100;", ()),  # the bounds themselves are plausible
+    ],
+)
+def test_every_finite_value_parses_and_an_implausible_one_is_flagged(
+    line: str, implausible: tuple[str, ...]
+) -> None:
+    s = parse_state(line.encode("ascii"), 2.0)
+    assert s.implausible == implausible
+    sent = dict(kv.split(":") for kv in line.strip(";").split(";"))
+    assert s.fields == {k: float(v) for k, v in sent.items()}  # kept as sent, none substituted
+    assert (s.h_cm, s.tof_cm, s.vgz_dm_s, s.bat_pct) == tuple(
+        float(sent[k]) for k in ("h", "tof", "vgz", "bat")
+    )
+
+
 @given(st.binary(max_size=600))
 def test_parser_never_raises_anything_else(data: bytes) -> None:
     try:
         s = parse_state(data, 0.0)
     except StateRejectedError:
         return
-    assert 0 <= s.bat_pct <= 100
+    assert all(math.isfinite(v) for v in s.fields.values())
+    assert ("bat" in s.implausible) == (not 0 <= s.bat_pct <= 100)
 
 
 def test_takeoff_hover_land_as_the_firmware_does_it() -> None:

@@ -2,8 +2,9 @@
 
 Each test reads the recording in place (../shared/data/peers/tello/, provenance in its README) and
 compares what the emulator sends with what the real drone sent: the `vgz` sign during a climb and the
-frame of `vgx`/`vgy`, `h` in 10 cm steps, `tof` over a flat floor and on the ground, the takeoff `ok`
-delay, the H.264 keyframe interval. Without the recordings the tests skip (CI=true: they fail).
+frame of `vgx`/`vgy`, `h` in 10 cm steps drifting by at most 70 cm, `tof` over a flat floor and on the
+ground, the takeoff `ok` delay, the H.264 keyframe interval. Without the recordings the tests skip
+(CI=true: they fail).
 """
 
 from __future__ import annotations
@@ -18,11 +19,13 @@ from typing import Any
 import numpy as np
 import pytest
 
+from flightstack.drivers.tello.state import parse_state
 from flightstack.drivers.tello.traffic import TelloSession, read_xg590_db
 from flightstack.drivers.tello.video_check import _Bits, split_nals, sps_frame_num_bits
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator
 from flightstack.sim_backend.emulators.tello.recorded import (
+    H_DRIFT_MAX_CM,
     H_STEP_CM,
     KEYFRAME_INTERVAL_FRAMES,
     LAND_OK_S,
@@ -96,6 +99,10 @@ def test_the_recording_shows_what_the_emulator_follows(flight: TelloSession) -> 
     assert all(s["tof"] != TOF_OUT_OF_RANGE for _, s in states)  # 6553 comes from users' reports
     fwd = [(s["vgx"], s["vgy"]) for t, s in states if 9.2 < t < 9.5]  # `forward 50` at yaw −26°
     assert {s["yaw"] for _, s in states} <= set(range(-30, -23)) and fwd and set(fwd) == {(3, -1)}
+    # h's drift does not grow on: hovering over the flat floor, and at rest after landing, at most 70 cm
+    low = [s["h"] - (s["tof"] - TOF_GROUND_CM) for t, s in states if 9.1 < t < 11.65 or 16.95 < t < 18.05]
+    rest = {s["h"] - (s["tof"] - TOF_GROUND_CM) for t, s in states if t > 20.5}
+    assert len(low) == 36 and (min(low), max(low)) == (-H_DRIFT_MAX_CM, -65) and rest == {-H_DRIFT_MAX_CM}
 
 
 def test_the_h264_keyframe_interval_is_at_least_the_recorded_bound() -> None:
@@ -138,6 +145,27 @@ def test_the_h264_keyframe_interval_is_at_least_the_recorded_bound() -> None:
 
 
 # -------------------------------------------------------------------------------------- the emulator
+def test_400_s_of_emulated_flight_with_the_recorded_drift_stay_plausible() -> None:
+    """Issue 49: the unbounded ramp had h below −1000 cm after about 300 s of emulated flight, and every
+    state line was then rejected. 400 s of the emulator's flight in simulated time (its simulation step,
+    0.1 s, called directly: no sockets, no wall clock): every state line parses with no implausible value,
+    and h reads at most the recorded 70 cm plus one 10 cm step below the true height."""
+    emu = TelloEmulator("127.0.0.40", takeoff_s=FAST_TAKEOFF_S, auto_land_s=1e9)  # not started
+    assert emu._execute("takeoff", [], 0.0) is None  # the ok deferred to the takeoff's end
+    low_cm = []
+    for k in range(1, 4001):
+        now = 0.1 * k
+        emu._step(now, 0.1)
+        sample = parse_state(emu._state_string().encode("ascii"), now)
+        assert sample.implausible == (), (now, sample.fields)
+        low_cm.append(emu.position_cm[2] - sample.h_cm)
+    print(
+        f"after {emu._motor_s:.0f} s of flight: h reads {low_cm[-1]:.0f} cm low (at most {max(low_cm):.0f})"
+    )
+    assert emu.phase == "flying" and emu._motor_s == pytest.approx(400.0, abs=0.2)
+    assert max(low_cm) <= H_DRIFT_MAX_CM + H_STEP_CM and low_cm[-1] >= H_DRIFT_MAX_CM
+
+
 @pytest.fixture
 def states() -> Iterator[tuple[socket.socket, socket.socket]]:
     """(command socket, non-blocking state socket) on 127.0.0.1."""

@@ -16,7 +16,8 @@ errors and reply parsers: drivers/tello/config.py).
 
 Principles (telemetry decides, replies are advisory, nothing the drone would reject in its phase, never
 blocking the control loop, the loop watchdog, lands re-sent until telemetry shows the descent, link loss
-and a rebooted drone, a drone landing by itself), the phase
+and a rebooted drone, a drone landing by itself; an implausible state value used as sent and flagged, a run
+of rejected state lines an event: drivers/tello/stream_health.py), the phase
 rules and the reaction to each failure: docs/drivers.md, "Tello driver" (why: docs/architecture.md
 decision 26).
 
@@ -105,7 +106,7 @@ class TelloDriver:
             return
         cfg, st = self.cfg, self.status
         try:
-            self.link.open(st.observe, self._on_drone_error)
+            self.link.open(st.observe, st.reject, self._on_drone_error)
         except OSError as exc:
             self.close()
             raise TelloLinkError(f"Tello at {cfg.host}: {exc}") from exc

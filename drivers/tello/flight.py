@@ -242,7 +242,10 @@ class FlightPhases:
         holding its height `land_confirm_s` after it."""
         cfg = self.cfg
         if not alive:
-            return "telemetry silent" if since_s > cfg.land_resend_s else ""
+            if since_s <= cfg.land_resend_s:
+                return ""
+            with self._status.lock:
+                return f"telemetry silent{self._status.health.rejected_note()}"
         if silent:
             return "" if low else "telemetry back after a lost link"
         if holding and since_s >= cfg.land_confirm_s:

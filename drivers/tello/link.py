@@ -17,8 +17,9 @@ process. Here:
   counted and reported, not raised into a loop).
 - `StateReceiver`: binds the state port (8890 on real drones) once per process, parses each datagram
   strictly (drivers/tello/state.py) and hands it to the driver registered for its source IP. Datagrams
-  from any other address, and malformed ones, are dropped and counted by reason. The thread survives
-  every error.
+  from any other address, and malformed ones, are dropped and counted by reason; a malformed one from a
+  registered address is also reported to its driver (`on_rejected`: a run of them is an event, never a
+  silent link). The thread survives every error.
 
 Every thread is a daemon with bounded waits (≤ 0.1 s) and is joined on close. No exception ends a thread:
 each is counted in the owner's `counts` (its own key, e.g. `recv_error`, plus `thread_error`) and logged
@@ -255,6 +256,8 @@ class CommandChannel:
 
 
 StateCallback = Callable[[TelloTelemetry], None]
+RejectedCallback = Callable[[float, str], None]
+"""A state datagram from the drone that the parser rejected: (receive time, time.monotonic() s; reason)."""
 
 
 class StateReceiver:
@@ -268,11 +271,13 @@ class StateReceiver:
         cls,
         host: str,
         callback: StateCallback,
+        on_rejected: RejectedCallback,
         port: int = 8890,
         bind_ip: str = "",
         traffic: TrafficWriter | None = None,
     ) -> StateReceiver:
-        """Register `callback` for state datagrams from `host`; binds (bind_ip, port) on first use.
+        """Register `callback` for state datagrams from `host` and `on_rejected` for those of its datagrams
+        that the parser rejects; binds (bind_ip, port) on first use.
         traffic: where every state datagram from `host` is recorded, as received (module docstring).
 
         Raises OSError naming the port when it cannot be bound (another program holds it)."""
@@ -282,7 +287,7 @@ class StateReceiver:
             if rx is None:
                 rx = cls(bind_ip, port)
                 cls._instances[key] = rx
-            rx._register(host, callback, traffic)
+            rx._register(host, callback, on_rejected, traffic)
             return rx
 
     def release(self, host: str) -> None:
@@ -310,7 +315,7 @@ class StateReceiver:
             ) from exc
         self._sock.settimeout(0.1)
         self._lock = threading.Lock()
-        self._callbacks: dict[str, StateCallback] = {}
+        self._callbacks: dict[str, tuple[StateCallback, RejectedCallback]] = {}
         self._traffic: dict[str, TrafficWriter] = {}
         self.dropped: Counter[str] = Counter()  # datagrams dropped, by reason
         self.counts: Counter[str] = Counter()  # "delivered" datagrams; thread errors (ErrorLog)
@@ -319,9 +324,11 @@ class StateReceiver:
         self._thread = threading.Thread(target=self._loop, name=f"tello-state-{port}", daemon=True)
         self._thread.start()
 
-    def _register(self, host: str, callback: StateCallback, traffic: TrafficWriter | None) -> None:
+    def _register(
+        self, host: str, callback: StateCallback, on_rejected: RejectedCallback, traffic: TrafficWriter | None
+    ) -> None:
         with self._lock:
-            self._callbacks[host] = callback
+            self._callbacks[host] = (callback, on_rejected)
             if traffic is None:
                 self._traffic.pop(host, None)
             else:
@@ -349,25 +356,33 @@ class StateReceiver:
             return
         t = time.monotonic()
         with self._lock:
-            cb = self._callbacks.get(addr[0])
+            callbacks = self._callbacks.get(addr[0])
             traffic = self._traffic.get(addr[0])
         if traffic is not None:
             traffic.state(t, data)
-        if cb is None:
+        if callbacks is None:
             self.dropped["unknown_sender"] += 1
             return
+        cb, on_rejected = callbacks
         try:
             sample = parse_state(data, t)
         except StateRejectedError as exc:
             self.dropped[exc.reason] += 1
+            self._call(addr[0], on_rejected, t, exc.reason)
             return
-        try:
-            cb(sample)
-        except Exception as exc:  # a driver bug must not silence the other drones
-            self.dropped["callback_error"] += 1
-            self.errors.record("callback_error", f"state callback for {addr[0]}: {type(exc).__name__}: {exc}")
-        else:
+        if self._call(addr[0], cb, sample):
             self.counts["delivered"] += 1
+
+    def _call(self, host: str, callback: Callable[..., None], *args: object) -> bool:
+        """Run a driver's callback; False if it raised (counted `callback_error`, logged sparsely): a
+        driver bug must not silence the other drones."""
+        try:
+            callback(*args)
+        except Exception as exc:
+            self.dropped["callback_error"] += 1
+            self.errors.record("callback_error", f"state callback for {host}: {type(exc).__name__}: {exc}")
+            return False
+        return True
 
 
 class TelloLink:
@@ -391,10 +406,15 @@ class TelloLink:
         self.rx: StateReceiver | None = None
         self._muted: MutedCheck | None = None
 
-    def open(self, on_state: StateCallback, on_error: ErrorCallback | None = None) -> None:
-        """Register `on_state` for this drone's state packets, then open the command channel (OSError)
-        with `on_error` for the `error …` replies that answer nothing (CommandChannel)."""
-        self.rx = StateReceiver.acquire(self.host, on_state, self.state_port, self.bind_ip, self.traffic)
+    def open(
+        self, on_state: StateCallback, on_rejected: RejectedCallback, on_error: ErrorCallback | None = None
+    ) -> None:
+        """Register `on_state` for this drone's state packets and `on_rejected` for its datagrams the parser
+        rejects, then open the command channel (OSError) with `on_error` for the `error …` replies that
+        answer nothing (CommandChannel)."""
+        self.rx = StateReceiver.acquire(
+            self.host, on_state, on_rejected, self.state_port, self.bind_ip, self.traffic
+        )
         self.chan = CommandChannel(
             self.host,
             self.control_port,

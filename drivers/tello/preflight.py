@@ -9,6 +9,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from flightstack.drivers.tello.config import SDK3_FIX, PreflightCheck, TelloConfig, parse_int_reply
+from flightstack.drivers.tello.state import PLAUSIBLE
 from flightstack.drivers.tello.video_settings import SettingOutcome, outcomes_of
 from flightstack.hal import FlightPhase
 
@@ -39,16 +40,12 @@ class PreflightTarget(Protocol):
 
 
 def tello_preflight(driver: PreflightTarget) -> list[PreflightCheck]:
-    """Battery, temperature, state stream, on the ground, SDK version and serial, the lab file's SDK 3.0
-    video settings, Wi-Fi signal."""
+    """Battery (a reading above 100 % FAILs: implausible), temperature, state stream, on the ground, SDK
+    version and serial, the lab file's SDK 3.0 video settings, Wi-Fi signal."""
     st, cfg = driver.current_state(), driver.cfg
     bat, temp = st.get("bat"), st.get("temph")
     checks = [
-        PreflightCheck(
-            "battery",
-            bat is not None and bat >= cfg.min_battery_pct,
-            f"{bat:.0f} % (min {cfg.min_battery_pct:.0f} %)" if bat is not None else "not reported",
-        ),
+        battery_check(bat, cfg.min_battery_pct),
         PreflightCheck(
             "temperature",
             temp is not None and temp <= cfg.max_temperature_c,
@@ -73,6 +70,18 @@ def tello_preflight(driver: PreflightTarget) -> list[PreflightCheck]:
         )
     )
     return checks
+
+
+def battery_check(bat: float | None, min_pct: float) -> PreflightCheck:
+    """FAIL below `min_pct` (%), when not reported, and above the plausible 100 %: such a reading proves
+    no charge (drivers/tello/state.py flags it and the driver uses it as sent)."""
+    if bat is None:
+        return PreflightCheck("battery", False, "not reported")
+    highest = PLAUSIBLE["bat"][1]
+    detail = f"{bat:.0f} % (min {min_pct:.0f} %)"
+    if bat > highest:
+        detail += f": above {highest:.0f} %, implausible"
+    return PreflightCheck("battery", min_pct <= bat <= highest, detail)
 
 
 def sdk_check(driver: PreflightTarget) -> PreflightCheck:

@@ -1,8 +1,9 @@
 """What the parts of one Tello driver share: its telemetry view, the flags that decide what may be sent,
 and its events.
 
-`DriverStatus` is fed by the state receiver's thread (`observe`: one validated packet → phase tracker) and
-read and written by the control loop, the blocking commands and the monitor, every flag under `lock`.
+`DriverStatus` is fed by the state receiver's thread (`observe`: one parsed packet → phase tracker and
+`health`; `reject`: one rejected datagram → `health`, drivers/tello/stream_health.py) and read and written
+by the control loop, the blocking commands and the monitor, every flag under `lock`.
 `DriverEvents` is the driver's event log and counters. Times: time.monotonic() s; heights cm.
 """
 
@@ -16,6 +17,7 @@ from collections import Counter
 
 from flightstack.drivers.tello.phase import PhaseThresholds, PhaseTracker
 from flightstack.drivers.tello.state import TelloTelemetry
+from flightstack.drivers.tello.stream_health import StreamHealth
 from flightstack.events import Event, TelloKind, log_level
 from flightstack.hal import FlightPhase
 
@@ -39,12 +41,14 @@ class DriverEvents:
 class DriverStatus:
     """The drone as one driver sees it, and what the driver is doing; flags read and written under `lock`.
 
-    `link_timeout_s` (s): a state packet older than this means the link is down."""
+    `link_timeout_s` (s): a state packet older than this means the link is down; rejected datagrams for
+    that long are a run (`health`)."""
 
     def __init__(self, thresholds: PhaseThresholds, link_timeout_s: float, events: DriverEvents) -> None:
         self.lock = threading.RLock()
         self.tracker = PhaseTracker(thresholds)
         self.link_timeout_s = link_timeout_s
+        self.health = StreamHealth(link_timeout_s)
         self.fields: dict[str, float] = {}  # the latest valid state packet (a new dict per packet)
         self.last_state_t = -math.inf
         self.link_up = False  # set by connect, then by the monitor from the packets' age
@@ -55,14 +59,25 @@ class DriverStatus:
         self._events = events
 
     def observe(self, s: TelloTelemetry) -> None:
-        """State receiver thread: one validated packet."""
+        """State receiver thread: one parsed packet (implausible values as sent: stream_health.py)."""
         with self.lock:
             self.fields = dict(s.fields)  # a new dict per packet (drivers/tello/identify.py relies on it)
             self.last_state_t = s.t
+            if s.implausible:
+                self._events.counts["state_implausible"] += 1
+            for detail in self.health.accepted(s):
+                self._events.add("state_implausible", detail)
             for change in self.tracker.observe(s):
                 self._events.add("phase", change)
             if self.tracker.phase is FlightPhase.GROUND:
                 self.land_requested = False
+
+    def reject(self, t: float, reason: str) -> None:
+        """State receiver thread: a datagram from the drone that the parser rejected for `reason` at `t`."""
+        with self.lock:
+            run = self.health.rejected(t, reason)
+            if run is not None:
+                self._events.add("state_rejected_run", run)
 
     @property
     def phase(self) -> FlightPhase:

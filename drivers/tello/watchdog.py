@@ -1,10 +1,11 @@
 """The Tello driver's monitor thread: link freshness and the control-loop watchdog.
 
-Every 0.02 s: no state packet for `link_timeout_s` (s) → link lost (`link_lost` / `link_restored` events), and
-while it is lost `command` at most every `rejoin_s` (drivers/tello/rejoin.py: a drone that rebooted streams
-again only after it); while airborne with no blocking command and no land pending, a control loop silent for
-`loop_hover_s` (s) gets `rc 0 0 0 0` once, and after `loop_land_s` (s) the driver lands by itself on its own
-thread. The thread survives any error (counted, logged).
+Every 0.02 s: no valid state packet for `link_timeout_s` (s) → link lost (`link_lost` / `link_restored`
+events; `link_lost` names the drone's rejected datagrams when it sent any: drivers/tello/stream_health.py),
+and while it is lost `command` at most every `rejoin_s` (drivers/tello/rejoin.py: a drone that rebooted
+streams again only after it); while airborne with no blocking command and no land pending, a control loop
+silent for `loop_hover_s` (s) gets `rc 0 0 0 0` once, and after `loop_land_s` (s) the driver lands by
+itself on its own thread. The thread survives any error (counted, logged).
 """
 
 from __future__ import annotations
@@ -67,7 +68,9 @@ class Watchdog:
         age = now - st.last_state_t
         if st.link_up and age > cfg.link_timeout_s:
             st.link_up = False
-            self._events.add("link_lost", f"no state packet for {age:.2f} s")
+            with st.lock:
+                why = st.health.rejected_note()
+            self._events.add("link_lost", f"no valid state packet for {age:.2f} s{why}")
         elif not st.link_up and age <= cfg.link_timeout_s:
             st.link_up = True
             self._events.add("link_restored")

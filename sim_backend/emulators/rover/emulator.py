@@ -428,7 +428,7 @@ class MavlinkRoverEmulator(Telemetry):
         st = self._s
         arm, force = msg.param1 > 0.5, abs(msg.param2 - 21196.0) < 0.5
         if self.faults.reject_arm if arm else self.faults.reject_disarm:
-            return int(mavlink.MAV_RESULT_DENIED)
+            return int(mavlink.MAV_RESULT_FAILED)
         if self._ignored(int(msg.command)) or arm == st.armed:
             return int(mavlink.MAV_RESULT_ACCEPTED)
         if arm and not force:

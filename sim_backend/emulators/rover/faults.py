@@ -10,7 +10,10 @@ class RoverFaults:
     """Fault switches a test may flip at any time, each what ArduPilot / MAVLink users reported.
 
     - ``no_heartbeat``: the autopilot's HEARTBEATs stop (everything else keeps working).
-    - ``reject_arm`` / ``reject_disarm``: ``MAV_RESULT_DENIED`` (pre-arm checks failing).
+    - ``reject_arm`` / ``reject_disarm``: the arm / disarm is refused with ``MAV_RESULT_FAILED``, as
+      ArduPilot answers an arm or disarm that fails (pre-arm checks failing, a disarm refused):
+      ``GCS_MAVLINK::handle_command_component_arm_disarm``, libraries/GCS_MAVLink/GCS_Common.cpp (before
+      it moved there: ``GCS_MAVLINK_Rover::handle_command_long_packet``, APMrover2/GCS_Mavlink.cpp).
     - ``lost_acks`` (command ids): the command takes effect, its ACK is never sent
       (github.com/PX4/PX4-Autopilot/issues/8924, github.com/mavlink/mavros/issues/1590).
     - ``duplicate_acks``: every ACK twice (github.com/mavlink/qgroundcontrol/issues/2975,

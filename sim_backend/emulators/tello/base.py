@@ -28,7 +28,15 @@ from ..radio import DeviceRadio
 from .faults import ReplyScheduler, TelloFaults
 from .frames import FrameSource, default_frame_source
 from .net import require_loopback
-from .recorded import H_DRIFT_CM_S, KEYFRAME_INTERVAL_FRAMES, TAKEOFF_OK_S, TOF_MAX_CM, Surface, flat_floor
+from .recorded import (
+    H_DRIFT_CM_S,
+    H_DRIFT_MAX_CM,
+    KEYFRAME_INTERVAL_FRAMES,
+    TAKEOFF_OK_S,
+    TOF_MAX_CM,
+    Surface,
+    flat_floor,
+)
 
 FAST_TAKEOFF_S = 0.3
 """A takeoff for tests and rigs that are not about the takeoff (s): the recorded ``TAKEOFF_OK_S`` (8.7 s,
@@ -80,6 +88,7 @@ class TelloEmulatorBase:
         links: DeviceLinks | None = None,
         takeoff_hover_s: float = 0.0,
         h_drift_cm_s: float = H_DRIFT_CM_S,
+        h_drift_max_cm: float = H_DRIFT_MAX_CM,
         surface: Surface = flat_floor,
         tof_max_cm: float = TOF_MAX_CM,
     ) -> None:
@@ -113,6 +122,8 @@ class TelloEmulatorBase:
                 the next keyframe, 2.2 s at 30 fps).
             h_drift_cm_s: drift of the reported ``h`` while the motors run (cm/s, from each takeoff;
                 default the recorded ``recorded.H_DRIFT_CM_S``; 0 turns it off).
+            h_drift_max_cm: the drift's bound (cm, either sign; default the recorded
+                ``recorded.H_DRIFT_MAX_CM``, 70 cm).
             surface: height (cm) of the surface below a world point ``(x, y)`` (cm), what ``tof``
                 measures to (``recorded.Surface``; default the flat takeoff floor).
             tof_max_cm: range of the downward distance sensor (cm); beyond it ``tof`` reads 6553.
@@ -151,6 +162,7 @@ class TelloEmulatorBase:
         if self.gop_size < 1:
             raise ValueError(f"gop_size must be at least 1, got {gop_size}")
         self.h_drift_cm_s = float(h_drift_cm_s)
+        self.h_drift_max_cm = float(h_drift_max_cm)
         self.surface = surface
         self.tof_max_cm = float(tof_max_cm)
         self.pre_sdk_reply = pre_sdk_reply
@@ -225,7 +237,7 @@ class TelloEmulatorBase:
         self._vel_world = np.zeros(3)  # [cm/s]
         self._acc_body = np.zeros(3)  # [cm/s^2]
         self._motor_s = 0.0
-        self._h_drift = 0.0  # cm added to the true height in the reported h (recorded.H_DRIFT_CM_S)
+        self._h_drift = 0.0  # cm added to the true height in the reported h (recorded.drifted)
         self._drain = 0.0
         self._bat_setpoint = self.faults.battery_pct
         self._last_cmd_t = time.monotonic()

@@ -15,8 +15,8 @@ dm/s, ``h``/``tof`` in cm, ``x/y/z`` the integrated position in cm where a real 
 coordinates, ``time`` = motor-on s, ``bat`` in %) at ``state_hz`` to ``(client_ip, state_port)`` in SDK mode.
 What the state reports of height and velocity follows the recordings of real Tellos (``recorded``): ``vgz``
 positive down, ``vgx``/``vgy`` in the frame of yaw 0; ``h`` in 10 cm steps, drifting at ``h_drift_cm_s``
-from each takeoff; ``tof`` the height above ``surface`` plus 10 cm, 6553 beyond ``tof_max_cm``.
-`TelloPhysics` is one layer of ``TelloEmulator``.
+from each takeoff up to ``h_drift_max_cm``; ``tof`` the height above ``surface`` plus 10 cm, 6553 beyond
+``tof_max_cm``. `TelloPhysics` is one layer of ``TelloEmulator``.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import math
 import time
 
 from .base import TelloEmulatorBase
-from .recorded import reported_h, reported_tof, reported_vg
+from .recorded import drifted, reported_h, reported_tof, reported_vg
 
 
 class TelloPhysics(TelloEmulatorBase):
@@ -107,7 +107,7 @@ class TelloPhysics(TelloEmulatorBase):
             self._drain += dt * (self.DRAIN_FLYING_PCT_S if self.flying else self.DRAIN_IDLE_PCT_S)
             if self.flying:
                 self._motor_s += dt
-                self._h_drift += self.h_drift_cm_s * dt
+                self._h_drift = drifted(self._h_drift, self.h_drift_cm_s, dt, self.h_drift_max_cm)
             z_before = float(self._pos[2])
             if self._phase == "takeoff":  # climb at the normal rate, then hover (stabilise) until the ok
                 elapsed = now - self._phase_t0

@@ -19,9 +19,15 @@ docs/drivers.md, "What a real Tello sends", tabulates them):
   equal the rounded value, hence ``floor``. It drifts: ``h − (tof − 10)`` over the flat floor falls from
   −3 cm at liftoff to −70 cm at rest after landing (least-squares slope ``H_DRIFT_CM_S`` = −3.5 cm/s;
   −70 cm over the 19.6 s from liftoff to rest is −3.6 cm/s), so the ramp is the recording's mean rate
-  (the drift came mostly between +5.6 and +8.1 s; a ramp is the simplest process with that mean, and it
-  is extrapolated beyond the recording's 21 s). The drift starts at each takeoff (xg590: h 0 on the
-  ground before takeoff; that it restarts at a second takeoff is *unverified*).
+  (the drift came mostly between +5.6 and +8.1 s; a ramp is the simplest process with that mean). It did
+  not drift on: hovering over the flat floor from +9.1 s on, ``h − (tof − 10)`` stays within −65 … −70 cm
+  (36 lines at +9.1 … +11.6 s and +17.0 … +18.0 s; between them the drone flew over a lower surface), h
+  lags by up to 9 cm more while it descends to land (−79 cm), and it reads −70 cm at rest after landing.
+  So the ramp saturates at ``H_DRIFT_MAX_CM`` (70 cm), the most the recording shows. Beyond the
+  recording's 21 s the bound is *assumed* (no longer recording is held; another real flight is reported
+  not to drift at all, issue 49): with the unbounded ramp it replaces, a drone hovering at 80 cm reported
+  h below −1000 cm from 309 s of flight on. The drift starts at each takeoff (xg590: h 0 on the ground
+  before takeoff; that it restarts at a second takeoff is *unverified*).
 * ``tof`` (cm) measures the distance to the surface below plus ``TOF_GROUND_CM`` (xg590: 10 on the ground
   before takeoff and after landing; 23 at h 10): it follows the terrain (xg590: 118 → 170 cm within
   0.5 s during ``left 50``, the drone passing an edge, while h stayed 40), and is ``TOF_OUT_OF_RANGE``
@@ -56,6 +62,9 @@ H_STEP_CM = 10
 H_DRIFT_CM_S = -3.5
 """Drift of ``h`` against the true height while the motors run (cm/s; negative: h reads low), xg590's
 least-squares slope of ``h − (tof − 10)`` over the flat floor."""
+H_DRIFT_MAX_CM = 70.0
+"""Largest drift of ``h`` (cm, either sign): xg590's ``h − (tof − 10)`` hovering over the flat floor from
++9.1 s on and at rest after landing (beyond its 21 s *assumed*; module docstring)."""
 TOF_GROUND_CM = 10
 """``tof`` of a Tello standing on the surface (cm): xg590 before takeoff and after landing."""
 TOF_OUT_OF_RANGE = 6553
@@ -77,6 +86,12 @@ def flat_floor(_x: float, _y: float) -> float:
 def reported_h(true_height_cm: float, drift_cm: float) -> int:
     """The state line's ``h`` (cm): the true height plus the drift, floored to ``H_STEP_CM`` steps."""
     return H_STEP_CM * math.floor((true_height_cm + drift_cm) / H_STEP_CM)
+
+
+def drifted(drift_cm: float, rate_cm_s: float, dt_s: float, max_cm: float = H_DRIFT_MAX_CM) -> float:
+    """The drift of ``h`` (cm) ``dt_s`` s after it was ``drift_cm``, ramping at ``rate_cm_s`` and held within
+    ``±max_cm``."""
+    return max(-max_cm, min(max_cm, drift_cm + rate_cm_s * dt_s))
 
 
 def reported_tof(above_surface_cm: float, max_cm: float = TOF_MAX_CM) -> int:
