@@ -37,6 +37,7 @@ LAB_ROWS = [
     "disk_full",
     "robot_not_moving",
     "auto_land_in_flight",
+    "raised_surface",
     "clock_skew",
     "abort_during_takeoff",
     "abort_agent_missing",

@@ -399,10 +399,18 @@ def run_result(
     )
 
 
-def emulator_errors(lab: EmulatedLab, c: Checks) -> None:
-    """A failed check per emulator that reported internal errors (the lab itself misbehaved)."""
+def emulator_errors(lab: EmulatedLab, c: Checks, blind: bool = False) -> None:
+    """A failed check per emulator that reported internal errors (the lab itself misbehaved) or, unless the
+    row leaves the drivers `blind`, refused a command a real Tello refuses in its phase (`refused`: a land
+    on the ground, rc to a drone busy in its takeoff or landing, …): what a driver that sees its drone
+    sends must be what the drone accepts. blind: the row takes the drivers' telemetry away (a link loss,
+    a guardian that cannot bind the state port); they then re-send `rc 0 0 0 0` and `land` on purpose,
+    also to a drone already down (a real one answers `error Motor stop`), and that count is reported."""
     for i, e in lab.tellos.items():
         c.check(not e.errors, f"emulator {i} reported errors: {e.errors[:3]}")
+        c.check(
+            blind or not e.refused, f"emulator {i} refused {len(e.refused)} commands: {list(e.refused)[:3]}"
+        )
 
 
 def wait_then(lab: EmulatedLab, marks: dict[str, float], action: Callable[[], None]) -> bool:

@@ -118,7 +118,7 @@ def link_loss_uplink(mission_path: Path, workdir: Path) -> FaultResult:
         why2 = [e["detail"] for e in run.safety("land", 2)]
         c.check(len(why2) == 1 and why2[0].startswith("mission complete"), f"drone 2 landed for {why2}")
         c.check(run.end_reason() == "mission complete", f"run ended: {run.end_reason()}")
-        emulator_errors(lab, c)
+        emulator_errors(lab, c, blind=True)
         details = {
             "detect_ms": ms(detect),
             "rc0_after_detect_ms": ms(hover),
@@ -272,7 +272,7 @@ def loop_stall(mission_path: Path, workdir: Path) -> FaultResult:
             reason == "every drone landed" or "GuardianTakeoverError" in reason,
             f"run ended: {reason!r} (expected: every drone landed, or the guardian's takeover)",
         )
-        emulator_errors(lab, c)
+        emulator_errors(lab, c, blind=True)
         observed = f"loop stalled {details['stall_ms']} ms: " + "; ".join(notes) + f"; end: {reason}"
         expected = (
             f"at each emulator rc 0 0 0 0 within loop_hover_s ({hover_s:g} s) + {HOVER_MARGIN_S:g} s and "
@@ -408,6 +408,7 @@ ROWS: dict[str, FaultRow] = {
     "disk_full": rows_lab_drivers.disk_full,
     "robot_not_moving": rows_lab_drivers.robot_not_moving,
     "auto_land_in_flight": rows_lab_drivers.auto_land_in_flight,
+    "raised_surface": rows_lab_drivers.raised_surface,
     "clock_skew": rows_lab_bus.clock_skew,
     "abort_during_takeoff": rows_lab_cli.abort_during_takeoff,
     "abort_agent_missing": rows_lab_bus.abort_agent_missing,

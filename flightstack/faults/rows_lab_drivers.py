@@ -426,3 +426,54 @@ def auto_land_in_flight(mission_path: Path, workdir: Path) -> FaultResult:
             judge_lab_recording(run),
             details,
         )
+
+
+# ---- raised_surface ----------------------------------------------------------------------------------------
+RAISED_TOF_CM = 31
+"""What a real Tello resting on a raised surface (a box, a carpet, a landing pad) reads as `tof` (issue 49);
+its floor value is 10."""
+
+
+def raised_surface(mission_path: Path, workdir: Path) -> FaultResult:
+    """Drone 1 stands on a raised surface: its `tof` reads 31 cm on the ground, not 10."""
+    from flightstack.sim_backend.emulators.tello.recorded import TOF_GROUND_CM
+
+    wall0 = time.perf_counter()
+    name = "raised_surface"
+    root = workdir / name
+    below = float(RAISED_TOF_CM - TOF_GROUND_CM)
+    with EmulatedLab(root, duration_s=3.0, tello={1: {"surface": lambda x, y: -below}}) as lab:
+        emu1 = lab.tellos[1]
+        run = fly_inprocess(lab, root / "run")
+        lab.write_log(root / "emulators.json")
+        c = Checks()
+        t_takeoff = command_times(emu1, "takeoff")
+        lands = command_times(emu1, "land")
+        early = [t for t in lands if not t_takeoff or t < t_takeoff[0]]
+        flew = any(ph == "flying" for _, ph in emu1.phase_log)
+        ground_tof = emu1.last_state.split("tof:")[1].split(";")[0] if "tof:" in emu1.last_state else "?"
+        c.check(len(t_takeoff) == 1, f"takeoff datagrams at drone 1: {len(t_takeoff)}")
+        c.check(not early, f"{len(early)} land(s) sent to drone 1 before its takeoff")
+        c.check(flew and emu1.phase == "landed", f"drone 1 flew {flew}, ends {emu1.phase}")
+        c.check(len(lands) == 1, f"land datagrams at drone 1: {len(lands)}")
+        c.check(ground_tof == str(RAISED_TOF_CM), f"drone 1's tof at rest after the flight: {ground_tof}")
+        rec = run.rec
+        c.check(rec is not None and rec.error is None, f"run error {None if rec is None else rec.error!r}")
+        emulator_errors(lab, c)
+        observed = (
+            f"drone 1 on a raised surface (tof {ground_tof} cm at rest): takeoff sent {len(t_takeoff)}x, "
+            f"land {len(lands)}x ({len(early)} before the takeoff), flew {flew}, ends {emu1.phase}; "
+            f"refused {len(emu1.refused)} commands"
+        )
+        return run_result(
+            name,
+            "on the ground at connect (the motors' verdict), one takeoff, no land before it, one land at the "
+            "end, nothing refused",
+            observed,
+            wall0,
+            run,
+            c,
+            judge_lab_safety(lab, run),
+            judge_lab_recording(run),
+            {"takeoffs": len(t_takeoff), "lands": len(lands), "lands_before_takeoff": len(early)},
+        )
