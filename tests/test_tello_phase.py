@@ -216,3 +216,18 @@ def test_a_height_step_is_no_descent_and_a_stopped_descent_flies_on() -> None:
             tr2.observe(packet(t, h(t), 32.0 + t - 2.0, vgz=-(h(t + 0.1) - h(t)) / 0.1 / 10))
             phases.append(tr2.phase)
     assert set(phases) == {FlightPhase.AIRBORNE} and not tr2.self_landing
+
+
+def test_its_word_that_it_lands_holds_until_its_descent_could_show() -> None:
+    """`error Auto land` (landing_by_itself) while hovering: the samples before the notice showed a still
+    hover, and so do the first ones after it (the descent starts later); none of them may return it to
+    flying: only 0.5 s of stillness after the notice would."""
+    tr = PhaseTracker()
+    flying(tr)
+    tr.landing_by_itself(2.0)
+    assert tr.phase is FlightPhase.LANDING and tr.self_landing
+    stream(tr, 2.0, 2.3, lambda t: 80.0, 32.0, motors_on=True)  # still hovering: the descent not yet begun
+    assert tr.phase is FlightPhase.LANDING
+    stream(tr, 2.3, 3.0, lambda t: max(0.0, 80.0 - (t - 2.3) * 120.0), 32.3, motors_on=True)
+    stream(tr, 3.0, 4.7, lambda t: 0.0, 33.0, motors_on=False)
+    assert tr.phase is FlightPhase.GROUND

@@ -231,11 +231,11 @@ class PhaseTracker:
     def descent_commanded(self, t: float) -> bool:
         return self._last_throttle < 0 or t - self._down_cmd_t <= self.th.uncommanded_after_s
 
-    def holding_height(self, t: float) -> bool:
+    def holding_height(self, t: float, since: float = -float("inf")) -> bool:
         """h still (within `stable_range_cm`, vgz below `descent_vgz_dm_s`) above the ground over
-        `descent_window_s`, motors running."""
+        `descent_window_s` of samples taken at or after `since` (s), motors running."""
         th = self.th
-        w = [s for s in self._window if s.t >= t - th.descent_window_s]
+        w = [s for s in self._window if s.t >= max(t - th.descent_window_s, since)]
         if len(w) < 3 or w[-1].t - w[0].t < 0.8 * th.descent_window_s:
             return False
         hs = [s.h_cm for s in w]
@@ -343,7 +343,9 @@ class PhaseTracker:
         elif self.phase is P.LANDING:
             if self.down(t):
                 self._set(P.GROUND, t)
-            elif (self.self_landing and self._land_sent_t is None and self.holding_height(t)) or (
+            elif (
+                self.self_landing and self._land_sent_t is None and self.holding_height(t, self.phase_since)
+            ) or (
                 self._land_sent_t is not None
                 and t - self._land_sent_t > th.no_effect_s
                 and self.motors_running(t)
