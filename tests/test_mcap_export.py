@@ -247,6 +247,32 @@ def test_cli_refuses_to_overwrite_unless_force_and_names_a_bad_run_dir(
     assert not (tmp_path / "a.mcap").exists()
 
 
+def test_export_writes_only_regular_files_outside_the_run(
+    fake_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--force at a directory, a FIFO, a device node (made by the test in its own folder, as root) or a
+    file of the run itself: exit 2 in one line naming it, nothing replaced."""
+    import os
+    import stat
+
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    targets = [tmp_path, fifo, *sorted(p for p in fake_run.iterdir() if p.is_file())[:1]]
+    if os.geteuid() == 0:
+        node = tmp_path / "null-like"
+        os.mknod(node, 0o600 | stat.S_IFCHR, os.makedev(1, 3))  # /dev/null's numbers, in the test's folder
+        targets.append(node)
+    for target in targets:
+        before = target.lstat()
+        for flag in ("--mcap", "--csv"):
+            assert cli.main(["export", str(fake_run), flag, str(target), "--force"]) == 2, target
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and str(target) in err[0], err
+        after = target.lstat()
+        assert (after.st_mode, after.st_ino, after.st_size) == (before.st_mode, before.st_ino, before.st_size)
+    print(f"refused: {[t.name for t in targets]}")
+
+
 def test_a_real_short_run_exports_its_recording(tmp_path: Path) -> None:
     """paper_sim (ideal rig, 500 Hz), mode none for 0.05 s, flown in process, then exported by the CLI."""
     doc = resolved_document("paper_sim")

@@ -6,12 +6,15 @@ live MCAP) and/or one CSV of its main time series for pandas or a spreadsheet
 
 Exit codes: 0 written (a damaged optional file skipped: a line `skipped: <file>: <what>` on stderr); 2
 bad input (no such run directory, no recording in it, a damaged recording, an unknown mode, FILE exists
-without --force, FILE is a directory, neither --mcap nor --csv); 1 an error while writing (reported by
-`cli.app.main`)."""
+without --force, FILE is a directory or anything but a regular file (a device node, a FIFO, a socket:
+refused even with --force, which replaces a file by rename and would turn a device into a file), FILE is
+a file of the run directory itself (its recording), neither --mcap nor --csv); 1 an error while writing
+(reported by `cli.app.main`). Files are written to a temporary file beside FILE and renamed over it."""
 
 from __future__ import annotations
 
 import argparse
+import stat
 import sys
 from pathlib import Path
 from typing import Any
@@ -32,11 +35,18 @@ def register(sub: Any) -> None:
     p.set_defaults(func=cmd_export)
 
 
-def _refused_out(out: Path, example: str, force: bool) -> str | None:
-    """Why `out` may not be written (a directory; an existing file without --force), or None."""
+def _refused_out(out: Path, example: str, force: bool, run: Path) -> str | None:
+    """Why `out` may not be written (a directory, anything but a regular file, a file of the run directory
+    `run`, an existing file without --force), or None."""
     if out.is_dir():
         return f"{out}: is a directory (give a file name, e.g. {out / example})"
-    if out.exists() and not force:
+    if not out.exists():
+        return None
+    if not stat.S_ISREG(out.stat().st_mode):
+        return f"{out}: not a regular file (a device, FIFO or socket): export writes only regular files"
+    if out.resolve().is_relative_to(run.resolve()):
+        return f"{out}: a file of the run directory {run} (its recording): export writes elsewhere"
+    if not force:
         return f"{out} exists (pass --force to overwrite it)"
     return None
 
@@ -54,7 +64,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         print("error: nothing to write: give --mcap FILE and/or --csv FILE", file=sys.stderr)
         return 2
     for given, example in ((args.mcap, "run.mcap"), (args.csv, "run.csv")):
-        why_not = None if given is None else _refused_out(Path(given), example, args.force)
+        why_not = None if given is None else _refused_out(Path(given), example, args.force, run)
         if why_not is not None:
             print(f"error: {why_not}", file=sys.stderr)
             return 2
