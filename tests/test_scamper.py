@@ -247,8 +247,9 @@ def test_lost_ack_to_disarm_at_close_still_disarms(emu: MavlinkRoverEmulator) ->
     drv.close()
     assert not emu.armed
     assert sent(emu, ARM_DISARM, 0.0) == 1
-    assert (ARM_DISARM, ACCEPTED) in emu.acks_sent  # the arm's ACK; the disarm's was lost
-    assert len(emu.acks_sent) == 2
+    # the arm's ACK only, the disarm's was lost (a MAV_CMD_REQUEST_MESSAGE the driver sends when a message
+    # is late, as it may on a loaded machine, has an ACK of its own)
+    assert [a for a in emu.acks_sent if a[0] == ARM_DISARM] == [(ARM_DISARM, ACCEPTED)]
     assert any(d.startswith("disarm") for d in details(drv, "ack_lost_confirmed_by_heartbeat"))
     assert "disarm_failed" not in kinds(drv)
 
