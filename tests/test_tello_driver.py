@@ -227,7 +227,7 @@ def hover_for(d: TelloDriver, seconds: float) -> list[tuple[float, bool]]:
 
 
 def test_h_drifting_down_to_minus_3000_cm_keeps_the_link_and_is_flagged_once() -> None:
-    """Issue 49: state lines whose h ran below −1000 cm were all rejected, the link went silent and land()
+    """Before: state lines whose h ran below −1000 cm were all rejected, the link went silent and land()
     sent 30 lands. Here the emulator's h drifts at −20 m/s to −3000 cm (true height 80 cm): every line
     parses, the link never drops, `state_implausible` names h once, and one land brings the drone down."""
     with make_emulator(h_drift_cm_s=-2000.0, h_drift_max_cm=3080.0) as emu:
@@ -508,7 +508,7 @@ def test_error_reply_to_takeoff_is_a_refusal_when_nothing_moves(emu: TelloEmulat
 
 RAISED_CM = 21.0
 """How far the resting drone's tof reads above its floor value: a real Tello on a raised surface (a box, a
-carpet, a landing pad) reads tof 31 cm on the ground, not 10 (issue 49)."""
+carpet, a landing pad) reads tof 31 cm on the ground, not 10 (users' flight logs)."""
 
 
 def test_a_drone_on_a_raised_surface_is_on_the_ground() -> None:

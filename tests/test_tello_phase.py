@@ -202,7 +202,7 @@ def test_a_commanded_descent_is_not_a_landing() -> None:
 
 def test_a_height_step_is_no_descent_and_a_stopped_descent_flies_on() -> None:
     """A step of h (an object passed over) is no descent; an uncommanded descent that stops within 0.8 s
-    (what real flights showed, issue 49) is no landing, and neither is one that stops and resumes."""
+    (what users' real flights showed) is no landing, and neither is one that stops and resumes."""
     tr = PhaseTracker()
     flying(tr)
     stream(tr, 2.0, 3.0, lambda t: 80.0 if t < 2.45 else 60.0, 32.0, motors_on=True)  # over an object

@@ -146,7 +146,7 @@ def test_the_h264_keyframe_interval_is_at_least_the_recorded_bound() -> None:
 
 # -------------------------------------------------------------------------------------- the emulator
 def test_400_s_of_emulated_flight_with_the_recorded_drift_stay_plausible() -> None:
-    """Issue 49: the unbounded ramp had h below −1000 cm after about 300 s of emulated flight, and every
+    """Before: the unbounded ramp had h below −1000 cm after about 300 s of emulated flight, and every
     state line was then rejected. 400 s of the emulator's flight in simulated time (its simulation step,
     0.1 s, called directly: no sockets, no wall clock): every state line parses with no implausible value,
     and h reads at most the recorded 70 cm plus one 10 cm step below the true height."""

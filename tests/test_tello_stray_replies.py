@@ -1,4 +1,4 @@
-"""Stray replies never complete a command (issue 49, item 2): the driver against the loopback Tello emulator
+"""Stray replies never complete a command: the driver against the loopback Tello emulator
 (127.0.0.x) with its `stray_replies` fault, and the reply ledger and `parse_sdk` alone.
 
 Real transcripts show replies against the wrong request (`battery?` → `ok`, `forward 139` → `70`). Before:

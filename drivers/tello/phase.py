@@ -25,10 +25,10 @@ Signals (units as the drone sends them, see drivers/tello/state.py; every thresh
   `descent_samples` samples) every sample moving down at `descent_vgz_dm_s` (3 dm/s) or more by `vgz`
   (positive DOWN on a real Tello) and h fallen by more than `descent_cm` — not one step of the readout, a
   hover's drift (|vgz| ≤ 2 dm/s in the recording), an object passed over, or an ordinary descent: over
-  real flights the descents the driver did not command lasted 0.1–0.8 s and then flew on (issue 49), while
-  a Tello's own landing goes on to the ground (the recorded land: 2.1 s from the descent's start to
-  touchdown). With the battery at or below `low_battery_pct` (15 %), where a Tello lands by itself, the
-  descent has a reason and the quick rule holds: h fallen by more than `descent_cm` within
+  real flights the descents the driver did not command lasted 0.1–0.8 s and then flew on (users' flight
+  logs), while a Tello's own landing goes on to the ground (the recorded land: 2.1 s from the descent's
+  start to touchdown). With the battery at or below `low_battery_pct` (15 %), where a Tello lands by
+  itself, the descent has a reason and the quick rule holds: h fallen by more than `descent_cm` within
   `descent_window_s` and the last `descent_samples` samples moving down that fast. A landing shorter than
   that (from below ~0.5 m) is seen when the motors stop.
 - **descent commanded**: the last `rc` the driver sent had a negative throttle, or one with a negative

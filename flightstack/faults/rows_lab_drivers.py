@@ -430,8 +430,8 @@ def auto_land_in_flight(mission_path: Path, workdir: Path) -> FaultResult:
 
 # ---- raised_surface ----------------------------------------------------------------------------------------
 RAISED_TOF_CM = 31
-"""What a real Tello resting on a raised surface (a box, a carpet, a landing pad) reads as `tof` (issue 49);
-its floor value is 10."""
+"""What a real Tello resting on a raised surface (a box, a carpet, a landing pad) reads as `tof`
+(users' flight logs); its floor value is 10."""
 
 
 def raised_surface(mission_path: Path, workdir: Path) -> FaultResult:

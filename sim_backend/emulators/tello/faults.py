@@ -152,8 +152,8 @@ class TelloFaults:
     auto_land_notice: bool = False
     """When the drone starts a landing of its own (``auto_land_s`` without a command, or
     ``self_land_battery_pct``), it also sends ``error Auto land`` to its client unprompted. Source: a real
-    Tello answered ``error Auto land`` against a ``battery?`` poll right after ``land`` (a console transcript,
-    issue 49); that it sends one *unprompted*, and when, is **assumed**."""
+    Tello answered ``error Auto land`` against a ``battery?`` poll right after ``land`` (a user's console
+    transcript); that it sends one *unprompted*, and when, is **assumed**."""
     self_land_now: bool = False
     """Set: the drone begins a landing of its own at its next step while flying (what a low battery, an
     overheat or its 15 s timeout make a real Tello do, without their cause; ``landed_by_itself``), then the

@@ -25,9 +25,9 @@ docs/drivers.md, "What a real Tello sends", tabulates them):
   lags by up to 9 cm more while it descends to land (−79 cm), and it reads −70 cm at rest after landing.
   So the ramp saturates at ``H_DRIFT_MAX_CM`` (70 cm), the most the recording shows. Beyond the
   recording's 21 s the bound is *assumed* (no longer recording is held; another real flight is reported
-  not to drift at all, issue 49): with the unbounded ramp it replaces, a drone hovering at 80 cm reported
-  h below −1000 cm from 309 s of flight on. The drift starts at each takeoff (xg590: h 0 on the ground
-  before takeoff; that it restarts at a second takeoff is *unverified*).
+  not to drift at all, users' flight logs): with the unbounded ramp it replaces, a drone hovering at
+  80 cm reported h below −1000 cm from 309 s of flight on. The drift starts at each takeoff (xg590: h 0 on
+  the ground before takeoff; that it restarts at a second takeoff is *unverified*).
 * ``tof`` (cm) measures the distance to the surface below plus ``TOF_GROUND_CM`` (xg590: 10 on the ground
   before takeoff and after landing; 23 at h 10): it follows the terrain (xg590: 118 → 170 cm within
   0.5 s during ``left 50``, the drone passing an edge, while h stayed 40), and is ``TOF_OUT_OF_RANGE``
@@ -54,7 +54,7 @@ LAND_TOUCHDOWN_S = 2.83
 ``tof`` read its ground value from +20.2 s."""
 LAND_OK_S = 4.23
 """From ``land`` to its ``ok`` (s): xg590 +21.60 s, 1.4 s after the touchdown; real transcripts show
-3.7–4.2 s (issue 49)."""
+3.7–4.2 s (users' console transcripts)."""
 KEYFRAME_INTERVAL_FRAMES = 67
 """Frames from one H.264 IDR to the next, at least (devconx; the real interval may be longer)."""
 H_STEP_CM = 10
