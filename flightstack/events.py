@@ -27,7 +27,7 @@ SafetyKind = Literal[
     "battery_land", "target_lost_land", "link_lost", "drone_error", "command_after_land", "land_failed",
     "landed_by_drone", "landing_by_drone", "emergency_stop", "emergency_stop_failed", "target_lost_hover",
     "land_all", "signal", "takeoff", "takeoff_failed", "land", "climb_limited", "robot_moved",
-    "robot_refuse_takeoff", "robot_law_start",
+    "robot_refuse_takeoff", "robot_law_start", "pose_frozen", "pose_disagrees", "robot_pose_suspect",
 ]  # fmt: skip
 RunKind = Literal[
     "end", "end_early", "end_exception", "compiled loop", "lock-step wait timed out", "safety tick", "landed",
@@ -84,7 +84,19 @@ KINDS: Mapping[str, KindInfo] = {
     "fence_hard_land": _w("beyond the hard fence: the drone lands"),
     "command_timeout": _w("no command within the timeout: zero velocity"),
     "pose_stale_hover": _w("the drone's pose is stale: it hovers"),
-    "pose_stale_land": _w("the pose stayed stale too long: the drone lands"),
+    "pose_stale_land": _w("the pose stayed stale (or frozen, or disagreeing) too long: the drone lands"),
+    "pose_frozen": _w(
+        "the drone's pose repeats identically under fresh stamps while it is commanded to move: it hovers "
+        "(flightstack.safety.pose_check)"
+    ),
+    "pose_disagrees": _w(
+        "the drone's pose moved in z unlike the drone's own height telemetry: it hovers "
+        "(flightstack.safety.pose_check)"
+    ),
+    "robot_pose_suspect": _e(
+        "the ground robot's pose is not finite, or frozen while it is commanded to move: the robot stops, "
+        "the run fails (flightstack.runtime.phases)"
+    ),
     "pose_error": _e("the pose source raised"),
     "battery_refuse_takeoff": _w("takeoff refused: battery too low"),
     "pose_refuse_takeoff": _w("takeoff refused: no fresh pose"),

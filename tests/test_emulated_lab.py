@@ -290,6 +290,9 @@ def test_fly_a_short_mission_on_the_emulated_lab(lab: Lab, capsys: pytest.Captur
     assert np.all(rec["g_wi"][:, :, 2] > 0.3)  # airborne (mocap z) for the whole pursuit
     events = (out_dir / "events.jsonl").read_text()
     assert events.count('"event": "landed"') == 2 and "NOT LANDED" not in events
+    # a clean flight: no pose judged stale, frozen or disagreeing with the drone's height (pose_check)
+    suspect = ("pose_stale_hover", "pose_stale_land", "pose_frozen", "pose_disagrees", "robot_pose_suspect")
+    assert not [k for k in suspect if f'"kind": "{k}"' in events], events
     # loop health: every tick after the first timed, real time, the ages of what was used
     health = json.loads((out_dir / "metrics.json").read_text())["modes"]["none"]["loop_health"]
     assert health["real_time"] and health["dt_s"] == 0.05

@@ -33,6 +33,9 @@ ROWS = [
     "foreign_mission",
     "low_battery",
     "low_battery_takeoff",
+    "mocap_frozen",
+    "mocap_frozen_climbing",
+    "robot_pose_frozen",
     "malformed_mission",
     "sigint",
     "agent_killed",
@@ -101,6 +104,22 @@ def test_long_mocap_dropout_hovers_then_lands_every_drone(results: dict[str, Fau
     for i in (1, 2):
         kinds = _kinds(r, i)
         assert kinds.index("pose_stale_hover") < kinds.index("pose_stale_land") < kinds.index("land")
+
+
+@pytest.mark.parametrize("name", ["mocap_frozen", "mocap_frozen_climbing"])
+def test_frozen_pose_hovers_then_lands_that_drone(results: dict[str, FaultResult], name: str) -> None:
+    """Frozen from 1 s into pursuit, and while climbing 0.3 m below the ceiling: hover within 1.0 s, down
+    within 5 s (the row's checks), the freeze named (`pose_frozen`) before the land; drone 2 untouched."""
+    r = results[name]
+    kinds = _kinds(r, 1)
+    assert kinds.index("pose_frozen") < kinds.index("pose_stale_land") < kinds.index("land")
+    assert not {"pose_frozen", "pose_disagrees", "pose_stale_land"} & set(_kinds(r, 2))
+    assert r.details["hover_after_ms"] <= 1000 and r.details["down_after_ms"] <= 5000, r.details
+
+
+def test_frozen_robot_pose_ends_the_run_with_an_error(results: dict[str, FaultResult]) -> None:
+    r = results["robot_pose_frozen"]
+    assert "robot_pose_suspect" in _kinds(r) and r.details["event_after_ms"] <= 1000
 
 
 def test_occlusion_holds_then_resumes(results: dict[str, FaultResult]) -> None:

@@ -56,6 +56,9 @@ def test_lab_mission_lands_every_drone_each_mode(lab_run: Path) -> None:
         assert {e["drone"] for e in landed} == {1, 2}
         assert all(e["height_m"] == 0.0 for e in landed)
     assert not [e for e in events if e["event"] == "NOT LANDED"]
+    # clean: no pose judged stale, frozen or disagreeing with the drone's own height (pose_check)
+    suspect = {"pose_stale_hover", "pose_stale_land", "pose_frozen", "pose_disagrees", "robot_pose_suspect"}
+    assert not [e for e in events if e.get("kind") in suspect]
     ts = np.load(lab_run / "timeseries_dgp.npz")
     assert ts["g_wi"][:, :, 2].min() > 0.5  # flying during the whole pursuit
 

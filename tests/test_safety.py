@@ -50,7 +50,9 @@ class FakeClock:
 
 
 class FakePoses:
-    """One settable pose per body; stamp None means "stamped now" (a live motion-capture stream)."""
+    """One settable pose per body; stamp None means "stamped now" (a live motion-capture stream), and like
+    a live stream its samples are never bit-identical (x carries a 1e-9 m jitter that changes with the
+    stamp: Motive's noise, which a frozen pose lacks, flightstack.safety.pose_check)."""
 
     def __init__(self, clock: FakeClock) -> None:
         self.clock = clock
@@ -69,8 +71,11 @@ class FakePoses:
             raise self.error
         if body not in self.poses:
             return None
-        stamp = self.stamps[body]
-        return StampedPose(self.clock.now() if stamp is None else stamp, self.poses[body])
+        stamp, pose = self.stamps[body], self.poses[body]
+        if stamp is None:
+            now = self.clock.now()
+            return StampedPose(now, Pose.make(pose.p + np.array([1e-9 * (now % 1.0), 0.0, 0.0]), pose.theta))
+        return StampedPose(stamp, pose)
 
 
 class FakeDrone:
@@ -598,7 +603,7 @@ def test_pose_stamped_within_the_tolerance_is_taken() -> None:
     r = Rig()
     for k in range(1, 40):
         r.clock.t = k * 0.05
-        r.move((0.0, 0.0, 1.0), stamp=r.clock.t + 0.02)
+        r.move((1e-4 * k, 0.0, 1.0), stamp=r.clock.t + 0.02)  # a live body: never bit-identical
         r.sd.tick()
         r.sd.send_body_velocity(np.array([0.1, 0.0, 0.0, 0.0]))
         np.testing.assert_array_equal(r.last_sent(), [0.1, 0.0, 0.0, 0.0])

@@ -82,10 +82,21 @@ class SimRun:
 
 
 def load_fault_mission(
-    mission_path: Path, duration_s: float, safety: dict[str, Any] | None = None
+    mission_path: Path,
+    duration_s: float,
+    safety: dict[str, Any] | None = None,
+    desired_z: dict[int, float] | None = None,
 ) -> Mission:
-    """The mission with `duration_s` of pursuit, mode `none` only, and `safety` keys replaced."""
+    """The mission with `duration_s` of pursuit, mode `none` only, `safety` keys replaced and the drones of
+    `desired_z` (id -> m) given that z of their desired pose (the camera frame's: negative is above)."""
     overrides: dict[str, Any] = {"duration_s": duration_s, "compare_modes": ["none"]}
+    if desired_z:
+        drones = resolved_document(mission_path)["drones"]
+        for d in drones:
+            if d["id"] in desired_z:
+                p = d["desired_pose"]["p"]
+                d["desired_pose"] = {**d["desired_pose"], "p": [p[0], p[1], desired_z[d["id"]]]}
+        overrides["drones"] = drones
     if safety:
         data = resolved_document(mission_path)
         overrides["safety"] = {**(data.get("safety") or {}), **safety}
@@ -100,12 +111,13 @@ def fly_with_faults(
     duration_s: float,
     safety: dict[str, Any] | None = None,
     bus_faults: dict[str, Any] | None = None,
+    desired_z: dict[int, float] | None = None,
 ) -> SimRun:
     """Fly mode `none` of the mission for duration_s (s) of pursuit with the faults of `spec` and
-    `bus_faults` (keyword arguments of FaultyBus); write the run to run_dir. Never raises for a failure
-    of the run itself (that is `SimRun.crashed`)."""
+    `bus_faults` (keyword arguments of FaultyBus), `safety` and `desired_z` as load_fault_mission takes
+    them; write the run to run_dir. Never raises for a failure of the run itself (`SimRun.crashed`)."""
     wall0 = time.perf_counter()
-    mission = load_fault_mission(mission_path, duration_s, safety)
+    mission = load_fault_mission(mission_path, duration_s, safety, desired_z)
     ids = [d.id for d in mission.drones]
     inner_bus = InProcBus(mission.name, set(ids))
     bus = FaultyBus(inner_bus, **bus_faults) if bus_faults else inner_bus

@@ -26,6 +26,7 @@ import numpy as np
 from flightstack.comms.messages import PredictionMessage, encode
 from flightstack.events import Event
 from flightstack.hal import DroneState, Frame, StampedPose
+from flightstack.paper.geometry import Pose
 
 __all__ = [
     "DropoutPoses",
@@ -60,7 +61,9 @@ class FaultSpec:
 
     link_loss: drone id -> window of lost link. battery: drone id -> (from t, battery %), the level the
     drone reports from then on. mocap_dropout: window without motion capture for `mocap_bodies` (None: every
-    body). occlusion: window during which every camera sees nothing.
+    body). occlusion: window during which every camera sees nothing. mocap_frozen: body -> (from t, from z m
+    or None): the body's pose freezes (the same pose under fresh stamps, a stuck capture pipeline) from the
+    first sample at or after t whose z is at least the given z.
     """
 
     link_loss: dict[int, Window] = field(default_factory=dict)
@@ -68,6 +71,7 @@ class FaultSpec:
     mocap_dropout: Window | None = None
     mocap_bodies: frozenset[str] | None = None
     occlusion: Window | None = None
+    mocap_frozen: dict[str, tuple[float, float | None]] = field(default_factory=dict)
 
 
 class FaultyDrone:
@@ -88,6 +92,8 @@ class FaultyDrone:
         self._battery = battery
         self._last_state: DroneState | None = None
         self.dropped_commands = 0
+        self.sent: list[tuple[float, np.ndarray]] = []
+        """Every velocity command that reached the drone: (mission s, V)."""
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.inner, name)
@@ -115,10 +121,15 @@ class FaultyDrone:
         self._need_link("emergency")
         self.inner.emergency_stop()
 
+    def sent_after(self, t: float) -> list[tuple[float, np.ndarray]]:
+        """The commands that reached the drone at or after mission time t (s)."""
+        return [(ts, v) for ts, v in self.sent if ts >= t]
+
     def send_body_velocity(self, V: np.ndarray) -> None:
         if self.link_down():
             self.dropped_commands += 1
             return
+        self.sent.append((self._now(), np.array(V, dtype=float)))
         self.inner.send_body_velocity(V)
 
     def state(self) -> DroneState:
@@ -153,6 +164,31 @@ class DropoutPoses:
             self.withheld += 1
             return None
         return self.inner.latest(body)
+
+
+class FrozenPoses:
+    """hal.PoseSource that, for the bodies of `frozen` (body -> (from t s, from z m or None)), repeats the
+    pose of the first sample at or after that time (and at or above that z) under every later sample's
+    fresh stamp; `frozen_at` holds (mission s, pose) of each freeze."""
+
+    def __init__(
+        self, inner: Any, now: Callable[[], float], frozen: dict[str, tuple[float, float | None]]
+    ) -> None:
+        self.inner = inner
+        self._now = now
+        self.frozen = dict(frozen)
+        self.frozen_at: dict[str, tuple[float, Pose]] = {}
+
+    def latest(self, body: str) -> StampedPose | None:
+        sp = self.inner.latest(body)
+        if sp is None or body not in self.frozen:
+            return sp
+        if body not in self.frozen_at:
+            t0, z0 = self.frozen[body]
+            if self._now() < t0 or (z0 is not None and not sp.pose.p[2] >= z0):
+                return sp
+            self.frozen_at[body] = (self._now(), sp.pose)
+        return StampedPose(sp.stamp, self.frozen_at[body][1])
 
 
 class OccludedCamera:
@@ -192,6 +228,8 @@ class FaultyBackend:
             i: FaultyDrone(inner.drone(i), now, spec.link_loss.get(i), spec.battery.get(i)) for i in self.ids
         }
         src = inner.pose_source()
+        self._frozen = FrozenPoses(src, now, spec.mocap_frozen) if spec.mocap_frozen else None
+        src = self._frozen or src
         self._poses = (
             src
             if spec.mocap_dropout is None
@@ -211,6 +249,10 @@ class FaultyBackend:
 
     def pose_source(self) -> Any:
         return self._poses
+
+    def poses_frozen_at(self) -> dict[str, float]:
+        """Mission time (s) at which each frozen body's pose froze (FaultSpec.mocap_frozen)."""
+        return {} if self._frozen is None else {b: t for b, (t, _) in self._frozen.frozen_at.items()}
 
     def target(self) -> Any:
         return self.inner.target()

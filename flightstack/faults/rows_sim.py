@@ -20,6 +20,7 @@ from flightstack.faults.fly import (
     judge_recording,
     judge_safety,
     landed_before_end,
+    load_fault_mission,
 )
 from flightstack.faults.inject import FaultSpec, Window
 from flightstack.faults.result import Checks, FaultResult, FaultRow
@@ -147,6 +148,128 @@ def mocap_dropout_long(mission_path: Path, workdir: Path) -> FaultResult:
         c.check(_near(t_l, t_drop + lim.pose_land_after), f"drone {i} pose_stale_land at {t_l}")
         c.check(landed_before_end(run, i), f"drone {i} did not land before the end")
     return sim_result("mocap_dropout_long", expected, run, c, event_story(run))
+
+
+FROZEN_HOVER_S = 1.0
+"""A frozen pose: zero velocity within this long of the freeze (s)."""
+FROZEN_DOWN_S = 5.0
+"""A frozen pose: the drone down (true z at or below landed_height) within this long of the freeze (s)."""
+
+
+def _frozen_row(run: SimRun, name: str, expected: str) -> FaultResult:
+    """Judge drone 1 under a frozen pose: `pose_frozen`, zero velocity sent within FROZEN_HOVER_S, down
+    within FROZEN_DOWN_S, never above the fence's ceiling (true z); drone 2 untouched and flying on."""
+    c = Checks()
+    frozen = run.backend.poses_frozen_at().get("drone1")
+    c.check(frozen is not None, "drone 1's pose never froze")
+    t_f = frozen if frozen is not None else float("nan")
+    ev = run.first("pose_frozen", 1)
+    t_ev = _t(ev)
+    c.check(t_ev is not None and t_ev - t_f <= FROZEN_HOVER_S, f"pose_frozen at {t_ev}, froze at {t_f:.2f}")
+    sent = run.backend.drone(1).sent_after(t_f)
+    t_moved = max((t for t, v in sent if np.any(v)), default=t_f)  # the last non-zero command
+    t_zero = next((t for t, v in sent if t >= t_moved and not np.any(v)), None)  # the hover from then on
+    hover = None if t_zero is None else t_zero - t_f
+    c.check(hover is not None and hover <= FROZEN_HOVER_S, f"zero velocity from {hover} s after the freeze")
+    lim = run.mission.safety
+    down, z_max = None, float("nan")
+    if run.rec is not None:
+        k = run.rec.ticks_done
+        t, z = run.rec.t[:k], run.rec.g_wi[:k, 0, 2]
+        after = t >= t_f
+        z_max = float(np.max(z[after])) if after.any() else float("nan")
+        low = np.flatnonzero(after & (z <= lim.landed_height))
+        down = float(t[low[0]] - t_f) if low.size else None
+    c.check(down is not None and down <= FROZEN_DOWN_S, f"drone 1 down {down} s after the freeze")
+    c.check(z_max <= lim.fence_hi[2], f"drone 1 reached z {z_max:.3f} m (ceiling {lim.fence_hi[2]:g} m)")
+    for kind in ("pose_frozen", "pose_disagrees"):
+        c.check(not run.events(kind, 2), f"drone 2: {kind} {run.events(kind, 2)}")
+    _flew_to_end(run, [2], c)
+    details = {
+        "froze_at_s": round(t_f, 3),
+        "event_after_ms": None if t_ev is None else round(1e3 * (t_ev - t_f)),
+        "hover_after_ms": None if hover is None else round(1e3 * hover),
+        "down_after_ms": None if down is None else round(1e3 * down),
+        "max_z_after_m": round(z_max, 3),
+    }
+    observed = (
+        f"froze at {t_f:.2f} s: pose_frozen +{details['event_after_ms']} ms, zero velocity "
+        f"+{details['hover_after_ms']} ms, down +{details['down_after_ms']} ms, highest z after the freeze "
+        f"{details['max_z_after_m']} m (ceiling {lim.fence_hi[2]:g} m); {event_story(run)}"
+    )
+    return sim_result(name, expected, run, c, observed, details=details)
+
+
+def mocap_frozen(mission_path: Path, workdir: Path) -> FaultResult:
+    """Drone 1's pose freezes (same pose, fresh stamps, valid) 1 s into pursuit."""
+    expected = (
+        f"pose_frozen and zero velocity within {FROZEN_HOVER_S:g} s, land (pose_stale_land) 1.3 s after the "
+        f"freeze, down within {FROZEN_DOWN_S:g} s, never above the ceiling; drone 2 flies on"
+    )
+    spec = FaultSpec(mocap_frozen={"drone1": (T_FAULT - 1.0, None)})
+    run = fly_with_faults(mission_path, workdir / "mocap_frozen", spec, duration_s=DURATION_S)
+    return _frozen_row(run, "mocap_frozen", expected)
+
+
+CEILING_M = 1.3
+"""mocap_frozen_climbing: the fence's ceiling (m), 0.3 m above the height drone 1 takes off to (1.0 m)."""
+CLIMB_TO_M = 1.25
+"""mocap_frozen_climbing: drone 1's desired height above the target's frame (m), just below CEILING_M."""
+
+
+def mocap_frozen_climbing(mission_path: Path, workdir: Path) -> FaultResult:
+    """The fence's ceiling lowered to CEILING_M, drone 1 asked to climb to CLIMB_TO_M; its pose freezes at
+    the first sample 0.3 m below the ceiling once pursuit began. Frozen there, the loop would command the
+    climb on and the climb limit (climb_cap), computed from the frozen height, would never tighten."""
+    expected = (
+        f"as mocap_frozen: pose_frozen and zero velocity within {FROZEN_HOVER_S:g} s, down within "
+        f"{FROZEN_DOWN_S:g} s, the true z never above the ceiling ({CEILING_M:g} m)"
+    )
+    fence_hi = load_fault_mission(mission_path, DURATION_S).safety.fence_hi
+    spec = FaultSpec(mocap_frozen={"drone1": (T_FAULT - 2.0, CEILING_M - 0.3)})
+    run = fly_with_faults(
+        mission_path,
+        workdir / "mocap_frozen_climbing",
+        spec,
+        duration_s=DURATION_S,
+        safety={"fence_hi": [fence_hi[0], fence_hi[1], CEILING_M]},
+        desired_z={1: -CLIMB_TO_M},
+    )
+    return _frozen_row(run, "mocap_frozen_climbing", expected)
+
+
+def robot_pose_frozen(mission_path: Path, workdir: Path) -> FaultResult:
+    """The ground robot's pose freezes (same pose, fresh stamps) 2 s into pursuit while its law drives it."""
+    expected = (
+        "robot_pose_suspect within 1 s of the freeze, the robot stopped, the run ends with an error (exit "
+        "code 1) and every drone lands"
+    )
+    spec = FaultSpec(mocap_frozen={"target": (T_FAULT, None)})
+    run = fly_with_faults(mission_path, workdir / "robot_pose_frozen", spec, duration_s=DURATION_S)
+    c = Checks()
+    t_f = run.backend.poses_frozen_at().get("target")
+    ev = run.first("robot_pose_suspect")
+    t_ev = _t(ev)
+    after = None if t_ev is None or t_f is None else t_ev - t_f
+    c.check(after is not None and after <= 1.0, f"robot_pose_suspect {after} s after the freeze at {t_f}")
+    err = None if run.rec is None else run.rec.error
+    c.check(err is not None and "frozen" in err, f"run error {err!r}")
+    for i in (1, 2):
+        c.check(run.first("land", i) is not None, f"drone {i} was not landed")
+    details = {"event_after_ms": None if after is None else round(1e3 * after)}
+    observed = f"robot_pose_suspect +{details['event_after_ms']} ms after the freeze; error {err!r}"
+    # the run ends at the tick of the event, before recording it: the ticks flown before it
+    ticks = None if t_ev is None else round((t_ev - run.pursuit_start) / run.mission.dt_s)
+    return sim_result(
+        "robot_pose_frozen",
+        expected,
+        run,
+        c,
+        observed,
+        expect_ticks=ticks,
+        expect_error=True,
+        details=details,
+    )
 
 
 def _visible_again(run: SimRun, after: float) -> float | None:
@@ -339,5 +462,8 @@ ROWS: dict[str, FaultRow] = {
     "foreign_mission": foreign_mission,
     "low_battery": low_battery,
     "low_battery_takeoff": low_battery_takeoff,
+    "mocap_frozen": mocap_frozen,
+    "mocap_frozen_climbing": mocap_frozen_climbing,
+    "robot_pose_frozen": robot_pose_frozen,
 }
 """The simulated rows, in table order."""

@@ -365,7 +365,7 @@ def _build(
         supervisor=supervisor,
         drones=drones,
         agents=agents,
-        target=TargetDriver(mission.target_law(), backend, _nudge_fence(mission))
+        target=TargetDriver(mission.target_law(), backend, _nudge_fence(mission), log)
         if mission.target.motion == "square"
         else None,
         ticker=SafetyTickTimer(safe, backend.heartbeat),

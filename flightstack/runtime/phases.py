@@ -8,33 +8,50 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from flightstack.hal import Backend, Clock, FlightPhase
+import numpy as np
+
+from flightstack.hal import Backend, Clock, FlightPhase, StampedPose
 from flightstack.paper.target_law import TargetLaw, start_phase
 from flightstack.runtime.motion_check import MotionCheck, check_robot_moves
+from flightstack.safety.pose_check import FreezeWatch
+from flightstack.safety.rules import EventLog, valid_pose
 
 TAKEOFF_TIMEOUT_S = 25.0  # > the Tello driver's own 20 s bound, so its outcome is collected first
 LAND_TIMEOUT_S = 20.0  # > the Tello's own 15 s auto-land, so a drone that lost its link is seen down
 POSE_WAIT_S = 3.0  # before takeoff: how long a drone's motion-capture pose may take to be fresh
 MAX_OFF_PATH_M = 0.2  # before takeoff: how far the robot may stand from its law's path (m, in the plane)
+ROBOT_FROZEN_S = 0.5  # the robot's pose identical under fresh stamps this long while driven: frozen (s)
 
 
 class TargetDriver:
     """Drives the ground robot on its square law (Mission.target_law) from its motion-capture pose.
 
     fence_xy: ((x_lo, y_lo), (x_hi, y_hi)) of the fence (m) when the robot's motion is checked before
-    takeoff (flightstack.runtime.motion_check; the rigs with a robot device), None when it is not."""
+    takeoff (flightstack.runtime.motion_check; the rigs with a robot device), None when it is not.
+
+    Its pose is checked before each command: a pose that is not finite, or frozen (identical under fresh
+    stamps for ROBOT_FROZEN_S while the law drove it; flightstack.safety.pose_check) stops the robot for
+    good, logs `robot_pose_suspect` into `log` and sets `suspect` (the runner then ends the run with an
+    error: the law cannot drive a robot it cannot see)."""
 
     def __init__(
         self,
         law: TargetLaw,
         backend: Backend,
         fence_xy: tuple[tuple[float, float], tuple[float, float]] | None = None,
+        log: EventLog | None = None,
     ) -> None:
         self.law = law
         self.robot = backend.target()
         self.poses = backend.pose_source()
+        self.clock = backend.clock
         self.fence_xy = fence_xy
+        self.log = log
         self.t0 = 0.0  # s: the lap time at which the law starts (`start_where_it_is`)
+        self.suspect: str | None = None
+        """Why the robot's pose was not believed (one line), None while it is."""
+        self._freeze = FreezeWatch()
+        self._last_command: np.ndarray | None = None
 
     def start_where_it_is(self) -> tuple[float, float, float] | None:
         """On a rig whose robot is a device (the rigs whose robot is nudged), the robot stands where the last
@@ -69,10 +86,34 @@ class TargetDriver:
         return check_robot_moves(self.robot, self.poses, clock, step_s, *self.fence_xy, each)
 
     def tick(self, t_mission: float) -> None:
+        """Command the robot by its law at t_mission (s) from its pose, unless that pose is suspect."""
         own = self.poses.latest("target")
-        if own is None or self.robot is None:
+        if own is None or self.robot is None or self.suspect is not None:
             return
-        self.robot.send_body_velocity(self.law.command(self.t0 + t_mission, own.pose))
+        problem = self._pose_problem(own)
+        if problem is not None:
+            self.suspect = problem
+            self.robot.stop()
+            if self.log is not None:
+                self.log.record(self.clock.now(), None, "robot_pose_suspect", f"{problem}: robot stopped")
+            return
+        cmd = self.law.command(self.t0 + t_mission, own.pose)
+        self.robot.send_body_velocity(cmd)
+        self._last_command = np.asarray(cmd, dtype=float)
+
+    def _pose_problem(self, own: StampedPose) -> str | None:
+        """Why the robot's pose sample cannot be believed, or None (see the class docstring)."""
+        if not valid_pose(own):
+            return f"the ground robot's pose is not finite ({own})"
+        stamp = float(own.stamp)
+        self._freeze.sample(stamp, own.pose.as_vector(), self._last_command)
+        since = self._freeze.frozen_since
+        if since is not None and stamp - since >= ROBOT_FROZEN_S:
+            return (
+                f"the ground robot's pose identical for {stamp - since:.2f} s under fresh stamps while its "
+                "law drove it (frozen motion capture)"
+            )
+        return None
 
     def stop(self) -> None:
         if self.robot is not None:

@@ -353,9 +353,12 @@ def pursuit_tick(f: Fleet, t: float, t_pursuit: float, rec: Recording) -> str | 
     """One control period at mission time t (s; t_pursuit since pursuit began): the robot's command, the
     safety tick, the operator's abort, phase 1 (sense, estimate, publish) of every agent, the lock-step
     wait, the supervisor's visibility rule, phase 2 (fuse, control, act). Returns why the run ends now
-    (every drone landed by the safety layer), or None."""
+    (every drone landed by the safety layer; the robot's pose not believed, `rec.error` set), or None."""
     if f.target is not None:
         f.target.tick(t_pursuit)
+        if f.target.suspect is not None:  # the law cannot drive a robot it cannot see: end with an error
+            rec.error = f.target.suspect
+            return "robot pose suspect"
     f.ticker.tick()
     if f.safe and all(s.landed for s in f.safe.values()):  # the safety layer landed everyone
         return "every drone landed"

@@ -34,6 +34,7 @@ from flightstack.hal import Clock, Drone, DroneState, FlightPhase, HoldsLastComm
 from flightstack.paper.delay_compensation import stamp_refusal
 from flightstack.paper.geometry import Pose
 from flightstack.safety.jobs import DroneJobs
+from flightstack.safety.pose_check import FreezeWatch, HeightAgreement
 from flightstack.safety.rules import (
     EventLog,
     SafetyError,
@@ -48,6 +49,13 @@ from flightstack.safety.rules import (
 )
 
 _T = TypeVar("_T")
+
+SUSPECT_LAND_AFTER_S = 1.3
+"""A frozen or disagreeing pose lands the drone this long after the suspect began (s: the first identical
+sample, the disagreement's detection), where a pose that is only late waits `pose_land_after`: a late
+pose may come back, a lying one says the capture cannot be trusted, and the fence cannot hold without it.
+The hover starts at `pose_timeout`; with a Tello's 2.8 s landing the drone is down about 4.3 s after the
+pose froze."""
 
 
 class _Phase(enum.Enum):
@@ -113,6 +121,9 @@ class SafeDrone:
         self._last_command_t = now
         self._climbing_t = -math.inf  # the last tick its telemetry showed the takeoff climb (mission s)
         self._last_pose: StampedPose | None = None
+        self._freeze = FreezeWatch()  # identical samples under fresh stamps (pose_check)
+        self._heights = HeightAgreement()  # pose z against the drone's own height telemetry (pose_check)
+        self._disagree: tuple[float, str] | None = None  # (mission s, detail): the pose disagreed, latched
         self._floor_armed = False
         self._link_seen = False  # the drone reported link_alive since its activation
         self._abort_reason: str | None = None
@@ -329,6 +340,7 @@ class SafeDrone:
                     self._send_quietly(now, np.zeros(4))
                     self._do_land(now, "link_lost")
                     return
+                self._check_heights(now, st)
                 if battery < self.limits.land_battery:
                     self._safety_land(
                         now, "battery_land", f"battery {battery:.1f} % < {self.limits.land_battery:.1f} %"
@@ -357,6 +369,9 @@ class SafeDrone:
         self._climbing_t = -math.inf
         self._floor_armed = False
         self._link_seen = False
+        self._freeze.reset()
+        self._heights.reset()
+        self._disagree = None
 
     def _check_pose(self, now: float, hover_now: bool) -> Pose | None:
         """The fresh pose, or None when stale (hover: zeros sent once if hover_now; land when too old).
@@ -379,9 +394,50 @@ class SafeDrone:
             return None
         assert sp is not None  # not stale: seen
         self._end("pose_stale_hover")
+        if self._suspect(now, hover_now):
+            return None
         if sp.pose.p[2] >= self.limits.fence_lo[2]:
             self._floor_armed = True
         return sp.pose
+
+    def _suspect(self, now: float, hover_now: bool) -> bool:
+        """A fresh-looking pose that is frozen or disagrees with the drone's own height (pose_check): hover
+        (zeros sent once if hover_now), land SUSPECT_LAND_AFTER_S after the suspect began. True if so."""
+        since = self._freeze.frozen_since
+        if since is not None and now - since > self.limits.pose_timeout:
+            onset, kind = since, "pose_frozen"
+            detail = (
+                f"pose of {self.body!r} identical for {now - since:.3f} s under fresh stamps while the drone "
+                "was commanded to move: zero velocity"
+            )
+        elif self._disagree is not None:
+            (onset, detail), kind = self._disagree, "pose_disagrees"
+        else:
+            self._end("pose_frozen")
+            return False
+        opened = self._event_once(now, kind, detail)
+        if now - onset >= SUSPECT_LAND_AFTER_S:
+            self._safety_land(now, "pose_stale_land", f"{kind}: {detail.removesuffix(': zero velocity')}")
+        elif opened and hover_now:
+            self._send_quietly(now, np.zeros(4))
+        return True
+
+    def _check_heights(self, now: float, st: DroneState) -> None:
+        """Compare the fresh pose's z with the drone's own height over pose_check.HEIGHT_WINDOW_S while it is
+        airborne and its telemetry alive; a disagreement latches (`_disagree`) until the next takeoff."""
+        sp = self._last_pose
+        fresh = sp is not None and now - sp.stamp <= self.limits.pose_timeout
+        if not (fresh and st.link_alive and st.phase == FlightPhase.AIRBORNE) or self._disagree is not None:
+            self._heights.reset()
+            return
+        assert sp is not None  # fresh
+        d = self._heights.sample(now, float(sp.pose.p[2]), float(st.height_m))
+        if d is not None:
+            self._disagree = (
+                now,
+                f"pose of {self.body!r}: its z changed {d:+.2f} m more than the drone's own height over "
+                f"{self._heights.window_s:g} s (bound ±{self._heights.bound_m:g} m): zero velocity",
+            )
 
     def _check_hard_fence(self, now: float, pose: Pose) -> bool:
         """Land if outside the hard fence (its floor only once the drone has been above the soft floor)."""
@@ -464,6 +520,7 @@ class SafeDrone:
                 self._event_once(now, "pose_error", f"pose of {self.body!r} {ahead}: not used")
                 return self._last_pose
             self._last_pose = sp
+            self._freeze.sample(sp.stamp, sp.pose.as_vector(), self.last_sent)
         self._end("pose_error")
         return self._last_pose
 

@@ -1,0 +1,125 @@
+"""Is a fresh-looking motion-capture pose believable? Checks against independent evidence: what was
+commanded and what the body reports of itself.
+
+A pose can keep arriving, marked valid and freshly stamped, yet be wrong: a stuck capture pipeline, a
+frozen replay or a mislabelled body. Two checks, each against evidence the pose does not produce:
+
+* **Frozen** (`FreezeWatch`): consecutive samples with advancing stamps are bit-identical while the body
+  was being commanded to move (any command since the run of identical samples began with a speed of at
+  least `MOVING_MPS` or a yaw rate of at least `MOVING_RADPS`). Motion capture of a real body never
+  repeats a float sample (Motive's sub-millimetre noise; every body of the NatNet recording in
+  `../shared/data/peers/natnet/` differs frame to frame); a noise-free simulation repeats samples only when
+  the body stands still, which a moving command rules out. The frozen pose's information is as old as its
+  first identical sample: `since` is that stamp (s, the pose's clock).
+* **Height disagreement** (`HeightAgreement`): over the last `HEIGHT_WINDOW_S`, the change of the pose's
+  z and the change of the drone's own height telemetry (a Tello's `h`, cm → m) differ by more than
+  `HEIGHT_DISAGREE_M`. Changes, not values: `h` is relative to the take-off surface and drifts; over the
+  window its errors are the 10 cm steps `h` moves in, its drift (at most 3.5 cm/s: 7 cm over 2 s), and its
+  ~0.1 s lag behind the state stream at up to 0.3 m/s (`max_speed_z`: 3 cm); about 0.2 m together
+  (sim_backend/emulators/tello/recorded.py names the recording). `HEIGHT_DISAGREE_M` is twice that. It
+  catches a pose that moves but not with the drone (a mislabelled body, a replay), more slowly than the
+  frozen check catches a still one.
+
+Pure functions of the samples given; the safety layer (flightstack/safety/drone.py for drones,
+flightstack/runtime/phases.py for the ground robot) decides what to do (docs/safety.md).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+MOVING_MPS = 0.05
+"""A command at least this fast (m/s, norm of the linear part) moves a drone or the robot by more than
+motion capture's noise within one frame period: 5 rc units on a Tello (0.01 m/s each, drivers/tello/rc.py)."""
+MOVING_RADPS = 0.1
+"""A commanded yaw rate at least this large (rad/s) turns the body visibly within a frame period."""
+HEIGHT_WINDOW_S = 2.0
+"""Window over which z and the drone's own height are compared (s)."""
+HEIGHT_DISAGREE_M = 0.4
+"""Largest difference between the two heights' changes over the window that is still agreement (m)."""
+
+
+def moving(command: np.ndarray | None) -> bool:
+    """True when `command` V = [v_x, v_y, v_z, ω_z] (m/s, rad/s) would visibly move the body."""
+    if command is None or len(command) < 4:
+        return False
+    v = np.asarray(command, dtype=float)
+    if not np.all(np.isfinite(v)):
+        return False
+    return bool(np.linalg.norm(v[:3]) >= MOVING_MPS or abs(v[3]) >= MOVING_RADPS)
+
+
+@dataclass
+class FreezeWatch:
+    """Runs of identical pose samples under advancing stamps (see the module docstring)."""
+
+    _last: np.ndarray | None = None
+    _stamp: float = -math.inf  # newest stamp seen (s)
+    _since: float = math.nan  # stamp of the first sample of the current identical run (s)
+    _commanded: bool = False  # a moving command was sent since the run began
+
+    def sample(self, stamp: float, pose: np.ndarray, command: np.ndarray | None) -> None:
+        """One read of the source: its sample (stamp s, pose vector) and the command last sent before it."""
+        if stamp > self._stamp:
+            if self._last is None or not np.array_equal(pose, self._last):
+                self._last = np.array(pose, dtype=float)
+                self._since = stamp
+                self._commanded = False
+            elif moving(command):
+                self._commanded = True
+            self._stamp = stamp
+
+    @property
+    def frozen_since(self) -> float | None:
+        """The stamp of the frozen run's first sample (s) when the pose stayed identical over newer stamps
+        while the body was commanded to move, None otherwise."""
+        if self._commanded and self._stamp > self._since:
+            return self._since
+        return None
+
+    def reset(self) -> None:
+        self._last, self._stamp, self._since, self._commanded = None, -math.inf, math.nan, False
+
+
+@dataclass
+class HeightAgreement:
+    """The pose's z against the drone's own height over a sliding window (see the module docstring)."""
+
+    window_s: float = HEIGHT_WINDOW_S
+    bound_m: float = HEIGHT_DISAGREE_M
+    _hist: deque[tuple[float, float, float]] = field(default_factory=deque)
+
+    def sample(self, t: float, z_pose: float, h_own: float) -> float | None:
+        """Add (t s, pose z m, own height m); the disagreement (m) over the window when it exceeds the
+        bound, None otherwise (or while the window is not yet full). Non-finite values restart the window."""
+        if not (math.isfinite(t) and math.isfinite(z_pose) and math.isfinite(h_own)):
+            self._hist.clear()
+            return None
+        if self._hist and t <= self._hist[-1][0]:
+            return None
+        self._hist.append((t, z_pose, h_own))
+        while len(self._hist) > 1 and t - self._hist[1][0] >= self.window_s:
+            self._hist.popleft()
+        t0, z0, h0 = self._hist[0]
+        if t - t0 < self.window_s:
+            return None
+        d = (z_pose - z0) - (h_own - h0)
+        return d if abs(d) > self.bound_m else None
+
+    def reset(self) -> None:
+        self._hist.clear()
+
+
+__all__ = [
+    "HEIGHT_DISAGREE_M",
+    "HEIGHT_WINDOW_S",
+    "MOVING_MPS",
+    "MOVING_RADPS",
+    "FreezeWatch",
+    "HeightAgreement",
+    "moving",
+]
