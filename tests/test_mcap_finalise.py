@@ -10,6 +10,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from flightstack.cli import app as cli
+from flightstack.recording.files import LIVE_MCAP_FILE
 from flightstack.recording.mcap_finalise import finalise_torn, opens
 from flightstack.recording.mcap_writer import RunMcap
 from flightstack.recording.timeseries import ARRAY_FIELDS
@@ -64,3 +66,19 @@ def test_a_whole_file_is_left_alone_and_a_non_mcap_refused(whole: Path, tmp_path
         finalise_torn(junk, tmp_path / "junk.torn")
     assert junk.read_bytes() == np.arange(100, dtype=np.uint8).tobytes()
     assert not list(tmp_path.glob(".*finalising*")) and not (tmp_path / "junk.torn").exists()
+
+
+def test_report_warns_when_the_live_mcap_cannot_be_finalised(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Not even a header: `report` leaves the file as it is and says so in one `warning: skipped:` line;
+    the metrics are rebuilt (exit 0)."""
+    out = tmp_path / "run"
+    argv = ["run", "paper_sim", "--modes", "none", "--duration", "0.1", "--no-progress", "--no-live-mcap"]
+    assert cli.main([*argv, "--out", str(out)]) == 0
+    (out / LIVE_MCAP_FILE).write_bytes(b"not an mcap file")
+    capsys.readouterr()
+    assert cli.main(["report", str(out), "--no-plots"]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: skipped: {LIVE_MCAP_FILE}: torn, and not finalised: not an MCAP file" in err, err
+    assert (out / LIVE_MCAP_FILE).read_bytes() == b"not an mcap file"

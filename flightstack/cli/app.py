@@ -410,7 +410,8 @@ COMMANDS = (
     Command(
         "analyse",
         "report",
-        "rebuild metrics.json and the plots of a run directory (also one cut short by a kill)",
+        "rebuild metrics.json and the plots of a run directory (also one cut short by a kill); finalise a "
+        "torn recording.mcap",
         _add_report,
     ),
     Command(
