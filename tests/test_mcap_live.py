@@ -5,23 +5,26 @@ written tick by tick at 500 Hz) and reads the file as a user's tool would (tests
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from flightstack.cli import app as cli
-from flightstack.recording.files import LIVE_MCAP_FILE
-from flightstack.recording.mcap_live import AUTOGROUP, FLUSH_PERIOD_S, NICENESS, POLL_S
+from flightstack.recording.files import LIVE_MCAP_FILE, TORN_MCAP_FILE
+from flightstack.recording.mcap_live import AUTOGROUP, FLUSH_PERIOD_S, NICENESS, POLL_S, STALL_S, LiveMcap
 from flightstack.recording.mcap_writer import CHUNK_BYTES
 from flightstack.recording.rows import read_rows
 from flightstack.recording.run_reader import load_run, resolved_mission
-from tests.conftest import REPO, eventually, process_running
+from tests.conftest import REPO, Bound, eventually, process_running
 from tests.mcap_read import assert_mcap_holds, read_mcap, read_mcap_stream
 
 RATE_HZ = 500.0
@@ -207,3 +210,108 @@ def test_run_writes_the_live_mcap_unless_told_not_to(tmp_path: Path) -> None:
     assert_mcap_holds(load_run(tmp_path / "a", mission), read_mcap(tmp_path / "a" / LIVE_MCAP_FILE))
     assert cli.main([*argv, "--out", str(tmp_path / "b"), "--no-live-mcap"]) == 0
     assert not (tmp_path / "b" / LIVE_MCAP_FILE).exists()
+
+
+RUN_ARGV = ["run", "paper_sim", "--modes", "none", "--duration", "2", "--no-progress"]
+"""A short simulated run with the live MCAP (in this process: the test reaches its writer)."""
+
+
+def _run_with_writer(
+    out: Path, monkeypatch: pytest.MonkeyPatch, before_finish: Callable[[LiveMcap], None]
+) -> tuple[int, list[int]]:
+    """`flightstack run` into `out`, `before_finish(writer)` called once the flight is over and before the
+    run tells its writer so (the writer is still following the run directory, as during the flight);
+    (exit code, the writer's pid)."""
+    finish = LiveMcap.finish
+    pids: list[int] = []
+
+    def patched(self: LiveMcap, *args: Any, **kwargs: Any) -> dict[str, Any]:
+        pids.append(self.proc.pid)
+        before_finish(self)
+        return finish(self, *args, **kwargs)
+
+    monkeypatch.setattr(LiveMcap, "finish", patched)
+    try:
+        code = cli.main([*RUN_ARGV, "--out", str(out)])
+    finally:
+        for pid in pids:  # never leave a writer stopped or running
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
+                os.kill(pid, signal.SIGKILL)
+    return code, pids
+
+
+def _raw(msgs: list[tuple[int, Any]]) -> list[tuple[int, bytes]]:
+    return [(when, msg.SerializeToString()) for when, msg in msgs]
+
+
+def _error_lines(text: str) -> list[str]:
+    return [line for line in text.splitlines() if line.startswith("error:")]
+
+
+def test_a_killed_writer_is_reported_and_report_finalises_its_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """SIGKILL of the writer while it follows the run, once its file holds messages: the run says so in
+    one `error:` line and exits 1 (docs/getting-started.md, exit codes); the file does not open in a
+    seeking reader until `flightstack report` finalises it, with every message a stream read recovers."""
+    out = tmp_path / "run"
+    path = out / LIVE_MCAP_FILE
+
+    def kill(writer: LiveMcap) -> None:
+        assert eventually(lambda: _ticks(path) > 0, 120.0), "the writer wrote no chunk"
+        writer.proc.kill()
+        writer.proc.wait(timeout=10)
+
+    code, _ = _run_with_writer(out, monkeypatch, kill)
+    err = capfd.readouterr().err
+    assert code == 1, err
+    (line,) = _error_lines(err)
+    assert "live MCAP" in line and "SIGKILL" in line and f"flightstack report {out}" in line, line
+    torn = read_mcap_stream(path)
+    assert torn.error is not None and torn.messages > 0
+    with pytest.raises(Exception):  # noqa: B017 (whatever the torn bytes make of the summary)
+        read_mcap(path)
+    torn_bytes = path.stat().st_size
+    assert cli.main(["report", str(out), "--no-plots"]) == 0
+    report_out = capfd.readouterr().out
+    got = read_mcap(path)  # the standard reader: summary, indexes
+    assert got.messages == torn.messages and set(got.topics) == set(torn.topics)
+    for topic, msgs in torn.topics.items():  # the same messages (bytes: NaN != NaN), perhaps reordered
+        assert sorted(_raw(got.topics[topic])) == sorted(_raw(msgs)), topic
+    assert (out / TORN_MCAP_FILE).stat().st_size == torn_bytes  # the original kept beside it
+    assert f"{torn.messages} messages recovered" in report_out, report_out
+    assert cli.main(["report", str(out), "--no-plots"]) == 0  # a whole file is left as it is
+    assert "finalised" not in capfd.readouterr().out
+    print(f"writer killed: {torn.messages} messages recovered by report")
+
+
+def test_a_stopped_writer_is_killed_soon_after_the_flight(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capfd: pytest.CaptureFixture[str],
+    safety_bound: Bound,
+) -> None:
+    """SIGSTOP of the writer during the run: the run ends within 5 s of telling it the flight is over
+    (it is killed after STALL_S without progress), says so in one `error:` line, exits 1 and leaves no
+    process behind."""
+    out = tmp_path / "run"
+    told: list[float] = []
+
+    def stop(writer: LiveMcap) -> None:
+        os.kill(writer.proc.pid, signal.SIGSTOP)
+        told.append(time.monotonic())
+
+    code, pids = _run_with_writer(out, monkeypatch, stop)
+    ended = time.monotonic() - told[0]
+    err = capfd.readouterr().err
+    assert code == 1, err
+    (line,) = _error_lines(err)
+    assert "live MCAP" in line and "no progress" in line, line
+    assert not process_running(pids[0])
+    safety_bound(
+        f"the run's end after the flight's with its writer stopped (stall time {STALL_S:g} s)",
+        ended,
+        5.0,
+        "s",
+    )

@@ -25,10 +25,11 @@ from flightstack import threads
 
 def cmd_report(args: argparse.Namespace) -> int:
     """Rebuild metrics.json and the plots of a run directory from its recording (also one cut short by
-    a kill, a crash or a full disk: then from the row streams); exit 2 with one line `error: <file>:
-    <what>` when a file it needs is missing or damaged (recording.files.REQUIRED_FILES); a damaged
-    optional file is skipped with a line `warning: skipped: <file>: <what>` on stderr. Prints the same
-    metric lines as `run` (flightstack.cli.summary.metric_lines)."""
+    a kill, a crash or a full disk: then from the row streams), and finalise a live MCAP its writer left
+    torn (`finalise_live_mcap`); exit 2 with one line `error: <file>: <what>` when a file it needs is
+    missing or damaged (recording.files.REQUIRED_FILES); a damaged optional file is skipped with a line
+    `warning: skipped: <file>: <what>` on stderr. Prints the same metric lines as `run`
+    (flightstack.cli.summary.metric_lines)."""
     from flightstack.analysis.report import rebuild_run, run_mission
     from flightstack.cli.summary import metric_lines, say
     from flightstack.config.mission import load_mission
@@ -42,13 +43,38 @@ def cmd_report(args: argparse.Namespace) -> int:
     except RunDirError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    for line in skipped:
+    finalised, problem = finalise_live_mcap(run)
+    for line in [*skipped, *([problem] if problem else [])]:
         say("warning", f"skipped: {line}")
     print(f"run directory: {run}")
     for line in metric_lines(m, mission):
         print(line)
     print(f"  rebuilt metrics.json{''.join(f', {p.name}' for p in plots)}")
+    if finalised:
+        print(f"  {finalised}")
     return 0
+
+
+def finalise_live_mcap(run: Path) -> tuple[str | None, str | None]:
+    """The run's live MCAP finalised when its writer left it torn (flightstack.recording.mcap_finalise):
+    (what was done, None), (None, `<file>: <why not>`), or (None, None) when there is no file or it opens
+    already."""
+    from flightstack.recording.files import LIVE_MCAP_FILE, TORN_MCAP_FILE
+    from flightstack.recording.mcap_finalise import finalise_torn
+
+    path = run / LIVE_MCAP_FILE
+    if not path.is_file():
+        return None, None
+    try:
+        done = finalise_torn(path, run / TORN_MCAP_FILE)
+    except (OSError, ValueError) as exc:
+        return None, f"{LIVE_MCAP_FILE}: torn, and not finalised: {exc}"
+    if done is None:
+        return None, None
+    return (
+        f"finalised {LIVE_MCAP_FILE}: {done.messages} messages recovered up to its last complete chunk; "
+        f"the torn original ({done.torn_bytes} B) kept as {done.torn.name}"
+    ), None
 
 
 def cmd_preflight(args: argparse.Namespace) -> int:
@@ -384,7 +410,8 @@ COMMANDS = (
     Command(
         "analyse",
         "report",
-        "rebuild metrics.json and the plots of a run directory (also one cut short by a kill)",
+        "rebuild metrics.json and the plots of a run directory (also one cut short by a kill); finalise a "
+        "torn recording.mcap",
         _add_report,
     ),
     Command(

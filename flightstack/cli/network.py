@@ -51,7 +51,14 @@ def cmd_world(args: argparse.Namespace) -> int:
 def cmd_agent(args: argparse.Namespace) -> int:
     """`agent MISSION --id N`: fly drone N of a mission over its Zenoh bus (one mode), record it in its
     own run directory; the exit code."""
-    from flightstack.cli.run import claim_out_dir, clear_for_run, default_out_dir, fly_or_say, to_stderr
+    from flightstack.cli.run import (
+        claim_out_dir,
+        clear_for_run,
+        default_out_dir,
+        fly_or_say,
+        live_mcap_problem,
+        to_stderr,
+    )
     from flightstack.cli.view import open_live_viewer, viewer_problem
     from flightstack.runtime.flight import Flight
 
@@ -97,6 +104,9 @@ def cmd_agent(args: argparse.Namespace) -> int:
     status = res.metrics.get("recording", {"complete": False, "reason": "metrics.json not written"})
     if not status["complete"]:
         print(f"agent {args.id}: recording incomplete: {status['reason']}", file=sys.stderr)
+    mcap_problem = live_mcap_problem(flight, out)
+    if mcap_problem is not None:
+        print(f"agent {args.id}: {mcap_problem}", file=sys.stderr)
     if res.interrupted:
         return 130
     if res.error:
@@ -106,7 +116,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
         what = "its drone landed" if landed else "landing requested, not confirmed (no telemetry)"
         print(f"agent {args.id}: {res.error}; {what}", file=sys.stderr)
         return 1
-    return 0 if status["complete"] else 1
+    return 0 if status["complete"] and mcap_problem is None else 1
 
 
 def cmd_abort(args: argparse.Namespace) -> int:

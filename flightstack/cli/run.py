@@ -256,6 +256,9 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
     rec_status = m["recording"]
     if not rec_status["complete"]:
         say("error", f"recording incomplete: {rec_status['reason']}")
+    mcap_problem = live_mcap_problem(flight, out)
+    if mcap_problem is not None:
+        say("error", mcap_problem)
     exported = _export_mcap(args, flight.mission, out)
     if res.interrupted:
         say("warning", "interrupted: every drone landed, partial recording written")
@@ -263,7 +266,19 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
     if res.error:
         print(f"error: {res.error}; every drone landed, partial recording written", file=sys.stderr)
         return 1
-    return 0 if rec_status["complete"] and exported else 1
+    return 0 if rec_status["complete"] and exported and mcap_problem is None else 1
+
+
+def live_mcap_problem(flight: Flight, out: Path) -> str | None:
+    """One line saying that the live MCAP was not finished, why, and how to finalise it (None: it was
+    finished, or none was written). The flight is not affected: the run directory has every tick."""
+    from flightstack.recording.files import LIVE_MCAP_FILE
+
+    error = None if flight.writer is None else flight.writer.live_mcap_error
+    if error is None:
+        return None
+    path = out / LIVE_MCAP_FILE
+    return f"the live MCAP {path} is incomplete: {error} (`flightstack report {out}` finalises it)"
 
 
 def _export_mcap(args: argparse.Namespace, mission: Mission, out: Path) -> bool:

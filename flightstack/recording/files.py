@@ -65,6 +65,9 @@ LIVE_FILE = "live.rrd"
 """`--viewer` on a machine without a display writes the live Rerun recording here."""
 LIVE_MCAP_FILE = "recording.mcap"
 """The run as MCAP, written as it goes (flightstack.recording.mcap_live)."""
+TORN_MCAP_FILE = f"{LIVE_MCAP_FILE}.torn"
+"""The live MCAP as its writer left it when it was killed, kept by `flightstack report` beside the
+finalised file (flightstack.recording.mcap_finalise)."""
 DEVICES_DIR = "devices"
 """The raw traffic of a flight's real (or emulated) devices: one file per device and connection
 (`DeviceFiles`); simulated rigs have no devices and write none."""
@@ -88,6 +91,7 @@ RUN_FILES: tuple[str, ...] = (
     REPLAY_FILE,
     LIVE_FILE,
     LIVE_MCAP_FILE,
+    TORN_MCAP_FILE,
 )
 """Every name (fnmatch pattern) a run of `run`/`sim`/`fly`/`agent` writes in its run directory: the one
 list `--out` is checked against and `--force` removes (`run_files`). A writer of a new file adds it here

@@ -15,7 +15,11 @@ Its stdin is a pipe from the flight's process: end of file (the run directory cl
 process gone, by any signal) makes it read everything left, attach metrics.json, recording.json and the
 mission, write the MCAP's summary and exit; it prints one JSON line ({"messages", "topics", "ticks",
 "error"}). It ignores SIGINT (Ctrl-C lands the drones; the file is finished after) and runs in its own
-session, so that a kill of the flight's process group leaves it to finish the file.
+session, so that a kill of the flight's process group leaves it to finish the file. The flight's process
+waits for it while it makes progress (`LiveMcap.finish`: its CPU time or its file's size; a loaded machine
+only slows it) and kills it after STALL_S without any (stopped, hung); a follower that died or was killed is
+reported as the run's error (flightstack.cli.run), and `flightstack report` finalises the file it left
+(mcap_finalise.py).
 
 Its CPU follows the rows it copies, about 30 µs per tick of 3 drones (paper_sim: 1.8 s for 60 000 ticks,
 plus about 1 s of imports): at a real flight's rates (20–50 Hz) that is well under 1 % of a core. It
@@ -47,6 +51,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from flightstack.child_watch import communicate_while_progressing
 from flightstack.recording.files import EVENTS_FILE, LIVE_MCAP_FILE, ROWS_SUFFIX, STATE_FILE, RunDirError
 from flightstack.recording.rows import RowLayout, parse_header
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
@@ -58,8 +63,11 @@ POLL_S = 0.2
 """How often (s) the follower reads the run directory."""
 FLUSH_PERIOD_S = 1.0
 """Wall time (s) after which the follower closes its open chunk: what a kill of the follower can lose."""
-FINISH_TIMEOUT_S = 60.0
-"""How long (s) closing a run waits for the follower to finish the file (it keeps going after)."""
+STALL_S = 2.5
+"""Closing a run waits for the follower while it makes progress (CPU time or bytes of its file); this long
+(s) without either, it is killed (stopped, or hung) and the file left as a kill leaves it."""
+FINISH_TIMEOUT_S = 300.0
+"""The most (s) closing a run waits for a follower that keeps making progress; then it is killed too."""
 NICENESS = 10
 """The follower's nice increment, and its session's autogroup nice (module docstring)."""
 MAX_EVENT_LINE = 1 << 20
@@ -324,21 +332,52 @@ class LiveMcap:
             start_new_session=True,
         )
 
-    def finish(self, timeout_s: float = FINISH_TIMEOUT_S) -> dict[str, Any]:
-        """Tell the follower the run is over and wait for its report (≤ timeout_s; after that it is left
-        to finish on its own and the report says so). Never raises."""
+    def finish(self, stall_s: float = STALL_S, timeout_s: float = FINISH_TIMEOUT_S) -> dict[str, Any]:
+        """Tell the follower the run is over and wait for its report while it makes progress (killed
+        after `stall_s` s without any, or `timeout_s` s in all: child_watch). `error` in the report is None
+        only when the file was finished. Never raises."""
         if self.report is not None:
             return self.report
         try:
-            out, err = self.proc.communicate(input=b"", timeout=timeout_s)  # closes its stdin: end of file
-            lines = out.decode(errors="replace").strip().splitlines()
-            report = json.loads(lines[-1]) if lines else {"error": err.decode(errors="replace")[-500:]}
-        except subprocess.TimeoutExpired:
-            report = {"error": f"still writing after {timeout_s:g} s (left to finish)"}
+            out, err, killed = communicate_while_progressing(self.proc, stall_s, timeout_s, self._size)
+            self.report = _report(self.proc.returncode, out, err, killed)
         except Exception as exc:
-            report = {"error": f"{type(exc).__name__}: {exc}"}
-        self.report = report
-        return report
+            self.report = {"error": f"{type(exc).__name__}: {exc}"}
+        return self.report
+
+    def _size(self) -> int:
+        """The file's size (B; -1 before it exists): the follower's progress besides its CPU time."""
+        try:
+            return self.out.stat().st_size
+        except OSError:
+            return -1
+
+
+def _report(returncode: int, out: bytes, err: bytes, killed: str | None) -> dict[str, Any]:
+    """The follower's report (its last stdout line), its error said in one line when the file was not
+    finished: killed here for `killed`, ended by a signal, or ended without a report."""
+    lines = out.decode(errors="replace").strip().splitlines()
+    try:
+        report = json.loads(lines[-1]) if lines else {}
+    except ValueError:
+        report = {}
+    if not isinstance(report, dict):
+        report = {}
+    last = (err.decode(errors="replace").strip().splitlines() or [""])[-1][:300]
+    if killed is not None:
+        report["error"] = f"the writer was killed: {killed}; the file ends at its last complete chunk"
+    elif returncode < 0:
+        try:
+            name = signal.Signals(-returncode).name
+        except ValueError:
+            name = f"signal {-returncode}"
+        report["error"] = f"the writer ended by {name}; the file ends at its last complete chunk"
+    elif not report.get("error") and (returncode != 0 or "messages" not in report):
+        report["error"] = f"the writer exited with {returncode} without finishing the file" + (
+            f" ({last})" if last else ""
+        )
+    report.setdefault("error", None)
+    return report
 
 
 if __name__ == "__main__":

@@ -118,7 +118,8 @@ class RunWriter:
     (`status()`). Thread-safe. Starting a run truncates events.jsonl, rewrites recording.json and
     removes metrics.json and the row streams of an earlier run in this directory; a mode's npz is
     removed when that mode starts (and written again when it ends). live_mcap: a follower process writes
-    recording.mcap as the run goes (mcap_live.py); `close` waits for it to finish the file."""
+    recording.mcap as the run goes (mcap_live.py); `close` waits for it to finish the file
+    (`live_mcap_error` says when it did not)."""
 
     def __init__(
         self,
@@ -259,9 +260,14 @@ class RunWriter:
         self._queue.put(None)
         self._thread.join(timeout=1.0)
         if self.live_mcap is not None:  # every file is final: the follower reads the rest and closes
-            report = self.live_mcap.finish()
-            if report.get("error"):
-                _log.error("live MCAP %s: %s", self.live_mcap.out, report["error"])
+            self.live_mcap.finish()
+
+    @property
+    def live_mcap_error(self) -> str | None:
+        """Why the live MCAP is not a finished file (None: finished, or none asked for); known once
+        `close` returned. The caller reports it (the run's exit code)."""
+        report = None if self.live_mcap is None else self.live_mcap.report
+        return None if report is None else report.get("error")
 
     def __enter__(self) -> RunWriter:
         return self
