@@ -5,11 +5,13 @@ every client bounded, because it runs in the flight's process:
 - at most MAX_CLIENTS connections at once (more are refused with HTTP 503);
 - a client's message at most MAX_MESSAGE_BYTES (a longer one closes its connection, code 1009), read at
   most CONTROL_RATE_HZ per second (beyond that the server stops reading it: TCP pushes back);
-- at most MAX_SUBSCRIPTIONS subscriptions per client; a subscription to an unknown channel is refused;
+- at most MAX_SUBSCRIPTIONS subscriptions per client, one per channel; a subscription to an unknown
+  channel is refused;
 - data for a client that does not keep up is dropped beyond SEND_QUEUE messages (counted in `dropped`).
 
-So the server parses at most MAX_CLIENTS · CONTROL_RATE_HZ · MAX_MESSAGE_BYTES bytes of client input per
-second whatever the clients send (docs/logs.md gives its measured CPU cost). What a client does wrong is
+So whatever the clients send, the server parses at most MAX_CLIENTS · CONTROL_RATE_HZ · MAX_MESSAGE_BYTES
+bytes of their input per second, and sends each message of the flight at most MAX_CLIENTS times (docs/logs.md
+gives the measured cost). What a client does wrong is
 counted per kind in `wrongs` and logged at most once per REPORT_PERIOD_S per client address, one line.
 
 Both subprotocol names are accepted: `foxglove.websocket.v1` (Lichtblick, Foxglove Studio) and
@@ -84,6 +86,7 @@ class _Client:
     ws: ServerConnection
     host: str
     subs: dict[int, int] = field(default_factory=dict)  # subscription id -> channel id
+    chans: dict[int, int] = field(default_factory=dict)  # channel id -> subscription id
     out: asyncio.Queue[str | bytes] = field(default_factory=lambda: asyncio.Queue(SEND_QUEUE))
     tokens: float = float(CONTROL_BURST)
     refill: float = field(default_factory=time.monotonic)
@@ -139,8 +142,8 @@ class _Reports:
                 continue
             self._said[h] = now
             del self._pending[h]
-            what = ", ".join(f"{n} {kind}" for kind, n in sorted(counts.items()))
-            _log.warning("viewer: client %s: %s (counted; at most one line a second per client)", h, what)
+            what = "; ".join(f"{kind}: {n}" for kind, n in sorted(counts.items()))
+            _log.warning("live view client %s: %s (counted; at most one line a second per client)", h, what)
 
 
 class FoxgloveServer:
@@ -159,6 +162,7 @@ class FoxgloveServer:
         self._lock = threading.Lock()
         self._loop = asyncio.new_event_loop()
         self._server: Server | None = None
+        self._reporter: asyncio.Task[None] | None = None
         self._started = threading.Event()
         self._error: BaseException | None = None
         self._thread = threading.Thread(
@@ -232,7 +236,7 @@ class FoxgloveServer:
             open_timeout=HANDSHAKE_TIMEOUT_S,
             logger=_log.getChild("ws"),
         )
-        self._loop.create_task(self._report_periodically())
+        self._reporter = self._loop.create_task(self._report_periodically())
 
     async def _report_periodically(self) -> None:
         while True:
@@ -240,6 +244,8 @@ class FoxgloveServer:
             self._reports.flush()
 
     async def _shutdown(self) -> None:
+        if self._reporter is not None:
+            self._reporter.cancel()
         if self._server is not None:
             self._server.close()
             with contextlib.suppress(Exception):
@@ -307,9 +313,9 @@ class FoxgloveServer:
 
     def _fan_out(self, channel_id: int, log_time: int, data: bytes) -> None:
         for client in self._clients:
-            for sub, ch in client.subs.items():
-                if ch == channel_id:
-                    self._queue(client, struct.pack("<BIQ", MESSAGE_DATA, sub, log_time) + data)
+            sub = client.chans.get(channel_id)
+            if sub is not None:
+                self._queue(client, struct.pack("<BIQ", MESSAGE_DATA, sub, log_time) + data)
 
     def _handle(self, client: _Client, msg: str | bytes) -> None:
         """One message of a client: subscribe and unsubscribe; anything else is counted as wrong."""
@@ -322,7 +328,7 @@ class FoxgloveServer:
                 self._subscribe(client, body["subscriptions"])
             elif op == "unsubscribe":
                 for sub in body["subscriptionIds"]:
-                    client.subs.pop(sub, None)
+                    client.chans.pop(client.subs.pop(sub, -1), None)
                 self._refresh_wanted()
             else:
                 raise ValueError(f"op {op!r}")
@@ -335,16 +341,21 @@ class FoxgloveServer:
             known = set(self._channels)
         for s in subs:
             sub, ch = (s.get("id"), s.get("channelId")) if isinstance(s, dict) else (None, None)
-            if not isinstance(sub, int) or not isinstance(ch, int) or sub in client.subs:
-                bad += 1
+            if (
+                not isinstance(sub, int)
+                or not isinstance(ch, int)
+                or sub in client.subs
+                or ch in client.chans
+            ):
+                bad += 1  # malformed, or a subscription id or channel the client already has
             elif ch not in known:
                 unknown += 1
             elif len(client.subs) >= MAX_SUBSCRIPTIONS:
                 over += 1
             else:
-                client.subs[sub] = ch
+                client.subs[sub], client.chans[ch] = ch, sub
         for kind, n in (
-            ("subscriptions malformed", bad),
+            ("subscriptions malformed or repeated", bad),
             ("subscriptions to unknown channels", unknown),
             (f"subscriptions beyond {MAX_SUBSCRIPTIONS}", over),
         ):
@@ -353,7 +364,7 @@ class FoxgloveServer:
         self._refresh_wanted()
 
     def _refresh_wanted(self) -> None:
-        self.wanted = {ch for client in self._clients for ch in client.subs.values()}
+        self.wanted = {ch for client in self._clients for ch in client.chans}
 
 
 def _host(conn: ServerConnection) -> str:
