@@ -42,7 +42,7 @@ from flightstack.viewer.foxglove_server import (
     REPORT_PERIOD_S,
     SUBPROTOCOLS,
 )
-from tests.conftest import REPO, skip_or_fail_in_ci
+from tests.conftest import REPO, Bound, skip_or_fail_in_ci
 
 pytestmark = pytest.mark.system
 MESSAGE_DATA = 0x01  # binary opcode: subscription id u32, log time u64, payload
@@ -368,3 +368,102 @@ def test_a_viewer_host_that_is_not_this_machines_exits_2_in_one_line(tmp_path: P
     assert (
         r.returncode == 2 and "add --viewer foxglove" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     )
+
+
+# ---- the subscribe flood during a real-time flight ----------------------------------------------------
+FLOOD_SECONDS = 8.0
+"""How long each emulated-lab flight of the flood test lasts (s of mission time)."""
+CPU_SLACK = 0.10
+"""The flooded flight's process may use this fraction more CPU time than the clean one."""
+
+
+def _cpu_s(pid: int) -> float:
+    """utime + stime of process `pid` (s; its threads, not its children), 0 once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _flood(url: str, stop: threading.Event) -> int:
+    """Send FLOOD_MESSAGES subscribes of FLOOD_CHANNELS unknown channels, reconnecting whenever the server
+    cuts the client off; the messages sent."""
+    from websockets.exceptions import ConnectionClosed, InvalidStatus
+
+    sent = 0
+    while sent < FLOOD_MESSAGES and not stop.is_set():
+        try:
+            with contextlib.ExitStack() as stack:
+                ws = _connect(stack, url, SUBPROTOCOLS[1], wait_s=5)
+                while sent < FLOOD_MESSAGES:
+                    subs = [
+                        {"id": sent * FLOOD_CHANNELS + k, "channelId": 10**7 + k}
+                        for k in range(FLOOD_CHANNELS)
+                    ]
+                    sent += 1
+                    ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+        except (ConnectionClosed, InvalidStatus, OSError):
+            time.sleep(0.01)
+    return sent
+
+
+def _lab_flight(tmp: Path, flood: bool) -> dict[str, Any]:
+    """One emulated-lab flight with the live view on (flooded or not): its loop health, its process's CPU
+    time (s), its stderr lines and the flood's messages sent."""
+    port = free_port("tcp")
+    args = ["paper_experiment", "--rig", "emulated-lab", "--modes", "none", "--duration", str(FLOOD_SECONDS),
+            "--yes", "--viewer", f"foxglove:{port}"]  # fmt: skip
+    proc = _fly(args, tmp, netns=None)
+    stop = threading.Event()
+    sent: list[int] = []
+    flooder = threading.Thread(
+        target=lambda: sent.append(_flood(f"ws://127.0.0.1:{port}", stop)), daemon=True
+    )
+    cpu = 0.0
+    try:
+        if flood:
+            flooder.start()
+        while proc.poll() is None:
+            cpu = max(cpu, _cpu_s(proc.pid))
+            time.sleep(0.1)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        stop.set()
+        proc.kill()
+    if flood:
+        flooder.join(timeout=30)
+    assert proc.returncode == 0, err[-3000:]
+    health = json.loads((tmp / "metrics.json").read_text())["modes"]["none"]["loop_health"]
+    return {
+        "health": health,
+        "cpu_s": cpu,
+        "stderr_lines": len(err.splitlines()),
+        "sent": sum(sent),
+        "err": err,
+    }
+
+
+def test_a_subscribe_flood_leaves_the_flight_as_a_clean_one(tmp_path: Path, safety_bound: Bound) -> None:
+    """The flood during a real-time flight on the emulated lab: the loop keeps dt, overruns at most the
+    clean flight's + 2, the flight process's CPU time within CPU_SLACK of the clean flight's, stderr at
+    most 100 lines. The clean flight is flown in this test, right before the flooded one; when the CPU
+    time is off, the pair is flown once more (the machine's noise, not the view's cost, then decides)."""
+    for attempt in range(2):
+        clean = _lab_flight(tmp_path / f"clean{attempt}", flood=False)
+        if not clean["health"]["keeps_dt"]:
+            pytest.skip(f"this machine did not keep dt without a viewer client: {clean['health']}")
+        flooded = _lab_flight(tmp_path / f"flood{attempt}", flood=True)
+        c, f = clean["health"], flooded["health"]
+        print(f"clean: CPU {clean['cpu_s']:.2f} s, compute p99 {1e3 * c['compute_s']['p99']:.1f} ms, "
+              f"overruns {c['overruns']}, stderr {clean['stderr_lines']} lines; flood ({flooded['sent']} "
+              f"messages): CPU {flooded['cpu_s']:.2f} s, compute p99 {1e3 * f['compute_s']['p99']:.1f} ms, "
+              f"overruns {f['overruns']}, stderr {flooded['stderr_lines']} lines")  # fmt: skip
+        assert flooded["sent"] == FLOOD_MESSAGES
+        assert "live view client 127.0.0.1:" in flooded["err"], flooded["err"][-2000:]
+        if flooded["cpu_s"] <= (1 + CPU_SLACK) * clean["cpu_s"] or attempt == 1:
+            break
+    safety_bound("overruns of the flooded flight", f["overruns"], c["overruns"] + 2, "ticks")
+    assert f["keeps_dt"], f
+    assert flooded["stderr_lines"] <= 100, flooded["err"][-3000:]
+    assert flooded["cpu_s"] <= (1 + CPU_SLACK) * clean["cpu_s"], (flooded["cpu_s"], clean["cpu_s"])
