@@ -174,7 +174,7 @@ class FoxgloveServer:
         if self._error is not None:
             raise OSError(str(self._error)) from self._error
         assert self._server is not None
-        self.port = int(self._server.sockets[0].getsockname()[1])
+        self.port: int = int(self._server.sockets[0].getsockname()[1])
 
     @property
     def wrongs(self) -> Counter[str]:
