@@ -70,7 +70,9 @@ def cmd_agent(args: argparse.Namespace) -> int:
     except MissionError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    problem = viewer_problem(args.viewer)  # rerun-sdk missing: say how to install it, before anything flies
+    problem = viewer_problem(
+        args
+    )  # rerun-sdk missing (how to install it), a bad --viewer-host: before flying
     if problem is not None:
         print(f"error: {problem}; nothing took off", file=sys.stderr)
         return 2
@@ -82,7 +84,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
     if args.out is None:
         print(f"agent {args.id}: run directory {out} (--out DIR chooses another)", file=sys.stderr)
     try:  # --viewer: this agent's drone live in Rerun (flightstack.viewer.live)
-        tap = open_live_viewer(args.viewer, mission, out, [mode])
+        tap = open_live_viewer(args, mission, out, [mode])
     except (OSError, RuntimeError) as exc:
         print(f"error: --viewer: {exc}; nothing took off", file=sys.stderr)
         return 2

@@ -187,7 +187,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 2
     from flightstack.cli.view import viewer_problem
 
-    problem = viewer_problem(getattr(args, "viewer", None))  # no rerun-sdk: how to install it, before flying
+    problem = viewer_problem(args)  # no rerun-sdk (how to install it), a bad --viewer-host: before flying
     if problem is not None:
         print(f"error: {problem}; nothing took off", file=sys.stderr)
         return 2
@@ -222,7 +222,7 @@ def _fly_and_report(args: argparse.Namespace, mission: Mission, out: Path) -> in
 
     t_cmd0 = time.perf_counter()
     try:  # --viewer: the live Rerun view (a tap of every mode; flightstack.viewer.live)
-        tap = open_live_viewer(getattr(args, "viewer", None), mission, out, mission.flown_modes())
+        tap = open_live_viewer(args, mission, out, mission.flown_modes())
     except (OSError, RuntimeError) as exc:
         print(f"error: --viewer: {exc}; nothing took off", file=sys.stderr)
         return 2

@@ -93,14 +93,32 @@ def add_viewer_argument(p: argparse.ArgumentParser) -> None:
         help="watch the flight live in the Rerun 3-D viewer (needs `pip install 'flightstack[viewer]'`): "
         "spawn a viewer, connect to one (default 127.0.0.1:9876) or save an .rrd; without a value, spawn "
         f"when there is a display, else save RUN_DIR/{LIVE_FILE} (then put --viewer last, or write "
-        "--viewer=auto); foxglove[:PORT]: serve it to Foxglove over WebSocket on 127.0.0.1 (default port "
-        "8765; docs/logs.md)",
+        "--viewer=auto); foxglove[:PORT]: serve it to Foxglove or Lichtblick over WebSocket on 127.0.0.1 "
+        "(default port 8765; docs/logs.md)",
+    )
+    p.add_argument(
+        "--viewer-host",
+        default=None,
+        metavar="ADDR",
+        help="with --viewer foxglove: serve the live view on this IP address of the machine instead of "
+        "127.0.0.1, for a second screen on the lab's network (or :: / 0.0.0.0 for every address). Anyone "
+        "on that network can connect and subscribe, without a password (docs/security.md); the server's "
+        "caps on clients, subscriptions and message sizes apply",
     )
 
 
-def viewer_problem(spec: str | None) -> str | None:
-    """Why `--viewer` cannot work here (rerun-sdk missing, with the install hint), checked before anything
+def viewer_problem(args: argparse.Namespace) -> str | None:
+    """Why `--viewer` (and `--viewer-host`) cannot work here (rerun-sdk missing, with the install hint; a
+    host that is not an address of this machine, or without a Foxglove view), checked before anything
     takes off; None when it can (or was not asked for)."""
+    from flightstack.viewer.foxglove_live import foxglove_port, host_problem
+
+    spec, host = getattr(args, "viewer", None), getattr(args, "viewer_host", None)
+    if host is not None:
+        if spec is None or foxglove_port(spec) is None:
+            return "--viewer-host: it serves the Foxglove view; add --viewer foxglove[:PORT]"
+        problem = host_problem(host)
+        return None if problem is None else f"--viewer-host: {problem}"
     if spec is None or spec.startswith("foxglove"):
         return None  # foxglove-sdk is a dependency
     from flightstack.viewer.rerun_import import ViewerUnavailable, load_rerun
@@ -113,22 +131,33 @@ def viewer_problem(spec: str | None) -> str | None:
 
 
 def open_live_viewer(
-    spec: str | None, mission: Mission, out: Path, modes: list[str]
+    args: argparse.Namespace, mission: Mission, out: Path, modes: list[str]
 ) -> RerunTap | FoxgloveTap | None:
     """The live tap of `--viewer` (None without it), its recording named after the mission and `out`;
-    prints where it goes. The caller passes it to the runner and calls `finish()` at the end. OSError
-    when a Foxglove port cannot be served."""
+    prints where it goes (and, off loopback, who can see it). The caller passes it to the runner and
+    calls `finish()` at the end. OSError when a Foxglove port cannot be served."""
+    spec = getattr(args, "viewer", None)
     if spec is None:
         return None
-    from flightstack.viewer.foxglove_live import FoxgloveTap, foxglove_port
+    from flightstack.viewer.foxglove_live import LOOPBACK, FoxgloveTap, foxglove_port, is_loopback
 
     port = foxglove_port(spec)
     if port is not None:
+        host = getattr(args, "viewer_host", None) or LOOPBACK
         try:
-            fox = FoxgloveTap(port, name=f"{mission.name} ({out.name}, live)")
-        except Exception as exc:  # foxglove's own error: the port is taken, ...
-            raise OSError(f"foxglove on 127.0.0.1:{port}: {exc}") from None
+            fox = FoxgloveTap(port, host, name=f"{mission.name} ({out.name}, live)")
+        except OSError as exc:  # the port is taken, ...
+            raise OSError(f"foxglove on {host} port {port}: {exc}") from None
         print(f"viewer: live at {fox.describe()}", file=sys.stderr)
+        if not is_loopback(host):
+            from flightstack.viewer.foxglove_server import MAX_CLIENTS, MAX_SUBSCRIPTIONS
+
+            print(
+                f"warning: viewer: anyone on the networks of {host} can connect to port {fox.port} and "
+                f"subscribe to the flight, without a password (at most {MAX_CLIENTS} clients, "
+                f"{MAX_SUBSCRIPTIONS} subscriptions each; docs/security.md)",
+                file=sys.stderr,
+            )
         return fox
     from flightstack.viewer.live import RerunTap
     from flightstack.viewer.sinks import resolve

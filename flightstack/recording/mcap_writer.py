@@ -30,10 +30,10 @@ from __future__ import annotations
 import json
 import math
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import foxglove
 import numpy as np
@@ -59,6 +59,10 @@ TF_PERIOD_S = 0.02
 """Least mission time (s) between two /<mode>/tf messages (50 Hz)."""
 WORLD_FRAME = "world"
 """Parent frame of every transform: the world frame Σw."""
+FRAME_TRANSFORMS = FrameTransforms.get_schema().name
+"""Schema name of foxglove-sdk's FrameTransforms (a FrameTransformsChannel in an MCAP)."""
+LOG = Log.get_schema().name
+"""Schema name of foxglove-sdk's Log (a LogChannel in an MCAP)."""
 _LEVELS = {"ERROR": LogLevel.Error, "WARNING": LogLevel.Warning, "INFO": LogLevel.Info}
 
 
@@ -99,44 +103,62 @@ def library() -> str:
     return f"flightstack {ours}; foxglove-sdk {metadata.version('foxglove-sdk')}"
 
 
+class TopicLog(Protocol):
+    """Where one topic's messages go: a foxglove-sdk channel, or the live view's own server."""
+
+    def log(self, msg: Any, /, *, log_time: int | None = None) -> None: ...
+
+    def topic(self) -> str: ...
+
+
+OpenTopic = Callable[[str, foxglove.Schema], TopicLog]
+"""Opens a topic with the given protobuf schema (`context_topics`, or the live view's server)."""
+
+
+def context_topics(ctx: foxglove.Context) -> OpenTopic:
+    """Topics as foxglove-sdk channels of `ctx`, logged to its sinks (an MCAP writer)."""
+
+    def open_topic(topic: str, schema: foxglove.Schema) -> TopicLog:
+        if schema.name == FRAME_TRANSFORMS:
+            return FrameTransformsChannel(topic, context=ctx)
+        if schema.name == LOG:
+            return LogChannel(topic, context=ctx)
+        return foxglove.Channel(topic, schema=schema, message_encoding="protobuf", context=ctx)
+
+    return open_topic
+
+
 class _Mode:
     """One mode's channels, time base and cursors."""
 
-    def __init__(self, ctx: foxglove.Context, schemas: Mapping[str, foxglove.Schema], mode: str) -> None:
+    def __init__(self, open_topic: OpenTopic, schemas: Mapping[str, foxglove.Schema], mode: str) -> None:
         self.mode = mode
-        self.ctx = ctx
+        self.open_topic = open_topic
         self.drone_schema = schemas[DRONE]
-        self.tick = foxglove.Channel(
-            f"/{mode}/tick", schema=schemas[TICK], message_encoding="protobuf", context=ctx
-        )
-        self.drones: dict[int, foxglove.Channel] = {}
-        self.tf = FrameTransformsChannel(f"/{mode}/tf", context=ctx)
-        self.log = LogChannel(f"/{mode}/events", context=ctx)
+        self.tick = open_topic(f"/{mode}/tick", schemas[TICK])
+        self.drones: dict[int, TopicLog] = {}
+        self.tf = open_topic(f"/{mode}/tf", FrameTransforms.get_schema())
+        self.log = open_topic(f"/{mode}/events", Log.get_schema())
         self.base: float | None = None
         self.last_ns = 0  # the newest tick's log time
         self.next_tf = -math.inf  # mission time of the next transform
         self.event_ns: int | None = None  # the previous event's log time
         self.pending: list[Mapping[str, Any]] = []  # events before the first tick
 
-    def drone(self, i: int) -> foxglove.Channel:
+    def drone(self, i: int) -> TopicLog:
         if i not in self.drones:
-            self.drones[i] = foxglove.Channel(
-                f"/{self.mode}/drone{i}",
-                schema=self.drone_schema,
-                message_encoding="protobuf",
-                context=self.ctx,
-            )
+            self.drones[i] = self.open_topic(f"/{self.mode}/drone{i}", self.drone_schema)
         return self.drones[i]
 
 
 class RunChannels:
-    """The run's topics on a foxglove Context (module docstring), logged to whatever sinks the context has
-    (an MCAP file: RunMcap; the live WebSocket view: flightstack.viewer.foxglove_live): `ticks` for each
-    block of ticks of a mode, in order, `events` for its events. `counts`: messages logged per topic.
+    """The run's topics (module docstring), opened by `open_topic` (an MCAP file: RunMcap, through
+    `context_topics`; the live WebSocket view: flightstack.viewer.foxglove_server): `ticks` for each block
+    of ticks of a mode, in order, `events` for its events. `counts`: messages logged per topic.
     Not thread-safe."""
 
-    def __init__(self, ctx: foxglove.Context) -> None:
-        self.ctx = ctx
+    def __init__(self, open_topic: OpenTopic) -> None:
+        self.open_topic = open_topic
         data = file_descriptor_set()
         self._schemas = {
             TICK: foxglove.Schema(name=TICK, encoding="protobuf", data=data),
@@ -149,7 +171,7 @@ class RunChannels:
 
     def _mode(self, mode: str) -> _Mode:
         if mode not in self.modes:
-            self.modes[mode] = _Mode(self.ctx, self._schemas, mode)
+            self.modes[mode] = _Mode(self.open_topic, self._schemas, mode)
         return self.modes[mode]
 
     def ticks(self, mode: str, drone_ids: list[int], cols: Mapping[str, np.ndarray]) -> None:
@@ -178,7 +200,7 @@ class RunChannels:
             pending, m.pending = m.pending, []
             self.events(mode, pending)
 
-    def _log_rows(self, channel: foxglove.Channel, msgs: np.ndarray, ns: np.ndarray) -> None:
+    def _log_rows(self, channel: TopicLog, msgs: np.ndarray, ns: np.ndarray) -> None:
         data = msgs.tobytes()
         size = msgs.shape[1]
         log = channel.log
@@ -254,7 +276,7 @@ class RunMcap:
         self._writer = foxglove.open_mcap(
             self.path, allow_overwrite=True, context=ctx, writer_options=options
         )
-        self.channels = RunChannels(ctx)
+        self.channels = RunChannels(context_topics(ctx))
         self.closed = False
 
     def ticks(self, mode: str, drone_ids: list[int], cols: Mapping[str, np.ndarray]) -> None:
@@ -310,8 +332,11 @@ __all__ = [
     "CHUNK_BYTES",
     "TF_PERIOD_S",
     "WORLD_FRAME",
+    "OpenTopic",
     "RunChannels",
     "RunMcap",
+    "TopicLog",
+    "context_topics",
     "event_level",
     "event_text",
     "per_drone",

@@ -1,5 +1,6 @@
-"""`--viewer foxglove[:PORT]`: the flight served live over Foxglove's WebSocket protocol (foxglove-sdk's
-server), on loopback by default, with the topics and typed messages of the run's MCAP
+"""`--viewer foxglove[:PORT]` (`--viewer-host ADDR`): the flight served live over Foxglove's WebSocket
+protocol (flightstack.viewer.foxglove_server, whose caps bound what clients cost the flight), on loopback
+unless `--viewer-host` names another address, with the topics and typed messages of the run's MCAP
 (flightstack.recording.mcap_writer), so one Foxglove layout opens both (docs/logs.md).
 
 The control tick only copies its newest row, at most LIVE_RATE_HZ times per second of wall time, into a
@@ -11,8 +12,10 @@ derives them at the end. A client that connects late sees the flight from then o
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import logging
 import queue
+import socket
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -29,6 +32,8 @@ _log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 8765
 """Foxglove's default WebSocket port."""
+LOOPBACK = "127.0.0.1"
+"""Where the view listens unless `--viewer-host` says otherwise."""
 LIVE_RATE_HZ = 30.0
 """Ticks published per second of wall time (the newest one each time)."""
 QUEUE_TICKS = 64
@@ -42,16 +47,14 @@ _Item = tuple[str, list[int], np.ndarray, dict[str, np.ndarray], list[Mapping[st
 class FoxgloveTap:
     """A runtime.taps.TickTap serving the flight live (module docstring); `finish` stops the server."""
 
-    def __init__(self, port: int = DEFAULT_PORT, host: str = "127.0.0.1", name: str = "flightstack") -> None:
-        import foxglove
-
+    def __init__(self, port: int = DEFAULT_PORT, host: str = LOOPBACK, name: str = "flightstack") -> None:
         from flightstack.recording.mcap_writer import RunChannels
+        from flightstack.viewer.foxglove_server import FoxgloveServer
 
-        self.ctx = foxglove.Context()
-        self.server = foxglove.start_server(name=name, host=host, port=port, context=self.ctx)
+        self.server = FoxgloveServer(host, port, name)
         self.port = self.server.port
         self.host = host
-        self.channels = RunChannels(self.ctx)
+        self.channels = RunChannels(self.server.topic)
         self.dropped = 0
         self.published = 0
         self._queue: queue.Queue[_Item | None] = queue.Queue(maxsize=QUEUE_TICKS)
@@ -64,7 +67,8 @@ class FoxgloveTap:
         self._thread.start()
 
     def describe(self) -> str:
-        return f"ws://{self.host}:{self.port} (Foxglove: Open connection, Foxglove WebSocket)"
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"ws://{host}:{self.port} (Foxglove or Lichtblick: Open connection, Foxglove WebSocket)"
 
     # ---- runtime.taps.TickTap ------------------------------------------------------------------------
     def start(self, f: Fleet, rec: Recording) -> None:
@@ -121,7 +125,8 @@ class FoxgloveTap:
             self.channels.events(mode, list(events))
 
     def finish(self) -> None:
-        """Publish what is queued (≤ FINISH_TIMEOUT_S), then stop the server."""
+        """Publish what is queued (≤ FINISH_TIMEOUT_S), then stop the server (logging what clients did
+        wrong that was not said yet)."""
         with contextlib.suppress(queue.Full):
             self._queue.put(None, timeout=FINISH_TIMEOUT_S)
         self._thread.join(timeout=FINISH_TIMEOUT_S)
@@ -136,4 +141,34 @@ def foxglove_port(spec: str) -> int | None:
     return DEFAULT_PORT if not text else int(text)
 
 
-__all__ = ["DEFAULT_PORT", "LIVE_RATE_HZ", "QUEUE_TICKS", "FoxgloveTap", "foxglove_port"]
+def host_problem(text: str) -> str | None:
+    """Why `--viewer-host` cannot serve the view: not an IP address, or not one of this machine's (it
+    cannot be bound); None when it can."""
+    try:
+        addr = ipaddress.ip_address(text.strip("[]"))
+    except ValueError:
+        return f"{text!r} is not an IP address (e.g. 192.168.1.20 or ::; a host name is not accepted)"
+    family = socket.AF_INET6 if addr.version == 6 else socket.AF_INET
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.bind((str(addr), 0))
+    except OSError as exc:
+        return f"{addr} is not an address of this machine ({exc.strerror or exc})"
+    return None
+
+
+def is_loopback(host: str) -> bool:
+    """Whether `host` (an IP address) reaches only this machine."""
+    return ipaddress.ip_address(host.strip("[]")).is_loopback
+
+
+__all__ = [
+    "DEFAULT_PORT",
+    "LIVE_RATE_HZ",
+    "LOOPBACK",
+    "QUEUE_TICKS",
+    "FoxgloveTap",
+    "foxglove_port",
+    "host_problem",
+    "is_loopback",
+]
