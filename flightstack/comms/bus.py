@@ -51,8 +51,9 @@ class OperatorChannel(Protocol):
     control_events: the operator commands received since the last call, oldest first (drained).
     publish_control: a status report for `flightstack status` / `guard` (no-op where nobody can read it).
     presence_events: `Event`s (kind "joined" | "left", drone = the sender, time.monotonic() s) of the
-    agents seen on the network, and "second session" (detail: the report) when a second process speaks
-    for one of them (identity.py).
+    agents seen on the network, "second session" (detail: the report) when a second process speaks
+    for one of them (identity.py), and "restart" for each message taken by the restart rule (detail:
+    the sender and the seqs; acceptance.py).
     """
 
     def control_events(self) -> list[ControlEvent]: ...
@@ -129,8 +130,8 @@ class InProcBus:
 
     @property
     def presence_events(self) -> list[Event]:
-        """Always empty: every agent is in this process."""
-        return []
+        """Every agent is in this process: only "restart" events (acceptance.py; mission clock), if any."""
+        return list(self._book.restart_events)
 
     def wait_alive(self, senders: set[int], timeout_s: float) -> set[int]:
         """Every agent is in this process: none missing."""
