@@ -13,7 +13,9 @@ With "copy_labels" it also listens to the predictions and puts each forged one w
 label is no authentication. With "copy_stream": {"sender": i, "lead": d, "mu": m} it is a second agent
 i: for every prediction the real agent i puts it puts one of its own right after, under the real one's
 label, with seq (real + d) and the real stamp, in-bounds values and μ = (m, m, 0, 0) ("copied stream"),
-once it has seen the liveliness token of every agent in "await" (default []: at once). A token is
+once it has seen the liveliness token of every agent in "await" (default []: at once). With "every": n
+it puts one only after every n-th real message (a low-rate copy); with "cycle": true only once the real
+sender has passed its last one (one message `d` ahead, again when the real stream is back). A token is
 declared after its agent's subscribers (flightstack/comms/zenoh_bus.py) and peers do not relay for each
 other, so seeing agent j's token means j's subscribers are known here and every copy is routed to j;
 a peer count alone does not say that.
@@ -112,6 +114,7 @@ def main(spec_path: str) -> int:
     t_open = time.monotonic()
     t_copying: float | None = None  # s after open when every awaited token was seen
     forged: set[int] = set()
+    real_seen = 0  # real messages heard while copying
 
     def copy_of(sample: Any) -> None:
         data = bytes(sample.payload.to_bytes())
@@ -148,6 +151,11 @@ def main(spec_path: str) -> int:
                 t_copying = time.monotonic() - t_open
             while copy and heard:
                 seq, stamp, label = heard.pop(0)
+                real_seen += 1
+                if copy.get("every") and (real_seen - 1) % int(copy["every"]):
+                    continue
+                if copy.get("cycle") and forged and seq <= max(forged):
+                    continue
                 forged.add(seq + copy["lead"])
                 data = prediction(
                     spec["mission"], copy["sender"], seq + copy["lead"], stamp, 0.01, copy["mu"]

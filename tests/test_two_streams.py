@@ -2,10 +2,12 @@
 about them (identity.py: the id quarantined for the run, reported once by name).
 
 Unit: the receive path (Freshness) against an honest sender whose messages the network repeats or
-reorders (never evidence), a sender counting again from 0 (one restart, no evidence of two streams), and
-copies that keep their seq 1, 2, 20, 500 or 1000 ahead of the real sender, or behind it, at the same
-rate with in-bounds values: each is found, and the number of the copy's messages accepted before is
-bounded (`max_reorder` + 2).
+reorders (never evidence), a sender counting again from 0 (one restart, an event naming it, no evidence
+of two streams), copies that keep their seq 1, 2, 20, 500 or 1000 ahead of the real sender, or behind it,
+at the same rate with in-bounds values (each is found, and the number of the copy's messages accepted
+before is bounded: `max_reorder` + 2), a holder of the key putting one message 1–20 ahead per cycle or
+one per 1,001 (each read once, found at the second), a copy taking the id by the restart rule (the real
+count resuming takes it back), and the restarts in an agent's status and `flightstack status`.
 """
 
 from __future__ import annotations
@@ -15,7 +17,10 @@ import random
 import numpy as np
 import pytest
 
+from flightstack.cli.network import status_table
 from flightstack.comms.acceptance import AcceptanceBounds
+from flightstack.comms.bus import InProcBus, restart_counts
+from flightstack.comms.control import StatusReport
 from flightstack.comms.freshness import Freshness
 from flightstack.comms.identity import SessionBook
 from flightstack.comms.messages import PredictionMessage, encode
@@ -272,3 +277,25 @@ def test_every_restart_is_an_event_naming_the_sender() -> None:
     assert (
         book.restart_events[1].detail.startswith("agent-1: taken again at seq 3 ") and not book.streams.found
     )
+
+
+def test_a_status_shows_the_restarts_its_bus_took_by_name() -> None:
+    """What an agent's status reports (fleet.StatusPublisher: restart_counts of its bus's events) and what
+    `flightstack status` prints of it."""
+    bus = InProcBus(MISSION, {1, 2})
+    for q in range(1, 301):
+        bus.publish_raw(_msg(q, sender=2))
+    for q in range(1, 4):  # sender 2 counting again
+        bus.publish_raw(_msg(q, mu=0.2, sender=2))
+    counts = restart_counts(bus.presence_events)
+    assert counts == {"agent-2": 1}
+    payload = {
+        "drone": 1, "mode": "dgp", "t": 3.0, "tick": 300, "battery_pct": 80.0, "flying": True,
+        "link_alive": True, "visible": True, "n_fused": 2, "pose_fresh": True, "rejection": None,
+        "dropped": dict(bus.dropped), "restarts": counts,
+    }  # fmt: skip
+    report = StatusReport.from_payload(payload)
+    assert report is not None and report.restarts == (("agent-2", 1),)
+    assert StatusReport.from_payload({**payload, "restarts": {"agent-2": -1}}) is None
+    row = status_table({1: (report, 10.0)}, {1}, [1], 10.5).splitlines()[1]
+    assert row.endswith("dropped old or duplicate seq: 2; restarts agent-2: 1"), row

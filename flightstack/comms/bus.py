@@ -9,7 +9,7 @@ Zenoh bus.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any, Protocol
 
 from flightstack.comms.acceptance import AcceptanceBounds
@@ -61,6 +61,15 @@ class OperatorChannel(Protocol):
 
     @property
     def presence_events(self) -> list[Event]: ...
+
+
+def restart_counts(events: Iterable[Event]) -> dict[str, int]:
+    """Messages taken by the restart rule per sender's participant name (certs.agent_name), from a bus's
+    presence_events: what a status reports (control.StatusReport.restarts)."""
+    from flightstack.comms.certs import agent_name  # not cryptography on every bus's import
+
+    counts = Counter(e.drone for e in events if e.kind == "restart" and e.drone is not None)
+    return {agent_name(i): n for i, n in sorted(counts.items())}
 
 
 class Bus(PredictionBus, LockstepBus, OperatorChannel, Protocol):
