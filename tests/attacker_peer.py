@@ -19,12 +19,13 @@ sender has passed its last one (one message `d` ahead, again when the real strea
 declared after its agent's subscribers (flightstack/comms/zenoh_bus.py) and peers do not relay for each
 other, so seeing agent j's token means j's subscribers are known here and every copy is routed to j;
 a peer count alone does not say that.
-Loopback only; stops by itself.
+Loopback only; stops by itself, or at SIGTERM (then reports as at the end).
 """
 
 from __future__ import annotations
 
 import json
+import signal
 import struct
 import sys
 import time
@@ -135,10 +136,12 @@ def main(spec_path: str) -> int:
         awaited = {str(i) for i in copy.get("await", [])}
         alive_keys = f"{spec['prefix']}/{spec['mission']}/alive/*"
         session.liveliness().declare_subscriber(alive_keys, alive, history=True)
+    stop: list[int] = []
+    signal.signal(signal.SIGTERM, lambda signum, _frame: stop.append(signum))
     try:
         t_end = time.monotonic() + float(spec["duration_s"])
         k = 0
-        while time.monotonic() < t_end:
+        while time.monotonic() < t_end and not stop:
             peers = len(list(session.info.peers_zid()))
             max_peers = max(max_peers, peers)
             if copy and sent["copied stream"]:
