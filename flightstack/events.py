@@ -33,8 +33,8 @@ RunKind = Literal[
     "end", "end_early", "end_exception", "compiled loop", "lock-step wait timed out", "safety tick", "landed",
     "NOT LANDED", "neighbours", "recording_stopped",
 ]  # fmt: skip
-BusKind = Literal["joined", "left", "second session", "offset learning", "offset re-learning after silence",
-                  "offset frozen"]  # fmt: skip
+BusKind = Literal["joined", "left", "second session", "restart", "offset learning",
+                  "offset re-learning after silence", "offset frozen"]  # fmt: skip
 TelloKind = Literal[
     "phase", "link_lost", "link_restored", "loop_lost_land", "loop_silent_hover", "resend",
     "reply_not_trusted", "takeoff_confirmed", "land_confirmed", "reply_lost_confirmed",
@@ -145,6 +145,10 @@ KINDS: Mapping[str, KindInfo] = {
     "joined": _i("an agent appeared on the bus"),
     "left": _i("an agent left the bus"),
     "second session": _w("a second process speaks for a drone; its messages are dropped"),
+    "restart": _w(
+        "a sender's messages taken again by the restart rule (flightstack/comms/acceptance.py): it counted "
+        "again, this receiver joined it late, or another stream took its id (detail: the sender, the seqs)"
+    ),
     "offset learning": _i("first messages of a sender: its clock offset is being learned (value: s)"),
     "offset re-learning after silence": _i("a sender back after silence: its offset is learned again"),
     "offset frozen": _i("a sender's clock offset is fixed (value: s)"),

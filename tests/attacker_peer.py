@@ -13,16 +13,19 @@ With "copy_labels" it also listens to the predictions and puts each forged one w
 label is no authentication. With "copy_stream": {"sender": i, "lead": d, "mu": m} it is a second agent
 i: for every prediction the real agent i puts it puts one of its own right after, under the real one's
 label, with seq (real + d) and the real stamp, in-bounds values and μ = (m, m, 0, 0) ("copied stream"),
-once it has seen the liveliness token of every agent in "await" (default []: at once). A token is
+once it has seen the liveliness token of every agent in "await" (default []: at once). With "every": n
+it puts one only after every n-th real message (a low-rate copy); with "cycle": true only once the real
+sender has passed its last one (one message `d` ahead, again when the real stream is back). A token is
 declared after its agent's subscribers (flightstack/comms/zenoh_bus.py) and peers do not relay for each
 other, so seeing agent j's token means j's subscribers are known here and every copy is routed to j;
 a peer count alone does not say that.
-Loopback only; stops by itself.
+Loopback only; stops by itself, or at SIGTERM (then reports as at the end).
 """
 
 from __future__ import annotations
 
 import json
+import signal
 import struct
 import sys
 import time
@@ -112,6 +115,7 @@ def main(spec_path: str) -> int:
     t_open = time.monotonic()
     t_copying: float | None = None  # s after open when every awaited token was seen
     forged: set[int] = set()
+    real_seen = 0  # real messages heard while copying
 
     def copy_of(sample: Any) -> None:
         data = bytes(sample.payload.to_bytes())
@@ -132,10 +136,12 @@ def main(spec_path: str) -> int:
         awaited = {str(i) for i in copy.get("await", [])}
         alive_keys = f"{spec['prefix']}/{spec['mission']}/alive/*"
         session.liveliness().declare_subscriber(alive_keys, alive, history=True)
+    stop: list[int] = []
+    signal.signal(signal.SIGTERM, lambda signum, _frame: stop.append(signum))
     try:
         t_end = time.monotonic() + float(spec["duration_s"])
         k = 0
-        while time.monotonic() < t_end:
+        while time.monotonic() < t_end and not stop:
             peers = len(list(session.info.peers_zid()))
             max_peers = max(max_peers, peers)
             if copy and sent["copied stream"]:
@@ -148,6 +154,11 @@ def main(spec_path: str) -> int:
                 t_copying = time.monotonic() - t_open
             while copy and heard:
                 seq, stamp, label = heard.pop(0)
+                real_seen += 1
+                if copy.get("every") and (real_seen - 1) % int(copy["every"]):
+                    continue
+                if copy.get("cycle") and forged and seq <= max(forged):
+                    continue
                 forged.add(seq + copy["lead"])
                 data = prediction(
                     spec["mission"], copy["sender"], seq + copy["lead"], stamp, 0.01, copy["mu"]

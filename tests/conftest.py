@@ -331,6 +331,7 @@ def status_payload(drone: int, flying: bool = True, **changes: object) -> dict:
         "pose_fresh": True,
         "rejection": None,
         "dropped": {},
+        "restarts": {},
         **changes,
     }
 

@@ -217,7 +217,7 @@ BASE_CMDS = [
     {"v": 1, "k": 9, "calls": [["close"], ["send_body_velocity", [0, 0, 0, 0]]]},
     {"v": 1, "k": 4, "calls": [["send_body_velocity", [0.1 * i, -0.2, 0.05 * i, 0.4]] for i in range(4)]},
 ]
-GOOD_STATUS = StatusReport(1, "dgp", 1.0, 20, 80.0, True, True, True, 1, True, None, ()).to_payload()
+GOOD_STATUS = StatusReport(1, "dgp", 1.0, 20, 80.0, True, True, True, 1, True, None, (), ()).to_payload()
 BASE_CONTROL = [
     (STATUS, GOOD_STATUS),
     (
@@ -227,6 +227,7 @@ BASE_CONTROL = [
             "drone": 2,
             "rejection": "3 blobs",
             "dropped": {"stale": 4, "control: bad status": 1},
+            "restarts": {"agent-1": 2},
         },
     ),
     (ABORT, {"reason": "operator abort", "id": "0123abcd"}),

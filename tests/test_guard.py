@@ -66,7 +66,7 @@ def status():
     bus.publish_control("status", {  # every field of runner.StatusPublisher's (control.StatusReport)
         "drone": i, "mode": "none", "t": time.monotonic(), "tick": 0, "battery_pct": st.battery_pct,
         "flying": st.flying, "link_alive": st.link_alive, "visible": False, "n_fused": 0,
-        "pose_fresh": True, "rejection": None, "dropped": {},
+        "pose_fresh": True, "rejection": None, "dropped": {}, "restarts": {},
     })
 
 t_fly, t_next = None, 0.0

@@ -141,7 +141,7 @@ def test_a_peer_that_declares_no_encoding_is_still_heard() -> None:
     try:
         status = {"drone": 1, "mode": "dgp", "t": 1.0, "tick": 100, "battery_pct": 90.0, "flying": True,
                   "link_alive": True, "visible": True, "n_fused": 2, "pose_fresh": True, "rejection": None,
-                  "dropped": {}}  # fmt: skip
+                  "dropped": {}, "restarts": {}}  # fmt: skip
         heard: list[Any] = []
         deadline = time.monotonic() + 30
         seq = 0

@@ -330,7 +330,7 @@ def render_wire_control() -> str:
 
     example = {"drone": 1, "mode": "dgp", "t": 12.5, "tick": 1250, "battery_pct": 87.0, "flying": True,
                "link_alive": True, "visible": True, "n_fused": 3, "pose_fresh": True, "rejection": None,
-               "dropped": {"stale": 2}}  # fmt: skip
+               "dropped": {"stale": 2}, "restarts": {"agent-2": 1}}  # fmt: skip
     envelope = json.loads(control.encode_control("lab", control.STATUS, example, [1]))
     out = ["A status of drone 1 of mission `lab`, as `encode_control` writes it:", "", "```json"]
     out += [json.dumps(envelope, indent=2, ensure_ascii=False), "```", ""]

@@ -182,6 +182,8 @@ def status_table(
             problems.append("link lost")
         if s.dropped:
             problems.append("dropped " + ", ".join(f"{k}: {v}" for k, v in s.dropped))
+        if s.restarts:  # each a message its bus took by the restart rule (comms/acceptance.py)
+            problems.append("restarts " + ", ".join(f"{k}: {v}" for k, v in s.restarts))
         lines.append(
             f"{i:>5}  {'yes' if i in alive else 'no':5}  {now - received:6.1f}  {age(i)}  {s.mode:6}  "
             f"{s.t:8.2f}  {s.battery_pct:6.0f}  {'yes' if s.flying else 'no':6}  "

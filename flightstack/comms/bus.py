@@ -9,7 +9,7 @@ Zenoh bus.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any, Protocol
 
 from flightstack.comms.acceptance import AcceptanceBounds
@@ -51,8 +51,9 @@ class OperatorChannel(Protocol):
     control_events: the operator commands received since the last call, oldest first (drained).
     publish_control: a status report for `flightstack status` / `guard` (no-op where nobody can read it).
     presence_events: `Event`s (kind "joined" | "left", drone = the sender, time.monotonic() s) of the
-    agents seen on the network, and "second session" (detail: the report) when a second process speaks
-    for one of them (identity.py).
+    agents seen on the network, "second session" (detail: the report) when a second process speaks
+    for one of them (identity.py), and "restart" for each message taken by the restart rule (detail:
+    the sender and the seqs; acceptance.py).
     """
 
     def control_events(self) -> list[ControlEvent]: ...
@@ -60,6 +61,15 @@ class OperatorChannel(Protocol):
 
     @property
     def presence_events(self) -> list[Event]: ...
+
+
+def restart_counts(events: Iterable[Event]) -> dict[str, int]:
+    """Messages taken by the restart rule per sender's participant name (certs.agent_name), from a bus's
+    presence_events: what a status reports (control.StatusReport.restarts)."""
+    from flightstack.comms.certs import agent_name  # not cryptography on every bus's import
+
+    counts = Counter(e.drone for e in events if e.kind == "restart" and e.drone is not None)
+    return {agent_name(i): n for i, n in sorted(counts.items())}
 
 
 class Bus(PredictionBus, LockstepBus, OperatorChannel, Protocol):
@@ -129,8 +139,8 @@ class InProcBus:
 
     @property
     def presence_events(self) -> list[Event]:
-        """Always empty: every agent is in this process."""
-        return []
+        """Every agent is in this process: only "restart" events (acceptance.py; mission clock), if any."""
+        return list(self._book.restart_events)
 
     def wait_alive(self, senders: set[int], timeout_s: float) -> set[int]:
         """Every agent is in this process: none missing."""

@@ -31,8 +31,8 @@ Bounds: abort reason ≤ MAX_REASON_CHARS characters; abort id ≤ MAX_ID_CHARS;
 [0, MAX_DRONE_ID] (the mission's); origin and ack drone lists ≤ MAX_DRONES entries; pid in
 [0, MAX_PID]; host ≤ MAX_HOST_CHARS; status: t finite with |t| ≤ MAX_STATUS_TIME_S s, tick and
 n_fused ints in [0, MAX_COUNT], battery_pct in [0, 100] %, mode ≤ MAX_MODE_CHARS of [A-Za-z0-9_-],
-rejection null or ≤ MAX_REJECTION_CHARS, dropped ≤ MAX_DROPPED_REASONS reasons of
-≤ MAX_REJECTION_CHARS characters → counts in [0, MAX_COUNT].
+rejection null or ≤ MAX_REJECTION_CHARS, dropped and restarts ≤ MAX_DROPPED_REASONS reasons or names
+of ≤ MAX_REJECTION_CHARS characters → counts in [0, MAX_COUNT].
 """
 
 from __future__ import annotations
@@ -225,8 +225,9 @@ class AckReport:
 class StatusReport:
     """One agent's status (flightstack/runtime/fleet.py StatusPublisher): its drone, the mode flown, mission
     time t (s) and tick, battery (%), flying and telemetry link, whether it saw the target, how many
-    experts it fused, whether its own motion-capture pose is fresh, the last vision rejection (None: none)
-    and its bus's drop counts by reason."""
+    experts it fused, whether its own motion-capture pose is fresh, the last vision rejection (None: none),
+    its bus's drop counts by reason, and the messages its bus took by the restart rule, per sender's
+    participant name (acceptance.py)."""
 
     drone: int
     mode: str
@@ -240,6 +241,7 @@ class StatusReport:
     pose_fresh: bool
     rejection: str | None
     dropped: tuple[tuple[str, int], ...]
+    restarts: tuple[tuple[str, int], ...]
 
     @staticmethod
     def from_payload(p: object) -> StatusReport | None:
@@ -260,14 +262,9 @@ class StatusReport:
             return None
         if rejection is not None and _text(rejection, MAX_REJECTION_CHARS) is None:
             return None
-        if not (isinstance(dropped, dict) and len(dropped) <= MAX_DROPPED_REASONS):
+        counts, restarts = _counts(dropped), _counts(p.get("restarts"))
+        if counts is None or restarts is None:
             return None
-        counts: list[tuple[str, int]] = []
-        for r, n in dropped.items():
-            count = _int(n, 0, MAX_COUNT)
-            if count is None or _text(r, MAX_REJECTION_CHARS) is None:
-                return None
-            counts.append((r, count))
         return StatusReport(
             drone=drone,
             mode=mode,
@@ -280,7 +277,8 @@ class StatusReport:
             n_fused=n_fused,
             pose_fresh=pose_fresh,
             rejection=rejection,
-            dropped=tuple(counts),
+            dropped=counts,
+            restarts=restarts,
         )
 
     def to_payload(self) -> dict[str, Any]:
@@ -297,7 +295,22 @@ class StatusReport:
             "pose_fresh": self.pose_fresh,
             "rejection": self.rejection,
             "dropped": dict(self.dropped),
+            "restarts": dict(self.restarts),
         }
+
+
+def _counts(x: object) -> tuple[tuple[str, int], ...] | None:
+    """A status's {text: count} object (≤ MAX_DROPPED_REASONS entries, each text ≤ MAX_REJECTION_CHARS,
+    each count in [0, MAX_COUNT]) as pairs, or None."""
+    if not (isinstance(x, dict) and len(x) <= MAX_DROPPED_REASONS):
+        return None
+    out: list[tuple[str, int]] = []
+    for r, n in x.items():
+        count = _int(n, 0, MAX_COUNT)
+        if count is None or _text(r, MAX_REJECTION_CHARS) is None:
+            return None
+        out.append((r, count))
+    return tuple(out)
 
 
 def _real(x: object, lo: float, hi: float) -> float | None:

@@ -43,7 +43,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
-from flightstack.comms.acceptance import AcceptanceBounds, SeqState, restart_run, seq_verdict
+from flightstack.comms.acceptance import AcceptanceBounds, SeqState, in_gap, restart_run, seq_verdict
 from flightstack.comms.messages import PredictionMessage, decode_checked
 from flightstack.comms.streams import DUPLICATE, StreamWatch, digest
 from flightstack.events import BusKind, Event
@@ -120,10 +120,12 @@ class Freshness:
         self.dropped: Counter[str] = Counter()
         self.delivered = 0
         self.bounds = bounds or AcceptanceBounds()
-        self.runs: dict[int, SeqState] = {}  # per sender: the current run of rejected seqs
-        self.restarts: Counter[int] = Counter()  # per sender: sequence restarts accepted
+        self.seqs: dict[int, SeqState] = {}  # per sender: its rejected run and its newest skip's gap
+        self.restarts: Counter[int] = Counter()  # per sender: messages taken by the restart rule
+        self.restart_events: list[Event] = []  # one per restart, kind "restart", naming the sender
         # a second stream under a sender's id (streams.py): watched here, acted on by the bus
-        self.streams = StreamWatch(self.bounds.max_seq_jump, self.bounds.max_reorder)
+        b = self.bounds
+        self.streams = StreamWatch(b.max_seq_jump, b.max_reorder, b.quarantine_after)
 
     def accept(
         self, data: bytes, key_sender: str | None = None, t_recv: float | None = None
@@ -143,21 +145,27 @@ class Freshness:
         if bad:  # AcceptanceBounds.violation, decided by decode's compiled pass
             self.dropped[bad] += 1
             return None
-        prev = self.newest.get(msg.sender)
-        why = seq_verdict(None if prev is None else prev.seq, msg.seq, self.bounds)
+        sender, seq = msg.sender, msg.seq
+        prev = self.newest.get(sender)
+        prev_seq = None if prev is None else prev.seq
+        why = seq_verdict(prev_seq, seq, self.bounds)
         dig = digest(data)
-        old = None
-        if prev is not None and msg.seq <= prev.seq:  # old: a duplicate, late, or another stream's
-            old = self.streams.refused_old(msg.sender, msg.seq, dig, prev.seq)
-        restart = False
+        state = self.seqs.setdefault(sender, SeqState())
+        rule: Literal["gap", "restart"] | None = None
+        if prev_seq is not None and seq <= prev_seq:  # old: a duplicate, late, another stream's, or a gap's
+            unseen = not self.streams.seen(sender, seq)
+            if self.streams.refused_old(sender, seq, dig, prev_seq) == DUPLICATE:
+                self.dropped[why or "old or duplicate seq"] += 1  # the network repeated it: never a run
+                return None
+            if (unseen and in_gap(state, seq, prev_seq, self.bounds)) or seq == prev_seq:
+                why, rule = None, "gap"  # the stream from before the newest skip goes on (acceptance.py)
+        elif prev_seq is not None and why is None and self.streams.resumed(sender, seq, prev_seq):
+            rule = "gap"  # the count a restart left goes on: it never stopped, the restart is undone
         if why:  # before the clock: a message refused here must not move the sender's offset
-            if old == DUPLICATE:  # the network repeated it: never part of a restart run
+            if not restart_run(state, seq, self.bounds):
                 self.dropped[why] += 1
                 return None
-            if not restart_run(self.runs.setdefault(msg.sender, SeqState()), msg.seq, self.bounds):
-                self.dropped[why] += 1
-                return None
-            restart = True
+            rule = "restart"
         if self.time_base == "receiver":
             if t_recv is None:
                 t_recv = self.clock()
@@ -165,15 +173,31 @@ class Freshness:
             if why:
                 self.dropped[why] += 1
                 return None
-        if restart:
-            self.restarts[msg.sender] += 1  # a restarted sender (or a slot taken before it): resync
-        self.runs.pop(msg.sender, None)
-        self.streams.accepted(msg.sender, msg.seq, dig, back=prev is not None and msg.seq < prev.seq)
-        self.newest[msg.sender] = msg
+        if rule == "restart":
+            self._restarted(msg, prev_seq, t_recv)
+        below = rule == "restart" and prev_seq is not None and seq < prev_seq
+        self.streams.accepted(sender, seq, dig, restart=rule == "restart", left=prev_seq if below else None)
+        state.taken(prev_seq, seq, by_rule=rule is not None)
+        self.newest[sender] = msg
         if t_recv is not None:
-            self.received[msg.sender] = t_recv
+            self.received[sender] = t_recv
         self.delivered += 1
         return msg
+
+    def _restarted(self, msg: PredictionMessage, prev_seq: int | None, t_recv: float | None) -> None:
+        """Count and report a message taken by the restart rule (acceptance.py): the sender counted again,
+        a receiver joined it late, or a stream took the id while the one before it stopped."""
+        from flightstack.comms.certs import agent_name  # rare: not cryptography on every bus's import
+
+        self.restarts[msg.sender] += 1
+        before = "nothing heard before" if prev_seq is None else f"its newest was seq {prev_seq}"
+        detail = (
+            f"{agent_name(msg.sender)}: taken again at seq {msg.seq} after {self.bounds.restart_after} "
+            f"consecutive messages outside the sequence rules ({before}); restart {self.restarts[msg.sender]}"
+        )
+        t = t_recv if t_recv is not None else msg.stamp
+        clock: Literal["monotonic", "mission"] = "monotonic" if t_recv is not None else "mission"
+        self.restart_events.append(Event(t, msg.sender, "restart", detail, source="bus", clock=clock))
 
     def age(self, sender: int, now: float) -> float | None:
         """Age (s) of `sender`'s newest message: `now − stamp` ("stamps"), or clock() − (stamp + offset)
@@ -212,7 +236,7 @@ class Freshness:
         agent counts seq from 0 again and re-learns its offset)."""
         self.newest.pop(sender, None)
         self.clocks.pop(sender, None)
-        self.runs.pop(sender, None)
+        self.seqs.pop(sender, None)
         self.streams.forget(sender)
 
     def offset(self, sender: int) -> float | None:

@@ -6,7 +6,7 @@ a sender's messages can put its label on their own. What a second process speaki
 avoid is the real sender's own stream: it keeps numbering its messages 1, 2, 3, … once each
 (messages.py: seq), whatever the copy does. A network may deliver a message twice (identical bytes) or
 late (behind a few of its successors); it never changes one. So, per sender, over a window of the newest
-`window` seqs (seq → digest of the message bytes), a message refused as "old or duplicate seq" is
+`window` seqs (seq → digest of the message bytes), a message below the newest is
 
     a duplicate    its seq was seen with the same bytes: no evidence (a repeat older than the window
                    cannot be told from another stream's; a network repeats within milliseconds);
@@ -16,17 +16,23 @@ late (behind a few of its successors); it never changes one. So, per sender, ove
                    and is more than `max_reorder` behind the newest ("seq N arrived M behind the newest"):
                    a stream that the accepted one has overtaken.
 
-A copy that keeps its seq d ahead of the real sender has every real message refused: each is late until
-the real sender reaches the copy's first seq (at most `max_reorder` messages), then each is evidence;
-a copy more than `max_reorder` ahead makes every real message evidence at once; a copy behind has its
-own messages refused as evidence. A stream counting again from 0 under one label (the restart rule of
-acceptance.py taking it back: the seqs above it are forgotten) may be the real stream behind a copy: it
-clears no evidence. A duplicate never counts towards that restart rule (freshness.py).
+A message accepted under a seq seen with other bytes is evidence too: the gap rule of acceptance.py gave
+the id back to the stream from before a skip, and that stream has now reached the skipping message's seq
+("two payloads under seq N"). So is a message that resumes the count a restart left, while the count
+the restart took is still below it ("seq N resumes the count that stopped at M before a restart"): the
+restart was a second stream's, and acceptance.py gives the id back to that count.
 
-Two streams are established when evidence arrives after an earlier piece of evidence with at least one
-message accepted in between (and no more than `window` accepted since): the two streams interleave. One
-late message delayed past `max_reorder`, or a sender's single restart, never does that. What follows is
-the caller's: the bus quarantines the id (identity.py); this module only watches.
+Interleaving is evidence; a restart is not. The evidence of a refused message is *pending* until the
+sender's next accepted message: a plain one (the stream the message fell behind goes on: the two
+interleave) confirms it, one taken by the restart rule (the stream that held the id stopped, and these
+were the new count's first messages) discards it. Evidence under an accepted seq, and a resumed count,
+are confirmed at once. So a sender counting from 0 again, a receiver joining late, duplicates and
+reordering within `max_reorder` make no evidence; a copy of any lead makes one piece per message the
+real stream sends into it, at the latest when the real stream reaches the copy's seq.
+
+`quarantine_after` confirmed pieces, however far apart, establish two streams: the sender is put in
+`found` with the newest evidence. What follows is the caller's: the bus quarantines the id (identity.py);
+this module only watches.
 
 Units: seqs and window sizes in messages. Thread safety: none; the callers hold their lock.
 """
@@ -48,29 +54,37 @@ def digest(data: bytes) -> bytes:
 @dataclass
 class _Stream:
     seen: dict[int, bytes] = field(default_factory=dict)  # seq → digest, seqs in (newest − window, newest]
-    accepted: int = 0  # messages accepted from this sender
-    mark: int | None = None  # `accepted` at the newest piece of evidence
+    pending: list[str] = field(default_factory=list)  # evidence of refused messages since the last accepted
+    left: int | None = None  # the newest seq before a restart took the id below it, until passed
 
 
 class StreamWatch:
     """Per sender, the window of seen seqs and the evidence of a second stream; see the module docstring.
     window: seqs remembered behind the newest (≥ max_reorder); max_reorder: how far behind the newest a
-    never-seen seq may arrive and still be a late message."""
+    never-seen seq may arrive and still be a late message; quarantine_after: confirmed pieces of evidence
+    that establish two streams."""
 
-    def __init__(self, window: int, max_reorder: int) -> None:
+    def __init__(self, window: int, max_reorder: int, quarantine_after: int = 2) -> None:
         if not 0 < max_reorder <= window:
             raise ValueError("need 0 < max_reorder <= window")
+        if quarantine_after < 1:
+            raise ValueError("need quarantine_after >= 1")
         self.window = window
         self.max_reorder = max_reorder
+        self.quarantine_after = quarantine_after
         self._streams: dict[int, _Stream] = {}
         self.found: dict[int, str] = {}  # sender → why it has two streams (set once)
-        self.evidence: dict[int, int] = {}  # sender → pieces of evidence seen
+        self.evidence: dict[int, int] = {}  # sender → confirmed pieces of evidence
+
+    def seen(self, sender: int, seq: int) -> bool:
+        """True when `seq` of `sender` is in the window (accepted, or refused as late or as evidence)."""
+        s = self._streams.get(sender)
+        return s is not None and seq in s.seen
 
     def refused_old(self, sender: int, seq: int, dig: bytes, newest: int) -> str | None:
-        """A message of `sender` with `seq` and digest `dig`, refused as old (the newest accepted seq is
-        `newest`): DUPLICATE, None for a late message, else the evidence ("two payloads under seq N" |
-        "seq N arrived M behind the newest"). When it establishes two streams the sender is put in
-        `found` (once)."""
+        """A message of `sender` with `seq` and digest `dig` below the newest accepted seq `newest`:
+        DUPLICATE, None for a late message, else the evidence ("two payloads under seq N" | "seq N arrived M
+        behind the newest"), pending until the sender's next accepted message (module docstring)."""
         s = self._streams.setdefault(sender, _Stream())
         known = s.seen.get(seq)
         if known == dig:
@@ -78,28 +92,53 @@ class StreamWatch:
         if known is None and newest - seq <= self.max_reorder:
             s.seen[seq] = dig  # late: a second different payload under it is a conflict
             return None
-        why = (
-            f"two payloads under seq {seq}"
-            if known is not None
-            else f"seq {seq} arrived {newest - seq} behind the newest"
-        )
-        self.evidence[sender] = self.evidence.get(sender, 0) + 1
-        if s.mark is not None and 0 < s.accepted - s.mark <= self.window and sender not in self.found:
-            n = self.evidence[sender]
-            self.found[sender] = f"{why}, interleaved with accepted messages ({n} refused)"
-        s.mark = s.accepted
+        if known is None:
+            s.seen[seq] = dig
+            why = f"seq {seq} arrived {newest - seq} behind the newest"
+        else:
+            why = f"two payloads under seq {seq}"
+        s.pending.append(why)
         return why
 
-    def accepted(self, sender: int, seq: int, dig: bytes, back: bool = False) -> None:
-        """A message of `sender` with `seq` and digest `dig` was accepted; back: by the restart rule, below
-        the previous newest (the seqs above it are forgotten)."""
+    def resumed(self, sender: int, seq: int, newest: int) -> str | None:
+        """A message of `sender` above the newest accepted seq `newest`: the evidence when it resumes the
+        count a restart left (`seq` above it while `newest` is still below it), confirmed at once; else
+        None."""
+        s = self._streams.get(sender)
+        if s is None or s.left is None or not newest < s.left < seq:
+            return None
+        why = f"seq {seq} resumes the count that stopped at {s.left} before a restart"
+        self._confirm(sender, [why])
+        return why
+
+    def accepted(
+        self, sender: int, seq: int, dig: bytes, restart: bool = False, left: int | None = None
+    ) -> None:
+        """A message of `sender` with `seq` and digest `dig` was accepted. restart: by the restart rule (the
+        pending evidence is discarded); left: the newest seq before it when the restart went below it (the
+        seqs above are forgotten, and a message resuming that count later is evidence)."""
         s = self._streams.setdefault(sender, _Stream())
-        if back:  # the seqs above it were the previous count's
-            s.seen = {q: d for q, d in s.seen.items() if q < seq}
+        evidence = [] if restart else s.pending
+        s.pending = []
+        known, conflict = s.seen.get(seq), f"two payloads under seq {seq}"
+        if known is not None and known != dig and not restart and conflict not in evidence:
+            evidence.append(conflict)
+        if left is not None:
+            s.seen = {q: d for q, d in s.seen.items() if q < seq}  # the seqs above were the previous count's
+            s.left = left
+        elif s.left is not None and seq >= s.left:
+            s.left = None  # the new count passed where the old one stopped
         s.seen[seq] = dig
-        s.accepted += 1
         if len(s.seen) > 2 * self.window:  # amortised: drop what fell out of the window
             s.seen = {q: d for q, d in s.seen.items() if q > seq - self.window}
+        if evidence:
+            self._confirm(sender, evidence)
+
+    def _confirm(self, sender: int, evidence: list[str]) -> None:
+        n = self.evidence.get(sender, 0) + len(evidence)
+        self.evidence[sender] = n
+        if n >= self.quarantine_after and sender not in self.found:
+            self.found[sender] = f"{evidence[-1]} ({n} pieces of evidence: two streams interleave)"
 
     def forget(self, sender: int) -> None:
         """The sender left the bus: its window starts again (what was `found` stays found)."""

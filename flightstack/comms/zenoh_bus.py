@@ -14,7 +14,8 @@ FIFO handler blocks the session when Python is slow. Bad messages are dropped an
 `dropped`, as in `InProcBus`. Messages of a second session publishing as an owned sender are dropped first
 ("second session", identity.py) and reported once in `presence_events`; so are the messages of a sender
 under whose label two streams publish (streams.py: quarantined for the run, "two sessions under one
-label"). Own agents' messages take the same encode → Zenoh → decode path as remote ones.
+label"). Every message taken by the restart rule (acceptance.py) is a "restart" event there too, naming
+the sender. Own agents' messages take the same encode → Zenoh → decode path as remote ones.
 
 QoS: predictions reliable, congestion control DROP in real time and BLOCK when `reliable` (lock-step),
 batched, not express (why and the latency measured: docs/lab_notes.md); control messages express, BLOCK,
@@ -277,7 +278,8 @@ class ZenohBus:
 
     @property
     def presence_events(self) -> list[Event]:
-        """(time.monotonic() s, sender, "joined"|"left"|"second session") in order of receipt (copy)."""
+        """(time.monotonic() s, sender, "joined"|"left"|"second session"|"restart") in order of receipt
+        (copy)."""
         with self._cond:
             return list(self._events)
 
@@ -382,9 +384,11 @@ class ZenohBus:
                 self._dropped[TWO_STREAMS if quarantined else SECOND_SESSION] += 1
                 self._events.extend(_session_event(e) for e in self._sessions.events[n_events:])
                 return
+            n_restarts = len(self._book.restart_events)
             msg = self._book.accept(data, key_sender, t_recv)
             if msg is not None:
                 self._sessions.claim(msg.sender, label, t_recv)
+                self._events.extend(self._book.restart_events[n_restarts:])  # "restart", naming the sender
             why = self._book.streams.found.get(sender)
             if why is not None and sender not in self._sessions.quarantined:
                 # two streams under this label (streams.py): neither is trusted for the rest of the run

@@ -19,7 +19,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from flightstack.comms.bus import Bus, OperatorChannel, PredictionBus
+from flightstack.comms.bus import Bus, OperatorChannel, PredictionBus, restart_counts
 from flightstack.comms.factory import make_bus
 from flightstack.config.mission import Mission
 from flightstack.hal import Backend, Clock, Drone
@@ -187,6 +187,7 @@ class StatusPublisher:
                     "pose_fresh": bool(last.own_pose_fresh),
                     "rejection": last.rejection,
                     "dropped": dict(self.bus.dropped),
+                    "restarts": restart_counts(self.bus.presence_events),
                 },
             )
 
