@@ -201,6 +201,12 @@ CASES: list[object] = [
     ("preflight: no hardware", lambda d: ["preflight", "paper_sim", "--deadline", "nan"], 2, "paper_sim"),
     ("target: random bytes", lambda d: ["target", str(d / "garbage.yaml")], 2, "garbage.yaml"),
     ("target: --duration nan", lambda d: ["target", "paper_sim", "--duration", "nan"], 2, "--duration"),
+    ("target: --laps nan", lambda d: ["target", "paper_sim", "--laps", "nan"], 2, "--laps"),
+    ("target: --laps inf", lambda d: ["target", "paper_sim", "--laps", "inf"], 2, "--laps"),
+    ("target: --laps -1", lambda d: ["target", "paper_sim", "--laps", "-1"], 2, "--laps"),
+    ("target: --laps 0", lambda d: ["target", "paper_sim", "--laps", "0"], 2, "--laps"),
+    ("target: --laps 1e9", lambda d: ["target", "paper_sim", "--laps", "1e9"], 2, "--laps"),
+    ("target: --laps x", lambda d: ["target", "paper_sim", "--laps", "x"], 2, "--laps"),
     ("target: no robot", lambda d: ["target", "paper_sim", "--yes"], 2, "hardware.target"),
     ("train: missing run", lambda d: ["train", str(d / "missing"), "--out", str(d / "x.npz")], 2, "missing"),
     (
