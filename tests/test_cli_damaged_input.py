@@ -157,6 +157,8 @@ CASES: list[object] = [
     ("run: --duration -1", lambda d: ["run", "paper_sim", "--duration", "-1"], 2, "--duration"),
     ("run: --set without =", lambda d: ["run", "paper_sim", "--set", "duration_s"], 2, "duration_s"),
     ("run: --set dt_s=1e-300", lambda d: ["run", "paper_sim", "--set", "dt_s=1e-300"], 2, "dt_s"),
+    ("run: --set seed=", lambda d: ["run", "paper_sim", "--set", "seed="], 2, "--set seed: empty value"),
+    ("run: --set seed=-1", lambda d: ["run", "paper_sim", "--set", "seed=-1"], 2, "seed"),
     ("run: --set unknown key", lambda d: ["run", "paper_sim", "--set", "no.such.key=1"], 2, "no"),
     (
         "run: --rig random bytes",
