@@ -28,6 +28,9 @@ MAX_SESSION_BYTES = 256_000_000
 allocated): a 60 s calibration flight holds a few MB."""
 MAX_SESSION_SPAN_S = 3600.0
 """Bound on the time a session spans (s, all its times on one clock): a calibration flight is about 30 s."""
+ROTATION_TOL = 1e-3
+"""How far R_ic's columns may be from orthonormal (largest |RᵀR − I| entry): a mount written by hand with
+four decimals (0.7071) passes."""
 
 
 @dataclass
@@ -156,10 +159,23 @@ def _times(name: str, t: np.ndarray, strict: bool) -> None:
         raise ValueError(f"{name}: not {'increasing' if strict else 'in order'}")
 
 
+def _rotation(name: str, R: np.ndarray) -> None:
+    """ValueError unless R (3, 3, finite) is a rotation: orthonormal columns within ROTATION_TOL, det +1."""
+    with np.errstate(over="ignore", invalid="ignore"):  # 1e300 entries: inf, refused below
+        err = float(np.abs(R.T @ R - np.eye(3)).max())
+        det = float(np.linalg.det(R))
+    if not err <= ROTATION_TOL or not det > 0:
+        raise ValueError(
+            f"{name}: not a rotation (the camera's mount: orthonormal columns, determinant +1), got "
+            f"determinant {det:.3g}, columns off orthonormal by {err:.3g}"
+        )
+
+
 def check_session(video: VideoRecord | None, rc: RcRecord | None) -> None:
     """ValueError naming the array when a part's arrays do not have the module docstring's shapes (at
     least 2 poses, 1 frame, 1 marker, 2 commands, 3 yaw samples), a time or pose is non-finite, the times
-    are out of order, a pixel is infinite (NaN: not found) or the times span more than MAX_SESSION_SPAN_S."""
+    are out of order, a pixel is infinite (NaN: not found), R_ic is not a rotation or the times span more
+    than MAX_SESSION_SPAN_S."""
     times: list[np.ndarray] = []
     if video is not None:
         (n,) = _shape("t_pose", video.t_pose, (None,), 2)
@@ -174,6 +190,7 @@ def check_session(video: VideoRecord | None, rc: RcRecord | None) -> None:
         _times("t_frames", video.t_frames, strict=False)
         for name in ("g_wi", "g_w0", "P0", "R_ic", "t_ic"):
             _finite(name, getattr(video, name))
+        _rotation("R_ic", video.R_ic)
         _finite("pixels", video.pixels, nan_ok=True)
         times += [video.t_pose, video.t_frames]
     if rc is not None:
@@ -195,6 +212,7 @@ def check_session(video: VideoRecord | None, rc: RcRecord | None) -> None:
 __all__ = [
     "MAX_SESSION_BYTES",
     "MAX_SESSION_SPAN_S",
+    "ROTATION_TOL",
     "RcRecord",
     "VideoRecord",
     "check_session",

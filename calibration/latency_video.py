@@ -42,13 +42,19 @@ def video_delay(
 ) -> DelayEstimate:
     """The frames' delay (s) behind the poses: t_pose (n,) the poses' capture times, predicted (n, m, 2)
     their markers' pixels (predicted_pixels); t_frames (f,) each frame's stamp (its decode time on this
-    computer, not corrected), found: its markers' pixels (m, 2) or None where they were not all found."""
+    computer, not corrected), found: its markers' pixels (m, 2) or None where they were not all found.
+    ValueError in words when fewer than 2 poses put every marker in front of the camera."""
     pred = np.asarray(predicted, dtype=float).reshape(len(t_pose), -1)
     obs = np.full((len(t_frames), pred.shape[1]), np.nan)
     for i, px in enumerate(found):
         if px is not None:
             obs[i] = np.asarray(px, dtype=float).ravel()
     ok = np.isfinite(pred).all(axis=1)
+    if ok.sum() < 2:
+        raise ValueError(
+            f"the markers are behind the camera at {len(ok) - int(ok.sum())} of {len(ok)} poses (need 2 "
+            "in front): check the mount (R_ic, t_ic), the markers (P0) and the poses (g_wi, g_w0)"
+        )
     return estimate_delay(t_pose[ok], pred[ok], np.asarray(t_frames, float), obs, max_lag_s, window_s)
 
 

@@ -197,6 +197,7 @@ class MocapPoseSource:
         self._clock = clock
         self._lock = threading.Lock()
         self._bodies: dict[str, _Body] = {}
+        self._invalid: Counter[str] = Counter()  # per body: samples refused since its last valid one
         self._stop = threading.Event()
         self._connected = threading.Event()
         self._connect_error: BaseException | None = None
@@ -285,6 +286,12 @@ class MocapPoseSource:
         with self._lock:
             b = self._bodies.get(body)
             return None if b is None else b.raw
+
+    def invalid_run(self, body: str) -> int:
+        """How many samples of `body` in a row, up to the newest, were not a valid pose (a non-finite
+        position or quaternion, a zero quaternion: event `bad_sample`); 0 when the newest was valid."""
+        with self._lock:
+            return self._invalid[body]
 
     def tilt(self, body: str) -> float | None:
         """Tilt (rad, body z vs world z) of the newest sample of `body`, even if stale; None if never seen."""
@@ -390,8 +397,10 @@ class MocapPoseSource:
                     pose, tilt = quaternion_to_planar(rb.position, rot.w, rot.x, rot.y, rot.z)
                 except ValueError:
                     self._event("bad_sample", name)
+                    self._invalid[name] += 1
                     continue
                 seen.add(name)
+                self._invalid.pop(name, None)
                 refused = tilt > self.cfg.max_tilt_rad
                 p = rb.position
                 raw = (

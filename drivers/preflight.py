@@ -386,8 +386,13 @@ def check_mocap(mission: Mission) -> list[CheckRow]:
             sp = src.latest(theirs)
             label = ours if ours == theirs else f"{ours} = {theirs}"
             if sp is None:
-                tilt = src.tilt(theirs)
-                if tilt is None:
+                tilt, invalid = src.tilt(theirs), src.invalid_run(theirs)
+                if invalid:
+                    why = (
+                        f"streams non-finite poses: its last {invalid} samples were no valid pose (a NaN or "
+                        "infinite position or quaternion, or a zero quaternion)"
+                    )
+                elif tilt is None:
                     why = "never seen"
                 elif tilt > cfg.max_tilt_rad:
                     why = f"tilted {math.degrees(tilt):.0f}° (limit {math.degrees(cfg.max_tilt_rad):.0f}°)"

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import shutil
 import subprocess
 import sys
 from importlib.metadata import PackageNotFoundError
@@ -195,6 +196,26 @@ def test_validate_an_invalid_file_exits_2_naming_the_key(
     captured = capsys.readouterr()
     assert captured.out == ""
     assert "dt_s: Input should be greater than or equal to 0.0001" in captured.err
+
+
+@pytest.mark.parametrize("name", ["", "   ", "\t"], ids=["empty", "blanks", "tab"])
+def test_validate_refuses_a_blank_rigid_body_name_naming_the_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str
+) -> None:
+    """`hardware.mocap.bodies` maps a drone to the rigid body it flies by: a blank name exits 2 naming the
+    key (it validated before)."""
+    shutil.copytree(MISSIONS / "cameras", tmp_path / "cameras")  # the rig's calibrations, beside it
+    rig = yaml.safe_load((MISSIONS / "rigs" / "lab.yaml").read_text())
+    rig["hardware"]["mocap"]["bodies"]["drone1"] = name
+    (tmp_path / "rigs").mkdir()
+    path = tmp_path / "rigs" / "lab.yaml"
+    path.write_text(yaml.safe_dump(rig, sort_keys=False))
+    assert main(["validate", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and "hardware.mocap.bodies.drone1:" in err, err
+    assert "not empty or blank" in err, err
+    assert main(["validate", "paper_experiment", "--rig", str(path)]) == 2
+    assert "hardware.mocap.bodies.drone1:" in capsys.readouterr().err
 
 
 def test_id_ranges() -> None:

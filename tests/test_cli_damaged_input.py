@@ -18,6 +18,7 @@ import pytest
 
 from flightstack.calibration.latency_session import MAX_SESSION_BYTES, RcRecord, VideoRecord, save_session
 from flightstack.cli.app import build_parser, main
+from flightstack.config.mission import CAMERA_MOUNTS
 from tests.conftest import MISSIONS
 
 CONTRACT = {0, 1, 2, 130}
@@ -110,6 +111,11 @@ def d(tmp_path_factory: pytest.TempPathFactory) -> Path:
     save_session(d / "nan_times.npz", rc=RcRecord(rc.t_cmd * np.nan, rc.cmd, rc.t_yaw, rc.yaw))
     save_session(d / "span_1e9.npz", rc=RcRecord(rc.t_cmd + 1e9 * (rc.t_cmd > 7), rc.cmd, rc.t_yaw, rc.yaw))
     save_session(d / "video_no_calibration.npz", video=_video(calibration="no-such-camera.yaml"))
+    save_session(d / "R_ic_singular.npz", video=_video(R_ic=np.zeros((3, 3))))
+    save_session(d / "R_ic_reflection.npz", video=_video(R_ic=np.diag([1.0, 1.0, -1.0])))
+    save_session(d / "R_ic_scaled.npz", video=_video(R_ic=2.0 * np.eye(3)))
+    down = {"calibration": str(MISSIONS / "cameras" / "tello_down_sim.yaml"), "R_ic": CAMERA_MOUNTS["down"]}
+    save_session(d / "markers_behind.npz", video=_video(**down))  # the camera at the markers' centre
     # a run directory whose row stream is random bytes behind a valid header
     from tests.test_run_dir_damage import ROWS, _make_run, _rows_header, _write_rows_header
 
@@ -151,6 +157,8 @@ CASES: list[object] = [
     ("run: --duration -1", lambda d: ["run", "paper_sim", "--duration", "-1"], 2, "--duration"),
     ("run: --set without =", lambda d: ["run", "paper_sim", "--set", "duration_s"], 2, "duration_s"),
     ("run: --set dt_s=1e-300", lambda d: ["run", "paper_sim", "--set", "dt_s=1e-300"], 2, "dt_s"),
+    ("run: --set seed=", lambda d: ["run", "paper_sim", "--set", "seed="], 2, "--set seed: empty value"),
+    ("run: --set seed=-1", lambda d: ["run", "paper_sim", "--set", "seed=-1"], 2, "seed"),
     ("run: --set unknown key", lambda d: ["run", "paper_sim", "--set", "no.such.key=1"], 2, "no"),
     (
         "run: --rig random bytes",
@@ -195,6 +203,12 @@ CASES: list[object] = [
     ("preflight: no hardware", lambda d: ["preflight", "paper_sim", "--deadline", "nan"], 2, "paper_sim"),
     ("target: random bytes", lambda d: ["target", str(d / "garbage.yaml")], 2, "garbage.yaml"),
     ("target: --duration nan", lambda d: ["target", "paper_sim", "--duration", "nan"], 2, "--duration"),
+    ("target: --laps nan", lambda d: ["target", "paper_sim", "--laps", "nan"], 2, "--laps"),
+    ("target: --laps inf", lambda d: ["target", "paper_sim", "--laps", "inf"], 2, "--laps"),
+    ("target: --laps -1", lambda d: ["target", "paper_sim", "--laps", "-1"], 2, "--laps"),
+    ("target: --laps 0", lambda d: ["target", "paper_sim", "--laps", "0"], 2, "--laps"),
+    ("target: --laps 1e9", lambda d: ["target", "paper_sim", "--laps", "1e9"], 2, "--laps"),
+    ("target: --laps x", lambda d: ["target", "paper_sim", "--laps", "x"], 2, "--laps"),
     ("target: no robot", lambda d: ["target", "paper_sim", "--yes"], 2, "hardware.target"),
     ("train: missing run", lambda d: ["train", str(d / "missing"), "--out", str(d / "x.npz")], 2, "missing"),
     (
@@ -295,6 +309,10 @@ CASES: list[object] = [
     ("latency: no command", lambda d: _s(d, "t_cmd_empty.npz"), 2, "t_cmd"),
     ("latency: NaN times", lambda d: _s(d, "nan_times.npz"), 2, "t_cmd"),
     ("latency: times 1e9 s apart", lambda d: _s(d, "span_1e9.npz"), 2, "span"),
+    ("latency: R_ic singular", lambda d: _s(d, "R_ic_singular.npz"), 2, "R_ic: not a rotation"),
+    ("latency: R_ic a reflection", lambda d: _s(d, "R_ic_reflection.npz"), 2, "R_ic: not a rotation"),
+    ("latency: R_ic scaled", lambda d: _s(d, "R_ic_scaled.npz"), 2, "R_ic: not a rotation"),
+    ("latency: markers behind the camera", lambda d: _s(d, "markers_behind.npz"), 1, "behind the camera"),
     ("latency: no calibration file", lambda d: _s(d, "video_no_calibration.npz"), 2, "no-such-camera.yaml"),
     ("latency: a directory", lambda d: _s(d, "adir.yaml"), 2, "adir.yaml"),
     ("latency: a missing file", lambda d: _s(d, "missing.npz"), 2, "missing.npz"),

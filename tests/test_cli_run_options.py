@@ -357,7 +357,9 @@ def test_set_changes_a_dotted_key_after_the_rig_and_bad_ones_exit_2(
     assert changed.compensation.enabled and list(changed.gains.k_e) == [6.0] * 4
     assert changed.sim.render.model == "centres" and changed.rig == m.rig
     assert changed.drones == m.drones  # the rest untouched (calibration paths made absolute, same files)
+    assert with_sets(m, ["seed=7"]).seed == 7  # a mission key here; only a sweep sets it itself (--seeds)
     for bad, says in [
+        ("seed=", "--set seed: empty value"),  # it pointed to --seeds, an option of sweep, not of run
         ("compensation.enabled=maybe", "compensation.enabled"),
         ("compensation.enabld=true", "compensation.enabld: unknown key"),
         ("gains.k_s=1,4", "one value"),

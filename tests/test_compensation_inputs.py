@@ -232,6 +232,21 @@ def test_a_bad_stamp_leaves_the_agent_as_without_it_and_is_counted_once(kind: st
     assert not any(r.rejection for r in flown[12:])  # no "frame out of order" after the 1e9 frame
 
 
+@pytest.mark.parametrize(
+    "ahead", [AHEAD_TOLERANCE_S, 0.05, 0.0], ids=["at the tolerance", "within it", "at the tick"]
+)
+def test_a_frame_stamped_ahead_of_its_stream_holds_no_later_frame_back(ahead: float) -> None:
+    """Frames 0.3 s late, but the one of tick 9 stamped `ahead` s after its tick (accepted, used as
+    current): every later frame is used as in the clean flight. Before, it became the newest frame used
+    and the next 6-8 were refused "frame out of order" (8 at exactly AHEAD_TOLERANCE_S)."""
+    comp = Compensation(0.05, 0.1, history_s=1.0)
+    clean = _fly(_World(), comp)
+    flown = _fly(_World({9: ("frame", 0.05 * 9 + ahead)}), comp)
+    assert not any(r.dropped for r in flown)  # within the tolerance: not refused
+    assert [r.rejection for r in flown] == [r.rejection for r in clean]
+    assert [r.visible for r in flown] == [r.visible for r in clean]
+
+
 def test_a_bad_own_pose_is_a_dropout_once_the_last_good_one_is_too_old() -> None:
     """The last accepted pose stands in for a refused one only while the safety layer would call it
     fresh (pose_timeout): a source that keeps giving bad stamps makes the drone hover, not fly on an old

@@ -242,6 +242,24 @@ def test_tilt_refusal(fake: FakeMocap) -> None:
         src.close()
 
 
+def test_invalid_run_counts_the_samples_since_the_last_valid_one(fake: FakeMocap) -> None:
+    """A body whose samples turn non-finite counts them (`invalid_run`, what preflight reports as
+    "streams non-finite poses"); a valid sample resets it; a body never streamed counts 0."""
+    src, _ = _source(fake)
+    src.start()
+    try:
+        assert _wait_for(lambda: src.latest("cf1") is not None)
+        assert src.invalid_run("cf1") == 0 and src.invalid_run("nobody") == 0
+        fake.set("cf1", _body((math.nan, 2.0, 0.5), Rotation.from_euler("z", 0.7)))
+        assert _wait_for(lambda: src.invalid_run("cf1") >= 3)
+        assert any((e.kind, e.detail) == ("bad_sample", "cf1") for e in src.events)
+        fake.set("cf1", _body((1.0, 2.0, 0.5), Rotation.from_euler("z", 0.7)))
+        assert _wait_for(lambda: src.invalid_run("cf1") == 0)
+        assert src.latest("cf1") is not None
+    finally:
+        src.close()
+
+
 def test_rate_hz(fake: FakeMocap) -> None:
     src, _ = _source(fake)
     src.start()

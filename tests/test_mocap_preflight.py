@@ -144,3 +144,19 @@ def test_motive_style_unicast_is_refused() -> None:
     bad = fails(rows)
     assert len(bad) == 1 and bad[0].check == "transmission", rows
     assert UNICAST_FIX in bad[0].detail
+
+
+@pytest.mark.parametrize(
+    ("position", "quaternion"),
+    [((math.nan,) * 3, LEVEL), ((0.0, 0.0, math.inf), LEVEL), ((0.5, 0.5, 0.1), (math.nan,) * 4)],
+    ids=["NaN position", "inf height", "NaN quaternion"],
+)
+def test_a_body_streaming_non_finite_poses_is_named_so(
+    position: tuple[float, float, float], quaternion: tuple[float, float, float, float]
+) -> None:
+    """The target streamed with a non-finite pose in every frame: its row says it streams non-finite poses
+    (it said "never seen", which sends one looking for a body Motive does not stream)."""
+    rows = preflight(synthetic({**ON_FLOOR, "rover": (position, quaternion)}))
+    bad = fails(rows)
+    assert len(bad) == 1 and bad[0].check == "body target = rover", rows
+    assert bad[0].detail.startswith("streams non-finite poses: its last "), bad[0].detail

@@ -149,12 +149,13 @@ def test_set_values_are_split_outside_brackets_and_parsed_as_yaml() -> None:
     assert parse_set("gp.fusion=poe,rbcm") == ("gp.fusion", ["poe", "rbcm"])
     for bad, word in [
         ("gains.k_s", "KEY=V1"),
-        ("seed=1,2", "--seeds"),
         ("k=1,,2", "empty"),
         ("a b=1", "dotted"),
     ]:
         with pytest.raises(SweepError, match=word):
             parse_set(bad)
+    with pytest.raises(SweepError, match="--seeds"):
+        parse_grid(["seed=1,2"])
     with pytest.raises(SweepError, match="twice"):
         parse_grid(["gains.k_s=1", "gains.k_s=2"])
     with pytest.raises(SweepError, match="twice"):

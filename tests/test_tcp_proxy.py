@@ -249,3 +249,63 @@ def test_connections_beyond_the_bound_are_refused_and_counted() -> None:
         t.join(timeout=2.0)
     print(f"max_connections 2: {counts}")
     assert counts["connections"] == 3 and counts["refused"] == 1, counts
+
+
+@pytest.mark.parametrize("fail_at", [0, 2], ids=["first thread", "third thread"])
+def test_a_thread_that_cannot_start_refuses_that_connection_only(
+    fail_at: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A connection whose `fail_at`-th thread cannot be started (RuntimeError, as when the process is out
+    of threads) is closed and counted `thread_errors`; the accept thread lives on and forwards the next
+    connection (before, it died and the proxy never accepted again)."""
+    from flightstack.netem import LinkProfile
+    from flightstack.sim_backend.emulators.tcp_proxy import TcpImpairProxy
+
+    server = socket.create_server(("127.0.0.1", 0))
+    server.settimeout(0.2)
+
+    def echo() -> None:
+        while True:
+            try:
+                c, _ = server.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            with c:
+                c.settimeout(5.0)
+                while data := c.recv(1024):
+                    c.sendall(data)
+
+    t = threading.Thread(target=echo, daemon=True)
+    t.start()
+    start = threading.Thread.start
+    calls = [0]
+
+    def start_or_fail(self: threading.Thread) -> None:
+        if self.name.startswith("tcp-proxy-") and self.name != "tcp-proxy-bus":
+            calls[0] += 1
+            if calls[0] == fail_at + 1:
+                raise RuntimeError("can't start new thread")
+        start(self)
+
+    monkeypatch.setattr(threading.Thread, "start", start_or_fail)
+    proxy = TcpImpairProxy(server.getsockname(), LinkProfile()).start()
+    try:
+        with socket.create_connection(proxy.address, timeout=5.0) as first:
+            assert first.recv(1) == b""  # closed by the proxy
+        deadline = time.monotonic() + 5.0
+        while proxy.counts()["open"] and time.monotonic() < deadline:
+            time.sleep(0.01)
+        after_first = proxy.counts()
+        with socket.create_connection(proxy.address, timeout=5.0) as second:
+            second.sendall(b"ping")
+            assert second.recv(4) == b"ping"
+        counts = proxy.counts()
+    finally:
+        proxy.close()
+        server.close()
+        t.join(timeout=2.0)
+    print(f"thread {fail_at} of the first connection failed to start: {after_first}, then {counts}")
+    assert after_first["thread_errors"] == 1 and after_first["open"] == 0, after_first
+    assert counts["connections"] == 1 and counts["thread_errors"] == 1, counts

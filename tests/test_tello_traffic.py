@@ -182,3 +182,52 @@ def test_records_from_many_threads_at_once_are_all_written(tmp_path: Path) -> No
     s = read_traffic(path)
     assert len(s.records) == 20_000 and not s.dropped and not w.errors
     assert os.path.getsize(path) > 20_000 * 30
+
+
+def _write_lines(path: Path, times: list[float]) -> None:
+    """A traffic file of state records at `times`, in that (file) order."""
+    header = {"format": FORMAT, "version": 1, "drone": "127.0.0.9", "clock": "monotonic"}
+    rows = [json.dumps(header)] + [
+        json.dumps({"t": t, "kind": "state", "text": STATE.decode()}) for t in times
+    ]
+    path.write_text("\n".join(rows) + "\n")
+
+
+@pytest.mark.parametrize(
+    ("bad", "dropped"),
+    [
+        ({6: 1e308}, {"time_ahead": 1}),
+        ({6: 1e308, 7: 1e308}, {"time_ahead": 2}),  # a run of two
+        ({6: 1e5}, {"time_ahead": 1}),
+        ({0: 1e308}, {"time_ahead": 1}),  # the first record
+        ({6: -1e308}, {"time_backwards": 1}),
+        ({1410: 1e308}, {"time_ahead": 1}),  # the last but one
+    ],
+    ids=["1e308", "two 1e308 in a row", "1e5", "first 1e308", "-1e308", "last but one 1e308"],
+)
+def test_a_record_stamped_out_of_time_drops_that_record_not_the_rest(
+    tmp_path: Path, bad: dict[int, float], dropped: dict[str, int]
+) -> None:
+    """Of 1,412 records at 10 Hz, those stamped far ahead (or behind) are dropped and counted; every other
+    record is read and replayed (before: one record at 1e308 dropped the 1,406 after it)."""
+    from flightstack.sim_backend.emulators.tello.replay import TelloReplayer
+
+    times = [100.0 + 0.1 * k for k in range(1412)]
+    good = [t for k, t in enumerate(times) if k not in bad]
+    times = [bad.get(k, t) for k, t in enumerate(times)]
+    path = tmp_path / "t.jsonl"
+    _write_lines(path, times)
+    s = read_traffic(path)
+    assert s.dropped == dropped
+    assert [r.t for r in s.records] == good
+    assert TelloReplayer(s, "127.0.0.9").lines == [(t, STATE) for t in good]
+
+
+def test_a_jump_in_time_that_the_records_after_it_confirm_is_kept(tmp_path: Path) -> None:
+    """A link silent for 10 s (the records after the gap agree with its first one), and records handed over
+    up to MAX_BACKSTEP_S out of order: nothing is dropped."""
+    times = [100.0, 100.1, 100.2, 110.2, 110.3, 110.4, 111.2, 110.5, 110.6, 111.3]
+    path = tmp_path / "t.jsonl"
+    _write_lines(path, times)
+    s = read_traffic(path)
+    assert not s.dropped and [r.t for r in s.records] == sorted(times)

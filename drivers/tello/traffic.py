@@ -33,6 +33,9 @@ MAX_FILE_BYTES = 512 * 1024 * 1024
 MAX_BACKSTEP_S = 1.0
 """A record may come this much (s) before the one above it: the writer sorts each batch, but a thread that
 stamped a datagram and then waited for the GIL may hand it over after the next batch was written."""
+AHEAD_WINDOW = 3
+"""A record is judged ahead of time against the median of this many records after it: a run of up to two
+bad stamps is dropped, never the records after them (three or more in a row read as a jump in time)."""
 FLUSH_PERIOD_S = 0.25
 """The writer thread writes and flushes the records handed over at least this often (s)."""
 MAX_PENDING = 100_000
@@ -94,19 +97,34 @@ def read_traffic(path: str | Path) -> TelloSession:
             raise TrafficFormatError(f"{p}: version {header.get('version')!r}, this reader reads {VERSION}")
         drone = header.get("drone")
         session = TelloSession(str(p), drone if isinstance(drone, str) else "", [])
-        last_t = -math.inf
+        read: list[TrafficRecord] = []
         for raw in f:
             rec, why = _record(raw)
             if rec is None:
                 session.dropped[why] += 1
-                continue
-            if rec.t < last_t - MAX_BACKSTEP_S:
-                session.dropped["time_backwards"] += 1
-                continue
-            last_t = max(last_t, rec.t)
-            session.records.append(rec)
+            else:
+                read.append(rec)
+    session.records = _in_time(read, session.dropped)
     session.records.sort(key=lambda r: r.t)  # stable: equal times keep the file's order
     return session
+
+
+def _in_time(records: list[TrafficRecord], dropped: Counter[str]) -> list[TrafficRecord]:
+    """The records (file order) without those out of time, counted in `dropped`: "time_ahead", one more than
+    MAX_BACKSTEP_S after the median of the (up to) AHEAD_WINDOW records that follow it (a bad stamp, not
+    the records after it); "time_backwards", one more than MAX_BACKSTEP_S before an earlier record kept."""
+    kept: list[TrafficRecord] = []
+    last_t = -math.inf
+    for i, rec in enumerate(records):
+        after = sorted(r.t for r in records[i + 1 : i + 1 + AHEAD_WINDOW])
+        if after and rec.t > after[len(after) // 2] + MAX_BACKSTEP_S:
+            dropped["time_ahead"] += 1
+        elif rec.t < last_t - MAX_BACKSTEP_S:
+            dropped["time_backwards"] += 1
+        else:
+            last_t = max(last_t, rec.t)
+            kept.append(rec)
+    return kept
 
 
 def _json_object(raw: bytes) -> dict[str, object] | None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import os
 import signal
 import sys
@@ -301,13 +302,31 @@ def _add_preflight(sub: Any) -> None:
     pf.set_defaults(func=cmd_preflight)
 
 
+MAX_LAPS = 100
+"""Bound on `target --laps`: 100 laps of the paper's square (1 m at 0.1 m/s, 40 s a lap) take 67 min; more
+is a typo."""
+
+
+def laps(text: str) -> float:
+    """argparse type of `target --laps`: a finite number of laps in (0, MAX_LAPS] (else exit 2)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of laps") from None
+    if not (math.isfinite(value) and 0 < value <= MAX_LAPS):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of laps in (0, {MAX_LAPS}]")
+    return value
+
+
 def _add_target(sub: Any) -> None:
     from flightstack.cli.run import seconds
 
     tg = sub.add_parser("target")
     tg.add_argument("mission", help="mission YAML file with hardware.mocap and hardware.target")
     tg.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
-    tg.add_argument("--laps", type=float, default=1.0, help="laps of the square (default 1)")
+    tg.add_argument(
+        "--laps", type=laps, default=1.0, help=f"laps of the square, at most {MAX_LAPS} (default 1)"
+    )
     tg.add_argument("--duration", type=seconds, default=None, help="seconds instead of laps")
     tg.add_argument("--yes", action="store_true", help="confirm that the robot may move")
     tg.set_defaults(func=cmd_target)

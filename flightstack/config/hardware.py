@@ -6,13 +6,23 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal
 
-from pydantic import Field, model_validator
+from pydantic import AfterValidator, Field, model_validator
 
 from flightstack.config.tello_video import TelloVideoSpec, VideoSetting, video_settings
 from flightstack.config.types import Positive
 from flightstack.config.types import Strict as _Strict
 
 MOCAP_SYSTEMS = ("mock", "vicon", "optitrack", "qualisys", "vrpn")
+
+
+def _body_name(name: str) -> str:
+    """A rigid body's name as the mocap software spells it: not empty, not only blanks."""
+    if not name.strip():
+        raise ValueError(f"{name!r}: a rigid body's name in the motion-capture software, not empty or blank")
+    return name
+
+
+BodyName = Annotated[str, AfterValidator(_body_name)]
 
 
 class TelloHardwareSpec(_Strict):
@@ -49,12 +59,12 @@ class TelloHardwareSpec(_Strict):
 class MocapHardwareSpec(_Strict):
     """Motion capture through libmotioncapture (`drivers/mocap.py`). `system: mock` with
     settings.rigid_bodies is the bench option (fixed bodies, no server). `bodies` maps flightstack's
-    body names (`drone<ID>`, `target`) to the names of the rigid bodies in the mocap software; a name
-    not listed is looked up as is."""
+    body names (`drone<ID>`, `target`) to the names of the rigid bodies in the mocap software (not empty
+    or blank); a name not listed is looked up as is."""
 
     system: Literal["mock", "vicon", "optitrack", "qualisys", "vrpn"]
     settings: dict[str, str] = Field(default_factory=dict)
-    bodies: dict[str, str] = Field(default_factory=dict)
+    bodies: dict[str, BodyName] = Field(default_factory=dict)
     connect_timeout_s: Positive = 5.0
     stale_after_s: Positive = 0.1
     max_tilt_rad: Annotated[float, Field(gt=0, le=math.pi / 2)] = 0.35

@@ -436,15 +436,18 @@ class _Delays:
         self.poses = PoseHistory(c.history_s)
         self.estimates = EstimateHistory(c.history_s)
         self.commands = CommandModel(c.command_delay_s, c.response_s, c.history_s)
-        self.newest_used = -math.inf  # capture time of the newest frame used (s)
+        self.newest_used = -math.inf  # capture time of the newest late frame used (s)
 
     def frame_time(self, stamp: float, t: float) -> tuple[float | None, str | None]:
-        """(capture time if the frame is late, None if current; why it is not used, or None)."""
+        """(capture time if the frame is late, None if current; why it is not used, or None). Only late
+        frames are kept in order: a current one (stamped from 1 µs before the tick up to
+        AHEAD_TOLERANCE_S after it) is used as it is and leaves the mark where it was, so one stamped
+        ahead of a late stream never holds the frames after it back."""
+        if stamp >= t - CURRENT_S:
+            return None, None
         if stamp < self.newest_used:
             return None, "frame out of order"
         self.newest_used = stamp
-        if stamp >= t - CURRENT_S:
-            return None, None
         if stamp < t - self.c.history_s:
             return None, "frame too old"
         return stamp, None

@@ -25,6 +25,7 @@ from flightstack.safe_yaml import MAX_DEPTH, LoadError, parse_yaml
 
 KEY_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z0-9_]+)*$")
 RESERVED = {"seed": "set by --seeds (seed = 0 .. N-1)"}
+"""Keys a sweep sets itself (`parse_grid`); `run --set` may set them."""
 
 
 class SweepError(ValueError):
@@ -100,8 +101,6 @@ def parse_set(text: str) -> tuple[str, list[Any]]:
         raise SweepError(f"--set {text!r}: expected KEY=V1,V2,... (e.g. gains.k_s=10,70)")
     if not KEY_RE.match(key):
         raise SweepError(f"--set {text!r}: {key!r} is not a dotted key path (e.g. gp.fusion)")
-    if key in RESERVED:
-        raise SweepError(f"--set {key}: {RESERVED[key]}")
     if key.count(".") >= MAX_DEPTH:
         raise SweepError(f"--set {key[:40]}...: a key nested deeper than {MAX_DEPTH} levels")
     values = []
@@ -116,9 +115,13 @@ def parse_set(text: str) -> tuple[str, list[Any]]:
 
 
 def parse_grid(sets: list[str]) -> list[tuple[str, list[Any]]]:
-    """Every --set in order; a key given twice, or a key inside another one, is an error."""
+    """Every --set of a sweep in order; a key the sweep sets itself (RESERVED), given twice, or inside
+    another one, is an error."""
     grid = [parse_set(s) for s in sets]
     keys = [k for k, _ in grid]
+    for key in keys:
+        if key in RESERVED:
+            raise SweepError(f"--set {key}: {RESERVED[key]}")
     for a, b in itertools.permutations(keys, 2):
         if a == b or b.startswith(a + "."):
             raise SweepError(

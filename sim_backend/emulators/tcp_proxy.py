@@ -18,11 +18,13 @@ written; when full its reader stops reading, the kernel's buffers fill and the s
 as behind a slow link. Nothing is dropped: the stream loses no byte (a drop would corrupt it); each
 time a reader waits for room is counted ("backpressure"). At most `max_connections` are open at once;
 a connection beyond them is closed at once ("refused"), and a failed accept or connect (e.g. EMFILE)
-is counted ("accept_errors") and retried 50 ms later, never in a busy loop.
+is counted ("accept_errors") and retried 50 ms later, never in a busy loop. A connection whose threads
+cannot all be started (the process is out of threads) is closed, counted ("thread_errors"), and the
+proxy goes on accepting 50 ms later.
 
 Only loopback addresses (127.0.0.0/8) are served. Times are time.monotonic() seconds; `counts()` sums
 the models' counters over every connection, open or closed, plus "connections" (accepted), "open",
-"refused", "accept_errors" and "backpressure".
+"refused", "accept_errors", "thread_errors" and "backpressure".
 """
 
 from __future__ import annotations
@@ -68,10 +70,6 @@ class _Direction:
             threading.Thread(target=self._run, args=(self._read,), name="tcp-proxy-read", daemon=True),
             threading.Thread(target=self._run, args=(self._write,), name="tcp-proxy-write", daemon=True),
         ]
-
-    def start(self) -> None:
-        for t in self.threads:
-            t.start()
 
     def _run(self, body: Callable[[], None]) -> None:
         try:
@@ -153,9 +151,19 @@ class _Conn:
         ]
         self._live = sum(len(w.threads) for w in self.ways)
 
-    def start(self) -> None:
-        for w in self.ways:
-            w.start()
+    def start(self) -> bool:
+        """Start the four threads; False when one cannot be started (RuntimeError: the process is out of
+        threads): then the connection is aborted, and closed once the threads already started end."""
+        threads = [t for w in self.ways for t in w.threads]
+        for k, t in enumerate(threads):
+            try:
+                t.start()
+            except RuntimeError:
+                self.abort()
+                for _ in threads[k:]:  # never to run: what they would have counted on their end
+                    self.thread_done()
+                return False
+        return True
 
     def abort(self) -> None:
         """End both directions now (wakes a writer blocked in sendall)."""
@@ -226,7 +234,7 @@ class TcpImpairProxy:
         self._lock = threading.Lock()
         self._conns: set[_Conn] = set()
         self._finished: Counter[str] = Counter()  # counters of the connections that ended
-        self._events: Counter[str] = Counter()  # connections, refused, accept_errors
+        self._events: Counter[str] = Counter()  # connections, refused, accept_errors, thread_errors
         self.address: tuple[str, int] = self._listen
 
     def start(self) -> TcpImpairProxy:
@@ -299,13 +307,19 @@ class TcpImpairProxy:
             conn = _Conn(client, upstream, models, self.queue_bytes, self._forget)
             with self._lock:
                 self._conns.add(conn)
+            if not conn.start():  # out of threads: this connection is refused, the next ones are not
+                with self._lock:
+                    self._events["thread_errors"] += 1
+                self._stop.wait(_RETRY_S)
+                continue
+            with self._lock:
                 self._events["connections"] += 1
-            conn.start()
             n += 1
 
     def counts(self) -> dict[str, int]:
         """The models' counters summed over every connection (open or ended), plus "connections"
-        (accepted and forwarded), "open", "refused", "accept_errors" and "backpressure" (module)."""
+        (accepted and forwarded), "open", "refused", "accept_errors", "thread_errors" and "backpressure"
+        (module)."""
         with self._lock:
             conns = list(self._conns)
             out = self._finished + self._events
@@ -330,7 +344,8 @@ class TcpImpairProxy:
         for conn in conns:
             for w in conn.ways:
                 for t in w.threads:
-                    t.join(timeout=max(0.0, deadline - time.monotonic()))
+                    if t.ident is not None:  # started (a connection refused for want of threads: not all)
+                        t.join(timeout=max(0.0, deadline - time.monotonic()))
             conn.close_sockets()  # idempotent; a thread still running sees its socket closed
             self._forget(conn)
 
