@@ -32,6 +32,7 @@ from flightstack.paper.delay_compensation import (
     PoseHistory,
     stamp_refusal,
 )
+from flightstack.safety import SafetyLimits
 from tests.conftest import Bound
 
 pytestmark = pytest.mark.unit
@@ -276,6 +277,58 @@ def test_a_bad_own_pose_is_a_dropout_once_the_last_good_one_is_too_old() -> None
     stale_from = next(k for k in range(30) if 0.05 * k - last_good > limits.pose_timeout)
     assert fresh[:stale_from] == [True] * stale_from and not any(fresh[stale_from:])
     assert all(np.all(V == 0) for V in world.sent[stale_from:])  # hovers
+
+
+@pytest.mark.parametrize("compensated", [True, False])
+def test_an_own_pose_stamped_in_the_past_is_as_stale_as_its_stamp(compensated: bool) -> None:
+    """Own poses stamped 1 s (or 1e9 s) in the past in place of repeats: older than the one already used,
+    each is ignored and the flight is the clean one. From tick 10 on every pose 1 s old (a replay, a
+    stuck clock), or one old stamp repeated: the drone hovers once the last fresh one is pose_timeout old,
+    and the command never exceeds the clean flight's. Before, the compensated command was predicted from
+    the old pose over every command since its stamp: 4.8 m/s, 8.4e7 m/s when the stamp repeated."""
+    comp = Compensation(0.05, 0.1, history_s=1.0) if compensated else None
+    clean = _fly(_World(), comp)
+    isolated = {9: ("pose", 0.05 * 9 - 1.0), 13: ("pose", -1e9), 17: ("pose", 0.05 * 17 - 0.5)}
+    _same_flight(_fly(_World(isolated), comp), clean)
+    limits = SafetyLimits()
+    clean_world = _World()
+    _fly_limited(clean_world, comp, limits)
+    peak = max(float(np.abs(V).max()) for V in clean_world.sent)
+    for bad in (
+        {k: ("pose", 0.05 * k - 1.0) for k in range(10, 40)},
+        {k: ("pose", 0.2) for k in range(10, 40)},
+    ):
+        world = _World(bad)
+        flown = _fly_limited(world, comp, limits)
+        last_good = 0.05 * 8  # tick 9 repeats tick 8's pose; 10 on are old
+        stale_from = next(k for k in range(40) if 0.05 * k - last_good > limits.pose_timeout)
+        fresh = [r.own_pose_fresh for r in flown]
+        assert fresh[:stale_from] == [True] * stale_from and not any(fresh[stale_from:])
+        assert all(np.all(V == 0) for V in world.sent[stale_from:])  # hovers
+        assert max(float(np.abs(V).max()) for V in world.sent) <= peak + 1e-9
+
+
+def _fly_limited(world: _World, compensation: Compensation | None, limits: Any, ticks: int = 40) -> list[Any]:
+    """_fly with an agent that knows the safety limits (pose_timeout), as the runner's agents do."""
+    from flightstack.paper.control import Gains
+    from flightstack.paper.geometry import Pose
+    from flightstack.runtime.agent import Agent, AgentConfig
+    from tests.test_delay_compensation import DOWN, P0
+
+    gains = Gains.make([1.0] * 4, [1.0] * 4, 0.0)
+    cfg = AgentConfig(
+        "m", 1, "drone1", Pose(np.array([0.0, 0.0, -1.2]), 0.0), P0, DOWN, gains, "none", "poe", (), 0.5,
+        command_limits=limits, compensation=compensation,
+    )  # fmt: skip
+    g0 = Pose(world.g_w0[:3].copy(), float(world.g_w0[3]))
+    agent = Agent(cfg, world, world, world, world, None, g0)  # type: ignore[arg-type]
+    records = []
+    for k in range(ticks):
+        world.k, world.t = k, 0.05 * k
+        agent.sense_and_publish(world.t)
+        agent.fuse_control_act(world.t)
+        records.append(agent.last)
+    return records
 
 
 # ---- a flight: the recording is the clean one's but for the counters --------------------------------
