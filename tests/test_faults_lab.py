@@ -38,6 +38,7 @@ LAB_ROWS = [
     "robot_not_moving",
     "auto_land_in_flight",
     "raised_surface",
+    "mocap_frozen_tello",
     "clock_skew",
     "abort_during_takeoff",
     "abort_agent_missing",

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from flightstack.faults import rows_lab_bus, rows_lab_cli, rows_lab_drivers, rows_lab_process
+from flightstack.faults import rows_lab_bus, rows_lab_cli, rows_lab_drivers, rows_lab_poses, rows_lab_process
 from flightstack.faults.lab_flight import (
     ZERO,
     emulator_errors,
@@ -409,6 +409,7 @@ ROWS: dict[str, FaultRow] = {
     "robot_not_moving": rows_lab_drivers.robot_not_moving,
     "auto_land_in_flight": rows_lab_drivers.auto_land_in_flight,
     "raised_surface": rows_lab_drivers.raised_surface,
+    **rows_lab_poses.ROWS,
     "clock_skew": rows_lab_bus.clock_skew,
     "abort_during_takeoff": rows_lab_cli.abort_during_takeoff,
     "abort_agent_missing": rows_lab_bus.abort_agent_missing,

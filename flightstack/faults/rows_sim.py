@@ -24,6 +24,7 @@ from flightstack.faults.fly import (
 )
 from flightstack.faults.inject import FaultSpec, Window
 from flightstack.faults.result import Checks, FaultResult, FaultRow
+from flightstack.safety.drone import SUSPECT_LAND_AFTER_S
 
 T_FAULT = 4.0
 """Mission-clock time (s) at which the faults start, about 2 s into pursuit."""
@@ -203,8 +204,9 @@ def _frozen_row(run: SimRun, name: str, expected: str) -> FaultResult:
 def mocap_frozen(mission_path: Path, workdir: Path) -> FaultResult:
     """Drone 1's pose freezes (same pose, fresh stamps, valid) 1 s into pursuit."""
     expected = (
-        f"pose_frozen and zero velocity within {FROZEN_HOVER_S:g} s, land (pose_stale_land) 1.3 s after the "
-        f"freeze, down within {FROZEN_DOWN_S:g} s, never above the ceiling; drone 2 flies on"
+        f"pose_frozen and zero velocity within {FROZEN_HOVER_S:g} s, land (pose_stale_land) "
+        f"{SUSPECT_LAND_AFTER_S:g} s after the freeze, down within {FROZEN_DOWN_S:g} s, never above the "
+        "ceiling; drone 2 flies on"
     )
     spec = FaultSpec(mocap_frozen={"drone1": (T_FAULT - 1.0, None)})
     run = fly_with_faults(mission_path, workdir / "mocap_frozen", spec, duration_s=DURATION_S)

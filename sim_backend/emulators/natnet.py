@@ -91,12 +91,16 @@ class NatNetFaults:
     lost_bodies: names of bodies reported as lost: flagged "tracking valid = 0" in every frame (default),
                  or left out of the frames when `lost_omit` is True. libmotioncapture hides both.
     lost_omit:   see `lost_bodies`.
+    frozen_bodies: names of bodies whose pose is held at what it was in the first frame after they were
+                 named, in every later frame with its fresh frame number, time stamp and "tracking valid"
+                 (a stuck capture pipeline, a frozen replay; Motive itself never repeats a tracked sample).
     """
 
     silent: bool = False
     drop_frames: bool = False
     lost_bodies: set[str] = field(default_factory=set)
     lost_omit: bool = False
+    frozen_bodies: set[str] = field(default_factory=set)
 
 
 def _pack_packet(message_id: int, payload: bytes) -> bytes:
@@ -244,6 +248,7 @@ class NatNetEmulator:
         self.command_port = command_port
         self.data_port = data_port
         self.faults = faults or NatNetFaults()
+        self._frozen: dict[str, tuple[Vec3, QuatWXYZ]] = {}  # frozen_bodies: the pose each is held at
         self.radio = radio
         self.links = links
         self.natnet_version = tuple(natnet_version)
@@ -422,6 +427,9 @@ class NatNetEmulator:
 
     def _frame_bodies(self) -> list[tuple[int, Vec3, QuatWXYZ, bool]]:
         lost, omit = set(self.faults.lost_bodies), self.faults.lost_omit
+        frozen = set(self.faults.frozen_bodies)
+        for name in set(self._frozen) - frozen:
+            del self._frozen[name]
         with self._lock:
             items = [
                 (n, b.body_id, b.position, b.quaternion_wxyz, b.provider) for n, b in self._bodies.items()
@@ -435,6 +443,8 @@ class NatNetEmulator:
                     p, q = provider()
                 except Exception as exc:  # a broken provider must not kill the stream
                     self.provider_errors.append(f"{name}: {type(exc).__name__}: {exc}")
+            if name in frozen:
+                p, q = self._frozen.setdefault(name, (p, q))
             if self.up_axis == "y":
                 p, q = y_up(p, q)
             out.append((body_id, p, q, name not in lost))
