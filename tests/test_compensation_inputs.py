@@ -193,7 +193,11 @@ class _World:
 def _fly(world: _World, compensation: Compensation | None, ticks: int = 40) -> list[Any]:
     from tests.test_delay_compensation import _agent
 
-    agent = _agent(world, compensation)  # type: ignore[arg-type]
+    return _ticks(_agent(world, compensation), world, ticks)  # type: ignore[arg-type]
+
+
+def _ticks(agent: Any, world: _World, ticks: int) -> list[Any]:
+    """Fly `agent` in `world` for `ticks` ticks of 0.05 s; each tick's record."""
     records = []
     for k in range(ticks):
         world.k, world.t = k, 0.05 * k
@@ -252,27 +256,9 @@ def test_a_bad_own_pose_is_a_dropout_once_the_last_good_one_is_too_old() -> None
     """The last accepted pose stands in for a refused one only while the safety layer would call it
     fresh (pose_timeout): a source that keeps giving bad stamps makes the drone hover, not fly on an old
     pose."""
-    from flightstack.paper.control import Gains
-    from flightstack.paper.geometry import Pose
-    from flightstack.runtime.agent import Agent, AgentConfig
-    from flightstack.safety import SafetyLimits
-    from tests.test_delay_compensation import DOWN, P0
-
     world = _World({k: ("pose", 1e9 + k) for k in range(10, 40)})
     limits = SafetyLimits()
-    gains = Gains.make([1.0] * 4, [1.0] * 4, 0.0)
-    cfg = AgentConfig(
-        "m", 1, "drone1", Pose(np.array([0.0, 0.0, -1.2]), 0.0), P0, DOWN, gains, "none", "poe", (), 0.5,
-        command_limits=limits,
-    )  # fmt: skip
-    g0 = Pose(world.g_w0[:3].copy(), float(world.g_w0[3]))
-    agent = Agent(cfg, world, world, world, world, None, g0)  # type: ignore[arg-type]
-    fresh = []
-    for k in range(30):
-        world.k, world.t = k, 0.05 * k
-        agent.sense_and_publish(world.t)
-        agent.fuse_control_act(world.t)
-        fresh.append(agent.last.own_pose_fresh)
+    fresh = [r.own_pose_fresh for r in _fly_limited(world, None, limits, 30)]
     last_good = 0.05 * 8  # tick 9 repeats tick 8's pose; 10 on are bad
     stale_from = next(k for k in range(30) if 0.05 * k - last_good > limits.pose_timeout)
     assert fresh[:stale_from] == [True] * stale_from and not any(fresh[stale_from:])
@@ -321,14 +307,7 @@ def _fly_limited(world: _World, compensation: Compensation | None, limits: Any, 
         command_limits=limits, compensation=compensation,
     )  # fmt: skip
     g0 = Pose(world.g_w0[:3].copy(), float(world.g_w0[3]))
-    agent = Agent(cfg, world, world, world, world, None, g0)  # type: ignore[arg-type]
-    records = []
-    for k in range(ticks):
-        world.k, world.t = k, 0.05 * k
-        agent.sense_and_publish(world.t)
-        agent.fuse_control_act(world.t)
-        records.append(agent.last)
-    return records
+    return _ticks(Agent(cfg, world, world, world, world, None, g0), world, ticks)  # type: ignore[arg-type]
 
 
 # ---- a flight: the recording is the clean one's but for the counters --------------------------------
