@@ -36,6 +36,7 @@ ROWS = [
     "mocap_frozen",
     "mocap_frozen_climbing",
     "robot_pose_frozen",
+    "robot_pose_jumps",
     "malformed_mission",
     "sigint",
     "agent_killed",
@@ -117,8 +118,9 @@ def test_frozen_pose_hovers_then_lands_that_drone(results: dict[str, FaultResult
     assert r.details["hover_after_ms"] <= 1000 and r.details["down_after_ms"] <= 5000, r.details
 
 
-def test_frozen_robot_pose_ends_the_run_with_an_error(results: dict[str, FaultResult]) -> None:
-    r = results["robot_pose_frozen"]
+@pytest.mark.parametrize("name", ["robot_pose_frozen", "robot_pose_jumps"])
+def test_a_lying_robot_pose_ends_the_run_with_an_error(results: dict[str, FaultResult], name: str) -> None:
+    r = results[name]
     assert "robot_pose_suspect" in _kinds(r) and r.details["event_after_ms"] <= 1000
 
 

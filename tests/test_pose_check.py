@@ -14,7 +14,15 @@ from flightstack.paper.geometry import Pose
 from flightstack.runtime.phases import ROBOT_FROZEN_S, TargetDriver
 from flightstack.safety import EventLog
 from flightstack.safety.drone import SUSPECT_LAND_AFTER_S
-from flightstack.safety.pose_check import HEIGHT_DISAGREE_M, HEIGHT_WINDOW_S, FreezeWatch, HeightAgreement
+from flightstack.safety.pose_check import (
+    HEIGHT_DISAGREE_M,
+    HEIGHT_WINDOW_S,
+    MOTION_JUMP_M,
+    MOTION_WINDOW_S,
+    FreezeWatch,
+    HeightAgreement,
+    MotionAgreement,
+)
 from flightstack.sim_backend.emulators.tello.recorded import H_DRIFT_CM_S, drifted, reported_h
 from tests.conftest import PEERS, skip_or_fail_in_ci
 from tests.test_safety import LIM, Rig
@@ -116,6 +124,39 @@ def test_non_finite_heights_restart_the_window() -> None:
         a.sample(0.1 * k, 1.0, 1.0 + 0.05 * k)
     assert a.sample(3.0, 1.0, math.nan) is None
     assert a.sample(3.1, 1.0, 5.0) is None  # a fresh window: nothing to compare yet
+
+
+# ---- MotionAgreement ---------------------------------------------------------------------------------------
+def _square_robot(seconds: float, tau: float, jump_at: float | None = None) -> list[float]:
+    """A robot driving a 1 m square, open loop: 10 s at 0.1 m/s, then a quarter turn in place at 0.5 rad/s,
+    its velocities a first-order response of time constant tau (s) to the commands, sampled at 20 Hz with
+    1 mm noise; from jump_at (s) on its pose reads 0.3 m off. The times (s) MotionAgreement objects at."""
+    rng = np.random.default_rng(1)
+    m, dt, turn_s = MotionAgreement(), 0.05, (math.pi / 2) / 0.5
+    x = y = th = v = w = 0.0
+    out: list[float] = []
+    cmd: np.ndarray | None = None
+    for k in range(round(seconds / dt)):
+        t = k * dt
+        off = 0.3 if jump_at is not None and t >= jump_at else 0.0
+        if m.sample(t, x + off + rng.normal(0, 0.001), y + rng.normal(0, 0.001), th, cmd) is not None:
+            out.append(t)
+        straight = t % (10.0 + turn_s) < 10.0
+        cmd = np.array([0.1, 0.0, 0.0, 0.0]) if straight else np.array([0.0, 0.0, 0.0, 0.5])
+        v, w = v + (cmd[0] - v) * dt / tau, w + (cmd[3] - w) * dt / tau
+        x, y, th = x + v * math.cos(th) * dt, y + v * math.sin(th) * dt, th + w * dt
+    return out
+
+
+@pytest.mark.parametrize("tau", [0.1, 0.5])
+def test_a_robot_lagging_its_commands_round_a_square_agrees(tau: float) -> None:
+    assert _square_robot(45.0, tau) == []
+
+
+def test_a_robot_pose_that_jumps_disagrees_within_the_window() -> None:
+    late = _square_robot(20.0, 0.5, jump_at=5.0)
+    assert MOTION_JUMP_M + 0.1 < 0.3  # the jump beyond the bound at 0.1 m/s
+    assert late and 5.0 <= late[0] <= 5.0 + MOTION_WINDOW_S
 
 
 # ---- SafeDrone -------------------------------------------------------------------------------------------

@@ -63,7 +63,8 @@ class FaultSpec:
     drone reports from then on. mocap_dropout: window without motion capture for `mocap_bodies` (None: every
     body). occlusion: window during which every camera sees nothing. mocap_frozen: body -> (from t, from z m
     or None): the body's pose freezes (the same pose under fresh stamps, a stuck capture pipeline) from the
-    first sample at or after t whose z is at least the given z.
+    first sample at or after t whose z is at least the given z. mocap_shifted: body -> (from t, (dx, dy, dz)
+    m): the body's pose moved by that offset from t on (a mislabelled or swapped body).
     """
 
     link_loss: dict[int, Window] = field(default_factory=dict)
@@ -72,6 +73,7 @@ class FaultSpec:
     mocap_bodies: frozenset[str] | None = None
     occlusion: Window | None = None
     mocap_frozen: dict[str, tuple[float, float | None]] = field(default_factory=dict)
+    mocap_shifted: dict[str, tuple[float, tuple[float, float, float]]] = field(default_factory=dict)
 
 
 class FaultyDrone:
@@ -166,29 +168,45 @@ class DropoutPoses:
         return self.inner.latest(body)
 
 
-class FrozenPoses:
-    """hal.PoseSource that, for the bodies of `frozen` (body -> (from t s, from z m or None)), repeats the
-    pose of the first sample at or after that time (and at or above that z) under every later sample's
-    fresh stamp; `frozen_at` holds (mission s, pose) of each freeze."""
+class LyingPoses:
+    """hal.PoseSource whose poses lie from a mission time on, under the fresh stamps of the real samples.
+
+    frozen: body -> (from t s, from z m or None): the pose of the first sample at or after t (and at or
+    above that z) repeated in every later one (a stuck capture pipeline). shifted: body -> (from t s,
+    (dx, dy, dz) m): every pose from t on moved by that offset (a mislabelled or swapped body). `began`
+    holds the mission time (s) each body's lie began."""
 
     def __init__(
-        self, inner: Any, now: Callable[[], float], frozen: dict[str, tuple[float, float | None]]
+        self,
+        inner: Any,
+        now: Callable[[], float],
+        frozen: dict[str, tuple[float, float | None]],
+        shifted: dict[str, tuple[float, tuple[float, float, float]]],
     ) -> None:
         self.inner = inner
         self._now = now
         self.frozen = dict(frozen)
-        self.frozen_at: dict[str, tuple[float, Pose]] = {}
+        self.shifted = dict(shifted)
+        self.began: dict[str, float] = {}
+        self._held: dict[str, Pose] = {}
 
     def latest(self, body: str) -> StampedPose | None:
         sp = self.inner.latest(body)
-        if sp is None or body not in self.frozen:
+        if sp is None:
             return sp
-        if body not in self.frozen_at:
+        now = self._now()
+        if body in self.frozen and body not in self._held:
             t0, z0 = self.frozen[body]
-            if self._now() < t0 or (z0 is not None and not sp.pose.p[2] >= z0):
-                return sp
-            self.frozen_at[body] = (self._now(), sp.pose)
-        return StampedPose(sp.stamp, self.frozen_at[body][1])
+            if now >= t0 and (z0 is None or sp.pose.p[2] >= z0):
+                self._held[body] = sp.pose
+                self.began[body] = now
+        if body in self._held:
+            return StampedPose(sp.stamp, self._held[body])
+        if body in self.shifted and now >= self.shifted[body][0]:
+            self.began.setdefault(body, now)
+            offset = np.asarray(self.shifted[body][1], dtype=float)
+            return StampedPose(sp.stamp, Pose(sp.pose.p + offset, sp.pose.theta))
+        return sp
 
 
 class OccludedCamera:
@@ -228,8 +246,9 @@ class FaultyBackend:
             i: FaultyDrone(inner.drone(i), now, spec.link_loss.get(i), spec.battery.get(i)) for i in self.ids
         }
         src = inner.pose_source()
-        self._frozen = FrozenPoses(src, now, spec.mocap_frozen) if spec.mocap_frozen else None
-        src = self._frozen or src
+        lies = spec.mocap_frozen or spec.mocap_shifted
+        self._lies = LyingPoses(src, now, spec.mocap_frozen, spec.mocap_shifted) if lies else None
+        src = self._lies or src
         self._poses = (
             src
             if spec.mocap_dropout is None
@@ -250,9 +269,9 @@ class FaultyBackend:
     def pose_source(self) -> Any:
         return self._poses
 
-    def poses_frozen_at(self) -> dict[str, float]:
-        """Mission time (s) at which each frozen body's pose froze (FaultSpec.mocap_frozen)."""
-        return {} if self._frozen is None else {b: t for b, (t, _) in self._frozen.frozen_at.items()}
+    def pose_lies_began(self) -> dict[str, float]:
+        """Mission time (s) at which each frozen or shifted body's pose began to lie (FaultSpec)."""
+        return {} if self._lies is None else dict(self._lies.began)
 
     def target(self) -> Any:
         return self.inner.target()

@@ -161,7 +161,7 @@ def _frozen_row(run: SimRun, name: str, expected: str) -> FaultResult:
     """Judge drone 1 under a frozen pose: `pose_frozen`, zero velocity sent within FROZEN_HOVER_S, down
     within FROZEN_DOWN_S, never above the fence's ceiling (true z); drone 2 untouched and flying on."""
     c = Checks()
-    frozen = run.backend.poses_frozen_at().get("drone1")
+    frozen = run.backend.pose_lies_began().get("drone1")
     c.check(frozen is not None, "drone 1's pose never froze")
     t_f = frozen if frozen is not None else float("nan")
     ev = run.first("pose_frozen", 1)
@@ -240,37 +240,45 @@ def mocap_frozen_climbing(mission_path: Path, workdir: Path) -> FaultResult:
     return _frozen_row(run, "mocap_frozen_climbing", expected)
 
 
+ROBOT_SHIFT_M = (0.3, 0.0, 0.0)
+"""robot_pose_jumps: the offset (m, Σw) the robot's pose takes at once (a body swapped with one 0.3 m off)."""
+
+
 def robot_pose_frozen(mission_path: Path, workdir: Path) -> FaultResult:
     """The ground robot's pose freezes (same pose, fresh stamps) 2 s into pursuit while its law drives it."""
-    expected = (
-        "robot_pose_suspect within 1 s of the freeze, the robot stopped, the run ends with an error (exit "
-        "code 1) and every drone lands"
-    )
     spec = FaultSpec(mocap_frozen={"target": (T_FAULT, None)})
-    run = fly_with_faults(mission_path, workdir / "robot_pose_frozen", spec, duration_s=DURATION_S)
+    return _robot_row(mission_path, workdir, "robot_pose_frozen", spec, "frozen")
+
+
+def robot_pose_jumps(mission_path: Path, workdir: Path) -> FaultResult:
+    """The ground robot's pose jumps by ROBOT_SHIFT_M 2 s into pursuit (a swapped or mislabelled body)."""
+    spec = FaultSpec(mocap_shifted={"target": (T_FAULT, ROBOT_SHIFT_M)})
+    return _robot_row(mission_path, workdir, "robot_pose_jumps", spec, "off what its commands explain")
+
+
+def _robot_row(mission_path: Path, workdir: Path, name: str, spec: FaultSpec, why: str) -> FaultResult:
+    """Fly `spec` (a lie of the robot's pose) and judge: robot_pose_suspect within 1 s of the lie, its
+    reason containing `why`, the run ended with that error and every drone landed."""
+    expected = (
+        "robot_pose_suspect within 1 s, the robot stopped, the run ends with an error (exit code 1) and "
+        "every drone lands"
+    )
+    run = fly_with_faults(mission_path, workdir / name, spec, duration_s=DURATION_S)
     c = Checks()
-    t_f = run.backend.poses_frozen_at().get("target")
-    ev = run.first("robot_pose_suspect")
-    t_ev = _t(ev)
+    t_f = run.backend.pose_lies_began().get("target")
+    t_ev = _t(run.first("robot_pose_suspect"))
     after = None if t_ev is None or t_f is None else t_ev - t_f
-    c.check(after is not None and after <= 1.0, f"robot_pose_suspect {after} s after the freeze at {t_f}")
+    c.check(after is not None and after <= 1.0, f"robot_pose_suspect {after} s after the lie at {t_f}")
     err = None if run.rec is None else run.rec.error
-    c.check(err is not None and "frozen" in err, f"run error {err!r}")
+    c.check(err is not None and why in err, f"run error {err!r}")
     for i in (1, 2):
         c.check(run.first("land", i) is not None, f"drone {i} was not landed")
     details = {"event_after_ms": None if after is None else round(1e3 * after)}
-    observed = f"robot_pose_suspect +{details['event_after_ms']} ms after the freeze; error {err!r}"
+    observed = f"robot_pose_suspect +{details['event_after_ms']} ms after the lie began; error {err!r}"
     # the run ends at the tick of the event, before recording it: the ticks flown before it
     ticks = None if t_ev is None else round((t_ev - run.pursuit_start) / run.mission.dt_s)
     return sim_result(
-        "robot_pose_frozen",
-        expected,
-        run,
-        c,
-        observed,
-        expect_ticks=ticks,
-        expect_error=True,
-        details=details,
+        name, expected, run, c, observed, expect_ticks=ticks, expect_error=True, details=details
     )
 
 
@@ -467,5 +475,6 @@ ROWS: dict[str, FaultRow] = {
     "mocap_frozen": mocap_frozen,
     "mocap_frozen_climbing": mocap_frozen_climbing,
     "robot_pose_frozen": robot_pose_frozen,
+    "robot_pose_jumps": robot_pose_jumps,
 }
 """The simulated rows, in table order."""

@@ -13,7 +13,7 @@ import numpy as np
 from flightstack.hal import Backend, Clock, FlightPhase, StampedPose
 from flightstack.paper.target_law import TargetLaw, start_phase
 from flightstack.runtime.motion_check import MotionCheck, check_robot_moves
-from flightstack.safety.pose_check import FreezeWatch
+from flightstack.safety.pose_check import FreezeWatch, MotionAgreement
 from flightstack.safety.rules import EventLog, valid_pose
 
 TAKEOFF_TIMEOUT_S = 25.0  # > the Tello driver's own 20 s bound, so its outcome is collected first
@@ -29,10 +29,10 @@ class TargetDriver:
     fence_xy: ((x_lo, y_lo), (x_hi, y_hi)) of the fence (m) when the robot's motion is checked before
     takeoff (flightstack.runtime.motion_check; the rigs with a robot device), None when it is not.
 
-    Its pose is checked before each command: a pose that is not finite, or frozen (identical under fresh
-    stamps for ROBOT_FROZEN_S while the law drove it; flightstack.safety.pose_check) stops the robot for
-    good, logs `robot_pose_suspect` into `log` and sets `suspect` (the runner then ends the run with an
-    error: the law cannot drive a robot it cannot see)."""
+    Its pose is checked before each command: a pose that is not finite, frozen (identical under fresh
+    stamps for ROBOT_FROZEN_S while the law drove it) or that moved where its commands could not take it
+    (flightstack.safety.pose_check) stops the robot for good, logs `robot_pose_suspect` into `log` and sets
+    `suspect` (the runner then ends the run with an error: the law cannot drive a robot it cannot see)."""
 
     def __init__(
         self,
@@ -51,6 +51,7 @@ class TargetDriver:
         self.suspect: str | None = None
         """Why the robot's pose was not believed (one line), None while it is."""
         self._freeze = FreezeWatch()
+        self._motion = MotionAgreement()
         self._last_command: np.ndarray | None = None
 
     def start_where_it_is(self) -> tuple[float, float, float] | None:
@@ -112,6 +113,13 @@ class TargetDriver:
             return (
                 f"the ground robot's pose identical for {stamp - since:.2f} s under fresh stamps while its "
                 "law drove it (frozen motion capture)"
+            )
+        p = own.pose.p
+        d = self._motion.sample(stamp, float(p[0]), float(p[1]), float(own.pose.theta), self._last_command)
+        if d is not None:
+            return (
+                f"the ground robot's pose moved {d:.2f} m off what its commands explain over "
+                f"{self._motion.window_s:g} s (a swapped or mislabelled body)"
             )
         return None
 

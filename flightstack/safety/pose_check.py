@@ -19,6 +19,14 @@ frozen replay or a mislabelled body. Two checks, each against evidence the pose 
   (sim_backend/emulators/tello/recorded.py names the recording). `HEIGHT_DISAGREE_M` is twice that. It
   catches a pose that moves but not with the drone (a mislabelled body, a replay), more slowly than the
   frozen check catches a still one.
+* **Motion disagreement** (`MotionAgreement`, the ground robot): over the last `MOTION_WINDOW_S`, its
+  planar displacement as motion capture saw it and as its commands predict (each command held until the
+  next sample, turned by the measured heading) differ by more than `MOTION_JUMP_M` plus `MOTION_LAG_S` at
+  the fastest speed commanded in the window: a pose that jumped where no command took the robot (a swapped
+  or mislabelled body). A robot lagging its command by up to `MOTION_LAG_S` (a first-order response of
+  τ ≤ 0.5 s lags by v·τ) stays inside; a robot that does not move at all while commanded stays inside too
+  (≤ 0.1 m a second at the paper's speed): the frozen check and the motion check before takeoff are for
+  that.
 
 Pure functions of the samples given; the safety layer (flightstack/safety/drone.py for drones,
 flightstack/runtime/phases.py for the ground robot) decides what to do (docs/safety.md).
@@ -41,6 +49,12 @@ HEIGHT_WINDOW_S = 2.0
 """Window over which z and the drone's own height are compared (s)."""
 HEIGHT_DISAGREE_M = 0.4
 """Largest difference between the two heights' changes over the window that is still agreement (m)."""
+MOTION_WINDOW_S = 1.0
+"""Window over which the robot's measured and commanded displacements are compared (s)."""
+MOTION_JUMP_M = 0.15
+"""Part of the motion bound that no command explains (m): 100 times motion capture's noise."""
+MOTION_LAG_S = 1.0
+"""Part of the motion bound per m/s commanded (s): twice the lag of a τ = 0.5 s response."""
 
 
 def moving(command: np.ndarray | None) -> bool:
@@ -114,12 +128,54 @@ class HeightAgreement:
         self._hist.clear()
 
 
+@dataclass
+class MotionAgreement:
+    """A ground robot's planar displacement against its commands over a sliding window (module docstring)."""
+
+    window_s: float = MOTION_WINDOW_S
+    jump_m: float = MOTION_JUMP_M
+    lag_s: float = MOTION_LAG_S
+    # (t s, measured x, y m, predicted x, y m, commanded speed m/s) per sample
+    _hist: deque[tuple[float, float, float, float, float, float]] = field(default_factory=deque)
+    _theta: float = 0.0  # heading of the newest sample (rad, world)
+
+    def sample(self, t: float, x: float, y: float, theta: float, command: np.ndarray | None) -> float | None:
+        """Add the sample (t s; x, y m, θ rad in the world) and the command V = [v_x, v_y, 0, ω] (m/s,
+        rad/s, body) in effect since the previous one (None: none); the disagreement (m) when it exceeds
+        the bound over a full window, None otherwise."""
+        v = np.zeros(2) if command is None else np.asarray(command, dtype=float)[:2]
+        if not np.all(np.isfinite(v)):
+            v = np.zeros(2)
+        if self._hist and t <= self._hist[-1][0]:
+            return None
+        if self._hist:
+            t1, _, _, px, py, _ = self._hist[-1]
+            c, s = math.cos(self._theta), math.sin(self._theta)
+            px, py = px + (c * v[0] - s * v[1]) * (t - t1), py + (s * v[0] + c * v[1]) * (t - t1)
+        else:
+            px, py = x, y
+        self._hist.append((t, x, y, px, py, float(np.hypot(v[0], v[1]))))
+        self._theta = theta
+        while len(self._hist) > 1 and t - self._hist[1][0] >= self.window_s:
+            self._hist.popleft()
+        t0, x0, y0, px0, py0, _ = self._hist[0]
+        if t - t0 < self.window_s:
+            return None
+        d = math.hypot((x - x0) - (px - px0), (y - y0) - (py - py0))
+        bound = self.jump_m + self.lag_s * max(h[5] for h in self._hist)
+        return d if d > bound else None
+
+
 __all__ = [
     "HEIGHT_DISAGREE_M",
     "HEIGHT_WINDOW_S",
+    "MOTION_JUMP_M",
+    "MOTION_LAG_S",
+    "MOTION_WINDOW_S",
     "MOVING_MPS",
     "MOVING_RADPS",
     "FreezeWatch",
     "HeightAgreement",
+    "MotionAgreement",
     "moving",
 ]
