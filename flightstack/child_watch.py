@@ -5,8 +5,11 @@ a dead disk is killed once it has made no progress for a while.
 Progress is any change of a value sampled every WATCH_PERIOD_S: by default the child's CPU time (the sum
 over its threads of /proc/PID/task/*/schedstat's first field, ns; Linux), to which a caller adds what it
 can see of the child's work (the live MCAP's writer: its file's size). A child on a busy machine still gets
-slices of a core, so its CPU time advances; a stopped child's does not. Where /proc is missing the CPU time
-cannot be read, it counts as progress at every sample, and only the overall cap applies."""
+slices of a core, so its CPU time advances; a stopped child's does not. A child waiting for a core (a
+thread in state R, runnable: /proc/PID/task/*/stat) counts as progressing too: at nice 19 beside a loaded
+flight it got no slice for over 2.5 s and was killed though healthy (a CI run beside CPU-bound processes),
+while a stopped child is in state T and a hung one in S or D. Where /proc is missing the CPU time cannot be
+read, it counts as progress at every sample, and only the overall cap applies."""
 
 from __future__ import annotations
 
@@ -34,6 +37,22 @@ def cpu_ns(pid: int) -> int | None:
     return total
 
 
+def runnable(pid: int) -> bool:
+    """Whether a thread of process `pid` is runnable (state R: running or waiting for a core); False where
+    it cannot be read."""
+    try:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            try:
+                stat = (task / "stat").read_text()
+            except OSError:
+                continue  # a thread that just ended
+            if stat[stat.rfind(")") + 2 : stat.rfind(")") + 3] == "R":  # the state follows "(comm) "
+                return True
+    except OSError:
+        return False
+    return False
+
+
 def communicate_while_progressing(
     proc: subprocess.Popen[bytes],
     stall_s: float,
@@ -48,7 +67,9 @@ def communicate_while_progressing(
 
     def sample() -> Hashable:
         ns = cpu_ns(pid)
-        return (ns if ns is not None else time.monotonic(), progress() if progress is not None else None)
+        if ns is None or runnable(pid):  # unreadable, or waiting for a core: progress
+            return (time.monotonic(), None)
+        return (ns, progress() if progress is not None else None)
 
     t0 = time.monotonic()
     last, last_change = sample(), t0

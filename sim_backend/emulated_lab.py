@@ -91,6 +91,14 @@ NETWORK_LOG = "network_log.json"
 after a flight on an impaired network or with late links."""
 TRUTH_PERIOD_S = 0.05
 """How often the lab samples each drone's true position for the fence judgement (s)."""
+MOCAP_NOISE_M = 5e-6
+"""σ of the emulated motion capture's position noise per axis (m): the recorded Motive session
+(../shared/data/peers/natnet/, one still body, 518 frames) moves 4–8 µm frame to frame. A real capture
+never repeats a sample (flightstack/safety/pose_check.py relies on it); without noise the emulated drones
+did, hovering in their takeoff."""
+MOCAP_NOISE_RAD = 6e-5
+"""σ of the emulated motion capture's yaw noise (rad): the same recording's quaternion moves about 3e-5 a
+component frame to frame."""
 
 
 class LabUnavailableError(RuntimeError):
@@ -259,6 +267,7 @@ class EmulatedLab:
         """(time.monotonic(), drone id, true position (m, world)) about every TRUTH_PERIOD_S per drone:
         where the emulator flies the drone, without `mocap_offset`."""
         self._truth_t: dict[int, float] = {}
+        self._mocap_noise = np.random.default_rng(0)  # MOCAP_NOISE_M: one stream, read by the NatNet thread
         self.live_cameras = experiment is not None if live_cameras is None else bool(live_cameras)
         self.cameras: dict[int, Any] = {}
         self._target: Any = None
@@ -538,7 +547,12 @@ class EmulatedLab:
         from flightstack.paper.geometry import Pose, compose
 
         g = compose(Pose.make([*ROVER_START, 0.0], 0.0), self.rover.pose_flu())
-        return g.p, _yaw_quaternion(g.theta)
+        return self._noisy(g.p, g.theta)
+
+    def _noisy(self, p: Any, theta: float) -> tuple[Any, tuple[float, float, float, float]]:
+        """A body's true pose (p m, θ rad) as motion capture gives it: with Motive's noise (MOCAP_NOISE_M)."""
+        noise = self._mocap_noise.normal(0.0, 1.0, 4)
+        return np.asarray(p) + MOCAP_NOISE_M * noise[:3], _yaw_quaternion(theta + MOCAP_NOISE_RAD * noise[3])
 
     def _drone_pose(self, i: int) -> tuple[Any, tuple[float, float, float, float]]:
         """Drone i's mocap pose: the emulator flies (x forward, y right, z up) cm, yaw clockwise deg, from
@@ -552,7 +566,7 @@ class EmulatedLab:
         if now - self._truth_t.get(i, -math.inf) >= TRUTH_PERIOD_S:
             self._truth_t[i] = now
             self.truth.append((now, i, (float(g.p[0]), float(g.p[1]), float(g.p[2]))))
-        return np.asarray(g.p) + self.mocap_offset[i], _yaw_quaternion(g.theta)
+        return self._noisy(np.asarray(g.p) + self.mocap_offset[i], g.theta)
 
     # ---- the mission -----------------------------------------------------------------------------------
     def write_mission(self) -> Path:

@@ -13,7 +13,7 @@ import sys
 import threading
 import time
 
-from flightstack.child_watch import communicate_while_progressing, cpu_ns
+from flightstack.child_watch import communicate_while_progressing, cpu_ns, runnable
 from tests.conftest import Bound, process_running
 
 STALL_S = 1.5
@@ -90,3 +90,22 @@ def test_a_slow_child_that_progresses_is_not_killed() -> None:
     print(f"a throttled child finished after {waited:.1f} s (stall time {STALL_S} s)")
     assert killed is None and out.strip() == b"done" and proc.returncode == 0, (killed, err)
     assert waited > STALL_S
+
+
+def test_runnable_tells_a_child_waiting_for_a_core_from_a_stopped_or_sleeping_one() -> None:
+    """A busy child is runnable (state R: at nice 19 on a loaded machine it may wait seconds for a core and
+    is not stalled); a stopped one (SIGSTOP, state T) and a sleeping one (state S) are not."""
+    busy = subprocess.Popen([sys.executable, "-c", "while 1: pass"])
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        time.sleep(0.5)
+        assert runnable(busy.pid)
+        time.sleep(0.2)
+        assert not runnable(sleeper.pid)
+        busy.send_signal(signal.SIGSTOP)
+        time.sleep(0.2)
+        assert not runnable(busy.pid)
+    finally:
+        for p in (busy, sleeper):
+            p.kill()
+            p.wait(timeout=10)

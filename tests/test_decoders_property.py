@@ -138,6 +138,7 @@ statuses = st.builds(
     pose_fresh=st.booleans(),
     rejection=st.none() | printable,
     dropped=st.dictionaries(printable, st.integers(0, 2**53), max_size=4).map(lambda d: tuple(d.items())),
+    restarts=st.dictionaries(printable, st.integers(0, 2**53), max_size=4).map(lambda d: tuple(d.items())),
 )
 aborts = st.builds(AbortRequest, printable, st.text("0123456789abcdef", min_size=1, max_size=32))
 acks = st.builds(

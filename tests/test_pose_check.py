@@ -39,9 +39,22 @@ def test_identical_samples_under_fresh_stamps_while_commanded_are_frozen_from_th
     w.sample(1.0, pose, MOVE)  # the same sample read again (no new frame): not evidence
     assert w.frozen_since is None
     w.sample(1.01, pose.copy(), MOVE)
-    assert w.frozen_since == 1.0
-    w.sample(1.02, pose + np.array([1e-6, 0, 0, 0]), MOVE)  # it moved: the run ends
+    assert w.frozen_since == 1.01  # the first sample that should have moved
+    w.sample(1.02, pose.copy(), MOVE)
+    assert w.frozen_since == 1.01
+    w.sample(1.03, pose + np.array([1e-6, 0, 0, 0]), MOVE)  # it moved: the run ends
     assert w.frozen_since is None
+
+
+def test_a_body_still_before_it_was_commanded_is_judged_from_the_command() -> None:
+    """A Tello hovers in its takeoff (ignoring rc) on one noise-free pose for seconds; the first moving
+    command after it is evidence from the next sample on, not back to the hover's start."""
+    w, pose = FreezeWatch(), np.array([0.0, 0.0, 0.85, 0.0])
+    for k in range(140):  # 7 s still, commanded nothing
+        w.sample(0.05 * k, pose, STILL)
+    assert w.frozen_since is None
+    w.sample(7.0, pose, MOVE)
+    assert w.frozen_since == 7.0
 
 
 def test_a_still_body_commanded_still_is_not_frozen() -> None:
@@ -184,10 +197,11 @@ def test_a_frozen_pose_hovers_after_pose_timeout_and_lands_after_the_suspect_bou
         r.poses.poses[r.sd.body], r.poses.stamps[r.sd.body] = frozen_pose, r.clock.t
         r.sd.tick()
         r.sd.send_body_velocity(MOVE)
+    onset = t_freeze + 0.05  # the first sample that should have moved
     ev = r.log.of_kind("pose_frozen")
-    assert len(ev) == 1 and LIM.pose_timeout < ev[0].t - t_freeze <= LIM.pose_timeout + 0.05 + 1e-9
+    assert len(ev) == 1 and LIM.pose_timeout < ev[0].t - onset <= LIM.pose_timeout + 0.05 + 1e-9
     land = r.log.of_kind("pose_stale_land")
-    assert len(land) == 1 and SUSPECT_LAND_AFTER_S <= land[0].t - t_freeze <= SUSPECT_LAND_AFTER_S + 0.05
+    assert len(land) == 1 and SUSPECT_LAND_AFTER_S <= land[0].t - onset <= SUSPECT_LAND_AFTER_S + 0.05
     assert r.sd.landed and "land" in r.inner.calls
     # from the event on nothing but zero velocity reached the drone
     sends = r.inner.sent[-round((land[0].t - ev[0].t) / 0.05) :]
@@ -267,7 +281,7 @@ def test_a_robot_pose_that_is_nan_or_frozen_stops_the_robot_with_an_event(bad: s
         drv.tick(rig.clock.t)
     events = log.of_kind("robot_pose_suspect")
     assert len(events) == 1 and robot.stopped == 1 and drv.suspect is not None
-    t_bad = 0.05 * (20 if bad == "nan" else 19)  # frozen: the last live sample is the first of the run
+    t_bad = 0.05 * 20  # the first NaN sample, or the first that should have moved
     late = events[0].t - t_bad
     assert late <= (1e-9 if bad == "nan" else ROBOT_FROZEN_S + 0.05 + 1e-9), (bad, late)
     n_sent = len(robot.sent)

@@ -124,6 +124,7 @@ class SafeDrone:
         self._freeze = FreezeWatch()  # identical samples under fresh stamps (pose_check)
         self._heights = HeightAgreement()  # pose z against the drone's own height telemetry (pose_check)
         self._disagree: tuple[float, str] | None = None  # (mission s, detail): the pose disagreed, latched
+        self._obeys = False  # its last telemetry said it flies velocity commands (AIRBORNE): a pose must move
         self._floor_armed = False
         self._link_seen = False  # the drone reported link_alive since its activation
         self._abort_reason: str | None = None
@@ -340,6 +341,7 @@ class SafeDrone:
                     self._send_quietly(now, np.zeros(4))
                     self._do_land(now, "link_lost")
                     return
+                self._obeys = link_alive and st.phase == FlightPhase.AIRBORNE
                 self._check_heights(now, st)
                 if battery < self.limits.land_battery:
                     self._safety_land(
@@ -372,6 +374,7 @@ class SafeDrone:
         self._freeze.reset()
         self._heights.reset()
         self._disagree = None
+        self._obeys = False
 
     def _check_pose(self, now: float, hover_now: bool) -> Pose | None:
         """The fresh pose, or None when stale (hover: zeros sent once if hover_now; land when too old).
@@ -404,6 +407,7 @@ class SafeDrone:
         """A fresh-looking pose that is frozen or disagrees with the drone's own height (pose_check): hover
         (zeros sent once if hover_now), land SUSPECT_LAND_AFTER_S after the suspect began. True if so."""
         since = self._freeze.frozen_since
+        kind: SafetyKind
         if since is not None and now - since > self.limits.pose_timeout:
             onset, kind = since, "pose_frozen"
             detail = (
@@ -520,7 +524,10 @@ class SafeDrone:
                 self._event_once(now, "pose_error", f"pose of {self.body!r} {ahead}: not used")
                 return self._last_pose
             self._last_pose = sp
-            self._freeze.sample(sp.stamp, sp.pose.as_vector(), self.last_sent)
+            # a command is evidence of motion only while the drone obeys it: a Tello ignores rc in its
+            # takeoff climb and the hover before its `ok` (8.7 s recorded), where a noise-free emulator's
+            # pose stands still
+            self._freeze.sample(sp.stamp, sp.pose.as_vector(), self.last_sent if self._obeys else None)
         self._end("pose_error")
         return self._last_pose
 

@@ -9,8 +9,9 @@ frozen replay or a mislabelled body. Two checks, each against evidence the pose 
   least `MOVING_MPS` or a yaw rate of at least `MOVING_RADPS`). Motion capture of a real body never
   repeats a float sample (Motive's sub-millimetre noise; every body of the NatNet recording in
   `../shared/data/peers/natnet/` differs frame to frame); a noise-free simulation repeats samples only when
-  the body stands still, which a moving command rules out. The frozen pose's information is as old as its
-  first identical sample: `since` is that stamp (s, the pose's clock).
+  the body stands still, which a moving command rules out. The frozen pose is judged from the first
+  identical sample read after a moving command (`frozen_since`, s, the pose's clock): a body that stood
+  still before it (a Tello hovering in its takeoff, ignoring rc) is no evidence.
 * **Height disagreement** (`HeightAgreement`): over the last `HEIGHT_WINDOW_S`, the change of the pose's
   z and the change of the drone's own height telemetry (a Tello's `h`, cm → m) differ by more than
   `HEIGHT_DISAGREE_M`. Changes, not values: `h` is relative to the take-off surface and drifts; over the
@@ -74,7 +75,7 @@ class FreezeWatch:
     _last: np.ndarray | None = None
     _stamp: float = -math.inf  # newest stamp seen (s)
     _since: float = math.nan  # stamp of the first sample of the current identical run (s)
-    _commanded: bool = False  # a moving command was sent since the run began
+    _commanded_at: float | None = None  # stamp of the run's first sample read after a moving command (s)
 
     def sample(self, stamp: float, pose: np.ndarray, command: np.ndarray | None) -> None:
         """One read of the source: its sample (stamp s, pose vector) and the command last sent before it."""
@@ -82,21 +83,19 @@ class FreezeWatch:
             if self._last is None or not np.array_equal(pose, self._last):
                 self._last = np.array(pose, dtype=float)
                 self._since = stamp
-                self._commanded = False
-            elif moving(command):
-                self._commanded = True
+                self._commanded_at = None
+            elif self._commanded_at is None and moving(command):
+                self._commanded_at = stamp
             self._stamp = stamp
 
     @property
     def frozen_since(self) -> float | None:
-        """The stamp of the frozen run's first sample (s) when the pose stayed identical over newer stamps
-        while the body was commanded to move, None otherwise."""
-        if self._commanded and self._stamp > self._since:
-            return self._since
-        return None
+        """The stamp (s) of the first sample that stayed identical although the body had been commanded to
+        move, None when there is none in the current run of identical samples."""
+        return self._commanded_at
 
     def reset(self) -> None:
-        self._last, self._stamp, self._since, self._commanded = None, -math.inf, math.nan, False
+        self._last, self._stamp, self._since, self._commanded_at = None, -math.inf, math.nan, None
 
 
 @dataclass
