@@ -68,7 +68,8 @@ def mocap_frozen_tello(mission_path: Path, workdir: Path) -> FaultResult:
         c.check(not [e for e in run.safety("pose_frozen") if e["drone"] == 2], "pose_frozen for drone 2")
         detect = sub(event_t(ev), t0)
         c.check(within(detect, HOVER_S), f"pose_frozen {detect} s after the freeze (limit {HOVER_S:g} s)")
-        td = event_t(ev) if ev is not None else t0
+        t_ev = event_t(ev)
+        td = t_ev if t_ev is not None else t0
         t_hover = first(rc_times(e1, after=td - 0.005, value=ZERO))
         hover = sub(t_hover, t0)
         c.check(within(hover, HOVER_S), f"drone 1: rc 0 0 0 0 {hover} s after the freeze (≤ {HOVER_S:g} s)")
