@@ -51,8 +51,8 @@ from flightstack.safety.rules import (
 _T = TypeVar("_T")
 
 SUSPECT_LAND_AFTER_S = 1.0
-"""A frozen or disagreeing pose lands the drone this long after the suspect began (s: the first identical
-sample, the disagreement's detection), where a pose that is only late waits `pose_land_after`: a late
+"""A frozen or disagreeing pose lands the drone this long after the suspect began (s: the first sample that
+should have moved, pose_check.FreezeWatch.frozen_since; the disagreement's detection), where a pose that is only late waits `pose_land_after`: a late
 pose may come back, a lying one says the capture cannot be trusted, and the fence cannot hold without it.
 The hover starts at `pose_timeout`; with a Tello's 2.8 s landing the drone is down about 4 s after the
 pose froze (fault row `mocap_frozen_tello`)."""
