@@ -85,11 +85,17 @@ def test_decoder_never_raises_on_mutated_messages(data: st.DataObject) -> None:
 
 def test_inproc_bus_drops_and_counts() -> None:
     bus = InProcBus("paper_sim", {1, 2, 3})
-    bus.publish(msg(seq=1, stamp=0.0))
+    first = msg(seq=1, stamp=0.0)
+    bus.publish(first)
     assert bus.latest(2, now=0.1, stale_after=0.5) is not None
     assert bus.latest(2, now=1.0, stale_after=0.5) is None  # stale
-    bus.publish(msg(seq=1, stamp=0.9))  # duplicate seq
+    bus.publish(first)  # the network repeated it: a duplicate
     bus.publish_raw(b"garbage")
     bus.publish(msg(mission="x", seq=5))
     assert bus.dropped == {"stale": 1, "old or duplicate seq": 1, "truncated header": 1, "other mission": 1}
+    # other bytes under the newest seq: a second sender (evidence, comms/streams.py) whose message is the
+    # newest until the next one, never dropped as a duplicate
+    bus.publish(msg(seq=1, stamp=0.9))
+    other = bus.latest(2, now=1.0, stale_after=0.5)
+    assert other is not None and other.stamp == 0.9 and bus.dropped["old or duplicate seq"] == 1
     assert bus.latest(3, now=0.0, stale_after=1.0) is None

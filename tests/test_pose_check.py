@@ -319,3 +319,15 @@ def test_a_robot_pose_read_without_a_new_frame_is_not_frozen() -> None:
         rig.clock.t = 0.05 * k
         drv.tick(rig.clock.t)
     assert drv.suspect is None and not log.of_kind("robot_pose_suspect")
+
+
+def test_a_gap_in_the_robots_samples_restarts_the_window() -> None:
+    """A stalled loop: the last command (0.1 m/s) held for 3 s while the robot, without set-points, stopped
+    by its own failsafe; the samples after the gap are not judged against the held command."""
+    m = MotionAgreement()
+    cmd = np.array([0.1, 0.0, 0.0, 0.0])
+    for k in range(40):  # 2 s driven as commanded
+        assert m.sample(0.05 * k, 0.005 * k, 0.0, 0.0, cmd) is None
+    x_stop = 0.005 * 39 + 0.02  # it coasted 2 cm and stopped
+    for k in range(40):  # the loop comes back 3 s later: the robot stands where it stopped
+        assert m.sample(5.0 + 0.05 * k, x_stop, 0.0, 0.0, cmd) is None

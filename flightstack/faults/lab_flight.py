@@ -205,6 +205,26 @@ class FlyProcess:
         self.signals.append((t, sig.name))
         return t
 
+    def delivered(self, sig: signal.Signals, timeout_s: float = 2.0) -> bool:
+        """Wait (≤ timeout_s s) until `sig` is no longer pending at the child (/proc/PID/status SigPnd and
+        ShdPnd: the kernel handed it to the process); True if so, or where that cannot be read. A second
+        signal of the same kind sent while the first is pending is merged into it (standard signals do not
+        queue): on a loaded machine the child may not run for tens of ms."""
+        assert self.proc is not None
+        bit = 1 << (int(sig) - 1)
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            try:
+                status = Path(f"/proc/{self.proc.pid}/status").read_text()
+                fields = dict(line.split(":", 1) for line in status.splitlines())
+                pending = int(fields["SigPnd"], 16) | int(fields["ShdPnd"], 16)
+            except (OSError, KeyError, ValueError):
+                return True
+            if not pending & bit:
+                return True
+            time.sleep(0.001)
+        return False
+
     def wait(self, timeout_s: float = PROCESS_TIMEOUT_S) -> int | None:
         """Wait for the child's exit (s); its exit code, or None when it had to be killed."""
         assert self.proc is not None

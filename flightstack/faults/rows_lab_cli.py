@@ -1,8 +1,9 @@
 """The rows of `flightstack faults` that fly `flightstack fly` on the emulated lab in a child
-process: signals (`sighup`, `double_sigint`: the second Ctrl-C 20 ms after the first) and an operator abort
-while the Tellos take off (`abort_during_takeoff`). FaultRows (mission file, work directory) ->
-FaultResult, listed in rows_lab.ROWS. Reaction times are measured on the emulators' records
-(time.monotonic() s, shared with the child process) and reported in `details` in milliseconds.
+process: signals (`sighup`, `double_sigint`: the second Ctrl-C 20 ms after the first reached the
+process) and an operator abort while the Tellos take off (`abort_during_takeoff`). FaultRows (mission
+file, work directory) -> FaultResult, listed in rows_lab.ROWS. Reaction times are measured on the
+emulators' records (time.monotonic() s, shared with the child process) and reported in `details` in
+milliseconds.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from flightstack.faults.result import Checks, FaultResult
 from flightstack.sim_backend.emulated_lab import EmulatedLab, command_times, first, ms, phase_times, rc_times
 
 SECOND_SIGNAL_S = 0.02
-"""Delay of the second Ctrl-C after the first (s)."""
+"""Delay of the second Ctrl-C after the first reached the process (s; FlyProcess.delivered)."""
 ACK_LINE = re.compile(r"acknowledged by drones \[([\d, ]+)\] in ([\d.]+) ms")
 
 
@@ -47,7 +48,8 @@ def _signal_row(name: str, workdir: Path, signals: tuple[signal.Signals, ...]) -
             if lab.wait_for_pursuit(PURSUIT_WAIT_S) is not None:
                 time.sleep(FAULT_AFTER_S)
                 for k, sig in enumerate(signals):
-                    if k:
+                    if k:  # after the previous one reached the process: pending, the two would merge
+                        fly.delivered(signals[k - 1])
                         time.sleep(SECOND_SIGNAL_S)
                     sent.append(fly.send(sig))
             code = fly.wait()

@@ -44,7 +44,7 @@ class TargetDriver:
         self.law = law
         self.robot = backend.target()
         self.poses = backend.pose_source()
-        self.clock = backend.clock
+        self.backend = backend  # its clock stamps robot_pose_suspect
         self.fence_xy = fence_xy
         self.log = log
         self.t0 = 0.0  # s: the lap time at which the law starts (`start_where_it_is`)
@@ -96,7 +96,8 @@ class TargetDriver:
             self.suspect = problem
             self.robot.stop()
             if self.log is not None:
-                self.log.record(self.clock.now(), None, "robot_pose_suspect", f"{problem}: robot stopped")
+                now = self.backend.clock.now()
+                self.log.record(now, None, "robot_pose_suspect", f"{problem}: robot stopped")
             return
         cmd = self.law.command(self.t0 + t_mission, own.pose)
         self.robot.send_body_velocity(cmd)

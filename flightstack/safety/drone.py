@@ -52,8 +52,9 @@ _T = TypeVar("_T")
 
 SUSPECT_LAND_AFTER_S = 1.0
 """A frozen or disagreeing pose lands the drone this long after the suspect began (s: the first sample that
-should have moved, pose_check.FreezeWatch.frozen_since; the disagreement's detection), where a pose that is only late waits `pose_land_after`: a late
-pose may come back, a lying one says the capture cannot be trusted, and the fence cannot hold without it.
+should have moved, pose_check.FreezeWatch.frozen_since; the disagreement's detection), where a pose that
+is only late waits `pose_land_after`: a late pose may come back, a lying one says the capture cannot be
+trusted, and the fence cannot hold without it.
 The hover starts at `pose_timeout`; with a Tello's 2.8 s landing the drone is down about 4 s after the
 pose froze (fault row `mocap_frozen_tello`)."""
 
@@ -527,7 +528,9 @@ class SafeDrone:
             # a command is evidence of motion only while the drone obeys it: a Tello ignores rc in its
             # takeoff climb and the hover before its `ok` (8.7 s recorded), where a noise-free emulator's
             # pose stands still
-            self._freeze.sample(sp.stamp, sp.pose.as_vector(), self.last_sent if self._obeys else None)
+            # (and only a command recent enough to be flown: after a stalled loop the driver hovers)
+            flown = self._obeys and now - self._last_command_t <= self.limits.command_timeout
+            self._freeze.sample(sp.stamp, sp.pose.as_vector(), self.last_sent if flown else None)
         self._end("pose_error")
         return self._last_pose
 

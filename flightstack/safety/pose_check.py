@@ -57,6 +57,10 @@ MOTION_JUMP_M = 0.15
 """Part of the motion bound that no command explains (m): 100 times motion capture's noise."""
 MOTION_LAG_S = 1.0
 """Part of the motion bound per m/s commanded (s): twice the lag of a τ = 0.5 s response."""
+MOTION_GAP_S = 0.5
+"""Samples further apart than this (s) restart the window: without new set-points for that long the robot
+may have stopped by its own failsafe (a stalled loop held its last command for 3 s in the fault row
+`loop_stall`, and the prediction read the robot's stop as a jump)."""
 
 
 def moving(command: np.ndarray | None) -> bool:
@@ -148,6 +152,8 @@ class MotionAgreement:
             v = np.zeros(2)
         if self._hist and t <= self._hist[-1][0]:
             return None
+        if self._hist and t - self._hist[-1][0] > MOTION_GAP_S:
+            self._hist.clear()
         if self._hist:
             t1, _, _, px, py, _ = self._hist[-1]
             c, s = math.cos(self._theta), math.sin(self._theta)
@@ -169,6 +175,7 @@ class MotionAgreement:
 __all__ = [
     "HEIGHT_DISAGREE_M",
     "HEIGHT_WINDOW_S",
+    "MOTION_GAP_S",
     "MOTION_JUMP_M",
     "MOTION_LAG_S",
     "MOTION_WINDOW_S",
