@@ -301,6 +301,9 @@ def test_a_thread_that_cannot_start_refuses_that_connection_only(
         with socket.create_connection(proxy.address, timeout=5.0) as second:
             second.sendall(b"ping")
             assert second.recv(4) == b"ping"
+        deadline = time.monotonic() + 5.0  # a connection is counted once the proxy has seen it close
+        while proxy.counts()["open"] and time.monotonic() < deadline:
+            time.sleep(0.01)
         counts = proxy.counts()
     finally:
         proxy.close()
