@@ -396,7 +396,6 @@ def test_a_copy_of_agent_1_under_its_label_is_quarantined_and_the_flight_complet
 
 
 @pytest.mark.system
-@pytest.mark.timing  # four processes a run, whose lock-step decides what is fused: one at a time in CI
 @pytest.mark.parametrize(
     ("copy", "duration_s"),
     [

@@ -168,7 +168,6 @@ def test_a_killed_flight_leaves_a_finished_file(tmp_path: Path) -> None:
     print(f"flight killed at {len(rows)} rows: the follower finished the file in {finished:.2f} s")
 
 
-@pytest.mark.timing  # what the kill loses holds the niced follower's backlog: one at a time in CI
 def test_a_killed_follower_loses_at_most_its_open_chunk(tmp_path: Path) -> None:
     """SIGKILL of the flight and its follower at once: the file reads front to back up to its last
     complete chunk; what is lost is at most the open chunk (≤ FLUSH_PERIOD_S of wall time) and the rows not
