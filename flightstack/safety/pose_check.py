@@ -54,7 +54,7 @@ HEIGHT_DISAGREE_M = 0.8
 MOTION_WINDOW_S = 1.0
 """Window over which the robot's measured and commanded displacements are compared (s)."""
 MOTION_JUMP_M = 0.15
-"""Part of the motion bound that no command explains (m): 100 times motion capture's noise."""
+"""Part of the motion bound that no command explains (m): far above motion capture's noise (µm to mm)."""
 MOTION_LAG_S = 1.0
 """Part of the motion bound per m/s commanded (s): twice the lag of a τ = 0.5 s response."""
 MOTION_GAP_S = 0.5
@@ -79,7 +79,6 @@ class FreezeWatch:
 
     _last: np.ndarray | None = None
     _stamp: float = -math.inf  # newest stamp seen (s)
-    _since: float = math.nan  # stamp of the first sample of the current identical run (s)
     _commanded_at: float | None = None  # stamp of the run's first sample read after a moving command (s)
 
     def sample(self, stamp: float, pose: np.ndarray, command: np.ndarray | None) -> None:
@@ -87,7 +86,6 @@ class FreezeWatch:
         if stamp > self._stamp:
             if self._last is None or not np.array_equal(pose, self._last):
                 self._last = np.array(pose, dtype=float)
-                self._since = stamp
                 self._commanded_at = None
             elif self._commanded_at is None and moving(command):
                 self._commanded_at = stamp
@@ -100,7 +98,7 @@ class FreezeWatch:
         return self._commanded_at
 
     def reset(self) -> None:
-        self._last, self._stamp, self._since, self._commanded_at = None, -math.inf, math.nan, None
+        self._last, self._stamp, self._commanded_at = None, -math.inf, None
 
 
 @dataclass
