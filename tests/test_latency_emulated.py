@@ -164,8 +164,8 @@ def test_the_rc_latency_is_recovered_within_10_ms() -> None:
     (a new level every 0.6 s, sent at 20 Hz); its true yaw sampled at 100 Hz stands for motion capture.
     Each change's delay is timed from the yaw alone; the truth is when the emulator acted on the first
     datagram of each new level (its `rc_history`) minus when it was sent. The estimate is when the motion
-    starts: the emulator's 10 ms Euler step moves that about 5 ms before its acted-on time (its first step
-    after a change already moves by a whole step of the lag)."""
+    starts: the emulator moves each 10 ms step by the step's mean velocity, so within a step of the acted-on
+    time (errors -1 to +1 ms idle; when it moved by the step's end velocity, -9 idle and -11 ms loaded)."""
     link = LinkSpec(latency_s=0.05, jitter_s=0.03, loss=0.02)
     links = DeviceLinks({"rc": link}, 5, 1, "tello1")
     emu = TelloEmulator(IP_RC, state_port=free_udp_port(), video_port=free_udp_port(), links=links)

@@ -24,6 +24,8 @@ from __future__ import annotations
 import math
 import time
 
+import numpy as np
+
 from .base import TelloEmulatorBase
 from .recorded import drifted, reported_h, reported_tof, reported_vg
 
@@ -152,13 +154,16 @@ class TelloPhysics(TelloEmulatorBase):
                     self._own_landing_notice(now)
                     return
                 alpha = 1.0 - math.exp(-dt / max(self.tau_s, 1e-6))
-                previous = self._vel_body[:3].copy()
+                previous = self._vel_body.copy()
                 self._vel_body += alpha * (self._rc - self._vel_body)
-                self._acc_body = (self._vel_body[:3] - previous) / dt
-                right, fwd, up, yaw_rate = self._vel_body
+                self._acc_body = (self._vel_body[:3] - previous[:3]) / dt
+                # the step moves by the mean of the velocity over it (trapezoid), not by its end value: an
+                # end value moved the drone half a step early, which a latency calibration reads as 5 ms
+                right, fwd, up, yaw_rate = 0.5 * (previous + self._vel_body)
                 c, s = math.cos(math.radians(self._yaw)), math.sin(math.radians(self._yaw))
+                self._pos += np.array([fwd * c - right * s, fwd * s + right * c, up]) * dt
+                right, fwd, up, _ = self._vel_body
                 self._vel_world[:] = (fwd * c - right * s, fwd * s + right * c, up)
-                self._pos += self._vel_world * dt
                 if self._pos[2] < 0.0:
                     self._pos[2] = 0.0
                     self._vel_world[2] = 0.0
