@@ -46,8 +46,11 @@ def test_the_inhibitor_is_held_while_inside_and_released_after(
     log, pid_file = fake_inhibitor(tmp_path, monkeypatch)
     with pytest.raises(RuntimeError), ka.keep_awake("test flight") as how:
         assert how.startswith("sleep inhibited (systemd-inhibit")
+        t_end = time.monotonic() + 10.0  # a loaded machine may not have run the fake's first lines yet
+        while not (pid_file.exists() and pid_file.read_text().strip()) and time.monotonic() < t_end:
+            time.sleep(0.02)
         pid = int(pid_file.read_text())
-        assert alive(pid)
+        assert f"pid {pid})" in how and alive(pid)  # the fake execs `cat`: its pid is the one started
         args = log.read_text()
         assert "--what=sleep:idle:handle-lid-switch" in args and "--why=test flight" in args
         raise RuntimeError("the flight failed")
