@@ -445,14 +445,14 @@ def _lab_flight(tmp: Path, flood: bool) -> dict[str, Any]:
 
 
 def test_a_subscribe_flood_leaves_the_flight_as_a_clean_one(tmp_path: Path, safety_bound: Bound) -> None:
-    """The flood during a real-time flight on the emulated lab: the loop keeps dt, overruns at most the
-    clean flight's + 2, the flight process's CPU time within CPU_SLACK of the clean flight's, stderr at
-    most 100 lines. The clean flight is flown in this test, right before the flooded one; when the CPU
-    time is off, the pair is flown once more (the machine's noise, not the view's cost, then decides)."""
+    """The flood during a real-time flight on the emulated lab costs the flight nothing it measures: the
+    flight process's CPU time within CPU_SLACK of the clean flight's, stderr at most 100 lines, overruns at
+    most twice the clean flight's + 2, and the loop keeps dt when the clean flight kept it (a loaded CI
+    machine's clean flight overran 4 % of its ticks: there the relative bounds judge). The clean flight is
+    flown in this test, right before the flooded one; when the CPU time is off, the pair is flown once more
+    (the machine's noise, not the view's cost, then decides)."""
     for attempt in range(2):
         clean = _lab_flight(tmp_path / f"clean{attempt}", flood=False)
-        if not clean["health"]["keeps_dt"]:
-            pytest.skip(f"this machine did not keep dt without a viewer client: {clean['health']}")
         flooded = _lab_flight(tmp_path / f"flood{attempt}", flood=True)
         c, f = clean["health"], flooded["health"]
         print(f"clean: CPU {clean['cpu_s']:.2f} s, compute p99 {1e3 * c['compute_s']['p99']:.1f} ms, "
@@ -463,7 +463,7 @@ def test_a_subscribe_flood_leaves_the_flight_as_a_clean_one(tmp_path: Path, safe
         assert "live view client 127.0.0.1:" in flooded["err"], flooded["err"][-2000:]
         if flooded["cpu_s"] <= (1 + CPU_SLACK) * clean["cpu_s"] or attempt == 1:
             break
-    safety_bound("overruns of the flooded flight", f["overruns"], c["overruns"] + 2, "ticks")
-    assert f["keeps_dt"], f
+    safety_bound("overruns of the flooded flight", f["overruns"], 2 * c["overruns"] + 2, "ticks")
+    assert f["keeps_dt"] or not c["keeps_dt"], (f, c)
     assert flooded["stderr_lines"] <= 100, flooded["err"][-3000:]
     assert flooded["cpu_s"] <= (1 + CPU_SLACK) * clean["cpu_s"], (flooded["cpu_s"], clean["cpu_s"])
