@@ -147,6 +147,25 @@ def test_the_warm_up_lasts_while_the_estimate_converges() -> None:
     assert not gate.check(f + np.tile([30.0 / FX, 0.0], 4), f, 0.85, t + 0.05).accepted  # judged now
 
 
+def test_the_warm_up_on_a_gappy_stream_lasts_while_the_estimate_converges() -> None:
+    """A lossy stream: detections 0.15 s apart (past OFFSET_HORIZON_S, each re-acquires with θ̇ = 0) while
+    the lag shrinks at 80 px/s. A re-acquired θ̇ = 0 is no learnt rate: the gate stays open until detections
+    close enough to learn one show the lag settled (the former gate closed after TRACK_WINDOW of them)."""
+    gate = DetectionGate(GateSpec(), FX, 1.0)
+    f = measure(G_I0, P0, CAM)
+    t = 0.0
+    for k in range(2 * TRACK_WINDOW):  # 3 s converging: 240 → 12 px
+        lag = np.array([240.0 - 12.0 * k, 0.0])
+        v = gate.check(f + np.tile(lag / FX, 4), f, 0.85, t)
+        assert v.accepted and v.gate_px == math.inf, k
+        t += 0.15
+    for _ in range(TRACK_WINDOW):  # converged, frames 0.05 s apart: the rate is learnt, the gate closes
+        t += 0.05
+        v = gate.check(f, f, 0.85, t)
+        assert v.accepted
+    assert math.isfinite(v.gate_px)
+
+
 def test_a_frame_judged_again_is_judged_once() -> None:
     """The loop reads the camera's newest frame every tick; when no newer frame came, the same frame (its
     capture time) gets the same verdict and is counted once."""

@@ -51,7 +51,9 @@ recent accepted detections lay beside it. A detection f is accepted when (pixels
   the lag's shift has slowed to s (its rate ‖(ṫ_x, ṫ_y)‖ ≤ s): judged from then on. With a fixed count of
   10 the gate closed while the estimate was still converging at 40 px/s and coasted for 2 s. A detection
   taken after a coast longer than OFFSET_HORIZON_S re-acquires: θ is set to its fit, θ̇ to 0 (the lag
-  learnt before the coast no longer applies; α-β would keep half of it and reject the next frame);
+  learnt before the coast no longer applies; α-β would keep half of it and reject the next frame); such a
+  θ̇ = 0 is not a learnt rate, so only a detection that makes an α-β step can end the warm-up (when a
+  re-acquisition could, a stream with gaps over OFFSET_HORIZON_S closed the gate while still converging);
 * n_σ = 4 (GateSpec.sigmas): with Gaussian pixel noise of σ per axis a marker's distance exceeds 4σ with
   probability e^(−8) ≈ 3.4e-4, the largest of m = 4 with ≈ 1.3e-3.
 
@@ -190,7 +192,8 @@ class DetectionGate:
             self.rejected += 1
             return GateVerdict(False, r, gate)
         self.accepted += 1
-        if first or tau > OFFSET_HORIZON_S:  # (re)acquired after a coast: the lag learnt before is stale
+        reacquired = first or tau > OFFSET_HORIZON_S
+        if reacquired:  # after a coast: the lag learnt before is stale
             self._lag, self._lag_rate = fit, np.zeros(4)
         else:
             surprise = fit - lag
@@ -199,7 +202,7 @@ class DetectionGate:
         a = 1.0 if first else 1.0 / TRACK_WINDOW
         self._track_var = (1 - a) * self._track_var + a * float(dist2.mean()) / 2.0
         self._learned += 1
-        if not self._settled:  # the warm-up ends once the lag's shift has slowed to what the drift allows
+        if not (self._settled or reacquired):  # the warm-up ends once the lag's shift, as learnt, has slowed
             slowed = float(np.linalg.norm(self._lag_rate[:2])) <= self.drift_px_per_s(depth_m, spread)
             self._settled = self._learned >= TRACK_WINDOW and slowed
         self._t_accepted = max(self._t_accepted, t_capture)
