@@ -133,6 +133,9 @@ CPU_TIMED_TESTS = frozenset(
         "tests/test_mcap_live.py::test_a_killed_follower_loses_at_most_its_open_chunk",
         # four processes a run, whose lock-step decides what is fused
         "tests/test_duplicate_identity.py::test_a_key_holder_one_message_ahead_is_fused_once_and_quarantined",
+        # the emulator's 10 Hz state must reach the driver through 8 rc steps: starved beside three worker
+        # groups it fell silent for 0.88 s (link_lost) and a step saw no motion
+        "tests/test_identify.py::test_identify_against_the_emulator",
     }
 )
 """Tests that bound no safety reaction but whose outcome depends on the CPU time they get: `timing` too
