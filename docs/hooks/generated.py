@@ -106,11 +106,16 @@ def _default(value: object) -> object:
     return value
 
 
+def _said(text: str) -> str:
+    """A sentence's words, without its case and full stop."""
+    return " ".join(text.split()).rstrip(".").lower()
+
+
 def _command_section(path: list[str], help_line: str, parser: argparse.ArgumentParser, level: int) -> str:
     parts = [f"{'#' * level} {' '.join(path)}", ""]
     if help_line:
         parts += [help_line[0].upper() + help_line[1:] + ("" if help_line.endswith(".") else "."), ""]
-    if parser.description and parser.description.strip() != help_line.strip():
+    if parser.description and _said(parser.description) != _said(help_line):  # not the help line again
         desc = inspect.cleandoc(parser.description)
         parts += ["```text", desc, "```", ""] if "\n" in desc else [desc, ""]
     parts += ["```text", _usage(parser), "```", ""]

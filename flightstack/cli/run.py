@@ -373,8 +373,9 @@ def _confirm_and_preflight(args: argparse.Namespace, mission: Mission) -> int:
     return 0
 
 
-def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
-    """The arguments `run`, `sim` and `fly` share."""
+def add_run_arguments(p: argparse.ArgumentParser, mission_help: str, simulated_links: bool = True) -> None:
+    """The arguments `run`, `sim` and `fly` share; `simulated_links`: also --network and --links, which
+    only the simulated and the emulated lab apply (not `fly`'s real drones)."""
     p.add_argument("mission", help=mission_help)
     p.add_argument(
         "--rig",
@@ -418,14 +419,15 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
         "--no-progress", dest="progress", action="store_false", default=None, help="no progress bars"
     )
     p.add_argument("--bus", choices=["inproc", "zenoh"], help="override bus.kind (zenoh: on loopback)")
-    add_network_argument(p)
-    p.add_argument(
-        "--links",
-        choices=sorted(PROFILES),
-        default=None,
-        help="replace the rig's links with a profile: how late and lossy video, state, rc, motion capture "
-        "and the robot are (docs/links.md; applied by the simulated and the emulated lab)",
-    )
+    if simulated_links:
+        add_network_argument(p)
+        p.add_argument(
+            "--links",
+            choices=sorted(PROFILES),
+            default=None,
+            help="replace the rig's links with a profile: how late and lossy video, state, rc, motion "
+            "capture and the robot are (docs/links.md; applied by the simulated and the emulated lab)",
+        )
     p.add_argument(
         "--set",
         action="append",
