@@ -573,7 +573,9 @@ _SHOWN = {
 def _complete_help(parser: argparse.ArgumentParser) -> None:
     """Every (sub)command's `-h` names its options' defaults, and has a description: its own, else its
     one-line help as a sentence."""
-    parser.formatter_class = _SHOWN.get(parser.formatter_class, parser.formatter_class)
+    for plain, shown in _SHOWN.items():
+        if parser.formatter_class is plain:
+            parser.formatter_class = shown
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             helps = {a.dest: a.help for a in action._choices_actions}
