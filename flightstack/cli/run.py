@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import yaml
 from tqdm import tqdm
 
-from flightstack.cli.summary import console_logging, metric_lines, say, with_level
+from flightstack.cli.summary import console_logging, console_print, metric_lines, say, with_level
 from flightstack.config.links import PROFILES
 from flightstack.config.mission import Mission, MissionError, load_mission
 from flightstack.threads import ThreadLimits
@@ -326,8 +326,9 @@ def speed_lines(m: dict[str, Any], command_s: float) -> list[str]:
 
 
 def to_stderr(line: str) -> None:
-    """A status line of the flight (Flight's `say`), on stderr with its level (`info` unless it has one)."""
-    print(with_level(line), file=sys.stderr)
+    """A status line of the flight (Flight's `say`), on stderr with its level (`info` unless it has one),
+    above the progress bars."""
+    console_print(with_level(line))
 
 
 def _bus_override(mission: Mission, kind: str) -> dict[str, object]:
