@@ -284,10 +284,10 @@ def run_cli(*args: str, timeout: float = 400) -> subprocess.CompletedProcess:
 
 def interrupt_cli_sim(
     mission: Path, out: Path, run_seconds: float = 1.0, sigint_ignored: bool = False
-) -> tuple[int, str]:
+) -> tuple[int, str, str]:
     """Start `flightstack sim MISSION --duration 600`, wait for its first progress bar, let it fly
-    `run_seconds`, send SIGINT; returns (exit code, stderr). Bounded: kills the process after 60 s.
-    sigint_ignored: start it with SIGINT ignored, as a background job of a script inherits it."""
+    `run_seconds`, send SIGINT; returns (exit code, stderr, stdout). Bounded: kills the process after
+    60 s. sigint_ignored: start it with SIGINT ignored, as a background job of a script inherits it."""
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -317,11 +317,34 @@ def interrupt_cli_sim(
         eventually(lambda: (rows.exists() and rows.stat().st_size > 4096) or proc.poll() is not None, 60.0)
         time.sleep(run_seconds)
         proc.send_signal(signal.SIGINT)
-        _, stderr = proc.communicate(timeout=60)
+        stdout, stderr = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
-    return proc.returncode, buf + stderr
+    return proc.returncode, buf + stderr, stdout
+
+
+def terminal_lines(text: str) -> list[str]:
+    """The lines a terminal shows after printing `text`: a carriage return goes back to the line's start
+    and what follows overwrites it, a newline starts the next line, ESC [ A goes one line up (tqdm's
+    moves between bars); trailing blanks dropped."""
+    rows: list[list[str]] = [[]]
+    r = c = i = 0
+    while i < len(text):
+        if text.startswith("\x1b[A", i):
+            r, i = max(0, r - 1), i + 3
+            continue
+        ch, i = text[i], i + 1
+        if ch == "\r":
+            c = 0
+        elif ch == "\n":
+            r, c = r + 1, 0
+            rows.extend([] for _ in range(r + 1 - len(rows)))
+        else:
+            row = rows[r]
+            row.extend(" " * max(0, c + 1 - len(row)))
+            row[c], c = ch, c + 1
+    return ["".join(row).rstrip() for row in rows]
 
 
 def secured_bus(

@@ -71,7 +71,7 @@ def test_paper_sim_writes_recordings_plots_and_experts(paper_run: Path) -> None:
 
 def test_sigint_lands_and_writes_partial_recording(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    code, stderr = interrupt_cli_sim(MISSIONS / "paper_sim.yaml", out, run_seconds=1.0)
+    code, stderr, _ = interrupt_cli_sim(MISSIONS / "paper_sim.yaml", out, run_seconds=1.0)
     assert code == 130, stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
     assert m["interrupted"] is True
@@ -89,6 +89,8 @@ def test_sigint_lands_and_writes_partial_recording(tmp_path: Path) -> None:
 def test_sigint_stops_a_run_started_with_sigint_ignored(tmp_path: Path) -> None:
     """A background job of a script starts with SIGINT ignored; `kill -INT` must still land and record
     (the first clean-clone CI of issue 16 ran that way and found `sim` deaf to it)."""
-    code, stderr = interrupt_cli_sim(MISSIONS / "paper_sim.yaml", tmp_path / "run", 0.5, sigint_ignored=True)
+    code, stderr, _ = interrupt_cli_sim(
+        MISSIONS / "paper_sim.yaml", tmp_path / "run", 0.5, sigint_ignored=True
+    )
     assert code == 130, stderr[-2000:]
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["interrupted"] is True

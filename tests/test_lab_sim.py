@@ -11,7 +11,7 @@ import yaml
 
 from flightstack.config.mission import load_mission
 from flightstack.config.rig import resolved_document
-from tests.conftest import MISSIONS, fly_mode, interrupt_cli_sim, run_cli
+from tests.conftest import MISSIONS, fly_mode, interrupt_cli_sim, run_cli, terminal_lines
 
 LAB = MISSIONS / "paper_experiment.yaml"
 
@@ -134,9 +134,22 @@ def test_exception_in_an_agent_lands_everyone_and_keeps_the_data() -> None:
 
 
 def test_sigint_mid_flight_lands_and_leaves_a_readable_recording(tmp_path: Path) -> None:
+    """Also what the console shows: each safety line on a line of its own above the progress bar (the
+    takeoffs are logged while the bar is drawn), and stdout ending on the interrupt, not on a complete
+    run's "recording complete"."""
     out = tmp_path / "run"
-    code, stderr = interrupt_cli_sim(LAB, out, run_seconds=2.0)
+    code, stderr, stdout = interrupt_cli_sim(LAB, out, run_seconds=2.0)
     assert code == 130, stderr[-2000:]
+    screen = terminal_lines(stderr)
+    logged = [ln for ln in screen if "flightstack.safety:" in ln]
+    assert any("takeoff" in ln for ln in logged), screen
+    assert all(ln.startswith(("info: ", "warning: ")) for ln in logged), logged
+    assert any(ln.startswith("mode none") for ln in screen), screen
+    lines = stdout.splitlines()
+    assert "  recording complete" not in lines, stdout
+    ends = [ln for ln in lines if ln.startswith("  INTERRUPTED")]
+    assert ends and ends[0].startswith("  INTERRUPTED (Ctrl-C or another signal) in mode none after"), stdout
+    assert lines[lines.index(ends[0]) - 1] == "  recording complete up to the interrupt", stdout
     events = [json.loads(x) for x in (out / "events.jsonl").read_text().splitlines()]
     landed = [e for e in events if e["event"] == "landed"]
     assert {e["drone"] for e in landed} == {1, 2} and all(e["height_m"] == 0.0 for e in landed)

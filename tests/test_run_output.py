@@ -3,16 +3,21 @@ message with its level, and a figure that can look like a failure explained unde
 
 from __future__ import annotations
 
+import io
 import json
+import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
+from tqdm import tqdm
 
 from flightstack.cli import app as cli
-from flightstack.cli.summary import LEVELS, metric_lines, with_level
+from flightstack.cli.summary import LEVELS, ConsoleFormatter, ConsoleHandler, metric_lines, with_level
 from flightstack.config.mission import load_mission
 from flightstack.learning.training import minimum_duration, training_shortfall
+from tests.conftest import terminal_lines
 
 GAIN_DOC = "docs/paper-comparison.md#gain-analysis"
 
@@ -98,3 +103,96 @@ def test_run_help_names_each_experiments_minimum_duration(capsys: pytest.Capture
     assert least is not None and f"at least {least:g} s for paper_sim" in text
     short = training_shortfall(load_mission("paper_sim", {"duration_s": least - 1.0}))
     assert short is not None and f"fly at least {least:g} s" in short
+
+
+def test_an_interrupted_run_ends_on_the_interrupt_not_on_recording_complete() -> None:
+    """The recording of an interrupted run is complete with what was flown, and the last line says where
+    the signal cut the run and which modes it did not fly."""
+    m = _metrics(True, {"1": 1.0})
+    m["interrupted"] = True
+    m["modes"]["none"] |= {"interrupted": True, "sim_seconds": 3.25}
+    mission = load_mission("paper_experiment")
+    lines = metric_lines(m, mission)
+    assert lines[-2:] == [
+        "  recording complete up to the interrupt",
+        f"  INTERRUPTED (Ctrl-C or another signal) in mode none after 3.2 s of {mission.duration_s:g} s; "
+        "not flown: local, dgp",
+    ]
+    m["recording"] = {"complete": False, "reason": "disk full"}
+    assert metric_lines(m, None)[-2:] == [
+        "  recording INCOMPLETE: disk full",
+        "  INTERRUPTED (Ctrl-C or another signal) in mode none after 3.2 s",
+    ]
+    m.update(modes={}, recording={"complete": True, "reason": None})
+    assert metric_lines(m, mission)[-1] == (
+        "  INTERRUPTED (Ctrl-C or another signal) before any mode flew; not flown: none, local, dgp"
+    )
+    assert metric_lines(_metrics(True, {}), mission)[-1] == "  recording complete"  # not interrupted
+
+
+def test_run_interrupted_in_flight_says_so_on_stdout(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An interrupt 40 ticks into the first mode (raised where a Ctrl-C lands, in the control loop): exit
+    130, and `run`'s metric lines end on the interrupt."""
+    from flightstack.cli import run as run_cli
+
+    def interrupting(bars: list[Any]) -> Callable[[str, int], Callable[[int], None]]:
+        def make(mode: str, total: int) -> Callable[[int], None]:
+            ticks = [0]
+
+            def update(n: int) -> None:
+                ticks[0] += n
+                if ticks[0] == 40:
+                    raise KeyboardInterrupt
+
+            return update
+
+        return make
+
+    monkeypatch.setattr(run_cli, "_progress_factory", interrupting)
+    out = tmp_path / "run"
+    argv = ["run", "paper_experiment", "--rig", "ideal", "--duration", "12", "--out", str(out), "--progress"]
+    assert cli.main(argv) == 130
+    lines = capsys.readouterr().out.splitlines()
+    assert "  recording complete" not in lines
+    (end,) = [i for i, ln in enumerate(lines) if ln.startswith("  INTERRUPTED")]
+    assert lines[end - 1] == "  recording complete up to the interrupt"
+    none = json.loads((out / "metrics.json").read_text())["modes"]["none"]
+    assert none["interrupted"] is True and 0 < none["sim_seconds"] < 12.0
+    assert lines[end] == (
+        f"  INTERRUPTED (Ctrl-C or another signal) in mode none after {none['sim_seconds']:.1f} s of 12 s; "
+        "not flown: local, dgp"
+    )
+
+
+def _console(handler: type[logging.StreamHandler[Any]]) -> list[str]:
+    """What a terminal shows when a safety event is logged through `handler` while a progress bar is
+    drawn on the same stream."""
+    stream = io.StringIO()
+    log = logging.getLogger("flightstack.safety.console-test")
+    sink = handler(stream)
+    sink.setFormatter(ConsoleFormatter())
+    log.addHandler(sink)
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    try:
+        bar = tqdm(total=100, desc="mode none", file=stream, mininterval=0, ascii=True)
+        bar.update(10)
+        log.info("t=0.000 drone 1 takeoff: battery 90.0 %")
+        bar.update(10)
+        bar.close()
+    finally:
+        log.removeHandler(sink)
+    return terminal_lines(stream.getvalue())
+
+
+def test_a_safety_line_is_printed_above_the_progress_bar() -> None:
+    """The console's handler (console_logging) clears the bar, prints the line on its own, draws the bar
+    again below it; a plain StreamHandler writes the line into the bar's, as the console did."""
+    line = "info: flightstack.safety.console-test: t=0.000 drone 1 takeoff: battery 90.0 %"
+    shown = _console(ConsoleHandler)
+    assert line in shown and shown.index(line) < len(shown) - 2, shown
+    assert shown[-2].startswith("mode none:  20%") and shown[-1] == "", shown
+    plain = _console(logging.StreamHandler)
+    assert line not in plain and any(row.startswith("mode none") and line in row for row in plain), plain

@@ -19,6 +19,7 @@ installed version's. The blocks:
 - `csv-columns`: the per-run CSV's columns and rules (`flightstack.recording.csv_table`);
 - `import-contract`: the layers of `tests/import_contract.toml`, top first, with what each may import and
   the contract's named exceptions and reserved names (tests/import_contract.py checks the code against it).
+- `bibtex`: the preferred citation of `CITATION.cff` (the paper) as a BibTeX entry.
 
 An unknown NAME, or a block without its closing line, fails the build and the update.
 """
@@ -105,11 +106,16 @@ def _default(value: object) -> object:
     return value
 
 
+def _said(text: str) -> str:
+    """A sentence's words, without its case and full stop."""
+    return " ".join(text.split()).rstrip(".").lower()
+
+
 def _command_section(path: list[str], help_line: str, parser: argparse.ArgumentParser, level: int) -> str:
     parts = [f"{'#' * level} {' '.join(path)}", ""]
     if help_line:
         parts += [help_line[0].upper() + help_line[1:] + ("" if help_line.endswith(".") else "."), ""]
-    if parser.description and parser.description.strip() != help_line.strip():
+    if parser.description and _said(parser.description) != _said(help_line):  # not the help line again
         desc = inspect.cleandoc(parser.description)
         parts += ["```text", desc, "```", ""] if "\n" in desc else [desc, ""]
     parts += ["```text", _usage(parser), "```", ""]
@@ -399,6 +405,36 @@ def render_csv_columns() -> str:
     return "\n".join(lines) + "\n"
 
 
+# ---- the citation ---------------------------------------------------------------------------------------
+CITATION = DOCS.parent / "CITATION.cff"
+BIBTEX_TYPES = {"conference-paper": "inproceedings", "article": "article"}
+
+
+def render_bibtex() -> str:
+    """CITATION.cff's preferred citation as BibTeX, keyed <first author's family name><year><first title
+    word> (lower case); its arXiv identifier as `eprint`."""
+    paper = yaml.safe_load(CITATION.read_text(encoding="utf-8"))["preferred-citation"]
+    first = re.sub(r"[^a-z]", "", paper["authors"][0]["family-names"].lower())
+    word = re.sub(r"[^a-z]", "", paper["title"].split()[0].lower())
+    fields = {
+        "title": f"{{{paper['title']}}}",
+        "author": " and ".join(f"{a['family-names']}, {a['given-names']}" for a in paper["authors"]),
+    }
+    if "conference" in paper:
+        fields["booktitle"] = paper["conference"]["name"]
+    if "collection-title" in paper:
+        fields["series"] = paper["collection-title"]
+    fields["year"] = str(paper["year"])
+    arxiv = [i["value"] for i in paper.get("identifiers", []) if str(i["value"]).startswith("arXiv:")]
+    if arxiv:
+        fields |= {"eprint": arxiv[0].removeprefix("arXiv:"), "archivePrefix": "arXiv"}
+    fields["url"] = paper["url"]
+    width = max(map(len, fields))
+    lines = [f"@{BIBTEX_TYPES[paper['type']]}{{{first}{paper['year']}{word},"]
+    lines += [f"  {k:{width}s} = {{{v}}}," for k, v in fields.items()]
+    return "\n".join(["```bibtex", *lines, "}", "```"]) + "\n"
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "cli": render_cli,
     "run-files": render_run_files,
@@ -410,6 +446,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "wire-control": render_wire_control,
     "wire-world": render_wire_world,
     "csv-columns": render_csv_columns,
+    "bibtex": render_bibtex,
 }
 
 

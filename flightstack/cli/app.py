@@ -285,14 +285,22 @@ def _add_run(sub: Any) -> None:
     add_run_arguments(s, "experiment or mission YAML file (see mission_configs/)")
     s.set_defaults(func=cmd_run)
     f = sub.add_parser("fly")
-    add_run_arguments(f, "experiment (with --rig LAB.yaml) or mission YAML file")
+    add_run_arguments(f, "experiment (with --rig LAB.yaml) or mission YAML file", simulated_links=False)
     f.add_argument("--yes", action="store_true", help="confirm that the drones may take off")
     f.set_defaults(func=cmd_run)
 
 
 def _add_preflight(sub: Any) -> None:
-    pf = sub.add_parser("preflight")
-    pf.add_argument("mission")
+    pf = sub.add_parser(
+        "preflight",
+        description="Check every device and file of a hardware mission before anyone flies, each device in "
+        "its own thread, all within --deadline: certificates, the computer's compiled math, camera "
+        "calibrations, the gain condition, each drone (link, battery, firmware, video), the Wi-Fi topology, "
+        "motion capture (transmission, up axis, bodies) and the robot (failsafe, external navigation). "
+        "Nothing takes off and nothing moves. Prints a table of PASS, WARN (flyable, but look) and FAIL "
+        "rows; exit 0 without a FAIL, 1 with one, 2 on bad input. The checks: docs/real-lab.md.",
+    )
+    pf.add_argument("mission", help="experiment (with --rig LAB.yaml) or mission YAML file")
     pf.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     pf.add_argument("--deadline", type=float, default=9.0, help="bound on the whole check (s)")
     pf.add_argument("--no-camera", action="store_true", help="skip the video check")
@@ -526,6 +534,57 @@ class _Subcommands:
         return self._action.add_parser(name, **kwargs)
 
 
+def sentence(text: str) -> str:
+    """`text` as a sentence: a capital first letter and a full stop."""
+    return text[:1].upper() + text[1:] + ("" if text.endswith(".") else ".")
+
+
+def shows_default(action: argparse.Action) -> bool:
+    """Whether `-h` appends the action's default: an option or optional positional with a value that says
+    something (not None, False, empty), whose help does not already name its default."""
+    takes_value = (bool(action.option_strings) and action.nargs != 0) or action.nargs in ("?", "*")
+    said = "default" in str(action.help or "").lower()
+    empty = action.default in (None, False, "", [], ()) or action.default is argparse.SUPPRESS
+    return takes_value and not said and not empty and action.help is not argparse.SUPPRESS
+
+
+class _DefaultsShown(argparse.HelpFormatter):
+    """Help that names each option's default (shows_default)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = super()._get_help_string(action)
+        if text is None or not shows_default(action):
+            return text
+        if text.endswith(")"):  # "bound on the whole check (s)" -> "(s; default: 9.0)"
+            return f"{text[:-1]}; default: %(default)s)"
+        return f"{text} (default: %(default)s)"
+
+
+class _RawDescriptionDefaultsShown(_DefaultsShown, argparse.RawDescriptionHelpFormatter):
+    """_DefaultsShown for a parser whose description keeps its line breaks."""
+
+
+_SHOWN = {
+    argparse.HelpFormatter: _DefaultsShown,
+    argparse.RawDescriptionHelpFormatter: _RawDescriptionDefaultsShown,
+}
+
+
+def _complete_help(parser: argparse.ArgumentParser) -> None:
+    """Every (sub)command's `-h` names its options' defaults, and has a description: its own, else its
+    one-line help as a sentence."""
+    for plain, shown in _SHOWN.items():
+        if parser.formatter_class is plain:
+            parser.formatter_class = shown
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {a.dest: a.help for a in action._choices_actions}
+            for name, sub in action.choices.items():
+                if sub.description is None and helps.get(name):
+                    sub.description = sentence(str(helps[name]))
+                _complete_help(sub)
+
+
 def _adder(adder: Callable[[Any], object] | str) -> Callable[[Any], object]:
     if callable(adder):
         return adder
@@ -563,6 +622,7 @@ def build_parser(selected: Iterable[str] | None = None) -> argparse.ArgumentPars
         _adder(adder)(sub)
     for c in COMMANDS:
         sub.add_parser(c.name)  # the rest by name only (skipped where an adder added it)
+    _complete_help(p)
     return p
 
 

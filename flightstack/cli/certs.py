@@ -63,7 +63,10 @@ def cmd_certs(args: argparse.Namespace) -> int:
 
 def register(sub: Any) -> None:
     c = sub.add_parser("certs")
-    c.add_argument("mission")
+    c.add_argument(
+        "mission",
+        help="experiment (with --rig) or mission YAML file: its drones and `bus:` name the participants",
+    )
     c.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     c.add_argument("--out", required=True, help="directory for the CA and the participants' keys (new files)")
     c.add_argument("--days", type=int, default=90, help="validity in days (1..3650, default 90)")

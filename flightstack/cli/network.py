@@ -24,6 +24,9 @@ if TYPE_CHECKING:
     from flightstack.comms.control import StatusReport
 
 
+MISSION_HELP = "experiment (with --rig) or mission YAML file; its `bus:` names where the agents listen"
+
+
 def _zenoh_mission(path: str, rig: str | None = None) -> Mission:
     mission = load_mission(path, rig=rig)
     if mission.bus.kind != "zenoh" or mission.bus.zenoh is None:
@@ -286,11 +289,11 @@ def cmd_guard(args: argparse.Namespace) -> int:
 
 def register(sub: Any) -> None:
     w = sub.add_parser("world")
-    w.add_argument("mission")
+    w.add_argument("mission", help=MISSION_HELP)
     w.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     w.set_defaults(func=cmd_world)
     a = sub.add_parser("agent")
-    a.add_argument("mission")
+    a.add_argument("mission", help=MISSION_HELP)
     a.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     a.add_argument("--id", type=int, required=True, help="the drone id this process flies")
     agent_modes = [m.value for m in Mode if m is not Mode.ORACLE]
@@ -312,10 +315,21 @@ def register(sub: Any) -> None:
     add_live_mcap_argument(a)
     add_viewer_argument(a)
     a.set_defaults(func=cmd_agent)
-    ab = sub.add_parser("abort")
-    ab.add_argument("mission")
+    ab = sub.add_parser(
+        "abort",
+        description="Publish an abort to every agent of the mission at once (over Zenoh, and to the loopback "
+        "listener of an in-process `fly`), then wait --timeout s for their acknowledgements: each agent "
+        "lands its drones. Prints who acknowledged and how fast; exit 0 only if every drone of the mission "
+        "acknowledged, else 1 naming the others: land them by other means (docs/bus.md).",
+    )
+    ab.add_argument("mission", help=MISSION_HELP)
     ab.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
-    ab.add_argument("--reason", default="operator abort")
+    ab.add_argument(
+        "--reason",
+        default="operator abort",
+        help="why, sent with the abort (at most 1024 characters): each agent's run ends with the error "
+        "`operator abort: REASON`",
+    )
     ab.add_argument(
         "--timeout",
         "--wait",
@@ -326,18 +340,30 @@ def register(sub: Any) -> None:
     )
     ab.set_defaults(func=cmd_abort)
     st = sub.add_parser("status")
-    st.add_argument("mission")
+    st.add_argument("mission", help=MISSION_HELP)
     st.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
     st.add_argument("--once", action="store_true", help="print one table when every agent reported, exit")
     st.add_argument("--wait", type=float, default=3.0, help="with --once: longest wait for reports (s)")
-    st.add_argument("--duration", type=float, default=math.inf, help="stop after this long (s)")
+    st.add_argument(
+        "--duration", type=float, default=math.inf, help="stop after this long (s; default: until Ctrl-C)"
+    )
     st.set_defaults(func=cmd_status)
     gd = sub.add_parser(
         "guard",
+        description="Follow every agent's liveliness token and status on the bus; when an agent vanishes "
+        "while its drone flies, land that Tello from this computer (rc 0 0 0 0 and land, re-sent every "
+        "--land-resend s until its telemetry shows it down, for at most --give-up s). Silence alone is "
+        "reported, never acted on. Station topology only (exit 2 otherwise); one line per event on stdout; "
+        "Ctrl-C or --duration ends it with exit 0 (docs/bus.md#guard).",
     )
-    gd.add_argument("mission")
+    gd.add_argument("mission", help=MISSION_HELP)
     gd.add_argument("--rig", default=None, help="the experiment's rig (default: its `rig:`)")
-    gd.add_argument("--duration", type=float, default=math.inf, help="stop watching after this long (s)")
+    gd.add_argument(
+        "--duration",
+        type=float,
+        default=math.inf,
+        help="stop watching after this long (s; default: until Ctrl-C)",
+    )
     gd.add_argument(
         "--status-fresh",
         type=float,

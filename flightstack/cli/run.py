@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import yaml
 from tqdm import tqdm
 
-from flightstack.cli.summary import console_logging, metric_lines, say, with_level
+from flightstack.cli.summary import console_logging, console_print, metric_lines, say, with_level
 from flightstack.config.links import PROFILES
 from flightstack.config.mission import Mission, MissionError, load_mission
 from flightstack.threads import ThreadLimits
@@ -326,8 +326,9 @@ def speed_lines(m: dict[str, Any], command_s: float) -> list[str]:
 
 
 def to_stderr(line: str) -> None:
-    """A status line of the flight (Flight's `say`), on stderr with its level (`info` unless it has one)."""
-    print(with_level(line), file=sys.stderr)
+    """A status line of the flight (Flight's `say`), on stderr with its level (`info` unless it has one),
+    above the progress bars."""
+    console_print(with_level(line))
 
 
 def _bus_override(mission: Mission, kind: str) -> dict[str, object]:
@@ -373,8 +374,9 @@ def _confirm_and_preflight(args: argparse.Namespace, mission: Mission) -> int:
     return 0
 
 
-def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
-    """The arguments `run`, `sim` and `fly` share."""
+def add_run_arguments(p: argparse.ArgumentParser, mission_help: str, simulated_links: bool = True) -> None:
+    """The arguments `run`, `sim` and `fly` share; `simulated_links`: also --network and --links, which
+    only the simulated and the emulated lab apply (not `fly`'s real drones)."""
     p.add_argument("mission", help=mission_help)
     p.add_argument(
         "--rig",
@@ -418,14 +420,15 @@ def add_run_arguments(p: argparse.ArgumentParser, mission_help: str) -> None:
         "--no-progress", dest="progress", action="store_false", default=None, help="no progress bars"
     )
     p.add_argument("--bus", choices=["inproc", "zenoh"], help="override bus.kind (zenoh: on loopback)")
-    add_network_argument(p)
-    p.add_argument(
-        "--links",
-        choices=sorted(PROFILES),
-        default=None,
-        help="replace the rig's links with a profile: how late and lossy video, state, rc, motion capture "
-        "and the robot are (docs/links.md; applied by the simulated and the emulated lab)",
-    )
+    if simulated_links:
+        add_network_argument(p)
+        p.add_argument(
+            "--links",
+            choices=sorted(PROFILES),
+            default=None,
+            help="replace the rig's links with a profile: how late and lossy video, state, rc, motion "
+            "capture and the robot are (docs/links.md; applied by the simulated and the emulated lab)",
+        )
     p.add_argument(
         "--set",
         action="append",

@@ -16,6 +16,8 @@ from collections import Counter
 from collections.abc import Mapping
 from typing import Any, Literal, TextIO
 
+from tqdm import tqdm
+
 from flightstack.analysis.loop_health import loop_health_line
 from flightstack.config.mission import Mission
 from flightstack.events import KINDS
@@ -28,9 +30,15 @@ _NOTE = "      note: "  # under a result line: indented past the mode's name
 _WARNING = "      warning: "
 
 
+def console_print(line: str, stream: TextIO | None = None) -> None:
+    """One line on `stream` (default sys.stderr) above the progress bars drawn there: tqdm clears them,
+    the line is printed on a line of its own, and they are drawn again below it."""
+    tqdm.write(line, file=sys.stderr if stream is None else stream)
+
+
 def say(level: Level, text: str, stream: TextIO | None = None) -> None:
-    """One message line `<level>: <text>` on `stream` (default sys.stderr)."""
-    print(f"{level}: {text}", file=sys.stderr if stream is None else stream)
+    """One message line `<level>: <text>` on `stream` (default sys.stderr), above any progress bar."""
+    console_print(f"{level}: {text}", stream)
 
 
 def with_level(line: str, default: Level = "info") -> str:
@@ -54,12 +62,23 @@ class ConsoleFormatter(logging.Formatter):
         return f"{level}: {record.name}: {record.getMessage()}"
 
 
+class ConsoleHandler(logging.StreamHandler):
+    """A log record as one line above the progress bars (console_print), never inside a bar's line."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            console_print(self.format(record), self.stream)
+            self.flush()
+        except Exception:
+            self.handleError(record)
+
+
 def console_logging() -> None:
-    """Log records on stderr through ConsoleFormatter: warnings and errors of any logger, and every safety
-    event as it happens (`flightstack.safety`, each at its kind's severity: flightstack.events.KINDS, so a
-    takeoff is `info` and a fence `warning`). Once per process: nothing changes when the root logger
-    already has a handler."""
-    handler = logging.StreamHandler(sys.stderr)
+    """Log records on stderr through ConsoleFormatter, above the progress bars (ConsoleHandler): warnings
+    and errors of any logger, and every safety event as it happens (`flightstack.safety`, each at its
+    kind's severity: flightstack.events.KINDS, so a takeoff is `info` and a fence `warning`). Once per
+    process: nothing changes when the root logger already has a handler."""
+    handler = ConsoleHandler(sys.stderr)
     handler.setFormatter(ConsoleFormatter())
     logging.basicConfig(level=logging.WARNING, handlers=[handler])
     logging.getLogger("flightstack.safety").setLevel(logging.INFO)
@@ -68,9 +87,10 @@ def console_logging() -> None:
 def metric_lines(m: Mapping[str, Any], mission: Mission | None) -> list[str]:
     """The run's metrics as `run` and `report` print them (same names, numbers and order): per mode its
     ticks, both error metrics, the position error and how often each drone saw the target, the fence and
-    the loop's health; the paper's comparison, the gain condition, the safety events and whether the
-    recording is complete. A figure that can look like a failure gets a `note:` (expected: why, where to
-    read more) or `warning:` line under it. `mission` (the run's, for what its drones can see) may be None."""
+    the loop's health; the paper's comparison, the gain condition, the safety events, whether the
+    recording is complete and, last, whether a signal ended the run. A figure that can look like a failure
+    gets a `note:` (expected: why, where to read more) or `warning:` line under it. `mission` (the run's,
+    for what its drones can see) may be None."""
     lines: list[str] = []
     blind_noted = False
     for mode, mm in (m.get("modes") or {}).items():
@@ -123,8 +143,26 @@ def metric_lines(m: Mapping[str, Any], mission: Mission | None) -> list[str]:
     rs = m.get("recording") or {}
     if rs:
         state = "complete" if rs.get("complete") else f"INCOMPLETE: {rs.get('reason')}"
+        if rs.get("complete") and m.get("interrupted"):
+            state += " up to the interrupt"
         lines.append(f"  recording {state}")
+    if m.get("interrupted"):
+        lines.append(_interrupted_line(m.get("modes") or {}, mission))
     return lines
+
+
+def _interrupted_line(modes: Mapping[str, Mapping[str, Any]], mission: Mission | None) -> str:
+    """The last metric line of a run a signal ended: in which mode, how far, and the modes not flown."""
+    cut = [(mode, mm) for mode, mm in modes.items() if mm.get("interrupted")]
+    if cut:
+        mode, mm = cut[0]
+        where = f"in mode {mode} after {float(mm.get('sim_seconds', 0.0)):.1f} s"
+        where += f" of {mission.duration_s:g} s" if mission is not None else ""
+    else:  # between modes, in training, or while a mode's fleet was assembled
+        where = f"after mode {list(modes)[-1]}" if modes else "before any mode flew"
+    line = f"  INTERRUPTED (Ctrl-C or another signal) {where}"
+    unflown = [mode for mode in (mission.compare_modes if mission else []) if mode not in modes]
+    return line + (f"; not flown: {', '.join(unflown)}" if unflown else "")
 
 
 def _e(mm: Mapping[str, Any], key: str) -> str:
