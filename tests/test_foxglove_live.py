@@ -51,6 +51,8 @@ TOPICS = {
     "/none/drone1": "flightstack.DroneState", "/none/drone2": "flightstack.DroneState",
     "/none/drone3": "flightstack.DroneState",
     "/none/tf": "foxglove.FrameTransforms", "/none/events": "foxglove.Log",
+    "/none/pose/target": "foxglove.PoseInFrame", "/none/pose/drones": "foxglove.PosesInFrame",
+    "/none/pose/estimates": "foxglove.PosesInFrame", "/none/scene": "foxglove.SceneUpdate",
 }  # fmt: skip
 """paper_experiment's (and paper_sim's) channels with mode none."""
 FLOOD_MESSAGES, FLOOD_CHANNELS = 138, 5000
