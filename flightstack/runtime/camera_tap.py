@@ -77,7 +77,8 @@ def release_frames(agents: Iterable[Any], keepers: dict[int, FrameKeeper]) -> No
 class CameraTap:
     """A runtime.taps.TickTap writing each mode's camera frames to `out`/images_<mode>.jpgs (module
     docstring). On the control thread it only compares stamps and, when a frame is due, hands it to the
-    writer's queue (flightstack.recording.camera_frames.FrameWriter: by reference, never waiting). `written`, `dropped`: per mode."""
+    writer's queue (flightstack.recording.camera_frames.FrameWriter: by reference, never waiting).
+    `written`, `dropped`: frames per mode."""
 
     def __init__(self, out: Path, hz: float = IMAGE_HZ) -> None:
         self.out = Path(out)
