@@ -335,6 +335,10 @@ class RunChannels:
             estimates = [_pose(g_bar[k, j]) for j in range(len(ids))]
             self._log(m.estimates, PosesInFrame(timestamp=ts, frame_id=SIGMA_W_FRAME, poses=estimates), when)
 
+    def image_channel(self, mode: str, i: int) -> TopicLog:
+        """Drone i's image topic of `mode`, opened (advertised) if it was not."""
+        return self._mode(mode).image(i)
+
     def frames(self, mode: str, frames: Sequence[CameraFrame]) -> None:
         """Camera frames of `mode` (each camera's in stamp order) as JPEG CompressedImages in their camera's
         frame, at their stamps on the mode's time base; held until the mode's first tick fixes it."""

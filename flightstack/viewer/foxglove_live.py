@@ -7,8 +7,9 @@ The control tick only copies its newest row, at most LIVE_RATE_HZ times per seco
 bounded queue (QUEUE_TICKS; a full queue drops the row and counts it in `dropped`), with, on rigs with
 image cameras, the agents' newest frames at most camera_frames.IMAGE_HZ per drone and second of mission
 time (as the recording takes them: flightstack.runtime.camera_tap); a thread encodes (JPEG) and publishes
-them. e_c and e_e are derived there from the poses and the fleet's desired poses, as the recording derives
-them at the end. A client that connects late sees the flight from then on (the scene is sent again every
+them, an image only while some client subscribes to its camera's topic (advertised with its first frame).
+e_c and e_e are derived there from the poses and the fleet's desired poses, as the recording derives them
+at the end. A client that connects late sees the flight from then on (the scene is sent again every
 mcap_writer.SCENE_PERIOD_S).
 """
 
@@ -29,6 +30,7 @@ import numpy as np
 from flightstack.recording.camera_frames import IMAGE_HZ, CameraFrame, encode_jpeg
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
 from flightstack.runtime.camera_tap import FrameKeeper, has_image_cameras, keep_frames, release_frames
+from flightstack.viewer.foxglove_server import Topic
 
 if TYPE_CHECKING:
     from flightstack.config.mission import Mission
@@ -71,6 +73,8 @@ class FoxgloveTap:
         self.host = host
         self.channels = RunChannels(self.server.topic, None if mission is None else Scene.of(mission))
         self.images = mission is not None and has_image_cameras(mission)
+        self.frames_sent = 0  # camera frames encoded and published
+        self.frames_unwatched = 0  # camera frames due while no client subscribed to their topic
         self._agents: list[Any] = []
         self._keepers: dict[int, FrameKeeper] = {}
         self._next_image: dict[int, float] = {}
@@ -161,9 +165,16 @@ class FoxgloveTap:
             self.published += 1
         if events:
             self.channels.events(mode, list(events))
-        if images:
-            frames = [CameraFrame(i, t, dmg, since, encode_jpeg(img)) for i, t, dmg, since, img in images]
+        frames = []
+        for i, t, damaged, since, img in images:
+            channel = self.channels.image_channel(mode, i)  # advertised with its first frame
+            if isinstance(channel, Topic) and not channel.subscribed():
+                self.frames_unwatched += 1  # nobody watches it: not encoded
+                continue
+            frames.append(CameraFrame(i, t, damaged, since, encode_jpeg(img)))
+        if frames:
             self.channels.frames(mode, frames)
+            self.frames_sent += len(frames)
 
     def finish(self) -> None:
         """Publish what is queued (≤ FINISH_TIMEOUT_S), then stop the server (logging what clients did
