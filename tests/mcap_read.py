@@ -87,6 +87,33 @@ def read_mcap_stream(path: Path) -> McapContents:
     return out
 
 
+def _rotate(q: Any, v: np.ndarray) -> np.ndarray:
+    """v rotated by the unit quaternion q (a foxglove Quaternion: x, y, z, w)."""
+    u, w = np.array([q.x, q.y, q.z]), q.w
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+
+def world_positions(msg: Any, root: str = "world") -> dict[str, np.ndarray]:
+    """Each frame's origin (3,) in `root` from one foxglove.FrameTransforms message, composed along its
+    parents as a 3-D panel does (a frame whose chain does not reach `root` is left out)."""
+    by_child = {t.child_frame_id: t for t in msg.transforms}
+
+    def origin(frame: str) -> np.ndarray | None:
+        p, f = np.zeros(3), frame
+        for _ in range(len(by_child) + 1):  # child to root: p_parent = R p_child + t
+            if f == root:
+                return p
+            t = by_child.get(f)
+            if t is None:
+                return None
+            p = _rotate(t.rotation, p) + np.array([t.translation.x, t.translation.y, t.translation.z])
+            f = t.parent_frame_id
+        return None  # a cycle
+
+    found = {frame: origin(frame) for frame in by_child}
+    return {frame: p for frame, p in found.items() if p is not None}
+
+
 def _fields(msg: Any) -> list[tuple[str, bool]]:
     """A message's fields as (name, repeated), read from its descriptor's proto form: the Python
     descriptor's own API differs across the protobuf releases the bound admits (`label` is gone in 7,
@@ -110,7 +137,8 @@ def assert_mcap_holds(recs: Mapping[str, Any], got: McapContents) -> None:
     """Every tick of every recording (flightstack Recordings by mode) is in `got`: /<mode>/tick with
     each per-tick array, /<mode>/drone<i> with each of drone i's arrays, by field name, value for value
     (NaN included), at log time int((base + t)·1e9) ns, base = first wall_t − first t (0 without wall_t);
-    /<mode>/tf holds the poses of the ticks it has."""
+    /<mode>/tf holds the poses of the ticks it has under `sigma_w` (a child of `world`), and
+    /<mode>/pose/target, /<mode>/pose/drones, /<mode>/pose/estimates the same poses in `sigma_w`."""
     for mode, rec in recs.items():
         k = rec.ticks_done
         ticks = got.topics[f"/{mode}/tick"]
@@ -140,13 +168,45 @@ def assert_mcap_holds(recs: Mapping[str, Any], got: McapContents) -> None:
         for lt, m in got.topics[f"/{mode}/tf"]:
             kk = by_ns[lt]
             poses = {t.child_frame_id: t for t in m.transforms}
+            assert poses["sigma_w"].parent_frame_id == "world"
             frames = [(f"{mode}/target", rec.g_w0[kk])]
             for j, i in enumerate(rec.drone_ids):
                 frames += [(f"{mode}/drone{i}", rec.g_wi[kk, j])]
                 frames += [(f"{mode}/drone{i}/estimate", rec.g_bar_w[kk, j])]
-            assert sorted(poses) == sorted(c for c, _ in frames)
+            cameras = {c for c in poses if c.endswith("/camera")}
+            assert sorted(poses) == sorted([c for c, _ in frames] + ["sigma_w", *cameras])
             for child, p in frames:
                 tf = poses[child]
-                assert tf.parent_frame_id == "world"
+                assert tf.parent_frame_id == "sigma_w"
                 assert [tf.translation.x, tf.translation.y, tf.translation.z] == p[:3].tolist()
                 assert _same([tf.rotation.z, tf.rotation.w], [np.sin(p[3] / 2), np.cos(p[3] / 2)])
+        _assert_poses(mode, rec, got, by_ns)
+
+
+def _pose_values(pose: Any) -> list[float]:
+    """[x, y, z, qz, qw] of a foxglove.Pose."""
+    p, q = pose.position, pose.orientation
+    return [p.x, p.y, p.z, q.z, q.w]
+
+
+def _want(p: np.ndarray) -> list[float]:
+    return [*p[:3].tolist(), float(np.sin(p[3] / 2)), float(np.cos(p[3] / 2))]
+
+
+def _assert_poses(mode: str, rec: Any, got: McapContents, by_ns: Mapping[int, int]) -> None:
+    """The PoseInFrame / PosesInFrame topics of `mode`: one message per transform message, each pose of
+    the recording's tick at its log time, in `sigma_w`, drones in id order."""
+    tf_times = [lt for lt, _ in got.topics[f"/{mode}/tf"]]
+    topics = {"target": rec.g_w0, "drones": rec.g_wi, "estimates": rec.g_bar_w}
+    for what, values in topics.items():
+        msgs = got.topics[f"/{mode}/pose/{what}"]
+        assert [lt for lt, _ in msgs] == tf_times, (mode, what)
+        for lt, m in msgs:
+            kk = by_ns[lt]
+            assert m.frame_id == "sigma_w" and m.timestamp.seconds * 10**9 + m.timestamp.nanos == lt
+            if what == "target":
+                assert _same(_pose_values(m.pose), _want(values[kk])), (mode, lt)
+            else:
+                assert len(m.poses) == len(rec.drone_ids)
+                for j, pose in enumerate(m.poses):
+                    assert _same(_pose_values(pose), _want(values[kk, j])), (mode, what, lt, j)

@@ -29,11 +29,15 @@ import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
+import numpy as np
 import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
+from flightstack.config.mission import load_mission
+from flightstack.hal import Frame
 from flightstack.ports import free_port
 from flightstack.viewer.foxglove_server import (
     MAX_CLIENTS,
@@ -42,7 +46,7 @@ from flightstack.viewer.foxglove_server import (
     REPORT_PERIOD_S,
     SUBPROTOCOLS,
 )
-from tests.conftest import REPO, Bound, skip_or_fail_in_ci
+from tests.conftest import MISSIONS, REPO, Bound, eventually, random_recording, skip_or_fail_in_ci
 
 pytestmark = pytest.mark.system
 MESSAGE_DATA = 0x01  # binary opcode: subscription id u32, log time u64, payload
@@ -51,6 +55,8 @@ TOPICS = {
     "/none/drone1": "flightstack.DroneState", "/none/drone2": "flightstack.DroneState",
     "/none/drone3": "flightstack.DroneState",
     "/none/tf": "foxglove.FrameTransforms", "/none/events": "foxglove.Log",
+    "/none/pose/target": "foxglove.PoseInFrame", "/none/pose/drones": "foxglove.PosesInFrame",
+    "/none/pose/estimates": "foxglove.PosesInFrame", "/none/scene": "foxglove.SceneUpdate",
 }  # fmt: skip
 """paper_experiment's (and paper_sim's) channels with mode none."""
 FLOOD_MESSAGES, FLOOD_CHANNELS = 138, 5000
@@ -162,6 +168,66 @@ def test_clients_offering_either_subprotocol_decode_every_channel_during_a_fligh
         assert {m.drone for _, m in decoded["/none/drone2"]} == {2}
         assert any("landed" in m.message for _, m in decoded["/none/events"])
         print(f"{name}: {', '.join(f'{t} {len(v)}' for t, v in sorted(decoded.items()))} messages decoded")
+
+
+def test_camera_images_are_encoded_only_for_a_client_that_subscribes() -> None:
+    """The live view of a rig with image cameras (paper_experiment on lab-sim; stand-in cameras and a
+    random recording fed to the tap as a flight would): while no client subscribes, no frame is encoded;
+    a client subscribed to every channel decodes each camera's JPEG CompressedImages in its camera frame,
+    at most IMAGE_HZ a second of mission time."""
+    from flightstack.recording.camera_frames import IMAGE_HZ
+    from flightstack.viewer.foxglove_live import FoxgloveTap
+
+    mission = load_mission(MISSIONS / "paper_experiment.yaml", rig="lab-sim")
+    ids = [d.id for d in mission.drones]
+    rec = random_recording("none", ids, 400)
+    clock = {"t": 0.0}
+    picture = np.full((120, 160, 3), 90, np.uint8)
+    agents = [
+        SimpleNamespace(
+            camera=SimpleNamespace(latest=lambda: Frame(clock["t"], picture, None)),
+            cfg=SimpleNamespace(drone_id=i),
+        )
+        for i in ids
+    ]
+    fleet: Any = SimpleNamespace(agents=agents, g_d=np.zeros((len(ids), 4)))
+    flying = {"on": True}
+    flight: Any = SimpleNamespace(poll=lambda: None if flying["on"] else 0)
+
+    def fly(k0: int, k1: int) -> None:
+        for k in range(k0, k1):
+            clock["t"] = float(rec.t[k])
+            for a in agents:
+                a.camera.latest()
+            tap.on_tick(fleet, rec, k + 1)
+            time.sleep(0.01)
+
+    tap = FoxgloveTap(0, mission=mission)
+    seen: dict[str, Any] = {}
+    try:
+        tap.start(fleet, rec)
+        fly(0, 100)
+        assert eventually(lambda: tap.frames_unwatched >= 2 * len(ids), 10.0)
+        assert tap.frames_sent == 0
+        with contextlib.ExitStack() as stack:
+            ws = _connect(stack, f"ws://127.0.0.1:{tap.port}", SUBPROTOCOLS[0])
+            watcher = threading.Thread(target=_watch, args=(ws, flight, seen))
+            watcher.start()
+            assert eventually(lambda: len(tap.server.wanted) >= len(ids), 10.0)  # every channel subscribed
+            fly(100, 400)
+            tap.close(rec)
+            assert eventually(lambda: tap.frames_sent > 0 and tap._queue.empty(), 10.0)
+            time.sleep(1.0)
+            flying["on"] = False
+            watcher.join(timeout=10)
+    finally:
+        tap.finish()
+    for i in ids:
+        msgs = seen["decoded"][f"/none/drone{i}/image"]
+        assert msgs and all(m.format == "jpeg" and m.data[:2] == b"\xff\xd8" for _, m in msgs)
+        assert {m.frame_id for _, m in msgs} == {f"none/drone{i}/camera"}
+        assert np.all(np.diff([lt for lt, _ in msgs]) >= 1e9 / IMAGE_HZ - 1e3)
+    assert tap.frames_sent == sum(len(seen["decoded"][f"/none/drone{i}/image"]) for i in ids)
 
 
 # ---- the caps ----------------------------------------------------------------------------------------

@@ -21,11 +21,11 @@ from flightstack.cli import app as cli
 from flightstack.config.rig import resolved_document
 from flightstack.recording import mcap_schema
 from flightstack.recording.mcap_export import export_mcap
-from flightstack.recording.mcap_writer import TF_PERIOD_S
+from flightstack.recording.mcap_writer import SCENE_PERIOD_S, TF_PERIOD_S
 from flightstack.recording.run_reader import load_run
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
 from tests.conftest import random_recording
-from tests.mcap_read import McapContents, assert_mcap_holds, read_mcap
+from tests.mcap_read import McapContents, assert_mcap_holds, read_mcap, world_positions
 
 IDS = (1, 2)
 N = 40
@@ -98,6 +98,10 @@ def _topics(mode: str, ids: list[int]) -> dict[str, str]:
         f"/{mode}/tick": "flightstack.Tick",
         **{f"/{mode}/drone{i}": "flightstack.DroneState" for i in ids},
         f"/{mode}/tf": "foxglove.FrameTransforms",
+        f"/{mode}/pose/target": "foxglove.PoseInFrame",
+        f"/{mode}/pose/drones": "foxglove.PosesInFrame",
+        f"/{mode}/pose/estimates": "foxglove.PosesInFrame",
+        f"/{mode}/scene": "foxglove.SceneUpdate",
         f"/{mode}/events": "foxglove.Log",
     }
 
@@ -115,7 +119,11 @@ def test_topics_schemas_and_one_message_per_tick_and_drone(fake_run: Path, fake_
     assert all(s[1:] == ("protobuf", "protobuf") for s in got.schemas.values())
     for topic, msgs in got.topics.items():
         mode = topic.split("/")[1]
-        want = len(recs[mode].events) if topic.endswith("/events") else N  # 20 Hz: a transform per tick
+        want = N  # 20 Hz: a transform and poses per tick
+        if topic.endswith("/events"):
+            want = len(recs[mode].events)
+        elif topic.endswith("/scene"):  # t = 0 and 1 s of the 2 s
+            want = math.ceil(N / 20 / SCENE_PERIOD_S)
         assert len(msgs) == want == summary.topics[topic], topic
     assert summary.messages == got.messages and summary.mode_ticks == {"dgp": N, "none": N}
     assert got.attachments["metrics.json"] == b'{"modes": {}}\n'
@@ -273,14 +281,22 @@ def test_export_writes_only_regular_files_outside_the_run(
     print(f"refused: {[t.name for t in targets]}")
 
 
-def test_a_real_short_run_exports_its_recording(tmp_path: Path) -> None:
-    """paper_sim (ideal rig, 500 Hz), mode none for 0.05 s, flown in process, then exported by the CLI."""
+@pytest.fixture(scope="module")
+def short_paper_sim(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """paper_sim (ideal rig, 500 Hz), mode none for 0.05 s, flown in process, then exported by the CLI:
+    (run directory, MCAP file)."""
+    tmp_path = tmp_path_factory.mktemp("paper_sim")
     doc = resolved_document("paper_sim")
     doc.update(duration_s=0.05, compare_modes=["none"])
     (tmp_path / "m.yaml").write_text(yaml.safe_dump(doc))
     run, out = tmp_path / "run", tmp_path / "run.mcap"
     assert cli.main(["sim", str(tmp_path / "m.yaml"), "--out", str(run), "--no-progress"]) == 0
     assert cli.main(["export", str(run), "--mcap", str(out)]) == 0
+    return run, out
+
+
+def test_a_real_short_run_exports_its_recording(short_paper_sim: tuple[Path, Path]) -> None:
+    run, out = short_paper_sim
     recs = load_run(run)
     got = read_mcap(out)
     assert {t: s[0] for t, s in got.schemas.items()} == _topics("none", recs["none"].drone_ids)
@@ -289,6 +305,24 @@ def test_a_real_short_run_exports_its_recording(tmp_path: Path) -> None:
     levels = {_log(m)["event"]: m.level for _, m in got.topics["/none/events"]}
     assert levels["end"] == LOG_INFO and levels["landed"] == LOG_INFO
     assert {"metrics.json", "mission_resolved.yaml"} <= set(got.attachments)
+
+
+def test_on_the_ideal_rig_the_drones_appear_above_the_target_in_world(
+    short_paper_sim: tuple[Path, Path],
+) -> None:
+    """The ideal rig's Σw has z along the cameras' optical axis, down (paper_sim: drones at z = −1.5 m):
+    composed as a 3-D panel composes /none/tf, every drone is 1.5 m above the target in `world`, and the
+    scene holds the target's markers, in the target's frame."""
+    _, out = short_paper_sim
+    got = read_mcap(out)
+    for _, msg in got.topics["/none/tf"]:
+        at = world_positions(msg)
+        for i in (1, 2, 3):
+            assert at[f"none/drone{i}"][2] - at["none/target"][2] == pytest.approx(1.5, abs=0.01)
+    (_, scene), *_ = got.topics["/none/scene"]
+    (markers,) = [e for e in scene.entities if e.id == "markers"]
+    assert markers.frame_id == "none/target" and markers.frame_locked and len(markers.spheres) == 4
+    assert not [e for e in scene.entities if e.id == "fence"]  # the ideal rig flies without safety
 
 
 def test_a_recording_without_ticks_exports_its_events(tmp_path: Path) -> None:

@@ -145,7 +145,7 @@ def open_live_viewer(
     if port is not None:
         host = getattr(args, "viewer_host", None) or LOOPBACK
         try:
-            fox = FoxgloveTap(port, host, name=f"{mission.name} ({out.name}, live)")
+            fox = FoxgloveTap(port, host, name=f"{mission.name} ({out.name}, live)", mission=mission)
         except OSError as exc:  # the port is taken, ...
             raise OSError(f"foxglove on {host} port {port}: {exc}") from None
         print(f"viewer: live at {fox.describe()}", file=sys.stderr)

@@ -46,6 +46,9 @@ DATASETS_FILE = "datasets.npz"
 EXPERTS_FILE = "experts.npz"
 ROWS_SUFFIX = ".rows"
 """Suffix of a mode's row stream `timeseries_<mode>.rows` (flightstack.recording.rows)."""
+IMAGES_SUFFIX = ".jpgs"
+"""Suffix of a mode's camera frames `images_<mode>.jpgs` (flightstack.recording.camera_frames): rigs with
+image cameras only."""
 PLOTS = {
     "trajectory": "trajectory.png",
     "e_c": "error_ec.png",
@@ -77,6 +80,7 @@ RUN_FILES: tuple[str, ...] = (
     f"timeseries_*{ROWS_SUFFIX}",
     "timeseries_*.npz",
     "timeseries_*.csv",
+    f"images_*{IMAGES_SUFFIX}",
     EVENTS_FILE,
     STATE_FILE,
     METRICS_FILE,

@@ -6,20 +6,21 @@ Why a process: the flight's own process must not spend its cores, or its GIL, on
 touch the control loop. The follower reads what the run directory already holds as it is written
 (run_dir.py): each mode's row stream `timeseries_<mode>.rows` (complete rows only, checked by `_seq`;
 e_c and e_e computed from the poses and the mission's desired poses, as `load_run` does), the final
-`timeseries_<mode>.npz` of a mode written whole, and events.jsonl; it only reads modes that recording.json
-names (this run's), so the files of an earlier run in the directory are never mixed in. It writes through
-mcap_writer.RunMcap (the topics and the time base are described there) and closes the open chunk every
-FLUSH_PERIOD_S.
+`timeseries_<mode>.npz` of a mode written whole, each mode's camera frames `images_<mode>.jpgs`
+(camera_frames.py) and events.jsonl; it only reads modes that recording.json names (this run's), so the
+files of an earlier run in the directory are never mixed in. It writes through mcap_writer.RunMcap (the
+topics and the time base are described there; the frame tree and scene from the run's
+mission_resolved.yaml, mcap_scene.py) and closes the open chunk every FLUSH_PERIOD_S.
 
 Its stdin is a pipe from the flight's process: end of file (the run directory closed, or the flight's
 process gone, by any signal) makes it read everything left, attach metrics.json, recording.json and the
 mission, write the MCAP's summary and exit; it prints one JSON line ({"messages", "topics", "ticks",
-"error"}). It ignores SIGINT (Ctrl-C lands the drones; the file is finished after) and runs in its own
-session, so that a kill of the flight's process group leaves it to finish the file. The flight's process
-waits for it while it makes progress (`LiveMcap.finish`: its CPU time or its file's size; a loaded machine
-only slows it) and kills it after STALL_S without any (stopped, hung); a follower that died or was killed is
-reported as the run's error (flightstack.cli.run), and `flightstack report` finalises the file it left
-(mcap_finalise.py).
+"images", "skipped", "error"}). It ignores SIGINT (Ctrl-C lands the drones; the file is finished after)
+and runs in its own session, so that a kill of the flight's process group leaves it to finish the file.
+The flight's process waits for it while it makes progress (`LiveMcap.finish`: its CPU time or its file's
+size; a loaded machine only slows it) and kills it after STALL_S without any (stopped, hung); a follower
+that died or was killed is reported as the run's error (flightstack.cli.run), and `flightstack report`
+finalises the file it left (mcap_finalise.py).
 
 Its CPU follows the rows it copies, about 30 µs per tick of 3 drones (paper_sim: 1.8 s for 60 000 ticks,
 plus about 1 s of imports): at a real flight's rates (20–50 Hz) that is well under 1 % of a core. It
@@ -47,15 +48,19 @@ import sys
 import time
 from collections import Counter
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
 from flightstack.child_watch import communicate_while_progressing
+from flightstack.recording.camera_frames import FrameTail, images_name
 from flightstack.recording.files import EVENTS_FILE, LIVE_MCAP_FILE, ROWS_SUFFIX, STATE_FILE, RunDirError
 from flightstack.recording.rows import RowLayout, parse_header
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
 from flightstack.scheduling import AUTOGROUP, set_group_nice
+
+if TYPE_CHECKING:
+    from flightstack.config.mission import Mission
 
 _log = logging.getLogger(__name__)
 
@@ -126,11 +131,13 @@ class RunFollower:
         self.run_dir = run_dir
         self.mcap = RunMcap(out)
         self.tails: dict[str, _RowTail] = {}
+        self.frame_tails: dict[str, FrameTail] = {}
         self.done: set[str] = set()  # modes whose every row is in the MCAP
         self.ticks: Counter[str] = Counter()
+        self.images: Counter[str] = Counter()
         self.skipped: Counter[str] = Counter()
         self._ids: dict[str, list[int]] = {}
-        self._g_d: dict[int, np.ndarray] | None = None  # desired pose per drone id (the mission's)
+        self._mission: Mission | None = None
         self._mission_read = False
         self._events_at = 0
         self._event_buf = b""
@@ -147,22 +154,30 @@ class RunFollower:
         modes = doc.get("modes") if isinstance(doc, dict) else None
         return {str(k): v for k, v in modes.items() if isinstance(v, dict)} if isinstance(modes, dict) else {}
 
-    def _desired(self, ids: list[int]) -> np.ndarray | None:
-        """The drones' desired poses g_d (n, 4) from the run's mission (None: no mission file)."""
+    def _read_mission(self) -> Mission | None:
+        """The run's mission, read once at the first rows (Flight writes it before anything flies); it sets
+        the MCAP's frame tree and scene (mcap_scene.Scene). None: no mission file."""
         if not self._mission_read:
+            from flightstack.recording.mcap_scene import Scene
             from flightstack.recording.run_reader import resolved_mission
 
             self._mission_read = True
-            mission, _ = resolved_mission(self.run_dir)
-            if mission is not None:
-                self._g_d = {d.id: d.desired_pose.pose().as_vector() for d in mission.drones}
-        g_d = self._g_d
-        if g_d is None or not all(i in g_d for i in ids):
+            self._mission, _ = resolved_mission(self.run_dir)
+            if self._mission is not None:
+                self.mcap.channels.scene = Scene.of(self._mission)
+        return self._mission
+
+    def _desired(self, ids: list[int]) -> np.ndarray | None:
+        """The drones' desired poses g_d (n, 4) from the run's mission (None: no mission file)."""
+        mission = self._read_mission()
+        g_d = {} if mission is None else {d.id: d.desired_pose.pose().as_vector() for d in mission.drones}
+        if not all(i in g_d for i in ids):
             return None
         return np.array([g_d[i] for i in ids], dtype=float).reshape(len(ids), 4)
 
     # ---- copying ----------------------------------------------------------------------------------------
     def _write_rows(self, mode: str, ids: list[int], columns: dict[str, np.ndarray]) -> None:
+        self._read_mission()
         rec = Recording.from_columns(mode, ids, columns)
         if "e_c" not in columns:  # a row stream: derived here as load_run does
             g_d = self._desired(ids)
@@ -196,6 +211,17 @@ class RunFollower:
         elif closed and final:
             self.done.add(mode)  # cut short: its row stream is all there is
             tail.close()
+
+    def _poll_frames(self, mode: str) -> None:
+        """The camera frames of `mode` written since the last poll (read until the run is over: the frames
+        of a mode may be finished after its recording is)."""
+        tail = self.frame_tails.setdefault(mode, FrameTail(self.run_dir / images_name(mode)))
+        frames = tail.read()
+        if frames:
+            self.mcap.frames(mode, frames)
+            self.images[mode] += len(frames)
+        if tail.error is not None and tail.error not in self.skipped:
+            self.skipped[tail.error] += 1
 
     def _poll_events(self) -> None:
         path = self.run_dir / EVENTS_FILE
@@ -241,6 +267,10 @@ class RunFollower:
             except (RunDirError, ValueError, OSError) as exc:
                 self.skipped[f"timeseries_{mode}: {exc}"] += 1
                 self.done.add(mode)
+            try:
+                self._poll_frames(mode)
+            except OSError as exc:
+                self.skipped[f"{images_name(mode)}: {exc}"] += 1
         self._poll_events()
         if time.monotonic() - self._last_flush >= FLUSH_PERIOD_S:
             self.mcap.flush()
@@ -259,6 +289,8 @@ class RunFollower:
         finally:
             for tail in self.tails.values():
                 tail.close()
+            for frames in self.frame_tails.values():
+                frames.close()
             self.mcap.close()
         if self._early:
             self.skipped["events of a run that flew no mode"] += len(self._early)
@@ -266,6 +298,7 @@ class RunFollower:
             "messages": sum(self.mcap.counts.values()),
             "topics": len(self.mcap.counts),
             "ticks": dict(self.ticks),
+            "images": dict(self.images),
             "skipped": dict(self.skipped),
             "error": error,
         }

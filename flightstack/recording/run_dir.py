@@ -57,6 +57,7 @@ from flightstack.recording.files import (
     CLOSE_TIMEOUT_S,
     EVENTS_FILE,
     FSYNC_PERIOD_S,
+    IMAGES_SUFFIX,
     MAX_PENDING_BYTES,
     METRICS_FILE,
     MIN_FREE_BYTES,
@@ -116,10 +117,10 @@ class RunWriter:
     Created before takeoff (raises OSError if the directory cannot be written: nothing flew yet); from
     then on no method raises for a write error of the recording: it stops the recording instead
     (`status()`). Thread-safe. Starting a run truncates events.jsonl, rewrites recording.json and
-    removes metrics.json and the row streams of an earlier run in this directory; a mode's npz is
-    removed when that mode starts (and written again when it ends). live_mcap: a follower process writes
-    recording.mcap as the run goes (mcap_live.py); `close` waits for it to finish the file
-    (`live_mcap_error` says when it did not)."""
+    removes metrics.json, the row streams and the camera frames of an earlier run in this directory; a
+    mode's npz is removed when that mode starts (and written again when it ends). live_mcap: a follower
+    process writes recording.mcap as the run goes (mcap_live.py); `close` waits for it to finish the
+    file (`live_mcap_error` says when it did not)."""
 
     def __init__(
         self,
@@ -133,7 +134,11 @@ class RunWriter:
         self.block_period_s = block_period_s
         self.block_max_rows = block_max_rows
         self.out.mkdir(parents=True, exist_ok=True)
-        for stale in [*self.out.glob(f"timeseries_*{ROWS_SUFFIX}"), self.out / METRICS_FILE]:
+        stale_files = [
+            *self.out.glob(f"timeseries_*{ROWS_SUFFIX}"),
+            *self.out.glob(f"images_*{IMAGES_SUFFIX}"),
+        ]
+        for stale in [*stale_files, self.out / METRICS_FILE]:
             stale.unlink(missing_ok=True)
         self._lock = threading.RLock()
         self._failure: str | None = None

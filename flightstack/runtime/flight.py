@@ -59,6 +59,7 @@ from flightstack.recording.run_dir import RunWriter
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.agent import Predictor, TruthPredictor
 from flightstack.runtime.backends import AgentSeat, load_named, open_agent_backend
+from flightstack.runtime.camera_tap import CameraTap, has_image_cameras
 from flightstack.runtime.fleet import Fleet, assemble_fleet
 from flightstack.runtime.keep_awake import keep_awake
 from flightstack.runtime.resources import check_recording_fits
@@ -110,7 +111,8 @@ class Flight:
     agent_id: fly only this drone, over the mission's network bus (an agent process; its GP modes need
     gp.experts_file). backend, bus: given by the caller (kept open; the caller closes them), else built
     per mode. wrap_backend, wrap_bus: applied to what is built (the fault table's injectors). taps:
-    observers of every tick (runtime.taps). progress: per-mode progress callbacks. compiled: use the
+    observers of every tick (runtime.taps; on a rig with image cameras a CameraTap records the frames
+    into `out` besides). progress: per-mode progress callbacks. compiled: use the
     rig's compiled loop where it has one (False: every tick through the Agents, the reference path).
     plots: draw the run's plots into `out` at the end. live_mcap: `out`/recording.mcap written as the
     run goes (flightstack.recording.mcap_live). say: where status lines go (the CLI: stderr)."""
@@ -222,11 +224,14 @@ class Flight:
             raise RuntimeError("a Flight flies inside `with Flight(...) as flight:`")
         writer = None if self.writer is None else self.writer.mode(mode, self.ids, self.n_ticks)
         progress = None if self.progress is None else self.progress(mode, self.n_ticks)
+        taps = list(self.taps)
+        if self.out is not None and has_image_cameras(self.mission):  # the frames, for the MCAP's images
+            taps.append(CameraTap(self.out))
         flying = False  # run_mode has the mode: it closes the recording itself (flown rows and all)
         try:
             with self._assemble(self.mission, mode, predictors, writer, mode) as fleet:
                 flying = True
-                return run_mode(fleet, progress, writer=writer, taps=self.taps, plan_loop=self._plan_loop)
+                return run_mode(fleet, progress, writer=writer, taps=taps, plan_loop=self._plan_loop)
         except BaseException as exc:
             # stopped while the fleet was assembled; after that a recording left open keeps its row stream
             if not flying and writer is not None and not writer.closed:

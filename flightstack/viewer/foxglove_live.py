@@ -4,9 +4,13 @@ unless `--viewer-host` names another address, with the topics and typed messages
 (flightstack.recording.mcap_writer), so one Foxglove layout opens both (docs/logs.md).
 
 The control tick only copies its newest row, at most LIVE_RATE_HZ times per second of wall time, into a
-bounded queue (QUEUE_TICKS; a full queue drops the row and counts it in `dropped`); a thread encodes and
-publishes it. e_c and e_e are derived there from the poses and the fleet's desired poses, as the recording
-derives them at the end. A client that connects late sees the flight from then on.
+bounded queue (QUEUE_TICKS; a full queue drops the row and counts it in `dropped`), with, on rigs with
+image cameras, the agents' newest frames at most camera_frames.IMAGE_HZ per drone and second of mission
+time (as the recording takes them: flightstack.runtime.camera_tap); a thread encodes (JPEG) and publishes
+them, an image only while some client subscribes to its camera's topic (advertised with its first frame).
+e_c and e_e are derived there from the poses and the fleet's desired poses, as the recording derives them
+at the end. A client that connects late sees the flight from then on (the scene is sent again every
+mcap_writer.SCENE_PERIOD_S).
 """
 
 from __future__ import annotations
@@ -23,9 +27,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from flightstack.recording.camera_frames import IMAGE_HZ, CameraFrame, encode_jpeg
 from flightstack.recording.timeseries import ARRAY_FIELDS, Recording
+from flightstack.runtime.camera_tap import FrameKeeper, has_image_cameras, keep_frames, release_frames
+from flightstack.viewer.foxglove_server import Topic
 
 if TYPE_CHECKING:
+    from flightstack.config.mission import Mission
     from flightstack.runtime.fleet import Fleet
 
 _log = logging.getLogger(__name__)
@@ -41,20 +49,35 @@ QUEUE_TICKS = 64
 FINISH_TIMEOUT_S = 5.0
 """How long `finish` waits for the publishing thread (s)."""
 
-_Item = tuple[str, list[int], np.ndarray, dict[str, np.ndarray], list[Mapping[str, Any]]]
+_Image = tuple[int, float, bool, "int | None", np.ndarray]  # drone, stamp (s), damaged, since_loss, image
+_Item = tuple[str, list[int], np.ndarray, dict[str, np.ndarray], list[Mapping[str, Any]], list[_Image]]
 
 
 class FoxgloveTap:
-    """A runtime.taps.TickTap serving the flight live (module docstring); `finish` stops the server."""
+    """A runtime.taps.TickTap serving the flight live (module docstring); `finish` stops the server.
+    mission: the flight's (its frame tree, scene and cameras: mcap_scene.Scene); None: no scene, no images."""
 
-    def __init__(self, port: int = DEFAULT_PORT, host: str = LOOPBACK, name: str = "flightstack") -> None:
+    def __init__(
+        self,
+        port: int = DEFAULT_PORT,
+        host: str = LOOPBACK,
+        name: str = "flightstack",
+        mission: Mission | None = None,
+    ) -> None:
+        from flightstack.recording.mcap_scene import Scene
         from flightstack.recording.mcap_writer import RunChannels
         from flightstack.viewer.foxglove_server import FoxgloveServer
 
         self.server = FoxgloveServer(host, port, name)
         self.port = self.server.port
         self.host = host
-        self.channels = RunChannels(self.server.topic)
+        self.channels = RunChannels(self.server.topic, None if mission is None else Scene.of(mission))
+        self.images = mission is not None and has_image_cameras(mission)
+        self.frames_sent = 0  # camera frames encoded and published
+        self.frames_unwatched = 0  # camera frames due while no client subscribed to their topic
+        self._agents: list[Any] = []
+        self._keepers: dict[int, FrameKeeper] = {}
+        self._next_image: dict[int, float] = {}
         self.dropped = 0
         self.published = 0
         self._queue: queue.Queue[_Item | None] = queue.Queue(maxsize=QUEUE_TICKS)
@@ -75,6 +98,10 @@ class FoxgloveTap:
         self._mode, self._ids = rec.mode, list(rec.drone_ids)
         self._g_d = np.asarray(f.g_d, dtype=float).reshape(len(self._ids), 4)
         self._last, self._events = -np.inf, 0
+        if self.images:
+            self._agents = list(f.agents)
+            self._keepers = keep_frames(self._agents)
+            self._next_image = dict.fromkeys(self._keepers, -np.inf)
 
     def on_tick(self, f: Fleet, rec: Recording, k_end: int) -> None:
         now = time.monotonic()
@@ -85,15 +112,29 @@ class FoxgloveTap:
         self._put(rec, row)
 
     def close(self, rec: Recording) -> None:
+        release_frames(self._agents, self._keepers)
+        self._agents, self._keepers = [], {}
         k = rec.ticks_done
         row = {name: np.array(getattr(rec, name)[k - 1 : k]) for name in ARRAY_FIELDS} if k else {}
         self._put(rec, row)
+
+    def _frames(self) -> list[_Image]:
+        """The agents' newest frames that are due (IMAGE_HZ per drone, mission time), their images by
+        reference (as flightstack.recording.camera_frames takes them)."""
+        out: list[_Image] = []
+        for i, keeper in self._keepers.items():
+            fr = keeper.last
+            if fr is None or fr.image is None or fr.stamp < self._next_image[i]:
+                continue
+            self._next_image[i] = fr.stamp + 1.0 / IMAGE_HZ
+            out.append((i, float(fr.stamp), bool(fr.damaged), fr.since_loss, fr.image))
+        return out
 
     def _put(self, rec: Recording, row: dict[str, np.ndarray]) -> None:
         events: list[Mapping[str, Any]] = list(rec.events[self._events :])
         self._events += len(events)
         try:
-            self._queue.put_nowait((self._mode, self._ids, self._g_d, row, events))
+            self._queue.put_nowait((self._mode, self._ids, self._g_d, row, events, self._frames()))
         except queue.Full:
             self.dropped += 1
 
@@ -115,6 +156,7 @@ class FoxgloveTap:
         g_d: np.ndarray,
         row: dict[str, np.ndarray],
         events: Sequence[Mapping[str, Any]],
+        images: Sequence[_Image],
     ) -> None:
         if row:
             rec = Recording.from_columns(mode, ids, row)
@@ -123,6 +165,16 @@ class FoxgloveTap:
             self.published += 1
         if events:
             self.channels.events(mode, list(events))
+        frames = []
+        for i, t, damaged, since, img in images:
+            channel = self.channels.image_channel(mode, i)  # advertised with its first frame
+            if isinstance(channel, Topic) and not channel.subscribed():
+                self.frames_unwatched += 1  # nobody watches it: not encoded
+                continue
+            frames.append(CameraFrame(i, t, damaged, since, encode_jpeg(img)))
+        if frames:
+            self.channels.frames(mode, frames)
+            self.frames_sent += len(frames)
 
     def finish(self) -> None:
         """Publish what is queued (≤ FINISH_TIMEOUT_S), then stop the server (logging what clients did

@@ -118,6 +118,10 @@ class Topic:
     def topic(self) -> str:
         return self._channel.topic
 
+    def subscribed(self) -> bool:
+        """Whether some client subscribed to it now (what it logs reaches someone)."""
+        return self._channel.id in self._server.wanted
+
 
 class _Reports:
     """What clients did wrong, counted per kind (`total`) and logged at most once per REPORT_PERIOD_S per

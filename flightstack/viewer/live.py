@@ -11,9 +11,7 @@ for the thread, bounded (CLOSE_WAIT_S); finish() ends the thread and closes the 
 footer).
 
 Camera frames: the tap wraps each agent's camera in a `FrameKeeper` for the mode (and unwraps it at
-close) and shows the frame the agent itself measured. It does not call `backend.camera(i).latest()` a
-second time: on the simulated lab that renders a new image and draws noise from the simulation's random
-generator, so a viewer would change the flight it shows (sim_backend/lab.py, RenderedCamera.latest).
+close) and shows the frame the agent itself measured (why: flightstack.runtime.camera_tap).
 """
 
 from __future__ import annotations
@@ -32,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from flightstack.paper.gp import GPExpert
+from flightstack.runtime.camera_tap import FrameKeeper, has_image_cameras, keep_frames, release_frames
 from flightstack.viewer import layout, scene
 from flightstack.viewer.mode_logger import ModeLogger
 
@@ -39,7 +38,6 @@ if TYPE_CHECKING:
     from rerun import RecordingStream
 
     from flightstack.config.mission import Mission
-    from flightstack.hal import Camera, Frame
     from flightstack.recording.timeseries import Recording
     from flightstack.runtime.fleet import Fleet
     from flightstack.viewer.sinks import Sink
@@ -53,22 +51,6 @@ CLOSE_WAIT_S = 5.0
 EXTENT_TICKS = 100_000
 """The expert regions of a live view are drawn over the target's predicted path, at most this many ticks."""
 LIVE_FIELDS = ("t", "g_w0", "g_wi", "g_bar_w", "mu_used", "var_own", "visible", "n_fused")
-
-
-class FrameKeeper:
-    """An agent's camera as the agent sees it, remembering the last frame it returned (hal.Camera)."""
-
-    def __init__(self, inner: Camera) -> None:
-        self.inner = inner
-        self.last: Frame | None = None
-
-    def latest(self) -> Frame | None:
-        frame = self.inner.latest()
-        self.last = frame
-        return frame
-
-    def __getattr__(self, name: str) -> Any:  # anything else the camera offers (stop, counters)
-        return getattr(self.inner, name)
 
 
 @dataclass
@@ -153,12 +135,7 @@ class RerunTap:
         self._every = layout.stride(mission.dt_s, layout.LIVE_SCALAR_HZ)
         self._pose_every = layout.stride(mission.dt_s, layout.LIVE_3D_HZ, base=self._every)
         self._agents = list(f.agents)
-        self._keepers = {}
-        if any(d.camera is not None and d.camera.calibration for d in mission.drones):  # image cameras
-            for a in self._agents:
-                keeper = FrameKeeper(a.camera)
-                a.camera = keeper
-                self._keepers[a.cfg.drone_id] = keeper
+        self._keepers = keep_frames(self._agents) if has_image_cameras(mission) else {}
         try:
             uses_gp = Mode(rec.mode).uses_gp
         except ValueError:
@@ -180,9 +157,7 @@ class RerunTap:
             self._k = k_end  # rows are lost; events stay for the next batch
 
     def close(self, rec: Recording) -> None:
-        for a in self._agents:  # the agents get their own cameras back
-            if isinstance(a.camera, FrameKeeper):
-                a.camera = a.camera.inner
+        release_frames(self._agents, self._keepers)  # the agents get their own cameras back
         self._keepers = {}
         rows = self._rows(rec, rec.ticks_done)
         t_end = float(rec.t[rec.ticks_done - 1]) if rec.ticks_done else 0.0
