@@ -349,6 +349,28 @@ def test_the_stamp_goes_below_the_picture() -> None:
     assert np.array_equal(frame[:240], before) and read_frame_index(frame[240:]) == 1234
 
 
+def test_a_smeared_or_mixed_bar_code_names_no_frame() -> None:
+    """The check row: a code read whole names its frame; one whose index row is another frame's (a
+    concealment that reached one row), or with one block smeared, names none."""
+    from flightstack.sim_backend.emulators.tello.frames import read_checked_frame_index, stamp_frame_index
+
+    def coded(index: int) -> np.ndarray:
+        img = np.full((480, 320), 90, dtype=np.uint8)
+        stamp_frame_index(img, index)
+        return img
+
+    rng = np.random.default_rng(5)
+    for index in rng.integers(0, 2**16, 200):
+        assert read_checked_frame_index(coded(int(index))) == index
+    now, older = coded(1235), coded(1234)
+    mixed = now.copy()
+    mixed[:30] = older[:30]  # the index row (rows 10-29) from the frame before, the check row current
+    assert read_checked_frame_index(mixed) is None
+    smeared = now.copy()
+    smeared[10:30, 28:42] = 255 - smeared[10:30, 28:42]  # one block of the index row flipped
+    assert read_checked_frame_index(smeared) is None
+
+
 # ---- the served world carries grey frames --------------------------------------------------------------
 def test_a_grey_frame_crosses_the_served_world() -> None:
     from flightstack.sim_backend.served import messages as wm

@@ -36,6 +36,7 @@ from .frames import INDEX_BITS as INDEX_BITS
 from .frames import (
     FrameSource,
     default_frame_source,
+    read_checked_frame_index,
     read_frame_index,
     stamp_frame_index,
 )
@@ -53,6 +54,7 @@ __all__ = [
     "default_frame_source",
     "free_udp_port",
     "is_loopback",
+    "read_checked_frame_index",
     "read_frame_index",
     "stamp_frame_index",
     "wait_until",

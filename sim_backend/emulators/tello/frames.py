@@ -3,7 +3,8 @@
 A frame source is ``frame_source(t, emu) -> image`` (``t`` = stream time ``n / fps`` of frame ``n`` in
 seconds; image HxWx3 uint8 RGB, or HxW grey, of size ``emu.video_size = (width, height)`` in pixels).  The
 default source draws a square moving on a circle and stamps the frame index as a row of black/white
-blocks, so a test can match every decoded frame with the frame that was rendered.  Encoding and sending
+blocks (and a check row below it), so a test can match every decoded frame with the frame that was
+rendered.  Encoding and sending
 are in ``video``; re-exported by ``tello.py``.
 """
 
@@ -35,35 +36,64 @@ FrameSource = Callable[[float, VideoSettings], np.ndarray]
 
 INDEX_BITS = 16
 """Bits of the frame-index bar code stamped by :func:`stamp_frame_index`."""
+CHECK_MULTIPLIER = 40503
+"""The check row's hash of an index: ``(index × CHECK_MULTIPLIER) mod 2**16`` (Knuth's multiplicative
+constant for 16 bits, odd: a one-to-one map, so every wrong bit of either row changes what the other must
+read)."""
 
 
 def _barcode_geometry(width: int, height: int) -> tuple[int, int, int, int]:
-    """Return (x0, y0, block_w, block_h) of the frame-index bar code."""
+    """Return (x0, y0, block_w, block_h) of the frame-index bar code (its check row lies just below)."""
     block_w = max(4, width // (INDEX_BITS + 4))
     block_h = max(8, height // 24)
     return block_w * 2, block_h // 2, block_w, block_h
 
 
-def stamp_frame_index(img: np.ndarray, index: int) -> None:
-    """Draw ``index`` (mod 2**16) as a row of black/white blocks near the top edge of ``img`` (in place)."""
+def _check_of(index: int) -> int:
+    return (index * CHECK_MULTIPLIER) & ((1 << INDEX_BITS) - 1)
+
+
+def _stamp_row(img: np.ndarray, value: int, row: int) -> None:
     height, width = img.shape[:2]
     x0, y0, bw, bh = _barcode_geometry(width, height)
+    y = y0 + row * bh
     for bit in range(INDEX_BITS):
-        value = 255 if (index >> bit) & 1 else 0
-        img[y0 : y0 + bh, x0 + bit * bw : x0 + (bit + 1) * bw] = value
+        img[y : y + bh, x0 + bit * bw : x0 + (bit + 1) * bw] = 255 if (value >> bit) & 1 else 0
+
+
+def _read_row(img: np.ndarray, row: int) -> int:
+    height, width = img.shape[:2]
+    x0, y0, bw, bh = _barcode_geometry(width, height)
+    y = y0 + row * bh
+    mx, my = max(1, bw // 4), max(1, bh // 4)
+    value = 0
+    for bit in range(INDEX_BITS):
+        block = img[y + my : y + bh - my, x0 + bit * bw + mx : x0 + (bit + 1) * bw - mx]
+        if float(block.mean()) > 127.0:
+            value |= 1 << bit
+    return value
+
+
+def stamp_frame_index(img: np.ndarray, index: int) -> None:
+    """Draw ``index`` (mod 2**16) as a row of black/white blocks near the top edge of ``img`` (in place),
+    and below it its check row (:data:`CHECK_MULTIPLIER`)."""
+    index &= (1 << INDEX_BITS) - 1
+    _stamp_row(img, index, 0)
+    _stamp_row(img, _check_of(index), 1)
 
 
 def read_frame_index(img: np.ndarray) -> int:
-    """Decode the bar code written by :func:`stamp_frame_index` from a (decoded, lossy) frame."""
-    height, width = img.shape[:2]
-    x0, y0, bw, bh = _barcode_geometry(width, height)
-    mx, my = max(1, bw // 4), max(1, bh // 4)
-    index = 0
-    for bit in range(INDEX_BITS):
-        block = img[y0 + my : y0 + bh - my, x0 + bit * bw + mx : x0 + (bit + 1) * bw - mx]
-        if float(block.mean()) > 127.0:
-            index |= 1 << bit
-    return index
+    """Decode the index row written by :func:`stamp_frame_index` from a (decoded, lossy) frame."""
+    return _read_row(img, 0)
+
+
+def read_checked_frame_index(img: np.ndarray) -> int | None:
+    """The index of :func:`read_frame_index` when the check row agrees with it, else None: a bar code
+    that concealment after a loss smeared or mixed with an older frame's (measured on the emulated lab's
+    downward stream at 2 % datagram loss, before the check row: 6 of 242 concealed frames read as a wrong
+    index)."""
+    index = _read_row(img, 0)
+    return index if _read_row(img, 1) == _check_of(index) else None
 
 
 def default_square(t: float, size: tuple[int, int]) -> tuple[int, int, int, int]:
