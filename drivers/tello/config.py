@@ -28,8 +28,8 @@ SDK3_FIX = (
 )
 """What to do when a mission needs SDK 3.0 features the drone's firmware lacks (`sdk3_features`)."""
 DOWNWARD_FIX = (
-    "the downward camera is a Tello EDU's (or Talent's) on SDK 3.0: fly one as this drone (a plain Tello "
-    "can fly a drone with the forward camera), or update this EDU's firmware"
+    "only a Tello EDU (or Talent) on SDK 3.0 has the downward camera: fly one as this drone (a plain Tello "
+    "can be a drone with the forward camera), or update this EDU's firmware"
 )
 """What to do when a drone whose camera looks down has firmware below SDK 3.0 (a plain Tello, most likely):
 in `paper_experiment` that is drone 1, the one that sees the target."""
