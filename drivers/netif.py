@@ -163,12 +163,14 @@ def interface_state(name: str, sys_net: Path = Path("/sys/class/net")) -> Interf
     )
 
 
-def route_interfaces(ip: str, table: Path = Path("/proc/net/route")) -> set[str]:
-    """The interfaces of the main routing table's best routes to `ip` (longest prefix, then lowest
-    metric): where an unbound socket's datagram to it, and the reverse-path filter's check of a datagram
-    from it, may leave. Empty when no route covers it or the table cannot be read."""
+def route_interface(ip: str, table: Path = Path("/proc/net/route")) -> str | None:
+    """The interface of the main routing table's route to `ip` as the kernel picks it (longest prefix,
+    then lowest metric, then the first listed): where an unbound socket's datagram to it, and the
+    reverse-path filter's check of a datagram from it, leave. None when no route covers it or the table
+    cannot be read."""
     target = int(ipaddress.IPv4Address(ip))
-    best: dict[tuple[int, int], set[str]] = {}
+    best: tuple[int, int] | None = None
+    chosen = None
     for line in _read(table).splitlines()[1:]:
         cols = line.split()
         if len(cols) < 8:
@@ -179,14 +181,15 @@ def route_interfaces(ip: str, table: Path = Path("/proc/net/route")) -> set[str]
             metric = int(cols[6])
         except (ValueError, struct.error):
             continue
-        if target & mask == dest:
-            best.setdefault((-bin(mask).count("1"), metric), set()).add(cols[0])
-    return best[min(best)] if best else set()
+        rank = (-bin(mask).count("1"), metric)
+        if target & mask == dest and (best is None or rank < best):
+            best, chosen = rank, cols[0]
+    return chosen
 
 
-def interface_problem(state: InterfaceState, drone_ip: str, routes: set[str] | None = None) -> str | None:
+def interface_problem(state: InterfaceState, drone_ip: str, route: str | None) -> str | None:
     """Why the drone at `drone_ip` cannot be reached through this interface (one line with the fix), or
-    None. routes: `route_interfaces(drone_ip)` (read when None)."""
+    None. route: `route_interface(drone_ip)`, the interface the kernel's route to the drone leaves by."""
     name = state.name
     if not state.exists:
         return f"no network interface {name} on this computer (`ip link` lists them)"
@@ -200,13 +203,11 @@ def interface_problem(state: InterfaceState, drone_ip: str, routes: set[str] | N
         return f"{name}: no IPv4 address (the drone's DHCP gives one once joined to its Wi-Fi)"
     if ipaddress.IPv4Address(drone_ip) not in net:
         return f"{name}: {state.address}/{state.prefix} does not hold the drone's {drone_ip} (another Wi-Fi?)"
-    routes = route_interfaces(drone_ip) if routes is None else routes
-    others = sorted(routes - {name})
-    if state.rp_filter == 1 and others:
+    if state.rp_filter == 1 and route is not None and route != name:
         return (
             f"{name}: strict reverse-path filter (rp_filter 1) with the route to {drone_ip} through "
-            f"{', '.join(others)}: the kernel drops this drone's datagrams arriving on {name}; make it "
-            f"loose: {RP_FILTER_FIX.format(**{'if': name})}"
+            f"{route}: the kernel drops this drone's datagrams arriving on {name}; make it loose: "
+            f"{RP_FILTER_FIX.format(**{'if': name})}"
         )
     return None
 

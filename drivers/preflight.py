@@ -256,10 +256,10 @@ def drone_label(mission: Mission, drone_id: int) -> str:
 def check_interface(dev: str, interface: str, drone_ip: str) -> CheckRow:
     """The interface a drone is reached through: exists, link up, an address whose subnet holds the
     drone's, no strict reverse-path filter against it (drivers/netif.py)."""
-    from flightstack.drivers.netif import describe, interface_problem, interface_state
+    from flightstack.drivers.netif import describe, interface_problem, interface_state, route_interface
 
     state = interface_state(interface)
-    problem = interface_problem(state, drone_ip)
+    problem = interface_problem(state, drone_ip, route_interface(drone_ip))
     return _row(dev, f"interface {interface}", problem is None, problem or describe(state))
 
 

@@ -242,6 +242,87 @@ def fly(tmp_path: Path, kill: bool) -> dict[str, Any]:
         return result
 
 
+def rp_probe(interfaces: str) -> None:
+    """In the computer's namespace: preflight's row of each interface (comma-separated names) for a drone at
+    192.168.10.1, and how many datagrams arrive within 2 s on a socket bound to it at port 8890; prints
+    JSON."""
+    from flightstack.drivers.netif import udp_socket
+    from flightstack.drivers.preflight import check_interface
+
+    names = interfaces.split(",")
+    socks = {}
+    for name in names:
+        socks[name] = udp_socket(name)
+        socks[name].bind(("", 8890))
+        socks[name].setblocking(False)
+    print("ready", flush=True)
+    got = dict.fromkeys(names, 0)
+    t_end = time.monotonic() + 2.0
+    while time.monotonic() < t_end:
+        for name, sock in socks.items():
+            with contextlib.suppress(BlockingIOError):
+                while sock.recv(64):
+                    got[name] += 1
+        time.sleep(0.01)
+    rows = {name: check_interface("drone", name, "192.168.10.1") for name in names}
+    print(
+        json.dumps({n: {"status": r.status, "detail": r.detail, "received": got[n]} for n, r in rows.items()})
+    )
+
+
+def test_a_strict_reverse_path_filter_drops_one_adapters_drone_and_preflight_says_so() -> None:
+    """Two adapters on one subnet: with rp_filter 1 the kernel drops what arrives on the one its route
+    back does not leave through, and preflight FAILs that interface naming the fix; loose (2), both pass
+    and both drones are heard."""
+    import socket
+
+    from flightstack.sim_backend.emulators.netns import in_netns
+
+    with namespaces() as net:
+        senders = {
+            i: in_netns(ns, lambda: socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+            for i, ns in net.drones.items()
+        }
+        seen = {}
+        try:
+            for rp in (1, 2):
+                sysctl = [
+                    "ip",
+                    "netns",
+                    "exec",
+                    net.computer,
+                    "sysctl",
+                    "-qw",
+                    f"net.ipv4.conf.all.rp_filter={rp}",
+                ]
+                subprocess.run(sysctl, check=True, timeout=10)
+                code = "import sys; from tests.test_tello_interfaces import rp_probe; rp_probe(sys.argv[1])"
+                names = ",".join(net.interfaces.values())
+                cmd = ["ip", "netns", "exec", net.computer, sys.executable, "-c", code, names]
+                env = dict(os.environ, PYTHONPATH=str(REPO))
+                with subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, text=True) as probe:
+                    assert probe.stdout is not None and probe.stdout.readline().strip() == "ready"
+                    t_end = time.monotonic() + 10.0
+                    while probe.poll() is None and time.monotonic() < t_end:
+                        for sock in senders.values():
+                            sock.sendto(b"state", ("192.168.10.2", 8890))
+                        time.sleep(0.02)
+                    out, _ = probe.communicate(timeout=10)
+                seen[rp] = json.loads(out.strip().splitlines()[-1])
+        finally:
+            for sock in senders.values():
+                sock.close()
+    print(json.dumps(seen, indent=1))
+    strict = sorted(seen[1].values(), key=lambda row: row["status"])
+    assert [row["status"] for row in strict] == ["FAIL", "PASS"], seen
+    dropped, heard = strict
+    assert dropped["received"] == 0 and heard["received"] > 10, seen
+    assert (
+        "strict reverse-path filter (rp_filter 1)" in dropped["detail"] and "rp_filter=2" in dropped["detail"]
+    )
+    assert all(row["status"] == "PASS" and row["received"] > 10 for row in seen[2].values()), seen
+
+
 def table(stdout: str) -> dict[tuple[str, str], tuple[str, str]]:
     """The preflight table in `stdout`: (device, check) -> (status, detail), cut at the header's columns."""
     lines = stdout.splitlines()
