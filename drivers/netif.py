@@ -5,7 +5,11 @@ access-point mode is 192.168.10.1 and talks to the same ports of its computer, s
 the port says which drone a datagram is for or from; the adapter does. A socket bound to an interface
 (SO_BINDTODEVICE, `bind_to_interface`) sends only through it (the route lookup is limited to it) and
 receives only what arrived on it, so each drone's command, state and video sockets, and its guardian's,
-are bound to its adapter (docs/architecture.md, "Per-interface sockets").
+are bound to its adapter (docs/architecture.md, decision 82).
+
+A socket stays bound to the interface it was bound to (its index): an adapter unplugged and plugged back
+in flight comes back as a new interface, which the flight's and the guardian's sockets never reach; the
+drone then lands by itself 15 s after its last command, as with any lost Wi-Fi.
 
 Privilege (`binding_privilege`): on Linux before 5.7 SO_BINDTODEVICE needs CAP_NET_RAW (root, or the
 capability given to the interpreter: `sudo setcap cap_net_raw+ep "$(readlink -f "$(which python3)")"`);

@@ -47,8 +47,10 @@ PURSUIT_S = 4.0
 """The flown pursuit of the normal flight (s; mode none)."""
 KILL_AFTER_S = 1.0
 """The flight is killed this long after the pursuit started (s)."""
-LAB_TIMEOUT_S = 240.0
-"""Bound on the lab side's child process (s): killed after it, with everything in its namespace."""
+LAB_TIMEOUT_S = 260.0
+"""Bound on the lab side's child process (s), above the sum of its own bounded waits (90 s for the
+pursuit, 100 s for the flight's exit, 30 s for the landing and the guardian): killed after it, with
+everything left in the namespaces."""
 
 
 # ---- the namespaces ----------------------------------------------------------------------------------------
@@ -173,14 +175,14 @@ def lab_side(config_path: str) -> None:
             proc = subprocess.Popen(cmd, stdout=so, stderr=se)
         t_kill, guardians = None, []
         try:
-            t_pursuit = lab.wait_for_pursuit(120.0)
+            t_pursuit = lab.wait_for_pursuit(90.0)
             out["pursuit_started"] = t_pursuit is not None
             if kill and t_pursuit is not None:
                 guardians = guardian_pids(proc.pid)
                 time.sleep(KILL_AFTER_S)
                 t_kill = time.monotonic()
                 proc.send_signal(signal.SIGKILL)
-            out["exit"] = proc.wait(timeout=150.0)
+            out["exit"] = proc.wait(timeout=100.0)
             t_end = time.monotonic() + 20.0  # the guardian lands them; the Tello's own auto-land is 15 s
             while time.monotonic() < t_end and any(e.flying for e in lab.tellos.values()):
                 time.sleep(0.05)
