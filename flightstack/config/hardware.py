@@ -4,6 +4,7 @@ ground robot, the topology. Used by flightstack.config.mission."""
 from __future__ import annotations
 
 import math
+import re
 from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field, model_validator
@@ -23,8 +24,19 @@ def _body_name(name: str) -> str:
 
 
 BodyName = Annotated[str, AfterValidator(_body_name)]
-InterfaceName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,14}$")]
-"""A Linux network interface's name (`ip link`): 1 to 15 letters, digits, `_`, `.`, `-`."""
+INTERFACE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,14}")
+
+
+def _interface_name(name: str) -> str:
+    """A Linux network interface's name as `ip link` lists it: 1 to 15 letters, digits, `_`, `.`, `-`."""
+    if not INTERFACE_NAME.fullmatch(name):
+        raise ValueError(
+            f"{name!r}: a network interface's name as `ip link` lists it (1 to 15 letters, digits, _ . -)"
+        )
+    return name
+
+
+InterfaceName = Annotated[str, AfterValidator(_interface_name)]
 
 
 class TelloHardwareSpec(_Strict):
