@@ -7,8 +7,9 @@ The set-up is made here in network namespaces (root and iproute2; skipped with t
 failing under CI=true), with unique names, deleted in `finally` with every process left in them: the
 computer's namespace (the flight, its guardian, the NatNet and rover emulators on its loopback) and one
 per drone, joined to the computer's by a veth pair whose computer end plays the drone's Wi-Fi adapter
-(both ends 192.168.10.2/24, as two Tellos' DHCP would each give), the drone's end 192.168.10.1. Nothing
-leaves the namespaces. Drone 1 is a Tello EDU (SDK 3.0: the downward camera), drone 2 a Tello on SDK 2.0
+(each 192.168.10.2/24, as two Tellos' DHCP would each give), the drone's end 192.168.10.1. Nothing leaves
+the namespaces. A third test measures what a strict reverse-path filter does to the second adapter, and
+that preflight names it. Drone 1 is a Tello EDU (SDK 3.0: the downward camera), drone 2 a Tello on SDK 2.0
 (forward camera); their batteries differ (BATTERY), so that a state datagram given to the wrong drone
 would show in the other's recorded traffic. A datagram sent through the wrong interface reaches the other
 drone: each drone's landing after the kill proves the guardian's socket for it left through its own.
