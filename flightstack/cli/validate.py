@@ -80,9 +80,7 @@ def mission_summary(m: Mission) -> list[str]:
         lines.append(f"hardware ({hw.topology}): mocap {hw.mocap.system}; {robot}")
         tellos = ", ".join(
             f"{d.id} at {d.ip}:{d.control_port}{'' if d.interface is None else ' via ' + d.interface}"
-            f" (video {d.video_port}"
-            + "".join(f", `{v.command}`" for v in hw.video_settings(d.id))
-            + ")"
+            f" (video {d.video_port}" + "".join(f", `{v.command}`" for v in hw.video_settings(d.id)) + ")"
             for d in hw.drones
         )
         lines.append(f"    tellos {tellos}")
