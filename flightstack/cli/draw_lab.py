@@ -286,8 +286,9 @@ def render_svg(lab: Lab) -> str:
     x_comp = GAP + drone_w + LINK_PX
     x_net = x_comp + comp_w + NET_PX
     x_dev = x_net + NET_PX
-    top = 2 * LINE_PX + GAP
-    y, lab_ys = top, []
+    top = float(2 * LINE_PX + GAP)
+    y = top
+    lab_ys: list[float] = []
     for index, c in enumerate(lab.computers):
         h = _computer(out, lab, index, x_comp, y, comp_w, inset)
         lab_ys.append(y + h / 2)
