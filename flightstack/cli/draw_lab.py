@@ -116,13 +116,10 @@ def _mocap(hw: HardwareSpec) -> Device:
 
 
 def _bus_line(bus: BusSpec) -> str:
+    """How the process hears the operator and the other agents: Zenoh's endpoints, or the loopback abort."""
     if bus.kind == "zenoh" and bus.zenoh is not None:
-        return (
-            "Zenoh ("
-            + bus.zenoh.security
-            + "): "
-            + ", ".join(f"{k} {v}" for k, v in bus.zenoh.endpoints.items())
-        )
+        endpoints = ", ".join(f"{k} {v}" for k, v in bus.zenoh.endpoints.items())
+        return f"Zenoh ({bus.zenoh.security}): {endpoints}"
     return "abort: UDP 127.0.0.1 operator port (signed)"
 
 
