@@ -62,6 +62,12 @@ def _add_source_options(p: argparse.ArgumentParser, tello: bool) -> None:
         g.add_argument("--duration", type=float, default=90.0, help="seconds of live capture (default 90)")
         g.add_argument("--rate", type=float, default=5.0, help="live frames analysed per second (default 5)")
         g.add_argument("--downward", action="store_true", help="the Tello EDU's downward camera")
+        g.add_argument(
+            "--interface",
+            default=None,
+            metavar="NAME",
+            help="the network interface the Tello is reached through (one Wi-Fi adapter per Tello)",
+        )
     g.add_argument("--every", type=int, default=1, help="video: use every N-th frame (default 1)")
 
 
@@ -89,7 +95,7 @@ def _open_source(args: argparse.Namespace) -> ImageFolderSource | VideoFileSourc
         else:
             args.video = text
     if getattr(args, "tello", None):
-        return TelloSource(args.tello, args.port, args.duration, args.rate, args.downward)
+        return TelloSource(args.tello, args.port, args.duration, args.rate, args.downward, args.interface)
     if args.images:
         return ImageFolderSource(args.images)
     return VideoFileSource(args.video, args.every)

@@ -104,7 +104,8 @@ class TelloSource:
     seconds.
 
     The drone does not take off; only the video stream is used (`downward` selects the EDU's downward
-    camera). Not covered by tests (needs hardware).
+    camera; `interface`: the network interface it is reached through, drivers/netif.py). Not covered by
+    tests (needs hardware).
     """
 
     def __init__(
@@ -114,6 +115,7 @@ class TelloSource:
         duration_s: float = 60.0,
         rate_hz: float = 5.0,
         downward: bool = False,
+        interface: str | None = None,
     ) -> None:
         if duration_s <= 0 or rate_hz <= 0:
             raise SourceError("--duration and --rate must be > 0")
@@ -124,6 +126,7 @@ class TelloSource:
             rate_hz,
             downward,
         )
+        self.interface = interface
         self.total = None
         self.label = f"tello-{ip}"
         self.is_stream = True
@@ -134,7 +137,12 @@ class TelloSource:
 
         try:
             driver = TelloDriver(
-                TelloConfig(host=self.ip, control_port=self.port, downward_camera=self.downward)
+                TelloConfig(
+                    host=self.ip,
+                    control_port=self.port,
+                    downward_camera=self.downward,
+                    interface=self.interface,
+                )
             )
             driver.connect()
         except Exception as exc:

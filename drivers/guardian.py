@@ -22,9 +22,12 @@ docs/safety.md ("The guardian").
 - **What it does** (drivers/guardian_process.py): sets the takeover flag (a 1-byte file mmap'd by both
   processes; the parent's drivers read it before every send, `set_muted(guardian.taken_over)`), then from
   its own socket sends `rc 0 0 0 0` + `land` to every Tello every `land_resend_s` until its telemetry shows
-  it down or `give_up_s`. No `command`: a Tello in SDK mode executes commands from any source port
-  (DJITelloPy PR #163). The robot gets a GCS heartbeat, a zero set-point, a forced disarm
-  (MAV_CMD_COMPONENT_ARM_DISARM, param2 21196) and HOLD until a HEARTBEAT shows it disarmed.
+  it down or `give_up_s`. A Tello reached through a named interface gets them from a socket bound to that
+  interface, and its telemetry is read from a state socket bound to it (drivers/netif.py): its own
+  adapter, never another drone's at the same address. No `command`: a Tello in SDK mode executes
+  commands from any source port (DJITelloPy PR #163). The robot gets a GCS heartbeat, a zero set-point,
+  a forced disarm (MAV_CMD_COMPONENT_ARM_DISARM, param2 21196) and HOLD until a HEARTBEAT shows it
+  disarmed.
 
 Units: times in seconds (time.monotonic()), heights in cm, ports UDP.
 """
@@ -112,21 +115,31 @@ class TelloLike(Protocol):
     def state_port(self) -> int: ...
     @property
     def bind_ip(self) -> str: ...
+    @property
+    def interface(self) -> str | None: ...
 
 
 @dataclass(frozen=True)
 class GuardedTello:
-    """One Tello: IP, command port (8889 on a real drone), local state port (8890) and local bind IP."""
+    """One Tello: IP, command port (8889 on a real drone), local state port (8890), local bind IP and the
+    network interface it is reached through (None: any; drivers/netif.py)."""
 
     host: str
     control_port: int = 8889
     state_port: int = 8890
     bind_ip: str = ""
+    interface: str | None = None
+
+    @property
+    def name(self) -> str:
+        """How the log names it: its address, and the interface when one is named (two access-point
+        Tellos share 192.168.10.1)."""
+        return self.host if self.interface is None else f"{self.host} via {self.interface}"
 
     @classmethod
     def of(cls, cfg: TelloLike) -> GuardedTello:
-        """From a TelloConfig (or anything with host, control_port, state_port, bind_ip)."""
-        return cls(cfg.host, int(cfg.control_port), int(cfg.state_port), cfg.bind_ip)
+        """From a TelloConfig (or anything with host, control_port, state_port, bind_ip, interface)."""
+        return cls(cfg.host, int(cfg.control_port), int(cfg.state_port), cfg.bind_ip, cfg.interface)
 
 
 @dataclass(frozen=True)

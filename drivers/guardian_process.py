@@ -46,11 +46,16 @@ from flightstack.drivers.guardian import (
     remove_launch_dir,
     set_oom_score_adj,
 )
+from flightstack.drivers.netif import udp_socket
 from flightstack.drivers.tello.phase import PhaseThresholds, PhaseTracker
 from flightstack.drivers.tello.state import StateRejectedError, parse_state
 from flightstack.scheduling import set_group_nice, set_nice
 
 TICK_S = 0.02  # longest select() wait (s)
+Local = tuple[str, str]
+"""A command socket's (interface or "", local address): one per pair, shared by its drones."""
+StatePort = tuple[str, str, int]
+"""A state socket's (interface or "", local address, port)."""
 BIND_RETRY_S = 0.2  # retry binding a held state port this often (s)
 ROVER_HOLD_MODE = 4
 FORCE_DISARM = 21196.0  # MAV_CMD_COMPONENT_ARM_DISARM param2: disarm regardless of checks
@@ -243,17 +248,21 @@ class GuardianProcess:
         th = PhaseThresholds(ground_h_cm=cfg.ground_h_cm, motor_quiet_s=cfg.motor_quiet_s)
         self.drones = [Drone(t, PhaseTracker(th)) for t in cfg.tellos]
         self.sel = selectors.DefaultSelector()
-        self.cmd_socks: dict[str, socket.socket] = {}
-        for ip in sorted({t.bind_ip for t in cfg.tellos}):
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            s.bind((ip, 0))
+        self.cmd_socks: dict[Local, socket.socket] = {}
+        for local in sorted({(t.interface or "", t.bind_ip) for t in cfg.tellos}):
+            s = udp_socket(local[0] or None)  # one per interface: a land leaves through its drone's adapter
+            try:
+                s.bind((local[1], 0))
+            except OSError:
+                s.close()
+                raise
             s.setblocking(False)
-            self.cmd_socks[ip] = s
-            self.sel.register(s, selectors.EVENT_READ, ("reply", ip))
-        self.state_socks: dict[tuple[str, int], socket.socket | None] = {
-            (t.bind_ip, t.state_port): None for t in cfg.tellos
+            self.cmd_socks[local] = s
+            self.sel.register(s, selectors.EVENT_READ, ("reply", local))
+        self.state_socks: dict[StatePort, socket.socket | None] = {
+            (t.interface or "", t.bind_ip, t.state_port): None for t in cfg.tellos
         }
-        self.held_logged: set[tuple[str, int]] = set()
+        self.held_logged: set[StatePort] = set()
         self.last_bind_try = -math.inf
         self.robot = Robot(cfg, log, target=cfg.robot_target) if cfg.robot_url else None
         self.armed = False
@@ -325,7 +334,7 @@ class GuardianProcess:
         for d in self.drones:
             if d.down_t is None and d.is_down(now):
                 d.down_t = now
-                self.log(f"{d.spec.host}: down ({self.telemetry(d)}); no more sends to it")
+                self.log(f"{d.spec.name}: down ({self.telemetry(d)}); no more sends to it")
 
     def send_all(self, now: float, first: bool = False) -> None:
         for d in self.drones:
@@ -340,15 +349,16 @@ class GuardianProcess:
                 d.last_send_t, d.sends = now, d.sends + 1
                 if not first:
                     self.log(
-                        f"{d.spec.host}: rc 0 0 0 0 + land re-sent ({d.sends}, {self.telemetry(d)})",
+                        f"{d.spec.name}: rc 0 0 0 0 + land re-sent ({d.sends}, {self.telemetry(d)})",
                         "warning",
                     )
 
     def send(self, d: Drone, text: str) -> None:
         try:
-            self.cmd_socks[d.spec.bind_ip].sendto(text.encode("ascii"), (d.spec.host, d.spec.control_port))
+            sock = self.cmd_socks[(d.spec.interface or "", d.spec.bind_ip)]
+            sock.sendto(text.encode("ascii"), (d.spec.host, d.spec.control_port))
         except OSError as exc:
-            self.log(f"{d.spec.host}: sending {text!r} failed: {exc}", "warning")
+            self.log(f"{d.spec.name}: sending {text!r} failed: {exc}", "warning")
 
     def telemetry(self, d: Drone) -> str:
         s = d.tracker.latest
@@ -361,25 +371,32 @@ class GuardianProcess:
         for key, sock in self.state_socks.items():
             if sock is not None:
                 continue
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            where = f"{key[1] or '*'}:{key[2]}" + (f" on {key[0]}" if key[0] else "")
+            try:
+                s = udp_socket(key[0] or None)
+            except OSError as exc:
+                self._bind_failed(key, f"state port {where}: {exc}")
+                continue
             try:
                 s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                s.bind(key)
+                s.bind(key[1:])
             except OSError as exc:
                 s.close()
-                if key not in self.held_logged:
-                    self.held_logged.add(key)
-                    held = "held (by the stopped parent?)" if exc.errno == errno.EADDRINUSE else str(exc)
-                    self.log(
-                        f"state port {key[0] or '*'}:{key[1]} {held}; re-sending without telemetry", "warning"
-                    )
+                held = "held (by the stopped parent?)" if exc.errno == errno.EADDRINUSE else str(exc)
+                self._bind_failed(key, f"state port {where} {held}")
                 continue
             s.setblocking(False)
             self.state_socks[key] = s
             self.sel.register(s, selectors.EVENT_READ, ("state", key))
-            self.log(f"state port {key[0] or '*'}:{key[1]} bound: telemetry")
+            self.log(f"state port {where} bound: telemetry")
 
-    def read_state(self, key: tuple[str, int], now: float) -> None:
+    def _bind_failed(self, key: StatePort, why: str) -> None:
+        """Log once per state port that it cannot be bound (retried every BIND_RETRY_S)."""
+        if key not in self.held_logged:
+            self.held_logged.add(key)
+            self.log(f"{why}; re-sending without telemetry", "warning")
+
+    def read_state(self, key: StatePort, now: float) -> None:
         sock = self.state_socks[key]
         assert sock is not None
         for _ in range(64):
@@ -388,22 +405,24 @@ class GuardianProcess:
             except BlockingIOError:
                 return
             except OSError as exc:
-                self.log(f"state port {key[1]}: {exc}", "warning")
+                self.log(f"state port {key[2]}: {exc}", "warning")
                 return
-            for d in self.drones:
-                if d.spec.host == addr[0] and (d.spec.bind_ip, d.spec.state_port) == key:
+            for d in self.drones:  # told apart by interface, then by source address
+                spec = d.spec
+                if spec.host == addr[0] and (spec.interface or "", spec.bind_ip, spec.state_port) == key:
                     try:
                         d.tracker.observe(parse_state(data, now))
                     except StateRejectedError:
                         continue
 
-    def drain_replies(self, ip: str) -> None:
+    def drain_replies(self, local: Local) -> None:
+        via = f" via {local[0]}" if local[0] else ""
         for _ in range(64):
             try:
-                data, addr = self.cmd_socks[ip].recvfrom(2048)
+                data, addr = self.cmd_socks[local].recvfrom(2048)
             except OSError:
                 return
-            self.log(f"{addr[0]}: reply {data[:40].decode('ascii', 'replace').strip()!r}")
+            self.log(f"{addr[0]}{via}: reply {data[:40].decode('ascii', 'replace').strip()!r}")
 
     def step_takeover(self, now: float) -> int | None:
         """One takeover tick; the exit code once finished, else None."""
@@ -417,7 +436,7 @@ class GuardianProcess:
             self.log(f"takeover complete after {now - self.takeover_t:.2f} s: every drone down, robot done")
             return EXIT_DONE
         if now - self.takeover_t > self.cfg.give_up_s:
-            up = [d.spec.host for d in self.drones if d.down_t is None]
+            up = [d.spec.name for d in self.drones if d.down_t is None]
             self.log(
                 f"giving up after {self.cfg.give_up_s:g} s; not seen down: {up} (the Tello auto-lands)",
                 "error",
@@ -427,7 +446,7 @@ class GuardianProcess:
 
     def run(self) -> int:
         c = self.cfg
-        hosts = [t.host for t in c.tellos]
+        hosts = [t.name for t in c.tellos]
         self.log(
             f"watching parent {c.parent_pid}: Tellos {hosts}, robot {c.robot_url!r}, {c.extra}; "
             f"site-packages {site_packages()}; flightstack {package_dir()}; "
@@ -557,6 +576,9 @@ def main() -> int:
     except Exception as exc:
         log(f"{type(exc).__name__}: {exc}", "error")
         code = EXIT_CONFIG if g is None else EXIT_GAVE_UP
+        if g is None:  # never ready (e.g. a socket it cannot bind to its interface): the parent says why
+            with contextlib.suppress(OSError):
+                os.write(1, f"error: {type(exc).__name__}: {exc}\n".encode(errors="replace"))
     finally:
         if g is not None:
             g.close()

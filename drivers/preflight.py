@@ -17,14 +17,20 @@ The checks (how an operator uses them: docs/real-lab.md):
   file, if the mission names one.
 - gains: κ of Theorem 1. WARN (never FAIL) when not positive: the paper flies its experiment with
   gains that violate it. Without trained experts, L_μ = 0 gives an upper bound of κ.
-- drone N: reachable (SDK mode, confirmed by its state stream), battery ≥ safety.min_battery_takeoff,
-  temperature, on the ground (flight phase from telemetry), firmware (SDK version and serial; FAIL when
-  the mission needs SDK 3.0 — a per-drone video port, the downward camera or video settings — and the
-  drone has less), each SDK 3.0 video setting of the lab file (`hardware.video`; FAIL unless the drone
-  answered `ok` at connect, naming the key, the drone, its reply and the fix), Wi-Fi signal (`wifi?`,
-  WARN when weak or unanswered); its camera streams and the frame size matches the calibration.
-- topology: the drones checked from this computer must not share an address or video port
-  (access-point mode: `--id N` on each drone's computer).
+- computer: binding sockets to an interface is permitted ("interface binding", when a drone names its
+  interface: SO_BINDTODEVICE needs CAP_NET_RAW on Linux before 5.7; drivers/netif.py).
+- drone N: its interface, when it names one (exists, link up, an IPv4 address whose subnet holds the
+  drone's, no strict reverse-path filter dropping its datagrams: drivers/netif.py; a FAIL here is the
+  drone's only row); reachable (SDK mode, confirmed by its state stream), battery ≥
+  safety.min_battery_takeoff, temperature, on the ground (flight phase from telemetry), firmware (SDK
+  version and serial; FAIL when the mission needs SDK 3.0 — a per-drone video port, the downward camera
+  or video settings — and the drone has less: a plain Tello as `paper_experiment`'s drone 1, whose
+  camera looks down, is refused in that one line, its camera left unstarted), each SDK 3.0 video setting
+  of the lab file (`hardware.video`; FAIL unless the drone answered `ok` at connect, naming the key, the
+  drone, its reply and the fix), Wi-Fi signal (`wifi?`, WARN when weak or unanswered); its camera streams
+  and the frame size matches the calibration.
+- topology: the drones checked from this computer must not share an address or video port through one
+  interface (access-point mode: an adapter per drone, `interface:`, or `--id N` on each drone's computer).
 - mocap: the server answers; it streams multicast, or at least frames arrive (Motive's unicast frames
   never reach libmotioncapture 1.1); no body shows a Y-up sign (`y_up_signs`: one FAIL naming Motive's
   Up Axis setting); no streamed body is missing from the model definitions read at connect; every body
@@ -212,17 +218,25 @@ def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> li
 
     assert mission.hardware is not None
     cfg = tello_config(mission, drone_id)
-    dev = f"drone {drone_id} ({cfg.host})"
-    drv = TelloDriver(cfg)
+    dev = drone_label(mission, drone_id)
     rows: list[CheckRow] = []
+    if cfg.interface is not None:
+        row = check_interface(dev, cfg.interface, cfg.host)
+        if row.status == "FAIL":
+            return [row]  # nothing reaches the drone through it: the one line that says why
+        rows.append(row)
+    drv = TelloDriver(cfg)
     try:
         try:
             drv.connect()
         except Exception as exc:
-            return [_row(dev, "reachable", False, str(exc))]
+            return [*rows, _row(dev, "reachable", False, str(exc))]
         rows.append(_row(dev, "reachable", True, f"SDK mode, state stream at {cfg.host}:{cfg.control_port}"))
-        rows += [_row(dev, c.name, c.ok, c.detail, warn=c.warn) for c in drv.preflight()]
-        if with_camera and unconfirmed(cfg, drv.video_outcomes):  # its video rows above say why
+        checks = drv.preflight()
+        rows += [_row(dev, c.name, c.ok, c.detail, warn=c.warn) for c in checks]
+        if not all(c.ok for c in checks if c.name == "firmware"):
+            pass  # the firmware row says which SDK 3.0 feature the camera needs: no second line
+        elif with_camera and unconfirmed(cfg, drv.video_outcomes):  # its video rows above say why
             rows.append(_row(dev, "camera", False, "not started: a video setting was not confirmed"))
         elif with_camera:
             cam = TelloCamera(drv, cfg.command_timeout_s + 2.0, calibration=_calibration(mission, drone_id))
@@ -230,6 +244,32 @@ def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> li
     finally:
         drv.close()
     return rows
+
+
+def drone_label(mission: Mission, drone_id: int) -> str:
+    """A drone's device name in the table: `drone N (IP)`, `drone N (IP via INTERFACE)`."""
+    assert mission.hardware is not None
+    hw = mission.hardware.drone(drone_id)
+    return f"drone {drone_id} ({hw.ip}{'' if hw.interface is None else ' via ' + hw.interface})"
+
+
+def check_interface(dev: str, interface: str, drone_ip: str) -> CheckRow:
+    """The interface a drone is reached through: exists, link up, an address whose subnet holds the
+    drone's, no strict reverse-path filter against it (drivers/netif.py)."""
+    from flightstack.drivers.netif import describe, interface_problem, interface_state, route_interface
+
+    state = interface_state(interface)
+    problem = interface_problem(state, drone_ip, route_interface(drone_ip))
+    return _row(dev, f"interface {interface}", problem is None, problem or describe(state))
+
+
+def check_binding() -> CheckRow:
+    """Whether this process may bind sockets to an interface (SO_BINDTODEVICE; drivers/netif.py)."""
+    from flightstack.drivers.netif import binding_privilege
+
+    why = binding_privilege()
+    detail = why or "SO_BINDTODEVICE permitted (it needs CAP_NET_RAW on Linux before 5.7)"
+    return _row("computer", "interface binding", why is None, detail)
 
 
 def _calibration(mission: Mission, drone_id: int) -> CameraCalibration | None:
@@ -490,12 +530,14 @@ def run_preflight(
     if shared is not None:
         return [_row("mission", "topology", False, shared)]
     # the tick's compiled math, before any device thread starts: a cold compile holds the GIL for a while
-    warm_row = check_kernels()
+    warm_rows = [check_kernels()]
+    if any(mission.hardware.drone(i).interface is not None for i in ids):
+        warm_rows.append(check_binding())
     jobs: dict[str, Callable[[], list[CheckRow]]] = {}
     for d in mission.drones:
         if d.id not in ids:
             continue
-        jobs[f"drone {d.id} ({mission.hardware.drone(d.id).ip})"] = (
+        jobs[drone_label(mission, d.id)] = (
             lambda i=d.id: check_drone(mission, i, with_camera)  # type: ignore[misc]
         )
     jobs[f"mocap ({mission.hardware.mocap.system})"] = lambda: check_mocap(mission)
@@ -514,7 +556,7 @@ def run_preflight(
     t_end = time.monotonic() + deadline_s
     for th in threads:
         th.start()
-    rows = [warm_row, *check_files(mission), *check_certs(mission, ids, all_in_one=drone_ids is None)]
+    rows = [*warm_rows, *check_files(mission), *check_certs(mission, ids, all_in_one=drone_ids is None)]
     try:
         rows.append(check_gains(mission))
     except Exception as exc:

@@ -19,7 +19,10 @@ table keeps a fixed view of the markers (`marker_image`), rendered in the emulat
 Addresses (all 127.0.0.0/8): the Tellos own 127.0.0.6 and 127.0.0.7 (`config.rig.emulated_tello_ip`), each
 on a free port, so two labs can fly at once (station mode: both send their state
 to one free port of 127.0.0.1); NatNet and the rover use 127.0.0.1 with OS-assigned ports; the operator
-channel of the in-process bus is a free UDP port of 127.0.0.1 (`bus.operator_port`).
+channel of the in-process bus is a free UDP port of 127.0.0.1 (`bus.operator_port`). Or, with
+`tello_netns` (`TelloPlace`), each Tello in a network namespace of the caller's as an access-point Tello
+is: 192.168.10.1, the real ports 8889/8890/11111, reached through its own interface (the mission's
+`interface:`); the fixed marker view only.
 
 Units: every recorded time is time.monotonic() seconds (Linux CLOCK_MONOTONIC, shared by every process of
 the machine, so the event times of a child `fly` process compare with the emulators' records directly);
@@ -35,6 +38,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager, suppress
+from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace, TracebackType
 from typing import TYPE_CHECKING, Any
@@ -99,6 +103,22 @@ did, hovering in their takeoff."""
 MOCAP_NOISE_RAD = 6e-5
 """σ of the emulated motion capture's yaw noise (rad): the same recording's quaternion moves about 3e-5 a
 component frame to frame."""
+
+
+TELLO_PORTS = {"control_port": 8889, "state_port": 8890, "video_port": 11111}
+"""A real Tello's ports (SDK 2.0/3.0 guides): the emulators in network namespaces use them."""
+
+
+@dataclass(frozen=True)
+class TelloPlace:
+    """Where one emulated Tello lives when not on loopback: inside network namespace `netns` (made by the
+    caller, `ip netns add`) at `ip`, its client at `client_ip` on the link into it, whose end on the
+    client's side is `interface` (the mission names it: hardware.drones[].interface)."""
+
+    netns: str
+    interface: str
+    ip: str = "192.168.10.1"
+    client_ip: str = "192.168.10.2"
 
 
 class LabUnavailableError(RuntimeError):
@@ -218,6 +238,10 @@ class EmulatedLab:
     `state` (at its rate, each datagram late), `rc` (every command acted on late), `mocap` (frames late,
     at its rate) and `robot` (MAVLink commands acted on late); seeded by `seed` per device and link as the
     simulated lab seeds them. Profile `perfect` changes nothing here. What each link did: `link_counts()`.
+
+    tello_netns: drone id -> TelloPlace: that Tello lives in a network namespace of the caller's, at its
+    own address with the real ports (TELLO_PORTS), reached through the place's interface (the written
+    mission names it, topology access_point); needs the fixed marker view (live_cameras False).
     """
 
     def __init__(
@@ -233,6 +257,7 @@ class EmulatedLab:
         seed: int = 0,
         links: LinksSpec | None = None,
         starts: dict[int, tuple[tuple[float, float, float], float]] | None = None,
+        tello_netns: dict[int, TelloPlace] | None = None,
     ) -> None:
         from flightstack.config.links import LinksSpec
         from flightstack.netem import profile
@@ -249,7 +274,9 @@ class EmulatedLab:
         self.workdir = Path(workdir).resolve()  # the mission written there names its files absolutely
         self._experiment = experiment
         ids = [int(d["id"]) for d in experiment["drones"]] if experiment is not None else list(LAB_IDS)
+        self.places = dict(tello_netns or {})
         self.ips = {i: emulated_tello_ip(k) for k, i in enumerate(ids)}
+        self.ips.update({i: p.ip for i, p in self.places.items()})
         self.starts = starts or {
             i: DRONE_STARTS.get(i, ((-0.5, -0.5 + 0.7 * k, 0.05), 0.0)) for k, i in enumerate(ids)
         }
@@ -269,6 +296,8 @@ class EmulatedLab:
         self._truth_t: dict[int, float] = {}
         self._mocap_noise = np.random.default_rng(0)  # MOCAP_NOISE_M: one stream, read by the NatNet thread
         self.live_cameras = experiment is not None if live_cameras is None else bool(live_cameras)
+        if self.places and self.live_cameras:
+            raise ValueError("Tellos in network namespaces (tello_netns) need the fixed marker view")
         self.cameras: dict[int, Any] = {}
         self._target: Any = None
         self._publisher: threading.Thread | None = None
@@ -292,7 +321,7 @@ class EmulatedLab:
         """Start every emulator and write the mission (LabUnavailableError outside a checkout)."""
         emu = load_emulators()
         self.workdir.mkdir(parents=True, exist_ok=True)
-        state_port = free_udp_port()
+        state_port = TELLO_PORTS["state_port"] if self.places else free_udp_port()
         self._make_radios()
         self._make_links()
         video = self.link_spec("video")
@@ -334,6 +363,14 @@ class EmulatedLab:
                     "fps": video.rate_hz or VIDEO_FPS,
                     **self._tello_links(i),
                 }
+                place = self.places.get(i)
+                if place is not None:  # a real Tello's address and ports, in the caller's namespace
+                    kw.update(
+                        port=TELLO_PORTS["control_port"],
+                        video_port=TELLO_PORTS["video_port"],
+                        client_ip=place.client_ip,
+                        netns=place.netns,
+                    )
                 kw.update(self._tello_kw.get(i, {}))
                 self.tellos[i] = emu.TelloEmulator(ip, **kw)
         bodies = {self.body(i): i for i in self.ips}
@@ -614,6 +651,11 @@ class EmulatedLab:
         }
         hw = emulated_hardware(list(self.tellos), ports)
         hw["mocap"]["bodies"] = {f"drone{i}": self.body(i) for i in self.tellos} | {"target": "scamper"}
+        if self.places:  # access-point Tellos, each through its own interface
+            hw["topology"] = "access_point"
+            for d in hw["drones"]:
+                place = self.places[int(d["id"])]
+                d.update(ip=place.ip, interface=place.interface)
         m["hardware"] = hw
         if self._mission_edit is not None:
             self._mission_edit(m)
@@ -786,9 +828,11 @@ def _truth_of(cam: Any) -> FrameTruth:
 __all__ = [
     "DRONE_STARTS",
     "LAB_IDS",
+    "TELLO_PORTS",
     "TRUTH_PERIOD_S",
     "EmulatedLab",
     "LabUnavailableError",
+    "TelloPlace",
     "command_times",
     "first",
     "load_emulators",

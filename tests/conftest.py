@@ -68,6 +68,7 @@ SYSTEM_MODULES = frozenset(
         "test_tello_access_point",
         "test_tello_driver",
         "test_tello_emulator",
+        "test_tello_interfaces",
         "test_tello_radio",
         "test_zenoh_bus",
         "test_zenoh_runner",

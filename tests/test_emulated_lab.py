@@ -239,6 +239,23 @@ def test_a_video_setting_the_firmware_refuses_fails_preflight_in_one_line(
     assert lab.tellos[1].fps == 30.0 and "streamon" not in lab.tellos[2].command_texts()
 
 
+def test_a_plain_tello_as_the_drone_that_looks_down_is_refused_in_one_line(
+    lab: Lab, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """paper_experiment's drone 1 finds the target with its downward camera (`downvision`: SDK 3.0, a
+    Tello EDU's); a plain Tello there (SDK 2.0) is refused by one FAIL line naming the drone, its firmware
+    and the fix, and nothing of its camera is started."""
+    lab.tellos[1].faults.sdk_version = "20"
+    code, out, _ = run_preflight(lab.mission, capsys)
+    assert code == 1, out
+    failing = [ln for ln in out.splitlines() if "  FAIL  " in ln]
+    assert len(failing) == 1, out
+    (line,) = failing
+    assert line.startswith("drone 1 (127.0.0.6)") and "  firmware  " in line, line
+    assert "SDK 2.0" in line and "downward camera (`downvision`)" in line and "Tello EDU" in line, line
+    assert not any(t.startswith(("downvision", "streamon")) for t in lab.tellos[1].command_texts())
+
+
 def test_fly_runs_preflight_then_refuses_without_confirmation(
     lab: Lab, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -36,14 +36,36 @@ def test_real_lab_mission_validates() -> None:
     assert m.hardware is not None
     assert m.hardware.body("drone1") == "tello1" and m.hardware.body("target") == "scamper"
     assert m.hardware.body("unlisted") == "unlisted"
-    # the documented default: access-point mode, each Tello its own Wi-Fi at 192.168.10.1, default video
+    # the documented topology: access point, each Tello its own Wi-Fi at 192.168.10.1 on the default
+    # ports, one Wi-Fi adapter of this computer per Tello: one process flies both
     assert m.hardware.topology == "access_point"
-    assert [(d.ip, d.video_port) for d in m.hardware.drones] == [("192.168.10.1", 11111)] * 2
-    assert m.hardware.shared_by([1]) is None and "--id N" in str(m.hardware.shared_by([1, 2]))
+    assert [(d.ip, d.video_port, d.interface) for d in m.hardware.drones] == [
+        ("192.168.10.1", 11111, "wlan1"),
+        ("192.168.10.1", 11111, "wlan2"),
+    ]
+    assert m.hardware.shared_by([1, 2]) is None
+
+
+def test_drones_at_one_address_need_an_interface_each_to_fly_from_one_process(tmp_path: Path) -> None:
+    doc = copy.deepcopy(real())
+    doc["hardware"]["drones"][1]["interface"] = "wlan1"  # both behind one adapter: one address, one port
+    m = load_mission(write(tmp_path, doc))
+    assert m.hardware is not None and m.hardware.shared_by([1]) is None
+    assert "through one interface" in str(m.hardware.shared_by([1, 2])), m.hardware.shared_by([1, 2])
+    m = load_mission(write(tmp_path, without_interfaces(doc)))  # a computer per drone: --id N on each
+    assert m.hardware is not None and "--id N" in str(m.hardware.shared_by([1, 2]))
+
+
+def without_interfaces(doc: dict) -> dict:
+    """`doc` with no drone naming its interface (the routing table picks: station mode, or a computer per
+    drone)."""
+    for d in doc["hardware"]["drones"]:
+        d.pop("interface", None)
+    return doc
 
 
 def test_station_mode_needs_distinct_addresses_and_video_ports(tmp_path: Path) -> None:
-    doc = copy.deepcopy(real())
+    doc = without_interfaces(copy.deepcopy(real()))
     doc["hardware"]["topology"] = "station"
     with pytest.raises(MissionError, match="share an ip and port"):
         load_mission(write(tmp_path, doc))
@@ -56,10 +78,12 @@ def test_station_mode_needs_distinct_addresses_and_video_ports(tmp_path: Path) -
 
 
 def test_access_point_mission_flown_from_one_process_is_refused_before_any_traffic(tmp_path: Path) -> None:
-    """Two drones at 192.168.10.1 cannot be told apart from one computer: preflight FAILs naming the fix."""
-    r = run_cli("preflight", str(REAL), "--rig", "lab", "--no-camera", "--deadline", "3", timeout=60)
+    """Two drones at 192.168.10.1 and no interface named cannot be told apart from one computer: preflight
+    FAILs naming the fixes (an adapter each, or a computer each)."""
+    path = write(tmp_path, without_interfaces(copy.deepcopy(real())))
+    r = run_cli("preflight", str(path), "--no-camera", "--deadline", "3", timeout=60)
     assert r.returncode == 1
-    assert "share an address or video port" in r.stdout and "--id N" in r.stdout
+    assert "share an address or video port" in r.stdout and "--id N" in r.stdout and "interface:" in r.stdout
     r = run_cli("preflight", str(REAL), "--rig", "lab", "--id", "9", timeout=60)
     assert r.returncode == 2 and "no drone [9]" in r.stderr
 
@@ -73,6 +97,7 @@ def _wrong_ids(d: dict) -> None:
 
 
 def _same_video_port(d: dict) -> None:
+    without_interfaces(d)
     d["hardware"]["topology"] = "station"
     d["hardware"]["drones"][1]["ip"] = "192.168.10.102"
 
@@ -97,6 +122,14 @@ def _keepalive_too_long(d: dict) -> None:
     d["hardware"]["drones"][0]["keepalive_s"] = 20
 
 
+def _bad_interface(d: dict) -> None:
+    d["hardware"]["drones"][0]["interface"] = "wlan1; reboot"
+
+
+def _one_interface(d: dict) -> None:
+    del d["hardware"]["drones"][1]["interface"]
+
+
 @pytest.mark.parametrize(
     ("mutate", "expected"),
     [
@@ -108,6 +141,8 @@ def _keepalive_too_long(d: dict) -> None:
         (_safety_off, "safety.enabled: false only on the ideal rig"),
         (_hardware_on_sim, "hardware: only used by backend 'tello'"),
         (_keepalive_too_long, "hardware.drones.0.keepalive_s"),
+        (_bad_interface, "hardware.drones.0.interface"),
+        (_one_interface, "drones.1.interface: every drone names the interface it is reached through"),
     ],
 )
 def test_bad_hardware_sections_name_the_key(tmp_path: Path, mutate, expected: str) -> None:

@@ -99,8 +99,9 @@ def test_a_drones_own_keys_override_the_labs_and_reach_its_driver(
     lab = lab_with(tmp_path, {"fps": "high", "bitrate": 3}, {"fps": "low", "resolution": "low"})
     assert main(["validate", "paper_experiment", "--rig", str(lab)]) == 0
     out = capsys.readouterr().out
-    assert "1 at 192.168.10.1:8889 (video 11111, `setresolution low`, `setfps low`, `setbitrate 3`)" in out
-    assert "2 at 192.168.10.1:8889 (video 11111, `setfps high`, `setbitrate 3`)" in out
+    l1 = "1 at 192.168.10.1:8889 via wlan1 (video 11111, `setresolution low`, `setfps low`, `setbitrate 3`)"
+    assert l1 in out
+    assert "2 at 192.168.10.1:8889 via wlan2 (video 11111, `setfps high`, `setbitrate 3`)" in out
     m = load_mission("paper_experiment", rig=str(lab), check_files=False)
     one, two = tello_config(m, 1), tello_config(m, 2)
     assert one.video_settings == (

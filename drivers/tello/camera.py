@@ -36,8 +36,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from flightstack.drivers.netif import udp_socket
 from flightstack.drivers.tello import DEFAULT_VIDEO_PORT, TelloCommandError, TelloDriver
-from flightstack.drivers.tello.config import SDK3_FIX, SETUP_ATTEMPTS
+from flightstack.drivers.tello.config import SETUP_ATTEMPTS, sdk3_fix
 from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog
 from flightstack.drivers.tello.traffic import TrafficWriter
 from flightstack.drivers.tello.video_check import StreamCheck
@@ -68,7 +69,9 @@ class DecodedFrame(NamedTuple):
 
 
 class VideoReceiver:
-    """H.264 over UDP on (bind_ip, port) → the latest decoded RGB frame, in one daemon thread.
+    """H.264 over UDP on (bind_ip, port), through `interface` when one is named (drivers/netif.py: two
+    drones streaming to the same port of this computer, one behind each adapter) → the latest decoded RGB
+    frame, in one daemon thread.
 
     `latest()` gives the newest DecodedFrame. `counts`: "datagrams", "frames" (published), "concealed"
     (published frames decoded through a detected loss), "unsynced" (decoded before the first intact
@@ -83,6 +86,7 @@ class VideoReceiver:
         bind_ip: str = "",
         counts: Counter[str] | None = None,
         traffic: TrafficWriter | None = None,
+        interface: str | None = None,
     ) -> None:
         """traffic: where each datagram's length and receive time are recorded (drivers/tello/traffic.py)."""
         import av  # lazy: only hardware and its tests need PyAV
@@ -92,7 +96,7 @@ class VideoReceiver:
         self.traffic = traffic
         self.counts: Counter[str] = Counter() if counts is None else counts
         self.errors = ErrorLog(self.counts, f"tello video receiver UDP {port}", LOG)
-        self._sock: Any = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock: Any = udp_socket(interface)
         try:
             self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECV_BUFFER_BYTES)
             self._sock.bind((bind_ip, port))
@@ -236,14 +240,14 @@ class TelloCamera:
         if need and (d.sdk_version is None or float(d.sdk_version) < 3.0):
             raise TelloCommandError(
                 f"Tello {d.cfg.host} reports SDK {d.sdk_version or 'unknown'}; {', '.join(need)} needs "
-                f"SDK 3.0: {SDK3_FIX}"
+                f"SDK 3.0: {sdk3_fix(d.cfg.downward_camera)}"
             )
         refused = unconfirmed(d.cfg, d.video_outcomes)
         if refused:  # the lab file's video settings, sent at connect: no video without them
             raise TelloCommandError("; ".join(refused))
         port = d.cfg.video_port
         try:  # bound before streamon, so that the first keyframe is not lost
-            rx = VideoReceiver(port, "", self.counts, d.traffic)
+            rx = VideoReceiver(port, d.cfg.bind_ip, self.counts, d.traffic, d.cfg.interface)
         except (OSError, ImportError) as exc:
             raise TelloCommandError(f"video on UDP {port}: {exc}") from exc
         try:

@@ -27,6 +27,17 @@ SDK3_FIX = (
     "the default video port, the forward camera, no `video:` keys in the lab file)"
 )
 """What to do when a mission needs SDK 3.0 features the drone's firmware lacks (`sdk3_features`)."""
+DOWNWARD_FIX = (
+    "only a Tello EDU (or Talent) on SDK 3.0 has the downward camera: fly one as this drone (a plain Tello "
+    "can be a drone with the forward camera), or update this EDU's firmware"
+)
+"""What to do when a drone whose camera looks down has firmware below SDK 3.0 (a plain Tello, most likely):
+in `paper_experiment` that is drone 1, the one that sees the target."""
+
+
+def sdk3_fix(downward_camera: bool) -> str:
+    """What to do when the firmware lacks the SDK 3.0 features a drone needs (DOWNWARD_FIX or SDK3_FIX)."""
+    return DOWNWARD_FIX if downward_camera else SDK3_FIX
 
 
 class TelloLinkError(ConnectionError):
@@ -41,8 +52,10 @@ class TelloCommandError(RuntimeError):
 class TelloConfig:
     """One Tello. `host` is its IP; `control_port` 8889 and `state_port` 8890 on a real drone.
 
-    `bind_ip`: local address for the command and state sockets ("" = all; access-point mode with one
-    Wi-Fi interface per drone may name the interface's address). Times in s, temperature in °C.
+    `bind_ip`: local address of its command, state and video sockets ("" = all). `interface`: the
+    network interface it is reached through (None: the routing table's choice); every socket that talks
+    to it is bound to that interface (drivers/netif.py), so that drones sharing an address (access-point
+    Tellos are all 192.168.10.1) are told apart by their adapters. Times in s, temperature in °C.
     """
 
     host: str
@@ -50,6 +63,7 @@ class TelloConfig:
     video_port: int = DEFAULT_VIDEO_PORT
     state_port: int = 8890
     bind_ip: str = ""
+    interface: str | None = None
     rc_gains: RcGains = field(default_factory=RcGains)
     connect_timeout_s: float = 5.0
     command_timeout_s: float = 3.0

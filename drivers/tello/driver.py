@@ -85,7 +85,7 @@ class TelloDriver:
         self._log = DriverEvents(cfg.host)
         self.events: list[Event] = self._log.events
         self.counts: Counter[str] = self._log.counts
-        self.link = TelloLink(cfg.host, cfg.control_port, cfg.state_port, cfg.bind_ip, traffic)
+        self.link = TelloLink(cfg.host, cfg.control_port, cfg.state_port, cfg.bind_ip, traffic, cfg.interface)
         self.status = DriverStatus(cfg.phase, cfg.link_timeout_s, self._log)
         self.exchange = CommandExchange(cfg, self.link, self.status, self._log)
         self.sticks = Sticks(cfg.rc_gains, self.link, self.status, self._log)

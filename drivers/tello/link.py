@@ -15,11 +15,16 @@ process. Here:
   is open and answers no request the ledger owes go to `on_error(t, text)` (the driver's), called on the
   reader thread outside every lock. Sending never blocks (a full socket buffer or a network error is
   counted and reported, not raised into a loop).
-- `StateReceiver`: binds the state port (8890 on real drones) once per process, parses each datagram
-  strictly (drivers/tello/state.py) and hands it to the driver registered for its source IP. Datagrams
-  from any other address, and malformed ones, are dropped and counted by reason; a malformed one from a
-  registered address is also reported to its driver (`on_rejected`: a run of them is an event, never a
-  silent link). The thread survives every error.
+- `StateReceiver`: binds the state port (8890 on real drones) once per process and network interface,
+  parses each datagram strictly (drivers/tello/state.py) and hands it to the driver registered for its
+  source IP. Datagrams from any other address, and malformed ones, are dropped and counted by reason; a
+  malformed one from a registered address is also reported to its driver (`on_rejected`: a run of them is
+  an event, never a silent link). The thread survives every error.
+
+Interfaces: a drone with an `interface` (TelloConfig) has its command socket and its state receiver bound
+to that interface (drivers/netif.py): two access-point Tellos both at 192.168.10.1, one behind each of two
+Wi-Fi adapters, then have one state receiver each, so that the interface, not the source address (which
+they share), says whose state a datagram is; and each command leaves through its drone's adapter.
 
 Every thread is a daemon with bounded waits (≤ 0.1 s) and is joined on close. No exception ends a thread:
 each is counted in the owner's `counts` (its own key, e.g. `recv_error`, plus `thread_error`) and logged
@@ -48,6 +53,7 @@ from collections import Counter, deque
 from collections.abc import Callable
 from typing import ClassVar
 
+from flightstack.drivers.netif import udp_socket
 from flightstack.drivers.tello.replies import ReplyLedger
 from flightstack.drivers.tello.state import StateRejectedError, TelloTelemetry, parse_state
 from flightstack.drivers.tello.traffic import TrafficWriter
@@ -128,8 +134,10 @@ class CommandChannel:
         muted: MutedCheck | None = None,
         traffic: TrafficWriter | None = None,
         on_error: ErrorCallback | None = None,
+        interface: str | None = None,
     ) -> None:
-        """Connect a UDP socket to (host, port) from (bind_ip, any port) and start the reply reader.
+        """Connect a UDP socket to (host, port) from (bind_ip, any port), through `interface` when one is
+        named (netif.InterfaceError otherwise), and start the reply reader.
 
         muted: the guardian's takeover check (module docstring); settable later as `self.muted`.
         traffic: where every command sent and datagram received is recorded (module docstring)."""
@@ -137,9 +145,13 @@ class CommandChannel:
         self.muted = muted
         self.traffic = traffic
         self.on_error = on_error
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._sock.bind((bind_ip, 0))
-        self._sock.connect((host, port))
+        self._sock = udp_socket(interface)
+        try:
+            self._sock.bind((bind_ip, 0))
+            self._sock.connect((host, port))
+        except OSError:
+            self._sock.close()
+            raise
         self._sock.settimeout(0.1)
         self._lock = threading.Lock()
         self._open = False
@@ -263,7 +275,7 @@ RejectedCallback = Callable[[float, str], None]
 class StateReceiver:
     """The state stream of every drone of this process on one local UDP port (shared, reference-counted)."""
 
-    _instances: ClassVar[dict[tuple[str, int], StateReceiver]] = {}
+    _instances: ClassVar[dict[tuple[str | None, str, int], StateReceiver]] = {}
     _instances_lock: ClassVar[threading.Lock] = threading.Lock()
 
     @classmethod
@@ -275,17 +287,20 @@ class StateReceiver:
         port: int = 8890,
         bind_ip: str = "",
         traffic: TrafficWriter | None = None,
+        interface: str | None = None,
     ) -> StateReceiver:
         """Register `callback` for state datagrams from `host` and `on_rejected` for those of its datagrams
-        that the parser rejects; binds (bind_ip, port) on first use.
+        that the parser rejects; binds (bind_ip, port) on first use, through `interface` when one is named:
+        one receiver per interface, address and port.
         traffic: where every state datagram from `host` is recorded, as received (module docstring).
 
-        Raises OSError naming the port when it cannot be bound (another program holds it)."""
-        key = (bind_ip, port)
+        Raises OSError naming the port when it cannot be bound (another program holds it), or the
+        interface (netif.InterfaceError)."""
+        key = (interface, bind_ip, port)
         with cls._instances_lock:
             rx = cls._instances.get(key)
             if rx is None:
-                rx = cls(bind_ip, port)
+                rx = cls(bind_ip, port, interface)
                 cls._instances[key] = rx
             rx._register(host, callback, on_rejected, traffic)
             return rx
@@ -298,28 +313,27 @@ class StateReceiver:
                 self._traffic.pop(host, None)
                 if self._callbacks:
                     return
-            self._instances.pop((self.bind_ip, self.port), None)
+            self._instances.pop((self.interface, self.bind_ip, self.port), None)
             self._stop.set()
             self._thread.join(timeout=1.0)  # its recv times out within 0.1 s; it takes no registry lock
             self._sock.close()
 
-    def __init__(self, bind_ip: str, port: int) -> None:
-        self.bind_ip, self.port = bind_ip, port
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    def __init__(self, bind_ip: str, port: int, interface: str | None = None) -> None:
+        self.bind_ip, self.port, self.interface = bind_ip, port, interface
+        self._sock = udp_socket(interface)
+        where = f"{bind_ip or '*'}:{port}" + (f" on {interface}" if interface else "")
         try:
             self._sock.bind((bind_ip, port))
         except OSError as exc:
             self._sock.close()
-            raise OSError(
-                exc.errno, f"cannot bind the Tello state port {bind_ip or '*'}:{port}: {exc.strerror}"
-            ) from exc
+            raise OSError(exc.errno, f"cannot bind the Tello state port {where}: {exc.strerror}") from exc
         self._sock.settimeout(0.1)
         self._lock = threading.Lock()
         self._callbacks: dict[str, tuple[StateCallback, RejectedCallback]] = {}
         self._traffic: dict[str, TrafficWriter] = {}
         self.dropped: Counter[str] = Counter()  # datagrams dropped, by reason
         self.counts: Counter[str] = Counter()  # "delivered" datagrams; thread errors (ErrorLog)
-        self.errors = ErrorLog(self.counts, f"tello state receiver {bind_ip or '*'}:{port}")
+        self.errors = ErrorLog(self.counts, f"tello state receiver {where}")
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name=f"tello-state-{port}", daemon=True)
         self._thread.start()
@@ -398,9 +412,12 @@ class TelloLink:
         state_port: int = 8890,
         bind_ip: str = "",
         traffic: TrafficWriter | None = None,
+        interface: str | None = None,
     ) -> None:
-        """traffic: where this drone's raw traffic is recorded (module docstring); None: nowhere."""
+        """traffic: where this drone's raw traffic is recorded (module docstring); None: nowhere.
+        interface: the network interface the drone is reached through (module docstring); None: any."""
         self.host, self.control_port, self.state_port, self.bind_ip = host, control_port, state_port, bind_ip
+        self.interface = interface
         self.traffic = traffic
         self.chan: CommandChannel | None = None
         self.rx: StateReceiver | None = None
@@ -413,7 +430,7 @@ class TelloLink:
         rejects, then open the command channel (OSError) with `on_error` for the `error …` replies that
         answer nothing (CommandChannel)."""
         self.rx = StateReceiver.acquire(
-            self.host, on_state, on_rejected, self.state_port, self.bind_ip, self.traffic
+            self.host, on_state, on_rejected, self.state_port, self.bind_ip, self.traffic, self.interface
         )
         self.chan = CommandChannel(
             self.host,
@@ -422,6 +439,7 @@ class TelloLink:
             muted=self.is_muted,
             traffic=self.traffic,
             on_error=on_error,
+            interface=self.interface,
         )
 
     def close(self) -> None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Protocol
 
-from flightstack.drivers.tello.config import SDK3_FIX, PreflightCheck, TelloConfig, parse_int_reply
+from flightstack.drivers.tello.config import PreflightCheck, TelloConfig, parse_int_reply, sdk3_fix
 from flightstack.drivers.tello.state import PLAUSIBLE
 from flightstack.drivers.tello.video_settings import SettingOutcome, outcomes_of
 from flightstack.hal import FlightPhase
@@ -85,7 +85,8 @@ def battery_check(bat: float | None, min_pct: float) -> PreflightCheck:
 
 
 def sdk_check(driver: PreflightTarget) -> PreflightCheck:
-    """FAIL when the mission needs SDK 3.0 features that the firmware lacks."""
+    """FAIL when the mission needs SDK 3.0 features that the firmware lacks, in one line naming the
+    version, the features and the fix (a downward camera: a Tello EDU on SDK 3.0, DOWNWARD_FIX)."""
     sdk, sn, need = driver.sdk_version, driver.serial or "serial unknown", driver.cfg.sdk3_features
     if sdk is None:
         ok = not need
@@ -94,7 +95,8 @@ def sdk_check(driver: PreflightTarget) -> PreflightCheck:
         ok = not need or float(sdk) >= 3.0
         detail = f"SDK {sdk}, serial {sn}"
     if not ok:
-        detail += f"; this mission needs SDK 3.0 for {', '.join(need)}: {SDK3_FIX}"
+        fix = sdk3_fix(driver.cfg.downward_camera)
+        detail += f"; this mission needs SDK 3.0 for {', '.join(need)}: {fix}"
     return PreflightCheck("firmware", ok, detail)
 
 

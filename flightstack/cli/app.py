@@ -469,6 +469,12 @@ COMMANDS = (
     ),
     Command(
         "hardware",
+        "draw-lab",
+        "draw a lab file as SVG: computers, interfaces, processes, drones, networks and ports",
+        "flightstack.cli.draw_lab:register",
+    ),
+    Command(
+        "hardware",
         "bench-loop",
         "does this computer keep the mission's dt while decoding every drone's video? (emulated lab)",
         "flightstack.cli.bench_loop:register",

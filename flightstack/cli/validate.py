@@ -79,9 +79,8 @@ def mission_summary(m: Mission) -> list[str]:
         robot = f"robot at {hw.target.url}" if hw.target is not None else "no robot driven (target: null)"
         lines.append(f"hardware ({hw.topology}): mocap {hw.mocap.system}; {robot}")
         tellos = ", ".join(
-            f"{d.id} at {d.ip}:{d.control_port} (video {d.video_port}"
-            + "".join(f", `{v.command}`" for v in hw.video_settings(d.id))
-            + ")"
+            f"{d.id} at {d.ip}:{d.control_port}{'' if d.interface is None else ' via ' + d.interface}"
+            f" (video {d.video_port}" + "".join(f", `{v.command}`" for v in hw.video_settings(d.id)) + ")"
             for d in hw.drones
         )
         lines.append(f"    tellos {tellos}")

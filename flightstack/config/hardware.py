@@ -4,6 +4,7 @@ ground robot, the topology. Used by flightstack.config.mission."""
 from __future__ import annotations
 
 import math
+import re
 from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field, model_validator
@@ -23,6 +24,19 @@ def _body_name(name: str) -> str:
 
 
 BodyName = Annotated[str, AfterValidator(_body_name)]
+INTERFACE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,14}")
+
+
+def _interface_name(name: str) -> str:
+    """A Linux network interface's name as `ip link` lists it: 1 to 15 letters, digits, `_`, `.`, `-`."""
+    if not INTERFACE_NAME.fullmatch(name):
+        raise ValueError(
+            f"{name!r}: a network interface's name as `ip link` lists it (1 to 15 letters, digits, _ . -)"
+        )
+    return name
+
+
+InterfaceName = Annotated[str, AfterValidator(_interface_name)]
 
 
 class TelloHardwareSpec(_Strict):
@@ -31,7 +45,10 @@ class TelloHardwareSpec(_Strict):
     streams on this computer (station mode with several drones: one port each, needs SDK 3.0).
     `loop_hover_s`/`loop_land_s`: the driver's loop watchdog: a control loop silent this long (s) makes
     the drone hover, then land by itself (docs/safety.md). `video`: this drone's SDK 3.0 video settings,
-    over the lab's `hardware.video` key by key (flightstack.config.tello_video)."""
+    over the lab's `hardware.video` key by key (flightstack.config.tello_video). `interface`: the network
+    interface of this computer the drone is reached through (e.g. the Wi-Fi adapter joined to its access
+    point); every socket that talks to it is bound to it (drivers/netif.py). None: the routing table's
+    choice."""
 
     id: int = Field(ge=0, lt=2**16)
     ip: str = Field(pattern=r"^\d{1,3}\.\d{1,3}\.\d{1,3}\.\d{1,3}$")
@@ -46,6 +63,7 @@ class TelloHardwareSpec(_Strict):
     max_temperature_c: Positive = 85.0
     frame_timeout_s: Positive = 5.0
     video: TelloVideoSpec | None = None
+    interface: InterfaceName | None = None
 
     @model_validator(mode="after")
     def _loop_watchdog_order(self) -> TelloHardwareSpec:
@@ -94,12 +112,19 @@ class HardwareSpec(_Strict):
     `max_frame_age_s`: a camera frame older than this is treated as no frame (stalled video).
 
     `topology` (docs/real-lab.md): `access_point` (default) — each Tello is its own Wi-Fi
-    access point at 192.168.10.1, one computer per drone runs `flightstack agent --id N`, the agents talk
-    over Zenoh on another interface; works with SDK 2.0 and the default video port. `station` — every
+    access point at 192.168.10.1: one computer reaches each through a Wi-Fi adapter of its own
+    (`interface:` per drone) and one process flies them all, or one computer per drone runs `flightstack
+    agent --id N` and the agents talk over Zenoh on another interface; works with SDK 2.0 and the default
+    video port. `station` — every
     Tello joins the lab Wi-Fi, one process may fly them all; several drones' video needs per-drone ports,
     which need SDK 3.0 (preflight checks). `state_port`: the local UDP port the drones' state streams
     arrive at (8890 on real Tellos; the tests use a free one). `video`: SDK 3.0 video settings of every
-    drone (`setfps`, `setresolution`, `setbitrate`; flightstack.config.tello_video), sent at connect."""
+    drone (`setfps`, `setresolution`, `setbitrate`; flightstack.config.tello_video), sent at connect.
+
+    Interfaces (`drones[].interface`): every drone names the interface it is reached through, or none
+    does (a socket bound to no interface holds its port on all of them). Drones behind different
+    interfaces may share an address and ports: one computer with one Wi-Fi adapter per access-point Tello
+    flies them all from one process (`shared_by`)."""
 
     topology: Literal["access_point", "station"] = "access_point"
     state_port: int = Field(default=8890, ge=1, le=65535)
@@ -114,23 +139,33 @@ class HardwareSpec(_Strict):
         ids = [d.id for d in self.drones]
         if len(set(ids)) != len(ids):
             raise ValueError("drones: ids must be unique")
+        named = [d.interface is not None for d in self.drones]
+        if any(named) and not all(named):
+            n = named.index(False)
+            raise ValueError(
+                f"drones.{n}.interface: every drone names the interface it is reached through, or none "
+                "does (a socket bound to no interface holds its port on all of them)"
+            )
         if self.topology == "station":
-            ips = [(d.ip, d.control_port) for d in self.drones]
+            ips = [(d.interface, d.ip, d.control_port) for d in self.drones]
             if len(set(ips)) != len(ips):
                 raise ValueError("drones: two drones share an ip and port (station mode: one address each)")
-            ports = [d.video_port for d in self.drones]
+            ports = [(d.interface, d.video_port) for d in self.drones]
             if len(set(ports)) != len(ports):
                 raise ValueError("drones: each drone needs its own video_port in station mode")
         return self
 
     def shared_by(self, drone_ids: list[int]) -> str | None:
-        """Why these drones cannot be flown from one process (same address or video port), or None."""
+        """Why these drones cannot be flown from one process, or None: two of them reached through the
+        same interface (or through none) with the same address or video port."""
         ds = [self.drone(i) for i in drone_ids]
-        if len({(d.ip, d.control_port) for d in ds}) < len(ds) or len({d.video_port for d in ds}) < len(ds):
+        addresses = {(d.interface, d.ip, d.control_port) for d in ds}
+        video = {(d.interface, d.video_port) for d in ds}
+        if len(addresses) < len(ds) or len(video) < len(ds):
             return (
-                f"drones {drone_ids} share an address or video port ({self.topology} mode): in "
-                "access-point mode each drone needs its own computer; run `flightstack agent MISSION "
-                "--id N` (and `preflight --id N`) on each"
+                f"drones {drone_ids} share an address or video port through one interface ({self.topology} "
+                "mode): give each drone its own Wi-Fi adapter (`interface:` in its hardware.drones entry), "
+                "or its own computer: `flightstack agent MISSION --id N` (and `preflight --id N`) on each"
             )
         return None
 

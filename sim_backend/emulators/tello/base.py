@@ -91,14 +91,17 @@ class TelloEmulatorBase:
         h_drift_max_cm: float = H_DRIFT_MAX_CM,
         surface: Surface = flat_floor,
         tof_max_cm: float = TOF_MAX_CM,
+        netns: str | None = None,
     ) -> None:
         """Configure the emulator; nothing is bound or started before :meth:`start`.
 
         Args:
-            ip: loopback address the emulated drone owns (commands in, replies/state/video out).
+            ip: loopback address the emulated drone owns (commands in, replies/state/video out); with
+                ``netns``, any address of that namespace (an access-point Tello's 192.168.10.1).
             port: command port on ``ip``; 0 lets the OS pick a free one (read it from ``address``).
             state_port: client port receiving state packets (djitellopy: 8890).
-            client_ip: loopback address of the client (state and video destination).
+            client_ip: loopback address of the client (state and video destination); with ``netns``, the
+                address the client has on the link into that namespace.
             video_port: client port receiving the H.264 stream (djitellopy: ``Tello(vs_udp=...)``).
             frame_source: ``f(t, emu) -> image``; defaults to :func:`default_frame_source`.
             fps: video frame rate (frames/s; ``setfps`` changes it).
@@ -129,14 +132,19 @@ class TelloEmulatorBase:
             tof_max_cm: range of the downward distance sensor (cm); beyond it ``tof`` reads 6553.
             pre_sdk_reply: reply to commands sent before ``command`` (None = ignore them, the default).
             reply_port_latch: Tello EDU: every reply goes to the sender of the first ``command``.
+            netns: a network namespace the caller made (``ip netns add``): the drone's sockets live there
+                (``emulators/netns.py``), its addresses need not be loopback and it serves any sender
+                (nothing outside the caller's namespaces reaches it). None: loopback only.
             radio: the drone's impaired radio (``radio.DeviceRadio`` with links ``command`` (in),
                 ``reply``, ``state`` and ``video`` (out)); None: a perfect link.
             links: the rig's links of this drone (``device_links.DeviceLinks``: ``rc`` acted on late,
                 ``state`` and ``video`` leaving late, before the radio); None: none. ``state_hz`` and
                 ``fps`` are the caller's (the links' rates).
         """
-        require_loopback(ip, "ip")
-        require_loopback(client_ip, "client_ip")
+        if netns is None:
+            require_loopback(ip, "ip")
+            require_loopback(client_ip, "client_ip")
+        self.netns = netns
         width, height = video_size
         if width <= 0 or height <= 0 or width % 2 or height % 2:
             raise ValueError(f"video_size must be positive even numbers, got {video_size}")

@@ -113,7 +113,7 @@ class TelloCommands(TelloPhysics):
         with self._lock:
             self.commands.append((now, text))
             self.senders.append((now, text, addr))
-            if not is_loopback(addr[0]):
+            if self.netns is None and not is_loopback(addr[0]):  # in its namespace: the caller's links only
                 self.rejected.append(f"{text} (non-loopback sender {addr[0]})")
                 return
             faults, phase = self.faults, self._phase

@@ -2,9 +2,9 @@
 
 Layers: ``base`` (configuration, logs, state, reply queue), ``physics`` (motion model,
 phases, battery, state stream), ``commands`` (text protocol), ``video`` (H.264 stream).  This
-module binds the sockets (IPv4 loopback only) and runs the command, reply, simulation and video threads
-(daemons with bounded waits, joined by ``close()``).  Import it from ``tello.py``, whose docstring
-describes the protocol and the emulated behaviour.
+module binds the sockets (IPv4 loopback, or inside a network namespace the caller made) and runs the
+command, reply, simulation and video threads (daemons with bounded waits, joined by ``close()``).
+Import it from ``tello.py``, whose docstring describes the protocol and the emulated behaviour.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import threading
 import time
 from types import TracebackType
 
+from ..netns import in_netns
 from .commands import TelloCommands
 from .net import bind_drone_sockets
 from .video import TelloVideoStream
@@ -59,7 +60,10 @@ class TelloEmulator(TelloCommands, TelloVideoStream):
         """Bind the sockets and start the command, reply, simulation and video threads."""
         if self._started:
             raise RuntimeError("emulator already started")
-        cmd, tx = bind_drone_sockets(self.ip, self._port, 0.1)
+        if self.netns is None:
+            cmd, tx = bind_drone_sockets(self.ip, self._port, 0.1)
+        else:  # its own network namespace: an address that is not loopback, on the caller's links only
+            cmd, tx = in_netns(self.netns, lambda: bind_drone_sockets(self.ip, self._port, 0.1))
         host, port = cmd.getsockname()[:2]
         if self.radio is not None:  # every datagram in and out passes the drone's radio links
             cmd = self.radio.socket(cmd, send=lambda _addr: "reply", recv="command")  # type: ignore[assignment]
