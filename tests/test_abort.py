@@ -296,6 +296,20 @@ def test_abort_names_the_agent_that_did_not_acknowledge(
             bus.close()
 
 
+def exit_codes(run: ServedRun, timeout_s: float) -> dict[int, int]:
+    """Each agent process's exit code, waiting up to timeout_s (s) for each; a test failure with the
+    agent's output when one has not exited (a loaded CI machine once took over 30 s)."""
+    codes = {}
+    for i, agent in run.agents.items():
+        try:
+            codes[i] = agent.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            pytest.fail(
+                f"agent {i} still runs {timeout_s:g} s after the abort: {run.agent_lines[i].rest()[-3000:]}"
+            )
+    return codes
+
+
 def test_abort_acknowledged_by_agent_processes(tmp_path: Path) -> None:
     """Three `flightstack agent` processes fly the served simulation. An operator already connected
     publishes the abort: each agent process acknowledges (latency measured here: published → ack
@@ -311,7 +325,7 @@ def test_abort_acknowledged_by_agent_processes(tmp_path: Path) -> None:
             rep = send_abort(mission, "test", timeout_s=5.0, zenoh_bus=op)
         finally:
             op.close()
-        codes = {i: a.wait(timeout=30) for i, a in run.agents.items()}
+        codes = exit_codes(run, 90.0)
         run.world.wait(timeout=30)
     ms = {i: round(rep.latency_ms(i), 2) for i in rep.acks}
     print(f"separate processes, connected operator: abort published -> ack received (ms): {ms}")
@@ -335,7 +349,7 @@ def test_cli_abort_of_agent_processes(tmp_path: Path) -> None:
             text=True,
             timeout=60,
         )
-        codes = {i: a.wait(timeout=30) for i, a in run.agents.items()}
+        codes = exit_codes(run, 90.0)
     print(abort.stdout)
     assert abort.returncode == 0, abort.stdout + abort.stderr
     acks = acks_in(abort.stdout)
