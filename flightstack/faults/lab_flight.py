@@ -399,21 +399,23 @@ def run_result(
     expected: str,
     observed: str,
     wall0: float,
+    lab: EmulatedLab,
     run: LabRun,
     reaction: Checks,
-    safety: list[str],
-    recording: list[str],
     details: dict[str, Any],
+    recording: list[str] | None = None,
 ) -> FaultResult:
-    """lab_result of one flight: its run directory in the details, its crash as the crash."""
+    """lab_result of one flight on `lab`: the lab's safety judgement (judge_lab_safety), the recording's
+    (`recording`, by default judge_lab_recording's of a complete run), its run directory in the details,
+    its crash as the crash."""
     return lab_result(
         name,
         expected,
         observed,
         wall0,
         reaction,
-        safety,
-        recording,
+        judge_lab_safety(lab, run),
+        judge_lab_recording(run) if recording is None else recording,
         {"run_dir": str(run.run_dir), **details},
         crash_of(run),
     )

@@ -27,8 +27,6 @@ from flightstack.faults.lab_flight import (
     emulator_errors,
     event_t,
     fly_inprocess,
-    judge_lab_recording,
-    judge_lab_safety,
     run_result,
     sub,
     wait_then,
@@ -150,10 +148,9 @@ def link_loss_uplink(mission_path: Path, workdir: Path) -> FaultResult:
             expected,
             observed,
             wall0,
+            lab,
             run,
             c,
-            judge_lab_safety(lab, run),
-            judge_lab_recording(run),
             details,
         )
 
@@ -281,9 +278,15 @@ def loop_stall(mission_path: Path, workdir: Path) -> FaultResult:
             "runs, by the guardian process (0.5 s stall bound); the run ends (every drone landed, or the "
             "guardian's takeover)"
         )
-        rec_problems = judge_lab_recording(run)
         return run_result(
-            name, expected, observed, wall0, run, c, judge_lab_safety(lab, run), rec_problems, details
+            name,
+            expected,
+            observed,
+            wall0,
+            lab,
+            run,
+            c,
+            details,
         )
 
 
@@ -375,10 +378,9 @@ def land_reply_lost(mission_path: Path, workdir: Path) -> FaultResult:
             expected,
             observed,
             wall0,
+            lab,
             run,
             c,
-            judge_lab_safety(lab, run),
-            judge_lab_recording(run),
             details,
         )
 

@@ -21,11 +21,9 @@ from flightstack.faults.lab_flight import (
     PURSUIT_WAIT_S,
     REACT_S,
     FlyProcess,
-    crash_of,
     drone_reaction,
     judge_lab_recording,
-    judge_lab_safety,
-    lab_result,
+    run_result,
     sub,
 )
 from flightstack.faults.result import Checks, FaultResult
@@ -98,16 +96,15 @@ def _signal_row(name: str, workdir: Path, signals: tuple[signal.Signals, ...]) -
             f"non-zero rc after, every drone down{second}; recording, events and metrics written "
             "(interrupted), exit 130"
         )
-        return lab_result(
+        return run_result(
             name,
             expected,
             observed,
             wall0,
+            lab,
+            run,
             c,
-            judge_lab_safety(lab, run),
-            judge_lab_recording(run),
             details,
-            crash_of(run),
         )
 
 
@@ -235,14 +232,14 @@ def abort_during_takeoff(mission_path: Path, workdir: Path) -> FaultResult:
             f"{REACT_S:g} s; no non-zero rc after the abort; both down; fly ends as an "
             "operator abort (exit 1) with its recording"
         )
-        return lab_result(
+        return run_result(
             name,
             expected,
             observed,
             wall0,
+            lab,
+            run,
             c,
-            judge_lab_safety(lab, run),
-            judge_lab_recording(run, min_ticks=0),  # aborted before the pursuit: no tick flown
             details,
-            crash_of(run),
+            recording=judge_lab_recording(run, min_ticks=0),  # aborted before the pursuit: no tick flown
         )

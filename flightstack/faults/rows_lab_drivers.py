@@ -22,7 +22,6 @@ from flightstack.faults.lab_flight import (
     event_t,
     fly_inprocess,
     judge_lab_recording,
-    judge_lab_safety,
     patched,
     run_result,
     sub,
@@ -212,10 +211,9 @@ def driver_thread_error(mission_path: Path, workdir: Path) -> FaultResult:
             expected,
             observed,
             wall0,
+            lab,
             run,
             c,
-            judge_lab_safety(lab, run),
-            judge_lab_recording(run),
             details,
         )
 
@@ -294,11 +292,11 @@ def disk_full(mission_path: Path, workdir: Path) -> FaultResult:
             expected,
             observed,
             wall0,
+            lab,
             run,
             c,
-            judge_lab_safety(lab, run),
-            judge_lab_recording(run, complete=False),
             details,
+            recording=judge_lab_recording(run, complete=False),
         )
 
 
@@ -347,11 +345,11 @@ def robot_not_moving(mission_path: Path, workdir: Path) -> FaultResult:
             "robot did not move as commanded; no takeoff sent",
             observed,
             wall0,
+            lab,
             run,
             c,
-            judge_lab_safety(lab, run),
-            [],
             {"robot_moved_m": moved, "takeoffs_sent": sent},
+            recording=[],
         )
 
 
@@ -420,10 +418,9 @@ def auto_land_in_flight(mission_path: Path, workdir: Path) -> FaultResult:
             expected,
             observed,
             wall0,
+            lab,
             run,
             c,
-            judge_lab_safety(lab, run),
-            judge_lab_recording(run),
             details,
         )
 
@@ -471,9 +468,8 @@ def raised_surface(mission_path: Path, workdir: Path) -> FaultResult:
             "end, nothing refused",
             observed,
             wall0,
+            lab,
             run,
             c,
-            judge_lab_safety(lab, run),
-            judge_lab_recording(run),
             {"takeoffs": len(t_takeoff), "lands": len(lands), "lands_before_takeoff": len(early)},
         )

@@ -15,8 +15,6 @@ from flightstack.faults.lab_flight import (
     emulator_errors,
     event_t,
     fly_inprocess,
-    judge_lab_recording,
-    judge_lab_safety,
     run_result,
     sub,
     wait_then,
@@ -109,10 +107,9 @@ def mocap_frozen_tello(mission_path: Path, workdir: Path) -> FaultResult:
             expected,
             observed,
             wall0,
+            lab,
             run,
             c,
-            judge_lab_safety(lab, run),
-            judge_lab_recording(run),
             details,
         )
 
