@@ -12,6 +12,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import pytest
 
@@ -197,16 +198,11 @@ def test_a_300_mb_flood_meets_backpressure_and_bounded_memory(
     assert growth_mb < bound_mb, (growth_mb, bound_mb)
 
 
-def test_connections_beyond_the_bound_are_refused_and_counted() -> None:
-    """With max_connections 2, a third connection open at the same time is closed at once (counted
-    `refused`); once the first two end, a new one is forwarded again."""
-    from flightstack.netem import LinkProfile
-    from flightstack.sim_backend.emulators.tcp_proxy import TcpImpairProxy
+def accepting(server: socket.socket, handle: Callable[[socket.socket], None]) -> threading.Thread:
+    """A started daemon thread that accepts on `server` (polling every 0.2 s) and hands each connection
+    to `handle`, until the server is closed."""
 
-    server = socket.create_server(("127.0.0.1", 0))
-    held: list[socket.socket] = []
-
-    def accept() -> None:
+    def run() -> None:
         server.settimeout(0.2)
         while True:
             try:
@@ -215,10 +211,22 @@ def test_connections_beyond_the_bound_are_refused_and_counted() -> None:
                 continue
             except OSError:
                 return
-            held.append(c)
+            handle(c)
 
-    t = threading.Thread(target=accept, daemon=True)
+    t = threading.Thread(target=run, daemon=True)
     t.start()
+    return t
+
+
+def test_connections_beyond_the_bound_are_refused_and_counted() -> None:
+    """With max_connections 2, a third connection open at the same time is closed at once (counted
+    `refused`); once the first two end, a new one is forwarded again."""
+    from flightstack.netem import LinkProfile
+    from flightstack.sim_backend.emulators.tcp_proxy import TcpImpairProxy
+
+    server = socket.create_server(("127.0.0.1", 0))
+    held: list[socket.socket] = []
+    t = accepting(server, held.append)
     proxy = TcpImpairProxy(server.getsockname(), LinkProfile(), max_connections=2).start()
     clients: list[socket.socket] = []
     try:
@@ -262,23 +270,14 @@ def test_a_thread_that_cannot_start_refuses_that_connection_only(
     from flightstack.sim_backend.emulators.tcp_proxy import TcpImpairProxy
 
     server = socket.create_server(("127.0.0.1", 0))
-    server.settimeout(0.2)
 
-    def echo() -> None:
-        while True:
-            try:
-                c, _ = server.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            with c:
-                c.settimeout(5.0)
-                while data := c.recv(1024):
-                    c.sendall(data)
+    def echo(c: socket.socket) -> None:
+        with c:
+            c.settimeout(5.0)
+            while data := c.recv(1024):
+                c.sendall(data)
 
-    t = threading.Thread(target=echo, daemon=True)
-    t.start()
+    t = accepting(server, echo)
     start = threading.Thread.start
     calls = [0]
 
