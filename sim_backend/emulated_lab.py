@@ -799,13 +799,13 @@ TRUTH_INDEX_STEP = 8
 def _truth_of(cam: Any) -> FrameTruth:
     """How to know the truth of a live camera's decoded frame: its bar-coded frame index (tello_frames)
     looked up in the camera's capture records (VideoProcess.truth_px). None when it cannot be trusted:
-    the code's check row disagrees with its index (tello_frames.read_checked_frame_index), the index is
-    not there, or it does not follow the previous frame's by 1 to TRUTH_INDEX_STEP (a bar
-    code concealed after a loss reads as an older frame's index, or as noise: the truth would then be
-    another frame's, and a detection would be judged against a place the target never was). In the
-    EDU's downward layout the code is below the picture (tello_view.index_area), in the noise that fills
-    most of the stream's datagrams."""
-    from flightstack.sim_backend.emulators.tello.frames import read_checked_frame_index
+    the code's check row disagrees with its index (tello_frames.read_checked_frame_index; a code below
+    the picture has one), the index is not there, or it does not follow the previous frame's by 1 to
+    TRUTH_INDEX_STEP (a bar code concealed after a loss reads as an older frame's index, or as noise: the
+    truth would then be another frame's, and a detection would be judged against a place the target
+    never was). In the EDU's downward layout the code is below the picture (tello_view.index_area), in
+    the noise that fills most of the stream's datagrams."""
+    from flightstack.sim_backend.emulators.tello.frames import read_checked_frame_index, read_frame_index
     from flightstack.sim_backend.emulators.tello.view import index_area
     from flightstack.vision.camera_file import calibration_from_dict
 
@@ -813,7 +813,9 @@ def _truth_of(cam: Any) -> FrameTruth:
     last: list[int] = []  # the previous frame's index, once there is one
 
     def truth(img: np.ndarray) -> np.ndarray | None:
-        index = read_checked_frame_index(index_area(cal, img))
+        area = index_area(cal, img)
+        checked = area.shape != img.shape  # stamped with its check row (VideoProcess)
+        index = read_checked_frame_index(area) if checked else read_frame_index(area)
         if index is None:  # the check row disagrees: a smeared code, whose frame is unknown
             return None
         follows = not last or 0 < index - last[0] <= TRUTH_INDEX_STEP

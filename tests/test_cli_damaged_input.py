@@ -401,6 +401,11 @@ CASES: list[object] = [
         "garbage.yaml",
     ),
     # validate, completion, bench-loop
+    ("draw-lab: random bytes", lambda d: ["draw-lab", str(d / "garbage.yaml")], 2, "garbage.yaml"),
+    ("draw-lab: empty file", lambda d: ["draw-lab", str(d / "empty.yaml")], 2, "empty.yaml"),
+    ("draw-lab: /dev/zero", lambda d: ["draw-lab", "/dev/zero"], 2, "/dev/zero"),
+    ("draw-lab: --out a directory", lambda d: ["draw-lab", "lab", "--out", str(d)], 2, "is a directory"),
+    ("draw-lab: --out a device", lambda d: ["draw-lab", "lab", "--out", "/dev/null"], 2, "/dev/null"),
     ("validate: random bytes", lambda d: ["validate", str(d / "garbage.yaml")], 2, "garbage.yaml"),
     ("validate: empty file", lambda d: ["validate", str(d / "empty.yaml")], 2, "empty.yaml"),
     ("validate: /dev/zero", lambda d: ["validate", "/dev/zero"], 2, "/dev/zero"),

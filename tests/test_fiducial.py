@@ -337,7 +337,11 @@ def test_a_downward_frame_in_the_edu_layout_is_cut_by_the_driver_and_its_corners
 
 
 def test_the_stamp_goes_below_the_picture() -> None:
-    from flightstack.sim_backend.emulators.tello.frames import read_frame_index, stamp_frame_index
+    from flightstack.sim_backend.emulators.tello.frames import (
+        read_checked_frame_index,
+        read_frame_index,
+        stamp_frame_index,
+    )
     from flightstack.sim_backend.emulators.tello.view import CameraView
 
     view = CameraView(edu_spec("plain"))  # type: ignore[arg-type]
@@ -345,8 +349,9 @@ def test_the_stamp_goes_below_the_picture() -> None:
     frame = view.frame(drone, target, downvision=True)
     before = frame[:240].copy()
     area = view.stamp_area(frame)
-    stamp_frame_index(area, 1234)
+    stamp_frame_index(area, 1234, checked=True)
     assert np.array_equal(frame[:240], before) and read_frame_index(frame[240:]) == 1234
+    assert read_checked_frame_index(frame[240:]) == 1234
 
 
 def test_a_smeared_or_mixed_bar_code_names_no_frame() -> None:
@@ -356,7 +361,7 @@ def test_a_smeared_or_mixed_bar_code_names_no_frame() -> None:
 
     def coded(index: int) -> np.ndarray:
         img = np.full((480, 320), 90, dtype=np.uint8)
-        stamp_frame_index(img, index)
+        stamp_frame_index(img, index, checked=True)
         return img
 
     rng = np.random.default_rng(5)

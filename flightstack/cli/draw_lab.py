@@ -11,6 +11,7 @@ text written here (no dependency), in fixed columns: drones, computers, lab netw
 from __future__ import annotations
 
 import argparse
+import stat
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +20,7 @@ from xml.sax.saxutils import escape
 from flightstack.config.bus import BusSpec
 from flightstack.config.hardware import HardwareSpec, TelloHardwareSpec
 from flightstack.drivers.mocap import NATNET_COMMAND_PORT, TCP_PORTS
+from flightstack.recording.files import atomic_write_bytes
 
 FONT_PX = 12
 CHAR_PX = 7.3
@@ -331,14 +333,32 @@ def draw(lab_file: str) -> str:
     return render_svg(lab_picture(hw, bus, str(src.data["rig"])))
 
 
+def refused_out(out: Path) -> str | None:
+    """Why the picture may not be written to `out` (a directory, an existing path that is not a regular
+    file, a missing folder), or None."""
+    if out.is_dir():
+        return f"{out}: is a directory (give a file name, e.g. {out / 'lab.svg'})"
+    if out.exists() and not stat.S_ISREG(out.stat().st_mode):
+        return f"{out}: not a regular file (a device, FIFO or socket): draw-lab writes only regular files"
+    if not out.parent.is_dir():
+        return f"{out}: its folder {out.parent} does not exist"
+    return None
+
+
 def cmd_draw_lab(args: argparse.Namespace) -> int:
-    """Write the lab file's picture to --out (or stdout)."""
+    """Write the lab file's picture to --out (or stdout); exit 2 in one line for an --out it may not
+    write (refused_out)."""
+    out = None if args.out is None else Path(args.out)
+    why_not = None if out is None else refused_out(out)
+    if why_not is not None:
+        print(f"error: {why_not}", file=sys.stderr)
+        return 2
     svg = draw(args.lab)
-    if args.out is None:
+    if out is None:
         sys.stdout.write(svg)
     else:
-        Path(args.out).write_text(svg, encoding="utf-8")
-        print(f"wrote {args.out}")
+        atomic_write_bytes(out, svg.encode("utf-8"))
+        print(f"wrote {out}")
     return 0
 
 

@@ -3,8 +3,7 @@
 A frame source is ``frame_source(t, emu) -> image`` (``t`` = stream time ``n / fps`` of frame ``n`` in
 seconds; image HxWx3 uint8 RGB, or HxW grey, of size ``emu.video_size = (width, height)`` in pixels).  The
 default source draws a square moving on a circle and stamps the frame index as a row of black/white
-blocks (and a check row below it), so a test can match every decoded frame with the frame that was
-rendered.  Encoding and sending
+blocks, so a test can match every decoded frame with the frame that was rendered.  Encoding and sending
 are in ``video``; re-exported by ``tello.py``.
 """
 
@@ -74,12 +73,15 @@ def _read_row(img: np.ndarray, row: int) -> int:
     return value
 
 
-def stamp_frame_index(img: np.ndarray, index: int) -> None:
-    """Draw ``index`` (mod 2**16) as a row of black/white blocks near the top edge of ``img`` (in place),
-    and below it its check row (:data:`CHECK_MULTIPLIER`)."""
+def stamp_frame_index(img: np.ndarray, index: int, checked: bool = False) -> None:
+    """Draw ``index`` (mod 2**16) as a row of black/white blocks near the top edge of ``img`` (in place);
+    ``checked``: also its check row below it (:data:`CHECK_MULTIPLIER`), for a stamp outside the picture
+    (the EDU layout's noise band: ``tello_view.index_area``). Not over a picture: a second row there hid
+    a marker near the top, and its hard edges cost 30 % more datagrams a frame."""
     index &= (1 << INDEX_BITS) - 1
     _stamp_row(img, index, 0)
-    _stamp_row(img, _check_of(index), 1)
+    if checked:
+        _stamp_row(img, _check_of(index), 1)
 
 
 def read_frame_index(img: np.ndarray) -> int:
@@ -88,7 +90,8 @@ def read_frame_index(img: np.ndarray) -> int:
 
 
 def read_checked_frame_index(img: np.ndarray) -> int | None:
-    """The index of :func:`read_frame_index` when the check row agrees with it, else None: a bar code
+    """The index of :func:`read_frame_index` when the check row (a ``checked`` stamp's) agrees with it,
+    else None: a bar code
     that concealment after a loss smeared or mixed with an older frame's (measured on the emulated lab's
     downward stream at 2 % datagram loss, before the check row: 6 of 242 concealed frames read as a wrong
     index)."""

@@ -437,7 +437,8 @@ def _run(a: ChildArgs) -> None:
             else:
                 img = scaled(view.frame(g_wi, g_w0, False), size)
                 truth = scaled_pixels(view.true_pixels(g_wi, g_w0), spec.size, size).reshape(-1).tolist()
-            stamp_frame_index(index_area(view.cal, img), index)
+            area = index_area(view.cal, img)
+            stamp_frame_index(area, index, checked=area.shape != img.shape)  # outside the picture only
             datagrams = frame_datagrams(encoder, img, index)
             t_capture = float(c[_T - 1])
             leaves = links.decide("video", t_capture)
