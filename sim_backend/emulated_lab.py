@@ -806,7 +806,7 @@ def _truth_of(cam: Any) -> FrameTruth:
     never was). In the EDU's downward layout the code is below the picture (tello_view.index_area), in
     the noise that fills most of the stream's datagrams."""
     from flightstack.sim_backend.emulators.tello.frames import read_checked_frame_index, read_frame_index
-    from flightstack.sim_backend.emulators.tello.view import index_area
+    from flightstack.sim_backend.emulators.tello.view import index_area, index_is_checked
     from flightstack.vision.camera_file import calibration_from_dict
 
     cal = calibration_from_dict(cam.spec.calibration, "emulated camera")
@@ -814,7 +814,7 @@ def _truth_of(cam: Any) -> FrameTruth:
 
     def truth(img: np.ndarray) -> np.ndarray | None:
         area = index_area(cal, img)
-        checked = area.shape != img.shape  # stamped with its check row (VideoProcess)
+        checked = index_is_checked(area, img)
         index = read_checked_frame_index(area) if checked else read_frame_index(area)
         if index is None:  # the check row disagrees: a smeared code, whose frame is unknown
             return None

@@ -342,7 +342,7 @@ def _run(a: ChildArgs) -> None:
     from ..radio import DeviceRadio
     from .frames import stamp_frame_index
     from .video import frame_datagrams, make_encoder, scaled, scaled_pixels
-    from .view import CameraView, drone_world_pose, index_area
+    from .view import CameraView, drone_world_pose, index_area, index_is_checked
 
     spec, ip, dest, fps, gop_size, path = a.spec, a.ip, a.dest, a.fps, a.gop_size, a.path
     ctrl_raw, target_raw, stats_raw, parent = a.ctrl_raw, a.target_raw, a.stats_raw, a.parent
@@ -438,7 +438,7 @@ def _run(a: ChildArgs) -> None:
                 img = scaled(view.frame(g_wi, g_w0, False), size)
                 truth = scaled_pixels(view.true_pixels(g_wi, g_w0), spec.size, size).reshape(-1).tolist()
             area = index_area(view.cal, img)
-            stamp_frame_index(area, index, checked=area.shape != img.shape)  # outside the picture only
+            stamp_frame_index(area, index, checked=index_is_checked(area, img))
             datagrams = frame_datagrams(encoder, img, index)
             t_capture = float(c[_T - 1])
             leaves = links.decide("video", t_capture)

@@ -168,4 +168,10 @@ def index_area(cal: CameraCalibration, frame: np.ndarray) -> np.ndarray:
     return frame[: layout.y] if layout.y >= cal.height // 4 else frame
 
 
-__all__ = ["CameraSpec", "CameraView", "drone_world_pose", "index_area"]
+def index_is_checked(area: np.ndarray, frame: np.ndarray) -> bool:
+    """Whether the bar code in `area` (index_area of `frame`) carries its check row
+    (tello_frames.stamp_frame_index's `checked`): only a code outside the picture does."""
+    return area.shape != frame.shape
+
+
+__all__ = ["CameraSpec", "CameraView", "drone_world_pose", "index_area", "index_is_checked"]
