@@ -531,3 +531,27 @@ def test_hover_repeats_count_motor_time_on() -> None:
     line = b"pitch:0;roll:0;yaw:-26;h:40;bat:33;time:66;agx:11.00;\r\n"
     assert motor_time_on(line, 2.7) == line.replace(b"time:66;", b"time:68;")
     assert motor_time_on(line, 0.9) == line and motor_time_on(b"h:40;", 5.0) == b"h:40;"
+
+
+def _slices(unit: bytes) -> int:
+    return sum(kind in (1, 5) for kind in kinds(unit))
+
+
+def test_the_emulator_encodes_one_slice_a_picture_as_the_tello_does(request: pytest.FixtureRequest) -> None:
+    """Every picture of the recorded stream is one slice (a lost datagram spoils the rest of its picture);
+    the emulator's encoder makes one too, whatever the machine's core count (x264's zerolatency cuts a
+    picture into one slice per thread: two on a 2-core machine, where a loss spoiled only half a picture)."""
+    pytest.importorskip("av")
+    import numpy as np
+
+    from flightstack.sim_backend.emulators.tello.video import frame_datagrams, make_encoder
+
+    recorded = [_slices(u) for u in access_units(dump(request, "devconx_test.h264"))]
+    assert set(recorded) == {1}, recorded
+    encoder = make_encoder((960, 720), 30.0, 30)
+    rng = np.random.default_rng(0)
+    emulated = [
+        _slices(b"".join(frame_datagrams(encoder, rng.integers(0, 256, (720, 960, 3), dtype=np.uint8), k)))
+        for k in range(3)
+    ]
+    assert emulated == [1, 1, 1], emulated

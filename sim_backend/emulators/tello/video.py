@@ -43,7 +43,9 @@ windows of a real Tello's stream logged by TelloPy (hanyazou/TelloPy#76), 2.9–
 
 def make_encoder(size: tuple[int, int], fps: float, gop_size: int, bit_rate: int | None = None) -> Any:
     """A libx264 encoder as the emulator streams: `size` (width, height) px, `fps` frames/s, a keyframe
-    every `gop_size` frames, ultrafast, zerolatency, SPS/PPS repeated before every keyframe; `bit_rate`:
+    every `gop_size` frames, ultrafast, zerolatency, one slice per picture (one thread: the recorded
+    Tello stream's pictures are one slice each, so a lost datagram spoils the rest of its picture),
+    SPS/PPS repeated before every keyframe; `bit_rate`:
     the target (bit/s: `setbitrate`; None: the Tello's own AUTO_BIT_RATE_BPS), held as a ceiling by a
     video buffer of one frame (VBV), so that a picture with detail fills about as many datagrams as a real
     one, and a plain one fewer (no filler)."""
@@ -61,6 +63,7 @@ def make_encoder(size: tuple[int, int], fps: float, gop_size: int, bit_rate: int
     kbps = rate_bps // 1000
     vbv = f"vbv-maxrate={kbps}:vbv-bufsize={max(1, int(kbps / fps))}"
     ctx.options = {"preset": "ultrafast", "tune": "zerolatency", "x264-params": f"repeat-headers=1:{vbv}"}
+    ctx.thread_count = 1  # zerolatency cuts a picture into one slice per thread
     return ctx
 
 
