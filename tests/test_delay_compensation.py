@@ -267,6 +267,39 @@ def test_frames_out_of_order_or_too_old_are_not_used_and_say_why() -> None:
     assert (agent2.last.visible, agent2.last.rejection) == (False, "frame too old")
 
 
+@pytest.mark.parametrize("climbed", [False, True])
+def test_a_frame_captured_before_pursuit_start_is_judged_against_the_prior(climbed: bool) -> None:
+    """Pursuit starts at t = 2 s (the observer restarts from its prior, on the target); the frames arrive
+    0.3 s late, so the first ticks' frames were captured before the start. Without own poses of that time
+    they are too old; with the poses kept while the drone climbed (`record_own_pose`) they are used, and
+    the error they measure is the true one (0: the prior is on the target)."""
+    from flightstack.paper.delay_compensation import Compensation
+    from flightstack.paper.geometry import Pose
+
+    world = _Scripted(delay_s=0.3)
+    agent = _agent(world, Compensation(0.0, 0.0, history_s=1.0))
+    if climbed:
+        for k in range(20):  # the climb: 1.0–1.95 s
+            world.t = 1.0 + 0.05 * k
+            agent.record_own_pose(world.t)
+    world.t = 2.0
+    agent.reset_estimate(Pose(world.g_w0[:3].copy(), float(world.g_w0[3])), world.t)
+    agent.seed_own_pose(world.latest("drone1"))
+    seen = []
+    for k in range(3):  # frames captured at 1.7, 1.73, 1.8 s: before the start
+        world.t = 2.0 + 0.05 * k
+        agent.sense_and_publish(world.t)
+        agent.fuse_control_act(world.t)
+        seen.append((agent.last.visible, agent.last.rejection))
+    if not climbed:
+        assert seen == [(False, "frame too old")] * 3
+        return
+    assert all(visible for visible, _ in seen), seen
+    err = float(np.linalg.norm(agent.last.e_e_meas[:3]))
+    print(f"|e_e| = {err * 1000:.4f} mm (true: 0)")
+    assert err < 1e-4
+
+
 @pytest.mark.system
 def test_on_the_simulated_lab_under_tello_links_compensation_calms_the_pursuit() -> None:
     """paper_experiment on lab-sim with the Tello's links, 30 s of mode none, the same seed: compensated,

@@ -176,13 +176,21 @@ class Agent:
         """ḡ_w,i: the observer's estimate of the target pose in the world frame."""
         return pose_of(self._T[kern.G_BAR_W])
 
-    def reset_estimate(self, g_bar_w: Pose) -> None:
-        """Restart the observer from ḡ_w,i (e.g. at pursuit start on hardware, from the own pose and g_d)."""
+    def reset_estimate(self, g_bar_w: Pose, t: float | None = None) -> None:
+        """Restart the observer from ḡ_w,i (e.g. at pursuit start on hardware, from the own pose and g_d).
+
+        t: when (s, mission clock) it restarts. With delay compensation, ḡ_w,i is then also the estimate
+        before t, back over the history (the observer's prior: it had nothing else), so that a frame
+        captured up to history_s before the start is judged against it instead of being too old (a
+        Tello's frames arrive 0.3–0.45 s after capture: the first 6–9 ticks of every mode saw nothing).
+        """
         self._T[kern.G_BAR_W] = g_bar_w.as_vector()
         self._u_e_prev = None
         self._t_prev = None
         if self._delays is not None:
             self._delays.estimates.clear()
+            if t is not None:
+                self._delays.estimates.add(t - self._delays.c.history_s, self._T[kern.G_BAR_W], _ZERO4)
         if self.gate is not None:  # the new estimate has predicted nothing yet
             self.gate.reset()
 
@@ -192,6 +200,14 @@ class Agent:
         safety layer decides beyond pose_timeout), not a missing pose that ends the mission."""
         self._g_wi, self._g_wi_t = own.pose.as_vector(), own.stamp
         self._pose_ok = own
+
+    def record_own_pose(self, t: float) -> None:
+        """Keep the own pose measured now (motion capture, its stamp no later than the clock's t, s) for
+        the delay compensation: called while the drones climb, so that a frame captured before pursuit
+        starts finds the pose it was taken from. Nothing without compensation."""
+        own = self.poses.latest(self.cfg.body_name)
+        if self._delays is not None and own is not None and stamp_refusal(own.stamp, t, "pose") is None:
+            self._delays.poses.add(own.stamp, own.pose.as_vector())
 
     # ---- phase 1 -------------------------------------------------------------------------------
     def sense_and_publish(self, t: float) -> None:

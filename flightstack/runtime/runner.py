@@ -330,6 +330,9 @@ def take_off(f: Fleet) -> None:
 
     def during_takeoff() -> None:
         f.ticker.tick()
+        now = clock.now()
+        for a in f.agents:  # the poses the first frames of the pursuit were captured from
+            a.record_own_pose(now)
         check_operator(f.bus)  # an abort is obeyed during the takeoff too
         failed = {i: s.takeoff_error for i, s in f.safe.items() if s.takeoff_error}
         if failed:
@@ -345,7 +348,7 @@ def take_off(f: Fleet) -> None:
             own = a.poses.latest(a.cfg.body_name)
             if own is None:
                 raise RuntimeError(f"no motion-capture pose for {a.cfg.body_name} at pursuit start")
-            a.reset_estimate(compose(own.pose, a.cfg.g_d))
+            a.reset_estimate(compose(own.pose, a.cfg.g_d), clock.now())
             a.seed_own_pose(own)
 
 
