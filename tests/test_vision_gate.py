@@ -55,6 +55,22 @@ def test_the_gate_is_the_closed_form() -> None:
     assert v.accepted and v.residual_px == pytest.approx(2.0, rel=1e-6)
 
 
+def test_it_expects_the_detection_where_it_would_judge_it() -> None:
+    """`expected`: nothing during the warm-up; after it the prediction moved by the lag the gate learnt
+    (here (3, 4) px, closed form), which a detection there meets with residual 0."""
+    gate = DetectionGate(GateSpec(noise_px=0.7), FX, 1.0)
+    f = measure(G_I0, P0, CAM)
+    assert gate.expected(f, 0.0) is None
+    t = _learn(gate, f, np.array([3.0, 4.0]), 1.0)
+    for _ in range(TRACK_WINDOW):  # a still lag: the warm-up ends
+        t += 0.05
+        gate.check(f + np.tile([3.0 / FX, 4.0 / FX], 4), f, 0.85, t)
+    e = gate.expected(f, t + 0.05)
+    assert e is not None
+    np.testing.assert_allclose(e, f + np.tile([3.0 / FX, 4.0 / FX], 4), atol=1e-9)
+    assert gate.check(e, f, 0.85, t + 0.05).residual_px == pytest.approx(0.0, abs=1e-6)
+
+
 def test_a_ghost_beside_a_lagging_estimate_is_rejected_then_taken_once_the_estimate_may_have_drifted() -> (
     None
 ):

@@ -43,6 +43,7 @@ from flightstack.safety import SafetyLimits
 from flightstack.safety.rules import saturate
 from flightstack.vision.camera_file import CameraCalibration
 from flightstack.vision.detect import detect_markers
+from flightstack.vision.fiducial import NOT_FOUND, distorted_pixels, track_fiducial
 from flightstack.vision.gate import OFF_PREDICTION, DetectionGate, GateSpec
 from flightstack.vision.markers import features_from_detection
 
@@ -100,6 +101,7 @@ class TickRecord:
     pose_age: float = math.nan  # the own pose used; NaN: none this tick (dropout)
     # the detection gate (flightstack.vision.gate), for a tick whose image gave all the markers
     coasted: bool = False  # the detection was off its prediction: the observer coasted on its estimate
+    tracked: bool = False  # the fiducial was found from where the gate expected it (vision.fiducial)
     frame_damaged: bool = False  # the frame looked at was decoded through a detected stream loss
     gate_residual_px: float = math.nan  # the marker farthest from its prediction (px); NaN: not gated
     gate_px: float = math.nan  # the gate it was held to (px)
@@ -224,6 +226,10 @@ class Agent:
         # else a motion-capture dropout: keep the last pose, hover; the safety layer decides beyond that
         frame = self._checked_frame(self.camera.latest(), t, dropped)
         features, rejection = self._features(frame, t)
+        tracked = False
+        if features is None and frame is not None and rejection is not None and rejection.endswith(NOT_FOUND):
+            features, rejection = self._tracked(frame, rejection)
+            tracked = features is not None
         gated = _Gated()
         if features is not None and frame is not None and frame.features is None:
             features, rejection, gated = self._gated(features, rejection, frame)
@@ -265,6 +271,7 @@ class Agent:
             frame_age=math.nan if frame is None else max(0.0, t - frame.stamp),
             pose_age=math.nan if own is None else max(0.0, t - own.stamp),
             coasted=gated.coasted,
+            tracked=tracked,
             frame_damaged=frame is not None and frame.damaged,
             gate_residual_px=gated.residual_px,
             gate_px=gated.gate_px,
@@ -335,17 +342,13 @@ class Agent:
         seen = features_from_detection(det, self.cfg.camera.focal_length)
         return (None if seen is None else np.array(seen, dtype=float).reshape(-1)), det.reason
 
-    def _gated(
-        self, features: np.ndarray, rejection: str | None, frame: Frame
-    ) -> tuple[np.ndarray | None, str | None, _Gated]:
-        """The image's features through the detection gate (flightstack.vision.gate): (features or None,
-        the rejection, what the gate saw). The prediction is for the frame's capture time: from the
-        agent's pose and estimate histories when it keeps them (delay compensation), else from the own
-        pose last measured and the estimate moved on to the frame's time by the observer's own
-        prediction step."""
-        out = _Gated(error_px=_truth_error(self.markers_px, frame.truth_px))
-        if self.gate is None or self._g_wi is None:
-            return features, rejection, out
+    def _prediction(self, frame: Frame) -> tuple[np.ndarray, float] | None:
+        """(f̄ (2m,) image-plane units, the points' mean depth m) of the target in `frame`, predicted for its
+        capture time from outside the image: from the agent's pose and estimate histories when it keeps
+        them (delay compensation), else from the own pose last measured and the estimate moved on to the
+        frame's time by the observer's own prediction step. None when the estimate puts it out of view."""
+        if self._g_wi is None:
+            return None
         g_wi, g_bar = self._g_wi, self._T[kern.G_BAR_W]
         g_c = g_bar_c = None
         if self._delays is not None:
@@ -361,9 +364,40 @@ class Agent:
         kern.relative4(g_wi, g_bar, rel)
         kern.points_in_camera(rel, self._P0, self._cam, pc)
         f_pred = np.empty(2 * len(self._P0))
-        if not kern.measure(rel, self._P0, self._cam, f_pred):  # the estimate puts the target out of view
+        if not kern.measure(rel, self._P0, self._cam, f_pred):
+            return None
+        return f_pred, float(pc[:, 2].mean())
+
+    def _tracked(self, frame: Frame, rejection: str) -> tuple[np.ndarray | None, str | None]:
+        """When the fiducial detector did not find the target: look for it where the detection gate
+        expects it (flightstack.vision.fiducial.track_fiducial). (features or None, the rejection)."""
+        cal = self.cfg.calibration
+        if self.gate is None or cal is None or cal.fiducial is None or frame.image is None:
+            return None, rejection
+        pred = self._prediction(frame)
+        expected = None if pred is None else self.gate.expected(pred[0], frame.stamp)
+        if expected is None:
+            return None, rejection
+        lam = self.cfg.camera.focal_length
+        det = track_fiducial(frame.image, distorted_pixels(expected.reshape(-1, 2) / lam, cal), cal)
+        seen = features_from_detection(det, lam)
+        if seen is None:
+            return None, det.reason or rejection
+        self.markers_px = det.pixels
+        return np.array(seen, dtype=float).reshape(-1), None
+
+    def _gated(
+        self, features: np.ndarray, rejection: str | None, frame: Frame
+    ) -> tuple[np.ndarray | None, str | None, _Gated]:
+        """The image's features through the detection gate (flightstack.vision.gate) against `_prediction`:
+        (features or None, the rejection, what the gate saw)."""
+        out = _Gated(error_px=_truth_error(self.markers_px, frame.truth_px))
+        if self.gate is None:
             return features, rejection, out
-        verdict = self.gate.check(features, f_pred, float(pc[:, 2].mean()), frame.stamp)
+        pred = self._prediction(frame)
+        if pred is None:  # the estimate puts the target out of view
+            return features, rejection, out
+        verdict = self.gate.check(features, pred[0], pred[1], frame.stamp)
         out.residual_px, out.gate_px = verdict.residual_px, verdict.gate_px
         if verdict.accepted:
             return features, rejection, out

@@ -82,7 +82,7 @@ class TickBook:
 GATE_COUNTS = (
     "detections", "accepted", "rejected", "from_damaged", "accepted_damaged", "truth_known", "within_3px",
     "within_3px_accepted", "accepted_over_3px", "accepted_over_10px", "accepted_damaged_over_3px",
-    "accepted_damaged_over_10px",
+    "accepted_damaged_over_10px", "tracked", "tracked_accepted", "tracked_accepted_over_3px",
 )  # fmt: skip
 """What count_gate counts, per tick whose image gave every marker (a frame looked at twice counts twice)."""
 
@@ -95,6 +95,9 @@ def count_gate(c: Counter[str], last: TickRecord) -> None:
     c["accepted" if accepted else "rejected"] += 1
     c["from_damaged"] += damaged
     c["accepted_damaged"] += damaged and accepted
+    if last.tracked:  # found from where the gate expected it, the detector had not (counted when it happens)
+        c["tracked"] += 1
+        c["tracked_accepted"] += accepted
     if math.isnan(err):
         return
     c["truth_known"] += 1
@@ -105,6 +108,8 @@ def count_gate(c: Counter[str], last: TickRecord) -> None:
         c["accepted_over_10px"] += err > 10.0
         c["accepted_damaged_over_3px"] += damaged and err > 3.0
         c["accepted_damaged_over_10px"] += damaged and err > 10.0
+        if last.tracked:
+            c["tracked_accepted_over_3px"] += err > 3.0
 
 
 def record_tick(

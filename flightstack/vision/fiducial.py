@@ -41,6 +41,8 @@ relativeCornerRefinmentWinSize)."""
 REFINE_ACCURACY_PX = 0.01
 """cv2.cornerSubPix stops when a corner moves less than this (pixels), or after REFINE_ITERATIONS."""
 REFINE_ITERATIONS = 50
+NOT_FOUND = ": not found"
+"""How `detect_fiducial`'s rejection of a frame without the marker ends (the agent then tracks it)."""
 PLACEMENT_TOLERANCE_M = 1e-3
 """How far (m) the experiment's feature points may be from the fiducial's square (placement_problem)."""
 
@@ -149,7 +151,7 @@ def detect_fiducial(image: np.ndarray, cal: CameraCalibration) -> MarkerDetectio
     corners, ids, _ = _detector(fid, max(W, H)).detectMarkers(grey)
     found = [] if ids is None else [k for k, i in enumerate(ids.reshape(-1)) if int(i) == fid.id]
     if not found:
-        return MarkerDetection.rejected(f"{what}: not found")
+        return MarkerDetection.rejected(f"{what}{NOT_FOUND}")
     if len(found) > 1:
         return MarkerDetection.rejected(f"{what}: seen {len(found)} times")
     quad = np.asarray(corners[found[0]], dtype=float).reshape(FIDUCIAL_CORNERS, 2)
@@ -173,7 +175,11 @@ EDGE_MAX_SHIFT_PX = 1.5
 
 
 def refine_by_edges(
-    grey: np.ndarray, quad: np.ndarray, cal: CameraCalibration, cells: int
+    grey: np.ndarray,
+    quad: np.ndarray,
+    cal: CameraCalibration,
+    cells: int,
+    max_shift_px: float = EDGE_MAX_SHIFT_PX,
 ) -> np.ndarray | None:
     """The marker's corners (4, 2) (pixels, ArUco order) as the intersections of its four sides' edge lines.
 
@@ -184,7 +190,8 @@ def refine_by_edges(
     edge's position by the area under the normalised profile, (I − I_in)/(I_out − I_in), which a symmetric
     blur or anti-aliasing does not move; the edge points are undistorted and fitted with a line (total least
     squares); adjacent lines meet at the corners, which are distorted back to pixels (cv2.projectPoints).
-    None when a side has too few usable profiles (low contrast, the marker cut by the image border).
+    None when a side has too few usable profiles (low contrast, the marker cut by the image border), or a
+    corner would move more than max_shift_px (px) from `quad`'s.
     """
     H, W = grey.shape
     centre = quad.mean(axis=0)
@@ -237,18 +244,101 @@ def refine_by_edges(
     pts3 = np.column_stack([corners_n, np.ones(4)])
     px, _ = cv2.projectPoints(pts3, np.zeros(3), np.zeros(3), cal.camera_matrix, cal.dist_coeffs)
     refined = px.reshape(4, 2)
-    if not np.all(np.isfinite(refined)) or np.linalg.norm(refined - quad, axis=1).max() > EDGE_MAX_SHIFT_PX:
+    if not np.all(np.isfinite(refined)) or np.linalg.norm(refined - quad, axis=1).max() > max_shift_px:
         return None
     return refined
 
 
+TRACK_MAX_SHIFT_PX = 6.0
+"""How far (pixels) one pass of `track_fiducial` may move a corner: the edge profiles reach 0.45 cell to
+either side of the expected side (4.5 px at 10 px cells), and a few passes walk farther."""
+TRACK_PASSES = 4
+"""Passes of `track_fiducial`'s side refinement at most; it stops once no corner moves TRACK_SETTLED_PX."""
+TRACK_SETTLED_PX = 0.05
+TRACK_MAX_CELLS_WRONG = 1
+"""Cells of the marker (border included: 36 for a 4×4 dictionary) that may read wrong at the tracked
+corners; a concealed board greys a cell or two, another square on the floor reads a third of them wrong."""
+CELL_SAMPLES = 10
+"""Pixels a cell spans in the marker warped upright for reading (`cells_wrong`); its middle 4 are read."""
+
+
+def cells_wrong(grey: np.ndarray, quad: np.ndarray, fid: Fiducial) -> int:
+    """How many of the marker's cells (border included) read wrong in `grey` with its corners at `quad`
+    (4, 2 px, ArUco order): the marker warped upright, each cell's mean over its middle against the
+    midpoint of the means of the cells that should be black and white."""
+    cells = marker_cells(fid)
+    n, c = cells.shape[0], CELL_SAMPLES
+    square = np.array([[0, 0], [n * c, 0], [n * c, n * c], [0, n * c]], dtype=np.float32)
+    H = cv2.getPerspectiveTransform(np.asarray(quad, dtype=np.float32), square)
+    upright = cv2.warpPerspective(grey, H, (n * c, n * c), flags=cv2.INTER_LINEAR).astype(float)
+    means = upright.reshape(n, c, n, c)[:, 3 : c - 3, :, 3 : c - 3].mean(axis=(1, 3))
+    white = cells == 255
+    threshold = (means[white].mean() + means[~white].mean()) / 2
+    return int(np.sum((means > threshold) != white))
+
+
+def distorted_pixels(normalized: np.ndarray, cal: CameraCalibration) -> np.ndarray:
+    """(k, 2) pixels of the distorted image of undistorted normalised coordinates (k, 2) (x/z, y/z)."""
+    pts3 = np.column_stack([np.asarray(normalized, dtype=float), np.ones(len(normalized))])
+    px, _ = cv2.projectPoints(pts3, np.zeros(3), np.zeros(3), cal.camera_matrix, cal.dist_coeffs)
+    return px.reshape(-1, 2)
+
+
+def track_fiducial(image: np.ndarray, expected_px: np.ndarray, cal: CameraCalibration) -> MarkerDetection:
+    """The fiducial found from where it is expected, when `detect_fiducial` did not find it.
+
+    A frame decoded through a lost datagram often shows the board with its outline notched or a cell or two
+    greyed: ArUco's candidate stage (a contour with four vertices) then misses a board whose sides are still
+    straight (benchmarks/concealed_frames.py: most misses). From `expected_px` (4, 2: the feature points'
+    pixels where the detection gate expects them, distorted image, feature-point order) the sides are
+    measured as `refine_by_edges` measures them, up to TRACK_PASSES passes of at most TRACK_MAX_SHIFT_PX,
+    and the result is kept only if the marker's own code reads at the new corners, in the orientation
+    expected, with at most TRACK_MAX_CELLS_WRONG cells wrong. What it finds is a detection like any other:
+    the caller gates it. Returns the corners (feature-point order) or a rejection naming why.
+    """
+    fid = cal.fiducial
+    if fid is None:
+        raise ValueError("the calibration declares no fiducial")
+    grey = grey_image(image)
+    what = f"fiducial {fid.id} ({fid.dictionary})"
+    quad = np.empty((FIDUCIAL_CORNERS, 2))
+    quad[list(fid.corners)] = np.asarray(expected_px, dtype=float).reshape(FIDUCIAL_CORNERS, 2)
+    H, W = grey.shape
+    if (
+        not np.all(np.isfinite(quad))
+        or quad.min() < 0
+        or quad[:, 0].max() > W - 1
+        or quad[:, 1].max() > H - 1
+    ):
+        return MarkerDetection.rejected(f"{what}{NOT_FOUND}")  # expected (partly) outside: nothing to look at
+    cells = int(marker_cells(fid).shape[0])
+    for _ in range(TRACK_PASSES):
+        refined = refine_by_edges(grey, quad, cal, cells, TRACK_MAX_SHIFT_PX)
+        if refined is None:
+            return MarkerDetection.rejected(f"{what}: not found, nor its sides where expected")
+        moved = float(np.linalg.norm(refined - quad, axis=1).max())
+        quad = refined
+        if moved < TRACK_SETTLED_PX:
+            break
+    if cells_wrong(grey, quad, fid) > TRACK_MAX_CELLS_WRONG:
+        return MarkerDetection.rejected(f"{what}: not found, nor its code where expected")
+    pixels = quad[list(fid.corners)]
+    return MarkerDetection(pixels, normalise(pixels, cal), None, None)
+
+
 __all__ = [
     "BORDER_BITS",
+    "NOT_FOUND",
+    "TRACK_MAX_CELLS_WRONG",
+    "TRACK_MAX_SHIFT_PX",
+    "cells_wrong",
     "corner_points",
     "detect_fiducial",
     "dictionary",
+    "distorted_pixels",
     "grey_image",
     "marker_cells",
     "placement_problem",
     "refine_by_edges",
+    "track_fiducial",
 ]

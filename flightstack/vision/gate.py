@@ -163,6 +163,17 @@ class DetectionGate:
         """s = v_drift·fx/z̄ + ω_drift·ρ̄ (px/s) of points depth_m ahead (m), spread_px from their centroid."""
         return self.spec.drift_mps * self.fx_px / max(depth_m, 1e-3) + self.spec.drift_radps * spread_px
 
+    def expected(self, f_pred: np.ndarray, t_capture: float) -> np.ndarray | None:
+        """Where the gate expects the features (2m,) (image-plane units) of a frame captured at t_capture
+        (s) whose prediction is f_pred: f̄ moved by the lag b̂ as `check` moves it (module docstring).
+        None during the warm-up, when the gate judges nothing and has learnt no lag."""
+        tau = t_capture - self._t_accepted
+        if not self._settled or not math.isfinite(tau):
+            return None
+        p = np.asarray(f_pred, dtype=float).reshape(-1, 2) * self.px_per_unit
+        lag = self._lag + self._lag_rate * min(max(tau, 0.0), OFFSET_HORIZON_S)
+        return (p + (similarity_basis(p) @ lag).reshape(-1, 2)).reshape(-1) / self.px_per_unit
+
     def check(self, f: np.ndarray, f_pred: np.ndarray, depth_m: float, t_capture: float) -> GateVerdict:
         """Judge features f against their prediction f_pred (both (2m,), image-plane units) for a frame
         captured at t_capture (s) with its points depth_m ahead (m); a frame decoded through a detected
