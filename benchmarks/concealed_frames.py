@@ -32,7 +32,7 @@ import numpy as np
 
 from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.config.rig import MISSION_CONFIGS
-from flightstack.drivers.tello.video_check import StreamCheck
+from flightstack.drivers.tello.video_decode import StreamDecoder
 from flightstack.netem import LinkProfile
 from flightstack.paper.geometry import Pose
 from flightstack.sim_backend.emulators.tello.frames import read_checked_frame_index, stamp_frame_index
@@ -107,12 +107,8 @@ def run(loss: float, seed: int, seconds: float) -> dict[str, int]:
     poses = drone_poses(seconds, rng)
     link = LinkProfile.bursty(loss, BURST)
     encoder = make_encoder(spec.stream_size(True), FPS, KEYFRAME_INTERVAL_FRAMES)
-    import av
-
-    decoder = av.CodecContext.create("h264", "r")
-    decoder.options = {"err_detect": "aggressive"}
     counts: Counter[str] = Counter()
-    check = StreamCheck(Counter())
+    decoder = StreamDecoder(Counter(), lambda exc: None)  # a rejected frame: the next keyframe resynchronises
     truth: dict[int, np.ndarray] = {}
     bad = False
     order = list(cal.fiducial.corners)  # type: ignore[union-attr]
@@ -127,40 +123,27 @@ def run(loss: float, seed: int, seconds: float) -> dict[str, int]:
             if bad:
                 counts["datagrams_lost"] += 1
                 continue
-            check.datagram(datagram)
-            for packet in decoder.parse(datagram):
-                check.access_unit(bytes(packet))
-                try:
-                    decoded = decoder.decode(packet)
-                except av.error.FFmpegError:
-                    check.mark_damaged()
+            for img, damaged, _ in decoder.feed(datagram):
+                index = read_checked_frame_index(index_area(cal, img))
+                tag = "damaged" if damaged else "clean"
+                if index is None or index not in truth:
+                    counts[f"{tag}_unknown"] += 1
                     continue
-                for f in decoded:
-                    if f.is_corrupt:
-                        check.mark_damaged()
-                    if not check.synced:
-                        continue
-                    img = f.to_ndarray(format="rgb24")
-                    index = read_checked_frame_index(index_area(cal, img))
-                    tag = "damaged" if check.damaged else "clean"
-                    if index is None or index not in truth:
-                        counts[f"{tag}_unknown"] += 1
-                        continue
-                    grey = picture(img, cal)
-                    counts[f"{tag}_frames"] += 1
-                    det = detect_fiducial(grey, cal)
-                    if det.pixels is None:
-                        counts[f"{tag}_missed"] += 1
-                        if tag == "damaged":
-                            quad = np.empty((4, 2))
-                            quad[order] = truth[index]
-                            edge = "intact" if outline_intact(grey, quad, cal) else "broken"
-                            counts[f"damaged_missed_outline_{edge}"] += 1
-                        continue
-                    err = float(np.linalg.norm(det.pixels - truth[index], axis=1).max())
-                    counts[f"{tag}_found"] += 1
-                    for px in (1, 3, 10):
-                        counts[f"{tag}_over_{px}px"] += err > px
+                grey = picture(img, cal)
+                counts[f"{tag}_frames"] += 1
+                det = detect_fiducial(grey, cal)
+                if det.pixels is None:
+                    counts[f"{tag}_missed"] += 1
+                    if tag == "damaged":
+                        quad = np.empty((4, 2))
+                        quad[order] = truth[index]
+                        edge = "intact" if outline_intact(grey, quad, cal) else "broken"
+                        counts[f"damaged_missed_outline_{edge}"] += 1
+                    continue
+                err = float(np.linalg.norm(det.pixels - truth[index], axis=1).max())
+                counts[f"{tag}_found"] += 1
+                for px in (1, 3, 10):
+                    counts[f"{tag}_over_{px}px"] += err > px
     return dict(counts)
 
 

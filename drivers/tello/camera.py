@@ -41,7 +41,7 @@ from flightstack.drivers.tello import DEFAULT_VIDEO_PORT, TelloCommandError, Tel
 from flightstack.drivers.tello.config import SETUP_ATTEMPTS, sdk3_fix
 from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog
 from flightstack.drivers.tello.traffic import TrafficWriter
-from flightstack.drivers.tello.video_check import StreamCheck
+from flightstack.drivers.tello.video_decode import StreamDecoder
 from flightstack.drivers.tello.video_settings import unconfirmed
 from flightstack.hal import Frame, frame_truth
 from flightstack.vision.camera_file import CameraCalibration
@@ -89,9 +89,8 @@ class VideoReceiver:
         interface: str | None = None,
     ) -> None:
         """traffic: where each datagram's length and receive time are recorded (drivers/tello/traffic.py)."""
-        import av  # lazy: only hardware and its tests need PyAV
+        import av  # noqa: F401  (lazy: only hardware and its tests need PyAV; ImportError here, not later)
 
-        self._av: Any = av
         self.port = port
         self.traffic = traffic
         self.counts: Counter[str] = Counter() if counts is None else counts
@@ -104,8 +103,7 @@ class VideoReceiver:
             self._sock.close()
             raise
         self._sock.settimeout(0.1)
-        self._codec: Any = None
-        self._check = StreamCheck(self.counts)
+        self._decoder: StreamDecoder | None = None  # made at the first datagram, remade after a reader error
         self._lock = threading.Lock()
         self._latest: DecodedFrame | None = None
         self._first = threading.Event()
@@ -139,7 +137,7 @@ class VideoReceiver:
                 self._receive_one()
             except Exception as exc:
                 self.errors.record("reader_error", exc)
-                self._codec = None  # rebuilt on the next datagram: resynchronises at the next keyframe
+                self._decoder = None  # rebuilt on the next datagram: resynchronises at the next keyframe
                 self._stop.wait(ERROR_PAUSE_S)
 
     def _receive_one(self) -> None:
@@ -159,37 +157,20 @@ class VideoReceiver:
         self._decode(data)
 
     def _decode(self, data: bytes) -> None:
-        """Feed one datagram to the H.264 parser; publish every frame it completes once the stream is
+        """Feed one datagram to the stream's decoder; publish every frame it completes once the stream is
         synchronised, tagged with what tello_video_check found (module docstring)."""
-        av = self._av
-        if self._codec is None:
-            self._codec = av.CodecContext.create("h264", "r")
-            self._codec.options = {"err_detect": "aggressive"}  # flags a frame with a truncated slice
-            self._check = StreamCheck(self.counts)
-        check = self._check
-        check.datagram(data)
-        for packet in self._codec.parse(data):
-            check.access_unit(bytes(packet))
-            try:
-                frames = self._codec.decode(packet)
-            except av.error.FFmpegError as exc:  # lost datagrams, no keyframe yet: no frame from this one
-                self.errors.record("decode_error", exc, thread=False)
-                check.mark_damaged()
-                continue
-            for frame in frames:
-                if frame.is_corrupt:
-                    check.mark_damaged()
-                if not check.synced:
-                    self.counts["unsynced"] += 1
-                    continue
-                img = frame.to_ndarray(format="rgb24")
-                t = time.monotonic()
-                with self._lock:
-                    seq = 1 if self._latest is None else self._latest.seq + 1
-                    self._latest = DecodedFrame(seq, t, img, check.damaged, check.since_loss)
-                self.counts["frames"] += 1
-                self.counts["concealed"] += check.damaged
-                self._first.set()
+        if self._decoder is None:
+            self._decoder = StreamDecoder(
+                self.counts, lambda exc: self.errors.record("decode_error", exc, thread=False)
+            )
+        for img, damaged, since_loss in self._decoder.feed(data):
+            t = time.monotonic()
+            with self._lock:
+                seq = 1 if self._latest is None else self._latest.seq + 1
+                self._latest = DecodedFrame(seq, t, img, damaged, since_loss)
+            self.counts["frames"] += 1
+            self.counts["concealed"] += damaged
+            self._first.set()
 
 
 class TelloCamera:
