@@ -257,7 +257,8 @@ TRACK_PASSES = 4
 TRACK_SETTLED_PX = 0.05
 TRACK_MAX_CELLS_WRONG = 1
 """Cells of the marker (border included: 36 for a 4×4 dictionary) that may read wrong at the tracked
-corners; a concealed board greys a cell or two, another square on the floor reads a third of them wrong."""
+corners: concealment may grey a cell of the board; a square that is not the marker (a uniform floor tile)
+reads about half of them wrong by chance."""
 CELL_SAMPLES = 10
 """Pixels a cell spans in the marker warped upright for reading (`cells_wrong`); its middle 4 are read."""
 
