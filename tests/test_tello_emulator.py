@@ -713,7 +713,7 @@ def test_video_stream_decodes_rendered_frames(rig: Rig) -> None:
                 assert emu.downvision
         assert len(indices) >= 30, (len(indices), emu.errors)
         assert downward_seen, "no downward-camera frame decoded after downvision 1"
-        sent = {index for index, _ in emu.video_log}
+        sent = {index for index, _ in tuple(emu.video_log)}  # a snapshot: the video thread appends to it
         assert set(indices) <= sent
     finally:
         tello.set_video_direction(Tello.CAMERA_FORWARD)

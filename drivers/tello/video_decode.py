@@ -24,7 +24,7 @@ class StreamDecoder:
     StreamCheck's, updated here); on_decode_error: told of every frame the decoder rejected (the stream
     goes on: the next keyframe resynchronises). Raises ImportError without PyAV."""
 
-    def __init__(self, counts: Counter[str], on_decode_error: Callable[[Exception], None]) -> None:
+    def __init__(self, counts: Counter[str], on_decode_error: Callable[[Exception], object]) -> None:
         import av  # lazy: only hardware, the emulators and their tests need PyAV
 
         self._av: Any = av
