@@ -241,9 +241,7 @@ def refine_by_edges(
         if abs(np.linalg.det(A)) < 1e-9:
             return None
         corners_n[k] = np.linalg.solve(A, [d1, d2])
-    pts3 = np.column_stack([corners_n, np.ones(4)])
-    px, _ = cv2.projectPoints(pts3, np.zeros(3), np.zeros(3), cal.camera_matrix, cal.dist_coeffs)
-    refined = px.reshape(4, 2)
+    refined = distorted_pixels(corners_n, cal)
     if not np.all(np.isfinite(refined)) or np.linalg.norm(refined - quad, axis=1).max() > max_shift_px:
         return None
     return refined
