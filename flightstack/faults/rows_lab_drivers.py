@@ -395,8 +395,12 @@ def auto_land_in_flight(mission_path: Path, workdir: Path) -> FaultResult:
         after = (t_own or 0.0) + 0.5
         moving = len(rc_times(lab.tellos[2], after=after, nonzero=True))
         c.check(moving > 10, f"drone 2: {moving} non-zero rc after drone 1 began to land (it flies on)")
-        emulator_errors(lab, c)
+        # rc already on its way when drone 1 began to land by itself is ignored by it, as a real one does
+        unforeseen = {1: (t_own, t_notice + 0.01)} if t_own is not None and t_notice is not None else {}
+        emulator_errors(lab, c, unforeseen=unforeseen)
+        in_flight = [r for r in emu1.refused if unforeseen and unforeseen[1][0] <= r[0] <= unforeseen[1][1]]
         details = {
+            "rc_ignored_before_notice": len(in_flight),
             "notice_after_own_landing_ms": ms(sub(t_notice, t_own)),
             "rc_to_drone_1_after_notice": len(late),
             "drone_2_nonzero_rc_after": moving,
@@ -405,8 +409,8 @@ def auto_land_in_flight(mission_path: Path, workdir: Path) -> FaultResult:
         observed = (
             f"drone 1 began its own landing +{ms(sub(t_own, t_fault))} ms after the fault; the driver "
             f"recorded {[e.detail for e in notices]} +{details['notice_after_own_landing_ms']} ms after it; "
-            f"rc to drone 1 after that: {len(late)}; drone 2 kept flying ({moving} non-zero rc); safety "
-            f"events {details['safety_events']}"
+            f"rc to drone 1 after that: {len(late)} (ignored while it was on its way: {len(in_flight)}); "
+            f"drone 2 kept flying ({moving} non-zero rc); safety events {details['safety_events']}"
         )
         expected = (
             "the driver records `error Auto land` (error_unanswered) and sends drone 1 no rc from then on; "
