@@ -228,6 +228,98 @@ def test_the_residual_is_in_pixels_of_the_calibrated_image() -> None:
     assert v.residual_px == pytest.approx(want, rel=1e-9)
 
 
+def test_every_pose_error_of_a_level_target_is_a_similarity() -> None:
+    """The shape residual q asks nothing of the 4-DOF estimate: the target's image under 200 random errors
+    of its position (±0.2 m) and yaw (±0.5 rad), projected independently (paper.projection.measure), has
+    q < 1e-6 px against the true pose's image, however far it moved."""
+    rng = np.random.default_rng(11)
+    f = measure(G_I0, P0, CAM)
+    worst_q = moved = 0.0
+    for k in range(200):
+        gate = DetectionGate(GateSpec(), FX, 1.0)
+        dp, dyaw = rng.uniform(-0.2, 0.2, 3), rng.uniform(-0.5, 0.5)
+        x, y, z, yaw = G_I0.as_vector()
+        g = Pose.make([x + dp[0], y + dp[1], z + dp[2]], yaw + dyaw)
+        fg = measure(g, P0, CAM)
+        v = gate.check(fg, f, 0.85, 0.05 * k)
+        worst_q = max(worst_q, v.shape_px)
+        moved = max(moved, float(np.linalg.norm((fg - f).reshape(-1, 2), axis=1).max()) * FX)
+    print(f"largest shape residual {worst_q:.2e} px for images up to {moved:.0f} px away")
+    assert worst_q < 1e-6 and moved > 50.0
+
+
+def test_a_tilted_camera_changes_the_boards_shape_as_the_docstring_says() -> None:
+    """Why the shape is judged only in damaged frames: a camera tilted 5° or 10° (roll, pitch or both) over
+    the 0.2 m board 0.7 m below, the board anywhere in the 320 × 240 picture (fx = 260 px), projected by
+    OpenCV, against the level camera's image: the shape residual reaches 1.5 px and 3.1 px (the figures in
+    flightstack.vision.gate's docstring), beyond the 1.41 px shape gate of a level camera's σ."""
+    K = np.array([[FX, 0, 160], [0, FX, 120], [0, 0, 1.0]])
+    square = np.array([[0.1, 0.1, 0.0], [-0.1, 0.1, 0.0], [-0.1, -0.1, 0.0], [0.1, -0.1, 0.0]])
+    worst = {}
+    for deg in (5.0, 10.0):
+        q = 0.0
+        for cx in np.linspace(-0.2, 0.2, 5):
+            for cy in np.linspace(-0.15, 0.15, 5):
+                for axis in ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [math.sqrt(0.5), math.sqrt(0.5), 0.0]):
+                    pts = (square + np.array([cx, cy, 0.7])).reshape(-1, 1, 3)
+                    level, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, np.zeros(5))
+                    rvec = np.array(axis) * math.radians(deg)
+                    tilted, _ = cv2.projectPoints(pts, rvec, np.zeros(3), K, np.zeros(5))
+                    tilted = tilted.reshape(-1, 2)
+                    if (tilted < 0).any() or (tilted > [320, 240]).any():
+                        continue  # the board left the picture
+                    gate = DetectionGate(GateSpec(), FX, FX)
+                    v = gate.check(
+                        (tilted - [160, 120]).reshape(-1),
+                        (level.reshape(-1, 2) - [160, 120]).reshape(-1),
+                        0.7,
+                        0.0,
+                    )
+                    q = max(q, v.shape_px)
+        worst[deg] = q
+    print(f"largest shape residual of a tilted camera: {worst}")
+    assert 1.45 < worst[5.0] < 1.55 and 3.05 < worst[10.0] < 3.2
+
+
+def test_a_board_of_the_wrong_shape_in_a_damaged_frame_is_mended() -> None:
+    """After the warm-up on exact detections (σ_shape = 0), the shape gate is n_σ·σ_cal/√2 (closed form,
+    4·0.5/√2 = 1.41 px). In a frame tagged damaged, a ghost that moves one corner 4 px (within the position
+    gate) leaves q = 2 px once the frame's own similarity takes its share (half, for a square): the other
+    three fit a pose exactly, so that corner is replaced where they put it (here the true board). Two
+    corners moved apart leave no three that fit: the board is replaced by its own pose (the least-squares
+    similarity of all four: a board a pose gives, with the detection's mean offset). In a frame tagged clean
+    the one-corner ghost is taken as it is; during the warm-up too (the shape gate is open: σ_shape is learnt
+    from what the warm-up takes)."""
+    gate = DetectionGate(GateSpec(sigmas=4.0, noise_px=0.5), FX, 1.0)
+    f = measure(G_I0, P0, CAM)
+    corner = np.zeros(8)
+    corner[0] = 4.0 / FX
+    v = gate.check(f + corner, f, 0.85, 0.0, damaged=True)
+    assert v.accepted and v.shape_gate_px == math.inf and v.shape_px == pytest.approx(2.0, rel=1e-6)
+    assert v.mended is None
+    gate.reset()
+    t = _learn(gate, f, np.zeros(2), 0.0)
+    for _ in range(TRACK_WINDOW):  # a still lag: the warm-up ends
+        t += 0.05
+        v = gate.check(f, f, 0.85, t)
+    assert v.accepted and v.shape_px == pytest.approx(0.0, abs=1e-6)
+    assert v.shape_gate_px == pytest.approx(4.0 * 0.5 / math.sqrt(2.0), rel=1e-9)
+    v = gate.check(f + corner, f, 0.85, t + 0.05, damaged=True)
+    assert v.accepted and v.shape_px == pytest.approx(2.0, rel=1e-6) and v.replaced_marker == 0
+    assert v.mended is not None and v.residual_px == pytest.approx(0.0, abs=1e-6)
+    np.testing.assert_allclose(v.mended, f, atol=1e-9)
+    two = corner.copy()
+    two[3] = -4.0 / FX  # marker 1 moved down as marker 0 moves right
+    v = gate.check(f + two, f, 0.85, t + 0.1, damaged=True)
+    assert v.accepted and v.replaced_marker is None and v.mended is not None and v.shape_px > v.shape_gate_px
+    mended = DetectionGate(GateSpec(), FX, 1.0).check(v.mended, f, 0.85, 0.0)
+    assert mended.shape_px == pytest.approx(0.0, abs=1e-9)  # a board a pose gives
+    shift = ((v.mended - f) * FX).reshape(-1, 2).mean(axis=0)  # a least-squares similarity keeps the mean
+    np.testing.assert_allclose(shift, (two * FX).reshape(-1, 2).mean(axis=0), atol=1e-9)
+    v = gate.check(f + corner, f, 0.85, t + 0.15)  # a frame tagged clean: its shape is not judged
+    assert v.accepted and v.mended is None and v.shape_px == pytest.approx(2.0, rel=1e-6)
+
+
 def test_settings_out_of_range_are_refused() -> None:
     for bad in (
         {"sigmas": 0.0},

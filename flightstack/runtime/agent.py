@@ -105,6 +105,8 @@ class TickRecord:
     frame_damaged: bool = False  # the frame looked at was decoded through a detected stream loss
     gate_residual_px: float = math.nan  # the marker farthest from its prediction (px); NaN: not gated
     gate_px: float = math.nan  # the gate it was held to (px)
+    gate_shape_px: float = math.nan  # the markers' shape residual q against the prediction (px)
+    mended: bool = False  # a damaged frame's board off its shape, replaced by one a pose gives (vision.gate)
     detection_error_px: float = math.nan  # farthest marker from the truth (simulated cameras only; px)
 
 
@@ -275,6 +277,8 @@ class Agent:
             frame_damaged=frame is not None and frame.damaged,
             gate_residual_px=gated.residual_px,
             gate_px=gated.gate_px,
+            gate_shape_px=gated.shape_px,
+            mended=gated.mended,
             detection_error_px=gated.error_px,
         )
         self.last = rec
@@ -390,15 +394,27 @@ class Agent:
         self, features: np.ndarray, rejection: str | None, frame: Frame
     ) -> tuple[np.ndarray | None, str | None, _Gated]:
         """The image's features through the detection gate (flightstack.vision.gate) against `_prediction`:
-        (features or None, the rejection, what the gate saw)."""
+        (features or None, the rejection, what the gate saw). A board the gate mended (a damaged frame's,
+        off its shape) is used as mended, and its markers' pixels become the mended ones: the truth error
+        is that of the measurement the observer gets."""
         out = _Gated(error_px=_truth_error(self.markers_px, frame.truth_px))
         if self.gate is None:
             return features, rejection, out
         pred = self._prediction(frame)
         if pred is None:  # the estimate puts the target out of view
             return features, rejection, out
-        verdict = self.gate.check(features, pred[0], pred[1], frame.stamp)
-        out.residual_px, out.gate_px = verdict.residual_px, verdict.gate_px
+        verdict = self.gate.check(features, pred[0], pred[1], frame.stamp, frame.damaged)
+        out.residual_px, out.gate_px, out.shape_px = verdict.residual_px, verdict.gate_px, verdict.shape_px
+        cal = self.cfg.calibration
+        if verdict.accepted and verdict.mended is not None:
+            out.mended = True
+            lam = self.cfg.camera.focal_length
+            self.markers_px = (
+                None if cal is None else distorted_pixels(verdict.mended.reshape(-1, 2) / lam, cal)
+            )
+            out.error_px = _truth_error(self.markers_px, frame.truth_px)
+        if out.mended:
+            return verdict.mended, rejection, out
         if verdict.accepted:
             return features, rejection, out
         out.coasted = True
@@ -468,6 +484,8 @@ class _Gated:
     coasted: bool = False
     residual_px: float = math.nan
     gate_px: float = math.nan
+    shape_px: float = math.nan
+    mended: bool = False
     error_px: float = math.nan
 
 

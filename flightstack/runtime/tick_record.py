@@ -82,7 +82,8 @@ class TickBook:
 GATE_COUNTS = (
     "detections", "accepted", "rejected", "from_damaged", "accepted_damaged", "truth_known", "within_3px",
     "within_3px_accepted", "accepted_over_3px", "accepted_over_10px", "accepted_damaged_over_3px",
-    "accepted_damaged_over_10px", "tracked", "tracked_accepted", "tracked_accepted_over_3px",
+    "accepted_damaged_over_10px", "tracked", "tracked_accepted", "tracked_accepted_over_3px", "mended",
+    "mended_accepted_over_3px",
 )  # fmt: skip
 """What count_gate counts, per tick whose image gave every marker (a frame looked at twice counts twice)."""
 
@@ -98,6 +99,10 @@ def count_gate(c: Counter[str], last: TickRecord) -> None:
     if last.tracked:  # found from where the gate expected it, the detector had not (counted when it happens)
         c["tracked"] += 1
         c["tracked_accepted"] += accepted
+    if last.mended:  # counted when it happens, as tracking is
+        c["mended"] += 1
+        if accepted and err > 3.0:  # False for NaN: the truth unknown
+            c["mended_accepted_over_3px"] += 1
     if math.isnan(err):
         return
     c["truth_known"] += 1
