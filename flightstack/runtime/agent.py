@@ -106,7 +106,7 @@ class TickRecord:
     gate_residual_px: float = math.nan  # the marker farthest from its prediction (px); NaN: not gated
     gate_px: float = math.nan  # the gate it was held to (px)
     gate_shape_px: float = math.nan  # the markers' shape residual q against the prediction (px)
-    mended: bool = False  # a damaged frame's board off its shape, replaced by one a pose gives (vision.gate)
+    mended: bool = False  # a damaged frame's board had one marker off the others' shape, mended (vision.gate)
     detection_error_px: float = math.nan  # farthest marker from the truth (simulated cameras only; px)
 
 
