@@ -325,6 +325,7 @@ def take_off(f: Fleet) -> None:
                 clock.now(), None, "robot_law_start", f"the law starts at lap time {t0:.2f} s ({where})"
             )
             f.ticker.tick()  # the guardian's heartbeat: the search for the lap time held this thread
+        wait_for_poses(f)  # again: the robot's check took seconds, and takeoff refuses a pose stale now
     for d in drones.values():  # on real drones each returns at once: they climb together
         d.takeoff()
 
