@@ -46,7 +46,14 @@ from flightstack.sim_backend.emulators.tello.video import frame_datagrams, make_
 from flightstack.sim_backend.emulators.tello.view import CameraSpec, CameraView, index_area
 from flightstack.vision.camera_file import CameraCalibration, load_calibration
 from flightstack.vision.fiducial import detect_fiducial, distorted_pixels, marker_cells, refine_by_edges
-from flightstack.vision.gate import DEFAULT_NOISE_PX, GateSpec, mend_board, shape_gate_px, similarity_basis
+from flightstack.vision.gate import (
+    DEFAULT_NOISE_PX,
+    GateSpec,
+    mend_board,
+    shape_gate_px,
+    similarity_basis,
+    similarity_fit,
+)
 from flightstack.vision.picture import picture
 
 CALIBRATION = MISSION_CONFIGS / "cameras" / "tello_down_edu_sim.yaml"
@@ -175,10 +182,9 @@ def mended_pixels(
     p = cv2.undistortPoints(np.asarray(truth_px, dtype=float).reshape(-1, 1, 2), K, dist).reshape(-1, 2) * fx
     d = normalized.reshape(-1, 2) * fx - p
     M = similarity_basis(p)
-    fit = np.linalg.lstsq(M, d.reshape(-1), rcond=None)[0]
-    e = d - (M @ fit).reshape(-1, 2)
+    _, shape2 = similarity_fit(d, M)
     spec = GateSpec(noise_px=cal.rms_px or DEFAULT_NOISE_PX)
-    if float(np.sqrt((e * e).sum(axis=1)).max()) <= shape_gate_px(4, spec.sigmas, spec.noise_px):
+    if float(np.sqrt(shape2.max())) <= shape_gate_px(4, spec.sigmas, spec.noise_px):
         return False, None
     one = mend_board(d, M, shape_gate_px(3, spec.sigmas, spec.noise_px))
     return True, None if one is None else distorted_pixels((p + (M @ one[0]).reshape(-1, 2)) / fx, cal)

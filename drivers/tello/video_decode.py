@@ -44,9 +44,8 @@ class StreamDecoder:
             check.access_unit(bytes(packet))
             try:
                 frames = self._codec.decode(packet)
-            except (
-                self._av.error.FFmpegError
-            ) as exc:  # lost datagrams, no keyframe yet: no frame from this one
+            except self._av.error.FFmpegError as exc:
+                # lost datagrams, no keyframe yet: no frame from this one
                 self.on_decode_error(exc)
                 check.mark_damaged()
                 continue

@@ -426,7 +426,7 @@ def emulator_errors(
     c: Checks,
     blind: bool = False,
     unforeseen: Mapping[int, tuple[float, float]] | None = None,
-) -> None:
+) -> list[tuple[float, str, str, str]]:
     """A failed check per emulator that reported internal errors (the lab itself misbehaved) or, unless the
     row leaves the drivers `blind`, refused a command a real Tello refuses in its phase (`refused`: a land
     on the ground, rc to a drone busy in its takeoff or landing, …): what a driver that sees its drone
@@ -435,14 +435,17 @@ def emulator_errors(
     also to a drone already down (a real one answers `error Motor stop`), and that count is reported.
     unforeseen: per drone, a window (t0, t1) (monotonic s) in which the drone changed its phase by itself
     (a landing of its own) and the driver could not know yet: the rc it ignores then were sent before
-    any telemetry said so, and are not counted."""
+    any telemetry said so, and are not counted. Returns those not counted."""
+    excused: list[tuple[float, str, str, str]] = []
     for i, e in lab.tellos.items():
         c.check(not e.errors, f"emulator {i} reported errors: {e.errors[:3]}")
         t0, t1 = (unforeseen or {}).get(i, (0.0, -1.0))
-        refused = [
-            r for r in e.refused if not (t0 <= r[0] <= t1 and r[2].startswith("rc ") and r[3] == "ignored")
-        ]
+        refused: list[tuple[float, str, str, str]] = []
+        for r in e.refused:
+            unseen = t0 <= r[0] <= t1 and r[2].startswith("rc ") and r[3] == "ignored"
+            (excused if unseen else refused).append(r)
         c.check(blind or not refused, f"emulator {i} refused {len(refused)} commands: {refused[:3]}")
+    return excused
 
 
 def wait_then(lab: EmulatedLab, marks: dict[str, float], action: Callable[[], None]) -> bool:

@@ -397,8 +397,7 @@ def auto_land_in_flight(mission_path: Path, workdir: Path) -> FaultResult:
         c.check(moving > 10, f"drone 2: {moving} non-zero rc after drone 1 began to land (it flies on)")
         # rc already on its way when drone 1 began to land by itself is ignored by it, as a real one does
         unforeseen = {1: (t_own, t_notice + 0.01)} if t_own is not None and t_notice is not None else {}
-        emulator_errors(lab, c, unforeseen=unforeseen)
-        in_flight = [r for r in emu1.refused if unforeseen and unforeseen[1][0] <= r[0] <= unforeseen[1][1]]
+        in_flight = emulator_errors(lab, c, unforeseen=unforeseen)
         details = {
             "rc_ignored_before_notice": len(in_flight),
             "notice_after_own_landing_ms": ms(sub(t_notice, t_own)),

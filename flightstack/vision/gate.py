@@ -252,11 +252,7 @@ class DetectionGate:
         M = similarity_basis(p)
         first = self._learned == 0
         tau = t_capture - self._t_accepted
-        fit = (
-            np.linalg.lstsq(M, d.reshape(-1), rcond=None)[0] if np.all(np.isfinite(d)) else np.full(4, np.nan)
-        )
-        e = d - (M @ fit).reshape(-1, 2)
-        shape2 = (e * e).sum(axis=1)
+        fit, shape2 = similarity_fit(d, M)
         m = len(d)
         q, shape_gate = math.sqrt(float(shape2.max())), self.shape_gate_px(m)
         mended = replaced = None
@@ -292,6 +288,17 @@ class DetectionGate:
             self._settled = self._learned >= TRACK_WINDOW and slowed
         self._t_accepted = max(self._t_accepted, t_capture)
         return GateVerdict(True, r, gate, q, shape_gate, mended, replaced)
+
+
+def similarity_fit(d: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(θ_f, ‖e^j‖² (m,) px²): the least-squares similarity of offsets d (m, 2) (px; M their
+    similarity_basis) and what it leaves of each marker's offset (module docstring: the shape); NaN for
+    offsets that are not finite."""
+    if not np.all(np.isfinite(d)):
+        return np.full(4, np.nan), np.full(len(d), np.nan)
+    fit = np.linalg.lstsq(M, d.reshape(-1), rcond=None)[0]
+    e = d - (M @ fit).reshape(-1, 2)
+    return fit, (e * e).sum(axis=1)
 
 
 def shape_gate_px(m: int, sigmas: float, noise_px: float) -> float:
@@ -340,4 +347,5 @@ __all__ = [
     "mend_board",
     "shape_gate_px",
     "similarity_basis",
+    "similarity_fit",
 ]
