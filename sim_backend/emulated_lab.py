@@ -650,6 +650,7 @@ class EmulatedLab:
             "rover_url": self.rover.url,
         }
         hw = emulated_hardware(list(self.tellos), ports)
+        hw["max_frame_age_s"] = max_frame_age_s(m.get("links"))
         hw["mocap"]["bodies"] = {f"drone{i}": self.body(i) for i in self.tellos} | {"target": "scamper"}
         if self.places:  # access-point Tellos, each through its own interface
             hw["topology"] = "access_point"
@@ -794,6 +795,20 @@ def ms(seconds: float | None) -> float | None:
 TRUTH_INDEX_STEP = 8
 """Largest step (frames) between the bar-coded indices of two frames decoded one after the other that
 `_truth_of` believes: more is a bar code concealment smeared, not frames lost on the way."""
+
+
+def max_frame_age_s(links: Any) -> float:
+    """The emulated lab's `hardware.max_frame_age_s` (s) for a rig's `links:` section: the lab's default
+    (0.5 s, chosen on loopback, where a frame is decoded within tens of ms of its capture) after the video
+    link's longest delay (latency_s + jitter_s), as docs/links.md asks a real lab to set it above its
+    measured frame age. With the `tello` links (0.3 s + U(0, 0.1 s)) the default alone left 0.1 s, three
+    frames: on `lab-wifi` a short burst of loss made 7-19 ticks per 30 s mode "stale" whose frames were
+    0.5-0.7 s old and, carried over their delay by the compensation, still usable."""
+    from flightstack.config.hardware import HardwareSpec
+    from flightstack.config.links import LinksSpec
+
+    video = LinksSpec.model_validate(links or {}).emulated("video")
+    return float(HardwareSpec.model_fields["max_frame_age_s"].default) + video.latency_s + video.jitter_s
 
 
 def _truth_of(cam: Any) -> FrameTruth:

@@ -49,3 +49,17 @@ def test_a_link_named_in_the_rig_replaces_the_profiles_and_bad_values_are_refuse
     for bad in ({"profile": "wifi"}, {"video": {"loss": 1.0}}, {"rc": {"latency_s": -0.1}}):
         with pytest.raises(MissionError, match="links"):
             _lab(bad)
+
+
+def test_the_emulated_lab_counts_a_frame_stale_only_past_its_video_links_longest_delay() -> None:
+    """The emulated lab's hardware.max_frame_age_s: the lab's default (chosen on loopback) after the
+    longest delay the rig's video link gives a frame (docs/links.md asks a real lab the same)."""
+    from flightstack.config.hardware import HardwareSpec
+    from flightstack.sim_backend.emulated_lab import max_frame_age_s
+
+    default = HardwareSpec.model_fields["max_frame_age_s"].default
+    tello = PROFILES["tello"]["video"]
+    assert max_frame_age_s(None) == max_frame_age_s({"profile": "perfect"}) == default
+    assert max_frame_age_s({"profile": "tello"}) == pytest.approx(default + tello.latency_s + tello.jitter_s)
+    written = {"profile": "tello", "video": {"latency_s": 0.2, "jitter_s": 0.05, "rate_hz": 30.0}}
+    assert max_frame_age_s(written) == pytest.approx(default + 0.25)
