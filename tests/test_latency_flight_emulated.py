@@ -5,9 +5,10 @@ poses. The flight takes off, holds its station over the target, yaws in the patt
 and lands.
 
 Truth: each frame's bar-coded index names its record in the emulated Tello's capture log (true capture
-time, time sent); each rc level's first datagram acted on is in its `rc_history`, and its motion starts
-half a physics step (TICK_S, 10 ms) before that on average: the step after it integrates the new
-velocity over the whole step. The recovered camera
+time, time sent); each rc level's motion starts at the start of the physics step that first integrates
+it (the emulator's `rc_acted`: the step moves by its mean velocity from its start; on average half a step,
+TICK_S / 2 = 5 ms, before the datagram's receipt, more when a loaded machine runs the step late). The
+recovered camera
 latency (capture → decoded) is within ±10 ms of the true mean of the frames used, the rc latency within
 ±10 ms of the true one. And the command itself, in a child process with a timeout: it writes a links file
 that a rig includes (`links: {include: FILE}`).
@@ -113,7 +114,7 @@ def test_the_flown_calibration_recovers_the_emulated_latencies(tmp_path: Path, s
         wall = time.perf_counter() - wall0
         emu = lab.tellos[mission.drones[0].id]
         log = list(emu.video_capture_log)
-        history = list(emu.rc_history)
+        acted = list(emu.rc_acted)
     v_est, r_est = video.estimate(), rc.estimate()
     ages = [true_age(log, t, seen[t]) for t in video.t_frames if t in seen]
     truth = np.array([a for a in ages if a is not None])
@@ -122,9 +123,9 @@ def test_the_flown_calibration_recovers_the_emulated_latencies(tmp_path: Path, s
     r_truth = []
     for k in np.flatnonzero(np.diff(rc.cmd) != 0) + 1:
         yaw_rc = velocity_to_rc(np.array([0.0, 0.0, 0.0, rc.cmd[k]]), gains)[3]
-        acted = [t for t, c in history if t >= rc.t_cmd[k] and c[3] == yaw_rc]
-        if acted:
-            r_truth.append(acted[0] - TelloEmulator.TICK_S / 2 - rc.t_cmd[k])
+        began = [t for t, c in acted if t >= rc.t_cmd[k] - TelloEmulator.MAX_STEP_S and c[3] == yaw_rc]
+        if began:
+            r_truth.append(began[0] - rc.t_cmd[k])
     r_true = np.array(r_truth)
     r_err_ms = 1e3 * (r_est.mean_s - r_true.mean())
     print(

@@ -61,6 +61,8 @@ class TelloEmulatorBase:
     DRAIN_FLYING_PCT_S = 0.12
     DRAIN_IDLE_PCT_S = 0.01
     TICK_S = 0.01
+    MAX_STEP_S = 0.1
+    """The longest physics step (s): a late step (a loaded machine) integrates at most this long."""
 
     def __init__(
         self,
@@ -186,6 +188,11 @@ class TelloEmulatorBase:
         self.senders: list[tuple[float, str, tuple[str, int]]] = []
         """``(time.monotonic(), text, sender (ip, port))`` of every datagram, as ``commands``."""
         self.rc_history: list[tuple[float, tuple[int, int, int, int]]] = []
+        self.rc_acted: list[tuple[float, tuple[int, int, int, int]]] = []
+        """``(start of the physics step, (a, b, c, d))`` of every change of the rc the flying drone acts on:
+        the step integrates it from its start (its mean velocity over the step), so this is when the motion
+        it commands begins (the truth a latency calibration is judged by; a late step on a loaded machine
+        starts earlier before the receipt than TICK_S / 2)."""
         self.errors: list[str] = []
         """Problems inside the emulator (frame source, encoder, sockets); empty in a healthy run."""
         self.rejected: list[str] = []

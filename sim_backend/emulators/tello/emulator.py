@@ -34,7 +34,9 @@ class TelloEmulator(TelloCommands, TelloVideoStream):
 
     Public, thread-safe read access: ``commands`` (``(time.monotonic(), text)`` of every datagram),
     ``senders`` (the same with the sender's ``(ip, port)``),
-    ``rc_history`` (``(time, (a, b, c, d))`` of every valid ``rc``), ``phase_log`` (``(time, phase)`` of every
+    ``rc_history`` (``(time, (a, b, c, d))`` of every valid ``rc``), ``rc_acted`` (``(time, (a, b, c, d))``
+    of every change of the rc the flying drone's physics acts on, from the start of the step that first
+    integrates it), ``phase_log`` (``(time, phase)`` of every
     phase transition), ``refused`` (``(time, phase at receipt, text, reply or "ignored")`` of every command
     the drone did not carry out), ``replies_sent`` (``(time, text, "normal" | "duplicate")`` of every reply
     sent), ``uplink_lost`` / ``downlink_lost`` (datagrams a link or power fault lost), ``power_log``,

@@ -153,6 +153,9 @@ class TelloPhysics(TelloEmulatorBase):
                     self._start_phase("landing", now, self.land_s)
                     self._own_landing_notice(now)
                     return
+                acting = (int(self._rc[0]), int(self._rc[1]), int(self._rc[2]), int(self._rc[3]))
+                if not self.rc_acted or self.rc_acted[-1][1] != acting:
+                    self.rc_acted.append((now - dt, acting))
                 alpha = 1.0 - math.exp(-dt / max(self.tau_s, 1e-6))
                 previous = self._vel_body.copy()
                 self._vel_body += alpha * (self._rc - self._vel_body)
@@ -227,7 +230,7 @@ class TelloPhysics(TelloEmulatorBase):
             now = time.monotonic()
             self._power(now)
             if not self._powered_off:
-                self._step(now, min(max(now - last, 1e-4), 0.1))
+                self._step(now, min(max(now - last, 1e-4), self.MAX_STEP_S))
             last = now
             if now < next_state:
                 continue
