@@ -1,1 +1,4 @@
-"""Hardware drivers (Tello, motion capture, Scamper) behind flightstack.hal. Filled by later issues."""
+"""Hardware drivers behind flightstack.hal: the Tello (`tello/`: UDP control, state, video), motion
+capture (`mocap.py`), the Scamper over MAVLink (`scamper*.py`) and the guardian process that lands the
+drones when a flight dies (`guardian*.py`); beside them, for now, the real lab's assembly (`hardware.py`)
+and its operator tools (`preflight.py`, `guard.py`, `target_run.py`)."""

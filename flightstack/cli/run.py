@@ -1,6 +1,6 @@
-"""`flightstack run EXPERIMENT --rig RIG` (and its older spellings `sim` and `fly`) and `validate`: one
-experiment, any rig (flightstack.config.rig). A simulated rig flies at once; the emulated-lab rig starts
-its loopback emulators first; a real lab is preflighted and confirmed."""
+"""`flightstack run EXPERIMENT --rig RIG` (and its older spellings `sim` and `fly`): one experiment, any
+rig (flightstack.config.rig). A simulated rig flies at once; the emulated-lab rig starts its loopback
+emulators first; a real lab is preflighted and confirmed. (`validate`: flightstack.cli.validate.)"""
 
 from __future__ import annotations
 
