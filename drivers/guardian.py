@@ -59,6 +59,10 @@ GUARDIAN_SILENT_S = 1.0
 """The parent counts its guardian as lost after this long without a byte from it (s): 10 beats, so that
 a guardian descheduled on a loaded computer is not mistaken for a dead one (a dead one closes the pipe,
 which is seen at once)."""
+GUARDIAN_READY_S = 30.0
+"""How long (s) the flight waits for a new guardian's `ready` before it refuses to fly. Nothing has taken
+off yet, so waiting costs only time; 10 s was too short beside a CPU-bound process on a 2-core machine
+(load 8: the guardian's interpreter and imports did not finish)."""
 ENTRY_ENV = "GUARDIAN_ENTRY"
 """The environment variable naming the module the guardian runs (`main()`), read by BOOTSTRAP."""
 ENTRY_MODULE = "flightstack.drivers.guardian_process"
@@ -355,7 +359,7 @@ class Guardian:
         return self.proc.pid
 
     @classmethod
-    def start(cls, cfg: GuardianConfig, ready_timeout_s: float = 10.0) -> Guardian:
+    def start(cls, cfg: GuardianConfig, ready_timeout_s: float = GUARDIAN_READY_S) -> Guardian:
         """Launch the guardian, send it `cfg`, wait ≤ ready_timeout_s for its `ready`; GuardianError else."""
         own = not cfg.flag_path
         if own:
