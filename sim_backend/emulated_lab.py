@@ -53,7 +53,7 @@ from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
 from flightstack.sim_backend.emulators.tello.recorded import LAND_OK_S, LAND_TOUCHDOWN_S, TAKEOFF_OK_S
 
 if TYPE_CHECKING:
-    from flightstack.config.links import LinksSpec
+    from flightstack.config.links import LinkSpec, LinksSpec
 
 LAB_IDS = (1, 2)
 """The drones of the fault table's lab."""
@@ -650,7 +650,7 @@ class EmulatedLab:
             "rover_url": self.rover.url,
         }
         hw = emulated_hardware(list(self.tellos), ports)
-        hw["max_frame_age_s"] = max_frame_age_s(m.get("links"))
+        hw["max_frame_age_s"] = max_frame_age_s(self.link_specs.get("video"))
         hw["mocap"]["bodies"] = {f"drone{i}": self.body(i) for i in self.tellos} | {"target": "scamper"}
         if self.places:  # access-point Tellos, each through its own interface
             hw["topology"] = "access_point"
@@ -797,18 +797,17 @@ TRUTH_INDEX_STEP = 8
 `_truth_of` believes: more is a bar code concealment smeared, not frames lost on the way."""
 
 
-def max_frame_age_s(links: Any) -> float:
-    """The emulated lab's `hardware.max_frame_age_s` (s) for a rig's `links:` section: the lab's default
-    (0.5 s, chosen on loopback, where a frame is decoded within tens of ms of its capture) after the video
-    link's longest delay (latency_s + jitter_s), as docs/links.md asks a real lab to set it above its
-    measured frame age. With the `tello` links (0.3 s + U(0, 0.1 s)) the default alone left 0.1 s, three
-    frames: on `lab-wifi` a short burst of loss made 7-19 ticks per 30 s mode "stale" whose frames were
-    0.5-0.7 s old and, carried over their delay by the compensation, still usable."""
+def max_frame_age_s(video: LinkSpec | None) -> float:
+    """The emulated lab's `hardware.max_frame_age_s` (s) for the video link its emulators apply (None: a
+    perfect one): the lab's default (0.5 s, chosen on loopback, where a frame is decoded within tens of ms
+    of its capture) after the link's longest delay (latency_s + jitter_s), as docs/links.md asks a real lab
+    to set it above its measured frame age. With the `tello` links (0.3 s + U(0, 0.1 s)) the default alone
+    left 0.1 s, three frames: on `lab-wifi` a short burst of loss made 7-19 ticks per 30 s mode "stale"
+    whose frames were 0.5-0.7 s old and, carried over their delay by the compensation, still usable."""
     from flightstack.config.hardware import HardwareSpec
-    from flightstack.config.links import LinksSpec
 
-    video = LinksSpec.model_validate(links or {}).emulated("video")
-    return float(HardwareSpec.model_fields["max_frame_age_s"].default) + video.latency_s + video.jitter_s
+    delay = 0.0 if video is None else video.latency_s + video.jitter_s
+    return float(HardwareSpec.model_fields["max_frame_age_s"].default) + delay
 
 
 def _truth_of(cam: Any) -> FrameTruth:

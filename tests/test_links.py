@@ -53,13 +53,18 @@ def test_a_link_named_in_the_rig_replaces_the_profiles_and_bad_values_are_refuse
 
 def test_the_emulated_lab_counts_a_frame_stale_only_past_its_video_links_longest_delay() -> None:
     """The emulated lab's hardware.max_frame_age_s: the lab's default (chosen on loopback) after the
-    longest delay the rig's video link gives a frame (docs/links.md asks a real lab the same)."""
+    longest delay the video link its emulators apply gives a frame (docs/links.md asks a real lab the
+    same)."""
     from flightstack.config.hardware import HardwareSpec
     from flightstack.sim_backend.emulated_lab import max_frame_age_s
+    from flightstack.sim_backend.emulators.device_links import emulated_links
+
+    def bound(links: dict[str, object]) -> float:
+        return max_frame_age_s(emulated_links(LinksSpec.model_validate(links)).get("video"))
 
     default = HardwareSpec.model_fields["max_frame_age_s"].default
     tello = PROFILES["tello"]["video"]
-    assert max_frame_age_s(None) == max_frame_age_s({"profile": "perfect"}) == default
-    assert max_frame_age_s({"profile": "tello"}) == pytest.approx(default + tello.latency_s + tello.jitter_s)
+    assert max_frame_age_s(None) == bound({}) == bound({"profile": "perfect"}) == default
+    assert bound({"profile": "tello"}) == pytest.approx(default + tello.latency_s + tello.jitter_s)
     written = {"profile": "tello", "video": {"latency_s": 0.2, "jitter_s": 0.05, "rate_hz": 30.0}}
-    assert max_frame_age_s(written) == pytest.approx(default + 0.25)
+    assert bound(written) == pytest.approx(default + 0.25)
