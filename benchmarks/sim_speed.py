@@ -37,9 +37,9 @@ from flightstack.paper.gp import GPExpert, GPHyperparameters
 from flightstack.paper.gp_fit import LOG_LENGTH_BOUNDS, LOG_SIGMA_F_BOUNDS, fit_hyperparameters
 from flightstack.paper.kernels_warmup import warm_up
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch
-from flightstack.runtime.backends import build_backend
 from flightstack.runtime.fleet import make_agents
 from flightstack.runtime.flight import Flight
+from flightstack.runtime.rig import build_backend
 
 NOISE_VAR = 0.01  # σ_n², the paper's data specification
 LO, HI = np.array([-2.0, -1.5, -0.05, -math.pi]), np.array([1.9, 1.5, 0.05, math.pi])  # the path's box

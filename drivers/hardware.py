@@ -43,7 +43,7 @@ from flightstack.recording.files import DeviceFiles
 from flightstack.vision.camera_file import load_calibration
 
 if TYPE_CHECKING:
-    from flightstack.runtime.backends import AgentSeat
+    from flightstack.runtime.rig import AgentSeat
 
 LOG = logging.getLogger("flightstack.hardware")
 
@@ -322,7 +322,7 @@ def build_tello(mission: Mission, devices: DeviceFiles | None = None) -> Hardwar
 
 @contextlib.contextmanager
 def agent_backend(mission: Mission, seat: AgentSeat) -> Iterator[HardwareBackend]:
-    """AGENT_REGISTRY builder of the lab: this agent's drone (with its guardian logging to
+    """The lab rig's agent backend (drivers/lab/rig.py): this agent's drone (with its guardian logging to
     `seat.guardian_log`), motion capture and, where the mission has one, the robot. The run lands and
     closes it (`close()`); if the agent fails before the run takes it over (e.g. keeping the computer
     awake fails), it is closed here so that no armed robot or running guardian is left behind."""

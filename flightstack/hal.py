@@ -189,9 +189,10 @@ class Backend(Protocol):
     hardware (real time; closing the drivers lands the drones).
     """
 
-    clock: Clock
     simulated: bool
 
+    @property
+    def clock(self) -> Clock: ...  # read-only: a backend's own clock type (VirtualClock, WallClock) is one
     def drone(self, drone_id: int) -> Drone: ...
     def camera(self, drone_id: int) -> Camera: ...
     def pose_source(self) -> PoseSource: ...

@@ -47,7 +47,7 @@ from flightstack.config.mission import load_mission
 from flightstack.drivers.guard import AgentWatch, Guard, GuardSummary
 from flightstack.events import Event
 from flightstack.hal import DroneState, Frame, StampedPose
-from flightstack.runtime.backends import build_backend
+from flightstack.runtime.rig import build_backend
 from flightstack.sim_backend.served import messages as wm
 from flightstack.sim_backend.served.client import (
     RemoteBackend,

@@ -31,7 +31,7 @@ from flightstack.comms.messages import PredictionMessage
 from flightstack.comms.zenoh_bus import ZenohBus, ZenohBusConfig
 from flightstack.config.mission import load_mission
 from flightstack.faults.rows_processes import IDS, Lines, ServedRun, popen, served_mission
-from flightstack.runtime.backends import build_backend
+from flightstack.runtime.rig import build_backend
 from flightstack.sim_backend.served import messages as wm
 from flightstack.sim_backend.served.client import _Link
 from flightstack.sim_backend.served.server import WorldServer, WorldSummary

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -33,7 +34,7 @@ from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
 from flightstack.sim_backend.emulators.natnet import NatNetEmulator
 from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator
 from flightstack.vision.camera_file import load_calibration
-from tests.conftest import MISSIONS
+from tests.conftest import MISSIONS, run_cli
 from tests.test_tello_driver import marker_frame
 
 CAL_SRC = MISSIONS / "cameras" / "tello_down_sim.yaml"
@@ -282,6 +283,20 @@ def test_target_command_drives_a_quarter_lap(lab: Lab, capsys: pytest.CaptureFix
     print(f"quarter lap ended at ({x:.3f}, {y:.3f}) m")
     assert abs(x - 0.5) < 0.05 and abs(y + 0.5) < 0.05  # one side of the square: (-0.5,-0.5) → (0.5,-0.5)
     assert not lab.rover.armed  # stopped and disarmed on exit
+
+
+def test_target_opens_the_emulated_lab_rig_like_every_command() -> None:
+    """`flightstack target EXPERIMENT --rig emulated-lab` starts the rig's emulators itself (Rig.open), as
+    `run` does, and drives the emulated robot a quarter lap of paper_experiment's square."""
+    res = run_cli(
+        "target", "mission_configs/paper_experiment.yaml", "--rig", "emulated-lab", "--laps", "0.25", "--yes",
+        timeout=120,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stdout + res.stderr
+    summary = next(line for line in res.stdout.splitlines() if "laps in" in line)
+    print(summary)
+    measured, commanded = (float(v) for v in re.findall(r"([\d.]+) m (?:measured|commanded)", summary))
+    assert "ended by duration" in summary and abs(measured - commanded) < 0.05 * commanded
 
 
 def test_fly_a_short_mission_on_the_emulated_lab(lab: Lab, capsys: pytest.CaptureFixture[str]) -> None:

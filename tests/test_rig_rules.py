@@ -147,7 +147,7 @@ def test_set_never_changes_which_rig_it_is(tmp_path: Path, capsys: pytest.Captur
     code, err = run(tmp_path, capsys, "emulated-lab", "compensation.response_s=0.1", "start_emulators=false")
     assert code == 2 and "start_emulators: the rig's own (True)" in one_line(err)
     code, err = run(tmp_path, capsys, "lab-sim", "start_emulators=true")
-    assert code == 2 and "start_emulators: the rig's own (False)" in one_line(err)
+    assert code == 2 and "start_emulators: no emulators for backend 'sim_lab'" in one_line(err)
 
 
 # ---- rig files: the same rules -----------------------------------------------------------------------------

@@ -154,7 +154,7 @@ def write_plots(
         return paths
     ref = recs.get("none") or next(iter(recs.values()))
     p = out / PLOTS["trajectory"]
-    plot_trajectory(p, mission, ref, data, show_drones=mission.backend != "sim_ideal")
+    plot_trajectory(p, mission, ref, data, show_drones=mission.rig_type.plots_drones)
     paths.append(p)
     shown = {m: r for m, r in recs.items() if m in mission.compare_modes}
     for which in ("c", "e"):

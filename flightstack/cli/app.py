@@ -17,11 +17,14 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import argcomplete
 
 from flightstack import threads
+
+if TYPE_CHECKING:
+    from flightstack.config.mission import Mission
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -97,14 +100,11 @@ def cmd_preflight(args: argparse.Namespace) -> int:
 
 
 def cmd_target(args: argparse.Namespace) -> int:
-    """Drive the real robot on the mission's square law from its motion-capture pose (drivers/target_run)."""
+    """Drive the rig's robot on the mission's square law from its motion-capture pose (drivers/target_run);
+    the rig is opened first, as for a flight (the emulated lab starts its emulators)."""
     from flightstack.cli.run import _confirm
     from flightstack.config.mission import load_mission
-    from flightstack.drivers.guardian import Guardian, GuardianConfig
-    from flightstack.drivers.hardware import body_names, mocap_config, scamper_config
-    from flightstack.drivers.mocap import MocapPoseSource
-    from flightstack.drivers.scamper import ScamperDriver
-    from flightstack.drivers.target_run import drive_square, lap_summary
+    from flightstack.runtime.rig import opened
 
     mission = load_mission(args.mission, check_files=False, rig=args.rig)
     if mission.hardware is None or mission.hardware.target is None:
@@ -118,6 +118,19 @@ def cmd_target(args: argparse.Namespace) -> int:
     ):
         print("aborted", file=sys.stderr)
         return 1
+    with opened(mission) as flown:
+        return _drive_target(flown, duration)
+
+
+def _drive_target(mission: Mission, duration: float) -> int:
+    """`target` on an opened rig: the robot driven `duration` s (s) under its guardian."""
+    from flightstack.drivers.guardian import Guardian, GuardianConfig
+    from flightstack.drivers.hardware import body_names, mocap_config, scamper_config
+    from flightstack.drivers.mocap import MocapPoseSource
+    from flightstack.drivers.scamper import ScamperDriver
+    from flightstack.drivers.target_run import drive_square, lap_summary
+
+    law = mission.target_law()
     sc = scamper_config(mission)
     assert sc is not None
     mocap = MocapPoseSource(mocap_config(mission))

@@ -471,11 +471,11 @@ class DurationHelp(str):
     MINIMUM = "the minimum of its experiment"
 
     def __mod__(self, params: object) -> str:
-        from flightstack.config.rig import BUILTIN_EXPERIMENTS
+        from flightstack.config.rig import builtin_names
         from flightstack.learning.training import minimum_duration
 
         parts = []
-        for name in BUILTIN_EXPERIMENTS:
+        for name in builtin_names("experiment"):
             least = minimum_duration(load_mission(name))
             parts.append(f"{least:g} s for {name}" if least is not None else f"none for {name}")
         return str(self).replace(self.MINIMUM, ", ".join(parts))

@@ -27,15 +27,15 @@ from pydantic import (
 
 from flightstack.config.bus import BusSpec
 from flightstack.config.compensation import (
-    EMULATED_TELLO_RESPONSE_S,
     CompensationSpec,
     stand_in_problem,
     told,
 )
 from flightstack.config.hardware import HardwareSpec
-from flightstack.config.links import NONE, LinkSpec, LinksSpec
+from flightstack.config.links import LinksSpec
 from flightstack.config.rig import problem_list
 from flightstack.config.rig_rules import safety_off_problem
+from flightstack.config.rigs import RIGS, RigFacts, backends, rig_for
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 from flightstack.config.types import Angle, Coordinate, Distance, Finite, Mode, Speed
 from flightstack.config.types import Strict as _Strict
@@ -260,7 +260,7 @@ class Mission(_Strict):
     description: str = ""
     rig: str = ""  # the rig it was composed with (flightstack.config.rig); "" if built without one
     start_emulators: bool = False  # the emulated-lab rig: `run` starts loopback emulators for `hardware`
-    backend: Literal["sim_ideal", "sim_lab", "tello"] = "sim_ideal"
+    backend: str = "sim_ideal"  # the rig's name in flightstack.config.rigs.RIGS
     seed: int = Field(default=0, ge=0, le=2**32 - 1)  # numpy's generators take 0 .. 2³²−1
     duration_s: Annotated[float, Field(gt=0, le=86400, allow_inf_nan=False)]
     dt_s: Annotated[float, Field(ge=1e-4, le=1.0, allow_inf_nan=False)]  # 0.1 ms .. 1 s
@@ -281,15 +281,19 @@ class Mission(_Strict):
     network: str = "clean"  # the emulated lab's impairment profile (flightstack.netem.PROFILES)
     _base_dir: Path = PrivateAttr(default=Path("."))
 
+    @property
+    def rig_type(self) -> RigFacts:
+        """The rig this mission flies on (flightstack.config.rigs; backend and start_emulators name it)."""
+        return rig_for(self.backend, self.start_emulators)
+
     def robot_kinematics(self) -> str:
-        """The ground robot's kinematics (flightstack.paper.target_law.KINEMATICS): the rig's
-        `robot.kinematics`, else `omni` on the ideal rig (the paper's idealised target, which the
-        Duffing-like field and eq. scamper_vel move sideways) and `differential` on every other rig (an
-        ArduPilot Rover never moves sideways on a velocity set-point; docs/drivers.md)."""
+        """The ground robot's kinematics (flightstack.paper.target_law.KINEMATICS): the rig file's
+        `robot.kinematics`, else the rig's default (`omni` on the ideal rig: the paper's idealised target,
+        which the Duffing-like field and eq. scamper_vel move sideways)."""
         k = self.target.robot.kinematics
         if k is not None:
             return k
-        return "omni" if self.backend == "sim_ideal" else "differential"
+        return self.rig_type.default_kinematics
 
     def target_law_name(self) -> str:
         """The square law the robot is driven on (target.square.law; unset: `paper` for an omni robot,
@@ -342,24 +346,13 @@ class Mission(_Strict):
 
     def delay_compensation(self) -> Compensation | None:
         """What each agent's delay compensation is told (None: off, the paper's law). Unset latencies
-        come from the rig: the rc link's mean delay (as the emulated lab applies it, on that rig), and the
-        simulated (sim.tello) or emulated Tello's response; the ideal rig's drones move as commanded
-        (both 0). On hardware response_s is required (validation)."""
+        come from the rig (RigFacts.command_link, drone_response_s); on hardware response_s is required
+        (validation)."""
         c = self.compensation
         if not c.enabled:
             return None
-        if self.backend == "sim_ideal":
-            return told(c, NONE, 0.0)
-        sim_lab = self.backend == "sim_lab"
-        response_s = self.sim.tello.time_constant_s if sim_lab else EMULATED_TELLO_RESPONSE_S
-        return told(c, self._compensated_rc(), response_s)
-
-    def _compensated_rc(self) -> LinkSpec:
-        """The rc link whose mean delay stands in for an unset compensation.command_delay_s (as the
-        emulated lab applies it, on that rig; none on the ideal rig)."""
-        if self.backend == "sim_ideal":
-            return NONE
-        return self.links.emulated("rc") if self.start_emulators else self.links.link("rc")
+        rig = self.rig_type
+        return told(c, rig.command_link(self), rig.drone_response_s(self))
 
     def resolve(self, relative: str) -> Path:
         """A path from the mission file (calibrations, experts) made absolute against its directory."""
@@ -375,6 +368,13 @@ class Mission(_Strict):
                 "drones and a complete graph's lock-step tick exchanges n(n − 1) messages; the scaling "
                 "missions fly 31)"
             )
+        return v
+
+    @field_validator("backend")
+    @classmethod
+    def _known_backend(cls, v: str) -> str:
+        if v not in RIGS:
+            raise ValueError(f"unknown backend {v!r}; known: {', '.join(backends())}")
         return v
 
     @field_validator("network")
@@ -398,7 +398,11 @@ class Mission(_Strict):
 
     @model_validator(mode="after")
     def _consistent(self) -> Mission:
-        off = safety_off_problem(self.backend, self.safety.enabled)  # the rig's rule, whatever set the value
+        try:
+            rig = self.rig_type  # the backend is known (_known_backend): this asks for its emulators
+        except ValueError as exc:
+            raise ValueError(f"start_emulators: {exc}") from None
+        off = safety_off_problem(rig, self.safety.enabled)  # the rig's rule, whatever set the value
         if off is not None:
             raise ValueError(off)
         if self.duration_s / self.dt_s > MAX_TICKS:
@@ -406,7 +410,7 @@ class Mission(_Strict):
                 f"duration_s / dt_s: {self.duration_s / self.dt_s:.3g} ticks per mode; at most {MAX_TICKS:g} "
                 "(the recording holds every tick in memory)"
             )
-        if self.network != "clean" and self.backend != "tello":
+        if self.network != "clean" and not rig.applies_network_profile:
             raise ValueError(
                 f"network: profile {self.network!r} is applied by the emulated lab's emulators only "
                 "(rig emulated-lab); a simulated rig's links are its own (sim:)"
@@ -432,23 +436,13 @@ class Mission(_Strict):
         self._check_sampled_loop()
         self._check_robot()
         c = self.compensation
-        if c.enabled and (why := stand_in_problem(c, self._compensated_rc())) is not None:
+        if c.enabled and (why := stand_in_problem(c, rig.command_link(self))) is not None:
             raise ValueError(why)
-        if c.enabled and self.backend == "tello" and not self.start_emulators and c.response_s is None:
+        if self.hardware is not None and not rig.has_devices:
             raise ValueError(
-                "compensation.response_s: required on hardware (the drone's velocity response time "
-                "constant, s; flightstack calibrate latency measures it)"
+                f"hardware: only used by a rig of devices (this mission: backend {self.backend!r})"
             )
-        if self.backend == "sim_lab":
-            if self.target.motion != "square":
-                raise ValueError("target.motion: the sim_lab backend drives the robot on the 'square' law")
-            for d in self.drones:
-                if d.camera is None or d.camera.calibration is None:
-                    raise ValueError(f"drones: drone {d.id} needs a camera (calibration, mount) on sim_lab")
-        if self.backend == "tello":
-            self._check_hardware(ids)
-        elif self.hardware is not None:
-            raise ValueError(f"hardware: only used by backend 'tello' (this mission: {self.backend!r})")
+        rig.check(self)
         return self
 
     def _check_sampled_loop(self) -> None:
@@ -466,24 +460,6 @@ class Mission(_Strict):
                 "of the graph); lower gains.k_c, gains.k_e, gains.k_s or dt_s"
             )
 
-    def _check_hardware(self, ids: list[int]) -> None:
-        if self.hardware is None:
-            raise ValueError("hardware: backend 'tello' needs a hardware section (drone IPs, mocap, robot)")
-        hw_ids = sorted(d.id for d in self.hardware.drones)
-        if hw_ids != sorted(ids):
-            raise ValueError(f"hardware.drones: ids {hw_ids} must be exactly the drones' ids {sorted(ids)}")
-        if self.target.motion != "square":
-            raise ValueError("target.motion: real robots are driven on the 'square' law")
-        for d in self.drones:
-            if d.camera is None or d.camera.calibration is None:
-                raise ValueError(f"drones: drone {d.id} needs a camera (calibration, mount) on real hardware")
-        z = self.bus.zenoh
-        if self.bus.kind == "zenoh" and z is not None and z.security != "mtls":
-            raise ValueError(
-                "bus.zenoh.security: real drones fly only on an authenticated bus (mtls with the "
-                "certificates of `flightstack certs`); plaintext is for simulations on one computer"
-            )
-
     def flown_modes(self) -> list[str]:
         """The modes a run flies, in order: the data run `none` first when a GP mode needs experts that
         are not given (gp.experts_file)."""
@@ -499,7 +475,8 @@ class Mission(_Strict):
 
     @property
     def simulated(self) -> bool:
-        return self.backend != "tello"
+        """A simulated clock and physics (RigFacts.simulated)."""
+        return self.rig_type.simulated
 
     def camera_model(self, index: int) -> CameraModel:
         """The camera model of drone `index` (its observer's and, on the ideal rig, its exact camera's): the

@@ -25,13 +25,12 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from flightstack.config.rigs import EMULATED, RIGS, backends, no_emulators, rig_for
 from flightstack.safe_yaml import LoadError, load_yaml
 
 PACKAGE = "flightstack.mission_configs"
-BUILTIN_EXPERIMENTS = ("paper_sim", "paper_experiment", "scaling_11", "scaling_31")
 MISSION_CONFIGS = Path(str(resources.files(PACKAGE)))
 """Where the built-in experiments, rigs (rigs/) and camera files (cameras/) are: package data."""
-BUILTIN_RIGS = ("ideal", "lab-sim", "emulated-lab", "lab")
 
 EXPERIMENT_KEYS = frozenset(
     {
@@ -50,7 +49,6 @@ RIG_KEYS = frozenset(
 )  # fmt: skip
 """Top-level keys of a rig file."""
 RIG_DRONE_KEYS = frozenset({"id", "camera", "rc_gains"})
-BACKENDS = ("sim_ideal", "sim_lab", "tello")
 
 
 class RigError(ValueError):
@@ -77,14 +75,16 @@ class Source:
         return self.path.resolve().parent
 
 
+def builtin_names(kind: str) -> list[str]:
+    """The built-in experiments (`kind` 'experiment') or rigs ('rig'): the package's files, by name."""
+    root = MISSION_CONFIGS if kind == "experiment" else MISSION_CONFIGS / "rigs"
+    return sorted(p.stem for p in root.glob("*.yaml"))
+
+
 def builtin_path(name: str, kind: str) -> Path | None:
     """The package-data file of a built-in experiment (`kind` 'experiment') or rig ('rig'), or None."""
-    names = BUILTIN_EXPERIMENTS if kind == "experiment" else BUILTIN_RIGS
-    if name not in names:
-        return None
-    root = resources.files(PACKAGE)
-    p = root / (f"{name}.yaml" if kind == "experiment" else f"rigs/{name}.yaml")
-    return Path(str(p))
+    p = MISSION_CONFIGS / (f"{name}.yaml" if kind == "experiment" else f"rigs/{name}.yaml")
+    return p if name in builtin_names(kind) else None
 
 
 def find(name_or_path: str | Path, kind: str) -> Path:
@@ -96,8 +96,8 @@ def find(name_or_path: str | Path, kind: str) -> Path:
     p = Path(text)
     if p.is_file() or p.suffix in (".yaml", ".yml", ".json") or "/" in text:
         return p
-    names = BUILTIN_EXPERIMENTS if kind == "experiment" else BUILTIN_RIGS
-    raise RigError(f"{text}: no such file and not a built-in {kind} (built-in: {', '.join(names)})")
+    names = ", ".join(builtin_names(kind))
+    raise RigError(f"{text}: no such file and not a built-in {kind} (built-in: {names})")
 
 
 def read(path: Path, what: str) -> Source:
@@ -166,10 +166,12 @@ def check_rig(src: Source) -> None:
     ]
     if not isinstance(d.get("rig"), str) or not d.get("rig"):
         problems.append(f"{src.path}: rig: required, the rig's name")
-    if d.get("backend") not in BACKENDS:
+    if not isinstance(d.get("backend"), str) or d["backend"] not in RIGS:
         problems.append(
-            f"{src.path}: backend: must be one of {', '.join(BACKENDS)}, got {d.get('backend')!r}"
+            f"{src.path}: backend: must be one of {', '.join(backends())}, got {d.get('backend')!r}"
         )
+    elif "emulated" in d and d["backend"] not in EMULATED:
+        problems.append(f"{src.path}: emulated: {no_emulators(d['backend'])}")
     cams = d.get("cameras", {})
     if not isinstance(cams, dict) or any(not isinstance(v, str) for v in cams.values()):
         problems.append(f"{src.path}: cameras: a mapping mount -> calibration file")
@@ -235,6 +237,7 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
     check_rig(rig)
     e = copy.deepcopy(experiment.data)
     r = rig.data
+    rig_type = rig_for(r["backend"], "emulated" in r)
     e.pop("rig", None)
     out: dict[str, Any] = {"name": e.pop("name", None), "rig": r["rig"], "backend": r["backend"]}
     out.update(e)
@@ -263,9 +266,7 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
         mount = cam.get("mount", "down") if isinstance(cam, dict) else None
         if isinstance(cam, dict) and isinstance(mount, str):  # else the schema names the bad value
             cal = own.get("camera", cams.get(mount))
-            if cal is None and r.get("backend") == "sim_ideal":
-                pass  # the ideal rig's cameras are exact: nothing to calibrate
-            elif cal is None:
+            if cal is None and rig_type.drones_need_cameras:
                 raise RigError(
                     f"{rig.path}: cameras.{mount}: drone {dr.get('id')} of {experiment.path} has a {mount} "
                     f"camera and this rig has no calibration for it (add `cameras: {{{mount}: FILE}}` or "
@@ -276,7 +277,7 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
         rc = own.get("rc_gains", r.get("rc_gains"))
         if rc is not None:
             dr["rc_gains"] = copy.deepcopy(rc)
-    if r.get("backend") != "sim_ideal" and any(
+    if rig_type.drones_need_cameras and any(
         isinstance(dr, dict) and dr.get("camera") is None for dr in drones
     ):
         raise RigError(

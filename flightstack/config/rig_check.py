@@ -15,6 +15,7 @@ from flightstack.config.hardware import HardwareSpec
 from flightstack.config.mission import SafetySpec
 from flightstack.config.rig import RigError, Source, problem_list
 from flightstack.config.rig_rules import safety_off_problem
+from flightstack.config.rigs import rig_for
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 
 SECTIONS: dict[str, type[BaseModel]] = {
@@ -56,10 +57,13 @@ def validate_rig(src: Source) -> dict[str, Any]:
         except ValueError as exc:
             problems.append(f"{src.path}: {where}: {exc}")
     backend = src.data.get("backend")
-    if backend == "tello" and "hardware" not in src.data and "emulated" not in src.data:
-        problems.append(f"{src.path}: hardware: a rig with backend tello needs its devices (or `emulated:`)")
+    rig = rig_for(str(backend), "emulated" in src.data)  # config.rig.check_rig has checked both
+    if rig.has_devices and "hardware" not in src.data and not rig.starts_emulators:
+        problems.append(
+            f"{src.path}: hardware: a rig with backend {backend} needs its devices (or `emulated:`)"
+        )
     safety = src.data.get("safety", {})
-    off = safety_off_problem(backend, safety.get("enabled") if isinstance(safety, dict) else None)
+    off = safety_off_problem(rig, safety.get("enabled") if isinstance(safety, dict) else None)
     if off is not None:
         problems.append(f"{src.path}: {off}")
     if problems:

@@ -2,7 +2,8 @@
 resolved mission, or a value set after the rig was composed (`flightstack run --set`, `flightstack sweep
 --set`). The rules (docs/safety.md, "What a rig allows"):
 
-1. Safety is off only on the ideal rig (backend `sim_ideal`): `safety_off_problem`, checked on every
+1. Safety is off only on a rig that allows it (RigFacts.safety_may_be_off: the ideal rig, the paper's
+   unbounded simulation): `safety_off_problem`, checked on every
    composed mission (flightstack.config.mission) and on a rig file on its own (flightstack.config.rig_check).
 2. Every limit is a limit: `SafetyLimits` (flightstack.safety.rules) refuses a fence or a speed beyond what
    any lab or Tello has, on every rig and from every source.
@@ -14,6 +15,8 @@ resolved mission, or a value set after the rig was composed (`flightstack run --
 from __future__ import annotations
 
 from typing import Any, Protocol
+
+from flightstack.config.rigs import RigFacts
 
 
 class Composed(Protocol):
@@ -29,9 +32,6 @@ class Composed(Protocol):
     @property
     def safety(self) -> Any: ...  # SafetySpec: `enabled` and the fields of SafetyLimits
 
-
-SAFETY_OFF_BACKEND = "sim_ideal"
-"""The one backend whose rig may turn safety off: the paper's ideal, unbounded simulation."""
 
 RIG_IDENTITY = ("rig", "backend", "start_emulators")
 """Keys that say which rig a mission flies on: never changed after composition (choose the rig with
@@ -61,12 +61,12 @@ FENCE = ("fence_lo", "fence_hi")
 # keep the rig's value.
 
 
-def safety_off_problem(backend: object, enabled: object) -> str | None:
-    """Why safety may not be `enabled` on `backend` (None: it may)."""
-    if enabled is False and backend != SAFETY_OFF_BACKEND:
+def safety_off_problem(rig: RigFacts, enabled: object) -> str | None:
+    """Why safety may not be `enabled` on `rig` (None: it may)."""
+    if enabled is False and not rig.safety_may_be_off:
         return (
-            f"safety.enabled: false only on the ideal rig (backend {SAFETY_OFF_BACKEND}); "
-            f"backend {backend!r} flies with safety on, from its rig file and from --set alike"
+            "safety.enabled: false only on the ideal rig (a rig whose safety_may_be_off); "
+            f"backend {rig.name!r} flies with safety on, from its rig file and from --set alike"
         )
     return None
 

@@ -51,11 +51,9 @@ WORLD_FRAME = "world"
 """The display frame: right-handed, z up (the root of the frame tree)."""
 SIGMA_W_FRAME = "sigma_w"
 """The recording's world frame Σw, a child of WORLD_FRAME (module docstring)."""
-Z_DOWN_BACKENDS = frozenset({"sim_ideal"})
-"""Backends whose Σw has z along the cameras' optical axis, looking down (the ideal rig); every other
-backend's Σw is the motion-capture frame, z up."""
 HALF_TURN_X = (1.0, 0.0, 0.0, 0.0)
-"""Quaternion (x, y, z, w) of a half turn about x: `world` → `sigma_w` on a Z_DOWN_BACKENDS rig."""
+"""Quaternion (x, y, z, w) of a half turn about x: `world` → `sigma_w` on a rig whose Σw looks down
+(RigFacts.world_z_down)."""
 IDENTITY = (0.0, 0.0, 0.0, 1.0)
 """Quaternion (x, y, z, w) of no rotation."""
 MARKER_DIAMETER_M = 0.04
@@ -143,7 +141,7 @@ class Scene:
                 cam = mission.camera_model(k)
                 cameras[d.id] = (np.asarray(cam.R_ic, dtype=float), np.asarray(cam.t_ic, dtype=float))
         return cls(
-            z_down=mission.backend in Z_DOWN_BACKENDS,
+            z_down=mission.rig_type.world_z_down,
             fence=fence,
             markers=np.array(mission.target.feature_points, dtype=float).reshape(-1, 3),
             cameras=cameras,
@@ -248,7 +246,6 @@ __all__ = [
     "HALF_TURN_X",
     "SIGMA_W_FRAME",
     "WORLD_FRAME",
-    "Z_DOWN_BACKENDS",
     "Scene",
     "camera_frame",
     "drone_frame",

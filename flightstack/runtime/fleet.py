@@ -28,8 +28,8 @@ from flightstack.paper.geometry import compose, inverse
 from flightstack.paper.kernels_warmup import warm_up
 from flightstack.recording.files import DeviceFiles
 from flightstack.runtime.agent import Agent, AgentConfig, Predictor
-from flightstack.runtime.backends import build_backend
 from flightstack.runtime.phases import TargetDriver
+from flightstack.runtime.rig import build_backend, rig_of
 from flightstack.safety import EventLog, SafeDrone, SafetyLimits
 from flightstack.safety.supervisor import MissionSupervisor
 from flightstack.vision.camera_file import load_calibration
@@ -223,7 +223,7 @@ class LoopSpec:
             lockstep=mission.simulated,
             start_timeout_s=None if z is None else z.start_timeout_s,
             lockstep_timeout_s=None if z is None else z.lockstep_timeout_s,
-            reset_estimates=mission.backend != "sim_ideal",
+            reset_estimates=not mission.rig_type.estimates_start_from_truth,
         )
 
 
@@ -252,9 +252,9 @@ class Fleet:
 
 def _nudge_fence(mission: Mission) -> tuple[tuple[float, float], tuple[float, float]] | None:
     """The fence's xy box (m) in which the robot is nudged before takeoff on a rig whose robot is a
-    device (backend `tello`: the real and the emulated lab; flightstack.runtime.motion_check); None on the
-    simulated rigs, which do not nudge it."""
-    if mission.backend != "tello":
+    device (RigFacts.robot_is_device: the real and the emulated lab; flightstack.runtime.motion_check); None
+    on the simulated rigs, which do not nudge it."""
+    if not mission.rig_type.robot_is_device:
         return None
     lo, hi = mission.safety.fence_lo, mission.safety.fence_hi
     return (float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1]))
@@ -282,7 +282,7 @@ def assemble_fleet(
     records its devices' raw traffic (real devices only)."""
     ids = [d.id for d in mission.drones] if agent_ids is None else list(agent_ids)
     # compile (or load) the tick's kernels before any device is opened: a compile mid-flight holds the GIL
-    warm_up(loop=mission.backend == "sim_ideal")
+    warm_up(loop=rig_of(mission).compiled_loop() is not None)
     own_bus = bus is None
     if bus is None:
         participant = "agents" if agent_ids is None else str(ids[0])

@@ -7,13 +7,13 @@ table's rows, the sweeps, the benchmarks and the tests.
         result = flight.fly()      # every mode: the data run, training, the compared modes; metrics.json
     # or one mode:  rec = flight.fly_mode("none")
 
-Entering opens what lives for the whole flight: the emulated lab's devices (`emulated-lab` rig), the
-sleep inhibitor (drones not simulated), the run directory's writer, and for an agent process (one drone
-over the network) its bus and backend. Each mode then gets its fleet (`runtime.fleet.assemble_fleet`:
-bus, backend, safety layer, agents) and flies it (`runtime.runner.run_mode`), with the loop the rig offers
-(the ideal rig's compiled loop: `runtime.backends.COMPILED_LOOPS`). Leaving closes everything opened, in
-reverse order, on success or failure. Only this module imports `run_mode` and `assemble_fleet`
-(tests/import_contract.toml).
+Entering opens what lives for the whole flight: what the rig opens (`Rig.open`: the emulated lab's
+devices), the sleep inhibitor (drones not simulated), the run directory's writer, and for an agent process
+(one drone over the network) its bus and backend. Each mode then gets its fleet
+(`runtime.fleet.assemble_fleet`: bus, backend, safety layer, agents) and flies it
+(`runtime.runner.run_mode`), with the loop the rig offers (`Rig.compiled_loop`: the ideal rig's).
+Leaving closes everything opened, in reverse order, on success or failure. Only this module imports
+`run_mode` and `assemble_fleet` (tests/import_contract.toml).
 """
 
 from __future__ import annotations
@@ -58,22 +58,13 @@ from flightstack.recording.files import (
 from flightstack.recording.run_dir import RunWriter
 from flightstack.recording.timeseries import Recording
 from flightstack.runtime.agent import Predictor, TruthPredictor
-from flightstack.runtime.backends import AgentSeat, load_named, open_agent_backend
 from flightstack.runtime.camera_tap import CameraTap, has_image_cameras
 from flightstack.runtime.fleet import Fleet, assemble_fleet
 from flightstack.runtime.keep_awake import keep_awake
 from flightstack.runtime.resources import check_recording_fits
-from flightstack.runtime.runner import ChunkLoop, SafePause, run_mode, run_procedure
+from flightstack.runtime.rig import AgentSeat, open_agent_backend, opened, rig_of
+from flightstack.runtime.runner import SafePause, run_mode, run_procedure
 from flightstack.runtime.taps import TickTap
-
-COMPILED_LOOPS: dict[str, str] = {
-    "sim_ideal": "flightstack.sim_backend.compiled_loop:CompiledLoop.plan",
-}
-"""Backend -> the planner of its compiled loop ("module:attribute", imported when a flight uses it): a
-strategy of the flight that flies runs of ticks in one compiled call where the fleet allows it."""
-EMULATED_LAB = "flightstack.sim_backend.emulated_lab:running_lab"
-"""The `emulated-lab` rig's devices on loopback: (mission, log directory) -> a context manager yielding
-the mission re-pointed at them."""
 
 _R = TypeVar("_R")
 
@@ -151,7 +142,7 @@ class Flight:
         self._backend, self._bus = backend, bus
         self._wrap_backend, self._wrap_bus = wrap_backend, wrap_bus
         self._stack: contextlib.ExitStack | None = None
-        self._plan_loop = compiled_loop_planner(mission) if compiled else None
+        self._plan_loop = rig_of(mission).compiled_loop() if compiled else None
 
     @property
     def n_ticks(self) -> int:
@@ -167,9 +158,10 @@ class Flight:
     def __enter__(self) -> Flight:
         stack = contextlib.ExitStack()
         try:
-            if self.mission.start_emulators:  # the emulated-lab rig: its devices start here, on loopback
-                self.mission = stack.enter_context(start_emulated_lab(self.mission, self._lab_dir(stack)))
-                self._plan_loop = compiled_loop_planner(self.mission) if self.compiled else None
+            if rig_of(self.mission).starts_emulators:  # the emulated-lab rig: its devices, on loopback
+                lab_dir = None if self.out is None else self.out / EMULATED_LAB_DIR
+                self.mission = stack.enter_context(opened(self.mission, lab_dir))
+                self._plan_loop = rig_of(self.mission).compiled_loop() if self.compiled else None
                 self.say(
                     f"emulated lab: {len(self.mission.drones)} Tello emulators, NatNet, rover on loopback"
                 )
@@ -192,12 +184,6 @@ class Flight:
         stack, self._stack = self._stack, None
         if stack is not None:
             stack.close()
-
-    def _lab_dir(self, stack: contextlib.ExitStack) -> Path:
-        """Where the emulated lab logs: the run directory's EMULATED_LAB_DIR, or a temporary one."""
-        if self.out is not None:
-            return self.out / EMULATED_LAB_DIR
-        return Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="flightstack-lab-")))
 
     def _open_seat(self, stack: contextlib.ExitStack) -> None:
         """An agent's bus and backend, open for the whole flight (the kernels compiled first: the bus's
@@ -495,17 +481,3 @@ def _write_training(writer: RunWriter, res: FlightResult) -> None:
             save_datasets(writer.out / DATASETS_FILE, res.datasets)
     except OSError as exc:
         writer.fail(f"experts/datasets not written: {exc.strerror or exc}")
-
-
-def compiled_loop_planner(mission: Mission) -> Callable[[Fleet], ChunkLoop | None] | None:
-    """The planner of the mission's backend's compiled loop (None: the backend has none); the planner
-    returns None for a fleet whose ticks it cannot fly."""
-    target = COMPILED_LOOPS.get(mission.backend)
-    return None if target is None else load_named(target)
-
-
-def start_emulated_lab(mission: Mission, lab_dir: Path) -> contextlib.AbstractContextManager[Mission]:
-    """Start the emulated lab's devices for `mission` (loopback only; logs in lab_dir) and yield the
-    mission re-pointed at them; every device stops when the block ends."""
-    started: contextlib.AbstractContextManager[Mission] = load_named(EMULATED_LAB)(mission, lab_dir)
-    return started

@@ -44,7 +44,7 @@ from flightstack.sim_backend.served.tick_gate import TickBounds, tick_refusal
 
 if TYPE_CHECKING:
     from flightstack.config.mission import Mission
-    from flightstack.runtime.backends import AgentSeat
+    from flightstack.runtime.rig import AgentSeat
 
 
 TICK_FOR_ANOTHER = "tick for another session"
@@ -379,8 +379,9 @@ class RemoteBackend:
 
 @contextlib.contextmanager
 def agent_backend(mission: Mission, seat: AgentSeat) -> Iterator[RemoteBackend]:
-    """AGENT_REGISTRY builder of the simulated rigs: drone `seat.drone_id` of the world served over
-    `seat.session`; the link is flushed and closed after the run (the run lands through close())."""
+    """The simulated rigs' agent backend (sim_backend/rigs/simulated.py): drone `seat.drone_id` of the
+    world served over `seat.session`; the link is flushed and closed after the run (the run lands through
+    close())."""
     z = mission.bus.zenoh
     if z is None or seat.session is None:
         raise ValueError("bus.kind: an agent of a simulated mission reaches the world over the zenoh bus")

@@ -37,13 +37,13 @@ from flightstack.comms.wire import WORLD_TICK_ENCODING
 from flightstack.config.mission import Mission
 from flightstack.events import Event
 from flightstack.hal import FlightPhase
-from flightstack.runtime.backends import build_backend
 from flightstack.runtime.phases import (
     LAND_TIMEOUT_S,
     TAKEOFF_TIMEOUT_S,
     TargetDriver,
     settle_virtual_landing,
 )
+from flightstack.runtime.rig import build_backend
 from flightstack.sim_backend.served import messages as wm
 
 

@@ -1,0 +1,92 @@
+"""The real lab's rig (backend `tello`): real Tellos, motion capture and the Scamper, described by the
+mission's `hardware:` section, flown on the wall clock (drivers/hardware.py assembles them)."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from flightstack.config.links import LinkSpec
+from flightstack.config.mission import Mission
+from flightstack.config.rigs import need_cameras, need_square_law
+from flightstack.recording.files import DeviceFiles
+from flightstack.runtime.rig import AgentSeat, LoopPlanner, Rig
+
+if TYPE_CHECKING:
+    from flightstack.drivers.hardware import HardwareBackend
+
+
+class LabRig:
+    name = "tello"
+    simulated = False
+    starts_emulators = False
+    has_devices = True
+    robot_is_device = True
+    safety_may_be_off = False
+    drones_need_cameras = True
+    default_kinematics = "differential"  # an ArduPilot Rover never moves sideways (docs/drivers.md)
+    world_z_down = False
+    estimates_start_from_truth = False
+    plots_drones = True
+    applies_network_profile = True
+
+    def check(self, mission: Mission) -> None:
+        """The devices (hardware:) for exactly the mission's drones, the square law, calibrated cameras, an
+        authenticated bus, and the drones' measured response time when compensation is on."""
+        if mission.hardware is None:
+            raise ValueError("hardware: backend 'tello' needs a hardware section (drone IPs, mocap, robot)")
+        hw_ids, ids = sorted(d.id for d in mission.hardware.drones), sorted(d.id for d in mission.drones)
+        if hw_ids != ids:
+            raise ValueError(f"hardware.drones: ids {hw_ids} must be exactly the drones' ids {ids}")
+        need_square_law(mission, "real robots are driven on the 'square' law")
+        need_cameras(mission, "on real hardware")
+        z = mission.bus.zenoh
+        if mission.bus.kind == "zenoh" and z is not None and z.security != "mtls":
+            raise ValueError(
+                "bus.zenoh.security: real drones fly only on an authenticated bus (mtls with the "
+                "certificates of `flightstack certs`); plaintext is for simulations on one computer"
+            )
+        self.check_compensation(mission)
+
+    def check_compensation(self, mission: Mission) -> None:
+        """A real drone's response time is measured, never assumed."""
+        if mission.compensation.enabled and mission.compensation.response_s is None:
+            raise ValueError(
+                "compensation.response_s: required on hardware (the drone's velocity response time "
+                "constant, s; flightstack calibrate latency measures it)"
+            )
+
+    def command_link(self, mission: Mission) -> LinkSpec:
+        return mission.links.link("rc")
+
+    def drone_response_s(self, mission: Mission) -> float:
+        """Unused on hardware (check_compensation requires compensation.response_s); the emulated Tello's."""
+        from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S
+
+        return EMULATED_TELLO_RESPONSE_S
+
+    @contextlib.contextmanager
+    def open(self, mission: Mission, log_dir: Path) -> Iterator[Mission]:
+        """The devices open per mode (build_backend): the mission as it is."""
+        yield mission
+
+    def build_backend(self, mission: Mission, devices: DeviceFiles | None) -> HardwareBackend:
+        from flightstack.drivers.hardware import build_tello
+
+        return build_tello(mission, devices=devices)
+
+    def agent_backend(
+        self, mission: Mission, seat: AgentSeat
+    ) -> contextlib.AbstractContextManager[HardwareBackend]:
+        """This agent's Tello, the motion capture and, where the mission has one, the robot."""
+        from flightstack.drivers.hardware import agent_backend
+
+        return agent_backend(mission, seat)
+
+    def compiled_loop(self) -> LoopPlanner | None:
+        return None
+
+
+RIG: Rig = LabRig()  # checked against the Rig protocol
