@@ -139,7 +139,7 @@ def _one_interface(d: dict) -> None:
         (_bad_ip, "hardware.drones.0.ip"),
         (_unknown_system, "hardware.mocap.system"),
         (_safety_off, "safety.enabled: false only on the ideal rig"),
-        (_hardware_on_sim, "hardware: only used by backend 'tello'"),
+        (_hardware_on_sim, "hardware: only used by a rig of devices"),
         (_keepalive_too_long, "hardware.drones.0.keepalive_s"),
         (_bad_interface, "hardware.drones.0.interface"),
         (_one_interface, "drones.1.interface: every drone names the interface it is reached through"),
