@@ -22,7 +22,8 @@ from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.config.rig import MISSION_CONFIGS
 from flightstack.drivers.tello.camera import VideoReceiver
 from flightstack.ports import free_udp_port
-from flightstack.sim_backend.emulators.tello import TelloEmulator, wait_until
+from flightstack.sim_backend.emulators.net import wait_until
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 from flightstack.sim_backend.emulators.tello.video_process import SharedTarget, VideoProcess
 from flightstack.sim_backend.emulators.tello.view import CameraSpec
 from flightstack.vision.camera_file import load_calibration

@@ -1,4 +1,5 @@
-"""Milliseconds per simulated camera frame (flightstack.sim_backend.render), by camera, target and floor.
+"""Milliseconds per simulated camera frame (flightstack.sim_backend.scene.render), by camera, target and
+floor.
 
     python benchmarks/render_cost.py [--frames 100] [--batches 5] [--cv-threads N]
 
@@ -23,8 +24,8 @@ import numpy as np
 from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.config.rig import MISSION_CONFIGS
 from flightstack.paper.geometry import Pose, relative
-from flightstack.sim_backend.floor import floor_view
-from flightstack.sim_backend.render import RenderOptions, markers_in_camera, render_markers_region
+from flightstack.sim_backend.scene.floor import floor_view
+from flightstack.sim_backend.scene.render import RenderOptions, markers_in_camera, render_markers_region
 from flightstack.vision.camera_file import CameraCalibration, load_calibration
 
 P0 = np.array([[0.1, 0.1, 0.15], [-0.1, 0.1, 0.15], [-0.1, -0.1, 0.15], [0.1, -0.1, 0.15]])

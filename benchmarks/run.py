@@ -16,7 +16,7 @@ M = 1000 vs M = 10, measured vs target), so machine speed cancels in the ratio. 
 * The agent tick against M and neighbours, the paper simulation's speed (its loop and the whole command),
   the simulator against drones, and a 20-seed sweep: benchmarks/sim_speed.py.
 * Marker extraction (flightstack.vision.markers.extract_markers) on 960×720 frames rendered by
-  flightstack.sim_backend.render with the tello_front_sim calibration, all four markers in view.
+  flightstack.sim_backend.scene.render with the tello_front_sim calibration, all four markers in view.
 * Bus hop latency: encode → InProcBus.publish (decode, validation) → latest; Zenoh through
   benchmarks/zenoh_hop.py when that file exists.
 """
@@ -208,7 +208,7 @@ def bench_gp_train(N: int, maxiter: int | None) -> dict[str, float | int | None]
 
 # ---- vision -------------------------------------------------------------------------------------------
 def bench_vision(n_frames: int = 8, number: int = 40) -> dict[str, float]:
-    from flightstack.sim_backend.render import RenderOptions, render_markers
+    from flightstack.sim_backend.scene.render import RenderOptions, render_markers
 
     cal = load_calibration(FRONT_CAMERA)
     P0 = np.array(load_mission(PAPER_SIM).target.feature_points, dtype=float)

@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from flightstack.drivers.tello import TelloConfig, TelloDriver
 from flightstack.drivers.tello.rc import RcGains
 from flightstack.ports import free_udp_port
-from flightstack.sim_backend.emulators.tello import TelloEmulator
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 
 AS_DRIVER = {"landed": "ground", "takeoff": "taking_off", "flying": "flying", "landing": "landing"}
 SCENARIOS: dict[str, dict[str, object]] = {

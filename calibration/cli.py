@@ -509,7 +509,7 @@ def _check_links_out(out: str) -> None:
 
 def _preflight_and_confirm(mission: object, drone: int, yes: bool) -> int:
     """Real drones: preflight the calibrated drone's devices, then ask; 0 to go on, else the exit code."""
-    from flightstack.drivers.preflight import format_table, run_preflight
+    from flightstack.drivers.lab.preflight import format_table, run_preflight
 
     rows = run_preflight(mission, drone_ids=[drone])  # type: ignore[arg-type]
     print(format_table(rows))

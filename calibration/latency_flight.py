@@ -117,7 +117,7 @@ def one_drone(mission: Mission, drone_id: int | None) -> Mission:
 def stamping_decode_time(mission: Mission) -> Mission:
     """The mission the hardware backend is built from during the calibration: its camera driver stamps
     a frame with its decode time minus the rig's video latency (latency_s + jitter_s / 2 of the `video`
-    link, drivers/hardware.py); measuring that latency needs the plain decode time, so the video link's
+    link, drivers/lab/hardware.py); measuring that latency needs the plain decode time, so the video link's
     latency and jitter are set to 0 here (its rate and loss kept), explicitly. The robot is left out
     (hardware.target: null): the target stands still; motion capture still reports it."""
     video = mission.links.link("video")

@@ -15,7 +15,7 @@ import numpy as np
 
 from flightstack.calibration.latency import DelayEstimate, estimate_delay
 from flightstack.paper.geometry import Pose, relative
-from flightstack.sim_backend.render import markers_in_camera
+from flightstack.sim_backend.scene.render import markers_in_camera
 from flightstack.vision.camera_file import CameraCalibration
 
 

@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
+from flightstack.drivers.device_threads import ERROR_PAUSE_S, ErrorLog
 from flightstack.drivers.native_output import native_stdout
-from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog
 from flightstack.events import Event, MocapKind
 from flightstack.hal import StampedPose
 from flightstack.paper.geometry import Pose

@@ -194,7 +194,7 @@ KINDS: Mapping[str, KindInfo] = {
     "tilt_refused": _w("a body tilted beyond the limit: its pose refused"),
     "tilt_ok": _i("a body's tilt within the limit again"),
     "body_lost": _w("a body no longer in the frames"),
-    # the Scamper rover driver (drivers/scamper.py; source "scamper", monotonic clock)
+    # the Scamper rover driver (drivers/scamper/driver.py; source "scamper", monotonic clock)
     "connected": _i("heartbeat seen, GUIDED and armed: streaming set-points"),
     "disarm_skipped_muted": _i("no disarm: another process has taken over the robot"),
     "disarm_failed": _e("the disarm on close failed"),

@@ -3,7 +3,7 @@
 Where Linux schedules by session (`/proc/sys/kernel/sched_autogroup_enabled`, on by default on many
 distributions), a process's nice orders it only against the processes of its own session; between sessions
 the autogroup's nice counts. A process that must run after the rest (the live MCAP's follower,
-flightstack/recording/mcap_live.py) or before it (the flight's guardian, drivers/guardian_process.py) leads
+flightstack/recording/mcap_live.py) or before it (the flight's guardian, drivers/guardian/process.py) leads
 its own session and sets both. Raising a priority (a negative nice) needs root or CAP_SYS_NICE; lowering it
 needs nothing."""
 

@@ -7,7 +7,7 @@ import numpy as np
 from flightstack.comms.bus import Bus
 from flightstack.comms.delayed_bus import DelayedBus
 from flightstack.config.derive import derive
-from flightstack.config.links import LINKS
+from flightstack.config.links import LINKS, LinkDelays
 from flightstack.config.mission import Mission
 from flightstack.drivers.tello.rc import RcGains
 from flightstack.paper.geometry import Pose
@@ -15,7 +15,6 @@ from flightstack.sim_backend.build import initial_drone_pose
 from flightstack.sim_backend.ideal import VirtualClock
 from flightstack.sim_backend.lab import (
     LabWorld,
-    LinkDelays,
     MocapParams,
     MocapSim,
     RenderedCamera,
@@ -25,7 +24,7 @@ from flightstack.sim_backend.lab import (
     TelloSim,
     camera_extrinsic,
 )
-from flightstack.sim_backend.render import RenderOptions
+from flightstack.sim_backend.scene.render import RenderOptions
 from flightstack.vision.camera_file import load_calibration
 
 CAMERA_RATE_HZ = 30.0

@@ -138,9 +138,9 @@ def load_emulators() -> SimpleNamespace:
             "the emulated lab needs the optional packages av, motioncapture and pymavlink (pip install -e "
             f"'.[tello,mocap,scamper]'): {exc}"
         ) from exc
-    from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
     from flightstack.sim_backend.emulators.natnet import NatNetEmulator
-    from flightstack.sim_backend.emulators.tello import TelloEmulator
+    from flightstack.sim_backend.emulators.rover.emulator import MavlinkRoverEmulator
+    from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
     from flightstack.sim_backend.emulators.tello.video_process import SharedTarget, VideoProcess
 
     return SimpleNamespace(
@@ -162,7 +162,7 @@ def marker_image() -> np.ndarray:
     mission (rendered once with the calibration's lens; the emulators send it as every frame)."""
     from flightstack.config.mission import CAMERA_MOUNTS
     from flightstack.paper.geometry import Pose, rot_z
-    from flightstack.sim_backend.render import RenderOptions, render_markers
+    from flightstack.sim_backend.scene.render import RenderOptions, render_markers
     from flightstack.vision.camera_file import load_calibration
 
     cal = load_calibration(CALIBRATION)

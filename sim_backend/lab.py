@@ -21,7 +21,7 @@ from typing import Generic, TypeVar
 
 import numpy as np
 
-from flightstack.config.links import LinkSpec
+from flightstack.config.links import LinkDelays, LinkSpec
 from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.drivers.tello.config import TELLO_OWN_TIMEOUT_S
 from flightstack.drivers.tello.rc import RcGains, rc_to_velocity, velocity_to_rc
@@ -48,30 +48,6 @@ class TelloParams:
     battery_pct: float = 90.0
     battery_drain_pct_per_s: float = 0.12  # ~12 min of flight from full
     auto_land_s: float = TELLO_OWN_TIMEOUT_S  # the real Tello lands by itself without a command
-
-
-class LinkDelays:
-    """One link's samples (flightstack.config.links.LinkSpec): each arrives latency_s + U(0, jitter_s)
-    late (s) and is lost with probability `loss`. Draws from `rng` only for jitter and loss, so a link
-    without them draws nothing (the recordings of a rig without them do not change)."""
-
-    def __init__(self, spec: LinkSpec, rng: np.random.Generator | None = None) -> None:
-        if (spec.jitter_s > 0 or spec.loss > 0) and rng is None:
-            raise ValueError("a link with jitter or loss needs a generator")
-        self.spec, self.rng = spec, rng
-        self.lost_count = 0
-
-    def delay(self) -> float:
-        """How late the next sample arrives (s)."""
-        s = self.spec
-        jitter = float(self.rng.uniform(0.0, s.jitter_s)) if s.jitter_s > 0 and self.rng else 0.0
-        return s.latency_s + jitter
-
-    def lost(self) -> bool:
-        """Whether the next sample is lost (counted)."""
-        gone = self.spec.loss > 0 and self.rng is not None and bool(self.rng.random() < self.spec.loss)
-        self.lost_count += gone
-        return gone
 
 
 T = TypeVar("T")
@@ -594,8 +570,8 @@ class RenderedCamera:
 
     def _render(self, taken: float, drone: Pose, robot: Pose) -> Frame:
         """The image of the markers seen from `drone` with the robot at `robot`, stamped `taken` (s)."""
-        from flightstack.sim_backend.floor import floor_view
-        from flightstack.sim_backend.render import (
+        from flightstack.sim_backend.scene.floor import floor_view
+        from flightstack.sim_backend.scene.render import (
             marker_centres_in_camera,
             markers_in_camera,
             render_markers_region,
@@ -617,7 +593,7 @@ class RenderedCamera:
         """(2m,) noisy normalised centres of the markers at centres_c (m, 3) in Σc, or None (centres_only)."""
         import cv2
 
-        from flightstack.sim_backend.render import MIN_IN_VIEW_DEPTH_M
+        from flightstack.sim_backend.scene.render import MIN_IN_VIEW_DEPTH_M
 
         cal, z = self.cal, centres_c[:, 2]
         z_min = z.min()

@@ -442,7 +442,7 @@ def fly_mode(
 def tello_emulator(ip: str = "127.0.0.3", **kw: Any) -> Any:
     """A TelloEmulator on `ip` whose state and video go to free ports of 127.0.0.1 (not started)."""
     from flightstack.ports import free_udp_port
-    from flightstack.sim_backend.emulators.tello import TelloEmulator
+    from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 
     kw.setdefault("video_port", free_udp_port())
     return TelloEmulator(ip, state_port=free_udp_port(), **kw)

@@ -185,9 +185,33 @@ class Contract:
         return best
 
 
+def folder_cycles(g: Graph) -> list[list[str]]:
+    """Groups of sibling folders that import each other: in each package below the top level (whose
+    folders the layers order), its subpackages and its own modules (its folder, named `pkg/`) are the
+    folders. Two folders that import each other are one concept split in two, or two tangled."""
+    packages = {m for m, p in g.modules.items() if p.name == "__init__.py"} - {"flightstack"}
+    folders = Graph(modules={})
+    for imp in g.imports:
+        for pkg in packages:
+            a, b = _folder_in(pkg, imp.importer, packages), _folder_in(pkg, imp.imported, packages)
+            if a is not None and b is not None and a != b:
+                folders.modules.setdefault(a, Path()), folders.modules.setdefault(b, Path())
+                folders.imports.append(Import(a, b, imp.line, ""))
+    return cycles(folders)
+
+
+def _folder_in(pkg: str, module: str, packages: set[str]) -> str | None:
+    """The folder of `pkg` that holds `module` (`pkg/` for pkg's own modules), or None outside pkg."""
+    if not module.startswith(pkg + "."):
+        return None
+    child = pkg + "." + module[len(pkg) + 1 :].split(".")[0]
+    return child if child in packages else pkg + "/"
+
+
 def breaks(g: Graph, c: Contract) -> list[str]:
     """Every break of the contract, one line each (empty: the code keeps the contract)."""
     out = [f"cycle: {' <-> '.join(group)}" for group in cycles(g)]
+    out += [f"folder cycle: {' <-> '.join(group)}" for group in folder_cycles(g)]
     out += [f"module in no layer: {m}" for m in sorted(g.modules) if c.place(m) is None]
     used: set[tuple[str, str]] = set()
     seen: set[tuple[str, int, str]] = set()

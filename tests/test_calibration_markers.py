@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from flightstack.cli.app import main
-from flightstack.sim_backend.render import RenderOptions, render_markers
+from flightstack.sim_backend.scene.render import RenderOptions, render_markers
 from flightstack.vision.camera_file import CameraCalibration, load_calibration
 from flightstack.vision.markers import extract_markers
 from tests.conftest import MISSIONS

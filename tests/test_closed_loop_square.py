@@ -1,7 +1,7 @@
 """Closed loop on loopback: rover emulator (ArduPilot Rover's GUIDED semantics) → NatNet emulator →
 motioncapture → MocapPoseSource → UnicycleSquareLaw → ScamperDriver → MAVLink → rover emulator. One lap of
 the paper's square as a differential robot drives it (sides at the speed, corners turned in place),
-time-scaled to keep CI fast, run by `flightstack.drivers.target_run.drive_square` (what `flightstack
+time-scaled to keep CI fast, run by `flightstack.drivers.lab.target_run.drive_square` (what `flightstack
 target` runs). The driver streams the robot's pose to the emulator (its position estimate) and sets the
 EKF origin, without which ArduPilot would not move.
 
@@ -26,13 +26,13 @@ import pytest
 pytest.importorskip("motioncapture")
 pytest.importorskip("pymavlink")
 
+from flightstack.drivers.lab.target_run import drive_square
 from flightstack.drivers.mocap import MocapConfig, MocapPoseSource
-from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
-from flightstack.drivers.target_run import drive_square
+from flightstack.drivers.scamper.driver import ScamperConfig, ScamperDriver
 from flightstack.paper.geometry import Pose, compose
 from flightstack.paper.target_law import UnicycleSquareLaw
-from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
 from flightstack.sim_backend.emulators.natnet import NatNetEmulator
+from flightstack.sim_backend.emulators.rover.emulator import MavlinkRoverEmulator
 
 TIME_SCALE = 3.0  # the paper's experiment, 3x faster
 _LAB = UnicycleSquareLaw()  # the gains and speeds of the lab's law, time-scaled below

@@ -10,7 +10,7 @@ from flightstack.config.derive import derive
 from flightstack.config.mission import load_mission
 from flightstack.config.sim_specs import MocapSimSpec, TelloSimSpec
 from flightstack.config.types import Strict
-from flightstack.drivers.hardware import mocap_config, scamper_config, tello_config
+from flightstack.drivers.lab.hardware import mocap_config, scamper_config, tello_config
 from flightstack.sim_backend.lab import MocapParams, TelloParams
 
 

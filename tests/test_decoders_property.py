@@ -44,7 +44,7 @@ from flightstack.comms.control import (
 )
 from flightstack.comms.identity import SessionBook
 from flightstack.config.mission import load_mission
-from flightstack.drivers.guard import AgentWatch, Guard, GuardSummary
+from flightstack.drivers.lab.guard import AgentWatch, Guard, GuardSummary
 from flightstack.events import Event
 from flightstack.hal import DroneState, Frame, StampedPose
 from flightstack.runtime.rig import build_backend

@@ -28,7 +28,7 @@ import pytest
 pytest.importorskip("av")
 
 from flightstack.config.mission import load_mission
-from flightstack.drivers.hardware import tello_config as mission_tello_config
+from flightstack.drivers.lab.hardware import tello_config as mission_tello_config
 from flightstack.drivers.tello import TelloDriver
 from flightstack.drivers.tello.camera import TelloCamera
 from flightstack.drivers.tello.phase import PhaseTracker

@@ -49,7 +49,7 @@ def thread_names() -> set[str]:
 def tello() -> Iterator[Any]:
     pytest.importorskip("av")
     from flightstack.ports import free_udp_port
-    from flightstack.sim_backend.emulators.tello import TelloEmulator
+    from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 
     emu = TelloEmulator(
         "127.0.0.31", state_port=free_udp_port(), video_port=free_udp_port(), fps=30.0, video_size=(320, 240)
@@ -310,7 +310,7 @@ def test_mocap_reader_survives_errors_natnet_emulator() -> None:
 @pytest.fixture
 def rover() -> Iterator[Any]:
     pytest.importorskip("pymavlink")
-    from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
+    from flightstack.sim_backend.emulators.rover.emulator import MavlinkRoverEmulator
 
     # the driver's threads under injected send and receive errors, which also cut its pose stream: the
     # emulator's EKF rule (a hold 1 s after the last pose) would end the run the tests look at, so it is off
@@ -322,7 +322,7 @@ def rover() -> Iterator[Any]:
 
 
 def scamper(emu: Any) -> Any:
-    from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
+    from flightstack.drivers.scamper.driver import ScamperConfig, ScamperDriver
     from tests.robot_pose import still_pose
 
     cfg = ScamperConfig(url=emu.url, heartbeat_timeout_s=3.0, ack_timeout_s=0.5)
@@ -397,7 +397,7 @@ def test_scamper_threads_survive_send_receive_and_handler_errors(
 def test_scamper_mute_stops_every_send(rover: Any) -> None:
     from pymavlink import mavutil
 
-    from flightstack.drivers.scamper import ScamperCommandError
+    from flightstack.drivers.scamper.driver import ScamperCommandError
 
     arm_disarm = mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM
 
@@ -426,7 +426,7 @@ def test_scamper_mute_stops_every_send(rover: Any) -> None:
 
 
 def test_scamper_mute_set_before_connect_and_lifted(rover: Any) -> None:
-    from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
+    from flightstack.drivers.scamper.driver import ScamperConfig, ScamperDriver
 
     flag = [False]
     from tests.robot_pose import still_pose

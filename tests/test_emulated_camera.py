@@ -26,12 +26,10 @@ pytest.importorskip("pymavlink")
 from flightstack.config.mission import CAMERA_MOUNTS, load_mission
 from flightstack.drivers.tello.camera import VideoReceiver
 from flightstack.ports import free_udp_port
-from flightstack.sim_backend.emulators.tello import (
-    FAST_TAKEOFF_S,
-    TelloEmulator,
-    read_frame_index,
-    wait_until,
-)
+from flightstack.sim_backend.emulators.net import wait_until
+from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
+from flightstack.sim_backend.emulators.tello.frames import read_frame_index
 from flightstack.sim_backend.emulators.tello.video_process import SharedTarget, VideoProcess
 from flightstack.sim_backend.emulators.tello.view import CameraSpec
 from flightstack.vision.camera_file import load_calibration

@@ -30,9 +30,10 @@ from flightstack.comms.certs import create_mission_certs, participants
 from flightstack.paper.geometry import Pose, compose
 from flightstack.ports import free_udp_port
 from flightstack.safety.rules import SafetyLimits
-from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
 from flightstack.sim_backend.emulators.natnet import NatNetEmulator
-from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator
+from flightstack.sim_backend.emulators.rover.emulator import MavlinkRoverEmulator
+from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 from flightstack.vision.camera_file import load_calibration
 from tests.conftest import MISSIONS, run_cli
 from tests.test_tello_driver import marker_frame

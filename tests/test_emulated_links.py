@@ -32,8 +32,10 @@ from flightstack.drivers.tello.camera import VideoReceiver
 from flightstack.netem import BlackoutPlan, NetworkProfile
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.device_links import DeviceLinks
+from flightstack.sim_backend.emulators.net import wait_until
 from flightstack.sim_backend.emulators.radio import DeviceRadio
-from flightstack.sim_backend.emulators.tello import TelloEmulator, read_frame_index, wait_until
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
+from flightstack.sim_backend.emulators.tello.frames import read_frame_index
 from flightstack.sim_backend.emulators.tello.video_process import SharedTarget, VideoPath, VideoProcess
 from tests.conftest import Bound
 from tests.test_emulated_camera import down_camera
@@ -282,7 +284,7 @@ def test_the_rover_acts_on_mavlink_commands_late_by_its_robot_link() -> None:
     receive poll) after the ground station sent it, as `assert_late_by_the_link` checks it under load."""
     from pymavlink import mavutil
 
-    from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
+    from flightstack.sim_backend.emulators.rover.emulator import MavlinkRoverEmulator
 
     spec = LinkSpec(latency_s=0.1, jitter_s=0.02)
     links = DeviceLinks({"robot": spec}, 0, 0, "rover")

@@ -17,8 +17,8 @@ import pytest
 
 from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.paper.geometry import Pose
-from flightstack.sim_backend.floor import PERIOD_TEXELS, floor_view, texture
-from flightstack.sim_backend.render import RenderOptions, render_markers_region
+from flightstack.sim_backend.scene.floor import PERIOD_TEXELS, floor_view, texture
+from flightstack.sim_backend.scene.render import RenderOptions, render_markers_region
 from flightstack.vision.camera_file import (
     CalibrationError,
     CameraCalibration,
@@ -521,7 +521,7 @@ def test_validate_and_preflight_refuse_a_grey_camera_with_colour_markers_in_one_
 
     from flightstack.cli.app import main
     from flightstack.config.mission import load_mission
-    from flightstack.drivers.preflight import check_files
+    from flightstack.drivers.lab.preflight import check_files
 
     bad = tmp_path / "grey_markers.yaml"
     bad.write_text(yaml.safe_dump({**COLOUR.to_dict(), "image": "grey"}))

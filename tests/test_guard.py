@@ -1,4 +1,4 @@
-"""`flightstack guard MISSION` (drivers/guard.py) against loopback Tello emulators and Zenoh.
+"""`flightstack guard MISSION` (drivers/lab/guard.py) against loopback Tello emulators and Zenoh.
 
 A station-topology mission on 127.0.0.8/.9 (Tello emulators in this process) with one Zenoh endpoint per
 agent on free loopback ports. Each agent is a fake agent process (AGENT below): it joins the bus as agent
@@ -32,11 +32,13 @@ import yaml
 from flightstack.comms.control import ControlEvent
 from flightstack.config.mission import load_mission
 from flightstack.config.rig import resolved_document
-from flightstack.drivers.guard import Guard
-from flightstack.drivers.guardian_process import Log
+from flightstack.drivers.guardian.process import Log
+from flightstack.drivers.lab.guard import Guard
 from flightstack.events import Event
 from flightstack.ports import free_udp_port
-from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator, wait_until
+from flightstack.sim_backend.emulators.net import wait_until
+from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 from tests.conftest import Bound, secured_bus
 from tests.conftest import status_payload as status
 
@@ -45,7 +47,7 @@ IPS = {1: "127.0.0.8", 2: "127.0.0.9"}
 
 AGENT = r"""
 import dataclasses, json, os, sys, threading, time
-from flightstack.drivers.hardware import tello_config
+from flightstack.drivers.lab.hardware import tello_config
 from flightstack.drivers.tello import TelloDriver
 from flightstack.comms.factory import make_bus
 from flightstack.config.mission import load_mission

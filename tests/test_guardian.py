@@ -1,4 +1,4 @@
-"""The guardian process (drivers/guardian.py) against the loopback Tello and rover emulators.
+"""The guardian process (drivers/guardian/launcher.py) against the loopback Tello and rover emulators.
 
 A child process (CHILD below) flies emulated Tellos with flightstack.drivers.tello.TelloDriver (and the
 emulated
@@ -26,7 +26,7 @@ from typing import Any
 
 import pytest
 
-from flightstack.drivers.guardian import (
+from flightstack.drivers.guardian.launcher import (
     BOOTSTRAP,
     EXIT_GAVE_UP,
     GUARDIAN_BEAT_S,
@@ -44,8 +44,10 @@ from flightstack.drivers.guardian import (
     remove_launch_dir,
 )
 from flightstack.ports import free_udp_port
-from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
-from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator, wait_until
+from flightstack.sim_backend.emulators.net import wait_until
+from flightstack.sim_backend.emulators.rover.emulator import MavlinkRoverEmulator
+from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 from tests.conftest import Bound
 from tests.venvs import bare_venv, site_packages, this_environments_site_dirs, venv_seeing_this_environment
 
@@ -55,8 +57,8 @@ ARM_DISARM = 400  # MAV_CMD_COMPONENT_ARM_DISARM
 CHILD = r"""
 import json, sys, threading, time
 import numpy as np
-from flightstack.drivers.guardian import Guardian, GuardianConfig
-from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
+from flightstack.drivers.guardian.launcher import Guardian, GuardianConfig
+from flightstack.drivers.scamper.driver import ScamperConfig, ScamperDriver
 from flightstack.drivers.tello import TelloConfig, TelloDriver
 
 a = json.loads(sys.argv[1])
@@ -438,7 +440,7 @@ def test_name_patterns_search_like_pgrep() -> None:
 
 VENV_CHILD = r"""
 import sys, time
-from flightstack.drivers.guardian import Guardian, GuardianConfig
+from flightstack.drivers.guardian.launcher import Guardian, GuardianConfig
 g = Guardian.start(GuardianConfig(log_path=sys.argv[1]))
 print(g.pid, sys.prefix, g.oom_score_adj, flush=True)
 sys.stdin.readline()

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tests.import_contract import CONTRACT, Contract, breaks, build_graph, cycles
+from tests.import_contract import CONTRACT, Contract, breaks, build_graph, cycles, folder_cycles
 
 
 def test_the_package_keeps_its_import_contract() -> None:
@@ -130,3 +130,23 @@ def test_every_package_of_the_source_is_one_the_wheel_ships() -> None:
     listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     packages = {m for m, path in module_files().items() if path.name == "__init__.py"}
     assert packages - listed == set()
+
+
+def test_the_checker_finds_folders_that_import_each_other(tmp_path: Path) -> None:
+    """Two modules in different folders of one package (not a module cycle) still tie the folders."""
+    _package(
+        tmp_path / "drivers",
+        {
+            "__init__.py": "",
+            "shared.py": "from flightstack.drivers.dev.radio import x\n",
+            "dev/__init__.py": "",
+            "dev/radio.py": "x = 1\n",
+            "dev/link.py": "from flightstack.drivers import helpers\n",
+            "helpers.py": "",
+        },
+    )
+    (tmp_path / "flightstack").mkdir()
+    (tmp_path / "flightstack" / "__init__.py").write_text("")
+    g = build_graph(tmp_path)
+    assert not cycles(g)  # no module imports itself back
+    assert folder_cycles(g) == [["flightstack.drivers.dev", "flightstack.drivers/"]]

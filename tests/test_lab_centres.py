@@ -10,7 +10,7 @@ import numpy as np
 
 from flightstack.config.sim_specs import RenderSpec
 from flightstack.sim_backend.lab import RenderedCamera
-from flightstack.sim_backend.render import RenderOptions, render_markers_region
+from flightstack.sim_backend.scene.render import RenderOptions, render_markers_region
 from flightstack.vision.markers import extract_markers
 from tests.test_vision import CAL_TELLO
 

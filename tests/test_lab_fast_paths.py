@@ -7,9 +7,9 @@ import math
 
 import numpy as np
 
-from flightstack.config.links import LinkSpec
+from flightstack.config.links import LinkDelays, LinkSpec
 from flightstack.paper.geometry import Pose, integrate_body_velocity
-from flightstack.sim_backend.lab import LinkDelays, MocapParams, MocapSim, NormalStream, PoseState
+from flightstack.sim_backend.lab import MocapParams, MocapSim, NormalStream, PoseState
 
 PARAMS = MocapParams(rate_hz=120.0, noise_pos_m=0.0005, noise_yaw_rad=0.002)
 

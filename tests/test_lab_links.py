@@ -12,12 +12,12 @@ import numpy as np
 from flightstack.comms.bus import InProcBus
 from flightstack.comms.delayed_bus import LOST, DelayedBus
 from flightstack.comms.messages import PredictionMessage
-from flightstack.config.links import LinkSpec
+from flightstack.config.links import LinkDelays, LinkSpec
 from flightstack.config.mission import load_mission
 from flightstack.paper.geometry import Pose
 from flightstack.recording.timeseries import ARRAY_FIELDS, MACHINE_FIELDS
 from flightstack.sim_backend.build_lab import LabSimBackend
-from flightstack.sim_backend.lab import LinkDelays, RobotParams, ScamperSim, TelloParams, TelloSim
+from flightstack.sim_backend.lab import RobotParams, ScamperSim, TelloParams, TelloSim
 from tests.conftest import fly_mode
 
 WORLD_DT = 0.005  # the lab-sim rig's world step (s)

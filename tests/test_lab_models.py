@@ -9,12 +9,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from flightstack.config.links import LinkSpec
+from flightstack.config.links import LinkDelays, LinkSpec
 from flightstack.drivers.tello.rc import RcGains, rc_to_velocity, velocity_to_rc
 from flightstack.paper.geometry import Pose
 from flightstack.paper.target_law import SquareLaw
 from flightstack.sim_backend.lab import (
-    LinkDelays,
     MocapParams,
     MocapSim,
     RobotParams,

@@ -29,7 +29,9 @@ from flightstack.config.links import LinkSpec
 from flightstack.drivers.tello.camera import VideoReceiver
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.device_links import DeviceLinks
-from flightstack.sim_backend.emulators.tello import TelloEmulator, read_frame_index, wait_until
+from flightstack.sim_backend.emulators.net import wait_until
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
+from flightstack.sim_backend.emulators.tello.frames import read_frame_index
 from flightstack.sim_backend.emulators.tello.video_process import SharedTarget, VideoPath, VideoProcess
 from flightstack.sim_backend.emulators.tello.view import drone_world_pose
 from flightstack.vision.camera_file import load_calibration

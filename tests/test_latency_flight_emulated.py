@@ -35,7 +35,8 @@ from flightstack.drivers.tello.rc import RcGains, velocity_to_rc
 from flightstack.hal import Frame
 from flightstack.sim_backend.build import initial_drone_pose
 from flightstack.sim_backend.emulated_lab import DRONE_STARTS, EmulatedLab
-from flightstack.sim_backend.emulators.tello import TelloEmulator, read_frame_index
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
+from flightstack.sim_backend.emulators.tello.frames import read_frame_index
 from flightstack.sim_backend.emulators.tello.view import index_area
 from tests.conftest import MISSIONS, Bound, run_cli
 

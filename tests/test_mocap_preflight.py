@@ -1,4 +1,4 @@
-"""drivers/preflight.py check_mocap against what a real Motive may stream: its default Y-up frame (the
+"""drivers/lab/preflight.py check_mocap against what a real Motive may stream: its default Y-up frame (the
 recorded session of ../shared/data/peers/natnet/ and synthetic Y-up streams), a body missing from the
 model definitions, and unicast frames libmotioncapture cannot receive. Each stream is served by
 sim_backend/emulators/natnet_replay.py on loopback (multicast through the loopback interface, TTL 0)."""
@@ -13,7 +13,7 @@ import pytest
 
 from flightstack.config.mission import Mission, parse_mission
 from flightstack.config.rig import resolved_document
-from flightstack.drivers.preflight import UNICAST_FIX, UP_AXIS_FIX, CheckRow, check_mocap, y_up_signs
+from flightstack.drivers.lab.preflight import UNICAST_FIX, UP_AXIS_FIX, CheckRow, check_mocap, y_up_signs
 from flightstack.sim_backend.emulators.natnet import frame_packet, model_def_packet, server_info_packet
 from flightstack.sim_backend.emulators.natnet_replay import NatNetRecording, NatNetReplayer, read_pcapng
 from tests.conftest import PEERS, skip_or_fail_in_ci

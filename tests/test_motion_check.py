@@ -89,7 +89,7 @@ def test_a_robot_that_does_not_move_stops_the_mission_with_one_line() -> None:
 
 
 class HeldRobot(Recorder):
-    """A robot whose own telemetry says a failsafe put it in HOLD (drivers/scamper.py's state_line)."""
+    """A robot whose own telemetry says a failsafe put it in HOLD (drivers/scamper/driver.py's state_line)."""
 
     def state_line(self) -> str:
         return "heartbeat shows HOLD (4), armed (0.10 s old); last change by the robot: GUIDED -> HOLD"

@@ -280,7 +280,7 @@ def test_motive_style_unicast_reaches_natnetsdk_not_libmotioncapture(
 ) -> None:
     """Unicast as Motive sends it (frames to the client's command socket): OptiTrack's own client
     (natnetsdk 4.1.1) reads every frame; libmotioncapture 1.1, which reads only its data port, reads
-    none. So the project's client needs multicast (drivers/preflight.py refuses a unicast lab file)."""
+    none. So the project's client needs multicast (drivers/lab/preflight.py refuses a unicast lab file)."""
     rec = recording(TRAFFIC)
     tap = Tap()
     with NatNetReplayer(rec, delivery="unicast_command", pace="step") as rep:

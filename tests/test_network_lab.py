@@ -24,15 +24,11 @@ import pytest
 from flightstack.drivers.tello.camera import VideoReceiver
 from flightstack.netem import PROFILES, BlackoutPlan, LinkProfile, NetworkProfile
 from flightstack.ports import free_tcp_port, free_udp_port
+from flightstack.sim_backend.emulators.net import wait_until
 from flightstack.sim_backend.emulators.radio import DeviceRadio
 from flightstack.sim_backend.emulators.tcp_proxy import TcpImpairProxy
-from flightstack.sim_backend.emulators.tello import (
-    TelloEmulator,
-    default_square,
-    read_frame_index,
-    stamp_frame_index,
-    wait_until,
-)
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
+from flightstack.sim_backend.emulators.tello.frames import default_square, read_frame_index, stamp_frame_index
 from flightstack.sim_backend.emulators.tello.recorded import KEYFRAME_INTERVAL_FRAMES
 
 pytestmark = pytest.mark.system
@@ -222,8 +218,8 @@ def test_natnet_and_rover_receive_what_their_radios_decided() -> None:
     pytest.importorskip("pymavlink")
     from pymavlink import mavutil
 
-    from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
     from flightstack.sim_backend.emulators.natnet import NatNetEmulator
+    from flightstack.sim_backend.emulators.rover.emulator import MavlinkRoverEmulator
 
     crowded = PROFILES["crowded"]
     nat_radio = DeviceRadio(crowded, 0, "natnet", {"frames": "mocap"})

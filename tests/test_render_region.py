@@ -10,7 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from flightstack.sim_backend.render import (
+from flightstack.sim_backend.scene.render import (
     RenderOptions,
     _gaussian_noise_int16,
     _noise_span,

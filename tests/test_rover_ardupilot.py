@@ -21,15 +21,9 @@ pytest.importorskip("pymavlink")
 
 from pymavlink import mavutil
 
-from flightstack.sim_backend.emulators.mavlink_rover import (
-    ACRO,
-    GUIDED,
-    HOLD,
-    MANUAL,
-    STEERING,
-    MavlinkRoverEmulator,
-    RoverParams,
-)
+from flightstack.sim_backend.emulators.rover.emulator import MavlinkRoverEmulator
+from flightstack.sim_backend.emulators.rover.modes import ACRO, GUIDED, HOLD, MANUAL, STEERING
+from flightstack.sim_backend.emulators.rover.params import RoverParams
 from tests.conftest import eventually, skip_or_fail_in_ci
 
 pytestmark = pytest.mark.system

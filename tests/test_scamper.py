@@ -1,4 +1,4 @@
-"""Scamper MAVLink driver against the loopback rover emulator (sim_backend/emulators/mavlink_rover.py).
+"""Scamper MAVLink driver against the loopback rover emulator (sim_backend/emulators/rover/).
 
 Each fault test flips one `RoverFaults` switch (or `pilot_override`) and checks the outcome at the emulator
 (its mode / armed state, the commands it received, the ACKs it sent) and in the driver's events.  The
@@ -19,7 +19,7 @@ pytest.importorskip("pymavlink")
 
 from pymavlink import mavutil
 
-from flightstack.drivers.scamper import (
+from flightstack.drivers.scamper.driver import (
     ROVER_GUIDED_MODE,
     TYPE_MASK_VEL_YAWRATE,
     ScamperCommandError,
@@ -29,7 +29,8 @@ from flightstack.drivers.scamper import (
     probe_heartbeat,
 )
 from flightstack.hal import GroundRobot
-from flightstack.sim_backend.emulators.mavlink_rover import HOLD, MavlinkRoverEmulator
+from flightstack.sim_backend.emulators.rover.emulator import MavlinkRoverEmulator
+from flightstack.sim_backend.emulators.rover.modes import HOLD
 from tests.conftest import Bound, eventually
 from tests.robot_pose import still_pose
 

@@ -5,7 +5,7 @@ reboot; and the raw .tlog of the link.
 The vehicle here is `SpecRover` (flightstack/faults/spec_rover.py), written from the MAVLink specification
 and ArduPilot's source (not from the driver), because the project's emulator does not answer
 GPS_GLOBAL_ORIGIN yet (branch p39-emu adds it). The .tlog test runs against the current emulator
-(sim_backend/emulators/mavlink_rover.py) as the acceptance asks: it needs p39-emu's emulator (which
+(sim_backend/emulators/rover/) as the acceptance asks: it needs p39-emu's emulator (which
 reports the origin) to pass — marked below.
 """
 
@@ -26,7 +26,7 @@ pytest.importorskip("pymavlink")
 
 from pymavlink import mavutil
 
-from flightstack.drivers.scamper import ScamperCommandError, ScamperConfig, ScamperDriver
+from flightstack.drivers.scamper.driver import ScamperCommandError, ScamperConfig, ScamperDriver
 from flightstack.faults.spec_rover import HOLD, SpecRover
 from flightstack.hal import StampedPose
 from flightstack.paper.geometry import Pose
@@ -162,9 +162,9 @@ def _mavlogdump() -> str:
 
 def _emulator_reports_origin(url: str) -> bool:
     """Does the rover emulator answer SET_GPS_GLOBAL_ORIGIN + REQUEST_MESSAGE(49) with GPS_GLOBAL_ORIGIN?"""
-    from flightstack.drivers.scamper_link import open_connection, wait_vehicle_heartbeat
-    from flightstack.drivers.scamper_nav import LabOrigin
-    from flightstack.drivers.scamper_params import confirm_origin
+    from flightstack.drivers.scamper.link import open_connection, wait_vehicle_heartbeat
+    from flightstack.drivers.scamper.nav import LabOrigin
+    from flightstack.drivers.scamper.params import confirm_origin
 
     cfg = ScamperConfig(url=url, heartbeat_timeout_s=3.0)
     conn = open_connection(cfg)
@@ -179,7 +179,7 @@ def test_tlog_both_directions_against_the_emulator(tmp_path: Path) -> None:
     """The acceptance run on the project's rover emulator. It needs an emulator that reports the EKF
     origin (branch p39-emu): against one that does not, the driver rightly refuses to connect, and the
     test is marked xfail naming that, instead of passing."""
-    from flightstack.sim_backend.emulators.mavlink_rover import MavlinkRoverEmulator
+    from flightstack.sim_backend.emulators.rover.emulator import MavlinkRoverEmulator
 
     with MavlinkRoverEmulator(heartbeat_hz=10.0) as emu:
         url = f"udpout:127.0.0.1:{emu.port}"
@@ -230,7 +230,7 @@ def _tlog_run(url: str, tmp_path: Path) -> None:
 
 
 def _preflight(rover: SpecRover) -> dict[str, tuple[str, str]]:
-    from flightstack.drivers.preflight import robot_rows
+    from flightstack.drivers.lab.preflight import robot_rows
 
     rows = robot_rows(_cfg(rover.port))
     return {r.check: (r.status, r.detail) for r in rows}

@@ -1,6 +1,6 @@
-"""The robot's own GCS failsafe on loopback: preflight reads it (drivers/scamper_params.py, judged by
-drivers/scamper_failsafe.py) from the rover emulator, and the emulator takes FS_ACTION as ArduPilot Rover
-does when the ground station's heartbeats stop (sim_backend/emulators/mavlink_rover.py)."""
+"""The robot's own GCS failsafe on loopback: preflight reads it (drivers/scamper/params.py, judged by
+drivers/scamper/failsafe.py) from the rover emulator, and the emulator takes FS_ACTION as ArduPilot Rover
+does when the ground station's heartbeats stop (sim_backend/emulators/rover/)."""
 
 from __future__ import annotations
 
@@ -15,17 +15,13 @@ pytest.importorskip("pymavlink")
 
 from pymavlink import mavutil
 
-from flightstack.drivers.preflight import robot_rows
-from flightstack.drivers.scamper import ROVER_GUIDED_MODE, ScamperConfig, ScamperDriver
-from flightstack.drivers.scamper_failsafe import PARAMETERS, enough, judge_gcs_failsafe
-from flightstack.drivers.scamper_params import probe_parameters
-from flightstack.sim_backend.emulators.mavlink_rover import (
-    GUIDED,
-    HOLD,
-    RTL,
-    MavlinkRoverEmulator,
-    RoverParams,
-)
+from flightstack.drivers.lab.preflight import robot_rows
+from flightstack.drivers.scamper.driver import ROVER_GUIDED_MODE, ScamperConfig, ScamperDriver
+from flightstack.drivers.scamper.failsafe import PARAMETERS, enough, judge_gcs_failsafe
+from flightstack.drivers.scamper.params import probe_parameters
+from flightstack.sim_backend.emulators.rover.emulator import MavlinkRoverEmulator
+from flightstack.sim_backend.emulators.rover.modes import GUIDED, HOLD, RTL
+from flightstack.sim_backend.emulators.rover.params import RoverParams
 from tests.conftest import eventually
 from tests.robot_pose import still_pose
 
@@ -58,7 +54,7 @@ def test_preflight_passes_the_lab_settings_and_changes_nothing() -> None:
             rows
         )
         assert "FS_ACTION 2 (Hold)" in rows[1].detail and "SYSID_MYGCS 255 = our system id" in rows[1].detail
-        # the rows of drivers/scamper_vehicle.py and the origin: tests/test_scamper_extnav.py
+        # the rows of drivers/scamper/vehicle.py and the origin: tests/test_scamper_extnav.py
         assert [r.check for r in rows[2:]] == [
             "external navigation",
             "GUIDED timeout",

@@ -1,5 +1,5 @@
-"""The Scamper GCS-failsafe rule (drivers/scamper_failsafe.py) branch by branch, and the PARAM_VALUE
-collector of drivers/scamper_params.py on hand-made messages (duplicates, order, strangers, bad values)."""
+"""The Scamper GCS-failsafe rule (drivers/scamper/failsafe.py) branch by branch, and the PARAM_VALUE
+collector of drivers/scamper/params.py on hand-made messages (duplicates, order, strangers, bad values)."""
 
 from __future__ import annotations
 
@@ -11,14 +11,14 @@ pytest.importorskip("pymavlink")
 
 from pymavlink import mavutil
 
-from flightstack.drivers.scamper_failsafe import (
+from flightstack.drivers.scamper.failsafe import (
     MAV_GCS_SYSID,
     MAV_GCS_SYSID_HI,
     SYSID_MYGCS,
     enough,
     judge_gcs_failsafe,
 )
-from flightstack.drivers.scamper_params import ParamCollector, check_name
+from flightstack.drivers.scamper.params import ParamCollector, check_name
 
 pytestmark = pytest.mark.unit
 mavlink = mavutil.mavlink

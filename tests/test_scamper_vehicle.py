@@ -1,6 +1,6 @@
 """The pure rules of the ground robot's ArduPilot setup: lab ↔ NED (closed form), the origin, the vision
-stream's freshness, the parameter rules and the kinematics mapping (drivers/scamper_nav.py,
-drivers/scamper_vehicle.py)."""
+stream's freshness, the parameter rules and the kinematics mapping (drivers/scamper/nav.py,
+drivers/scamper/vehicle.py)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from flightstack.drivers import scamper_vehicle as sv
-from flightstack.drivers.scamper_nav import LabOrigin, VisionStream, lab_to_ned, ned_to_lab
+from flightstack.drivers.scamper import vehicle as sv
+from flightstack.drivers.scamper.nav import LabOrigin, VisionStream, lab_to_ned, ned_to_lab
 from flightstack.hal import StampedPose
 from flightstack.paper.geometry import Pose
 

@@ -130,7 +130,7 @@ def test_insecure_zenoh_sections_are_refused() -> None:
 
 
 def test_preflight_checks_the_certificate_this_computer_needs(tmp_path: Path) -> None:
-    from flightstack.drivers.preflight import check_certs
+    from flightstack.drivers.lab.preflight import check_certs
 
     hw = MISSIONS / "paper_experiment.yaml"
     name = load_mission(hw, rig="lab").name

@@ -28,7 +28,8 @@ def child() -> None:
     import numpy as np
 
     from flightstack.drivers.tello import TelloConfig, TelloDriver
-    from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator
+    from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
+    from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 
     emu = TelloEmulator(
         "127.0.0.2",

@@ -30,9 +30,11 @@ from flightstack.drivers.tello.rc import velocity_to_rc
 from flightstack.hal import FlightPhase
 from flightstack.paper.geometry import Pose, rot_z
 from flightstack.ports import free_udp_port
-from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator, wait_until
+from flightstack.sim_backend.emulators.net import wait_until
+from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 from flightstack.sim_backend.emulators.tello.recorded import H_DRIFT_CM_S, H_DRIFT_MAX_CM
-from flightstack.sim_backend.render import RenderOptions, render_markers
+from flightstack.sim_backend.scene.render import RenderOptions, render_markers
 from flightstack.vision.camera_file import load_calibration
 from flightstack.vision.markers import extract_markers
 from tests.conftest import MISSIONS, Bound, tello_config, tello_emulator

@@ -32,14 +32,11 @@ import numpy as np
 import pytest
 
 from flightstack.ports import free_udp_port
-from flightstack.sim_backend.emulators.tello import (
-    FAST_TAKEOFF_S,
-    TelloEmulator,
-    TelloFaults,
-    default_square,
-    read_frame_index,
-    wait_until,
-)
+from flightstack.sim_backend.emulators.net import wait_until
+from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
+from flightstack.sim_backend.emulators.tello.faults import TelloFaults
+from flightstack.sim_backend.emulators.tello.frames import default_square, read_frame_index
 from tests.conftest import skip_or_fail_in_ci
 
 try:

@@ -157,7 +157,7 @@ def lab_side(config_path: str) -> None:
         phase_times,
         rc_times,
     )
-    from flightstack.sim_backend.emulators.tello import TelloFaults
+    from flightstack.sim_backend.emulators.tello.faults import TelloFaults
 
     cfg = json.loads(Path(config_path).read_text())
     work = Path(cfg["workdir"])
@@ -249,8 +249,8 @@ def rp_probe(interfaces: str) -> None:
     """In the computer's namespace: preflight's row of each interface (comma-separated names) for a drone at
     192.168.10.1, and how many datagrams arrive within 2 s on a socket bound to it at port 8890; prints
     JSON."""
+    from flightstack.drivers.lab.preflight import check_interface
     from flightstack.drivers.netif import udp_socket
-    from flightstack.drivers.preflight import check_interface
 
     names = interfaces.split(",")
     socks = {}

@@ -23,15 +23,17 @@ from typing import Any
 import numpy as np
 import pytest
 
-from flightstack.drivers.hardware import WallClock
+from flightstack.drivers.lab.hardware import WallClock
 from flightstack.drivers.tello import TelloDriver
 from flightstack.hal import FlightPhase, StampedPose
 from flightstack.netem import LinkProfile, NetworkProfile
 from flightstack.paper.geometry import Pose
 from flightstack.safety import EventLog, SafeDrone, SafetyLimits
 from flightstack.sim_backend.emulated_lab import MOCAP_NOISE_M
+from flightstack.sim_backend.emulators.net import wait_until
 from flightstack.sim_backend.emulators.radio import DeviceRadio
-from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator, wait_until
+from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 from tests.conftest import Bound, tello_config, tello_emulator
 
 LAND_S = 1.7

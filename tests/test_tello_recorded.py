@@ -23,7 +23,8 @@ from flightstack.drivers.tello.state import parse_state
 from flightstack.drivers.tello.traffic import TelloSession, read_xg590_db
 from flightstack.drivers.tello.video_check import _Bits, split_nals, sps_frame_num_bits
 from flightstack.ports import free_udp_port
-from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator
+from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 from flightstack.sim_backend.emulators.tello.recorded import (
     H_DRIFT_MAX_CM,
     H_STEP_CM,

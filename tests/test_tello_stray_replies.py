@@ -21,7 +21,9 @@ from flightstack.drivers.tello import TelloCommandError, TelloDriver, parse_sdk
 from flightstack.drivers.tello.replies import PROMPT_REPLY_S, SLOW_REPLY_S, ReplyLedger
 from flightstack.drivers.tello.traffic import TrafficWriter, read_traffic
 from flightstack.hal import FlightPhase
-from flightstack.sim_backend.emulators.tello import FAST_TAKEOFF_S, TelloEmulator, wait_until
+from flightstack.sim_backend.emulators.net import wait_until
+from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
+from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 from tests.conftest import tello_config, tello_emulator
 
 

@@ -94,7 +94,7 @@ def test_an_invalid_video_setting_exits_2_naming_the_key(
 def test_a_drones_own_keys_override_the_labs_and_reach_its_driver(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from flightstack.drivers.hardware import tello_config
+    from flightstack.drivers.lab.hardware import tello_config
 
     lab = lab_with(tmp_path, {"fps": "high", "bitrate": 3}, {"fps": "low", "resolution": "low"})
     assert main(["validate", "paper_experiment", "--rig", str(lab)]) == 0
@@ -117,7 +117,7 @@ def test_a_drones_own_keys_override_the_labs_and_reach_its_driver(
 
 
 def test_without_video_keys_nothing_is_sent_and_no_sdk30_is_needed() -> None:
-    from flightstack.drivers.hardware import tello_config
+    from flightstack.drivers.lab.hardware import tello_config
 
     m = load_mission("paper_experiment", rig="lab", check_files=False)
     assert m.hardware is not None and m.hardware.video is None

@@ -63,7 +63,7 @@ def test_the_scan_finds_the_forms_a_venv_is_built_with(tmp_path: Path) -> None:
 
 def test_a_venv_from_tests_venvs_imports_flightstack_outside_the_checkout(tmp_path: Path) -> None:
     venv = venv_seeing_this_environment(tmp_path / "child")
-    probe = "import flightstack.drivers.guardian as g; print(g.GUARDIAN_NAME)"
+    probe = "import flightstack.drivers.guardian.launcher as g; print(g.GUARDIAN_NAME)"
     out = subprocess.run(
         [str(venv / "bin" / "python"), "-c", probe],
         cwd=tmp_path,  # not the checkout: the import comes through the environment, not the cwd

@@ -1,5 +1,5 @@
 """Colour-marker extraction (flightstack.vision.markers) on frames of the simulated camera
-(flightstack.sim_backend.render).
+(flightstack.sim_backend.scene.render).
 
 References that do not share code with the module under test: the pinhole/Brown–Conrady formula written
 out here, the disc area π r² (f/z)², flightstack.paper.projection for the target's feature points, and the
@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from flightstack.paper.geometry import Pose
 from flightstack.paper.projection import CameraModel, points_in_camera, project
-from flightstack.sim_backend.render import RenderOptions, render_markers
+from flightstack.sim_backend.scene.render import RenderOptions, render_markers
 from flightstack.vision.camera_file import CameraCalibration, MarkerColour, load_calibration
 from flightstack.vision.markers import MarkerDetection, extract_markers, features_from_detection
 from tests.conftest import MISSIONS

@@ -1,5 +1,5 @@
 """The real lab's rig (backend `tello`): real Tellos, motion capture and the Scamper, described by the
-mission's `hardware:` section, flown on the wall clock (drivers/hardware.py assembles them)."""
+mission's `hardware:` section, flown on the wall clock (drivers/lab/hardware.py assembles them)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from flightstack.recording.files import DeviceFiles
 from flightstack.runtime.rig import AgentSeat, LoopPlanner, Rig
 
 if TYPE_CHECKING:
-    from flightstack.drivers.hardware import HardwareBackend
+    from flightstack.drivers.lab.hardware import HardwareBackend
 
 
 class LabRig:
@@ -73,7 +73,7 @@ class LabRig:
         yield mission
 
     def build_backend(self, mission: Mission, devices: DeviceFiles | None) -> HardwareBackend:
-        from flightstack.drivers.hardware import build_tello
+        from flightstack.drivers.lab.hardware import build_tello
 
         return build_tello(mission, devices=devices)
 
@@ -81,7 +81,7 @@ class LabRig:
         self, mission: Mission, seat: AgentSeat
     ) -> contextlib.AbstractContextManager[HardwareBackend]:
         """This agent's Tello, the motion capture and, where the mission has one, the robot."""
-        from flightstack.drivers.hardware import agent_backend
+        from flightstack.drivers.lab.hardware import agent_backend
 
         return agent_backend(mission, seat)
 

@@ -36,10 +36,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from flightstack.drivers.device_threads import ERROR_PAUSE_S, ErrorLog
 from flightstack.drivers.netif import udp_socket
 from flightstack.drivers.tello import DEFAULT_VIDEO_PORT, TelloCommandError, TelloDriver
 from flightstack.drivers.tello.config import SETUP_ATTEMPTS, sdk3_fix
-from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog
 from flightstack.drivers.tello.traffic import TrafficWriter
 from flightstack.drivers.tello.video_decode import StreamDecoder
 from flightstack.drivers.tello.video_settings import unconfirmed

@@ -233,7 +233,7 @@ class TelloDriver:
 
     def set_muted(self, muted: Callable[[], bool] | None) -> None:
         """After `muted()` returns True nothing more is sent to the drone (a guardian process took it over:
-        drivers/guardian.py); checked right before every datagram, from every thread."""
+        drivers/guardian/launcher.py); checked right before every datagram, from every thread."""
         self.link.set_muted(muted)
 
     def is_muted(self) -> bool:

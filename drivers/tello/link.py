@@ -53,6 +53,7 @@ from collections import Counter, deque
 from collections.abc import Callable
 from typing import ClassVar
 
+from flightstack.drivers.device_threads import ERROR_PAUSE_S, ErrorLog, MutedCheck, evaluate_mute
 from flightstack.drivers.netif import udp_socket
 from flightstack.drivers.tello.replies import ReplyLedger
 from flightstack.drivers.tello.state import StateRejectedError, TelloTelemetry, parse_state
@@ -60,8 +61,6 @@ from flightstack.drivers.tello.traffic import TrafficWriter
 
 LOG = logging.getLogger("flightstack.tello")
 MAX_REPLY_BYTES = 256
-ERROR_PAUSE_S = 0.05  # a thread pauses this long (s) after an error before it goes on
-MutedCheck = Callable[[], bool]
 ErrorCallback = Callable[[float, str], None]
 NOTICES = ("error auto land",)
 """Replies a Tello sends of its own accord, never an answer (lower case, prefixes): `error Auto land`
@@ -72,55 +71,6 @@ around a landing it decided on (seen in a real console transcript against a `bat
 def is_notice(text: str) -> bool:
     """A reply that is the drone's own notice (NOTICES), not an answer to any command."""
     return text.lower().startswith(NOTICES)
-
-
-class ErrorLog:
-    """Counts and logs the errors of driver threads without flooding the log (thread-safe).
-
-    `record(kind, exc)` adds 1 to `counts[kind]` (and to `counts["thread_error"]` unless thread=False)
-    and logs a warning naming the source, the kind, the running count and the reason at the first and
-    then every `log_every`-th error of that kind. Returns the new count of `kind`.
-    """
-
-    def __init__(
-        self, counts: Counter[str], source: str, log: logging.Logger = LOG, log_every: int = 100
-    ) -> None:
-        self.counts = counts
-        self.source = source
-        self.log = log
-        self.log_every = max(1, int(log_every))
-        self._lock = threading.Lock()
-
-    def record(self, kind: str, exc: BaseException | str, thread: bool = True) -> int:
-        """Count one error of `kind` (reason: an exception or a text); thread=False for a caller's error."""
-        with self._lock:
-            self.counts[kind] += 1
-            if thread:
-                self.counts["thread_error"] += 1
-            n = self.counts[kind]
-        if n == 1 or n % self.log_every == 0:
-            why = exc if isinstance(exc, str) else f"{type(exc).__name__}: {exc}"
-            self.log.warning(
-                "%s: %s #%d: %s (logged at the first and every %d-th)",
-                self.source,
-                kind,
-                n,
-                why,
-                self.log_every,
-            )
-        return n
-
-
-def evaluate_mute(check: MutedCheck | None, errors: ErrorLog) -> bool:
-    """A driver's mute check (the guardian's takeover flag), evaluated now; one that raises is counted in
-    `errors` and does not mute (a wrongly muted drone would keep its last command)."""
-    if check is None:
-        return False
-    try:
-        return bool(check())
-    except Exception as exc:
-        errors.record("muted_check_error", exc, thread=False)
-        return False
 
 
 class CommandChannel:
@@ -159,7 +109,7 @@ class CommandChannel:
         self.ledger = ReplyLedger()  # the requests still owed a reply
         self.last_rx_t = -float("inf")
         self.counts: Counter[str] = Counter()
-        self.errors = ErrorLog(self.counts, f"tello {host} command channel")
+        self.errors = ErrorLog(self.counts, f"tello {host} command channel", LOG)
         self.discarded: list[tuple[float, str]] = []  # (t, text) of replies nobody waited for (last 200)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._read_loop, name=f"tello-cmd-{host}", daemon=True)
@@ -333,7 +283,7 @@ class StateReceiver:
         self._traffic: dict[str, TrafficWriter] = {}
         self.dropped: Counter[str] = Counter()  # datagrams dropped, by reason
         self.counts: Counter[str] = Counter()  # "delivered" datagrams; thread errors (ErrorLog)
-        self.errors = ErrorLog(self.counts, f"tello state receiver {where}")
+        self.errors = ErrorLog(self.counts, f"tello state receiver {where}", LOG)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name=f"tello-state-{port}", daemon=True)
         self._thread.start()

@@ -14,8 +14,8 @@ import threading
 import time
 from collections.abc import Callable
 
+from flightstack.drivers.device_threads import ErrorLog
 from flightstack.drivers.tello.config import TelloConfig
-from flightstack.drivers.tello.link import ErrorLog
 from flightstack.drivers.tello.rejoin import SdkRejoin
 from flightstack.drivers.tello.status import LOG, DriverEvents, DriverStatus
 from flightstack.drivers.tello.sticks import HOVER, Sticks

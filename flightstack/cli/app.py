@@ -82,9 +82,9 @@ def finalise_live_mcap(run: Path) -> tuple[str | None, str | None]:
 
 
 def cmd_preflight(args: argparse.Namespace) -> int:
-    """Check every device and file of a hardware mission; exit 1 on any FAIL (drivers/preflight.py)."""
+    """Check every device and file of a hardware mission; exit 1 on any FAIL (drivers/lab/preflight.py)."""
     from flightstack.config.mission import load_mission
-    from flightstack.drivers.preflight import format_table, run_preflight
+    from flightstack.drivers.lab.preflight import format_table, run_preflight
 
     mission = load_mission(args.mission, check_files=False, rig=args.rig)
     if mission.simulated:
@@ -124,11 +124,11 @@ def cmd_target(args: argparse.Namespace) -> int:
 
 def _drive_target(mission: Mission, duration: float) -> int:
     """`target` on an opened rig: the robot driven `duration` s (s) under its guardian."""
-    from flightstack.drivers.guardian import Guardian, GuardianConfig
-    from flightstack.drivers.hardware import body_names, mocap_config, scamper_config
+    from flightstack.drivers.guardian.launcher import Guardian, GuardianConfig
+    from flightstack.drivers.lab.hardware import body_names, mocap_config, scamper_config
+    from flightstack.drivers.lab.target_run import drive_square, lap_summary
     from flightstack.drivers.mocap import MocapPoseSource
-    from flightstack.drivers.scamper import ScamperDriver
-    from flightstack.drivers.target_run import drive_square, lap_summary
+    from flightstack.drivers.scamper.driver import ScamperDriver
 
     law = mission.target_law()
     sc = scamper_config(mission)
@@ -136,7 +136,7 @@ def _drive_target(mission: Mission, duration: float) -> int:
     mocap = MocapPoseSource(mocap_config(mission))
     body = body_names(mission)["target"]
     robot = ScamperDriver(sc, pose_source=lambda: mocap.latest(body))
-    # if this process dies or stalls, the guardian stops and disarms the robot (drivers/guardian.py)
+    # if this process dies or stalls, the guardian stops and disarms the robot (drivers/guardian/launcher.py)
     guardian = Guardian.start(GuardianConfig.for_devices([], sc.url))
     robot.set_muted(guardian.taken_over)
     armed = [False]
@@ -219,7 +219,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_calibrate_drone(args: argparse.Namespace) -> int:
     """Fly rc steps on one Tello; fit rc-unit → m/s gains and time constants (drivers/tello/identify.py)."""
-    from flightstack.drivers.guardian import Guardian, GuardianConfig
+    from flightstack.drivers.guardian.launcher import Guardian, GuardianConfig
     from flightstack.drivers.tello import TelloConfig, TelloDriver
     from flightstack.drivers.tello.identify import fits_to_rc_gains, identify, save_identification
 

@@ -241,12 +241,12 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 def cmd_guard(args: argparse.Namespace) -> int:
     """Watch every agent's presence; land the Tello of an agent that vanishes in flight from this
-    computer (drivers/guard.py). Station topology only: exit 2 naming the topology otherwise. One line
+    computer (drivers/lab/guard.py). Station topology only: exit 2 naming the topology otherwise. One line
     per event on stdout; ends after `--duration` s (a landing in progress is completed first) or at
     Ctrl-C; exit 0."""
     from flightstack.comms.factory import make_bus
-    from flightstack.drivers.guard import Guard, guard_refusal
-    from flightstack.drivers.guardian_process import Log
+    from flightstack.drivers.guardian.process import Log
+    from flightstack.drivers.lab.guard import Guard, guard_refusal
 
     mission = load_mission(args.mission, rig=args.rig)
     why = guard_refusal(mission)

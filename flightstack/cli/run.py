@@ -358,7 +358,7 @@ def _confirm(question: str, yes: bool) -> bool:
 
 def _confirm_and_preflight(args: argparse.Namespace, mission: Mission) -> int:
     """Preflight every device, then ask; 0 to go on, else the exit code."""
-    from flightstack.drivers.preflight import format_table, run_preflight
+    from flightstack.drivers.lab.preflight import format_table, run_preflight
 
     rows = run_preflight(mission)
     print(format_table(rows))

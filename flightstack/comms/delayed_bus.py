@@ -28,7 +28,7 @@ UNNAMED_SENDER = 2**16
 
 
 class LinkDraws(Protocol):
-    """One sender's link (e.g. sim_backend.lab.LinkDelays): whether the next message is lost, and how late
+    """One sender's link (e.g. config.links.LinkDelays): whether the next message is lost, and how late
     it arrives (s)."""
 
     def lost(self) -> bool: ...

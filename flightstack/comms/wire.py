@@ -86,7 +86,7 @@ CHANNELS: tuple[Channel, ...] = (
         acl.status_key,
         ("{i}",),
         "agent i's process, about twice a second (`StatusPublisher`, flightstack/runtime/fleet.py)",
-        "`flightstack status`, `flightstack guard` (drivers/guard.py) and every bus (`control/**`)",
+        "`flightstack status`, `flightstack guard` (drivers/lab/guard.py) and every bus (`control/**`)",
         "control JSON, kind status",
         CONTROL_ENCODING,
         "none",

@@ -89,7 +89,7 @@ class MocapHardwareSpec(_Strict):
 
 
 class TargetHardwareSpec(_Strict):
-    """The ground robot over MAVLink (`drivers/scamper.py`); `url` is a pymavlink connection string.
+    """The ground robot over MAVLink (`drivers/scamper/driver.py`); `url` is a pymavlink connection string.
     `origin_*`: the EKF origin the driver sets (WGS84 degrees, m above MSL; docs/drivers.md "Ground
     robot"); `vision_hz`, `vision_max_age_s`: the motion-capture pose sent as external navigation."""
 

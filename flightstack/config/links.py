@@ -15,14 +15,16 @@ datagrams, and losing one damages a frame rather than removing it (docs/links.md
 - `tello`: a Tello on Wi-Fi and motion capture on a wired network, from users' measurements
   (docs/links.md lists each number with its source).
 
-The simulated lab applies them with its seeded generator (sim_backend/lab.py); which links each rig
-applies is in docs/links.md.
+`LinkDelays` draws what a link does to each sample (its delay, whether it is lost) from a seeded generator:
+the simulated lab applies links with it (sim_backend/lab.py), and so do the emulated lab's device links
+(sim_backend/emulators/device_links.py); which links each rig applies is in docs/links.md.
 """
 
 from __future__ import annotations
 
 from typing import Annotated, Literal
 
+import numpy as np
 from pydantic import Field, model_validator
 
 from flightstack.config.types import MAX_TIME_S
@@ -114,3 +116,27 @@ class LinksSpec(_Strict):
         devices have their own delays, e.g. the emulated Tello's response), links written out do."""
         own: LinkSpec | None = getattr(self, name)
         return own if own is not None else (NONE if self.profile == "perfect" else self.link(name))
+
+
+class LinkDelays:
+    """One link's samples (flightstack.config.links.LinkSpec): each arrives latency_s + U(0, jitter_s)
+    late (s) and is lost with probability `loss`. Draws from `rng` only for jitter and loss, so a link
+    without them draws nothing (the recordings of a rig without them do not change)."""
+
+    def __init__(self, spec: LinkSpec, rng: np.random.Generator | None = None) -> None:
+        if (spec.jitter_s > 0 or spec.loss > 0) and rng is None:
+            raise ValueError("a link with jitter or loss needs a generator")
+        self.spec, self.rng = spec, rng
+        self.lost_count = 0
+
+    def delay(self) -> float:
+        """How late the next sample arrives (s)."""
+        s = self.spec
+        jitter = float(self.rng.uniform(0.0, s.jitter_s)) if s.jitter_s > 0 and self.rng else 0.0
+        return s.latency_s + jitter
+
+    def lost(self) -> bool:
+        """Whether the next sample is lost (counted)."""
+        gone = self.spec.loss > 0 and self.rng is not None and bool(self.rng.random() < self.spec.loss)
+        self.lost_count += gone
+        return gone

@@ -75,7 +75,7 @@ class RenderSpec(_Strict):
     model: Literal["image", "centres"] = "image"
     centre_noise_px: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.02
     # what the cameras see around the target: "plain" (one grey) or "tiles" (a tiled, mottled floor fixed
-    # in the world, flightstack/sim_backend/floor.py: video concealment is tested against structure); the
+    # in the world, sim_backend/scene/floor.py: video concealment is tested against structure); the
     # emulated lab's cameras read it too
     floor: Literal["plain", "tiles"] = "plain"
 

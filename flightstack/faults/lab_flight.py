@@ -1,7 +1,7 @@
 """Flying the emulated lab (sim_backend/emulated_lab.py) for the fault table's rows, and judging it.
 
 - `fly_inprocess(lab, run_dir, ...)`: the flight (flightstack.runtime.flight) in this process with the
-  real hardware backend (drivers/hardware.py, guardian process included) and the streaming recorder,
+  real hardware backend (drivers/lab/hardware.py, guardian process included) and the streaming recorder,
   like `flightstack fly --yes` without the preflight. Rows that reach into the drivers (socket errors),
   the bus (a stalled tick) or the recorder (ENOSPC) use it; `injector(backend)` runs on a thread of its
   own meanwhile.

@@ -310,7 +310,7 @@ def _rec_end(rec: Any) -> str | None:
 def robot_not_moving(mission_path: Path, workdir: Path) -> FaultResult:
     """The robot's set-points never reach it (ScamperDriver.send_body_velocity dropped): it does not move
     when nudged before takeoff."""
-    from flightstack.drivers.scamper import ScamperDriver
+    from flightstack.drivers.scamper.driver import ScamperDriver
 
     wall0 = time.perf_counter()
     name = "robot_not_moving"

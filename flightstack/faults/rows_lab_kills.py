@@ -4,7 +4,7 @@ its guardian can both die, on the emulated lab.
 - `pkill_*`: the processes that `pkill -9 [-f] PATTERN` would select (the real `pgrep [-f] PATTERN`),
   restricted to the flight's own process tree and its guardian (never this process or anything else on
   the machine), SIGKILLed by pid 1 s into pursuit. The flight runs as `<environment>/bin/python3 -m
-  flightstack fly` so that every pattern selects it; the guardian (drivers/guardian.py) must be selected
+  flightstack fly` so that every pattern selects it; the guardian (drivers/guardian/) must be selected
   by none and land everything.
 - `both_killed_pursuit`, `both_killed_climb`: the flight and its guardian SIGKILLed by pid (the guardian
   first, then the flight at once: what the out-of-memory killer or a session's end can do) 1 s into

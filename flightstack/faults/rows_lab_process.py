@@ -1,7 +1,7 @@
 """The guardian's rows of `flightstack faults`: the process that flies the emulated lab is killed
 (`process_killed`: SIGKILL, as an out-of-memory kill or a crash in native code would) or stopped
 (`agent_stopped`: SIGSTOP, a hang, then SIGCONT), mid-pursuit: nothing of that process can react; its
-guardian process (drivers/guardian.py) must. `guardian_killed` kills the guardian alone: the flight, which
+guardian process (drivers/guardian/) must. `guardian_killed` kills the guardian alone: the flight, which
 watches the guardian's heartbeat, lands by itself at once. Kills by name and of both processes:
 rows_lab_kills.py.
 

@@ -1,5 +1,5 @@
 """Fault rows of the robot's preflight: an ArduPilot Rover that could not move indoors is refused before
-anything moves, in one line that says what to set on the vehicle (drivers/preflight.py `robot_rows`).
+anything moves, in one line that says what to set on the vehicle (drivers/lab/preflight.py `robot_rows`).
 
 The vehicle is `spec_rover.SpecRover` on loopback (written from the MAVLink specification and ArduPilot's
 source). Each row runs the preflight's robot checks against it and checks: the one refusing row is FAIL
@@ -22,8 +22,8 @@ ORIGIN_LINE = "no EKF origin: "
 def _row(
     name: str, expected: str, check: str, starts: str, params: Mapping[str, float], origin: bool
 ) -> FaultResult:
-    from flightstack.drivers.preflight import robot_rows  # pymavlink (extra scamper): only when run
-    from flightstack.drivers.scamper_link import ScamperConfig
+    from flightstack.drivers.lab.preflight import robot_rows  # pymavlink (extra scamper): only when run
+    from flightstack.drivers.scamper.link import ScamperConfig
     from flightstack.faults.spec_rover import HOLD, SpecRover
 
     wall0 = time.perf_counter()

@@ -139,7 +139,7 @@ class DeviceFiles:
         return Path(self.out) / DEVICES_DIR / f"tello-{drone_id}_{self.session}.jsonl"
 
     def scamper(self) -> Path:
-        """The ground robot's MAVLink link, both directions (pymavlink .tlog: drivers/scamper_tlog.py)."""
+        """The ground robot's MAVLink link, both directions (pymavlink .tlog: drivers/scamper/tlog.py)."""
         return Path(self.out) / DEVICES_DIR / f"scamper_{self.session}.tlog"
 
 

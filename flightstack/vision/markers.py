@@ -1,9 +1,8 @@
 """Colour-marker feature extraction: image → marker centres → the observer's image features.
 
-The same code runs on simulated frames (flightstack.sim_backend.render) and on real camera frames. Input is
-an RGB
-uint8 image of the calibrated size; output are the m marker centres in the order of cal.markers (the
-order of the target's feature points p0^j):
+The same code runs on simulated frames (flightstack.sim_backend.scene.render) and on real camera frames.
+Input is an RGB uint8 image of the calibrated size; output are the m marker centres in the order of
+cal.markers (the order of the target's feature points p0^j):
 
 * pixels: sub-pixel centres (u, v) in the distorted image (OpenCV convention: u right, v down, origin at
   the centre of the top-left pixel);
@@ -235,7 +234,7 @@ def extract_markers(
         sizes"): the target's markers are alike and near one depth, so a blob much larger or smaller
         than the others is not one of them (a reflection, a smear of a damaged video frame).
     roi: (x0, y0, x1, y1) pixels, end exclusive: the caller's promise (a renderer's, e.g.
-        flightstack.sim_backend.render with region "markers") that no pixel outside it is in any
+        flightstack.sim_backend.scene.render with region "markers") that no pixel outside it is in any
         marker's HSV box and that it extends more than 5 pixels beyond every such pixel; blobs are then
         searched only inside it, with the same result as on the whole frame (with downscale > 1 only
         when it divides the frame's size).

@@ -5,7 +5,7 @@ device (or, for commands, is acted on) latency_s + U(0, jitter_s) after it was p
 and is lost with probability `loss`. The emulated lab applies them in its emulators, before the radio
 (flightstack.netem, radio.py): a sample first waits for its link, then passes the device's radio.
 
-* `LinkStage`: one link's decisions, drawn by the simulated lab's own model (sim_backend.lab.LinkDelays)
+* `LinkStage`: one link's decisions, drawn by the simulated lab's own model (config.links.LinkDelays)
   from a generator seeded as the simulated lab seeds it (the mission's seed, the link, the device's
   number: a drone's id, 0 for the motion capture and the robot), so both labs make the same decisions
   for the same seed; with counters.
@@ -69,7 +69,7 @@ class LinkStage:
     """The decisions of one link of one device (thread-safe): `decide(t)` -> due time or None (lost)."""
 
     def __init__(self, spec: LinkSpec, seed: int, link: str, device: int) -> None:
-        from flightstack.sim_backend.lab import LinkDelays
+        from flightstack.config.links import LinkDelays
 
         self.spec = spec
         self.name = link

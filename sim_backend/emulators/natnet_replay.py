@@ -50,7 +50,7 @@ from typing import Literal
 
 from . import natnet
 from .natnet import NAT_CONNECT, NAT_FRAMEOFDATA, NAT_MODELDEF, NAT_REQUEST_MODELDEF, NAT_SERVERINFO
-from .tello.net import is_loopback, require_loopback
+from .net import is_loopback, require_loopback
 
 Delivery = Literal["multicast", "unicast", "unicast_command"]
 Pace = Literal["recorded", "step"]

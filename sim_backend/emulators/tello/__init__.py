@@ -16,46 +16,9 @@ phases, motion model, battery and state stream in ``physics``; the fault switche
 *Tello-Python #N* = https://github.com/dji-sdk/Tello-Python/issues/N, the SDK 2.0 and SDK 3.0 user guides
 (URLs in ``faults``).
 
-Layout: this module is the import path; ``emulator`` (``TelloEmulator``: sockets, threads,
+Layout: ``emulator`` (``TelloEmulator``: sockets, threads,
 start/close) is built from ``base`` (configuration, logs, reply queue), ``physics``,
 ``commands`` and ``video`` (H.264 stream), with ``frames`` (frame sources, frame-index
 bar code), ``net`` (loopback helpers) and ``recorded`` (what recordings of real Tellos show: the takeoff
 ``ok`` delay, ``h`` steps and drift, ``tof`` over the surface, ``vgz`` positive down, the keyframe interval).
 """
-
-from __future__ import annotations
-
-from flightstack.ports import free_udp_port
-
-from .base import FAST_TAKEOFF_S
-from .commands import text_of as text_of
-from .emulator import TelloEmulator
-from .faults import SDK3_ONLY_COMMANDS, ReplyScheduler, TelloFaults
-from .faults import has_sdk3 as has_sdk3
-from .frames import INDEX_BITS as INDEX_BITS
-from .frames import (
-    FrameSource,
-    default_frame_source,
-    read_checked_frame_index,
-    read_frame_index,
-    stamp_frame_index,
-)
-from .frames import default_square as default_square
-from .net import is_loopback, wait_until
-from .video import MAX_VIDEO_DATAGRAM as MAX_VIDEO_DATAGRAM
-
-__all__ = [
-    "FAST_TAKEOFF_S",
-    "SDK3_ONLY_COMMANDS",
-    "FrameSource",
-    "ReplyScheduler",
-    "TelloEmulator",
-    "TelloFaults",
-    "default_frame_source",
-    "free_udp_port",
-    "is_loopback",
-    "read_checked_frame_index",
-    "read_frame_index",
-    "stamp_frame_index",
-    "wait_until",
-]

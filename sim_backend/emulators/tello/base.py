@@ -24,10 +24,10 @@ from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S
 from flightstack.drivers.tello.config import TELLO_OWN_TIMEOUT_S
 
 from ..device_links import DeviceLinks
+from ..net import require_loopback
 from ..radio import DeviceRadio
 from .faults import ReplyScheduler, TelloFaults
 from .frames import FrameSource, default_frame_source
-from .net import require_loopback
 from .recorded import (
     H_DRIFT_CM_S,
     H_DRIFT_MAX_CM,

@@ -46,7 +46,7 @@ not ``ok`` (error texts differ between firmwares). Sources are abbreviated as in
   own rate control); the stream takes them from its next frame, with a new encoder. Another argument
   answers ``error`` (*unverified*); SDK 2.0 firmware answers ``unknown command: setfps`` (DJITelloPy #144,
   #219), and so does any firmware for a verb in ``faults.unknown_commands``.
-* **Several controllers** (e.g. the guardian of drivers/guardian.py): in SDK mode commands from any source
+* **Several controllers** (e.g. the guardian of drivers/guardian/): in SDK mode commands from any source
   port run and each sender is logged in ``senders``; replies go to the sender (DJITelloPy #143), or with
   ``reply_port_latch=True`` (Tello EDU) to the address of the first ``command`` (DJITelloPy PR #163, #168;
   *unverified*: a second ``command`` does not move the latch).
@@ -62,9 +62,9 @@ import time
 
 from flightstack.config.tello_video import FPS_ARGS, VERBS, parse_argument
 
+from ..net import is_loopback
 from .base import DeferredReply
 from .faults import SDK3_ONLY_COMMANDS, has_sdk3
-from .net import is_loopback
 from .physics import TelloPhysics, wrap_deg
 
 LOG = logging.getLogger(f"{__package__}.tello")  # the public module's logger, as before the split

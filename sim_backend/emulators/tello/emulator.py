@@ -14,9 +14,9 @@ import threading
 import time
 from types import TracebackType
 
+from ..net import bind_drone_sockets
 from ..netns import in_netns
 from .commands import TelloCommands
-from .net import bind_drone_sockets
 from .video import TelloVideoStream
 
 LOG = logging.getLogger(f"{__package__}.tello")  # the public module's logger, as before the split

@@ -70,7 +70,7 @@ from typing import Literal
 from flightstack.drivers.tello.traffic import TelloSession
 from flightstack.drivers.tello.video_check import TELLO_DATAGRAM_BYTES
 
-from .net import bind_drone_sockets, is_loopback, require_loopback
+from ..net import bind_drone_sockets, is_loopback, require_loopback
 
 LOG = logging.getLogger(__name__)
 PHASE_COMMANDS = frozenset({"takeoff", "land", "emergency"})

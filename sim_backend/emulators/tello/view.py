@@ -93,7 +93,7 @@ class CameraView:
     grey camera, uint8); `frame(g_wi, g_w0, downvision)` → the frame the stream carries (RGB)."""
 
     def __init__(self, spec: CameraSpec) -> None:
-        from flightstack.sim_backend.render import RenderOptions
+        from flightstack.sim_backend.scene.render import RenderOptions
         from flightstack.vision.camera_file import calibration_from_dict
 
         self.spec = spec
@@ -114,8 +114,8 @@ class CameraView:
 
     def image(self, g_wi: Pose, g_w0: Pose) -> np.ndarray:
         """The picture of a drone at g_wi looking at the target at g_w0 (both in Σw)."""
-        from flightstack.sim_backend.floor import floor_view
-        from flightstack.sim_backend.render import markers_in_camera, render_markers
+        from flightstack.sim_backend.scene.floor import floor_view
+        from flightstack.sim_backend.scene.render import markers_in_camera, render_markers
 
         centres_c, normals_c = markers_in_camera(relative(g_wi, g_w0), self.P0, self.R_ic, self.t_ic)
         floor = floor_view(g_wi, self.R_ic, self.t_ic) if self.opts.floor != "plain" else None
@@ -124,7 +124,7 @@ class CameraView:
 
     def true_pixels(self, g_wi: Pose, g_w0: Pose) -> np.ndarray:
         """(m, 2) where the target's feature points lie in `image(g_wi, g_w0)` (render.true_pixels)."""
-        from flightstack.sim_backend.render import marker_centres_in_camera, true_pixels
+        from flightstack.sim_backend.scene.render import marker_centres_in_camera, true_pixels
 
         return true_pixels(
             self.cal, marker_centres_in_camera(relative(g_wi, g_w0), self.P0, self.R_ic, self.t_ic)

@@ -19,7 +19,7 @@ docs/safety.md ("The guardian").
   why it is gone (exited, pipe closed, silent for `GUARDIAN_SILENT_S`) and the flight then lands.
 - **Takeover** (final): on EOF or a changed parent pid always (armed or not); on no heartbeat for
   `stall_s` only while armed; never after "bye". SIGTERM also makes it take over, then exit.
-- **What it does** (drivers/guardian_process.py): sets the takeover flag (a 1-byte file mmap'd by both
+- **What it does** (drivers/guardian/process.py): sets the takeover flag (a 1-byte file mmap'd by both
   processes; the parent's drivers read it before every send, `set_muted(guardian.taken_over)`), then from
   its own socket sends `rc 0 0 0 0` + `land` to every Tello every `land_resend_s` until its telemetry shows
   it down or `give_up_s`. A Tello reached through a named interface gets them from a socket bound to that
@@ -65,7 +65,7 @@ off yet, so waiting costs only time; 10 s was too short beside a CPU-bound proce
 (load 8: the guardian's interpreter and imports did not finish)."""
 ENTRY_ENV = "GUARDIAN_ENTRY"
 """The environment variable naming the module the guardian runs (`main()`), read by BOOTSTRAP."""
-ENTRY_MODULE = "flightstack.drivers.guardian_process"
+ENTRY_MODULE = "flightstack.drivers.guardian.process"
 BOOTSTRAP = "import os,sys,importlib;sys.exit(importlib.import_module(os.environ['GUARDIAN_ENTRY']).main())"
 """The guardian's `-c` code: names no module itself, so that its command line matches no NAME_WORDS."""
 GUARDIAN_NAME = "tello-guardian"

@@ -11,14 +11,14 @@ periods later: not trusted). Only vehicle heartbeats count (as pymavlink's
 ``probably_vehicle_heartbeat``); a companion computer's are ignored. The reaction to each condition and
 the robot's own failsafe settings: docs/drivers.md ("Ground robot").
 
-Threads (drivers/scamper_link.py): ``scamper-rx`` receives everything; ``scamper-tx`` sends a GCS
+Threads (drivers/scamper/link.py): ``scamper-rx`` receives everything; ``scamper-tx`` sends a GCS
 HEARTBEAT at 1 Hz and re-sends the set-point at ``stream_hz`` (Rover stops ~3 s after the last one) as
 ``SET_POSITION_TARGET_LOCAL_NED`` in ``MAV_FRAME_BODY_NED``, ``type_mask`` 1511 (vx, vy, yaw_rate).
 Neither ends on an error. The driver never fights a mode change or disarm by the robot (a pilot's switch
 must win). While muted (guardian takeover, ``set_muted(fn)``) nothing is written and ``close()`` skips
 its disarm.
 
-What ArduPilot needs to move indoors (drivers/scamper_nav.py has the frames, clock and sources): from
+What ArduPilot needs to move indoors (drivers/scamper/nav.py has the frames, clock and sources): from
 the first heartbeat on, ``scamper-tx`` sets the EKF origin (SET_GPS_GLOBAL_ORIGIN, msg 48, the configured
 lab origin) every ``ORIGIN_RETRY_S`` until the vehicle reports it (GPS_GLOBAL_ORIGIN, msg 49, which
 ArduPilot sends when it takes a new origin), from the second try on asking for it too
@@ -32,7 +32,7 @@ to reboot (SYSTEM_TIME's ``time_boot_ms`` going back) or coming back after a hea
 ``origin_forgotten``; ``RobotState.ready`` is False meanwhile).
 
 Raw log: given ``tlog_path``, every message received from and written to the robot goes to a pymavlink
-.tlog there (drivers/scamper_tlog.py), from connect to close.
+.tlog there (drivers/scamper/tlog.py), from connect to close.
 
 Frames and units: ``V = [v_x, v_y, v_z, ω]`` in the flightstack body frame FLU (m/s, rad/s
 counter-clockwise seen from above); MAVLink's body frame is FRD with yaw rate clockwise, so the driver
@@ -54,7 +54,8 @@ from typing import Any
 import numpy as np
 from pymavlink import mavutil
 
-from flightstack.drivers.scamper_link import (
+from flightstack.drivers.device_threads import MutedCheck
+from flightstack.drivers.scamper.link import (
     GCS_HEARTBEAT_PERIOD_S,
     ROVER_GUIDED_MODE,
     TYPE_MASK_VEL_YAWRATE,
@@ -67,9 +68,8 @@ from flightstack.drivers.scamper_link import (
     is_vehicle_heartbeat,
     probe_heartbeat,
 )
-from flightstack.drivers.scamper_nav import LabOrigin, OriginState, VisionStream
-from flightstack.drivers.scamper_tlog import TlogWriter
-from flightstack.drivers.tello.link import MutedCheck
+from flightstack.drivers.scamper.nav import LabOrigin, OriginState, VisionStream
+from flightstack.drivers.scamper.tlog import TlogWriter
 from flightstack.events import Event, ScamperKind
 from flightstack.hal import StampedPose
 
@@ -142,7 +142,7 @@ class ScamperDriver:
     ``ack_lost_confirmed_by_heartbeat``, ``ack_contradicted_by_heartbeat``, ``mode_changed``,
     ``disarmed_by_robot``, ``armed_by_robot``, ``disarm_failed``, ``disarm_skipped_muted``,
     ``origin_confirmed``, ``origin_forgotten``.  ``resends`` counts COMMAND_LONG re-sends; ``counts`` the
-    link's sends and errors (drivers/scamper_link.py: "sent", "muted", "send_error", "recv_error",
+    link's sends and errors (drivers/scamper/link.py: "sent", "muted", "send_error", "recv_error",
     "rx_error", "tx_error", "thread_error", "muted_check_error"), the messages sent by kind
     ("setpoint_sent", "vision_sent", "origin_sent") and the poses not sent by reason ("vision_stale",
     "vision_no pose", "vision_not new", "vision_not finite").
@@ -314,7 +314,7 @@ class ScamperDriver:
 
     @property
     def vision_reset_counter(self) -> int:
-        """VISION_POSITION_ESTIMATE's reset_counter now (drivers/scamper_nav.py `VisionStream`)."""
+        """VISION_POSITION_ESTIMATE's reset_counter now (drivers/scamper/nav.py `VisionStream`)."""
         return self._vision.reset_counter
 
     @property

@@ -1,7 +1,7 @@
-"""Loopback-only networking helpers of the Tello emulator (re-exported by ``tello.py``).
+"""Loopback-only networking helpers of the emulators (the Tello's, the NatNet replay's).
 
-The emulator only ever binds and sends on IPv4 loopback addresses (127.0.0.0/8); these helpers check
-addresses, find a free UDP port and poll a condition.  Times in seconds (``time.monotonic``).
+The emulators only ever bind and send on IPv4 loopback addresses (127.0.0.0/8); these helpers check
+addresses, bind a drone's sockets and poll a condition.  Times in seconds (``time.monotonic``).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""The guardian process itself (`python -m flightstack.drivers.guardian_process`); the design is in
-drivers/guardian.py.
+"""The guardian process itself (`python -m flightstack.drivers.guardian.process`); the design is in
+drivers/guardian/launcher.py.
 
 One thread runs everything (plus a log writer, so that a blocked stderr never delays a takeover): a
 select() loop of ≤ 20 ms over the parent's pipe (stdin), the guardian's own Tello command sockets and the
@@ -27,7 +27,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, TextIO
 
-from flightstack.drivers.guardian import (
+from flightstack.drivers.guardian.launcher import (
     ARM,
     BEAT,
     BYE,
@@ -134,12 +134,12 @@ class Robot:
     first_send_t: float | None = None
     done: bool = False
     mavlink: Any = None  # pymavlink's mavutil.mavlink
-    is_vehicle_heartbeat: Any = None  # drivers.scamper_link.is_vehicle_heartbeat
+    is_vehicle_heartbeat: Any = None  # drivers.scamper.link.is_vehicle_heartbeat
 
     def __post_init__(self) -> None:
         from pymavlink import mavutil  # imported now (~0.3 s), not during a takeover
 
-        from flightstack.drivers.scamper_link import is_vehicle_heartbeat
+        from flightstack.drivers.scamper.link import is_vehicle_heartbeat
 
         self.mavlink = mavutil.mavlink
         self.is_vehicle_heartbeat = is_vehicle_heartbeat
@@ -226,9 +226,9 @@ class Robot:
 
 
 class GuardianProcess:
-    """The watch and the takeover (module docstring of drivers/guardian.py).
+    """The watch and the takeover (module docstring of drivers/guardian/launcher.py).
 
-    `flightstack guard` (drivers/guard.py) reuses the takeover alone: watch_stdin=False (no parent pipe),
+    `flightstack guard` (drivers/lab/guard.py) reuses the takeover alone: watch_stdin=False (no parent pipe),
     flag None (no parent to mute), then `take_over`, and `poll` + `step_takeover` until it returns."""
 
     def __init__(
@@ -588,5 +588,5 @@ def main() -> int:
     return code
 
 
-if __name__ == "__main__":  # `python -m flightstack.drivers.guardian_process`, by hand
+if __name__ == "__main__":  # `python -m flightstack.drivers.guardian.process`, by hand
     sys.exit(main())

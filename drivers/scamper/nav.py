@@ -1,5 +1,5 @@
 """What ArduPilot Rover needs to know where it is indoors: the EKF origin and the robot's motion-capture
-pose as external navigation (pure: no I/O; drivers/scamper.py sends what these decide).
+pose as external navigation (pure: no I/O; drivers/scamper/driver.py sends what these decide).
 
 **Frames.** flightstack's world frame Σw is the motion-capture frame, right-handed, z up, yaw θ about
 z_w counter-clockwise (docs/equations.md). The autopilot's local frame is NED. The driver declares lab

@@ -56,7 +56,7 @@ SERVO_FUNCTIONS = tuple(f"SERVO{i}_FUNCTION" for i in range(1, 17))
 SKID_LEFT, SKID_RIGHT, GROUND_STEERING = 73, 74, 26  # SRV_Channel::k_throttleLeft / Right / k_steering
 OMNI_FRAME_TYPES = {1: "Omni3", 2: "OmniX", 3: "OmniPlus", 4: "Omni3Mecanum"}
 PARAMETERS = (*NAV_NEEDED, *NAV_ALLOWED, GUID_TIMEOUT, FRAME_CLASS, FRAME_TYPE, *SERVO_FUNCTIONS)
-"""What preflight reads for these rules (besides the GCS failsafe's: drivers/scamper_failsafe.py)."""
+"""What preflight reads for these rules (besides the GCS failsafe's: drivers/scamper/failsafe.py)."""
 KINEMATICS_SOURCE = (
     "FRAME_CLASS/FRAME_TYPE (Rover/Parameters.cpp) and SERVOn_FUNCTION 73+74 skid steering "
     "(AP_MotorsUGV::have_skid_steering), 26 ground steering"

@@ -31,7 +31,7 @@ from typing import Any
 
 from pymavlink import mavutil
 
-from flightstack.drivers.scamper_link import (
+from flightstack.drivers.scamper.link import (
     GCS_HEARTBEAT_PERIOD_S,
     HeartbeatProbe,
     ScamperConfig,
@@ -39,7 +39,7 @@ from flightstack.drivers.scamper_link import (
     send_gcs_heartbeat,
     wait_vehicle_heartbeat,
 )
-from flightstack.drivers.scamper_nav import LabOrigin
+from flightstack.drivers.scamper.nav import LabOrigin
 
 mavlink = mavutil.mavlink
 

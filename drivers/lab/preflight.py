@@ -37,9 +37,9 @@ The checks (how an operator uses them: docs/real-lab.md):
   (drones, target) is tracked, level (tilt limit) and inside the fence's x/y box (the target too: the
   drones follow it).
 - robot: a HEARTBEAT within heartbeat_timeout_s (mode and armed state reported); its own GCS failsafe
-  (ArduPilot parameters read over MAVLink, judged by drivers/scamper_failsafe.py): FAIL unless it is on,
+  (ArduPilot parameters read over MAVLink, judged by drivers/scamper/failsafe.py): FAIL unless it is on,
   holds the robot, acts within 5 s of our last heartbeat and watches our system id; external
-  navigation (drivers/scamper_vehicle.py): FAIL unless AHRS_EKF_TYPE 3, EK3_SRC1_POSXY 6, EK3_SRC1_YAW 6,
+  navigation (drivers/scamper/vehicle.py): FAIL unless AHRS_EKF_TYPE 3, EK3_SRC1_POSXY 6, EK3_SRC1_YAW 6,
   VISO_TYPE 1; EKF origin: FAIL unless the vehicle reports GPS_GLOBAL_ORIGIN after SET_GPS_GLOBAL_ORIGIN;
   GUIDED timeout: FAIL unless GUID_TIMEOUT is within [5 set-point periods, 3 s]; kinematics (FRAME_CLASS,
   FRAME_TYPE, SERVOn_FUNCTION): reported, WARN when unknown.
@@ -60,9 +60,9 @@ import numpy as np
 from flightstack.config.mission import Mission
 
 if TYPE_CHECKING:
-    from flightstack.drivers.scamper_link import ScamperConfig
-    from flightstack.drivers.scamper_nav import LabOrigin
-    from flightstack.drivers.scamper_params import OriginProbe
+    from flightstack.drivers.scamper.link import ScamperConfig
+    from flightstack.drivers.scamper.nav import LabOrigin
+    from flightstack.drivers.scamper.params import OriginProbe
     from flightstack.drivers.tello.camera import TelloCamera
     from flightstack.vision.camera_file import CameraCalibration
 
@@ -211,7 +211,7 @@ def check_gains(mission: Mission) -> CheckRow:
 
 # ---- devices -------------------------------------------------------------------------------------------
 def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> list[CheckRow]:
-    from flightstack.drivers.hardware import tello_config
+    from flightstack.drivers.lab.hardware import tello_config
     from flightstack.drivers.tello import TelloDriver
     from flightstack.drivers.tello.camera import TelloCamera
     from flightstack.drivers.tello.video_settings import unconfirmed
@@ -374,7 +374,7 @@ def y_up_signs(
 
 
 def check_mocap(mission: Mission) -> list[CheckRow]:
-    from flightstack.drivers.hardware import body_names, mocap_config
+    from flightstack.drivers.lab.hardware import body_names, mocap_config
     from flightstack.drivers.mocap import MocapPoseSource
 
     cfg = mocap_config(mission)
@@ -453,7 +453,7 @@ def check_mocap(mission: Mission) -> list[CheckRow]:
 
 
 def check_robot(mission: Mission) -> list[CheckRow]:
-    from flightstack.drivers.hardware import scamper_config
+    from flightstack.drivers.lab.hardware import scamper_config
 
     cfg = scamper_config(mission)
     if cfg is None:
@@ -464,13 +464,13 @@ def check_robot(mission: Mission) -> list[CheckRow]:
 def robot_rows(cfg: ScamperConfig) -> list[CheckRow]:
     """The robot's HEARTBEAT, its GCS failsafe, its external-navigation sources, its EKF origin (set to
     the configured lab origin and read back: nothing moves, nothing is armed), its GUIDED timeout and its
-    kinematics, from its parameters (drivers/scamper_failsafe.py, drivers/scamper_vehicle.py). Every
+    kinematics, from its parameters (drivers/scamper/failsafe.py, drivers/scamper/vehicle.py). Every
     FAIL is one line saying what to set on the vehicle."""
-    from flightstack.drivers import scamper_failsafe as fs
-    from flightstack.drivers import scamper_vehicle as sv
-    from flightstack.drivers.guardian import GuardianConfig
-    from flightstack.drivers.scamper_nav import LabOrigin
-    from flightstack.drivers.scamper_params import probe_vehicle
+    from flightstack.drivers.guardian.launcher import GuardianConfig
+    from flightstack.drivers.scamper import failsafe as fs
+    from flightstack.drivers.scamper import vehicle as sv
+    from flightstack.drivers.scamper.nav import LabOrigin
+    from flightstack.drivers.scamper.params import probe_vehicle
 
     dev = f"robot ({cfg.url})"
     names = (*fs.PARAMETERS, *sv.PARAMETERS)

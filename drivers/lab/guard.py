@@ -4,7 +4,7 @@ Optional, on the operator's computer (station topology only; refused in access-p
 `guard_refusal`). It joins the mission's Zenoh bus as the operator tool "guard" (publishes nothing),
 follows every agent's liveliness token and its status reports (validated `control.StatusReport`s; a
 malformed one counts as none) and, when an agent vanishes in flight, lands its Tello with the guardian's
-code (drivers/guardian_process.py `GuardianProcess`, one per drone, sockets opened at start so a takeover
+code (drivers/guardian/process.py `GuardianProcess`, one per drone, sockets opened at start so a takeover
 sends at once): `rc 0 0 0 0` then `land`, re-sent every `land_resend_s` until telemetry shows it down or
 `give_up_s`. What it decides and why (in flight = last status `flying` and at most `status_fresh_s` old
 when the token went; silence alone never triggers; an agent that comes back ends the takeover), and what
@@ -30,9 +30,9 @@ from typing import Any, Protocol
 
 from flightstack.comms.control import ControlEvent, StatusReport, status_report
 from flightstack.config.mission import Mission
-from flightstack.drivers.guardian import EXIT_DONE, GuardianConfig
-from flightstack.drivers.guardian_process import GuardianProcess, Log
-from flightstack.drivers.hardware import tello_config
+from flightstack.drivers.guardian.launcher import EXIT_DONE, GuardianConfig
+from flightstack.drivers.guardian.process import GuardianProcess, Log
+from flightstack.drivers.lab.hardware import tello_config
 from flightstack.events import Event
 
 POLL_S = 0.01  # longest wait between two looks at the bus and the landers (s)

@@ -1,6 +1,6 @@
 """The Scamper's MAVLink link: one pymavlink connection, its one send path and its two background threads.
 
-drivers/scamper.py (the robot's semantics: heartbeat state, mode/arm confirmation) runs on top of
+drivers/scamper/driver.py (the robot's semantics: heartbeat state, mode/arm confirmation) runs on top of
 `ScamperLink`:
 
 * ``scamper-rx`` receives everything (``recv_match``, ≤ 20 ms waits) and hands each message, or None
@@ -37,9 +37,9 @@ from typing import Any, Literal
 import numpy as np
 from pymavlink import mavutil
 
-from flightstack.drivers.scamper_nav import POSE_UNKNOWN_COVARIANCE, LabOrigin, VisionSample
-from flightstack.drivers.scamper_tlog import TlogWriter
-from flightstack.drivers.tello.link import ERROR_PAUSE_S, ErrorLog, MutedCheck, evaluate_mute
+from flightstack.drivers.device_threads import ERROR_PAUSE_S, ErrorLog, MutedCheck, evaluate_mute
+from flightstack.drivers.scamper.nav import POSE_UNKNOWN_COVARIANCE, LabOrigin, VisionSample
+from flightstack.drivers.scamper.tlog import TlogWriter
 
 mavlink = mavutil.mavlink
 LOG = logging.getLogger("flightstack.scamper")
@@ -83,7 +83,7 @@ class ScamperConfig:
     source_system: int = 255  # our MAVLink system id (GCS convention)
     source_component: int = 190  # MAV_COMP_ID_MISSIONPLANNER
     command_sends: int = 3  # max sends of one COMMAND_LONG that gets neither ACK nor heartbeat change
-    # the EKF origin (drivers/scamper_nav.py; docs/drivers.md "Ground robot"): WGS84 degrees, m above MSL
+    # the EKF origin (drivers/scamper/nav.py; docs/drivers.md "Ground robot"): WGS84 degrees, m above MSL
     origin_lat_deg: float = 52.0
     origin_lon_deg: float = 4.0
     origin_alt_m: float = 0.0
@@ -126,7 +126,7 @@ class ScamperLink:
         tlog: TlogWriter | None = None,
     ) -> None:
         """Open ``config.url`` (pymavlink); counts: the driver's counters; muted: see the module docstring;
-        tlog: where every message received and written is logged (drivers/scamper_tlog.py), or None."""
+        tlog: where every message received and written is logged (drivers/scamper/tlog.py), or None."""
         self.config = config
         self.muted = muted
         self.counts = counts
@@ -216,7 +216,7 @@ class ScamperLink:
 
     # ------------------------------------------------------------------ sending (any thread)
     def is_muted(self) -> bool:
-        """The mute check, evaluated now (flightstack.drivers.tello.link.evaluate_mute)."""
+        """The mute check, evaluated now (flightstack.drivers.device_threads.evaluate_mute)."""
         return evaluate_mute(self.muted, self.errors)
 
     def send(self, fn: str, *args: Any) -> SendResult:
@@ -259,7 +259,7 @@ class ScamperLink:
         return result
 
     def send_vision(self, v: VisionSample) -> SendResult:
-        """VISION_POSITION_ESTIMATE (msg 102): NED m, rad, usec on time.monotonic() (scamper_nav).
+        """VISION_POSITION_ESTIMATE (msg 102): NED m, rad, usec on time.monotonic() (scamper.nav).
 
         covariance and reset_counter are MAVLink 2 extensions: pymavlink's MAVLink 1 dialects (the
         default until the vehicle speaks MAVLink 2) lack reset_counter, and a MAVLink 1 frame carries

@@ -26,7 +26,7 @@ calibration's per-pixel ones) meets the board's plane through a homography, and 
 colour of the cell it lands in; the samples are area-averaged (cv2.INTER_AREA), as the discs' masks are.
 A grey camera (`image: grey`) is rendered as one channel (H × W). The floor is plain
 (`RenderOptions.background_rgb`) or, with `floor="tiles"` and the camera's pose given, the tiled pattern
-of flightstack.sim_backend.floor.
+of flightstack.sim_backend.scene.floor.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 
 from flightstack.paper.geometry import Pose, rot_z
-from flightstack.sim_backend.floor import FloorView, floor_image, grey_range
+from flightstack.sim_backend.scene.floor import FloorView, floor_image, grey_range
 from flightstack.vision.camera_file import CameraCalibration, Fiducial
 
 #: Discs closer than this to the camera plane (metres along z) are clipped away.
@@ -60,7 +60,7 @@ _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-1
 
 #: Where the simulated camera adds its pixel noise (RenderOptions.region).
 REGIONS = ("full", "markers")
-#: What the floor shows (RenderOptions.floor): one grey, or flightstack.sim_backend.floor's tiles.
+#: What the floor shows (RenderOptions.floor): one grey, or flightstack.sim_backend.scene.floor's tiles.
 FLOORS = ("plain", "tiles")
 #: Grey levels of a printed matte fiducial board's white paper and black cells as the camera sees them.
 BOARD_WHITE = 225
@@ -83,7 +83,7 @@ class RenderOptions:
     blur_px: motion-blur length in pixels along blur_dir_rad (0 = none).
     blur_dir_rad: blur direction in the image, radians from the +u axis towards +v.
     supersample: anti-aliasing factor (samples per pixel per axis).
-    floor: "plain" (background_rgb) or "tiles" (flightstack.sim_backend.floor; needs the camera's pose,
+    floor: "plain" (background_rgb) or "tiles" (flightstack.sim_backend.scene.floor; needs the camera's pose,
         `render_markers_region`'s floor argument, else the floor is plain).
     region: where the pixel noise is added. "full": every pixel. "markers": only in the rectangle
         around the painted markers (grown by ROI_MARGIN_PX and the blur), with exactly the random
@@ -457,7 +457,7 @@ def render_markers_region(
         (normal along the line of sight to its centre). Unused for a fiducial (its corners span its plane).
     opts: radius, background, floor, blur, noise, supersampling.
     rng: source of the pixel noise (only used when opts.noise_std > 0; None: a fresh default_rng()).
-    floor: the camera's pose over the floor (flightstack.sim_backend.floor.floor_view), for opts.floor
+    floor: the camera's pose over the floor (flightstack.sim_backend.scene.floor.floor_view), for opts.floor
         "tiles"; None: a plain floor.
 
     Returns

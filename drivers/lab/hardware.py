@@ -14,7 +14,7 @@ maps them to the names used in the motion-capture software.
 Raw traffic: given `devices` (the run directory's, flightstack.recording.files.DeviceFiles), every Tello's
 commands, replies, state lines and video datagram timing are recorded from before `connect` to after
 `close` (drivers/tello/traffic.py), so that a flight can be replayed to the driver; the robot's MAVLink
-link, both directions, goes to a pymavlink .tlog (drivers/scamper_tlog.py). The guardian process's
+link, both directions, goes to a pymavlink .tlog (drivers/scamper/tlog.py). The guardian process's
 own datagrams (after a takeover) are not among them: it logs what it sends to guardian.log.
 """
 
@@ -30,9 +30,9 @@ import numpy as np
 
 from flightstack.config.derive import derive
 from flightstack.config.mission import Mission
-from flightstack.drivers.guardian import Guardian, GuardianConfig
+from flightstack.drivers.guardian.launcher import Guardian, GuardianConfig
 from flightstack.drivers.mocap import MocapConfig, MocapPoseSource
-from flightstack.drivers.scamper import ScamperConfig, ScamperDriver
+from flightstack.drivers.scamper.driver import ScamperConfig, ScamperDriver
 from flightstack.drivers.tello import TelloConfig, TelloDriver
 from flightstack.drivers.tello.camera import TelloCamera
 from flightstack.drivers.tello.rc import RcGains
@@ -145,7 +145,7 @@ class HardwareBackend:
         """drone_ids: the drones this process flies (`flightstack agent --id N`); the robot is then left
         to `flightstack target` (None: every drone, and the robot when hardware.target is set).
 
-        A guardian process (drivers/guardian.py) is started before any device is connected: if this
+        A guardian process (drivers/guardian/launcher.py) is started before any device is connected: if this
         process dies or its control loop stops beating (`heartbeat()`, every tick, armed at the first
         one) it hovers and lands these drones and stops and disarms the robot from its own sockets, and
         mutes this process's drivers for good. guardian_log: a file for its log (default: none).

@@ -2,7 +2,7 @@
 GCS-failsafe parameters (`judge_gcs_failsafe`, pure: no I/O) and what to read for it.
 
 ArduPilot Rover's GCS failsafe (the parameters and their semantics, with the ArduPilot sources, are
-written down where the emulator implements them: sim_backend/emulators/mavlink_rover.py): once no
+written down where the emulator implements them: sim_backend/emulators/rover/): once no
 HEARTBEAT came from the GCS system id (``SYSID_MYGCS``; newer firmware ``MAV_GCS_SYSID`` ..
 ``MAV_GCS_SYSID_HI``) for ``FS_GCS_TIMEOUT`` s and that lasted ``FS_TIMEOUT`` s more, Rover takes
 ``FS_ACTION`` — if ``FS_GCS_ENABLE`` is on.
@@ -34,7 +34,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Literal
 
-from flightstack.drivers.scamper_link import GCS_HEARTBEAT_PERIOD_S
+from flightstack.drivers.scamper.link import GCS_HEARTBEAT_PERIOD_S
 
 Status = Literal["PASS", "WARN", "FAIL"]
 
