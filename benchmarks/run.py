@@ -53,7 +53,7 @@ from flightstack.comms.messages import PredictionMessage  # noqa: E402
 from flightstack.config.mission import load_mission  # noqa: E402
 from flightstack.paper.geometry import Pose  # noqa: E402
 from flightstack.paper.gp import GPExpert, GPHyperparameters  # noqa: E402
-from flightstack.paper.gp_kernel import _lml_and_grad, _pairwise_sq_diff  # noqa: E402
+from flightstack.paper.gp_kernel import lml_and_grad, pairwise_sq_diff  # noqa: E402
 from flightstack.paper.projection import CameraModel, points_in_camera  # noqa: E402
 from flightstack.paper.target_motion import DuffingParams, duffing_body_velocity_batch  # noqa: E402
 from flightstack.vision.camera_file import load_calibration  # noqa: E402
@@ -134,12 +134,12 @@ def split_bands(X: np.ndarray, Y: np.ndarray, k: int = 3) -> list[tuple[np.ndarr
 
 def _lml_eval_seconds(X: np.ndarray, y: np.ndarray, repeat: int) -> float:
     """Best time of one log-marginal-likelihood + gradient evaluation (what every optimiser step costs)."""
-    sq = _pairwise_sq_diff(X)
+    sq = pairwise_sq_diff(X)
     theta_l = np.log(X.std(axis=0))
     best = math.inf
     for _ in range(repeat):
         t0 = time.perf_counter()
-        _lml_and_grad(sq, y, math.log(float(y.std())), theta_l, NOISE_VAR)
+        lml_and_grad(sq, y, math.log(float(y.std())), theta_l, NOISE_VAR)
         best = min(best, time.perf_counter() - t0)
     return best
 
@@ -150,9 +150,9 @@ def _sklearn_fit(X: np.ndarray, y: np.ndarray, maxiter: int | None):
     from sklearn.gaussian_process import GaussianProcessRegressor
     from sklearn.gaussian_process.kernels import RBF, ConstantKernel
 
-    from flightstack.paper.gp_fit import _LBFGSB_OPTIONS
+    from flightstack.paper.gp_fit import LBFGSB_OPTIONS
 
-    options = dict(_LBFGSB_OPTIONS)
+    options = dict(LBFGSB_OPTIONS)
     if maxiter is not None:
         options["maxiter"] = maxiter
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from flightstack.comms.bus import InProcBus
 from flightstack.config.mission import Mission, load_mission
-from flightstack.learning.training import _one_kernel
+from flightstack.learning.training import one_kernel
 from flightstack.paper.gp import GPExpert, GPHyperparameters
 from flightstack.paper.gp_fit import LOG_LENGTH_BOUNDS, LOG_SIGMA_F_BOUNDS, fit_hyperparameters
 from flightstack.paper.kernels_warmup import warm_up
@@ -124,7 +124,7 @@ def shared_kernel_accuracy(paper: Path, M: int = 1000, fit_M: int = 300, seed: i
         X[:fit_M], Y[:fit_M], NOISE_VAR, restarts=2, seed=seed, maxiter=60,
         log_sigma_f_bounds=LOG_SIGMA_F_BOUNDS, log_length_bounds=LOG_LENGTH_BOUNDS,
     )  # fmt: skip
-    one = _one_kernel([X[:fit_M]], [Y[:fit_M]], NOISE_VAR, 2, seed)
+    one = one_kernel([X[:fit_M]], [Y[:fit_M]], NOISE_VAR, 2, seed)
     exact, cheap = GPExpert(X, Y, per_output), GPExpert(X, Y, one)
     Xt = np.random.default_rng(seed + 1).uniform(LO, HI, size=(2000, 4))
     truth = duffing_body_velocity_batch(Xt, DuffingParams(**m.target.duffing.model_dump()))

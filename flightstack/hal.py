@@ -119,6 +119,8 @@ class Frame:
 
 @runtime_checkable
 class Camera(Protocol):
+    """One drone's camera: its newest frame (stamped when it was captured), or None before the first."""
+
     def latest(self) -> Frame | None: ...
 
 
@@ -153,6 +155,9 @@ class StreamCounting(Protocol):
 
 @dataclass(frozen=True)
 class StampedPose:
+    """A pose in Σw and its stamp (s, on the mission clock; motion capture stamps a pose when its frame was
+    received: drivers/mocap.py)."""
+
     stamp: float
     pose: Pose
 

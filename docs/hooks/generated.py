@@ -19,7 +19,9 @@ installed version's. The blocks:
 - `csv-columns`: the per-run CSV's columns and rules (`flightstack.recording.csv_table`);
 - `import-contract`: the layers of `tests/import_contract.toml`, top first, with what each may import and
   the contract's named exceptions and reserved names (tests/import_contract.py checks the code against it).
-- `bibtex`: the preferred citation of `CITATION.cff` (the paper) as a BibTeX entry.
+- `bibtex`: the preferred citation of `CITATION.cff` (the paper) as a BibTeX entry;
+- `api`: the public API, `flightstack.__all__`: each name, the module that defines it and its docstring's
+  first paragraph.
 
 An unknown NAME, or a block without its closing line, fails the build and the update.
 """
@@ -435,6 +437,17 @@ def render_bibtex() -> str:
     return "\n".join(["```bibtex", *lines, "}", "```"]) + "\n"
 
 
+def render_api() -> str:
+    """`flightstack.__all__` as a table: name, defining module (flightstack.API), first paragraph."""
+    import flightstack
+
+    rows = ["| name | module | what it is |", "|---|---|---|"]
+    for name, module in flightstack.API.items():
+        doc = _first_paragraph(getattr(flightstack, name).__doc__)
+        rows.append(f"| `{name}` | `{module}` | {_cell(doc)} |")
+    return "\n".join(rows) + "\n"
+
+
 RENDERERS: dict[str, Callable[[], str]] = {
     "cli": render_cli,
     "run-files": render_run_files,
@@ -447,6 +460,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "wire-world": render_wire_world,
     "csv-columns": render_csv_columns,
     "bibtex": render_bibtex,
+    "api": render_api,
 }
 
 

@@ -102,7 +102,7 @@ def cmd_preflight(args: argparse.Namespace) -> int:
 def cmd_target(args: argparse.Namespace) -> int:
     """Drive the rig's robot on the mission's square law from its motion-capture pose (drivers/target_run);
     the rig is opened first, as for a flight (the emulated lab starts its emulators)."""
-    from flightstack.cli.run import _confirm
+    from flightstack.cli.run import confirm
     from flightstack.config.mission import load_mission
     from flightstack.runtime.rig import opened
 
@@ -113,7 +113,7 @@ def cmd_target(args: argparse.Namespace) -> int:
     sq = mission.target.square
     law = mission.target_law()
     duration = args.duration if args.duration is not None else args.laps * law.lap_time
-    if not _confirm(
+    if not confirm(
         f"The robot will drive {duration:.0f} s on the {sq.side_m:g} m square. Area clear?", args.yes
     ):
         print("aborted", file=sys.stderr)

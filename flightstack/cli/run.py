@@ -346,7 +346,7 @@ def _bus_override(mission: Mission, kind: str) -> dict[str, object]:
     return bus
 
 
-def _confirm(question: str, yes: bool) -> bool:
+def confirm(question: str, yes: bool) -> bool:
     """True when the operator confirmed (--yes, or 'y' at an interactive prompt)."""
     if yes:
         return True
@@ -366,7 +366,7 @@ def _confirm_and_preflight(args: argparse.Namespace, mission: Mission) -> int:
         print("error: preflight failed; nothing took off", file=sys.stderr)
         return 1
     ids = ", ".join(str(d.id) for d in mission.drones)
-    if not _confirm(
+    if not confirm(
         f"Drones {ids} will take off and fly {mission.duration_s:g} s per mode. Area clear?", args.yes
     ):
         print("aborted", file=sys.stderr)

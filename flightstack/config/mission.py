@@ -256,6 +256,10 @@ class GainAnalysisSpec(_Strict):
 
 
 class Mission(_Strict):
+    """An experiment composed with its rig (flightstack.config.rig.compose), validated: what every layer
+    below the CLI consumes and every run writes (`mission_resolved.yaml`). Load one with `load_mission`;
+    `rig_type` is the rig it flies on."""
+
     name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")
     description: str = ""
     rig: str = ""  # the rig it was composed with (flightstack.config.rig); "" if built without one

@@ -72,7 +72,7 @@ def predicted_target_path(mission: Mission, n_ticks: int | None = None) -> np.nd
     return path
 
 
-def _band_text(axis: str, lo: float, hi: float) -> str:
+def band_text(axis: str, lo: float, hi: float) -> str:
     """A band as an inequality, e.g. `x >= 0.6` or `-0.7 <= x < 0.6`."""
     if math.isinf(lo) and math.isinf(hi):
         return f"every {axis}"
@@ -108,7 +108,7 @@ def training_shortfall(mission: Mission) -> str | None:
         return None
     axis, edges = mission.gp.regions.axis, bands(mission)
     where = "; ".join(
-        f"drone {mission.drones[k].id}'s band {_band_text(axis, *edges[k])}: {counts[k]} ticks" for k in short
+        f"drone {mission.drones[k].id}'s band {band_text(axis, *edges[k])}: {counts[k]} ticks" for k in short
     )
     what = (
         f"duration_s = {mission.duration_s:g} s is too short to train the GP experts: the target's "
@@ -189,10 +189,10 @@ def train_experts(mission: Mission, data: list[ExpertData], seed: int) -> dict[i
     gp = mission.gp
     if gp.output_kernel == "shared":
         if gp.hyperparameters == "shared":
-            hyper = _one_kernel([d.X for d in data], [d.Y for d in data], gp.noise_var, gp.restarts, seed)
+            hyper = one_kernel([d.X for d in data], [d.Y for d in data], gp.noise_var, gp.restarts, seed)
             return {d.drone_id: GPExpert(d.X, d.Y, hyper) for d in data}
         return {
-            d.drone_id: GPExpert(d.X, d.Y, _one_kernel([d.X], [d.Y], gp.noise_var, gp.restarts, seed + i))
+            d.drone_id: GPExpert(d.X, d.Y, one_kernel([d.X], [d.Y], gp.noise_var, gp.restarts, seed + i))
             for i, d in enumerate(data)
         }
     if gp.hyperparameters == "shared":
@@ -206,7 +206,7 @@ def train_experts(mission: Mission, data: list[ExpertData], seed: int) -> dict[i
     }
 
 
-def _one_kernel(
+def one_kernel(
     Xs: list[np.ndarray], Ys: list[np.ndarray], noise_var: float, restarts: int, seed: int
 ) -> GPHyperparameters:
     """One (σ_f, l) for every output of every given dataset: the sum of their log marginal likelihoods

@@ -34,9 +34,9 @@ import scipy.linalg
 from scipy.spatial.distance import cdist
 
 from flightstack.paper import kernels as kern
-from flightstack.paper.gp_checks import _as_finite_2d, _readonly, _validate_training_data
+from flightstack.paper.gp_checks import as_finite_2d, readonly, validate_training_data
 from flightstack.paper.gp_fit import fit_hyperparameters
-from flightstack.paper.gp_kernel import _LOG_2PI, GPHyperparameters, log_marginal_likelihood_and_grad
+from flightstack.paper.gp_kernel import LOG_2PI, GPHyperparameters, log_marginal_likelihood_and_grad
 
 __all__ = ["VAR_FLOOR_REL", "GPExpert", "GPHyperparameters", "log_marginal_likelihood_and_grad"]
 
@@ -66,7 +66,7 @@ class GPExpert:
     """
 
     def __init__(self, X: np.ndarray, Y: np.ndarray, hyper: GPHyperparameters) -> None:
-        X, Y = _validate_training_data(X, Y)
+        X, Y = validate_training_data(X, Y)
         if not isinstance(hyper, GPHyperparameters):
             raise ValueError(f"hyper must be a GPHyperparameters, got {type(hyper).__name__}")
         if hyper.n_outputs != Y.shape[1] or hyper.n_inputs != X.shape[1]:
@@ -74,8 +74,8 @@ class GPExpert:
                 f"hyperparameters are for D={hyper.n_outputs} outputs, Din={hyper.n_inputs} inputs, but the "
                 f"data has D={Y.shape[1]}, Din={X.shape[1]}"
             )
-        self.X: np.ndarray = _readonly(X)
-        self.Y: np.ndarray = _readonly(Y)
+        self.X: np.ndarray = readonly(X)
+        self.Y: np.ndarray = readonly(Y)
         self.hyper: GPHyperparameters = hyper
 
         m, n_out = Y.shape
@@ -191,7 +191,7 @@ class GPExpert:
         return int(self.Y.shape[1])
 
     def _check_query(self, Xs: np.ndarray) -> np.ndarray:
-        Xs = _as_finite_2d(Xs, "Xs")
+        Xs = as_finite_2d(Xs, "Xs")
         if Xs.shape[1] != self._n_in:
             raise ValueError(f"Xs must have shape (N, Din={self._n_in}), got shape {Xs.shape}")
         return Xs
@@ -284,7 +284,7 @@ class GPExpert:
         log_det = np.sum(np.log(np.diagonal(self.L, axis1=1, axis2=2)), axis=1)[
             [self._k(d) for d in range(self.n_outputs)]
         ]
-        return data_fit - log_det - 0.5 * m * _LOG_2PI
+        return data_fit - log_det - 0.5 * m * LOG_2PI
 
     # ---------------------------------------------------------------------------------------------------
     # (de)serialisation

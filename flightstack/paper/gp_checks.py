@@ -3,7 +3,7 @@
 The data set D^{(j)} = {X^{(j)}, Y^{(j)}} of one expert: X (M, Din) inputs x = [x, y, z, θ] (m, rad), Y (M, D)
 outputs (body velocity of the target, m/s and rad/s); the fixed noise variance σ_n² (scalar or (D,), output
 units squared) and the natural-log bounds of the hyperparameter search. Every check raises ValueError with
-the offending shape or value; arrays are returned as float64 (read-only copies from :func:`_readonly`).
+the offending shape or value; arrays are returned as float64 (read-only copies from :func:`readonly`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 
-def _as_finite_2d(a: np.ndarray, name: str) -> np.ndarray:
+def as_finite_2d(a: np.ndarray, name: str) -> np.ndarray:
     arr = np.asarray(a, dtype=float)
     if arr.ndim != 2:
         raise ValueError(f"{name} must be a 2-D array, got shape {arr.shape}")
@@ -22,9 +22,9 @@ def _as_finite_2d(a: np.ndarray, name: str) -> np.ndarray:
     return arr
 
 
-def _validate_training_data(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    X = _as_finite_2d(X, "X")
-    Y = _as_finite_2d(Y, "Y")
+def validate_training_data(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    X = as_finite_2d(X, "X")
+    Y = as_finite_2d(Y, "Y")
     if X.shape[0] != Y.shape[0]:
         raise ValueError(f"X and Y must have the same number of rows (M), got X {X.shape} and Y {Y.shape}")
     if X.shape[0] < 2:
@@ -34,7 +34,7 @@ def _validate_training_data(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, n
     return X, Y
 
 
-def _validate_noise_var(noise_var: float | np.ndarray, n_outputs: int) -> np.ndarray:
+def validate_noise_var(noise_var: float | np.ndarray, n_outputs: int) -> np.ndarray:
     nv = np.asarray(noise_var, dtype=float)
     if nv.ndim == 0:
         nv = np.full(n_outputs, float(nv))
@@ -45,7 +45,7 @@ def _validate_noise_var(noise_var: float | np.ndarray, n_outputs: int) -> np.nda
     return nv
 
 
-def _validate_log_bounds(bounds: tuple[float, float], name: str) -> tuple[float, float]:
+def validate_log_bounds(bounds: tuple[float, float], name: str) -> tuple[float, float]:
     try:
         lo, hi = (float(b) for b in bounds)
     except (TypeError, ValueError) as exc:
@@ -55,7 +55,7 @@ def _validate_log_bounds(bounds: tuple[float, float], name: str) -> tuple[float,
     return lo, hi
 
 
-def _readonly(a: np.ndarray) -> np.ndarray:
+def readonly(a: np.ndarray) -> np.ndarray:
     out = np.array(a, dtype=float, copy=True)
     out.setflags(write=False)
     return out

@@ -18,8 +18,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import scipy.optimize
 
-from flightstack.paper.gp_checks import _validate_log_bounds, _validate_noise_var, _validate_training_data
-from flightstack.paper.gp_kernel import GPHyperparameters, _lml_and_grad, _pairwise_sq_diff
+from flightstack.paper.gp_checks import validate_log_bounds, validate_noise_var, validate_training_data
+from flightstack.paper.gp_kernel import GPHyperparameters, lml_and_grad, pairwise_sq_diff
 
 __all__ = ["LOG_LENGTH_BOUNDS", "LOG_SIGMA_F_BOUNDS", "fit_hyperparameters"]
 
@@ -34,7 +34,7 @@ LOG_LENGTH_BOUNDS: tuple[float, float] = (math.log(1e-2), math.log(1e3))
 _RESTART_LOG_HALF_WIDTH = math.log(100.0)
 #: Tighter than scipy's defaults (ftol 2.2e-9, gtol 1e-5): the fit is offline and the optimum should not
 #: depend on where the optimiser happened to stop.
-_LBFGSB_OPTIONS: dict[str, float] = {"ftol": 1e-12, "gtol": 1e-8}
+LBFGSB_OPTIONS: dict[str, float] = {"ftol": 1e-12, "gtol": 1e-8}
 
 #: θ = [log σ_f, log l_1..l_Din] -> (log marginal likelihood (nats), gradient (1 + Din,)); may raise
 #: ``numpy.linalg.LinAlgError`` (Cholesky breakdown).
@@ -63,19 +63,19 @@ def fit_hyperparameters(
         ``(X, Y, hyper)``: the validated training data, (M, Din) and (M, D), and the fitted
         :class:`GPHyperparameters` (σ_f (D,), l (D, Din), σ_n² (D,)).
     """
-    X, Y = _validate_training_data(X, Y)
-    noise = _validate_noise_var(noise_var, Y.shape[1])
-    lo, hi, options = _check_fit_options(restarts, log_sigma_f_bounds, log_length_bounds, maxiter, X.shape[1])
-    sq_diff = _pairwise_sq_diff(X)
-    objectives = [_expert_lml(sq_diff, Y[:, d], float(noise[d])) for d in range(Y.shape[1])]
-    hyper = _fit_outputs(objectives, X, Y, noise, lo, hi, restarts=restarts, seed=seed, options=options)
+    X, Y = validate_training_data(X, Y)
+    noise = validate_noise_var(noise_var, Y.shape[1])
+    lo, hi, options = check_fit_options(restarts, log_sigma_f_bounds, log_length_bounds, maxiter, X.shape[1])
+    sq_diff = pairwise_sq_diff(X)
+    objectives = [expert_lml(sq_diff, Y[:, d], float(noise[d])) for d in range(Y.shape[1])]
+    hyper = fit_outputs(objectives, X, Y, noise, lo, hi, restarts=restarts, seed=seed, options=options)
     return X, Y, hyper
 
 
 # --------------------------------------------------------------------------------------------------------
 # shared by fit_hyperparameters and gp_shared_fit.fit_shared_hyperparameters
 # --------------------------------------------------------------------------------------------------------
-def _check_fit_options(
+def check_fit_options(
     restarts: int,
     log_sigma_f_bounds: tuple[float, float],
     log_length_bounds: tuple[float, float],
@@ -85,24 +85,24 @@ def _check_fit_options(
     """Validate the search options; returns the bounds of θ, lo and hi (1 + Din,), and L-BFGS-B's options."""
     if isinstance(restarts, bool) or not isinstance(restarts, int | np.integer) or restarts < 1:
         raise ValueError(f"restarts must be an integer >= 1, got {restarts!r}")
-    f_lo, f_hi = _validate_log_bounds(log_sigma_f_bounds, "log_sigma_f_bounds")
-    l_lo, l_hi = _validate_log_bounds(log_length_bounds, "log_length_bounds")
+    f_lo, f_hi = validate_log_bounds(log_sigma_f_bounds, "log_sigma_f_bounds")
+    l_lo, l_hi = validate_log_bounds(log_length_bounds, "log_length_bounds")
     if maxiter is not None and (isinstance(maxiter, bool) or not isinstance(maxiter, int) or maxiter < 1):
         raise ValueError(f"maxiter must be None or an integer >= 1, got {maxiter!r}")
-    options = _LBFGSB_OPTIONS if maxiter is None else {**_LBFGSB_OPTIONS, "maxiter": maxiter}
+    options = LBFGSB_OPTIONS if maxiter is None else {**LBFGSB_OPTIONS, "maxiter": maxiter}
     return np.array([f_lo] + [l_lo] * n_in), np.array([f_hi] + [l_hi] * n_in), options
 
 
-def _expert_lml(sq_diff: np.ndarray, y: np.ndarray, noise_var: float) -> Objective:
+def expert_lml(sq_diff: np.ndarray, y: np.ndarray, noise_var: float) -> Objective:
     """One expert's log p(y | X, θ) and its gradient, on its own data only (sq_diff of its X, (M, M, Din))."""
 
     def lml(theta: np.ndarray) -> tuple[float, np.ndarray]:
-        return _lml_and_grad(sq_diff, y, float(theta[0]), theta[1:], noise_var)
+        return lml_and_grad(sq_diff, y, float(theta[0]), theta[1:], noise_var)
 
     return lml
 
 
-def _fit_outputs(
+def fit_outputs(
     objectives: Sequence[Objective],
     X: np.ndarray,
     Y: np.ndarray,

@@ -8,7 +8,7 @@ Each output element i (``d`` here, 0..D-1) of expert (j) has its own squared-exp
 with σ_f in output units (e.g. m/s), l_m in the units of input column m (m or rad for x = [x, y, z, θ]) and
 a fixed observation-noise variance σ_n² (output units squared). :class:`GPHyperparameters` holds σ_f (D,),
 l (D, Din) and σ_n² (D,). :func:`log_marginal_likelihood_and_grad` is log p(Y_i | X) (nats) of one output
-and its analytic gradient in log space, θ = [log σ_f, log l_1, ..., log l_Din]; :func:`_lml_and_grad` is its
+and its analytic gradient in log space, θ = [log σ_f, log l_1, ..., log l_Din]; :func:`lml_and_grad` is its
 unvalidated core, called by the hyperparameter optimisation (flightstack/paper/gp_fit.py) and the
 benchmarks. The GP expert itself (posterior prediction) is flightstack/paper/gp.py.
 """
@@ -23,11 +23,11 @@ import numpy as np
 import scipy.linalg
 import scipy.linalg.lapack
 
-from flightstack.paper.gp_checks import _as_finite_2d, _readonly, _validate_noise_var
+from flightstack.paper.gp_checks import as_finite_2d, readonly, validate_noise_var
 
 __all__ = ["GPHyperparameters", "log_marginal_likelihood_and_grad"]
 
-_LOG_2PI = math.log(2.0 * math.pi)
+LOG_2PI = math.log(2.0 * math.pi)
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -63,10 +63,10 @@ class GPHyperparameters:
             raise ValueError(f"length_scales must have shape (D={n_out}, Din), got shape {lengths.shape}")
         if not np.all(np.isfinite(lengths)) or np.any(lengths <= 0.0):
             raise ValueError("length_scales (l) must be finite and > 0")
-        noise = _validate_noise_var(self.noise_var, n_out)
-        object.__setattr__(self, "sigma_f", _readonly(sigma_f))
-        object.__setattr__(self, "length_scales", _readonly(lengths))
-        object.__setattr__(self, "noise_var", _readonly(noise))
+        noise = validate_noise_var(self.noise_var, n_out)
+        object.__setattr__(self, "sigma_f", readonly(sigma_f))
+        object.__setattr__(self, "length_scales", readonly(lengths))
+        object.__setattr__(self, "noise_var", readonly(noise))
 
     @property
     def n_outputs(self) -> int:
@@ -82,7 +82,7 @@ class GPHyperparameters:
 # --------------------------------------------------------------------------------------------------------
 # log marginal likelihood of one output dimension
 # --------------------------------------------------------------------------------------------------------
-def _pairwise_sq_diff(X: np.ndarray) -> np.ndarray:
+def pairwise_sq_diff(X: np.ndarray) -> np.ndarray:
     """(M, Din) -> (M, M, Din) with entries (x_{a,m} - x_{b,m})²."""
     diff = X[:, None, :] - X[None, :, :]
     return diff * diff
@@ -107,10 +107,10 @@ def _potrs(L: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.asarray(x)
 
 
-def _lml_and_grad(
+def lml_and_grad(
     sq_diff: np.ndarray, y: np.ndarray, log_sigma_f: float, log_lengths: np.ndarray, noise_var: float
 ) -> tuple[float, np.ndarray]:
-    """Unvalidated core of :func:`log_marginal_likelihood_and_grad` (sq_diff from :func:`_pairwise_sq_diff`).
+    """Unvalidated core of :func:`log_marginal_likelihood_and_grad` (sq_diff from :func:`pairwise_sq_diff`).
 
     Raises ``numpy.linalg.LinAlgError`` if 𝒦 + σ_n² I is numerically not positive definite.
     """
@@ -128,7 +128,7 @@ def _lml_and_grad(
         raise np.linalg.LinAlgError(f"𝒦 + σ_n² I is not positive definite (potrf info {info})")
     alpha = _potrs(L, y)  # α = (𝒦 + σ_n² I)^{-1} y
     # log p(y | X, θ) = -½ yᵀα - Σ log L_aa - (M/2) log 2π
-    lml = -0.5 * float(y @ alpha) - float(np.log(L.diagonal()).sum()) - 0.5 * m * _LOG_2PI
+    lml = -0.5 * float(y @ alpha) - float(np.log(L.diagonal()).sum()) - 0.5 * m * LOG_2PI
     # ∂ log p / ∂θ = ½ tr((α αᵀ - (𝒦 + σ_n² I)^{-1}) ∂𝒦/∂θ), with
     #   ∂𝒦/∂ log σ_f = 2 𝒦,   ∂𝒦/∂ log l_m = 𝒦 ∘ R_m.
     K_inv = _potrs(L, _eye(m))
@@ -161,7 +161,7 @@ def log_marginal_likelihood_and_grad(
         ValueError: on bad shapes / non-finite values / noise_var <= 0, or if 𝒦 + σ_n² I is numerically not
             positive definite.
     """
-    X = _as_finite_2d(X, "X")
+    X = as_finite_2d(X, "X")
     y = np.asarray(y, dtype=float)
     if y.ndim != 1 or y.shape[0] != X.shape[0]:
         raise ValueError(f"y must have shape (M,) = ({X.shape[0]},), got shape {y.shape}")
@@ -174,8 +174,8 @@ def log_marginal_likelihood_and_grad(
         )
     if not (math.isfinite(float(log_sigma_f)) and np.all(np.isfinite(log_lengths))):
         raise ValueError("log_sigma_f and log_lengths must be finite")
-    noise = float(_validate_noise_var(noise_var, 1)[0])
+    noise = float(validate_noise_var(noise_var, 1)[0])
     try:
-        return _lml_and_grad(_pairwise_sq_diff(X), y, float(log_sigma_f), log_lengths, noise)
+        return lml_and_grad(pairwise_sq_diff(X), y, float(log_sigma_f), log_lengths, noise)
     except np.linalg.LinAlgError as exc:
         raise ValueError("𝒦 + σ_n² I is not positive definite (increase noise_var?)") from exc

@@ -19,16 +19,16 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from flightstack.paper.gp_checks import _validate_noise_var, _validate_training_data
+from flightstack.paper.gp_checks import validate_noise_var, validate_training_data
 from flightstack.paper.gp_fit import (
     LOG_LENGTH_BOUNDS,
     LOG_SIGMA_F_BOUNDS,
     Objective,
-    _check_fit_options,
-    _expert_lml,
-    _fit_outputs,
+    check_fit_options,
+    expert_lml,
+    fit_outputs,
 )
-from flightstack.paper.gp_kernel import GPHyperparameters, _pairwise_sq_diff
+from flightstack.paper.gp_kernel import GPHyperparameters, pairwise_sq_diff
 
 __all__ = ["fit_shared_hyperparameters", "shared_log_marginal_likelihood_and_grad"]
 
@@ -68,16 +68,16 @@ def fit_shared_hyperparameters(
         ValueError: on bad inputs (naming the expert), or if every restart of some output failed.
     """
     Xs, Ys = _validate_datasets(datasets)
-    noise = _validate_noise_var(noise_var, Ys[0].shape[1])
-    lo, hi, options = _check_fit_options(
+    noise = validate_noise_var(noise_var, Ys[0].shape[1])
+    lo, hi, options = check_fit_options(
         restarts, log_sigma_f_bounds, log_length_bounds, maxiter, Xs[0].shape[1]
     )
-    sq_diffs = [_pairwise_sq_diff(X) for X in Xs]
+    sq_diffs = [pairwise_sq_diff(X) for X in Xs]
     objectives = [
-        _summed([_expert_lml(sq, Y[:, d], float(noise[d])) for sq, Y in zip(sq_diffs, Ys, strict=True)])
+        _summed([expert_lml(sq, Y[:, d], float(noise[d])) for sq, Y in zip(sq_diffs, Ys, strict=True)])
         for d in range(noise.shape[0])
     ]
-    return _fit_outputs(
+    return fit_outputs(
         objectives, np.vstack(Xs), np.vstack(Ys), noise, lo, hi, restarts=restarts, seed=seed, options=options
     )
 
@@ -113,8 +113,8 @@ def shared_log_marginal_likelihood_and_grad(
     theta = np.concatenate([[float(log_sigma_f)], np.asarray(log_lengths, dtype=float).ravel()])
     if theta.shape != (1 + Xs[0].shape[1],) or not np.all(np.isfinite(theta)):
         raise ValueError(f"log_sigma_f and log_lengths ({Xs[0].shape[1]},) must be finite, got {theta}")
-    nv = float(_validate_noise_var(noise_var, 1)[0])
-    objective = _summed([_expert_lml(_pairwise_sq_diff(X), y[:, 0], nv) for X, y in zip(Xs, ys, strict=True)])
+    nv = float(validate_noise_var(noise_var, 1)[0])
+    objective = _summed([expert_lml(pairwise_sq_diff(X), y[:, 0], nv) for X, y in zip(Xs, ys, strict=True)])
     try:
         return objective(theta)
     except np.linalg.LinAlgError as exc:
@@ -143,7 +143,7 @@ def _validate_datasets(
     Ys: list[np.ndarray] = []
     for k, (X, Y) in enumerate(datasets):
         try:
-            X, Y = _validate_training_data(X, Y)
+            X, Y = validate_training_data(X, Y)
         except ValueError as exc:
             raise ValueError(f"expert {k}: {exc}") from None
         if Xs and (X.shape[1], Y.shape[1]) != (Xs[0].shape[1], Ys[0].shape[1]):

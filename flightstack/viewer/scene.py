@@ -122,7 +122,7 @@ def region_boxes(mission: Mission, extent_xyz: np.ndarray) -> list[tuple[np.ndar
     """(mins (3,), sizes (3,), label) of each drone's expert region (mission order): band k of gp.regions
     along its axis (flightstack.learning.training.bands), the open ends and the other axes over the
     points `extent_xyz` (K, 3; m) plus REGION_MARGIN_M, z over the points ± 0.05 m."""
-    from flightstack.learning.training import _band_text, bands
+    from flightstack.learning.training import band_text, bands
 
     pts = np.asarray(extent_xyz, dtype=float).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
@@ -137,7 +137,7 @@ def region_boxes(mission: Mission, extent_xyz: np.ndarray) -> list[tuple[np.ndar
         mins, maxs = lo.copy(), hi.copy()
         mins[a] = b_lo if math.isfinite(b_lo) else min(lo[a], b_hi - REGION_MARGIN_M)
         maxs[a] = b_hi if math.isfinite(b_hi) else max(hi[a], b_lo + REGION_MARGIN_M)
-        label = f"expert of drone {d.id}: {_band_text(mission.gp.regions.axis, b_lo, b_hi)}"
+        label = f"expert of drone {d.id}: {band_text(mission.gp.regions.axis, b_lo, b_hi)}"
         out.append((mins, maxs - mins, label))
     return out
 
