@@ -38,7 +38,7 @@ from flightstack.calibration.latency_record import (
 from flightstack.calibration.latency_session import RcRecord, VideoRecord
 from flightstack.config.links import LinkSpec
 from flightstack.config.mission import Mission
-from flightstack.hal import Backend, Frame
+from flightstack.hal import TARGET_BODY, Backend, Frame
 from flightstack.runtime.fleet import Fleet
 from flightstack.runtime.flight import Flight
 from flightstack.runtime.runner import SafePause
@@ -166,7 +166,7 @@ class CalibrationFlight:
         path = self.mission.resolve(d.camera.calibration)
         cam = self.mission.camera_model(0)
         P0 = np.array(self.mission.target.feature_points, dtype=float)
-        geo = Geometry(str(path), cam.R_ic, cam.t_ic, P0, f"drone{d.id}", "target")
+        geo = Geometry(str(path), cam.R_ic, cam.t_ic, P0, self.mission.identity(d.id).name, TARGET_BODY)
         return geo, load_calibration(path)
 
     def __call__(self, f: Fleet, pause: SafePause) -> tuple[VideoRecord, RcRecord]:

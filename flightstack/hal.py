@@ -162,6 +162,33 @@ class StampedPose:
     pose: Pose
 
 
+TARGET_BODY = "target"
+"""The ground robot's body name in a PoseSource (its motion-capture body: hardware.mocap.bodies)."""
+
+
+@dataclass(frozen=True)
+class DroneIdentity:
+    """One drone's id and every name derived from it, built once per drone (Mission.identities) and passed
+    on: `name`, the drone's name wherever one is needed (its body in a PoseSource, which the lab file maps
+    to the motion-capture system's own, hardware.mocap.bodies; its topics and keys in a recording);
+    `label`, its device label in the emulated lab (its network and link logs); `agent`, its participant
+    name on the bus (an agent process's key)."""
+
+    id: int
+
+    @property
+    def name(self) -> str:
+        return f"drone{self.id}"
+
+    @property
+    def label(self) -> str:
+        return f"tello{self.id}"
+
+    @property
+    def agent(self) -> str:
+        return str(self.id)
+
+
 @runtime_checkable
 class PoseSource(Protocol):
     """Latest pose of a named rigid body (motion capture; sim: truth + noise); None if never seen."""

@@ -47,7 +47,7 @@ import numpy as np
 import yaml
 
 from flightstack.config.rig import MISSION_CONFIGS, emulated_tello_ip
-from flightstack.hal import FrameTruth, register_frame_truth
+from flightstack.hal import TARGET_BODY, DroneIdentity, FrameTruth, register_frame_truth
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
 from flightstack.sim_backend.emulators.tello.recorded import LAND_OK_S, LAND_TOUCHDOWN_S, TAKEOFF_OK_S
@@ -420,7 +420,7 @@ class EmulatedLab:
         epoch = time.monotonic()
         tello_links = {"command": "tello", "reply": "tello", "state": "tello", "video": "video"}
         for i in self.ips:
-            name = f"tello{i}"
+            name = DroneIdentity(i).label
             self.radios[name] = DeviceRadio(self.network, self.seed, name, tello_links, epoch)
         self.radios["natnet"] = DeviceRadio(self.network, self.seed, "natnet", {"frames": "mocap"}, epoch)
         self.radios["rover"] = DeviceRadio(
@@ -445,14 +445,14 @@ class EmulatedLab:
                 self.links[name] = DeviceLinks(specs, self.seed, device, name, line)
 
         for i in self.ips:
-            make(f"tello{i}", i, ("rc", "state", "video"))
+            make(DroneIdentity(i).label, i, ("rc", "state", "video"))
         make("natnet", 0, ("mocap",))
         make("rover", 0, ("robot",))
 
     def _tello_links(self, i: int) -> dict[str, Any]:
         """TelloEmulator keyword arguments of drone i's radio, links and state rate."""
         kw: dict[str, Any] = {"takeoff_s": TAKEOFF_S}
-        name = f"tello{i}"
+        name = DroneIdentity(i).label
         if name in self.radios:
             kw["radio"] = self.radios[name]
         if name in self.links:
@@ -473,7 +473,7 @@ class EmulatedLab:
         from flightstack.sim_backend.emulators.tello.video_process import VideoPath
 
         video = self.link_specs.get("video")
-        radio = self.radios.get(f"tello{i}")
+        radio = self.radios.get(DroneIdentity(i).label)
         return VideoPath(
             seed=self.seed,
             drone=i,
@@ -487,8 +487,8 @@ class EmulatedLab:
         camera's "video" row is its child process's (the parent's own video link is then unused)."""
         out = {name: r.counts() for name, r in self.radios.items()}
         for i, cam in self.cameras.items():
-            if f"tello{i}" in out:
-                out[f"tello{i}"]["video"] = cam.network_counts()
+            if DroneIdentity(i).label in out:
+                out[DroneIdentity(i).label]["video"] = cam.network_counts()
         return out
 
     def link_counts(self) -> dict[str, dict[str, dict[str, float]]]:
@@ -497,7 +497,7 @@ class EmulatedLab:
         out = {name: links.counts() for name, links in self.links.items()}
         if "video" in self.link_specs:
             for i, cam in self.cameras.items():
-                out.setdefault(f"tello{i}", {})["video"] = cam.link_counts()
+                out.setdefault(DroneIdentity(i).label, {})["video"] = cam.link_counts()
         return out
 
     def body(self, i: int) -> str:
@@ -651,7 +651,9 @@ class EmulatedLab:
         }
         hw = emulated_hardware(list(self.tellos), ports)
         hw["max_frame_age_s"] = max_frame_age_s(self.link_specs.get("video"))
-        hw["mocap"]["bodies"] = {f"drone{i}": self.body(i) for i in self.tellos} | {"target": "scamper"}
+        hw["mocap"]["bodies"] = {DroneIdentity(i).name: self.body(i) for i in self.tellos} | {
+            TARGET_BODY: "scamper"
+        }
         if self.places:  # access-point Tellos, each through its own interface
             hw["topology"] = "access_point"
             for d in hw["drones"]:
@@ -708,7 +710,7 @@ class EmulatedLab:
                 n: [(rel(a), rel(b)) for a, b in r.blackouts[:10]] for n, r in self.radios.items()
             }
         for i, e in self.tellos.items():
-            out[f"tello{i}"] = {
+            out[DroneIdentity(i).label] = {
                 "ip": e.ip,
                 "commands": [(rel(t), c) for t, c in list(e.commands)],
                 "phase_log": [(rel(t), p) for t, p in list(e.phase_log)],

@@ -26,7 +26,7 @@ from flightstack.config.mission import CAMERA_MOUNTS
 from flightstack.drivers.tello.config import TELLO_OWN_TIMEOUT_S
 from flightstack.drivers.tello.rc import RcGains, rc_to_velocity, velocity_to_rc
 from flightstack.events import Event
-from flightstack.hal import DroneState, Frame, StampedPose
+from flightstack.hal import TARGET_BODY, DroneIdentity, DroneState, Frame, StampedPose
 from flightstack.paper import kernels as kern
 from flightstack.paper.geometry import Pose, relative
 from flightstack.vision.camera_file import CameraCalibration
@@ -628,7 +628,7 @@ class LabWorld:
         self._times: deque[float] = deque()
         self._history: deque[np.ndarray] = deque()  # the bodies' poses (B, 4) at each of _times
         # the bodies, as motion capture names them: the drones (drone<id>), then the target
-        self._names = (*(f"drone{i}" for i in drones), "target")
+        self._names = (*(DroneIdentity(i).name for i in drones), TARGET_BODY)
         self._bodies = (*(d.body for d in drones.values()), robot.body)
         self._row = {i: k for k, i in enumerate(drones)}  # drone id -> its row in a snapshot
 

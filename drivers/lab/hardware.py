@@ -37,7 +37,7 @@ from flightstack.drivers.tello import TelloConfig, TelloDriver
 from flightstack.drivers.tello.camera import TelloCamera
 from flightstack.drivers.tello.rc import RcGains
 from flightstack.drivers.tello.traffic import TrafficWriter
-from flightstack.hal import FlightPhase, StampedPose
+from flightstack.hal import TARGET_BODY, FlightPhase, StampedPose
 from flightstack.paper.geometry import Pose
 from flightstack.recording.files import DeviceFiles
 from flightstack.vision.camera_file import load_calibration
@@ -108,7 +108,7 @@ def scamper_config(mission: Mission) -> ScamperConfig | None:
 def body_names(mission: Mission) -> dict[str, str]:
     """flightstack body name → motion-capture body name, for every drone and the target."""
     assert mission.hardware is not None
-    names = [f"drone{d.id}" for d in mission.drones] + ["target"]
+    names = [who.name for who in mission.identities()] + [TARGET_BODY]
     return {n: mission.hardware.body(n) for n in names}
 
 
@@ -169,7 +169,7 @@ class HardwareBackend:
         self.robot: ScamperDriver | None = None
         if sc is not None:  # its own motion-capture pose goes to its autopilot (external navigation)
             tlog = None if devices is None else devices.scamper()
-            self.robot = ScamperDriver(sc, pose_source=lambda: self.poses.latest("target"), tlog_path=tlog)
+            self.robot = ScamperDriver(sc, pose_source=lambda: self.poses.latest(TARGET_BODY), tlog_path=tlog)
         self._last_truth: dict[str, Pose] = {}
         self.guardian: Guardian | None = None
         self._armed = False
@@ -236,12 +236,13 @@ class HardwareBackend:
             sp = self.poses.latest(name)
             if sp is not None:
                 self._last_truth[name] = sp.pose
-        target = self._last_truth.get("target", UNKNOWN_POSE)
-        return target, {d: self._last_truth.get(f"drone{d}", UNKNOWN_POSE) for d in self.drones}
+        target = self._last_truth.get(TARGET_BODY, UNKNOWN_POSE)
+        drones = {d: self._last_truth.get(self.mission.identity(d).name, UNKNOWN_POSE) for d in self.drones}
+        return target, drones
 
     def _seen_down(self, drone_id: int) -> bool:
         """Motion capture shows the drone's body on the floor now (fresh pose, z ≤ safety.landed_height)."""
-        sp = self.poses.latest(f"drone{drone_id}")
+        sp = self.poses.latest(self.mission.identity(drone_id).name)
         limit = self.mission.safety.landed_height
         return sp is not None and self.clock.now() - sp.stamp <= 0.3 and float(sp.pose.p[2]) <= limit
 

@@ -39,6 +39,7 @@ from flightstack.config.rigs import RIGS, RigFacts, backends, rig_for
 from flightstack.config.sim_specs import RcGainsSpec, RobotSpec, SimSpec
 from flightstack.config.types import Angle, Coordinate, Distance, Finite, Mode, Speed
 from flightstack.config.types import Strict as _Strict
+from flightstack.hal import DroneIdentity
 from flightstack.paper.delay_compensation import Compensation
 from flightstack.paper.fusion import FUSION_RULES
 from flightstack.paper.gain_analysis import (
@@ -463,6 +464,20 @@ class Mission(_Strict):
                 f"{MAX_RATE_DT:g} (k_max: the fastest mode of a drone's own loop from k_c and k_e; λ_max(L) "
                 "of the graph); lower gains.k_c, gains.k_e, gains.k_s or dt_s"
             )
+
+    def identities(self) -> list[DroneIdentity]:
+        """Each drone's identity (its id and the names derived from it), in `drones` order."""
+        return [DroneIdentity(d.id) for d in self.drones]
+
+    def identity(self, drone_id: int) -> DroneIdentity:
+        """The identity of drone `drone_id` (KeyError: not one of the mission's drones)."""
+        if drone_id not in self.drone_ids():
+            raise KeyError(f"drone {drone_id} is not one of the mission's drones {self.drone_ids()}")
+        return DroneIdentity(drone_id)
+
+    def drone_ids(self) -> list[int]:
+        """The drones' ids, in `drones` order."""
+        return [d.id for d in self.drones]
 
     def flown_modes(self) -> list[str]:
         """The modes a run flies, in order: the data run `none` first when a GP mode needs experts that

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from flightstack.config.rigs import EMULATED, RIGS, backends, no_emulators, rig_for
+from flightstack.hal import TARGET_BODY, DroneIdentity
 from flightstack.safe_yaml import LoadError, load_yaml
 
 PACKAGE = "flightstack.mission_configs"
@@ -320,7 +321,7 @@ def emulated_hardware(drone_ids: list[int], ports: dict[str, Any] | None = None)
         "mocap": {
             "system": "optitrack",
             "settings": ports.get("natnet", {"hostname": "127.0.0.1"}),
-            "bodies": {f"drone{i}": f"tello_{i}" for i in drone_ids} | {"target": "scamper"},
+            "bodies": {DroneIdentity(i).name: f"tello_{i}" for i in drone_ids} | {TARGET_BODY: "scamper"},
             "connect_timeout_s": 1.0,
         },
         "target": {"url": ports.get("rover_url", "udpin:127.0.0.1:14550"), "heartbeat_timeout_s": 3.0},

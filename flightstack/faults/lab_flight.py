@@ -476,6 +476,12 @@ def within(x: float | None, hi: float, lo: float = 0.0) -> bool:
     return x is not None and lo <= x <= hi
 
 
+def per_drone(details: dict[str, Any]) -> list[tuple[int, dict[str, Any]]]:
+    """(id, its entry) of each drone a row's details hold (key `drone<id>`: DroneIdentity.name), by id."""
+    found = [(int(k[5:]), v) for k, v in details.items() if k.startswith("drone") and k[5:].isdigit() and v]
+    return sorted(found, key=lambda kv: kv[0])
+
+
 def drone_reaction(emu: Any, t_cmd: float, c: Checks, who: str, hover_needed: bool = True) -> dict[str, Any]:
     """At one emulator after t_cmd (a signal, an abort, a takeoff completing): rc 0 0 0 0 (unless not
     `hover_needed`: no rc was ever in force) and land within REACT_S, no non-zero rc after the first

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from flightstack.faults.lab_flight import FAULT_AFTER_S, PURSUIT_WAIT_S, FlyProcess, lab_result
+from flightstack.faults.lab_flight import FAULT_AFTER_S, PURSUIT_WAIT_S, FlyProcess, lab_result, per_drone
 from flightstack.faults.result import Checks, FaultResult, FaultRow
 from flightstack.faults.rows_lab_process import command_line, descendants, guardian_pids
 from flightstack.sim_backend.emulated_lab import EmulatedLab, command_times, first, ms, phase_times, rc_times
@@ -170,11 +170,7 @@ def _robot_alone(lab: EmulatedLab, t_fault: float) -> dict[str, Any]:
 
 
 def _summary(details: dict[str, Any], keys: tuple[str, ...]) -> str:
-    parts = []
-    for i in (1, 2):
-        d = details.get(f"drone{i}")
-        if d:
-            parts.append(f"drone {i}: " + ", ".join(f"{k} {d.get(k)}" for k in keys))
+    parts = [f"drone {i}: " + ", ".join(f"{k} {d.get(k)}" for k in keys) for i, d in per_drone(details)]
     return "; ".join(parts)
 
 

@@ -22,6 +22,7 @@ from flightstack.faults.lab_flight import (
     FlyProcess,
     drone_reaction,
     lab_result,
+    per_drone,
 )
 from flightstack.faults.result import Checks, FaultResult
 from flightstack.sim_backend.emulated_lab import EmulatedLab, command_times, first, ms, phase_times, rc_times
@@ -133,8 +134,7 @@ def process_killed(mission_path: Path, workdir: Path) -> FaultResult:
         rec_problems = _killed_recording(run.run_dir, t_kill)
     observed = "; ".join(
         f"drone {i}: rc 0 0 0 0 +{d['rc0_ms']} ms, land +{d['land_ms']} ms, down +{d['down_ms']} ms"
-        for i, d in ((i, details.get(f"drone{i}")) for i in (1, 2))
-        if d
+        for i, d in per_drone(details)
     )
     observed += f"; robot armed {details.get('robot_armed')}, speed {details.get('robot_speed')}"
     expected = (
@@ -198,8 +198,7 @@ def agent_stopped(mission_path: Path, workdir: Path) -> FaultResult:
     observed = "; ".join(
         f"drone {i}: rc 0 0 0 0 +{d['rc0_ms']} ms, land +{d['land_ms']} ms, down +{d['down_ms']} ms, "
         f"{d['rc_after_resume']} rc after SIGCONT"
-        for i, d in ((i, details.get(f"drone{i}")) for i in (1, 2))
-        if d
+        for i, d in per_drone(details)
     )
     observed += f"; exit {details.get('exit_code')}"
     expected = (
@@ -242,8 +241,7 @@ def _stopped_and_down(lab: EmulatedLab, t_fault: float, c: Checks) -> dict[str, 
 def _summary(details: dict[str, Any]) -> str:
     parts = [
         f"drone {i}: rc 0 0 0 0 +{d['rc0_ms']} ms, land +{d['land_ms']} ms, down +{d['down_ms']} ms"
-        for i, d in ((i, details.get(f"drone{i}")) for i in (1, 2))
-        if d
+        for i, d in per_drone(details)
     ]
     return (
         "; ".join(parts) + f"; robot armed {details.get('robot_armed')}, speed {details.get('robot_speed')}"

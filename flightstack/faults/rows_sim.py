@@ -125,10 +125,13 @@ def mocap_dropout_short(mission_path: Path, workdir: Path) -> FaultResult:
     run = _dropout(mission_path, workdir, "mocap_dropout_short", 0.2)
     c = Checks()
     hovered = _hover_ticks(run)
-    c.check(set(hovered) == {"1", "2"} and all(n > 0 for n in hovered.values()), f"hover ticks {hovered}")
+    c.check(
+        set(hovered) == {str(i) for i in run.mission.drone_ids()} and all(n > 0 for n in hovered.values()),
+        f"hover ticks {hovered}",
+    )
     for kind in ("pose_stale_hover", "pose_stale_land"):
         c.check(not run.events(kind), f"{kind} events {run.events(kind)}")
-    _flew_to_end(run, [1, 2], c)
+    _flew_to_end(run, run.mission.drone_ids(), c)
     observed = f"agents hovered {hovered} ticks without pose, then pursued; {event_story(run)}"
     return sim_result("mocap_dropout_short", expected, run, c, observed)
 
@@ -143,7 +146,7 @@ def mocap_dropout_long(mission_path: Path, workdir: Path) -> FaultResult:
     c = Checks()
     lim = run.mission.safety
     t_drop = T_FAULT + 1.0
-    for i in (1, 2):
+    for i in run.mission.drone_ids():
         t_h, t_l = _t(run.first("pose_stale_hover", i)), _t(run.first("pose_stale_land", i))
         c.check(_near(t_h, t_drop + lim.pose_timeout), f"drone {i} pose_stale_hover at {t_h}")
         c.check(_near(t_l, t_drop + lim.pose_land_after), f"drone {i} pose_stale_land at {t_l}")
@@ -271,7 +274,7 @@ def _robot_row(mission_path: Path, workdir: Path, name: str, spec: FaultSpec, wh
     c.check(after is not None and after <= 1.0, f"robot_pose_suspect {after} s after the lie at {t_f}")
     err = None if run.rec is None else run.rec.error
     c.check(err is not None and why in err, f"run error {err!r}")
-    for i in (1, 2):
+    for i in run.mission.drone_ids():
         c.check(run.first("land", i) is not None, f"drone {i} was not landed")
     details = {"event_after_ms": None if after is None else round(1e3 * after)}
     observed = f"robot_pose_suspect +{details['event_after_ms']} ms after the lie began; error {err!r}"
@@ -324,7 +327,7 @@ def occlusion_short(mission_path: Path, workdir: Path) -> FaultResult:
         c.check(_held_still(run, t_hold, t_seen), "drones not held still (V = 0) during the hold")
         moving = np.abs(run.rec.V_cmd[: run.rec.ticks_done][run.rec.t[: run.rec.ticks_done] > t_seen]).max()
         c.check(moving > 0.0, "no pursuit after the target reappeared")
-    _flew_to_end(run, [1, 2], c)
+    _flew_to_end(run, run.mission.drone_ids(), c)
     seen = "never seen again" if t_seen is None else f"seen again @{t_seen:.2f}, pursuit resumed"
     observed = f"{event_story(run)}; target {seen}"
     return sim_result("occlusion_short", expected, run, c, observed)
@@ -355,7 +358,7 @@ def occlusion_long(mission_path: Path, workdir: Path) -> FaultResult:
     t_seen = _visible_again(run, occ.start + 0.1)
     if run.rec is not None and t_hold is not None:
         c.check(_held_still(run, t_hold, t_seen or run.pursuit_end + 1.0), "drones not held still")
-    for i in (1, 2):
+    for i in run.mission.drone_ids():
         c.check(landed_before_end(run, i), f"drone {i} did not land on target_lost_land")
     seen = "never seen again (out of view)" if t_seen is None else f"seen again @{t_seen:.2f}"
     return sim_result("occlusion_long", expected, run, c, f"{event_story(run)}; target {seen}")
@@ -381,7 +384,7 @@ def nan_neighbour(mission_path: Path, workdir: Path) -> FaultResult:
     ok = injected > 0 and dropped.get("non-finite g_bar_w") == injected
     c.check(ok, f"{injected} sent, dropped {dropped}")
     c.check(dropped.get("stale", 0) > 0, "drone 2's last valid message never went stale")
-    _flew_to_end(run, [1, 2], c)
+    _flew_to_end(run, run.mission.drone_ids(), c)
     observed = f"{injected} NaN messages sent, bus dropped {dropped}; {event_story(run)}"
     return sim_result("nan_neighbour", expected, run, c, observed)
 
@@ -414,7 +417,7 @@ def foreign_mission(mission_path: Path, workdir: Path) -> FaultResult:
         and all(np.array_equal(getattr(run.rec, f), getattr(clean.rec, f)) for f in COMPARED)
     )
     c.check(same, "the flight differs from the clean run")
-    _flew_to_end(run, [1, 2], c)
+    _flew_to_end(run, run.mission.drone_ids(), c)
     observed = (
         f"{injected} foreign messages sent, bus dropped {dropped}; flight identical to a clean run: {same}; "
         f"{event_story(run)}"

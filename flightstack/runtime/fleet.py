@@ -63,7 +63,7 @@ def make_agents(
         cfg = AgentConfig(
             mission=mission.name,
             drone_id=d.id,
-            body_name=f"drone{d.id}",
+            body_name=mission.identity(d.id).name,
             g_d=d.desired_pose.pose(),
             P0=P0,
             camera=mission.camera_model(k),
@@ -285,7 +285,7 @@ def assemble_fleet(
     warm_up(loop=rig_of(mission).compiled_loop() is not None)
     own_bus = bus is None
     if bus is None:
-        participant = "agents" if agent_ids is None else str(ids[0])
+        participant = "agents" if agent_ids is None else mission.identity(ids[0]).agent
         bus = make_bus(mission, participant, set(ids))
     built_bus = bus
     try:
@@ -340,7 +340,14 @@ def _build(
     if mission.safety.enabled:
         safe = {
             i: SafeDrone(
-                i, backend.drone(i), backend.pose_source(), f"drone{i}", clock, limits, log, background
+                i,
+                backend.drone(i),
+                backend.pose_source(),
+                mission.identity(i).name,
+                clock,
+                limits,
+                log,
+                background,
             )
             for i in ids
         }

@@ -194,7 +194,7 @@ class Flight:
 
         assert self.agent_id is not None
         warm_up()
-        bus = make_bus(self.mission, str(self.agent_id), {self.agent_id})
+        bus = make_bus(self.mission, self.mission.identity(self.agent_id).agent, {self.agent_id})
         stack.callback(bus.close)
         log = str((self.out or Path(tempfile.gettempdir())) / GUARDIAN_LOG)
         session = bus.session if isinstance(bus, ZenohBus) else None

@@ -36,7 +36,7 @@ from flightstack.comms.identity import SECOND_SESSION, UNLABELLED, SessionBook, 
 from flightstack.comms.wire import WORLD_TICK_ENCODING
 from flightstack.config.mission import Mission
 from flightstack.events import Event
-from flightstack.hal import FlightPhase
+from flightstack.hal import TARGET_BODY, DroneIdentity, FlightPhase
 from flightstack.runtime.phases import (
     LAND_TIMEOUT_S,
     TAKEOFF_TIMEOUT_S,
@@ -183,7 +183,9 @@ class WorldServer:
                 str(st.phase),
             )
             rows = {
-                b: row for b in (f"drone{i}", "target") if (row := _pose_row(poses.latest(b))) is not None
+                b: row
+                for b in (DroneIdentity(i).name, TARGET_BODY)
+                if (row := _pose_row(poses.latest(b))) is not None
             }
             truth = wm.Truth(
                 tuple(g_w0.as_vector().tolist()),

@@ -336,6 +336,7 @@ def _child_main(a: ChildArgs) -> None:
 
 def _run(a: ChildArgs) -> None:
     from flightstack.config.links import LinkSpec
+    from flightstack.hal import DroneIdentity
     from flightstack.paper.geometry import Pose
 
     from ..device_links import DeviceLinks
@@ -359,7 +360,7 @@ def _run(a: ChildArgs) -> None:
     # the frames' way out: the video link (whole frames, late), then the drone's radio (per datagram)
     radio = None
     if path.network is not None and not path.network.clean:
-        device = f"tello{path.drone}"
+        device = DroneIdentity(path.drone).label
         radio = DeviceRadio(path.network, path.seed, device, {"video": "video"}, path.epoch)
     sock: Any = raw if radio is None else radio.socket(raw, send=lambda _a: "video", recv=None)
     specs = {} if path.link is None else {"video": LinkSpec(**path.link)}
