@@ -18,7 +18,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flightstack.drivers.tello import TelloConfig, TelloDriver
+from flightstack.drivers.tello.config import TelloConfig
+from flightstack.drivers.tello.driver import TelloDriver
 from flightstack.drivers.tello.rc import RcGains
 from flightstack.ports import free_udp_port
 from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator

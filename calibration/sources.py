@@ -132,8 +132,9 @@ class TelloSource:
         self.is_stream = True
 
     def frames(self) -> Iterator[SourceFrame]:
-        from flightstack.drivers.tello import TelloConfig, TelloDriver
         from flightstack.drivers.tello.camera import TelloCamera
+        from flightstack.drivers.tello.config import TelloConfig
+        from flightstack.drivers.tello.driver import TelloDriver
 
         try:
             driver = TelloDriver(

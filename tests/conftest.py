@@ -451,7 +451,7 @@ def tello_emulator(ip: str = "127.0.0.3", **kw: Any) -> Any:
 def tello_config(emu: Any, **kw: Any) -> Any:
     """A TelloConfig for the driver against `emu`: the driver's default timing but short connect and
     command timeouts (2 s, 1 s) and the lab's rc gains; `kw` replaces any field."""
-    from flightstack.drivers.tello import TelloConfig
+    from flightstack.drivers.tello.config import TelloConfig
     from flightstack.drivers.tello.rc import RcGains
 
     base: dict[str, Any] = dict(

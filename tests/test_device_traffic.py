@@ -29,8 +29,8 @@ pytest.importorskip("av")
 
 from flightstack.config.mission import load_mission
 from flightstack.drivers.lab.hardware import tello_config as mission_tello_config
-from flightstack.drivers.tello import TelloDriver
 from flightstack.drivers.tello.camera import TelloCamera
+from flightstack.drivers.tello.driver import TelloDriver
 from flightstack.drivers.tello.phase import PhaseTracker
 from flightstack.drivers.tello.state import parse_state
 from flightstack.drivers.tello.traffic import TelloSession, TrafficWriter, read_traffic

@@ -62,7 +62,7 @@ def tello() -> Iterator[Any]:
 
 
 def tello_driver(emu: Any) -> Any:
-    from flightstack.drivers.tello import TelloDriver
+    from flightstack.drivers.tello.driver import TelloDriver
     from flightstack.drivers.tello.rc import RcGains
 
     return TelloDriver(tello_config(emu, link_timeout_s=0.5, keepalive_s=1.0, rc_gains=RcGains()))
@@ -108,7 +108,7 @@ def test_tello_state_receiver_survives_socket_and_parse_errors(
 def test_tello_command_channel_and_monitor_survive_errors(
     tello: Any, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from flightstack.drivers.tello import parse_int_reply
+    from flightstack.drivers.tello.config import parse_int_reply
 
     caplog.set_level(logging.WARNING, "flightstack.tello")
     d = tello_driver(tello)

@@ -261,8 +261,8 @@ def test_the_edu_downward_stream_is_sent_in_its_layout_and_cut_by_the_driver() -
     320 × 240 picture; the fiducial's corners in it are within 1 px of the truth (H.264 between)."""
     import cv2
 
-    from flightstack.drivers.tello import TelloDriver
     from flightstack.drivers.tello.camera import TelloCamera
+    from flightstack.drivers.tello.driver import TelloDriver
     from flightstack.vision.detect import detect_markers
     from tests.conftest import tello_config
 

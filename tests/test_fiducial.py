@@ -34,7 +34,7 @@ from flightstack.vision.fiducial import (
     track_fiducial,
 )
 from flightstack.vision.markers import extract_markers
-from flightstack.vision.picture import picture
+from flightstack.vision.picture import picture, picture_of
 from tests.conftest import MISSIONS
 
 CAMERAS = MISSIONS / "cameras"
@@ -384,7 +384,7 @@ def test_a_downward_frame_in_the_edu_layout_is_cut_by_the_driver_and_its_corners
         assert abs(below.mean() - DOWN_NOISE_MEAN) < 1.0 and abs(below.std() - DOWN_NOISE_STD) < 0.3
         assert np.array_equal(frame[:, :, 0], frame[:, :, 1])  # a grey picture in all three channels
 
-        cam = TelloCamera(driver=Driver(), calibration=EDU)  # type: ignore[arg-type]
+        cam = TelloCamera(driver=Driver(), to_picture=picture_of(EDU))  # type: ignore[arg-type]
         cam._rx = Receiver(frame)  # type: ignore[assignment]
         got = cam.latest()
         assert got is not None and got.image is not None and got.image.shape == (240, 320)

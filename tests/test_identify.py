@@ -172,7 +172,7 @@ TRUE_TAU_S = 0.1
 @pytest.mark.system  # long (emulator or fuzzing): the system tier
 def test_identify_against_the_emulator() -> None:
     pytest.importorskip("av")
-    from flightstack.drivers.tello import TelloDriver
+    from flightstack.drivers.tello.driver import TelloDriver
     from tests.test_tello_driver import config, make_emulator
 
     with make_emulator("127.0.0.5", tau_s=TRUE_TAU_S) as emu:

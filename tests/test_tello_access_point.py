@@ -27,7 +27,8 @@ def child() -> None:
     """Inside one namespace: an emulated Tello on the default ports and a driver flying it; prints JSON."""
     import numpy as np
 
-    from flightstack.drivers.tello import TelloConfig, TelloDriver
+    from flightstack.drivers.tello.config import TelloConfig
+    from flightstack.drivers.tello.driver import TelloDriver
     from flightstack.sim_backend.emulators.tello.base import FAST_TAKEOFF_S
     from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 

@@ -23,10 +23,11 @@ import pytest
 pytest.importorskip("av")
 
 from flightstack.config.mission import CAMERA_MOUNTS
-from flightstack.config.tello_video import VideoSetting
-from flightstack.drivers.tello import TelloCommandError, TelloConfig, TelloDriver, TelloLinkError
 from flightstack.drivers.tello.camera import TelloCamera
+from flightstack.drivers.tello.config import TelloCommandError, TelloConfig, TelloLinkError
+from flightstack.drivers.tello.driver import TelloDriver
 from flightstack.drivers.tello.rc import velocity_to_rc
+from flightstack.drivers.tello.sdk_video import VideoSetting
 from flightstack.hal import FlightPhase
 from flightstack.paper.geometry import Pose, rot_z
 from flightstack.ports import free_udp_port

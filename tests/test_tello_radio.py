@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from flightstack.drivers.lab.hardware import WallClock
-from flightstack.drivers.tello import TelloDriver
+from flightstack.drivers.tello.driver import TelloDriver
 from flightstack.hal import FlightPhase, StampedPose
 from flightstack.netem import LinkProfile, NetworkProfile
 from flightstack.paper.geometry import Pose

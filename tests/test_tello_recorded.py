@@ -305,7 +305,7 @@ def test_identify_reads_the_vertical_speed_with_the_real_sign() -> None:
     """drivers/tello/identify.py's vg source reads a climb as positive (up) and agrees in sign with the
     position source, against the emulator that sends vgz positive down like the recording."""
     pytest.importorskip("av")
-    from flightstack.drivers.tello import TelloDriver
+    from flightstack.drivers.tello.driver import TelloDriver
     from flightstack.drivers.tello.identify import state_velocity_source
     from tests.test_tello_driver import config, make_emulator
 

@@ -23,7 +23,8 @@ from pathlib import Path
 
 import pytest
 
-from flightstack.drivers.tello import TelloCommandError, TelloConfig, TelloDriver
+from flightstack.drivers.tello.config import TelloCommandError, TelloConfig
+from flightstack.drivers.tello.driver import TelloDriver
 from flightstack.drivers.tello.traffic import TelloSession, TrafficWriter, read_traffic, read_xg590_db
 from flightstack.drivers.tello.video_check import split_nals
 from flightstack.hal import FlightPhase

@@ -17,7 +17,8 @@ import pytest
 
 pytest.importorskip("av")  # streamon starts the emulator's video
 
-from flightstack.drivers.tello import TelloCommandError, TelloDriver, parse_sdk
+from flightstack.drivers.tello.config import TelloCommandError, parse_sdk
+from flightstack.drivers.tello.driver import TelloDriver
 from flightstack.drivers.tello.replies import PROMPT_REPLY_S, SLOW_REPLY_S, ReplyLedger
 from flightstack.drivers.tello.traffic import TrafficWriter, read_traffic
 from flightstack.hal import FlightPhase

@@ -18,11 +18,11 @@ from flightstack.cli.app import main
 from flightstack.config.hardware import HardwareSpec
 from flightstack.config.mission import load_mission
 from flightstack.config.rig import resolved_document
-from flightstack.config.tello_video import (
+from flightstack.config.tello_video import TelloVideoSpec
+from flightstack.drivers.tello.sdk_video import (
     BITRATE_ARGS,
     FPS_ARGS,
     RESOLUTION_ARGS,
-    TelloVideoSpec,
     VideoSetting,
     bit_rate_bps,
     parse_argument,

@@ -33,14 +33,16 @@ from flightstack.config.mission import Mission
 from flightstack.drivers.guardian.launcher import Guardian, GuardianConfig
 from flightstack.drivers.mocap import MocapConfig, MocapPoseSource
 from flightstack.drivers.scamper.driver import ScamperConfig, ScamperDriver
-from flightstack.drivers.tello import TelloConfig, TelloDriver
 from flightstack.drivers.tello.camera import TelloCamera
+from flightstack.drivers.tello.config import TelloConfig
+from flightstack.drivers.tello.driver import TelloDriver
 from flightstack.drivers.tello.rc import RcGains
 from flightstack.drivers.tello.traffic import TrafficWriter
 from flightstack.hal import TARGET_BODY, FlightPhase, StampedPose
 from flightstack.paper.geometry import Pose
 from flightstack.recording.files import DeviceFiles
 from flightstack.vision.camera_file import load_calibration
+from flightstack.vision.picture import picture_of
 
 if TYPE_CHECKING:
     from flightstack.runtime.rig import AgentSeat
@@ -206,10 +208,11 @@ class HardwareBackend:
             # jitter_s / 2 (config.links; measured on the emulated lab: docs/links.md)
             video = self.mission.links.link("video")
             video_latency_s = video.latency_s + video.jitter_s / 2
-            cal = None  # frames cut to the calibrated picture (the EDU's downward stream: vision.picture)
+            to_picture = None  # frames cut to the calibrated picture (the EDU's downward stream)
             if d.camera is not None and d.camera.calibration is not None:
-                cal = load_calibration(self.mission.resolve(d.camera.calibration))
-            cam = TelloCamera(drv, self.mission.hardware.drone(d.id).frame_timeout_s, video_latency_s, cal)
+                to_picture = picture_of(load_calibration(self.mission.resolve(d.camera.calibration)))
+            timeout_s = self.mission.hardware.drone(d.id).frame_timeout_s
+            cam = TelloCamera(drv, timeout_s, video_latency_s, to_picture)
             self.cameras[d.id] = cam
             cam.start()
         if self.robot is not None:

@@ -64,7 +64,8 @@ if TYPE_CHECKING:
     from flightstack.drivers.scamper.nav import LabOrigin
     from flightstack.drivers.scamper.params import OriginProbe
     from flightstack.drivers.tello.camera import TelloCamera
-    from flightstack.vision.camera_file import CameraCalibration
+from flightstack.vision.camera_file import CameraCalibration
+from flightstack.vision.picture import picture_of
 
 Status = Literal["PASS", "WARN", "FAIL"]
 BODY_WAIT_S = 1.0  # after connecting, how long motion capture gets to report every body (s)
@@ -212,8 +213,8 @@ def check_gains(mission: Mission) -> CheckRow:
 # ---- devices -------------------------------------------------------------------------------------------
 def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> list[CheckRow]:
     from flightstack.drivers.lab.hardware import tello_config
-    from flightstack.drivers.tello import TelloDriver
     from flightstack.drivers.tello.camera import TelloCamera
+    from flightstack.drivers.tello.driver import TelloDriver
     from flightstack.drivers.tello.video_settings import unconfirmed
 
     assert mission.hardware is not None
@@ -239,7 +240,10 @@ def check_drone(mission: Mission, drone_id: int, with_camera: bool = True) -> li
         elif with_camera and unconfirmed(cfg, drv.video_outcomes):  # its video rows above say why
             rows.append(_row(dev, "camera", False, "not started: a video setting was not confirmed"))
         elif with_camera:
-            cam = TelloCamera(drv, cfg.command_timeout_s + 2.0, calibration=_calibration(mission, drone_id))
+            cal = _calibration(mission, drone_id)
+            cam = TelloCamera(
+                drv, cfg.command_timeout_s + 2.0, to_picture=None if cal is None else picture_of(cal)
+            )
             rows.append(_check_camera(mission, drone_id, dev, cam))
     finally:
         drv.close()

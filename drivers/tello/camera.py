@@ -32,20 +32,19 @@ import socket
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import numpy as np
 
 from flightstack.drivers.device_threads import ERROR_PAUSE_S, ErrorLog
 from flightstack.drivers.netif import udp_socket
-from flightstack.drivers.tello import DEFAULT_VIDEO_PORT, TelloCommandError, TelloDriver
-from flightstack.drivers.tello.config import SETUP_ATTEMPTS, sdk3_fix
+from flightstack.drivers.tello.config import DEFAULT_VIDEO_PORT, SETUP_ATTEMPTS, TelloCommandError, sdk3_fix
+from flightstack.drivers.tello.driver import TelloDriver
 from flightstack.drivers.tello.traffic import TrafficWriter
 from flightstack.drivers.tello.video_decode import StreamDecoder
 from flightstack.drivers.tello.video_settings import unconfirmed
 from flightstack.hal import Frame, frame_truth
-from flightstack.vision.camera_file import CameraCalibration
-from flightstack.vision.picture import picture
 
 LOG = logging.getLogger("flightstack.tello")
 STREAM_COUNT_KEYS = (
@@ -178,9 +177,10 @@ class TelloCamera:
 
     Frames are RGB uint8, each stamped with its estimated capture time: the time.monotonic() (s) at which
     it was decoded minus `latency_s` (the configured capture → decode latency; 0 by default, so the stamp
-    is the decode time). With a `calibration`, each frame is cut to the calibrated picture and converted to
-    its image kind (flightstack.vision.picture: the Tello EDU's downward stream is a 320 × 720 frame whose
-    top 320 × 240 are the grey picture, as its `stream` says), once per decoded frame. The emulated lab
+    is the decode time). With `to_picture` (flightstack.vision.picture.picture_of the camera's calibration),
+    each frame is cut to the calibrated picture and converted to its image kind (the Tello EDU's downward
+    stream is a 320 × 720 frame whose top 320 × 240 are the grey picture, as the calibration's `stream`
+    says), once per decoded frame. The emulated lab
     records every frame's true capture time beside it (TelloEmulator.video_capture_log), so the estimate
     can be checked. `frames_seen` counts the distinct
     frames returned by `latest()`; `counts` holds the receiver's counters (module docstring), kept across
@@ -192,18 +192,19 @@ class TelloCamera:
         driver: TelloDriver,
         frame_timeout_s: float = 10.0,
         latency_s: float = 0.0,
-        calibration: CameraCalibration | None = None,
+        to_picture: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> None:
         """frame_timeout_s: how long `start()` waits for the first decoded frame (s); latency_s: subtracted
-        from the decode time to stamp a frame (s, ≥ 0); calibration: the camera's, whose picture `latest`
-        gives (None: the decoded frame as it is)."""
+        from the decode time to stamp a frame (s, ≥ 0); to_picture: how a decoded frame becomes the
+        picture `latest` gives (flightstack.vision.picture.picture_of the camera's calibration: the EDU's
+        downward stream cropped, a grey camera's frame made grey; None: the decoded frame as it is)."""
         if not (latency_s >= 0.0 and latency_s < 10.0):
             raise ValueError(f"latency_s must be in [0, 10) s, got {latency_s}")
         self.driver = driver
         self.frame_timeout_s = frame_timeout_s
         self.latency_s = float(latency_s)
         self.counts: Counter[str] = Counter()
-        self.calibration = calibration
+        self.to_picture = to_picture
         self._rx: VideoReceiver | None = None
         self._last_seq = 0
         self._truth_px: np.ndarray | None = None  # the newest frame's, from an emulated camera
@@ -259,8 +260,8 @@ class TelloCamera:
             self._truth_px = None if truth is None else truth(item.image)  # read from the whole frame
             self._picture = None
         if self._picture is None:
-            cal = self.calibration
-            self._picture = item.image if cal is None else picture(item.image, cal)
+            to_picture = self.to_picture
+            self._picture = item.image if to_picture is None else to_picture(item.image)
         stamp = item.t_decoded - self.latency_s
         return Frame(
             stamp,

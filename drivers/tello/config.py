@@ -7,9 +7,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from flightstack.config.tello_video import VideoSetting
 from flightstack.drivers.tello.phase import PhaseThresholds
 from flightstack.drivers.tello.rc import RcGains
+from flightstack.drivers.tello.sdk_video import VideoSetting
 
 DEFAULT_VIDEO_PORT = 11111
 SETUP_ATTEMPTS = 4

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Literal
 
-from flightstack.recording.files import FSYNC_PERIOD_S
+from flightstack.durability import FSYNC_PERIOD_S
 
 FORMAT = "flightstack-tello-traffic"
 VERSION = 1

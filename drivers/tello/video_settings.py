@@ -14,8 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
-from flightstack.config.tello_video import VideoSetting
 from flightstack.drivers.tello.config import SETUP_ATTEMPTS, TelloConfig
+from flightstack.drivers.tello.sdk_video import VideoSetting
 from flightstack.drivers.tello.status import DriverEvents
 
 FIX = "remove the key or update the firmware (the SDK 3.0 video settings need a Tello EDU or Talent)"

@@ -220,7 +220,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_calibrate_drone(args: argparse.Namespace) -> int:
     """Fly rc steps on one Tello; fit rc-unit → m/s gains and time constants (drivers/tello/identify.py)."""
     from flightstack.drivers.guardian.launcher import Guardian, GuardianConfig
-    from flightstack.drivers.tello import TelloConfig, TelloDriver
+    from flightstack.drivers.tello.config import TelloConfig
+    from flightstack.drivers.tello.driver import TelloDriver
     from flightstack.drivers.tello.identify import fits_to_rc_gains, identify, save_identification
 
     if not args.yes:

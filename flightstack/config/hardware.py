@@ -9,9 +9,10 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field, model_validator
 
-from flightstack.config.tello_video import TelloVideoSpec, VideoSetting, video_settings
+from flightstack.config.tello_video import TelloVideoSpec, video_settings
 from flightstack.config.types import Positive
 from flightstack.config.types import Strict as _Strict
+from flightstack.drivers.tello.sdk_video import VideoSetting
 
 MOCAP_SYSTEMS = ("mock", "vicon", "optitrack", "qualisys", "vrpn")
 

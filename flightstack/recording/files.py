@@ -30,8 +30,6 @@ BLOCK_PERIOD_S = 0.5
 """Wall time (s) after which the rows gathered are handed to the writer thread."""
 BLOCK_MAX_ROWS = 2000
 """Ticks after which the rows gathered are handed over anyway (simulated clocks run faster than real)."""
-FSYNC_PERIOD_S = 1.0
-"""The writer thread fsyncs a file written to at most this often (s), and at close."""
 MAX_PENDING_BYTES = 64_000_000
 """Bytes handed to the writer thread and not yet written beyond which the recording stops (a disk that
 does not keep up) rather than letting memory grow."""

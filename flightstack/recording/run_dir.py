@@ -49,6 +49,7 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from flightstack.durability import FSYNC_PERIOD_S
 from flightstack.events import Event
 from flightstack.recording.csv_table import csv_name, write_csv
 from flightstack.recording.files import (
@@ -56,7 +57,6 @@ from flightstack.recording.files import (
     BLOCK_PERIOD_S,
     CLOSE_TIMEOUT_S,
     EVENTS_FILE,
-    FSYNC_PERIOD_S,
     IMAGES_SUFFIX,
     MAX_PENDING_BYTES,
     METRICS_FILE,

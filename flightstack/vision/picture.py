@@ -8,6 +8,8 @@ where the picture lies (`stream`, flightstack.vision.camera_file.StreamLayout) a
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 
@@ -30,3 +32,8 @@ def picture(frame: np.ndarray, cal: CameraCalibration) -> np.ndarray:
     if cal.grey and out.ndim == 3:
         out = cv2.cvtColor(np.ascontiguousarray(out), cv2.COLOR_RGB2GRAY)
     return out
+
+
+def picture_of(cal: CameraCalibration) -> Callable[[np.ndarray], np.ndarray]:
+    """The function that makes a decoded frame of the camera of `cal` into its picture (`picture`)."""
+    return lambda frame: picture(frame, cal)

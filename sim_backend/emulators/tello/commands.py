@@ -60,7 +60,7 @@ from __future__ import annotations
 import logging
 import time
 
-from flightstack.config.tello_video import FPS_ARGS, VERBS, parse_argument
+from flightstack.drivers.tello.sdk_video import FPS_ARGS, VERBS, parse_argument
 
 from ..net import is_loopback
 from .base import DeferredReply

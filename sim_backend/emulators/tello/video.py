@@ -27,7 +27,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from flightstack.config.tello_video import RESOLUTION_ARGS, bit_rate_bps
+from flightstack.drivers.tello.sdk_video import RESOLUTION_ARGS, bit_rate_bps
 
 from .base import TelloEmulatorBase
 
