@@ -20,82 +20,46 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-if TYPE_CHECKING:
-    from flightstack.config.mission import Mission, MissionError, load_mission
-    from flightstack.config.rigs import RigFacts, rig_for
-    from flightstack.hal import (
-        Backend,
-        Camera,
-        Clock,
-        Drone,
-        DroneState,
-        FlightPhase,
-        Frame,
-        GroundRobot,
-        PoseSource,
-        StampedPose,
-    )
-    from flightstack.recording.run_reader import load_run, read_events, recording_status, resolved_mission
-    from flightstack.recording.timeseries import Recording
-    from flightstack.runtime.flight import Flight, FlightResult, NotFlownError
-    from flightstack.runtime.rig import Rig, rig_of
+if TYPE_CHECKING:  # what a type checker sees of the names below (explicit re-exports)
+    from flightstack.config.mission import Mission as Mission
+    from flightstack.config.mission import MissionError as MissionError
+    from flightstack.config.mission import load_mission as load_mission
+    from flightstack.config.rigs import RigFacts as RigFacts
+    from flightstack.config.rigs import rig_for as rig_for
+    from flightstack.hal import Backend as Backend
+    from flightstack.hal import Camera as Camera
+    from flightstack.hal import Clock as Clock
+    from flightstack.hal import Drone as Drone
+    from flightstack.hal import DroneState as DroneState
+    from flightstack.hal import FlightPhase as FlightPhase
+    from flightstack.hal import Frame as Frame
+    from flightstack.hal import GroundRobot as GroundRobot
+    from flightstack.hal import PoseSource as PoseSource
+    from flightstack.hal import StampedPose as StampedPose
+    from flightstack.recording.run_reader import load_run as load_run
+    from flightstack.recording.run_reader import read_events as read_events
+    from flightstack.recording.run_reader import recording_status as recording_status
+    from flightstack.recording.run_reader import resolved_mission as resolved_mission
+    from flightstack.recording.timeseries import Recording as Recording
+    from flightstack.runtime.flight import Flight as Flight
+    from flightstack.runtime.flight import FlightResult as FlightResult
+    from flightstack.runtime.flight import NotFlownError as NotFlownError
+    from flightstack.runtime.rig import Rig as Rig
+    from flightstack.runtime.rig import rig_of as rig_of
 
-API: dict[str, str] = {
-    "Flight": "flightstack.runtime.flight",
-    "FlightResult": "flightstack.runtime.flight",
-    "NotFlownError": "flightstack.runtime.flight",
-    "load_mission": "flightstack.config.mission",
-    "Mission": "flightstack.config.mission",
-    "MissionError": "flightstack.config.mission",
-    "rig_for": "flightstack.config.rigs",
-    "RigFacts": "flightstack.config.rigs",
-    "Rig": "flightstack.runtime.rig",
-    "rig_of": "flightstack.runtime.rig",
-    "Backend": "flightstack.hal",
-    "Drone": "flightstack.hal",
-    "Camera": "flightstack.hal",
-    "PoseSource": "flightstack.hal",
-    "GroundRobot": "flightstack.hal",
-    "Clock": "flightstack.hal",
-    "DroneState": "flightstack.hal",
-    "FlightPhase": "flightstack.hal",
-    "Frame": "flightstack.hal",
-    "StampedPose": "flightstack.hal",
-    "load_run": "flightstack.recording.run_reader",
-    "read_events": "flightstack.recording.run_reader",
-    "resolved_mission": "flightstack.recording.run_reader",
-    "recording_status": "flightstack.recording.run_reader",
-    "Recording": "flightstack.recording.timeseries",
-}
+MODULES: dict[str, tuple[str, ...]] = {
+    "flightstack.runtime.flight": ("Flight", "FlightResult", "NotFlownError"),
+    "flightstack.config.mission": ("load_mission", "Mission", "MissionError"),
+    "flightstack.config.rigs": ("rig_for", "RigFacts"),
+    "flightstack.runtime.rig": ("Rig", "rig_of"),
+    "flightstack.hal": ("Backend", "Drone", "Camera", "PoseSource", "GroundRobot", "Clock", "DroneState",
+                        "FlightPhase", "Frame", "StampedPose"),
+    "flightstack.recording.run_reader": ("load_run", "read_events", "resolved_mission", "recording_status"),
+    "flightstack.recording.timeseries": ("Recording",),
+}  # fmt: skip
+API: dict[str, str] = {name: module for module, names in MODULES.items() for name in names}
 """Public name -> the module that defines it (in the order docs/api/index.md lists them)."""
-
-__all__ = [
-    "Backend",
-    "Camera",
-    "Clock",
-    "Drone",
-    "DroneState",
-    "Flight",
-    "FlightPhase",
-    "FlightResult",
-    "Frame",
-    "GroundRobot",
-    "Mission",
-    "MissionError",
-    "NotFlownError",
-    "PoseSource",
-    "Recording",
-    "Rig",
-    "RigFacts",
-    "StampedPose",
-    "load_mission",
-    "load_run",
-    "read_events",
-    "recording_status",
-    "resolved_mission",
-    "rig_for",
-    "rig_of",
-]
+__all__ = sorted(API)
 
 
 def __getattr__(name: str) -> Any:

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 from flightstack.config.links import LinkSpec
 from flightstack.config.mission import Mission
-from flightstack.config.rigs import need_cameras, need_square_law
+from flightstack.config.rigs import LabFacts, need_cameras, need_square_law
 from flightstack.recording.files import DeviceFiles
 from flightstack.runtime.rig import AgentSeat, LoopPlanner, Rig
 
@@ -18,18 +18,12 @@ if TYPE_CHECKING:
     from flightstack.drivers.lab.hardware import HardwareBackend
 
 
-class LabRig:
+class LabRig(LabFacts):
     name = "tello"
     simulated = False
     starts_emulators = False
     has_devices = True
     robot_is_device = True
-    safety_may_be_off = False
-    drones_need_cameras = True
-    default_kinematics = "differential"  # an ArduPilot Rover never moves sideways (docs/drivers.md)
-    world_z_down = False
-    estimates_start_from_truth = False
-    plots_drones = True
     applies_network_profile = True
 
     def check(self, mission: Mission) -> None:

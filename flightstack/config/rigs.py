@@ -79,6 +79,19 @@ class RigFacts(Protocol):
         ...
 
 
+class LabFacts:
+    """What every lab rig is, simulated or real: Tellos that see through calibrated cameras, a robot that
+    never moves sideways (an ArduPilot Rover on a velocity set-point: docs/drivers.md), the motion-capture
+    frame, estimates that start from each drone's own pose, safety always on."""
+
+    safety_may_be_off = False
+    drones_need_cameras = True
+    default_kinematics = "differential"
+    world_z_down = False
+    estimates_start_from_truth = False
+    plots_drones = True
+
+
 def backends() -> list[str]:
     """The `backend:` values a rig file may give."""
     return sorted(RIGS)

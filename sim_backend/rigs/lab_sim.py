@@ -7,7 +7,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from flightstack.config.mission import Mission
-from flightstack.config.rigs import need_cameras, need_square_law
+from flightstack.config.rigs import LabFacts, need_cameras, need_square_law
 from flightstack.recording.files import DeviceFiles
 from flightstack.runtime.rig import Rig
 from flightstack.sim_backend.rigs.simulated import SimulatedRig
@@ -16,14 +16,8 @@ if TYPE_CHECKING:
     from flightstack.sim_backend.build_lab import LabSimBackend
 
 
-class LabSimRig(SimulatedRig):
+class LabSimRig(LabFacts, SimulatedRig):
     name = "sim_lab"
-    safety_may_be_off = False
-    drones_need_cameras = True
-    default_kinematics = "differential"  # an ArduPilot Rover never moves sideways (docs/drivers.md)
-    world_z_down = False
-    estimates_start_from_truth = False
-    plots_drones = True
 
     def check(self, mission: Mission) -> None:
         need_square_law(mission, "the simulated lab drives the robot on the 'square' law")
