@@ -48,7 +48,7 @@ IPS = {1: "127.0.0.8", 2: "127.0.0.9"}
 AGENT = r"""
 import dataclasses, json, os, sys, threading, time
 from flightstack.drivers.lab.hardware import tello_config
-from flightstack.drivers.tello import TelloDriver
+from flightstack.drivers.tello.driver import TelloDriver
 from flightstack.comms.factory import make_bus
 from flightstack.config.mission import load_mission
 

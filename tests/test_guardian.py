@@ -59,7 +59,8 @@ import json, sys, threading, time
 import numpy as np
 from flightstack.drivers.guardian.launcher import Guardian, GuardianConfig
 from flightstack.drivers.scamper.driver import ScamperConfig, ScamperDriver
-from flightstack.drivers.tello import TelloConfig, TelloDriver
+from flightstack.drivers.tello.config import TelloConfig
+from flightstack.drivers.tello.driver import TelloDriver
 
 a = json.loads(sys.argv[1])
 say = lambda *x: print(*x, flush=True)
