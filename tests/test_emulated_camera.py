@@ -264,6 +264,7 @@ def test_the_edu_downward_stream_is_sent_in_its_layout_and_cut_by_the_driver() -
     from flightstack.drivers.tello.camera import TelloCamera
     from flightstack.drivers.tello.driver import TelloDriver
     from flightstack.vision.detect import detect_markers
+    from flightstack.vision.picture import picture_of
     from tests.conftest import tello_config
 
     cal = load_calibration(MISSIONS / "cameras" / "tello_down_edu_sim.yaml")
@@ -288,7 +289,7 @@ def test_the_edu_downward_stream_is_sent_in_its_layout_and_cut_by_the_driver() -
         cam.wait_ready()
         emu.start()
         drv = TelloDriver(tello_config(emu, downward_camera=True))
-        camera = TelloCamera(drv, frame_timeout_s=10.0, calibration=cal)
+        camera = TelloCamera(drv, frame_timeout_s=10.0, to_picture=picture_of(cal))
         drv.connect()
         camera.start()
         assert emu.downvision

@@ -14,13 +14,19 @@ lost for `lost_abort_s` ends the run. A lost MAVLink link ends the run. Ctrl-C s
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from flightstack.hal import GroundRobot, PoseSource
+from flightstack.config.mission import Mission
+from flightstack.drivers.guardian.launcher import Guardian, GuardianConfig
+from flightstack.drivers.lab.hardware import body_names, mocap_config, scamper_config
+from flightstack.drivers.mocap import MocapPoseSource
+from flightstack.drivers.scamper.driver import ScamperDriver
+from flightstack.hal import TARGET_BODY, GroundRobot, PoseSource
 from flightstack.paper.target_law import TargetLaw
 
 
@@ -113,3 +119,64 @@ def lap_summary(res: TargetRunResult, law: TargetLaw) -> str:
         f"{expected:.3f} m commanded ({err:+.1f} %), max tracking error {res.max_tracking_error_m:.3f} m, "
         f"ended by {res.ended_by}"
     )
+
+
+def drive_target(mission: Mission, duration: float) -> int:
+    """`flightstack target` on an opened rig: the robot of `mission.hardware.target` driven `duration` s on
+    the square law from its motion-capture pose, under a guardian that stops and disarms it if this process
+    dies or stalls (drivers/guardian/); progress on stdout, problems on stderr. Exit code: 0 when it drove
+    the whole duration, else 1."""
+    law = mission.target_law()
+    sc = scamper_config(mission)
+    assert sc is not None
+    mocap = MocapPoseSource(mocap_config(mission))
+    body = body_names(mission)[TARGET_BODY]
+    robot = ScamperDriver(sc, pose_source=lambda: mocap.latest(body))
+    guardian = Guardian.start(GuardianConfig.for_devices([], sc.url))
+    robot.set_muted(guardian.taken_over)
+    armed = [False]
+
+    def beat(now: float, res: object) -> None:
+        if not armed[0]:
+            guardian.arm()
+            armed[0] = True
+        guardian.heartbeat()
+
+    try:
+        mocap.start()
+        if not _seen_within(mocap, body, 2.0):
+            print(f"error: motion capture does not see the robot (body {body!r})", file=sys.stderr)
+            return 1
+        robot.connect()
+        print(f"driving {duration:.1f} s ({duration / law.lap_time:.2f} laps); Ctrl-C stops the robot")
+        res = drive_square(
+            robot,
+            mocap,
+            law,
+            duration,
+            body=body,
+            link_alive=robot.link_alive,
+            robot_ready=lambda: (
+                robot.robot_state().ready and not guardian.taken_over() and guardian.lost() is None
+            ),
+            on_tick=beat,
+        )
+        print(lap_summary(res, law))
+        if (lost := guardian.lost()) is not None:
+            print(f"error: {lost}: the robot was stopped (never driven without it)", file=sys.stderr)
+        return 0 if res.ended_by == "duration" else 1
+    finally:
+        guardian.arm(False)
+        robot.close()
+        mocap.close()
+        guardian.finish()
+
+
+def _seen_within(poses: PoseSource, body: str, timeout_s: float) -> bool:
+    """Whether `body` has a pose within timeout_s (s)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if poses.latest(body) is not None:
+            return True
+        time.sleep(0.02)
+    return False

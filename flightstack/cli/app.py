@@ -13,18 +13,14 @@ import math
 import os
 import signal
 import sys
-import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import argcomplete
 
 from flightstack import threads
-
-if TYPE_CHECKING:
-    from flightstack.config.mission import Mission
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -104,6 +100,7 @@ def cmd_target(args: argparse.Namespace) -> int:
     the rig is opened first, as for a flight (the emulated lab starts its emulators)."""
     from flightstack.cli.run import confirm
     from flightstack.config.mission import load_mission
+    from flightstack.drivers.lab.target_run import drive_target
     from flightstack.runtime.rig import opened
 
     mission = load_mission(args.mission, check_files=False, rig=args.rig)
@@ -119,73 +116,7 @@ def cmd_target(args: argparse.Namespace) -> int:
         print("aborted", file=sys.stderr)
         return 1
     with opened(mission) as flown:
-        return _drive_target(flown, duration)
-
-
-def _drive_target(mission: Mission, duration: float) -> int:
-    """`target` on an opened rig: the robot driven `duration` s (s) under its guardian."""
-    from flightstack.drivers.guardian.launcher import Guardian, GuardianConfig
-    from flightstack.drivers.lab.hardware import body_names, mocap_config, scamper_config
-    from flightstack.drivers.lab.target_run import drive_square, lap_summary
-    from flightstack.drivers.mocap import MocapPoseSource
-    from flightstack.drivers.scamper.driver import ScamperDriver
-
-    law = mission.target_law()
-    sc = scamper_config(mission)
-    assert sc is not None
-    mocap = MocapPoseSource(mocap_config(mission))
-    body = body_names(mission)["target"]
-    robot = ScamperDriver(sc, pose_source=lambda: mocap.latest(body))
-    # if this process dies or stalls, the guardian stops and disarms the robot (drivers/guardian/launcher.py)
-    guardian = Guardian.start(GuardianConfig.for_devices([], sc.url))
-    robot.set_muted(guardian.taken_over)
-    armed = [False]
-
-    def beat(now: float, res: object) -> None:
-        if not armed[0]:
-            guardian.arm()
-            armed[0] = True
-        guardian.heartbeat()
-
-    try:
-        mocap.start()
-        if mocap_wait(mocap, body, 2.0) is None:
-            print(f"error: motion capture does not see the robot (body {body!r})", file=sys.stderr)
-            return 1
-        robot.connect()
-        print(f"driving {duration:.1f} s ({duration / law.lap_time:.2f} laps); Ctrl-C stops the robot")
-        res = drive_square(
-            robot,
-            mocap,
-            law,
-            duration,
-            body=body,
-            link_alive=robot.link_alive,
-            robot_ready=lambda: (
-                robot.robot_state().ready and not guardian.taken_over() and guardian.lost() is None
-            ),
-            on_tick=beat,
-        )
-        print(lap_summary(res, law))
-        if (lost := guardian.lost()) is not None:
-            print(f"error: {lost}: the robot was stopped (never driven without it)", file=sys.stderr)
-        return 0 if res.ended_by == "duration" else 1
-    finally:
-        guardian.arm(False)
-        robot.close()
-        mocap.close()
-        guardian.finish()
-
-
-def mocap_wait(mocap: object, body: str, timeout_s: float) -> object | None:
-    """The body's first pose within timeout_s (s), or None."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        sp = mocap.latest(body)  # type: ignore[attr-defined]
-        if sp is not None:
-            return sp
-        time.sleep(0.02)
-    return None
+        return drive_target(flown, duration)
 
 
 def cmd_train(args: argparse.Namespace) -> int:

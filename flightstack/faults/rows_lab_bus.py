@@ -44,7 +44,9 @@ def abort_agent_missing(mission_path: Path, workdir: Path) -> FaultResult:
     from flightstack.config.mission import load_mission
 
     m = resolved_document("paper_sim")
-    endpoints = dict(zip(("1", "2", "3"), free_loopback_endpoints(3), strict=True))
+    ids = [int(d["id"]) for d in m["drones"]]
+    *present, absent = ids  # every agent but the last is on the bus
+    endpoints = dict(zip(map(str, ids), free_loopback_endpoints(len(ids)), strict=True))
     m["name"] = "abort_agent_missing"
     m["bus"] = {"kind": "zenoh", "zenoh": {"endpoints": endpoints, "lease_ms": 500, "security": "plaintext"}}
     path = root / "mission.yaml"
@@ -56,23 +58,24 @@ def abort_agent_missing(mission_path: Path, workdir: Path) -> FaultResult:
     details: dict[str, Any] = {}
     observed = ""
     try:
-        for i in (1, 2):
-            agents[i] = zb.ZenohBus(zenoh_bus_config(mission, str(i), {i}))
+        for i in present:
+            agents[i] = zb.ZenohBus(zenoh_bus_config(mission, mission.identity(i).agent, {i}))
         t0 = time.monotonic()
         r = run_cli("abort", str(path), "--timeout", "1")
         elapsed = time.monotonic() - t0
         acks = acks_in(r.stdout)
         crashed = f"`flightstack abort` traceback: {r.stderr[-800:]}" if "Traceback" in r.stderr else None
-        c.check(r.returncode == 1, f"exit {r.returncode} with agent 3 absent")
+        c.check(r.returncode == 1, f"exit {r.returncode} with agent {absent} absent")
         c.check(
-            "agents [3] did not acknowledge" in r.stderr, f"stderr does not name agent 3: {r.stderr[-300:]}"
+            f"agents [{absent}] did not acknowledge" in r.stderr,
+            f"stderr does not name agent {absent}: {r.stderr[-300:]}",
         )
-        c.check(sorted(acks) == [1, 2], f"acknowledged by {sorted(acks)}")
+        c.check(sorted(acks) == present, f"acknowledged by {sorted(acks)}")
         c.check(elapsed < 20.0, f"`flightstack abort --timeout 1` took {elapsed:.1f} s")
-        agents[3] = zb.ZenohBus(zenoh_bus_config(mission, "3", {3}))
+        agents[absent] = zb.ZenohBus(zenoh_bus_config(mission, mission.identity(absent).agent, {absent}))
         code2, out2, _err2 = cli_abort(abort_args(path, 5.0))
         acks2 = acks_in(out2)
-        c.check(code2 == 0 and sorted(acks2) == [1, 2, 3], f"with agent 3 back: exit {code2}, acks {acks2}")
+        c.check(code2 == 0 and sorted(acks2) == ids, f"with agent {absent} back: exit {code2}, acks {acks2}")
         details = {
             "exit_code": r.returncode,
             "ack_ms": {str(i): v for i, v in acks.items()},
@@ -82,8 +85,8 @@ def abort_agent_missing(mission_path: Path, workdir: Path) -> FaultResult:
         }
         named = next((ln for ln in r.stderr.splitlines() if "did not acknowledge" in ln), "")
         observed = (
-            f"agent 3 absent: exit {r.returncode} in {elapsed:.2f} s, acks (ms) {acks}, stderr: "
-            f"{named.strip()!r}; agent 3 back: exit {code2}, acks (ms) {acks2}"
+            f"agent {absent} absent: exit {r.returncode} in {elapsed:.2f} s, acks (ms) {acks}, stderr: "
+            f"{named.strip()!r}; agent {absent} back: exit {code2}, acks (ms) {acks2}"
         )
     except Exception as exc:
         crashed = f"{type(exc).__name__}: {exc}"
