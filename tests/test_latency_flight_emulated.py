@@ -38,6 +38,7 @@ from flightstack.sim_backend.emulated_lab import DRONE_STARTS, EmulatedLab
 from flightstack.sim_backend.emulators.tello.emulator import TelloEmulator
 from flightstack.sim_backend.emulators.tello.frames import read_frame_index
 from flightstack.sim_backend.emulators.tello.view import index_area
+from flightstack.vision.camera_file import load_calibration
 from tests.conftest import MISSIONS, Bound, run_cli
 
 pytestmark = pytest.mark.system
@@ -48,14 +49,14 @@ class TappedCamera:
     from the whole decoded frame (TelloCamera.last_decoded: the EDU's downward stream carries the code in
     the noise below the picture, which `latest` cuts off)."""
 
-    def __init__(self, inner: Any, seen: dict[float, int]) -> None:
-        self.inner, self.seen = inner, seen
+    def __init__(self, inner: Any, seen: dict[float, int], cal: Any) -> None:
+        self.inner, self.seen, self.cal = inner, seen, cal
 
     def latest(self) -> Frame | None:
         f = self.inner.latest()
         whole = self.inner.last_decoded
         if f is not None and f.stamp not in self.seen and whole is not None:
-            cal = self.inner.calibration
+            cal = self.cal
             self.seen[f.stamp] = read_frame_index(
                 whole.image if cal is None else index_area(cal, whole.image)
             )
@@ -74,7 +75,13 @@ class TappedBackend:
         self.clock = inner.clock
 
     def camera(self, drone_id: int) -> TappedCamera:
-        return TappedCamera(self.inner.camera(drone_id), self.seen)
+        """Drone `drone_id`'s camera, tapped; its calibration says where the bar code is (index_area)."""
+        m = self.inner.mission
+        d = next(d for d in m.drones if d.id == drone_id)
+        cal = None if d.camera is None or d.camera.calibration is None else m.resolve(d.camera.calibration)
+        return TappedCamera(
+            self.inner.camera(drone_id), self.seen, None if cal is None else load_calibration(cal)
+        )
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.inner, name)
