@@ -19,7 +19,7 @@ from typing import Any, Protocol, cast
 
 from flightstack.config.links import LinkSpec
 
-Mission = Any
+AnyMission = Any
 """A flightstack.config.mission.Mission (which imports this module: named here, not imported)."""
 
 RIGS: dict[str, str] = {
@@ -66,15 +66,15 @@ class RigFacts(Protocol):
     applies_network_profile: bool
     """The mission's `network:` profile impairs this rig's links."""
 
-    def check(self, mission: Mission) -> None:
+    def check(self, mission: AnyMission) -> None:
         """What this rig needs of a composed mission (ValueError naming the key and why)."""
         ...
 
-    def command_link(self, mission: Mission) -> LinkSpec:
+    def command_link(self, mission: AnyMission) -> LinkSpec:
         """The rc link whose mean delay stands in for an unset compensation.command_delay_s."""
         ...
 
-    def drone_response_s(self, mission: Mission) -> float:
+    def drone_response_s(self, mission: AnyMission) -> float:
         """The drone's velocity response time constant (s) for an unset compensation.response_s."""
         ...
 
@@ -122,13 +122,13 @@ def load_named(target: str) -> Any:
     return obj
 
 
-def need_square_law(mission: Mission, why: str) -> None:
+def need_square_law(mission: AnyMission, why: str) -> None:
     """A rig whose robot is driven on the square law (ValueError naming target.motion)."""
     if mission.target.motion != "square":
         raise ValueError(f"target.motion: {why}")
 
 
-def need_cameras(mission: Mission, where: str) -> None:
+def need_cameras(mission: AnyMission, where: str) -> None:
     """A rig whose drones see through calibrated cameras (ValueError naming the drone)."""
     for d in mission.drones:
         if d.camera is None or d.camera.calibration is None:
