@@ -467,8 +467,7 @@ def _fly_latency(args: argparse.Namespace) -> int:
     except (MissionError, RigError, ValueError, OSError) as exc:
         return _one_line_error(str(exc))
     drone = one.drones[0].id
-    real = not mission.simulated and not mission.start_emulators
-    if real:
+    if mission.rig_type.flies_real_drones:
         code = _preflight_and_confirm(one, drone, args.yes)
         if code:
             return code

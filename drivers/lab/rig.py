@@ -23,6 +23,7 @@ class LabRig(LabFacts):
     simulated = False
     starts_emulators = False
     has_devices = True
+    flies_real_drones = True
     robot_is_device = True
     applies_network_profile = True
 

@@ -163,7 +163,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from flightstack.runtime.resources import check_recording_fits
 
     check_recording_fits(mission)  # MissionError (exit 2) before anything is created or flies
-    if args.command == "sim" and not mission.simulated and not mission.start_emulators:
+    if args.command == "sim" and mission.rig_type.flies_real_drones:
         print(
             f"error: {args.mission}: backend {mission.backend!r} flies real drones; "
             "use `flightstack preflight` then `flightstack fly`",
@@ -193,8 +193,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 2
     if args.out is None:
         say("info", f"run directory: {out} (--out DIR chooses another)")
-    real = not mission.simulated and not mission.start_emulators
-    if real:
+    if mission.rig_type.flies_real_drones:
         code = _confirm_and_preflight(args, mission)
         if code:
             return code

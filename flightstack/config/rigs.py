@@ -47,6 +47,9 @@ class RigFacts(Protocol):
     """Opening a flight starts loopback emulators of the devices (the flight flies them as the real rig)."""
     has_devices: bool
     """Real (or emulated) devices, described by the mission's `hardware:` section."""
+    flies_real_drones: bool
+    """Real drones take off: the operator confirms and the preflight passes first, `sim` and sweeps
+    refuse it."""
     robot_is_device: bool
     """The robot is a device that is nudged inside the fence before takeoff (runtime.motion_check)."""
     safety_may_be_off: bool

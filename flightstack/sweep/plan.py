@@ -204,7 +204,7 @@ def check_mission(
     for key, path in files:
         if path is not None and not m.resolve(path).is_file():
             raise SweepError(f"{label}: {key}: file not found: {m.resolve(path)}")
-    if not m.simulated or m.start_emulators:
+    if not m.simulated:
         raise SweepError(
             f"{label}: a sweep flies simulated rigs only (ideal, lab-sim), not {m.rig or m.backend!r}"
         )

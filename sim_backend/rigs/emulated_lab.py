@@ -16,6 +16,7 @@ from flightstack.runtime.rig import Rig
 
 class EmulatedLabRig(LabRig):
     starts_emulators = True
+    flies_real_drones = False  # loopback emulators: nothing takes off
 
     def check_compensation(self, mission: Mission) -> None:
         """The emulated Tello's response is known (EMULATED_TELLO_RESPONSE_S)."""

@@ -22,6 +22,7 @@ class SimulatedRig:
     simulated = True
     starts_emulators = False
     has_devices = False
+    flies_real_drones = False
     robot_is_device = False
     applies_network_profile = False
 
