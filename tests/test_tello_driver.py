@@ -687,7 +687,10 @@ def test_video_settings_are_sent_at_connect_and_change_the_stream() -> None:
         mbps = 8e-6 * (emu.video_bytes_sent - b0) / frames * emu.fps  # at the stream's rate: skips aside
         print(f"stream: {frames / dt:.1f} frames/s, {mbps:.2f} Mbit/s, decoded {shapes}")
         assert shapes == {(478, 648, 3)}  # 480P as a real Tello EDU decodes (DJITelloPy #213)
-        assert 12.0 <= frames / dt <= 15.5, frames / dt  # setfps middle: 15 /s (a loaded machine skips some)
+        # setfps middle: 15 /s. A loaded machine skips some; a late video thread sends up to 3 frames it
+        # owes at once (emulators/tello/video.py skips beyond that), so a window may hold 3 more plus the
+        # fencepost (47 in 3.01 s seen beside a CPU-bound process); setfps high would be 30 /s
+        assert frames / dt >= 12.0 and frames <= emu.fps * dt + 4, (frames, dt)
         assert 0.4 <= mbps <= 2.0, mbps  # setbitrate 1: 1 Mbit/s (this noise at 30 fps, 720P: 81 Mbit/s)
         cam.stop()
         assert_clean(d, emu)
