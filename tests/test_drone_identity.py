@@ -1,4 +1,4 @@
-"""One drone identity (issue 52): each drone's names come from one value built from its id, so every layer
+"""One drone identity: each drone's names come from one value built from its id, so every layer
 that names a drone (the pose source's body, the lab file's motion-capture map, the bus's participant,
 the emulated lab's device label) agrees by construction."""
 

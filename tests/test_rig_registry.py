@@ -1,4 +1,4 @@
-"""The rig is an object (issue 52): a new rig is one module and one line of the registry, and no module but
+"""The rig is an object: a new rig is one module and one line of the registry, and no module but
 the registry and the rigs themselves decides anything by a rig's or backend's name."""
 
 from __future__ import annotations

@@ -38,7 +38,7 @@ from flightstack.drivers.tello.config import TelloConfig
 from flightstack.drivers.tello.driver import TelloDriver
 from flightstack.drivers.tello.rc import RcGains
 from flightstack.drivers.tello.traffic import TrafficWriter
-from flightstack.hal import TARGET_BODY, FlightPhase, StampedPose
+from flightstack.hal import TARGET_BODY, DroneIdentity, FlightPhase, StampedPose
 from flightstack.paper.geometry import Pose
 from flightstack.recording.files import DeviceFiles
 from flightstack.vision.camera_file import load_calibration
@@ -240,12 +240,12 @@ class HardwareBackend:
             if sp is not None:
                 self._last_truth[name] = sp.pose
         target = self._last_truth.get(TARGET_BODY, UNKNOWN_POSE)
-        drones = {d: self._last_truth.get(self.mission.identity(d).name, UNKNOWN_POSE) for d in self.drones}
+        drones = {d: self._last_truth.get(DroneIdentity(d).name, UNKNOWN_POSE) for d in self.drones}
         return target, drones
 
     def _seen_down(self, drone_id: int) -> bool:
         """Motion capture shows the drone's body on the floor now (fresh pose, z ≤ safety.landed_height)."""
-        sp = self.poses.latest(self.mission.identity(drone_id).name)
+        sp = self.poses.latest(DroneIdentity(drone_id).name)
         limit = self.mission.safety.landed_height
         return sp is not None and self.clock.now() - sp.stamp <= 0.3 and float(sp.pose.p[2]) <= limit
 
