@@ -40,9 +40,11 @@ import random
 from collections import Counter
 from dataclasses import dataclass, field
 
-LINK_KINDS = ("tello", "video", "mocap", "rover", "bus")
-"""Link kinds a profile configures: a Tello's commands, replies and state; its video; the motion capture
-(wired); the ground robot's MAVLink; the bus between agent processes (TCP)."""
+LINKS = ("video", "state", "rc", "mocap", "robot", "bus")
+"""The links of a lab, each one direction of one kind of data, in both models (the `links:` table's samples
+and the radio's packets): a drone's `video` (camera -> computer), `state` (telemetry -> computer) and `rc`
+(commands -> drone, and the drone's replies), `mocap` (motion capture -> computer, wired), `robot` (the
+ground robot's MAVLink, both ways) and the `bus` between agent processes (TCP)."""
 DUPLICATE_GAP_S = 0.001
 """A duplicate follows its original by this much (s)."""
 
@@ -197,19 +199,19 @@ class BlackoutPlan:
 
 @dataclass(frozen=True)
 class NetworkProfile:
-    """A named set of link profiles (one per kind of LINK_KINDS; missing kinds are clean) and the
-    blackouts of the devices' radios (on the kinds of `blackout_kinds`)."""
+    """A named set of link profiles (one per link of LINKS; missing links are clean) and the blackouts of
+    the devices' radios (on the links of `blackout_kinds`)."""
 
     name: str
     description: str
     links: dict[str, LinkProfile] = field(default_factory=dict)
     blackouts: BlackoutPlan | None = None
-    blackout_kinds: frozenset[str] = frozenset({"tello", "video", "rover"})
+    blackout_kinds: frozenset[str] = frozenset({"rc", "state", "video", "robot"})
 
     def link(self, kind: str) -> LinkProfile:
-        """The profile of links of `kind` (KeyError for a kind not in LINK_KINDS)."""
-        if kind not in LINK_KINDS:
-            raise KeyError(f"unknown link kind {kind!r}; known: {', '.join(LINK_KINDS)}")
+        """The profile of the links of `kind` (KeyError for a kind not in LINKS)."""
+        if kind not in LINKS:
+            raise KeyError(f"unknown link {kind!r}; known: {', '.join(LINKS)}")
         return self.links.get(kind, LinkProfile())
 
     @property
@@ -232,29 +234,34 @@ _CROWDED = LinkProfile.bursty(
     reorder=0.02,
     reorder_s=0.03,
 )
+
+
+def _radio(wifi: LinkProfile, video: LinkProfile) -> dict[str, LinkProfile]:
+    """The links of a profile whose drones and robot share one Wi-Fi (`wifi`, the video `video`), with
+    the motion capture and the bus on the wired network."""
+    return {"rc": wifi, "state": wifi, "video": video, "robot": wifi, "mocap": _WIRED, "bus": _WIRED}
+
+
 PROFILES: dict[str, NetworkProfile] = {
     "clean": NetworkProfile("clean", "no impairment (loopback as it is)"),
     "lab-wifi": NetworkProfile(
         "lab-wifi",
         "a quiet lab Wi-Fi: 2 % loss in bursts of 2, 3 ms + 10 ms mean jitter; wired motion capture",
-        {"tello": _WIFI, "video": _WIFI, "rover": _WIFI, "mocap": _WIRED, "bus": _WIRED},
+        _radio(_WIFI, _WIFI),
     ),
     "crowded": NetworkProfile(
         "crowded",
         "a crowded 2.4 GHz band: 5 % loss in bursts of 5, 20 ms mean jitter, 1 % spikes of 100-300 ms, "
         "2 % reordered, video capped at 2.5 Mbit/s",
         {
-            "tello": _CROWDED,
-            "video": dataclasses.replace(_CROWDED, rate_bps=2.5e6),
-            "rover": _CROWDED,
-            "mocap": _WIRED,
+            **_radio(_CROWDED, dataclasses.replace(_CROWDED, rate_bps=2.5e6)),
             "bus": LinkProfile(latency_s=0.002, jitter_s=0.005),
         },
     ),
     "outage": NetworkProfile(
         "outage",
         "lab-wifi plus radio blackouts of 1-3 s both ways, from 12 s after the lab starts, every 15 s",
-        {"tello": _WIFI, "video": _WIFI, "rover": _WIFI, "mocap": _WIRED, "bus": _WIRED},
+        _radio(_WIFI, _WIFI),
         blackouts=BlackoutPlan(first_s=12.0, every_s=15.0, min_s=1.0, max_s=3.0),
     ),
 }
@@ -448,7 +455,7 @@ class StreamModel:
 
 
 __all__ = [
-    "LINK_KINDS",
+    "LINKS",
     "PROFILES",
     "BlackoutPlan",
     "LinkModel",

@@ -418,13 +418,13 @@ class EmulatedLab:
         from flightstack.sim_backend.emulators.radio import DeviceRadio
 
         epoch = time.monotonic()
-        tello_links = {"command": "tello", "reply": "tello", "state": "tello", "video": "video"}
+        tello_links = {"command": "rc", "reply": "rc", "state": "state", "video": "video"}
         for i in self.ips:
             name = DroneIdentity(i).label
             self.radios[name] = DeviceRadio(self.network, self.seed, name, tello_links, epoch)
         self.radios["natnet"] = DeviceRadio(self.network, self.seed, "natnet", {"frames": "mocap"}, epoch)
         self.radios["rover"] = DeviceRadio(
-            self.network, self.seed, "rover", {"uplink": "rover", "downlink": "rover"}, epoch
+            self.network, self.seed, "rover", {"uplink": "robot", "downlink": "robot"}, epoch
         )
 
     def link_spec(self, name: str) -> Any:

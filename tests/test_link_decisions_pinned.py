@@ -27,9 +27,9 @@ EPOCH = -10.0
 """The radios' epoch: their blackout windows count from it, so the outage profile's first one (12 s after
 the epoch) falls inside TIMES."""
 RADIO_LINKS = {
-    "tello1": {"command": "tello", "reply": "tello", "state": "tello", "video": "video"},
+    "tello1": {"command": "rc", "reply": "rc", "state": "state", "video": "video"},
     "natnet": {"frames": "mocap"},
-    "rover": {"uplink": "rover", "downlink": "rover"},
+    "rover": {"uplink": "robot", "downlink": "robot"},
 }
 """The emulated lab's radios: device -> link -> the kind of link it is (sim_backend/emulated_lab.py)."""
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from flightstack.netem import (
+    LINKS,
     PROFILES,
     BlackoutPlan,
     LinkModel,
@@ -27,7 +28,7 @@ def _run(model: LinkModel, n: int, period: float = 0.01, size: int = 100) -> lis
 
 
 def test_same_seed_same_decisions_per_link() -> None:
-    prof = PROFILES["crowded"].link("tello")
+    prof = PROFILES["crowded"].link("rc")
     a = _run(LinkModel(prof, 7, "tello1", "state"), 3000)
     b = _run(LinkModel(prof, 7, "tello1", "state"), 3000)
     assert a == b
@@ -121,12 +122,12 @@ def test_blackouts_drop_both_directions_in_their_windows() -> None:
 
 def test_profiles() -> None:
     assert PROFILES["clean"].clean
-    assert all(PROFILES["clean"].link(k).clean for k in ("tello", "video", "mocap", "rover", "bus"))
-    wifi = profile("lab-wifi").link("tello")
+    assert all(PROFILES["clean"].link(k).clean for k in LINKS)
+    wifi = profile("lab-wifi").link("rc")
     assert 0.01 <= wifi.stationary_loss() <= 0.05 and 0.01 <= wifi.jitter_s <= 0.05
     crowded = profile("crowded")
-    assert crowded.link("video").rate_bps is not None and crowded.link("tello").reorder > 0
-    assert crowded.link("tello").spike_s[0] >= 0.1 and crowded.link("tello").mean_burst() > 2
+    assert crowded.link("video").rate_bps is not None and crowded.link("rc").reorder > 0
+    assert crowded.link("rc").spike_s[0] >= 0.1 and crowded.link("rc").mean_burst() > 2
     outage = profile("outage").blackouts
     assert outage is not None and (outage.min_s, outage.max_s) == (1.0, 3.0)
     with pytest.raises(ValueError, match="unknown network profile"):

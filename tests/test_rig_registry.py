@@ -15,7 +15,6 @@ from flightstack.config import rigs
 from flightstack.config.links import LINKS, PROFILES
 from flightstack.config.mission import MissionError, load_mission
 from flightstack.config.rig import MISSION_CONFIGS
-from flightstack.netem import LINK_KINDS
 from flightstack.recording.timeseries import ARRAY_FIELDS, MACHINE_FIELDS
 from tests.conftest import REPO, fly_mode
 
@@ -90,7 +89,7 @@ def test_a_backend_not_in_the_registry_is_named_with_what_is_known(tmp_path: Pat
 # ---- nothing but the registry and the rigs keys on a rig's name -----------------------------------------
 BACKEND_NAMES = frozenset(rigs.RIGS)
 RIG_FILE_NAMES = frozenset(p.stem for p in (MISSION_CONFIGS / "rigs").glob("*.yaml"))
-UNAMBIGUOUS = BACKEND_NAMES - set(LINK_KINDS) - set(PROFILES) - set(LINKS)
+UNAMBIGUOUS = BACKEND_NAMES - set(PROFILES) - set(LINKS)
 """Backend names that name nothing else (not a link, link kind or links profile)."""
 PRODUCT = ("flightstack", "drivers", "sim_backend", "calibration", "benchmarks")
 RIG_HOMES = ("flightstack/config/rigs.py", "sim_backend/rigs/", "drivers/lab/rig.py")

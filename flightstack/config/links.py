@@ -29,9 +29,7 @@ from pydantic import Field, model_validator
 
 from flightstack.config.types import MAX_TIME_S
 from flightstack.config.types import Strict as _Strict
-
-LINKS = ("video", "state", "rc", "mocap", "robot", "bus")
-"""The links of a rig, each one direction of one kind of data."""
+from flightstack.netem import LINKS
 
 Delay = Annotated[float, Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)]
 

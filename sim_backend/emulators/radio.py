@@ -112,7 +112,8 @@ class DelayLine:
 class DeviceRadio:
     """The radio links of one emulated device under `profile`, seeded by (seed, device, link).
 
-    links: link name -> kind (flightstack.netem.LINK_KINDS), e.g. {"command": "tello", "video": "video"}.
+    links: the device's link -> the kind of link it is (flightstack.netem.LINKS), e.g. {"command": "rc",
+    "video": "video"}.
     epoch: time.monotonic() from which the profile's blackout windows count (default: now)."""
 
     def __init__(
