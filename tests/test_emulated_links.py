@@ -43,7 +43,7 @@ from tests.test_emulated_camera import down_camera
 pytestmark = pytest.mark.system
 
 IP, IP_CAMERA = "127.0.0.61", "127.0.0.62"
-TELLO_LINKS = {"command": "tello", "reply": "tello", "state": "tello", "video": "video"}
+TELLO_LINKS = {"command": "rc", "reply": "rc", "state": "state", "video": "video"}
 
 
 def assert_late_by_the_link(

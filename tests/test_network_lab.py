@@ -35,7 +35,7 @@ pytestmark = pytest.mark.system
 av = pytest.importorskip("av")
 
 IP = "127.0.0.51"
-TELLO_LINKS = {"command": "tello", "reply": "tello", "state": "tello", "video": "video"}
+TELLO_LINKS = {"command": "rc", "reply": "rc", "state": "state", "video": "video"}
 
 
 def _command(sock: socket.socket, emu: TelloEmulator, text: str, tries: int = 10) -> str:
@@ -239,7 +239,7 @@ def test_natnet_and_rover_receive_what_their_radios_decided() -> None:
         frames["delivered"] + frames["duplicated"], abs=2
     )
 
-    rover_radio = DeviceRadio(crowded, 0, "rover", {"uplink": "rover", "downlink": "rover"})
+    rover_radio = DeviceRadio(crowded, 0, "rover", {"uplink": "robot", "downlink": "robot"})
     rover = MavlinkRoverEmulator(heartbeat_hz=20.0, radio=rover_radio)
     client = mavutil.mavlink_connection(rover.url, source_system=255)
     try:

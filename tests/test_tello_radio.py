@@ -178,9 +178,9 @@ def test_a_lossy_state_stream_gets_one_land_while_it_shows_the_descent(seed: int
     clean: the land is heard, the descent shows in what arrives, and `land` goes out once (a Tello busy
     landing answers `error`; the driver used to read the sparse stream as a stuck drone)."""
     lossy = NetworkProfile(
-        "state-loss-25", "25 % of state datagrams lost", {"mocap": LinkProfile(loss_good=0.25)}
+        "state-loss-25", "25 % of state datagrams lost", {"state": LinkProfile(loss_good=0.25)}
     )
-    radio = DeviceRadio(lossy, seed, "tello1", {"command": "tello", "reply": "tello", "state": "mocap"})
+    radio = DeviceRadio(lossy, seed, "tello1", {"command": "rc", "reply": "rc", "state": "state"})
     with make_emulator(land_s=LAND_S, radio=radio) as emu:
         d = TelloDriver(config(emu))
         try:

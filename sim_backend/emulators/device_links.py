@@ -11,13 +11,13 @@ and is lost with probability `loss`. The emulated lab applies them in its emulat
   for the same seed; with counters.
 * `DeviceLinks`: the stages of one device and the delay line that sends its late datagrams (the device
   radio's line when it has one: one scheduler thread per device, the link's stage before the radio's).
-* `LinkedSocket` wraps a device's socket (or its radio's ImpairedSocket). `sendto` (a sample leaving the
-  device): the stage of `send(addr)` decides and the datagram leaves by the wrapped socket when due, as
-  part of that link's stream (radio.DelayLine: a newer sample pushes older ones out ahead of it, so the
-  stream stays in order and its newest sample arrives when due). `recvfrom` (commands entering the
-  device): every datagram is decided when it reaches the device and handed to the device's receive loop
-  when due, in order of due time (a later command can overtake an earlier one, as in the simulated lab);
-  the caller's timeout is honoured.
+* `DeviceLinks.socket` wraps a device's socket (or its radio's) in the one socket wrapper,
+  radio.ImpairedSocket, with the device's links as its decider. `sendto` (a sample leaving the device): the
+  stage of `send(addr)` decides and the datagram leaves by the wrapped socket when due, as part of that
+  link's stream (radio.DelayLine: a newer sample pushes older ones out ahead of it, so the stream stays in
+  order and its newest sample arrives when due). `recvfrom` (commands entering the device): every datagram
+  is decided when it reaches the device and handed to the device's receive loop when due, in order of due
+  time (a later command can overtake an earlier one, as in the simulated lab).
 * A video frame is decided as a whole: `DeviceLinks.decide("video", t_capture)` gives its due time (None:
   lost) and the camera schedules its datagrams (`send_at`); each datagram of a frame that leaves is then
   kept or lost by itself (`keeps`: the link's `datagram_loss` in bursts of `datagram_burst`, a
@@ -35,7 +35,6 @@ no rate. Times are time.monotonic() seconds.
 from __future__ import annotations
 
 import threading
-import time
 from collections import Counter
 from collections.abc import Callable
 from typing import Any
@@ -45,7 +44,7 @@ import numpy as np
 from flightstack.config.links import LINKS, NONE, LinkSpec, LinksSpec
 from flightstack.netem import LinkModel, LinkProfile
 
-from .radio import Address, DelayLine, HeldDatagrams, Sender
+from .radio import Address, DelayLine, ImpairedSocket, Sender
 
 EMULATED_LINKS = ("video", "state", "rc", "mocap", "robot")
 """The links the emulators apply (the bus is between agent processes, not a device's)."""
@@ -159,6 +158,16 @@ class DeviceLinks:
         stage = self.stages.get(link)
         return True if stage is None else stage.keeps(t, size)
 
+    def fates(self, link: str, t: float, size: int) -> list[float]:
+        """LinkDecider (radio.py): `decide` as a list ([]: lost)."""
+        due = self.decide(link, t)
+        return [] if due is None else [due]
+
+    def send(self, dues: list[float], sock: Sender, data: bytes, addr: Address, link: str) -> None:
+        """LinkDecider: `send_at` (a sample has one due time)."""
+        for due in dues:
+            self.send_at(due, sock, data, addr, link)
+
     def send_at(self, due: float, sock: Sender, data: bytes, addr: Address, link: str) -> None:
         """Send `data` by `sock` at `due`, in order with `link`'s other samples (at once when the link
         is never late)."""
@@ -178,10 +187,9 @@ class DeviceLinks:
         """`sock` wrapped (module docstring): datagrams it sends pass link `send(addr)` (None: unchanged),
         datagrams it receives pass link `recv`; on_lost(data, t) for every received datagram the link
         loses. `sock` itself when `recv` is not applied and `send` is None."""
-        recv = recv if recv is not None and self.applies(recv) else None
-        if send is None and recv is None:
+        if send is None and (recv is None or not self.applies(recv)):
             return sock
-        return LinkedSocket(sock, self, send, recv, on_lost)
+        return ImpairedSocket(sock, self, send, recv, on_lost)
 
     def counts(self) -> dict[str, dict[str, float]]:
         """Per applied link: LINK_COUNTERS and delay_mean_ms (JSON-ready)."""
@@ -193,74 +201,4 @@ class DeviceLinks:
             self.delay_line.close()
 
 
-class LinkedSocket:
-    """A device's socket whose traffic passes the device's links (module docstring)."""
-
-    def __init__(
-        self,
-        sock: Any,
-        links: DeviceLinks,
-        send: Callable[[Address], str | None] | None,
-        recv: str | None,
-        on_lost: Callable[[bytes, float], None] | None,
-    ) -> None:
-        self._sock = sock
-        self._links = links
-        self._send = send
-        self._recv = recv
-        self._on_lost = on_lost
-        self._timeout = sock.gettimeout()
-        self._held = HeldDatagrams()
-        if recv is not None:
-            sock.settimeout(0.0)  # this wrapper does the waiting
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._sock, name)
-
-    def settimeout(self, value: float | None) -> None:
-        self._timeout = value
-        if self._recv is None:
-            self._sock.settimeout(value)
-
-    def gettimeout(self) -> float | None:
-        return self._timeout
-
-    def setblocking(self, flag: bool) -> None:
-        self.settimeout(None if flag else 0.0)
-
-    def sendto(self, data: bytes, addr: Address) -> int:
-        """Send `data` to `addr` through its link (at once when the link is not applied)."""
-        link = None if self._send is None else self._send(addr)
-        if link is None or not self._links.applies(link):
-            return int(self._sock.sendto(data, addr))
-        due = self._links.decide(link, time.monotonic())
-        if due is not None:
-            self._links.send_at(due, self._sock, bytes(data), addr, link)
-        return len(data)
-
-    def recvfrom(self, bufsize: int) -> tuple[bytes, Any]:
-        """The earliest due datagram that passed the link (the caller's timeout semantics)."""
-        if self._recv is None:
-            return self._sock.recvfrom(bufsize)
-        inner_due = getattr(self._sock, "next_due", None)  # a radio holding datagrams
-        below = inner_due if callable(inner_due) else None
-        return self._held.receive(self._timeout, lambda: self._pull(bufsize), self._sock, below)
-
-    def _pull(self, bufsize: int) -> None:
-        """Decide every datagram that reached the device, in arrival order."""
-        assert self._recv is not None
-        while True:
-            try:
-                data, addr = self._sock.recvfrom(bufsize)
-            except (BlockingIOError, InterruptedError, TimeoutError):
-                return
-            now = time.monotonic()
-            due = self._links.decide(self._recv, now)
-            if due is None:
-                if self._on_lost is not None:
-                    self._on_lost(data, now)
-                continue
-            self._held.push(due, data, addr)
-
-
-__all__ = ["EMULATED_LINKS", "LINK_COUNTERS", "DeviceLinks", "LinkStage", "LinkedSocket", "emulated_links"]
+__all__ = ["EMULATED_LINKS", "LINK_COUNTERS", "DeviceLinks", "LinkStage", "emulated_links"]

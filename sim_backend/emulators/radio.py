@@ -150,6 +150,20 @@ class DeviceRadio:
         with self._lock:
             return self._models[link].decide(t, size)
 
+    def applies(self, link: str) -> bool:
+        """True for the device's radio links (LinkDecider)."""
+        return link in self._models
+
+    def fates(self, link: str, t: float, size: int) -> list[float]:
+        """LinkDecider: `decide` at t."""
+        return self.decide(link, size, t)
+
+    def send(self, dues: list[float], sock: Sender, data: bytes, addr: Address, link: str) -> None:
+        """LinkDecider: every copy on the delay line at its own due time (a packet's order is the
+        model's)."""
+        for due in dues:
+            self.delay_line.schedule(due, sock, data, addr)
+
     def counts(self) -> dict[str, dict[str, float]]:
         """Per link: the model's counters and delay_mean_ms of what it delivered (JSON-ready)."""
         out: dict[str, dict[str, float]] = {}
@@ -226,22 +240,51 @@ class HeldDatagrams:
                 select.select([sock], [], [], max(0.0, wait))
 
 
+class LinkDecider(Protocol):
+    """What an ImpairedSocket asks of its device's links: the radio's (DeviceRadio, every packet) or the
+    rig's `links:` (device_links.DeviceLinks, every sample)."""
+
+    def applies(self, link: str) -> bool:
+        """True when `link` changes anything (else its datagrams pass at once)."""
+        ...
+
+    def fates(self, link: str, t: float, size: int) -> list[float]:
+        """When the copies of a datagram of `size` bytes entering `link` at t are due ([]: lost)."""
+        ...
+
+    def send(self, dues: list[float], sock: Sender, data: bytes, addr: Address, link: str) -> None:
+        """Send `data` by `sock` to `addr` at each of `dues` (the decider's own ordering rules)."""
+        ...
+
+
 class ImpairedSocket:
-    """A UDP socket whose traffic passes a DeviceRadio's links (module docstring)."""
+    """A device's UDP socket (or another ImpairedSocket) whose traffic passes the device's links.
+
+    `sendto(data, addr)` (leaving the device): the link `send(addr)` decides (None, or a link the decider
+    does not apply: sent at once) and the decider sends the copies when due. `recvfrom(n)` (entering the
+    device): every datagram that arrived is decided on link `recv` at once and held until its due time;
+    a call returns the earliest due one with the caller's timeout semantics (blocking, timeout, or
+    non-blocking: `BlockingIOError`); the wrapped socket is then read without waiting (timeout 0) and a
+    wrapped ImpairedSocket's held datagrams wake the wait when they fall due. `on_lost(data, t)` is
+    called for each received datagram the link loses. Everything else is the wrapped socket's."""
 
     def __init__(
         self,
-        sock: socket.socket,
-        radio: DeviceRadio,
+        sock: Any,
+        decider: LinkDecider,
         send: Callable[[Address], str | None] | None,
         recv: str | None,
+        on_lost: Callable[[bytes, float], None] | None = None,
     ) -> None:
         self._sock = sock
-        self._radio = radio
-        self._send_link = send
-        self._recv_link = recv
+        self._decider = decider
+        self._send = send
+        self._recv = recv if recv is not None and decider.applies(recv) else None
+        self._on_lost = on_lost
         self._timeout = sock.gettimeout()
         self._held = HeldDatagrams()
+        if self._recv is not None:
+            sock.settimeout(0.0)  # this wrapper does the waiting
 
     # ---- the wrapped socket's own API ----------------------------------------------------------------
     def __getattr__(self, name: str) -> Any:
@@ -249,7 +292,8 @@ class ImpairedSocket:
 
     def settimeout(self, value: float | None) -> None:
         self._timeout = value
-        self._sock.settimeout(value)
+        if self._recv is None:
+            self._sock.settimeout(value)
 
     def gettimeout(self) -> float | None:
         return self._timeout
@@ -259,12 +303,13 @@ class ImpairedSocket:
 
     # ---- leaving the device ----------------------------------------------------------------------------
     def sendto(self, data: bytes, addr: Address) -> int:
-        """Queue `data` for `addr` through its link (or send it at once when unimpaired)."""
-        link = None if self._send_link is None else self._send_link(addr)
-        if link is None:
-            return self._sock.sendto(data, addr)
-        for due in self._radio.decide(link, len(data)):
-            self._radio.delay_line.schedule(due, self._sock, bytes(data), addr)
+        """Send `data` to `addr` through its link (at once when no link applies)."""
+        link = None if self._send is None else self._send(addr)
+        if link is None or not self._decider.applies(link):
+            return int(self._sock.sendto(data, addr))
+        dues = self._decider.fates(link, time.monotonic(), len(data))
+        if dues:
+            self._decider.send(dues, self._sock, bytes(data), addr, link)
         return len(data)
 
     # ---- entering the device ---------------------------------------------------------------------------
@@ -273,21 +318,27 @@ class ImpairedSocket:
         return self._held.next_due()
 
     def recvfrom(self, bufsize: int) -> tuple[bytes, Any]:
-        """The earliest due datagram that passed the uplink (the caller's timeout semantics)."""
-        if self._recv_link is None:
+        """The earliest due datagram that passed link `recv` (the caller's timeout semantics)."""
+        if self._recv is None:
             return self._sock.recvfrom(bufsize)
-        return self._held.receive(self._timeout, lambda: self._drain(bufsize), self._sock)
+        inner_due = getattr(self._sock, "next_due", None)  # a wrapped ImpairedSocket holding datagrams
+        below = inner_due if callable(inner_due) else None
+        return self._held.receive(self._timeout, lambda: self._pull(bufsize), self._sock, below)
 
-    def _drain(self, bufsize: int) -> None:
-        """Decide every datagram waiting in the socket, in arrival order."""
-        assert self._recv_link is not None
-        while select.select([self._sock], [], [], 0.0)[0]:  # (the socket's own timeout never waits here)
+    def _pull(self, bufsize: int) -> None:
+        """Decide every datagram that reached the device, in arrival order."""
+        assert self._recv is not None
+        while True:
             try:
                 data, addr = self._sock.recvfrom(bufsize)
             except (BlockingIOError, InterruptedError, TimeoutError):
                 return
-            for due in self._radio.decide(self._recv_link, len(data)):
+            now = time.monotonic()
+            dues = self._decider.fates(self._recv, now, len(data))
+            if not dues and self._on_lost is not None:
+                self._on_lost(data, now)
+            for due in dues:
                 self._held.push(due, data, addr)
 
 
-__all__ = ["DelayLine", "DeviceRadio", "HeldDatagrams", "ImpairedSocket", "Sender"]
+__all__ = ["DelayLine", "DeviceRadio", "HeldDatagrams", "ImpairedSocket", "LinkDecider", "Sender"]
