@@ -192,7 +192,7 @@ def running_lab(mission: Any, lab_dir: Path) -> Iterator[Any]:
     with EmulatedLab(
         lab_dir,
         experiment=doc,
-        network=mission.network,
+        network=mission.links.network,
         seed=mission.seed,
         links=mission.links,
         starts=starts,

@@ -180,13 +180,13 @@ def test_network_profiles_are_the_emulated_labs_only(
     from flightstack.cli.app import main
     from flightstack.config.mission import MissionError, load_mission
 
-    m = load_mission("paper_experiment", {"network": "crowded"}, rig="emulated-lab")
-    assert m.network == "crowded" and m.start_emulators
-    assert load_mission("paper_experiment", rig="emulated-lab").network == "clean"
-    with pytest.raises(MissionError, match="network: profile 'lab-wifi' is applied by the emulated lab"):
-        load_mission("paper_experiment", {"network": "lab-wifi"}, rig="lab-sim")
+    m = load_mission("paper_experiment", {"links.network": "crowded"}, rig="emulated-lab")
+    assert m.links.network == "crowded" and m.start_emulators
+    assert load_mission("paper_experiment", rig="emulated-lab").links.network == "clean"
+    with pytest.raises(MissionError, match=r"links\.network: profile 'lab-wifi' is applied by the emulated"):
+        load_mission("paper_experiment", {"links.network": "lab-wifi"}, rig="lab-sim")
     with pytest.raises(MissionError, match="unknown network profile 'wifi'"):
-        load_mission("paper_experiment", {"network": "wifi"}, rig="emulated-lab")
+        load_mission("paper_experiment", {"links.network": "wifi"}, rig="emulated-lab")
     out = tmp_path / "run"
     assert main(["run", "paper_experiment", "--rig", "lab", "--network", "outage", "--out", str(out)]) == 2
     assert "tc netem" in capsys.readouterr().err and not out.exists()
@@ -266,3 +266,45 @@ def test_overlapping_blackout_windows_hold_until_the_last_one_ends() -> None:
     ]  # fmt: skip
     stream = StreamModel(LinkProfile(), 0, "d", "l", epoch=10.0, blackouts=windows)
     assert stream.decide(11.5, 10) == pytest.approx(14.0) and stream.counts["held"] == 1
+
+
+def _rig_with(tmp_path: Path, extra: str) -> Path:
+    """A copy of the emulated-lab rig file with `extra` appended (its relative paths kept working)."""
+    from flightstack.mission_configs import __file__ as configs
+
+    rigs = Path(configs).parent / "rigs"
+    path = tmp_path / "rigs" / "emulated-copy.yaml"
+    path.parent.mkdir(parents=True)
+    (tmp_path / "cameras").symlink_to(rigs.parent / "cameras")
+    path.write_text((rigs / "emulated-lab.yaml").read_text() + extra)
+    return path
+
+
+def test_a_rig_files_old_network_key_is_the_links_network_said_in_one_line(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """`network: PROFILE` beside `backend:` (before the radio joined `links:`) still loads, into
+    `links.network`, with one line naming the new key; both keys at once is refused naming them."""
+    from flightstack.config.mission import MissionError, load_mission
+
+    old = _rig_with(tmp_path, "network: crowded\n")
+    with caplog.at_level("WARNING"):
+        m = load_mission("paper_experiment", rig=old)
+    assert m.links.network == "crowded"
+    said = [r.getMessage() for r in caplog.records if "links.network" in r.getMessage()]
+    assert said == [f"{old}: `network:` is now `links.network:` (docs/links.md)"], said
+    both = _rig_with(tmp_path / "b", "network: crowded\nlinks: {network: outage}\n")
+    with pytest.raises(MissionError, match=r"network: and links\.network: both given"):
+        load_mission("paper_experiment", rig=both)
+
+
+def test_links_and_network_flags_set_their_own_part_of_links(tmp_path: Path) -> None:
+    """`--links P` replaces the rig's links with a profile and keeps its radio; `--network N` sets the
+    radio and keeps the links (load_mission's overrides, as `run` builds them)."""
+    from flightstack.config.mission import load_mission
+
+    rig = _rig_with(tmp_path, "links: {network: outage, rc: {latency_s: 0.2}}\n")
+    m = load_mission("paper_experiment", {"links": {"profile": "tello"}}, rig=rig)
+    assert m.links.network == "outage" and m.links.profile == "tello" and m.links.rc is None
+    m = load_mission("paper_experiment", {"links.network": "crowded"}, rig=rig)
+    assert m.links.network == "crowded" and m.links.rc is not None and m.links.rc.latency_s == 0.2

@@ -32,7 +32,7 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
     try:
         overrides: dict[str, object] = {"compare_modes": ["none"], "duration_s": args.seconds}
         if args.network is not None:
-            overrides["network"] = args.network
+            overrides["links.network"] = args.network
         mission = load_mission(args.experiment, overrides, rig=args.rig)
     except (MissionError, RigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -65,7 +65,7 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
     verdict = "KEEPS" if health["keeps_dt"] else "DOES NOT keep"
     print(
         f"bench-loop: this computer {verdict} dt = {1e3 * mission.dt_s:.0f} ms with {n} drones' video "
-        f"(network {mission.network})"
+        f"(network {mission.links.network})"
     )
     print(f"  {loop_health_line(health)}")
     print(f"  plot: {out / 'loop_health.png'}")

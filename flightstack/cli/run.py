@@ -149,7 +149,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if getattr(args, "links", None) is not None:
         overrides["links"] = {"profile": args.links}
     if getattr(args, "network", None) is not None:
-        overrides["network"] = args.network
+        overrides["links.network"] = args.network
     mission = load_mission(args.mission, overrides, rig=args.rig)
     if args.bus is not None and args.bus != mission.bus.kind:
         bus = _bus_override(mission, args.bus)
@@ -481,26 +481,26 @@ class DurationHelp(str):
 
 
 def add_network_argument(p: argparse.ArgumentParser) -> None:
-    """--network PROFILE: the emulated lab's impairment profile (the mission's `network:`)."""
+    """--network PROFILE: the emulated lab's radio (the mission's `links.network`)."""
     from flightstack.netem import PROFILES
 
     p.add_argument(
         "--network",
         choices=list(PROFILES),
         default=None,
-        help="emulated lab only: impair every device's links with this seeded profile (default: the "
-        "rig's `network:`, clean); see docs/network.md",
+        help="emulated lab only: every packet of every emulated device passes this seeded radio profile "
+        "(default: the rig's `links.network`, clean); see docs/links.md",
     )
 
 
 def network_problem(mission: Mission) -> str | None:
     """Why the mission's network profile cannot be applied (None: it can): only the emulated lab's
-    emulators apply one; a real network is impaired with tc netem (docs/network.md)."""
-    if mission.network == "clean" or mission.start_emulators:
+    emulators apply one; a real network is impaired with tc netem (docs/links.md)."""
+    if mission.links.network == "clean" or mission.start_emulators:
         return None
     return (
-        f"network: profile {mission.network!r} is applied by the emulated lab's emulators only; "
-        "to impair a real lab's network use `tc netem` (docs/network.md)"
+        f"links.network: profile {mission.links.network!r} is applied by the emulated lab's emulators only; "
+        "to impair a real lab's network use `tc netem` (docs/links.md)"
     )
 
 

@@ -22,14 +22,16 @@ the simulated lab applies links with it (sim_backend/lab.py), and so do the emul
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+import logging
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from flightstack.config.types import MAX_TIME_S
 from flightstack.config.types import Strict as _Strict
 from flightstack.netem import LINKS
+from flightstack.netem import PROFILES as NETWORK_PROFILES
 
 Delay = Annotated[float, Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False)]
 
@@ -81,8 +83,12 @@ PROFILES: dict[str, dict[str, LinkSpec]] = {
 
 
 class LinksSpec(_Strict):
-    """The `links:` section: a profile and links that replace the profile's."""
+    """The `links:` section: the radio's profile (`network`), a table of links (`profile`) and links
+    that replace the table's."""
 
+    network: str = "clean"
+    """The radio under the links (flightstack.netem.PROFILES): every packet the emulated lab's devices send
+    or receive passes it after its link (docs/links.md, "The radio")."""
     profile: Literal["perfect", "tello"] = "perfect"
     video: LinkSpec | None = None
     state: LinkSpec | None = None
@@ -90,6 +96,13 @@ class LinksSpec(_Strict):
     mocap: LinkSpec | None = None
     robot: LinkSpec | None = None
     bus: LinkSpec | None = None
+
+    @field_validator("network")
+    @classmethod
+    def _known_network(cls, v: str) -> str:
+        if v not in NETWORK_PROFILES:
+            raise ValueError(f"unknown network profile {v!r}; valid: {', '.join(NETWORK_PROFILES)}")
+        return v
 
     @model_validator(mode="after")
     def _datagrams_on_video_only(self) -> LinksSpec:
@@ -114,6 +127,23 @@ class LinksSpec(_Strict):
         devices have their own delays, e.g. the emulated Tello's response), links written out do."""
         own: LinkSpec | None = getattr(self, name)
         return own if own is not None else (NONE if self.profile == "perfect" else self.link(name))
+
+
+def network_in_links(data: dict[str, Any], source: str) -> dict[str, Any]:
+    """`data` with a top-level `network: PROFILE` (the key before the radio joined `links:`) moved to
+    `links.network`, saying so in one line; both at once is a ValueError naming them."""
+    if "network" not in data:
+        return data
+    out = dict(data)
+    value = out.pop("network")
+    links = out.get("links")
+    links = {} if links is None else links
+    if isinstance(links, dict):  # (anything else: the schema names `links`)
+        if "network" in links:
+            raise ValueError(f"{source}: network: and links.network: both given; keep links.network only")
+        out["links"] = {**links, "network": value}
+    logging.getLogger(__name__).warning("%s: `network:` is now `links.network:` (docs/links.md)", source)
+    return out
 
 
 class LinkDelays:

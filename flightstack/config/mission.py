@@ -32,7 +32,7 @@ from flightstack.config.compensation import (
     told,
 )
 from flightstack.config.hardware import HardwareSpec
-from flightstack.config.links import LinksSpec
+from flightstack.config.links import LinksSpec, network_in_links
 from flightstack.config.rig import problem_list
 from flightstack.config.rig_rules import safety_off_problem
 from flightstack.config.rigs import RIGS, RigFacts, backends, rig_for
@@ -283,7 +283,6 @@ class Mission(_Strict):
     compensation: CompensationSpec = CompensationSpec()  # delay-aware observer and command
     safety: SafetySpec = SafetySpec()
     hardware: HardwareSpec | None = None
-    network: str = "clean"  # the emulated lab's impairment profile (flightstack.netem.PROFILES)
     _base_dir: Path = PrivateAttr(default=Path("."))
 
     @property
@@ -382,15 +381,6 @@ class Mission(_Strict):
             raise ValueError(f"unknown backend {v!r}; known: {', '.join(backends())}")
         return v
 
-    @field_validator("network")
-    @classmethod
-    def _known_network(cls, v: str) -> str:
-        from flightstack.netem import PROFILES
-
-        if v not in PROFILES:
-            raise ValueError(f"unknown network profile {v!r}; valid: {', '.join(PROFILES)}")
-        return v
-
     @field_validator("compare_modes")
     @classmethod
     def _modes(cls, v: list[str]) -> list[str]:
@@ -415,10 +405,10 @@ class Mission(_Strict):
                 f"duration_s / dt_s: {self.duration_s / self.dt_s:.3g} ticks per mode; at most {MAX_TICKS:g} "
                 "(the recording holds every tick in memory)"
             )
-        if self.network != "clean" and not rig.applies_network_profile:
+        if self.links.network != "clean" and not rig.applies_network_profile:
             raise ValueError(
-                f"network: profile {self.network!r} is applied by the emulated lab's emulators only "
-                "(rig emulated-lab); a simulated rig's links are its own (sim:)"
+                f"links.network: profile {self.links.network!r} is applied by the emulated lab's emulators "
+                "only (rig emulated-lab); a simulated rig's links are its own (sim:)"
             )
         ids = [d.id for d in self.drones]
         id_set = set(ids)
@@ -564,10 +554,33 @@ def _format_errors(err: ValidationError, where: Lines | None = None) -> list[str
     return lines
 
 
+def with_overrides(data: dict[str, Any], overrides: dict[str, object]) -> dict[str, Any]:
+    """`overrides` on a mission document: each replaces a top-level key, or with a dot (`links.network`)
+    one key of a section. Replacing `links` keeps the section's `network` unless the new one sets it:
+    the radio is under the links, not one of them (`--links` and `--network` are independent)."""
+    out = dict(data)
+    for key, value in overrides.items():
+        head, _, tail = key.partition(".")
+        section = out.get(head)
+        if tail:
+            out[head] = {**(section if isinstance(section, dict) else {}), tail: value}
+        elif (
+            key == "links" and isinstance(value, dict) and isinstance(section, dict) and "network" in section
+        ):
+            out[key] = {"network": section["network"], **value}
+        else:
+            out[key] = value
+    return out
+
+
 def parse_mission(data: object, source: str = "<mission>", where: Lines | None = None) -> Mission:
     """Validate an already-parsed YAML/JSON document; `where`: key path → line, for the messages."""
     if not isinstance(data, dict):
         raise MissionError(f"{source}: (top level): a mission must be a mapping of keys")
+    try:
+        data = network_in_links(data, source)
+    except ValueError as exc:
+        raise MissionError(str(exc)) from None
     try:
         return Mission.model_validate(data)
     except ValidationError as err:
@@ -582,8 +595,8 @@ def load_mission(
 ) -> Mission:
     """Read and validate a mission: an experiment on `rig` (a built-in name or a rig file; default: the
     experiment's own `rig:`) or a resolved mission written by a run.
-    `path` may be a built-in experiment name. `overrides` replace top-level keys (e.g. duration_s) of the
-    resolved mission first.
+    `path` may be a built-in experiment name. `overrides` replace keys (e.g. duration_s, or a section's
+    `links.network`) of the resolved mission first (`with_overrides`).
 
     Referenced files must exist (calibrations, experts); each camera calibration is parsed and checked
     (flightstack.vision.camera_file: intrinsics, image size, principal point in the image).
@@ -596,7 +609,10 @@ def load_mission(
     except RigError as exc:
         raise MissionError(str(exc)) from None
     if overrides:
-        data = {**data, **overrides}
+        try:
+            data = with_overrides(network_in_links(data, label), overrides)
+        except ValueError as exc:
+            raise MissionError(str(exc)) from None
     m = parse_mission(data, label, where)
     m._base_dir = Path(path).resolve().parent
     if not check_files:

@@ -25,6 +25,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from flightstack.config.links import network_in_links
 from flightstack.config.rigs import EMULATED, RIGS, backends, no_emulators, rig_for
 from flightstack.hal import TARGET_BODY, DroneIdentity
 from flightstack.safe_yaml import LoadError, load_yaml
@@ -247,6 +248,10 @@ def compose(experiment: Source, rig: Source) -> dict[str, Any]:
             out[key] = copy.deepcopy(r[key])
     if "links" in r:  # a measured links file is included here: the resolved mission holds its values
         out["links"] = links_with_include(r["links"], rig.base, rig.path)
+    try:  # a rig file's `network:`, the key before the radio joined `links:`
+        out = network_in_links(out, str(rig.path))
+    except ValueError as exc:
+        raise RigError(str(exc)) from None
     if "emulated" in r:
         out["start_emulators"] = True
     # a `drones:` that is not a list (a number, null) is left for the schema to name, with its line
