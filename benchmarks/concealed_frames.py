@@ -21,7 +21,7 @@ Of the damaged frames' detections: how many the detection gate mends for their s
 the true corners stand for the prediction, which on a level camera differs from them by a similarity only;
 σ_shape 0) and how many are then more than 3 and 10 px off (the JSON also counts the boards off their shape
 that are kept as detected, and how far each kind was before and after).
-Prints a Markdown table and a JSON summary (docs/network.md, "What the detector makes of concealed frames").
+Prints a Markdown table and a JSON summary (docs/links.md, "What the detector makes of concealed frames").
 """
 
 from __future__ import annotations

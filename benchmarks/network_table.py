@@ -3,9 +3,9 @@
     python benchmarks/network_table.py                      # every profile, 30 s per mode (~10 min)
     python benchmarks/network_table.py --profiles clean,outage --duration 20
     python benchmarks/network_table.py --links perfect      # the radio alone, without the Tello's delays
-    python benchmarks/network_table.py --update-docs        # also rewrite docs/network.md's table
+    python benchmarks/network_table.py --update-docs        # also rewrite docs/links.md's table
 
-Per profile (docs/network.md) it flies `flightstack run paper_experiment --rig emulated-lab --network P
+Per profile (docs/links.md) it flies `flightstack run paper_experiment --rig emulated-lab --network P
 --links L` (L: the rig's links profile, default `tello`: a Tello's own video, state and rc delays)
 (the data run, training, then modes none, local and dgp, each for --duration s of pursuit; the
 experiment's seed),
@@ -63,7 +63,7 @@ def results_file(links: str) -> Path:
     return REPO / "benchmarks" / f"network_table_{links}.json"
 
 
-PAGE = DOCS / "network.md"
+PAGE = DOCS / "links.md"
 
 
 def fly(profile: str, links: str, duration_s: float, out: Path, seed: int | None = None) -> tuple[int, float]:
@@ -226,7 +226,7 @@ def _ms(v: float | None) -> str:
 
 
 def markdown(results: list[dict[str, Any]], duration_s: float, links: str) -> str:
-    """The table of docs/network.md (one row per profile × mode) and the outage reactions."""
+    """The table of docs/links.md (one row per profile × mode) and the outage reactions."""
     lines = [
         f"Measured by `python benchmarks/network_table.py --links {links} --duration {duration_s:g}` "
         f"({time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores; one seed per profile).",

@@ -26,7 +26,7 @@ packet). Blackout windows are drawn per device (both directions of
 all its radio links share them, as an out-of-range drone loses everything): `blackout_windows`.
 
 Pure: no I/O, no threads, no clock (times are arguments). The emulated lab applies it at its emulators'
-sockets (flightstack.sim_backend.emulators.radio); docs/network.md gives the numbers of the profiles and
+sockets (flightstack.sim_backend.emulators.radio); docs/links.md gives the numbers of the profiles and
 their sources, and the equivalent `tc netem` commands.
 """
 
@@ -51,7 +51,7 @@ DUPLICATE_GAP_S = 0.001
 
 MAX_DELAY_S = 10.0
 """Largest latency, mean jitter, spike, reordering hold, rate-cap queue and loss step a link may have (s):
-a bufferbloated or satellite link is late by seconds, none by more (docs/network.md, "Bounds")."""
+a bufferbloated or satellite link is late by seconds, none by more (docs/links.md, "Bounds")."""
 MIN_RATE_BPS = 1e3
 """Slowest rate cap (bit/s): below 1 kbit/s a 64 KiB chunk would take minutes."""
 MAX_RATE_BPS = 1e11
@@ -265,7 +265,7 @@ PROFILES: dict[str, NetworkProfile] = {
         blackouts=BlackoutPlan(first_s=12.0, every_s=15.0, min_s=1.0, max_s=3.0),
     ),
 }
-"""The named profiles (`--network NAME`); numbers and sources in docs/network.md."""
+"""The named profiles (`--network NAME`); numbers and sources in docs/links.md."""
 
 
 def profile(name: str) -> NetworkProfile:

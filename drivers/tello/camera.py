@@ -14,7 +14,7 @@ decoder conceals what is missing (FFmpeg copies it from the frame before), so pa
 It is published all the same, tagged (`DecodedFrame.damaged`, and `since_loss`, the frames since the
 loss was found: how losses are found is flightstack.drivers.tello.video_check) and counted
 ("concealed"): with a real Tello's keyframe interval (67 frames, 2.2 s) dropping them left the drones
-blind for seconds after every lost datagram, while most of a concealed frame is right (docs/network.md,
+blind for seconds after every lost datagram, while most of a concealed frame is right (docs/links.md,
 "What the receiver does with a damaged stream"). Whether a detection in it is right is decided
 downstream against a prediction from outside the image (flightstack.vision.gate), for clean frames too:
 a lost middle datagram is not detectable here. Before the stream's first intact keyframe nothing is

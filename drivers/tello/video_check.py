@@ -19,7 +19,7 @@ dji-sdk/Tello-Python#86). `StreamCheck` finds a loss three ways:
 
 From a loss until the next IDR access unit that arrives intact, every access unit is damaged: the
 decoder conceals what is missing, so its frames may be smeared (the receiver publishes them tagged
-`damaged`, with the frames since the loss, `since_loss`: docs/network.md, "What the receiver does with a
+`damaged`, with the frames since the loss, `since_loss`: docs/links.md, "What the receiver does with a
 damaged stream"). A stream is unsynchronised until its first intact IDR (`synced`): nothing before it
 is a picture. A lost *middle* datagram (a full-length one between two full-length
 ones) breaks no framing rule and often no decoder check: such a frame passes as intact, which is why a

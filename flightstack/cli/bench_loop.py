@@ -7,7 +7,7 @@ drivers, decoders, marker extraction and safety layer, on the wall clock. That i
 loop, so its loop health (flightstack.analysis.loop_health) is the answer. The emulators encode the
 video on this computer too, which real Tellos do on board: the benchmark is pessimistic by that load.
 
-With --network PROFILE every emulated device's packets pass a seeded lossy-network model (docs/network.md):
+With --network PROFILE every emulated device's packets pass a seeded lossy-network model (docs/links.md):
 the same question on a Wi-Fi that loses, delays, reorders and blacks out.
 
 Exit 0 when the loop kept dt (at most 1 % of the ticks overran and the p99 compute time < dt), 1 when

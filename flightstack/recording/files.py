@@ -59,7 +59,7 @@ GUARDIAN_LOG = "guardian.log"
 """An agent process's files besides the recording (`flightstack agent`, flightstack/cli/network.py)."""
 EMULATED_LAB_DIR = "emulated_lab"
 """The emulated-lab rig's working directory inside the run directory (mission, calibration; on an impaired
-network also network_log.json, what each emulated link did: docs/network.md)."""
+network also network_log.json, what each emulated link did: docs/links.md)."""
 REPLAY_FILE = "run.rrd"
 """`flightstack view` without --spawn/--connect/--save on a machine without a display writes it here."""
 LIVE_FILE = "live.rrd"
