@@ -408,7 +408,7 @@ class Mission(_Strict):
         if self.links.network != "clean" and not rig.applies_network_profile:
             raise ValueError(
                 f"links.network: profile {self.links.network!r} is applied by the emulated lab's emulators "
-                "only (rig emulated-lab); a simulated rig's links are its own (sim:)"
+                "only (rig emulated-lab); a simulated rig has no packets, only its links' delays"
             )
         ids = [d.id for d in self.drones]
         id_set = set(ids)
