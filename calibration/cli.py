@@ -508,11 +508,12 @@ def _check_links_out(out: str) -> None:
 
 def _preflight_and_confirm(mission: object, drone: int, yes: bool) -> int:
     """Real drones: preflight the calibrated drone's devices, then ask; 0 to go on, else the exit code."""
-    from flightstack.drivers.lab.preflight import format_table, run_preflight
+    from flightstack.runtime.rig import rig_of
 
-    rows = run_preflight(mission, drone_ids=[drone])  # type: ignore[arg-type]
-    print(format_table(rows))
-    if any(r.status == "FAIL" for r in rows):
+    report = rig_of(mission).preflight(mission, [drone])  # type: ignore[arg-type]
+    if report is not None:
+        print(report.table)
+    if report is not None and not report.passed:
         return _one_line_error("preflight failed; nothing took off", EXIT_VERDICT)
     question = f"Drone {drone} will take off, yaw over the still target for about 30 s and land. Area clear?"
     if yes:

@@ -12,7 +12,7 @@ from flightstack.config.links import LinkSpec
 from flightstack.config.mission import Mission
 from flightstack.config.rigs import LabFacts, need_cameras, need_square_law
 from flightstack.recording.files import DeviceFiles
-from flightstack.runtime.rig import AgentSeat, LoopPlanner, Rig
+from flightstack.runtime.rig import AgentSeat, LoopPlanner, Preflight, Rig
 
 if TYPE_CHECKING:
     from flightstack.drivers.lab.hardware import HardwareBackend
@@ -82,6 +82,19 @@ class LabRig(LabFacts):
 
     def compiled_loop(self) -> LoopPlanner | None:
         return None
+
+    def preflight(
+        self,
+        mission: Mission,
+        drone_ids: list[int] | None = None,
+        deadline_s: float = 9.0,
+        camera: bool = True,
+    ) -> Preflight:
+        """Every check of drivers/lab/preflight.py, the devices in parallel."""
+        from flightstack.drivers.lab.preflight import format_table, run_preflight
+
+        rows = run_preflight(mission, deadline_s, camera, drone_ids)
+        return Preflight(format_table(rows), not any(r.status == "FAIL" for r in rows))
 
 
 RIG: Rig = LabRig()  # checked against the Rig protocol

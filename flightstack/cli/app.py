@@ -78,21 +78,21 @@ def finalise_live_mcap(run: Path) -> tuple[str | None, str | None]:
 
 
 def cmd_preflight(args: argparse.Namespace) -> int:
-    """Check every device and file of a hardware mission; exit 1 on any FAIL (drivers/lab/preflight.py)."""
+    """Check every device and file of a hardware mission (its rig's preflight); exit 1 on any FAIL."""
     from flightstack.config.mission import load_mission
-    from flightstack.drivers.lab.preflight import format_table, run_preflight
+    from flightstack.runtime.rig import rig_of
 
     mission = load_mission(args.mission, check_files=False, rig=args.rig)
-    if mission.simulated:
-        print(f"error: {args.mission}: backend {mission.backend!r} has no hardware to check", file=sys.stderr)
-        return 2
     try:
-        rows = run_preflight(mission, args.deadline, not args.no_camera, drone_ids=args.id or None)
+        report = rig_of(mission).preflight(mission, args.id or None, args.deadline, not args.no_camera)
     except ValueError as exc:
         print(f"error: {args.mission}: {exc}", file=sys.stderr)
         return 2
-    print(format_table(rows))
-    return 1 if any(r.status == "FAIL" for r in rows) else 0
+    if report is None:
+        print(f"error: {args.mission}: backend {mission.backend!r} has no hardware to check", file=sys.stderr)
+        return 2
+    print(report.table)
+    return 0 if report.passed else 1
 
 
 def cmd_target(args: argparse.Namespace) -> int:

@@ -356,12 +356,13 @@ def confirm(question: str, yes: bool) -> bool:
 
 
 def _confirm_and_preflight(args: argparse.Namespace, mission: Mission) -> int:
-    """Preflight every device, then ask; 0 to go on, else the exit code."""
-    from flightstack.drivers.lab.preflight import format_table, run_preflight
+    """Preflight every device (the rig's), then ask; 0 to go on, else the exit code."""
+    from flightstack.runtime.rig import rig_of
 
-    rows = run_preflight(mission)
-    print(format_table(rows))
-    if any(r.status == "FAIL" for r in rows):
+    report = rig_of(mission).preflight(mission)
+    if report is not None:
+        print(report.table)
+    if report is not None and not report.passed:
         print("error: preflight failed; nothing took off", file=sys.stderr)
         return 1
     ids = ", ".join(str(d.id) for d in mission.drones)

@@ -11,7 +11,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, cast
+from typing import Any, NamedTuple, Protocol, cast
 
 from flightstack.config.mission import Mission
 from flightstack.config.rigs import RigFacts
@@ -35,6 +35,13 @@ class AgentSeat:
     devices: DeviceFiles | None = None
 
 
+class Preflight(NamedTuple):
+    """A rig's preflight: its table (a row per device and check) and whether no check failed."""
+
+    table: str
+    passed: bool
+
+
 class Rig(RigFacts, Protocol):
     """A rig: what it is (RigFacts) and how it opens a flight."""
 
@@ -55,6 +62,17 @@ class Rig(RigFacts, Protocol):
 
     def compiled_loop(self) -> LoopPlanner | None:
         """The planner of the rig's compiled loop (None: every tick goes through the agents)."""
+        ...
+
+    def preflight(
+        self,
+        mission: Mission,
+        drone_ids: list[int] | None = None,
+        deadline_s: float = 9.0,
+        camera: bool = True,
+    ) -> Preflight | None:
+        """Check every device and file the flight needs, within about deadline_s (s), for `drone_ids` (None:
+        every drone); None: the rig has no devices to check. ValueError for a drone the mission lacks."""
         ...
 
 

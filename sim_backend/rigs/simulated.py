@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 from flightstack.config.links import LinkSpec
 from flightstack.config.mission import Mission
-from flightstack.runtime.rig import AgentSeat, LoopPlanner
+from flightstack.runtime.rig import AgentSeat, LoopPlanner, Preflight
 
 if TYPE_CHECKING:
     from flightstack.sim_backend.served.client import RemoteBackend
@@ -44,4 +44,14 @@ class SimulatedRig:
         return agent_backend(mission, seat)
 
     def compiled_loop(self) -> LoopPlanner | None:
+        return None
+
+    def preflight(
+        self,
+        mission: Mission,
+        drone_ids: list[int] | None = None,
+        deadline_s: float = 9.0,
+        camera: bool = True,
+    ) -> Preflight | None:
+        """No devices: nothing to check."""
         return None
