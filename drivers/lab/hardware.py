@@ -24,6 +24,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -132,6 +133,18 @@ class GuardianLostError(RuntimeError):
     """This process's guardian is gone (killed, crashed, hung): land now, never fly on without it."""
 
 
+@dataclass
+class LabDrone:
+    """One drone this process flies: who it is (names derived from its id) and its devices."""
+
+    identity: DroneIdentity
+    driver: TelloDriver
+    camera: TelloCamera | None = None
+    """Started once the driver is connected."""
+    traffic: TrafficWriter | None = None
+    """Where its raw traffic is recorded (None: nowhere)."""
+
+
 class HardwareBackend:
     """hal.Backend of the lab. `truth()` returns the motion-capture poses (the lab's reference)."""
 
@@ -163,10 +176,9 @@ class HardwareBackend:
         self.mocap = MocapPoseSource(mocap_config(mission), clock=self.clock.now)
         self.names = body_names(mission)
         self.poses = NamedPoseSource(self.mocap, self.names)
-        self.drones: dict[int, TelloDriver] = {}
-        self.cameras: dict[int, TelloCamera] = {}
+        self.lab_drones: dict[int, LabDrone] = {}
+        """Drone id -> the drone and its devices, in the mission's order (filled as each connects)."""
         self.devices = devices
-        self.traffic: dict[int, TrafficWriter] = {}
         sc = scamper_config(mission) if drone_ids is None else None
         self.robot: ScamperDriver | None = None
         if sc is not None:  # its own motion-capture pose goes to its autopilot (external navigation)
@@ -197,10 +209,9 @@ class HardwareBackend:
             if d.id not in self.drone_ids:
                 continue
             cfg = tello_config(self.mission, d.id)
-            if self.devices is not None:
-                self.traffic[d.id] = TrafficWriter(self.devices.tello(d.id), cfg.host)
-            drv = TelloDriver(cfg, self.traffic.get(d.id))
-            self.drones[d.id] = drv
+            traffic = None if self.devices is None else TrafficWriter(self.devices.tello(d.id), cfg.host)
+            drv = TelloDriver(cfg, traffic)
+            this = self.lab_drones[d.id] = LabDrone(DroneIdentity(d.id), drv, traffic=traffic)
             if self.guardian is not None:
                 drv.set_muted(self.guardian.taken_over)
             drv.connect()
@@ -212,9 +223,8 @@ class HardwareBackend:
             if d.camera is not None and d.camera.calibration is not None:
                 to_picture = picture_of(load_calibration(self.mission.resolve(d.camera.calibration)))
             timeout_s = self.mission.hardware.drone(d.id).frame_timeout_s
-            cam = TelloCamera(drv, timeout_s, video_latency_s, to_picture)
-            self.cameras[d.id] = cam
-            cam.start()
+            this.camera = TelloCamera(drv, timeout_s, video_latency_s, to_picture)
+            this.camera.start()
         if self.robot is not None:
             if self.guardian is not None:
                 self.robot.set_muted(self.guardian.taken_over)
@@ -222,10 +232,13 @@ class HardwareBackend:
 
     # ---- hal.Backend ------------------------------------------------------------------------------
     def drone(self, drone_id: int) -> TelloDriver:
-        return self.drones[drone_id]
+        return self.lab_drones[drone_id].driver
 
     def camera(self, drone_id: int) -> TelloCamera:
-        return self.cameras[drone_id]
+        cam = self.lab_drones[drone_id].camera
+        if cam is None:
+            raise KeyError(f"drone {drone_id}: its camera is not started")
+        return cam
 
     def pose_source(self) -> NamedPoseSource:
         return self.poses
@@ -240,12 +253,12 @@ class HardwareBackend:
             if sp is not None:
                 self._last_truth[name] = sp.pose
         target = self._last_truth.get(TARGET_BODY, UNKNOWN_POSE)
-        drones = {d: self._last_truth.get(DroneIdentity(d).name, UNKNOWN_POSE) for d in self.drones}
+        drones = {i: self._last_truth.get(d.identity.name, UNKNOWN_POSE) for i, d in self.lab_drones.items()}
         return target, drones
 
-    def _seen_down(self, drone_id: int) -> bool:
+    def _seen_down(self, drone: LabDrone) -> bool:
         """Motion capture shows the drone's body on the floor now (fresh pose, z ≤ safety.landed_height)."""
-        sp = self.poses.latest(DroneIdentity(drone_id).name)
+        sp = self.poses.latest(drone.identity.name)
         limit = self.mission.safety.landed_height
         return sp is not None and self.clock.now() - sp.stamp <= 0.3 and float(sp.pose.p[2]) <= limit
 
@@ -281,21 +294,22 @@ class HardwareBackend:
         Never raises: every failure is logged and the remaining devices are still closed."""
         if self.guardian is not None:
             self.guardian.arm(False)  # the blocking lands below must not read as a stalled loop
-        for i, drv in self.drones.items():
-            if drv.state().phase != FlightPhase.GROUND:  # taking off, airborne, landing or unknown
-                if self._seen_down(i):  # its telemetry is silent, but motion capture shows it down
+        for i, d in self.lab_drones.items():
+            if d.driver.state().phase != FlightPhase.GROUND:  # taking off, airborne, landing or unknown
+                if self._seen_down(d):  # its telemetry is silent, but motion capture shows it down
                     LOG.info("drone %s: on the floor by motion capture; no land sent while closing", i)
                     continue
                 try:
-                    drv.land()
+                    d.driver.land()
                 except Exception as exc:
                     LOG.error("drone %s: land failed while closing: %s", i, exc)
-        for cam in self.cameras.values():
+        for d in self.lab_drones.values():
+            if d.camera is not None:
+                with contextlib.suppress(Exception):
+                    d.camera.stop()
+        for d in self.lab_drones.values():
             with contextlib.suppress(Exception):
-                cam.stop()
-        for drv in self.drones.values():
-            with contextlib.suppress(Exception):
-                drv.close()
+                d.driver.close()
         if self.robot is not None:
             with contextlib.suppress(Exception):
                 self.robot.close()
@@ -310,14 +324,16 @@ class HardwareBackend:
     def _close_traffic(self) -> None:
         """Close the raw-traffic files (after the drivers and cameras: nothing more arrives); a recording
         that failed or was cut short is logged (the flight went on without it)."""
-        for i, w in self.traffic.items():
+        for i, d in self.lab_drones.items():
+            w, d.traffic = d.traffic, None
+            if w is None:
+                continue
             w.close()
             if w.errors:
                 LOG.warning(
                     "drone %s: raw traffic %s: %d records written; incomplete: %s",
                     i, w.path, w.written, ", ".join(f"{k} {n}" for k, n in sorted(w.errors.items())),
                 )  # fmt: skip
-        self.traffic = {}
 
 
 def build_tello(mission: Mission, devices: DeviceFiles | None = None) -> HardwareBackend:

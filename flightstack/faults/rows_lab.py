@@ -216,8 +216,8 @@ def loop_stall(mission_path: Path, workdir: Path) -> FaultResult:
         hover_s, land_s = (hw.loop_hover_s, hw.loop_land_s) if hw else (0.5, 2.0)
 
         def inject(backend: Any) -> None:
-            for i, d in backend.drones.items():
-                ports[i] = {d.link.chan._sock.getsockname()[1]}
+            for i in backend.lab_drones:
+                ports[i] = {backend.drone(i).link.chan._sock.getsockname()[1]}
             wait_then(lab, marks, lambda: holder["bus"].arm(time.monotonic()))
 
         run = fly_inprocess(lab, root / "run", injector=inject, bus_wrapper=wrap)

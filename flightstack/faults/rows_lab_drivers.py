@@ -75,7 +75,7 @@ def _inject_thread_errors(backend: Any) -> dict[str, Any]:
     """Socket errors into every driver thread of `backend` (HardwareBackend); returns the counters to
     watch: name -> (Counter, key, expected count)."""
     watch: dict[str, Any] = {}
-    drones = backend.drones
+    drones = {i: d.driver for i, d in backend.lab_drones.items()}
     rx = next(iter(drones.values())).link.rx  # one state receiver per state port (station mode: shared)
     rx._sock = FaultySocket(rx._sock, recvfrom=INJECTED["state receiver recv_error"])
     watch["state receiver"] = (rx.counts, "recv_error", INJECTED["state receiver recv_error"])
@@ -95,7 +95,7 @@ def _inject_thread_errors(backend: Any) -> dict[str, Any]:
 
         d.watchdog.step = step  # the watchdog thread calls self.step: this instance attribute
         watch[f"drone {i} monitor"] = (d.counts, "monitor_error", INJECTED["monitor_error"])
-        cam = backend.cameras[i]
+        cam = backend.camera(i)
         if cam._rx is not None:
             cam._rx._sock = FaultySocket(cam._rx._sock, recvfrom=INJECTED["video recv_error"])
             watch[f"drone {i} video"] = (cam.counts, "recv_error", INJECTED["video recv_error"])
@@ -118,12 +118,13 @@ def _inject_thread_errors(backend: Any) -> dict[str, Any]:
 def _threads_alive(backend: Any) -> dict[str, bool]:
     """Thread name -> alive, for every background thread of the backend's drivers."""
     out: dict[str, bool] = {}
-    for i, d in backend.drones.items():
+    for i, lab_drone in backend.lab_drones.items():
+        d = lab_drone.driver
         rx, chan = d.link.rx, d.link.chan
         out[f"drone {i} state receiver"] = rx is not None and rx._thread.is_alive()
         out[f"drone {i} command channel"] = chan is not None and chan._thread.is_alive()
         out[f"drone {i} monitor"] = d.watchdog.running()
-        cam = backend.cameras[i]
+        cam = backend.camera(i)
         out[f"drone {i} video"] = cam._rx is not None and cam._rx.alive()
     if backend.robot is not None:
         out.update({f"robot {k}": v for k, v in backend.robot.threads_alive().items()})
@@ -371,7 +372,7 @@ def auto_land_in_flight(mission_path: Path, workdir: Path) -> FaultResult:
             emu1.faults.self_land_now = True
 
         def inject(backend: Any) -> None:
-            held["driver"] = backend.drones[1]
+            held["driver"] = backend.drone(1)
             wait_then(lab, marks, land_by_itself)
 
         run = fly_inprocess(lab, root / "run", injector=inject)
