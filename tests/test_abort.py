@@ -264,7 +264,10 @@ zenoh = pytest.importorskip("zenoh")
 
 from flightstack.comms.factory import zenoh_bus_config  # noqa: E402
 from flightstack.comms.zenoh_bus import ZenohBus  # noqa: E402
-from flightstack.faults.rows_processes import IDS, ServedRun, served_mission  # noqa: E402
+from flightstack.faults.rows_processes import ServedRun, served_ids, served_mission  # noqa: E402
+
+IDS = served_ids()
+"""The served mission's drones (its agents)."""
 
 
 def test_abort_names_the_agent_that_did_not_acknowledge(

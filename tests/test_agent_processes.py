@@ -17,8 +17,11 @@ import yaml
 
 from flightstack.comms.factory import free_loopback_endpoints
 from flightstack.config.rig import resolved_document
-from flightstack.faults.rows_processes import IDS, ServedRun, served_mission
+from flightstack.faults.rows_processes import ServedRun, served_ids, served_mission
 from tests.conftest import MISSIONS, REPO
+
+IDS = served_ids()
+"""The served mission's drones (its agents)."""
 
 pytest.importorskip("zenoh")
 

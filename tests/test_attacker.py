@@ -31,8 +31,11 @@ import pytest
 
 from flightstack.comms.certs import create_mission_certs, files_of, participants
 from flightstack.comms.factory import tls_settings
-from flightstack.faults.rows_processes import IDS, ServedRun, served_mission
+from flightstack.faults.rows_processes import ServedRun, served_ids, served_mission
 from tests.conftest import REPO
+
+IDS = served_ids()
+"""The served mission's drones (its agents)."""
 
 pytest.importorskip("zenoh")
 

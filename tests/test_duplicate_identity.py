@@ -30,7 +30,7 @@ from flightstack.comms.identity import MAX_LABEL_CHARS, UNLABELLED, SessionBook,
 from flightstack.comms.messages import PredictionMessage
 from flightstack.comms.zenoh_bus import ZenohBus, ZenohBusConfig
 from flightstack.config.mission import load_mission
-from flightstack.faults.rows_processes import IDS, Lines, ServedRun, popen, served_mission
+from flightstack.faults.rows_processes import Lines, ServedRun, popen, served_ids, served_mission
 from flightstack.runtime.rig import build_backend
 from flightstack.sim_backend.served import messages as wm
 from flightstack.sim_backend.served.client import _Link
@@ -38,6 +38,9 @@ from flightstack.sim_backend.served.server import WorldServer, WorldSummary
 from flightstack.sim_backend.served.tick_gate import TickBounds, tick_refusal
 from tests.conftest import MISSIONS, eventually
 from tests.test_world_messages import tick_header
+
+IDS = served_ids()
+"""The served mission's drones (its agents)."""
 
 DT = 0.01
 BUS_MISSION = "identity_test"

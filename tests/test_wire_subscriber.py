@@ -22,9 +22,12 @@ import yaml
 
 from flightstack.comms import wire
 from flightstack.comms.messages import decode
-from flightstack.faults.rows_processes import IDS, ServedRun, served_mission
+from flightstack.faults.rows_processes import ServedRun, served_ids, served_mission
 from tests.conftest import REPO
 from tests.wire_page import decode_with_page, prediction_layout, same_as_project
+
+IDS = served_ids()
+"""The served mission's drones (its agents)."""
 
 zenoh = pytest.importorskip("zenoh")
 pytestmark = pytest.mark.system

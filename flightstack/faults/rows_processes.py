@@ -31,9 +31,20 @@ if TYPE_CHECKING:
     from flightstack.sim_backend.emulators.bus_proxies import BusProxies
 
 PAPER_SIM = MISSION_CONFIGS / "paper_sim.yaml"
-IDS = (1, 2, 3)
 PROCESS_TIMEOUT_S = 90.0
 DROP_WITHIN_S = 1.0  # the others drop a dead agent from fusion within 1 s
+
+
+def drone_ids_of(mission: Path) -> tuple[int, ...]:
+    """The drones of a mission file, in its order."""
+    from flightstack.config.mission import load_mission
+
+    return tuple(load_mission(mission, check_files=False).drone_ids())
+
+
+def served_ids() -> tuple[int, ...]:
+    """The drones `served_mission` flies (paper_sim's)."""
+    return drone_ids_of(PAPER_SIM)
 
 
 def served_mission(
@@ -141,17 +152,19 @@ class ServedRun:
         self,
         mission: Path,
         out: Path,
-        ids: tuple[int, ...] = IDS,
+        ids: tuple[int, ...] | None = None,
         mode: str = "dgp",
         agent_args: dict[int, tuple[str, ...]] | None = None,
         network: str = "clean",
         seed: int = 0,
     ) -> None:
-        """agent_args: extra arguments of some agents' command lines (e.g. --viewer), by drone id."""
+        """ids: the agents to start (None: one per drone of the mission); agent_args: extra arguments of some
+        agents' command lines (e.g. --viewer), by drone id."""
         self.out = out
+        self.ids = drone_ids_of(mission) if ids is None else ids
         self.proxies = None if network == "clean" else _bus_proxies(mission, network, seed)
         try:
-            self._start(mission, ids, mode, agent_args or {})
+            self._start(mission, self.ids, mode, agent_args or {})
         except BaseException:
             if self.proxies is not None:  # (a process started before the failure stops by its timeouts)
                 self.proxies.close()
@@ -232,9 +245,10 @@ def _stopped(pid: int) -> bool:
 
 
 def _survivor_checks(run: ServedRun, victim: int, t_fault: float, c: Checks) -> list[str]:
-    """Each surviving agent: full recording, finite, fused 3 before the fault and 2 from ≤ 1 s after."""
-    notes = []
-    for i in IDS:
+    """Each surviving agent: full recording, finite, fused every agent's prediction before the fault and all
+    but the victim's from ≤ 1 s after."""
+    notes, n = [], len(run.ids)
+    for i in run.ids:
         if i == victim:
             continue
         path = run.out / f"agent{i}" / "timeseries_dgp.npz"
@@ -245,10 +259,10 @@ def _survivor_checks(run: ServedRun, victim: int, t_fault: float, c: Checks) -> 
             finite = all(np.all(np.isfinite(z[f])) for f in ("g_wi", "g_bar_w", "V_cmd", "mu_used"))
         c.check(finite, f"agent {i}: non-finite values in its recording")
         before = wall < t_fault
-        c.check(bool(np.all(n_fused[before] == 3)) and before.any(), f"agent {i} did not fuse 3 before")
+        c.check(bool(np.all(n_fused[before] == n)) and before.any(), f"agent {i} did not fuse {n} before")
         events = (run.out / f"agent{i}" / "events.jsonl").read_text()
         c.check(f'"dropped": [{victim}]' in events, f"agent {i} logged no neighbours event dropping {victim}")
-        dropped = np.flatnonzero(n_fused == 2)
+        dropped = np.flatnonzero(n_fused == n - 1)
         if c.check(dropped.size > 0, f"agent {i} never dropped agent {victim}"):
             delay = float(wall[dropped[0]] - t_fault)
             c.check(delay < DROP_WITHIN_S, f"agent {i} dropped agent {victim} only {delay:.3f} s after")
@@ -256,17 +270,20 @@ def _survivor_checks(run: ServedRun, victim: int, t_fault: float, c: Checks) -> 
     return notes
 
 
-def _world_landed(out: str, c: Checks) -> bool:
-    ok = "1: landed, 2: landed, 3: landed" in out
+def _world_landed(out: str, ids: tuple[int, ...], c: Checks) -> bool:
+    ok = ", ".join(f"{i}: landed" for i in ids) in out
     c.check(ok, "the world did not report every drone landed")
     return ok
 
 
 @dataclass
 class _Served:
-    """What a served fault row saw: the run, the world's and the victim's output, the checks so far."""
+    """What a served fault row saw: the run, its victim and the others, the world's and the victim's
+    output, the checks so far."""
 
     run: ServedRun
+    victim: int
+    survivors: list[int]
     world_out: str
     victim_out: str
     c: Checks
@@ -275,27 +292,29 @@ class _Served:
     safe: bool
 
 
-def _served_fault(workdir: Path, name: str, inject: Callable[[ServedRun], float], victim: int = 3) -> _Served:
-    """Fly the served mission, call inject(run) 3 s into it (it returns the fault's `time.time()`), wait
-    for every process, and make the checks every such row makes."""
+def _served_fault(workdir: Path, name: str, inject: Callable[[ServedRun, int], float]) -> _Served:
+    """Fly the served mission, call inject(run, victim) 3 s into it (the victim: its last drone's agent;
+    inject returns the fault's `time.time()`), wait for every process, and make the checks every such row
+    makes."""
     c, crash = Checks(), Checks()
     mission = served_mission(workdir, duration_s=8.0, name=f"fault_{name}")
     with ServedRun(mission, workdir) as run:
+        victim = run.ids[-1]
         crash.check(run.world_lines.wait_for("tick 300", 60), "the served run never reached t = 3 s")
-        t_fault = inject(run)
+        t_fault = inject(run, victim)
         codes, world = run.wait()
         wout = run.world_lines.rest()
         vout = run.agent_lines[victim].rest()
-    survivors = [i for i in IDS if i != victim]
+    survivors = [i for i in run.ids if i != victim]
     crash.check(all(codes[i] == 0 for i in survivors), f"surviving agents exited {codes}")
     crash.check(world == 0, f"world exited {world}")
     c.check(f"agent {victim} left" in wout, f"the world never saw agent {victim} leave")
     notes = _survivor_checks(run, victim, t_fault, c)
-    return _Served(run, wout, vout, c, crash, notes, _world_landed(wout, c))
+    return _Served(run, victim, survivors, wout, vout, c, crash, notes, _world_landed(wout, run.ids, c))
 
 
 def _result(
-    name: str, expected: str, sv: _Served, recorded: tuple[int, ...], observed: str, wall0: float
+    name: str, expected: str, sv: _Served, recorded: list[int], observed: str, wall0: float
 ) -> FaultResult:
     """The row's result; `recorded`: the agents that must have written their recording."""
     return FaultResult(
@@ -311,46 +330,55 @@ def _result(
     )
 
 
-def agent_killed(mission_path: Path, workdir: Path) -> FaultResult:
-    """SIGKILL to agent 3 during pursuit."""
-    wall0 = time.perf_counter()
-    expected = (
-        "agent 3's liveliness token vanishes (TCP closed); agents 1, 2 drop it from fusion and consensus "
-        f"within {DROP_WITHIN_S:g} s and fly to the end; the world lands drone 3 at once"
-    )
+def _agents(ids: list[int]) -> str:
+    return ", ".join(str(i) for i in ids)
 
-    def kill(run: ServedRun) -> float:
-        run.agents[3].send_signal(signal.SIGKILL)
+
+def agent_killed(mission_path: Path, workdir: Path) -> FaultResult:
+    """SIGKILL to the last drone's agent during pursuit."""
+    wall0 = time.perf_counter()
+
+    def kill(run: ServedRun, victim: int) -> float:
+        run.agents[victim].send_signal(signal.SIGKILL)
         return time.time()
 
     sv = _served_fault(workdir / "agent_killed", "killed", kill)
-    left = "world: agent 3 left → drone 3 landed" if "agent 3 left" in sv.world_out else "?"
-    return _result("agent_killed", expected, sv, (1, 2), left, wall0)  # the killed agent writes nothing
+    v = sv.victim
+    expected = (
+        f"agent {v}'s liveliness token vanishes (TCP closed); agents {_agents(sv.survivors)} drop it from "
+        f"fusion and consensus within {DROP_WITHIN_S:g} s and fly to the end; the world lands drone {v} "
+        "at once"
+    )
+    left = f"world: agent {v} left → drone {v} landed" if f"agent {v} left" in sv.world_out else "?"
+    return _result("agent_killed", expected, sv, sv.survivors, left, wall0)  # the killed agent writes nothing
 
 
 def bus_partition(mission_path: Path, workdir: Path) -> FaultResult:
-    """Agent 3 unreachable for 3 s without closing its links (SIGSTOP, then SIGCONT): a partition."""
+    """The last drone's agent unreachable for 3 s without closing its links (SIGSTOP, then SIGCONT): a
+    partition."""
     wall0 = time.perf_counter()
-    expected = (
-        "after the 0.5 s lease agents 1, 2 and the world see agent 3 gone: they drop it from fusion within "
-        f"{DROP_WITHIN_S:g} s and fly on; the world lands drone 3; agent 3, back, finds no world: it "
-        "lands (requested) and exits 1 with its partial recording"
-    )
 
-    def freeze(run: ServedRun) -> float:
-        run.agents[3].send_signal(signal.SIGSTOP)
+    def freeze(run: ServedRun, victim: int) -> float:
+        run.agents[victim].send_signal(signal.SIGSTOP)
         t_fault = time.time()
         time.sleep(3.0)
-        run.agents[3].send_signal(signal.SIGCONT)
+        run.agents[victim].send_signal(signal.SIGCONT)
         return t_fault
 
     sv = _served_fault(workdir / "bus_partition", "partition", freeze)
-    code3, aout = sv.run.agents[3].returncode, sv.victim_out
-    sv.crash.check(code3 == 1 and "Traceback" not in aout, f"agent 3 exited {code3}: {aout[-300:]}")
-    sv.c.check("WorldLostError" in aout, "agent 3 did not report the lost world")
-    sv.c.check((sv.run.out / "agent3" / "timeseries_dgp.npz").is_file(), "agent 3 wrote no partial recording")
-    observed = "world: agent 3 left → drone 3 landed; agent 3: world lost, exit 1"
-    return _result("bus_partition", expected, sv, (1, 2, 3), observed, wall0)
+    v = sv.victim
+    expected = (
+        f"after the 0.5 s lease agents {_agents(sv.survivors)} and the world see agent {v} gone: they drop "
+        f"it from fusion within {DROP_WITHIN_S:g} s and fly on; the world lands drone {v}; agent {v}, back, "
+        "finds no world: it lands (requested) and exits 1 with its partial recording"
+    )
+    code, aout = sv.run.agents[v].returncode, sv.victim_out
+    sv.crash.check(code == 1 and "Traceback" not in aout, f"agent {v} exited {code}: {aout[-300:]}")
+    sv.c.check("WorldLostError" in aout, f"agent {v} did not report the lost world")
+    recorded = (sv.run.out / f"agent{v}" / "timeseries_dgp.npz").is_file()
+    sv.c.check(recorded, f"agent {v} wrote no partial recording")
+    observed = f"world: agent {v} left → drone {v} landed; agent {v}: world lost, exit 1"
+    return _result("bus_partition", expected, sv, list(sv.run.ids), observed, wall0)
 
 
 ROWS: dict[str, FaultRow] = {"agent_killed": agent_killed, "bus_partition": bus_partition}
