@@ -325,11 +325,12 @@ class _Windows:
         return self.ends[k] if k >= 0 and t < self.ends[k] else None
 
 
-class LinkModel:
-    """The decisions for one direction of one link (module docstring). Not thread-safe: one caller at a
-    time (the emulators lock around it). `counts`: "packets", "delivered", "lost" (Gilbert–Elliott),
-    "blackout", "queue", "duplicated", "reordered", "spiked"; `delay_sum_s` the sum of the delivered
-    originals' delays (s)."""
+class _Draws:
+    """What LinkModel and StreamModel share: the link's generator, its Gilbert–Elliott state, blackout
+    windows, rate cap and in-order delivery, and the delay drawn from a packet's random numbers."""
+
+    N_DRAWS = 8
+    """Random numbers drawn per packet, whatever becomes of it (module docstring)."""
 
     def __init__(
         self,
@@ -347,12 +348,36 @@ class LinkModel:
         self._rng = link_rng(seed, device, link)
         self._bad = False
         self._t_prev: float | None = None
-        self._epoch = float(epoch)
-        self._blackouts = _Windows(blackouts or [], self._epoch)
+        self._blackouts = _Windows(blackouts or [], float(epoch))
         self._busy_until = -math.inf  # when the rate cap has serialised every packet so far
         self._last_due = -math.inf  # the latest in-order delivery time so far
         self.counts: Counter[str] = Counter()
-        self.delay_sum_s = 0.0
+
+    def _step(self, t: float) -> tuple[list[float], bool]:
+        """The packet's random numbers, and whether it is lost to the chain (which every packet moves)."""
+        p = self.profile
+        u = [self._rng.random() for _ in range(self.N_DRAWS)]
+        self._bad = u[0] < gilbert_elliott_step(p, self._bad, self._t_prev, t)
+        self._t_prev = t
+        return u, u[1] < (p.loss_bad if self._bad else p.loss_good)
+
+    def _delay(self, u: list[float]) -> float:
+        """Latency + exponential jitter (u[2]) + a spike with probability spike_p (u[3], u[4]) (s)."""
+        p = self.profile
+        delay = p.latency_s + (-p.jitter_s * math.log(1.0 - u[2]) if p.jitter_s > 0 else 0.0)
+        if u[3] < p.spike_p:
+            delay += p.spike_s[0] + u[4] * (p.spike_s[1] - p.spike_s[0])
+            self.counts["spiked"] += 1
+        return delay
+
+
+class LinkModel(_Draws):
+    """The decisions for one direction of one link (module docstring). Not thread-safe: one caller at a
+    time (the emulators lock around it). `counts`: "packets", "delivered", "lost" (Gilbert–Elliott),
+    "blackout", "queue", "duplicated", "reordered", "spiked"; `delay_sum_s` the sum of the delivered
+    originals' delays (s)."""
+
+    delay_sum_s = 0.0
 
     def in_blackout(self, t: float) -> bool:
         """True when t falls in one of the link's blackout windows."""
@@ -360,11 +385,9 @@ class LinkModel:
 
     def decide(self, t: float, size: int) -> list[float]:
         """Delivery times (s) of a packet of `size` bytes entering at t: [] lost, one or two (duplicate)."""
-        p, rng = self.profile, self._rng
-        u = [rng.random() for _ in range(8)]  # a fixed number of draws per packet: module docstring
+        p = self.profile
         self.counts["packets"] += 1
-        self._bad = u[0] < gilbert_elliott_step(p, self._bad, self._t_prev, t)  # every packet moves it
-        self._t_prev = t
+        u, lost = self._step(t)
         if self.in_blackout(t):
             self.counts["blackout"] += 1
             return []
@@ -376,14 +399,10 @@ class LinkModel:
                 return []
             self._busy_until = start + 8.0 * size / p.rate_bps
             start = self._busy_until
-        if u[1] < (p.loss_bad if self._bad else p.loss_good):
+        if lost:
             self.counts["lost"] += 1
             return []
-        delay = p.latency_s + (-p.jitter_s * math.log(1.0 - u[2]) if p.jitter_s > 0 else 0.0)
-        if u[3] < p.spike_p:
-            delay += p.spike_s[0] + u[4] * (p.spike_s[1] - p.spike_s[0])
-            self.counts["spiked"] += 1
-        due = start + delay
+        due = start + self._delay(u)
         if u[5] < p.reorder:
             due += p.reorder_s  # outside the order: neither waits for nor holds back the others
             self.counts["reordered"] += 1
@@ -398,7 +417,7 @@ class LinkModel:
         return [due]
 
 
-class StreamModel:
+class StreamModel(_Draws):
     """The same profile for one direction of a TCP connection: nothing is lost (TCP retransmits), so
     every chunk of bytes is delivered, in order, at the time `decide` returns: rate cap (no drop: the
     sender waits), latency, jitter and spikes as in LinkModel; a Gilbert–Elliott loss costs
@@ -407,34 +426,14 @@ class StreamModel:
     Not thread-safe. `counts`: "chunks", "bytes", "retransmitted", "held" (by a blackout), "spiked"."""
 
     RETRANSMIT_S = 0.2
-
-    def __init__(
-        self,
-        prof: LinkProfile,
-        seed: int,
-        device: str,
-        link: str,
-        *,
-        epoch: float = 0.0,
-        blackouts: list[tuple[float, float]] | None = None,
-    ) -> None:
-        self.profile = prof
-        self._rng = link_rng(seed, device, link)
-        self._bad = False
-        self._t_prev: float | None = None
-        self._blackouts = _Windows(blackouts or [], epoch)
-        self._busy_until = -math.inf
-        self._last_due = -math.inf
-        self.counts: Counter[str] = Counter()
+    N_DRAWS = 5
 
     def decide(self, t: float, size: int) -> float:
         """When a chunk of `size` bytes written at t reaches the other end (s)."""
-        p, rng = self.profile, self._rng
-        u = [rng.random() for _ in range(5)]
+        p = self.profile
         self.counts["chunks"] += 1
         self.counts["bytes"] += size
-        self._bad = u[0] < gilbert_elliott_step(p, self._bad, self._t_prev, t)
-        self._t_prev = t
+        u, lost = self._step(t)
         start = t
         end = self._blackouts.end_at(t)
         if end is not None:
@@ -443,13 +442,10 @@ class StreamModel:
         if p.rate_bps is not None:
             start = max(start, self._busy_until) + 8.0 * size / p.rate_bps
             self._busy_until = start
-        delay = p.latency_s + (-p.jitter_s * math.log(1.0 - u[2]) if p.jitter_s > 0 else 0.0)
-        if u[1] < (p.loss_bad if self._bad else p.loss_good):
+        delay = self._delay(u)
+        if lost:
             delay += self.RETRANSMIT_S
             self.counts["retransmitted"] += 1
-        if u[3] < p.spike_p:
-            delay += p.spike_s[0] + u[4] * (p.spike_s[1] - p.spike_s[0])
-            self.counts["spiked"] += 1
         self._last_due = max(start + delay, self._last_due)
         return self._last_due
 

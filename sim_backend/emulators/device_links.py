@@ -44,7 +44,7 @@ import numpy as np
 from flightstack.config.links import LINKS, NONE, LinkSpec, LinksSpec
 from flightstack.netem import LinkModel, LinkProfile
 
-from .radio import Address, DelayLine, ImpairedSocket, Sender
+from .radio import Address, DelayLine, ImpairedSocket, Sender, counter_row
 
 EMULATED_LINKS = ("video", "state", "rc", "mocap", "robot")
 """The links the emulators apply (the bus is between agent processes, not a device's)."""
@@ -112,11 +112,7 @@ class LinkStage:
     def row(self) -> dict[str, float]:
         """The counters and delay_mean_ms (JSON-ready)."""
         with self._lock:
-            row: dict[str, float] = dict.fromkeys(LINK_COUNTERS, 0.0)
-            row.update(self.counts)
-            n = self.counts["delivered"]
-            row["delay_mean_ms"] = round(1e3 * self.delay_sum_s / n, 3) if n else 0.0
-            return row
+            return counter_row(LINK_COUNTERS, self.counts, self.delay_sum_s)
 
 
 class DeviceLinks:

@@ -27,7 +27,7 @@ import select
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
 from flightstack.netem import LinkModel, NetworkProfile, blackout_windows
@@ -35,6 +35,15 @@ from flightstack.netem import LinkModel, NetworkProfile, blackout_windows
 Address = tuple[str, int]
 COUNTERS = ("packets", "delivered", "lost", "blackout", "queue", "duplicated", "reordered", "spiked")
 """The counters every link reports (LinkModel.counts), 0 included."""
+
+
+def counter_row(names: tuple[str, ...], counts: Mapping[str, int], delay_sum_s: float) -> dict[str, float]:
+    """A link's counters (every one of `names`, 0 included) and delay_mean_ms of what it delivered."""
+    row: dict[str, float] = dict.fromkeys(names, 0.0)
+    row.update(counts)
+    n = counts.get("delivered", 0)
+    row["delay_mean_ms"] = round(1e3 * delay_sum_s / n, 3) if n else 0.0
+    return row
 
 
 class Sender(Protocol):
@@ -166,15 +175,8 @@ class DeviceRadio:
 
     def counts(self) -> dict[str, dict[str, float]]:
         """Per link: the model's counters and delay_mean_ms of what it delivered (JSON-ready)."""
-        out: dict[str, dict[str, float]] = {}
         with self._lock:
-            for name, m in self._models.items():
-                row: dict[str, float] = dict.fromkeys(COUNTERS, 0.0)
-                row.update(m.counts)
-                n = m.counts["delivered"]
-                row["delay_mean_ms"] = round(1e3 * m.delay_sum_s / n, 3) if n else 0.0
-                out[name] = row
-        return out
+            return {name: counter_row(COUNTERS, m.counts, m.delay_sum_s) for name, m in self._models.items()}
 
     def socket(
         self, sock: socket.socket, send: Callable[[Address], str | None] | None, recv: str | None
@@ -341,4 +343,12 @@ class ImpairedSocket:
                 self._held.push(due, data, addr)
 
 
-__all__ = ["DelayLine", "DeviceRadio", "HeldDatagrams", "ImpairedSocket", "LinkDecider", "Sender"]
+__all__ = [
+    "DelayLine",
+    "DeviceRadio",
+    "HeldDatagrams",
+    "ImpairedSocket",
+    "LinkDecider",
+    "Sender",
+    "counter_row",
+]
