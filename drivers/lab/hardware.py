@@ -210,7 +210,12 @@ class HardwareBackend:
                 continue
             cfg = tello_config(self.mission, d.id)
             traffic = None if self.devices is None else TrafficWriter(self.devices.tello(d.id), cfg.host)
-            drv = TelloDriver(cfg, traffic)
+            try:
+                drv = TelloDriver(cfg, traffic)
+            except BaseException:  # (once recorded in lab_drones, close() closes its writer)
+                if traffic is not None:
+                    traffic.close()
+                raise
             this = self.lab_drones[d.id] = LabDrone(DroneIdentity(d.id), drv, traffic=traffic)
             if self.guardian is not None:
                 drv.set_muted(self.guardian.taken_over)
