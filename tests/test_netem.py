@@ -300,7 +300,8 @@ def test_a_rig_files_old_network_key_is_the_links_network_said_in_one_line(
 
 def test_links_and_network_flags_set_their_own_part_of_links(tmp_path: Path) -> None:
     """`--links P` replaces the rig's links with a profile and keeps its radio; `--network N` sets the
-    radio and keeps the links (load_mission's overrides, as `run` builds them)."""
+    radio and keeps the links (load_mission's overrides, as `run` builds them); `--set links.network=N`
+    sets it too."""
     from flightstack.config.mission import load_mission
 
     rig = _rig_with(tmp_path, "links: {network: outage, rc: {latency_s: 0.2}}\n")
@@ -308,3 +309,6 @@ def test_links_and_network_flags_set_their_own_part_of_links(tmp_path: Path) -> 
     assert m.links.network == "outage" and m.links.profile == "tello" and m.links.rc is None
     m = load_mission("paper_experiment", {"links.network": "crowded"}, rig=rig)
     assert m.links.network == "crowded" and m.links.rc is not None and m.links.rc.latency_s == 0.2
+    from flightstack.cli.run import with_sets
+
+    assert with_sets(m, ["links.network=lab-wifi"]).links.network == "lab-wifi"  # `--set` reaches it too
