@@ -352,6 +352,8 @@ class _Draws:
         self._busy_until = -math.inf  # when the rate cap has serialised every packet so far
         self._last_due = -math.inf  # the latest in-order delivery time so far
         self.counts: Counter[str] = Counter()
+        self.delay_sum_s = 0.0
+        """The delivered packets' delays summed (s; kept by LinkModel, 0 on a stream)."""
 
     def _step(self, t: float) -> tuple[list[float], bool]:
         """The packet's random numbers, and whether it is lost to the chain (which every packet moves)."""
@@ -376,8 +378,6 @@ class LinkModel(_Draws):
     time (the emulators lock around it). `counts`: "packets", "delivered", "lost" (Gilbert–Elliott),
     "blackout", "queue", "duplicated", "reordered", "spiked"; `delay_sum_s` the sum of the delivered
     originals' delays (s)."""
-
-    delay_sum_s = 0.0
 
     def in_blackout(self, t: float) -> bool:
         """True when t falls in one of the link's blackout windows."""

@@ -244,13 +244,13 @@ def _stopped(pid: int) -> bool:
         return False
 
 
-def _survivor_checks(run: ServedRun, victim: int, t_fault: float, c: Checks) -> list[str]:
+def _survivor_checks(
+    run: ServedRun, victim: int, survivors: list[int], t_fault: float, c: Checks
+) -> list[str]:
     """Each surviving agent: full recording, finite, fused every agent's prediction before the fault and all
     but the victim's from ≤ 1 s after."""
     notes, n = [], len(run.ids)
-    for i in run.ids:
-        if i == victim:
-            continue
+    for i in survivors:
         path = run.out / f"agent{i}" / "timeseries_dgp.npz"
         if not c.check(path.is_file(), f"agent {i} wrote no recording"):
             continue
@@ -309,7 +309,7 @@ def _served_fault(workdir: Path, name: str, inject: Callable[[ServedRun, int], f
     crash.check(all(codes[i] == 0 for i in survivors), f"surviving agents exited {codes}")
     crash.check(world == 0, f"world exited {world}")
     c.check(f"agent {victim} left" in wout, f"the world never saw agent {victim} leave")
-    notes = _survivor_checks(run, victim, t_fault, c)
+    notes = _survivor_checks(run, victim, survivors, t_fault, c)
     return _Served(run, victim, survivors, wout, vout, c, crash, notes, _world_landed(wout, run.ids, c))
 
 
