@@ -131,3 +131,16 @@ def test_agent_without_a_world_fails_clearly(tmp_path: Path) -> None:
     assert r.returncode == 1, r.stderr
     assert "WorldLostError: no tick from the served world within 2 s" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_the_served_mission_loads_from_a_relative_work_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`flightstack faults` passes its relative --out (runs/faults/...): the experts file the served mission
+    names must load from there, not be looked for under that folder a second time."""
+    from flightstack.config.mission import load_mission
+
+    monkeypatch.chdir(tmp_path)
+    path = served_mission(Path("runs") / "faults" / "row", duration_s=1.0)
+    mission = load_mission(path)  # checks that gp.experts_file exists
+    assert mission.resolve(mission.gp.experts_file) == (tmp_path / "runs/faults/row/experts.npz").resolve()

@@ -88,7 +88,8 @@ def served_mission(
         hyper = GPHyperparameters(np.full(4, 0.5), np.full((4, 4), 1.0), np.full(4, 0.01))
         experts[d["id"]] = GPExpert.from_hyperparameters(X, Y, hyper)
     save_experts(workdir / "experts.npz", experts)
-    m["gp"]["experts_file"] = str(workdir / "experts.npz")
+    # absolute: the mission resolves a relative path from its own folder (a relative workdir was doubled)
+    m["gp"]["experts_file"] = str((workdir / "experts.npz").resolve())
     path = workdir / "mission.yaml"
     path.write_text(yaml.safe_dump(m))
     return path
