@@ -27,6 +27,7 @@ pytest.importorskip("pymavlink")
 from pymavlink import mavutil
 
 from flightstack.drivers.scamper.driver import ScamperCommandError, ScamperConfig, ScamperDriver
+from flightstack.drivers.scamper.nav import ORIGIN_RETRY_S
 from flightstack.faults.spec_rover import HOLD, SpecRover
 from flightstack.hal import StampedPose
 from flightstack.paper.geometry import Pose
@@ -117,6 +118,8 @@ def test_no_origin_reported_refuses_to_connect_in_one_line() -> None:
         print(f"connect failed after {took:.2f} s: {exc.value}")
         assert "EKF origin not confirmed" in str(exc.value) and "\n" not in str(exc.value)
         assert r.origin_sets >= 1 and r.mode == HOLD and not r.armed
+        # one try ORIGIN_RETRY_S after the last, whatever the ticker's phase (connect's own try included)
+        assert r.origin_sets <= 1 + int(took / ORIGIN_RETRY_S), r.origin_sets
         assert drv.threads_alive() == {}
     finally:
         r.close()

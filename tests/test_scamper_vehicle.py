@@ -10,7 +10,14 @@ import numpy as np
 import pytest
 
 from flightstack.drivers.scamper import vehicle as sv
-from flightstack.drivers.scamper.nav import LabOrigin, VisionStream, lab_to_ned, ned_to_lab
+from flightstack.drivers.scamper.nav import (
+    ORIGIN_RETRY_S,
+    LabOrigin,
+    OriginState,
+    VisionStream,
+    lab_to_ned,
+    ned_to_lab,
+)
 from flightstack.hal import StampedPose
 from flightstack.paper.geometry import Pose
 
@@ -59,6 +66,18 @@ def test_vision_stream_sends_fresh_new_poses_once_and_bumps_reset_after_a_gap() 
     assert vs.next(None, 10.4) == (None, "no pose")
     s, _ = vs.next(StampedPose(10.5, pose), 10.55)
     assert s is not None and s.reset_counter == 1
+
+
+def test_the_origin_is_tried_again_only_retry_s_after_the_last_try() -> None:
+    # connect's own try and scamper-tx's ticker (another phase) ask at once: only one sends
+    state = OriginState()
+    assert state.try_due(100.0) and not state.try_due(100.0)
+    assert not state.try_due(100.0 + ORIGIN_RETRY_S - 0.01)  # the ticker right after connect's try
+    assert state.try_due(100.0 + ORIGIN_RETRY_S)
+    state.confirmed = True
+    assert not state.try_due(200.0)  # confirmed: never again
+    state.forget()  # a reboot: at once, whatever the last try
+    assert state.try_due(200.0) and state.sends == 0 and state.boots == 1
 
 
 def test_external_nav_rule_names_every_parameter_to_set_in_one_line() -> None:

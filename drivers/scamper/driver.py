@@ -91,7 +91,7 @@ __all__ = [
 mavlink = mavutil.mavlink
 
 DEFAULT_HEARTBEAT_PERIOD_S = 1.0  # ArduPilot's HEARTBEAT rate, assumed until measured
-ORIGIN_RETRY_S = 1.0  # SET_GPS_GLOBAL_ORIGIN + REQUEST_MESSAGE(49) again this often until confirmed (s)
+ORIGIN_TICK_S = 0.1  # how often scamper-tx checks whether the origin is due again (s)
 BOOT_BACKSTEP_MS = 200  # SYSTEM_TIME.time_boot_ms going back more than this: the vehicle rebooted
 VISION_LEAD_SAMPLES = 10  # poses sent before GUIDED is asked for (0.5 s at 20 Hz): the EKF needs them first
 PoseSource = Callable[[], StampedPose | None]  # the robot's own motion-capture pose, time.monotonic() stamp
@@ -213,7 +213,7 @@ class ScamperDriver:
             self._on_message,
             self._stream_tick,
             (1.0 / cfg.vision_hz, self._vision_tick),
-            (ORIGIN_RETRY_S, self._origin_tick),
+            (ORIGIN_TICK_S, self._origin_tick),
         )
         try:
             deadline = time.monotonic() + cfg.heartbeat_timeout_s
@@ -419,18 +419,16 @@ class ScamperDriver:
         self._origin_tick()
 
     def _origin_tick(self) -> None:
-        """scamper-tx, every ORIGIN_RETRY_S: while unconfirmed, set the origin; from the second time on also
-        ask for it back (MAV_CMD_REQUEST_MESSAGE 49)."""
+        """scamper-tx, every ORIGIN_TICK_S (and connect): while unconfirmed, ORIGIN_RETRY_S after the last
+        try, set the origin; from the second try on also ask for it back (MAV_CMD_REQUEST_MESSAGE 49)."""
         link = self._link
-        with self._lock:
-            if link is None or self._last_hb is None or self._origin_state.confirmed:
+        with self._lock:  # decided and claimed at once: connect's wake and the ticker never both send
+            if link is None or self._last_hb is None or not self._origin_state.try_due(time.monotonic()):
                 return
-            target = self._target
-        with self._lock:
-            retry = self._origin_state.sends > 0
+            state, target, retry = self._origin_state, self._target, self._origin_state.sends > 0
         if link.send_origin(target, self.origin) == "sent":
             with self._lock:
-                self._origin_state.sends += 1
+                state.sends += 1
         if retry:  # ArduPilot answers a new origin by itself (set_ekf_origin); one it had already, only asked
             link.request_message(target, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
 

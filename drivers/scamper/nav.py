@@ -37,6 +37,7 @@ from flightstack.hal import StampedPose
 POSE_UNKNOWN_COVARIANCE = (math.nan,) + (0.0,) * 20
 """VISION_POSITION_ESTIMATE.covariance: first element NaN = unknown (MAVLink common.xml); ArduPilot then
 uses its VISO_POS_M_NSE / VISO_YAW_M_NSE noise parameters (handle_common_vision_position_estimate_data)."""
+ORIGIN_RETRY_S = 1.0  # SET_GPS_GLOBAL_ORIGIN + REQUEST_MESSAGE(49) again this long after the last try (s)
 
 
 def lab_to_ned(p: np.ndarray, theta: float) -> tuple[float, float, float, float]:
@@ -139,9 +140,18 @@ class OriginState:
     confirmed: bool = False
     reported: tuple[int, int, int] | None = None  # what GPS_GLOBAL_ORIGIN said (degE7, degE7, mm)
     sends: int = 0  # SET_GPS_GLOBAL_ORIGIN sent this boot
+    last_try_s: float | None = None  # time.monotonic() of the last try to send it (s)
     boots: int = 0  # times the vehicle was seen to (re)boot: origin forgotten, sent again
+
+    def try_due(self, now_s: float) -> bool:
+        """Is a try to set the origin due at now_s (time.monotonic(), s): unconfirmed and none in the last
+        ORIGIN_RETRY_S? If so it counts as made now, so two callers never both send."""
+        if self.confirmed or (self.last_try_s is not None and now_s - self.last_try_s < ORIGIN_RETRY_S):
+            return False
+        self.last_try_s = now_s
+        return True
 
     def forget(self) -> None:
         """The vehicle rebooted or came back after a gap: its EKF origin must be set and confirmed again."""
-        self.confirmed, self.reported, self.sends = False, None, 0
+        self.confirmed, self.reported, self.sends, self.last_try_s = False, None, 0, None
         self.boots += 1
