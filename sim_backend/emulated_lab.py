@@ -226,7 +226,7 @@ class EmulatedLab:
     child process per drone (tello_video_process.VideoProcess); `cameras[i]` is drone i's process handle.
 
     network: the impairment profile of every emulated device's links (flightstack.netem.PROFILES; the
-    mission's `network:`, `--network`), seeded by `seed` (the mission's seed) per device and link; its
+    mission's `links.network`, `--network`), seeded by `seed` (the mission's seed) per device and link; its
     blackout windows count from the lab's start. "clean": the emulators' sockets are not wrapped at all.
     What each link did: `network_counts()`, also in `log()`. The live cameras' video leaves from their
     child processes through the same video link model, seeded alike, with the drone's blackout windows and

@@ -67,7 +67,7 @@ class RigFacts(Protocol):
     plots_drones: bool
     """The run's trajectory plot shows the drones' paths beside the target's."""
     applies_network_profile: bool
-    """The mission's `network:` profile impairs this rig's links."""
+    """The mission's radio profile (`links.network`) impairs this rig's links."""
 
     def check(self, mission: AnyMission) -> None:
         """What this rig needs of a composed mission (ValueError naming the key and why)."""
