@@ -4,21 +4,18 @@ mission's `hardware:` section, flown on the wall clock (drivers/lab/hardware.py 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
-from pathlib import Path
 from typing import TYPE_CHECKING
 
-from flightstack.config.links import LinkSpec
 from flightstack.config.mission import Mission
 from flightstack.config.rigs import LabFacts, need_cameras, need_square_law
 from flightstack.recording.files import DeviceFiles
-from flightstack.runtime.rig import AgentSeat, LoopPlanner, Preflight, Rig
+from flightstack.runtime.rig import AgentSeat, Preflight, Rig, RigDefaults
 
 if TYPE_CHECKING:
     from flightstack.drivers.lab.hardware import HardwareBackend
 
 
-class LabRig(LabFacts):
+class LabRig(LabFacts, RigDefaults):
     name = "tello"
     simulated = False
     starts_emulators = False
@@ -53,19 +50,11 @@ class LabRig(LabFacts):
                 "constant, s; flightstack calibrate latency measures it)"
             )
 
-    def command_link(self, mission: Mission) -> LinkSpec:
-        return mission.links.link("rc")
-
     def drone_response_s(self, mission: Mission) -> float:
         """Unused on hardware (check_compensation requires compensation.response_s); the emulated Tello's."""
         from flightstack.config.compensation import EMULATED_TELLO_RESPONSE_S
 
         return EMULATED_TELLO_RESPONSE_S
-
-    @contextlib.contextmanager
-    def open(self, mission: Mission, log_dir: Path) -> Iterator[Mission]:
-        """The devices open per mode (build_backend): the mission as it is."""
-        yield mission
 
     def build_backend(self, mission: Mission, devices: DeviceFiles | None) -> HardwareBackend:
         from flightstack.drivers.lab.hardware import build_tello
@@ -79,9 +68,6 @@ class LabRig(LabFacts):
         from flightstack.drivers.lab.hardware import agent_backend
 
         return agent_backend(mission, seat)
-
-    def compiled_loop(self) -> LoopPlanner | None:
-        return None
 
     def preflight(
         self,

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol, cast
 
+from flightstack.config.links import LinkSpec
 from flightstack.config.mission import Mission
 from flightstack.config.rigs import RigFacts
 from flightstack.hal import Backend
@@ -74,6 +75,33 @@ class Rig(RigFacts, Protocol):
         """Check every device and file the flight needs, within about deadline_s (s), for `drone_ids` (None:
         every drone); None: the rig has no devices to check. ValueError for a drone the mission lacks."""
         ...
+
+
+class RigDefaults:
+    """What a rig does unless it says otherwise (a rig class subclasses it): nothing lives for the whole
+    flight, the rc link is the mission's own `links:` rc, no compiled loop, no devices to check."""
+
+    @contextlib.contextmanager
+    def open(self, mission: Mission, log_dir: Path) -> Iterator[Mission]:
+        """Nothing lives for the whole flight: the mission as it is."""
+        yield mission
+
+    def command_link(self, mission: Mission) -> LinkSpec:
+        """The rc link as the rig's own `links:` describe it."""
+        return mission.links.link("rc")
+
+    def compiled_loop(self) -> LoopPlanner | None:
+        return None
+
+    def preflight(
+        self,
+        mission: Mission,
+        drone_ids: list[int] | None = None,
+        deadline_s: float = 9.0,
+        camera: bool = True,
+    ) -> Preflight | None:
+        """No devices: nothing to check."""
+        return None
 
 
 def rig_of(mission: Mission) -> Rig:
