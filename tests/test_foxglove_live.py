@@ -520,8 +520,10 @@ def test_a_subscribe_flood_leaves_the_flight_as_a_clean_one(tmp_path: Path, safe
     flight process's CPU time within CPU_SLACK of the clean flight's, stderr at most 100 lines, overruns at
     most twice the clean flight's + 2, and the loop keeps dt when the clean flight kept it (a loaded CI
     machine's clean flight overran 4 % of its ticks: there the relative bounds judge). The clean flight is
-    flown in this test, right before the flooded one; when the CPU time is off, the pair is flown once more
-    (the machine's noise, not the view's cost, then decides)."""
+    flown in this test, right before the flooded one; when any of these comparisons is off, the pair is flown
+    once more and judged on that second pair (a cost of the view fails both; the machine's noise, seen as 2
+    overruns of 159 ticks beside the unit tier and a CPU-bound process while the flood cost less CPU than
+    the clean flight, not again)."""
     for attempt in range(2):
         clean = _lab_flight(tmp_path / f"clean{attempt}", flood=False)
         flooded = _lab_flight(tmp_path / f"flood{attempt}", flood=True)
@@ -532,7 +534,12 @@ def test_a_subscribe_flood_leaves_the_flight_as_a_clean_one(tmp_path: Path, safe
               f"overruns {f['overruns']}, stderr {flooded['stderr_lines']} lines")  # fmt: skip
         assert flooded["sent"] == FLOOD_MESSAGES
         assert "live view client 127.0.0.1:" in flooded["err"], flooded["err"][-2000:]
-        if flooded["cpu_s"] <= (1 + CPU_SLACK) * clean["cpu_s"] or attempt == 1:
+        within = (
+            flooded["cpu_s"] <= (1 + CPU_SLACK) * clean["cpu_s"]
+            and f["overruns"] <= 2 * c["overruns"] + 2
+            and (f["keeps_dt"] or not c["keeps_dt"])
+        )
+        if within or attempt == 1:
             break
     safety_bound("overruns of the flooded flight", f["overruns"], 2 * c["overruns"] + 2, "ticks")
     assert f["keeps_dt"] or not c["keeps_dt"], (f, c)
